@@ -1,0 +1,2 @@
+//! The terrastream client: byte-range sources, tile scheduler, cache, renderer.
+#![forbid(unsafe_code)]

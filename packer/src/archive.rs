@@ -1,0 +1,307 @@
+//! The I/O-free core of every reader: parses the bootstrap bytes, caches leaf directories,
+//! and says which bytes to fetch next. The blocking [`crate::Reader`], the async
+//! [`crate::AsyncReader`] and the client's HTTP reader are thin loops around it.
+
+use std::sync::{Arc, Mutex};
+
+use bytes::Bytes;
+
+use crate::checksum::crc32c;
+use crate::compression::decompress;
+use crate::directory::{Directory, Entry, LeafPointer, TILE_TRAILER_LEN};
+use crate::error::{Error, Result};
+use crate::header::{BOOTSTRAP_READ, Header};
+use crate::key::TileKey;
+use crate::metadata::Metadata;
+
+/// Metadata never inflates past this (16 MiB).
+pub const MAX_METADATA_BYTES: u64 = 16 << 20;
+/// Leaf directories kept decoded by default.
+pub const DEFAULT_LEAF_CACHE: usize = 64;
+
+/// Where a tile's blob lies in the file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TileLocation {
+    /// The tile asked for.
+    pub key: TileKey,
+    /// Absolute offset of the blob (payload + 4-byte CRC32C trailer).
+    pub offset: u64,
+    /// Payload length.
+    pub length: u32,
+}
+
+impl TileLocation {
+    /// Bytes to fetch: payload and trailer.
+    pub fn blob_len(&self) -> u64 {
+        u64::from(self.length) + TILE_TRAILER_LEN
+    }
+}
+
+/// Answer of [`Archive::locate`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Locate {
+    /// The tile is stored here.
+    Found(TileLocation),
+    /// No such tile (missing tiles are normal: fall back to a coarser LOD).
+    Missing,
+    /// Fetch this leaf directory (absolute range) and hand it to [`Archive::add_leaf`].
+    NeedLeaf {
+        /// Absolute offset of the leaf.
+        offset: u64,
+        /// Stored length of the leaf.
+        len: u64,
+    },
+}
+
+/// Result of [`Archive::open`] on the first bytes of a file.
+#[derive(Debug)]
+pub enum Bootstrap {
+    /// Everything needed was in the bytes given.
+    Ready(Box<Archive>),
+    /// Read `[0, len)` and call [`Archive::open`] again (metadata + root exceed the first read).
+    NeedBytes(u64),
+}
+
+/// A parsed archive: header, metadata, root directory and a small cache of leaves.
+#[derive(Debug)]
+pub struct Archive {
+    header: Header,
+    metadata: Metadata,
+    root: Directory,
+    depths: Vec<u8>,
+    file_len: u64,
+    leaves: Mutex<Vec<(u64, Arc<Vec<Entry>>)>>,
+    leaf_cache_capacity: usize,
+}
+
+impl Archive {
+    /// How many bytes to read at offset 0 before calling [`Archive::open`].
+    pub fn first_read_len(file_len: u64) -> u64 {
+        BOOTSTRAP_READ.min(file_len)
+    }
+
+    /// Parses the bytes read at offset 0 (at least [`Archive::first_read_len`] of them).
+    ///
+    /// # Errors
+    /// Any [`Error`] describing the damaged header, metadata or root directory.
+    pub fn open(first_bytes: &[u8], file_len: u64) -> Result<Bootstrap> {
+        let header = Header::decode(first_bytes, file_len)?;
+        let needed = header.bootstrap_len();
+        if (first_bytes.len() as u64) < needed {
+            return Ok(Bootstrap::NeedBytes(needed));
+        }
+        // Both sections end at or before bootstrap_len <= first_bytes.len() (checked above).
+        let slice = |s: crate::header::Section, name: &str| -> Result<&[u8]> {
+            let range = usize::try_from(s.offset).ok().zip(s.end().and_then(|e| usize::try_from(e).ok()));
+            range
+                .and_then(|(start, end)| first_bytes.get(start..end))
+                .ok_or_else(|| Error::corrupt("header", format!("{name} outside the bootstrap bytes")))
+        };
+        let meta_bytes = slice(header.metadata, "metadata")?;
+        check_crc(meta_bytes, header.metadata_crc, "metadata")?;
+        let json = decompress(meta_bytes, header.metadata_compression, MAX_METADATA_BYTES, "metadata")?;
+        let metadata = Metadata::from_json(&json)?;
+        let root_bytes = slice(header.root_dir, "root directory")?;
+        check_crc(root_bytes, header.root_dir_crc, "root directory")?;
+        let root = Directory::decode(
+            root_bytes,
+            header.directory_compression,
+            "root directory",
+            header.data.len,
+            header.leaf_dirs.len,
+        )?;
+        let depths = metadata.depths();
+        Ok(Bootstrap::Ready(Box::new(Self {
+            header,
+            metadata,
+            root,
+            depths,
+            file_len,
+            leaves: Mutex::new(Vec::new()),
+            leaf_cache_capacity: DEFAULT_LEAF_CACHE,
+        })))
+    }
+
+    /// The header.
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+    /// The metadata.
+    pub fn metadata(&self) -> &Metadata {
+        &self.metadata
+    }
+    /// The root directory.
+    pub fn root(&self) -> &Directory {
+        &self.root
+    }
+    /// Length of the file.
+    pub fn file_len(&self) -> u64 {
+        self.file_len
+    }
+
+    /// Sets how many decoded leaves are kept (at least 1).
+    pub fn set_leaf_cache_capacity(&mut self, capacity: usize) {
+        self.leaf_cache_capacity = capacity.max(1);
+    }
+
+    /// Directory key of a tile, checked against its layer's grid.
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] for an unknown layer or a tile outside the layer's grid.
+    pub fn key_of(&self, key: TileKey) -> Result<u64> {
+        let layer = self
+            .metadata
+            .layers
+            .get(usize::from(key.layer()))
+            .ok_or_else(|| Error::InvalidTile { what: format!("{key}: no such layer") })?;
+        if !layer.contains(key) {
+            let (nx, ny) = layer.grid_at(key.lod());
+            return Err(Error::InvalidTile {
+                what: format!("{key}: outside layer {:?} ({} LODs, {nx}x{ny} tiles at this LOD)", layer.name, layer.num_lods),
+            });
+        }
+        key.archive_key(layer.depth())
+    }
+
+    /// Decodes a directory key back to a tile.
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] if the key does not belong to any layer.
+    pub fn tile_of(&self, key: u64) -> Result<TileKey> {
+        TileKey::from_archive_key(key, &self.depths)
+    }
+
+    /// Finds a tile, or says which leaf to fetch first.
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] for a tile outside its layer's grid.
+    pub fn locate(&self, tile: TileKey) -> Result<Locate> {
+        let key = self.key_of(tile)?;
+        let entries = match &self.root {
+            Directory::Tiles(entries) => return Ok(self.found(tile, Directory::find_tile(entries, key))),
+            Directory::Leaves(leaves) => {
+                let Some(leaf) = Directory::find_leaf(leaves, key) else { return Ok(Locate::Missing) };
+                match self.cached_leaf(leaf.offset) {
+                    Some(entries) => entries,
+                    None => {
+                        return Ok(Locate::NeedLeaf {
+                            offset: self.header.leaf_dirs.offset + leaf.offset,
+                            len: u64::from(leaf.length),
+                        });
+                    }
+                }
+            }
+        };
+        Ok(self.found(tile, Directory::find_tile(&entries, key)))
+    }
+
+    fn found(&self, tile: TileKey, entry: Option<Entry>) -> Locate {
+        match entry {
+            Some(e) => Locate::Found(TileLocation { key: tile, offset: self.header.data.offset + e.offset, length: e.length }),
+            None => Locate::Missing,
+        }
+    }
+
+    fn cached_leaf(&self, leaf_offset: u64) -> Option<Arc<Vec<Entry>>> {
+        let mut cache = self.leaves.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let i = cache.iter().position(|(o, _)| *o == leaf_offset)?;
+        // Move to the back: most recently used.
+        let hit = cache.remove(i);
+        let entries = Arc::clone(&hit.1);
+        cache.push(hit);
+        Some(entries)
+    }
+
+    /// The leaf pointer whose stored bytes start at absolute `offset`.
+    fn leaf_at(&self, offset: u64) -> Option<LeafPointer> {
+        let Directory::Leaves(leaves) = &self.root else { return None };
+        let relative = offset.checked_sub(self.header.leaf_dirs.offset)?;
+        let i = leaves.partition_point(|l| l.offset < relative);
+        leaves.get(i).filter(|l| l.offset == relative).copied()
+    }
+
+    /// Checks, decodes and caches a leaf fetched after [`Locate::NeedLeaf`].
+    ///
+    /// # Errors
+    /// [`Error::SectionChecksum`] / [`Error::Corrupt`] naming the leaf.
+    pub fn add_leaf(&self, offset: u64, bytes: &[u8]) -> Result<Arc<Vec<Entry>>> {
+        let section = format!("leaf directory at offset {offset}");
+        let leaf = self.leaf_at(offset).ok_or_else(|| Error::corrupt(&section, "no root entry points here"))?;
+        let entries = self.decode_leaf(leaf, bytes)?;
+        let mut cache = self.leaves.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if !cache.iter().any(|(o, _)| *o == leaf.offset) {
+            if cache.len() >= self.leaf_cache_capacity {
+                cache.remove(0);
+            }
+            cache.push((leaf.offset, Arc::clone(&entries)));
+        }
+        Ok(entries)
+    }
+
+    /// Checks and decodes a leaf without caching it (bulk walks: verify, extract).
+    ///
+    /// # Errors
+    /// [`Error::SectionChecksum`] / [`Error::Corrupt`] naming the leaf.
+    pub fn decode_leaf(&self, leaf: LeafPointer, bytes: &[u8]) -> Result<Arc<Vec<Entry>>> {
+        let section = format!("leaf directory at offset {}", self.header.leaf_dirs.offset + leaf.offset);
+        if bytes.len() as u64 != u64::from(leaf.length) {
+            return Err(Error::corrupt(&section, format!("{} bytes given, {} expected", bytes.len(), leaf.length)));
+        }
+        check_crc(bytes, leaf.crc, &section)?;
+        match Directory::decode(bytes, self.header.directory_compression, &section, self.header.data.len, 0)? {
+            Directory::Tiles(entries) => {
+                let (first, last) = (entries.first(), entries.last());
+                if first.is_none_or(|e| e.key != leaf.first_key) {
+                    return Err(Error::corrupt(&section, "first key differs from its root entry"));
+                }
+                if let (Some(next), Some(last)) = (self.next_leaf_key(leaf), last) {
+                    if last.last_key() >= next {
+                        return Err(Error::corrupt(&section, "entries run into the next leaf"));
+                    }
+                }
+                Ok(Arc::new(entries))
+            }
+            Directory::Leaves(_) => Err(Error::corrupt(&section, "a leaf may not point at further leaves")),
+        }
+    }
+
+    fn next_leaf_key(&self, leaf: LeafPointer) -> Option<u64> {
+        let Directory::Leaves(leaves) = &self.root else { return None };
+        let i = leaves.partition_point(|l| l.first_key <= leaf.first_key);
+        leaves.get(i).map(|l| l.first_key)
+    }
+
+    /// Checks a fetched blob against its trailer and returns the payload (zero-copy).
+    ///
+    /// # Errors
+    /// [`Error::TileChecksum`] naming the tile if the bytes are damaged.
+    pub fn payload(&self, location: &TileLocation, blob: Bytes) -> Result<Bytes> {
+        let length = usize::try_from(location.length).unwrap_or(usize::MAX);
+        if blob.len() as u64 != location.blob_len() {
+            return Err(Error::corrupt(
+                format!("tile {}", location.key),
+                format!("{} bytes read, {} expected", blob.len(), location.blob_len()),
+            ));
+        }
+        let stored = u32::from_le_bytes([blob[length], blob[length + 1], blob[length + 2], blob[length + 3]]);
+        let payload = blob.slice(..length);
+        let computed = crc32c(&payload);
+        if stored != computed {
+            return Err(Error::TileChecksum {
+                key: location.key,
+                offset: location.offset - self.header.data.offset,
+                stored,
+                computed,
+            });
+        }
+        Ok(payload)
+    }
+}
+
+fn check_crc(bytes: &[u8], stored: u32, section: &str) -> Result<()> {
+    let computed = crc32c(bytes);
+    if computed != stored {
+        return Err(Error::SectionChecksum { section: section.to_owned(), stored, computed });
+    }
+    Ok(())
+}

@@ -1,0 +1,417 @@
+//! The archive's JSON metadata document (FORMAT.md §3): layers and their grids and
+//! encodings, the terrain/mesh parameters of the original engine, georeference, and the
+//! original metadata fields kept verbatim.
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::key::{MAX_LAYERS, MAX_LODS, TileKey};
+
+/// The metadata document.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Metadata {
+    /// Dataset name.
+    #[serde(default)]
+    pub name: String,
+    /// Free text.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub description: String,
+    /// Tile sets, in layer-index order (the index is the low 4 bits of a directory key).
+    pub layers: Vec<Layer>,
+    /// Elevation range and runtime mesh parameters.
+    #[serde(default)]
+    pub terrain: Terrain,
+    /// Optional placement on the Earth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub georeference: Option<Georeference>,
+    /// Fields of an original-engine metadata text, in their order, values verbatim,
+    /// including the ones this format has no field for.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub original_fields: Vec<OriginalField>,
+    /// Members this version does not know, kept on rewrite.
+    #[serde(flatten)]
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// What a layer holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LayerKind {
+    /// RGB(A) imagery.
+    Texture,
+    /// Heights.
+    Elevation,
+    /// Surface normals.
+    Normals,
+    /// Material / classification map.
+    Material,
+}
+
+/// Encoding of each tile payload of a layer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TileFormat {
+    /// PNG file bytes.
+    Png,
+    /// JPEG file bytes.
+    Jpeg,
+    /// WebP file bytes.
+    Webp,
+    /// Row-major little-endian u16 samples, `(res + 2*border)^2` of them.
+    RawU16,
+    /// Row-major little-endian f32 samples.
+    RawF32,
+    /// BC1 (DXT1) blocks, ready for GPU upload.
+    Bc1,
+    /// BC7 blocks, ready for GPU upload.
+    Bc7,
+}
+
+impl TileFormat {
+    /// Usual file extension.
+    pub fn extension(self) -> &'static str {
+        match self {
+            Self::Png => "png",
+            Self::Jpeg => "jpg",
+            Self::Webp => "webp",
+            Self::RawU16 => "u16",
+            Self::RawF32 => "f32",
+            Self::Bc1 => "bc1",
+            Self::Bc7 => "bc7",
+        }
+    }
+
+    /// HTTP media type.
+    pub fn media_type(self) -> &'static str {
+        match self {
+            Self::Png => "image/png",
+            Self::Jpeg => "image/jpeg",
+            Self::Webp => "image/webp",
+            Self::RawU16 | Self::RawF32 | Self::Bc1 | Self::Bc7 => "application/octet-stream",
+        }
+    }
+
+    /// Recognizes an image file by its first bytes.
+    pub fn sniff(bytes: &[u8]) -> Option<Self> {
+        if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+            Some(Self::Png)
+        } else if bytes.starts_with(&[0xff, 0xd8, 0xff]) {
+            Some(Self::Jpeg)
+        } else if bytes.len() >= 12 && &bytes[0..4] == b"RIFF" && &bytes[8..12] == b"WEBP" {
+            Some(Self::Webp)
+        } else {
+            None
+        }
+    }
+}
+
+/// Extra compression applied to a payload on top of its format.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PayloadCompression {
+    /// Stored as the format's bytes.
+    #[default]
+    None,
+    /// One zstd frame around the format's bytes.
+    Zstd,
+}
+
+/// How pixel values of an elevation layer map to heights in world units.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ElevationScheme {
+    /// 8-bit gray: h = offset + v / 255 * scale.
+    Gray8,
+    /// Original engine's RGB thirds: v = R + G + B in 0..765, h = offset + v / 765 * scale.
+    RgbThirds,
+    /// Mapbox Terrain-RGB: h = -10000 + (R * 65536 + G * 256 + B) * 0.1.
+    TerrainRgb,
+    /// Terrarium: h = R * 256 + G + B / 256 - 32768.
+    Terrarium,
+    /// Quantized u16 samples: h = offset + v * scale.
+    QuantizedU16,
+    /// f32 samples are heights.
+    Float32,
+}
+
+/// Elevation decoding parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ElevationEncoding {
+    /// Value-to-height mapping.
+    pub scheme: ElevationScheme,
+    /// Scale of the mapping (see the scheme).
+    #[serde(default = "one")]
+    pub scale: f64,
+    /// Offset of the mapping (see the scheme).
+    #[serde(default)]
+    pub offset: f64,
+    /// Raw sample value meaning "no data".
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nodata: Option<f64>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// One tile set and its grid.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Layer {
+    /// Unique name ("texture", "elevation", ...).
+    pub name: String,
+    /// What the layer holds.
+    pub kind: LayerKind,
+    /// Payload encoding of every tile.
+    pub format: TileFormat,
+    /// Compression around the payload.
+    #[serde(default)]
+    pub compression: PayloadCompression,
+    /// Pixels per tile edge, borders excluded.
+    pub tile_resolution: u32,
+    /// Pixels duplicated from the neighbours on each side (0..=16).
+    #[serde(default)]
+    pub border: u8,
+    /// Tiles across at LOD 0.
+    pub num_x_tiles: u32,
+    /// Tiles down at LOD 0.
+    pub num_y_tiles: u32,
+    /// LODs that may hold tiles (0..num_lods); at most [`Layer::depth`].
+    pub num_lods: u8,
+    /// World units covered by one LOD-0 tile edge.
+    pub tile_world_size: f64,
+    /// Height decoding, for elevation layers.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub elevation: Option<ElevationEncoding>,
+}
+
+impl Layer {
+    /// Levels of the layer's quadtree: LOD `depth - 1` is a single tile.
+    /// Directory keys are computed with it, whatever `num_lods` is.
+    pub fn depth(&self) -> u8 {
+        levels_to_one(self.num_x_tiles.max(self.num_y_tiles))
+    }
+
+    /// Tiles across and down at `lod`: ceil(n / 2^lod).
+    pub fn grid_at(&self, lod: u8) -> (u32, u32) {
+        let shrink = |n: u32| if lod >= 32 { 1 } else { n.div_ceil(1 << lod).max(1) };
+        (shrink(self.num_x_tiles), shrink(self.num_y_tiles))
+    }
+
+    /// Is (lod, x, y) inside this layer's grid?
+    pub fn contains(&self, key: TileKey) -> bool {
+        let (nx, ny) = self.grid_at(key.lod());
+        key.lod() < self.num_lods && key.x() < nx && key.y() < ny
+    }
+
+    /// Tiles in the full grid at every LOD (an upper bound on the layer's tile count).
+    pub fn grid_tiles(&self) -> u64 {
+        (0..self.num_lods)
+            .map(|lod| {
+                let (nx, ny) = self.grid_at(lod);
+                u64::from(nx) * u64::from(ny)
+            })
+            .sum()
+    }
+}
+
+/// Number of halvings (plus one) that bring `n` tiles down to one.
+pub fn levels_to_one(n: u32) -> u8 {
+    let mut levels = 1u8;
+    let mut side = n.max(1);
+    while side > 1 {
+        side = side.div_ceil(2);
+        levels += 1;
+    }
+    levels
+}
+
+/// Elevation range and runtime mesh parameters (names follow the original engine).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Terrain {
+    /// Lowest height in world units.
+    pub min_elevation: f64,
+    /// Highest height in world units.
+    pub max_elevation: f64,
+    /// max - min; the span of the 8-bit / RGB-thirds encodings.
+    pub displacement: f64,
+    /// max - min, kept for the original engine's consumers.
+    pub elevation_range: f64,
+    /// Original engine's multi-sampling radius against 8-bit stair-steps.
+    pub smoothing_range: f64,
+    /// Finest mesh grid spacing in world units (= elevation sample spacing).
+    pub base_tile_size: f64,
+    /// Radius of the finest mesh ring; each next ring doubles it.
+    pub high_detail_range: f64,
+    /// Number of mesh rings.
+    pub num_detail_levels: u32,
+    /// Original engine's texture consolidation size.
+    pub max_consolidated_texture_resolution: u32,
+}
+
+impl Default for Terrain {
+    fn default() -> Self {
+        Self {
+            min_elevation: 0.0,
+            max_elevation: 0.0,
+            displacement: 0.0,
+            elevation_range: 0.0,
+            smoothing_range: 1.0,
+            base_tile_size: 1.0,
+            high_detail_range: 100.0,
+            num_detail_levels: 12,
+            max_consolidated_texture_resolution: 1024,
+        }
+    }
+}
+
+/// Where the dataset lies.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Georeference {
+    /// Coordinate reference system, e.g. "EPSG:4326".
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crs: Option<String>,
+    /// CRS coordinates of the north-west corner of tile (0, 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<[f64; 2]>,
+    /// West, south, east, north in degrees.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lat_lon_bounds: Option<[f64; 4]>,
+}
+
+/// One field of an original-engine metadata text, as written there.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OriginalField {
+    /// C# type ("int", "float", "double", "string", "bool", ...).
+    #[serde(rename = "type")]
+    pub ty: String,
+    /// Field name.
+    pub name: String,
+    /// Value literal exactly as written (e.g. `76.963814f`, `"LOD"`).
+    pub value: String,
+}
+
+impl Metadata {
+    /// A document with the given layers and defaults elsewhere.
+    pub fn new(name: impl Into<String>, layers: Vec<Layer>) -> Self {
+        Self {
+            name: name.into(),
+            description: String::new(),
+            layers,
+            terrain: Terrain::default(),
+            georeference: None,
+            original_fields: Vec::new(),
+            extra: serde_json::Map::new(),
+        }
+    }
+
+    /// Parses and validates a document.
+    ///
+    /// # Errors
+    /// [`Error::Metadata`] on invalid JSON or a layer that breaks the format's limits.
+    pub fn from_json(bytes: &[u8]) -> Result<Self> {
+        let m: Self = serde_json::from_slice(bytes).map_err(|e| Error::Metadata(e.to_string()))?;
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// Serializes to compact JSON.
+    pub fn to_json(&self) -> Vec<u8> {
+        // Serializing plain data with string keys cannot fail.
+        serde_json::to_vec(self).unwrap_or_default()
+    }
+
+    /// Index of the layer called `name`.
+    pub fn layer_index(&self, name: &str) -> Option<u8> {
+        self.layers.iter().position(|l| l.name == name).and_then(|i| u8::try_from(i).ok())
+    }
+
+    /// Quadtree depth of every layer, in layer order.
+    pub fn depths(&self) -> Vec<u8> {
+        self.layers.iter().map(Layer::depth).collect()
+    }
+
+    /// Checks the limits every reader relies on.
+    ///
+    /// # Errors
+    /// [`Error::Metadata`] naming the offending layer and field.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |msg: String| Err(Error::Metadata(msg));
+        if self.layers.is_empty() || self.layers.len() > MAX_LAYERS {
+            return bad(format!("{} layers (1..={MAX_LAYERS} allowed)", self.layers.len()));
+        }
+        for (i, l) in self.layers.iter().enumerate() {
+            let at = format!("layer {i} ({:?})", l.name);
+            if l.name.is_empty() || l.name.contains(['/', '\\']) || l.name.len() > 64 {
+                return bad(format!("{at}: name must be 1..64 characters without slashes"));
+            }
+            if self.layers[..i].iter().any(|o| o.name == l.name) {
+                return bad(format!("{at}: duplicate name"));
+            }
+            if l.num_x_tiles == 0 || l.num_y_tiles == 0 || l.num_x_tiles > 1 << 28 || l.num_y_tiles > 1 << 28 {
+                return bad(format!("{at}: grid {}x{} out of range", l.num_x_tiles, l.num_y_tiles));
+            }
+            if l.depth() > MAX_LODS || l.num_lods == 0 || l.num_lods > l.depth() {
+                return bad(format!("{at}: num_lods {} must be 1..={}", l.num_lods, l.depth()));
+            }
+            if l.tile_resolution == 0 || l.tile_resolution > 65_536 || l.border > 16 {
+                return bad(format!("{at}: tile_resolution {} / border {} out of range", l.tile_resolution, l.border));
+            }
+            if !(l.tile_world_size.is_finite() && l.tile_world_size > 0.0) {
+                return bad(format!("{at}: tile_world_size must be a positive number"));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) fn layer(nx: u32, ny: u32, num_lods: u8) -> Layer {
+        Layer {
+            name: "texture".into(),
+            kind: LayerKind::Texture,
+            format: TileFormat::Png,
+            compression: PayloadCompression::None,
+            tile_resolution: 256,
+            border: 0,
+            num_x_tiles: nx,
+            num_y_tiles: ny,
+            num_lods,
+            tile_world_size: 76.96,
+            elevation: None,
+        }
+    }
+
+    #[test]
+    fn write_then_read_keeps_unknown_members() {
+        let mut m = Metadata::new("t", vec![layer(68, 57, 7)]);
+        m.extra.insert("future_field".into(), serde_json::json!({"a": 1}));
+        let back = Metadata::from_json(&m.to_json()).unwrap();
+        assert_eq!(back, m);
+    }
+
+    #[test]
+    fn grid_shrinks_by_ceil_half_to_one() {
+        let l = layer(68, 57, 8);
+        assert_eq!(l.depth(), 8);
+        assert_eq!(l.grid_at(0), (68, 57));
+        assert_eq!(l.grid_at(1), (34, 29));
+        assert_eq!(l.grid_at(3), (9, 8));
+        assert_eq!(l.grid_at(7), (1, 1));
+        assert_eq!(levels_to_one(1), 1);
+        assert_eq!(levels_to_one(2), 2);
+        assert_eq!(levels_to_one(3), 3);
+    }
+
+    #[test]
+    fn rejects_bad_layers() {
+        for l in [layer(0, 1, 1), layer(4, 4, 4), layer(4, 4, 0)] {
+            assert!(Metadata::new("t", vec![l]).validate().is_err());
+        }
+        assert!(Metadata::new("t", vec![layer(4, 4, 3), layer(2, 2, 1)]).validate().is_err(), "duplicate names");
+        assert!(Metadata::from_json(b"{\"layers\": 5}").is_err());
+    }
+}

@@ -1,0 +1,448 @@
+//! The streaming archive writer.
+//!
+//! Memory stays bounded whatever the archive size: tile blobs go straight to a temporary
+//! data file, directory entries are spilled to a second temporary file as fixed-size
+//! records, and only one batch of tiles (compressed in parallel), the dedup table (capped)
+//! and the root directory (one entry per leaf) live in memory. `finish` builds the
+//! directories, writes the final file under a temporary name in the destination folder,
+//! fsyncs it and renames it into place: a crash or Ctrl-C never leaves a partial archive
+//! under the final name.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+
+use crate::checksum::crc32c;
+use crate::compression::zstd_compress;
+use crate::directory::{Directory, Entry, LeafPointer, TILE_TRAILER_LEN};
+use crate::error::{Error, Result};
+use crate::header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, Section, VERSION_MINOR};
+use crate::key::{MAX_LAYERS, TileKey};
+use crate::metadata::{Metadata, PayloadCompression};
+
+/// Tunables of the writer. The defaults suit archives from kilobytes to terabytes.
+#[derive(Clone, Debug)]
+pub struct WriterOptions {
+    /// zstd level for payloads of layers with `compression: zstd`.
+    pub zstd_level: i32,
+    /// zstd level for directories and metadata (small, read often: compress hard).
+    pub directory_zstd_level: i32,
+    /// Distinct contents remembered for dedup (~48 bytes each). Past it, new contents are
+    /// still written but no longer deduplicated against.
+    pub dedup_capacity: usize,
+    /// Input bytes gathered before a batch is compressed in parallel.
+    pub batch_bytes: usize,
+    /// Tiles gathered before a batch is compressed in parallel.
+    pub batch_tiles: usize,
+    /// Entries per leaf directory to start with; doubled until the root fits the bootstrap.
+    pub leaf_entries: usize,
+    /// Bytes the header, metadata and root directory should fit in.
+    pub bootstrap_target: u64,
+}
+
+impl Default for WriterOptions {
+    fn default() -> Self {
+        Self {
+            zstd_level: 3,
+            directory_zstd_level: 19,
+            dedup_capacity: 1 << 22,
+            batch_bytes: 32 << 20,
+            batch_tiles: 2048,
+            leaf_entries: 4096,
+            bootstrap_target: BOOTSTRAP_READ,
+        }
+    }
+}
+
+/// What [`Writer::finish`] wrote.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WriteSummary {
+    /// Final path.
+    pub path: PathBuf,
+    /// Size of the archive.
+    pub file_len: u64,
+    /// Tiles addressed (runs expanded).
+    pub addressed_tiles: u64,
+    /// Directory entries.
+    pub tile_entries: u64,
+    /// Distinct blobs stored.
+    pub tile_contents: u64,
+    /// Bytes of the data section.
+    pub data_bytes: u64,
+    /// Bytes of the root and leaf directories.
+    pub directory_bytes: u64,
+    /// Bytes of the stored metadata.
+    pub metadata_bytes: u64,
+    /// Number of leaf directories.
+    pub leaf_count: u64,
+}
+
+const SPILL_RECORD: usize = 24;
+
+type Prepared = (u64, TileKey, Vec<u8>, u128);
+
+struct Pending {
+    key: u64,
+    tile: TileKey,
+    bytes: Vec<u8>,
+    compress: bool,
+}
+
+/// Streams tiles into a new archive. Tiles must arrive in archive order
+/// (see [`Writer::order_key`]); each batch is compressed on all cores.
+pub struct Writer {
+    path: PathBuf,
+    folder: PathBuf,
+    metadata: Metadata,
+    options: WriterOptions,
+    data: BufWriter<File>,
+    data_len: u64,
+    spill: BufWriter<File>,
+    spilled: u64,
+    open: Option<(Entry, u128)>,
+    dedup: HashMap<u128, (u64, u32)>,
+    batch: Vec<Pending>,
+    batch_bytes: usize,
+    last_key: Option<u64>,
+    addressed: u64,
+    contents: u64,
+}
+
+impl std::fmt::Debug for Writer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Writer").field("path", &self.path).field("addressed", &self.addressed).finish_non_exhaustive()
+    }
+}
+
+impl Writer {
+    /// Starts an archive that will be published at `path` by [`Writer::finish`].
+    /// Temporary files live next to it (same filesystem, so the final rename is atomic).
+    ///
+    /// # Errors
+    /// [`Error::Metadata`] for invalid metadata, [`Error::File`] if the folder is not writable.
+    pub fn create(path: impl AsRef<Path>, metadata: Metadata, options: WriterOptions) -> Result<Self> {
+        metadata.validate()?;
+        let path = path.as_ref().to_path_buf();
+        let folder = match path.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        let temp = || tempfile::tempfile_in(&folder).map_err(|e| Error::file(&folder, e));
+        Ok(Self {
+            data: BufWriter::with_capacity(1 << 20, temp()?),
+            spill: BufWriter::with_capacity(1 << 16, temp()?),
+            path,
+            folder,
+            metadata,
+            options,
+            data_len: 0,
+            spilled: 0,
+            open: None,
+            dedup: HashMap::new(),
+            batch: Vec::new(),
+            batch_bytes: 0,
+            last_key: None,
+            addressed: 0,
+            contents: 0,
+        })
+    }
+
+    /// The position of `tile` in archive order: sort tiles by it before adding them.
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] if the tile is outside its layer's grid.
+    pub fn order_key(metadata: &Metadata, tile: TileKey) -> Result<u64> {
+        let layer = metadata
+            .layers
+            .get(usize::from(tile.layer()))
+            .ok_or_else(|| Error::InvalidTile { what: format!("{tile}: no such layer") })?;
+        if !layer.contains(tile) {
+            let (nx, ny) = layer.grid_at(tile.lod());
+            return Err(Error::InvalidTile {
+                what: format!("{tile}: outside layer {:?} ({} LODs, {nx}x{ny} tiles at this LOD)", layer.name, layer.num_lods),
+            });
+        }
+        tile.archive_key(layer.depth())
+    }
+
+    /// The metadata that will be written.
+    pub fn metadata(&self) -> &Metadata {
+        &self.metadata
+    }
+
+    /// Replaces the metadata (e.g. with statistics known only at the end). The layers' grids
+    /// must not change: tiles already added were placed by them.
+    ///
+    /// # Errors
+    /// [`Error::Writer`] if a layer's grid differs, [`Error::Metadata`] if invalid.
+    pub fn set_metadata(&mut self, metadata: Metadata) -> Result<()> {
+        metadata.validate()?;
+        let same = metadata.layers.len() == self.metadata.layers.len()
+            && metadata.layers.iter().zip(&self.metadata.layers).all(|(a, b)| {
+                (a.num_x_tiles, a.num_y_tiles, a.num_lods, a.compression)
+                    == (b.num_x_tiles, b.num_y_tiles, b.num_lods, b.compression)
+            });
+        if !same {
+            return Err(Error::Writer("set_metadata may not change the layers' grids".into()));
+        }
+        self.metadata = metadata;
+        Ok(())
+    }
+
+    /// Adds a tile's payload in its layer's format; the writer applies the layer's
+    /// compression (zstd for `compression: zstd`).
+    ///
+    /// # Errors
+    /// [`Error::Writer`] if the tile is out of order or empty, [`Error::InvalidTile`],
+    /// I/O errors.
+    pub fn add(&mut self, tile: TileKey, payload: Vec<u8>) -> Result<()> {
+        let compress = self
+            .metadata
+            .layers
+            .get(usize::from(tile.layer()))
+            .is_some_and(|l| l.compression == PayloadCompression::Zstd);
+        self.push(tile, payload, compress)
+    }
+
+    /// Adds a tile's stored bytes exactly as given (already compressed if the layer says so).
+    ///
+    /// # Errors
+    /// As [`Writer::add`].
+    pub fn add_stored(&mut self, tile: TileKey, stored: Vec<u8>) -> Result<()> {
+        self.push(tile, stored, false)
+    }
+
+    fn push(&mut self, tile: TileKey, bytes: Vec<u8>, compress: bool) -> Result<()> {
+        let key = Self::order_key(&self.metadata, tile)?;
+        if self.last_key.is_some_and(|last| key <= last) {
+            return Err(Error::Writer(format!("{tile} added out of archive order (sort by Writer::order_key)")));
+        }
+        if bytes.is_empty() {
+            return Err(Error::Writer(format!("{tile}: empty payload (leave the tile missing instead)")));
+        }
+        if u32::try_from(bytes.len()).is_err() {
+            return Err(Error::Writer(format!("{tile}: payload over 4 GiB")));
+        }
+        self.last_key = Some(key);
+        self.batch_bytes += bytes.len();
+        self.batch.push(Pending { key, tile, bytes, compress });
+        if self.batch_bytes >= self.options.batch_bytes || self.batch.len() >= self.options.batch_tiles {
+            self.flush_batch()?;
+        }
+        Ok(())
+    }
+
+    fn flush_batch(&mut self) -> Result<()> {
+        let level = self.options.zstd_level;
+        let batch = std::mem::take(&mut self.batch);
+        self.batch_bytes = 0;
+        let prepared: Vec<Result<Prepared>> = batch
+            .into_par_iter()
+            .map(|p| {
+                let bytes = if p.compress { zstd_compress(&p.bytes, level)? } else { p.bytes };
+                let hash = xxhash_rust::xxh3::xxh3_128(&bytes);
+                Ok((p.key, p.tile, bytes, hash))
+            })
+            .collect();
+        for item in prepared {
+            let (key, tile, bytes, hash) = item?;
+            self.append(key, tile, &bytes, hash)?;
+        }
+        Ok(())
+    }
+
+    fn append(&mut self, key: u64, tile: TileKey, bytes: &[u8], hash: u128) -> Result<()> {
+        let length = u32::try_from(bytes.len()).map_err(|_| Error::Writer(format!("{tile}: payload over 4 GiB")))?;
+        self.addressed += 1;
+        // Extend the open run: next tile of the same layer, same content.
+        if let Some((open, open_hash)) = &mut self.open {
+            if *open_hash == hash && open.last_key().checked_add(MAX_LAYERS as u64) == Some(key) && open.run_length < u32::MAX {
+                open.run_length += 1;
+                return Ok(());
+            }
+        }
+        let offset = match self.dedup.get(&hash) {
+            Some(&(offset, _)) => offset,
+            None => {
+                let offset = self.data_len;
+                self.data.write_all(bytes)?;
+                self.data.write_all(&crc32c(bytes).to_le_bytes())?;
+                self.data_len += u64::from(length) + TILE_TRAILER_LEN;
+                self.contents += 1;
+                if self.dedup.len() < self.options.dedup_capacity {
+                    self.dedup.insert(hash, (offset, length));
+                }
+                offset
+            }
+        };
+        self.close_run()?;
+        self.open = Some((Entry { key, run_length: 1, offset, length }, hash));
+        Ok(())
+    }
+
+    fn close_run(&mut self) -> Result<()> {
+        if let Some((e, _)) = self.open.take() {
+            let mut record = [0u8; SPILL_RECORD];
+            record[0..8].copy_from_slice(&e.key.to_le_bytes());
+            record[8..12].copy_from_slice(&e.run_length.to_le_bytes());
+            record[12..20].copy_from_slice(&e.offset.to_le_bytes());
+            record[20..24].copy_from_slice(&e.length.to_le_bytes());
+            self.spill.write_all(&record)?;
+            self.spilled += 1;
+        }
+        Ok(())
+    }
+
+    /// Builds the directories, writes the archive and renames it into place.
+    ///
+    /// # Errors
+    /// I/O errors; nothing is left under the final name on error.
+    pub fn finish(mut self) -> Result<WriteSummary> {
+        self.flush_batch()?;
+        self.close_run()?;
+        let level = self.options.directory_zstd_level;
+        let metadata_bytes = zstd_compress(&self.metadata.to_json(), level)?;
+        let mut spill = self.spill.into_inner().map_err(|e| e.into_error())?;
+        let mut leaves_file = tempfile::tempfile_in(&self.folder).map_err(|e| Error::file(&self.folder, e))?;
+        let budget = self.options.bootstrap_target.saturating_sub(HEADER_LEN as u64 + metadata_bytes.len() as u64);
+
+        // Small archives: every entry in the root, no leaves (a cold tile costs 2 reads).
+        let mut root_bytes = None;
+        let mut leaf_count = 0u64;
+        let mut leaves_len = 0u64;
+        if self.spilled <= self.options.leaf_entries as u64 {
+            spill.seek(SeekFrom::Start(0))?;
+            let entries = read_entries(&mut BufReader::new(&mut spill), self.spilled)?;
+            let encoded = zstd_compress(&Directory::Tiles(entries).encode_raw(), level)?;
+            if encoded.len() as u64 <= budget || self.spilled <= 1 {
+                root_bytes = Some(encoded);
+            }
+        }
+        let root_bytes = match root_bytes {
+            Some(bytes) => bytes,
+            None => {
+                let mut leaf_entries = self.options.leaf_entries.max(1);
+                loop {
+                    spill.seek(SeekFrom::Start(0))?;
+                    leaves_file.set_len(0)?;
+                    leaves_file.seek(SeekFrom::Start(0))?;
+                    let pointers = write_leaves(&mut spill, self.spilled, leaf_entries, level, &mut leaves_file)?;
+                    let encoded = zstd_compress(&Directory::Leaves(pointers.clone()).encode_raw(), level)?;
+                    if encoded.len() as u64 <= budget || pointers.len() <= 1 {
+                        leaf_count = pointers.len() as u64;
+                        leaves_len = pointers.last().map_or(0, |p| p.offset + u64::from(p.length));
+                        break encoded;
+                    }
+                    leaf_entries *= 2;
+                }
+            }
+        };
+
+        let metadata = Section { offset: HEADER_LEN as u64, len: metadata_bytes.len() as u64 };
+        let root_dir = Section { offset: metadata.offset + metadata.len, len: root_bytes.len() as u64 };
+        let leaf_dirs = Section { offset: root_dir.offset + root_dir.len, len: leaves_len };
+        let data = Section { offset: leaf_dirs.offset + leaf_dirs.len, len: self.data_len };
+        let header = Header {
+            version_minor: VERSION_MINOR,
+            metadata,
+            root_dir,
+            leaf_dirs,
+            data,
+            addressed_tiles: self.addressed,
+            tile_entries: self.spilled,
+            tile_contents: self.contents,
+            metadata_crc: crc32c(&metadata_bytes),
+            root_dir_crc: crc32c(&root_bytes),
+            metadata_compression: Compression::Zstd,
+            directory_compression: Compression::Zstd,
+        };
+
+        let file_name = self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let mut out = tempfile::Builder::new()
+            .prefix(&format!(".{file_name}."))
+            .suffix(".partial")
+            .tempfile_in(&self.folder)
+            .map_err(|e| Error::file(&self.folder, e))?;
+        let io = |e: std::io::Error| Error::file(out_path_hint(&self.path), e);
+        {
+            let file = out.as_file_mut();
+            file.write_all(&header.encode()).map_err(io)?;
+            file.write_all(&metadata_bytes).map_err(io)?;
+            file.write_all(&root_bytes).map_err(io)?;
+            leaves_file.seek(SeekFrom::Start(0))?;
+            let copied = std::io::copy(&mut leaves_file.take(leaves_len), file).map_err(io)?;
+            let mut data_file = self.data.into_inner().map_err(|e| e.into_error())?;
+            data_file.seek(SeekFrom::Start(0))?;
+            let copied_data = std::io::copy(&mut data_file, file).map_err(io)?;
+            if copied != leaves_len || copied_data != self.data_len {
+                return Err(Error::Writer("temporary files were shorter than written".into()));
+            }
+            file.sync_all().map_err(io)?;
+        }
+        out.persist(&self.path).map_err(|e| Error::file(&self.path, e.error))?;
+        sync_folder(&self.folder);
+        Ok(WriteSummary {
+            path: self.path,
+            file_len: data.end().unwrap_or(u64::MAX),
+            addressed_tiles: self.addressed,
+            tile_entries: self.spilled,
+            tile_contents: self.contents,
+            data_bytes: self.data_len,
+            directory_bytes: root_dir.len + leaf_dirs.len,
+            metadata_bytes: metadata.len,
+            leaf_count,
+        })
+    }
+}
+
+fn out_path_hint(path: &Path) -> PathBuf {
+    path.to_path_buf()
+}
+
+/// Makes the rename durable. Best effort: not every platform can open a folder.
+fn sync_folder(folder: &Path) {
+    if let Ok(dir) = File::open(folder) {
+        let _ = dir.sync_all();
+    }
+}
+
+fn read_entries(reader: &mut impl Read, count: u64) -> Result<Vec<Entry>> {
+    let mut entries = Vec::new();
+    let mut record = [0u8; SPILL_RECORD];
+    for _ in 0..count {
+        reader.read_exact(&mut record)?;
+        let u64_at = |at: usize| {
+            let mut b = [0u8; 8];
+            b.copy_from_slice(&record[at..at + 8]);
+            u64::from_le_bytes(b)
+        };
+        let u32_at = |at: usize| u32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]]);
+        entries.push(Entry { key: u64_at(0), run_length: u32_at(8), offset: u64_at(12), length: u32_at(20) });
+    }
+    Ok(entries)
+}
+
+/// Streams the spilled entries into leaves of `per_leaf` entries; returns their pointers.
+fn write_leaves(spill: &mut File, count: u64, per_leaf: usize, level: i32, out: &mut File) -> Result<Vec<LeafPointer>> {
+    let mut reader = BufReader::with_capacity(1 << 16, spill);
+    let mut out = BufWriter::new(out);
+    let mut pointers = Vec::new();
+    let mut offset = 0u64;
+    let mut remaining = count;
+    while remaining > 0 {
+        let n = remaining.min(per_leaf as u64);
+        remaining -= n;
+        let entries = read_entries(&mut reader, n)?;
+        let first_key = entries.first().map_or(0, |e| e.key);
+        let stored = zstd_compress(&Directory::Tiles(entries).encode_raw(), level)?;
+        let length = u32::try_from(stored.len()).map_err(|_| Error::Writer("leaf directory over 4 GiB".into()))?;
+        out.write_all(&stored)?;
+        pointers.push(LeafPointer { first_key, offset, length, crc: crc32c(&stored) });
+        offset += u64::from(length);
+    }
+    out.flush()?;
+    Ok(pointers)
+}
