@@ -1,2 +1,23 @@
-//! placeholder
-fn main() {}
+//! `terrastream`: pack, inspect, verify, extract and serve terrain archives.
+
+mod cli;
+
+use std::process::ExitCode;
+
+use clap::Parser;
+
+fn main() -> ExitCode {
+    let args = cli::Cli::parse();
+    cli::init_logging(args.verbose, args.quiet);
+    match cli::run(args) {
+        Ok(code) => code,
+        Err(err) => {
+            if matches!(err.downcast_ref::<terrastream_packer::Error>(), Some(terrastream_packer::Error::Interrupted)) {
+                eprintln!("interrupted: nothing was written under the output name");
+                return ExitCode::from(130);
+            }
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -31,7 +31,7 @@ pub fn height(x: f64, y: f64) -> f64 {
     let hills = 0.15 * (x * 0.021 + y * 0.017).sin() + 0.1 * (x * 0.05).sin() * (y * 0.043).sin();
     // A basin in the south-west holds a lake.
     let d = ((x - 170.0).powi(2) + (y - 430.0).powi(2)).sqrt();
-    let basin = if d < 160.0 { -0.45 * (0.5 + 0.5 * (d / 160.0 * PI).cos()) } else { 0.0 };
+    let basin = if d < 160.0 { -0.9 * (0.5 + 0.5 * (d / 160.0 * PI).cos()) } else { 0.0 };
     (DISPLACEMENT * (ridge + hills + basin)).clamp(0.0, DISPLACEMENT)
 }
 

@@ -1,0 +1,254 @@
+//! `terrastream bench archive`: pack throughput against a plain recursive copy of the same
+//! folder (same run, same cache state), warm tile-lookup latency through mmap, and
+//! directory bytes per tile against a PMTiles v3 directory of the same tiles.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use terrastream_packer::import::{OriginalLayout, pack, scan_original};
+use terrastream_packer::progress::Silent;
+use terrastream_packer::{Directory, Entry, MmapSource, Reader, TileKey, WriterOptions, write_varint};
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Archive writer and reader: pack vs copy, lookup latency, directory size.
+    Archive(ArchiveBench),
+}
+
+#[derive(Debug, Args)]
+pub struct ArchiveBench {
+    /// LOD-0 tiles per side of the synthetic pyramid.
+    #[arg(long, default_value_t = 64)]
+    grid: u32,
+    /// Mean tile size in bytes.
+    #[arg(long, default_value_t = 16 * 1024)]
+    tile_bytes: usize,
+    /// Random lookups to time.
+    #[arg(long, default_value_t = 200_000)]
+    lookups: usize,
+    /// Working folder (a temporary one by default).
+    #[arg(long)]
+    dir: Option<PathBuf>,
+}
+
+pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
+    match cmd {
+        BenchCommand::Archive(args) => archive(args),
+    }
+}
+
+/// xorshift64*: deterministic data without a dependency.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+}
+
+/// A pyramid in the original layout: PNG-signed payloads of varied size (not decodable
+/// images: packing never decodes), one in ten tiles identical (dedup).
+fn write_pyramid(dir: &Path, grid: u32, tile_bytes: usize) -> Result<(u64, u64)> {
+    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    let blank: Vec<u8> = b"\x89PNG\r\n\x1a\n".iter().copied().chain(std::iter::repeat_n(0u8, 120)).collect();
+    let (mut files, mut bytes) = (0u64, 0u64);
+    let mut lod = 0u32;
+    let mut n = grid;
+    loop {
+        let folder = dir.join(format!("LOD{lod}"));
+        std::fs::create_dir_all(&folder)?;
+        for y in 0..n {
+            for x in 0..n {
+                let payload = if rng.next() % 10 == 0 {
+                    blank.clone()
+                } else {
+                    let len = tile_bytes / 2 + (rng.next() as usize % tile_bytes);
+                    let mut p = b"\x89PNG\r\n\x1a\n".to_vec();
+                    p.extend((0..len / 8).flat_map(|_| rng.next().to_le_bytes()));
+                    p
+                };
+                bytes += payload.len() as u64;
+                files += 1;
+                std::fs::write(folder.join(format!("{x}_{y}.png")), payload)?;
+            }
+        }
+        if n == 1 {
+            break;
+        }
+        n = n.div_ceil(2);
+        lod += 1;
+    }
+    Ok((files, bytes))
+}
+
+fn files_under(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d)? {
+            let p = e?.path();
+            if p.is_dir() { stack.push(p) } else { out.push(p) }
+        }
+    }
+    Ok(out)
+}
+
+fn copy_tree(from: &Path, to: &Path) -> Result<()> {
+    for file in files_under(from)? {
+        let target = to.join(file.strip_prefix(from)?);
+        if let Some(parent) = target.parent() {
+            std::fs::create_dir_all(parent)?;
+        }
+        std::fs::copy(&file, &target)?;
+    }
+    // Same durability as the packer, which fsyncs its output.
+    std::process::Command::new("sync").status().ok();
+    Ok(())
+}
+
+/// PMTiles v3 directory bytes for the same entries: columnar varints, gzip, leaves grown by
+/// 1.2x until the root fits 16 KiB minus the 127-byte header (as its reference writer does).
+fn pmtiles_directory_bytes(entries: &[Entry]) -> usize {
+    // PMTiles stores no checksum trailer: re-lay the blobs back to back.
+    let mut remap: HashMap<u64, u64> = HashMap::new();
+    let mut next = 0u64;
+    let pm: Vec<(u64, u32, u64, u32)> = entries
+        .iter()
+        .map(|e| {
+            let offset = *remap.entry(e.offset).or_insert_with(|| {
+                let o = next;
+                next += u64::from(e.length);
+                o
+            });
+            (e.key >> 4, e.run_length, offset, e.length)
+        })
+        .collect();
+    let serialize = |rows: &[(u64, u32, u64, u32)]| -> usize {
+        let mut raw = Vec::new();
+        write_varint(&mut raw, rows.len() as u64);
+        let mut last = 0;
+        for r in rows {
+            write_varint(&mut raw, r.0 - last);
+            last = r.0;
+        }
+        for r in rows {
+            write_varint(&mut raw, u64::from(r.1));
+        }
+        for r in rows {
+            write_varint(&mut raw, u64::from(r.3));
+        }
+        for (i, r) in rows.iter().enumerate() {
+            let contiguous = i > 0 && r.2 == rows[i - 1].2 + u64::from(rows[i - 1].3);
+            write_varint(&mut raw, if contiguous { 0 } else { r.2 + 1 });
+        }
+        let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        let _ = gz.write_all(&raw);
+        gz.finish().map(|v| v.len()).unwrap_or(0)
+    };
+    let root_only = serialize(&pm);
+    if root_only <= 16_384 - 127 {
+        return root_only;
+    }
+    let mut leaf_size = 4096usize;
+    loop {
+        let mut leaves_total = 0;
+        let mut root_rows = Vec::new();
+        let mut offset = 0u64;
+        for chunk in pm.chunks(leaf_size) {
+            let len = serialize(chunk);
+            root_rows.push((chunk[0].0, 0, offset, len as u32));
+            offset += len as u64;
+            leaves_total += len;
+        }
+        let root = serialize(&root_rows);
+        if root <= 16_384 - 127 {
+            return root + leaves_total;
+        }
+        leaf_size = (leaf_size as f64 * 1.2) as usize;
+    }
+}
+
+fn per_sec(n: f64, d: Duration) -> f64 {
+    n / d.as_secs_f64().max(1e-9)
+}
+
+fn archive(args: ArchiveBench) -> Result<ExitCode> {
+    let temp = tempfile::tempdir()?;
+    let root = args.dir.clone().unwrap_or_else(|| temp.path().to_path_buf());
+    let input = root.join("pyramid");
+    let (files, bytes) = write_pyramid(&input, args.grid, args.tile_bytes)?;
+    let mb = bytes as f64 / 1e6;
+    println!("input: {files} tiles, {mb:.1} MB in the original LOD-folder layout ({}x{} at LOD 0)", args.grid, args.grid);
+
+    // Warm the page cache once so both contenders read from memory.
+    for f in files_under(&input)? {
+        std::fs::read(f)?;
+    }
+    let t = Instant::now();
+    copy_tree(&input, &root.join("copy"))?;
+    let copy = t.elapsed();
+
+    let t = Instant::now();
+    let scanned = scan_original(&input, &OriginalLayout::default())?;
+    let out = root.join("bench.tspack");
+    let summary = pack(scanned, &out, WriterOptions::default(), &Silent::default())?;
+    let packed = t.elapsed();
+
+    println!("\n== pack throughput (same input, same run) ==");
+    println!("  plain recursive copy : {:>9.0} tiles/s {:>8.1} MB/s  ({:.2} s)", per_sec(files as f64, copy), per_sec(mb, copy), copy.as_secs_f64());
+    println!("  terrastream pack     : {:>9.0} tiles/s {:>8.1} MB/s  ({:.2} s)", per_sec(files as f64, packed), per_sec(mb, packed), packed.as_secs_f64());
+    println!("  pack / copy time     : {:.2}x", packed.as_secs_f64() / copy.as_secs_f64().max(1e-9));
+
+    let reader = Reader::new(MmapSource::open(&out)?)?;
+    let mut keys = Vec::new();
+    let mut entries = Vec::new();
+    reader.for_each_entry(|e| {
+        entries.push(*e);
+        for i in 0..u64::from(e.run_length) {
+            keys.push(reader.archive().tile_of(e.key + i * 16)?);
+        }
+        Ok(())
+    })?;
+    let mut rng = Rng(42);
+    let picks: Vec<TileKey> = (0..args.lookups).map(|_| keys[(rng.next() % keys.len() as u64) as usize]).collect();
+    for k in &picks {
+        reader.tile(*k)?; // warm: leaves cached, pages mapped
+    }
+    let mut locate_ns = Vec::with_capacity(picks.len());
+    let mut tile_ns = Vec::with_capacity(picks.len());
+    for k in &picks {
+        let t = Instant::now();
+        std::hint::black_box(reader.locate(*k)?);
+        locate_ns.push(t.elapsed().as_nanos() as u64);
+        let t = Instant::now();
+        std::hint::black_box(reader.tile(*k)?);
+        tile_ns.push(t.elapsed().as_nanos() as u64);
+    }
+    let pct = |v: &mut Vec<u64>, p: f64| {
+        v.sort_unstable();
+        v[((v.len() - 1) as f64 * p) as usize]
+    };
+    println!("\n== warm tile lookup, mmap ({} random tiles, {} leaf directories) ==", picks.len(), summary.leaf_count);
+    println!("  locate (directory only)     : p50 {:>6} ns  p99 {:>6} ns", pct(&mut locate_ns, 0.5), pct(&mut locate_ns, 0.99));
+    println!("  tile (locate + CRC32C check): p50 {:>6} ns  p99 {:>6} ns", pct(&mut tile_ns, 0.5), pct(&mut tile_ns, 0.99));
+
+    let ours = summary.directory_bytes as f64 / summary.addressed_tiles as f64;
+    let pm = pmtiles_directory_bytes(&entries) as f64 / summary.addressed_tiles as f64;
+    let root_entries = match reader.archive().root() {
+        Directory::Tiles(e) => e.len(),
+        Directory::Leaves(l) => l.len(),
+    };
+    println!("\n== directory size ({} tiles, {} entries, {} distinct) ==", summary.addressed_tiles, summary.tile_entries, summary.tile_contents);
+    println!("  tspack (zstd, root {root_entries} entries) : {ours:.3} bytes/tile");
+    println!("  PMTiles v3 (gzip), same tiles     : {pm:.3} bytes/tile");
+    println!("  tspack / PMTiles                  : {:.2}x", ours / pm);
+    println!("  bootstrap read                    : {} bytes", reader.header().bootstrap_len());
+    Ok(ExitCode::SUCCESS)
+}

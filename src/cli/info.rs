@@ -1,0 +1,87 @@
+//! `terrastream info`.
+
+use std::path::Path;
+use std::process::ExitCode;
+
+use anyhow::Result;
+use terrastream_packer::ArchiveStats;
+
+pub fn run(path: &Path, json: bool) -> Result<ExitCode> {
+    let reader = super::open(path)?;
+    let stats = ArchiveStats::collect(&reader)?;
+    if json {
+        let doc = serde_json::json!({ "stats": stats, "metadata": reader.metadata() });
+        println!("{}", serde_json::to_string_pretty(&doc)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    print!("{}", render(path, &stats, reader.metadata()));
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn human(bytes: u64) -> String {
+    let units = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = bytes as f64;
+    let mut unit = 0;
+    while v >= 1024.0 && unit + 1 < units.len() {
+        v /= 1024.0;
+        unit += 1;
+    }
+    if unit == 0 { format!("{bytes} B") } else { format!("{v:.1} {}", units[unit]) }
+}
+
+pub fn render(path: &Path, s: &ArchiveStats, m: &terrastream_packer::Metadata) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ = writeln!(out, "archive     {} — {} , format {}", path.display(), human(s.file_bytes), s.version);
+    let _ = writeln!(out, "name        {}", m.name);
+    let _ = writeln!(
+        out,
+        "sections    metadata {} · root directory {} · leaf directories {} ({} leaves) · data {}",
+        human(s.metadata_bytes),
+        human(s.root_directory_bytes),
+        human(s.leaf_directory_bytes),
+        s.leaf_directories,
+        human(s.data_bytes)
+    );
+    let _ = writeln!(out, "bootstrap   {} (first read of a client)", human(s.bootstrap_bytes));
+    let _ = writeln!(
+        out,
+        "tiles       {} addressed · {} entries · {} distinct · dedup {:.2}x · {:.2} directory bytes/tile",
+        s.addressed_tiles, s.tile_entries, s.tile_contents, s.dedup_ratio, s.directory_bytes_per_tile
+    );
+    let t = &m.terrain;
+    let _ = writeln!(
+        out,
+        "terrain     elevation {}..{} m · mesh base {} m, high-detail range {} m, {} detail levels",
+        t.min_elevation, t.max_elevation, t.base_tile_size, t.high_detail_range, t.num_detail_levels
+    );
+    if let Some(g) = &m.georeference {
+        let _ = writeln!(out, "georef      {:?} origin {:?} bounds {:?}", g.crs, g.origin, g.lat_lon_bounds);
+    }
+    for (i, l) in s.layers.iter().enumerate() {
+        let _ = writeln!(
+            out,
+            "layer {i}     {} ({:?}, {:?}{}, {} px + border {}) grid {}x{} · {} LODs · {} m/tile · {}",
+            l.name,
+            l.kind,
+            l.format,
+            if l.compression == terrastream_packer::PayloadCompression::Zstd { "+zstd" } else { "" },
+            l.tile_resolution,
+            l.border,
+            l.grid[0],
+            l.grid[1],
+            l.num_lods,
+            l.tile_world_size,
+            human(l.data_bytes)
+        );
+        let per_lod: Vec<String> = l
+            .tiles_per_lod
+            .iter()
+            .zip(&l.grid_tiles_per_lod)
+            .enumerate()
+            .map(|(lod, (n, of))| format!("LOD{lod} {n}/{of}"))
+            .collect();
+        let _ = writeln!(out, "            {}", per_lod.join(" · "));
+    }
+    out
+}

@@ -1,0 +1,143 @@
+//! Command-line wiring: argument parsing, progress bars, Ctrl-C, output formatting.
+
+mod bench;
+mod demo;
+mod info;
+mod pack;
+mod progress;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+use terrastream_packer::export::{Layout, extract};
+use terrastream_packer::{MmapSource, Reader, verify};
+
+pub use progress::CliProgress;
+
+/// Stream very large terrains from one packed, indexed archive.
+#[derive(Debug, Parser)]
+#[command(name = "terrastream", version, about)]
+pub struct Cli {
+    /// More log output (-v: debug, -vv: trace).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+    /// Only errors.
+    #[arg(short, long, global = true)]
+    pub quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Pack an existing tile pyramid (original LOD folders or an XYZ/TMS tree) into one archive.
+    Pack(pack::PackArgs),
+    /// Describe an archive: layers, grids, tiles per LOD, sizes, dedup.
+    Info {
+        /// The archive.
+        archive: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check an archive's structure and every checksum; non-zero exit if damaged.
+    Verify {
+        /// The archive.
+        archive: PathBuf,
+    },
+    /// Write an archive's tiles back as files.
+    Extract {
+        /// The archive.
+        archive: PathBuf,
+        /// Output folder.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Folder layout to write.
+        #[arg(long, value_enum, default_value_t = LayoutArg::Original)]
+        layout: LayoutArg,
+    },
+    /// Pack the built-in sample terrain and show what is in it.
+    Demo(demo::DemoArgs),
+    /// Benchmarks that print numbers.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum LayoutArg {
+    /// LOD0, LOD1, ... folders per layer plus the metadata text.
+    Original,
+    /// {z}/{x}/{y} tree (web zoom: z = 0 coarsest).
+    Xyz,
+}
+
+/// Logs go to stderr through `tracing`; `RUST_LOG` overrides the flags.
+pub fn init_logging(verbose: u8, quiet: bool) {
+    let level = match (quiet, verbose) {
+        (true, _) => "error",
+        (false, 0) => "info",
+        (false, 1) => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+}
+
+/// Runs a parsed command line.
+///
+/// # Errors
+/// Whatever the command failed with.
+pub fn run(cli: Cli) -> Result<ExitCode> {
+    let progress = CliProgress::install(cli.quiet);
+    match cli.command {
+        Command::Pack(args) => pack::run(args, &progress),
+        Command::Info { archive, json } => info::run(&archive, json),
+        Command::Verify { archive } => {
+            let reader = open(&archive)?;
+            progress.start_bytes("verify", reader.header().data.len);
+            let report = verify(&reader, |bytes| progress.set_position(bytes))?;
+            progress.finish();
+            if report.is_ok() {
+                println!(
+                    "{}: OK — {} tiles, {} blobs, {} leaves, {} payload bytes checked",
+                    archive.display(),
+                    report.addressed_tiles,
+                    report.blobs_checked,
+                    report.leaves_checked,
+                    report.bytes_checked
+                );
+                Ok(ExitCode::SUCCESS)
+            } else {
+                for p in &report.problems {
+                    eprintln!("{}: {p}", archive.display());
+                }
+                eprintln!("{}: DAMAGED — {} problem(s)", archive.display(), report.problems.len());
+                Ok(ExitCode::from(2))
+            }
+        }
+        Command::Extract { archive, output, layout } => {
+            let reader = open(&archive)?;
+            let layout = match layout {
+                LayoutArg::Original => Layout::Original,
+                LayoutArg::Xyz => Layout::Xyz,
+            };
+            let summary = extract(&reader, &output, layout, &progress)?;
+            progress.finish();
+            println!("wrote {} tiles ({} bytes) under {}", summary.files, summary.bytes, output.display());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Demo(args) => demo::run(args, &progress),
+        Command::Bench(cmd) => bench::run(cmd),
+    }
+}
+
+/// Opens an archive file by memory mapping it.
+///
+/// # Errors
+/// Names the file when it cannot be opened or is not a valid archive.
+pub fn open(path: &std::path::Path) -> Result<Reader<MmapSource>> {
+    Reader::open_mmap(path).with_context(|| format!("cannot open archive {}", path.display()))
+}

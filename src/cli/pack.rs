@@ -1,0 +1,127 @@
+//! `terrastream pack`.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use terrastream_packer::import::{OriginalLayout, Scheme, XyzOptions, pack, scan_original, scan_xyz};
+use terrastream_packer::{ElevationScheme, LayerKind, WriterOptions};
+
+use super::CliProgress;
+
+#[derive(Debug, Args)]
+pub struct PackArgs {
+    /// Input folder: original LOD folders (with their metadata text) or an XYZ/TMS tree.
+    input: PathBuf,
+    /// Output archive (written to a temporary name, then renamed).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Path template of an XYZ/TMS tree, e.g. "{z}/{x}/{y}.png" (z = 0 is the coarsest zoom).
+    #[arg(long)]
+    template: Option<String>,
+    /// Row order of the XYZ tree.
+    #[arg(long, value_enum, default_value_t = SchemeArg::Xyz)]
+    scheme: SchemeArg,
+    /// Kind of a single-layer input.
+    #[arg(long, value_enum, default_value_t = KindArg::Texture)]
+    kind: KindArg,
+    /// Height encoding of elevation tiles in an XYZ tree.
+    #[arg(long, value_enum)]
+    elevation_encoding: Option<EncodingArg>,
+    /// Tile file names give y before x (original layout).
+    #[arg(long)]
+    swap_xy: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum SchemeArg {
+    Xyz,
+    Tms,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum KindArg {
+    Texture,
+    Elevation,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum EncodingArg {
+    TerrainRgb,
+    Terrarium,
+    Gray8,
+}
+
+fn has_lod_folders(dir: &Path) -> bool {
+    let is_lod = |p: &Path| p.is_dir() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("LOD"));
+    let children: Vec<PathBuf> = std::fs::read_dir(dir).map(|r| r.filter_map(|e| e.ok().map(|e| e.path())).collect()).unwrap_or_default();
+    children.iter().any(|c| is_lod(c))
+        || children.iter().filter(|c| c.is_dir()).any(|c| {
+            std::fs::read_dir(c).map(|r| r.filter_map(|e| e.ok()).any(|e| is_lod(&e.path()))).unwrap_or(false)
+        })
+}
+
+pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
+    if !args.input.is_dir() {
+        bail!("{}: not a folder (pack takes a folder of tiles; rasters are tiled by `terrastream tile`)", args.input.display());
+    }
+    let kind = match args.kind {
+        KindArg::Texture => LayerKind::Texture,
+        KindArg::Elevation => LayerKind::Elevation,
+    };
+    let scanned = if args.template.is_none() && has_lod_folders(&args.input) {
+        scan_original(&args.input, &OriginalLayout { kind, swap_xy: args.swap_xy })?
+    } else {
+        let templates = match &args.template {
+            Some(t) => vec![t.clone()],
+            None => ["png", "jpg", "jpeg", "webp"].iter().map(|e| format!("{{z}}/{{x}}/{{y}}.{e}")).collect(),
+        };
+        let options = |template: String| XyzOptions {
+            template,
+            scheme: match args.scheme {
+                SchemeArg::Xyz => Scheme::Xyz,
+                SchemeArg::Tms => Scheme::Tms,
+            },
+            kind,
+            elevation: args.elevation_encoding.map(|e| match e {
+                EncodingArg::TerrainRgb => ElevationScheme::TerrainRgb,
+                EncodingArg::Terrarium => ElevationScheme::Terrarium,
+                EncodingArg::Gray8 => ElevationScheme::Gray8,
+            }),
+        };
+        let mut last_err = None;
+        let mut found = None;
+        for t in templates {
+            match scan_xyz(&args.input, &options(t)) {
+                Ok(s) => {
+                    found = Some(s);
+                    break;
+                }
+                Err(e) => last_err = Some(e),
+            }
+        }
+        match (found, last_err) {
+            (Some(s), _) => s,
+            (None, Some(e)) => return Err(e).context("no LOD folders, and not an XYZ tree either (see --template)"),
+            (None, None) => bail!("{}: nothing to pack", args.input.display()),
+        }
+    };
+    let tiles = scanned.tiles.len();
+    tracing::info!(tiles, layers = scanned.metadata.layers.len(), "packing {}", args.input.display());
+    let started = std::time::Instant::now();
+    let summary = pack(scanned, &args.output, WriterOptions::default(), progress)?;
+    progress.finish();
+    let secs = started.elapsed().as_secs_f64();
+    println!(
+        "{}: {} tiles ({} distinct), {} bytes, {:.1} directory bytes/tile, in {:.2} s ({:.0} tiles/s)",
+        summary.path.display(),
+        summary.addressed_tiles,
+        summary.tile_contents,
+        summary.file_len,
+        summary.directory_bytes as f64 / summary.addressed_tiles.max(1) as f64,
+        secs,
+        tiles as f64 / secs.max(1e-9),
+    );
+    Ok(ExitCode::SUCCESS)
+}
