@@ -27,7 +27,9 @@ impl<S: AsyncRangeSource> AsyncReader<S> {
             Bootstrap::Ready(a) => *a,
             Bootstrap::NeedBytes(n) => match Archive::open(&source.fetch(0, n).await?, file_len)? {
                 Bootstrap::Ready(a) => *a,
-                Bootstrap::NeedBytes(_) => return Err(Error::corrupt("header", "bootstrap length is unstable")),
+                Bootstrap::NeedBytes(_) => {
+                    return Err(Error::corrupt("header", "bootstrap length is unstable"));
+                }
             },
         };
         Ok(Self { source, archive })
@@ -68,8 +70,13 @@ impl<S: AsyncRangeSource> AsyncReader<S> {
     /// # Errors
     /// Source errors, [`Error::TileChecksum`], [`Error::InvalidTile`].
     pub async fn tile(&self, tile: TileKey) -> Result<Option<Bytes>> {
-        let Some(location) = self.locate(tile).await? else { return Ok(None) };
-        let blob = self.source.fetch(location.offset, location.blob_len()).await?;
+        let Some(location) = self.locate(tile).await? else {
+            return Ok(None);
+        };
+        let blob = self
+            .source
+            .fetch(location.offset, location.blob_len())
+            .await?;
         self.archive.payload(&location, blob).map(Some)
     }
 }

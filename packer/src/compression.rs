@@ -10,11 +10,19 @@ use crate::header::Compression;
 ///
 /// # Errors
 /// [`Error::Decompress`] if the frame is invalid or inflates past `limit`.
-pub fn decompress(bytes: &[u8], compression: Compression, limit: u64, section: &str) -> Result<Vec<u8>> {
+pub fn decompress(
+    bytes: &[u8],
+    compression: Compression,
+    limit: u64,
+    section: &str,
+) -> Result<Vec<u8>> {
     match compression {
         Compression::None => {
             if bytes.len() as u64 > limit {
-                return Err(Error::Decompress { section: section.into(), reason: format!("larger than {limit} bytes") });
+                return Err(Error::Decompress {
+                    section: section.into(),
+                    reason: format!("larger than {limit} bytes"),
+                });
             }
             Ok(bytes.to_vec())
         }
@@ -27,9 +35,13 @@ pub fn decompress(bytes: &[u8], compression: Compression, limit: u64, section: &
 /// # Errors
 /// [`Error::Decompress`] if the frame is invalid, truncated or inflates past `limit`.
 pub fn zstd_decompress(bytes: &[u8], limit: u64, section: &str) -> Result<Vec<u8>> {
-    let fail = |reason: String| Error::Decompress { section: section.into(), reason };
+    let fail = |reason: String| Error::Decompress {
+        section: section.into(),
+        reason,
+    };
     let mut source = bytes;
-    let decoder = ruzstd::decoding::StreamingDecoder::new(&mut source).map_err(|e| fail(e.to_string()))?;
+    let decoder =
+        ruzstd::decoding::StreamingDecoder::new(&mut source).map_err(|e| fail(e.to_string()))?;
     let mut out = Vec::new();
     // Read one byte past the limit to tell "exactly at the limit" from "over it".
     decoder

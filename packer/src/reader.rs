@@ -31,7 +31,9 @@ impl<S: RangeSource> Reader<S> {
             Bootstrap::Ready(a) => *a,
             Bootstrap::NeedBytes(n) => match Archive::open(&source.read_range(0, n)?, file_len)? {
                 Bootstrap::Ready(a) => *a,
-                Bootstrap::NeedBytes(_) => return Err(Error::corrupt("header", "bootstrap length is unstable")),
+                Bootstrap::NeedBytes(_) => {
+                    return Err(Error::corrupt("header", "bootstrap length is unstable"));
+                }
             },
         };
         Ok(Self { source, archive })
@@ -68,7 +70,8 @@ impl<S: RangeSource> Reader<S> {
                 Locate::Found(location) => return Ok(Some(location)),
                 Locate::Missing => return Ok(None),
                 Locate::NeedLeaf { offset, len } => {
-                    self.archive.add_leaf(offset, &self.source.read_range(offset, len)?)?;
+                    self.archive
+                        .add_leaf(offset, &self.source.read_range(offset, len)?)?;
                 }
             }
         }
@@ -79,8 +82,12 @@ impl<S: RangeSource> Reader<S> {
     /// # Errors
     /// I/O errors, [`Error::TileChecksum`] for a damaged tile, [`Error::InvalidTile`].
     pub fn tile(&self, tile: TileKey) -> Result<Option<Bytes>> {
-        let Some(location) = self.locate(tile)? else { return Ok(None) };
-        let blob = self.source.read_range(location.offset, location.blob_len())?;
+        let Some(location) = self.locate(tile)? else {
+            return Ok(None);
+        };
+        let blob = self
+            .source
+            .read_range(location.offset, location.blob_len())?;
         self.archive.payload(&location, blob).map(Some)
     }
 
@@ -89,7 +96,11 @@ impl<S: RangeSource> Reader<S> {
     /// # Errors
     /// As [`Reader::tile`].
     pub fn tile_or_coarser(&self, tile: TileKey) -> Result<Option<(TileKey, Bytes)>> {
-        let num_lods = self.metadata().layers.get(usize::from(tile.layer())).map_or(0, |l| l.num_lods);
+        let num_lods = self
+            .metadata()
+            .layers
+            .get(usize::from(tile.layer()))
+            .map_or(0, |l| l.num_lods);
         let mut current = Some(tile);
         while let Some(t) = current.filter(|t| t.lod() < num_lods) {
             if let Some(bytes) = self.tile(t)? {
@@ -135,8 +146,14 @@ impl<S: RangeSource> Reader<S> {
     /// I/O errors, [`Error::TileChecksum`] naming the entry's first tile.
     pub fn entry_payload(&self, entry: &Entry) -> Result<Bytes> {
         let key = self.archive.tile_of(entry.key)?;
-        let location = TileLocation { key, offset: self.header().data.offset + entry.offset, length: entry.length };
-        let blob = self.source.read_range(location.offset, location.blob_len())?;
+        let location = TileLocation {
+            key,
+            offset: self.header().data.offset + entry.offset,
+            length: entry.length,
+        };
+        let blob = self
+            .source
+            .read_range(location.offset, location.blob_len())?;
         self.archive.payload(&location, blob)
     }
 }

@@ -49,7 +49,10 @@ impl VerifyReport {
 ///
 /// # Errors
 /// Only for failures to read at all; damage is reported in [`VerifyReport::problems`].
-pub fn verify<S: RangeSource>(reader: &Reader<S>, mut progress: impl FnMut(u64)) -> Result<VerifyReport> {
+pub fn verify<S: RangeSource>(
+    reader: &Reader<S>,
+    mut progress: impl FnMut(u64),
+) -> Result<VerifyReport> {
     let mut report = VerifyReport::default();
     let archive = reader.archive();
     let mut seen_blobs = HashSet::new();
@@ -96,7 +99,9 @@ pub fn verify<S: RangeSource>(reader: &Reader<S>, mut progress: impl FnMut(u64))
         ];
         for (what, header, found) in counts {
             if header != found {
-                report.problem(format!("corrupt header: says {header} {what}, directories hold {found}"));
+                report.problem(format!(
+                    "corrupt header: says {header} {what}, directories hold {found}"
+                ));
             }
         }
     }
@@ -111,7 +116,12 @@ fn check_entry<S: RangeSource>(reader: &Reader<S>, e: &Entry) -> Result<()> {
         let tile = archive.tile_of(key)?;
         let layer = &archive.metadata().layers[usize::from(tile.layer())];
         if !layer.contains(tile) {
-            return Err(Error::InvalidTile { what: format!("{tile}: directory entry outside layer {:?}'s grid", layer.name) });
+            return Err(Error::InvalidTile {
+                what: format!(
+                    "{tile}: directory entry outside layer {:?}'s grid",
+                    layer.name
+                ),
+            });
         }
     }
     Ok(())

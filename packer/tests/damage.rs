@@ -6,8 +6,8 @@ use std::io::Write;
 
 use terrastream_packer::sample::tiny_archive;
 use terrastream_packer::{
-    Compression, Directory, Entry, Error, FileSource, HEADER_LEN, Header, LeafPointer, MemorySource, MmapSource,
-    Reader, Section, TileKey, crc32c, verify, zstd_compress,
+    Compression, Directory, Entry, Error, FileSource, HEADER_LEN, Header, LeafPointer,
+    MemorySource, MmapSource, Reader, Section, TileKey, crc32c, verify, zstd_compress,
 };
 
 use common::{layer, metadata};
@@ -16,7 +16,11 @@ use common::{layer, metadata};
 fn open_and_verify(bytes: Vec<u8>) -> Result<(), String> {
     let reader = Reader::new(MemorySource::new(bytes)).map_err(|e| e.to_string())?;
     let report = verify(&reader, |_| {}).map_err(|e| e.to_string())?;
-    if report.is_ok() { Ok(()) } else { Err(report.problems.join("; ")) }
+    if report.is_ok() {
+        Ok(())
+    } else {
+        Err(report.problems.join("; "))
+    }
 }
 
 /// A small archive with leaf directories, runs and duplicates: every section present.
@@ -31,14 +35,26 @@ fn small_archive_with_leaves() -> Vec<u8> {
             for y in 0..ny {
                 for x in 0..nx {
                     let t = TileKey::new(li as u8, lod, x, y).unwrap();
-                    let payload = if (x + y) % 3 == 0 { b"dup".to_vec() } else { format!("{t}").into_bytes() };
-                    tiles.push((terrastream_packer::Writer::order_key(&meta, t).unwrap(), t, payload));
+                    let payload = if (x + y) % 3 == 0 {
+                        b"dup".to_vec()
+                    } else {
+                        format!("{t}").into_bytes()
+                    };
+                    tiles.push((
+                        terrastream_packer::Writer::order_key(&meta, t).unwrap(),
+                        t,
+                        payload,
+                    ));
                 }
             }
         }
     }
     tiles.sort_by_key(|t| t.0);
-    let options = terrastream_packer::WriterOptions { leaf_entries: 4, bootstrap_target: 1000, ..Default::default() };
+    let options = terrastream_packer::WriterOptions {
+        leaf_entries: 4,
+        bootstrap_target: 1000,
+        ..Default::default()
+    };
     let mut w = terrastream_packer::Writer::create(&path, meta, options).unwrap();
     for (_, t, p) in tiles {
         w.add(t, p).unwrap();
@@ -61,7 +77,11 @@ fn every_single_byte_flip_is_detected() {
             undetected.push(i);
         }
     }
-    assert!(undetected.is_empty(), "flips at {:?} went unnoticed", &undetected[..undetected.len().min(10)]);
+    assert!(
+        undetected.is_empty(),
+        "flips at {:?} went unnoticed",
+        &undetected[..undetected.len().min(10)]
+    );
 }
 
 #[test]
@@ -81,9 +101,18 @@ fn damage_is_named_by_section_or_tile() {
     let cases = [
         (8usize, "UnsupportedVersion"),
         (100, "header"),
-        (usize::try_from(header.metadata.offset).unwrap() + 5, "metadata"),
-        (usize::try_from(header.root_dir.offset).unwrap() + 3, "root directory"),
-        (usize::try_from(header.data.offset).unwrap() + 20, "tile layer"),
+        (
+            usize::try_from(header.metadata.offset).unwrap() + 5,
+            "metadata",
+        ),
+        (
+            usize::try_from(header.root_dir.offset).unwrap() + 3,
+            "root directory",
+        ),
+        (
+            usize::try_from(header.data.offset).unwrap() + 20,
+            "tile layer",
+        ),
     ];
     for (at, expect) in cases {
         let mut bad = good.clone();
@@ -92,14 +121,20 @@ fn damage_is_named_by_section_or_tile() {
             Err(e) => format!("{e:?} {e}"),
             Ok(r) => verify(&r, |_| {}).unwrap().problems.join("; "),
         };
-        assert!(msg.contains(expect), "flip at {at}: {msg:?} should name {expect:?}");
+        assert!(
+            msg.contains(expect),
+            "flip at {at}: {msg:?} should name {expect:?}"
+        );
     }
 }
 
 #[test]
 fn truncation_at_any_length_is_an_error() {
     let good = tiny_archive().unwrap();
-    for len in (0..good.len()).step_by(97).chain([good.len() - 1, good.len() - 4, 127, 128, 129]) {
+    for len in (0..good.len())
+        .step_by(97)
+        .chain([good.len() - 1, good.len() - 4, 127, 128, 129])
+    {
         let result = open_and_verify(good[..len].to_vec());
         assert!(result.is_err(), "truncated to {len} bytes was accepted");
     }
@@ -120,7 +155,9 @@ fn a_damaged_tile_is_an_error_never_garbage() {
         for y in 0..ny {
             for x in 0..nx {
                 for layer in 0..2u8 {
-                    let Ok(key) = TileKey::new(layer, lod, x, y) else { continue };
+                    let Ok(key) = TileKey::new(layer, lod, x, y) else {
+                        continue;
+                    };
                     match reader.tile(key) {
                         Err(Error::TileChecksum { key: named, .. }) => {
                             assert_eq!(named, key);
@@ -139,13 +176,32 @@ fn a_damaged_tile_is_an_error_never_garbage() {
 }
 
 /// Assembles an archive from parts, as an independent writer following FORMAT.md would.
-fn assemble(meta_json: &[u8], root: &Directory, leaves: &[u8], data_offset: u64, data_len: u64, counts: (u64, u64, u64)) -> (Header, Vec<u8>) {
+fn assemble(
+    meta_json: &[u8],
+    root: &Directory,
+    leaves: &[u8],
+    data_offset: u64,
+    data_len: u64,
+    counts: (u64, u64, u64),
+) -> (Header, Vec<u8>) {
     let meta = zstd_compress(meta_json, 3).unwrap();
     let root_bytes = zstd_compress(&root.encode_raw(), 3).unwrap();
-    let metadata = Section { offset: HEADER_LEN as u64, len: meta.len() as u64 };
-    let root_dir = Section { offset: metadata.end().unwrap(), len: root_bytes.len() as u64 };
-    let leaf_dirs = Section { offset: root_dir.end().unwrap(), len: leaves.len() as u64 };
-    let data = Section { offset: data_offset.max(leaf_dirs.end().unwrap()), len: data_len };
+    let metadata = Section {
+        offset: HEADER_LEN as u64,
+        len: meta.len() as u64,
+    };
+    let root_dir = Section {
+        offset: metadata.end().unwrap(),
+        len: root_bytes.len() as u64,
+    };
+    let leaf_dirs = Section {
+        offset: root_dir.end().unwrap(),
+        len: leaves.len() as u64,
+    };
+    let data = Section {
+        offset: data_offset.max(leaf_dirs.end().unwrap()),
+        len: data_len,
+    };
     let header = Header {
         version_minor: 0,
         metadata,
@@ -175,13 +231,31 @@ fn offsets_past_4_gib_work_in_a_sparse_file() {
     let key = tile.archive_key(2).unwrap();
     let payload = b"\x89PNG far away".to_vec();
     let leaf = zstd_compress(
-        &Directory::Tiles(vec![Entry { key, run_length: 1, offset: 100, length: payload.len() as u32 }]).encode_raw(),
+        &Directory::Tiles(vec![Entry {
+            key,
+            run_length: 1,
+            offset: 100,
+            length: payload.len() as u32,
+        }])
+        .encode_raw(),
         3,
     )
     .unwrap();
-    let root = Directory::Leaves(vec![LeafPointer { first_key: key, offset: 0, length: leaf.len() as u32, crc: crc32c(&leaf) }]);
+    let root = Directory::Leaves(vec![LeafPointer {
+        first_key: key,
+        offset: 0,
+        length: leaf.len() as u32,
+        crc: crc32c(&leaf),
+    }]);
     let data_offset = 5u64 << 30;
-    let (header, head) = assemble(&meta.to_json(), &root, &leaf, data_offset, 100 + payload.len() as u64 + 4, (1, 1, 1));
+    let (header, head) = assemble(
+        &meta.to_json(),
+        &root,
+        &leaf,
+        data_offset,
+        100 + payload.len() as u64 + 4,
+        (1, 1, 1),
+    );
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("big.tspack");
     let mut f = std::fs::File::create(&path).unwrap();
@@ -195,10 +269,17 @@ fn offsets_past_4_gib_work_in_a_sparse_file() {
 
     let file = Reader::new(FileSource::open(&path).unwrap()).unwrap();
     assert_eq!(file.tile(tile).unwrap().unwrap(), payload);
-    assert_eq!(file.locate(tile).unwrap().unwrap().offset, data_offset + 100);
+    assert_eq!(
+        file.locate(tile).unwrap().unwrap().offset,
+        data_offset + 100
+    );
     let mmap = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
     assert_eq!(mmap.tile(tile).unwrap().unwrap(), payload);
-    assert!(mmap.tile(TileKey::new(0, 0, 0, 0).unwrap()).unwrap().is_none());
+    assert!(
+        mmap.tile(TileKey::new(0, 0, 0, 0).unwrap())
+            .unwrap()
+            .is_none()
+    );
     let report = verify(&mmap, |_| {}).unwrap();
     assert!(report.is_ok(), "{:?}", report.problems);
 }
@@ -207,7 +288,12 @@ fn offsets_past_4_gib_work_in_a_sparse_file() {
 fn directory_entries_pointing_outside_the_data_section_are_refused() {
     let meta = metadata(vec![layer("texture", 1, 1, 1)]);
     let key = TileKey::new(0, 0, 0, 0).unwrap().archive_key(1).unwrap();
-    let root = Directory::Tiles(vec![Entry { key, run_length: 1, offset: 1 << 40, length: 10 }]);
+    let root = Directory::Tiles(vec![Entry {
+        key,
+        run_length: 1,
+        offset: 1 << 40,
+        length: 10,
+    }]);
     let (_, mut bytes) = assemble(&meta.to_json(), &root, &[], 0, 14, (1, 1, 1));
     bytes.extend([0u8; 14]);
     let err = Reader::new(MemorySource::new(bytes)).unwrap_err();
@@ -227,7 +313,12 @@ fn huge_counts_in_small_directories_allocate_nothing() {
 
 #[test]
 fn other_files_are_not_archives() {
-    for bytes in [Vec::new(), b"\x89PNG\r\n\x1a\n".to_vec(), vec![0u8; 20_000], b"TSPACK\r\n\x02\x00".to_vec()] {
+    for bytes in [
+        Vec::new(),
+        b"\x89PNG\r\n\x1a\n".to_vec(),
+        vec![0u8; 20_000],
+        b"TSPACK\r\n\x02\x00".to_vec(),
+    ] {
         assert!(Reader::new(MemorySource::new(bytes)).is_err());
     }
 }

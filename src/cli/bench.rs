@@ -12,7 +12,9 @@ use anyhow::Result;
 use clap::{Args, Subcommand};
 use terrastream_packer::import::{OriginalLayout, pack, scan_original};
 use terrastream_packer::progress::Silent;
-use terrastream_packer::{Directory, Entry, MmapSource, Reader, TileKey, WriterOptions, write_varint};
+use terrastream_packer::{
+    Directory, Entry, MmapSource, Reader, TileKey, WriterOptions, write_varint,
+};
 
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
@@ -57,7 +59,11 @@ impl Rng {
 /// images: packing never decodes), one in ten tiles identical (dedup).
 fn write_pyramid(dir: &Path, grid: u32, tile_bytes: usize) -> Result<(u64, u64)> {
     let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
-    let blank: Vec<u8> = b"\x89PNG\r\n\x1a\n".iter().copied().chain(std::iter::repeat_n(0u8, 120)).collect();
+    let blank: Vec<u8> = b"\x89PNG\r\n\x1a\n"
+        .iter()
+        .copied()
+        .chain(std::iter::repeat_n(0u8, 120))
+        .collect();
     let (mut files, mut bytes) = (0u64, 0u64);
     let mut lod = 0u32;
     let mut n = grid;
@@ -94,7 +100,11 @@ fn files_under(dir: &Path) -> Result<Vec<PathBuf>> {
     while let Some(d) = stack.pop() {
         for e in std::fs::read_dir(&d)? {
             let p = e?.path();
-            if p.is_dir() { stack.push(p) } else { out.push(p) }
+            if p.is_dir() {
+                stack.push(p)
+            } else {
+                out.push(p)
+            }
         }
     }
     Ok(out)
@@ -181,11 +191,17 @@ fn per_sec(n: f64, d: Duration) -> f64 {
 
 fn archive(args: ArchiveBench) -> Result<ExitCode> {
     let temp = tempfile::tempdir()?;
-    let root = args.dir.clone().unwrap_or_else(|| temp.path().to_path_buf());
+    let root = args
+        .dir
+        .clone()
+        .unwrap_or_else(|| temp.path().to_path_buf());
     let input = root.join("pyramid");
     let (files, bytes) = write_pyramid(&input, args.grid, args.tile_bytes)?;
     let mb = bytes as f64 / 1e6;
-    println!("input: {files} tiles, {mb:.1} MB in the original LOD-folder layout ({}x{} at LOD 0)", args.grid, args.grid);
+    println!(
+        "input: {files} tiles, {mb:.1} MB in the original LOD-folder layout ({}x{} at LOD 0)",
+        args.grid, args.grid
+    );
 
     // Warm the page cache once so both contenders read from memory.
     for f in files_under(&input)? {
@@ -202,9 +218,22 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
     let packed = t.elapsed();
 
     println!("\n== pack throughput (same input, same run) ==");
-    println!("  plain recursive copy : {:>9.0} tiles/s {:>8.1} MB/s  ({:.2} s)", per_sec(files as f64, copy), per_sec(mb, copy), copy.as_secs_f64());
-    println!("  terrastream pack     : {:>9.0} tiles/s {:>8.1} MB/s  ({:.2} s)", per_sec(files as f64, packed), per_sec(mb, packed), packed.as_secs_f64());
-    println!("  pack / copy time     : {:.2}x", packed.as_secs_f64() / copy.as_secs_f64().max(1e-9));
+    println!(
+        "  plain recursive copy : {:>9.0} tiles/s {:>8.1} MB/s  ({:.2} s)",
+        per_sec(files as f64, copy),
+        per_sec(mb, copy),
+        copy.as_secs_f64()
+    );
+    println!(
+        "  terrastream pack     : {:>9.0} tiles/s {:>8.1} MB/s  ({:.2} s)",
+        per_sec(files as f64, packed),
+        per_sec(mb, packed),
+        packed.as_secs_f64()
+    );
+    println!(
+        "  pack / copy time     : {:.2}x",
+        packed.as_secs_f64() / copy.as_secs_f64().max(1e-9)
+    );
 
     let reader = Reader::new(MmapSource::open(&out)?)?;
     let mut keys = Vec::new();
@@ -217,7 +246,9 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
         Ok(())
     })?;
     let mut rng = Rng(42);
-    let picks: Vec<TileKey> = (0..args.lookups).map(|_| keys[(rng.next() % keys.len() as u64) as usize]).collect();
+    let picks: Vec<TileKey> = (0..args.lookups)
+        .map(|_| keys[(rng.next() % keys.len() as u64) as usize])
+        .collect();
     for k in &picks {
         reader.tile(*k)?; // warm: leaves cached, pages mapped
     }
@@ -235,9 +266,21 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
         v.sort_unstable();
         v[((v.len() - 1) as f64 * p) as usize]
     };
-    println!("\n== warm tile lookup, mmap ({} random tiles, {} leaf directories) ==", picks.len(), summary.leaf_count);
-    println!("  locate (directory only)     : p50 {:>6} ns  p99 {:>6} ns", pct(&mut locate_ns, 0.5), pct(&mut locate_ns, 0.99));
-    println!("  tile (locate + CRC32C check): p50 {:>6} ns  p99 {:>6} ns", pct(&mut tile_ns, 0.5), pct(&mut tile_ns, 0.99));
+    println!(
+        "\n== warm tile lookup, mmap ({} random tiles, {} leaf directories) ==",
+        picks.len(),
+        summary.leaf_count
+    );
+    println!(
+        "  locate (directory only)     : p50 {:>6} ns  p99 {:>6} ns",
+        pct(&mut locate_ns, 0.5),
+        pct(&mut locate_ns, 0.99)
+    );
+    println!(
+        "  tile (locate + CRC32C check): p50 {:>6} ns  p99 {:>6} ns",
+        pct(&mut tile_ns, 0.5),
+        pct(&mut tile_ns, 0.99)
+    );
 
     let ours = summary.directory_bytes as f64 / summary.addressed_tiles as f64;
     let pm = pmtiles_directory_bytes(&entries) as f64 / summary.addressed_tiles as f64;
@@ -245,10 +288,16 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
         Directory::Tiles(e) => e.len(),
         Directory::Leaves(l) => l.len(),
     };
-    println!("\n== directory size ({} tiles, {} entries, {} distinct) ==", summary.addressed_tiles, summary.tile_entries, summary.tile_contents);
+    println!(
+        "\n== directory size ({} tiles, {} entries, {} distinct) ==",
+        summary.addressed_tiles, summary.tile_entries, summary.tile_contents
+    );
     println!("  tspack (zstd, root {root_entries} entries) : {ours:.3} bytes/tile");
     println!("  PMTiles v3 (gzip), same tiles     : {pm:.3} bytes/tile");
     println!("  tspack / PMTiles                  : {:.2}x", ours / pm);
-    println!("  bootstrap read                    : {} bytes", reader.header().bootstrap_len());
+    println!(
+        "  bootstrap read                    : {} bytes",
+        reader.header().bootstrap_len()
+    );
     Ok(ExitCode::SUCCESS)
 }

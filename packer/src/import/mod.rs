@@ -38,7 +38,8 @@ impl ScannedPyramid {
         metadata.validate()?;
         let mut keyed = Vec::with_capacity(tiles.len());
         for (tile, path) in tiles {
-            let key = Writer::order_key(&metadata, tile).map_err(|e| Error::input(&path, e.to_string()))?;
+            let key = Writer::order_key(&metadata, tile)
+                .map_err(|e| Error::input(&path, e.to_string()))?;
             keyed.push((key, tile, path));
         }
         keyed.sort_unstable_by_key(|(key, ..)| *key);
@@ -48,7 +49,10 @@ impl ScannedPyramid {
                 format!("same tile ({}) as {}", pair[1].1, pair[0].2.display()),
             ));
         }
-        Ok(Self { metadata, tiles: keyed.into_iter().map(|(_, t, p)| (t, p)).collect() })
+        Ok(Self {
+            metadata,
+            tiles: keyed.into_iter().map(|(_, t, p)| (t, p)).collect(),
+        })
     }
 }
 
@@ -62,7 +66,12 @@ const READ_CHUNK: usize = 256;
 /// # Errors
 /// [`Error::Input`] naming a bad file, [`Error::Interrupted`] on cancel (nothing is written
 /// under `out`), I/O errors.
-pub fn pack(scanned: ScannedPyramid, out: &Path, options: WriterOptions, progress: &dyn Progress) -> Result<WriteSummary> {
+pub fn pack(
+    scanned: ScannedPyramid,
+    out: &Path,
+    options: WriterOptions,
+    progress: &dyn Progress,
+) -> Result<WriteSummary> {
     let mut writer = Writer::create(out, scanned.metadata, options)?;
     progress.start("pack", scanned.tiles.len() as u64);
     for chunk in scanned.tiles.chunks(READ_CHUNK) {
@@ -89,7 +98,10 @@ fn read_tile(path: &Path, format: TileFormat) -> Result<Vec<u8>> {
     let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
     match TileFormat::sniff(&bytes) {
         Some(found) if found == format => Ok(bytes),
-        Some(found) => Err(Error::input(path, format!("{found:?} tile in a layer of {format:?} tiles"))),
+        Some(found) => Err(Error::input(
+            path,
+            format!("{found:?} tile in a layer of {format:?} tiles"),
+        )),
         None => Err(Error::input(path, "not a PNG, JPEG or WebP image")),
     }
 }
@@ -115,7 +127,9 @@ pub(crate) fn split_stem(stem: &str) -> Option<(String, u32, String, u32, String
         }
         out
     };
-    let [.., (a0, a1), (b0, b1)] = groups[..] else { return None };
+    let [.., (a0, a1), (b0, b1)] = groups[..] else {
+        return None;
+    };
     Some((
         stem[..a0].to_owned(),
         stem[a0..a1].parse().ok()?,
@@ -181,9 +195,18 @@ mod tests {
 
     #[test]
     fn splits_common_tile_names() {
-        assert_eq!(split_stem("12_7"), Some((String::new(), 12, "_".into(), 7, String::new())));
-        assert_eq!(split_stem("tile_x3-y4_tex"), Some(("tile_x".into(), 3, "-y".into(), 4, "_tex".into())));
-        assert_eq!(split_stem("lod2_10_11"), Some(("lod2_".into(), 10, "_".into(), 11, String::new())));
+        assert_eq!(
+            split_stem("12_7"),
+            Some((String::new(), 12, "_".into(), 7, String::new()))
+        );
+        assert_eq!(
+            split_stem("tile_x3-y4_tex"),
+            Some(("tile_x".into(), 3, "-y".into(), 4, "_tex".into()))
+        );
+        assert_eq!(
+            split_stem("lod2_10_11"),
+            Some(("lod2_".into(), 10, "_".into(), 11, String::new()))
+        );
         assert_eq!(split_stem("tile7"), None);
     }
 }

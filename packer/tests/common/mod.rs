@@ -8,7 +8,11 @@ use terrastream_packer::{Layer, LayerKind, Metadata, PayloadCompression, TileFor
 pub fn layer(name: &str, nx: u32, ny: u32, num_lods: u8) -> Layer {
     Layer {
         name: name.into(),
-        kind: if name.starts_with("elev") { LayerKind::Elevation } else { LayerKind::Texture },
+        kind: if name.starts_with("elev") {
+            LayerKind::Elevation
+        } else {
+            LayerKind::Texture
+        },
         format: TileFormat::Png,
         compression: PayloadCompression::None,
         tile_resolution: 256,
@@ -35,7 +39,10 @@ pub fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
             if p.is_dir() {
                 stack.push(p);
             } else {
-                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
+                out.push((
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                ));
             }
         }
     }
