@@ -12,10 +12,7 @@ fn main() -> ExitCode {
     match cli::run(args) {
         Ok(code) => code,
         Err(err) => {
-            if matches!(
-                err.downcast_ref::<terrastream_packer::Error>(),
-                Some(terrastream_packer::Error::Interrupted)
-            ) {
+            if matches!(err.downcast_ref::<terrastream_packer::Error>(), Some(terrastream_packer::Error::Interrupted)) {
                 eprintln!("interrupted: nothing was written under the output name");
                 return ExitCode::from(130);
             }

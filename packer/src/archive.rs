@@ -92,23 +92,14 @@ impl Archive {
         }
         // Both sections end at or before bootstrap_len <= first_bytes.len() (checked above).
         let slice = |s: crate::header::Section, name: &str| -> Result<&[u8]> {
-            let range = usize::try_from(s.offset)
-                .ok()
-                .zip(s.end().and_then(|e| usize::try_from(e).ok()));
+            let range = usize::try_from(s.offset).ok().zip(s.end().and_then(|e| usize::try_from(e).ok()));
             range
                 .and_then(|(start, end)| first_bytes.get(start..end))
-                .ok_or_else(|| {
-                    Error::corrupt("header", format!("{name} outside the bootstrap bytes"))
-                })
+                .ok_or_else(|| Error::corrupt("header", format!("{name} outside the bootstrap bytes")))
         };
         let meta_bytes = slice(header.metadata, "metadata")?;
         check_crc(meta_bytes, header.metadata_crc, "metadata")?;
-        let json = decompress(
-            meta_bytes,
-            header.metadata_compression,
-            MAX_METADATA_BYTES,
-            "metadata",
-        )?;
+        let json = decompress(meta_bytes, header.metadata_compression, MAX_METADATA_BYTES, "metadata")?;
         let metadata = Metadata::from_json(&json)?;
         let root_bytes = slice(header.root_dir, "root directory")?;
         check_crc(root_bytes, header.root_dir_crc, "root directory")?;
@@ -162,9 +153,7 @@ impl Archive {
             .metadata
             .layers
             .get(usize::from(key.layer()))
-            .ok_or_else(|| Error::InvalidTile {
-                what: format!("{key}: no such layer"),
-            })?;
+            .ok_or_else(|| Error::InvalidTile { what: format!("{key}: no such layer") })?;
         if !layer.contains(key) {
             let (nx, ny) = layer.grid_at(key.lod());
             return Err(Error::InvalidTile {
@@ -215,20 +204,15 @@ impl Archive {
 
     fn found(&self, tile: TileKey, entry: Option<Entry>) -> Locate {
         match entry {
-            Some(e) => Locate::Found(TileLocation {
-                key: tile,
-                offset: self.header.data.offset + e.offset,
-                length: e.length,
-            }),
+            Some(e) => {
+                Locate::Found(TileLocation { key: tile, offset: self.header.data.offset + e.offset, length: e.length })
+            }
             None => Locate::Missing,
         }
     }
 
     fn cached_leaf(&self, leaf_offset: u64) -> Option<Arc<Vec<Entry>>> {
-        let mut cache = self
-            .leaves
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut cache = self.leaves.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let i = cache.iter().position(|(o, _)| *o == leaf_offset)?;
         // Move to the back: most recently used.
         let hit = cache.remove(i);
@@ -253,14 +237,9 @@ impl Archive {
     /// [`Error::SectionChecksum`] / [`Error::Corrupt`] naming the leaf.
     pub fn add_leaf(&self, offset: u64, bytes: &[u8]) -> Result<Arc<Vec<Entry>>> {
         let section = format!("leaf directory at offset {offset}");
-        let leaf = self
-            .leaf_at(offset)
-            .ok_or_else(|| Error::corrupt(&section, "no root entry points here"))?;
+        let leaf = self.leaf_at(offset).ok_or_else(|| Error::corrupt(&section, "no root entry points here"))?;
         let entries = self.decode_leaf(leaf, bytes)?;
-        let mut cache = self
-            .leaves
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut cache = self.leaves.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if !cache.iter().any(|(o, _)| *o == leaf.offset) {
             if cache.len() >= self.leaf_cache_capacity {
                 cache.remove(0);
@@ -275,31 +254,16 @@ impl Archive {
     /// # Errors
     /// [`Error::SectionChecksum`] / [`Error::Corrupt`] naming the leaf.
     pub fn decode_leaf(&self, leaf: LeafPointer, bytes: &[u8]) -> Result<Arc<Vec<Entry>>> {
-        let section = format!(
-            "leaf directory at offset {}",
-            self.header.leaf_dirs.offset + leaf.offset
-        );
+        let section = format!("leaf directory at offset {}", self.header.leaf_dirs.offset + leaf.offset);
         if bytes.len() as u64 != u64::from(leaf.length) {
-            return Err(Error::corrupt(
-                &section,
-                format!("{} bytes given, {} expected", bytes.len(), leaf.length),
-            ));
+            return Err(Error::corrupt(&section, format!("{} bytes given, {} expected", bytes.len(), leaf.length)));
         }
         check_crc(bytes, leaf.crc, &section)?;
-        match Directory::decode(
-            bytes,
-            self.header.directory_compression,
-            &section,
-            self.header.data.len,
-            0,
-        )? {
+        match Directory::decode(bytes, self.header.directory_compression, &section, self.header.data.len, 0)? {
             Directory::Tiles(entries) => {
                 let (first, last) = (entries.first(), entries.last());
                 if first.is_none_or(|e| e.key != leaf.first_key) {
-                    return Err(Error::corrupt(
-                        &section,
-                        "first key differs from its root entry",
-                    ));
+                    return Err(Error::corrupt(&section, "first key differs from its root entry"));
                 }
                 if let (Some(next), Some(last)) = (self.next_leaf_key(leaf), last) {
                     if last.last_key() >= next {
@@ -308,10 +272,7 @@ impl Archive {
                 }
                 Ok(Arc::new(entries))
             }
-            Directory::Leaves(_) => Err(Error::corrupt(
-                &section,
-                "a leaf may not point at further leaves",
-            )),
+            Directory::Leaves(_) => Err(Error::corrupt(&section, "a leaf may not point at further leaves")),
         }
     }
 
@@ -332,19 +293,10 @@ impl Archive {
         if blob.len() as u64 != location.blob_len() {
             return Err(Error::corrupt(
                 format!("tile {}", location.key),
-                format!(
-                    "{} bytes read, {} expected",
-                    blob.len(),
-                    location.blob_len()
-                ),
+                format!("{} bytes read, {} expected", blob.len(), location.blob_len()),
             ));
         }
-        let stored = u32::from_le_bytes([
-            blob[length],
-            blob[length + 1],
-            blob[length + 2],
-            blob[length + 3],
-        ]);
+        let stored = u32::from_le_bytes([blob[length], blob[length + 1], blob[length + 2], blob[length + 3]]);
         let payload = blob.slice(..length);
         let computed = crc32c(&payload);
         if stored != computed {
@@ -362,11 +314,7 @@ impl Archive {
 fn check_crc(bytes: &[u8], stored: u32, section: &str) -> Result<()> {
     let computed = crc32c(bytes);
     if computed != stored {
-        return Err(Error::SectionChecksum {
-            section: section.to_owned(),
-            stored,
-            computed,
-        });
+        return Err(Error::SectionChecksum { section: section.to_owned(), stored, computed });
     }
     Ok(())
 }

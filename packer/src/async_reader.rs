@@ -73,10 +73,7 @@ impl<S: AsyncRangeSource> AsyncReader<S> {
         let Some(location) = self.locate(tile).await? else {
             return Ok(None);
         };
-        let blob = self
-            .source
-            .fetch(location.offset, location.blob_len())
-            .await?;
+        let blob = self.source.fetch(location.offset, location.blob_len()).await?;
         self.archive.payload(&location, blob).map(Some)
     }
 }

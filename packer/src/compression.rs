@@ -10,12 +10,7 @@ use crate::header::Compression;
 ///
 /// # Errors
 /// [`Error::Decompress`] if the frame is invalid or inflates past `limit`.
-pub fn decompress(
-    bytes: &[u8],
-    compression: Compression,
-    limit: u64,
-    section: &str,
-) -> Result<Vec<u8>> {
+pub fn decompress(bytes: &[u8], compression: Compression, limit: u64, section: &str) -> Result<Vec<u8>> {
     match compression {
         Compression::None => {
             if bytes.len() as u64 > limit {
@@ -35,19 +30,12 @@ pub fn decompress(
 /// # Errors
 /// [`Error::Decompress`] if the frame is invalid, truncated or inflates past `limit`.
 pub fn zstd_decompress(bytes: &[u8], limit: u64, section: &str) -> Result<Vec<u8>> {
-    let fail = |reason: String| Error::Decompress {
-        section: section.into(),
-        reason,
-    };
+    let fail = |reason: String| Error::Decompress { section: section.into(), reason };
     let mut source = bytes;
-    let decoder =
-        ruzstd::decoding::StreamingDecoder::new(&mut source).map_err(|e| fail(e.to_string()))?;
+    let decoder = ruzstd::decoding::StreamingDecoder::new(&mut source).map_err(|e| fail(e.to_string()))?;
     let mut out = Vec::new();
     // Read one byte past the limit to tell "exactly at the limit" from "over it".
-    decoder
-        .take(limit.saturating_add(1))
-        .read_to_end(&mut out)
-        .map_err(|e| fail(e.to_string()))?;
+    decoder.take(limit.saturating_add(1)).read_to_end(&mut out).map_err(|e| fail(e.to_string()))?;
     if out.len() as u64 > limit {
         return Err(fail(format!("inflates past {limit} bytes")));
     }

@@ -32,9 +32,7 @@ impl Entry {
     /// Does this entry address `key`?
     pub fn covers(&self, key: u64) -> bool {
         let step = MAX_LAYERS as u64;
-        key >= self.key
-            && (key - self.key) % step == 0
-            && (key - self.key) / step < u64::from(self.run_length)
+        key >= self.key && (key - self.key) % step == 0 && (key - self.key) / step < u64::from(self.run_length)
     }
 
     /// Last key addressed by this entry.
@@ -92,28 +90,11 @@ impl Directory {
         let rows: Vec<(u64, u64, u64, u64, u64)> = match self {
             Self::Tiles(entries) => entries
                 .iter()
-                .map(|e| {
-                    (
-                        e.key,
-                        u64::from(e.run_length),
-                        u64::from(e.length),
-                        e.offset,
-                        e.stored_len(),
-                    )
-                })
+                .map(|e| (e.key, u64::from(e.run_length), u64::from(e.length), e.offset, e.stored_len()))
                 .collect(),
-            Self::Leaves(leaves) => leaves
-                .iter()
-                .map(|l| {
-                    (
-                        l.first_key,
-                        0,
-                        u64::from(l.length),
-                        l.offset,
-                        u64::from(l.length),
-                    )
-                })
-                .collect(),
+            Self::Leaves(leaves) => {
+                leaves.iter().map(|l| (l.first_key, 0, u64::from(l.length), l.offset, u64::from(l.length))).collect()
+            }
         };
         let mut last_key = 0;
         for &(key, ..) in &rows {
@@ -126,14 +107,16 @@ impl Directory {
         for &(_, _, length, ..) in &rows {
             write_varint(&mut out, length);
         }
-        let mut next_offset = None;
+        // Code 0 = "right after the furthest blob so far": new blobs are written in
+        // entry order, so only entries re-using earlier content need an explicit offset.
+        let mut furthest_end = 0u64;
         for &(_, _, _, offset, stored) in &rows {
-            if next_offset == Some(offset) {
+            if offset == furthest_end {
                 write_varint(&mut out, 0);
             } else {
                 write_varint(&mut out, offset + 1);
             }
-            next_offset = Some(offset + stored);
+            furthest_end = furthest_end.max(offset + stored);
         }
         if let Self::Leaves(leaves) = self {
             for l in leaves {
@@ -164,21 +147,13 @@ impl Directory {
     ///
     /// # Errors
     /// [`Error::Corrupt`] / [`Error::OutOfBounds`] naming `section`.
-    pub fn decode_raw(
-        raw: &[u8],
-        section: &str,
-        data_len: u64,
-        leaf_dirs_len: u64,
-    ) -> Result<Self> {
+    pub fn decode_raw(raw: &[u8], section: &str, data_len: u64, leaf_dirs_len: u64) -> Result<Self> {
         let corrupt = |reason: String| Error::corrupt(section, reason);
         let mut c = Cursor::new(raw, section);
         let n = c.varint()?;
         // Each entry takes at least 4 bytes (one per column): bound n before allocating.
         if n > (c.remaining() / 4) as u64 {
-            return Err(corrupt(format!(
-                "{n} entries cannot fit in {} bytes",
-                raw.len()
-            )));
+            return Err(corrupt(format!("{n} entries cannot fit in {} bytes", raw.len())));
         }
         let n = usize::try_from(n).map_err(|_| corrupt("entry count overflows".into()))?;
         let mut keys = Vec::with_capacity(n);
@@ -188,9 +163,7 @@ impl Directory {
             if i > 0 && delta == 0 {
                 return Err(corrupt(format!("entry {i}: keys not strictly increasing")));
             }
-            key = key
-                .checked_add(delta)
-                .ok_or_else(|| corrupt(format!("entry {i}: key overflows")))?;
+            key = key.checked_add(delta).ok_or_else(|| corrupt(format!("entry {i}: key overflows")))?;
             keys.push(key);
         }
         let mut runs = Vec::with_capacity(n);
@@ -213,39 +186,26 @@ impl Directory {
             (TILE_TRAILER_LEN, data_len, "data section")
         };
         let mut offsets = Vec::with_capacity(n);
-        let mut next_offset: Option<u64> = None;
+        let mut furthest_end = 0u64;
         for (i, &length) in lengths.iter().enumerate() {
             let code = c.varint()?;
-            let offset = match (code, next_offset) {
-                (0, Some(next)) => next,
-                (0, None) => {
-                    return Err(corrupt(
-                        "entry 0: offset code 0 has no previous entry".into(),
-                    ));
-                }
-                (code, _) => code - 1,
-            };
+            let offset = if code == 0 { furthest_end } else { code - 1 };
             let stored = u64::from(length) + stored_extra;
-            let end = offset
-                .checked_add(stored)
-                .filter(|&e| e <= limit)
-                .ok_or_else(|| Error::OutOfBounds {
-                    what: format!("{section} entry {i}"),
-                    offset,
-                    len: stored,
-                    limit_name,
-                    limit,
-                })?;
+            let end = offset.checked_add(stored).filter(|&e| e <= limit).ok_or_else(|| Error::OutOfBounds {
+                what: format!("{section} entry {i}"),
+                offset,
+                len: stored,
+                limit_name,
+                limit,
+            })?;
             offsets.push(offset);
-            next_offset = Some(end);
+            furthest_end = furthest_end.max(end);
         }
         if is_leaves {
             let mut leaves = Vec::with_capacity(n);
             for i in 0..n {
                 if runs[i] != 0 {
-                    return Err(corrupt(format!(
-                        "entry {i}: tile entry in a directory of leaf pointers"
-                    )));
+                    return Err(corrupt(format!("entry {i}: tile entry in a directory of leaf pointers")));
                 }
                 leaves.push(LeafPointer {
                     first_key: keys[i],
@@ -268,23 +228,14 @@ impl Directory {
             let run_length = u32::try_from(runs[i])
                 .ok()
                 .filter(|&r| r > 0)
-                .ok_or_else(|| {
-                    corrupt(format!("entry {i}: run length {} out of range", runs[i]))
-                })?;
-            let entry = Entry {
-                key: keys[i],
-                run_length,
-                offset: offsets[i],
-                length: lengths[i],
-            };
+                .ok_or_else(|| corrupt(format!("entry {i}: run length {} out of range", runs[i])))?;
+            let entry = Entry { key: keys[i], run_length, offset: offsets[i], length: lengths[i] };
             let span = (u64::from(run_length) - 1).checked_mul(MAX_LAYERS as u64);
             if span.and_then(|s| entry.key.checked_add(s)).is_none() {
                 return Err(corrupt(format!("entry {i}: run overflows the key space")));
             }
             if previous_last.is_some_and(|last| entry.key <= last) {
-                return Err(corrupt(format!(
-                    "entry {i}: overlaps the run of the previous entry"
-                )));
+                return Err(corrupt(format!("entry {i}: overlaps the run of the previous entry")));
             }
             previous_last = Some(entry.last_key());
             entries.push(entry);
@@ -301,9 +252,7 @@ impl Directory {
 
     /// The leaf that may hold `key`.
     pub fn find_leaf(leaves: &[LeafPointer], key: u64) -> Option<LeafPointer> {
-        let i = leaves
-            .partition_point(|l| l.first_key <= key)
-            .checked_sub(1)?;
+        let i = leaves.partition_point(|l| l.first_key <= key).checked_sub(1)?;
         Some(leaves[i])
     }
 }
@@ -315,37 +264,25 @@ mod tests {
     use super::*;
 
     fn entries_strategy() -> impl Strategy<Value = Vec<Entry>> {
-        prop::collection::vec((1u64..1000, 1u32..5, 1u32..100_000, any::<bool>()), 0..300).prop_map(
-            |rows| {
-                let mut key = 0;
-                let mut offset = 0u64;
-                let mut out: Vec<Entry> = Vec::new();
-                for (gap, run, length, reuse) in rows {
-                    key += gap * 16
-                        + if let Some(last) = out.last() {
-                            last.last_key() - last.key
-                        } else {
-                            0
-                        };
-                    // Dedup: point back at the first blob now and then.
-                    let (off, len) = match (reuse, out.first()) {
-                        (true, Some(first)) => (first.offset, first.length),
-                        _ => {
-                            let o = offset;
-                            offset += u64::from(length) + 4;
-                            (o, length)
-                        }
-                    };
-                    out.push(Entry {
-                        key,
-                        run_length: run,
-                        offset: off,
-                        length: len,
-                    });
-                }
-                out
-            },
-        )
+        prop::collection::vec((1u64..1000, 1u32..5, 1u32..100_000, any::<bool>()), 0..300).prop_map(|rows| {
+            let mut key = 0;
+            let mut offset = 0u64;
+            let mut out: Vec<Entry> = Vec::new();
+            for (gap, run, length, reuse) in rows {
+                key += gap * 16 + if let Some(last) = out.last() { last.last_key() - last.key } else { 0 };
+                // Dedup: point back at the first blob now and then.
+                let (off, len) = match (reuse, out.first()) {
+                    (true, Some(first)) => (first.offset, first.length),
+                    _ => {
+                        let o = offset;
+                        offset += u64::from(length) + 4;
+                        (o, length)
+                    }
+                };
+                out.push(Entry { key, run_length: run, offset: off, length: len });
+            }
+            out
+        })
     }
 
     proptest! {
@@ -365,72 +302,48 @@ mod tests {
     #[test]
     fn leaves_round_trip_with_offsets_past_4_gib() {
         let dir = Directory::Leaves(vec![
-            LeafPointer {
-                first_key: 3,
-                offset: 5 << 32,
-                length: 10,
-                crc: 0xdead_beef,
-            },
-            LeafPointer {
-                first_key: 900,
-                offset: (5 << 32) + 10,
-                length: 7,
-                crc: 1,
-            },
+            LeafPointer { first_key: 3, offset: 5 << 32, length: 10, crc: 0xdead_beef },
+            LeafPointer { first_key: 900, offset: (5 << 32) + 10, length: 7, crc: 1 },
         ]);
         let raw = dir.encode_raw();
-        assert_eq!(
-            Directory::decode_raw(&raw, "root", 0, 6 << 32).unwrap(),
-            dir
-        );
+        assert_eq!(Directory::decode_raw(&raw, "root", 0, 6 << 32).unwrap(), dir);
         // The same bytes are out of bounds for a smaller section.
-        assert!(matches!(
-            Directory::decode_raw(&raw, "root", 0, 5 << 32),
-            Err(Error::OutOfBounds { .. })
-        ));
+        assert!(matches!(Directory::decode_raw(&raw, "root", 0, 5 << 32), Err(Error::OutOfBounds { .. })));
     }
 
     #[test]
     fn finds_tiles_inside_runs_only_in_their_layer() {
         let entries = [
-            Entry {
-                key: 16,
-                run_length: 3,
-                offset: 0,
-                length: 5,
-            },
-            Entry {
-                key: 81,
-                run_length: 1,
-                offset: 9,
-                length: 5,
-            },
+            Entry { key: 16, run_length: 3, offset: 0, length: 5 },
+            Entry { key: 81, run_length: 1, offset: 9, length: 5 },
         ];
-        assert_eq!(
-            Directory::find_tile(&entries, 48).map(|e| e.offset),
-            Some(0)
-        );
+        assert_eq!(Directory::find_tile(&entries, 48).map(|e| e.offset), Some(0));
         assert_eq!(Directory::find_tile(&entries, 64), None);
         assert_eq!(Directory::find_tile(&entries, 17), None);
-        assert_eq!(
-            Directory::find_tile(&entries, 81).map(|e| e.offset),
-            Some(9)
-        );
+        assert_eq!(Directory::find_tile(&entries, 81).map(|e| e.offset), Some(9));
         assert_eq!(Directory::find_tile(&entries, 0), None);
     }
 
     #[test]
     fn contiguous_offsets_cost_one_byte() {
-        let entries: Vec<Entry> = (0..1000u64)
-            .map(|i| Entry {
-                key: i * 16,
-                run_length: 1,
-                offset: i * 104,
-                length: 100,
-            })
-            .collect();
+        let entries: Vec<Entry> =
+            (0..1000u64).map(|i| Entry { key: i * 16, run_length: 1, offset: i * 104, length: 100 }).collect();
         let raw = Directory::Tiles(entries).encode_raw();
         // key delta + run + length + offset code: 1 byte each, plus the count.
         assert_eq!(raw.len(), 4 * 1000 + 2);
+    }
+
+    #[test]
+    fn only_reused_content_pays_for_its_offset() {
+        let mut entries: Vec<Entry> =
+            (0..100u64).map(|i| Entry { key: i * 32, run_length: 1, offset: i * 104, length: 100 }).collect();
+        let plain = Directory::Tiles(entries.clone()).encode_raw().len();
+        // Interleave entries that re-use blob 0: each costs its own offset, the next new one not.
+        for i in 0..10u64 {
+            entries.push(Entry { key: i * 320 + 16, run_length: 1, offset: 0, length: 100 });
+        }
+        entries.sort_by_key(|e| e.key);
+        let with_dups = Directory::Tiles(entries).encode_raw().len();
+        assert_eq!(with_dups - plain, 10 * 4, "4 bytes per extra entry, no offset for the entry after it");
     }
 }

@@ -133,29 +133,17 @@ pub enum Error {
 
 impl Error {
     pub(crate) fn corrupt(section: impl Into<String>, reason: impl Into<String>) -> Self {
-        Self::Corrupt {
-            section: section.into(),
-            reason: reason.into(),
-        }
+        Self::Corrupt { section: section.into(), reason: reason.into() }
     }
 
-    #[cfg_attr(
-        not(any(feature = "write", not(target_arch = "wasm32"))),
-        expect(dead_code, reason = "file backends")
-    )]
+    #[cfg_attr(not(any(feature = "write", not(target_arch = "wasm32"))), expect(dead_code, reason = "file backends"))]
     pub(crate) fn file(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        Self::File {
-            path: path.into(),
-            source,
-        }
+        Self::File { path: path.into(), source }
     }
 
     #[cfg_attr(not(feature = "write"), expect(dead_code, reason = "importers"))]
     pub(crate) fn input(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
-        Self::Input {
-            path: path.into(),
-            reason: reason.into(),
-        }
+        Self::Input { path: path.into(), reason: reason.into() }
     }
 }
 

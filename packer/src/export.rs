@@ -42,43 +42,28 @@ struct Namer {
 
 impl Namer {
     fn new(metadata: &Metadata, layout: Layout) -> Self {
-        let record: Option<LayoutRecord> = metadata
-            .extra
-            .get(crate::import::LAYOUT_KEY)
-            .and_then(|v| serde_json::from_value(v.clone()).ok());
-        let xyz = metadata
-            .extra
-            .get(crate::import::XYZ_KEY)
-            .and_then(|v| serde_json::from_value(v.clone()).ok());
+        let record: Option<LayoutRecord> =
+            metadata.extra.get(crate::import::LAYOUT_KEY).and_then(|v| serde_json::from_value(v.clone()).ok());
+        let xyz = metadata.extra.get(crate::import::XYZ_KEY).and_then(|v| serde_json::from_value(v.clone()).ok());
         let single_layer = metadata.layers.len() == 1;
         let original = metadata
             .layers
             .iter()
             .map(|l| {
-                record
-                    .as_ref()
-                    .and_then(|r| r.layers.iter().find(|n| n.layer == l.name).cloned())
-                    .unwrap_or_else(|| LayerNaming {
+                record.as_ref().and_then(|r| r.layers.iter().find(|n| n.layer == l.name).cloned()).unwrap_or_else(
+                    || LayerNaming {
                         layer: l.name.clone(),
-                        folder: if single_layer {
-                            String::new()
-                        } else {
-                            l.name.clone()
-                        },
+                        folder: if single_layer { String::new() } else { l.name.clone() },
                         prefix: String::new(),
                         separator: "_".into(),
                         suffix: String::new(),
                         extension: l.format.extension().into(),
                         swap_xy: false,
-                    })
+                    },
+                )
             })
             .collect();
-        Self {
-            layout,
-            original,
-            xyz,
-            single_layer,
-        }
+        Self { layout, original, xyz, single_layer }
     }
 
     fn path(&self, metadata: &Metadata, tile: TileKey) -> PathBuf {
@@ -86,11 +71,7 @@ impl Namer {
         match self.layout {
             Layout::Original => {
                 let n = &self.original[usize::from(tile.layer())];
-                let (a, b) = if n.swap_xy {
-                    (tile.y(), tile.x())
-                } else {
-                    (tile.x(), tile.y())
-                };
+                let (a, b) = if n.swap_xy { (tile.y(), tile.x()) } else { (tile.x(), tile.y()) };
                 let mut name = format!("{}{a}{}{b}{}", n.prefix, n.separator, n.suffix);
                 if !n.extension.is_empty() {
                     name = format!("{name}.{}", n.extension);
@@ -111,12 +92,7 @@ impl Namer {
                             crate::import::Scheme::Xyz => tile.y(),
                             crate::import::Scheme::Tms => (1u32 << z) - 1 - tile.y(),
                         };
-                        PathBuf::from(crate::import::fill_template(
-                            &record.template,
-                            z,
-                            tile.x(),
-                            y,
-                        ))
+                        PathBuf::from(crate::import::fill_template(&record.template, z, tile.x(), y))
                     }
                     _ => PathBuf::from(format!(
                         "{}/{z}/{}/{}.{}",
@@ -160,9 +136,7 @@ pub fn extract<S: RangeSource>(
             }
         };
         for i in 0..u64::from(entry.run_length) {
-            let tile = reader
-                .archive()
-                .tile_of(entry.key + i * MAX_LAYERS as u64)?;
+            let tile = reader.archive().tile_of(entry.key + i * MAX_LAYERS as u64)?;
             let path = out.join(namer.path(metadata, tile));
             if let Some(parent) = path.parent() {
                 if made_dirs.as_deref() != Some(parent) {
@@ -185,20 +159,11 @@ pub fn extract<S: RangeSource>(
 
 /// The metadata text: verbatim when the archive was packed from one, generated otherwise.
 fn write_metadata_text(metadata: &Metadata, out: &Path) -> Result<()> {
-    let record: Option<LayoutRecord> = metadata
-        .extra
-        .get(crate::import::LAYOUT_KEY)
-        .and_then(|v| serde_json::from_value(v.clone()).ok());
+    let record: Option<LayoutRecord> =
+        metadata.extra.get(crate::import::LAYOUT_KEY).and_then(|v| serde_json::from_value(v.clone()).ok());
     let (name, text) = match record {
-        Some(LayoutRecord {
-            metadata_file: Some(name),
-            metadata_text: Some(text),
-            ..
-        }) => (name, text),
-        _ => (
-            "metadata.txt".to_owned(),
-            original_metadata::render(&original_metadata::fields_for(metadata)),
-        ),
+        Some(LayoutRecord { metadata_file: Some(name), metadata_text: Some(text), .. }) => (name, text),
+        _ => ("metadata.txt".to_owned(), original_metadata::render(&original_metadata::fields_for(metadata))),
     };
     let path = out.join(name);
     std::fs::create_dir_all(out).map_err(|e| Error::file(out, e))?;

@@ -35,10 +35,7 @@ impl Compression {
         match b {
             1 => Ok(Self::None),
             2 => Ok(Self::Zstd),
-            other => Err(Error::corrupt(
-                "header",
-                format!("unknown {field} compression {other}"),
-            )),
+            other => Err(Error::corrupt("header", format!("unknown {field} compression {other}"))),
         }
     }
 }
@@ -144,10 +141,7 @@ impl Header {
             return Err(Error::UnsupportedVersion { major, minor });
         }
         if bytes.len() < HEADER_LEN {
-            return Err(Error::corrupt(
-                "header",
-                format!("truncated: {} of {HEADER_LEN} bytes", bytes.len()),
-            ));
+            return Err(Error::corrupt("header", format!("truncated: {} of {HEADER_LEN} bytes", bytes.len())));
         }
         let b = &bytes[..HEADER_LEN];
         let u32_at = |at: usize| u32::from_le_bytes([b[at], b[at + 1], b[at + 2], b[at + 3]]);
@@ -159,23 +153,13 @@ impl Header {
         let stored = u32_at(124);
         let computed = crc32c(&b[..124]);
         if stored != computed {
-            return Err(Error::SectionChecksum {
-                section: "header".into(),
-                stored,
-                computed,
-            });
+            return Err(Error::SectionChecksum { section: "header".into(), stored, computed });
         }
         let header_len = u32_at(12);
         if header_len as usize != HEADER_LEN {
-            return Err(Error::corrupt(
-                "header",
-                format!("header length {header_len}, expected {HEADER_LEN}"),
-            ));
+            return Err(Error::corrupt("header", format!("header length {header_len}, expected {HEADER_LEN}")));
         }
-        let section = |at: usize| Section {
-            offset: u64_at(at),
-            len: u64_at(at + 8),
-        };
+        let section = |at: usize| Section { offset: u64_at(at), len: u64_at(at + 8) };
         let header = Self {
             version_minor: minor,
             metadata: section(24),
@@ -194,10 +178,7 @@ impl Header {
         if bootstrap != header.bootstrap_len() {
             return Err(Error::corrupt(
                 "header",
-                format!(
-                    "bootstrap length {bootstrap} != root directory end {}",
-                    header.bootstrap_len()
-                ),
+                format!("bootstrap length {bootstrap} != root directory end {}", header.bootstrap_len()),
             ));
         }
         header.validate_layout(file_len)?;
@@ -224,10 +205,7 @@ impl Header {
                 });
             };
             if s.offset < previous_end {
-                return Err(Error::corrupt(
-                    "header",
-                    format!("{name} at {} overlaps the previous section", s.offset),
-                ));
+                return Err(Error::corrupt("header", format!("{name} at {} overlaps the previous section", s.offset)));
             }
             previous_end = end;
         }
@@ -239,10 +217,7 @@ impl Header {
         }
         // Every stored blob holds at least one payload byte and a 4-byte checksum.
         if self.tile_contents > self.data.len / 5 {
-            return Err(Error::corrupt(
-                "header",
-                "more tile contents than the data section can hold",
-            ));
+            return Err(Error::corrupt("header", "more tile contents than the data section can hold"));
         }
         Ok(())
     }
@@ -255,22 +230,10 @@ mod tests {
     fn sample() -> Header {
         Header {
             version_minor: 0,
-            metadata: Section {
-                offset: 128,
-                len: 300,
-            },
-            root_dir: Section {
-                offset: 428,
-                len: 50,
-            },
-            leaf_dirs: Section {
-                offset: 478,
-                len: 0,
-            },
-            data: Section {
-                offset: 478,
-                len: 5 << 32,
-            },
+            metadata: Section { offset: 128, len: 300 },
+            root_dir: Section { offset: 428, len: 50 },
+            leaf_dirs: Section { offset: 478, len: 0 },
+            data: Section { offset: 478, len: 5 << 32 },
             addressed_tiles: 12,
             tile_entries: 10,
             tile_contents: 9,
@@ -296,10 +259,7 @@ mod tests {
         for bit in 0..HEADER_LEN * 8 {
             let mut bad = good;
             bad[bit / 8] ^= 1 << (bit % 8);
-            assert!(
-                Header::decode(&bad, file_len).is_err(),
-                "bit {bit} flip went unnoticed"
-            );
+            assert!(Header::decode(&bad, file_len).is_err(), "bit {bit} flip went unnoticed");
         }
     }
 
@@ -312,10 +272,7 @@ mod tests {
 
     #[test]
     fn rejects_other_files() {
-        assert!(matches!(
-            Header::decode(b"\x89PNG\r\n\x1a\n", 100),
-            Err(Error::BadMagic)
-        ));
+        assert!(matches!(Header::decode(b"\x89PNG\r\n\x1a\n", 100), Err(Error::BadMagic)));
         assert!(matches!(Header::decode(b"", 0), Err(Error::BadMagic)));
     }
 }

@@ -57,12 +57,7 @@ impl TileKey {
     /// The tile one LOD coarser that covers this one, if any.
     pub fn parent(self) -> Option<Self> {
         let lod = self.lod.checked_add(1).filter(|&l| l < MAX_LODS)?;
-        Some(Self {
-            layer: self.layer,
-            lod,
-            x: self.x / 2,
-            y: self.y / 2,
-        })
+        Some(Self { layer: self.layer, lod, x: self.x / 2, y: self.y / 2 })
     }
 
     /// Directory key of this tile in a layer whose quadtree has `depth` levels
@@ -73,15 +68,11 @@ impl TileKey {
     /// the LOD's `2^z x 2^z` quadtree level.
     pub fn archive_key(self, depth: u8) -> Result<u64> {
         if self.lod >= depth || depth > MAX_LODS {
-            return Err(Error::InvalidTile {
-                what: format!("{self}: layer quadtree has {depth} levels"),
-            });
+            return Err(Error::InvalidTile { what: format!("{self}: layer quadtree has {depth} levels") });
         }
         let z = depth - 1 - self.lod;
         if u64::from(self.x) >= 1 << z || u64::from(self.y) >= 1 << z {
-            return Err(Error::InvalidTile {
-                what: format!("{self}: outside the 2^{z} quadtree level"),
-            });
+            return Err(Error::InvalidTile { what: format!("{self}: outside the 2^{z} quadtree level") });
         }
         Ok(zxy_to_tile_id(z, self.x, self.y) * MAX_LAYERS as u64 + u64::from(self.layer))
     }
@@ -92,12 +83,9 @@ impl TileKey {
     /// [`Error::InvalidTile`] if the key names an unknown layer or a level beyond its depth.
     pub fn from_archive_key(key: u64, depth_per_layer: &[u8]) -> Result<Self> {
         let layer = layer_of(key);
-        let num_lods =
-            *depth_per_layer
-                .get(usize::from(layer))
-                .ok_or_else(|| Error::InvalidTile {
-                    what: format!("key {key}: unknown layer {layer}"),
-                })?;
+        let num_lods = *depth_per_layer
+            .get(usize::from(layer))
+            .ok_or_else(|| Error::InvalidTile { what: format!("key {key}: unknown layer {layer}") })?;
         let (z, x, y) = tile_id_to_zxy(key / MAX_LAYERS as u64);
         if z >= num_lods {
             return Err(Error::InvalidTile {
@@ -110,11 +98,7 @@ impl TileKey {
 
 impl fmt::Display for TileKey {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "layer {} lod {} x {} y {}",
-            self.layer, self.lod, self.x, self.y
-        )
+        write!(f, "layer {} lod {} x {} y {}", self.layer, self.lod, self.x, self.y)
     }
 }
 
@@ -156,10 +140,7 @@ pub fn zxy_to_tile_id(z: u8, x: u32, y: u32) -> u64 {
 }
 
 /// Inverse of [`zxy_to_tile_id`]. Total for any id below the level base of z = 32.
-#[expect(
-    clippy::cast_possible_truncation,
-    reason = "x and y are below 2^z <= 2^31"
-)]
+#[expect(clippy::cast_possible_truncation, reason = "x and y are below 2^z <= 2^31")]
 pub fn tile_id_to_zxy(id: u64) -> (u8, u32, u32) {
     let mut z = 0u8;
     while z < 31 && id >= level_base(z + 1) {

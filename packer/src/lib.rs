@@ -46,9 +46,7 @@ pub mod sample;
 #[cfg(feature = "write")]
 mod writer;
 
-pub use archive::{
-    Archive, Bootstrap, DEFAULT_LEAF_CACHE, Locate, MAX_METADATA_BYTES, TileLocation,
-};
+pub use archive::{Archive, Bootstrap, DEFAULT_LEAF_CACHE, Locate, MAX_METADATA_BYTES, TileLocation};
 pub use async_reader::AsyncReader;
 pub use checksum::crc32c;
 #[cfg(feature = "write")]
@@ -56,13 +54,11 @@ pub use compression::zstd_compress;
 pub use compression::{decompress, zstd_decompress};
 pub use directory::{Directory, Entry, LeafPointer, MAX_DIRECTORY_BYTES, TILE_TRAILER_LEN};
 pub use error::{Error, Result};
-pub use header::{
-    BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section, VERSION_MAJOR, VERSION_MINOR,
-};
+pub use header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section, VERSION_MAJOR, VERSION_MINOR};
 pub use key::{MAX_LAYERS, MAX_LODS, TileKey, tile_id_to_zxy, zxy_to_tile_id};
 pub use metadata::{
-    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, OriginalField,
-    PayloadCompression, Terrain, TileFormat, levels_to_one,
+    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, OriginalField, PayloadCompression,
+    Terrain, TileFormat, levels_to_one,
 };
 pub use reader::Reader;
 pub use source::{AsyncRangeSource, MaybeSend, MaybeSync, MemorySource, RangeSource};

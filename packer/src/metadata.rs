@@ -194,11 +194,7 @@ impl Layer {
     /// Tiles across and down at `lod`: ceil(n / 2^lod).
     pub fn grid_at(&self, lod: u8) -> (u32, u32) {
         let shrink = |n: u32| {
-            if lod >= 32 {
-                1
-            } else {
-                n.div_ceil(1 << lod).max(1)
-            }
+            if lod >= 32 { 1 } else { n.div_ceil(1 << lod).max(1) }
         };
         (shrink(self.num_x_tiles), shrink(self.num_y_tiles))
     }
@@ -329,10 +325,7 @@ impl Metadata {
 
     /// Index of the layer called `name`.
     pub fn layer_index(&self, name: &str) -> Option<u8> {
-        self.layers
-            .iter()
-            .position(|l| l.name == name)
-            .and_then(|i| u8::try_from(i).ok())
+        self.layers.iter().position(|l| l.name == name).and_then(|i| u8::try_from(i).ok())
     }
 
     /// Quadtree depth of every layer, in layer order.
@@ -347,43 +340,24 @@ impl Metadata {
     pub fn validate(&self) -> Result<()> {
         let bad = |msg: String| Err(Error::Metadata(msg));
         if self.layers.is_empty() || self.layers.len() > MAX_LAYERS {
-            return bad(format!(
-                "{} layers (1..={MAX_LAYERS} allowed)",
-                self.layers.len()
-            ));
+            return bad(format!("{} layers (1..={MAX_LAYERS} allowed)", self.layers.len()));
         }
         for (i, l) in self.layers.iter().enumerate() {
             let at = format!("layer {i} ({:?})", l.name);
             if l.name.is_empty() || l.name.contains(['/', '\\']) || l.name.len() > 64 {
-                return bad(format!(
-                    "{at}: name must be 1..64 characters without slashes"
-                ));
+                return bad(format!("{at}: name must be 1..64 characters without slashes"));
             }
             if self.layers[..i].iter().any(|o| o.name == l.name) {
                 return bad(format!("{at}: duplicate name"));
             }
-            if l.num_x_tiles == 0
-                || l.num_y_tiles == 0
-                || l.num_x_tiles > 1 << 28
-                || l.num_y_tiles > 1 << 28
-            {
-                return bad(format!(
-                    "{at}: grid {}x{} out of range",
-                    l.num_x_tiles, l.num_y_tiles
-                ));
+            if l.num_x_tiles == 0 || l.num_y_tiles == 0 || l.num_x_tiles > 1 << 28 || l.num_y_tiles > 1 << 28 {
+                return bad(format!("{at}: grid {}x{} out of range", l.num_x_tiles, l.num_y_tiles));
             }
             if l.depth() > MAX_LODS || l.num_lods == 0 || l.num_lods > l.depth() {
-                return bad(format!(
-                    "{at}: num_lods {} must be 1..={}",
-                    l.num_lods,
-                    l.depth()
-                ));
+                return bad(format!("{at}: num_lods {} must be 1..={}", l.num_lods, l.depth()));
             }
             if l.tile_resolution == 0 || l.tile_resolution > 65_536 || l.border > 16 {
-                return bad(format!(
-                    "{at}: tile_resolution {} / border {} out of range",
-                    l.tile_resolution, l.border
-                ));
+                return bad(format!("{at}: tile_resolution {} / border {} out of range", l.tile_resolution, l.border));
             }
             if !(l.tile_world_size.is_finite() && l.tile_world_size > 0.0) {
                 return bad(format!("{at}: tile_world_size must be a positive number"));
@@ -416,8 +390,7 @@ mod tests {
     #[test]
     fn write_then_read_keeps_unknown_members() {
         let mut m = Metadata::new("t", vec![layer(68, 57, 7)]);
-        m.extra
-            .insert("future_field".into(), serde_json::json!({"a": 1}));
+        m.extra.insert("future_field".into(), serde_json::json!({"a": 1}));
         let back = Metadata::from_json(&m.to_json()).unwrap();
         assert_eq!(back, m);
     }
@@ -440,12 +413,7 @@ mod tests {
         for l in [layer(0, 1, 1), layer(4, 4, 4), layer(4, 4, 0)] {
             assert!(Metadata::new("t", vec![l]).validate().is_err());
         }
-        assert!(
-            Metadata::new("t", vec![layer(4, 4, 3), layer(2, 2, 1)])
-                .validate()
-                .is_err(),
-            "duplicate names"
-        );
+        assert!(Metadata::new("t", vec![layer(4, 4, 3), layer(2, 2, 1)]).validate().is_err(), "duplicate names");
         assert!(Metadata::from_json(b"{\"layers\": 5}").is_err());
     }
 }

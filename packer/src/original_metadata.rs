@@ -7,16 +7,7 @@ use std::path::Path;
 use crate::error::{Error, Result};
 use crate::metadata::{Metadata, OriginalField};
 
-const MODIFIERS: [&str; 8] = [
-    "public",
-    "private",
-    "protected",
-    "internal",
-    "static",
-    "readonly",
-    "const",
-    "volatile",
-];
+const MODIFIERS: [&str; 8] = ["public", "private", "protected", "internal", "static", "readonly", "const", "volatile"];
 
 /// Parses the text; `path` names the file in errors.
 ///
@@ -28,11 +19,8 @@ const MODIFIERS: [&str; 8] = [
 pub fn parse(text: &str, path: &Path) -> Result<Vec<OriginalField>> {
     let mut fields = Vec::new();
     for (i, line) in text.lines().enumerate() {
-        let fail = |reason: &str| Error::OriginalMetadata {
-            path: path.to_path_buf(),
-            line: i + 1,
-            reason: reason.to_owned(),
-        };
+        let fail =
+            |reason: &str| Error::OriginalMetadata { path: path.to_path_buf(), line: i + 1, reason: reason.to_owned() };
         let line = line.trim().trim_start_matches('\u{feff}');
         if line.is_empty() || line.starts_with("//") {
             continue;
@@ -40,38 +28,25 @@ pub fn parse(text: &str, path: &Path) -> Result<Vec<OriginalField>> {
         let Some((decl, value_part)) = line.split_once('=') else {
             return Err(fail("expected `type name = value;`"));
         };
-        let words: Vec<&str> = decl
-            .split_whitespace()
-            .filter(|w| !MODIFIERS.contains(w))
-            .collect();
+        let words: Vec<&str> = decl.split_whitespace().filter(|w| !MODIFIERS.contains(w)).collect();
         let [ty, name] = words[..] else {
             return Err(fail("expected a type and a field name before `=`"));
         };
-        if !is_identifier(name)
-            || !ty
-                .chars()
-                .all(|c| c.is_alphanumeric() || "_.<>[]?".contains(c))
-        {
+        if !is_identifier(name) || !ty.chars().all(|c| c.is_alphanumeric() || "_.<>[]?".contains(c)) {
             return Err(fail("field name or type is not a C# identifier"));
         }
-        let value =
-            split_value(value_part.trim()).ok_or_else(|| fail("value must end with `;`"))?;
+        let value = split_value(value_part.trim()).ok_or_else(|| fail("value must end with `;`"))?;
         if value.is_empty() {
             return Err(fail("missing value"));
         }
-        fields.push(OriginalField {
-            ty: ty.to_owned(),
-            name: name.to_owned(),
-            value: value.to_owned(),
-        });
+        fields.push(OriginalField { ty: ty.to_owned(), name: name.to_owned(), value: value.to_owned() });
     }
     Ok(fields)
 }
 
 fn is_identifier(s: &str) -> bool {
     let mut chars = s.chars();
-    chars.next().is_some_and(|c| c.is_alphabetic() || c == '_')
-        && chars.all(|c| c.is_alphanumeric() || c == '_')
+    chars.next().is_some_and(|c| c.is_alphabetic() || c == '_') && chars.all(|c| c.is_alphanumeric() || c == '_')
 }
 
 /// The literal before the terminating `;` (a `;` inside a string literal does not count),
@@ -97,17 +72,11 @@ fn split_value(rest: &str) -> Option<&str> {
 /// The numeric value of a field, C# suffixes (`f`, `d`, `m`, `L`) ignored.
 pub fn number(fields: &[OriginalField], name: &str) -> Option<f64> {
     let f = fields.iter().find(|f| f.name == name)?;
-    f.value
-        .trim_end_matches(['f', 'F', 'd', 'D', 'm', 'M', 'l', 'L', 'u', 'U'])
-        .parse()
-        .ok()
+    f.value.trim_end_matches(['f', 'F', 'd', 'D', 'm', 'M', 'l', 'L', 'u', 'U']).parse().ok()
 }
 
 /// A whole number in u32 range, else `None`.
-#[expect(
-    clippy::cast_possible_truncation,
-    reason = "range and integrality checked first"
-)]
+#[expect(clippy::cast_possible_truncation, reason = "range and integrality checked first")]
 pub fn to_u32(v: f64) -> Option<u32> {
     (v.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&v)).then_some(v as u32)
 }
@@ -175,11 +144,7 @@ pub fn fields_for(metadata: &Metadata) -> Vec<OriginalField> {
         ]);
     }
     known.extend([
-        (
-            "int",
-            "TEXTURES_maxConsolidatedTextureResolution",
-            f64::from(t.max_consolidated_texture_resolution),
-        ),
+        ("int", "TEXTURES_maxConsolidatedTextureResolution", f64::from(t.max_consolidated_texture_resolution)),
         ("double", "ELEVATIONS_displacement", t.displacement),
         ("double", "ELEVATIONS_smoothingRange", t.smoothing_range),
         ("double", "ELEVATIONS_minElevation", t.min_elevation),
@@ -197,11 +162,7 @@ pub fn fields_for(metadata: &Metadata) -> Vec<OriginalField> {
                     f.value = literal(&f.ty, value);
                 }
             }
-            None => fields.push(OriginalField {
-                ty: ty.to_owned(),
-                name: name.to_owned(),
-                value: literal(ty, value),
-            }),
+            None => fields.push(OriginalField { ty: ty.to_owned(), name: name.to_owned(), value: literal(ty, value) }),
         }
     }
     fields
@@ -217,10 +178,7 @@ fn literal(ty: &str, value: f64) -> String {
 
 /// Renders fields as the original text, one `public type name = value;` per line.
 pub fn render(fields: &[OriginalField]) -> String {
-    fields
-        .iter()
-        .map(|f| format!("public {} {} = {};\n", f.ty, f.name, f.value))
-        .collect()
+    fields.iter().map(|f| format!("public {} {} = {};\n", f.ty, f.name, f.value)).collect()
 }
 
 #[cfg(test)]
@@ -253,17 +211,9 @@ public static bool MyCustomFlag = true;
     fn names_the_malformed_line() {
         let text = "public int a = 1;\n\npublic int b 2;\n";
         let err = parse(text, Path::new("m.txt")).unwrap_err();
-        assert!(
-            matches!(err, Error::OriginalMetadata { line: 3, .. }),
-            "{err}"
-        );
+        assert!(matches!(err, Error::OriginalMetadata { line: 3, .. }), "{err}");
         assert!(err.to_string().starts_with("m.txt:3:"), "{err}");
-        for bad in [
-            "public int a = 1",
-            "public int = 1;",
-            "int a = ;",
-            "public int a = 1; junk",
-        ] {
+        for bad in ["public int a = 1", "public int = 1;", "int a = ;", "public int a = 1; junk"] {
             assert!(parse(bad, Path::new("m")).is_err(), "{bad}");
         }
     }
@@ -275,10 +225,7 @@ public static bool MyCustomFlag = true;
         m.original_fields = fields.clone();
         apply_terrain(&fields, &mut m);
         let back = fields_for(&m);
-        let min = back
-            .iter()
-            .find(|f| f.name == "ELEVATIONS_minElevation")
-            .unwrap();
+        let min = back.iter().find(|f| f.name == "ELEVATIONS_minElevation").unwrap();
         assert_eq!(min.value, "714.794678");
         assert!(back.iter().any(|f| f.name == "MyCustomFlag"));
         assert!(render(&back).contains("public float baseTileSize = 1f;\n"));

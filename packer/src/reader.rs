@@ -70,8 +70,7 @@ impl<S: RangeSource> Reader<S> {
                 Locate::Found(location) => return Ok(Some(location)),
                 Locate::Missing => return Ok(None),
                 Locate::NeedLeaf { offset, len } => {
-                    self.archive
-                        .add_leaf(offset, &self.source.read_range(offset, len)?)?;
+                    self.archive.add_leaf(offset, &self.source.read_range(offset, len)?)?;
                 }
             }
         }
@@ -85,9 +84,7 @@ impl<S: RangeSource> Reader<S> {
         let Some(location) = self.locate(tile)? else {
             return Ok(None);
         };
-        let blob = self
-            .source
-            .read_range(location.offset, location.blob_len())?;
+        let blob = self.source.read_range(location.offset, location.blob_len())?;
         self.archive.payload(&location, blob).map(Some)
     }
 
@@ -96,11 +93,7 @@ impl<S: RangeSource> Reader<S> {
     /// # Errors
     /// As [`Reader::tile`].
     pub fn tile_or_coarser(&self, tile: TileKey) -> Result<Option<(TileKey, Bytes)>> {
-        let num_lods = self
-            .metadata()
-            .layers
-            .get(usize::from(tile.layer()))
-            .map_or(0, |l| l.num_lods);
+        let num_lods = self.metadata().layers.get(usize::from(tile.layer())).map_or(0, |l| l.num_lods);
         let mut current = Some(tile);
         while let Some(t) = current.filter(|t| t.lod() < num_lods) {
             if let Some(bytes) = self.tile(t)? {
@@ -146,14 +139,8 @@ impl<S: RangeSource> Reader<S> {
     /// I/O errors, [`Error::TileChecksum`] naming the entry's first tile.
     pub fn entry_payload(&self, entry: &Entry) -> Result<Bytes> {
         let key = self.archive.tile_of(entry.key)?;
-        let location = TileLocation {
-            key,
-            offset: self.header().data.offset + entry.offset,
-            length: entry.length,
-        };
-        let blob = self
-            .source
-            .read_range(location.offset, location.blob_len())?;
+        let location = TileLocation { key, offset: self.header().data.offset + entry.offset, length: entry.length };
+        let blob = self.source.read_range(location.offset, location.blob_len())?;
         self.archive.payload(&location, blob)
     }
 }

@@ -31,19 +31,12 @@ pub fn height(x: f64, y: f64) -> f64 {
     let hills = 0.15 * (x * 0.021 + y * 0.017).sin() + 0.1 * (x * 0.05).sin() * (y * 0.043).sin();
     // A basin in the south-west holds a lake.
     let d = ((x - 170.0).powi(2) + (y - 430.0).powi(2)).sqrt();
-    let basin = if d < 160.0 {
-        -0.9 * (0.5 + 0.5 * (d / 160.0 * PI).cos())
-    } else {
-        0.0
-    };
+    let basin = if d < 160.0 { -0.9 * (0.5 + 0.5 * (d / 160.0 * PI).cos()) } else { 0.0 };
     (DISPLACEMENT * (ridge + hills + basin)).clamp(0.0, DISPLACEMENT)
 }
 
 fn world_size() -> (f64, f64) {
-    (
-        f64::from(TEXTURE_GRID.0) * TEXTURE_TILE_SIZE,
-        f64::from(TEXTURE_GRID.1) * TEXTURE_TILE_SIZE,
-    )
+    (f64::from(TEXTURE_GRID.0) * TEXTURE_TILE_SIZE, f64::from(TEXTURE_GRID.1) * TEXTURE_TILE_SIZE)
 }
 
 #[expect(clippy::cast_possible_truncation, reason = "clamped to 0..=255 first")]
@@ -57,10 +50,7 @@ fn colour(x: f64, y: f64) -> [u8; 3] {
         return [38, 84, 140];
     }
     let e = 2.0;
-    let (dx, dy) = (
-        height(x + e, y) - height(x - e, y),
-        height(x, y + e) - height(x, y - e),
-    );
+    let (dx, dy) = (height(x + e, y) - height(x - e, y), height(x, y + e) - height(x, y - e));
     // Lambert shading with a sun from the north-west.
     let n = [-dx / (2.0 * e), -dy / (2.0 * e), 1.0];
     let len = (n[0] * n[0] + n[1] * n[1] + 1.0).sqrt();
@@ -121,10 +111,7 @@ fn write_layer(
                 let mut pixels = Vec::with_capacity((res * res * 3) as usize);
                 for py in 0..res {
                     for px in 0..res {
-                        pixels.extend(pixel(
-                            x0 + (f64::from(px) + 0.5) * step,
-                            y0 + (f64::from(py) + 0.5) * step,
-                        ));
+                        pixels.extend(pixel(x0 + (f64::from(px) + 0.5) * step, y0 + (f64::from(py) + 0.5) * step));
                     }
                 }
                 write_png(&folder.join(format!("{tx}_{ty}.png")), res, &pixels)?;
@@ -136,14 +123,8 @@ fn write_layer(
 
 /// True when a square of world space lies entirely in the lake (sampled on a 9x9 grid).
 fn all_lake(x0: f64, y0: f64, size: f64) -> bool {
-    (0..=8).all(|i| {
-        (0..=8).all(|j| {
-            height(
-                x0 + size * f64::from(i) / 8.0,
-                y0 + size * f64::from(j) / 8.0,
-            ) < LAKE_LEVEL
-        })
-    })
+    (0..=8)
+        .all(|i| (0..=8).all(|j| height(x0 + size * f64::from(i) / 8.0, y0 + size * f64::from(j) / 8.0) < LAKE_LEVEL))
 }
 
 /// Writes the sample pyramid under `dir` (`textures/`, `elevations/`, `metadata.txt`).
@@ -151,14 +132,8 @@ fn all_lake(x0: f64, y0: f64, size: f64) -> bool {
 /// # Errors
 /// [`Error::File`] if `dir` is not writable.
 pub fn write_sample_pyramid(dir: &Path) -> Result<()> {
-    let texture_lods = write_layer(
-        &dir.join("textures"),
-        TEXTURE_GRID,
-        TEXTURE_RES,
-        TEXTURE_TILE_SIZE,
-        &colour,
-        &all_lake,
-    )?;
+    let texture_lods =
+        write_layer(&dir.join("textures"), TEXTURE_GRID, TEXTURE_RES, TEXTURE_TILE_SIZE, &colour, &all_lake)?;
     let elevation_lods = write_layer(
         &dir.join("elevations"),
         ELEVATION_GRID,
@@ -206,11 +181,6 @@ pub fn tiny_archive() -> Result<Vec<u8>> {
     write_sample_pyramid(&input)?;
     let scanned = crate::import::scan_original(&input, &crate::import::OriginalLayout::default())?;
     let out = dir.path().join("sample.tspack");
-    crate::import::pack(
-        scanned,
-        &out,
-        crate::WriterOptions::default(),
-        &crate::progress::Silent::default(),
-    )?;
+    crate::import::pack(scanned, &out, crate::WriterOptions::default(), &crate::progress::Silent::default())?;
     std::fs::read(&out).map_err(|e| Error::file(&out, e))
 }

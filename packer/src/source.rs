@@ -56,17 +56,8 @@ pub trait AsyncRangeSource: MaybeSend + MaybeSync {
 
 /// Checks `[offset, offset + len)` against `total` and returns it as `usize` bounds.
 pub(crate) fn checked_range(offset: u64, len: u64, total: u64) -> Result<(usize, usize)> {
-    let out_of_bounds = || Error::OutOfBounds {
-        what: "read".into(),
-        offset,
-        len,
-        limit_name: "archive",
-        limit: total,
-    };
-    let end = offset
-        .checked_add(len)
-        .filter(|&e| e <= total)
-        .ok_or_else(out_of_bounds)?;
+    let out_of_bounds = || Error::OutOfBounds { what: "read".into(), offset, len, limit_name: "archive", limit: total };
+    let end = offset.checked_add(len).filter(|&e| e <= total).ok_or_else(out_of_bounds)?;
     let start = usize::try_from(offset).map_err(|_| out_of_bounds())?;
     let end = usize::try_from(end).map_err(|_| out_of_bounds())?;
     Ok((start, end))
@@ -81,9 +72,7 @@ pub struct MemorySource {
 impl MemorySource {
     /// Wraps the whole archive.
     pub fn new(bytes: impl Into<Bytes>) -> Self {
-        Self {
-            bytes: bytes.into(),
-        }
+        Self { bytes: bytes.into() }
     }
 }
 
@@ -191,22 +180,15 @@ mod native {
             let file = File::open(path).map_err(|e| Error::file(path, e))?;
             if file.metadata().map_err(|e| Error::file(path, e))?.len() == 0 {
                 // Mapping an empty file fails on some systems; an empty archive is just invalid.
-                return Ok(Self {
-                    bytes: Bytes::new(),
-                });
+                return Ok(Self { bytes: Bytes::new() });
             }
-            #[expect(
-                unsafe_code,
-                reason = "memory-mapping a file is the one unsafe operation of the project"
-            )]
+            #[expect(unsafe_code, reason = "memory-mapping a file is the one unsafe operation of the project")]
             // SAFETY: archives are immutable once written: the writer publishes a new archive by
             // atomic rename and never modifies a file in place, so the mapped pages do not change
             // under us. A file truncated by a third party would raise SIGBUS; that is the
             // documented contract of serving archives by mmap (FORMAT.md §7).
             let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| Error::file(path, e))?;
-            Ok(Self {
-                bytes: Bytes::from_owner(map),
-            })
+            Ok(Self { bytes: Bytes::from_owner(map) })
         }
 
         /// The whole mapping.

@@ -3,10 +3,7 @@
 use crate::error::{Error, Result};
 
 /// Appends `value` as an unsigned LEB128 varint.
-#[expect(
-    clippy::cast_possible_truncation,
-    reason = "each byte is masked to 7 bits first"
-)]
+#[expect(clippy::cast_possible_truncation, reason = "each byte is masked to 7 bits first")]
 pub fn write_varint(out: &mut Vec<u8>, mut value: u64) {
     while value >= 0x80 {
         out.push(((value & 0x7f) as u8) | 0x80);
@@ -25,11 +22,7 @@ pub struct Cursor<'a> {
 impl<'a> Cursor<'a> {
     /// A cursor at the start of `bytes`; `section` names them in errors.
     pub fn new(bytes: &'a [u8], section: &'a str) -> Self {
-        Self {
-            bytes,
-            pos: 0,
-            section,
-        }
+        Self { bytes, pos: 0, section }
     }
 
     /// Bytes not yet consumed.
@@ -45,28 +38,19 @@ impl<'a> Cursor<'a> {
         let mut value: u64 = 0;
         for shift in (0..64).step_by(7) {
             let Some(&byte) = self.bytes.get(self.pos) else {
-                return Err(Error::corrupt(
-                    self.section,
-                    format!("truncated varint at byte {}", self.pos),
-                ));
+                return Err(Error::corrupt(self.section, format!("truncated varint at byte {}", self.pos)));
             };
             self.pos += 1;
             let low = u64::from(byte & 0x7f);
             if shift == 63 && low > 1 {
-                return Err(Error::corrupt(
-                    self.section,
-                    format!("varint overflows u64 at byte {}", self.pos - 1),
-                ));
+                return Err(Error::corrupt(self.section, format!("varint overflows u64 at byte {}", self.pos - 1)));
             }
             value |= low << shift;
             if byte & 0x80 == 0 {
                 return Ok(value);
             }
         }
-        Err(Error::corrupt(
-            self.section,
-            format!("varint longer than 10 bytes at byte {}", self.pos),
-        ))
+        Err(Error::corrupt(self.section, format!("varint longer than 10 bytes at byte {}", self.pos)))
     }
 
     /// Reads a little-endian u32.
@@ -76,10 +60,7 @@ impl<'a> Cursor<'a> {
     pub fn u32_le(&mut self) -> Result<u32> {
         let end = self.pos.checked_add(4).filter(|&e| e <= self.bytes.len());
         let Some(end) = end else {
-            return Err(Error::corrupt(
-                self.section,
-                format!("truncated u32 at byte {}", self.pos),
-            ));
+            return Err(Error::corrupt(self.section, format!("truncated u32 at byte {}", self.pos)));
         };
         let mut b = [0u8; 4];
         b.copy_from_slice(&self.bytes[self.pos..end]);
@@ -94,19 +75,7 @@ mod tests {
 
     #[test]
     fn round_trips_edge_values() {
-        for v in [
-            0,
-            1,
-            127,
-            128,
-            255,
-            300,
-            16_383,
-            16_384,
-            u64::from(u32::MAX),
-            u64::MAX - 1,
-            u64::MAX,
-        ] {
+        for v in [0, 1, 127, 128, 255, 300, 16_383, 16_384, u64::from(u32::MAX), u64::MAX - 1, u64::MAX] {
             let mut buf = Vec::new();
             write_varint(&mut buf, v);
             let mut c = Cursor::new(&buf, "test");

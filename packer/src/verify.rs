@@ -49,10 +49,7 @@ impl VerifyReport {
 ///
 /// # Errors
 /// Only for failures to read at all; damage is reported in [`VerifyReport::problems`].
-pub fn verify<S: RangeSource>(
-    reader: &Reader<S>,
-    mut progress: impl FnMut(u64),
-) -> Result<VerifyReport> {
+pub fn verify<S: RangeSource>(reader: &Reader<S>, mut progress: impl FnMut(u64)) -> Result<VerifyReport> {
     let mut report = VerifyReport::default();
     let archive = reader.archive();
     let mut seen_blobs = HashSet::new();
@@ -99,9 +96,7 @@ pub fn verify<S: RangeSource>(
         ];
         for (what, header, found) in counts {
             if header != found {
-                report.problem(format!(
-                    "corrupt header: says {header} {what}, directories hold {found}"
-                ));
+                report.problem(format!("corrupt header: says {header} {what}, directories hold {found}"));
             }
         }
     }
@@ -117,10 +112,7 @@ fn check_entry<S: RangeSource>(reader: &Reader<S>, e: &Entry) -> Result<()> {
         let layer = &archive.metadata().layers[usize::from(tile.layer())];
         if !layer.contains(tile) {
             return Err(Error::InvalidTile {
-                what: format!(
-                    "{tile}: directory entry outside layer {:?}'s grid",
-                    layer.name
-                ),
+                what: format!("{tile}: directory entry outside layer {:?}'s grid", layer.name),
             });
         }
     }

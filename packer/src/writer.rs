@@ -113,10 +113,7 @@ pub struct Writer {
 
 impl std::fmt::Debug for Writer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Writer")
-            .field("path", &self.path)
-            .field("addressed", &self.addressed)
-            .finish_non_exhaustive()
+        f.debug_struct("Writer").field("path", &self.path).field("addressed", &self.addressed).finish_non_exhaustive()
     }
 }
 
@@ -126,11 +123,7 @@ impl Writer {
     ///
     /// # Errors
     /// [`Error::Metadata`] for invalid metadata, [`Error::File`] if the folder is not writable.
-    pub fn create(
-        path: impl AsRef<Path>,
-        metadata: Metadata,
-        options: WriterOptions,
-    ) -> Result<Self> {
+    pub fn create(path: impl AsRef<Path>, metadata: Metadata, options: WriterOptions) -> Result<Self> {
         metadata.validate()?;
         let path = path.as_ref().to_path_buf();
         let folder = match path.parent() {
@@ -165,9 +158,7 @@ impl Writer {
         let layer = metadata
             .layers
             .get(usize::from(tile.layer()))
-            .ok_or_else(|| Error::InvalidTile {
-                what: format!("{tile}: no such layer"),
-            })?;
+            .ok_or_else(|| Error::InvalidTile { what: format!("{tile}: no such layer") })?;
         if !layer.contains(tile) {
             let (nx, ny) = layer.grid_at(tile.lod());
             return Err(Error::InvalidTile {
@@ -193,18 +184,12 @@ impl Writer {
     pub fn set_metadata(&mut self, metadata: Metadata) -> Result<()> {
         metadata.validate()?;
         let same = metadata.layers.len() == self.metadata.layers.len()
-            && metadata
-                .layers
-                .iter()
-                .zip(&self.metadata.layers)
-                .all(|(a, b)| {
-                    (a.num_x_tiles, a.num_y_tiles, a.num_lods, a.compression)
-                        == (b.num_x_tiles, b.num_y_tiles, b.num_lods, b.compression)
-                });
+            && metadata.layers.iter().zip(&self.metadata.layers).all(|(a, b)| {
+                (a.num_x_tiles, a.num_y_tiles, a.num_lods, a.compression)
+                    == (b.num_x_tiles, b.num_y_tiles, b.num_lods, b.compression)
+            });
         if !same {
-            return Err(Error::Writer(
-                "set_metadata may not change the layers' grids".into(),
-            ));
+            return Err(Error::Writer("set_metadata may not change the layers' grids".into()));
         }
         self.metadata = metadata;
         Ok(())
@@ -236,29 +221,18 @@ impl Writer {
     fn push(&mut self, tile: TileKey, bytes: Vec<u8>, compress: bool) -> Result<()> {
         let key = Self::order_key(&self.metadata, tile)?;
         if self.last_key.is_some_and(|last| key <= last) {
-            return Err(Error::Writer(format!(
-                "{tile} added out of archive order (sort by Writer::order_key)"
-            )));
+            return Err(Error::Writer(format!("{tile} added out of archive order (sort by Writer::order_key)")));
         }
         if bytes.is_empty() {
-            return Err(Error::Writer(format!(
-                "{tile}: empty payload (leave the tile missing instead)"
-            )));
+            return Err(Error::Writer(format!("{tile}: empty payload (leave the tile missing instead)")));
         }
         if u32::try_from(bytes.len()).is_err() {
             return Err(Error::Writer(format!("{tile}: payload over 4 GiB")));
         }
         self.last_key = Some(key);
         self.batch_bytes += bytes.len();
-        self.batch.push(Pending {
-            key,
-            tile,
-            bytes,
-            compress,
-        });
-        if self.batch_bytes >= self.options.batch_bytes
-            || self.batch.len() >= self.options.batch_tiles
-        {
+        self.batch.push(Pending { key, tile, bytes, compress });
+        if self.batch_bytes >= self.options.batch_bytes || self.batch.len() >= self.options.batch_tiles {
             self.flush_batch()?;
         }
         Ok(())
@@ -271,11 +245,7 @@ impl Writer {
         let prepared: Vec<Result<Prepared>> = batch
             .into_par_iter()
             .map(|p| {
-                let bytes = if p.compress {
-                    zstd_compress(&p.bytes, level)?
-                } else {
-                    p.bytes
-                };
+                let bytes = if p.compress { zstd_compress(&p.bytes, level)? } else { p.bytes };
                 let hash = xxhash_rust::xxh3::xxh3_128(&bytes);
                 Ok((p.key, p.tile, bytes, hash))
             })
@@ -288,8 +258,7 @@ impl Writer {
     }
 
     fn append(&mut self, key: u64, tile: TileKey, bytes: &[u8], hash: u128) -> Result<()> {
-        let length = u32::try_from(bytes.len())
-            .map_err(|_| Error::Writer(format!("{tile}: payload over 4 GiB")))?;
+        let length = u32::try_from(bytes.len()).map_err(|_| Error::Writer(format!("{tile}: payload over 4 GiB")))?;
         self.addressed += 1;
         // Extend the open run: next tile of the same layer, same content.
         if let Some((open, open_hash)) = &mut self.open {
@@ -316,15 +285,7 @@ impl Writer {
             }
         };
         self.close_run()?;
-        self.open = Some((
-            Entry {
-                key,
-                run_length: 1,
-                offset,
-                length,
-            },
-            hash,
-        ));
+        self.open = Some((Entry { key, run_length: 1, offset, length }, hash));
         Ok(())
     }
 
@@ -351,18 +312,15 @@ impl Writer {
         let level = self.options.directory_zstd_level;
         let metadata_bytes = zstd_compress(&self.metadata.to_json(), level)?;
         let mut spill = self.spill.into_inner().map_err(|e| e.into_error())?;
-        let mut leaves_file =
-            tempfile::tempfile_in(&self.folder).map_err(|e| Error::file(&self.folder, e))?;
-        let budget = self
-            .options
-            .bootstrap_target
-            .saturating_sub(HEADER_LEN as u64 + metadata_bytes.len() as u64);
+        let mut leaves_file = tempfile::tempfile_in(&self.folder).map_err(|e| Error::file(&self.folder, e))?;
+        let budget = self.options.bootstrap_target.saturating_sub(HEADER_LEN as u64 + metadata_bytes.len() as u64);
 
         // Small archives: every entry in the root, no leaves (a cold tile costs 2 reads).
         let mut root_bytes = None;
         let mut leaf_count = 0u64;
         let mut leaves_len = 0u64;
-        if self.spilled <= self.options.leaf_entries as u64 {
+        // Every entry costs at least one compressed byte: only then can the root hold them all.
+        if self.spilled <= budget.max(self.options.leaf_entries as u64) {
             spill.seek(SeekFrom::Start(0))?;
             let entries = read_entries(&mut BufReader::new(&mut spill), self.spilled)?;
             let encoded = zstd_compress(&Directory::Tiles(entries).encode_raw(), level)?;
@@ -378,20 +336,11 @@ impl Writer {
                     spill.seek(SeekFrom::Start(0))?;
                     leaves_file.set_len(0)?;
                     leaves_file.seek(SeekFrom::Start(0))?;
-                    let pointers = write_leaves(
-                        &mut spill,
-                        self.spilled,
-                        leaf_entries,
-                        level,
-                        &mut leaves_file,
-                    )?;
-                    let encoded =
-                        zstd_compress(&Directory::Leaves(pointers.clone()).encode_raw(), level)?;
+                    let pointers = write_leaves(&mut spill, self.spilled, leaf_entries, level, &mut leaves_file)?;
+                    let encoded = zstd_compress(&Directory::Leaves(pointers.clone()).encode_raw(), level)?;
                     if encoded.len() as u64 <= budget || pointers.len() <= 1 {
                         leaf_count = pointers.len() as u64;
-                        leaves_len = pointers
-                            .last()
-                            .map_or(0, |p| p.offset + u64::from(p.length));
+                        leaves_len = pointers.last().map_or(0, |p| p.offset + u64::from(p.length));
                         break encoded;
                     }
                     leaf_entries *= 2;
@@ -399,22 +348,10 @@ impl Writer {
             }
         };
 
-        let metadata = Section {
-            offset: HEADER_LEN as u64,
-            len: metadata_bytes.len() as u64,
-        };
-        let root_dir = Section {
-            offset: metadata.offset + metadata.len,
-            len: root_bytes.len() as u64,
-        };
-        let leaf_dirs = Section {
-            offset: root_dir.offset + root_dir.len,
-            len: leaves_len,
-        };
-        let data = Section {
-            offset: leaf_dirs.offset + leaf_dirs.len,
-            len: self.data_len,
-        };
+        let metadata = Section { offset: HEADER_LEN as u64, len: metadata_bytes.len() as u64 };
+        let root_dir = Section { offset: metadata.offset + metadata.len, len: root_bytes.len() as u64 };
+        let leaf_dirs = Section { offset: root_dir.offset + root_dir.len, len: leaves_len };
+        let data = Section { offset: leaf_dirs.offset + leaf_dirs.len, len: self.data_len };
         let header = Header {
             version_minor: VERSION_MINOR,
             metadata,
@@ -430,11 +367,7 @@ impl Writer {
             directory_compression: Compression::Zstd,
         };
 
-        let file_name = self
-            .path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
+        let file_name = self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let mut out = tempfile::Builder::new()
             .prefix(&format!(".{file_name}."))
             .suffix(".partial")
@@ -452,14 +385,11 @@ impl Writer {
             data_file.seek(SeekFrom::Start(0))?;
             let copied_data = std::io::copy(&mut data_file, file).map_err(io)?;
             if copied != leaves_len || copied_data != self.data_len {
-                return Err(Error::Writer(
-                    "temporary files were shorter than written".into(),
-                ));
+                return Err(Error::Writer("temporary files were shorter than written".into()));
             }
             file.sync_all().map_err(io)?;
         }
-        out.persist(&self.path)
-            .map_err(|e| Error::file(&self.path, e.error))?;
+        out.persist(&self.path).map_err(|e| Error::file(&self.path, e.error))?;
         sync_folder(&self.folder);
         Ok(WriteSummary {
             path: self.path,
@@ -496,27 +426,14 @@ fn read_entries(reader: &mut impl Read, count: u64) -> Result<Vec<Entry>> {
             b.copy_from_slice(&record[at..at + 8]);
             u64::from_le_bytes(b)
         };
-        let u32_at = |at: usize| {
-            u32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]])
-        };
-        entries.push(Entry {
-            key: u64_at(0),
-            run_length: u32_at(8),
-            offset: u64_at(12),
-            length: u32_at(20),
-        });
+        let u32_at = |at: usize| u32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]]);
+        entries.push(Entry { key: u64_at(0), run_length: u32_at(8), offset: u64_at(12), length: u32_at(20) });
     }
     Ok(entries)
 }
 
 /// Streams the spilled entries into leaves of `per_leaf` entries; returns their pointers.
-fn write_leaves(
-    spill: &mut File,
-    count: u64,
-    per_leaf: usize,
-    level: i32,
-    out: &mut File,
-) -> Result<Vec<LeafPointer>> {
+fn write_leaves(spill: &mut File, count: u64, per_leaf: usize, level: i32, out: &mut File) -> Result<Vec<LeafPointer>> {
     let mut reader = BufReader::with_capacity(1 << 16, spill);
     let mut out = BufWriter::new(out);
     let mut pointers = Vec::new();
@@ -528,15 +445,9 @@ fn write_leaves(
         let entries = read_entries(&mut reader, n)?;
         let first_key = entries.first().map_or(0, |e| e.key);
         let stored = zstd_compress(&Directory::Tiles(entries).encode_raw(), level)?;
-        let length = u32::try_from(stored.len())
-            .map_err(|_| Error::Writer("leaf directory over 4 GiB".into()))?;
+        let length = u32::try_from(stored.len()).map_err(|_| Error::Writer("leaf directory over 4 GiB".into()))?;
         out.write_all(&stored)?;
-        pointers.push(LeafPointer {
-            first_key,
-            offset,
-            length,
-            crc: crc32c(&stored),
-        });
+        pointers.push(LeafPointer { first_key, offset, length, crc: crc32c(&stored) });
         offset += u64::from(length);
     }
     out.flush()?;

@@ -22,31 +22,15 @@ pub fn run(args: DemoArgs, progress: &CliProgress) -> Result<ExitCode> {
     let input = args.dir.join("sample");
     let archive = args.dir.join("sample.tspack");
     if !input.join("metadata.txt").exists() {
-        write_sample_pyramid(&input)
-            .with_context(|| format!("writing the sample pyramid to {}", input.display()))?;
-        println!(
-            "wrote the built-in sample pyramid (original LOD-folder layout) to {}",
-            input.display()
-        );
+        write_sample_pyramid(&input).with_context(|| format!("writing the sample pyramid to {}", input.display()))?;
+        println!("wrote the built-in sample pyramid (original LOD-folder layout) to {}", input.display());
     }
     let scanned = scan_original(&input, &OriginalLayout::default())?;
     let summary = pack(scanned, &archive, WriterOptions::default(), progress)?;
     progress.finish();
-    println!(
-        "packed {} tiles into {} ({} bytes)\n",
-        summary.addressed_tiles,
-        archive.display(),
-        summary.file_len
-    );
+    println!("packed {} tiles into {} ({} bytes)\n", summary.addressed_tiles, archive.display(), summary.file_len);
     let reader = super::open(&archive)?;
-    print!(
-        "{}",
-        super::info::render(
-            &archive,
-            &ArchiveStats::collect(&reader)?,
-            reader.metadata()
-        )
-    );
+    print!("{}", super::info::render(&archive, &ArchiveStats::collect(&reader)?, reader.metadata()));
     let report = verify(&reader, |_| {})?;
     println!(
         "\nverify: {} ({} tiles, {} blobs checked)",
@@ -54,14 +38,6 @@ pub fn run(args: DemoArgs, progress: &CliProgress) -> Result<ExitCode> {
         report.addressed_tiles,
         report.blobs_checked
     );
-    println!(
-        "next: terrastream extract {} -o {}/extracted",
-        archive.display(),
-        args.dir.display()
-    );
-    Ok(if report.is_ok() {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::FAILURE
-    })
+    println!("next: terrastream extract {} -o {}/extracted", archive.display(), args.dir.display());
+    Ok(if report.is_ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }

@@ -26,23 +26,13 @@ pub fn human(bytes: u64) -> String {
         v /= 1024.0;
         unit += 1;
     }
-    if unit == 0 {
-        format!("{bytes} B")
-    } else {
-        format!("{v:.1} {}", units[unit])
-    }
+    if unit == 0 { format!("{bytes} B") } else { format!("{v:.1} {}", units[unit]) }
 }
 
 pub fn render(path: &Path, s: &ArchiveStats, m: &terrastream_packer::Metadata) -> String {
     use std::fmt::Write;
     let mut out = String::new();
-    let _ = writeln!(
-        out,
-        "archive     {} — {} , format {}",
-        path.display(),
-        human(s.file_bytes),
-        s.version
-    );
+    let _ = writeln!(out, "archive     {} — {} , format {}", path.display(), human(s.file_bytes), s.version);
     let _ = writeln!(out, "name        {}", m.name);
     let _ = writeln!(
         out,
@@ -53,36 +43,20 @@ pub fn render(path: &Path, s: &ArchiveStats, m: &terrastream_packer::Metadata) -
         s.leaf_directories,
         human(s.data_bytes)
     );
-    let _ = writeln!(
-        out,
-        "bootstrap   {} (first read of a client)",
-        human(s.bootstrap_bytes)
-    );
+    let _ = writeln!(out, "bootstrap   {} (first read of a client)", human(s.bootstrap_bytes));
     let _ = writeln!(
         out,
         "tiles       {} addressed · {} entries · {} distinct · dedup {:.2}x · {:.2} directory bytes/tile",
-        s.addressed_tiles,
-        s.tile_entries,
-        s.tile_contents,
-        s.dedup_ratio,
-        s.directory_bytes_per_tile
+        s.addressed_tiles, s.tile_entries, s.tile_contents, s.dedup_ratio, s.directory_bytes_per_tile
     );
     let t = &m.terrain;
     let _ = writeln!(
         out,
         "terrain     elevation {}..{} m · mesh base {} m, high-detail range {} m, {} detail levels",
-        t.min_elevation,
-        t.max_elevation,
-        t.base_tile_size,
-        t.high_detail_range,
-        t.num_detail_levels
+        t.min_elevation, t.max_elevation, t.base_tile_size, t.high_detail_range, t.num_detail_levels
     );
     if let Some(g) = &m.georeference {
-        let _ = writeln!(
-            out,
-            "georef      {:?} origin {:?} bounds {:?}",
-            g.crs, g.origin, g.lat_lon_bounds
-        );
+        let _ = writeln!(out, "georef      {:?} origin {:?} bounds {:?}", g.crs, g.origin, g.lat_lon_bounds);
     }
     for (i, l) in s.layers.iter().enumerate() {
         let _ = writeln!(
@@ -91,11 +65,7 @@ pub fn render(path: &Path, s: &ArchiveStats, m: &terrastream_packer::Metadata) -
             l.name,
             l.kind,
             l.format,
-            if l.compression == terrastream_packer::PayloadCompression::Zstd {
-                "+zstd"
-            } else {
-                ""
-            },
+            if l.compression == terrastream_packer::PayloadCompression::Zstd { "+zstd" } else { "" },
             l.tile_resolution,
             l.border,
             l.grid[0],

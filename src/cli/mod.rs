@@ -83,11 +83,7 @@ pub fn init_logging(verbose: u8, quiet: bool) {
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .init();
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
 }
 
 /// Runs a parsed command line.
@@ -118,19 +114,11 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
                 for p in &report.problems {
                     eprintln!("{}: {p}", archive.display());
                 }
-                eprintln!(
-                    "{}: DAMAGED — {} problem(s)",
-                    archive.display(),
-                    report.problems.len()
-                );
+                eprintln!("{}: DAMAGED — {} problem(s)", archive.display(), report.problems.len());
                 Ok(ExitCode::from(2))
             }
         }
-        Command::Extract {
-            archive,
-            output,
-            layout,
-        } => {
+        Command::Extract { archive, output, layout } => {
             let reader = open(&archive)?;
             let layout = match layout {
                 LayoutArg::Original => Layout::Original,
@@ -138,12 +126,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
             };
             let summary = extract(&reader, &output, layout, &progress)?;
             progress.finish();
-            println!(
-                "wrote {} tiles ({} bytes) under {}",
-                summary.files,
-                summary.bytes,
-                output.display()
-            );
+            println!("wrote {} tiles ({} bytes) under {}", summary.files, summary.bytes, output.display());
             Ok(ExitCode::SUCCESS)
         }
         Command::Demo(args) => demo::run(args, &progress),

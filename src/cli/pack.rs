@@ -5,9 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_packer::import::{
-    OriginalLayout, Scheme, XyzOptions, pack, scan_original, scan_xyz,
-};
+use terrastream_packer::import::{OriginalLayout, Scheme, XyzOptions, pack, scan_original, scan_xyz};
 use terrastream_packer::{ElevationScheme, LayerKind, WriterOptions};
 
 use super::CliProgress;
@@ -56,21 +54,14 @@ enum EncodingArg {
 }
 
 fn has_lod_folders(dir: &Path) -> bool {
-    let is_lod = |p: &Path| {
-        p.is_dir()
-            && p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("LOD"))
-    };
-    let children: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|r| r.filter_map(|e| e.ok().map(|e| e.path())).collect())
-        .unwrap_or_default();
+    let is_lod = |p: &Path| p.is_dir() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("LOD"));
+    let children: Vec<PathBuf> =
+        std::fs::read_dir(dir).map(|r| r.filter_map(|e| e.ok().map(|e| e.path())).collect()).unwrap_or_default();
     children.iter().any(|c| is_lod(c))
-        || children.iter().filter(|c| c.is_dir()).any(|c| {
-            std::fs::read_dir(c)
-                .map(|r| r.filter_map(|e| e.ok()).any(|e| is_lod(&e.path())))
-                .unwrap_or(false)
-        })
+        || children
+            .iter()
+            .filter(|c| c.is_dir())
+            .any(|c| std::fs::read_dir(c).map(|r| r.filter_map(|e| e.ok()).any(|e| is_lod(&e.path()))).unwrap_or(false))
 }
 
 pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
@@ -85,20 +76,11 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         KindArg::Elevation => LayerKind::Elevation,
     };
     let scanned = if args.template.is_none() && has_lod_folders(&args.input) {
-        scan_original(
-            &args.input,
-            &OriginalLayout {
-                kind,
-                swap_xy: args.swap_xy,
-            },
-        )?
+        scan_original(&args.input, &OriginalLayout { kind, swap_xy: args.swap_xy })?
     } else {
         let templates = match &args.template {
             Some(t) => vec![t.clone()],
-            None => ["png", "jpg", "jpeg", "webp"]
-                .iter()
-                .map(|e| format!("{{z}}/{{x}}/{{y}}.{e}"))
-                .collect(),
+            None => ["png", "jpg", "jpeg", "webp"].iter().map(|e| format!("{{z}}/{{x}}/{{y}}.{e}")).collect(),
         };
         let options = |template: String| XyzOptions {
             template,
@@ -127,19 +109,13 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         match (found, last_err) {
             (Some(s), _) => s,
             (None, Some(e)) => {
-                return Err(e)
-                    .context("no LOD folders, and not an XYZ tree either (see --template)");
+                return Err(e).context("no LOD folders, and not an XYZ tree either (see --template)");
             }
             (None, None) => bail!("{}: nothing to pack", args.input.display()),
         }
     };
     let tiles = scanned.tiles.len();
-    tracing::info!(
-        tiles,
-        layers = scanned.metadata.layers.len(),
-        "packing {}",
-        args.input.display()
-    );
+    tracing::info!(tiles, layers = scanned.metadata.layers.len(), "packing {}", args.input.display());
     let started = std::time::Instant::now();
     let summary = pack(scanned, &args.output, WriterOptions::default(), progress)?;
     progress.finish();

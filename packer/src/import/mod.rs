@@ -38,21 +38,14 @@ impl ScannedPyramid {
         metadata.validate()?;
         let mut keyed = Vec::with_capacity(tiles.len());
         for (tile, path) in tiles {
-            let key = Writer::order_key(&metadata, tile)
-                .map_err(|e| Error::input(&path, e.to_string()))?;
+            let key = Writer::order_key(&metadata, tile).map_err(|e| Error::input(&path, e.to_string()))?;
             keyed.push((key, tile, path));
         }
         keyed.sort_unstable_by_key(|(key, ..)| *key);
         if let Some(pair) = keyed.windows(2).find(|w| w[0].0 == w[1].0) {
-            return Err(Error::input(
-                &pair[1].2,
-                format!("same tile ({}) as {}", pair[1].1, pair[0].2.display()),
-            ));
+            return Err(Error::input(&pair[1].2, format!("same tile ({}) as {}", pair[1].1, pair[0].2.display())));
         }
-        Ok(Self {
-            metadata,
-            tiles: keyed.into_iter().map(|(_, t, p)| (t, p)).collect(),
-        })
+        Ok(Self { metadata, tiles: keyed.into_iter().map(|(_, t, p)| (t, p)).collect() })
     }
 }
 
@@ -76,15 +69,10 @@ pub fn pack(
     progress.start("pack", scanned.tiles.len() as u64);
     for chunk in scanned.tiles.chunks(READ_CHUNK) {
         progress.check()?;
-        let formats: Vec<TileFormat> = chunk
-            .iter()
-            .map(|(t, _)| writer.metadata().layers[usize::from(t.layer())].format)
-            .collect();
-        let read: Vec<Result<Vec<u8>>> = chunk
-            .par_iter()
-            .zip(formats.par_iter())
-            .map(|((_, path), &format)| read_tile(path, format))
-            .collect();
+        let formats: Vec<TileFormat> =
+            chunk.iter().map(|(t, _)| writer.metadata().layers[usize::from(t.layer())].format).collect();
+        let read: Vec<Result<Vec<u8>>> =
+            chunk.par_iter().zip(formats.par_iter()).map(|((_, path), &format)| read_tile(path, format)).collect();
         for ((tile, _), bytes) in chunk.iter().zip(read) {
             writer.add_stored(*tile, bytes?)?;
         }
@@ -98,10 +86,7 @@ fn read_tile(path: &Path, format: TileFormat) -> Result<Vec<u8>> {
     let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
     match TileFormat::sniff(&bytes) {
         Some(found) if found == format => Ok(bytes),
-        Some(found) => Err(Error::input(
-            path,
-            format!("{found:?} tile in a layer of {format:?} tiles"),
-        )),
+        Some(found) => Err(Error::input(path, format!("{found:?} tile in a layer of {format:?} tiles"))),
         None => Err(Error::input(path, "not a PNG, JPEG or WebP image")),
     }
 }
@@ -195,18 +180,9 @@ mod tests {
 
     #[test]
     fn splits_common_tile_names() {
-        assert_eq!(
-            split_stem("12_7"),
-            Some((String::new(), 12, "_".into(), 7, String::new()))
-        );
-        assert_eq!(
-            split_stem("tile_x3-y4_tex"),
-            Some(("tile_x".into(), 3, "-y".into(), 4, "_tex".into()))
-        );
-        assert_eq!(
-            split_stem("lod2_10_11"),
-            Some(("lod2_".into(), 10, "_".into(), 11, String::new()))
-        );
+        assert_eq!(split_stem("12_7"), Some((String::new(), 12, "_".into(), 7, String::new())));
+        assert_eq!(split_stem("tile_x3-y4_tex"), Some(("tile_x".into(), 3, "-y".into(), 4, "_tex".into())));
+        assert_eq!(split_stem("lod2_10_11"), Some(("lod2_".into(), 10, "_".into(), 11, String::new())));
         assert_eq!(split_stem("tile7"), None);
     }
 }

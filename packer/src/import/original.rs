@@ -9,9 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::{ScannedPyramid, image_size, split_stem, walk_files};
 use crate::error::{Error, Result};
 use crate::key::TileKey;
-use crate::metadata::{
-    ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
-};
+use crate::metadata::{ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat};
 use crate::original_metadata::{self, number};
 
 /// Options of the original-layout importer.
@@ -25,10 +23,7 @@ pub struct OriginalLayout {
 
 impl Default for OriginalLayout {
     fn default() -> Self {
-        Self {
-            kind: LayerKind::Texture,
-            swap_xy: false,
-        }
+        Self { kind: LayerKind::Texture, swap_xy: false }
     }
 }
 
@@ -67,9 +62,7 @@ pub const LAYOUT_KEY: &str = "original_layout";
 
 fn lod_folder(path: &Path) -> Option<u8> {
     let name = path.file_name()?.to_str()?;
-    let digits = name
-        .strip_prefix("LOD")
-        .or_else(|| name.strip_prefix("lod"))?;
+    let digits = name.strip_prefix("LOD").or_else(|| name.strip_prefix("lod"))?;
     if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
@@ -94,10 +87,7 @@ fn kind_of_folder(name: &str) -> Option<LayerKind> {
     let n = name.to_ascii_lowercase();
     if ["elev", "height", "dem"].iter().any(|k| n.contains(k)) {
         Some(LayerKind::Elevation)
-    } else if ["tex", "image", "ortho", "color", "colour"]
-        .iter()
-        .any(|k| n.contains(k))
-    {
+    } else if ["tex", "image", "ortho", "color", "colour"].iter().any(|k| n.contains(k)) {
         Some(LayerKind::Texture)
     } else {
         None
@@ -108,11 +98,7 @@ fn find_metadata_text(root: &Path) -> Result<Option<(PathBuf, String)>> {
     let mut candidates = Vec::new();
     for entry in std::fs::read_dir(root).map_err(|e| Error::file(root, e))? {
         let path = entry.map_err(|e| Error::file(root, e))?.path();
-        if path.is_file()
-            && path
-                .extension()
-                .is_some_and(|e| e.eq_ignore_ascii_case("txt"))
-        {
+        if path.is_file() && path.extension().is_some_and(|e| e.eq_ignore_ascii_case("txt")) {
             candidates.push(path);
         }
     }
@@ -152,13 +138,12 @@ pub fn scan_original(root: &Path, options: &OriginalLayout) -> Result<ScannedPyr
             if lod_folders(&sub)?.is_empty() {
                 continue;
             }
-            let name = sub
-                .file_name()
-                .and_then(|n| n.to_str())
-                .unwrap_or_default()
-                .to_owned();
+            let name = sub.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
             let kind = kind_of_folder(&name).ok_or_else(|| {
-                Error::input(&sub, "cannot tell the layer kind from the folder name (use e.g. `textures`, `elevations`)")
+                Error::input(
+                    &sub,
+                    "cannot tell the layer kind from the folder name (use e.g. `textures`, `elevations`)",
+                )
             })?;
             if layer_dirs.iter().any(|(k, ..)| *k == kind) {
                 return Err(Error::input(&sub, format!("a second {kind:?} folder")));
@@ -167,26 +152,16 @@ pub fn scan_original(root: &Path, options: &OriginalLayout) -> Result<ScannedPyr
         }
     }
     if layer_dirs.is_empty() {
-        return Err(Error::input(
-            root,
-            "no LOD0, LOD1, ... folders found (here or one level down)",
-        ));
+        return Err(Error::input(root, "no LOD0, LOD1, ... folders found (here or one level down)"));
     }
     // Elevation after texture: a stable layer order.
     layer_dirs.sort_by_key(|(k, ..)| *k != LayerKind::Texture);
 
-    let mut metadata = Metadata::new(
-        root.file_name()
-            .and_then(|n| n.to_str())
-            .unwrap_or("terrain"),
-        Vec::new(),
-    );
+    let mut metadata = Metadata::new(root.file_name().and_then(|n| n.to_str()).unwrap_or("terrain"), Vec::new());
     original_metadata::apply_terrain(&fields, &mut metadata);
     metadata.original_fields = fields.clone();
     let mut record = LayoutRecord {
-        metadata_file: meta_text
-            .as_ref()
-            .and_then(|(p, _)| p.file_name()?.to_str().map(str::to_owned)),
+        metadata_file: meta_text.as_ref().and_then(|(p, _)| p.file_name()?.to_str().map(str::to_owned)),
         metadata_text: meta_text.map(|(_, t)| t),
         layers: Vec::new(),
     };
@@ -194,11 +169,7 @@ pub fn scan_original(root: &Path, options: &OriginalLayout) -> Result<ScannedPyr
     for (index, (kind, folder, dir)) in layer_dirs.iter().enumerate() {
         let layer_index = u8::try_from(index).map_err(|_| Error::input(root, "too many layers"))?;
         let (layer, naming, tiles) = scan_layer(*kind, folder, dir, &fields, options)?;
-        all_tiles.extend(
-            tiles
-                .into_iter()
-                .map(|(lod, x, y, p)| (layer_index, lod, x, y, p)),
-        );
+        all_tiles.extend(tiles.into_iter().map(|(lod, x, y, p)| (layer_index, lod, x, y, p)));
         metadata.layers.push(layer);
         record.layers.push(naming);
     }
@@ -207,8 +178,7 @@ pub fn scan_original(root: &Path, options: &OriginalLayout) -> Result<ScannedPyr
     let tiles = all_tiles
         .into_iter()
         .map(|(layer, lod, x, y, path)| {
-            let tile =
-                TileKey::new(layer, lod, x, y).map_err(|e| Error::input(&path, e.to_string()))?;
+            let tile = TileKey::new(layer, lod, x, y).map_err(|e| Error::input(&path, e.to_string()))?;
             Ok((tile, path))
         })
         .collect::<Result<Vec<_>>>()?;
@@ -234,10 +204,7 @@ fn scan_layer(
     };
     for (lod, lod_dir) in lod_folders(dir)? {
         for path in walk_files(&lod_dir)? {
-            let name = path
-                .file_name()
-                .and_then(|n| n.to_str())
-                .unwrap_or_default();
+            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
             if name.starts_with('.') || name.eq_ignore_ascii_case("thumbs.db") {
                 continue;
             }
@@ -265,25 +232,11 @@ fn scan_layer(
     };
     let first = &tiles[0].3;
     let head = read_head(first)?;
-    let format = TileFormat::sniff(&head)
-        .ok_or_else(|| Error::input(first, "not a PNG, JPEG or WebP image"))?;
-    let (width, _) =
-        image_size(&head).ok_or_else(|| Error::input(first, "cannot read the image size"))?;
-    let prefix = if kind == LayerKind::Elevation {
-        "ELEVATIONS_"
-    } else {
-        "TEXTURES_"
-    };
-    let field = |texture: &str, elevation: &str| {
-        number(
-            fields,
-            if kind == LayerKind::Elevation {
-                elevation
-            } else {
-                texture
-            },
-        )
-    };
+    let format = TileFormat::sniff(&head).ok_or_else(|| Error::input(first, "not a PNG, JPEG or WebP image"))?;
+    let (width, _) = image_size(&head).ok_or_else(|| Error::input(first, "cannot read the image size"))?;
+    let prefix = if kind == LayerKind::Elevation { "ELEVATIONS_" } else { "TEXTURES_" };
+    let field =
+        |texture: &str, elevation: &str| number(fields, if kind == LayerKind::Elevation { elevation } else { texture });
     let as_u32 = |v: Option<f64>| v.and_then(original_metadata::to_u32).filter(|&v| v >= 1);
 
     // Grid: the metadata's, else what the finest tiles found imply.
@@ -294,30 +247,14 @@ fn scan_layer(
         e.0 = e.0.max(x.saturating_add(1).saturating_mul(scale));
         e.1 = e.1.max(y.saturating_add(1).saturating_mul(scale));
     }
-    let (found_x, found_y) = implied
-        .values()
-        .fold((1, 1), |a, b| (a.0.max(b.0), a.1.max(b.1)));
-    let num_x_tiles = as_u32(field(
-        "TEXTURES_texturesNumXTiles",
-        "ELEVATIONS_elevationsNumXTiles",
-    ))
-    .unwrap_or(found_x);
-    let num_y_tiles = as_u32(field(
-        "TEXTURES_texturesNumYTiles",
-        "ELEVATIONS_elevationsNumYTiles",
-    ))
-    .unwrap_or(found_y);
+    let (found_x, found_y) = implied.values().fold((1, 1), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+    let num_x_tiles = as_u32(field("TEXTURES_texturesNumXTiles", "ELEVATIONS_elevationsNumXTiles")).unwrap_or(found_x);
+    let num_y_tiles = as_u32(field("TEXTURES_texturesNumYTiles", "ELEVATIONS_elevationsNumYTiles")).unwrap_or(found_y);
     let found_lods = implied.keys().max().map_or(1, |m| m + 1);
-    let meta_lods = as_u32(field(
-        "TEXTURES_numTextureLODS",
-        "ELEVATIONS_numElevationLODS",
-    ))
-    .map_or(0, |n| n.min(255) as u8);
-    let tile_resolution = as_u32(field(
-        "TEXTURES_textureTileResolution",
-        "ELEVATIONS_elevationTileResolution",
-    ))
-    .unwrap_or(width);
+    let meta_lods =
+        as_u32(field("TEXTURES_numTextureLODS", "ELEVATIONS_numElevationLODS")).map_or(0, |n| n.min(255) as u8);
+    let tile_resolution =
+        as_u32(field("TEXTURES_textureTileResolution", "ELEVATIONS_elevationTileResolution")).unwrap_or(width);
     let tile_world_size = field("TEXTURES_textureTileSize", "ELEVATIONS_elevationTileSize")
         .filter(|v| v.is_finite() && *v > 0.0)
         .unwrap_or(f64::from(tile_resolution));
@@ -340,11 +277,7 @@ fn scan_layer(
         let min = number(fields, &format!("{prefix}minElevation")).unwrap_or(0.0);
         let displacement = number(fields, &format!("{prefix}displacement")).unwrap_or(255.0);
         layer.elevation = Some(ElevationEncoding {
-            scheme: if gray {
-                ElevationScheme::Gray8
-            } else {
-                ElevationScheme::RgbThirds
-            },
+            scheme: if gray { ElevationScheme::Gray8 } else { ElevationScheme::RgbThirds },
             scale: displacement,
             offset: min,
             nodata: None,

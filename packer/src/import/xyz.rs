@@ -9,8 +9,7 @@ use super::{ScannedPyramid, image_size, walk_files};
 use crate::error::{Error, Result};
 use crate::key::{MAX_LODS, TileKey};
 use crate::metadata::{
-    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata,
-    PayloadCompression, TileFormat,
+    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
 };
 
 /// Row order of the tree.
@@ -67,18 +66,13 @@ fn parse_template(template: &str) -> Result<Vec<Part>> {
         if open > 0 {
             parts.push(Part::Literal(rest[..open].to_owned()));
         }
-        let close = rest[open..]
-            .find('}')
-            .ok_or_else(|| Error::input(template, "unclosed `{` in template"))?;
+        let close = rest[open..].find('}').ok_or_else(|| Error::input(template, "unclosed `{` in template"))?;
         parts.push(match &rest[open + 1..open + close] {
             "z" => Part::Z,
             "x" => Part::X,
             "y" => Part::Y,
             other => {
-                return Err(Error::input(
-                    template,
-                    format!("unknown placeholder {{{other}}} (use {{z}} {{x}} {{y}})"),
-                ));
+                return Err(Error::input(template, format!("unknown placeholder {{{other}}} (use {{z}} {{x}} {{y}})")));
             }
         });
         rest = &rest[open + close + 1..];
@@ -88,10 +82,7 @@ fn parse_template(template: &str) -> Result<Vec<Part>> {
     }
     for p in [Part::Z, Part::X, Part::Y] {
         if parts.iter().filter(|q| **q == p).count() != 1 {
-            return Err(Error::input(
-                template,
-                "template needs each of {z}, {x}, {y} exactly once",
-            ));
+            return Err(Error::input(template, "template needs each of {z}, {x}, {y} exactly once"));
         }
     }
     Ok(parts)
@@ -105,9 +96,7 @@ fn match_template(parts: &[Part], path: &str) -> Option<(u32, u32, u32)> {
         match part {
             Part::Literal(lit) => rest = rest.strip_prefix(lit.as_str())?,
             number => {
-                let end = rest
-                    .find(|c: char| !c.is_ascii_digit())
-                    .unwrap_or(rest.len());
+                let end = rest.find(|c: char| !c.is_ascii_digit()).unwrap_or(rest.len());
                 if end == 0 || (i + 1 == parts.len() && end != rest.len()) {
                     return None;
                 }
@@ -138,42 +127,28 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
         let relative: Vec<&str> = relative.iter().filter_map(|c| c.to_str()).collect();
         if let Some((z, x, y)) = match_template(&parts, &relative.join("/")) {
             if z >= u32::from(MAX_LODS) {
-                return Err(Error::input(
-                    &path,
-                    format!("zoom {z} is beyond the format's {} levels", MAX_LODS),
-                ));
+                return Err(Error::input(&path, format!("zoom {z} is beyond the format's {} levels", MAX_LODS)));
             }
             if x >= 1 << z || y >= 1 << z {
-                return Err(Error::input(
-                    &path,
-                    format!("tile ({x}, {y}) outside zoom {z}'s {0}x{0} grid", 1u64 << z),
-                ));
+                return Err(Error::input(&path, format!("tile ({x}, {y}) outside zoom {z}'s {0}x{0} grid", 1u64 << z)));
             }
             found.push((z, x, y, path));
         }
     }
     let Some(max_zoom) = found.iter().map(|t| t.0).max() else {
-        return Err(Error::input(
-            root,
-            format!("no file matches the template {:?}", options.template),
-        ));
+        return Err(Error::input(root, format!("no file matches the template {:?}", options.template)));
     };
     let min_zoom = found.iter().map(|t| t.0).min().unwrap_or(0);
     let max_zoom = u8::try_from(max_zoom).map_err(|_| Error::input(root, "zoom out of range"))?;
     let first = &found[0].3;
     let head = std::fs::read(first).map_err(|e| Error::file(first, e))?;
-    let format = TileFormat::sniff(&head)
-        .ok_or_else(|| Error::input(first, "not a PNG, JPEG or WebP image"))?;
+    let format = TileFormat::sniff(&head).ok_or_else(|| Error::input(first, "not a PNG, JPEG or WebP image"))?;
     let (width, _) = image_size(&head).unwrap_or((256, 256));
     let side = 1u32 << max_zoom;
     // Web Mercator: the world is 2 * pi * 6378137 m across at the equator.
     let world = 40_075_016.685_578_49;
     let layer = Layer {
-        name: if options.kind == LayerKind::Elevation {
-            "elevation".into()
-        } else {
-            "texture".into()
-        },
+        name: if options.kind == LayerKind::Elevation { "elevation".into() } else { "texture".into() },
         kind: options.kind,
         format,
         compression: PayloadCompression::None,
@@ -183,19 +158,9 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
         num_y_tiles: side,
         num_lods: max_zoom + 1,
         tile_world_size: world / f64::from(side),
-        elevation: options.elevation.map(|scheme| ElevationEncoding {
-            scheme,
-            scale: 1.0,
-            offset: 0.0,
-            nodata: None,
-        }),
+        elevation: options.elevation.map(|scheme| ElevationEncoding { scheme, scale: 1.0, offset: 0.0, nodata: None }),
     };
-    let mut metadata = Metadata::new(
-        root.file_name()
-            .and_then(|n| n.to_str())
-            .unwrap_or("terrain"),
-        vec![layer],
-    );
+    let mut metadata = Metadata::new(root.file_name().and_then(|n| n.to_str()).unwrap_or("terrain"), vec![layer]);
     metadata.georeference = Some(Georeference {
         crs: Some("EPSG:3857".into()),
         origin: Some([-world / 2.0, world / 2.0]),
@@ -207,21 +172,13 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
         min_zoom: u8::try_from(min_zoom).unwrap_or(0),
         max_zoom,
     };
-    metadata.extra.insert(
-        XYZ_KEY.into(),
-        serde_json::to_value(record).map_err(|e| Error::Metadata(e.to_string()))?,
-    );
+    metadata.extra.insert(XYZ_KEY.into(), serde_json::to_value(record).map_err(|e| Error::Metadata(e.to_string()))?);
     let tiles = found
         .into_iter()
         .map(|(z, x, y, path)| {
-            let y = if options.scheme == Scheme::Tms {
-                (1 << z) - 1 - y
-            } else {
-                y
-            };
+            let y = if options.scheme == Scheme::Tms { (1 << z) - 1 - y } else { y };
             let lod = max_zoom - u8::try_from(z).unwrap_or(max_zoom);
-            let tile =
-                TileKey::new(0, lod, x, y).map_err(|e| Error::input(&path, e.to_string()))?;
+            let tile = TileKey::new(0, lod, x, y).map_err(|e| Error::input(&path, e.to_string()))?;
             Ok((tile, path))
         })
         .collect::<Result<Vec<_>>>()?;
@@ -230,10 +187,7 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
 
 /// Fills a template for one tile.
 pub fn fill_template(template: &str, z: u32, x: u32, y: u32) -> String {
-    template
-        .replace("{z}", &z.to_string())
-        .replace("{x}", &x.to_string())
-        .replace("{y}", &y.to_string())
+    template.replace("{z}", &z.to_string()).replace("{x}", &x.to_string()).replace("{y}", &y.to_string())
 }
 
 #[cfg(test)]

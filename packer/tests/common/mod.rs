@@ -1,5 +1,5 @@
 //! Helpers shared by the packer's integration tests.
-#![allow(dead_code, missing_docs)]
+#![allow(dead_code, missing_docs, clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
 
@@ -8,11 +8,7 @@ use terrastream_packer::{Layer, LayerKind, Metadata, PayloadCompression, TileFor
 pub fn layer(name: &str, nx: u32, ny: u32, num_lods: u8) -> Layer {
     Layer {
         name: name.into(),
-        kind: if name.starts_with("elev") {
-            LayerKind::Elevation
-        } else {
-            LayerKind::Texture
-        },
+        kind: if name.starts_with("elev") { LayerKind::Elevation } else { LayerKind::Texture },
         format: TileFormat::Png,
         compression: PayloadCompression::None,
         tile_resolution: 256,
@@ -39,10 +35,7 @@ pub fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
             if p.is_dir() {
                 stack.push(p);
             } else {
-                out.push((
-                    p.strip_prefix(dir).unwrap().to_path_buf(),
-                    std::fs::read(&p).unwrap(),
-                ));
+                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
             }
         }
     }
@@ -51,7 +44,7 @@ pub fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
 }
 
 /// Minimal executor for the async reader: sources that are ready at once.
-pub fn block_on<F: std::future::Future>(f: F) -> F::Output {
+pub fn block_on<F: Future>(f: F) -> F::Output {
     let mut f = std::pin::pin!(f);
     let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
     loop {

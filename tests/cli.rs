@@ -1,0 +1,81 @@
+//! End-to-end tests of the `terrastream` binary: demo, pack, info, verify, extract.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn terrastream(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).current_dir(cwd).output().expect("run terrastream")
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+#[test]
+fn demo_then_info_verify_and_extract() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let out = terrastream(&["demo", "--dir", "demo"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("verify: OK"), "{}", text(&out));
+    let archive = work.join("demo/sample.tspack");
+    assert!(archive.exists());
+
+    let out = terrastream(&["info", "demo/sample.tspack", "--json"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(doc["stats"]["layers"][0]["tiles_per_lod"], serde_json::json!([47, 12, 4, 1]));
+    assert_eq!(doc["metadata"]["terrain"]["displacement"], serde_json::json!(500.0));
+
+    let out = terrastream(&["extract", "demo/sample.tspack", "-o", "back/sample"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    // Re-packing the extracted tree gives the same archive, byte for byte: pack is
+    // deterministic and extract loses nothing.
+    let out = terrastream(&["pack", "back/sample", "-o", "again.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let again = std::fs::read(work.join("again.tspack")).unwrap();
+    let first = std::fs::read(&archive).unwrap();
+    assert!(again == first, "re-packed archive differs");
+    let out = terrastream(&["verify", "again.tspack"], work);
+    assert!(out.status.success() && text(&out).contains("OK"), "{}", text(&out));
+}
+
+#[test]
+fn verify_names_the_damage_and_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    assert!(terrastream(&["demo", "--dir", "d"], work).status.success());
+    let path = work.join("d/sample.tspack");
+    let mut bytes = std::fs::read(&path).unwrap();
+    let n = bytes.len();
+    bytes[n - 100] ^= 0x10; // inside the last tile
+    std::fs::write(work.join("bad.tspack"), &bytes).unwrap();
+    let out = terrastream(&["verify", "bad.tspack"], work);
+    assert_eq!(out.status.code(), Some(2), "{}", text(&out));
+    assert!(text(&out).contains("checksum mismatch in tile layer"), "{}", text(&out));
+
+    bytes[20] ^= 0x10; // header
+    std::fs::write(work.join("bad2.tspack"), &bytes).unwrap();
+    let out = terrastream(&["verify", "bad2.tspack"], work);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("bad2.tspack") && text(&out).contains("header"), "{}", text(&out));
+
+    let out = terrastream(&["info", "missing.tspack"], work);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("missing.tspack"), "{}", text(&out));
+}
+
+#[test]
+fn pack_refuses_bad_input_without_writing() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    std::fs::create_dir_all(work.join("in/LOD0")).unwrap();
+    std::fs::write(work.join("in/LOD0/0_0.png"), b"not an image").unwrap();
+    let out = terrastream(&["pack", "in", "-o", "out.tspack"], work);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("0_0.png"), "{}", text(&out));
+    assert!(!work.join("out.tspack").exists());
+    let leftovers: Vec<_> = std::fs::read_dir(work).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name()).collect();
+    assert_eq!(leftovers.len(), 1, "only the input folder: {leftovers:?}");
+}
