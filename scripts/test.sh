@@ -2,6 +2,7 @@
 # Runs every test of the project on a fresh Debian machine with a Rust toolchain:
 # installs what the tests need, then formatting, lints, tests, and the wasm32 build check.
 set -euo pipefail
+shopt -s inherit_errexit 2>/dev/null || true
 cd "$(dirname "$0")/.."
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
@@ -26,4 +27,8 @@ cargo clippy --workspace --all-targets --locked -- -D warnings
 echo "== reader for wasm32 (no default features)"
 cargo check -p terrastream-packer --no-default-features --target wasm32-unknown-unknown --locked
 echo "== cargo test"
-cargo test --workspace --locked
+log=$(mktemp)
+trap 'rm -f "$log"' EXIT
+cargo test --workspace --locked 2>&1 | tee "$log"
+# One closing line for the whole run (cargo prints one per test binary).
+awk '/^test result:/ { p += $4; f += $6; s += $8 } END { printf "tests: %d passed, %d failed, %d skipped\n", p, f, s; exit (p == 0 || f > 0) }' "$log"

@@ -1,2 +1,20 @@
-//! HTTP hosting of terrastream archives (tokio + axum): Range requests on the archive, a tile endpoint.
+//! HTTP hosting of terrastream archives (tokio + axum): the raw archive with RFC 9110
+//! Range and conditional requests (any HTTP client, browser or CDN can stream from it),
+//! a tile endpoint, metadata, listing, health and Prometheus metrics. Archives are
+//! memory-mapped and hot-reloaded; bodies are slices of the mapping.
 #![forbid(unsafe_code)]
+
+mod app;
+mod body;
+mod catalog;
+mod config;
+mod metrics;
+mod range;
+mod serve;
+
+pub use app::{AppError, AppState, FALLBACK_LOD, app};
+pub use catalog::{Catalog, Served, archive_name};
+pub use config::ServerConfig;
+pub use metrics::Metrics;
+pub use range::{Precondition, RangeOutcome, if_range_allows, parse_range, preconditions};
+pub use serve::{serve, shutdown_signal};

@@ -1,0 +1,361 @@
+//! The axum application: routes, handlers, errors. `app(state)` is kept apart from
+//! binding and serving so tests drive it with `oneshot`.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use axum::Router;
+use axum::body::Body;
+use axum::extract::{MatchedPath, Path, Request, State};
+use axum::http::header::{
+    ACCEPT, ACCEPT_ENCODING, ACCEPT_RANGES, CACHE_CONTROL, CONTENT_ENCODING, CONTENT_LENGTH, CONTENT_RANGE,
+    CONTENT_TYPE, ETAG, HeaderName, HeaderValue, IF_MATCH, IF_MODIFIED_SINCE, IF_NONE_MATCH, IF_RANGE, LAST_MODIFIED,
+    RANGE, VARY,
+};
+use axum::http::{HeaderMap, Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::get;
+use bytes::Bytes;
+use terrastream_packer::{Error as PackError, PayloadCompression, TileKey};
+use tower_http::cors::{Any, CorsLayer};
+use tower_http::timeout::TimeoutLayer;
+use tower_http::trace::TraceLayer;
+
+use crate::body::Chunks;
+use crate::catalog::{Catalog, Served};
+use crate::config::ServerConfig;
+use crate::metrics::Metrics;
+use crate::range::{Precondition, RangeOutcome, if_range_allows, parse_range, preconditions};
+
+/// Response header naming the nearest coarser LOD that exists for a missing tile.
+pub const FALLBACK_LOD: HeaderName = HeaderName::from_static("x-terrastream-fallback-lod");
+
+/// Shared state of all handlers.
+#[derive(Clone, Debug)]
+pub struct AppState {
+    /// Served archives.
+    pub catalog: Arc<Catalog>,
+    /// Request counters.
+    pub metrics: Arc<Metrics>,
+    /// Settings.
+    pub config: Arc<ServerConfig>,
+}
+
+impl AppState {
+    /// State for a configuration; call `catalog.reload()` to load the archives.
+    pub fn new(config: ServerConfig) -> Self {
+        Self {
+            catalog: Arc::new(Catalog::new(config.paths.clone())),
+            metrics: Arc::new(Metrics::default()),
+            config: Arc::new(config),
+        }
+    }
+}
+
+/// Errors of the handlers, each with its status. 5xx bodies stay generic.
+#[derive(Debug, thiserror::Error)]
+pub enum AppError {
+    /// 404 with a reason.
+    #[error("{0}")]
+    NotFound(String),
+    /// 400 with a reason.
+    #[error("{0}")]
+    BadRequest(String),
+    /// 500; the detail is logged, never sent.
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl IntoResponse for AppError {
+    fn into_response(self) -> Response {
+        match self {
+            Self::NotFound(m) => (StatusCode::NOT_FOUND, m).into_response(),
+            Self::BadRequest(m) => (StatusCode::BAD_REQUEST, m).into_response(),
+            Self::Internal(m) => {
+                tracing::error!("internal error: {m}");
+                (StatusCode::INTERNAL_SERVER_ERROR, "internal server error").into_response()
+            }
+        }
+    }
+}
+
+/// The router with all routes and layers.
+pub fn app(state: AppState) -> Router {
+    let cors = CorsLayer::new()
+        .allow_origin(Any)
+        .allow_methods([Method::GET, Method::HEAD, Method::OPTIONS])
+        .allow_headers([RANGE, IF_NONE_MATCH, IF_MATCH, IF_RANGE, IF_MODIFIED_SINCE, ACCEPT_ENCODING])
+        .expose_headers([
+            ETAG,
+            CONTENT_RANGE,
+            CONTENT_LENGTH,
+            CONTENT_ENCODING,
+            ACCEPT_RANGES,
+            LAST_MODIFIED,
+            FALLBACK_LOD,
+        ])
+        .max_age(std::time::Duration::from_secs(86_400));
+    Router::new()
+        .route("/", get(index))
+        .route("/healthz", get(|| async { "ok\n" }))
+        .route("/metrics", get(metrics))
+        .route("/{file}", get(archive_bytes))
+        .route("/{name}/metadata", get(metadata))
+        .route("/{name}/{layer}/{lod}/{x}/{y}", get(tile))
+        .route_layer(middleware::from_fn_with_state(state.clone(), record_metrics))
+        .with_state(state.clone())
+        .layer(cors)
+        .layer(TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, state.config.request_timeout()))
+        .layer(TraceLayer::new_for_http())
+}
+
+async fn record_metrics(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let route = req.extensions().get::<MatchedPath>().map_or_else(|| "other".to_owned(), |p| p.as_str().to_owned());
+    let started = Instant::now();
+    let response = next.run(req).await;
+    let bytes =
+        response.headers().get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse().ok()).unwrap_or(0);
+    state.metrics.record(&route, response.status().as_u16(), bytes, started.elapsed());
+    response
+}
+
+fn archive(state: &AppState, name: &str) -> Result<Arc<Served>, AppError> {
+    state.catalog.get(name).ok_or_else(|| AppError::NotFound(format!("no archive named {name:?}\n")))
+}
+
+fn header(v: &str) -> HeaderValue {
+    HeaderValue::from_str(v).unwrap_or_else(|_| HeaderValue::from_static(""))
+}
+
+/// `GET|HEAD /{name}.tspack`: the archive's bytes with Range and conditional requests.
+#[tracing::instrument(skip_all, fields(file = %file))]
+async fn archive_bytes(
+    State(state): State<AppState>,
+    Path(file): Path<String>,
+    method: Method,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let name = file.strip_suffix(".tspack").ok_or_else(|| AppError::NotFound("not found\n".into()))?;
+    let served = archive(&state, name)?;
+    let bytes = served.bytes().clone();
+    let len = bytes.len() as u64;
+    let mut response = Response::builder()
+        .header(ETAG, header(&served.etag))
+        .header(LAST_MODIFIED, header(&httpdate::fmt_http_date(served.modified)))
+        .header(ACCEPT_RANGES, "bytes")
+        .header(CACHE_CONTROL, header(&state.config.cache_control));
+    let safe = method == Method::GET || method == Method::HEAD;
+    match preconditions(&headers, &served.etag, served.modified, safe) {
+        Precondition::NotModified => return Ok(empty(response.status(StatusCode::NOT_MODIFIED))),
+        Precondition::Failed => return Ok(empty(response.status(StatusCode::PRECONDITION_FAILED))),
+        Precondition::Proceed => {}
+    }
+    let outcome = match headers.get(RANGE) {
+        Some(range) if if_range_allows(&headers, &served.etag, served.modified) => {
+            parse_range(range.as_bytes(), len, state.config.max_ranges)
+        }
+        _ => RangeOutcome::Full,
+    };
+    let to_usize = |r: &std::ops::Range<u64>| {
+        // Ranges are clamped to the file's length, which is a usize (it is mapped).
+        usize::try_from(r.start).unwrap_or(usize::MAX)..usize::try_from(r.end).unwrap_or(usize::MAX)
+    };
+    let result = match outcome {
+        RangeOutcome::Full => response
+            .status(StatusCode::OK)
+            .header(CONTENT_TYPE, "application/octet-stream")
+            .header(CONTENT_LENGTH, len)
+            .body(Body::from(bytes)),
+        RangeOutcome::Unsatisfiable => response
+            .status(StatusCode::RANGE_NOT_SATISFIABLE)
+            .header(CONTENT_RANGE, format!("bytes */{len}"))
+            .header(CONTENT_LENGTH, 0)
+            .body(Body::empty()),
+        RangeOutcome::Partial(ranges) if ranges.len() == 1 => {
+            let r = &ranges[0];
+            response
+                .status(StatusCode::PARTIAL_CONTENT)
+                .header(CONTENT_TYPE, "application/octet-stream")
+                .header(CONTENT_RANGE, format!("bytes {}-{}/{len}", r.start, r.end - 1))
+                .header(CONTENT_LENGTH, r.end - r.start)
+                .body(Body::from(bytes.slice(to_usize(r))))
+        }
+        RangeOutcome::Partial(ranges) => {
+            let boundary = format!("tspack{}", served.etag.trim_matches('"'));
+            let mut chunks = Vec::with_capacity(ranges.len() * 2 + 1);
+            for r in &ranges {
+                chunks.push(Bytes::from(format!(
+                    "\r\n--{boundary}\r\nContent-Type: application/octet-stream\r\nContent-Range: bytes {}-{}/{len}\r\n\r\n",
+                    r.start,
+                    r.end - 1
+                )));
+                chunks.push(bytes.slice(to_usize(r)));
+            }
+            chunks.push(Bytes::from(format!("\r\n--{boundary}--\r\n")));
+            let body = Chunks::new(chunks);
+            let length = http_body::Body::size_hint(&body).exact().unwrap_or(0);
+            response
+                .status(StatusCode::PARTIAL_CONTENT)
+                .header(CONTENT_TYPE, format!("multipart/byteranges; boundary={boundary}"))
+                .header(CONTENT_LENGTH, length)
+                .body(Body::new(body))
+        }
+    };
+    result.map_err(|e| AppError::Internal(e.to_string()))
+}
+
+fn empty(builder: axum::http::response::Builder) -> Response {
+    builder.body(Body::empty()).unwrap_or_default()
+}
+
+/// `GET /{name}/metadata`.
+#[tracing::instrument(skip_all, fields(name = %name))]
+async fn metadata(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let served = archive(&state, &name)?;
+    let etag = format!("\"{}-m\"", served.etag.trim_matches('"'));
+    let builder =
+        Response::builder().header(ETAG, header(&etag)).header(CACHE_CONTROL, header(&state.config.cache_control));
+    if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
+        return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
+    }
+    let json = serde_json::to_vec(served.reader.metadata()).map_err(|e| AppError::Internal(e.to_string()))?;
+    builder
+        .header(CONTENT_TYPE, "application/json")
+        .body(Body::from(json))
+        .map_err(|e| AppError::Internal(e.to_string()))
+}
+
+/// `GET /{name}/{layer}/{lod}/{x}/{y}`: one tile; the layer by name or index.
+#[tracing::instrument(skip_all, fields(name = %name, layer = %layer, lod, x, y))]
+async fn tile(
+    State(state): State<AppState>,
+    Path((name, layer, lod, x, y)): Path<(String, String, u8, u32, u32)>,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let served = archive(&state, &name)?;
+    let meta = served.reader.metadata();
+    let index = meta
+        .layer_index(&layer)
+        .or_else(|| layer.parse::<u8>().ok().filter(|&i| usize::from(i) < meta.layers.len()))
+        .ok_or_else(|| AppError::NotFound(format!("archive {name:?} has no layer {layer:?}\n")))?;
+    let info = &meta.layers[usize::from(index)];
+    let key = TileKey::new(index, lod, x, y).map_err(|e| AppError::BadRequest(format!("{e}\n")))?;
+    if !info.contains(key) {
+        let (nx, ny) = info.grid_at(lod);
+        return Err(AppError::BadRequest(format!(
+            "tile ({lod}, {x}, {y}) is outside layer {:?}: {} LODs, {nx}x{ny} tiles at LOD {lod}\n",
+            info.name, info.num_lods
+        )));
+    }
+    let zstd_ok = info.compression == PayloadCompression::Zstd && accepts_zstd(&headers);
+    let etag = format!("\"{}-{index}-{lod}-{x}-{y}{}\"", served.etag.trim_matches('"'), if zstd_ok { "z" } else { "" });
+    let mut builder = Response::builder()
+        .header(ETAG, header(&etag))
+        .header(CACHE_CONTROL, header(&state.config.cache_control))
+        .header(VARY, "Accept-Encoding");
+    match served.reader.tile(key) {
+        Ok(Some(stored)) => {
+            if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
+                return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
+            }
+            let body = match info.compression {
+                PayloadCompression::None => stored,
+                PayloadCompression::Zstd if zstd_ok => {
+                    builder = builder.header(CONTENT_ENCODING, "zstd");
+                    stored
+                }
+                PayloadCompression::Zstd => {
+                    let px = u64::from(info.tile_resolution) + 2 * u64::from(info.border);
+                    let limit = px * px * 16;
+                    let raw = terrastream_packer::zstd_decompress(&stored, limit, &format!("tile {key}"))
+                        .map_err(|e| AppError::Internal(e.to_string()))?;
+                    Bytes::from(raw)
+                }
+            };
+            builder
+                .header(CONTENT_TYPE, info.format.media_type())
+                .header(CONTENT_LENGTH, body.len())
+                .body(Body::from(body))
+                .map_err(|e| AppError::Internal(e.to_string()))
+        }
+        Ok(None) => {
+            let fallback = key.parent().map(|p| served.reader.tile_or_coarser(p)).transpose();
+            let fallback = fallback.map_err(|e| AppError::Internal(e.to_string()))?.flatten();
+            if let Some((coarser, _)) = fallback {
+                builder = builder.header(FALLBACK_LOD, u16::from(coarser.lod()));
+            }
+            Ok(builder.status(StatusCode::NOT_FOUND).body(Body::from("tile missing\n")).unwrap_or_default())
+        }
+        Err(err @ PackError::InvalidTile { .. }) => Err(AppError::BadRequest(format!("{err}\n"))),
+        Err(err) => Err(AppError::Internal(format!("archive {name:?}: {err}"))),
+    }
+}
+
+fn accepts_zstd(headers: &HeaderMap) -> bool {
+    headers.get_all(ACCEPT_ENCODING).iter().filter_map(|v| v.to_str().ok()).flat_map(|v| v.split(',')).any(|coding| {
+        let mut parts = coding.split(';');
+        let name = parts.next().unwrap_or("").trim();
+        let refused = parts.any(|p| p.trim().replace(' ', "") == "q=0");
+        name.eq_ignore_ascii_case("zstd") && !refused
+    })
+}
+
+/// `GET /metrics`.
+async fn metrics(State(state): State<AppState>) -> Response {
+    let text = state.metrics.render(state.catalog.list().len());
+    ([(CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
+}
+
+/// `GET /`: the archives, as HTML for people or JSON for `Accept: application/json`.
+async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
+    let archives: Vec<serde_json::Value> = state
+        .catalog
+        .list()
+        .iter()
+        .map(|a| {
+            let m = a.reader.metadata();
+            serde_json::json!({
+                "name": a.name,
+                "url": format!("/{}.tspack", a.name),
+                "metadata": format!("/{}/metadata", a.name),
+                "bytes": a.bytes().len(),
+                "etag": a.etag,
+                "layers": m.layers.iter().map(|l| serde_json::json!({
+                    "name": l.name, "kind": l.kind, "format": l.format,
+                    "grid": [l.num_x_tiles, l.num_y_tiles], "num_lods": l.num_lods,
+                })).collect::<Vec<_>>(),
+            })
+        })
+        .collect();
+    let wants_json = headers.get(ACCEPT).and_then(|v| v.to_str().ok()).is_some_and(|v| v.contains("application/json"));
+    if wants_json {
+        return axum::Json(serde_json::json!({ "archives": archives })).into_response();
+    }
+    let mut html = String::from(
+        "<!doctype html><meta charset=utf-8><title>terrastream</title><h1>terrastream archives</h1><table>\
+         <tr><th>archive</th><th>size</th><th>layers</th><th>metadata</th></tr>",
+    );
+    for a in &archives {
+        let name = escape(a["name"].as_str().unwrap_or(""));
+        let layers: Vec<String> = a["layers"]
+            .as_array()
+            .map(|ls| ls.iter().map(|l| escape(l["name"].as_str().unwrap_or(""))).collect())
+            .unwrap_or_default();
+        html.push_str(&format!(
+            "<tr><td><a href=\"/{name}.tspack\">{name}.tspack</a></td><td>{}</td><td>{}</td><td><a href=\"/{name}/metadata\">json</a></td></tr>",
+            a["bytes"],
+            layers.join(", ")
+        ));
+    }
+    html.push_str("</table>");
+    Html(html).into_response()
+}
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+}

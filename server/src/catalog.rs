@@ -1,0 +1,175 @@
+//! The archives being served, and their hot reload.
+//!
+//! Each archive is memory-mapped once; requests take an `Arc` of the current version, so a
+//! replaced file (atomic rename) is picked up by new requests while requests in flight
+//! finish on the old mapping.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, RwLock};
+use std::time::SystemTime;
+
+use bytes::Bytes;
+use terrastream_packer::{MmapSource, Reader};
+
+/// One archive as served.
+#[derive(Debug)]
+pub struct Served {
+    /// URL name: the file name without `.tspack`.
+    pub name: String,
+    /// File it was mapped from.
+    pub path: PathBuf,
+    /// Reader over the mapping.
+    pub reader: Reader<MmapSource>,
+    /// Strong entity tag, quoted.
+    pub etag: String,
+    /// Modification time.
+    pub modified: SystemTime,
+    identity: FileIdentity,
+}
+
+impl Served {
+    /// The whole file, zero-copy.
+    pub fn bytes(&self) -> &Bytes {
+        self.reader.source().bytes()
+    }
+}
+
+/// What tells two versions of a file apart without reading it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct FileIdentity {
+    len: u64,
+    modified_ns: u128,
+    inode: u64,
+}
+
+fn identity(meta: &std::fs::Metadata) -> FileIdentity {
+    #[cfg(unix)]
+    let inode = std::os::unix::fs::MetadataExt::ino(meta);
+    #[cfg(not(unix))]
+    let inode = 0;
+    let modified_ns =
+        meta.modified().ok().and_then(|m| m.duration_since(SystemTime::UNIX_EPOCH).ok()).map_or(0, |d| d.as_nanos());
+    FileIdentity { len: meta.len(), modified_ns, inode }
+}
+
+/// The served archives by name.
+#[derive(Debug, Default)]
+pub struct Catalog {
+    roots: Vec<PathBuf>,
+    archives: RwLock<BTreeMap<String, Arc<Served>>>,
+}
+
+impl Catalog {
+    /// A catalog of the given files and folders (scanned by [`Catalog::reload`]).
+    pub fn new(roots: Vec<PathBuf>) -> Self {
+        Self { roots, archives: RwLock::new(BTreeMap::new()) }
+    }
+
+    /// The current version of an archive.
+    pub fn get(&self, name: &str) -> Option<Arc<Served>> {
+        self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).get(name).cloned()
+    }
+
+    /// All archives, by name.
+    pub fn list(&self) -> Vec<Arc<Served>> {
+        self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).values().cloned().collect()
+    }
+
+    fn candidates(&self) -> Vec<PathBuf> {
+        let mut out = Vec::new();
+        for root in &self.roots {
+            if root.is_dir() {
+                match std::fs::read_dir(root) {
+                    Ok(entries) => out.extend(
+                        entries
+                            .filter_map(Result::ok)
+                            .map(|e| e.path())
+                            .filter(|p| p.extension().is_some_and(|e| e == "tspack")),
+                    ),
+                    Err(err) => tracing::warn!("cannot list {}: {err}", root.display()),
+                }
+            } else {
+                out.push(root.clone());
+            }
+        }
+        out
+    }
+
+    /// Rescans: maps new and replaced archives, forgets removed ones. A file that fails to
+    /// open is logged and skipped (its previous version, if any, stays served).
+    /// Returns how many archives changed.
+    pub fn reload(&self) -> usize {
+        let current = self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
+        let mut next = BTreeMap::new();
+        let mut changed = 0;
+        for path in self.candidates() {
+            let Some(name) = archive_name(&path) else { continue };
+            // Only regular files: a symlink could point anywhere on the machine.
+            let meta = match std::fs::symlink_metadata(&path) {
+                Ok(m) if m.file_type().is_file() => m,
+                Ok(_) => {
+                    tracing::warn!("{}: not a regular file, not served", path.display());
+                    continue;
+                }
+                Err(err) => {
+                    tracing::warn!("{}: {err}", path.display());
+                    continue;
+                }
+            };
+            let id = identity(&meta);
+            if let Some(old) = current.get(&name).filter(|o| o.identity == id && o.path == path) {
+                next.insert(name, Arc::clone(old));
+                continue;
+            }
+            match open(&name, &path, &meta, id) {
+                Ok(served) => {
+                    tracing::info!(archive = %name, etag = %served.etag, "serving {}", path.display());
+                    next.insert(name, Arc::new(served));
+                    changed += 1;
+                }
+                Err(err) => {
+                    tracing::error!("{}: {err}", path.display());
+                    if let Some(old) = current.get(&name) {
+                        next.insert(name, Arc::clone(old));
+                    }
+                }
+            }
+        }
+        changed += current.keys().filter(|k| !next.contains_key(*k)).count();
+        *self.archives.write().unwrap_or_else(std::sync::PoisonError::into_inner) = next;
+        changed
+    }
+}
+
+/// The URL name of an archive file: its stem, restricted to a safe alphabet.
+pub fn archive_name(path: &Path) -> Option<String> {
+    let stem = path.file_name()?.to_str()?.strip_suffix(".tspack")?;
+    let ok = !stem.is_empty()
+        && stem.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+        && !stem.starts_with('.');
+    ok.then(|| stem.to_owned())
+}
+
+fn open(
+    name: &str,
+    path: &Path,
+    meta: &std::fs::Metadata,
+    id: FileIdentity,
+) -> Result<Served, terrastream_packer::Error> {
+    let reader = Reader::new(MmapSource::open(path)?)?;
+    let mut tag = Vec::with_capacity(160);
+    tag.extend_from_slice(&reader.source().bytes()[..terrastream_packer::HEADER_LEN]);
+    tag.extend_from_slice(&id.len.to_le_bytes());
+    tag.extend_from_slice(&id.modified_ns.to_le_bytes());
+    tag.extend_from_slice(&id.inode.to_le_bytes());
+    let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(&tag));
+    Ok(Served {
+        name: name.to_owned(),
+        path: path.to_path_buf(),
+        reader,
+        etag,
+        modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
+        identity: id,
+    })
+}

@@ -1,0 +1,82 @@
+//! Server settings: from flags and an optional TOML file.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+/// Everything `terrastream serve` can be told.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Address to listen on.
+    pub addr: SocketAddr,
+    /// Archive files and folders of archives to serve.
+    pub paths: Vec<PathBuf>,
+    /// `Cache-Control` of archive bytes and tiles.
+    pub cache_control: String,
+    /// Most ranges honoured in one request; more are answered with the whole file (as
+    /// nginx's `max_ranges`).
+    pub max_ranges: usize,
+    /// Seconds a request may take before it is answered 408.
+    pub request_timeout_secs: u64,
+    /// Connections served at once; more wait in the listen backlog.
+    pub max_connections: usize,
+    /// Bytes of request head (request line + headers) accepted.
+    pub max_header_bytes: usize,
+    /// How often served folders are rescanned for replaced, added or removed archives.
+    pub reload_interval_ms: u64,
+    /// Seconds in-flight requests get to finish on shutdown.
+    pub shutdown_grace_secs: u64,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            paths: Vec::new(),
+            cache_control: "public, max-age=3600".into(),
+            max_ranges: 256,
+            request_timeout_secs: 30,
+            max_connections: 4096,
+            max_header_bytes: 16 * 1024,
+            reload_interval_ms: 1000,
+            shutdown_grace_secs: 10,
+        }
+    }
+}
+
+impl ServerConfig {
+    /// Parses a TOML document.
+    ///
+    /// # Errors
+    /// The TOML parser's message, naming the line and field.
+    pub fn from_toml(text: &str) -> Result<Self, String> {
+        toml::from_str(text).map_err(|e| e.to_string())
+    }
+
+    /// The request timeout.
+    pub fn request_timeout(&self) -> Duration {
+        Duration::from_secs(self.request_timeout_secs.max(1))
+    }
+
+    /// The rescan interval.
+    pub fn reload_interval(&self) -> Duration {
+        Duration::from_millis(self.reload_interval_ms.max(10))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn toml_overrides_defaults_and_rejects_unknown_fields() {
+        let c = ServerConfig::from_toml("addr = \"0.0.0.0:9000\"\npaths = [\"/data\"]\nmax_ranges = 8\n").unwrap();
+        assert_eq!(c.addr.port(), 9000);
+        assert_eq!(c.max_ranges, 8);
+        assert_eq!(c.cache_control, ServerConfig::default().cache_control);
+        assert!(ServerConfig::from_toml("max_rangez = 8").unwrap_err().contains("max_rangez"));
+    }
+}

@@ -1,0 +1,288 @@
+//! Every route and case through the router with `oneshot`.
+#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+
+mod common;
+
+use axum::body::{Body, to_bytes};
+use axum::http::{Request, StatusCode};
+use axum::response::Response;
+use terrastream_packer::{MmapSource, Reader, TileKey};
+use terrastream_server::{FALLBACK_LOD, app};
+use tower::ServiceExt;
+
+use common::{archives, raw_tile, state};
+
+async fn send(state: &terrastream_server::AppState, req: Request<Body>) -> (Response, Vec<u8>) {
+    let response = app(state.clone()).oneshot(req).await.unwrap();
+    let (parts, body) = response.into_parts();
+    let bytes = to_bytes(body, usize::MAX).await.unwrap().to_vec();
+    (Response::from_parts(parts, Body::empty()), bytes)
+}
+
+fn get(uri: &str, headers: &[(&str, &str)]) -> Request<Body> {
+    let mut b = Request::get(uri);
+    for (k, v) in headers {
+        b = b.header(*k, *v);
+    }
+    b.body(Body::empty()).unwrap()
+}
+
+fn h(r: &Response, name: &str) -> String {
+    r.headers().get(name).map(|v| v.to_str().unwrap().to_owned()).unwrap_or_default()
+}
+
+/// Splits a multipart/byteranges body into (Content-Range, data) parts.
+fn parts(content_type: &str, body: &[u8]) -> Vec<(String, Vec<u8>)> {
+    let boundary = content_type.split("boundary=").nth(1).unwrap();
+    let delimiter = format!("--{boundary}");
+    let text = body;
+    let mut out = Vec::new();
+    let mut rest = text;
+    while let Some(at) = find(rest, delimiter.as_bytes()) {
+        rest = &rest[at + delimiter.len()..];
+        if rest.starts_with(b"--") {
+            break;
+        }
+        let head_end = find(rest, b"\r\n\r\n").unwrap();
+        let head = String::from_utf8_lossy(&rest[..head_end]).to_string();
+        let range = head.lines().find_map(|l| l.strip_prefix("Content-Range: ")).unwrap().to_owned();
+        let data_start = head_end + 4;
+        let next = find(&rest[data_start..], format!("\r\n{delimiter}").as_bytes()).unwrap();
+        out.push((range, rest[data_start..data_start + next].to_vec()));
+        rest = &rest[data_start + next..];
+    }
+    out
+}
+
+fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
+    hay.windows(needle.len()).position(|w| w == needle)
+}
+
+#[tokio::test]
+async fn whole_archive_with_validators() {
+    let (dir, path) = archives();
+    let s = state(dir.path());
+    let file = std::fs::read(&path).unwrap();
+    let (r, body) = send(&s, get("/sample.tspack", &[])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(body, file);
+    assert_eq!(h(&r, "content-length"), file.len().to_string());
+    assert_eq!(h(&r, "accept-ranges"), "bytes");
+    assert!(h(&r, "etag").starts_with('"'), "strong etag");
+    assert!(!h(&r, "last-modified").is_empty());
+    assert_eq!(h(&r, "cache-control"), "public, max-age=3600");
+
+    let head = Request::head("/sample.tspack").body(Body::empty()).unwrap();
+    let (r, body) = send(&s, head).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(body.is_empty());
+    assert_eq!(h(&r, "content-length"), file.len().to_string());
+}
+
+#[tokio::test]
+async fn ranges_single_open_suffix_multi_and_unsatisfiable() {
+    let (dir, path) = archives();
+    let s = state(dir.path());
+    let file = std::fs::read(&path).unwrap();
+    let len = file.len();
+    for (range, start, end) in [
+        ("bytes=0-127", 0, 128),
+        ("bytes=100-", 100, len),
+        ("bytes=-50", len - 50, len),
+        ("bytes=10-99999999", 10, len),
+    ] {
+        let (r, body) = send(&s, get("/sample.tspack", &[("range", range)])).await;
+        assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT, "{range}");
+        assert_eq!(h(&r, "content-range"), format!("bytes {start}-{}/{len}", end - 1));
+        assert_eq!(body, &file[start..end]);
+    }
+    for range in
+        [format!("bytes={len}-"), format!("bytes={}-{}", len + 5, len + 10), "bytes=x-1".into(), "bytes=1-2;3".into()]
+    {
+        let (r, body) = send(&s, get("/sample.tspack", &[("range", &range)])).await;
+        assert_eq!(r.status(), StatusCode::RANGE_NOT_SATISFIABLE, "{range}");
+        assert_eq!(h(&r, "content-range"), format!("bytes */{len}"));
+        assert!(body.is_empty());
+    }
+    // Multiple and overlapping ranges: multipart/byteranges, parts in request order.
+    let (r, body) = send(&s, get("/sample.tspack", &[("range", "bytes=0-9, 5-14, -4")])).await;
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    let ct = h(&r, "content-type");
+    assert!(ct.starts_with("multipart/byteranges; boundary="), "{ct}");
+    assert_eq!(h(&r, "content-length"), body.len().to_string());
+    let got = parts(&ct, &body);
+    assert_eq!(got.len(), 3);
+    assert_eq!(got[0], (format!("bytes 0-9/{len}"), file[0..10].to_vec()));
+    assert_eq!(got[1], (format!("bytes 5-14/{len}"), file[5..15].to_vec()));
+    assert_eq!(got[2], (format!("bytes {}-{}/{len}", len - 4, len - 1), file[len - 4..].to_vec()));
+    // Hundreds of ranges: past max_ranges (256) the whole file, as nginx does.
+    let many: Vec<String> = (0..300).map(|i| format!("{}-{}", i * 10, i * 10 + 1)).collect();
+    let (r, body) = send(&s, get("/sample.tspack", &[("range", &format!("bytes={}", many.join(",")))])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(body.len(), len);
+    let (r, body) = send(&s, get("/sample.tspack", &[("range", &format!("bytes={}", many[..200].join(",")))])).await;
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    assert_eq!(parts(&h(&r, "content-type"), &body).len(), 200);
+    // Not a bytes range: ignored.
+    let (r, _) = send(&s, get("/sample.tspack", &[("range", "pages=1-2")])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+}
+
+#[tokio::test]
+async fn conditional_requests() {
+    let (dir, _) = archives();
+    let s = state(dir.path());
+    let (r, _) = send(&s, get("/sample.tspack", &[])).await;
+    let etag = h(&r, "etag");
+    let modified = h(&r, "last-modified");
+    let (r, body) = send(&s, get("/sample.tspack", &[("if-none-match", &etag)])).await;
+    assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+    assert!(body.is_empty());
+    assert_eq!(h(&r, "etag"), etag);
+    let (r, _) = send(&s, get("/sample.tspack", &[("if-match", "\"some-other-version\"")])).await;
+    assert_eq!(r.status(), StatusCode::PRECONDITION_FAILED);
+    let (r, _) = send(&s, get("/sample.tspack", &[("if-match", &etag), ("range", "bytes=0-3")])).await;
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    let (r, _) = send(&s, get("/sample.tspack", &[("if-range", &etag), ("range", "bytes=0-3")])).await;
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    let (r, _) = send(&s, get("/sample.tspack", &[("if-range", "\"stale\""), ("range", "bytes=0-3")])).await;
+    assert_eq!(r.status(), StatusCode::OK, "a stale If-Range gets the whole new file");
+    let (r, _) = send(&s, get("/sample.tspack", &[("if-range", &modified), ("range", "bytes=0-3")])).await;
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    let (r, _) = send(&s, get("/sample.tspack", &[("if-modified-since", &modified)])).await;
+    assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+}
+
+#[tokio::test]
+async fn nothing_outside_the_served_files() {
+    let (dir, _) = archives();
+    std::fs::write(dir.path().join("secret.txt"), "secret").unwrap();
+    std::os::unix::fs::symlink("/etc/hostname", dir.path().join("escape.tspack")).unwrap();
+    let s = state(dir.path());
+    for uri in [
+        "/secret.txt",
+        "/..%2Fsecret.txt",
+        "/..%2F..%2Fetc%2Fpasswd",
+        "/%2e%2e/secret.txt",
+        "/escape.tspack",
+        "/sample.tspack%00",
+        "/nope.tspack",
+        "/sample",
+    ] {
+        let (r, body) = send(&s, get(uri, &[])).await;
+        assert!(r.status() == StatusCode::NOT_FOUND || r.status() == StatusCode::BAD_REQUEST, "{uri}: {}", r.status());
+        assert!(!String::from_utf8_lossy(&body).contains("secret"), "{uri}");
+    }
+    assert!(s.catalog.get("escape").is_none(), "symlinks are not served");
+}
+
+#[tokio::test]
+async fn metadata_and_tiles() {
+    let (dir, path) = archives();
+    let s = state(dir.path());
+    let reader = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
+    let (r, body) = send(&s, get("/sample/metadata", &[])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(h(&r, "content-type"), "application/json");
+    let meta: terrastream_packer::Metadata = serde_json::from_slice(&body).unwrap();
+    assert_eq!(&meta, reader.metadata());
+
+    let want = reader.tile(TileKey::new(0, 1, 2, 1).unwrap()).unwrap().unwrap();
+    for uri in ["/sample/texture/1/2/1", "/sample/0/1/2/1"] {
+        let (r, body) = send(&s, get(uri, &[])).await;
+        assert_eq!(r.status(), StatusCode::OK, "{uri}");
+        assert_eq!(h(&r, "content-type"), "image/png");
+        assert_eq!(body, want.to_vec());
+        let etag = h(&r, "etag");
+        let (r, _) = send(&s, get(uri, &[("if-none-match", &etag)])).await;
+        assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+    }
+    // The sample's lake tile is missing at LOD 0: 404 naming the LOD to use instead.
+    let (r, _) = send(&s, get("/sample/texture/0/1/4", &[])).await;
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    assert_eq!(h(&r, FALLBACK_LOD.as_str()), "1");
+    // Outside the grid, malformed numbers: 400. Unknown layer or archive: 404.
+    for (uri, status) in [
+        ("/sample/texture/0/8/0", StatusCode::BAD_REQUEST),
+        ("/sample/texture/9/0/0", StatusCode::BAD_REQUEST),
+        ("/sample/texture/0/-1/0", StatusCode::BAD_REQUEST),
+        ("/sample/texture/zero/0/0", StatusCode::BAD_REQUEST),
+        ("/sample/texture/0/99999999999/0", StatusCode::BAD_REQUEST),
+        ("/sample/normals/0/0/0", StatusCode::NOT_FOUND),
+        ("/sample/7/0/0/0", StatusCode::NOT_FOUND),
+        ("/other/texture/0/0/0", StatusCode::NOT_FOUND),
+    ] {
+        let (r, _) = send(&s, get(uri, &[])).await;
+        assert_eq!(r.status(), status, "{uri}");
+    }
+}
+
+#[tokio::test]
+async fn zstd_tiles_pass_through_only_when_accepted() {
+    let (dir, _) = archives();
+    let s = state(dir.path());
+    let key = TileKey::new(0, 0, 1, 1).unwrap();
+    let (r, body) = send(&s, get("/elev/elevation/0/1/1", &[("accept-encoding", "gzip, zstd")])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(h(&r, "content-encoding"), "zstd");
+    assert_eq!(h(&r, "vary"), "Accept-Encoding");
+    assert_eq!(terrastream_packer::zstd_decompress(&body, 1 << 20, "t").unwrap(), raw_tile(key, 1));
+    let zstd_etag = h(&r, "etag");
+    for accept in [None, Some("gzip"), Some("zstd;q=0")] {
+        let headers: Vec<(&str, &str)> = accept.map(|a| vec![("accept-encoding", a)]).unwrap_or_default();
+        let (r, body) = send(&s, get("/elev/elevation/0/1/1", &headers)).await;
+        assert_eq!(r.status(), StatusCode::OK);
+        assert_eq!(h(&r, "content-encoding"), "", "{accept:?}");
+        assert_eq!(body, raw_tile(key, 1));
+        assert_ne!(h(&r, "etag"), zstd_etag, "each representation has its own tag");
+    }
+}
+
+#[tokio::test]
+async fn listing_health_metrics_and_cors() {
+    let (dir, _) = archives();
+    let s = state(dir.path());
+    let (r, body) = send(&s, get("/", &[("accept", "application/json")])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    let doc: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let names: Vec<&str> = doc["archives"].as_array().unwrap().iter().map(|a| a["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["elev", "sample"]);
+    let (r, body) = send(&s, get("/", &[])).await;
+    assert!(h(&r, "content-type").starts_with("text/html"));
+    assert!(String::from_utf8_lossy(&body).contains("href=\"/sample.tspack\""));
+    let (r, body) = send(&s, get("/healthz", &[])).await;
+    assert_eq!((r.status(), body), (StatusCode::OK, b"ok\n".to_vec()));
+
+    send(&s, get("/sample.tspack", &[("range", "bytes=0-9")])).await;
+    send(&s, get("/sample/texture/0/8/0", &[])).await;
+    let (_, body) = send(&s, get("/metrics", &[])).await;
+    let text = String::from_utf8(body).unwrap();
+    assert!(text.contains("terrastream_requests_total{route=\"/{file}\",status=\"206\"} 1"), "{text}");
+    assert!(
+        text.contains("terrastream_requests_total{route=\"/{name}/{layer}/{lod}/{x}/{y}\",status=\"400\"} 1"),
+        "{text}"
+    );
+    assert!(text.contains("terrastream_response_bytes_total{route=\"/{file}\"} 10"), "{text}");
+    assert!(text.contains("terrastream_request_duration_seconds_count{route=\"/{file}\"} 1"), "{text}");
+    assert!(text.contains("terrastream_archives 2"));
+
+    let preflight = Request::options("/sample.tspack")
+        .header("origin", "https://viewer.example")
+        .header("access-control-request-method", "GET")
+        .header("access-control-request-headers", "range, if-none-match")
+        .body(Body::empty())
+        .unwrap();
+    let (r, _) = send(&s, preflight).await;
+    assert!(r.status().is_success());
+    assert_eq!(h(&r, "access-control-allow-origin"), "*");
+    let allowed = h(&r, "access-control-allow-headers").to_lowercase();
+    assert!(
+        allowed.contains("range") && allowed.contains("if-none-match") && allowed.contains("if-match"),
+        "{allowed}"
+    );
+    let (r, _) = send(&s, get("/sample.tspack", &[("origin", "https://viewer.example"), ("range", "bytes=0-1")])).await;
+    let exposed = h(&r, "access-control-expose-headers").to_lowercase();
+    for name in ["etag", "content-range", "content-length", "content-encoding"] {
+        assert!(exposed.contains(name), "{exposed}");
+    }
+}
