@@ -140,7 +140,7 @@ async fn archive_bytes(
     let served = archive(&state, name)?;
     let bytes = served.bytes().clone();
     let len = bytes.len() as u64;
-    let mut response = Response::builder()
+    let response = Response::builder()
         .header(ETAG, header(&served.etag))
         .header(LAST_MODIFIED, header(&httpdate::fmt_http_date(served.modified)))
         .header(ACCEPT_RANGES, "bytes")

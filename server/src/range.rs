@@ -40,7 +40,8 @@ fn spaces(p: &[u8], i: &mut usize) {
 
 /// Parses a `Range` header value for a representation of `len` bytes.
 pub fn parse_range(value: &[u8], len: u64, max_ranges: usize) -> RangeOutcome {
-    if value.len() < 6 || !value[..6].eq_ignore_ascii_case(b"bytes=") {
+    // As nginx: a bare "bytes=" is ignored, not malformed.
+    if value.len() < 7 || !value[..6].eq_ignore_ascii_case(b"bytes=") {
         return RangeOutcome::Full;
     }
     let p = &value[6..];
@@ -201,6 +202,7 @@ mod tests {
         assert_eq!(r("bytes=1-2;"), Unsatisfiable);
         assert_eq!(r("bytes=99999999999999999999999-"), Unsatisfiable);
         assert_eq!(r("items=0-1"), Full);
+        assert_eq!(r("bytes="), Full);
         assert_eq!(r("bytes=0-1,2-3,4-5,6-7,8-9"), Full, "more than max_ranges");
         assert_eq!(r("bytes=0-999,0-999"), Full, "more bytes than the file");
         assert_eq!(parse_range(b"bytes=0-", 0, 4), Full);

@@ -5,6 +5,7 @@ mod demo;
 mod info;
 mod pack;
 mod progress;
+mod serve;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -58,6 +59,8 @@ enum Command {
         #[arg(long, value_enum, default_value_t = LayoutArg::Original)]
         layout: LayoutArg,
     },
+    /// Serve archives over HTTP: Range requests on the files, tiles, metadata, metrics.
+    Serve(serve::ServeArgs),
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
     /// Benchmarks that print numbers.
@@ -129,6 +132,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
             println!("wrote {} tiles ({} bytes) under {}", summary.files, summary.bytes, output.display());
             Ok(ExitCode::SUCCESS)
         }
+        Command::Serve(args) => serve::run(args),
         Command::Demo(args) => demo::run(args, &progress),
         Command::Bench(cmd) => bench::run(cmd),
     }

@@ -1,0 +1,175 @@
+//! The server on a real loopback socket: HTTP/1.1 and h2c, hot reload under load,
+//! graceful shutdown, header limits.
+#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+
+mod common;
+
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Duration;
+
+use terrastream_packer::TileKey;
+use terrastream_server::{AppState, ServerConfig, serve};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::oneshot;
+
+use common::{archives, raw_tile, write_zstd_archive};
+
+struct Running {
+    addr: SocketAddr,
+    stop: Option<oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<std::io::Result<()>>,
+    state: AppState,
+}
+
+async fn start(dir: &Path, tweak: impl FnOnce(&mut ServerConfig)) -> Running {
+    let mut config = ServerConfig { paths: vec![dir.to_path_buf()], reload_interval_ms: 50, ..ServerConfig::default() };
+    tweak(&mut config);
+    let state = AppState::new(config);
+    state.catalog.reload();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (stop, stopped) = oneshot::channel::<()>();
+    let task = tokio::spawn(serve(listener, state.clone(), async {
+        let _ = stopped.await;
+    }));
+    Running { addr, stop: Some(stop), task, state }
+}
+
+impl Running {
+    async fn stop(mut self) {
+        let _ = self.stop.take().unwrap().send(());
+        self.task.await.unwrap().unwrap();
+    }
+}
+
+#[tokio::test]
+async fn ranges_over_http1_and_h2c() {
+    let (dir, path) = archives();
+    let file = std::fs::read(&path).unwrap();
+    let server = start(dir.path(), |_| {}).await;
+    let url = format!("http://{}/sample.tspack", server.addr);
+    let h1 = reqwest::Client::new();
+    let h2 = reqwest::Client::builder().http2_prior_knowledge().build().unwrap();
+    for (client, version) in [(&h1, reqwest::Version::HTTP_11), (&h2, reqwest::Version::HTTP_2)] {
+        let r = client.get(&url).header("range", "bytes=128-1151").send().await.unwrap();
+        assert_eq!(r.status(), 206);
+        assert_eq!(r.version(), version);
+        assert_eq!(r.headers()["content-range"], format!("bytes 128-1151/{}", file.len()).as_str());
+        assert_eq!(r.bytes().await.unwrap(), &file[128..1152]);
+        let r = client.get(format!("http://{}/sample/texture/3/0/0", server.addr)).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+        assert_eq!(r.headers()["content-type"], "image/png");
+    }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hot_reload_under_load_fails_no_request() {
+    let (dir, _) = archives();
+    let server = start(dir.path(), |_| {}).await;
+    let base = format!("http://{}", server.addr);
+    let client = reqwest::Client::new();
+    let key = TileKey::new(0, 0, 1, 1).unwrap();
+    let (v1, v2) = (raw_tile(key, 1), raw_tile(key, 2));
+    let failures = Arc::new(AtomicU64::new(0));
+    let (seen_v1, seen_v2) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let done = Arc::new(AtomicBool::new(false));
+    let mut workers = Vec::new();
+    for _ in 0..8 {
+        let (client, base) = (client.clone(), base.clone());
+        let (failures, seen_v1, seen_v2, done) = (failures.clone(), seen_v1.clone(), seen_v2.clone(), done.clone());
+        let (v1, v2) = (v1.clone(), v2.clone());
+        workers.push(tokio::spawn(async move {
+            let mut n = 0u32;
+            // Bounded: stops when told, or after 20 000 requests.
+            while !done.load(Ordering::SeqCst) && n < 20_000 {
+                n += 1;
+                let ok = match client.get(format!("{base}/elev/elevation/0/1/1")).send().await {
+                    Ok(r) if r.status() == 200 => match r.bytes().await {
+                        Ok(b) if b == v1 => {
+                            seen_v1.fetch_add(1, Ordering::SeqCst);
+                            true
+                        }
+                        Ok(b) if b == v2 => {
+                            seen_v2.fetch_add(1, Ordering::SeqCst);
+                            true
+                        }
+                        _ => false,
+                    },
+                    _ => false,
+                };
+                let range = client.get(format!("{base}/elev.tspack")).header("range", "bytes=0-127").send().await;
+                let range_ok = match range {
+                    Ok(r) if r.status() == 206 => r.bytes().await.is_ok_and(|b| b.len() == 128),
+                    _ => false,
+                };
+                if !ok || !range_ok {
+                    failures.fetch_add(1, Ordering::SeqCst);
+                }
+            }
+        }));
+    }
+    let etag_before = server.state.catalog.get("elev").unwrap().etag.clone();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Replace the archive the way the writer always does: temporary file + rename.
+    let path = dir.path().join("elev.tspack");
+    tokio::task::spawn_blocking(move || write_zstd_archive(&path, 2)).await.unwrap();
+    for _ in 0..100 {
+        if seen_v2.load(Ordering::SeqCst) > 100 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    done.store(true, Ordering::SeqCst);
+    for w in workers {
+        w.await.unwrap();
+    }
+    assert_eq!(failures.load(Ordering::SeqCst), 0, "requests failed during the replacement");
+    assert!(seen_v1.load(Ordering::SeqCst) > 0 && seen_v2.load(Ordering::SeqCst) > 0, "both versions were served");
+    assert_ne!(server.state.catalog.get("elev").unwrap().etag, etag_before, "the ETag changed");
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn shutdown_lets_requests_in_flight_finish() {
+    let (dir, path) = archives();
+    let len = std::fs::metadata(&path).unwrap().len() as usize;
+    let server = start(dir.path(), |_| {}).await;
+    let addr = server.addr;
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    stream.write_all(b"GET /sample.tspack HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+    let mut first = vec![0u8; 1024];
+    let n = stream.read(&mut first).await.unwrap();
+    assert!(n > 0);
+    // Shut down while most of the body is still to be read.
+    let stopping = tokio::spawn(server.stop());
+    let mut rest = Vec::new();
+    stream.read_to_end(&mut rest).await.unwrap();
+    let mut all = first[..n].to_vec();
+    all.extend(rest);
+    let head_end = all.windows(4).position(|w| w == b"\r\n\r\n").unwrap() + 4;
+    assert_eq!(all.len() - head_end, len, "the whole body arrived");
+    stopping.await.unwrap();
+    assert!(tokio::net::TcpStream::connect(addr).await.is_err(), "no longer accepting");
+}
+
+#[tokio::test]
+async fn oversized_headers_are_refused() {
+    let (dir, _) = archives();
+    let server = start(dir.path(), |c| c.max_header_bytes = 8192).await;
+    let mut stream = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+    let big = "a".repeat(64 * 1024);
+    let request = format!("GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: {big}\r\n\r\n");
+    let _ = stream.write_all(request.as_bytes()).await;
+    let mut answer = Vec::new();
+    let _ = tokio::time::timeout(Duration::from_secs(5), stream.read_to_end(&mut answer)).await;
+    let text = String::from_utf8_lossy(&answer);
+    assert!(text.is_empty() || text.starts_with("HTTP/1.1 431"), "{text}");
+    // The server is still fine.
+    let r = reqwest::get(format!("http://{}/healthz", server.addr)).await.unwrap();
+    assert_eq!(r.status(), 200);
+    server.stop().await;
+}

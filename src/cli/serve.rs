@@ -1,0 +1,77 @@
+//! `terrastream serve`.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use terrastream_server::{AppState, ServerConfig, serve, shutdown_signal};
+
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// Archive files and folders of `*.tspack` to serve (added to the config file's).
+    paths: Vec<PathBuf>,
+    /// Address to listen on [default: 127.0.0.1:8080].
+    #[arg(long)]
+    addr: Option<SocketAddr>,
+    /// TOML settings (see `ServerConfig`); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Most ranges honoured per request.
+    #[arg(long)]
+    max_ranges: Option<usize>,
+    /// `Cache-Control` of archive bytes and tiles.
+    #[arg(long)]
+    cache_control: Option<String>,
+    /// Most connections served at once.
+    #[arg(long)]
+    max_connections: Option<usize>,
+}
+
+pub fn run(args: ServeArgs) -> Result<ExitCode> {
+    let mut config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            ServerConfig::from_toml(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+        }
+        None => ServerConfig::default(),
+    };
+    config.paths.extend(args.paths);
+    if let Some(addr) = args.addr {
+        config.addr = addr;
+    }
+    if let Some(n) = args.max_ranges {
+        config.max_ranges = n;
+    }
+    if let Some(c) = args.cache_control {
+        config.cache_control = c;
+    }
+    if let Some(n) = args.max_connections {
+        config.max_connections = n;
+    }
+    if config.paths.is_empty() {
+        bail!("nothing to serve: give archive files or folders");
+    }
+    for p in &config.paths {
+        if !p.exists() {
+            bail!("{}: no such file or folder", p.display());
+        }
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(async move {
+        let state = AppState::new(config.clone());
+        let catalog = std::sync::Arc::clone(&state.catalog);
+        tokio::task::spawn_blocking(move || catalog.reload()).await?;
+        let listener =
+            tokio::net::TcpListener::bind(config.addr).await.with_context(|| format!("binding {}", config.addr))?;
+        let addr = listener.local_addr()?;
+        for a in state.catalog.list() {
+            println!("serving http://{addr}/{}.tspack  ({})", a.name, a.path.display());
+        }
+        println!("listening on http://{addr}/ (Ctrl-C to stop)");
+        serve(listener, state, shutdown_signal()).await?;
+        anyhow::Ok(())
+    })?;
+    Ok(ExitCode::SUCCESS)
+}
