@@ -1,6 +1,6 @@
 //! The same Range requests to this server and to nginx serving the same file give the same
 //! status codes, `Content-Range` and bodies: nginx is the reference behaviour.
-#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
 mod common;
 

@@ -1,5 +1,5 @@
 //! Every route and case through the router with `oneshot`.
-#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
 mod common;
 

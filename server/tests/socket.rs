@@ -1,6 +1,6 @@
 //! The server on a real loopback socket: HTTP/1.1 and h2c, hot reload under load,
 //! graceful shutdown, header limits.
-#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
 mod common;
 
