@@ -7,9 +7,9 @@ cd "$(dirname "$0")/.."
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
-# System packages the tests start for real: nginx (the reference static host).
+# System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS).
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then

@@ -29,6 +29,10 @@ pub struct ServerConfig {
     pub reload_interval_ms: u64,
     /// Seconds in-flight requests get to finish on shutdown.
     pub shutdown_grace_secs: u64,
+    /// PEM certificate chain: with `tls_key`, serve HTTPS (HTTP/2 and HTTP/1.1 by ALPN).
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of `tls_cert`.
+    pub tls_key: Option<PathBuf>,
 }
 
 impl Default for ServerConfig {
@@ -43,6 +47,8 @@ impl Default for ServerConfig {
             max_header_bytes: 16 * 1024,
             reload_interval_ms: 1000,
             shutdown_grace_secs: 10,
+            tls_cert: None,
+            tls_key: None,
         }
     }
 }

@@ -173,3 +173,58 @@ async fn oversized_headers_are_refused() {
     assert_eq!(r.status(), 200);
     server.stop().await;
 }
+
+/// A system tool, or `None` with a loud message outside CI (the test command installs it).
+fn tool(name: &str) -> Option<()> {
+    let found = std::process::Command::new("sh").arg("-c").arg(format!("command -v {name}")).output().unwrap();
+    if found.status.success() {
+        return Some(());
+    }
+    assert!(std::env::var_os("CI").is_none(), "{name} is not installed; required on CI");
+    eprintln!("\n*** SKIPPING: {name} is not installed ***\n");
+    None
+}
+
+#[tokio::test]
+async fn https_offers_h2_and_http1_by_alpn() {
+    if tool("openssl").is_none() || tool("curl").is_none() {
+        return;
+    }
+    let (dir, _) = archives();
+    let certs = tempfile::tempdir().unwrap();
+    let (cert, key) = (certs.path().join("cert.pem"), certs.path().join("key.pem"));
+    let made = std::process::Command::new("openssl")
+        .args(["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-days", "1"])
+        .args(["-subj", "/CN=localhost", "-addext", "subjectAltName=DNS:localhost", "-keyout"])
+        .arg(&key)
+        .arg("-out")
+        .arg(&cert)
+        .output()
+        .unwrap();
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let (c, k) = (cert.clone(), key.clone());
+    let server = start(dir.path(), move |config| {
+        config.tls_cert = Some(c);
+        config.tls_key = Some(k);
+    })
+    .await;
+    let port = server.addr.port();
+    for (flag, want) in [("--http2", "206 2"), ("--http1.1", "206 1.1")] {
+        let out = tokio::process::Command::new("curl")
+            .args(["-sS", "-o", "/dev/null", "-w", "%{http_code} %{http_version}", flag, "-r", "0-127", "--cacert"])
+            .arg(&cert)
+            .args([
+                "--resolve",
+                &format!("localhost:{port}:127.0.0.1"),
+                &format!("https://localhost:{port}/sample.tspack"),
+            ])
+            .output()
+            .await
+            .unwrap();
+        assert_eq!(String::from_utf8_lossy(&out.stdout), want, "{}", String::from_utf8_lossy(&out.stderr));
+    }
+    // Plain HTTP on the TLS port is refused without harming the server.
+    let plain = reqwest::get(format!("http://127.0.0.1:{port}/healthz")).await;
+    assert!(plain.is_err() || !plain.unwrap().status().is_success());
+    server.stop().await;
+}

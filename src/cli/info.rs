@@ -6,8 +6,31 @@ use std::process::ExitCode;
 use anyhow::Result;
 use terrastream_packer::ArchiveStats;
 
-pub fn run(path: &Path, json: bool) -> Result<ExitCode> {
+pub fn run(path: &Path, json: bool, tiles: bool) -> Result<ExitCode> {
     let reader = super::open(path)?;
+    if tiles {
+        use std::io::Write;
+        let mut out = std::io::BufWriter::new(std::io::stdout().lock());
+        let data = reader.header().data.offset;
+        reader.for_each_entry(|e| {
+            for i in 0..u64::from(e.run_length) {
+                let t = reader.archive().tile_of(e.key + i * terrastream_packer::MAX_LAYERS as u64)?;
+                let line = format!(
+                    "{}\t{}\t{}\t{}\t{}\t{}",
+                    t.layer(),
+                    t.lod(),
+                    t.x(),
+                    t.y(),
+                    data + e.offset,
+                    e.stored_len()
+                );
+                writeln!(out, "{line}")?;
+            }
+            Ok(())
+        })?;
+        out.flush()?;
+        return Ok(ExitCode::SUCCESS);
+    }
     let stats = ArchiveStats::collect(&reader)?;
     if json {
         let doc = serde_json::json!({ "stats": stats, "metadata": reader.metadata() });

@@ -42,6 +42,10 @@ enum Command {
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// List every tile: layer, lod, x, y, absolute byte offset and length of its blob
+        /// (payload + 4-byte checksum), tab-separated.
+        #[arg(long, conflicts_with = "json")]
+        tiles: bool,
     },
     /// Check an archive's structure and every checksum; non-zero exit if damaged.
     Verify {
@@ -97,7 +101,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
     let progress = CliProgress::install(cli.quiet);
     match cli.command {
         Command::Pack(args) => pack::run(args, &progress),
-        Command::Info { archive, json } => info::run(&archive, json),
+        Command::Info { archive, json, tiles } => info::run(&archive, json, tiles),
         Command::Verify { archive } => {
             let reader = open(&archive)?;
             progress.start_bytes("verify", reader.header().data.len);

@@ -27,6 +27,12 @@ pub struct ServeArgs {
     /// Most connections served at once.
     #[arg(long)]
     max_connections: Option<usize>,
+    /// PEM certificate chain: serve HTTPS (HTTP/2 and HTTP/1.1 by ALPN).
+    #[arg(long, requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
 }
 
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
@@ -50,6 +56,10 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     if let Some(n) = args.max_connections {
         config.max_connections = n;
     }
+    if args.tls_cert.is_some() {
+        config.tls_cert = args.tls_cert;
+        config.tls_key = args.tls_key;
+    }
     if config.paths.is_empty() {
         bail!("nothing to serve: give archive files or folders");
     }
@@ -69,7 +79,8 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         for a in state.catalog.list() {
             println!("serving http://{addr}/{}.tspack  ({})", a.name, a.path.display());
         }
-        println!("listening on http://{addr}/ (Ctrl-C to stop)");
+        let scheme = if config.tls_cert.is_some() { "https" } else { "http" };
+        println!("listening on {scheme}://{addr}/ (Ctrl-C to stop)");
         serve(listener, state, shutdown_signal()).await?;
         anyhow::Ok(())
     })?;

@@ -1,0 +1,91 @@
+#!/usr/bin/env bash
+# Server benchmark: wrk against (a) the tile endpoint with random tiles, (b) random-tile
+# Range requests on the archive, (c) nginx serving the same file with the same Range
+# requests — in one run, side by side. Optional memory soak: SOAK_SECS=300.
+# Needs: nginx, wrk (apt-get install nginx wrk). Loopback only.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+CONNS=${CONNS:-64}
+SECS=${SECS:-10}
+SOAK_SECS=${SOAK_SECS:-0}
+command -v wrk >/dev/null || { echo "wrk is not installed (apt-get install wrk)"; exit 1; }
+NGINX=$(command -v nginx || echo /usr/sbin/nginx)
+[ -x "$NGINX" ] || { echo "nginx is not installed (apt-get install nginx)"; exit 1; }
+
+cargo build --release --quiet
+bin=target/release/terrastream
+work=$(mktemp -d)
+pids=()
+cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$work"; }
+trap cleanup EXIT INT TERM
+
+echo "building a 5461-tile, 80 MB archive..."
+"$bin" -q bench archive --dir "$work" --lookups 1 >/dev/null
+archive="$work/bench.tspack"
+"$bin" info "$archive" --tiles > "$work/tiles.tsv"
+awk -F'\t' '{ print "/bench/" $1 "/" $2 "/" $3 "/" $4 }' "$work/tiles.tsv" > "$work/tile-paths.txt"
+awk -F'\t' '{ print $5 "-" ($5 + $6 - 1) }' "$work/tiles.tsv" > "$work/ranges.txt"
+
+port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
+ours=$(port); theirs=$(port)
+"$bin" -q serve "$archive" --addr "127.0.0.1:$ours" & pids+=($!)
+mkdir -p "$work/nginx"
+cat > "$work/nginx/nginx.conf" <<CONF
+daemon off; master_process on; worker_processes 2; pid $work/nginx/pid; error_log $work/nginx/error.log warn;
+events { worker_connections 4096; }
+http { access_log off; sendfile on; tcp_nopush on; keepalive_requests 100000;
+  client_body_temp_path $work/nginx/b; proxy_temp_path $work/nginx/p; fastcgi_temp_path $work/nginx/f;
+  uwsgi_temp_path $work/nginx/u; scgi_temp_path $work/nginx/s;
+  types { application/octet-stream tspack; }
+  server { listen 127.0.0.1:$theirs; root $work; } }
+CONF
+"$NGINX" -p "$work/nginx" -c "$work/nginx/nginx.conf" -e "$work/nginx/error.log" & pids+=($!)
+for p in $ours $theirs; do
+  for _ in $(seq 50); do (exec 3<>/dev/tcp/127.0.0.1/$p) 2>/dev/null && break; sleep 0.1; done
+done
+
+cat > "$work/tiles.lua" <<'LUA'
+local paths = {}
+for line in io.lines(os.getenv("TILE_PATHS")) do paths[#paths + 1] = line end
+math.randomseed(os.time())
+request = function() return wrk.format("GET", paths[math.random(#paths)]) end
+LUA
+cat > "$work/ranges.lua" <<'LUA'
+local ranges = {}
+for line in io.lines(os.getenv("RANGES")) do ranges[#ranges + 1] = line end
+math.randomseed(os.time())
+request = function()
+  return wrk.format("GET", "/bench.tspack", { ["Range"] = "bytes=" .. ranges[math.random(#ranges)] })
+end
+LUA
+export TILE_PATHS="$work/tile-paths.txt" RANGES="$work/ranges.txt"
+
+run() { # name url script
+  local out
+  out=$(wrk -t2 -c"$CONNS" -d"${SECS}s" --latency -s "$3" "$2")
+  local rps p50 p99 errs
+  rps=$(awk '/Requests\/sec/ { print $2 }' <<<"$out")
+  p50=$(awk '$1 == "50%" { print $2 }' <<<"$out")
+  p99=$(awk '$1 == "99%" { print $2 }' <<<"$out")
+  errs=$(awk '/Non-2xx|Socket errors/ { $1 = $1; print }' <<<"$out" | paste -sd' ' -)
+  printf '%-44s %12s %10s %10s  %s\n' "$1" "$rps" "$p50" "$p99" "${errs:-no errors}"
+}
+
+echo
+echo "wrk, $CONNS connections, ${SECS}s each, 2 threads, loopback, $(nproc) cores"
+printf '%-44s %12s %10s %10s\n' "target" "requests/s" "p50" "p99"
+run "(a) terrastream tile endpoint, random tiles" "http://127.0.0.1:$ours" "$work/tiles.lua"
+run "(b) terrastream archive, random tile Ranges" "http://127.0.0.1:$ours" "$work/ranges.lua"
+run "(c) nginx archive, same Ranges" "http://127.0.0.1:$theirs" "$work/ranges.lua"
+
+if [ "$SOAK_SECS" -gt 0 ]; then
+  echo; echo "soak: (b) for ${SOAK_SECS}s, server RSS every 10 s (KiB):"
+  server_pid=${pids[0]}
+  wrk -t2 -c"$CONNS" -d"${SOAK_SECS}s" -s "$work/ranges.lua" "http://127.0.0.1:$ours" > "$work/soak.txt" &
+  soak=$!
+  while kill -0 $soak 2>/dev/null; do
+    awk '/VmRSS/ { printf "%s ", $2 }' "/proc/$server_pid/status"; sleep 10
+  done; echo
+  awk '/Requests\/sec|Non-2xx|Socket errors/' "$work/soak.txt"
+  grep -q -E 'Non-2xx|Socket errors' "$work/soak.txt" || echo "zero errors"
+fi
