@@ -31,25 +31,41 @@ use crate::range::{Precondition, RangeOutcome, if_range_allows, parse_range, pre
 /// Response header naming the nearest coarser LOD that exists for a missing tile.
 pub const FALLBACK_LOD: HeaderName = HeaderName::from_static("x-terrastream-fallback-lod");
 
-/// Shared state of all handlers.
+/// Shared state of all handlers: one `Arc`, so the per-request clone (by each extractor)
+/// is one atomic increment rather than one per field.
 #[derive(Clone, Debug)]
-pub struct AppState {
+pub struct AppState(Arc<AppInner>);
+
+impl std::ops::Deref for AppState {
+    type Target = AppInner;
+    fn deref(&self) -> &AppInner {
+        &self.0
+    }
+}
+
+/// What [`AppState`] holds.
+#[derive(Debug)]
+pub struct AppInner {
     /// Served archives.
     pub catalog: Arc<Catalog>,
     /// Request counters.
     pub metrics: Arc<Metrics>,
     /// Settings.
     pub config: Arc<ServerConfig>,
+    /// `Cache-Control` value, validated once.
+    pub cache_control: HeaderValue,
 }
 
 impl AppState {
     /// State for a configuration; call `catalog.reload()` to load the archives.
     pub fn new(config: ServerConfig) -> Self {
-        Self {
+        Self(Arc::new(AppInner {
             catalog: Arc::new(Catalog::new(config.paths.clone())),
             metrics: Arc::new(Metrics::default()),
+            cache_control: HeaderValue::from_str(&config.cache_control)
+                .unwrap_or_else(|_| HeaderValue::from_static("no-cache")),
             config: Arc::new(config),
-        }
+        }))
     }
 }
 
@@ -111,12 +127,16 @@ pub fn app(state: AppState) -> Router {
 }
 
 async fn record_metrics(State(state): State<AppState>, req: Request, next: Next) -> Response {
-    let route = req.extensions().get::<MatchedPath>().map_or_else(|| "other".to_owned(), |p| p.as_str().to_owned());
     let started = Instant::now();
+    // The templates are 'static in the table: look the index up, allocate nothing.
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or("other", |p| crate::metrics::ROUTES.iter().copied().find(|r| *r == p.as_str()).unwrap_or("other"));
     let response = next.run(req).await;
     let bytes =
         response.headers().get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse().ok()).unwrap_or(0);
-    state.metrics.record(&route, response.status().as_u16(), bytes, started.elapsed());
+    state.metrics.record(route, response.status().as_u16(), bytes, started.elapsed());
     response
 }
 
@@ -129,30 +149,31 @@ fn header(v: &str) -> HeaderValue {
 }
 
 /// `GET|HEAD /{name}.tspack`: the archive's bytes with Range and conditional requests.
-#[tracing::instrument(skip_all, fields(file = %file))]
+#[tracing::instrument(level = "debug", skip_all, fields(file = %file))]
 async fn archive_bytes(
     State(state): State<AppState>,
     Path(file): Path<String>,
-    method: Method,
-    headers: HeaderMap,
+    req: Request,
 ) -> Result<Response, AppError> {
+    // The request by value, not a `HeaderMap` extractor: that one clones every header.
+    let (method, headers) = (req.method(), req.headers());
     let name = file.strip_suffix(".tspack").ok_or_else(|| AppError::NotFound("not found\n".into()))?;
     let served = archive(&state, name)?;
-    let bytes = served.bytes().clone();
+    let bytes = served.bytes();
     let len = bytes.len() as u64;
     let response = Response::builder()
-        .header(ETAG, header(&served.etag))
-        .header(LAST_MODIFIED, header(&httpdate::fmt_http_date(served.modified)))
-        .header(ACCEPT_RANGES, "bytes")
-        .header(CACHE_CONTROL, header(&state.config.cache_control));
+        .header(ETAG, served.etag_header.clone())
+        .header(LAST_MODIFIED, served.last_modified_header.clone())
+        .header(ACCEPT_RANGES, HeaderValue::from_static("bytes"))
+        .header(CACHE_CONTROL, state.cache_control.clone());
     let safe = method == Method::GET || method == Method::HEAD;
-    match preconditions(&headers, &served.etag, served.modified, safe) {
+    match preconditions(headers, &served.etag, served.modified, safe) {
         Precondition::NotModified => return Ok(empty(response.status(StatusCode::NOT_MODIFIED))),
         Precondition::Failed => return Ok(empty(response.status(StatusCode::PRECONDITION_FAILED))),
         Precondition::Proceed => {}
     }
     let outcome = match headers.get(RANGE) {
-        Some(range) if if_range_allows(&headers, &served.etag, served.modified) => {
+        Some(range) if if_range_allows(headers, &served.etag, served.modified) => {
             parse_range(range.as_bytes(), len, state.config.max_ranges)
         }
         _ => RangeOutcome::Full,
@@ -166,7 +187,7 @@ async fn archive_bytes(
             .status(StatusCode::OK)
             .header(CONTENT_TYPE, "application/octet-stream")
             .header(CONTENT_LENGTH, len)
-            .body(Body::from(bytes)),
+            .body(Body::from(bytes.clone())),
         RangeOutcome::Unsatisfiable => response
             .status(StatusCode::RANGE_NOT_SATISFIABLE)
             .header(CONTENT_RANGE, format!("bytes */{len}"))
@@ -210,7 +231,7 @@ fn empty(builder: axum::http::response::Builder) -> Response {
 }
 
 /// `GET /{name}/metadata`.
-#[tracing::instrument(skip_all, fields(name = %name))]
+#[tracing::instrument(level = "debug", skip_all, fields(name = %name))]
 async fn metadata(
     State(state): State<AppState>,
     Path(name): Path<String>,
@@ -218,8 +239,7 @@ async fn metadata(
 ) -> Result<Response, AppError> {
     let served = archive(&state, &name)?;
     let etag = format!("\"{}-m\"", served.etag.trim_matches('"'));
-    let builder =
-        Response::builder().header(ETAG, header(&etag)).header(CACHE_CONTROL, header(&state.config.cache_control));
+    let builder = Response::builder().header(ETAG, header(&etag)).header(CACHE_CONTROL, state.cache_control.clone());
     if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
         return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
     }
@@ -231,12 +251,13 @@ async fn metadata(
 }
 
 /// `GET /{name}/{layer}/{lod}/{x}/{y}`: one tile; the layer by name or index.
-#[tracing::instrument(skip_all, fields(name = %name, layer = %layer, lod, x, y))]
+#[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod, x, y))]
 async fn tile(
     State(state): State<AppState>,
     Path((name, layer, lod, x, y)): Path<(String, String, u8, u32, u32)>,
-    headers: HeaderMap,
+    req: Request,
 ) -> Result<Response, AppError> {
+    let headers = req.headers();
     let served = archive(&state, &name)?;
     let meta = served.reader.metadata();
     let index = meta
@@ -252,15 +273,15 @@ async fn tile(
             info.name, info.num_lods
         )));
     }
-    let zstd_ok = info.compression == PayloadCompression::Zstd && accepts_zstd(&headers);
+    let zstd_ok = info.compression == PayloadCompression::Zstd && accepts_zstd(headers);
     let etag = format!("\"{}-{index}-{lod}-{x}-{y}{}\"", served.etag.trim_matches('"'), if zstd_ok { "z" } else { "" });
     let mut builder = Response::builder()
         .header(ETAG, header(&etag))
-        .header(CACHE_CONTROL, header(&state.config.cache_control))
+        .header(CACHE_CONTROL, state.cache_control.clone())
         .header(VARY, "Accept-Encoding");
     match served.reader.tile(key) {
         Ok(Some(stored)) => {
-            if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
+            if preconditions(headers, &etag, served.modified, true) == Precondition::NotModified {
                 return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
             }
             let body = match info.compression {

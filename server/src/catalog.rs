@@ -25,6 +25,10 @@ pub struct Served {
     pub etag: String,
     /// Modification time.
     pub modified: SystemTime,
+    /// `ETag` header value, formatted once.
+    pub etag_header: axum::http::HeaderValue,
+    /// `Last-Modified` header value, formatted once.
+    pub last_modified_header: axum::http::HeaderValue,
     identity: FileIdentity,
 }
 
@@ -164,12 +168,17 @@ fn open(
     tag.extend_from_slice(&id.modified_ns.to_le_bytes());
     tag.extend_from_slice(&id.inode.to_le_bytes());
     let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(&tag));
+    let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
+    let value =
+        |s: &str| axum::http::HeaderValue::from_str(s).unwrap_or_else(|_| axum::http::HeaderValue::from_static(""));
     Ok(Served {
         name: name.to_owned(),
         path: path.to_path_buf(),
         reader,
+        etag_header: value(&etag),
+        last_modified_header: value(&httpdate::fmt_http_date(modified)),
         etag,
-        modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
+        modified,
         identity: id,
     })
 }
