@@ -79,3 +79,49 @@ fn pack_refuses_bad_input_without_writing() {
     let leftovers: Vec<_> = std::fs::read_dir(work).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name()).collect();
     assert_eq!(leftovers.len(), 1, "only the input folder: {leftovers:?}");
 }
+
+/// One HTTP/1.1 request over a plain socket; returns the whole answer.
+fn http(port: u16, request: &str) -> Vec<u8> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.write_all(request.as_bytes()).unwrap();
+    let mut out = Vec::new();
+    s.read_to_end(&mut out).unwrap();
+    out
+}
+
+#[test]
+fn pack_then_serve_then_stop_on_sigterm() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    assert!(terrastream(&["demo", "--dir", "d"], work).status.success());
+    let archive = std::fs::read(work.join("d/sample.tspack")).unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["serve", "d", "--addr", &format!("127.0.0.1:{port}")])
+        .current_dir(work)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut up = false;
+    for _ in 0..100 {
+        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+            up = true;
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    assert!(up, "server did not start");
+    let answer =
+        http(port, "GET /sample.tspack HTTP/1.1\r\nHost: x\r\nRange: bytes=0-127\r\nConnection: close\r\n\r\n");
+    let head_end = answer.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&answer[..head_end]).to_lowercase();
+    assert!(head.starts_with("http/1.1 206"), "{head}");
+    assert!(head.contains(&format!("content-range: bytes 0-127/{}", archive.len())), "{head}");
+    assert_eq!(&answer[head_end + 4..], &archive[..128]);
+    let killed = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(killed.success());
+    let status = child.wait().unwrap();
+    assert!(status.success(), "graceful exit on SIGTERM: {status}");
+}

@@ -228,3 +228,63 @@ async fn https_offers_h2_and_http1_by_alpn() {
     assert!(plain.is_err() || !plain.unwrap().status().is_success());
     server.stop().await;
 }
+
+#[tokio::test]
+async fn connections_beyond_the_cap_wait_for_a_free_slot() {
+    let (dir, _) = archives();
+    let server = start(dir.path(), |c| c.max_connections = 1).await;
+    // A holds the only slot (connected, idle).
+    let mut a = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+    a.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+    let mut buf = [0u8; 256];
+    let n = a.read(&mut buf).await.unwrap();
+    assert!(String::from_utf8_lossy(&buf[..n]).starts_with("HTTP/1.1 200"));
+    // B is accepted by the kernel but not served while A is open.
+    let mut b = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+    b.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").await.unwrap();
+    let early = tokio::time::timeout(Duration::from_millis(300), b.read(&mut buf)).await;
+    assert!(early.is_err(), "served beyond max_connections");
+    drop(a);
+    let mut answer = Vec::new();
+    tokio::time::timeout(Duration::from_secs(5), b.read_to_end(&mut answer)).await.unwrap().unwrap();
+    assert!(String::from_utf8_lossy(&answer).starts_with("HTTP/1.1 200"), "served once a slot is free");
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_client_that_never_finishes_its_headers_is_cut_off() {
+    let (dir, _) = archives();
+    let server = start(dir.path(), |c| c.request_timeout_secs = 1).await;
+    let mut slow = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+    slow.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n").await.unwrap(); // no blank line, ever
+    let mut rest = Vec::new();
+    let closed = tokio::time::timeout(Duration::from_secs(10), slow.read_to_end(&mut rest)).await;
+    assert!(closed.is_ok(), "the connection was not closed");
+    let text = String::from_utf8_lossy(&rest);
+    assert!(text.is_empty() || text.starts_with("HTTP/1.1 408"), "{text}");
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn archives_added_and_removed_are_picked_up() {
+    let (dir, _) = archives();
+    let server = start(dir.path(), |_| {}).await;
+    let client = reqwest::Client::new();
+    let url = |name: &str| format!("http://{}/{name}.tspack", server.addr);
+    assert_eq!(client.get(url("late")).send().await.unwrap().status(), 404);
+    write_zstd_archive(&dir.path().join("late.tspack"), 3);
+    std::fs::remove_file(dir.path().join("elev.tspack")).unwrap();
+    let mut status = (0, 0);
+    for _ in 0..100 {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        status = (
+            client.get(url("late")).send().await.unwrap().status().as_u16(),
+            client.get(url("elev")).send().await.unwrap().status().as_u16(),
+        );
+        if status == (200, 404) {
+            break;
+        }
+    }
+    assert_eq!(status, (200, 404), "new archive served, removed one gone");
+    server.stop().await;
+}

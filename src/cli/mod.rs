@@ -98,8 +98,16 @@ pub fn init_logging(verbose: u8, quiet: bool) {
 /// # Errors
 /// Whatever the command failed with.
 pub fn run(cli: Cli) -> Result<ExitCode> {
-    let progress = CliProgress::install(cli.quiet);
     match cli.command {
+        // The server handles Ctrl-C / SIGTERM itself (graceful drain), without the progress bar's handler.
+        Command::Serve(args) => serve::run(args),
+        other => run_with_progress(other, cli.quiet),
+    }
+}
+
+fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
+    let progress = CliProgress::install(quiet);
+    match command {
         Command::Pack(args) => pack::run(args, &progress),
         Command::Info { archive, json, tiles } => info::run(&archive, json, tiles),
         Command::Verify { archive } => {
