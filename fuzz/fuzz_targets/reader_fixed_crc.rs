@@ -2,8 +2,10 @@
 //! mutation, so that the fuzzer gets past them into metadata, directory and leaf parsing.
 #![no_main]
 
+mod common;
+
 use libfuzzer_sys::fuzz_target;
-use terrastream_packer::{MemorySource, Reader, TileKey, crc32c, verify};
+use terrastream_packer::crc32c;
 
 fn u64_at(b: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(b[at..at + 8].try_into().unwrap_or([0; 8]))
@@ -29,18 +31,5 @@ fuzz_target!(|data: &[u8]| {
         let crc = crc32c(&bytes[..124]);
         bytes[124..128].copy_from_slice(&crc.to_le_bytes());
     }
-    let Ok(reader) = Reader::new(MemorySource::new(bytes)) else { return };
-    let _ = verify(&reader, |_| {});
-    for (layer, l) in reader.metadata().layers.clone().iter().enumerate().take(4) {
-        for lod in 0..l.num_lods.min(6) {
-            let (nx, ny) = l.grid_at(lod);
-            for y in 0..ny.min(8) {
-                for x in 0..nx.min(8) {
-                    if let Ok(key) = TileKey::new(layer as u8, lod, x, y) {
-                        let _ = reader.tile_or_coarser(key);
-                    }
-                }
-            }
-        }
-    }
+    common::exercise(bytes);
 });

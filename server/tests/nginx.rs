@@ -6,7 +6,7 @@ mod common;
 
 use terrastream_server::{AppState, ServerConfig, serve};
 
-use common::{archives, start_nginx};
+use common::{archives, split_multipart, start_nginx};
 
 /// (status, Content-Range, body parts as (Content-Range, bytes)).
 type Answer = (u16, String, Vec<(String, Vec<u8>)>);
@@ -25,27 +25,6 @@ async fn ask(client: &reqwest::Client, url: &str, range: &str) -> Answer {
         vec![(String::new(), body)]
     };
     (status, content_range, parts)
-}
-
-fn split_multipart(body: &[u8], boundary: &str) -> Vec<(String, Vec<u8>)> {
-    let delimiter = format!("--{boundary}");
-    let find = |hay: &[u8], n: &[u8]| hay.windows(n.len()).position(|w| w == n);
-    let mut out = Vec::new();
-    let mut rest = body;
-    while let Some(at) = find(rest, delimiter.as_bytes()) {
-        rest = &rest[at + delimiter.len()..];
-        if rest.starts_with(b"--") {
-            break;
-        }
-        let head_end = find(rest, b"\r\n\r\n").unwrap();
-        let head = String::from_utf8_lossy(&rest[..head_end]).to_lowercase();
-        let range = head.lines().find_map(|l| l.strip_prefix("content-range: ")).unwrap().to_owned();
-        let start = head_end + 4;
-        let len = find(&rest[start..], format!("\r\n{delimiter}").as_bytes()).unwrap();
-        out.push((range, rest[start..start + len].to_vec()));
-        rest = &rest[start + len..];
-    }
-    out
 }
 
 #[tokio::test]

@@ -10,7 +10,7 @@ use terrastream_packer::{MmapSource, Reader, TileKey};
 use terrastream_server::{FALLBACK_LOD, app};
 use tower::ServiceExt;
 
-use common::{archives, raw_tile, state};
+use common::{archives, raw_tile, split_multipart, state};
 
 async fn send(state: &terrastream_server::AppState, req: Request<Body>) -> (Response, Vec<u8>) {
     let response = app(state.clone()).oneshot(req).await.unwrap();
@@ -31,31 +31,9 @@ fn h(r: &Response, name: &str) -> String {
     r.headers().get(name).map(|v| v.to_str().unwrap().to_owned()).unwrap_or_default()
 }
 
-/// Splits a multipart/byteranges body into (Content-Range, data) parts.
+/// Splits a multipart/byteranges answer into (Content-Range, data) parts.
 fn parts(content_type: &str, body: &[u8]) -> Vec<(String, Vec<u8>)> {
-    let boundary = content_type.split("boundary=").nth(1).unwrap();
-    let delimiter = format!("--{boundary}");
-    let text = body;
-    let mut out = Vec::new();
-    let mut rest = text;
-    while let Some(at) = find(rest, delimiter.as_bytes()) {
-        rest = &rest[at + delimiter.len()..];
-        if rest.starts_with(b"--") {
-            break;
-        }
-        let head_end = find(rest, b"\r\n\r\n").unwrap();
-        let head = String::from_utf8_lossy(&rest[..head_end]).to_string();
-        let range = head.lines().find_map(|l| l.strip_prefix("Content-Range: ")).unwrap().to_owned();
-        let data_start = head_end + 4;
-        let next = find(&rest[data_start..], format!("\r\n{delimiter}").as_bytes()).unwrap();
-        out.push((range, rest[data_start..data_start + next].to_vec()));
-        rest = &rest[data_start + next..];
-    }
-    out
-}
-
-fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
-    hay.windows(needle.len()).position(|w| w == needle)
+    split_multipart(body, content_type.split("boundary=").nth(1).unwrap())
 }
 
 #[tokio::test]

@@ -122,3 +122,25 @@ pub fn start_nginx(root: &Path, server_block: &str) -> Option<Nginx> {
     }
     panic!("nginx did not start: {}", std::fs::read_to_string(nginx._dir.path().join("error.log")).unwrap_or_default());
 }
+
+/// Splits a multipart/byteranges body into (Content-Range, data) parts.
+pub fn split_multipart(body: &[u8], boundary: &str) -> Vec<(String, Vec<u8>)> {
+    let delimiter = format!("--{boundary}");
+    let find = |hay: &[u8], n: &[u8]| hay.windows(n.len()).position(|w| w == n);
+    let mut out = Vec::new();
+    let mut rest = body;
+    while let Some(at) = find(rest, delimiter.as_bytes()) {
+        rest = &rest[at + delimiter.len()..];
+        if rest.starts_with(b"--") {
+            break;
+        }
+        let head_end = find(rest, b"\r\n\r\n").unwrap();
+        let head = String::from_utf8_lossy(&rest[..head_end]).to_lowercase();
+        let range = head.lines().find_map(|l| l.strip_prefix("content-range: ")).unwrap().to_owned();
+        let start = head_end + 4;
+        let len = find(&rest[start..], format!("\r\n{delimiter}").as_bytes()).unwrap();
+        out.push((range, rest[start..start + len].to_vec()));
+        rest = &rest[start + len..];
+    }
+    out
+}
