@@ -24,8 +24,9 @@ echo "== cargo fmt"
 cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
-echo "== reader for wasm32 (no default features)"
+echo "== reader and client for wasm32"
 cargo check -p terrastream-packer --no-default-features --target wasm32-unknown-unknown --locked
+cargo check -p terrastream-client --target wasm32-unknown-unknown --locked
 echo "== cargo test"
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT

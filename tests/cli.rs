@@ -120,6 +120,21 @@ fn pack_then_serve_then_stop_on_sigterm() {
     assert!(head.starts_with("http/1.1 206"), "{head}");
     assert!(head.contains(&format!("content-range: bytes 0-127/{}", archive.len())), "{head}");
     assert_eq!(&answer[head_end + 4..], &archive[..128]);
+    // Every reading command takes the URL: same answers as from the file.
+    let url = format!("http://127.0.0.1:{port}/sample.tspack");
+    let remote = terrastream(&["info", &url, "--json"], work);
+    let local = terrastream(&["info", "d/sample.tspack", "--json"], work);
+    assert!(remote.status.success(), "{}", text(&remote));
+    let (mut remote, mut local): (serde_json::Value, serde_json::Value) =
+        (serde_json::from_slice(&remote.stdout).unwrap(), serde_json::from_slice(&local.stdout).unwrap());
+    assert_eq!(remote["stats"].take(), local["stats"].take());
+    let verified = terrastream(&["verify", &url], work);
+    assert!(verified.status.success() && text(&verified).contains("OK"), "{}", text(&verified));
+    assert!(terrastream(&["extract", &url, "-o", "from-http/sample"], work).status.success());
+    assert!(terrastream(&["extract", "d/sample.tspack", "-o", "from-file/sample"], work).status.success());
+    assert_eq!(std::fs::read_dir(work.join("from-http/sample/textures/LOD0")).unwrap().count(), 47);
+    let missing = terrastream(&["info", &format!("http://127.0.0.1:{port}/nope.tspack")], work);
+    assert!(!missing.status.success() && text(&missing).contains("nope.tspack"), "{}", text(&missing));
     let killed = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
     assert!(killed.success());
     let status = child.wait().unwrap();

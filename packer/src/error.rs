@@ -126,6 +126,13 @@ pub enum Error {
         /// The backend's message.
         reason: String,
     },
+    /// The archive was replaced while it was being read (its ETag or length changed):
+    /// everything cached from it must be dropped, never mixed with the new version.
+    #[error("the archive changed while being read ({what})")]
+    Changed {
+        /// What changed, e.g. `ETag "a" -> "b"`.
+        what: String,
+    },
     /// Any other I/O error.
     #[error(transparent)]
     Io(#[from] std::io::Error),

@@ -104,8 +104,9 @@ pub fn run(args: DemoArgs, progress: &CliProgress) -> Result<ExitCode> {
     let summary = pack(scanned, &archive, WriterOptions::default(), progress)?;
     progress.finish();
     println!("packed {} tiles into {} ({} bytes)\n", summary.addressed_tiles, archive.display(), summary.file_len);
-    let reader = super::open(&archive)?;
-    print!("{}", super::info::render(&archive, &ArchiveStats::collect(&reader)?, reader.metadata()));
+    let location = archive.display().to_string();
+    let reader = super::open(&location)?;
+    print!("{}", super::info::render(&location, &ArchiveStats::collect(&reader)?, reader.metadata()));
     let report = verify(&reader, |_| {})?;
     println!(
         "\nverify: {} ({} tiles, {} blobs checked)",

@@ -1,12 +1,11 @@
 //! `terrastream info`.
 
-use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::Result;
 use terrastream_packer::ArchiveStats;
 
-pub fn run(path: &Path, json: bool, tiles: bool) -> Result<ExitCode> {
+pub fn run(path: &str, json: bool, tiles: bool) -> Result<ExitCode> {
     let reader = super::open(path)?;
     if tiles {
         use std::io::Write;
@@ -52,10 +51,10 @@ pub fn human(bytes: u64) -> String {
     if unit == 0 { format!("{bytes} B") } else { format!("{v:.1} {}", units[unit]) }
 }
 
-pub fn render(path: &Path, s: &ArchiveStats, m: &terrastream_packer::Metadata) -> String {
+pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_packer::Metadata) -> String {
     use std::fmt::Write;
     let mut out = String::new();
-    let _ = writeln!(out, "archive     {} — {} , format {}", path.display(), human(s.file_bytes), s.version);
+    let _ = writeln!(out, "archive     {path} — {}, format {}", human(s.file_bytes), s.version);
     let _ = writeln!(out, "name        {}", m.name);
     let _ = writeln!(
         out,

@@ -12,8 +12,9 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
+use terrastream_client::{AnySource, open_source};
 use terrastream_packer::export::{Layout, extract};
-use terrastream_packer::{MmapSource, Reader, verify};
+use terrastream_packer::{Reader, verify};
 
 pub use progress::CliProgress;
 
@@ -37,8 +38,8 @@ enum Command {
     Pack(pack::PackArgs),
     /// Describe an archive: layers, grids, tiles per LOD, sizes, dedup.
     Info {
-        /// The archive.
-        archive: PathBuf,
+        /// The archive: a path or an http(s):// URL.
+        archive: String,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -49,13 +50,13 @@ enum Command {
     },
     /// Check an archive's structure and every checksum; non-zero exit if damaged.
     Verify {
-        /// The archive.
-        archive: PathBuf,
+        /// The archive: a path or an http(s):// URL.
+        archive: String,
     },
     /// Write an archive's tiles back as files.
     Extract {
-        /// The archive.
-        archive: PathBuf,
+        /// The archive: a path or an http(s):// URL.
+        archive: String,
         /// Output folder.
         #[arg(short, long)]
         output: PathBuf,
@@ -117,19 +118,15 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             progress.finish();
             if report.is_ok() {
                 println!(
-                    "{}: OK — {} tiles, {} blobs, {} leaves, {} payload bytes checked",
-                    archive.display(),
-                    report.addressed_tiles,
-                    report.blobs_checked,
-                    report.leaves_checked,
-                    report.bytes_checked
+                    "{archive}: OK — {} tiles, {} blobs, {} leaves, {} payload bytes checked",
+                    report.addressed_tiles, report.blobs_checked, report.leaves_checked, report.bytes_checked
                 );
                 Ok(ExitCode::SUCCESS)
             } else {
                 for p in &report.problems {
-                    eprintln!("{}: {p}", archive.display());
+                    eprintln!("{archive}: {p}");
                 }
-                eprintln!("{}: DAMAGED — {} problem(s)", archive.display(), report.problems.len());
+                eprintln!("{archive}: DAMAGED — {} problem(s)", report.problems.len());
                 Ok(ExitCode::from(2))
             }
         }
@@ -150,10 +147,11 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
     }
 }
 
-/// Opens an archive file by memory mapping it.
+/// Opens an archive: a file (memory-mapped) or an `http(s)://` URL (Range requests).
 ///
 /// # Errors
-/// Names the file when it cannot be opened or is not a valid archive.
-pub fn open(path: &std::path::Path) -> Result<Reader<MmapSource>> {
-    Reader::open_mmap(path).with_context(|| format!("cannot open archive {}", path.display()))
+/// Names the file or URL when it cannot be read or is not a valid archive.
+pub fn open(location: &str) -> Result<Reader<AnySource>> {
+    let source = open_source(location).with_context(|| format!("cannot open archive {location}"))?;
+    Reader::new(source).with_context(|| format!("cannot open archive {location}"))
 }

@@ -1,0 +1,5 @@
+//! Byte-range sources.
+
+#[cfg(not(target_arch = "wasm32"))]
+pub mod blocking;
+pub mod http;
