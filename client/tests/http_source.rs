@@ -58,9 +58,33 @@ async fn same_tiles_from_our_server_and_nginx_with_one_request_to_open() {
     let local = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
     let (addr, _task) = serve_router(app(state(dir.path()))).await;
     let mut urls = vec![format!("http://{addr}/sample.tspack")];
-    let nginx = start_nginx(dir.path(), "server { listen 127.0.0.1:{port}; root {root}; }");
+    // nginx with the shipped static-hosting config (deploy/nginx), on a test port and root.
+    let shipped =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/nginx/tspack-static.conf")).unwrap();
+    let config =
+        shipped.replace("listen 8080;", "listen 127.0.0.1:{port};").replace("root /srv/terrastream;", "root {root};");
+    let nginx = start_nginx(dir.path(), &config);
     if let Some(n) = &nginx {
-        urls.push(format!("http://127.0.0.1:{}/sample.tspack", n.port));
+        let url = format!("http://127.0.0.1:{}/sample.tspack", n.port);
+        let client = reqwest::Client::new();
+        let r =
+            client.get(&url).header("range", "bytes=0-9").header("origin", "https://x.example").send().await.unwrap();
+        assert_eq!(r.status(), 206);
+        assert_eq!(r.headers()["access-control-allow-origin"], "*");
+        let exposed = r.headers()["access-control-expose-headers"].to_str().unwrap().to_lowercase();
+        assert!(exposed.contains("etag") && exposed.contains("content-range"), "{exposed}");
+        assert_eq!(r.headers()["cache-control"], "public, max-age=3600");
+        let preflight = client
+            .request(reqwest::Method::OPTIONS, &url)
+            .header("origin", "https://x.example")
+            .header("access-control-request-method", "GET")
+            .header("access-control-request-headers", "range, if-match")
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(preflight.status(), 204);
+        assert!(preflight.headers()["access-control-allow-headers"].to_str().unwrap().contains("If-Match"));
+        urls.push(url);
     }
     for url in urls {
         let reader = AsyncReader::new(HttpSource::new(&url).unwrap()).await.unwrap();
