@@ -227,8 +227,8 @@ impl Archive {
             return None;
         };
         let relative = offset.checked_sub(self.header.leaf_dirs.offset)?;
-        let i = leaves.partition_point(|l| l.offset < relative);
-        leaves.get(i).filter(|l| l.offset == relative).copied()
+        // FORMAT.md orders leaves by key, not by offset: search, don't bisect. Only on a miss.
+        leaves.iter().find(|l| l.offset == relative).copied()
     }
 
     /// Checks, decodes and caches a leaf fetched after [`Locate::NeedLeaf`].

@@ -373,7 +373,7 @@ impl Writer {
             .suffix(".partial")
             .tempfile_in(&self.folder)
             .map_err(|e| Error::file(&self.folder, e))?;
-        let io = |e: std::io::Error| Error::file(out_path_hint(&self.path), e);
+        let io = |e: std::io::Error| Error::file(&self.path, e);
         {
             let file = out.as_file_mut();
             file.write_all(&header.encode()).map_err(io)?;
@@ -403,10 +403,6 @@ impl Writer {
             leaf_count,
         })
     }
-}
-
-fn out_path_hint(path: &Path) -> PathBuf {
-    path.to_path_buf()
 }
 
 /// Makes the rename durable. Best effort: not every platform can open a folder.

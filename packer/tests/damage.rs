@@ -250,3 +250,41 @@ fn other_files_are_not_archives() {
         assert!(Reader::new(MemorySource::new(bytes)).is_err());
     }
 }
+
+#[test]
+fn leaves_stored_out_of_key_order_are_read() {
+    // FORMAT.md orders leaf pointers by key, not their bytes: an independent writer may
+    // store the second leaf first.
+    let meta = metadata(vec![layer("texture", 2, 2, 2)]);
+    let tiles: Vec<TileKey> =
+        [(1u8, 0u32, 0u32), (0, 1, 1)].iter().map(|&(l, x, y)| TileKey::new(0, l, x, y).unwrap()).collect();
+    let keys: Vec<u64> = tiles.iter().map(|t| t.archive_key(2).unwrap()).collect();
+    let payloads = [b"coarse".to_vec(), b"fine".to_vec()];
+    let mut data = Vec::new();
+    let mut leaves_bytes = Vec::new();
+    let mut encoded = Vec::new();
+    for (key, payload) in keys.iter().zip(&payloads) {
+        let entry = Entry { key: *key, run_length: 1, offset: data.len() as u64, length: payload.len() as u32 };
+        data.extend(payload);
+        data.extend(crc32c(payload).to_le_bytes());
+        encoded.push(zstd_compress(&Directory::Tiles(vec![entry]).encode_raw(), 3).unwrap());
+    }
+    // Second leaf's bytes first.
+    leaves_bytes.extend(&encoded[1]);
+    leaves_bytes.extend(&encoded[0]);
+    let root = Directory::Leaves(vec![
+        LeafPointer {
+            first_key: keys[0],
+            offset: encoded[1].len() as u64,
+            length: encoded[0].len() as u32,
+            crc: crc32c(&encoded[0]),
+        },
+        LeafPointer { first_key: keys[1], offset: 0, length: encoded[1].len() as u32, crc: crc32c(&encoded[1]) },
+    ]);
+    let (_, mut bytes) = assemble(&meta.to_json(), &root, &leaves_bytes, 0, data.len() as u64, (2, 2, 2));
+    bytes.extend(&data);
+    let reader = Reader::new(MemorySource::new(bytes)).unwrap();
+    assert_eq!(&reader.tile(tiles[0]).unwrap().unwrap()[..], b"coarse");
+    assert_eq!(&reader.tile(tiles[1]).unwrap().unwrap()[..], b"fine");
+    assert!(verify(&reader, |_| {}).unwrap().is_ok());
+}
