@@ -128,6 +128,11 @@ fn pack_then_serve_then_stop_on_sigterm() {
     let (mut remote, mut local): (serde_json::Value, serde_json::Value) =
         (serde_json::from_slice(&remote.stdout).unwrap(), serde_json::from_slice(&local.stdout).unwrap());
     assert_eq!(remote["stats"].take(), local["stats"].take());
+    let exported = terrastream(&["export", &url, "--layer", "texture", "--to", "pmtiles", "-o", "t.pmtiles"], work);
+    assert!(exported.status.success(), "{}", text(&exported));
+    assert_eq!(&std::fs::read(work.join("t.pmtiles")).unwrap()[..8], b"PMTiles\x03");
+    let wrong = terrastream(&["export", &url, "--layer", "normals", "--to", "pmtiles", "-o", "n.pmtiles"], work);
+    assert!(!wrong.status.success() && text(&wrong).contains("layers: texture, elevation"), "{}", text(&wrong));
     let verified = terrastream(&["verify", &url], work);
     assert!(verified.status.success() && text(&verified).contains("OK"), "{}", text(&verified));
     assert!(terrastream(&["extract", &url, "-o", "from-http/sample"], work).status.success());

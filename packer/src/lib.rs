@@ -42,6 +42,8 @@ pub mod import;
 #[cfg(feature = "write")]
 pub mod original_metadata;
 #[cfg(feature = "write")]
+pub mod pmtiles;
+#[cfg(feature = "write")]
 pub mod sample;
 #[cfg(feature = "write")]
 mod writer;

@@ -64,6 +64,20 @@ enum Command {
         #[arg(long, value_enum, default_value_t = LayoutArg::Original)]
         layout: LayoutArg,
     },
+    /// Export one layer to another tile-archive format (the original folder layout: `extract`).
+    Export {
+        /// The archive: a path or an http(s):// URL.
+        archive: String,
+        /// Layer name (or index).
+        #[arg(long)]
+        layer: String,
+        /// Target format.
+        #[arg(long, value_enum)]
+        to: ExportFormat,
+        /// Output file (written to a temporary name, then renamed).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Serve archives over HTTP: Range requests on the files, tiles, metadata, metrics.
     Serve(serve::ServeArgs),
     /// Pack the built-in sample terrain and show what is in it.
@@ -71,6 +85,12 @@ enum Command {
     /// Benchmarks that print numbers.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ExportFormat {
+    /// PMTiles v3 (web zoom z = coarsest 0), readable by any PMTiles reader.
+    Pmtiles,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -142,6 +162,27 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Serve(args) => serve::run(args),
+        Command::Export { archive, layer, to: ExportFormat::Pmtiles, output } => {
+            let reader = open(&archive)?;
+            let meta = reader.metadata();
+            let index = meta
+                .layer_index(&layer)
+                .or_else(|| layer.parse::<u8>().ok().filter(|&i| usize::from(i) < meta.layers.len()))
+                .with_context(|| {
+                    let names: Vec<&str> = meta.layers.iter().map(|l| l.name.as_str()).collect();
+                    format!("{archive} has no layer {layer:?} (layers: {})", names.join(", "))
+                })?;
+            let summary = terrastream_packer::pmtiles::export_pmtiles(&reader, index, &output, &progress)?;
+            progress.finish();
+            println!(
+                "{}: PMTiles v3, {} tiles ({} distinct), {} bytes",
+                output.display(),
+                summary.addressed_tiles,
+                summary.tile_contents,
+                summary.file_len
+            );
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Demo(args) => demo::run(args, &progress),
         Command::Bench(cmd) => bench::run(cmd),
     }
