@@ -149,21 +149,7 @@ impl Archive {
     /// # Errors
     /// [`Error::InvalidTile`] for an unknown layer or a tile outside the layer's grid.
     pub fn key_of(&self, key: TileKey) -> Result<u64> {
-        let layer = self
-            .metadata
-            .layers
-            .get(usize::from(key.layer()))
-            .ok_or_else(|| Error::InvalidTile { what: format!("{key}: no such layer") })?;
-        if !layer.contains(key) {
-            let (nx, ny) = layer.grid_at(key.lod());
-            return Err(Error::InvalidTile {
-                what: format!(
-                    "{key}: outside layer {:?} ({} LODs, {nx}x{ny} tiles at this LOD)",
-                    layer.name, layer.num_lods
-                ),
-            });
-        }
-        key.archive_key(layer.depth())
+        self.metadata.directory_key(key)
     }
 
     /// Decodes a directory key back to a tile.

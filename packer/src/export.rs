@@ -35,6 +35,7 @@ pub struct ExtractSummary {
 /// Computes the file path of each tile for a layout.
 struct Namer {
     layout: Layout,
+    record: Option<LayoutRecord>,
     original: Vec<LayerNaming>,
     xyz: Option<XyzRecord>,
     single_layer: bool,
@@ -63,7 +64,7 @@ impl Namer {
                 )
             })
             .collect();
-        Self { layout, original, xyz, single_layer }
+        Self { layout, record, original, xyz, single_layer }
     }
 
     fn path(&self, metadata: &Metadata, tile: TileKey) -> PathBuf {
@@ -130,10 +131,7 @@ pub fn extract<S: RangeSource>(
         let stored = reader.entry_payload(entry)?;
         let payload = match layer.compression {
             PayloadCompression::None => stored.to_vec(),
-            PayloadCompression::Zstd => {
-                let px = u64::from(layer.tile_resolution) + 2 * u64::from(layer.border);
-                zstd_decompress(&stored, px * px * 16, &format!("tile {first}"))?
-            }
+            PayloadCompression::Zstd => zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {first}"))?,
         };
         for i in 0..u64::from(entry.run_length) {
             let tile = reader.archive().tile_of(entry.key + i * MAX_LAYERS as u64)?;
@@ -152,17 +150,15 @@ pub fn extract<S: RangeSource>(
         Ok(())
     })?;
     if layout == Layout::Original {
-        write_metadata_text(metadata, out)?;
+        write_metadata_text(metadata, namer.record.as_ref(), out)?;
     }
     Ok(summary)
 }
 
 /// The metadata text: verbatim when the archive was packed from one, generated otherwise.
-fn write_metadata_text(metadata: &Metadata, out: &Path) -> Result<()> {
-    let record: Option<LayoutRecord> =
-        metadata.extra.get(crate::import::LAYOUT_KEY).and_then(|v| serde_json::from_value(v.clone()).ok());
+fn write_metadata_text(metadata: &Metadata, record: Option<&LayoutRecord>, out: &Path) -> Result<()> {
     let (name, text) = match record {
-        Some(LayoutRecord { metadata_file: Some(name), metadata_text: Some(text), .. }) => (name, text),
+        Some(LayoutRecord { metadata_file: Some(name), metadata_text: Some(text), .. }) => (name.clone(), text.clone()),
         _ => ("metadata.txt".to_owned(), original_metadata::render(&original_metadata::fields_for(metadata))),
     };
     let path = out.join(name);

@@ -109,7 +109,7 @@ pub fn layer_of(key: u64) -> u8 {
 }
 
 /// Number of tiles in all quadtree levels above `z`: (4^z - 1) / 3.
-fn level_base(z: u8) -> u64 {
+pub(crate) fn level_base(z: u8) -> u64 {
     ((1u64 << (2 * u32::from(z))) - 1) / 3
 }
 

@@ -205,6 +205,13 @@ impl Layer {
         key.lod() < self.num_lods && key.x() < nx && key.y() < ny
     }
 
+    /// Largest decoded payload a tile of this layer can have: 16 bytes per sample (raw f32
+    /// RGBA at most), the cap for decompressing zstd-stored tiles.
+    pub fn max_payload_bytes(&self) -> u64 {
+        let px = u64::from(self.tile_resolution) + 2 * u64::from(self.border);
+        px * px * 16
+    }
+
     /// Tiles in the full grid at every LOD (an upper bound on the layer's tile count).
     pub fn grid_tiles(&self) -> u64 {
         (0..self.num_lods)
@@ -326,6 +333,32 @@ impl Metadata {
     /// Index of the layer called `name`.
     pub fn layer_index(&self, name: &str) -> Option<u8> {
         self.layers.iter().position(|l| l.name == name).and_then(|i| u8::try_from(i).ok())
+    }
+
+    /// The layer called `name`, or the layer at index `name` (URLs and the CLI take both).
+    pub fn resolve_layer(&self, name: &str) -> Option<u8> {
+        self.layer_index(name).or_else(|| name.parse::<u8>().ok().filter(|&i| usize::from(i) < self.layers.len()))
+    }
+
+    /// Directory key of a tile, checked against its layer's grid.
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] for an unknown layer or a tile outside the layer's grid.
+    pub fn directory_key(&self, tile: TileKey) -> Result<u64> {
+        let layer = self
+            .layers
+            .get(usize::from(tile.layer()))
+            .ok_or_else(|| Error::InvalidTile { what: format!("{tile}: no such layer") })?;
+        if !layer.contains(tile) {
+            let (nx, ny) = layer.grid_at(tile.lod());
+            return Err(Error::InvalidTile {
+                what: format!(
+                    "{tile}: outside layer {:?} ({} LODs, {nx}x{ny} tiles at this LOD)",
+                    layer.name, layer.num_lods
+                ),
+            });
+        }
+        tile.archive_key(layer.depth())
     }
 
     /// Quadtree depth of every layer, in layer order.

@@ -32,7 +32,7 @@ pub struct PmtilesSummary {
 }
 
 /// (tile id, run length, offset, length) as PMTiles stores them.
-type Row = (u64, u32, u64, u32);
+pub type Row = (u64, u32, u64, u32);
 
 fn varint(out: &mut Vec<u8>, v: u64) {
     crate::varint::write_varint(out, v);
@@ -68,7 +68,10 @@ fn gzip(bytes: &[u8]) -> Result<Vec<u8>> {
 
 /// Root (and leaves) as the PMTiles reference writer lays them out: everything in the root
 /// if it fits, else leaves of at least 4096 entries grown by 1.2x until the root fits.
-fn directories(rows: &[Row]) -> Result<(Vec<u8>, Vec<u8>)> {
+///
+/// # Errors
+/// Only if compression fails or a leaf exceeds 4 GiB.
+pub fn directories(rows: &[Row]) -> Result<(Vec<u8>, Vec<u8>)> {
     let root = encode_directory(rows)?;
     if root.len() <= ROOT_LIMIT {
         return Ok((root, Vec::new()));
@@ -189,10 +192,7 @@ pub fn export_pmtiles<S: RangeSource>(
     h.extend_from_slice(&e7((bounds[1] + bounds[3]) / 2.0).to_le_bytes());
     debug_assert_eq!(h.len(), 127);
 
-    let folder = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
+    let folder = crate::writer::output_folder(out);
     let mut file = tempfile::Builder::new()
         .prefix(".pmtiles.")
         .suffix(".partial")

@@ -4,7 +4,7 @@ use serde::Serialize;
 
 use crate::directory::{Directory, Entry};
 use crate::error::Result;
-use crate::key::{MAX_LAYERS, tile_id_to_zxy};
+use crate::key::{MAX_LAYERS, level_base, tile_id_to_zxy};
 use crate::metadata::{LayerKind, PayloadCompression, TileFormat};
 use crate::reader::Reader;
 use crate::source::RangeSource;
@@ -151,8 +151,7 @@ fn count_run(stats: &mut LayerStats, e: &Entry, depth: u8) {
     let mut id = first;
     while id <= last {
         let (z, ..) = tile_id_to_zxy(id);
-        let level_end = ((1u64 << (2 * (u32::from(z) + 1))) - 1) / 3; // first id of level z + 1
-        let n = last.min(level_end - 1) - id + 1;
+        let n = last.min(level_base(z + 1) - 1) - id + 1;
         if let Some(lod) = depth.checked_sub(1 + z) {
             if let Some(count) = stats.tiles_per_lod.get_mut(usize::from(lod)) {
                 *count += n;

@@ -126,10 +126,7 @@ impl Writer {
     pub fn create(path: impl AsRef<Path>, metadata: Metadata, options: WriterOptions) -> Result<Self> {
         metadata.validate()?;
         let path = path.as_ref().to_path_buf();
-        let folder = match path.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
+        let folder = output_folder(&path);
         let temp = || tempfile::tempfile_in(&folder).map_err(|e| Error::file(&folder, e));
         Ok(Self {
             data: BufWriter::with_capacity(1 << 20, temp()?),
@@ -155,20 +152,7 @@ impl Writer {
     /// # Errors
     /// [`Error::InvalidTile`] if the tile is outside its layer's grid.
     pub fn order_key(metadata: &Metadata, tile: TileKey) -> Result<u64> {
-        let layer = metadata
-            .layers
-            .get(usize::from(tile.layer()))
-            .ok_or_else(|| Error::InvalidTile { what: format!("{tile}: no such layer") })?;
-        if !layer.contains(tile) {
-            let (nx, ny) = layer.grid_at(tile.lod());
-            return Err(Error::InvalidTile {
-                what: format!(
-                    "{tile}: outside layer {:?} ({} LODs, {nx}x{ny} tiles at this LOD)",
-                    layer.name, layer.num_lods
-                ),
-            });
-        }
-        tile.archive_key(layer.depth())
+        metadata.directory_key(tile)
     }
 
     /// The metadata that will be written.
@@ -402,6 +386,15 @@ impl Writer {
             metadata_bytes: metadata.len,
             leaf_count,
         })
+    }
+}
+
+/// The folder a file will be published in: temporary files go there, so that the final
+/// rename stays on one filesystem and is atomic.
+pub(crate) fn output_folder(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
     }
 }
 

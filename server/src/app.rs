@@ -128,15 +128,15 @@ pub fn app(state: AppState) -> Router {
 
 async fn record_metrics(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let started = Instant::now();
-    // The templates are 'static in the table: look the index up, allocate nothing.
+    // Index into the metrics table now (no allocation): the request moves below.
     let route = req
         .extensions()
         .get::<MatchedPath>()
-        .map_or("other", |p| crate::metrics::ROUTES.iter().copied().find(|r| *r == p.as_str()).unwrap_or("other"));
+        .map_or(crate::metrics::ROUTES.len() - 1, |p| crate::metrics::route_index(p.as_str()));
     let response = next.run(req).await;
     let bytes =
         response.headers().get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse().ok()).unwrap_or(0);
-    state.metrics.record(route, response.status().as_u16(), bytes, started.elapsed());
+    state.metrics.record_at(route, response.status().as_u16(), bytes, started.elapsed());
     response
 }
 
@@ -261,8 +261,7 @@ async fn tile(
     let served = archive(&state, &name)?;
     let meta = served.reader.metadata();
     let index = meta
-        .layer_index(&layer)
-        .or_else(|| layer.parse::<u8>().ok().filter(|&i| usize::from(i) < meta.layers.len()))
+        .resolve_layer(&layer)
         .ok_or_else(|| AppError::NotFound(format!("archive {name:?} has no layer {layer:?}\n")))?;
     let info = &meta.layers[usize::from(index)];
     let key = TileKey::new(index, lod, x, y).map_err(|e| AppError::BadRequest(format!("{e}\n")))?;
@@ -291,10 +290,9 @@ async fn tile(
                     stored
                 }
                 PayloadCompression::Zstd => {
-                    let px = u64::from(info.tile_resolution) + 2 * u64::from(info.border);
-                    let limit = px * px * 16;
-                    let raw = terrastream_packer::zstd_decompress(&stored, limit, &format!("tile {key}"))
-                        .map_err(|e| AppError::Internal(e.to_string()))?;
+                    let raw =
+                        terrastream_packer::zstd_decompress(&stored, info.max_payload_bytes(), &format!("tile {key}"))
+                            .map_err(|e| AppError::Internal(e.to_string()))?;
                     Bytes::from(raw)
                 }
             };

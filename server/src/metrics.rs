@@ -30,14 +30,20 @@ pub struct Metrics {
     routes: [RouteStats; ROUTES.len()],
 }
 
-fn route_index(route: &str) -> usize {
+/// Index of a route template in [`ROUTES`] ("other" for anything else).
+pub fn route_index(route: &str) -> usize {
     ROUTES.iter().position(|r| *r == route).unwrap_or(ROUTES.len() - 1)
 }
 
 impl Metrics {
     /// Records one answered request.
     pub fn record(&self, route: &str, status: u16, bytes: u64, latency: Duration) {
-        let s = &self.routes[route_index(route)];
+        self.record_at(route_index(route), status, bytes, latency);
+    }
+
+    /// Records one answered request on the route at `index` (see [`route_index`]).
+    pub fn record_at(&self, index: usize, status: u16, bytes: u64, latency: Duration) {
+        let s = &self.routes[index.min(ROUTES.len() - 1)];
         let status_slot = STATUSES.iter().position(|&c| c == status).unwrap_or(STATUSES.len());
         s.by_status[status_slot].fetch_add(1, Relaxed);
         s.bytes.fetch_add(bytes, Relaxed);

@@ -3,7 +3,6 @@
 //! directory bytes per tile against a PMTiles v3 directory of the same tiles.
 
 use std::collections::HashMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -12,7 +11,7 @@ use anyhow::Result;
 use clap::{Args, Subcommand};
 use terrastream_packer::import::{OriginalLayout, pack, scan_original};
 use terrastream_packer::progress::Silent;
-use terrastream_packer::{Directory, Entry, MmapSource, Reader, TileKey, WriterOptions, write_varint};
+use terrastream_packer::{Directory, Entry, MmapSource, Reader, TileKey, WriterOptions};
 
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
@@ -115,13 +114,13 @@ fn copy_tree(from: &Path, to: &Path) -> Result<()> {
     Ok(())
 }
 
-/// PMTiles v3 directory bytes for the same entries: columnar varints, gzip, leaves grown by
-/// 1.2x until the root fits 16 KiB minus the 127-byte header (as its reference writer does).
-fn pmtiles_directory_bytes(entries: &[Entry]) -> usize {
+/// PMTiles v3 directory bytes (root + leaves) for the same entries, encoded exactly as
+/// `export --to pmtiles` writes them (gzip, the reference writer's leaf sizing).
+fn pmtiles_directory_bytes(entries: &[Entry]) -> Result<usize> {
     // PMTiles stores no checksum trailer: re-lay the blobs back to back.
     let mut remap: HashMap<u64, u64> = HashMap::new();
     let mut next = 0u64;
-    let pm: Vec<(u64, u32, u64, u32)> = entries
+    let rows: Vec<terrastream_packer::pmtiles::Row> = entries
         .iter()
         .map(|e| {
             let offset = *remap.entry(e.offset).or_insert_with(|| {
@@ -132,49 +131,8 @@ fn pmtiles_directory_bytes(entries: &[Entry]) -> usize {
             (e.key >> 4, e.run_length, offset, e.length)
         })
         .collect();
-    let serialize = |rows: &[(u64, u32, u64, u32)]| -> usize {
-        let mut raw = Vec::new();
-        write_varint(&mut raw, rows.len() as u64);
-        let mut last = 0;
-        for r in rows {
-            write_varint(&mut raw, r.0 - last);
-            last = r.0;
-        }
-        for r in rows {
-            write_varint(&mut raw, u64::from(r.1));
-        }
-        for r in rows {
-            write_varint(&mut raw, u64::from(r.3));
-        }
-        for (i, r) in rows.iter().enumerate() {
-            let contiguous = i > 0 && r.2 == rows[i - 1].2 + u64::from(rows[i - 1].3);
-            write_varint(&mut raw, if contiguous { 0 } else { r.2 + 1 });
-        }
-        let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
-        let _ = gz.write_all(&raw);
-        gz.finish().map(|v| v.len()).unwrap_or(0)
-    };
-    let root_only = serialize(&pm);
-    if root_only <= 16_384 - 127 {
-        return root_only;
-    }
-    let mut leaf_size = 4096usize;
-    loop {
-        let mut leaves_total = 0;
-        let mut root_rows = Vec::new();
-        let mut offset = 0u64;
-        for chunk in pm.chunks(leaf_size) {
-            let len = serialize(chunk);
-            root_rows.push((chunk[0].0, 0, offset, u32::try_from(len).unwrap_or(u32::MAX)));
-            offset += len as u64;
-            leaves_total += len;
-        }
-        let root = serialize(&root_rows);
-        if root <= 16_384 - 127 {
-            return root + leaves_total;
-        }
-        leaf_size += leaf_size / 5;
-    }
+    let (root, leaves) = terrastream_packer::pmtiles::directories(&rows)?;
+    Ok(root.len() + leaves.len())
 }
 
 fn nanos(since: Instant) -> u64 {
@@ -270,7 +228,7 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
     );
 
     let ours = summary.directory_bytes as f64 / summary.addressed_tiles as f64;
-    let pm = pmtiles_directory_bytes(&entries) as f64 / summary.addressed_tiles as f64;
+    let pm = pmtiles_directory_bytes(&entries)? as f64 / summary.addressed_tiles as f64;
     let root_entries = match reader.archive().root() {
         Directory::Tiles(e) => e.len(),
         Directory::Leaves(l) => l.len(),

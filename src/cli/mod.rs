@@ -165,13 +165,10 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
         Command::Export { archive, layer, to: ExportFormat::Pmtiles, output } => {
             let reader = open(&archive)?;
             let meta = reader.metadata();
-            let index = meta
-                .layer_index(&layer)
-                .or_else(|| layer.parse::<u8>().ok().filter(|&i| usize::from(i) < meta.layers.len()))
-                .with_context(|| {
-                    let names: Vec<&str> = meta.layers.iter().map(|l| l.name.as_str()).collect();
-                    format!("{archive} has no layer {layer:?} (layers: {})", names.join(", "))
-                })?;
+            let index = meta.resolve_layer(&layer).with_context(|| {
+                let names: Vec<&str> = meta.layers.iter().map(|l| l.name.as_str()).collect();
+                format!("{archive} has no layer {layer:?} (layers: {})", names.join(", "))
+            })?;
             let summary = terrastream_packer::pmtiles::export_pmtiles(&reader, index, &output, &progress)?;
             progress.finish();
             println!(
