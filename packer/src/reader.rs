@@ -84,8 +84,16 @@ impl<S: RangeSource> Reader<S> {
         let Some(location) = self.locate(tile)? else {
             return Ok(None);
         };
+        self.read(&location).map(Some)
+    }
+
+    /// The checked payload of a located tile (servers answer 304s between the two steps).
+    ///
+    /// # Errors
+    /// I/O errors, [`Error::TileChecksum`] for a damaged tile.
+    pub fn read(&self, location: &TileLocation) -> Result<Bytes> {
         let blob = self.source.read_range(location.offset, location.blob_len())?;
-        self.archive.payload(&location, blob).map(Some)
+        self.archive.payload(location, blob)
     }
 
     /// The tile, or the nearest coarser tile that exists (the fallback rule everywhere).

@@ -278,11 +278,14 @@ async fn tile(
         .header(ETAG, header(&etag))
         .header(CACHE_CONTROL, state.cache_control.clone())
         .header(VARY, "Accept-Encoding");
-    match served.reader.tile(key) {
-        Ok(Some(stored)) => {
+    // Locate first: a revalidation (304) costs no read and no checksum of the tile.
+    match served.reader.locate(key) {
+        Ok(Some(location)) => {
             if preconditions(headers, &etag, served.modified, true) == Precondition::NotModified {
                 return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
             }
+            let stored =
+                served.reader.read(&location).map_err(|e| AppError::Internal(format!("archive {name:?}: {e}")))?;
             let body = match info.compression {
                 PayloadCompression::None => stored,
                 PayloadCompression::Zstd if zstd_ok => {
