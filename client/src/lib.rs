@@ -1,10 +1,17 @@
 //! The terrastream client: byte-range sources for archives anywhere — a local file
-//! (mmap), any HTTP server or CDN that honours `Range` — behind the archive reader's
-//! [`terrastream_packer::AsyncRangeSource`] trait.
+//! (mmap), any HTTP server or CDN that honours `Range` — and the streaming core that
+//! turns a camera into a per-frame stream of decoded tiles.
 #![forbid(unsafe_code)]
 
 mod source;
+pub mod stream;
 
 #[cfg(not(target_arch = "wasm32"))]
 pub use source::blocking::{AnySource, BlockingSource, open_source};
 pub use source::http::{HttpSource, HttpStats, RetryPolicy};
+pub use stream::cache::TileCache;
+pub use stream::camera::{Aabb, Camera, Frustum};
+pub use stream::decode::{DecodedTile, TileData, decode};
+pub use stream::origin::{DynSource, EndpointSource, HostTiles, Origin};
+pub use stream::select::{SelectOptions, Want, select};
+pub use stream::streamer::{StreamOptions, StreamStats, Streamer, Upload, UploadBudget};

@@ -184,3 +184,144 @@ pub fn tiny_archive() -> Result<Vec<u8>> {
     crate::import::pack(scanned, &out, crate::WriterOptions::default(), &crate::progress::Silent::default())?;
     std::fs::read(&out).map_err(|e| Error::file(&out, e))
 }
+
+/// A synthetic archive whose every tile says what it is: texture tiles are one solid
+/// colour encoding `(x, y, lod, version)` ([`label_colour`]) and elevation tiles sample a
+/// tilted plane ([`label_height`]), so a client can check that each tile it shows is the
+/// right one, from the right version, and that bilinear height queries are exact.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LabelledSpec {
+    /// Texture tiles across and down at LOD 0 (at most 256).
+    pub texture_grid: u32,
+    /// Texture pixels per tile edge.
+    pub texture_res: u32,
+    /// World metres per LOD-0 texture tile.
+    pub texture_tile_size: f64,
+    /// Elevation tiles across and down at LOD 0.
+    pub elevation_grid: u32,
+    /// Elevation samples per tile edge.
+    pub elevation_res: u32,
+    /// Written into every tile, so two versions of the archive differ everywhere.
+    pub version: u8,
+    /// LOD-0 texture tiles at `x >= sparse_from` (and coarser tiles over only those) are
+    /// left missing.
+    pub sparse_from: Option<u32>,
+}
+
+impl Default for LabelledSpec {
+    fn default() -> Self {
+        Self {
+            texture_grid: 32,
+            texture_res: 16,
+            texture_tile_size: 50.0,
+            elevation_grid: 8,
+            elevation_res: 16,
+            version: 1,
+            sparse_from: None,
+        }
+    }
+}
+
+/// Colour of every pixel of texture tile `(lod, x, y)` in a [`LabelledSpec`] archive.
+#[expect(clippy::cast_possible_truncation, reason = "grids are at most 256 tiles across; lod < 16")]
+pub fn label_colour(lod: u8, x: u32, y: u32, version: u8) -> [u8; 3] {
+    [x as u8, y as u8, lod * 16 + (version & 15)]
+}
+
+/// Height at ground point `(x, z)` (x east, z south) of a [`LabelledSpec`] archive.
+pub fn label_height(x: f64, z: f64, version: u8) -> f64 {
+    100.0 * f64::from(version) + 0.05 * x + 0.02 * z
+}
+
+/// Writes a [`LabelledSpec`] archive to `path`.
+///
+/// # Errors
+/// Writer and I/O errors.
+#[cfg(feature = "write")]
+pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<crate::WriteSummary> {
+    use crate::key::TileKey;
+    use crate::metadata::{
+        ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
+    };
+    let world = f64::from(spec.texture_grid) * spec.texture_tile_size;
+    let texture = Layer {
+        name: "texture".into(),
+        kind: LayerKind::Texture,
+        format: TileFormat::Png,
+        compression: PayloadCompression::None,
+        tile_resolution: spec.texture_res,
+        border: 0,
+        num_x_tiles: spec.texture_grid,
+        num_y_tiles: spec.texture_grid,
+        num_lods: levels_to_one(spec.texture_grid),
+        tile_world_size: spec.texture_tile_size,
+        elevation: None,
+    };
+    let elevation = Layer {
+        name: "elevation".into(),
+        kind: LayerKind::Elevation,
+        format: TileFormat::RawF32,
+        compression: PayloadCompression::Zstd,
+        tile_resolution: spec.elevation_res,
+        border: 0,
+        num_x_tiles: spec.elevation_grid,
+        num_y_tiles: spec.elevation_grid,
+        num_lods: levels_to_one(spec.elevation_grid),
+        tile_world_size: world / f64::from(spec.elevation_grid),
+        elevation: Some(ElevationEncoding { scheme: ElevationScheme::Float32, scale: 1.0, offset: 0.0, nodata: None }),
+    };
+    let mut metadata = Metadata::new(format!("labelled v{}", spec.version), vec![texture, elevation]);
+    let (lo, hi) = (label_height(0.0, 0.0, spec.version), label_height(world, world, spec.version));
+    metadata.terrain.min_elevation = lo;
+    metadata.terrain.max_elevation = hi;
+    metadata.terrain.displacement = hi - lo;
+    metadata.terrain.elevation_range = hi - lo;
+    metadata.terrain.base_tile_size = metadata.layers[1].tile_world_size / f64::from(spec.elevation_res);
+    let mut tiles = Vec::new();
+    for (index, layer) in metadata.layers.iter().enumerate() {
+        for lod in 0..layer.num_lods {
+            let (nx, ny) = layer.grid_at(lod);
+            for y in 0..ny {
+                for x in 0..nx {
+                    if index == 0 && spec.sparse_from.is_some_and(|s| u64::from(x) << lod >= u64::from(s)) {
+                        continue;
+                    }
+                    let key = TileKey::new(u8::try_from(index).unwrap_or(0), lod, x, y)?;
+                    tiles.push((crate::Writer::order_key(&metadata, key)?, key));
+                }
+            }
+        }
+    }
+    tiles.sort_unstable();
+    let mut writer = crate::Writer::create(path, metadata.clone(), crate::WriterOptions::default())?;
+    for (_, key) in tiles {
+        let layer = &metadata.layers[usize::from(key.layer())];
+        let res = layer.tile_resolution;
+        let payload = if key.layer() == 0 {
+            let pixels = label_colour(key.lod(), key.x(), key.y(), spec.version).repeat((res * res) as usize);
+            let mut png_bytes = Vec::new();
+            let mut encoder = png::Encoder::new(&mut png_bytes, res, res);
+            encoder.set_color(png::ColorType::Rgb);
+            encoder.set_depth(png::BitDepth::Eight);
+            let fail = |e: png::EncodingError| Error::Writer(format!("tile {key}: {e}"));
+            encoder.write_header().map_err(fail)?.write_image_data(&pixels).map_err(fail)?;
+            png_bytes
+        } else {
+            let size = layer.tile_world_size * f64::from(1u32 << key.lod());
+            let step = size / f64::from(res);
+            let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
+            let mut raw = Vec::with_capacity((res * res * 4) as usize);
+            for j in 0..res {
+                for i in 0..res {
+                    let h =
+                        label_height(x0 + (f64::from(i) + 0.5) * step, z0 + (f64::from(j) + 0.5) * step, spec.version);
+                    #[expect(clippy::cast_possible_truncation, reason = "stored as f32 by design")]
+                    raw.extend_from_slice(&(h as f32).to_le_bytes());
+                }
+            }
+            raw
+        };
+        writer.add(key, payload)?;
+    }
+    writer.finish()
+}

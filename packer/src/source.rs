@@ -52,6 +52,10 @@ pub trait AsyncRangeSource: MaybeSend + MaybeSync {
 
     /// Exactly the bytes `[offset, offset + len)`.
     fn fetch(&self, offset: u64, len: u64) -> impl Future<Output = Result<Bytes>> + MaybeSend;
+
+    /// Forgets what the source remembers of the archive's identity (length, ETag, cached
+    /// bytes) after [`crate::Error::Changed`], so that the next read opens the new version.
+    fn forget(&self) {}
 }
 
 /// Checks `[offset, offset + len)` against `total` and returns it as `usize` bounds.

@@ -30,6 +30,10 @@ use crate::range::{Precondition, RangeOutcome, if_range_allows, parse_range, pre
 
 /// Response header naming the nearest coarser LOD that exists for a missing tile.
 pub const FALLBACK_LOD: HeaderName = HeaderName::from_static("x-terrastream-fallback-lod");
+/// Header on metadata and tile responses: the strong ETag of the archive file they come
+/// from, so that a client of the tile endpoint can tell when the archive was replaced and
+/// never mix tiles of two versions.
+pub const ARCHIVE_ETAG: HeaderName = HeaderName::from_static("x-terrastream-archive-etag");
 
 /// Shared state of all handlers: one `Arc`, so the per-request clone (by each extractor)
 /// is one atomic increment rather than one per field.
@@ -110,6 +114,7 @@ pub fn app(state: AppState) -> Router {
             ACCEPT_RANGES,
             LAST_MODIFIED,
             FALLBACK_LOD,
+            ARCHIVE_ETAG,
         ])
         .max_age(std::time::Duration::from_secs(86_400));
     Router::new()
@@ -239,7 +244,10 @@ async fn metadata(
 ) -> Result<Response, AppError> {
     let served = archive(&state, &name)?;
     let etag = format!("\"{}-m\"", served.etag.trim_matches('"'));
-    let builder = Response::builder().header(ETAG, header(&etag)).header(CACHE_CONTROL, state.cache_control.clone());
+    let builder = Response::builder()
+        .header(ETAG, header(&etag))
+        .header(ARCHIVE_ETAG, served.etag_header.clone())
+        .header(CACHE_CONTROL, state.cache_control.clone());
     if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
         return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
     }
@@ -276,6 +284,7 @@ async fn tile(
     let etag = format!("\"{}-{index}-{lod}-{x}-{y}{}\"", served.etag.trim_matches('"'), if zstd_ok { "z" } else { "" });
     let mut builder = Response::builder()
         .header(ETAG, header(&etag))
+        .header(ARCHIVE_ETAG, served.etag_header.clone())
         .header(CACHE_CONTROL, state.cache_control.clone())
         .header(VARY, "Accept-Encoding");
     // Locate first: a revalidation (304) costs no read and no checksum of the tile.

@@ -12,7 +12,7 @@ mod metrics;
 mod range;
 mod serve;
 
-pub use app::{AppError, AppInner, AppState, FALLBACK_LOD, app};
+pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app};
 pub use catalog::{Catalog, Served, archive_name};
 pub use config::ServerConfig;
 pub use metrics::Metrics;

@@ -255,6 +255,10 @@ impl AsyncRangeSource for HttpSource {
         }
         self.get(offset, len).await
     }
+
+    fn forget(&self) {
+        *self.known() = Known::default();
+    }
 }
 
 /// `bytes START-END/TOTAL`.

@@ -1,0 +1,362 @@
+//! Tile payload -> pixels ready for the GPU or heights ready for queries. Runs on worker
+//! threads (a blocking pool on native, inside the fetch task in the browser), never on the
+//! frame thread.
+
+use bytes::Bytes;
+use terrastream_packer::{
+    ElevationEncoding, ElevationScheme, Error, Layer, LayerKind, PayloadCompression, Result, TileFormat, TileKey,
+    zstd_decompress,
+};
+
+/// A decoded tile.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DecodedTile {
+    /// Which tile.
+    pub key: TileKey,
+    /// Pixels per edge, borders included.
+    pub size: u32,
+    /// Border pixels on each side (copies of the neighbours' edge pixels).
+    pub border: u32,
+    /// The pixels.
+    pub data: TileData,
+}
+
+/// Decoded pixels.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TileData {
+    /// 8-bit RGBA, row-major.
+    Rgba8(Vec<u8>),
+    /// Heights in world units, row-major; NaN where the source had no data.
+    Heights {
+        /// The samples.
+        heights: Vec<f32>,
+        /// Lowest valid height (`+inf` if none).
+        min: f32,
+        /// Highest valid height (`-inf` if none).
+        max: f32,
+    },
+    /// GPU block-compressed texels, uploaded as they are.
+    Compressed {
+        /// [`TileFormat::Bc1`] or [`TileFormat::Bc7`].
+        format: TileFormat,
+        /// The blocks, row-major, 4x4 texels each.
+        blocks: Bytes,
+    },
+}
+
+impl DecodedTile {
+    /// Bytes the tile occupies in memory (and in a GPU upload).
+    pub fn byte_len(&self) -> usize {
+        match &self.data {
+            TileData::Rgba8(p) => p.len(),
+            TileData::Heights { heights, .. } => heights.len() * 4,
+            TileData::Compressed { blocks, .. } => blocks.len(),
+        }
+    }
+
+    /// Height sample at pixel `(i, j)` of the stored grid (borders included).
+    pub fn height(&self, i: u32, j: u32) -> Option<f32> {
+        match &self.data {
+            TileData::Heights { heights, .. } => {
+                heights.get(usize::try_from(u64::from(j) * u64::from(self.size) + u64::from(i)).ok()?).copied()
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Decodes one tile's payload as stored in the archive (`compressed` = the layer's
+/// payload compression is still applied; the tile endpoint may already have removed it).
+///
+/// # Errors
+/// [`Error::InvalidTile`] naming the tile when the payload is not what the layer says.
+pub fn decode(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> Result<DecodedTile> {
+    let bad = |why: String| Error::InvalidTile { what: format!("tile {key} of layer {:?}: {why}", layer.name) };
+    let inflated;
+    let bytes = if compressed && layer.compression == PayloadCompression::Zstd {
+        inflated = zstd_decompress(payload, layer.max_payload_bytes(), &format!("tile {key}"))?;
+        &inflated[..]
+    } else {
+        payload
+    };
+    let border = u32::from(layer.border);
+    let size = layer.tile_resolution + 2 * border;
+    let samples = usize::try_from(u64::from(size) * u64::from(size)).map_err(|_| bad("too large".into()))?;
+    let tile = |data| Ok(DecodedTile { key, size, border, data });
+    match layer.format {
+        TileFormat::Bc1 | TileFormat::Bc7 => {
+            let block_bytes = if layer.format == TileFormat::Bc1 { 8 } else { 16 };
+            let blocks_per_edge = usize::try_from(size.div_ceil(4)).unwrap_or(usize::MAX);
+            let expected = blocks_per_edge * blocks_per_edge * block_bytes;
+            if bytes.len() != expected {
+                return Err(bad(format!("{} bytes of {:?} blocks, {expected} expected", bytes.len(), layer.format)));
+            }
+            tile(TileData::Compressed { format: layer.format, blocks: Bytes::copy_from_slice(bytes) })
+        }
+        TileFormat::RawU16 | TileFormat::RawF32 => {
+            let width = if layer.format == TileFormat::RawU16 { 2 } else { 4 };
+            if bytes.len() != samples * width {
+                return Err(bad(format!(
+                    "{} bytes, {} expected for {size}x{size} samples",
+                    bytes.len(),
+                    samples * width
+                )));
+            }
+            let raw: Vec<f64> = if width == 2 {
+                bytes.chunks_exact(2).map(|c| f64::from(u16::from_le_bytes([c[0], c[1]]))).collect()
+            } else {
+                bytes.chunks_exact(4).map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]]))).collect()
+            };
+            let encoding = layer.elevation.unwrap_or(ElevationEncoding {
+                scheme: if width == 2 { ElevationScheme::QuantizedU16 } else { ElevationScheme::Float32 },
+                scale: 1.0,
+                offset: 0.0,
+                nodata: None,
+            });
+            tile(heights(&encoding, raw.into_iter()))
+        }
+        TileFormat::Png | TileFormat::Jpeg | TileFormat::Webp => {
+            let image = decode_image(layer.format, bytes).map_err(bad)?;
+            if image.width != size || image.height != size {
+                return Err(bad(format!(
+                    "image is {}x{}, the layer's tiles are {size}x{size}",
+                    image.width, image.height
+                )));
+            }
+            match (layer.kind, layer.elevation) {
+                (LayerKind::Elevation, Some(encoding)) => {
+                    let values = image.values(encoding.scheme).map_err(bad)?;
+                    tile(heights(&encoding, values.into_iter()))
+                }
+                (LayerKind::Elevation, None) => Err(bad("elevation layer without an encoding".into())),
+                _ => tile(TileData::Rgba8(image.rgba8())),
+            }
+        }
+    }
+}
+
+/// Raw sample values -> heights (NaN for nodata) with their range.
+fn heights(encoding: &ElevationEncoding, values: impl Iterator<Item = f64>) -> TileData {
+    let (mut min, mut max) = (f32::INFINITY, f32::NEG_INFINITY);
+    let heights = values
+        .map(|v| {
+            if encoding.nodata == Some(v) || !v.is_finite() {
+                return f32::NAN;
+            }
+            #[expect(clippy::cast_possible_truncation, reason = "heights are stored as f32 on the GPU")]
+            let h = to_height(encoding, v) as f32;
+            min = min.min(h);
+            max = max.max(h);
+            h
+        })
+        .collect();
+    TileData::Heights { heights, min, max }
+}
+
+/// One raw value (as [`Image::values`] or a raw sample) -> height in world units.
+pub fn to_height(encoding: &ElevationEncoding, v: f64) -> f64 {
+    match encoding.scheme {
+        ElevationScheme::Gray8 => encoding.offset + v / 255.0 * encoding.scale,
+        ElevationScheme::RgbThirds => encoding.offset + v / 765.0 * encoding.scale,
+        ElevationScheme::TerrainRgb => -10_000.0 + v * 0.1,
+        ElevationScheme::Terrarium => v - 32_768.0,
+        ElevationScheme::QuantizedU16 => encoding.offset + v * encoding.scale,
+        ElevationScheme::Float32 => v,
+    }
+}
+
+/// A decoded image: 1 to 4 channels of 8 or 16 bits.
+struct Image {
+    width: u32,
+    height: u32,
+    channels: usize,
+    sixteen: bool,
+    data: Vec<u8>,
+}
+
+impl Image {
+    fn sample(&self, pixel: usize, channel: usize) -> u32 {
+        let c = channel.min(self.channels - 1);
+        if self.sixteen {
+            let i = (pixel * self.channels + c) * 2;
+            u32::from(u16::from_be_bytes([self.data[i], self.data[i + 1]]))
+        } else {
+            u32::from(self.data[pixel * self.channels + c])
+        }
+    }
+
+    fn pixels(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    fn rgba8(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.pixels() * 4);
+        let eight = |v: u32| u8::try_from(if self.sixteen { v >> 8 } else { v }).unwrap_or(u8::MAX);
+        for p in 0..self.pixels() {
+            let (r, g, b, a) = match self.channels {
+                1 => (0, 0, 0, None),
+                2 => (0, 0, 0, Some(1)),
+                3 => (0, 1, 2, None),
+                _ => (0, 1, 2, Some(3)),
+            };
+            out.extend_from_slice(&[
+                eight(self.sample(p, r)),
+                eight(self.sample(p, g)),
+                eight(self.sample(p, b)),
+                a.map_or(255, |a| eight(self.sample(p, a))),
+            ]);
+        }
+        out
+    }
+
+    /// The raw value an elevation scheme reads from each pixel.
+    fn values(&self, scheme: ElevationScheme) -> std::result::Result<Vec<f64>, String> {
+        let colour = self.channels >= 3;
+        let (r, g, b) = (0, if colour { 1 } else { 0 }, if colour { 2 } else { 0 });
+        let value = |p: usize| -> f64 {
+            let (rv, gv, bv) =
+                (f64::from(self.sample(p, r)), f64::from(self.sample(p, g)), f64::from(self.sample(p, b)));
+            match scheme {
+                ElevationScheme::Gray8 | ElevationScheme::QuantizedU16 | ElevationScheme::Float32 => rv,
+                ElevationScheme::RgbThirds => rv + gv + bv,
+                ElevationScheme::TerrainRgb => rv * 65_536.0 + gv * 256.0 + bv,
+                ElevationScheme::Terrarium => rv * 256.0 + gv + bv / 256.0,
+            }
+        };
+        match scheme {
+            ElevationScheme::RgbThirds | ElevationScheme::TerrainRgb | ElevationScheme::Terrarium if !colour => {
+                Err(format!("{scheme:?} needs an RGB image, this one has {} channel(s)", self.channels))
+            }
+            ElevationScheme::Gray8
+            | ElevationScheme::RgbThirds
+            | ElevationScheme::TerrainRgb
+            | ElevationScheme::Terrarium
+                if self.sixteen =>
+            {
+                Err(format!("{scheme:?} needs an 8-bit image, this one is 16-bit"))
+            }
+            _ => Ok((0..self.pixels()).map(value).collect()),
+        }
+    }
+}
+
+fn decode_image(format: TileFormat, bytes: &[u8]) -> std::result::Result<Image, String> {
+    match format {
+        TileFormat::Png => {
+            let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+            decoder.set_transformations(png::Transformations::EXPAND);
+            let mut reader = decoder.read_info().map_err(|e| format!("PNG: {e}"))?;
+            let mut data = vec![0; reader.output_buffer_size().ok_or("PNG: too large")?];
+            let info = reader.next_frame(&mut data).map_err(|e| format!("PNG: {e}"))?;
+            data.truncate(info.buffer_size());
+            Ok(Image {
+                width: info.width,
+                height: info.height,
+                channels: info.color_type.samples(),
+                sixteen: info.bit_depth == png::BitDepth::Sixteen,
+                data,
+            })
+        }
+        TileFormat::Jpeg => {
+            let options = zune_jpeg::zune_core::options::DecoderOptions::default()
+                .jpeg_set_out_colorspace(zune_jpeg::zune_core::colorspace::ColorSpace::RGB);
+            let mut decoder = zune_jpeg::JpegDecoder::new_with_options(bytes, options);
+            let data = decoder.decode().map_err(|e| format!("JPEG: {e:?}"))?;
+            let (w, h) = decoder.dimensions().ok_or("JPEG: no dimensions")?;
+            let dim = |n: usize| u32::try_from(n).map_err(|_| "JPEG: too large".to_owned());
+            Ok(Image { width: dim(w)?, height: dim(h)?, channels: 3, sixteen: false, data })
+        }
+        TileFormat::Webp => {
+            let mut decoder =
+                image_webp::WebPDecoder::new(std::io::Cursor::new(bytes)).map_err(|e| format!("WebP: {e}"))?;
+            let (width, height) = decoder.dimensions();
+            let channels = if decoder.has_alpha() { 4 } else { 3 };
+            let mut data = vec![0; decoder.output_buffer_size().ok_or("WebP: too large")?];
+            decoder.read_image(&mut data).map_err(|e| format!("WebP: {e}"))?;
+            Ok(Image { width, height, channels, sixteen: false, data })
+        }
+        other => Err(format!("{other:?} is not an image format")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png(width: u32, colour: png::ColorType, depth: png::BitDepth, data: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        let mut encoder = png::Encoder::new(&mut out, width, width);
+        encoder.set_color(colour);
+        encoder.set_depth(depth);
+        encoder.write_header().unwrap().write_image_data(data).unwrap();
+        out
+    }
+
+    fn layer(kind: LayerKind, format: TileFormat, elevation: Option<ElevationEncoding>) -> Layer {
+        Layer {
+            name: "l".into(),
+            kind,
+            format,
+            compression: PayloadCompression::None,
+            tile_resolution: 2,
+            border: 0,
+            num_x_tiles: 1,
+            num_y_tiles: 1,
+            num_lods: 1,
+            tile_world_size: 1.0,
+            elevation,
+        }
+    }
+
+    #[test]
+    fn every_elevation_encoding_decodes_to_its_height() {
+        let key = TileKey::new(0, 0, 0, 0).unwrap();
+        let enc = |scheme, scale, offset| Some(ElevationEncoding { scheme, scale, offset, nodata: None });
+        // RGB thirds: 300 of 765 over a 510 m span from 100 m -> 300.0 m.
+        let l = layer(LayerKind::Elevation, TileFormat::Png, enc(ElevationScheme::RgbThirds, 510.0, 100.0));
+        let t = decode(&l, key, &png(2, png::ColorType::Rgb, png::BitDepth::Eight, &[255, 45, 0].repeat(4)), false);
+        assert_eq!(t.unwrap().height(1, 1), Some(300.0));
+        // Terrain-RGB: (1, 134, 160) -> -10000 + 100000 * 0.1 = 0 ... 1*65536+134*256+160 = 100000.
+        let l = layer(LayerKind::Elevation, TileFormat::Png, enc(ElevationScheme::TerrainRgb, 1.0, 0.0));
+        let t = decode(&l, key, &png(2, png::ColorType::Rgb, png::BitDepth::Eight, &[1, 134, 160].repeat(4)), false);
+        assert_eq!(t.unwrap().height(0, 0), Some(0.0));
+        // Terrarium: (128, 100, 128) -> 32768 + 100 + 0.5 - 32768.
+        let l = layer(LayerKind::Elevation, TileFormat::Png, enc(ElevationScheme::Terrarium, 1.0, 0.0));
+        let t = decode(&l, key, &png(2, png::ColorType::Rgb, png::BitDepth::Eight, &[128, 100, 128].repeat(4)), false);
+        assert_eq!(t.unwrap().height(0, 1), Some(100.5));
+        // 16-bit gray PNG, quantized: 1000 * 0.5 - 20.
+        let l = layer(LayerKind::Elevation, TileFormat::Png, enc(ElevationScheme::QuantizedU16, 0.5, -20.0));
+        let t = decode(&l, key, &png(2, png::ColorType::Grayscale, png::BitDepth::Sixteen, &[3, 232].repeat(4)), false);
+        assert_eq!(t.unwrap().height(1, 0), Some(480.0));
+        // Raw f32 with nodata, zstd-wrapped.
+        let mut l = layer(LayerKind::Elevation, TileFormat::RawF32, enc(ElevationScheme::Float32, 1.0, 0.0));
+        l.elevation.as_mut().unwrap().nodata = Some(-9999.0);
+        l.compression = PayloadCompression::Zstd;
+        let raw: Vec<u8> = [1.5f32, -9999.0, 7.0, 2.0].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let t = decode(&l, key, &terrastream_packer::zstd_compress(&raw, 3).unwrap(), true).unwrap();
+        assert!(t.height(1, 0).unwrap().is_nan());
+        assert!(matches!(t.data, TileData::Heights { min: 1.5, max: 7.0, .. }), "{:?}", t.data);
+        assert_eq!((t.height(0, 0), t.height(0, 1)), (Some(1.5), Some(7.0)));
+    }
+
+    #[test]
+    fn bad_payloads_name_the_tile() {
+        let key = TileKey::new(0, 0, 0, 0).unwrap();
+        let l = layer(LayerKind::Texture, TileFormat::Png, None);
+        let e = decode(&l, key, b"not a png", false).unwrap_err().to_string();
+        assert!(e.contains("tile") && e.contains("PNG"), "{e}");
+        let e = decode(&l, key, &png(4, png::ColorType::Rgb, png::BitDepth::Eight, &[0; 48]), false).unwrap_err();
+        assert!(e.to_string().contains("4x4"), "{e}");
+        let l = layer(LayerKind::Texture, TileFormat::Bc1, None);
+        assert!(decode(&l, key, &[0; 7], false).is_err());
+        assert!(decode(&l, key, &[0; 8], false).is_ok());
+    }
+
+    #[test]
+    fn texture_becomes_rgba() {
+        let key = TileKey::new(0, 0, 0, 0).unwrap();
+        let l = layer(LayerKind::Texture, TileFormat::Png, None);
+        let t = decode(&l, key, &png(2, png::ColorType::Rgb, png::BitDepth::Eight, &[10, 20, 30].repeat(4)), false);
+        assert_eq!(t.unwrap().data, TileData::Rgba8([10, 20, 30, 255].repeat(4)));
+    }
+}

@@ -1,0 +1,291 @@
+//! Where a [`super::Streamer`] gets its tiles: an archive behind any byte-range source
+//! (mmap, HTTP Range, memory), our server's tile endpoint, or tiles handed in by the host
+//! application.
+
+use std::collections::HashMap;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, PoisonError};
+
+use bytes::Bytes;
+use reqwest::StatusCode;
+use terrastream_packer::{AsyncRangeSource, AsyncReader, Error, MaybeSend, MaybeSync, Metadata, Result, TileKey};
+
+use crate::source::http::HttpSource;
+
+/// A boxed future, `Send` on native targets.
+#[cfg(not(target_arch = "wasm32"))]
+pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
+/// A boxed future (browser futures are not `Send`).
+#[cfg(target_arch = "wasm32")]
+pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + 'a>>;
+
+/// [`AsyncRangeSource`] made object-safe.
+pub trait ErasedSource: MaybeSend + MaybeSync {
+    /// See [`AsyncRangeSource::size`].
+    fn size_boxed(&self) -> BoxFuture<'_, Result<u64>>;
+    /// See [`AsyncRangeSource::fetch`].
+    fn fetch_boxed(&self, offset: u64, len: u64) -> BoxFuture<'_, Result<Bytes>>;
+    /// See [`AsyncRangeSource::forget`].
+    fn forget_erased(&self);
+}
+
+impl<S: AsyncRangeSource> ErasedSource for S {
+    fn size_boxed(&self) -> BoxFuture<'_, Result<u64>> {
+        Box::pin(self.size())
+    }
+    fn fetch_boxed(&self, offset: u64, len: u64) -> BoxFuture<'_, Result<Bytes>> {
+        Box::pin(self.fetch(offset, len))
+    }
+    fn forget_erased(&self) {
+        self.forget();
+    }
+}
+
+/// Any byte-range source behind one type.
+#[derive(Clone)]
+pub struct DynSource(Arc<dyn ErasedSource>);
+
+impl std::fmt::Debug for DynSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("DynSource")
+    }
+}
+
+impl DynSource {
+    /// Wraps a source.
+    pub fn new(source: impl AsyncRangeSource + 'static) -> Self {
+        Self(Arc::new(source))
+    }
+}
+
+impl AsyncRangeSource for DynSource {
+    fn size(&self) -> impl Future<Output = Result<u64>> + MaybeSend {
+        self.0.size_boxed()
+    }
+    fn fetch(&self, offset: u64, len: u64) -> impl Future<Output = Result<Bytes>> + MaybeSend {
+        self.0.fetch_boxed(offset, len)
+    }
+    fn forget(&self) {
+        self.0.forget_erased();
+    }
+}
+
+/// Our server's tile endpoint: `{base}/metadata` and `{base}/{layer}/{lod}/{x}/{y}`, one
+/// request per tile (the server decodes zstd payloads; a missing tile is a 404). Every
+/// response names the archive's ETag; a different one means the archive was replaced.
+#[derive(Debug)]
+pub struct EndpointSource {
+    client: reqwest::Client,
+    base: String,
+    archive_etag: Mutex<Option<String>>,
+    requests: AtomicU64,
+}
+
+const ARCHIVE_ETAG: &str = "x-terrastream-archive-etag";
+
+impl EndpointSource {
+    /// The archive served at `base` (e.g. `http://host:8080/alps`).
+    ///
+    /// # Errors
+    /// [`Error::Source`] for a URL that is not http(s).
+    pub fn new(base: &str) -> Result<Self> {
+        if !(base.starts_with("http://") || base.starts_with("https://")) {
+            return Err(Error::Source { offset: 0, len: 0, reason: format!("{base}: only http and https URLs") });
+        }
+        let client = reqwest::Client::builder().build().map_err(|e| Error::Source {
+            offset: 0,
+            len: 0,
+            reason: e.to_string(),
+        })?;
+        Ok(Self {
+            client,
+            base: base.trim_end_matches('/').to_owned(),
+            archive_etag: Mutex::new(None),
+            requests: AtomicU64::new(0),
+        })
+    }
+
+    /// Requests sent.
+    pub fn requests(&self) -> u64 {
+        self.requests.load(Relaxed)
+    }
+
+    async fn get(&self, path: &str) -> Result<Option<Bytes>> {
+        let url = format!("{}/{path}", self.base);
+        let fail = |reason: String| Error::Source { offset: 0, len: 0, reason: format!("{url}: {reason}") };
+        self.requests.fetch_add(1, Relaxed);
+        let response = self.client.get(&url).send().await.map_err(|e| fail(e.to_string()))?;
+        let etag = response.headers().get(ARCHIVE_ETAG).and_then(|v| v.to_str().ok()).map(str::to_owned);
+        {
+            let mut known = self.archive_etag.lock().unwrap_or_else(PoisonError::into_inner);
+            match (&*known, etag) {
+                (Some(old), Some(new)) if *old != new => {
+                    return Err(Error::Changed { what: format!("{url}: archive ETag {old} -> {new}") });
+                }
+                (None, Some(new)) => *known = Some(new),
+                _ => {}
+            }
+        }
+        match response.status() {
+            StatusCode::OK => response.bytes().await.map(Some).map_err(|e| fail(format!("body: {e}"))),
+            StatusCode::NOT_FOUND if path != "metadata" => Ok(None),
+            status => Err(fail(format!("HTTP {status}"))),
+        }
+    }
+
+    /// The archive's metadata.
+    ///
+    /// # Errors
+    /// Source errors; [`Error::Metadata`] for a bad document.
+    pub async fn metadata(&self) -> Result<Metadata> {
+        let bytes = self.get("metadata").await?.unwrap_or_default();
+        Metadata::from_json(&bytes)
+    }
+
+    /// One tile's payload (zstd already removed), `None` if the archive has no such tile.
+    ///
+    /// # Errors
+    /// Source errors; [`Error::Changed`] when the archive was replaced.
+    pub async fn tile(&self, key: TileKey) -> Result<Option<Bytes>> {
+        self.get(&format!("{}/{}/{}/{}", key.layer(), key.lod(), key.x(), key.y())).await
+    }
+
+    fn forget(&self) {
+        *self.archive_etag.lock().unwrap_or_else(PoisonError::into_inner) = None;
+    }
+}
+
+/// Tiles handed in by the host application (a simulator generating or receiving them):
+/// the metadata up front, payloads as they become available. A tile not handed in yet
+/// counts as missing; handing it in later makes the streamer look again.
+#[derive(Debug)]
+pub struct HostTiles {
+    metadata: Metadata,
+    tiles: Mutex<HashMap<TileKey, Bytes>>,
+    version: AtomicU64,
+}
+
+impl HostTiles {
+    /// An empty set of tiles for a terrain described by `metadata`.
+    ///
+    /// # Errors
+    /// [`Error::Metadata`] if the metadata is invalid.
+    pub fn new(metadata: Metadata) -> Result<Self> {
+        metadata.validate()?;
+        Ok(Self { metadata, tiles: Mutex::default(), version: AtomicU64::new(0) })
+    }
+
+    /// The metadata.
+    pub fn metadata(&self) -> &Metadata {
+        &self.metadata
+    }
+
+    /// Hands in a tile's payload, encoded as its layer says (format and compression).
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] for a tile outside its layer's grid.
+    pub fn insert(&self, key: TileKey, payload: Bytes) -> Result<()> {
+        self.metadata.directory_key(key)?;
+        self.tiles.lock().unwrap_or_else(PoisonError::into_inner).insert(key, payload);
+        self.version.fetch_add(1, Relaxed);
+        Ok(())
+    }
+
+    /// Takes a tile back.
+    pub fn remove(&self, key: TileKey) {
+        self.tiles.lock().unwrap_or_else(PoisonError::into_inner).remove(&key);
+        self.version.fetch_add(1, Relaxed);
+    }
+
+    /// The tile's payload, if handed in.
+    pub fn get(&self, key: TileKey) -> Option<Bytes> {
+        self.tiles.lock().unwrap_or_else(PoisonError::into_inner).get(&key).cloned()
+    }
+
+    /// Changes with every insert or remove.
+    pub fn version(&self) -> u64 {
+        self.version.load(Relaxed)
+    }
+}
+
+/// What a streamer streams from.
+#[derive(Clone, Debug)]
+pub enum Origin {
+    /// A `.tspack` archive behind a byte-range source.
+    Archive(DynSource),
+    /// Our server's tile endpoint for one archive.
+    Endpoint(Arc<EndpointSource>),
+    /// Tiles handed in by the host application.
+    Host(Arc<HostTiles>),
+}
+
+impl Origin {
+    /// An archive behind any byte-range source.
+    pub fn archive(source: impl AsyncRangeSource + 'static) -> Self {
+        Self::Archive(DynSource::new(source))
+    }
+
+    /// A location as the command line takes it: a file path (memory-mapped), an
+    /// `http(s)://…/name.tspack` URL (Range requests against any server or CDN), or an
+    /// `http(s)://…/name` URL of our server's tile endpoint.
+    ///
+    /// # Errors
+    /// [`Error::File`] for a file that cannot be mapped; [`Error::Source`] for a bad URL.
+    pub fn parse(location: &str) -> Result<Self> {
+        if location.starts_with("http://") || location.starts_with("https://") {
+            let path = location.split(['?', '#']).next().unwrap_or(location);
+            return if path.ends_with(".tspack") {
+                Ok(Self::archive(HttpSource::new(location)?))
+            } else {
+                Ok(Self::Endpoint(Arc::new(EndpointSource::new(location)?)))
+            };
+        }
+        #[cfg(not(target_arch = "wasm32"))]
+        {
+            Ok(Self::archive(terrastream_packer::MmapSource::open(location)?))
+        }
+        #[cfg(target_arch = "wasm32")]
+        {
+            Err(Error::Source { offset: 0, len: 0, reason: format!("{location}: only URLs in the browser") })
+        }
+    }
+
+    pub(crate) async fn open(&self) -> Result<Backend> {
+        match self {
+            Self::Archive(source) => Ok(Backend::Archive(Arc::new(AsyncReader::new(source.clone()).await?))),
+            Self::Endpoint(endpoint) => {
+                let metadata = endpoint.metadata().await?;
+                Ok(Backend::Endpoint(endpoint.clone(), Arc::new(metadata)))
+            }
+            Self::Host(host) => Ok(Backend::Host(host.clone())),
+        }
+    }
+
+    pub(crate) fn forget(&self) {
+        match self {
+            Self::Archive(source) => source.forget(),
+            Self::Endpoint(endpoint) => endpoint.forget(),
+            Self::Host(_) => {}
+        }
+    }
+}
+
+/// An opened origin.
+#[derive(Clone)]
+pub(crate) enum Backend {
+    Archive(Arc<AsyncReader<DynSource>>),
+    Endpoint(Arc<EndpointSource>, Arc<Metadata>),
+    Host(Arc<HostTiles>),
+}
+
+impl Backend {
+    pub(crate) fn metadata(&self) -> &Metadata {
+        match self {
+            Self::Archive(reader) => reader.metadata(),
+            Self::Endpoint(_, metadata) => metadata,
+            Self::Host(host) => host.metadata(),
+        }
+    }
+}

@@ -1,0 +1,212 @@
+//! Which tiles of each layer the camera wants, at which LOD, in which order.
+//!
+//! Each layer's quadtree is walked from its coarsest LOD down. A tile is refined while one
+//! of its texels (or elevation samples) would cover more than `pixel_error` pixels at the
+//! tile's distance from the eye — the screen-space error rule — and only where the tile
+//! is in view (or the eye is within one tile width of it, so looking around near the
+//! ground stays sharp). Every ancestor of a wanted tile is wanted too: coverage can always
+//! fall back to a coarser LOD. The walk is breadth-first, so a cap on the number of wanted
+//! tiles drops the finest ones first.
+
+use std::cmp::Ordering;
+
+use glam::DVec3;
+use terrastream_packer::{Layer, Metadata, TileKey};
+
+use super::camera::{Aabb, Camera};
+
+/// Knobs of the selection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SelectOptions {
+    /// Largest on-screen size of one texel, in pixels, before the tile is refined.
+    pub pixel_error: f64,
+    /// Most tiles wanted at once, all layers together (the finest are dropped first).
+    pub max_wanted: usize,
+}
+
+impl Default for SelectOptions {
+    fn default() -> Self {
+        Self { pixel_error: 1.5, max_wanted: 4096 }
+    }
+}
+
+/// One wanted tile.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Want {
+    /// The tile.
+    pub key: TileKey,
+    /// Its box intersects the view frustum.
+    pub in_view: bool,
+    /// Distance from the eye to its box.
+    pub distance: f64,
+    /// A tile of the layer's coarsest LOD: always wanted, fetched before anything else,
+    /// never evicted, so that coverage never has a hole.
+    pub top: bool,
+    /// Not refined further this frame (the finest wanted tile of its area).
+    pub leaf: bool,
+}
+
+impl Want {
+    /// Request and upload order: coarsest-LOD tiles first, then tiles in view, then
+    /// coarse before fine, then near before far.
+    pub fn urgency(&self, other: &Self) -> Ordering {
+        other
+            .top
+            .cmp(&self.top)
+            .then(other.in_view.cmp(&self.in_view))
+            .then(other.key.lod().cmp(&self.key.lod()))
+            .then(self.distance.total_cmp(&other.distance))
+            .then(self.key.cmp(&other.key))
+    }
+}
+
+/// World-space box of a tile: `(x, z)` from the grid, `y` over the given height range.
+pub fn tile_box(layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
+    let size = tile_world_size(layer, key.lod());
+    let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
+    Aabb { min: DVec3::new(x0, heights.0, z0), max: DVec3::new(x0 + size, heights.1, z0 + size) }
+}
+
+/// World units across one tile of `layer` at `lod`.
+pub fn tile_world_size(layer: &Layer, lod: u8) -> f64 {
+    layer.tile_world_size * f64::from(1u32 << lod.min(31))
+}
+
+/// The wanted tiles of every layer, most urgent first.
+///
+/// `descend(key)` says whether the quadtree may go below `key` (false for a tile the
+/// archive is known not to have: a sparse pyramid has no children under a missing tile).
+pub fn select(
+    metadata: &Metadata,
+    camera: &Camera,
+    options: &SelectOptions,
+    descend: impl Fn(TileKey) -> bool,
+) -> Vec<Want> {
+    let frustum = camera.frustum();
+    let pixels_per_radian = camera.pixels_per_radian();
+    let heights = {
+        let t = &metadata.terrain;
+        let (lo, hi) = (t.min_elevation.min(t.max_elevation), t.max_elevation.max(t.min_elevation));
+        (lo, hi.max(lo + t.displacement.max(0.0)))
+    };
+    let mut wants = Vec::new();
+    // Breadth-first over all layers at once, level by level from the top.
+    let mut level: Vec<TileKey> = Vec::new();
+    for (index, layer) in metadata.layers.iter().enumerate() {
+        let Ok(index) = u8::try_from(index) else { continue };
+        let top = layer.num_lods.saturating_sub(1);
+        let (nx, ny) = layer.grid_at(top);
+        for y in 0..ny {
+            for x in 0..nx {
+                if let Ok(key) = TileKey::new(index, top, x, y) {
+                    level.push(key);
+                }
+            }
+        }
+    }
+    // Tiles already wanted or queued: refinement stops when four more would pass the cap.
+    let mut accounted = level.len();
+    while !level.is_empty() {
+        let mut next = Vec::new();
+        for key in level {
+            let layer = &metadata.layers[usize::from(key.layer())];
+            let bounds = tile_box(layer, key, heights);
+            let distance = bounds.distance(camera.position);
+            let in_view = frustum.intersects(&bounds);
+            let size = tile_world_size(layer, key.lod());
+            let texel = size / f64::from(layer.tile_resolution);
+            let projected = texel * pixels_per_radian / distance.max(1e-9);
+            let refine = key.lod() > 0
+                && projected > options.pixel_error
+                && (in_view || distance < size)
+                && descend(key)
+                && accounted + 4 <= options.max_wanted;
+            let top = key.lod() + 1 == layer.num_lods;
+            if refine {
+                let lod = key.lod() - 1;
+                let (nx, ny) = layer.grid_at(lod);
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let (x, y) = (key.x() * 2 + dx, key.y() * 2 + dy);
+                    if x < nx && y < ny {
+                        if let Ok(child) = TileKey::new(key.layer(), lod, x, y) {
+                            accounted += 1;
+                            next.push(child);
+                        }
+                    }
+                }
+            }
+            wants.push(Want { key, in_view, distance, top, leaf: !refine });
+        }
+        level = next;
+    }
+    wants.sort_by(Want::urgency);
+    wants
+}
+
+#[cfg(test)]
+mod tests {
+    use terrastream_packer::{LayerKind, PayloadCompression, TileFormat};
+
+    use super::*;
+
+    fn metadata() -> Metadata {
+        let layer = Layer {
+            name: "texture".into(),
+            kind: LayerKind::Texture,
+            format: TileFormat::Png,
+            compression: PayloadCompression::None,
+            tile_resolution: 256,
+            border: 0,
+            num_x_tiles: 64,
+            num_y_tiles: 64,
+            num_lods: 7,
+            tile_world_size: 256.0,
+            elevation: None,
+        };
+        Metadata::new("t", vec![layer])
+    }
+
+    #[test]
+    fn near_tiles_are_fine_far_tiles_coarse_and_ancestors_come_first() {
+        let m = metadata();
+        let cam = Camera::look_at(DVec3::new(1000.0, 200.0, 1000.0), DVec3::new(4000.0, 0.0, 4000.0), 1024, 768);
+        let wants = select(&m, &cam, &SelectOptions::default(), |_| true);
+        let finest = wants.iter().map(|w| w.key.lod()).min().unwrap();
+        assert_eq!(finest, 0, "the ground under the eye is at full detail");
+        // Every wanted tile's parent is wanted and more urgent.
+        let position = |k: TileKey| wants.iter().position(|w| w.key == k);
+        for (i, w) in wants.iter().enumerate() {
+            if let Some(parent) = w.key.parent().filter(|p| p.lod() < m.layers[0].num_lods) {
+                let p = position(parent).unwrap_or_else(|| panic!("{} wanted without its parent", w.key));
+                assert!(p < i, "{} before its parent", w.key);
+            }
+        }
+        // Tiles behind the camera are not refined.
+        assert!(
+            wants
+                .iter()
+                .filter(|w| !w.in_view)
+                .all(|w| w.leaf || w.distance < tile_world_size(&m.layers[0], w.key.lod()))
+        );
+    }
+
+    #[test]
+    fn the_cap_drops_the_finest_tiles() {
+        let m = metadata();
+        let cam = Camera::look_at(DVec3::new(1000.0, 50.0, 1000.0), DVec3::new(9000.0, 0.0, 9000.0), 1920, 1080);
+        let all = select(&m, &cam, &SelectOptions::default(), |_| true);
+        let capped = select(&m, &cam, &SelectOptions { max_wanted: 40, ..SelectOptions::default() }, |_| true);
+        assert!(all.len() > 40 && capped.len() <= 40, "{} / {}", all.len(), capped.len());
+        let top = m.layers[0].num_lods - 1;
+        assert_eq!(capped.iter().filter(|w| w.key.lod() == top).count(), 1);
+        assert!(capped.iter().map(|w| w.key.lod()).min() > all.iter().map(|w| w.key.lod()).min());
+    }
+
+    #[test]
+    fn no_descent_below_a_missing_tile() {
+        let m = metadata();
+        let cam = Camera::look_at(DVec3::new(1000.0, 200.0, 1000.0), DVec3::new(4000.0, 0.0, 4000.0), 1024, 768);
+        let wants = select(&m, &cam, &SelectOptions::default(), |k| k.lod() > 3);
+        assert_eq!(wants.iter().map(|w| w.key.lod()).min(), Some(3));
+    }
+}
