@@ -17,6 +17,8 @@ use terrastream_packer::{Directory, Entry, MmapSource, Reader, TileKey, WriterOp
 pub enum BenchCommand {
     /// Archive writer and reader: pack vs copy, lookup latency, directory size.
     Archive(ArchiveBench),
+    /// Streaming core: time to full detail, requests per tile, upload budget (mmap vs HTTP).
+    Stream(super::bench_stream::StreamBench),
 }
 
 #[derive(Debug, Args)]
@@ -38,6 +40,7 @@ pub struct ArchiveBench {
 pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
     match cmd {
         BenchCommand::Archive(args) => archive(args),
+        BenchCommand::Stream(args) => super::bench_stream::run(args).map(|()| ExitCode::SUCCESS),
     }
 }
 

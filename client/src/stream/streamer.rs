@@ -52,8 +52,8 @@ impl Default for StreamOptions {
             select: SelectOptions::default(),
             max_in_flight: 8,
             coalesce: true,
-            coalesce_gap: 32 * 1024,
-            max_request_bytes: 2 * 1024 * 1024,
+            coalesce_gap: 4 * 1024,
+            max_request_bytes: 512 * 1024,
             cache_bytes: 512 * 1024 * 1024,
             retry_backoff: Duration::from_millis(250),
             max_retry_backoff: Duration::from_secs(10),
@@ -886,9 +886,12 @@ async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generati
             match reader.source().fetch(start, end - start).await {
                 Ok(body) => {
                     bytes = body.len() as u64;
+                    let mut blobs = HashSet::new();
                     for (key, location) in &group.tiles {
                         let Some(loc) = location else { continue };
-                        needed += loc.blob_len();
+                        if blobs.insert(loc.offset) {
+                            needed += loc.blob_len();
+                        }
                         let from = usize::try_from(loc.offset - start).unwrap_or(usize::MAX);
                         let to = from.saturating_add(usize::try_from(loc.blob_len()).unwrap_or(usize::MAX));
                         let result = if to <= body.len() {

@@ -1,0 +1,223 @@
+//! `terrastream bench stream`: flies a scripted camera path over an archive, from a local
+//! file (mmap) and over HTTP on loopback (our server, Range requests on the archive), with
+//! and without coalescing, and prints time to full detail after each jump, requests per
+//! tile, bytes fetched vs needed, and uploads per frame against the budget.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use clap::Args;
+use terrastream_client::{Camera, Origin, SelectOptions, StreamOptions, StreamStats, Streamer, UploadBudget};
+use terrastream_packer::Metadata;
+use terrastream_packer::sample::{LabelledSpec, write_labelled_archive};
+use terrastream_server::{AppState, ServerConfig};
+
+#[derive(Debug, Args)]
+pub struct StreamBench {
+    /// Archive to fly over (default: a generated 64x64-tile terrain).
+    #[arg(long)]
+    archive: Option<PathBuf>,
+    /// Most tiles uploaded per frame.
+    #[arg(long, default_value_t = 8)]
+    max_tiles_per_frame: usize,
+    /// Most bytes uploaded per frame.
+    #[arg(long, default_value_t = 1 << 20)]
+    max_upload_bytes_per_frame: usize,
+    /// Most requests in flight.
+    #[arg(long, default_value_t = 8)]
+    max_in_flight: usize,
+    /// Frames of continuous flight between jumps.
+    #[arg(long, default_value_t = 60)]
+    flight_frames: usize,
+    /// Largest gap in bytes between two tiles that still merges them into one request.
+    #[arg(long, default_value_t = StreamOptions::default().coalesce_gap)]
+    coalesce_gap: u64,
+    /// Largest coalesced request in bytes.
+    #[arg(long, default_value_t = StreamOptions::default().max_request_bytes)]
+    max_request_bytes: u64,
+    /// Viewport height in pixels (the selection's screen-space error depends on it).
+    #[arg(long, default_value_t = 720)]
+    viewport_height: u32,
+}
+
+struct Run {
+    name: String,
+    time_to_detail: Vec<Duration>,
+    uploads_per_frame: Vec<usize>,
+    bytes_per_frame: Vec<usize>,
+    stats: StreamStats,
+}
+
+impl Run {
+    fn median_ttd(&self) -> Duration {
+        let mut t = self.time_to_detail.clone();
+        t.sort();
+        t.get(t.len() / 2).copied().unwrap_or_default()
+    }
+    fn requests_per_tile(&self) -> f64 {
+        self.stats.requests as f64 / self.stats.tiles_fetched.max(1) as f64
+    }
+}
+
+pub fn run(args: StreamBench) -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let path = match &args.archive {
+        Some(p) => p.clone(),
+        None => {
+            let p = dir.path().join("terrain.tspack");
+            let spec = LabelledSpec {
+                texture_grid: 64,
+                texture_res: 64,
+                elevation_grid: 16,
+                elevation_res: 64,
+                ..LabelledSpec::default()
+            };
+            eprintln!("generating a {0}x{0}-tile terrain ({1} px tiles)...", spec.texture_grid, spec.texture_res);
+            write_labelled_archive(&p, &spec)?;
+            p
+        }
+    };
+    let name = path.file_stem().and_then(|s| s.to_str()).context("archive name")?.to_owned();
+    // Our server on a loopback port, in its own runtime.
+    let server = tokio::runtime::Runtime::new()?;
+    let state = AppState::new(ServerConfig { paths: vec![path.clone()], ..ServerConfig::default() });
+    state.catalog.reload();
+    let listener = server.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
+    let addr = listener.local_addr()?;
+    server.spawn(terrastream_server::serve(listener, state, std::future::pending()));
+    let url = format!("http://{addr}/{name}.tspack");
+
+    let budget = UploadBudget { max_tiles: args.max_tiles_per_frame, max_bytes: args.max_upload_bytes_per_frame };
+    let mut runs = Vec::new();
+    for (label, location) in [("mmap", path.display().to_string()), ("HTTP", url.clone())] {
+        for coalesce in [true, false] {
+            let options = StreamOptions {
+                coalesce,
+                coalesce_gap: args.coalesce_gap,
+                max_request_bytes: args.max_request_bytes,
+                max_in_flight: args.max_in_flight,
+                select: SelectOptions::default(),
+                ..StreamOptions::default()
+            };
+            let origin = Origin::parse(&location)?;
+            let name = format!("{label}{}", if coalesce { "" } else { ", no coalescing" });
+            eprintln!("flying: {name}");
+            runs.push(fly(name, origin, options, budget, &args)?);
+        }
+    }
+    println!("archive: {} ({url} on loopback)", path.display());
+    println!(
+        "budget: {} tiles / {} bytes per frame; {} requests in flight at most\n",
+        budget.max_tiles, budget.max_bytes, args.max_in_flight
+    );
+    println!(
+        "{:<24} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
+        "run", "ttd med", "ttd max", "req/tile", "tiles", "fetched B", "needed B", "up max", "up p99", "B/frm max"
+    );
+    for r in &runs {
+        let mut ups = r.uploads_per_frame.clone();
+        ups.sort_unstable();
+        let p99 = ups.get(ups.len() * 99 / 100).copied().unwrap_or(0);
+        println!(
+            "{:<24} {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
+            r.name,
+            r.median_ttd().as_secs_f64() * 1e3,
+            r.time_to_detail.iter().max().copied().unwrap_or_default().as_secs_f64() * 1e3,
+            r.requests_per_tile(),
+            r.stats.tiles_fetched,
+            r.stats.bytes_fetched,
+            r.stats.bytes_needed,
+            ups.last().copied().unwrap_or(0),
+            p99,
+            r.bytes_per_frame.iter().max().copied().unwrap_or(0),
+        );
+    }
+    let (mmap, mmap_raw, http, http_raw) = (&runs[0], &runs[1], &runs[2], &runs[3]);
+    println!();
+    println!(
+        "time to full detail, HTTP / mmap (median over jumps): {:.2}x  (target <= 1.3x)",
+        http.median_ttd().as_secs_f64() / mmap.median_ttd().as_secs_f64().max(1e-9)
+    );
+    println!(
+        "requests per tile, coalesced / not: HTTP {:.2}x, mmap {:.2}x  (target <= 0.5x)",
+        http.requests_per_tile() / http_raw.requests_per_tile().max(1e-9),
+        mmap.requests_per_tile() / mmap_raw.requests_per_tile().max(1e-9)
+    );
+    println!(
+        "bytes fetched / needed (HTTP, coalesced): {:.2}x",
+        http.stats.bytes_fetched as f64 / http.stats.bytes_needed.max(1) as f64
+    );
+    let over = runs.iter().any(|r| {
+        r.uploads_per_frame.iter().any(|&n| n > budget.max_tiles)
+            || r.bytes_per_frame.iter().any(|&b| b > budget.max_bytes)
+    });
+    println!("upload budget exceeded in any frame: {}", if over { "YES" } else { "no" });
+    drop(server);
+    Ok(())
+}
+
+/// Camera stops across the terrain's extent: (x, z) fractions and a look direction.
+const STOPS: [(f64, f64, f64, f64); 5] = [
+    (0.1, 0.1, 1.0, 1.0),
+    (0.8, 0.3, -1.0, 0.6),
+    (0.3, 0.85, 0.7, -1.0),
+    (0.9, 0.9, -1.0, -1.0),
+    (0.5, 0.45, 0.2, 1.0),
+];
+
+fn camera_at(meta: &Metadata, (fx, fz, dx, dz): (f64, f64, f64, f64), viewport_height: u32) -> Camera {
+    let layer = &meta.layers[0];
+    let world = layer.tile_world_size * f64::from(layer.num_x_tiles.max(layer.num_y_tiles));
+    let ground = meta.terrain.max_elevation;
+    let eye = glam::DVec3::new(fx * world, ground + world * 0.01, fz * world);
+    let target = eye + glam::DVec3::new(dx * world * 0.1, -world * 0.01, dz * world * 0.1);
+    let width = viewport_height * 16 / 9;
+    Camera::look_at(eye, target, width, viewport_height)
+}
+
+fn fly(name: String, origin: Origin, options: StreamOptions, budget: UploadBudget, args: &StreamBench) -> Result<Run> {
+    let mut streamer = Streamer::open(origin, options)?;
+    let meta = streamer.metadata().context("metadata")?.clone();
+    let mut run = Run {
+        name,
+        time_to_detail: Vec::new(),
+        uploads_per_frame: Vec::new(),
+        bytes_per_frame: Vec::new(),
+        stats: StreamStats::default(),
+    };
+    let frame = |s: &mut Streamer, cam: &Camera, run: &mut Run| {
+        s.update(cam);
+        let uploads = s.drain_uploads(budget);
+        run.uploads_per_frame.push(uploads.len());
+        run.bytes_per_frame.push(uploads.iter().map(|u| u.tile.byte_len()).sum());
+    };
+    for (i, stop) in STOPS.iter().enumerate() {
+        let cam = camera_at(&meta, *stop, args.viewport_height);
+        // Jump, then frames (1 ms apart) until every wanted tile is shown.
+        let start = Instant::now();
+        loop {
+            frame(&mut streamer, &cam, &mut run);
+            if streamer.pending() == 0 {
+                break;
+            }
+            anyhow::ensure!(start.elapsed() < Duration::from_secs(120), "{}: no full detail after 120 s", run.name);
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        run.time_to_detail.push(start.elapsed());
+        // Then fly towards the next stop at 60 frames per second, streaming as we go.
+        let next = camera_at(&meta, STOPS[(i + 1) % STOPS.len()], args.viewport_height);
+        for f in 0..args.flight_frames {
+            let t = (f as f64 + 1.0) / (args.flight_frames as f64 + 1.0) * 0.5;
+            let cam = Camera {
+                position: cam.position.lerp(next.position, t),
+                forward: cam.forward.lerp(next.forward, t),
+                ..cam
+            };
+            frame(&mut streamer, &cam, &mut run);
+            std::thread::sleep(Duration::from_millis(16));
+        }
+    }
+    run.stats = streamer.stats();
+    Ok(run)
+}
