@@ -81,6 +81,16 @@ enum Command {
     },
     /// Serve archives over HTTP: Range requests on the files, tiles, metadata, metrics.
     Serve(serve::ServeArgs),
+    /// Exit 0 if a server answers 200 on its health URL (container health checks; no
+    /// shell or curl needed in the image).
+    Health {
+        /// The URL to ask (plain http).
+        #[arg(default_value = "http://127.0.0.1:8080/healthz")]
+        url: String,
+        /// Seconds to wait for the answer.
+        #[arg(long, default_value_t = 3)]
+        timeout: u64,
+    },
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
     /// Benchmarks that print numbers.
@@ -182,7 +192,36 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Demo(args) => demo::run(args, &progress),
+        Command::Health { url, timeout } => health(&url, std::time::Duration::from_secs(timeout)),
         Command::Bench(cmd) => bench::run(cmd),
+    }
+}
+
+/// `GET url` over plain HTTP/1.1 with std only; success on a 200 status line.
+fn health(url: &str, timeout: std::time::Duration) -> Result<ExitCode> {
+    use std::io::{Read, Write};
+    let rest = url.strip_prefix("http://").with_context(|| format!("{url}: only http:// URLs"))?;
+    let (authority, path) = rest.split_once('/').map_or((rest, "/".to_owned()), |(a, p)| (a, format!("/{p}")));
+    let addr = std::net::ToSocketAddrs::to_socket_addrs(authority)
+        .with_context(|| format!("{url}: bad address"))?
+        .next()
+        .with_context(|| format!("{url}: no address"))?;
+    let mut stream =
+        std::net::TcpStream::connect_timeout(&addr, timeout).with_context(|| format!("{url}: cannot connect"))?;
+    stream.set_read_timeout(Some(timeout))?;
+    stream.set_write_timeout(Some(timeout))?;
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: {authority}\r\nConnection: close\r\n\r\n")?;
+    let mut head = [0u8; 64];
+    let n = stream.read(&mut head).with_context(|| format!("{url}: no answer"))?;
+    let status = String::from_utf8_lossy(&head[..n]);
+    let ok = status.starts_with("HTTP/1.1 200") || status.starts_with("HTTP/1.0 200");
+    let line = status.lines().next().unwrap_or("").to_owned();
+    if ok {
+        println!("{url}: {line}");
+        Ok(ExitCode::SUCCESS)
+    } else {
+        eprintln!("{url}: unhealthy: {line}");
+        Ok(ExitCode::FAILURE)
     }
 }
 
