@@ -46,6 +46,8 @@ pub mod pmtiles;
 #[cfg(feature = "write")]
 pub mod sample;
 #[cfg(feature = "write")]
+pub mod tiler;
+#[cfg(feature = "write")]
 mod writer;
 
 pub use archive::{Archive, Bootstrap, DEFAULT_LEAF_CACHE, Locate, MAX_METADATA_BYTES, TileLocation};

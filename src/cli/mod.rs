@@ -79,6 +79,25 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Build a LOD pyramid archive from an elevation raster (GeoTIFF).
+    Tile {
+        /// Elevation raster: single-band GeoTIFF (int/uint 8-32, float32/64; strips or tiles;
+        /// none, LZW or Deflate compression; GDAL nodata).
+        #[arg(long)]
+        elevation: PathBuf,
+        /// Output archive (written to a temporary name, then renamed).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Samples per tile edge.
+        #[arg(long, default_value_t = 256)]
+        tile_size: u32,
+        /// Samples duplicated from the neighbours on each side.
+        #[arg(long, default_value_t = 1)]
+        border: u8,
+        /// Sample storage: quantized u16 (exact for integer sources) or f32.
+        #[arg(long, value_enum, default_value_t = StorageArg::Auto)]
+        storage: StorageArg,
+    },
     /// Serve archives over HTTP: Range requests on the files, tiles, metadata, metrics.
     Serve(serve::ServeArgs),
     /// Exit 0 if a server answers 200 on its health URL (container health checks; no
@@ -102,6 +121,16 @@ enum Command {
 enum ExportFormat {
     /// PMTiles v3 (web zoom z = coarsest 0), readable by any PMTiles reader.
     Pmtiles,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum StorageArg {
+    /// u16 when the height range allows a step of 1/16 or finer, else f32.
+    Auto,
+    /// Quantized u16.
+    U16,
+    /// f32.
+    F32,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -192,6 +221,28 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Demo(args) => demo::run(args, &progress),
+        Command::Tile { elevation, output, tile_size, border, storage } => {
+            use terrastream_packer::tiler::{ElevationStorage, TileOptions, read_geotiff, tile_elevation};
+            let raster = read_geotiff(&elevation)?;
+            let name = elevation.file_stem().and_then(|s| s.to_str()).unwrap_or("terrain").to_owned();
+            let storage = match storage {
+                StorageArg::Auto => ElevationStorage::Auto,
+                StorageArg::U16 => ElevationStorage::U16,
+                StorageArg::F32 => ElevationStorage::F32,
+            };
+            let started = std::time::Instant::now();
+            let summary =
+                tile_elevation(raster, &name, &output, TileOptions { tile_size, border, storage }, &progress)?;
+            progress.finish();
+            println!(
+                "{}: {} tiles, {} bytes in {:.2} s",
+                output.display(),
+                summary.tile_entries,
+                summary.file_len,
+                started.elapsed().as_secs_f64()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Health { url, timeout } => health(&url, std::time::Duration::from_secs(timeout)),
         Command::Bench(cmd) => bench::run(cmd),
     }
