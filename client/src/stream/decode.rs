@@ -353,6 +353,26 @@ mod tests {
     }
 
     #[test]
+    fn webp_textures_and_terrain_rgb_webp_decode() {
+        let key = TileKey::new(0, 0, 0, 0).unwrap();
+        let webp = |pixels: &[u8]| {
+            let mut out = Vec::new();
+            image_webp::WebPEncoder::new(&mut out).encode(pixels, 2, 2, image_webp::ColorType::Rgb8).unwrap();
+            out
+        };
+        let l = layer(LayerKind::Texture, TileFormat::Webp, None);
+        let t = decode(&l, key, &webp(&[10, 20, 30].repeat(4)), false).unwrap();
+        assert_eq!(t.data, TileData::Rgba8([10, 20, 30, 255].repeat(4)));
+        let enc =
+            Some(ElevationEncoding { scheme: ElevationScheme::TerrainRgb, scale: 1.0, offset: 0.0, nodata: None });
+        let l = layer(LayerKind::Elevation, TileFormat::Webp, enc);
+        let t = decode(&l, key, &webp(&[1, 134, 170].repeat(4)), false).unwrap();
+        assert_eq!(t.height(1, 1), Some(1.0));
+        let e = decode(&l, key, b"RIFF\0\0\0\0WEBPjunk", false).unwrap_err().to_string();
+        assert!(e.contains("WebP"), "{e}");
+    }
+
+    #[test]
     fn texture_becomes_rgba() {
         let key = TileKey::new(0, 0, 0, 0).unwrap();
         let l = layer(LayerKind::Texture, TileFormat::Png, None);
