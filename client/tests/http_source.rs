@@ -4,6 +4,7 @@
 
 #[path = "../../server/tests/common/mod.rs"]
 mod common;
+mod support;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -15,24 +16,10 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use terrastream_client::{HttpSource, RetryPolicy};
 use terrastream_packer::{AsyncReader, Error, MmapSource, Reader, TileKey};
-use terrastream_server::{AppState, ServerConfig, app};
+use terrastream_server::app;
 
-use common::{archives, start_nginx, write_zstd_archive};
-
-async fn serve_router(router: axum::Router) -> (std::net::SocketAddr, tokio::task::JoinHandle<()>) {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let task = tokio::spawn(async move {
-        axum::serve(listener, router).await.unwrap();
-    });
-    (addr, task)
-}
-
-fn state(dir: &std::path::Path) -> AppState {
-    let s = AppState::new(ServerConfig { paths: vec![dir.to_path_buf()], ..ServerConfig::default() });
-    s.catalog.reload();
-    s
-}
+use common::{archives, start_nginx, state, write_zstd_archive};
+use support::serve;
 
 /// Every tile of every layer and LOD, read through `reader`, equals the mmap reader's.
 async fn same_tiles(reader: &AsyncReader<HttpSource>, local: &Reader<MmapSource>) -> usize {
@@ -56,7 +43,7 @@ async fn same_tiles(reader: &AsyncReader<HttpSource>, local: &Reader<MmapSource>
 async fn same_tiles_from_our_server_and_nginx_with_one_request_to_open() {
     let (dir, path) = archives();
     let local = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
-    let (addr, _task) = serve_router(app(state(dir.path()))).await;
+    let (addr, _task) = serve(app(state(dir.path())), "127.0.0.1:0").await;
     let mut urls = vec![format!("http://{addr}/sample.tspack")];
     // nginx with the shipped static-hosting config (deploy/nginx), on a test port and root.
     let shipped =
@@ -110,7 +97,7 @@ async fn same_tiles_from_our_server_and_nginx_with_one_request_to_open() {
 async fn a_replaced_archive_is_detected_not_mixed() {
     let (dir, _) = archives();
     let s = state(dir.path());
-    let (addr, _task) = serve_router(app(s.clone())).await;
+    let (addr, _task) = serve(app(s.clone()), "127.0.0.1:0").await;
     let reader = AsyncReader::new(HttpSource::new(&format!("http://{addr}/sample.tspack")).unwrap()).await.unwrap();
     assert!(reader.tile(TileKey::new(0, 0, 7, 5).unwrap()).await.unwrap().is_some());
     // A new version published by rename (here: same bytes, a new file: a new ETag).
@@ -153,7 +140,7 @@ async fn failures_are_retried_with_backoff() {
             response
         }
     }));
-    let (addr, _task) = serve_router(flaky).await;
+    let (addr, _task) = serve(flaky, "127.0.0.1:0").await;
     let policy = RetryPolicy { attempts: 6, first_backoff: Duration::from_millis(1), ..RetryPolicy::default() };
     let source =
         HttpSource::with_client(reqwest::Client::new(), &format!("http://{addr}/sample.tspack"), policy).unwrap();

@@ -7,6 +7,10 @@
 
 #[path = "../../server/tests/common/mod.rs"]
 mod common;
+mod support;
+
+use common::state;
+use support::serve;
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -25,7 +29,7 @@ use terrastream_client::{
 };
 use terrastream_packer::sample::{LabelledSpec, label_colour, label_height, write_labelled_archive};
 use terrastream_packer::{AsyncRangeSource, MemorySource, Metadata, Reader, TileKey};
-use terrastream_server::{AppState, ServerConfig, app};
+use terrastream_server::app;
 
 const BUDGET: UploadBudget = UploadBudget { max_tiles: 6, max_bytes: 5 * 1024 };
 
@@ -130,7 +134,7 @@ fn check_tile(meta: &Metadata, key: TileKey, tile: &DecodedTile, version: u8) {
         }
         TileData::Heights { .. } => {
             let layer = &meta.layers[usize::from(key.layer())];
-            let size = layer.tile_world_size * f64::from(1u32 << key.lod());
+            let size = layer.world_size_at(key.lod());
             let step = size / f64::from(layer.tile_resolution);
             let want =
                 label_height(f64::from(key.x()) * size + step / 2.0, f64::from(key.y()) * size + step / 2.0, version);
@@ -222,18 +226,6 @@ fn requests_the_camera_no_longer_needs_are_cancelled() {
     assert!(stats.cancelled >= 1, "requests for the far corner were cancelled: {stats:?}");
     assert!(stats.in_flight < 4, "{stats:?}");
     gpu.settle(&mut s, &a);
-}
-
-async fn serve(router: axum::Router, addr: &str) -> (std::net::SocketAddr, tokio::task::JoinHandle<()>) {
-    let listener = tokio::net::TcpListener::bind(addr).await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    (addr, tokio::spawn(async move { axum::serve(listener, router).await.unwrap() }))
-}
-
-fn state(dir: &Path) -> AppState {
-    let s = AppState::new(ServerConfig { paths: vec![dir.to_path_buf()], ..ServerConfig::default() });
-    s.catalog.reload();
-    s
 }
 
 /// Flies a short path, waiting at each stop until streamed; returns every tile shown.

@@ -199,6 +199,17 @@ impl Layer {
         (shrink(self.num_x_tiles), shrink(self.num_y_tiles))
     }
 
+    /// World units across one tile at `lod` (`tile_world_size` doubled per LOD).
+    pub fn world_size_at(&self, lod: u8) -> f64 {
+        self.tile_world_size * f64::from(1u32 << lod.min(31))
+    }
+
+    /// Every tile of the grid at `lod`, row by row, as keys of layer `index`.
+    pub fn tiles_at(&self, index: u8, lod: u8) -> impl Iterator<Item = TileKey> + use<> {
+        let (nx, ny) = self.grid_at(lod);
+        (0..ny).flat_map(move |y| (0..nx).filter_map(move |x| TileKey::new(index, lod, x, y).ok()))
+    }
+
     /// Is (lod, x, y) inside this layer's grid?
     pub fn contains(&self, key: TileKey) -> bool {
         let (nx, ny) = self.grid_at(key.lod());

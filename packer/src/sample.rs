@@ -239,7 +239,6 @@ pub fn label_height(x: f64, z: f64, version: u8) -> f64 {
 /// Writer and I/O errors.
 #[cfg(feature = "write")]
 pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<crate::WriteSummary> {
-    use crate::key::TileKey;
     use crate::metadata::{
         ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
     };
@@ -278,18 +277,12 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<crate:
     metadata.terrain.elevation_range = hi - lo;
     metadata.terrain.base_tile_size = metadata.layers[1].tile_world_size / f64::from(spec.elevation_res);
     let mut tiles = Vec::new();
-    for (index, layer) in metadata.layers.iter().enumerate() {
-        for lod in 0..layer.num_lods {
-            let (nx, ny) = layer.grid_at(lod);
-            for y in 0..ny {
-                for x in 0..nx {
-                    if index == 0 && spec.sparse_from.is_some_and(|s| u64::from(x) << lod >= u64::from(s)) {
-                        continue;
-                    }
-                    let key = TileKey::new(u8::try_from(index).unwrap_or(0), lod, x, y)?;
-                    tiles.push((crate::Writer::order_key(&metadata, key)?, key));
-                }
+    for (index, layer) in (0u8..).zip(&metadata.layers) {
+        for key in (0..layer.num_lods).flat_map(|lod| layer.tiles_at(index, lod)) {
+            if index == 0 && spec.sparse_from.is_some_and(|s| u64::from(key.x()) << key.lod() >= u64::from(s)) {
+                continue;
             }
+            tiles.push((crate::Writer::order_key(&metadata, key)?, key));
         }
     }
     tiles.sort_unstable();
@@ -307,7 +300,7 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<crate:
             encoder.write_header().map_err(fail)?.write_image_data(&pixels).map_err(fail)?;
             png_bytes
         } else {
-            let size = layer.tile_world_size * f64::from(1u32 << key.lod());
+            let size = layer.world_size_at(key.lod());
             let step = size / f64::from(res);
             let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
             let mut raw = Vec::with_capacity((res * res * 4) as usize);

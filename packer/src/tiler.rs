@@ -293,18 +293,14 @@ pub fn tile_elevation(
         let next = levels[levels.len() - 1].halve();
         levels.push(next);
     }
-    let total: u64 = (0..layer.num_lods).map(|l| u64::from(layer.grid_at(l).0) * u64::from(layer.grid_at(l).1)).sum();
+    let total = layer.grid_tiles();
     progress.start("tile", total);
     let border = i64::from(options.border);
     let mut tiles: Vec<(u64, TileKey, Vec<u8>)> = Vec::new();
     for (lod, level) in levels.iter().enumerate() {
         let lod = u8::try_from(lod).map_err(|_| Error::Writer("too many levels".into()))?;
         progress.check()?;
-        let (gx, gy) = layer.grid_at(lod);
-        let keys: Vec<TileKey> = (0..gy)
-            .flat_map(|y| (0..gx).map(move |x| (x, y)))
-            .filter_map(|(x, y)| TileKey::new(0, lod, x, y).ok())
-            .collect();
+        let keys: Vec<TileKey> = layer.tiles_at(0, lod).collect();
         let encoded: Vec<Option<(u64, TileKey, Vec<u8>)>> = keys
             .par_iter()
             .map(|&key| {

@@ -72,7 +72,7 @@ impl RangeSource for AnySource {
 /// `Error::File` for a path that cannot be mapped, `Error::Source` for a URL that cannot
 /// be read.
 pub fn open_source(location: &str) -> Result<AnySource> {
-    if location.starts_with("http://") || location.starts_with("https://") {
+    if super::is_http_url(location) {
         return Ok(AnySource::Http(Box::new(BlockingSource::new(HttpSource::new(location)?)?)));
     }
     MmapSource::open(location).map(AnySource::Mmap)

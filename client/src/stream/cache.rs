@@ -35,6 +35,11 @@ impl TileCache {
         Self { budget, bytes: 0, clock: 0, slots: HashMap::new(), order: BTreeMap::new() }
     }
 
+    /// Changes the budget (takes effect at the next [`Self::trim`]).
+    pub fn set_budget(&mut self, budget: usize) {
+        self.budget = budget;
+    }
+
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         self.bytes

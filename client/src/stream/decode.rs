@@ -102,18 +102,19 @@ pub fn decode(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> 
                     samples * width
                 )));
             }
-            let raw: Vec<f64> = if width == 2 {
-                bytes.chunks_exact(2).map(|c| f64::from(u16::from_le_bytes([c[0], c[1]]))).collect()
-            } else {
-                bytes.chunks_exact(4).map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]]))).collect()
-            };
             let encoding = layer.elevation.unwrap_or(ElevationEncoding {
                 scheme: if width == 2 { ElevationScheme::QuantizedU16 } else { ElevationScheme::Float32 },
                 scale: 1.0,
                 offset: 0.0,
                 nodata: None,
             });
-            tile(heights(&encoding, raw.into_iter()))
+            // Samples straight from the payload, no intermediate copy.
+            let chunks = bytes.chunks_exact(width);
+            tile(if width == 2 {
+                heights(&encoding, chunks.map(|c| f64::from(u16::from_le_bytes([c[0], c[1]]))))
+            } else {
+                heights(&encoding, chunks.map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]]))))
+            })
         }
         TileFormat::Png | TileFormat::Jpeg | TileFormat::Webp => {
             let image = decode_image(layer.format, bytes).map_err(bad)?;

@@ -13,6 +13,7 @@ use reqwest::StatusCode;
 use terrastream_packer::{AsyncRangeSource, AsyncReader, Error, MaybeSend, MaybeSync, Metadata, Result, TileKey};
 
 use crate::source::http::HttpSource;
+use crate::source::is_http_url;
 
 /// A boxed future, `Send` on native targets.
 #[cfg(not(target_arch = "wasm32"))]
@@ -91,7 +92,7 @@ impl EndpointSource {
     /// # Errors
     /// [`Error::Source`] for a URL that is not http(s).
     pub fn new(base: &str) -> Result<Self> {
-        if !(base.starts_with("http://") || base.starts_with("https://")) {
+        if !is_http_url(base) {
             return Err(Error::Source { offset: 0, len: 0, reason: format!("{base}: only http and https URLs") });
         }
         let client = reqwest::Client::builder().build().map_err(|e| Error::Source {
@@ -234,7 +235,7 @@ impl Origin {
     /// # Errors
     /// [`Error::File`] for a file that cannot be mapped; [`Error::Source`] for a bad URL.
     pub fn parse(location: &str) -> Result<Self> {
-        if location.starts_with("http://") || location.starts_with("https://") {
+        if is_http_url(location) {
             let path = location.split(['?', '#']).next().unwrap_or(location);
             return if path.ends_with(".tspack") {
                 Ok(Self::archive(HttpSource::new(location)?))

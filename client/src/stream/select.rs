@@ -62,14 +62,9 @@ impl Want {
 
 /// World-space box of a tile: `(x, z)` from the grid, `y` over the given height range.
 pub fn tile_box(layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
-    let size = tile_world_size(layer, key.lod());
+    let size = layer.world_size_at(key.lod());
     let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
     Aabb { min: DVec3::new(x0, heights.0, z0), max: DVec3::new(x0 + size, heights.1, z0 + size) }
-}
-
-/// World units across one tile of `layer` at `lod`.
-pub fn tile_world_size(layer: &Layer, lod: u8) -> f64 {
-    layer.tile_world_size * f64::from(1u32 << lod.min(31))
 }
 
 /// The wanted tiles of every layer, most urgent first.
@@ -94,15 +89,7 @@ pub fn select(
     let mut level: Vec<TileKey> = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {
         let Ok(index) = u8::try_from(index) else { continue };
-        let top = layer.num_lods.saturating_sub(1);
-        let (nx, ny) = layer.grid_at(top);
-        for y in 0..ny {
-            for x in 0..nx {
-                if let Ok(key) = TileKey::new(index, top, x, y) {
-                    level.push(key);
-                }
-            }
-        }
+        level.extend(layer.tiles_at(index, layer.num_lods.saturating_sub(1)));
     }
     // Tiles already wanted or queued: refinement stops when four more would pass the cap.
     let mut accounted = level.len();
@@ -113,7 +100,7 @@ pub fn select(
             let bounds = tile_box(layer, key, heights);
             let distance = bounds.distance(camera.position);
             let in_view = frustum.intersects(&bounds);
-            let size = tile_world_size(layer, key.lod());
+            let size = layer.world_size_at(key.lod());
             let texel = size / f64::from(layer.tile_resolution);
             let projected = texel * pixels_per_radian / distance.max(1e-9);
             let refine = key.lod() > 0
@@ -183,10 +170,7 @@ mod tests {
         }
         // Tiles behind the camera are not refined.
         assert!(
-            wants
-                .iter()
-                .filter(|w| !w.in_view)
-                .all(|w| w.leaf || w.distance < tile_world_size(&m.layers[0], w.key.lod()))
+            wants.iter().filter(|w| !w.in_view).all(|w| w.leaf || w.distance < m.layers[0].world_size_at(w.key.lod()))
         );
     }
 

@@ -21,7 +21,7 @@ use super::cache::TileCache;
 use super::camera::Camera;
 use super::decode::{DecodedTile, decode};
 use super::origin::{Backend, Origin};
-use super::select::{SelectOptions, Want, select, tile_world_size};
+use super::select::{SelectOptions, Want, select};
 
 /// Settings of a [`Streamer`].
 #[derive(Clone, Debug, PartialEq)]
@@ -178,13 +178,13 @@ pub struct Streamer {
     runtime: tokio::runtime::Runtime,
     states: HashMap<TileKey, TileState>,
     requests: HashMap<u64, InFlight>,
-    leaf_requests: HashSet<u64>,
     leaf_failures: HashMap<u64, (u32, Instant)>,
     next_request: u64,
     cache: TileCache,
     delivered: HashSet<TileKey>,
     wanted: Vec<Want>,
-    wanted_rank: HashMap<TileKey, usize>,
+    /// The keys of `wanted`: what the cache keeps and what requests are still for.
+    wanted_keys: HashSet<TileKey>,
     host_version: u64,
     stats: StreamStats,
     last_error: Option<String>,
@@ -228,12 +228,11 @@ impl Streamer {
             runtime,
             states: HashMap::new(),
             requests: HashMap::new(),
-            leaf_requests: HashSet::new(),
             leaf_failures: HashMap::new(),
             next_request: 0,
             delivered: HashSet::new(),
             wanted: Vec::new(),
-            wanted_rank: HashMap::new(),
+            wanted_keys: HashSet::new(),
             host_version: 0,
             stats: StreamStats::default(),
             last_error: None,
@@ -283,17 +282,8 @@ impl Streamer {
     /// Changes the settings that can change while streaming (in-flight cap, coalescing,
     /// selection, cache budget).
     pub fn set_options(&mut self, options: StreamOptions) {
-        self.cache = {
-            let mut cache = TileCache::new(options.cache_bytes);
-            std::mem::swap(&mut cache, &mut self.cache);
-            let mut fresh = TileCache::new(options.cache_bytes);
-            for key in self.wanted.iter().map(|w| w.key) {
-                if let Some(t) = cache.peek(key) {
-                    fresh.insert(t.clone());
-                }
-            }
-            fresh
-        };
+        self.cache.set_budget(options.cache_bytes);
+        self.cache.trim(&self.wanted_keys);
         self.options = options;
     }
 
@@ -361,7 +351,7 @@ impl Streamer {
         let states = &self.states;
         self.wanted =
             select(metadata, camera, &self.options.select, |k| !matches!(states.get(&k), Some(TileState::Missing)));
-        self.wanted_rank = self.wanted.iter().enumerate().map(|(i, w)| (w.key, i)).collect();
+        self.wanted_keys = self.wanted.iter().map(|w| w.key).collect();
         for w in &self.wanted {
             if self.cache.touch(w.key) {
                 self.stats.hits += 1;
@@ -369,8 +359,7 @@ impl Streamer {
         }
         self.cancel_unwanted();
         self.issue(now);
-        let pinned: HashSet<TileKey> = self.wanted.iter().map(|w| w.key).collect();
-        self.cache.trim(&pinned);
+        self.cache.trim(&self.wanted_keys);
     }
 
     /// Ready tiles for this frame, most urgent first, within `budget`; a tile is never
@@ -462,14 +451,10 @@ impl Streamer {
                     self.stats.bytes_fetched += bytes;
                     self.stats.bytes_needed += needed;
                     for (key, outcome) in results {
-                        let requested_here =
-                            matches!(self.states.get(&key), Some(TileState::Requested(r)) if *r == request);
                         match outcome {
                             Outcome::Ready(tile) => {
                                 self.stats.tiles_fetched += 1;
-                                if requested_here || !self.states.contains_key(&key) {
-                                    self.states.remove(&key);
-                                }
+                                self.states.remove(&key);
                                 self.cache.insert(tile);
                             }
                             Outcome::Missing => {
@@ -495,7 +480,6 @@ impl Streamer {
                         continue;
                     }
                     self.requests.remove(&request);
-                    self.leaf_requests.remove(&offset);
                     self.stats.bytes_fetched += bytes;
                     if let Some(why) = failure {
                         self.stats.failures += 1;
@@ -522,13 +506,12 @@ impl Streamer {
         for (_, r) in self.requests.drain() {
             r.abort.abort();
         }
-        self.leaf_requests.clear();
         self.leaf_failures.clear();
         self.states.clear();
         self.cache.clear();
         self.delivered.clear();
         self.wanted.clear();
-        self.wanted_rank.clear();
+        self.wanted_keys.clear();
         self.backend = None;
         self.stats.reloads += 1;
         self.last_error = Some(format!("archive replaced: {what}"));
@@ -538,11 +521,11 @@ impl Streamer {
     }
 
     fn cancel_unwanted(&mut self) {
-        let wanted = &self.wanted_rank;
+        let wanted = &self.wanted_keys;
         let stale: Vec<u64> = self
             .requests
             .iter()
-            .filter(|(_, r)| r.leaf.is_none() && !r.tiles.iter().any(|k| wanted.contains_key(k)))
+            .filter(|(_, r)| r.leaf.is_none() && !r.tiles.iter().any(|k| wanted.contains(k)))
             .map(|(&id, _)| id)
             .collect();
         for id in stale {
@@ -586,7 +569,8 @@ impl Streamer {
                     }
                     Ok(Locate::NeedLeaf { offset, len }) => {
                         let waiting = self.leaf_failures.get(&offset).is_some_and(|f| f.1 > now);
-                        if free > 0 && !waiting && self.leaf_requests.insert(offset) {
+                        let fetching = self.requests.values().any(|r| r.leaf == Some(offset));
+                        if free > 0 && !waiting && !fetching {
                             free -= 1;
                             self.fetch_leaf(reader.clone(), offset, len);
                         }
@@ -657,25 +641,12 @@ impl Streamer {
         let (queue, generation) = (self.queue.clone(), self.generation);
         self.spawn(async move {
             let work = async {
-                match reader.source().fetch(offset, len).await {
-                    Ok(bytes) => {
-                        let n = bytes.len() as u64;
-                        match reader.archive().add_leaf(offset, &bytes) {
-                            Ok(_) => Completion::Leaf { request: id, generation, offset, failure: None, bytes: n },
-                            Err(e) => Completion::Leaf {
-                                request: id,
-                                generation,
-                                offset,
-                                failure: Some(e.to_string()),
-                                bytes: n,
-                            },
-                        }
-                    }
-                    Err(Error::Changed { what }) => Completion::Changed { generation, what },
-                    Err(e) => {
-                        Completion::Leaf { request: id, generation, offset, failure: Some(e.to_string()), bytes: 0 }
-                    }
-                }
+                let (failure, bytes) = match reader.source().fetch(offset, len).await {
+                    Ok(bytes) => (reader.archive().add_leaf(offset, &bytes).err().map(|e| e.to_string()), bytes.len()),
+                    Err(Error::Changed { what }) => return Completion::Changed { generation, what },
+                    Err(e) => (Some(e.to_string()), 0),
+                };
+                Completion::Leaf { request: id, generation, offset, failure, bytes: bytes as u64 }
             };
             if let Ok(c) = Abortable::new(work, registration).await {
                 queue.push(c);
@@ -714,7 +685,7 @@ impl Streamer {
     pub fn normal_at(&self, x: f64, z: f64) -> Option<[f64; 3]> {
         let (layer, lod) = self.best_elevation(x, z)?;
         let info = &self.metadata()?.layers[usize::from(layer)];
-        let h = tile_world_size(info, lod) / f64::from(info.tile_resolution);
+        let h = info.world_size_at(lod) / f64::from(info.tile_resolution);
         let at = |dx: f64, dz: f64| self.sample_height(layer, lod, x + dx, z + dz);
         let (l, r, u, d) = (at(-h, 0.0)?, at(h, 0.0)?, at(0.0, -h)?, at(0.0, h)?);
         let n = glam::DVec3::new(-(r - l) / (2.0 * h), 1.0, -(d - u) / (2.0 * h)).normalize();
@@ -752,14 +723,14 @@ impl Streamer {
             return Err(Error::InvalidTile { what: format!("({x}, {z}) is outside layer {:?}", info.name) });
         }
         for key in keys {
-            let group = Group { rank: 0, tiles: vec![(key, None)] };
-            let group = match &backend {
+            let location = match &backend {
                 Backend::Archive(reader) => match self.runtime.block_on(reader.locate(key))? {
-                    Some(location) => Group { rank: 0, tiles: vec![(key, Some(location))] },
+                    Some(location) => Some(location),
                     None => continue,
                 },
-                _ => group,
+                Backend::Endpoint(..) | Backend::Host(_) => None,
             };
+            let group = Group { rank: 0, tiles: vec![(key, location)] };
             let completion = self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation));
             match completion {
                 Completion::Tiles { results, .. } => {
@@ -794,7 +765,7 @@ impl Streamer {
         let metadata = self.metadata()?;
         let info = &metadata.layers[usize::from(layer)];
         let res = info.tile_resolution;
-        let spacing = tile_world_size(info, lod) / f64::from(res);
+        let spacing = info.world_size_at(lod) / f64::from(res);
         let (nx, ny) = info.grid_at(lod);
         let home = tile_at(metadata, layer, lod, x, z)?;
         let (gx, gz) = (x / spacing - 0.5, z / spacing - 0.5);
@@ -863,7 +834,7 @@ fn elevation_layer(metadata: &Metadata) -> Option<u8> {
 /// The tile of `layer` at `lod` holding ground point `(x, z)`.
 fn tile_at(metadata: &Metadata, layer: u8, lod: u8, x: f64, z: f64) -> Option<TileKey> {
     let info = metadata.layers.get(usize::from(layer))?;
-    let size = tile_world_size(info, lod);
+    let size = info.world_size_at(lod);
     let (tx, tz) = ((x / size).floor(), (z / size).floor());
     let (nx, ny) = info.grid_at(lod);
     if !(tx >= 0.0 && tz >= 0.0 && tx < f64::from(nx) && tz < f64::from(ny)) {
