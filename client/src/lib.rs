@@ -3,6 +3,8 @@
 //! turns a camera into a per-frame stream of decoded tiles.
 #![forbid(unsafe_code)]
 
+#[cfg(feature = "render")]
+pub mod render;
 mod source;
 pub mod stream;
 

@@ -32,7 +32,7 @@ impl Entry {
     /// Does this entry address `key`?
     pub fn covers(&self, key: u64) -> bool {
         let step = MAX_LAYERS as u64;
-        key >= self.key && (key - self.key) % step == 0 && (key - self.key) / step < u64::from(self.run_length)
+        key >= self.key && (key - self.key).is_multiple_of(step) && (key - self.key) / step < u64::from(self.run_length)
     }
 
     /// Last key addressed by this entry.

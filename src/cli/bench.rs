@@ -70,7 +70,7 @@ fn write_pyramid(dir: &Path, grid: u32, tile_bytes: usize) -> Result<(u64, u64)>
         std::fs::create_dir_all(&folder)?;
         for y in 0..n {
             for x in 0..n {
-                let payload = if rng.next() % 10 == 0 {
+                let payload = if rng.next().is_multiple_of(10) {
                     blank.clone()
                 } else {
                     let len = tile_bytes / 2 + usize::try_from(rng.next() % tile_bytes as u64)?;

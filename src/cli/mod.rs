@@ -6,6 +6,7 @@ mod demo;
 mod info;
 mod pack;
 mod progress;
+mod render;
 mod serve;
 
 use std::path::PathBuf;
@@ -110,6 +111,8 @@ enum Command {
         #[arg(long, default_value_t = 3)]
         timeout: u64,
     },
+    /// Render one view of an archive (path or URL) to a PNG, headless.
+    Render(render::RenderArgs),
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
     /// Benchmarks that print numbers.
@@ -221,6 +224,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Demo(args) => demo::run(args, &progress),
+        Command::Render(args) => render::run(args),
         Command::Tile { elevation, output, tile_size, border, storage } => {
             use terrastream_packer::tiler::{ElevationStorage, TileOptions, read_geotiff, tile_elevation};
             let raster = read_geotiff(&elevation)?;

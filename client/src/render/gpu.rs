@@ -1,0 +1,201 @@
+//! A device without a window, an offscreen target, and reading pixels back.
+
+use std::fmt;
+
+use super::renderer::DEPTH_FORMAT;
+
+/// Colour format of offscreen targets (sRGB, so shaders work in linear light).
+pub const OFFSCREEN_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
+
+/// Why no GPU could be used.
+#[derive(Debug)]
+pub struct GpuError(pub String);
+
+impl fmt::Display for GpuError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for GpuError {}
+
+/// An adapter's device and queue.
+#[derive(Debug)]
+pub struct Gpu {
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+    /// Which adapter and backend (a software rasterizer counts: device type `Cpu`).
+    pub info: wgpu::AdapterInfo,
+}
+
+impl Gpu {
+    /// A device on the first adapter `WGPU_BACKEND` allows (Vulkan first, then GL),
+    /// software rasterizers included.
+    ///
+    /// # Errors
+    /// When no adapter or device is available.
+    pub async fn new(instance: &wgpu::Instance, surface: Option<&wgpu::Surface<'_>>) -> Result<Self, GpuError> {
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                force_fallback_adapter: false,
+                compatible_surface: surface,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError(format!("no graphics adapter: {e}")))?;
+        let info = adapter.get_info();
+        let features = adapter.features() & wgpu::Features::TEXTURE_COMPRESSION_BC;
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("device.terrastream"),
+                required_features: features,
+                required_limits: adapter.limits(),
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError(format!("adapter {} ({:?}) refused a device: {e}", info.name, info.backend)))?;
+        Ok(Self { device, queue, info })
+    }
+
+    /// A device without a window (blocking).
+    ///
+    /// # Errors
+    /// When no adapter or device is available.
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn headless() -> Result<Self, GpuError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        pollster::block_on(Self::new(&instance, None))
+    }
+
+    /// "name (backend, device type)".
+    pub fn describe(&self) -> String {
+        format!("{} ({:?}, {:?})", self.info.name, self.info.backend, self.info.device_type)
+    }
+}
+
+/// A colour and depth target that can be read back.
+#[derive(Debug)]
+pub struct Offscreen {
+    colour: wgpu::Texture,
+    depth: wgpu::Texture,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+}
+
+impl Offscreen {
+    /// A `width` x `height` target.
+    pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+        let target = |label, format, usage| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let colour = target(
+            "texture.offscreen.colour",
+            OFFSCREEN_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        );
+        let depth = target("texture.offscreen.depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT);
+        Self { colour, depth, width, height }
+    }
+
+    /// View of the colour target.
+    pub fn colour_view(&self) -> wgpu::TextureView {
+        self.colour.create_view(&wgpu::TextureViewDescriptor::default())
+    }
+
+    /// View of the depth target.
+    pub fn depth_view(&self) -> wgpu::TextureView {
+        self.depth.create_view(&wgpu::TextureViewDescriptor::default())
+    }
+
+    /// The colour target's pixels, RGBA8 rows top to bottom (blocks until the GPU is done).
+    ///
+    /// # Errors
+    /// When the GPU cannot map the read-back buffer.
+    pub fn read_rgba(&self, device: &wgpu::Device, queue: &wgpu::Queue) -> Result<Vec<u8>, GpuError> {
+        let row = self.width * 4;
+        let padded = row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("buffer.offscreen.readback"),
+            size: u64::from(padded) * u64::from(self.height),
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        let mut encoder = device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("encoder.offscreen.readback") });
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.colour,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &buffer,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(padded),
+                    rows_per_image: Some(self.height),
+                },
+            },
+            wgpu::Extent3d { width: self.width, height: self.height, depth_or_array_layers: 1 },
+        );
+        queue.submit([encoder.finish()]);
+        let slice = buffer.slice(..);
+        slice.map_async(wgpu::MapMode::Read, |_| {});
+        device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError(format!("waiting for the GPU: {e}")))?;
+        let mapped = slice.get_mapped_range().map_err(|e| GpuError(format!("reading the frame back: {e}")))?;
+        let mut out = Vec::with_capacity((row * self.height) as usize);
+        for r in 0..self.height as usize {
+            let start = r * padded as usize;
+            out.extend_from_slice(&mapped[start..start + row as usize]);
+        }
+        Ok(out)
+    }
+}
+
+/// Records one pass drawing `draw` into `colour` and `depth`, cleared to `clear`.
+pub fn render_pass(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    colour: &wgpu::TextureView,
+    depth: &wgpu::TextureView,
+    clear: wgpu::Color,
+    draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
+) {
+    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("encoder.frame") });
+    {
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("pass.terrain"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: colour,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: depth,
+                depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        draw(&mut pass);
+    }
+    queue.submit([encoder.finish()]);
+}

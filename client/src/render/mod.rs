@@ -1,0 +1,11 @@
+//! The wgpu renderer: a CDLOD mesh morphing between levels, heights read in the vertex
+//! shader from GPU-resident elevation tiles, every texture LOD blended in one pass, tiles
+//! found through a page table; offscreen targets for headless rendering.
+
+pub mod gpu;
+pub mod mesh;
+pub mod renderer;
+pub mod residency;
+pub mod session;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod still;

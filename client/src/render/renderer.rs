@@ -1,0 +1,795 @@
+//! The wgpu terrain renderer. It never owns a window or a device: `new(&Device, ..)`,
+//! `upload` (within the streaming core's per-frame budget), `prepare(camera)`, `draw(pass)`.
+
+use std::collections::HashSet;
+
+use bytemuck::{Pod, Zeroable};
+use glam::{DMat4, DVec3, Mat4};
+use terrastream_packer::{Layer, LayerKind, Metadata, TileFormat, TileKey};
+use wgpu::util::DeviceExt;
+
+use super::mesh::{MAX_LEVELS, MeshParams, Node, PatchMesh, Scene, select_nodes};
+use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable, Residency};
+use crate::stream::camera::Camera;
+use crate::stream::decode::TileData;
+use crate::stream::streamer::Upload;
+
+/// The shader source.
+pub const TERRAIN_WGSL: &str = include_str!("../../../shaders/terrain.wgsl");
+
+/// Depth buffer format (reversed depth: 1 near, 0 at infinity).
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+const NODATA: f32 = -1.0e30;
+
+/// How the terrain is shaded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Shading {
+    /// Textured (or height-tinted), sunlit, hazy.
+    #[default]
+    Lit,
+    /// Plain white, no light, no haze (coverage and crack checks).
+    Flat,
+}
+
+/// Renderer settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// GPU slots for elevation tiles (one texture-array layer each).
+    pub elevation_slots: u32,
+    /// GPU slots for texture tiles.
+    pub texture_slots: u32,
+    /// Quads per patch edge.
+    pub patch: u32,
+    /// Shading.
+    pub shading: Shading,
+    /// Overlay the mesh's edges.
+    pub wireframe: bool,
+    /// Tint each mesh level.
+    pub lod_colours: bool,
+    /// Detail texture strength (0: off).
+    pub detail: f32,
+    /// Direction towards the sun (world axes).
+    pub sun: DVec3,
+    /// Haze density per world unit; `None`: from the terrain's size.
+    pub fog_density: Option<f64>,
+    /// Haze and sky colour (sRGB).
+    pub sky: [f32; 3],
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        Self {
+            elevation_slots: 512,
+            texture_slots: 512,
+            patch: 32,
+            shading: Shading::Lit,
+            wireframe: false,
+            lod_colours: false,
+            detail: 0.0,
+            sun: DVec3::new(-0.5, 0.6, -0.4),
+            fog_density: None,
+            sky: [0.62, 0.72, 0.84],
+        }
+    }
+}
+
+impl RenderSettings {
+    /// The background colour a pass should clear to.
+    pub fn clear_colour(&self) -> wgpu::Color {
+        match self.shading {
+            Shading::Flat => wgpu::Color::BLACK,
+            Shading::Lit => {
+                let [r, g, b] = self.sky.map(|c| f64::from(srgb_to_linear(c)));
+                wgpu::Color { r, g, b, a: 1.0 }
+            }
+        }
+    }
+}
+
+fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+}
+
+/// What one frame drew.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FrameStats {
+    /// Patches drawn.
+    pub patches: u32,
+    /// Vertices submitted.
+    pub vertices: u64,
+    /// Triangles submitted.
+    pub triangles: u64,
+    /// Draw calls.
+    pub draw_calls: u32,
+    /// Mesh levels in view (finest, coarsest).
+    pub levels: (u32, u32),
+    /// Resident elevation and texture tiles.
+    pub resident: (u32, u32),
+    /// GPU memory of the tile arrays and page table, bytes.
+    pub gpu_bytes: u64,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct LodInfo {
+    tile: [i32; 4],
+    frac: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Globals {
+    view_proj: [[f32; 4]; 4],
+    camera: [f32; 4],
+    sun: [f32; 4],
+    fog: [f32; 4],
+    terrain: [f32; 4],
+    elev: [f32; 4],
+    tex: [f32; 4],
+    counts: [u32; 4],
+    mode: [u32; 4],
+    lod: [f32; 4],
+    ranges: [[f32; 4]; 32],
+    elev_lods: [LodInfo; 32],
+    tex_lods: [LodInfo; 32],
+}
+
+/// One layer's texture array and its residency.
+struct TileArray {
+    layer: Layer,
+    index: u8,
+    kind: u32,
+    texture: wgpu::Texture,
+    format: wgpu::TextureFormat,
+    edge: u32,
+    residency: Residency,
+    bytes: u64,
+}
+
+impl TileArray {
+    fn new(device: &wgpu::Device, index: u8, layer: &Layer, kind: u32, slots: u32, bc: bool) -> Option<Self> {
+        let edge = layer.tile_resolution + 2 * u32::from(layer.border);
+        let (format, texel_bytes) = match (kind, layer.format) {
+            (KIND_ELEVATION, _) => (wgpu::TextureFormat::R32Float, 4.0),
+            (_, TileFormat::Bc1) if bc => (wgpu::TextureFormat::Bc1RgbaUnormSrgb, 0.5),
+            (_, TileFormat::Bc7) if bc => (wgpu::TextureFormat::Bc7RgbaUnormSrgb, 1.0),
+            (_, TileFormat::Bc1 | TileFormat::Bc7) => {
+                tracing::warn!(layer = %layer.name, "the adapter has no BC texture support: layer not drawn");
+                return None;
+            }
+            _ => (wgpu::TextureFormat::Rgba8UnormSrgb, 4.0),
+        };
+        let max_layers = device.limits().max_texture_array_layers;
+        let slots = slots.clamp(1, max_layers);
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(if kind == KIND_ELEVATION { "texture.tiles.elevation" } else { "texture.tiles.colour" }),
+            size: wgpu::Extent3d { width: edge, height: edge, depth_or_array_layers: slots },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let bytes = (f64::from(edge) * f64::from(edge) * texel_bytes * f64::from(slots)) as u64;
+        Some(Self { layer: layer.clone(), index, kind, texture, format, edge, residency: Residency::new(slots), bytes })
+    }
+
+    /// Writes a decoded tile into `slot`; false if its size or kind does not fit.
+    fn write(&self, queue: &wgpu::Queue, slot: u32, data: &TileData, size: u32) -> bool {
+        if size != self.edge {
+            return false;
+        }
+        let converted;
+        let (bytes, bytes_per_row, rows): (&[u8], u32, u32) = match (data, self.format) {
+            (TileData::Heights { heights, .. }, wgpu::TextureFormat::R32Float) => {
+                converted = heights.iter().map(|h| if h.is_finite() { *h } else { NODATA }).collect::<Vec<f32>>();
+                (bytemuck::cast_slice(&converted), size * 4, size)
+            }
+            (TileData::Rgba8(pixels), wgpu::TextureFormat::Rgba8UnormSrgb) => (pixels, size * 4, size),
+            (TileData::Compressed { format, blocks }, f) => {
+                let block_bytes = match (format, f) {
+                    (TileFormat::Bc1, wgpu::TextureFormat::Bc1RgbaUnormSrgb) => 8,
+                    (TileFormat::Bc7, wgpu::TextureFormat::Bc7RgbaUnormSrgb) => 16,
+                    _ => return false,
+                };
+                (blocks, size.div_ceil(4) * block_bytes, size.div_ceil(4))
+            }
+            _ => return false,
+        };
+        if bytes.len() < (bytes_per_row as usize) * (rows as usize) {
+            return false;
+        }
+        queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d { x: 0, y: 0, z: slot },
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytes,
+            wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(bytes_per_row), rows_per_image: Some(rows) },
+            wgpu::Extent3d { width: size, height: size, depth_or_array_layers: 1 },
+        );
+        true
+    }
+
+    fn shader_info(&self) -> [f32; 4] {
+        #[allow(clippy::cast_precision_loss)]
+        let spacing = self.layer.tile_world_size / f64::from(self.layer.tile_resolution);
+        #[allow(clippy::cast_possible_truncation)]
+        [self.layer.tile_resolution as f32, f32::from(self.layer.border), self.edge as f32, spacing as f32]
+    }
+
+    /// Per-LOD tile index and fraction of the anchor.
+    fn lods(&self, anchor: (f64, f64)) -> [LodInfo; 32] {
+        let mut out = [LodInfo::zeroed(); 32];
+        for (lod, info) in out.iter_mut().enumerate().take(usize::from(self.layer.num_lods)) {
+            let size = self.layer.world_size_at(u8::try_from(lod).unwrap_or(u8::MAX));
+            let (qx, qz) = (anchor.0 / size, anchor.1 / size);
+            #[allow(clippy::cast_possible_truncation)]
+            {
+                *info = LodInfo {
+                    tile: [qx.floor() as i32, qz.floor() as i32, 0, 0],
+                    frac: [(qx - qx.floor()) as f32, (qz - qz.floor()) as f32, (1.0 / size) as f32, size as f32],
+                };
+            }
+        }
+        out
+    }
+}
+
+/// Draws a streamed terrain.
+pub struct TerrainRenderer {
+    settings: RenderSettings,
+    metadata: Metadata,
+    elevation: Option<TileArray>,
+    texture: Option<TileArray>,
+    page_table: PageTable,
+    page_texture: wgpu::Texture,
+    page_dirty: bool,
+    globals: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    pipeline: wgpu::RenderPipeline,
+    vertices: wgpu::Buffer,
+    indices: wgpu::Buffer,
+    mesh: PatchMesh,
+    instances: wgpu::Buffer,
+    instance_capacity: u64,
+    full: u32,
+    quarter: u32,
+    frame: u64,
+    stats: FrameStats,
+    params: MeshParams,
+}
+
+impl std::fmt::Debug for TerrainRenderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TerrainRenderer").field("settings", &self.settings).field("stats", &self.stats).finish()
+    }
+}
+
+fn first_layer(metadata: &Metadata, kind: LayerKind) -> Option<(u8, &Layer)> {
+    metadata.layers.iter().enumerate().find(|(_, l)| l.kind == kind).and_then(|(i, l)| Some((u8::try_from(i).ok()?, l)))
+}
+
+impl TerrainRenderer {
+    /// A renderer for `metadata`'s first elevation and first texture layer, drawing into
+    /// targets of `colour_format` with a [`DEPTH_FORMAT`] depth buffer.
+    pub fn new(
+        device: &wgpu::Device,
+        metadata: &Metadata,
+        settings: RenderSettings,
+        colour_format: wgpu::TextureFormat,
+    ) -> Self {
+        let bc = device.features().contains(wgpu::Features::TEXTURE_COMPRESSION_BC);
+        let elevation = first_layer(metadata, LayerKind::Elevation)
+            .and_then(|(i, l)| TileArray::new(device, i, l, KIND_ELEVATION, settings.elevation_slots, bc));
+        let texture = first_layer(metadata, LayerKind::Texture)
+            .and_then(|(i, l)| TileArray::new(device, i, l, KIND_TEXTURE, settings.texture_slots, bc));
+        // Dummy 1x1 arrays stand in for a missing layer so that one pipeline serves all.
+        let dummy = |label, format| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width: 1, height: 1, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+        };
+        let array_view = |t: &wgpu::Texture| {
+            t.create_view(&wgpu::TextureViewDescriptor {
+                label: Some("view.tiles"),
+                dimension: Some(wgpu::TextureViewDimension::D2Array),
+                ..Default::default()
+            })
+        };
+        let elevation_view = match &elevation {
+            Some(a) => array_view(&a.texture),
+            None => array_view(&dummy("texture.tiles.elevation.none", wgpu::TextureFormat::R32Float)),
+        };
+        let colour_view = match &texture {
+            Some(a) => array_view(&a.texture),
+            None => array_view(&dummy("texture.tiles.colour.none", wgpu::TextureFormat::Rgba8UnormSrgb)),
+        };
+        let page_table = PageTable::new(settings.elevation_slots + settings.texture_slots);
+        let page_texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("texture.page_table"),
+            size: wgpu::Extent3d { width: page_table.width, height: page_table.height(), depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba32Uint,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        let globals = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("buffer.terrain.globals"),
+            size: size_of::<Globals>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("sampler.tiles.colour"),
+            address_mode_u: wgpu::AddressMode::ClampToEdge,
+            address_mode_v: wgpu::AddressMode::ClampToEdge,
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("layout.terrain"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+                texture_entry(1, wgpu::TextureSampleType::Uint, wgpu::TextureViewDimension::D2),
+                texture_entry(
+                    2,
+                    wgpu::TextureSampleType::Float { filterable: false },
+                    wgpu::TextureViewDimension::D2Array,
+                ),
+                texture_entry(
+                    3,
+                    wgpu::TextureSampleType::Float { filterable: true },
+                    wgpu::TextureViewDimension::D2Array,
+                ),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 4,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        });
+        let page_view = page_texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("bind_group.terrain"),
+            layout: &layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: globals.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&page_view) },
+                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::TextureView(&elevation_view) },
+                wgpu::BindGroupEntry { binding: 3, resource: wgpu::BindingResource::TextureView(&colour_view) },
+                wgpu::BindGroupEntry { binding: 4, resource: wgpu::BindingResource::Sampler(&sampler) },
+            ],
+        });
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("shader.terrain"),
+            source: wgpu::ShaderSource::Wgsl(TERRAIN_WGSL.into()),
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("pipeline_layout.terrain"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("pipeline.terrain"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs_main"),
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
+                buffers: &[
+                    Some(wgpu::VertexBufferLayout {
+                        array_stride: 8,
+                        step_mode: wgpu::VertexStepMode::Vertex,
+                        attributes: &wgpu::vertex_attr_array![0 => Float32x2],
+                    }),
+                    Some(wgpu::VertexBufferLayout {
+                        array_stride: 16,
+                        step_mode: wgpu::VertexStepMode::Instance,
+                        attributes: &wgpu::vertex_attr_array![1 => Float32x4],
+                    }),
+                ],
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleList,
+                cull_mode: None,
+                ..Default::default()
+            },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Greater),
+                stencil: wgpu::StencilState::default(),
+                bias: wgpu::DepthBiasState::default(),
+            }),
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs_main"),
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: colour_format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let mesh = PatchMesh::new(settings.patch);
+        let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("buffer.terrain.patch_vertices"),
+            contents: bytemuck::cast_slice(&mesh.vertices),
+            usage: wgpu::BufferUsages::VERTEX,
+        });
+        let indices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("buffer.terrain.patch_indices"),
+            contents: bytemuck::cast_slice(&mesh.indices),
+            usage: wgpu::BufferUsages::INDEX,
+        });
+        let instance_capacity = 1024;
+        let instances = instance_buffer(device, instance_capacity);
+        let terrain = &metadata.terrain;
+        let base = if terrain.base_tile_size > 0.0 {
+            terrain.base_tile_size
+        } else {
+            elevation.as_ref().map_or(1.0, |e| e.layer.tile_world_size / f64::from(e.layer.tile_resolution))
+        };
+        let params = MeshParams::new(base, settings.patch, terrain.high_detail_range, terrain.num_detail_levels);
+        Self {
+            settings,
+            metadata: metadata.clone(),
+            elevation,
+            texture,
+            page_table,
+            page_texture,
+            page_dirty: true,
+            globals,
+            bind_group,
+            pipeline,
+            vertices,
+            indices,
+            mesh,
+            instances,
+            instance_capacity,
+            full: 0,
+            quarter: 0,
+            frame: 0,
+            stats: FrameStats::default(),
+            params,
+        }
+    }
+
+    /// Settings in use.
+    pub fn settings(&self) -> &RenderSettings {
+        &self.settings
+    }
+
+    /// Changes the settings that need no new GPU resources (shading, overlays, sun, haze).
+    pub fn set_view_settings(&mut self, settings: RenderSettings) {
+        let (e, t, p) = (self.settings.elevation_slots, self.settings.texture_slots, self.settings.patch);
+        self.settings = RenderSettings { elevation_slots: e, texture_slots: t, patch: p, ..settings };
+    }
+
+    /// Mesh parameters in use.
+    pub fn mesh_params(&self) -> &MeshParams {
+        &self.params
+    }
+
+    /// What the last prepared frame draws.
+    pub fn stats(&self) -> FrameStats {
+        self.stats
+    }
+
+    /// Most tiles of one layer the GPU keeps: the streaming selection should want no more.
+    pub fn max_resident_tiles(&self) -> usize {
+        let slots = |a: &Option<TileArray>| a.as_ref().map_or(usize::MAX, |a| a.residency.capacity() as usize);
+        slots(&self.elevation).min(slots(&self.texture))
+    }
+
+    /// Drops every resident tile (the archive was replaced).
+    pub fn clear(&mut self) {
+        for array in [&mut self.elevation, &mut self.texture].into_iter().flatten() {
+            array.residency.clear();
+        }
+        self.page_dirty = true;
+    }
+
+    /// Is the tile on the GPU?
+    pub fn is_resident(&self, key: TileKey) -> bool {
+        [&self.elevation, &self.texture]
+            .into_iter()
+            .flatten()
+            .any(|a| a.index == key.layer() && a.residency.slot(key).is_some())
+    }
+
+    /// Uploads tiles handed over by the streaming core. Returns the tiles the GPU does
+    /// not keep (evicted to make room, or refused): hand them to
+    /// [`crate::Streamer::release`] so they are offered again when wanted.
+    pub fn upload(&mut self, queue: &wgpu::Queue, uploads: &[Upload]) -> Vec<TileKey> {
+        let mut dropped = Vec::new();
+        for upload in uploads {
+            let tile = &upload.tile;
+            let Some(array) =
+                [&mut self.elevation, &mut self.texture].into_iter().flatten().find(|a| a.index == tile.key.layer())
+            else {
+                continue;
+            };
+            let range = match &tile.data {
+                TileData::Heights { min, max, .. } if min <= max => Some((*min, *max)),
+                _ => None,
+            };
+            let Some(placement) = array.residency.insert(tile.key, self.frame, range) else {
+                dropped.push(tile.key);
+                continue;
+            };
+            dropped.extend(placement.evicted);
+            if !array.write(queue, placement.slot, &tile.data, tile.size) {
+                tracing::warn!(tile = %tile.key, size = tile.size, "tile does not fit its layer's GPU array: skipped");
+                array.residency.remove(tile.key);
+            }
+            self.page_dirty = true;
+        }
+        dropped
+    }
+
+    /// Chooses the patches for `camera`, marks `wanted` tiles as in use (they are not
+    /// evicted) and writes this frame's uniforms, instances and page table.
+    pub fn prepare(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        camera: &Camera,
+        wanted: impl IntoIterator<Item = TileKey>,
+    ) -> FrameStats {
+        self.frame += 1;
+        let wanted: HashSet<TileKey> = wanted.into_iter().collect();
+        for array in [&mut self.elevation, &mut self.texture].into_iter().flatten() {
+            for key in &wanted {
+                if key.layer() == array.index {
+                    array.residency.touch(*key, self.frame);
+                }
+            }
+        }
+        if self.page_dirty {
+            let tiles: Vec<(u32, TileKey, u32)> = [&self.elevation, &self.texture]
+                .into_iter()
+                .flatten()
+                .flat_map(|a| a.residency.iter().map(move |(k, slot, _)| (a.kind, k, slot)))
+                .collect();
+            self.page_table.rebuild(tiles);
+            queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &self.page_texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                bytemuck::cast_slice(&self.page_table.entries),
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(self.page_table.width * 16),
+                    rows_per_image: Some(self.page_table.height()),
+                },
+                wgpu::Extent3d {
+                    width: self.page_table.width,
+                    height: self.page_table.height(),
+                    depth_or_array_layers: 1,
+                },
+            );
+            self.page_dirty = false;
+        }
+        let (nodes, params) = self.select(camera);
+        self.write_frame(device, queue, camera, &nodes, &params);
+        self.stats
+    }
+
+    fn column(&self) -> (f64, f64) {
+        let t = &self.metadata.terrain;
+        let lo = t.min_elevation.min(t.max_elevation);
+        let hi = t.max_elevation.max(t.min_elevation).max(lo + t.displacement.max(0.0));
+        if self.elevation.is_none() { (0.0, 0.0) } else { (lo, hi) }
+    }
+
+    fn extent(&self) -> (f64, f64) {
+        let layer = self.elevation.as_ref().or(self.texture.as_ref()).map(|a| &a.layer);
+        layer.map_or((0.0, 0.0), |l| {
+            (f64::from(l.num_x_tiles) * l.tile_world_size, f64::from(l.num_y_tiles) * l.tile_world_size)
+        })
+    }
+
+    fn select(&mut self, camera: &Camera) -> (Vec<Node>, MeshParams) {
+        let (ex, ez) = self.extent();
+        let column = self.column();
+        let eye = camera.position;
+        // Enough levels that the coarsest ring reaches the far corner of the data.
+        let far = [(0.0, 0.0), (ex, 0.0), (0.0, ez), (ex, ez)]
+            .iter()
+            .map(|&(x, z)| DVec3::new(x, eye.y.clamp(column.0, column.1), z).distance(eye))
+            .fold(0.0, f64::max);
+        let params = MeshParams { levels: self.params.levels.max(self.params.levels_to_cover(far)), ..self.params };
+        let elevation = self.elevation.as_ref();
+        let heights = |x0: f64, z0: f64, x1: f64, z1: f64| -> (f64, f64) {
+            let Some(a) = elevation else { return (0.0, 0.0) };
+            let mut range: Option<(f64, f64)> = None;
+            for (key, _, r) in a.residency.iter() {
+                let Some((lo, hi)) = r else { continue };
+                let size = a.layer.world_size_at(key.lod());
+                let (tx0, tz0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
+                if tx0 < x1 && tx0 + size > x0 && tz0 < z1 && tz0 + size > z0 {
+                    let (lo, hi) = (f64::from(lo), f64::from(hi));
+                    range = Some(range.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
+                }
+            }
+            range.map_or(column, |(lo, hi)| (lo - 1.0, hi + 1.0))
+        };
+        let frustum = camera.frustum();
+        #[allow(clippy::cast_possible_truncation)]
+        let extent = ((ex / params.base).ceil() as i64, (ez / params.base).ceil() as i64);
+        let scene = Scene { extent, eye, frustum: &frustum, column, heights: &heights };
+        let mut nodes = select_nodes(&params, &scene);
+        // Full patches first, then quarters: two instanced draws.
+        nodes.sort_by_key(|n| (n.quarter, n.level));
+        self.stats.levels =
+            (nodes.iter().map(|n| n.level).min().unwrap_or(0), nodes.iter().map(|n| n.level).max().unwrap_or(0));
+        (nodes, params)
+    }
+
+    fn write_frame(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        camera: &Camera,
+        nodes: &[Node],
+        params: &MeshParams,
+    ) {
+        let base = params.base;
+        let eye = camera.position;
+        #[allow(clippy::cast_possible_truncation)]
+        let anchor_units = ((eye.x / base).floor() as i64, (eye.z / base).floor() as i64);
+        #[allow(clippy::cast_precision_loss)]
+        let anchor = (anchor_units.0 as f64 * base, anchor_units.1 as f64 * base);
+        #[allow(clippy::cast_precision_loss)]
+        let instances: Vec<[f32; 4]> = nodes
+            .iter()
+            .map(|n| [(n.origin.0 - anchor_units.0) as f32, (n.origin.1 - anchor_units.1) as f32, n.level as f32, 0.0])
+            .collect();
+        let needed = instances.len().max(1) as u64;
+        if needed > self.instance_capacity {
+            self.instance_capacity = needed.next_power_of_two();
+            self.instances = instance_buffer(device, self.instance_capacity);
+        }
+        queue.write_buffer(&self.instances, 0, bytemuck::cast_slice(&instances));
+        self.full = u32::try_from(nodes.iter().filter(|n| !n.quarter).count()).unwrap_or(u32::MAX);
+        self.quarter = u32::try_from(nodes.len()).unwrap_or(u32::MAX) - self.full;
+
+        let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
+        let projection = DMat4::perspective_infinite_reverse_rh(camera.fov_y, camera.aspect, camera.near);
+        let view_proj: Mat4 = (projection * rotation).as_mat4();
+        let column = self.column();
+        let (ex, ez) = self.extent();
+        let flat = self.settings.shading == Shading::Flat;
+        let fog = if flat { 0.0 } else { self.settings.fog_density.unwrap_or(0.12 / ex.hypot(ez).max(1.0)) };
+        let sun = self.settings.sun.try_normalize().unwrap_or(DVec3::Y);
+        let [r, g, b] = self.settings.sky.map(srgb_to_linear);
+        let elev_info = self.elevation.as_ref().map_or([0.0, 0.0, 1.0, 1.0], TileArray::shader_info);
+        let tex_info = self.texture.as_ref().map_or([0.0, 0.0, 1.0, 1.0], TileArray::shader_info);
+        let lods = |a: &Option<TileArray>| a.as_ref().map_or(0, |a| u32::from(a.layer.num_lods));
+        let mut ranges = [[0.0f32; 4]; 32];
+        for (level, r) in (0..MAX_LEVELS).zip(ranges.iter_mut()) {
+            let (start, end) = params.morph(level);
+            #[allow(clippy::cast_possible_truncation)]
+            {
+                *r = [start as f32, end as f32, f64::from(level).exp2() as f32, 0.0];
+            }
+        }
+        #[allow(clippy::cast_possible_truncation)]
+        let globals = Globals {
+            view_proj: view_proj.to_cols_array_2d(),
+            camera: [(eye.x - anchor.0) as f32, eye.y as f32, (eye.z - anchor.1) as f32, base as f32],
+            sun: [sun.x as f32, sun.y as f32, sun.z as f32, 0.35],
+            fog: [r, g, b, fog as f32],
+            terrain: [
+                column.0 as f32,
+                column.1 as f32,
+                (eye.y.clamp(column.0, column.1) - eye.y) as f32,
+                self.settings.detail,
+            ],
+            elev: elev_info,
+            tex: tex_info,
+            counts: [lods(&self.elevation), lods(&self.texture), self.page_table.hash_mask(), self.page_table.width],
+            mode: [
+                u32::from(flat),
+                u32::from(self.settings.wireframe),
+                u32::from(self.settings.lod_colours),
+                self.page_table.max_probes,
+            ],
+            lod: [(base / f64::from(elev_info[3])).log2() as f32, params.range(0) as f32, 0.0, 0.0],
+            ranges,
+            elev_lods: self.elevation.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
+            tex_lods: self.texture.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
+        };
+        queue.write_buffer(&self.globals, 0, bytemuck::bytes_of(&globals));
+
+        let full_vertices = u64::from((self.settings.patch + 1).pow(2));
+        let quarter_vertices = u64::from((self.settings.patch / 2 + 1).pow(2));
+        let full_triangles = u64::from(self.settings.patch.pow(2) * 2);
+        let resident = |a: &Option<TileArray>| a.as_ref().map_or(0, |a| u32::try_from(a.residency.len()).unwrap_or(0));
+        self.stats = FrameStats {
+            patches: self.full + self.quarter,
+            vertices: u64::from(self.full) * full_vertices + u64::from(self.quarter) * quarter_vertices,
+            triangles: u64::from(self.full) * full_triangles + u64::from(self.quarter) * full_triangles / 4,
+            draw_calls: u32::from(self.full > 0) + u32::from(self.quarter > 0),
+            levels: self.stats.levels,
+            resident: (resident(&self.elevation), resident(&self.texture)),
+            gpu_bytes: [&self.elevation, &self.texture].into_iter().flatten().map(|a| a.bytes).sum::<u64>()
+                + self.page_table.entries.len() as u64 * 16,
+        };
+    }
+
+    /// Records the terrain into `pass` (after [`Self::prepare`]).
+    pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>) {
+        if self.full + self.quarter == 0 {
+            return;
+        }
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.bind_group, &[]);
+        pass.set_vertex_buffer(0, self.vertices.slice(..));
+        pass.set_vertex_buffer(1, self.instances.slice(..));
+        pass.set_index_buffer(self.indices.slice(..), wgpu::IndexFormat::Uint32);
+        let total = u32::try_from(self.mesh.indices.len()).unwrap_or(u32::MAX);
+        if self.full > 0 {
+            pass.draw_indexed(0..self.mesh.full_indices, 0, 0..self.full);
+        }
+        if self.quarter > 0 {
+            pass.draw_indexed(self.mesh.full_indices..total, 0, self.full..self.full + self.quarter);
+        }
+    }
+}
+
+fn instance_buffer(device: &wgpu::Device, capacity: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("buffer.terrain.instances"),
+        size: capacity * 16,
+        usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+fn texture_entry(
+    binding: u32,
+    sample_type: wgpu::TextureSampleType,
+    view_dimension: wgpu::TextureViewDimension,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+        ty: wgpu::BindingType::Texture { sample_type, view_dimension, multisampled: false },
+        count: None,
+    }
+}

@@ -1,0 +1,73 @@
+//! The streaming core and the renderer, stepped together once per frame.
+
+use terrastream_packer::Metadata;
+
+use super::renderer::{FrameStats, RenderSettings, TerrainRenderer};
+use crate::stream::camera::Camera;
+use crate::stream::streamer::{StreamStats, Streamer, UploadBudget};
+
+/// A streamer feeding a renderer.
+#[derive(Debug)]
+pub struct Session {
+    /// The streaming core.
+    pub streamer: Streamer,
+    /// The renderer.
+    pub renderer: TerrainRenderer,
+    /// Upload budget per frame.
+    pub budget: UploadBudget,
+    generation: u64,
+    metadata: Metadata,
+    format: wgpu::TextureFormat,
+}
+
+impl Session {
+    /// Joins an opened `streamer` (its metadata known) with a new renderer. The streaming
+    /// selection is capped to what the GPU arrays hold.
+    ///
+    /// # Errors
+    /// When the streamer has no metadata yet.
+    pub fn new(
+        mut streamer: Streamer,
+        device: &wgpu::Device,
+        settings: RenderSettings,
+        format: wgpu::TextureFormat,
+        budget: UploadBudget,
+    ) -> Result<Self, terrastream_packer::Error> {
+        let metadata = streamer.metadata().cloned().ok_or_else(|| terrastream_packer::Error::InvalidTile {
+            what: "the archive is not open yet (no metadata)".into(),
+        })?;
+        let renderer = TerrainRenderer::new(device, &metadata, settings, format);
+        let mut options = streamer.options().clone();
+        options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());
+        streamer.set_options(options);
+        let generation = streamer.generation();
+        Ok(Self { streamer, renderer, budget, generation, metadata, format })
+    }
+
+    /// One frame: stream for `camera`, upload within the budget, prepare the draw.
+    pub fn frame(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, camera: &Camera) -> (StreamStats, FrameStats) {
+        self.streamer.update(camera);
+        if self.streamer.generation() != self.generation {
+            self.generation = self.streamer.generation();
+            match self.streamer.metadata() {
+                Some(m) if *m != self.metadata => {
+                    self.metadata = m.clone();
+                    let settings = *self.renderer.settings();
+                    self.renderer = TerrainRenderer::new(device, &self.metadata, settings, self.format);
+                }
+                _ => self.renderer.clear(),
+            }
+        }
+        let uploads = self.streamer.drain_uploads(self.budget);
+        for key in self.renderer.upload(queue, &uploads) {
+            self.streamer.release(key);
+        }
+        let stats = self.renderer.prepare(device, queue, camera, self.streamer.wanted().iter().map(|w| w.key));
+        (self.streamer.stats(), stats)
+    }
+
+    /// Is everything the view wants on the GPU (and nothing in flight)?
+    pub fn settled(&self) -> bool {
+        self.streamer.metadata().is_some() && self.streamer.pending() == 0 && self.streamer.stats().in_flight == 0
+    }
+}

@@ -1,0 +1,311 @@
+// Terrain: a CDLOD patch mesh whose vertices morph between levels, heights read in the
+// vertex shader from GPU-resident elevation tiles, every texture LOD blended per pixel.
+//
+// Coordinates: x east, y up, z south. Everything horizontal is relative to an anchor
+// near the camera (camera-relative rendering keeps f32 exact enough on a 1000 km
+// terrain); tile addresses are integer tile indices of the anchor plus a fraction.
+
+struct LodInfo {
+    // xy: the anchor's tile index at this LOD.
+    tile: vec4<i32>,
+    // xy: the anchor's position inside that tile (0..1), z: 1 / tile world size.
+    frac: vec4<f32>,
+}
+
+struct Globals {
+    // Rotation + projection (reversed depth); applied to camera-relative positions.
+    view_proj: mat4x4<f32>,
+    // xyz: camera relative to the anchor (y absolute), w: mesh base spacing (world units).
+    camera: vec4<f32>,
+    // xyz: direction to the sun, w: ambient light.
+    sun: vec4<f32>,
+    // rgb: haze colour (linear), w: fog density per world unit.
+    fog: vec4<f32>,
+    // x: lowest height, y: highest height, z: column height offset for LOD distances
+    // (clamp(camera y, lowest, highest) - camera y), w: detail texture strength.
+    terrain: vec4<f32>,
+    // Elevation layer: x: samples per tile edge, y: border, z: stored edge, w: sample spacing at LOD 0.
+    elev: vec4<f32>,
+    // Texture layer: the same for texels.
+    tex: vec4<f32>,
+    // x: elevation LODs (0 = no layer), y: texture LODs, z: page table mask, w: page table width.
+    counts: vec4<u32>,
+    // x: shading (0 lit, 1 flat white), y: wireframe, z: LOD colours, w: page table probes.
+    mode: vec4<u32>,
+    // x: elevation LOD offset (log2 of base spacing / elevation spacing), y: first morph
+    // range radius; zw unused.
+    lod: vec4<f32>,
+    // Per mesh level: morph start, morph end (= the level's range), quad size in base units.
+    ranges: array<vec4<f32>, 32>,
+    elev_lods: array<LodInfo, 32>,
+    tex_lods: array<LodInfo, 32>,
+}
+
+@group(0) @binding(0) var<uniform> G: Globals;
+@group(0) @binding(1) var page_table: texture_2d<u32>;
+@group(0) @binding(2) var elevation: texture_2d_array<f32>;
+@group(0) @binding(3) var colour: texture_2d_array<f32>;
+@group(0) @binding(4) var colour_sampler: sampler;
+
+const NODATA: f32 = -1.0e30;
+const KIND_ELEVATION: u32 = 0u;
+const KIND_TEXTURE: u32 = 1u;
+
+// Must match `residency::hash_key` in Rust.
+fn hash_key(x: u32, y: u32, k: u32) -> u32 {
+    var h = (x * 0x9E3779B1u) ^ (y * 0x85EBCA77u) ^ (k * 0xC2B2AE3Du);
+    h = h ^ (h >> 15u);
+    h = h * 0x2C1B3C6Du;
+    h = h ^ (h >> 12u);
+    return h;
+}
+
+// The array slot holding tile (lod, t) of a layer kind, or -1 when it is not resident.
+fn find_slot(kind: u32, lod: u32, t: vec2<i32>) -> i32 {
+    if t.x < 0 || t.y < 0 {
+        return -1;
+    }
+    let x = u32(t.x);
+    let y = u32(t.y);
+    let k = lod | (kind << 8u);
+    var h = hash_key(x, y, k) & G.counts.z;
+    for (var i = 0u; i < G.mode.w; i++) {
+        let e = textureLoad(page_table, vec2<i32>(i32(h % G.counts.w), i32(h / G.counts.w)), 0);
+        if e.w == 0u {
+            return -1;
+        }
+        if e.x == x && e.y == y && e.z == k {
+            return i32(e.w) - 1;
+        }
+        h = (h + 1u) & G.counts.z;
+    }
+    return -1;
+}
+
+struct TilePos {
+    tile: vec2<i32>,
+    within: vec2<f32>,
+}
+
+fn tile_pos(info: LodInfo, p: vec2<f32>) -> TilePos {
+    let q = info.frac.xy + p * info.frac.z;
+    let f = floor(q);
+    return TilePos(info.tile.xy + vec2<i32>(f), q - f);
+}
+
+// Bilinear height inside one resident elevation tile; nodata samples are left out.
+fn sample_height(slot: i32, within: vec2<f32>) -> f32 {
+    let s = G.elev.y + within * G.elev.x - 0.5;
+    let i0 = floor(s);
+    let t = s - i0;
+    let last = i32(G.elev.z) - 1;
+    let a = clamp(vec2<i32>(i0), vec2<i32>(0), vec2<i32>(last));
+    let b = clamp(vec2<i32>(i0) + 1, vec2<i32>(0), vec2<i32>(last));
+    let h00 = textureLoad(elevation, vec2<i32>(a.x, a.y), slot, 0).r;
+    let h10 = textureLoad(elevation, vec2<i32>(b.x, a.y), slot, 0).r;
+    let h01 = textureLoad(elevation, vec2<i32>(a.x, b.y), slot, 0).r;
+    let h11 = textureLoad(elevation, vec2<i32>(b.x, b.y), slot, 0).r;
+    let w = vec4<f32>((1.0 - t.x) * (1.0 - t.y), t.x * (1.0 - t.y), (1.0 - t.x) * t.y, t.x * t.y);
+    let hs = vec4<f32>(h00, h10, h01, h11);
+    let valid = select(vec4<f32>(0.0), vec4<f32>(1.0), hs > vec4<f32>(NODATA * 0.5));
+    let weight = dot(w, valid);
+    if weight <= 1.0e-6 {
+        return NODATA;
+    }
+    return dot(w * valid, hs) / weight;
+}
+
+struct HeightSample {
+    h: f32,
+    lod: f32,
+}
+
+// Height at p from the finest resident elevation tile at `start` or coarser.
+fn height_from(start: u32, p: vec2<f32>) -> HeightSample {
+    for (var lod = start; lod < G.counts.x; lod++) {
+        let tp = tile_pos(G.elev_lods[lod], p);
+        let slot = find_slot(KIND_ELEVATION, lod, tp.tile);
+        if slot >= 0 {
+            return HeightSample(sample_height(slot, tp.within), f32(lod));
+        }
+    }
+    return HeightSample(0.0, -1.0);
+}
+
+// Distance from the camera to the vertical column at p over the terrain's height range:
+// a function of (x, z) only, the same the CPU selection measures node boxes with, which
+// is what makes the morph reach 1 exactly where a coarser neighbour begins.
+fn column_distance(p: vec2<f32>) -> f32 {
+    return length(vec3<f32>(p - G.camera.xz, G.terrain.z));
+}
+
+// The height drawn at p: a continuous mix of two elevation LODs chosen by distance (a
+// function of position only, so neighbouring patches agree on every shared vertex).
+fn terrain_height(p: vec2<f32>) -> f32 {
+    if G.counts.x == 0u {
+        return 0.0;
+    }
+    let d = column_distance(p);
+    let top = f32(G.counts.x - 1u);
+    let t = clamp(log2(max(d, 1.0e-3) / G.lod.y) + G.lod.x, 0.0, top);
+    let l0 = floor(t);
+    let f = t - l0;
+    let a = height_from(u32(l0), p).h;
+    if f <= 0.0 || l0 >= top {
+        return a;
+    }
+    let b = height_from(u32(l0) + 1u, p).h;
+    if a <= NODATA * 0.5 {
+        return b;
+    }
+    if b <= NODATA * 0.5 {
+        return a;
+    }
+    return mix(a, b, f);
+}
+
+struct VertexOut {
+    @builtin(position) clip: vec4<f32>,
+    // Position relative to the anchor (xz) and height.
+    @location(0) world: vec3<f32>,
+    // Patch grid coordinates before the morph (for the wireframe overlay).
+    @location(1) grid: vec2<f32>,
+    @location(2) @interpolate(flat) level: u32,
+    // 1 where a corner had no data.
+    @location(3) nodata: f32,
+}
+
+@vertex
+fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> VertexOut {
+    let level = u32(instance.z);
+    let range = G.ranges[level];
+    let quad = range.z;
+    let base = G.camera.w;
+    let g0 = instance.xy + local * quad;
+    let morph = clamp((column_distance(g0 * base) - range.x) / (range.y - range.x), 0.0, 1.0);
+    let odd = fract(local * 0.5) * 2.0;
+    let g = instance.xy + (local - odd * morph) * quad;
+    let p = g * base;
+    var h = terrain_height(p);
+    var out: VertexOut;
+    out.nodata = 0.0;
+    if h <= NODATA * 0.5 {
+        out.nodata = 1.0;
+        h = G.terrain.x;
+    }
+    out.world = vec3<f32>(p.x, h, p.y);
+    out.clip = G.view_proj * vec4<f32>(p.x - G.camera.x, h - G.camera.y, p.y - G.camera.z, 1.0);
+    out.grid = local;
+    out.level = level;
+    return out;
+}
+
+// Colour of p from the finest resident texture tile at `start` or coarser.
+fn texel_from(start: u32, p: vec2<f32>) -> vec4<f32> {
+    for (var lod = start; lod < G.counts.y; lod++) {
+        let tp = tile_pos(G.tex_lods[lod], p);
+        let slot = find_slot(KIND_TEXTURE, lod, tp.tile);
+        if slot >= 0 {
+            let uv = (G.tex.y + tp.within * G.tex.x) / G.tex.z;
+            return textureSampleLevel(colour, colour_sampler, uv, slot, 0.0);
+        }
+    }
+    return vec4<f32>(0.5, 0.5, 0.5, 0.0);
+}
+
+// Colour ramp by height when the archive has no texture layer.
+fn hypsometric(h: f32) -> vec3<f32> {
+    let t = clamp((h - G.terrain.x) / max(G.terrain.y - G.terrain.x, 1.0), 0.0, 1.0);
+    let low = vec3<f32>(0.09, 0.21, 0.07);
+    let mid = vec3<f32>(0.36, 0.30, 0.16);
+    let high = vec3<f32>(0.55, 0.52, 0.50);
+    if t < 0.5 {
+        return mix(low, mid, t * 2.0);
+    }
+    return mix(mid, high, t * 2.0 - 1.0);
+}
+
+fn lod_colour(level: u32) -> vec3<f32> {
+    let palette = array<vec3<f32>, 6>(
+        vec3<f32>(0.9, 0.2, 0.2), vec3<f32>(0.9, 0.7, 0.1), vec3<f32>(0.2, 0.8, 0.2),
+        vec3<f32>(0.1, 0.7, 0.9), vec3<f32>(0.3, 0.3, 0.95), vec3<f32>(0.8, 0.3, 0.9),
+    );
+    return palette[level % 6u];
+}
+
+// Value noise for the optional detail texture.
+fn noise(p: vec2<f32>) -> f32 {
+    let i = floor(p);
+    let f = p - i;
+    let u = f * f * (3.0 - 2.0 * f);
+    let c = vec2<u32>(vec2<i32>(i) + vec2<i32>(1 << 20));
+    let a = f32(hash_key(c.x, c.y, 7u) & 0xFFFFu) / 65535.0;
+    let b = f32(hash_key(c.x + 1u, c.y, 7u) & 0xFFFFu) / 65535.0;
+    let d = f32(hash_key(c.x, c.y + 1u, 7u) & 0xFFFFu) / 65535.0;
+    let e = f32(hash_key(c.x + 1u, c.y + 1u, 7u) & 0xFFFFu) / 65535.0;
+    return mix(mix(a, b, u.x), mix(d, e, u.x), u.y);
+}
+
+@fragment
+fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    // Derivatives first, in uniform control flow.
+    let footprint = max(length(dpdx(in.world.xz)), length(dpdy(in.world.xz)));
+    let grid_width = fwidth(in.grid);
+    if in.nodata > 0.001 {
+        discard;
+    }
+    if G.mode.x == 1u {
+        return vec4<f32>(1.0, 1.0, 1.0, 1.0);
+    }
+    let p = in.world.xz;
+    // Normal from the elevation data at the pixel's own resolution.
+    var normal = vec3<f32>(0.0, 1.0, 0.0);
+    if G.counts.x > 0u {
+        let le = u32(clamp(floor(log2(max(footprint, 1.0e-6) / G.elev.w)), 0.0, f32(G.counts.x - 1u)));
+        let found = height_from(le, p);
+        if found.lod >= 0.0 {
+            let lod = u32(found.lod);
+            let s = G.elev.w * exp2(found.lod);
+            let hx0 = height_from(lod, p - vec2<f32>(s, 0.0)).h;
+            let hx1 = height_from(lod, p + vec2<f32>(s, 0.0)).h;
+            let hz0 = height_from(lod, p - vec2<f32>(0.0, s)).h;
+            let hz1 = height_from(lod, p + vec2<f32>(0.0, s)).h;
+            if min(min(hx0, hx1), min(hz0, hz1)) > NODATA * 0.5 {
+                normal = normalize(vec3<f32>(hx0 - hx1, 2.0 * s, hz0 - hz1));
+            }
+        }
+    }
+    var albedo = hypsometric(in.world.y);
+    if G.counts.y > 0u {
+        let t = clamp(log2(max(footprint, 1.0e-6) / G.tex.w), 0.0, f32(G.counts.y - 1u));
+        let l0 = floor(t);
+        let c0 = texel_from(u32(l0), p);
+        let c1 = texel_from(min(u32(l0) + 1u, G.counts.y - 1u), p);
+        let c = mix(c0, c1, t - l0);
+        albedo = mix(albedo, c.rgb, c.a);
+    }
+    if G.terrain.w > 0.0 {
+        // Detail texture: fine noise that fades out once its features get below a pixel.
+        let scale = 0.25 / G.elev.w;
+        let fade = clamp(1.0 - footprint * scale * 2.0, 0.0, 1.0);
+        let n = noise(p * scale) * 0.6 + noise(p * scale * 4.0) * 0.4;
+        albedo = albedo * (1.0 + G.terrain.w * fade * (n - 0.5));
+    }
+    if G.mode.z == 1u {
+        albedo = mix(albedo, lod_colour(in.level), 0.6);
+    }
+    let sun = normalize(G.sun.xyz);
+    let direct = max(dot(normal, sun), 0.0);
+    let sky = 0.5 + 0.5 * normal.y;
+    var rgb = albedo * (direct * (1.0 - G.sun.w) + sky * G.sun.w) * vec3<f32>(1.0, 0.97, 0.92);
+    if G.mode.y == 1u {
+        let e = fract(in.grid);
+        let dist = min(e, 1.0 - e) / max(grid_width, vec2<f32>(1.0e-6));
+        let diagonal = abs(e.x - e.y) / max(grid_width.x + grid_width.y, 1.0e-6);
+        let line = 1.0 - clamp(min(min(dist.x, dist.y), diagonal), 0.0, 1.0);
+        rgb = mix(rgb, vec3<f32>(0.02, 0.02, 0.02), line * 0.8);
+    }
+    let distance = length(vec3<f32>(in.world.x - G.camera.x, in.world.y - G.camera.y, in.world.z - G.camera.z));
+    let haze = 1.0 - exp(-G.fog.w * distance);
+    return vec4<f32>(mix(rgb, G.fog.rgb, haze), 1.0);
+}

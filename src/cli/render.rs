@@ -1,0 +1,187 @@
+//! `terrastream render` (headless PNG) and the options it shares with `terrastream view`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use glam::DVec3;
+use terrastream_client::render::gpu::Gpu;
+use terrastream_client::render::renderer::{RenderSettings, Shading};
+use terrastream_client::render::still::{StillOptions, render_still, write_png};
+use terrastream_client::{Camera, Origin, StreamOptions, UploadBudget};
+
+/// Renderer and streaming settings shared by `render` and `view`.
+#[derive(Debug, Args)]
+pub struct LookArgs {
+    /// Shading: lit (textured or height-tinted, sunlit, hazy) or flat (white, for coverage checks).
+    #[arg(long, value_enum, default_value_t = ShadingArg::Lit)]
+    shading: ShadingArg,
+    /// Overlay the mesh's edges.
+    #[arg(long)]
+    wireframe: bool,
+    /// Tint each mesh level.
+    #[arg(long)]
+    lod_colours: bool,
+    /// Detail texture strength (0 = off).
+    #[arg(long, default_value_t = 0.0)]
+    detail: f32,
+    /// Quads per mesh patch edge.
+    #[arg(long, default_value_t = 32)]
+    patch: u32,
+    /// GPU slots per layer (texture-array layers).
+    #[arg(long, default_value_t = 512)]
+    gpu_tiles: u32,
+    /// Most tile requests in flight.
+    #[arg(long, default_value_t = 8)]
+    max_in_flight: usize,
+    /// Most tiles uploaded to the GPU per frame.
+    #[arg(long, default_value_t = 8)]
+    max_upload_tiles: usize,
+    /// Most bytes uploaded to the GPU per frame.
+    #[arg(long, default_value_t = 4 * 1024 * 1024)]
+    max_upload_bytes: usize,
+    /// Decoded-tile cache budget in MiB.
+    #[arg(long, default_value_t = 512)]
+    cache_mib: usize,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ShadingArg {
+    Lit,
+    Flat,
+}
+
+impl LookArgs {
+    pub fn settings(&self) -> RenderSettings {
+        RenderSettings {
+            elevation_slots: self.gpu_tiles,
+            texture_slots: self.gpu_tiles,
+            patch: self.patch,
+            shading: match self.shading {
+                ShadingArg::Lit => Shading::Lit,
+                ShadingArg::Flat => Shading::Flat,
+            },
+            wireframe: self.wireframe,
+            lod_colours: self.lod_colours,
+            detail: self.detail,
+            ..RenderSettings::default()
+        }
+    }
+
+    pub fn stream(&self) -> StreamOptions {
+        StreamOptions {
+            max_in_flight: self.max_in_flight.max(1),
+            cache_bytes: self.cache_mib * 1024 * 1024,
+            ..StreamOptions::default()
+        }
+    }
+
+    pub fn budget(&self) -> UploadBudget {
+        UploadBudget { max_tiles: self.max_upload_tiles.max(1), max_bytes: self.max_upload_bytes }
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// The archive: a path, an http(s):// URL of a .tspack, or a server's tile endpoint URL.
+    archive: String,
+    /// Eye and target in world units: "ex,ey,ez,tx,ty,tz" (x east, y up, z south).
+    /// Default: an oblique view from the south framing the whole dataset.
+    #[arg(long)]
+    camera: Option<String>,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 60.0)]
+    fov: f64,
+    /// Image size, WxH.
+    #[arg(long, default_value = "1280x720")]
+    size: String,
+    /// Output PNG.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Render the first frame that has data instead of waiting for the full view.
+    #[arg(long)]
+    no_wait: bool,
+    /// Seconds to wait for the full view.
+    #[arg(long, default_value_t = 120)]
+    timeout: u64,
+    #[command(flatten)]
+    look: LookArgs,
+}
+
+/// "WxH".
+pub fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s.split_once(['x', 'X']).with_context(|| format!("size {s:?}: expected WxH"))?;
+    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
+    if !(1..=16384).contains(&w) || !(1..=16384).contains(&h) {
+        bail!("size {s:?}: each side must be 1..=16384");
+    }
+    Ok((w, h))
+}
+
+/// "ex,ey,ez,tx,ty,tz" -> eye, target.
+pub fn parse_camera(s: &str) -> Result<(DVec3, DVec3)> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("camera {s:?}: expected six numbers ex,ey,ez,tx,ty,tz"))?;
+    if v.len() != 6 || v.iter().any(|x| !x.is_finite()) {
+        bail!("camera {s:?}: expected six finite numbers ex,ey,ez,tx,ty,tz");
+    }
+    let (eye, target) = (DVec3::new(v[0], v[1], v[2]), DVec3::new(v[3], v[4], v[5]));
+    if eye.distance(target) < 1e-9 {
+        bail!("camera {s:?}: eye and target coincide");
+    }
+    Ok((eye, target))
+}
+
+pub fn run(args: RenderArgs) -> Result<ExitCode> {
+    let (width, height) = parse_size(&args.size)?;
+    let camera = args.camera.as_deref().map(parse_camera).transpose()?;
+    let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
+    let gpu =
+        Gpu::headless().context("rendering needs a graphics adapter (a software one will do: Mesa's lavapipe)")?;
+    tracing::info!(adapter = %gpu.describe(), "rendering");
+    let options = StillOptions {
+        width,
+        height,
+        settings: args.look.settings(),
+        stream: args.look.stream(),
+        budget: args.look.budget(),
+        wait: !args.no_wait,
+        timeout: Duration::from_secs(args.timeout),
+    };
+    let fov = args.fov.clamp(1.0, 170.0).to_radians();
+    let make_camera = move |_: &terrastream_packer::Metadata| {
+        let (eye, target) = camera.unwrap_or_default();
+        Camera { fov_y: fov, ..Camera::look_at(eye, target, width, height) }
+    };
+    let chosen: Option<&dyn Fn(&terrastream_packer::Metadata) -> Camera> =
+        if camera.is_some() { Some(&make_camera) } else { None };
+    let started = std::time::Instant::now();
+    let still = render_still(&gpu, origin, chosen, &options).with_context(|| format!("rendering {}", args.archive))?;
+    write_png(&args.output, still.width, still.height, &still.rgba)
+        .with_context(|| format!("writing {}", args.output.display()))?;
+    let p = still.camera.position;
+    println!(
+        "wrote {} ({}x{}) in {:.2} s on {}: {} frames, {} tiles fetched in {} requests, {} patches, {} triangles, mesh levels {}..={}, eye {:.1},{:.1},{:.1}",
+        args.output.display(),
+        still.width,
+        still.height,
+        started.elapsed().as_secs_f64(),
+        gpu.describe(),
+        still.frames,
+        still.stream.tiles_fetched,
+        still.stream.requests,
+        still.frame.patches,
+        still.frame.triangles,
+        still.frame.levels.0,
+        still.frame.levels.1,
+        p.x,
+        p.y,
+        p.z
+    );
+    Ok(ExitCode::SUCCESS)
+}
