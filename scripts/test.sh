@@ -7,9 +7,10 @@ cd "$(dirname "$0")/.."
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
-# System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS).
+# System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS),
+# Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
@@ -27,6 +28,12 @@ cargo clippy --workspace --all-targets --locked -- -D warnings
 echo "== reader and client for wasm32"
 cargo check -p terrastream-packer --no-default-features --target wasm32-unknown-unknown --locked
 cargo check -p terrastream-client --target wasm32-unknown-unknown --locked
+# lavapipe wants a private runtime directory (else it warns on every start).
+if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "${XDG_RUNTIME_DIR}" ]; then
+  XDG_RUNTIME_DIR=$(mktemp -d)
+  chmod 700 "$XDG_RUNTIME_DIR"
+  export XDG_RUNTIME_DIR
+fi
 echo "== cargo test"
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT

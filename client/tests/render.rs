@@ -1,0 +1,236 @@
+//! Rendering, on whatever adapter wgpu finds (the test command installs Mesa's lavapipe):
+//! golden images of a real DEM crop (SRTM 1", Mt Tamalpais; public domain) from several
+//! views, identical images from mmap and from HTTP, and a crack count on a flat-white render.
+//!
+//! Golden images live in `tests/golden/`. `TERRASTREAM_BLESS=1` (re)writes them; a missing
+//! one fails. Without an adapter the tests fail unless `TERRASTREAM_ALLOW_NO_GPU=1`, which
+//! skips them loudly (for machines without Mesa; never set on CI).
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+#[path = "../../server/tests/common/mod.rs"]
+mod common;
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use glam::DVec3;
+use terrastream_client::render::gpu::Gpu;
+use terrastream_client::render::renderer::{RenderSettings, Shading};
+use terrastream_client::render::still::{Still, StillOptions, render_still};
+use terrastream_client::{Camera, Origin};
+use terrastream_packer::progress::Silent;
+use terrastream_packer::tiler::{TileOptions, read_geotiff, tile_elevation};
+use terrastream_packer::{Metadata, Reader, Writer, WriterOptions};
+
+const WIDTH: u32 = 320;
+const HEIGHT: u32 = 200;
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+/// One device for all tests of this binary (lavapipe is slow to start).
+fn gpu() -> Option<&'static Gpu> {
+    static GPU: OnceLock<Option<Gpu>> = OnceLock::new();
+    GPU.get_or_init(|| match Gpu::headless() {
+        Ok(gpu) => {
+            eprintln!("rendering on {}", gpu.describe());
+            Some(gpu)
+        }
+        Err(e) if std::env::var_os("TERRASTREAM_ALLOW_NO_GPU").is_some() => {
+            eprintln!("\n!!!!! SKIPPING RENDER TESTS: {e} (TERRASTREAM_ALLOW_NO_GPU is set) !!!!!\n");
+            None
+        }
+        Err(e) => panic!(
+            "{e}: install mesa-vulkan-drivers (the test command does), or set TERRASTREAM_ALLOW_NO_GPU=1 to skip"
+        ),
+    })
+    .as_ref()
+}
+
+/// The committed DEM crop, tiled like `terrastream tile --tile-size 64`.
+fn dem_archive() -> &'static Path {
+    static ARCHIVE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &ARCHIVE
+        .get_or_init(|| {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("tamalpais.tspack");
+            let raster = read_geotiff(&repo().join("tests/data/srtm-tamalpais-320-public-domain.tif")).unwrap();
+            let options = TileOptions { tile_size: 64, border: 1, ..TileOptions::default() };
+            tile_elevation(raster, "tamalpais", &path, options, &Silent::default()).unwrap();
+            (dir, path)
+        })
+        .1
+}
+
+/// The same archive without its two finest LODs east of x = 2 tiles: a sparse pyramid.
+fn sparse_archive(dir: &Path) -> PathBuf {
+    let reader = Reader::open_mmap(dem_archive()).unwrap();
+    let metadata: Metadata = reader.metadata().clone();
+    let path = dir.join("sparse.tspack");
+    let mut writer = Writer::create(&path, metadata.clone(), WriterOptions::default()).unwrap();
+    let layer = &metadata.layers[0];
+    let mut keys: Vec<_> = (0..layer.num_lods)
+        .flat_map(|lod| layer.tiles_at(0, lod))
+        .filter(|k| !(k.lod() < 2 && (k.x() << k.lod()) >= 2))
+        .collect();
+    keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+    for key in keys {
+        if let Some(stored) = reader.tile(key).unwrap() {
+            writer.add_stored(key, stored.to_vec()).unwrap();
+        }
+    }
+    writer.finish().unwrap();
+    path
+}
+
+fn camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
+    Camera::look_at(DVec3::from_array(eye), DVec3::from_array(target), WIDTH, HEIGHT)
+}
+
+fn render(gpu: &Gpu, location: &str, cam: Option<Camera>, settings: RenderSettings) -> Still {
+    let options = StillOptions { width: WIDTH, height: HEIGHT, settings, ..StillOptions::default() };
+    let make = move |_: &Metadata| cam.unwrap();
+    let chosen: Option<&dyn Fn(&Metadata) -> Camera> = if cam.is_some() { Some(&make) } else { None };
+    render_still(gpu, Origin::parse(location).unwrap(), chosen, &options).unwrap()
+}
+
+fn save(still: &Still, path: &Path) {
+    terrastream_client::render::still::write_png(path, still.width, still.height, &still.rgba).unwrap();
+}
+
+fn load(path: &Path) -> (u32, u32, Vec<u8>) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}
+
+/// Compares with `tests/golden/{name}.png`. Tolerance: lavapipe vs llvmpipe-GL and debug
+/// vs release builds differ by at most 1/255 on a few pixels (PLATFORM.md); allowed here:
+/// mean absolute channel difference <= 0.5/255 and at most 0.5 % of pixels off by more
+/// than 8/255 — a shifted LOD ring, a missing tile or a crack breaks both.
+fn assert_golden(name: &str, still: &Still) {
+    let out = repo().join("target/render-tests");
+    std::fs::create_dir_all(&out).unwrap();
+    save(still, &out.join(format!("{name}.png")));
+    let golden = repo().join(format!("tests/golden/{name}.png"));
+    if std::env::var_os("TERRASTREAM_BLESS").is_some() {
+        save(still, &golden);
+        eprintln!("blessed {}", golden.display());
+        return;
+    }
+    assert!(golden.exists(), "no reference image {} (TERRASTREAM_BLESS=1 writes it)", golden.display());
+    let (w, h, reference) = load(&golden);
+    assert_eq!((w, h), (still.width, still.height), "{name}: size differs from the reference");
+    let mut sum = 0u64;
+    let mut off = 0usize;
+    for (a, b) in still.rgba.chunks_exact(4).zip(reference.chunks_exact(4)) {
+        let d: Vec<u32> = (0..3).map(|c| u32::from(a[c].abs_diff(b[c]))).collect();
+        sum += u64::from(d.iter().sum::<u32>());
+        if d.iter().any(|&x| x > 8) {
+            off += 1;
+        }
+    }
+    let pixels = (w * h) as usize;
+    let mean = sum as f64 / (pixels * 3) as f64;
+    assert!(
+        mean <= 0.5 && off * 200 <= pixels,
+        "{name}: mean difference {mean:.3}/255, {off} of {pixels} pixels off by > 8/255 (see target/render-tests/{name}.png)"
+    );
+}
+
+#[test]
+fn golden_views_of_a_real_dem() {
+    let Some(gpu) = gpu() else { return };
+    let archive = dem_archive().to_str().unwrap().to_owned();
+    let lit = RenderSettings::default();
+    // High altitude: the whole dataset (the default oblique framing).
+    let whole = render(gpu, &archive, None, lit);
+    assert_golden("tamalpais-whole", &whole);
+    // Close to the ground on the southern slopes, looking north up the mountain.
+    let close = render(gpu, &archive, Some(camera([4300.0, 750.0, 5600.0], [4700.0, 550.0, 3300.0])), lit);
+    assert_eq!(close.frame.levels.0, 0, "the finest mesh level is drawn near the eye");
+    assert_golden("tamalpais-close", &close);
+    // Grazing across the whole crop from its southern edge: several LOD rings.
+    let grazing = render(gpu, &archive, Some(camera([2200.0, 650.0, 9200.0], [5000.0, 350.0, 2500.0])), lit);
+    assert!(grazing.frame.levels.1 >= grazing.frame.levels.0 + 2, "rings {:?}", grazing.frame.levels);
+    assert_golden("tamalpais-grazing", &grazing);
+    let with_lods = render(
+        gpu,
+        &archive,
+        Some(camera([2200.0, 650.0, 9200.0], [5000.0, 350.0, 2500.0])),
+        RenderSettings { lod_colours: true, wireframe: true, ..lit },
+    );
+    assert_golden("tamalpais-grazing-lods", &with_lods);
+    // Over a sparse area: the east half lacks its two finest LODs; coverage falls back.
+    let dir = tempfile::tempdir().unwrap();
+    let sparse = sparse_archive(dir.path());
+    let over_sparse =
+        render(gpu, sparse.to_str().unwrap(), Some(camera([5200.0, 1400.0, 7000.0], [5600.0, 300.0, 4000.0])), lit);
+    assert!(over_sparse.stream.missing > 0, "the sparse tiles were looked for and found missing");
+    assert_golden("tamalpais-sparse", &over_sparse);
+}
+
+#[test]
+fn mmap_and_http_give_identical_images() {
+    let Some(gpu) = gpu() else { return };
+    let archive = dem_archive();
+    let cam = camera([2200.0, 650.0, 9200.0], [5000.0, 350.0, 2500.0]);
+    let from_file = render(gpu, archive.to_str().unwrap(), Some(cam), RenderSettings::default());
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(archive, dir.path().join("tamalpais.tspack")).unwrap();
+    let state = common::state(dir.path());
+    let (addr, server) = runtime.block_on(support::serve(terrastream_server::app(state), "127.0.0.1:0"));
+    let from_http = render(gpu, &format!("http://{addr}/tamalpais.tspack"), Some(cam), RenderSettings::default());
+    let from_endpoint = render(gpu, &format!("http://{addr}/tamalpais"), Some(cam), RenderSettings::default());
+    server.abort();
+    assert!(from_http.stream.requests > 0);
+    assert!(from_file.rgba == from_http.rgba, "mmap and HTTP range renders differ");
+    assert!(from_file.rgba == from_endpoint.rgba, "mmap and tile-endpoint renders differ");
+}
+
+/// Black background, white terrain: any background pixel below the terrain's upper
+/// silhouette in a column is a hole in the mesh.
+#[test]
+fn morphing_leaves_no_cracks() {
+    let Some(gpu) = gpu() else { return };
+    let archive = dem_archive().to_str().unwrap().to_owned();
+    let flat = RenderSettings { shading: Shading::Flat, patch: 8, ..RenderSettings::default() };
+    // Low over the land looking north-east across the mountain: many rings, morphing.
+    for (i, (eye, target)) in
+        [([4800.0, 330.0, 8600.0], [6500.0, 500.0, 2000.0]), ([6000.0, 900.0, 7500.0], [5000.0, 300.0, 3000.0])]
+            .into_iter()
+            .enumerate()
+    {
+        let still = render(gpu, &archive, Some(camera(eye, target)), flat);
+        std::fs::create_dir_all(repo().join("target/render-tests")).unwrap();
+        save(&still, &repo().join(format!("target/render-tests/cracks-{i}.png")));
+        assert!(still.frame.levels.1 > still.frame.levels.0, "several mesh levels in view");
+        let (w, h) = (still.width as usize, still.height as usize);
+        let white = |x: usize, y: usize| still.rgba[(y * w + x) * 4] > 127;
+        let mut terrain = 0;
+        let mut holes = Vec::new();
+        for x in 0..w {
+            let Some(top) = (0..h).find(|&y| white(x, y)) else { continue };
+            for y in top..h {
+                if white(x, y) {
+                    terrain += 1;
+                } else {
+                    holes.push((x, y));
+                }
+            }
+        }
+        assert!(terrain > w * h / 3, "view {i}: the terrain fills the lower image ({terrain} px)");
+        assert!(
+            holes.is_empty(),
+            "view {i}: {} background pixels inside the terrain, e.g. {:?}",
+            holes.len(),
+            &holes[..holes.len().min(8)]
+        );
+    }
+}
