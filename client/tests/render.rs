@@ -234,3 +234,32 @@ fn morphing_leaves_no_cracks() {
         );
     }
 }
+
+#[test]
+fn hud_text_lands_in_the_top_left_corner() {
+    use terrastream_client::render::gpu::{OFFSCREEN_FORMAT, Offscreen, render_pass};
+    use terrastream_client::render::hud::Hud;
+    let Some(gpu) = gpu() else { return };
+    let target = Offscreen::new(&gpu.device, 200, 100);
+    let mut hud = Hud::new(&gpu.device, OFFSCREEN_FORMAT);
+    hud.set_text(&gpu.queue, &["fps 60".to_owned(), "tiles 12".to_owned()], (200, 100), 1);
+    render_pass(
+        &gpu.device,
+        &gpu.queue,
+        &target.colour_view(),
+        &target.depth_view(),
+        terrastream_client::render::wgpu::Color::BLACK,
+        |pass| {
+            hud.draw(pass);
+        },
+    );
+    let rgba = target.read_rgba(&gpu.device, &gpu.queue).unwrap();
+    let white = |x: usize, y: usize| rgba[(y * 200 + x) * 4] == 255;
+    let inside = (0..40).flat_map(|y| (0..80).map(move |x| (x, y))).filter(|&(x, y)| white(x, y)).count();
+    let outside = (0..100)
+        .flat_map(|y| (0..200).map(move |x| (x, y)))
+        .filter(|&(x, y)| (x >= 80 || y >= 40) && white(x, y))
+        .count();
+    assert!(inside > 50, "glyph pixels drawn: {inside}");
+    assert_eq!(outside, 0);
+}

@@ -8,6 +8,7 @@ mod pack;
 mod progress;
 mod render;
 mod serve;
+mod view;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -111,6 +112,8 @@ enum Command {
         #[arg(long, default_value_t = 3)]
         timeout: u64,
     },
+    /// Fly over an archive (path or URL) in a window: WASD + mouse, HUD.
+    View(view::ViewArgs),
     /// Render one view of an archive (path or URL) to a PNG, headless.
     Render(render::RenderArgs),
     /// Pack the built-in sample terrain and show what is in it.
@@ -225,6 +228,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
         }
         Command::Demo(args) => demo::run(args, &progress),
         Command::Render(args) => render::run(args),
+        Command::View(args) => view::run(args),
         Command::Tile { elevation, output, tile_size, border, storage } => {
             use terrastream_packer::tiler::{ElevationStorage, TileOptions, read_geotiff, tile_elevation};
             let raster = read_geotiff(&elevation)?;

@@ -28,6 +28,8 @@ pub struct Gpu {
     pub queue: wgpu::Queue,
     /// Which adapter and backend (a software rasterizer counts: device type `Cpu`).
     pub info: wgpu::AdapterInfo,
+    /// The adapter.
+    pub adapter: wgpu::Adapter,
 }
 
 impl Gpu {
@@ -57,7 +59,7 @@ impl Gpu {
             })
             .await
             .map_err(|e| GpuError(format!("adapter {} ({:?}) refused a device: {e}", info.name, info.backend)))?;
-        Ok(Self { device, queue, info })
+        Ok(Self { device, queue, info, adapter })
     }
 
     /// A device without a window (blocking).

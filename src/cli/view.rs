@@ -1,0 +1,364 @@
+//! `terrastream view`: a window, a fly camera, the terrain streaming in, and a HUD.
+
+use std::collections::HashSet;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use clap::Args;
+use glam::DVec3;
+use terrastream_client::render::gpu::Gpu;
+use terrastream_client::render::hud::Hud;
+use terrastream_client::render::renderer::DEPTH_FORMAT;
+use terrastream_client::render::session::Session;
+use terrastream_client::render::still::{default_camera, terrain_bounds};
+use terrastream_client::render::wgpu;
+use terrastream_client::{Camera, Origin, Streamer};
+use winit::application::ApplicationHandler;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+use super::render::{LookArgs, parse_camera, parse_size};
+
+#[derive(Debug, Args)]
+pub struct ViewArgs {
+    /// The archive: a path, an http(s):// URL of a .tspack, or a server's tile endpoint URL.
+    pub archive: String,
+    /// Start at eye and target "ex,ey,ez,tx,ty,tz" (default: the whole dataset from the south).
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Window size, WxH.
+    #[arg(long, default_value = "1280x720")]
+    pub size: String,
+    /// Close the window after this many seconds (scripted screenshots, smoke tests).
+    #[arg(long)]
+    pub exit_after: Option<f64>,
+    #[command(flatten)]
+    pub look: LookArgs,
+}
+
+/// A fly camera: position, yaw (0 = north, towards -z), pitch.
+struct Fly {
+    eye: DVec3,
+    yaw: f64,
+    pitch: f64,
+    speed: f64,
+}
+
+impl Fly {
+    fn from(camera: &Camera) -> Self {
+        let d = camera.direction();
+        Self { eye: camera.position, yaw: d.x.atan2(-d.z), pitch: d.y.clamp(-1.0, 1.0).asin(), speed: 1.0 }
+    }
+
+    fn forward(&self) -> DVec3 {
+        DVec3::new(self.pitch.cos() * self.yaw.sin(), self.pitch.sin(), -self.pitch.cos() * self.yaw.cos())
+    }
+
+    fn camera(&self, width: u32, height: u32) -> Camera {
+        let mut c = Camera::look_at(self.eye, self.eye + self.forward() * 100.0, width, height);
+        // Near plane from the height above the ground keeps depth precise low and high.
+        c.near = (self.eye.y.abs() * 1e-3).clamp(0.05, 50.0);
+        c
+    }
+}
+
+struct Running {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    gpu: Gpu,
+    depth: wgpu::TextureView,
+    session: Session,
+    hud: Hud,
+}
+
+struct App {
+    args: ViewArgs,
+    streamer: Option<Streamer>,
+    size: (u32, u32),
+    fly: Fly,
+    running: Option<Running>,
+    error: Option<anyhow::Error>,
+    keys: HashSet<KeyCode>,
+    dragging: bool,
+    cursor: Option<(f64, f64)>,
+    show_hud: bool,
+    last_frame: Instant,
+    frame_times: Vec<f64>,
+    uploads_last: u64,
+    started: Instant,
+}
+
+fn depth_view(device: &wgpu::Device, width: u32, height: u32) -> wgpu::TextureView {
+    device
+        .create_texture(&wgpu::TextureDescriptor {
+            label: Some("texture.window.depth"),
+            size: wgpu::Extent3d { width: width.max(1), height: height.max(1), depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: DEPTH_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        })
+        .create_view(&wgpu::TextureViewDescriptor::default())
+}
+
+impl App {
+    fn start(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
+        let attributes = Window::default_attributes()
+            .with_title(format!("terrastream — {}", self.args.archive))
+            .with_inner_size(winit::dpi::PhysicalSize::new(self.size.0, self.size.1));
+        let window = Arc::new(event_loop.create_window(attributes).context("opening a window")?);
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(
+            event_loop.owned_display_handle(),
+        )));
+        let surface = instance.create_surface(window.clone()).context("creating a drawing surface")?;
+        let gpu = pollster::block_on(Gpu::new(&instance, Some(&surface)))?;
+        tracing::info!(adapter = %gpu.describe(), "viewer");
+        let size = window.inner_size();
+        let mut config = surface
+            .get_default_config(&gpu.adapter, size.width.max(1), size.height.max(1))
+            .context("the surface does not fit the adapter")?;
+        config.present_mode = wgpu::PresentMode::AutoVsync;
+        surface.configure(&gpu.device, &config);
+        let streamer = self.streamer.take().context("viewer started twice")?;
+        let session =
+            Session::new(streamer, &gpu.device, self.args.look.settings(), config.format, self.args.look.budget())?;
+        let hud = Hud::new(&gpu.device, config.format);
+        let depth = depth_view(&gpu.device, config.width, config.height);
+        self.running = Some(Running { window, surface, config, gpu, depth, session, hud });
+        Ok(())
+    }
+
+    fn step(&mut self, dt: f64) {
+        let Some(r) = &mut self.running else { return };
+        let ground = r.session.streamer.height_at(self.fly.eye.x, self.fly.eye.z).unwrap_or(0.0);
+        let altitude = (self.fly.eye.y - ground).max(1.0);
+        // Speed scales with the height above the ground: a second covers about the altitude.
+        let speed = altitude.max(20.0) * self.fly.speed * dt;
+        let forward = self.fly.forward();
+        let flat = DVec3::new(forward.x, 0.0, forward.z).normalize_or_zero();
+        let right = flat.cross(DVec3::Y);
+        let mut step = DVec3::ZERO;
+        for (key, dir) in [
+            (KeyCode::KeyW, forward),
+            (KeyCode::KeyS, -forward),
+            (KeyCode::KeyD, right),
+            (KeyCode::KeyA, -right),
+            (KeyCode::KeyE, DVec3::Y),
+            (KeyCode::KeyQ, -DVec3::Y),
+        ] {
+            if self.keys.contains(&key) {
+                step += dir;
+            }
+        }
+        self.fly.eye += step.normalize_or_zero() * speed;
+        // Never below the ground.
+        let ground = r.session.streamer.height_at(self.fly.eye.x, self.fly.eye.z).unwrap_or(f64::NEG_INFINITY);
+        self.fly.eye.y = self.fly.eye.y.max(ground + 2.0);
+    }
+
+    fn redraw(&mut self) -> Result<()> {
+        let now = Instant::now();
+        let dt = now.duration_since(self.last_frame).as_secs_f64().min(0.25);
+        self.last_frame = now;
+        self.step(dt);
+        let Some(r) = &mut self.running else { return Ok(()) };
+        let camera = self.fly.camera(r.config.width, r.config.height);
+        let (stream, frame) = r.session.frame(&r.gpu.device, &r.gpu.queue, &camera);
+        self.frame_times.push(dt);
+        if self.frame_times.len() > 60 {
+            self.frame_times.remove(0);
+        }
+        let uploads = stream.uploads - self.uploads_last;
+        self.uploads_last = stream.uploads;
+        let surface_texture = match r.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                r.surface.configure(&r.gpu.device, &r.config);
+                return Ok(());
+            }
+            other => {
+                tracing::warn!("no frame to draw into: {other:?}");
+                return Ok(());
+            }
+        };
+        if self.show_hud {
+            let mean = self.frame_times.iter().sum::<f64>() / self.frame_times.len().max(1) as f64;
+            let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+            let lines = vec![
+                format!("fps {:5.1}   frame {:6.2} ms   {}", 1.0 / mean.max(1e-6), mean * 1e3, r.gpu.describe()),
+                format!(
+                    "tiles in flight {:3}   wanted {:5}   pending {:5}   fetched {:6}   missing {}   failures {}",
+                    stream.in_flight,
+                    stream.wanted,
+                    r.session.streamer.pending(),
+                    stream.tiles_fetched,
+                    stream.missing,
+                    stream.failures
+                ),
+                format!(
+                    "cache {:7.1} MiB ({} tiles)   GPU {:7.1} MiB (resident: {} elevation, {} texture)",
+                    mib(stream.cache_bytes),
+                    stream.cache_tiles,
+                    mib(frame.gpu_bytes),
+                    frame.resident.0,
+                    frame.resident.1
+                ),
+                format!(
+                    "uploads this frame {:2} (budget {} tiles, {:.1} MiB)   received {:8.1} MiB",
+                    uploads,
+                    r.session.budget.max_tiles,
+                    mib(r.session.budget.max_bytes as u64),
+                    mib(stream.bytes_fetched)
+                ),
+                format!(
+                    "mesh levels in view {}..{}   patches {}   triangles {}   draw calls {}",
+                    frame.levels.0, frame.levels.1, frame.patches, frame.triangles, frame.draw_calls
+                ),
+                format!(
+                    "eye {:.0} {:.0} {:.0}   speed x{:.2}",
+                    camera.position.x, camera.position.y, camera.position.z, self.fly.speed
+                ),
+                "WASD/QE fly  drag: look  wheel: speed  G wireframe  L LOD colours  H HUD  Esc quit".to_owned(),
+            ];
+            let scale = if r.config.width >= 1800 { 2 } else { 1 };
+            r.hud.set_text(&r.gpu.queue, &lines, (r.config.width, r.config.height), scale);
+        }
+        let view = surface_texture.texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let show_hud = self.show_hud;
+        let (renderer, hud) = (&r.session.renderer, &r.hud);
+        terrastream_client::render::gpu::render_pass(
+            &r.gpu.device,
+            &r.gpu.queue,
+            &view,
+            &r.depth,
+            renderer.settings().clear_colour(),
+            |pass| {
+                renderer.draw(pass);
+                if show_hud {
+                    hud.draw(pass);
+                }
+            },
+        );
+        r.window.pre_present_notify();
+        r.gpu.queue.present(surface_texture);
+        Ok(())
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.running.is_none() {
+            if let Err(e) = self.start(event_loop) {
+                self.error = Some(e);
+                event_loop.exit();
+            }
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                if let Some(r) = &mut self.running {
+                    r.config.width = size.width.max(1);
+                    r.config.height = size.height.max(1);
+                    r.surface.configure(&r.gpu.device, &r.config);
+                    r.depth = depth_view(&r.gpu.device, r.config.width, r.config.height);
+                }
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                let PhysicalKey::Code(code) = event.physical_key else { return };
+                if event.state == ElementState::Pressed {
+                    self.keys.insert(code);
+                    if let Some(r) = &mut self.running {
+                        let mut s = *r.session.renderer.settings();
+                        match code {
+                            KeyCode::Escape => event_loop.exit(),
+                            KeyCode::KeyG => s.wireframe = !s.wireframe,
+                            KeyCode::KeyL => s.lod_colours = !s.lod_colours,
+                            KeyCode::KeyH => self.show_hud = !self.show_hud,
+                            _ => {}
+                        }
+                        r.session.renderer.set_view_settings(s);
+                    }
+                } else {
+                    self.keys.remove(&code);
+                }
+            }
+            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
+                self.dragging = state == ElementState::Pressed;
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                if let (true, Some((x, y))) = (self.dragging, self.cursor) {
+                    self.fly.yaw += (position.x - x) * 0.004;
+                    self.fly.pitch = (self.fly.pitch - (position.y - y) * 0.004).clamp(-1.5, 1.5);
+                }
+                self.cursor = Some((position.x, position.y));
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                let lines = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => f64::from(y),
+                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+                };
+                self.fly.speed = (self.fly.speed * 1.25f64.powf(lines)).clamp(0.01, 100.0);
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.redraw() {
+                    self.error = Some(e);
+                    event_loop.exit();
+                }
+                if self.args.exit_after.is_some_and(|s| self.started.elapsed() > Duration::from_secs_f64(s)) {
+                    event_loop.exit();
+                }
+                if let Some(r) = &self.running {
+                    r.window.request_redraw();
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+pub fn run(args: ViewArgs) -> Result<ExitCode> {
+    let (width, height) = parse_size(&args.size)?;
+    let start = args.camera.as_deref().map(parse_camera).transpose()?;
+    let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
+    let streamer = Streamer::open(origin, args.look.stream()).with_context(|| format!("opening {}", args.archive))?;
+    let metadata = streamer.metadata().cloned().context("the archive has no metadata")?;
+    let camera = match start {
+        Some((eye, target)) => Camera::look_at(eye, target, width, height),
+        None => default_camera(&metadata, width, height),
+    };
+    let ((ex, ez), _) = terrain_bounds(&metadata);
+    tracing::info!(extent_m = format!("{ex:.0} x {ez:.0}"), "viewing {}", args.archive);
+    let event_loop = EventLoop::new().context("no display to open a window on (try `terrastream render`)")?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    let mut app = App {
+        args,
+        streamer: Some(streamer),
+        size: (width, height),
+        fly: Fly::from(&camera),
+        running: None,
+        error: None,
+        keys: HashSet::new(),
+        dragging: false,
+        cursor: None,
+        show_hud: true,
+        last_frame: Instant::now(),
+        frame_times: Vec::new(),
+        uploads_last: 0,
+        started: Instant::now(),
+    };
+    event_loop.run_app(&mut app).context("window event loop")?;
+    match app.error {
+        Some(e) => Err(e),
+        None => Ok(ExitCode::SUCCESS),
+    }
+}
