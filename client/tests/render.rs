@@ -18,6 +18,7 @@ use glam::DVec3;
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
 use terrastream_client::render::still::{Still, StillOptions, render_still};
+use terrastream_client::render::wgpu;
 use terrastream_client::{Camera, Origin};
 use terrastream_packer::progress::Silent;
 use terrastream_packer::tiler::{TileOptions, read_geotiff, tile_elevation};
@@ -243,16 +244,9 @@ fn hud_text_lands_in_the_top_left_corner() {
     let target = Offscreen::new(&gpu.device, 200, 100);
     let mut hud = Hud::new(&gpu.device, OFFSCREEN_FORMAT);
     hud.set_text(&gpu.queue, &["fps 60".to_owned(), "tiles 12".to_owned()], (200, 100), 1);
-    render_pass(
-        &gpu.device,
-        &gpu.queue,
-        &target.colour_view(),
-        &target.depth_view(),
-        terrastream_client::render::wgpu::Color::BLACK,
-        |pass| {
-            hud.draw(pass);
-        },
-    );
+    render_pass(&gpu.device, &gpu.queue, &target.colour_view(), &target.depth_view(), wgpu::Color::BLACK, |pass| {
+        hud.draw(pass);
+    });
     let rgba = target.read_rgba(&gpu.device, &gpu.queue).unwrap();
     let white = |x: usize, y: usize| rgba[(y * 200 + x) * 4] == 255;
     let inside = (0..40).flat_map(|y| (0..80).map(move |x| (x, y))).filter(|&(x, y)| white(x, y)).count();
