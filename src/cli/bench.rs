@@ -19,6 +19,8 @@ pub enum BenchCommand {
     Archive(ArchiveBench),
     /// Streaming core: time to full detail, requests per tile, upload budget (mmap vs HTTP).
     Stream(super::bench_stream::StreamBench),
+    /// Renderer: frame times along a scripted flight, streaming vs all resident; vertices, draw calls.
+    Render(super::bench_render::RenderBench),
 }
 
 #[derive(Debug, Args)]
@@ -37,8 +39,9 @@ pub struct ArchiveBench {
     dir: Option<PathBuf>,
 }
 
-pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
+pub fn run(cmd: BenchCommand, progress: &super::CliProgress) -> Result<ExitCode> {
     match cmd {
+        BenchCommand::Render(args) => super::bench_render::run(args, progress).map(|()| ExitCode::SUCCESS),
         BenchCommand::Archive(args) => archive(args),
         BenchCommand::Stream(args) => super::bench_stream::run(args).map(|()| ExitCode::SUCCESS),
     }

@@ -19,10 +19,16 @@ pub struct DemoArgs {
     /// Where to serve the sample (port 0: any free port).
     #[arg(long, default_value = "127.0.0.1:0")]
     addr: std::net::SocketAddr,
-    /// Keep serving after the demo requests, until Ctrl-C.
+    /// Keep serving after the demo, until Ctrl-C.
     #[arg(long)]
     keep_serving: bool,
+    /// Render PNG views even when a display is available (instead of opening the viewer).
+    #[arg(long)]
+    no_window: bool,
 }
+
+/// The built-in real terrain: SRTM 1" around Mt Tamalpais (public domain), 320 x 320 samples.
+const TAMALPAIS_TIF: &[u8] = include_bytes!("../../tests/data/srtm-tamalpais-320-public-domain.tif");
 
 /// One HTTP/1.1 GET over a plain socket: (status line, headers, body).
 fn fetch(addr: std::net::SocketAddr, path: &str, extra: &str) -> Result<(String, String, Vec<u8>)> {
@@ -42,7 +48,10 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
     use terrastream_server::{AppState, ServerConfig, serve};
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     runtime.block_on(async {
-        let config = ServerConfig { paths: vec![args.dir.join("sample.tspack")], ..ServerConfig::default() };
+        let config = ServerConfig {
+            paths: vec![args.dir.join("sample.tspack"), args.dir.join("tamalpais.tspack")],
+            ..ServerConfig::default()
+        };
         let state = AppState::new(config);
         state.catalog.reload();
         let listener =
@@ -83,6 +92,13 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
         })
         .await?;
         shown?;
+        let base = format!("http://{addr}");
+        tokio::task::spawn_blocking({
+            let dir = args.dir.clone();
+            let no_window = args.no_window;
+            move || look(&base, &dir, no_window)
+        })
+        .await??;
         if args.keep_serving {
             println!("serving until Ctrl-C: http://{addr}/");
             let _ = tokio::signal::ctrl_c().await;
@@ -91,6 +107,74 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
         server.await??;
         anyhow::Ok(())
     })
+}
+
+/// Opens the viewer on the served DEM when there is a display, else renders PNG views
+/// of both served archives over HTTP.
+fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
+    use terrastream_client::render::gpu::Gpu;
+    use terrastream_client::render::still::{StillOptions, render_still, write_png};
+    use terrastream_client::{Camera, Origin};
+    let url = format!("{base}/tamalpais.tspack");
+    let display = ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()));
+    if display && !no_window {
+        println!("\nopening the viewer on {url} (WASD/QE fly, drag to look, Esc quits)");
+        // The viewer's event loop must own the main thread on some platforms; here the
+        // server runs on the runtime's workers, so a window opened from this thread works
+        // on X11 and Wayland.
+        return super::view::run_url(&url);
+    }
+    let gpu = Gpu::headless().context("rendering the demo views needs a graphics adapter (Mesa's lavapipe will do)")?;
+    let out = dir.join("views");
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    println!("\nrendering over HTTP on {} (no display: PNG views instead of the viewer)", gpu.describe());
+    let (w, h) = (960, 540);
+    type Pose = Option<([f64; 3], [f64; 3])>;
+    let views: [(&str, String, Pose); 4] = [
+        ("tamalpais-whole", url.clone(), None),
+        ("tamalpais-grazing", url.clone(), Some(([2200.0, 650.0, 9200.0], [5000.0, 350.0, 2500.0]))),
+        ("tamalpais-summit", url.clone(), Some(([3000.0, 1100.0, 4600.0], [4700.0, 600.0, 2600.0]))),
+        ("sample-whole", format!("{base}/sample.tspack"), None),
+    ];
+    for (name, location, pose) in views {
+        let started = std::time::Instant::now();
+        let make = move |_: &terrastream_packer::Metadata| {
+            let (eye, target) = pose.unwrap_or_default();
+            Camera::look_at(glam::DVec3::from_array(eye), glam::DVec3::from_array(target), w, h)
+        };
+        let chosen: Option<&dyn Fn(&terrastream_packer::Metadata) -> Camera> =
+            if pose.is_some() { Some(&make) } else { None };
+        let options = StillOptions { width: w, height: h, ..StillOptions::default() };
+        let still = render_still(&gpu, Origin::parse(&location)?, chosen, &options)
+            .with_context(|| format!("rendering {location}"))?;
+        let path = out.join(format!("{name}.png"));
+        write_png(&path, w, h, &still.rgba).with_context(|| format!("writing {}", path.display()))?;
+        println!(
+            "  {:<48} {} tiles in {} requests, {} triangles, {:.2} s",
+            path.display(),
+            still.stream.tiles_fetched,
+            still.stream.requests,
+            still.frame.triangles,
+            started.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
+}
+
+/// Tiles the built-in DEM into `archive` (once).
+pub(super) fn tile_builtin_dem(dir: &std::path::Path, archive: &std::path::Path, progress: &CliProgress) -> Result<()> {
+    use terrastream_packer::tiler::{TileOptions, read_geotiff, tile_elevation};
+    if archive.exists() {
+        return Ok(());
+    }
+    let tif = dir.join("srtm-tamalpais-320-public-domain.tif");
+    std::fs::write(&tif, TAMALPAIS_TIF).with_context(|| format!("writing {}", tif.display()))?;
+    let raster = read_geotiff(&tif)?;
+    let options = TileOptions { tile_size: 64, border: 1, ..TileOptions::default() };
+    tile_elevation(raster, "tamalpais", archive, options, progress)?;
+    progress.finish();
+    println!("tiled the built-in SRTM 1\" DEM (Mt Tamalpais, public domain) into {}", archive.display());
+    Ok(())
 }
 
 pub fn run(args: DemoArgs, progress: &CliProgress) -> Result<ExitCode> {
@@ -117,6 +201,7 @@ pub fn run(args: DemoArgs, progress: &CliProgress) -> Result<ExitCode> {
     if !report.is_ok() {
         return Ok(ExitCode::FAILURE);
     }
+    tile_builtin_dem(&args.dir, &args.dir.join("tamalpais.tspack"), progress)?;
     serve_and_show(&args)?;
     println!(
         "\nnext: terrastream serve {} (or --keep-serving), terrastream extract {} -o <dir>",

@@ -1,6 +1,7 @@
 //! Command-line wiring: argument parsing, progress bars, Ctrl-C, output formatting.
 
 mod bench;
+mod bench_render;
 mod bench_stream;
 mod demo;
 mod info;
@@ -252,7 +253,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Health { url, timeout } => health(&url, std::time::Duration::from_secs(timeout)),
-        Command::Bench(cmd) => bench::run(cmd),
+        Command::Bench(cmd) => bench::run(cmd, &progress),
     }
 }
 

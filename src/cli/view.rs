@@ -326,6 +326,18 @@ impl ApplicationHandler for App {
     }
 }
 
+/// The viewer on `url` with default settings (the demo).
+pub fn run_url(url: &str) -> Result<()> {
+    use clap::Parser;
+    #[derive(Parser)]
+    struct Wrapper {
+        #[command(flatten)]
+        view: ViewArgs,
+    }
+    let wrapper = Wrapper::try_parse_from(["view", url])?;
+    run(wrapper.view).map(|_| ())
+}
+
 pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let (width, height) = parse_size(&args.size)?;
     let start = args.camera.as_deref().map(parse_camera).transpose()?;
@@ -338,7 +350,15 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     };
     let ((ex, ez), _) = terrain_bounds(&metadata);
     tracing::info!(extent_m = format!("{ex:.0} x {ez:.0}"), "viewing {}", args.archive);
-    let event_loop = EventLoop::new().context("no display to open a window on (try `terrastream render`)")?;
+    // Any thread: the demo opens the viewer beside the server's runtime.
+    #[cfg(target_os = "linux")]
+    let event_loop = {
+        use winit::platform::x11::EventLoopBuilderExtX11;
+        EventLoop::builder().with_any_thread(true).build()
+    };
+    #[cfg(not(target_os = "linux"))]
+    let event_loop = EventLoop::new();
+    let event_loop = event_loop.context("no display to open a window on (try `terrastream render`)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
     let mut app = App {
         args,

@@ -67,7 +67,7 @@ impl Default for RenderSettings {
             wireframe: false,
             lod_colours: false,
             detail: 0.0,
-            sun: DVec3::new(-0.5, 0.6, -0.4),
+            sun: DVec3::new(-0.45, 0.65, 0.6),
             fog_density: None,
             sky: [0.62, 0.72, 0.84],
         }

@@ -1,0 +1,159 @@
+//! `terrastream bench render`: frame times along a scripted flight, with streaming active
+//! versus with every tile already resident, on whatever adapter is present.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use clap::Args;
+use glam::DVec3;
+use terrastream_client::render::gpu::{Gpu, OFFSCREEN_FORMAT, Offscreen, render_pass};
+use terrastream_client::render::renderer::RenderSettings;
+use terrastream_client::render::session::Session;
+use terrastream_client::render::still::terrain_bounds;
+use terrastream_client::render::wgpu;
+use terrastream_client::{Camera, Origin, StreamOptions, Streamer, UploadBudget};
+
+use super::CliProgress;
+
+#[derive(Debug, Args)]
+pub struct RenderBench {
+    /// Archive to fly over (path or URL); default: the built-in SRTM crop.
+    #[arg(long)]
+    archive: Option<String>,
+    /// Frames along the flight.
+    #[arg(long, default_value_t = 240)]
+    frames: usize,
+    /// Frame size, WxH.
+    #[arg(long, default_value = "640x360")]
+    size: String,
+    /// Most tiles uploaded per frame.
+    #[arg(long, default_value_t = 8)]
+    max_upload_tiles: usize,
+    /// Working folder (a temporary one by default).
+    #[arg(long)]
+    dir: Option<PathBuf>,
+}
+
+/// The flight: from the south-west corner to the north-east one, low over the terrain,
+/// looking ahead and down.
+fn flight(metadata: &terrastream_packer::Metadata, frames: usize, w: u32, h: u32) -> Vec<Camera> {
+    let ((ex, ez), (_, hi)) = terrain_bounds(metadata);
+    let altitude = hi + 0.04 * ex.max(ez);
+    (0..frames)
+        .map(|i| {
+            let t = i as f64 / (frames.max(2) - 1) as f64;
+            let eye = DVec3::new(ex * (0.1 + 0.8 * t), altitude, ez * (0.9 - 0.8 * t));
+            let ahead = DVec3::new(ex * 0.1, -altitude * 0.6, -ez * 0.1);
+            Camera::look_at(eye, eye + ahead, w, h)
+        })
+        .collect()
+}
+
+struct Run {
+    frame_ms: Vec<f64>,
+    vertices: Vec<u64>,
+    draw_calls: Vec<u32>,
+    uploads_max: u64,
+}
+
+/// Flies `cameras`, timing each whole frame (stream update, uploads, draw, GPU finish).
+fn fly(gpu: &Gpu, session: &mut Session, cameras: &[Camera], target: &Offscreen) -> Result<Run> {
+    let (colour, depth) = (target.colour_view(), target.depth_view());
+    let mut run = Run { frame_ms: Vec::new(), vertices: Vec::new(), draw_calls: Vec::new(), uploads_max: 0 };
+    let mut uploads = session.streamer.stats().uploads;
+    for camera in cameras {
+        let start = Instant::now();
+        let (stream, frame) = session.frame(&gpu.device, &gpu.queue, camera);
+        render_pass(&gpu.device, &gpu.queue, &colour, &depth, session.renderer.settings().clear_colour(), |pass| {
+            session.renderer.draw(pass);
+        });
+        gpu.device.poll(wgpu::PollType::wait_indefinitely()).context("waiting for the GPU")?;
+        run.frame_ms.push(start.elapsed().as_secs_f64() * 1e3);
+        run.vertices.push(frame.vertices);
+        run.draw_calls.push(frame.draw_calls);
+        run.uploads_max = run.uploads_max.max(stream.uploads - uploads);
+        uploads = stream.uploads;
+    }
+    Ok(run)
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    sorted.get(i).copied().unwrap_or(f64::NAN)
+}
+
+pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
+    let (w, h) = super::render::parse_size(&args.size)?;
+    let dir = match &args.dir {
+        Some(d) => {
+            std::fs::create_dir_all(d)?;
+            tempfile::TempDir::new_in(d)?
+        }
+        None => tempfile::tempdir()?,
+    };
+    let location = match &args.archive {
+        Some(a) => a.clone(),
+        None => {
+            let path = dir.path().join("tamalpais.tspack");
+            super::demo::tile_builtin_dem(dir.path(), &path, progress)?;
+            path.display().to_string()
+        }
+    };
+    let gpu = Gpu::headless().context("the render benchmark needs a graphics adapter")?;
+    let budget = UploadBudget { max_tiles: args.max_upload_tiles.max(1), ..UploadBudget::default() };
+    let open = || -> Result<Session> {
+        let streamer = Streamer::open(Origin::parse(&location)?, StreamOptions::default())?;
+        Ok(Session::new(streamer, &gpu.device, RenderSettings::default(), OFFSCREEN_FORMAT, budget)?)
+    };
+    let mut streaming = open()?;
+    let metadata = streaming.streamer.metadata().cloned().context("no metadata")?;
+    let cameras = flight(&metadata, args.frames, w, h);
+    let target = Offscreen::new(&gpu.device, w, h);
+    println!("bench render: {location}, {} frames of {w}x{h} on {}", cameras.len(), gpu.describe());
+    // Warm-up outside the timings: pipelines compiled, caches of the driver filled.
+    {
+        let mut warm = open()?;
+        fly(&gpu, &mut warm, &cameras[..cameras.len().min(5)], &target)?;
+    }
+    // Streaming: a fresh session; tiles arrive while it flies.
+    let streamed = fly(&gpu, &mut streaming, &cameras, &target)?;
+    // Resident: a session that has already streamed every view of the flight to completion.
+    let mut resident = open()?;
+    for camera in &cameras {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            resident.frame(&gpu.device, &gpu.queue, camera);
+            gpu.queue.submit([]);
+            if resident.settled() || Instant::now() > deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+    let before = resident.streamer.stats();
+    let settled = fly(&gpu, &mut resident, &cameras, &target)?;
+    let after = resident.streamer.stats();
+    println!(
+        "  resident run fetched {} tiles during the flight (0 = everything was resident)",
+        after.tiles_fetched - before.tiles_fetched
+    );
+    let stats = |name: &str, r: &Run| -> (f64, f64) {
+        let mut sorted = r.frame_ms.clone();
+        sorted.sort_by(f64::total_cmp);
+        let (p50, p99, max) = (percentile(&sorted, 0.5), percentile(&sorted, 0.99), percentile(&sorted, 1.0));
+        let mean_vertices = r.vertices.iter().sum::<u64>() as f64 / r.vertices.len().max(1) as f64;
+        println!(
+            "  {name:<10} frame ms median {p50:7.2}  p99 {p99:7.2}  max {max:7.2} | vertices/frame mean {mean_vertices:8.0} max {:7} | draw calls/frame max {} | uploads/frame max {}",
+            r.vertices.iter().max().unwrap_or(&0),
+            r.draw_calls.iter().max().unwrap_or(&0),
+            r.uploads_max
+        );
+        (p50, p99)
+    };
+    let (s50, s99) = stats("streaming", &streamed);
+    let (r50, r99) = stats("resident", &settled);
+    println!("  streaming / resident: median {:.2}x, p99 {:.2}x (target: p99 within 1.25x)", s50 / r50, s99 / r99);
+    Ok(())
+}
