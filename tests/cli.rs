@@ -16,11 +16,20 @@ fn text(o: &Output) -> String {
 fn demo_then_info_verify_and_extract() {
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let out = terrastream(&["demo", "--dir", "demo"], work);
+    let out = terrastream(&["demo", "--dir", "demo", "--no-window"], work);
     assert!(out.status.success(), "{}", text(&out));
     assert!(text(&out).contains("verify: OK"), "{}", text(&out));
     let archive = work.join("demo/sample.tspack");
     assert!(archive.exists());
+    // pack -> serve -> render: the views were streamed over HTTP and rendered (lavapipe).
+    for view in ["tamalpais-whole", "tamalpais-grazing", "tamalpais-summit", "sample-whole"] {
+        let png = work.join(format!("demo/views/{view}.png"));
+        let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&png).unwrap()));
+        let info = decoder.read_info().unwrap().info().clone();
+        assert_eq!((info.width, info.height), (960, 540), "{}", png.display());
+        assert!(text(&out).contains(&format!("{view}.png")), "{}", text(&out));
+    }
+    assert!(work.join("demo/tamalpais.tspack").exists());
 
     let out = terrastream(&["info", "demo/sample.tspack", "--json"], work);
     assert!(out.status.success(), "{}", text(&out));
@@ -45,7 +54,7 @@ fn demo_then_info_verify_and_extract() {
 fn verify_names_the_damage_and_fails() {
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    assert!(terrastream(&["demo", "--dir", "d"], work).status.success());
+    assert!(terrastream(&["demo", "--dir", "d", "--no-window"], work).status.success());
     let path = work.join("d/sample.tspack");
     let mut bytes = std::fs::read(&path).unwrap();
     let n = bytes.len();
@@ -94,7 +103,7 @@ fn http(port: u16, request: &str) -> Vec<u8> {
 fn pack_then_serve_then_stop_on_sigterm() {
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    assert!(terrastream(&["demo", "--dir", "d"], work).status.success());
+    assert!(terrastream(&["demo", "--dir", "d", "--no-window"], work).status.success());
     let archive = std::fs::read(work.join("d/sample.tspack")).unwrap();
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let mut child = Command::new(env!("CARGO_BIN_EXE_terrastream"))
