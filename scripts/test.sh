@@ -25,9 +25,10 @@ echo "== cargo fmt"
 cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
-echo "== reader and client for wasm32"
+echo "== reader, client and renderer for wasm32"
 cargo check -p terrastream-packer --no-default-features --target wasm32-unknown-unknown --locked
 cargo check -p terrastream-client --target wasm32-unknown-unknown --locked
+cargo check -p terrastream-client --features render --target wasm32-unknown-unknown --locked
 # lavapipe wants a private runtime directory (else it warns on every start).
 if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "${XDG_RUNTIME_DIR}" ]; then
   XDG_RUNTIME_DIR=$(mktemp -d)
