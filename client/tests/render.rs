@@ -17,7 +17,7 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
-use terrastream_client::render::still::{Still, StillOptions, render_still};
+use terrastream_client::render::still::{Still, StillOptions, default_camera, render_still};
 use terrastream_client::render::wgpu;
 use terrastream_client::{Camera, Origin};
 use terrastream_packer::progress::Silent;
@@ -92,9 +92,8 @@ fn camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
 
 fn render(gpu: &Gpu, location: &str, cam: Option<Camera>, settings: RenderSettings) -> Still {
     let options = StillOptions { width: WIDTH, height: HEIGHT, settings, ..StillOptions::default() };
-    let make = move |_: &Metadata| cam.unwrap();
-    let chosen: Option<&dyn Fn(&Metadata) -> Camera> = if cam.is_some() { Some(&make) } else { None };
-    render_still(gpu, Origin::parse(location).unwrap(), chosen, &options).unwrap()
+    let camera = |m: &Metadata| cam.unwrap_or_else(|| default_camera(m, WIDTH, HEIGHT));
+    render_still(gpu, Origin::parse(location).unwrap(), camera, &options).unwrap()
 }
 
 fn save(still: &Still, path: &Path) {

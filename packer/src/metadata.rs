@@ -204,6 +204,11 @@ impl Layer {
         self.tile_world_size * f64::from(1u32 << lod.min(31))
     }
 
+    /// World units covered by the LOD-0 grid: (x across, z down).
+    pub fn world_extent(&self) -> (f64, f64) {
+        (f64::from(self.num_x_tiles) * self.tile_world_size, f64::from(self.num_y_tiles) * self.tile_world_size)
+    }
+
     /// Every tile of the grid at `lod`, row by row, as keys of layer `index`.
     pub fn tiles_at(&self, index: u8, lod: u8) -> impl Iterator<Item = TileKey> + use<> {
         let (nx, ny) = self.grid_at(lod);
@@ -267,6 +272,15 @@ pub struct Terrain {
     pub num_detail_levels: u32,
     /// Original engine's texture consolidation size.
     pub max_consolidated_texture_resolution: u32,
+}
+
+impl Terrain {
+    /// Lowest and highest height, in order, spanning at least `displacement` (the
+    /// encodings' range) above the lowest.
+    pub fn height_range(&self) -> (f64, f64) {
+        let (lo, hi) = (self.min_elevation.min(self.max_elevation), self.max_elevation.max(self.min_elevation));
+        (lo, hi.max(lo + self.displacement.max(0.0)))
+    }
 }
 
 impl Default for Terrain {

@@ -122,15 +122,7 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     // Resident: a session that has already streamed every view of the flight to completion.
     let mut resident = open()?;
     for camera in &cameras {
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            resident.frame(&gpu.device, &gpu.queue, camera);
-            gpu.queue.submit([]);
-            if resident.settled() || Instant::now() > deadline {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(1));
-        }
+        resident.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
     }
     let before = resident.streamer.stats();
     let settled = fly(&gpu, &mut resident, &cameras, &target)?;

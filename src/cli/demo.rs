@@ -113,7 +113,7 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
 /// of both served archives over HTTP.
 fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     use terrastream_client::render::gpu::Gpu;
-    use terrastream_client::render::still::{StillOptions, render_still, write_png};
+    use terrastream_client::render::still::{StillOptions, default_camera, render_still, write_png};
     use terrastream_client::{Camera, Origin};
     let url = format!("{base}/tamalpais.tspack");
     let display = ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()));
@@ -138,14 +138,12 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     ];
     for (name, location, pose) in views {
         let started = std::time::Instant::now();
-        let make = move |_: &terrastream_packer::Metadata| {
-            let (eye, target) = pose.unwrap_or_default();
-            Camera::look_at(glam::DVec3::from_array(eye), glam::DVec3::from_array(target), w, h)
+        let camera = |metadata: &terrastream_packer::Metadata| match pose {
+            Some((eye, target)) => Camera::look_at(glam::DVec3::from_array(eye), glam::DVec3::from_array(target), w, h),
+            None => default_camera(metadata, w, h),
         };
-        let chosen: Option<&dyn Fn(&terrastream_packer::Metadata) -> Camera> =
-            if pose.is_some() { Some(&make) } else { None };
         let options = StillOptions { width: w, height: h, ..StillOptions::default() };
-        let still = render_still(&gpu, Origin::parse(&location)?, chosen, &options)
+        let still = render_still(&gpu, Origin::parse(&location)?, camera, &options)
             .with_context(|| format!("rendering {location}"))?;
         let path = out.join(format!("{name}.png"));
         write_png(&path, w, h, &still.rgba).with_context(|| format!("writing {}", path.display()))?;

@@ -9,7 +9,7 @@ use clap::{Args, ValueEnum};
 use glam::DVec3;
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
-use terrastream_client::render::still::{StillOptions, render_still, write_png};
+use terrastream_client::render::still::{StillOptions, default_camera, render_still, write_png};
 use terrastream_client::{Camera, Origin, StreamOptions, UploadBudget};
 
 /// Renderer and streaming settings shared by `render` and `view`.
@@ -154,14 +154,13 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         timeout: Duration::from_secs(args.timeout),
     };
     let fov = args.fov.clamp(1.0, 170.0).to_radians();
-    let make_camera = move |_: &terrastream_packer::Metadata| {
-        let (eye, target) = camera.unwrap_or_default();
-        Camera { fov_y: fov, ..Camera::look_at(eye, target, width, height) }
+    let make_camera = |metadata: &terrastream_packer::Metadata| match camera {
+        Some((eye, target)) => Camera { fov_y: fov, ..Camera::look_at(eye, target, width, height) },
+        None => default_camera(metadata, width, height),
     };
-    let chosen: Option<&dyn Fn(&terrastream_packer::Metadata) -> Camera> =
-        if camera.is_some() { Some(&make_camera) } else { None };
     let started = std::time::Instant::now();
-    let still = render_still(&gpu, origin, chosen, &options).with_context(|| format!("rendering {}", args.archive))?;
+    let still =
+        render_still(&gpu, origin, make_camera, &options).with_context(|| format!("rendering {}", args.archive))?;
     write_png(&args.output, still.width, still.height, &still.rgba)
         .with_context(|| format!("writing {}", args.output.display()))?;
     let p = still.camera.position;

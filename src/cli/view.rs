@@ -8,9 +8,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::Args;
 use glam::DVec3;
-use terrastream_client::render::gpu::Gpu;
+use terrastream_client::render::gpu::{Gpu, depth_target};
 use terrastream_client::render::hud::Hud;
-use terrastream_client::render::renderer::DEPTH_FORMAT;
 use terrastream_client::render::session::Session;
 use terrastream_client::render::still::{default_camera, terrain_bounds};
 use terrastream_client::render::wgpu;
@@ -94,18 +93,7 @@ struct App {
 }
 
 fn depth_view(device: &wgpu::Device, width: u32, height: u32) -> wgpu::TextureView {
-    device
-        .create_texture(&wgpu::TextureDescriptor {
-            label: Some("texture.window.depth"),
-            size: wgpu::Extent3d { width: width.max(1), height: height.max(1), depth_or_array_layers: 1 },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: DEPTH_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            view_formats: &[],
-        })
-        .create_view(&wgpu::TextureViewDescriptor::default())
+    depth_target(device, "texture.window.depth", width, height).create_view(&wgpu::TextureViewDescriptor::default())
 }
 
 impl App {

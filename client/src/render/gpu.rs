@@ -78,6 +78,82 @@ impl Gpu {
     }
 }
 
+/// A 2D texture (`layers` > 1: an array) with one mip level.
+pub fn texture(
+    device: &wgpu::Device,
+    label: &str,
+    (width, height, layers): (u32, u32, u32),
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d { width, height, depth_or_array_layers: layers },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage,
+        view_formats: &[],
+    })
+}
+
+/// A depth target of [`DEPTH_FORMAT`].
+pub fn depth_target(device: &wgpu::Device, label: &str, width: u32, height: u32) -> wgpu::Texture {
+    texture(device, label, (width.max(1), height.max(1), 1), DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT)
+}
+
+/// Writes a whole `width` x `height` image (`rows` rows of `bytes_per_row`: texels, or
+/// 4x4 blocks for compressed formats) into array layer `layer` of `texture`.
+pub fn write_layer(
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+    layer: u32,
+    data: &[u8],
+    (bytes_per_row, rows): (u32, u32),
+    (width, height): (u32, u32),
+) {
+    queue.write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d { x: 0, y: 0, z: layer },
+            aspect: wgpu::TextureAspect::All,
+        },
+        data,
+        wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(bytes_per_row), rows_per_image: Some(rows) },
+        wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+    );
+}
+
+/// A bind-group layout entry for a uniform buffer seen by both stages.
+pub fn uniform_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// A bind-group layout entry for a texture seen by both stages.
+pub fn texture_entry(
+    binding: u32,
+    sample_type: wgpu::TextureSampleType,
+    view_dimension: wgpu::TextureViewDimension,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+        ty: wgpu::BindingType::Texture { sample_type, view_dimension, multisampled: false },
+        count: None,
+    }
+}
+
 /// A colour and depth target that can be read back.
 #[derive(Debug)]
 pub struct Offscreen {
@@ -92,24 +168,14 @@ pub struct Offscreen {
 impl Offscreen {
     /// A `width` x `height` target.
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
-        let target = |label, format, usage| {
-            device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            })
-        };
-        let colour = target(
+        let colour = texture(
+            device,
             "texture.offscreen.colour",
+            (width, height, 1),
             OFFSCREEN_FORMAT,
             wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
         );
-        let depth = target("texture.offscreen.depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT);
+        let depth = depth_target(device, "texture.offscreen.depth", width, height);
         Self { colour, depth, width, height }
     }
 

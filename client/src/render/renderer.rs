@@ -8,6 +8,7 @@ use glam::{DMat4, DVec3, Mat4};
 use terrastream_packer::{Layer, LayerKind, Metadata, TileFormat, TileKey};
 use wgpu::util::DeviceExt;
 
+use super::gpu::{self, texture_entry, uniform_entry, write_layer};
 use super::mesh::{MAX_LEVELS, MeshParams, Node, PatchMesh, Scene, select_nodes};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable, Residency};
 use crate::stream::camera::Camera;
@@ -162,16 +163,13 @@ impl TileArray {
         };
         let max_layers = device.limits().max_texture_array_layers;
         let slots = slots.clamp(1, max_layers);
-        let texture = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some(if kind == KIND_ELEVATION { "texture.tiles.elevation" } else { "texture.tiles.colour" }),
-            size: wgpu::Extent3d { width: edge, height: edge, depth_or_array_layers: slots },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
+        let texture = gpu::texture(
+            device,
+            if kind == KIND_ELEVATION { "texture.tiles.elevation" } else { "texture.tiles.colour" },
+            (edge, edge, slots),
             format,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
+            wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        );
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
         let bytes = (f64::from(edge) * f64::from(edge) * texel_bytes * f64::from(slots)) as u64;
         Some(Self { layer: layer.clone(), index, kind, texture, format, edge, residency: Residency::new(slots), bytes })
@@ -202,17 +200,7 @@ impl TileArray {
         if bytes.len() < (bytes_per_row as usize) * (rows as usize) {
             return false;
         }
-        queue.write_texture(
-            wgpu::TexelCopyTextureInfo {
-                texture: &self.texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d { x: 0, y: 0, z: slot },
-                aspect: wgpu::TextureAspect::All,
-            },
-            bytes,
-            wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(bytes_per_row), rows_per_image: Some(rows) },
-            wgpu::Extent3d { width: size, height: size, depth_or_array_layers: 1 },
-        );
+        write_layer(queue, &self.texture, slot, bytes, (bytes_per_row, rows), (size, size));
         true
     }
 
@@ -244,7 +232,10 @@ impl TileArray {
 /// Draws a streamed terrain.
 pub struct TerrainRenderer {
     settings: RenderSettings,
-    metadata: Metadata,
+    /// World extent (x, z) of the drawn layers.
+    extent: (f64, f64),
+    /// The terrain's height range (0, 0 without elevation).
+    column: (f64, f64),
     elevation: Option<TileArray>,
     texture: Option<TileArray>,
     page_table: PageTable,
@@ -290,18 +281,8 @@ impl TerrainRenderer {
         let texture = first_layer(metadata, LayerKind::Texture)
             .and_then(|(i, l)| TileArray::new(device, i, l, KIND_TEXTURE, settings.texture_slots, bc));
         // Dummy 1x1 arrays stand in for a missing layer so that one pipeline serves all.
-        let dummy = |label, format| {
-            device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d { width: 1, height: 1, depth_or_array_layers: 1 },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage: wgpu::TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            })
-        };
+        let dummy =
+            |label, format| gpu::texture(device, label, (1, 1, 1), format, wgpu::TextureUsages::TEXTURE_BINDING);
         let array_view = |t: &wgpu::Texture| {
             t.create_view(&wgpu::TextureViewDescriptor {
                 label: Some("view.tiles"),
@@ -318,16 +299,13 @@ impl TerrainRenderer {
             None => array_view(&dummy("texture.tiles.colour.none", wgpu::TextureFormat::Rgba8UnormSrgb)),
         };
         let page_table = PageTable::new(settings.elevation_slots + settings.texture_slots);
-        let page_texture = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("texture.page_table"),
-            size: wgpu::Extent3d { width: page_table.width, height: page_table.height(), depth_or_array_layers: 1 },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba32Uint,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
+        let page_texture = gpu::texture(
+            device,
+            "texture.page_table",
+            (page_table.width, page_table.height(), 1),
+            wgpu::TextureFormat::Rgba32Uint,
+            wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        );
         let globals = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("buffer.terrain.globals"),
             size: size_of::<Globals>() as u64,
@@ -345,16 +323,7 @@ impl TerrainRenderer {
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("layout.terrain"),
             entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
+                uniform_entry(0),
                 texture_entry(1, wgpu::TextureSampleType::Uint, wgpu::TextureViewDimension::D2),
                 texture_entry(
                     2,
@@ -463,7 +432,8 @@ impl TerrainRenderer {
         let params = MeshParams::new(base, settings.patch, terrain.high_detail_range, terrain.num_detail_levels);
         Self {
             settings,
-            metadata: metadata.clone(),
+            extent: elevation.as_ref().or(texture.as_ref()).map_or((0.0, 0.0), |a| a.layer.world_extent()),
+            column: if elevation.is_some() { terrain.height_range() } else { (0.0, 0.0) },
             elevation,
             texture,
             page_table,
@@ -512,9 +482,17 @@ impl TerrainRenderer {
         slots(&self.elevation).min(slots(&self.texture))
     }
 
+    fn arrays(&self) -> impl Iterator<Item = &TileArray> {
+        [&self.elevation, &self.texture].into_iter().flatten()
+    }
+
+    fn arrays_mut(&mut self) -> impl Iterator<Item = &mut TileArray> {
+        [&mut self.elevation, &mut self.texture].into_iter().flatten()
+    }
+
     /// Drops every resident tile (the archive was replaced).
     pub fn clear(&mut self) {
-        for array in [&mut self.elevation, &mut self.texture].into_iter().flatten() {
+        for array in self.arrays_mut() {
             array.residency.clear();
         }
         self.page_dirty = true;
@@ -522,10 +500,7 @@ impl TerrainRenderer {
 
     /// Is the tile on the GPU?
     pub fn is_resident(&self, key: TileKey) -> bool {
-        [&self.elevation, &self.texture]
-            .into_iter()
-            .flatten()
-            .any(|a| a.index == key.layer() && a.residency.slot(key).is_some())
+        self.arrays().any(|a| a.index == key.layer() && a.residency.slot(key).is_some())
     }
 
     /// Uploads tiles handed over by the streaming core. Returns the tiles the GPU does
@@ -533,18 +508,17 @@ impl TerrainRenderer {
     /// [`crate::Streamer::release`] so they are offered again when wanted.
     pub fn upload(&mut self, queue: &wgpu::Queue, uploads: &[Upload]) -> Vec<TileKey> {
         let mut dropped = Vec::new();
+        let frame = self.frame;
         for upload in uploads {
             let tile = &upload.tile;
-            let Some(array) =
-                [&mut self.elevation, &mut self.texture].into_iter().flatten().find(|a| a.index == tile.key.layer())
-            else {
+            let Some(array) = self.arrays_mut().find(|a| a.index == tile.key.layer()) else {
                 continue;
             };
             let range = match &tile.data {
                 TileData::Heights { min, max, .. } if min <= max => Some((*min, *max)),
                 _ => None,
             };
-            let Some(placement) = array.residency.insert(tile.key, self.frame, range) else {
+            let Some(placement) = array.residency.insert(tile.key, frame, range) else {
                 dropped.push(tile.key);
                 continue;
             };
@@ -569,39 +543,20 @@ impl TerrainRenderer {
     ) -> FrameStats {
         self.frame += 1;
         let wanted: HashSet<TileKey> = wanted.into_iter().collect();
-        for array in [&mut self.elevation, &mut self.texture].into_iter().flatten() {
-            for key in &wanted {
-                if key.layer() == array.index {
-                    array.residency.touch(*key, self.frame);
-                }
+        let frame = self.frame;
+        for array in self.arrays_mut() {
+            for key in wanted.iter().filter(|k| k.layer() == array.index) {
+                array.residency.touch(*key, frame);
             }
         }
         if self.page_dirty {
-            let tiles: Vec<(u32, TileKey, u32)> = [&self.elevation, &self.texture]
-                .into_iter()
-                .flatten()
-                .flat_map(|a| a.residency.iter().map(move |(k, slot, _)| (a.kind, k, slot)))
-                .collect();
+            let tiles: Vec<(u32, TileKey, u32)> =
+                self.arrays().flat_map(|a| a.residency.iter().map(move |(k, slot, _)| (a.kind, k, slot))).collect();
             self.page_table.rebuild(tiles);
-            queue.write_texture(
-                wgpu::TexelCopyTextureInfo {
-                    texture: &self.page_texture,
-                    mip_level: 0,
-                    origin: wgpu::Origin3d::ZERO,
-                    aspect: wgpu::TextureAspect::All,
-                },
-                bytemuck::cast_slice(&self.page_table.entries),
-                wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(self.page_table.width * 16),
-                    rows_per_image: Some(self.page_table.height()),
-                },
-                wgpu::Extent3d {
-                    width: self.page_table.width,
-                    height: self.page_table.height(),
-                    depth_or_array_layers: 1,
-                },
-            );
+            let table = &self.page_table;
+            let (width, height) = (table.width, table.height());
+            let entries = bytemuck::cast_slice(&table.entries);
+            write_layer(queue, &self.page_texture, 0, entries, (width * 16, height), (width, height));
             self.page_dirty = false;
         }
         let (nodes, params) = self.select(camera);
@@ -609,23 +564,9 @@ impl TerrainRenderer {
         self.stats
     }
 
-    fn column(&self) -> (f64, f64) {
-        let t = &self.metadata.terrain;
-        let lo = t.min_elevation.min(t.max_elevation);
-        let hi = t.max_elevation.max(t.min_elevation).max(lo + t.displacement.max(0.0));
-        if self.elevation.is_none() { (0.0, 0.0) } else { (lo, hi) }
-    }
-
-    fn extent(&self) -> (f64, f64) {
-        let layer = self.elevation.as_ref().or(self.texture.as_ref()).map(|a| &a.layer);
-        layer.map_or((0.0, 0.0), |l| {
-            (f64::from(l.num_x_tiles) * l.tile_world_size, f64::from(l.num_y_tiles) * l.tile_world_size)
-        })
-    }
-
-    fn select(&mut self, camera: &Camera) -> (Vec<Node>, MeshParams) {
-        let (ex, ez) = self.extent();
-        let column = self.column();
+    fn select(&self, camera: &Camera) -> (Vec<Node>, MeshParams) {
+        let (ex, ez) = self.extent;
+        let column = self.column;
         let eye = camera.position;
         // Enough levels that the coarsest ring reaches the far corner of the data.
         let far = [(0.0, 0.0), (ex, 0.0), (0.0, ez), (ex, ez)]
@@ -633,20 +574,31 @@ impl TerrainRenderer {
             .map(|&(x, z)| DVec3::new(x, eye.y.clamp(column.0, column.1), z).distance(eye))
             .fold(0.0, f64::max);
         let params = MeshParams { levels: self.params.levels.max(self.params.levels_to_cover(far)), ..self.params };
-        let elevation = self.elevation.as_ref();
+        // Boxes of the resident elevation tiles, once per frame: a patch's height range
+        // (for culling) is the union of those it overlaps.
+        let boxes: Vec<[f64; 6]> = self
+            .elevation
+            .iter()
+            .flat_map(|a| {
+                a.residency.iter().filter_map(|(key, _, range)| {
+                    let (lo, hi) = range?;
+                    let size = a.layer.world_size_at(key.lod());
+                    let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
+                    Some([x0, z0, x0 + size, z0 + size, f64::from(lo), f64::from(hi)])
+                })
+            })
+            .collect();
+        let has_elevation = self.elevation.is_some();
         let heights = |x0: f64, z0: f64, x1: f64, z1: f64| -> (f64, f64) {
-            let Some(a) = elevation else { return (0.0, 0.0) };
-            let mut range: Option<(f64, f64)> = None;
-            for (key, _, r) in a.residency.iter() {
-                let Some((lo, hi)) = r else { continue };
-                let size = a.layer.world_size_at(key.lod());
-                let (tx0, tz0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
-                if tx0 < x1 && tx0 + size > x0 && tz0 < z1 && tz0 + size > z0 {
-                    let (lo, hi) = (f64::from(lo), f64::from(hi));
-                    range = Some(range.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
-                }
+            if !has_elevation {
+                return (0.0, 0.0);
             }
-            range.map_or(column, |(lo, hi)| (lo - 1.0, hi + 1.0))
+            let overlapping = boxes.iter().filter(|b| b[0] < x1 && b[2] > x0 && b[1] < z1 && b[3] > z0);
+            overlapping
+                .fold(None, |r: Option<(f64, f64)>, b| {
+                    Some(r.map_or((b[4], b[5]), |(lo, hi)| (lo.min(b[4]), hi.max(b[5]))))
+                })
+                .map_or(column, |(lo, hi)| (lo - 1.0, hi + 1.0))
         };
         let frustum = camera.frustum();
         #[allow(clippy::cast_possible_truncation)]
@@ -655,8 +607,6 @@ impl TerrainRenderer {
         let mut nodes = select_nodes(&params, &scene);
         // Full patches first, then quarters: two instanced draws.
         nodes.sort_by_key(|n| (n.quarter, n.level));
-        self.stats.levels =
-            (nodes.iter().map(|n| n.level).min().unwrap_or(0), nodes.iter().map(|n| n.level).max().unwrap_or(0));
         (nodes, params)
     }
 
@@ -691,8 +641,8 @@ impl TerrainRenderer {
         let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
         let projection = DMat4::perspective_infinite_reverse_rh(camera.fov_y, camera.aspect, camera.near);
         let view_proj: Mat4 = (projection * rotation).as_mat4();
-        let column = self.column();
-        let (ex, ez) = self.extent();
+        let column = self.column;
+        let (ex, ez) = self.extent;
         let flat = self.settings.shading == Shading::Flat;
         let fog = if flat { 0.0 } else { self.settings.fog_density.unwrap_or(0.12 / ex.hypot(ez).max(1.0)) };
         let sun = self.settings.sun.try_normalize().unwrap_or(DVec3::Y);
@@ -722,7 +672,7 @@ impl TerrainRenderer {
             ],
             elev: elev_info,
             tex: tex_info,
-            counts: [lods(&self.elevation), lods(&self.texture), self.page_table.hash_mask(), self.page_table.width],
+            counts: [lods(&self.elevation), lods(&self.texture), self.page_table.mask(), self.page_table.width],
             mode: [
                 u32::from(flat),
                 u32::from(self.settings.wireframe),
@@ -745,10 +695,12 @@ impl TerrainRenderer {
             vertices: u64::from(self.full) * full_vertices + u64::from(self.quarter) * quarter_vertices,
             triangles: u64::from(self.full) * full_triangles + u64::from(self.quarter) * full_triangles / 4,
             draw_calls: u32::from(self.full > 0) + u32::from(self.quarter > 0),
-            levels: self.stats.levels,
+            levels: (
+                nodes.iter().map(|n| n.level).min().unwrap_or(0),
+                nodes.iter().map(|n| n.level).max().unwrap_or(0),
+            ),
             resident: (resident(&self.elevation), resident(&self.texture)),
-            gpu_bytes: [&self.elevation, &self.texture].into_iter().flatten().map(|a| a.bytes).sum::<u64>()
-                + self.page_table.entries.len() as u64 * 16,
+            gpu_bytes: self.arrays().map(|a| a.bytes).sum::<u64>() + self.page_table.entries.len() as u64 * 16,
         };
     }
 
@@ -779,17 +731,4 @@ fn instance_buffer(device: &wgpu::Device, capacity: u64) -> wgpu::Buffer {
         usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
-}
-
-fn texture_entry(
-    binding: u32,
-    sample_type: wgpu::TextureSampleType,
-    view_dimension: wgpu::TextureViewDimension,
-) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-        ty: wgpu::BindingType::Texture { sample_type, view_dimension, multisampled: false },
-        count: None,
-    }
 }

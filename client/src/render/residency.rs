@@ -148,13 +148,9 @@ impl PageTable {
         u32::try_from(self.entries.len()).unwrap_or(u32::MAX) / self.width
     }
 
-    fn mask(&self) -> u32 {
-        u32::try_from(self.entries.len()).unwrap_or(u32::MAX) - 1
-    }
-
     /// Bitmask the shaders apply to a hash.
-    pub fn hash_mask(&self) -> u32 {
-        self.mask()
+    pub fn mask(&self) -> u32 {
+        u32::try_from(self.entries.len()).unwrap_or(u32::MAX) - 1
     }
 
     /// Refills the table from `(kind, key, slot)` triples.

@@ -66,6 +66,35 @@ impl Session {
         (self.streamer.stats(), stats)
     }
 
+    /// Steps frames for a fixed `camera` until `done(self)` holds, flushing the GPU's
+    /// queue each frame: the last frame's counters and the frames stepped, or `None` when
+    /// `timeout` passes first. Waits 1 ms between frames: for stills and benchmarks, not for
+    /// interactive loops.
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn run_until(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        camera: &Camera,
+        timeout: std::time::Duration,
+        done: impl Fn(&Self) -> bool,
+    ) -> Option<(StreamStats, FrameStats, u32)> {
+        let start = web_time::Instant::now();
+        let mut frames = 0;
+        loop {
+            let (stream, frame) = self.frame(device, queue, camera);
+            queue.submit([]);
+            frames += 1;
+            if done(self) {
+                return Some((stream, frame, frames));
+            }
+            if start.elapsed() > timeout {
+                return None;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+    }
+
     /// Is everything the view wants on the GPU (and nothing in flight)?
     pub fn settled(&self) -> bool {
         self.streamer.metadata().is_some() && self.streamer.pending() == 0 && self.streamer.stats().in_flight == 0

@@ -4,8 +4,7 @@ use std::fmt;
 use std::time::Duration;
 
 use glam::DVec3;
-use terrastream_packer::{LayerKind, Metadata};
-use web_time::Instant;
+use terrastream_packer::{Layer, LayerKind, Metadata};
 
 use super::gpu::{Gpu, GpuError, OFFSCREEN_FORMAT, Offscreen, render_pass};
 use super::renderer::{FrameStats, RenderSettings};
@@ -120,11 +119,7 @@ pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
         .find(|l| l.kind == LayerKind::Elevation)
         .or_else(|| metadata.layers.iter().find(|l| l.kind == LayerKind::Texture))
         .or(metadata.layers.first());
-    let extent = layer.map_or((1.0, 1.0), |l| {
-        (f64::from(l.num_x_tiles) * l.tile_world_size, f64::from(l.num_y_tiles) * l.tile_world_size)
-    });
-    let t = &metadata.terrain;
-    (extent, (t.min_elevation.min(t.max_elevation), t.max_elevation.max(t.min_elevation)))
+    (layer.map_or((1.0, 1.0), Layer::world_extent), metadata.terrain.height_range())
 }
 
 /// An oblique view from the south framing the whole dataset.
@@ -137,7 +132,8 @@ pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
     Camera::look_at(eye, centre, width, height)
 }
 
-/// Streams `origin` for `camera` (default: [`default_camera`]) and renders one still.
+/// Streams `origin` for the camera `camera` makes from the archive's metadata (e.g.
+/// `|m| default_camera(m, w, h)`) and renders one still.
 ///
 /// # Errors
 /// When the archive cannot be opened, there is no GPU, or the view does not complete
@@ -145,34 +141,26 @@ pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
 pub fn render_still(
     gpu: &Gpu,
     origin: Origin,
-    camera: Option<&dyn Fn(&Metadata) -> Camera>,
+    camera: impl FnOnce(&Metadata) -> Camera,
     options: &StillOptions,
 ) -> Result<Still, StillError> {
     let streamer = Streamer::open(origin, options.stream.clone())?;
     let metadata = streamer
         .metadata()
-        .cloned()
         .ok_or_else(|| terrastream_packer::Error::InvalidTile { what: "the archive opened without metadata".into() })?;
-    let camera = camera.map_or_else(|| default_camera(&metadata, options.width, options.height), |f| f(&metadata));
+    let camera = camera(metadata);
     let mut session = Session::new(streamer, &gpu.device, options.settings, OFFSCREEN_FORMAT, options.budget)?;
-    let start = Instant::now();
-    let mut frames = 0u32;
-    let (stream, frame) = loop {
-        let (stream, frame) = session.frame(&gpu.device, &gpu.queue, &camera);
-        gpu.queue.submit([]);
-        frames += 1;
-        let has_data = session.renderer.stats().resident.0 + session.renderer.stats().resident.1 > 0;
-        if (options.wait && session.settled()) || (!options.wait && has_data) {
-            break (stream, frame);
-        }
-        if start.elapsed() > options.timeout {
-            return Err(StillError::Timeout {
-                pending: session.streamer.pending(),
-                last_error: session.streamer.last_error().map(str::to_owned),
-            });
-        }
-        std::thread::sleep(Duration::from_millis(1));
+    let wait = options.wait;
+    let ready = |s: &Session| {
+        let resident = s.renderer.stats().resident;
+        if wait { s.settled() } else { resident.0 + resident.1 > 0 }
     };
+    let (stream, frame, frames) = session
+        .run_until(&gpu.device, &gpu.queue, &camera, options.timeout, ready)
+        .ok_or_else(|| StillError::Timeout {
+            pending: session.streamer.pending(),
+            last_error: session.streamer.last_error().map(str::to_owned),
+        })?;
     let target = Offscreen::new(&gpu.device, options.width, options.height);
     render_pass(
         &gpu.device,

@@ -79,11 +79,7 @@ pub fn select(
 ) -> Vec<Want> {
     let frustum = camera.frustum();
     let pixels_per_radian = camera.pixels_per_radian();
-    let heights = {
-        let t = &metadata.terrain;
-        let (lo, hi) = (t.min_elevation.min(t.max_elevation), t.max_elevation.max(t.min_elevation));
-        (lo, hi.max(lo + t.displacement.max(0.0)))
-    };
+    let heights = metadata.terrain.height_range();
     let mut wants = Vec::new();
     // Breadth-first over all layers at once, level by level from the top.
     let mut level: Vec<TileKey> = Vec::new();
