@@ -3,11 +3,13 @@
 //! turns a camera into a per-frame stream of decoded tiles.
 #![forbid(unsafe_code)]
 
+pub mod fly;
 #[cfg(feature = "render")]
 pub mod render;
 mod source;
 pub mod stream;
 
+pub use fly::{FlyCamera, FlyInput};
 #[cfg(not(target_arch = "wasm32"))]
 pub use source::blocking::{AnySource, BlockingSource, open_source};
 pub use source::http::{HttpSource, HttpStats, RetryPolicy};

@@ -7,13 +7,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use glam::DVec3;
 use terrastream_client::render::gpu::{Gpu, depth_target};
 use terrastream_client::render::hud::Hud;
 use terrastream_client::render::session::Session;
 use terrastream_client::render::still::{default_camera, terrain_bounds};
 use terrastream_client::render::wgpu;
-use terrastream_client::{Camera, Origin, Streamer};
+use terrastream_client::{Camera, FlyCamera, FlyInput, Origin, Streamer};
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
@@ -39,32 +38,6 @@ pub struct ViewArgs {
     pub look: LookArgs,
 }
 
-/// A fly camera: position, yaw (0 = north, towards -z), pitch.
-struct Fly {
-    eye: DVec3,
-    yaw: f64,
-    pitch: f64,
-    speed: f64,
-}
-
-impl Fly {
-    fn from(camera: &Camera) -> Self {
-        let d = camera.direction();
-        Self { eye: camera.position, yaw: d.x.atan2(-d.z), pitch: d.y.clamp(-1.0, 1.0).asin(), speed: 1.0 }
-    }
-
-    fn forward(&self) -> DVec3 {
-        DVec3::new(self.pitch.cos() * self.yaw.sin(), self.pitch.sin(), -self.pitch.cos() * self.yaw.cos())
-    }
-
-    fn camera(&self, width: u32, height: u32) -> Camera {
-        let mut c = Camera::look_at(self.eye, self.eye + self.forward() * 100.0, width, height);
-        // Near plane from the height above the ground keeps depth precise low and high.
-        c.near = (self.eye.y.abs() * 1e-3).clamp(0.05, 50.0);
-        c
-    }
-}
-
 struct Running {
     window: Arc<Window>,
     surface: wgpu::Surface<'static>,
@@ -79,7 +52,7 @@ struct App {
     args: ViewArgs,
     streamer: Option<Streamer>,
     size: (u32, u32),
-    fly: Fly,
+    fly: FlyCamera,
     running: Option<Running>,
     error: Option<anyhow::Error>,
     keys: HashSet<KeyCode>,
@@ -124,31 +97,17 @@ impl App {
     }
 
     fn step(&mut self, dt: f64) {
-        let Some(r) = &mut self.running else { return };
-        let ground = r.session.streamer.height_at(self.fly.eye.x, self.fly.eye.z).unwrap_or(0.0);
-        let altitude = (self.fly.eye.y - ground).max(1.0);
-        // Speed scales with the height above the ground: a second covers about the altitude.
-        let speed = altitude.max(20.0) * self.fly.speed * dt;
-        let forward = self.fly.forward();
-        let flat = DVec3::new(forward.x, 0.0, forward.z).normalize_or_zero();
-        let right = flat.cross(DVec3::Y);
-        let mut step = DVec3::ZERO;
-        for (key, dir) in [
-            (KeyCode::KeyW, forward),
-            (KeyCode::KeyS, -forward),
-            (KeyCode::KeyD, right),
-            (KeyCode::KeyA, -right),
-            (KeyCode::KeyE, DVec3::Y),
-            (KeyCode::KeyQ, -DVec3::Y),
-        ] {
-            if self.keys.contains(&key) {
-                step += dir;
-            }
-        }
-        self.fly.eye += step.normalize_or_zero() * speed;
-        // Never below the ground.
-        let ground = r.session.streamer.height_at(self.fly.eye.x, self.fly.eye.z).unwrap_or(f64::NEG_INFINITY);
-        self.fly.eye.y = self.fly.eye.y.max(ground + 2.0);
+        let Some(r) = &self.running else { return };
+        let axis = |plus: KeyCode, minus: KeyCode| {
+            f64::from(u8::from(self.keys.contains(&plus))) - f64::from(u8::from(self.keys.contains(&minus)))
+        };
+        let input = FlyInput {
+            forward: axis(KeyCode::KeyW, KeyCode::KeyS),
+            right: axis(KeyCode::KeyD, KeyCode::KeyA),
+            up: axis(KeyCode::KeyE, KeyCode::KeyQ),
+        };
+        let streamer = &r.session.streamer;
+        self.fly.step(dt, input, |x, z| streamer.height_at(x, z));
     }
 
     fn redraw(&mut self) -> Result<()> {
@@ -285,8 +244,7 @@ impl ApplicationHandler for App {
             }
             WindowEvent::CursorMoved { position, .. } => {
                 if let (true, Some((x, y))) = (self.dragging, self.cursor) {
-                    self.fly.yaw += (position.x - x) * 0.004;
-                    self.fly.pitch = (self.fly.pitch - (position.y - y) * 0.004).clamp(-1.5, 1.5);
+                    self.fly.look(position.x - x, position.y - y);
                 }
                 self.cursor = Some((position.x, position.y));
             }
@@ -295,7 +253,7 @@ impl ApplicationHandler for App {
                     MouseScrollDelta::LineDelta(_, y) => f64::from(y),
                     MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
                 };
-                self.fly.speed = (self.fly.speed * 1.25f64.powf(lines)).clamp(0.01, 100.0);
+                self.fly.scale_speed(lines);
             }
             WindowEvent::RedrawRequested => {
                 if let Err(e) = self.redraw() {
@@ -352,7 +310,7 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
         args,
         streamer: Some(streamer),
         size: (width, height),
-        fly: Fly::from(&camera),
+        fly: FlyCamera::from_camera(&camera),
         running: None,
         error: None,
         keys: HashSet::new(),

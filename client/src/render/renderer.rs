@@ -719,7 +719,10 @@ impl TerrainRenderer {
             pass.draw_indexed(0..self.mesh.full_indices, 0, 0..self.full);
         }
         if self.quarter > 0 {
-            pass.draw_indexed(self.mesh.full_indices..total, 0, self.full..self.full + self.quarter);
+            // The quarter patches' instances follow the full ones: rebinding at their
+            // offset rather than drawing from a first instance > 0, which WebGL2 lacks.
+            pass.set_vertex_buffer(1, self.instances.slice(u64::from(self.full) * 16..));
+            pass.draw_indexed(self.mesh.full_indices..total, 0, 0..self.quarter);
         }
     }
 }

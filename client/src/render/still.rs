@@ -3,12 +3,12 @@
 use std::fmt;
 use std::time::Duration;
 
-use glam::DVec3;
-use terrastream_packer::{Layer, LayerKind, Metadata};
+use terrastream_packer::Metadata;
 
 use super::gpu::{Gpu, GpuError, OFFSCREEN_FORMAT, Offscreen, render_pass};
 use super::renderer::{FrameStats, RenderSettings};
 use super::session::Session;
+pub use crate::fly::{default_camera, terrain_bounds};
 use crate::stream::camera::Camera;
 use crate::stream::origin::Origin;
 use crate::stream::streamer::{StreamOptions, StreamStats, Streamer, UploadBudget};
@@ -109,27 +109,6 @@ pub struct Still {
     pub frame: FrameStats,
     /// The camera used.
     pub camera: Camera,
-}
-
-/// The terrain's extent (x, z) in world units and its height range.
-pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
-    let layer = metadata
-        .layers
-        .iter()
-        .find(|l| l.kind == LayerKind::Elevation)
-        .or_else(|| metadata.layers.iter().find(|l| l.kind == LayerKind::Texture))
-        .or(metadata.layers.first());
-    (layer.map_or((1.0, 1.0), Layer::world_extent), metadata.terrain.height_range())
-}
-
-/// An oblique view from the south framing the whole dataset.
-pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
-    let ((ex, ez), (lo, hi)) = terrain_bounds(metadata);
-    let centre = DVec3::new(ex / 2.0, (lo + hi) / 2.0, ez / 2.0);
-    let distance = ex.max(ez) * 1.1;
-    let pitch = 40f64.to_radians();
-    let eye = centre + DVec3::new(0.0, distance * pitch.sin(), distance * pitch.cos());
-    Camera::look_at(eye, centre, width, height)
 }
 
 /// Streams `origin` for the camera `camera` makes from the archive's metadata (e.g.

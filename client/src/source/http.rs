@@ -5,8 +5,8 @@
 //! ([`Error::Changed`]) instead of mixing bytes of two versions. Transient failures
 //! (connection errors, timeouts, 5xx, 429, truncated bodies) are retried with backoff.
 
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -56,7 +56,7 @@ pub struct HttpSource {
     url: reqwest::Url,
     retry: RetryPolicy,
     known: Mutex<Known>,
-    stats: HttpStats,
+    stats: Arc<HttpStats>,
 }
 
 enum Attempt {
@@ -91,7 +91,7 @@ impl HttpSource {
             url,
             retry: RetryPolicy { attempts: retry.attempts.max(1), ..retry },
             known: Mutex::default(),
-            stats: HttpStats::default(),
+            stats: Arc::default(),
         })
     }
 
@@ -103,6 +103,11 @@ impl HttpSource {
     /// Request and byte counters.
     pub fn stats(&self) -> &HttpStats {
         &self.stats
+    }
+
+    /// The counters, shared: they stay readable after the source is handed to a streamer.
+    pub fn shared_stats(&self) -> Arc<HttpStats> {
+        self.stats.clone()
     }
 
     /// The ETag the archive had when first read.
@@ -280,8 +285,18 @@ async fn sleep(d: Duration) {
 }
 
 #[cfg(target_arch = "wasm32")]
-async fn sleep(_: Duration) {
-    // The browser has no blocking sleep and this crate no timer there: retry at once.
+async fn sleep(d: Duration) {
+    // A promise resolved by the browser's timer.
+    let ms = i32::try_from(d.as_millis()).unwrap_or(i32::MAX);
+    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
+        let scheduled = web_sys::window()
+            .is_some_and(|w| w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms).is_ok());
+        if !scheduled {
+            // No window (a worker without timers): retry at once.
+            let _ = resolve.call0(&wasm_bindgen::JsValue::NULL);
+        }
+    });
+    let _ = wasm_bindgen_futures::JsFuture::from(promise).await;
 }
 
 #[cfg(test)]

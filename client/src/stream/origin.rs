@@ -253,6 +253,8 @@ impl Origin {
         }
     }
 
+    // In the browser nothing is Send (one thread); the Arc is shared, not sent.
+    #[cfg_attr(target_arch = "wasm32", allow(clippy::arc_with_non_send_sync))]
     pub(crate) async fn open(&self) -> Result<Backend> {
         match self {
             Self::Archive(source) => Ok(Backend::Archive(Arc::new(AsyncReader::new(source.clone()).await?))),

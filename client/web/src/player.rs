@@ -1,0 +1,796 @@
+//! The player: the page's canvas, a fly camera driven by keyboard, mouse and touch, the
+//! streaming session stepped once per animation frame, a HUD and a loading indicator.
+//!
+//! The page (`static/player.html`) has a `<canvas id="terrain">`, a `<pre id="hud">` and
+//! a `<div id="status">`, and calls [`run`]. URL parameters:
+//! - `archive`: URL of a `.tspack` (relative to the page); without it, the page's
+//!   `<meta name="terrastream-archive">` (what `terrastream serve` fills in at `/view/{name}`);
+//! - `camera=ex,ey,ez,tx,ty,tz`: start there (default: the whole dataset from the south);
+//! - `backend=webgpu|webgl2`: only that one (default: WebGPU if the browser has it, else WebGL2);
+//! - `hud=0`: start with the HUD hidden (H toggles it).
+
+use std::cell::RefCell;
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::fmt::Write as _;
+use std::rc::Rc;
+use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
+
+use glam::DVec3;
+use terrastream_client::fly::default_camera;
+use terrastream_client::render::gpu::{Gpu, depth_target, render_pass};
+use terrastream_client::render::renderer::{FrameStats, RenderSettings};
+use terrastream_client::render::session::Session;
+use terrastream_client::render::wgpu;
+use terrastream_client::{
+    Camera, FlyCamera, FlyInput, HttpSource, HttpStats, Origin, StreamOptions, StreamStats, Streamer, UploadBudget,
+};
+use wasm_bindgen::JsCast;
+use wasm_bindgen::prelude::*;
+use web_sys::{Document, HtmlCanvasElement, HtmlElement, KeyboardEvent, PointerEvent, WheelEvent, Window};
+
+/// GPU slots per layer: 256 is WebGL2's guaranteed texture-array depth.
+const GPU_SLOTS: u32 = 256;
+/// HUD refreshes per second.
+const HUD_HZ: f64 = 4.0;
+
+/// What the page asked for in its URL.
+struct Params {
+    archive: String,
+    camera: Option<(DVec3, DVec3)>,
+    backends: wgpu::Backends,
+    hud: bool,
+}
+
+/// The page's elements.
+struct Page {
+    window: Window,
+    canvas: HtmlCanvasElement,
+    hud: Option<HtmlElement>,
+    status: Option<HtmlElement>,
+}
+
+impl Page {
+    fn find() -> Result<Self, String> {
+        let window = web_sys::window().ok_or("no window")?;
+        let document = window.document().ok_or("no document")?;
+        let canvas = element(&document, "terrain")
+            .ok_or("the page has no <canvas id=\"terrain\">")?
+            .dyn_into::<HtmlCanvasElement>()
+            .map_err(|_| "#terrain is not a <canvas>")?;
+        let hud = element(&document, "hud").and_then(|e| e.dyn_into().ok());
+        let status = element(&document, "status").and_then(|e| e.dyn_into().ok());
+        Ok(Self { window, canvas, hud, status })
+    }
+
+    /// Shows `text` in the status box (`None` hides it); `error` styles it as one.
+    fn status(&self, text: Option<&str>, error: bool) {
+        let Some(status) = &self.status else { return };
+        match text {
+            Some(text) => {
+                if status.text_content().as_deref() != Some(text) {
+                    status.set_text_content(Some(text));
+                }
+                status.set_hidden(false);
+            }
+            None => status.set_hidden(true),
+        }
+        let _ = status.class_list().toggle_with_force("error", error);
+    }
+
+    fn now_ms(&self) -> f64 {
+        self.window.performance().map_or(0.0, |p| p.now())
+    }
+
+    /// The canvas's size in device pixels, at least 1, at most `max` a side.
+    fn canvas_size(&self, max: u32) -> (u32, u32) {
+        let ratio = self.window.device_pixel_ratio().max(0.5);
+        // In range: clamped to [1, max] before the cast.
+        #[allow(clippy::cast_possible_truncation)]
+        let side = |css: i32| (f64::from(css.max(1)) * ratio).round().clamp(1.0, f64::from(max)) as u32;
+        (side(self.canvas.client_width()), side(self.canvas.client_height()))
+    }
+}
+
+fn element(document: &Document, id: &str) -> Option<web_sys::Element> {
+    document.get_element_by_id(id)
+}
+
+fn params(window: &Window) -> Result<Params, String> {
+    let location = window.location();
+    let href = location.href().map_err(js_text)?;
+    let query = web_sys::UrlSearchParams::new_with_str(&location.search().map_err(js_text)?).map_err(js_text)?;
+    let meta = window
+        .document()
+        .and_then(|d| d.query_selector("meta[name=terrastream-archive]").ok().flatten())
+        .and_then(|m| m.get_attribute("content"))
+        .filter(|c| !c.trim().is_empty());
+    let archive = query.get("archive").filter(|a| !a.trim().is_empty()).or(meta).ok_or(
+        "No archive to show: open this page as player.html?archive=<URL of a .tspack file> \
+         (the URL may be relative to the page).",
+    )?;
+    let archive = web_sys::Url::new_with_base(archive.trim(), &href)
+        .map_err(|_| format!("The archive address {archive:?} is not a valid URL."))?
+        .href();
+    let camera = match query.get("camera") {
+        Some(text) => Some(parse_camera(&text)?),
+        None => None,
+    };
+    let backends = match query.get("backend").as_deref() {
+        None | Some("" | "auto") => wgpu::Backends::BROWSER_WEBGPU | wgpu::Backends::GL,
+        Some("webgpu") => wgpu::Backends::BROWSER_WEBGPU,
+        Some("webgl2" | "webgl" | "gl") => wgpu::Backends::GL,
+        Some(other) => return Err(format!("Unknown backend {other:?}: use webgpu, webgl2 or auto.")),
+    };
+    Ok(Params { archive, camera, backends, hud: query.get("hud").as_deref() != Some("0") })
+}
+
+fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|s| s.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("camera={text:?}: expected six numbers ex,ey,ez,tx,ty,tz"))?;
+    match v[..] {
+        [ex, ey, ez, tx, ty, tz] if v.iter().all(|x| x.is_finite()) => {
+            Ok((DVec3::new(ex, ey, ez), DVec3::new(tx, ty, tz)))
+        }
+        _ => Err(format!("camera={text:?}: expected six numbers ex,ey,ez,tx,ty,tz")),
+    }
+}
+
+fn js_text(v: JsValue) -> String {
+    v.as_string()
+        .or_else(|| v.dyn_ref::<js_sys::Error>().map(|e| String::from(e.message())))
+        .unwrap_or_else(|| format!("{v:?}"))
+}
+
+/// Keyboard, pointer and wheel state between frames.
+#[derive(Default)]
+struct Input {
+    keys: HashSet<String>,
+    /// Active pointers (mouse buttons held, fingers down): id -> last position.
+    pointers: HashMap<i32, (f64, f64)>,
+    /// Distance between two fingers at the last move.
+    pinch: Option<f64>,
+    /// Flight along the view asked for by pinching, in seconds at the current speed.
+    pinch_seconds: f64,
+}
+
+impl Input {
+    fn axis(&self, plus: &[&str], minus: &[&str]) -> f64 {
+        let held = |codes: &[&str]| codes.iter().any(|c| self.keys.contains(*c));
+        f64::from(u8::from(held(plus))) - f64::from(u8::from(held(minus)))
+    }
+
+    fn fly(&self) -> FlyInput {
+        FlyInput {
+            forward: self.axis(&["KeyW", "ArrowUp"], &["KeyS", "ArrowDown"]),
+            right: self.axis(&["KeyD", "ArrowRight"], &["KeyA", "ArrowLeft"]),
+            up: self.axis(&["KeyE", "PageUp"], &["KeyQ", "PageDown"]),
+        }
+    }
+}
+
+struct Surface {
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    /// The sRGB view of the surface's format (the renderer writes linear light).
+    view_format: wgpu::TextureFormat,
+    depth: wgpu::TextureView,
+}
+
+impl Surface {
+    fn configure(&mut self, device: &wgpu::Device, (width, height): (u32, u32)) {
+        self.config.width = width;
+        self.config.height = height;
+        self.surface.configure(device, &self.config);
+        self.depth = depth_target(device, "texture.canvas.depth", width, height)
+            .create_view(&wgpu::TextureViewDescriptor::default());
+    }
+}
+
+/// Counters the page (and tests) read through [`Player::stats`].
+#[derive(Default)]
+struct Timings {
+    /// Milliseconds from the start of [`run`] to the first frame with terrain drawn.
+    first_frame_ms: Option<f64>,
+    /// ... to the first frame with everything the view wants on the GPU.
+    settled_ms: Option<f64>,
+    frames: u64,
+    max_uploads_per_frame: u64,
+}
+
+struct State {
+    page: Page,
+    params: Params,
+    gpu: Gpu,
+    surface: Surface,
+    /// Until the archive is open; then moved into the session.
+    opening: Option<Streamer>,
+    session: Option<Session>,
+    fly: Option<FlyCamera>,
+    http: Arc<HttpStats>,
+    input: Input,
+    show_hud: bool,
+    frame_times: VecDeque<f64>,
+    started_ms: f64,
+    last_frame_ms: f64,
+    hud_at_ms: f64,
+    uploads_seen: u64,
+    timings: Timings,
+    last: Option<(StreamStats, FrameStats)>,
+}
+
+impl State {
+    fn frame(&mut self, now: f64) {
+        let dt = ((now - self.last_frame_ms) / 1000.0).clamp(0.0, 0.25);
+        self.last_frame_ms = now;
+        self.frame_times.push_back(dt);
+        if self.frame_times.len() > 60 {
+            self.frame_times.pop_front();
+        }
+        let size = self.page.canvas_size(self.gpu.device.limits().max_texture_dimension_2d);
+        if size != (self.surface.config.width, self.surface.config.height) {
+            self.surface.configure(&self.gpu.device, size);
+        }
+        if self.session.is_none() && !self.open_session() {
+            return;
+        }
+        let (Some(session), Some(fly)) = (&mut self.session, &mut self.fly) else { return };
+        let mut input = self.input.fly();
+        if self.input.pinch_seconds != 0.0 {
+            // A pinch moves along the view as far as that many seconds of flight would.
+            fly.step(
+                self.input.pinch_seconds.abs(),
+                FlyInput { forward: self.input.pinch_seconds.signum(), ..input },
+                |x, z| session.streamer.height_at(x, z),
+            );
+            self.input.pinch_seconds = 0.0;
+            input = FlyInput::default();
+        }
+        fly.step(dt, input, |x, z| session.streamer.height_at(x, z));
+        let camera = fly.camera(size.0, size.1);
+        let (stream, frame) = session.frame(&self.gpu.device, &self.gpu.queue, &camera);
+        let uploads = stream.uploads - self.uploads_seen;
+        self.uploads_seen = stream.uploads;
+        self.timings.max_uploads_per_frame = self.timings.max_uploads_per_frame.max(uploads);
+        self.timings.frames += 1;
+        self.draw(size);
+        if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_ms.is_none() {
+            self.timings.first_frame_ms = Some(now - self.started_ms);
+            tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
+        }
+        let Some(session) = &self.session else { return };
+        let pending = session.streamer.pending();
+        if session.settled() && self.timings.settled_ms.is_none() {
+            self.timings.settled_ms = Some(now - self.started_ms);
+            tracing::info!("view fully streamed after {:.0} ms", now - self.started_ms);
+        }
+        if pending > 0 {
+            self.page.status(Some(&format!("Loading terrain… {pending} tiles to go")), false);
+        } else {
+            self.page.status(None, false);
+        }
+        self.last = Some((stream, frame));
+        if now - self.hud_at_ms >= 1000.0 / HUD_HZ {
+            self.hud_at_ms = now;
+            self.update_hud(&camera);
+        }
+    }
+
+    /// Steps the opening streamer; once the archive is open, makes the session. False
+    /// while there is nothing to draw yet.
+    fn open_session(&mut self) -> bool {
+        let (width, height) = (self.surface.config.width, self.surface.config.height);
+        let Some(streamer) = &mut self.opening else { return false };
+        streamer.update(&Camera::look_at(DVec3::ONE, DVec3::ZERO, width, height));
+        let Some(metadata) = streamer.metadata().cloned() else {
+            match streamer.last_error() {
+                Some(e) => self
+                    .page
+                    .status(Some(&format!("Cannot open the archive {}:\n{e}\n(retrying)", self.params.archive)), true),
+                None => self.page.status(Some(&format!("Opening {}…", self.params.archive)), false),
+            }
+            self.clear();
+            return false;
+        };
+        let Some(streamer) = self.opening.take() else { return false };
+        let settings =
+            RenderSettings { elevation_slots: GPU_SLOTS, texture_slots: GPU_SLOTS, ..RenderSettings::default() };
+        match Session::new(streamer, &self.gpu.device, settings, self.surface.view_format, UploadBudget::default()) {
+            Ok(session) => {
+                let camera = match self.params.camera {
+                    Some((eye, target)) => Camera::look_at(eye, target, width, height),
+                    None => default_camera(&metadata, width, height),
+                };
+                self.fly = Some(FlyCamera::from_camera(&camera));
+                self.session = Some(session);
+                tracing::info!(archive = %self.params.archive, "opened: {} layers", metadata.layers.len());
+                true
+            }
+            Err(e) => {
+                self.page.status(Some(&format!("Cannot show {}: {e}", self.params.archive)), true);
+                false
+            }
+        }
+    }
+
+    fn acquire(&mut self) -> Option<wgpu::SurfaceTexture> {
+        match self.surface.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => Some(t),
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                let size = (self.surface.config.width, self.surface.config.height);
+                self.surface.configure(&self.gpu.device, size);
+                None
+            }
+            other => {
+                tracing::warn!("no frame to draw into: {other:?}");
+                None
+            }
+        }
+    }
+
+    fn view(&self, texture: &wgpu::SurfaceTexture) -> wgpu::TextureView {
+        texture.texture.create_view(&wgpu::TextureViewDescriptor {
+            format: Some(self.surface.view_format),
+            ..wgpu::TextureViewDescriptor::default()
+        })
+    }
+
+    /// The sky colour only (before the archive opens).
+    fn clear(&mut self) {
+        let Some(texture) = self.acquire() else { return };
+        let view = self.view(&texture);
+        let colour = RenderSettings::default().clear_colour();
+        render_pass(&self.gpu.device, &self.gpu.queue, &view, &self.surface.depth, colour, |_| {});
+        self.gpu.queue.present(texture);
+    }
+
+    fn draw(&mut self, _size: (u32, u32)) {
+        let Some(texture) = self.acquire() else { return };
+        let view = self.view(&texture);
+        let Some(session) = &self.session else { return };
+        let renderer = &session.renderer;
+        render_pass(
+            &self.gpu.device,
+            &self.gpu.queue,
+            &view,
+            &self.surface.depth,
+            renderer.settings().clear_colour(),
+            |pass| {
+                renderer.draw(pass);
+            },
+        );
+        self.gpu.queue.present(texture);
+    }
+
+    /// "WebGPU" or "WebGL2", and the adapter's name where the browser tells it.
+    fn backend(&self) -> String {
+        let api = if self.gpu.info.backend == wgpu::Backend::Gl { "WebGL2" } else { "WebGPU" };
+        if self.gpu.info.name.is_empty() { api.to_owned() } else { format!("{api} on {}", self.gpu.info.name) }
+    }
+
+    fn fps(&self) -> f64 {
+        let mean = self.frame_times.iter().sum::<f64>() / self.frame_times.len().max(1) as f64;
+        1.0 / mean.max(1e-6)
+    }
+
+    fn update_hud(&self, camera: &Camera) {
+        let Some(hud) = &self.page.hud else { return };
+        hud.set_hidden(!self.show_hud);
+        let (Some(session), Some((stream, frame))) = (&self.session, &self.last) else { return };
+        if !self.show_hud {
+            return;
+        }
+        let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+        let mut text = String::new();
+        let fps = self.fps();
+        let _ = writeln!(text, "fps {fps:5.1}   frame {:5.1} ms   {}", 1000.0 / fps, self.backend());
+        let _ = writeln!(
+            text,
+            "tiles in flight {:3}   wanted {:4}   pending {:4}   fetched {:5}",
+            stream.in_flight,
+            stream.wanted,
+            session.streamer.pending(),
+            stream.tiles_fetched
+        );
+        let _ = writeln!(
+            text,
+            "received {:6.1} MiB in {} requests   cache {:6.1} MiB   GPU {:6.1} MiB",
+            mib(self.http.bytes.load(Relaxed)),
+            self.http.requests.load(Relaxed),
+            mib(stream.cache_bytes),
+            mib(frame.gpu_bytes)
+        );
+        let _ = writeln!(
+            text,
+            "uploads ≤ {} tiles/frame   mesh levels {}..{}   triangles {}",
+            session.budget.max_tiles, frame.levels.0, frame.levels.1, frame.triangles
+        );
+        let _ = writeln!(
+            text,
+            "eye {:.0} {:.0} {:.0}   speed ×{:.2}",
+            camera.position.x,
+            camera.position.y,
+            camera.position.z,
+            self.fly.map_or(1.0, |f| f.speed)
+        );
+        text.push_str("WASD/arrows fly · Q/E down/up · drag look · wheel speed · pinch move · G wire · L LODs · H HUD");
+        hud.set_text_content(Some(&text));
+    }
+
+    fn key(&mut self, event: &KeyboardEvent, down: bool) {
+        let code = event.code();
+        if matches!(
+            code.as_str(),
+            "ArrowUp" | "ArrowDown" | "ArrowLeft" | "ArrowRight" | "PageUp" | "PageDown" | "Space"
+        ) {
+            event.prevent_default();
+        }
+        if !down {
+            self.input.keys.remove(&code);
+            return;
+        }
+        if !event.repeat() {
+            if let Some(session) = &mut self.session {
+                let mut s = *session.renderer.settings();
+                match code.as_str() {
+                    "KeyG" => s.wireframe = !s.wireframe,
+                    "KeyL" => s.lod_colours = !s.lod_colours,
+                    "KeyH" => {
+                        self.show_hud = !self.show_hud;
+                        if let Some(hud) = &self.page.hud {
+                            hud.set_hidden(!self.show_hud);
+                        }
+                    }
+                    _ => {}
+                }
+                session.renderer.set_view_settings(s);
+            }
+        }
+        self.input.keys.insert(code);
+    }
+
+    fn pointer(&mut self, event: &PointerEvent, kind: PointerKind) {
+        let id = event.pointer_id();
+        let at = (f64::from(event.client_x()), f64::from(event.client_y()));
+        match kind {
+            PointerKind::Down => {
+                let _ = self.page.canvas.set_pointer_capture(id);
+                let _ = self.page.canvas.focus();
+                self.input.pointers.insert(id, at);
+                self.input.pinch = None;
+            }
+            PointerKind::Up => {
+                self.input.pointers.remove(&id);
+                self.input.pinch = None;
+            }
+            PointerKind::Move => {
+                let Some(last) = self.input.pointers.get(&id).copied() else { return };
+                self.input.pointers.insert(id, at);
+                let Some(fly) = &mut self.fly else { return };
+                match self.input.pointers.len() {
+                    1 => fly.look(at.0 - last.0, at.1 - last.1),
+                    2 => {
+                        let mut points = self.input.pointers.values();
+                        let (Some(a), Some(b)) = (points.next(), points.next()) else { return };
+                        let distance = (a.0 - b.0).hypot(a.1 - b.1);
+                        if let Some(before) = self.input.pinch {
+                            // Spreading the fingers flies forward: 200 px is a second's flight.
+                            self.input.pinch_seconds += (distance - before) / 200.0;
+                        }
+                        self.input.pinch = Some(distance);
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+
+    fn wheel(&mut self, event: &WheelEvent) {
+        event.prevent_default();
+        // Pixels (mode 0): about 100 a notch; lines (mode 1): 3 a notch.
+        let notches = match event.delta_mode() {
+            0 => -event.delta_y() / 100.0,
+            1 => -event.delta_y() / 3.0,
+            _ => -event.delta_y(),
+        };
+        if let Some(fly) = &mut self.fly {
+            fly.scale_speed(notches);
+        }
+    }
+
+    fn stats(&self) -> String {
+        let stream = self.session.as_ref().map(|s| s.streamer.stats()).unwrap_or_default();
+        let (pending, settled, error) = match (&self.session, &self.opening) {
+            (Some(s), _) => (s.streamer.pending(), s.settled(), s.streamer.last_error().map(str::to_owned)),
+            (None, Some(o)) => (0, false, o.last_error().map(str::to_owned)),
+            (None, None) => (0, false, None),
+        };
+        let frame = self.last.as_ref().map(|(_, f)| *f).unwrap_or_default();
+        let opt = |v: Option<f64>| v.map_or("null".to_owned(), |v| format!("{v:.1}"));
+        let quote = |s: &str| {
+            let mut out = String::from('"');
+            for c in s.chars() {
+                match c {
+                    '"' => out.push_str("\\\""),
+                    '\\' => out.push_str("\\\\"),
+                    c if u32::from(c) < 0x20 => {
+                        let _ = write!(out, "\\u{:04x}", u32::from(c));
+                    }
+                    c => out.push(c),
+                }
+            }
+            out.push('"');
+            out
+        };
+        format!(
+            concat!(
+                "{{\"archive\":{},\"backend\":{},\"adapter\":{},\"frames\":{},\"fps\":{:.1},",
+                "\"first_frame_ms\":{},\"settled_ms\":{},\"settled\":{},\"pending\":{},",
+                "\"http_requests\":{},\"http_bytes\":{},\"http_retries\":{},",
+                "\"requests\":{},\"tiles_fetched\":{},\"bytes_fetched\":{},\"in_flight\":{},\"wanted\":{},",
+                "\"missing\":{},\"failures\":{},\"uploads\":{},\"max_uploads_per_frame\":{},\"upload_budget\":{},",
+                "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"error\":{}}}"
+            ),
+            quote(&self.params.archive),
+            quote(if self.gpu.info.backend == wgpu::Backend::Gl { "webgl2" } else { "webgpu" }),
+            quote(&self.gpu.info.name),
+            self.timings.frames,
+            self.fps(),
+            opt(self.timings.first_frame_ms),
+            opt(self.timings.settled_ms),
+            settled,
+            pending,
+            self.http.requests.load(Relaxed),
+            self.http.bytes.load(Relaxed),
+            self.http.retries.load(Relaxed),
+            stream.requests,
+            stream.tiles_fetched,
+            stream.bytes_fetched,
+            stream.in_flight,
+            stream.wanted,
+            stream.missing,
+            stream.failures,
+            stream.uploads,
+            self.timings.max_uploads_per_frame,
+            self.session.as_ref().map_or(0, |s| s.budget.max_tiles),
+            frame.resident.0,
+            frame.resident.1,
+            frame.triangles,
+            self.show_hud,
+            error.as_deref().map_or("null".to_owned(), quote),
+        )
+    }
+}
+
+#[derive(Clone, Copy)]
+enum PointerKind {
+    Down,
+    Move,
+    Up,
+}
+
+/// The running player, as the page sees it (`window.terrastream`).
+#[wasm_bindgen]
+pub struct Player {
+    state: Rc<RefCell<State>>,
+}
+
+#[wasm_bindgen]
+impl Player {
+    /// Counters as JSON: timings, HTTP requests and bytes, tiles fetched, uploads, what
+    /// is resident, whether the view is fully streamed, the last error.
+    pub fn stats(&self) -> String {
+        self.state.borrow().stats()
+    }
+}
+
+/// Starts the player on the page: reads the URL's parameters, opens a WebGPU or WebGL2
+/// device on `#terrain`, starts streaming, and draws every animation frame. On failure
+/// the message is shown on the page and returned.
+#[wasm_bindgen]
+pub async fn run() -> Result<Player, JsValue> {
+    crate::log::init();
+    let page = Page::find().map_err(|e| JsValue::from_str(&e))?;
+    std::panic::set_hook(Box::new(|info| {
+        let text = format!("The player stopped: {info}");
+        web_sys::console::error_1(&JsValue::from_str(&text));
+        if let Ok(page) = Page::find() {
+            page.status(Some(&text), true);
+        }
+    }));
+    match start(page).await {
+        Ok(player) => Ok(player),
+        Err((page, message)) => {
+            tracing::error!("{message}");
+            if let Some(page) = page {
+                page.status(Some(&message), true);
+            }
+            Err(JsValue::from_str(&message))
+        }
+    }
+}
+
+async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
+    let started_ms = page.now_ms();
+    let params = match params(&page.window) {
+        Ok(p) => p,
+        Err(e) => return Err((Some(page), e)),
+    };
+    page.status(Some("Starting the graphics device…"), false);
+    let (gpu, surface) = match open_gpu(&page, params.backends).await {
+        Ok(v) => v,
+        Err(e) => return Err((Some(page), e)),
+    };
+    tracing::info!(adapter = %gpu.describe(), "webplayer");
+    let source = match HttpSource::new(&params.archive) {
+        Ok(s) => s,
+        Err(e) => return Err((Some(page), format!("Cannot read {}: {e}", params.archive))),
+    };
+    let http = source.shared_stats();
+    let options = StreamOptions { cache_bytes: 256 * 1024 * 1024, ..StreamOptions::default() };
+    let streamer = match Streamer::new(Origin::archive(source), options) {
+        Ok(s) => s,
+        Err(e) => return Err((Some(page), format!("Cannot stream {}: {e}", params.archive))),
+    };
+    let show_hud = params.hud;
+    let state = Rc::new(RefCell::new(State {
+        page,
+        params,
+        gpu,
+        surface,
+        opening: Some(streamer),
+        session: None,
+        fly: None,
+        http,
+        input: Input::default(),
+        show_hud,
+        frame_times: VecDeque::new(),
+        started_ms,
+        last_frame_ms: started_ms,
+        hud_at_ms: f64::NEG_INFINITY,
+        uploads_seen: 0,
+        timings: Timings::default(),
+        last: None,
+    }));
+    listen(&state);
+    animate(state.clone());
+    Ok(Player { state })
+}
+
+/// A device on WebGPU (when allowed and the browser has it) or else WebGL2, and the
+/// canvas configured for it.
+async fn open_gpu(page: &Page, backends: wgpu::Backends) -> Result<(Gpu, Surface), String> {
+    let mut tried = Vec::new();
+    let webgpu_first = backends.contains(wgpu::Backends::BROWSER_WEBGPU);
+    let order: &[wgpu::Backends] = if webgpu_first && backends.contains(wgpu::Backends::GL) {
+        &[wgpu::Backends::BROWSER_WEBGPU, wgpu::Backends::GL]
+    } else if webgpu_first {
+        &[wgpu::Backends::BROWSER_WEBGPU]
+    } else {
+        &[wgpu::Backends::GL]
+    };
+    for &backend in order {
+        let name = if backend == wgpu::Backends::GL { "WebGL2" } else { "WebGPU" };
+        // WebGPU must be known to work before an instance is made for it: the choice of
+        // backend is made at instance creation.
+        if backend == wgpu::Backends::BROWSER_WEBGPU && !wgpu::util::is_browser_webgpu_supported().await {
+            tried.push(format!("{name}: not in this browser"));
+            continue;
+        }
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = backend;
+        let instance = wgpu::Instance::new(desc);
+        let surface = match instance.create_surface(wgpu::SurfaceTarget::Canvas(page.canvas.clone())) {
+            Ok(s) => s,
+            Err(e) => {
+                tried.push(format!("{name}: {e}"));
+                continue;
+            }
+        };
+        let gpu = match Gpu::new(&instance, Some(&surface)).await {
+            Ok(g) => g,
+            Err(e) => {
+                tried.push(format!("{name}: {e}"));
+                continue;
+            }
+        };
+        let (width, height) = page.canvas_size(gpu.device.limits().max_texture_dimension_2d);
+        let Some(mut config) = surface.get_default_config(&gpu.adapter, width, height) else {
+            tried.push(format!("{name}: the canvas does not fit the adapter"));
+            continue;
+        };
+        let view_format = config.format.add_srgb_suffix();
+        if view_format != config.format {
+            config.view_formats.push(view_format);
+        }
+        let depth = depth_target(&gpu.device, "texture.canvas.depth", width, height)
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let mut surface = Surface { surface, config, view_format, depth };
+        surface.configure(&gpu.device, (width, height));
+        return Ok((gpu, surface));
+    }
+    Err(format!(
+        "This browser cannot draw the terrain: it needs WebGPU or WebGL2 ({}). \
+         Try a current Chrome, Edge, Firefox or Safari, with hardware acceleration on.",
+        tried.join("; ")
+    ))
+}
+
+/// Keyboard on the window; pointer and wheel on the canvas.
+fn listen(state: &Rc<RefCell<State>>) {
+    let (window, canvas) = {
+        let s = state.borrow();
+        (s.page.window.clone(), s.page.canvas.clone())
+    };
+    let on = |target: &web_sys::EventTarget, name: &str, f: Box<dyn FnMut(JsValue)>| {
+        let closure = Closure::<dyn FnMut(JsValue)>::wrap(f);
+        let _ = target.add_event_listener_with_callback(name, closure.as_ref().unchecked_ref());
+        // The listeners live as long as the page.
+        closure.forget();
+    };
+    for (name, down) in [("keydown", true), ("keyup", false)] {
+        let state = state.clone();
+        on(
+            &window,
+            name,
+            Box::new(move |e| {
+                if let Some(e) = e.dyn_ref::<KeyboardEvent>() {
+                    state.borrow_mut().key(e, down);
+                }
+            }),
+        );
+    }
+    {
+        // Keys held when the page loses focus would stay "down" forever.
+        let state = state.clone();
+        on(&window, "blur", Box::new(move |_| state.borrow_mut().input.keys.clear()));
+    }
+    for (name, kind) in [
+        ("pointerdown", PointerKind::Down),
+        ("pointermove", PointerKind::Move),
+        ("pointerup", PointerKind::Up),
+        ("pointercancel", PointerKind::Up),
+    ] {
+        let state = state.clone();
+        on(
+            &canvas,
+            name,
+            Box::new(move |e| {
+                if let Some(e) = e.dyn_ref::<PointerEvent>() {
+                    state.borrow_mut().pointer(e, kind);
+                }
+            }),
+        );
+    }
+    let state = state.clone();
+    on(
+        &canvas,
+        "wheel",
+        Box::new(move |e| {
+            if let Some(e) = e.dyn_ref::<WheelEvent>() {
+                state.borrow_mut().wheel(e);
+            }
+        }),
+    );
+}
+
+/// Steps a frame on every animation frame, for as long as the page lives.
+fn animate(state: Rc<RefCell<State>>) {
+    type Callback = Closure<dyn FnMut(f64)>;
+    let slot: Rc<RefCell<Option<Callback>>> = Rc::new(RefCell::new(None));
+    let again = slot.clone();
+    let window = state.borrow().page.window.clone();
+    *slot.borrow_mut() = Some(Closure::wrap(Box::new(move |now: f64| {
+        state.borrow_mut().frame(now);
+        if let Some(callback) = again.borrow().as_ref() {
+            let window = state.borrow().page.window.clone();
+            let _ = window.request_animation_frame(callback.as_ref().unchecked_ref());
+        }
+    }) as Box<dyn FnMut(f64)>));
+    if let Some(callback) = slot.borrow().as_ref() {
+        let _ = window.request_animation_frame(callback.as_ref().unchecked_ref());
+    }
+}
