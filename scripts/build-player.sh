@@ -28,7 +28,7 @@ target_dir=$(cargo metadata --format-version 1 --no-deps | python3 -c 'import js
 out=client/web/dist
 rm -rf "$out.new"
 mkdir -p "$out.new"
-wasm-bindgen --target web --no-typescript --out-dir "$out.new" \
+wasm-bindgen --target web --no-typescript --remove-name-section --remove-producers-section --out-dir "$out.new" \
     "$target_dir/wasm32-unknown-unknown/web/terrastream_web.wasm"
 cp client/web/static/* "$out.new/"
 # Replace the old build in one step: a server build never sees half of one.

@@ -8,9 +8,10 @@ cd "$(dirname "$0")/.."
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
 # System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS),
-# Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests.
+# Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests, Chromium +
+# chromedriver for the webplayer's end-to-end tests.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
@@ -21,6 +22,8 @@ fi
 rustup component add rustfmt clippy >/dev/null 2>&1 || true
 rustup target add wasm32-unknown-unknown >/dev/null
 
+echo "== webplayer (wasm32 + wasm-bindgen; embedded by the server build below)"
+bash scripts/build-player.sh
 echo "== cargo fmt"
 cargo fmt --all -- --check
 echo "== cargo clippy"
@@ -29,6 +32,7 @@ echo "== reader, client and renderer for wasm32"
 cargo check -p terrastream-packer --no-default-features --target wasm32-unknown-unknown --locked
 cargo check -p terrastream-client --target wasm32-unknown-unknown --locked
 cargo check -p terrastream-client --features render --target wasm32-unknown-unknown --locked
+cargo clippy -p terrastream-web --target wasm32-unknown-unknown --locked -- -D warnings
 # lavapipe wants a private runtime directory (else it warns on every start).
 if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "${XDG_RUNTIME_DIR}" ]; then
   XDG_RUNTIME_DIR=$(mktemp -d)

@@ -7,6 +7,9 @@
 //! skips them loudly (for machines without Mesa; never set on CI).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
+#[path = "../../tests/support/golden.rs"]
+mod golden;
+
 #[path = "../../server/tests/common/mod.rs"]
 mod common;
 mod support;
@@ -27,9 +30,7 @@ use terrastream_packer::{Metadata, Reader, Writer, WriterOptions};
 const WIDTH: u32 = 320;
 const HEIGHT: u32 = 200;
 
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-}
+use golden::repo;
 
 /// One device for all tests of this binary (lavapipe is slow to start).
 fn gpu() -> Option<&'static Gpu> {
@@ -96,51 +97,14 @@ fn render(gpu: &Gpu, location: &str, cam: Option<Camera>, settings: RenderSettin
     render_still(gpu, Origin::parse(location).unwrap(), camera, &options).unwrap()
 }
 
-fn save(still: &Still, path: &Path) {
-    terrastream_client::render::still::write_png(path, still.width, still.height, &still.rgba).unwrap();
-}
+/// Lavapipe vs llvmpipe-GL and debug vs release builds differ by at most 1/255 on a few
+/// pixels (PLATFORM.md); allowed here: mean absolute channel difference <= 0.5/255 and at
+/// most 0.5 % of pixels off by more than 8/255 — a shifted LOD ring, a missing tile or a
+/// crack breaks both.
+const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 0.5, pixel: 8, off_share: 0.005 };
 
-fn load(path: &Path) -> (u32, u32, Vec<u8>) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    buf.truncate(info.buffer_size());
-    (info.width, info.height, buf)
-}
-
-/// Compares with `tests/golden/{name}.png`. Tolerance: lavapipe vs llvmpipe-GL and debug
-/// vs release builds differ by at most 1/255 on a few pixels (PLATFORM.md); allowed here:
-/// mean absolute channel difference <= 0.5/255 and at most 0.5 % of pixels off by more
-/// than 8/255 — a shifted LOD ring, a missing tile or a crack breaks both.
 fn assert_golden(name: &str, still: &Still) {
-    let out = repo().join("target/render-tests");
-    std::fs::create_dir_all(&out).unwrap();
-    save(still, &out.join(format!("{name}.png")));
-    let golden = repo().join(format!("tests/golden/{name}.png"));
-    if std::env::var_os("TERRASTREAM_BLESS").is_some() {
-        save(still, &golden);
-        eprintln!("blessed {}", golden.display());
-        return;
-    }
-    assert!(golden.exists(), "no reference image {} (TERRASTREAM_BLESS=1 writes it)", golden.display());
-    let (w, h, reference) = load(&golden);
-    assert_eq!((w, h), (still.width, still.height), "{name}: size differs from the reference");
-    let mut sum = 0u64;
-    let mut off = 0usize;
-    for (a, b) in still.rgba.chunks_exact(4).zip(reference.chunks_exact(4)) {
-        let d: Vec<u32> = (0..3).map(|c| u32::from(a[c].abs_diff(b[c]))).collect();
-        sum += u64::from(d.iter().sum::<u32>());
-        if d.iter().any(|&x| x > 8) {
-            off += 1;
-        }
-    }
-    let pixels = (w * h) as usize;
-    let mean = sum as f64 / (pixels * 3) as f64;
-    assert!(
-        mean <= 0.5 && off * 200 <= pixels,
-        "{name}: mean difference {mean:.3}/255, {off} of {pixels} pixels off by > 8/255 (see target/render-tests/{name}.png)"
-    );
+    golden::assert_golden(name, still.width, still.height, &still.rgba, TOLERANCE);
 }
 
 #[test]
@@ -209,7 +173,12 @@ fn morphing_leaves_no_cracks() {
     {
         let still = render(gpu, &archive, Some(camera(eye, target)), flat);
         std::fs::create_dir_all(repo().join("target/render-tests")).unwrap();
-        save(&still, &repo().join(format!("target/render-tests/cracks-{i}.png")));
+        golden::write_png(
+            &repo().join(format!("target/render-tests/cracks-{i}.png")),
+            still.width,
+            still.height,
+            &still.rgba,
+        );
         assert!(still.frame.levels.1 > still.frame.levels.0, "several mesh levels in view");
         let (w, h) = (still.width as usize, still.height as usize);
         let white = |x: usize, y: usize| still.rgba[(y * w + x) * 4] > 127;

@@ -193,9 +193,7 @@ pub fn export_pmtiles<S: RangeSource>(
     debug_assert_eq!(h.len(), 127);
 
     let folder = crate::writer::output_folder(out);
-    let mut file = tempfile::Builder::new()
-        .prefix(".pmtiles.")
-        .suffix(".partial")
+    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
         .tempfile_in(&folder)
         .map_err(|e| Error::file(&folder, e))?;
     let io = |e: std::io::Error| Error::file(out, e);

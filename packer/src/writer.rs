@@ -352,9 +352,7 @@ impl Writer {
         };
 
         let file_name = self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let mut out = tempfile::Builder::new()
-            .prefix(&format!(".{file_name}."))
-            .suffix(".partial")
+        let mut out = published(tempfile::Builder::new().prefix(&format!(".{file_name}.")).suffix(".partial"))
             .tempfile_in(&self.folder)
             .map_err(|e| Error::file(&self.folder, e))?;
         let io = |e: std::io::Error| Error::file(&self.path, e);
@@ -441,4 +439,19 @@ fn write_leaves(spill: &mut File, count: u64, per_leaf: usize, level: i32, out: 
     }
     out.flush()?;
     Ok(pointers)
+}
+
+/// A temporary file that is renamed into place when done gets a published file's mode
+/// (0666 less the umask, as any new file), not the private 0600 of temporary files: a
+/// web server running as another user must be able to read the archive.
+pub(crate) fn published<'s, 'a, 'b>(builder: &'s mut tempfile::Builder<'a, 'b>) -> &'s mut tempfile::Builder<'a, 'b> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666))
+    }
+    #[cfg(not(unix))]
+    {
+        builder
+    }
 }

@@ -123,6 +123,7 @@ pub fn app(state: AppState) -> Router {
         .route("/metrics", get(metrics))
         .route("/{file}", get(archive_bytes))
         .route("/{name}/metadata", get(metadata))
+        .route("/view/{name}", get(view))
         .route("/{name}/{layer}/{lod}/{x}/{y}", get(tile))
         .route_layer(middleware::from_fn_with_state(state.clone(), record_metrics))
         .with_state(state.clone())
@@ -354,6 +355,7 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
                 "name": a.name,
                 "url": format!("/{}.tspack", a.name),
                 "metadata": format!("/{}/metadata", a.name),
+                "view": format!("/view/{}", a.name),
                 "bytes": a.bytes().len(),
                 "etag": a.etag,
                 "layers": m.layers.iter().map(|l| serde_json::json!({
@@ -369,7 +371,7 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
     }
     let mut html = String::from(
         "<!doctype html><meta charset=utf-8><title>terrastream</title><h1>terrastream archives</h1><table>\
-         <tr><th>archive</th><th>size</th><th>layers</th><th>metadata</th></tr>",
+         <tr><th>archive</th><th>size</th><th>layers</th><th>metadata</th><th>view</th></tr>",
     );
     for a in &archives {
         let name = escape(a["name"].as_str().unwrap_or(""));
@@ -378,7 +380,7 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
             .map(|ls| ls.iter().map(|l| escape(l["name"].as_str().unwrap_or(""))).collect())
             .unwrap_or_default();
         html.push_str(&format!(
-            "<tr><td><a href=\"/{name}.tspack\">{name}.tspack</a></td><td>{}</td><td>{}</td><td><a href=\"/{name}/metadata\">json</a></td></tr>",
+            "<tr><td><a href=\"/{name}.tspack\">{name}.tspack</a></td><td>{}</td><td>{}</td><td><a href=\"/{name}/metadata\">json</a></td><td><a href=\"/view/{name}\">fly over it</a></td></tr>",
             a["bytes"],
             layers.join(", ")
         ));
@@ -387,6 +389,57 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
     Html(html).into_response()
 }
 
-fn escape(s: &str) -> String {
+/// `GET /view/{name}`: the webplayer's page for archive `name`, or one of the player's
+/// own files (`/view/terrastream_web.js`, `/view/terrastream_web_bg.wasm`: the page
+/// asks for them relative to itself).
+#[tracing::instrument(level = "debug", skip_all, fields(name = %name))]
+async fn view(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let not_modified = |etag: &str| {
+        headers
+            .get(IF_NONE_MATCH)
+            .and_then(|v| v.to_str().ok())
+            .is_some_and(|v| v.split(',').any(|t| t.trim().trim_start_matches("W/") == etag || t.trim() == "*"))
+    };
+    if let Some(asset) = crate::player::asset(&name) {
+        let builder = Response::builder()
+            .header(ETAG, header(&asset.etag))
+            // Revalidated each time: a new binary serves a new player at once.
+            .header(CACHE_CONTROL, HeaderValue::from_static("no-cache"))
+            .header(VARY, HeaderValue::from_static("accept-encoding"));
+        if not_modified(&asset.etag) {
+            return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
+        }
+        let gzip_ok = headers
+            .get(ACCEPT_ENCODING)
+            .and_then(|v| v.to_str().ok())
+            .is_some_and(|v| v.split(',').any(|e| e.split(';').next().is_some_and(|e| e.trim() == "gzip")));
+        let builder = builder.status(StatusCode::OK).header(CONTENT_TYPE, asset.content_type);
+        let response = match asset.gzipped().filter(|_| gzip_ok) {
+            Some(gz) => builder
+                .header(CONTENT_ENCODING, HeaderValue::from_static("gzip"))
+                .header(CONTENT_LENGTH, gz.len())
+                .body(Body::from(gz.clone())),
+            None => builder.header(CONTENT_LENGTH, asset.bytes.len()).body(Body::from(asset.bytes.clone())),
+        };
+        return response.map_err(|e| AppError::Internal(e.to_string()));
+    }
+    let served = archive(&state, &name)?;
+    let Some(page) = crate::player::page(&format!("../{}.tspack", served.name)) else {
+        return Ok((
+            StatusCode::NOT_IMPLEMENTED,
+            "This terrastream binary was built without the webplayer: run scripts/build-player.sh, \
+             then rebuild terrastream.\n",
+        )
+            .into_response());
+    };
+    Ok(([(CACHE_CONTROL, HeaderValue::from_static("no-cache"))], Html(page)).into_response())
+}
+
+/// Escapes text for HTML (content and double-quoted attributes).
+pub(crate) fn escape(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }

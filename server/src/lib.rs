@@ -9,6 +9,7 @@ mod body;
 mod catalog;
 mod config;
 mod metrics;
+pub mod player;
 mod range;
 mod serve;
 

@@ -7,8 +7,16 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 /// Routes of the application, as axum's matched-path templates; "other" for the rest.
-pub const ROUTES: [&str; 7] =
-    ["/", "/healthz", "/metrics", "/{file}", "/{name}/metadata", "/{name}/{layer}/{lod}/{x}/{y}", "other"];
+pub const ROUTES: [&str; 8] = [
+    "/",
+    "/healthz",
+    "/metrics",
+    "/{file}",
+    "/{name}/metadata",
+    "/{name}/{layer}/{lod}/{x}/{y}",
+    "/view/{name}",
+    "other",
+];
 /// Status codes counted one by one; any other lands in "other".
 const STATUSES: [u16; 20] =
     [200, 204, 206, 301, 302, 304, 400, 403, 404, 405, 408, 412, 413, 416, 429, 431, 500, 502, 503, 504];

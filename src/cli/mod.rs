@@ -117,11 +117,38 @@ enum Command {
     View(view::ViewArgs),
     /// Render one view of an archive (path or URL) to a PNG, headless.
     Render(render::RenderArgs),
+    /// Write the webplayer's files (page, JS, wasm) into a folder, for any static host or
+    /// CDN: open `player.html?archive=<URL of a .tspack>` there.
+    Player {
+        /// Output folder (created if missing).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
     /// Benchmarks that print numbers.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+}
+
+/// `terrastream player -o DIR`.
+fn write_player(output: &std::path::Path) -> Result<ExitCode> {
+    use terrastream_server::player;
+    anyhow::ensure!(
+        player::available(),
+        "this terrastream binary was built without the webplayer: run scripts/build-player.sh, then rebuild"
+    );
+    std::fs::create_dir_all(output).with_context(|| format!("creating {}", output.display()))?;
+    for (name, bytes) in player::files() {
+        let path = output.join(name);
+        // Written beside, then renamed: a host never serves half a file.
+        let partial = output.join(format!(".{name}.partial"));
+        std::fs::write(&partial, bytes).with_context(|| format!("writing {}", partial.display()))?;
+        std::fs::rename(&partial, &path).with_context(|| format!("writing {}", path.display()))?;
+        println!("{}  {} bytes", path.display(), bytes.len());
+    }
+    println!("open <host>/player.html?archive=<URL of a .tspack> (CORS needed when the archive is on another host)");
+    Ok(ExitCode::SUCCESS)
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -228,6 +255,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Demo(args) => demo::run(args, &progress),
+        Command::Player { output } => write_player(&output),
         Command::Render(args) => render::run(args),
         Command::View(args) => view::run(args),
         Command::Tile { elevation, output, tile_size, border, storage } => {

@@ -509,6 +509,7 @@ impl State {
             (None, None) => (0, false, None),
         };
         let frame = self.last.as_ref().map(|(_, f)| *f).unwrap_or_default();
+        let eye = self.fly.map_or(DVec3::ZERO, |f| f.eye);
         let opt = |v: Option<f64>| v.map_or("null".to_owned(), |v| format!("{v:.1}"));
         let quote = |s: &str| {
             let mut out = String::from('"');
@@ -532,7 +533,7 @@ impl State {
                 "\"http_requests\":{},\"http_bytes\":{},\"http_retries\":{},",
                 "\"requests\":{},\"tiles_fetched\":{},\"bytes_fetched\":{},\"in_flight\":{},\"wanted\":{},",
                 "\"missing\":{},\"failures\":{},\"uploads\":{},\"max_uploads_per_frame\":{},\"upload_budget\":{},",
-                "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"error\":{}}}"
+                "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"eye\":[{:.3},{:.3},{:.3}],\"error\":{}}}"
             ),
             quote(&self.params.archive),
             quote(if self.gpu.info.backend == wgpu::Backend::Gl { "webgl2" } else { "webgpu" }),
@@ -560,6 +561,9 @@ impl State {
             frame.resident.1,
             frame.triangles,
             self.show_hud,
+            eye.x,
+            eye.y,
+            eye.z,
             error.as_deref().map_or("null".to_owned(), quote),
         )
     }

@@ -1,0 +1,498 @@
+//! The webplayer end to end, in headless Chromium driven through chromedriver (WebDriver):
+//! - from `terrastream serve` (`/view/{name}`, the player embedded in the binary), on WebGPU;
+//! - from nginx serving only static files (`terrastream player -o`, the shipped
+//!   `deploy/nginx/tspack-static.conf`), the archive on a second origin (CORS), on WebGL2;
+//! - the messages for an archive that does not load and for a browser without WebGL2.
+//!
+//! Each run streams the committed Tamalpais DEM until the view is complete, compares a
+//! screenshot of the canvas with a reference in `tests/golden/`, reads the browser's
+//! console (no errors allowed) and counts the HTTP requests at the server against what
+//! the page reports and what the tiles need.
+//!
+//! Needs Debian's `chromium` and `chromium-driver` and a binary built with the player
+//! (`scripts/build-player.sh` first); the test command provides all three. Without them
+//! the tests fail, unless `TERRASTREAM_ALLOW_NO_BROWSER=1` (then they skip loudly).
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+#[path = "../server/tests/common/mod.rs"]
+mod common;
+#[path = "support/golden.rs"]
+mod golden;
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+
+const WIDTH: u32 = 640;
+const HEIGHT: u32 = 400;
+const CHROMIUM: &str = "/usr/bin/chromium";
+const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
+/// Tiles in the archive `tile --tile-size 64` makes of the 320² crop.
+const TILES: u64 = 29;
+
+/// Chromium's software rasterizers (SwiftShader) are deterministic for a given build; the
+/// allowance covers another Chromium release (anti-aliasing of the silhouette, dithering):
+/// mean absolute difference <= 1.5/255 and at most 1.5 % of pixels off by more than 24/255.
+/// A missing tile, a wrong LOD or a shifted camera breaks both.
+const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
+
+/// Flags that give headless Chromium WebGPU on SwiftShader's Vulkan (and compose its
+/// canvas into screenshots). WebGL2 is not available with them.
+const WEBGPU_FLAGS: &[&str] = &[
+    "--enable-unsafe-webgpu",
+    "--enable-features=Vulkan",
+    "--use-angle=vulkan",
+    "--use-vulkan=swiftshader",
+    "--enable-unsafe-swiftshader",
+];
+/// WebGL2 on SwiftShader (ANGLE's default in headless mode).
+const WEBGL_FLAGS: &[&str] = &["--enable-unsafe-swiftshader"];
+
+fn ready() -> bool {
+    let mut missing = Vec::new();
+    if !Path::new(CHROMIUM).exists() {
+        missing.push("chromium (apt-get install chromium)");
+    }
+    if !Path::new(CHROMEDRIVER).exists() {
+        missing.push("chromedriver (apt-get install chromium-driver)");
+    }
+    if !terrastream_server::player::available() {
+        missing.push("the webplayer in this build (run scripts/build-player.sh, then rebuild)");
+    }
+    if missing.is_empty() {
+        return true;
+    }
+    let what = missing.join(", ");
+    assert!(
+        std::env::var_os("TERRASTREAM_ALLOW_NO_BROWSER").is_some(),
+        "missing: {what}; the test command installs them (TERRASTREAM_ALLOW_NO_BROWSER=1 skips)"
+    );
+    eprintln!("\n!!!!! SKIPPING WEBPLAYER TESTS: missing {what} (TERRASTREAM_ALLOW_NO_BROWSER is set) !!!!!\n");
+    false
+}
+
+/// A child process killed on drop.
+struct Process(Child);
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn wait_for_port(port: u16, what: &str) {
+    let start = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(start.elapsed() < Duration::from_secs(20), "{what} did not start on port {port}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// One HTTP/1.1 exchange on a fresh connection: (status, body).
+fn http(port: u16, method: &str, path: &str, body: Option<&Value>) -> (u16, Vec<u8>) {
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(180))).unwrap();
+    let body = body.map(Value::to_string).unwrap_or_default();
+    write!(
+        s,
+        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .unwrap();
+    // Read by Content-Length: chromedriver keeps the connection open after answering.
+    let mut answer = Vec::new();
+    let mut buf = [0u8; 64 * 1024];
+    let end = loop {
+        if let Some(end) = answer.windows(4).position(|w| w == b"\r\n\r\n") {
+            break end;
+        }
+        let n = s.read(&mut buf).unwrap();
+        assert!(n > 0, "connection closed before an HTTP answer");
+        answer.extend_from_slice(&buf[..n]);
+    };
+    let head = String::from_utf8_lossy(&answer[..end]).to_lowercase();
+    let status = head.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let length =
+        head.lines().find_map(|l| l.strip_prefix("content-length:")).and_then(|v| v.trim().parse::<usize>().ok());
+    let mut payload = answer[end + 4..].to_vec();
+    match length {
+        Some(length) => {
+            while payload.len() < length {
+                let n = s.read(&mut buf).unwrap();
+                assert!(n > 0, "connection closed mid-body");
+                payload.extend_from_slice(&buf[..n]);
+            }
+        }
+        None => {
+            s.read_to_end(&mut payload).unwrap();
+        }
+    }
+    (status, payload)
+}
+
+/// chromedriver on a loopback port.
+struct Driver {
+    _process: Process,
+    port: u16,
+}
+
+impl Driver {
+    fn start() -> Self {
+        let port = common::free_port();
+        let child = Command::new(CHROMEDRIVER)
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("starting chromedriver");
+        wait_for_port(port, "chromedriver");
+        Self { _process: Process(child), port }
+    }
+
+    fn call(&self, method: &str, path: &str, body: Option<Value>) -> Value {
+        let (status, bytes) = http(self.port, method, path, body.as_ref());
+        let value: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+        assert!(status == 200, "WebDriver {method} {path}: {status} {value}");
+        value["value"].clone()
+    }
+}
+
+/// A headless Chromium session, closed on drop.
+struct Browser<'a> {
+    driver: &'a Driver,
+    session: String,
+    _profile: tempfile::TempDir,
+}
+
+impl<'a> Browser<'a> {
+    fn open(driver: &'a Driver, flags: &[&str]) -> Self {
+        let profile = tempfile::tempdir().unwrap();
+        let mut args: Vec<String> = [
+            "--headless=new",
+            "--no-sandbox",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--hide-scrollbars",
+            "--force-device-scale-factor=1",
+        ]
+        .iter()
+        .map(ToString::to_string)
+        .collect();
+        args.push(format!("--user-data-dir={}", profile.path().display()));
+        args.push(format!("--window-size={WIDTH},{HEIGHT}"));
+        args.extend(flags.iter().map(ToString::to_string));
+        let caps = json!({ "capabilities": { "alwaysMatch": {
+            "browserName": "chrome",
+            "goog:loggingPrefs": { "browser": "ALL" },
+            "goog:chromeOptions": { "binary": CHROMIUM, "args": args },
+        }}});
+        let value = driver.call("POST", "/session", Some(caps));
+        let session = value["sessionId"].as_str().expect("a session id").to_owned();
+        Self { driver, session, _profile: profile }
+    }
+
+    fn call(&self, method: &str, path: &str, body: Option<Value>) -> Value {
+        self.driver.call(method, &format!("/session/{}{path}", self.session), body)
+    }
+
+    fn goto(&self, url: &str) {
+        self.call("POST", "/url", Some(json!({ "url": url })));
+    }
+
+    fn eval(&self, script: &str) -> Value {
+        self.call("POST", "/execute/sync", Some(json!({ "script": script, "args": [] })))
+    }
+
+    /// The player's counters, once it runs.
+    fn stats(&self) -> Option<Value> {
+        let text = self.eval("return window.terrastream ? window.terrastream.stats() : null");
+        text.as_str().map(|t| serde_json::from_str(t).unwrap())
+    }
+
+    fn status_text(&self) -> (String, bool) {
+        let v = self.eval(
+            "const s = document.getElementById('status'); \
+             return [s.textContent, s.classList.contains('error') && !s.hidden];",
+        );
+        (v[0].as_str().unwrap_or_default().to_owned(), v[1].as_bool().unwrap_or(false))
+    }
+
+    /// Waits until the view is fully streamed; the player's counters then.
+    fn wait_settled(&self) -> Value {
+        let start = Instant::now();
+        loop {
+            if let Some(stats) = self.stats() {
+                if stats["settled"] == json!(true) && stats["frames"].as_u64().unwrap_or(0) > 3 {
+                    return stats;
+                }
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(120),
+                "the view did not complete: stats {:?}, status {:?}, console {:?}",
+                self.stats(),
+                self.status_text(),
+                self.console()
+            );
+            std::thread::sleep(Duration::from_millis(250));
+        }
+    }
+
+    /// Waits for the status box to show an error; its text.
+    fn wait_error(&self) -> String {
+        let start = Instant::now();
+        loop {
+            let (text, error) = self.status_text();
+            if error {
+                return text;
+            }
+            assert!(start.elapsed() < Duration::from_secs(60), "no error shown; status {text:?}");
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// The browser console since the last call: (level, message).
+    fn console(&self) -> Vec<(String, String)> {
+        let logs = self.call("POST", "/se/log", Some(json!({ "type": "browser" })));
+        logs.as_array()
+            .into_iter()
+            .flatten()
+            .map(|l| (l["level"].as_str().unwrap_or("").to_owned(), l["message"].as_str().unwrap_or("").to_owned()))
+            .collect()
+    }
+
+    /// A screenshot of the element `css`, decoded: (width, height, RGBA).
+    fn screenshot(&self, css: &str) -> (u32, u32, Vec<u8>) {
+        let element = self.call("POST", "/element", Some(json!({ "using": "css selector", "value": css })));
+        let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str).unwrap().to_owned();
+        let png = self.call("GET", &format!("/element/{id}/screenshot"), None);
+        golden::decode_png(&base64(png.as_str().unwrap()))
+    }
+
+    /// Holds `key` (a WebDriver key value) down for `ms` milliseconds.
+    fn hold_key(&self, key: &str, ms: u64) {
+        let actions = json!({ "actions": [{ "type": "key", "id": "keyboard", "actions": [
+            { "type": "keyDown", "value": key },
+            { "type": "pause", "duration": ms },
+            { "type": "keyUp", "value": key },
+        ]}]});
+        self.call("POST", "/actions", Some(actions));
+    }
+}
+
+impl Drop for Browser<'_> {
+    fn drop(&mut self) {
+        let _ = http(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
+    }
+}
+
+fn base64(text: &str) -> Vec<u8> {
+    let value = |c: u8| match c {
+        b'A'..=b'Z' => c - b'A',
+        b'a'..=b'z' => c - b'a' + 26,
+        b'0'..=b'9' => c - b'0' + 52,
+        b'+' => 62,
+        b'/' => 63,
+        _ => panic!("not base64: {c}"),
+    };
+    let bytes: Vec<u8> = text.bytes().filter(|c| !c.is_ascii_whitespace() && *c != b'=').collect();
+    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
+    for chunk in bytes.chunks(4) {
+        let mut n = 0u32;
+        for (i, &c) in chunk.iter().enumerate() {
+            n |= u32::from(value(c)) << (18 - 6 * i);
+        }
+        let b = n.to_be_bytes();
+        out.extend_from_slice(&b[1..chunk.len()]);
+    }
+    out
+}
+
+fn terrastream(args: &[&str]) {
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).arg("-q").args(args).output().unwrap();
+    assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// The committed DEM crop as an archive, as `terrastream tile --tile-size 64` makes it.
+fn archive(dir: &Path) -> PathBuf {
+    let path = dir.join("tamalpais.tspack");
+    let dem = golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", path.to_str().unwrap(), "--tile-size", "64"]);
+    path
+}
+
+/// What every run checks: the view complete, every tile fetched once, requests no more
+/// than the tiles need, uploads within the per-frame budget, the picture, the console.
+fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &str) {
+    eprintln!("{golden_name}: {stats}");
+    assert_eq!(stats["backend"], json!(backend), "{stats}");
+    assert_eq!(stats["missing"], json!(0));
+    assert_eq!(stats["failures"], json!(0));
+    // Everything the view wants is on the GPU; every tile came at most once (coalesced
+    // requests bring neighbours the view may not want yet).
+    let wanted = stats["wanted"].as_u64().unwrap();
+    assert!(wanted >= 5, "{stats}");
+    assert_eq!(stats["resident"][0].as_u64().unwrap(), wanted, "{stats}");
+    let fetched = stats["tiles_fetched"].as_u64().unwrap();
+    assert!((wanted..=TILES).contains(&fetched), "{stats}");
+    let requests = stats["requests"].as_u64().unwrap();
+    let http_requests = stats["http_requests"].as_u64().unwrap();
+    // Tile requests: coalesced, so fewer than the tiles; the rest opened the archive
+    // (one bootstrap read, at most one more for the index).
+    assert!((1..=TILES).contains(&requests), "{stats}");
+    assert!((requests + 1..=requests + 2).contains(&http_requests), "{stats}");
+    assert!(stats["max_uploads_per_frame"].as_u64().unwrap() <= stats["upload_budget"].as_u64().unwrap(), "{stats}");
+    assert!(stats["first_frame_ms"].as_f64().is_some(), "{stats}");
+    // Frames go on while streaming: the page stayed responsive.
+    assert!(stats["frames"].as_u64().unwrap() > 3, "{stats}");
+    // A few frames more, then the picture.
+    std::thread::sleep(Duration::from_millis(500));
+    let (w, h, rgba) = browser.screenshot("#terrain");
+    golden::assert_golden(golden_name, w, h, &rgba, TOLERANCE);
+    let console = browser.console();
+    let errors: Vec<_> = console.iter().filter(|(level, _)| level == "SEVERE").collect();
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+    assert!(console.iter().any(|(_, m)| m.contains("view fully streamed")), "the player logs: {console:?}");
+}
+
+/// Archive GETs the server answered, from its `/metrics` (route `/{file}`).
+fn served_archive_requests(port: u16) -> u64 {
+    let (_, body) = http(port, "GET", "/metrics", None);
+    String::from_utf8(body)
+        .unwrap()
+        .lines()
+        .filter(|l| l.starts_with("terrastream_requests_total") && l.contains("route=\"/{file}\""))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+        .sum()
+}
+
+/// nginx with the shipped static-host config (`deploy/nginx/tspack-static.conf`) serving
+/// `root`, logging requests to `access_log` if given.
+fn static_host(root: &Path, access_log: Option<&Path>) -> Option<common::Nginx> {
+    let shipped = std::fs::read_to_string(golden::repo().join("deploy/nginx/tspack-static.conf")).unwrap();
+    let mut config = shipped
+        .replace("listen 8080;", "listen 127.0.0.1:{port};")
+        .replace("root /srv/terrastream;", &format!("root {};", root.display()));
+    assert_ne!(config, shipped);
+    if let Some(log) = access_log {
+        config = config.replacen("{port};", &format!("{{port}};\n    access_log {};", log.display()), 1);
+    }
+    common::start_nginx(root, &config)
+}
+
+#[test]
+fn webplayer_from_terrastream_serve_on_webgpu() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let port = common::free_port();
+    let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let _server = Process(server);
+    wait_for_port(port, "terrastream serve");
+    let before = served_archive_requests(port);
+
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGPU_FLAGS);
+    let started = Instant::now();
+    browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0"));
+    let stats = browser.wait_settled();
+    eprintln!("loaded and streamed in {:.2} s (page load to complete view)", started.elapsed().as_secs_f64());
+    // The server saw exactly the archive requests the page made.
+    assert_eq!(served_archive_requests(port) - before, stats["http_requests"].as_u64().unwrap(), "{stats}");
+    check_run(&browser, &stats, "webplayer-webgpu", "webgpu");
+
+    // The HUD (H) and flying (W: forward, towards -z from the south).
+    browser.hold_key("h", 50);
+    std::thread::sleep(Duration::from_millis(400));
+    let hud = browser.eval("const h = document.getElementById('hud'); return [h.hidden, h.textContent];");
+    assert_eq!(hud[0], json!(false), "H shows the HUD");
+    let text = hud[1].as_str().unwrap();
+    for field in ["fps", "tiles in flight", "received", "MiB", "WebGPU"] {
+        assert!(text.contains(field), "HUD lacks {field:?}: {text}");
+    }
+    let eye = |b: &Browser<'_>| {
+        b.stats().unwrap()["eye"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>()
+    };
+    let before = eye(&browser);
+    browser.hold_key("w", 600);
+    let after = eye(&browser);
+    assert!(after[2] < before[2] - 1.0, "W flies forward: {before:?} -> {after:?}");
+    assert!(browser.console().iter().all(|(level, _)| level != "SEVERE"));
+}
+
+#[test]
+fn webplayer_from_nginx_static_files_on_webgl2_with_cors() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let site = dir.path().join("site");
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    archive(&data);
+    terrastream(&["player", "-o", site.to_str().unwrap()]);
+    // The shipped static-host config, twice: the player on one origin, the archive on
+    // another (so the page's requests are cross-origin and need its CORS headers).
+    let log = dir.path().join("archive-access.log");
+    let Some(player_host) = static_host(&site, None) else { return };
+    let Some(archive_host) = static_host(&data, Some(&log)) else { return };
+
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS);
+    let archive_url = format!("http://127.0.0.1:{}/tamalpais.tspack", archive_host.port);
+    browser.goto(&format!("http://127.0.0.1:{}/player.html?archive={archive_url}&hud=0", player_host.port));
+    let stats = browser.wait_settled();
+    // nginx's own log: the archive GETs (preflights apart) are the ones the page made.
+    let log = std::fs::read_to_string(&log).unwrap();
+    let gets = log.lines().filter(|l| l.contains("\"GET /tamalpais.tspack")).count() as u64;
+    let preflights = log.lines().filter(|l| l.contains("\"OPTIONS /tamalpais.tspack")).count();
+    eprintln!("nginx: {gets} archive GETs, {preflights} CORS preflights");
+    assert_eq!(gets, stats["http_requests"].as_u64().unwrap(), "{stats}\n{log}");
+    assert!(log.lines().filter(|l| l.contains("\"GET /tamalpais.tspack")).all(|l| l.contains("\" 206 ")), "{log}");
+    check_run(&browser, &stats, "webplayer-webgl2", "webgl2");
+    drop(player_host);
+    drop(archive_host);
+}
+
+#[test]
+fn webplayer_explains_what_is_wrong() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let site = dir.path().join("site");
+    terrastream(&["player", "-o", site.to_str().unwrap()]);
+    let Some(host) = static_host(&site, None) else { return };
+    let driver = Driver::start();
+    let page = |query: &str| format!("http://127.0.0.1:{}/player.html{query}", host.port);
+
+    // An archive that is not there: named, with the server's answer.
+    let browser = Browser::open(&driver, WEBGL_FLAGS);
+    browser.goto(&page("?archive=missing.tspack"));
+    let text = browser.wait_error();
+    assert!(text.contains("Cannot open the archive") && text.contains("missing.tspack"), "{text}");
+    assert!(text.contains("404"), "the server's answer is shown: {text}");
+    // No archive at all: how to give one.
+    browser.goto(&page(""));
+    let text = browser.wait_error();
+    assert!(text.contains("player.html?archive="), "{text}");
+    drop(browser);
+
+    // A browser with neither WebGPU nor WebGL2.
+    let browser = Browser::open(&driver, &["--disable-3d-apis", "--disable-webgpu"]);
+    browser.goto(&page("?archive=missing.tspack"));
+    let text = browser.wait_error();
+    assert!(text.contains("needs WebGPU or WebGL2"), "{text}");
+}
