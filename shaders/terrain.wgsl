@@ -35,6 +35,9 @@ struct Globals {
     // x: elevation LOD offset (log2 of base spacing / elevation spacing), y: first morph
     // range radius; zw unused.
     lod: vec4<f32>,
+    // The data's extent relative to the anchor: min x, min z, max x, max z. The mesh
+    // ends on patch boundaries, which can lie beyond it.
+    bounds: vec4<f32>,
     // Per mesh level: morph start, morph end (= the level's range), quad size in base units.
     ranges: array<vec4<f32>, 32>,
     elev_lods: array<LodInfo, 32>,
@@ -251,7 +254,8 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // Derivatives first, in uniform control flow.
     let footprint = max(length(dpdx(in.world.xz)), length(dpdy(in.world.xz)));
     let grid_width = fwidth(in.grid);
-    if in.nodata > 0.001 {
+    let outside = any(in.world.xz < G.bounds.xy) || any(in.world.xz > G.bounds.zw);
+    if in.nodata > 0.001 || outside {
         discard;
     }
     if G.mode.x == 1u {

@@ -311,6 +311,13 @@ fn compose_dockerfile_and_systemd_unit_hold_together() {
             assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join(src).exists(), "Dockerfile copies missing {src}");
         }
     }
+    // The dependency stage sees the whole workspace: every member's manifest is copied.
+    let manifest = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("Cargo.toml")).unwrap();
+    let members = manifest.lines().find(|l| l.starts_with("members")).unwrap();
+    for member in members.split('"').skip(1).step_by(2) {
+        assert!(docker.contains(&format!("COPY {member}/Cargo.toml {member}/Cargo.toml")), "Dockerfile lacks {member}");
+    }
+    assert!(docker.contains("scripts/build-player.sh"), "the image embeds the webplayer");
     // The health subcommand the image relies on works against a real server.
     let dir = tempfile::tempdir().unwrap();
     std::fs::create_dir(dir.path().join("archives")).unwrap();

@@ -225,3 +225,181 @@ fn hud_text_lands_in_the_top_left_corner() {
     assert!(inside > 50, "glyph pixels drawn: {inside}");
     assert_eq!(outside, 0);
 }
+
+/// One BC1 block of a single colour (RGB565 endpoints equal, every index 0).
+fn bc1_solid(rgb: [u8; 3]) -> [u8; 8] {
+    let c = (u16::from(rgb[0] >> 3) << 11) | (u16::from(rgb[1] >> 2) << 5) | u16::from(rgb[2] >> 3);
+    let [lo, hi] = c.to_le_bytes();
+    [lo, hi, lo, hi, 0, 0, 0, 0]
+}
+
+/// One BC7 block of a single colour: mode 6, both endpoints the colour (7 bits + a shared
+/// p-bit of 1 per endpoint), every index 0.
+fn bc7_solid(rgb: [u8; 3]) -> [u8; 16] {
+    let mut bits: u128 = 1 << 6; // mode 6
+    let mut at = 7;
+    for channel in [rgb[0], rgb[0], rgb[1], rgb[1], rgb[2], rgb[2], 255, 255] {
+        bits |= u128::from(channel >> 1) << at;
+        at += 7;
+    }
+    bits |= 0b11 << at; // p-bits
+    bits.to_le_bytes()
+}
+
+/// BC1 and BC7 texture tiles go to the GPU as blocks, without a CPU decode: a 2x2-tile
+/// layer of solid colours (red, green / blue, white) seen from straight above draws
+/// those colours in its four quadrants, from a BC texture array.
+#[test]
+fn bc1_and_bc7_tiles_are_drawn_from_blocks() {
+    use terrastream_packer::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    let Some(gpu) = gpu() else { return };
+    if !gpu.device.features().contains(wgpu::Features::TEXTURE_COMPRESSION_BC) {
+        // Lavapipe (the test command's adapter) has BC; only another adapter lands here.
+        assert!(gpu.info.driver != "llvmpipe", "lavapipe is expected to support BC textures");
+        eprintln!("\n!!!!! SKIPPING BC TEST: {} has no BC texture support !!!!!\n", gpu.describe());
+        return;
+    }
+    let colours = [[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]];
+    for format in [TileFormat::Bc1, TileFormat::Bc7] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bc.tspack");
+        let layer = Layer {
+            name: "texture".into(),
+            kind: LayerKind::Texture,
+            format,
+            compression: PayloadCompression::None,
+            tile_resolution: 16,
+            border: 0,
+            num_x_tiles: 2,
+            num_y_tiles: 2,
+            num_lods: 2,
+            tile_world_size: 100.0,
+            elevation: None,
+        };
+        let metadata = Metadata::new("bc", vec![layer]);
+        let mut writer = Writer::create(&path, metadata.clone(), WriterOptions::default()).unwrap();
+        let mut keys: Vec<TileKey> = (0..2).flat_map(|lod| metadata.layers[0].tiles_at(0, lod)).collect();
+        keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+        for key in keys {
+            let colour = if key.lod() == 1 { [128, 128, 128] } else { colours[(key.y() * 2 + key.x()) as usize] };
+            let block: Vec<u8> =
+                if format == TileFormat::Bc1 { bc1_solid(colour).to_vec() } else { bc7_solid(colour).to_vec() };
+            writer.add(key, block.repeat(16)).unwrap();
+        }
+        writer.finish().unwrap();
+
+        let cam = camera([100.0, 300.0, 100.001], [100.0, 0.0, 100.0]);
+        let still = render(gpu, path.to_str().unwrap(), Some(cam), RenderSettings::default());
+        let expected = if format == TileFormat::Bc1 {
+            wgpu::TextureFormat::Bc1RgbaUnormSrgb
+        } else {
+            wgpu::TextureFormat::Bc7RgbaUnormSrgb
+        };
+        assert_eq!(still.texture_format, Some(expected), "{format:?} tiles went up as blocks");
+        golden::write_png(
+            &repo().join(format!("target/render-tests/bc-{format:?}.png")),
+            still.width,
+            still.height,
+            &still.rgba,
+        );
+        // Quadrant centres: screen up is north (-z), so tile (0,0) is top left.
+        let pixel = |fx: f64, fy: f64| {
+            let (x, y) = ((fx * f64::from(WIDTH)) as usize, (fy * f64::from(HEIGHT)) as usize);
+            let i = (y * WIDTH as usize + x) * 4;
+            [i32::from(still.rgba[i]), i32::from(still.rgba[i + 1]), i32::from(still.rgba[i + 2])]
+        };
+        let [tl, tr, bl, br] = [pixel(0.4, 0.35), pixel(0.6, 0.35), pixel(0.4, 0.65), pixel(0.6, 0.65)];
+        let dominant = |p: [i32; 3], c: usize| (0..3).all(|o| o == c || p[c] > p[o] + 60);
+        assert!(dominant(tl, 0), "{format:?}: red tile drawn as {tl:?}");
+        assert!(dominant(tr, 1), "{format:?}: green tile drawn as {tr:?}");
+        assert!(dominant(bl, 2), "{format:?}: blue tile drawn as {bl:?}");
+        assert!(
+            br.iter().all(|&c| c > 150) && br.iter().max().unwrap() - br.iter().min().unwrap() < 40,
+            "{format:?}: white tile drawn as {br:?}"
+        );
+    }
+}
+
+/// A terrain 1048 km on a side whose tiles are all alike (heights periodic with the
+/// tile size, at every LOD): the same view near the origin and 1000 km away must give the
+/// same picture. With absolute f32 positions the far view would be quantized to 6 cm
+/// steps and its texture and height lookups worse: camera-relative coordinates keep it
+/// exact.
+#[test]
+fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
+    use terrastream_packer::{ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat};
+    let Some(gpu) = gpu() else { return };
+    const GRID: u32 = 256;
+    const RES: u32 = 64;
+    const SPACING: f64 = 64.0;
+    let tile = f64::from(RES) * SPACING; // 4096 m
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("huge.tspack");
+    let layer = Layer {
+        name: "elevation".into(),
+        kind: LayerKind::Elevation,
+        format: TileFormat::RawF32,
+        compression: PayloadCompression::Zstd,
+        tile_resolution: RES,
+        border: 1,
+        num_x_tiles: GRID,
+        num_y_tiles: GRID,
+        num_lods: terrastream_packer::levels_to_one(GRID),
+        tile_world_size: tile,
+        elevation: Some(ElevationEncoding { scheme: ElevationScheme::Float32, scale: 1.0, offset: 0.0, nodata: None }),
+    };
+    let mut metadata = Metadata::new("huge", vec![layer]);
+    metadata.terrain.min_elevation = 0.0;
+    metadata.terrain.max_elevation = 400.0;
+    metadata.terrain.displacement = 400.0;
+    metadata.terrain.elevation_range = 400.0;
+    metadata.terrain.base_tile_size = SPACING;
+    let height = |x: f64, z: f64| {
+        let (u, v) = (x / tile * std::f64::consts::TAU, z / tile * std::f64::consts::TAU);
+        200.0 + 120.0 * u.sin() * v.cos() + 40.0 * (3.0 * u + 1.0).sin() * (2.0 * v).sin()
+    };
+    // Every tile of a LOD has the same samples: one payload per LOD.
+    let payloads: Vec<Vec<u8>> = (0..metadata.layers[0].num_lods)
+        .map(|lod| {
+            let step = SPACING * f64::from(lod).exp2();
+            let mut raw = Vec::new();
+            for j in 0..RES + 2 {
+                for i in 0..RES + 2 {
+                    let h = height((f64::from(i) - 0.5) * step, (f64::from(j) - 0.5) * step);
+                    raw.extend_from_slice(&(h as f32).to_le_bytes());
+                }
+            }
+            terrastream_packer::zstd_compress(&raw, 3).unwrap()
+        })
+        .collect();
+    let layer = &metadata.layers[0];
+    let mut keys: Vec<_> = (0..layer.num_lods).flat_map(|lod| layer.tiles_at(0, lod)).collect();
+    keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+    let mut writer = Writer::create(&path, metadata.clone(), WriterOptions::default()).unwrap();
+    for key in keys {
+        writer.add_stored(key, payloads[usize::from(key.lod())].clone()).unwrap();
+    }
+    writer.finish().unwrap();
+
+    // Low over the ground, looking down the slope: 2^7 tiles apart, so every quadtree
+    // node of up to 128 tiles lines up the same way around both eyes.
+    let view = |tx: f64| {
+        let o = tx * tile;
+        camera([o + 1300.0, 420.0, o + 2100.0], [o + 1700.0, 180.0, o + 1500.0])
+    };
+    let near = render(gpu, path.to_str().unwrap(), Some(view(64.0)), RenderSettings::default());
+    let far = render(gpu, path.to_str().unwrap(), Some(view(192.0)), RenderSettings::default());
+    assert!(192.0 * tile > 780_000.0 && GRID as f64 * tile > 1_000_000.0);
+    let out = repo().join("target/render-tests");
+    std::fs::create_dir_all(&out).unwrap();
+    golden::write_png(&out.join("precision-near.png"), near.width, near.height, &near.rgba);
+    golden::write_png(&out.join("precision-far.png"), far.width, far.height, &far.rgba);
+    let sky = near.rgba.chunks_exact(4).filter(|p| p[..3] == near.rgba[..3]).count();
+    assert!(sky < (WIDTH * HEIGHT / 2) as usize, "the view shows the terrain");
+    let (mean, off) = golden::difference(&near.rgba, &far.rgba, 8);
+    assert!(
+        mean <= 0.5 && off * 200 <= (WIDTH * HEIGHT) as usize,
+        "the view 786 km out differs from the same view near the origin: mean {mean:.3}/255, {off} pixels off by > 8/255 \
+         (target/render-tests/precision-*.png)"
+    );
+}

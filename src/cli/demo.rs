@@ -62,6 +62,14 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
             let _ = stopped.await;
         }));
         println!("\nserving http://{addr}/sample.tspack");
+        if terrastream_server::player::available() {
+            println!(
+                "webplayer: http://{addr}/view/tamalpais and http://{addr}/view/sample \
+                 (open in a browser; --keep-serving keeps them up)"
+            );
+        } else {
+            println!("webplayer: not in this build (scripts/build-player.sh, then rebuild)");
+        }
         let shown = tokio::task::spawn_blocking(move || -> Result<()> {
             for (what, path, extra) in [
                 ("bootstrap (first 16 KiB)", "/sample.tspack", "Range: bytes=0-16383\r\n"),

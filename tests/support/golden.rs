@@ -60,17 +60,8 @@ pub fn assert_golden(name: &str, width: u32, height: u32, rgba: &[u8], tolerance
     assert!(golden.exists(), "no reference image {} (TERRASTREAM_BLESS=1 writes it)", golden.display());
     let (w, h, reference) = decode_png(&std::fs::read(&golden).unwrap());
     assert_eq!((w, h), (width, height), "{name}: size differs from the reference");
-    let mut sum = 0u64;
-    let mut off = 0usize;
-    for (a, b) in rgba.chunks_exact(4).zip(reference.chunks_exact(4)) {
-        let d = [0, 1, 2].map(|c| a[c].abs_diff(b[c]));
-        sum += d.iter().map(|&x| u64::from(x)).sum::<u64>();
-        if d.iter().any(|&x| x > tolerance.pixel) {
-            off += 1;
-        }
-    }
+    let (mean, off) = difference(rgba, &reference, tolerance.pixel);
     let pixels = (w * h) as usize;
-    let mean = sum as f64 / (pixels * 3) as f64;
     assert!(
         mean <= tolerance.mean && off as f64 <= tolerance.off_share * pixels as f64,
         "{name}: mean difference {mean:.3}/255, {off} of {pixels} pixels off by > {}/255 \
@@ -79,4 +70,20 @@ pub fn assert_golden(name: &str, width: u32, height: u32, rgba: &[u8], tolerance
         tolerance.mean,
         tolerance.off_share * 100.0
     );
+}
+
+/// Mean absolute channel difference of two RGBA8 images of one size (of 255), and how
+/// many pixels differ by more than `pixel` in a channel.
+pub fn difference(a: &[u8], b: &[u8], pixel: u8) -> (f64, usize) {
+    assert_eq!(a.len(), b.len(), "images of different sizes");
+    let mut sum = 0u64;
+    let mut off = 0usize;
+    for (a, b) in a.chunks_exact(4).zip(b.chunks_exact(4)) {
+        let d = [0, 1, 2].map(|c| a[c].abs_diff(b[c]));
+        sum += d.iter().map(|&x| u64::from(x)).sum::<u64>();
+        if d.iter().any(|&x| x > pixel) {
+            off += 1;
+        }
+    }
+    (sum as f64 / (a.len() / 4 * 3).max(1) as f64, off)
 }

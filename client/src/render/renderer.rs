@@ -131,6 +131,7 @@ struct Globals {
     counts: [u32; 4],
     mode: [u32; 4],
     lod: [f32; 4],
+    bounds: [f32; 4],
     ranges: [[f32; 4]; 32],
     elev_lods: [LodInfo; 32],
     tex_lods: [LodInfo; 32],
@@ -680,6 +681,7 @@ impl TerrainRenderer {
                 self.page_table.max_probes,
             ],
             lod: [(base / f64::from(elev_info[3])).log2() as f32, params.range(0) as f32, 0.0, 0.0],
+            bounds: [(-anchor.0) as f32, (-anchor.1) as f32, (ex - anchor.0) as f32, (ez - anchor.1) as f32],
             ranges,
             elev_lods: self.elevation.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
             tex_lods: self.texture.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
@@ -702,6 +704,12 @@ impl TerrainRenderer {
             resident: (resident(&self.elevation), resident(&self.texture)),
             gpu_bytes: self.arrays().map(|a| a.bytes).sum::<u64>() + self.page_table.entries.len() as u64 * 16,
         };
+    }
+
+    /// The GPU format of the texture tiles (`None` without a drawable texture layer):
+    /// `Bc1RgbaUnormSrgb` / `Bc7RgbaUnormSrgb` when compressed tiles go up as blocks.
+    pub fn texture_format(&self) -> Option<wgpu::TextureFormat> {
+        self.texture.as_ref().map(|t| t.format)
     }
 
     /// Records the terrain into `pass` (after [`Self::prepare`]).

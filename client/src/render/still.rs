@@ -109,6 +109,8 @@ pub struct Still {
     pub frame: FrameStats,
     /// The camera used.
     pub camera: Camera,
+    /// The GPU format texture tiles were drawn from (`None`: no texture layer drawn).
+    pub texture_format: Option<wgpu::TextureFormat>,
 }
 
 /// Streams `origin` for the camera `camera` makes from the archive's metadata (e.g.
@@ -150,7 +152,8 @@ pub fn render_still(
         |pass| session.renderer.draw(pass),
     );
     let rgba = target.read_rgba(&gpu.device, &gpu.queue)?;
-    Ok(Still { rgba, width: options.width, height: options.height, frames, stream, frame, camera })
+    let texture_format = session.renderer.texture_format();
+    Ok(Still { rgba, width: options.width, height: options.height, frames, stream, frame, camera, texture_format })
 }
 
 /// Writes RGBA8 pixels as a PNG.

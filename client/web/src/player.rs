@@ -197,8 +197,14 @@ struct Timings {
     first_frame_ms: Option<f64>,
     /// ... to the first frame with everything the view wants on the GPU.
     settled_ms: Option<f64>,
+    /// Milliseconds from the page's navigation start to the first frame with terrain
+    /// (wasm download and compilation included).
+    page_first_frame_ms: Option<f64>,
     frames: u64,
     max_uploads_per_frame: u64,
+    /// Longest time between two frames while tiles were still coming: how responsive the
+    /// page stayed while streaming.
+    max_frame_ms_streaming: f64,
 }
 
 struct State {
@@ -224,7 +230,8 @@ struct State {
 
 impl State {
     fn frame(&mut self, now: f64) {
-        let dt = ((now - self.last_frame_ms) / 1000.0).clamp(0.0, 0.25);
+        let interval_ms = (now - self.last_frame_ms).max(0.0);
+        let dt = (interval_ms / 1000.0).min(0.25);
         self.last_frame_ms = now;
         self.frame_times.push_back(dt);
         if self.frame_times.len() > 60 {
@@ -259,10 +266,14 @@ impl State {
         self.draw(size);
         if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_ms.is_none() {
             self.timings.first_frame_ms = Some(now - self.started_ms);
+            self.timings.page_first_frame_ms = Some(now);
             tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
         }
         let Some(session) = &self.session else { return };
         let pending = session.streamer.pending();
+        if pending > 0 || stream.in_flight > 0 {
+            self.timings.max_frame_ms_streaming = self.timings.max_frame_ms_streaming.max(interval_ms);
+        }
         if session.settled() && self.timings.settled_ms.is_none() {
             self.timings.settled_ms = Some(now - self.started_ms);
             tracing::info!("view fully streamed after {:.0} ms", now - self.started_ms);
@@ -529,10 +540,11 @@ impl State {
         format!(
             concat!(
                 "{{\"archive\":{},\"backend\":{},\"adapter\":{},\"frames\":{},\"fps\":{:.1},",
-                "\"first_frame_ms\":{},\"settled_ms\":{},\"settled\":{},\"pending\":{},",
+                "\"first_frame_ms\":{},\"page_first_frame_ms\":{},\"settled_ms\":{},\"settled\":{},\"pending\":{},",
                 "\"http_requests\":{},\"http_bytes\":{},\"http_retries\":{},",
                 "\"requests\":{},\"tiles_fetched\":{},\"bytes_fetched\":{},\"in_flight\":{},\"wanted\":{},",
                 "\"missing\":{},\"failures\":{},\"uploads\":{},\"max_uploads_per_frame\":{},\"upload_budget\":{},",
+                "\"max_frame_ms_streaming\":{:.1},",
                 "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"eye\":[{:.3},{:.3},{:.3}],\"error\":{}}}"
             ),
             quote(&self.params.archive),
@@ -541,6 +553,7 @@ impl State {
             self.timings.frames,
             self.fps(),
             opt(self.timings.first_frame_ms),
+            opt(self.timings.page_first_frame_ms),
             opt(self.timings.settled_ms),
             settled,
             pending,
@@ -557,6 +570,7 @@ impl State {
             stream.uploads,
             self.timings.max_uploads_per_frame,
             self.session.as_ref().map_or(0, |s| s.budget.max_tiles),
+            self.timings.max_frame_ms_streaming,
             frame.resident.0,
             frame.resident.1,
             frame.triangles,
