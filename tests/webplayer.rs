@@ -286,6 +286,31 @@ impl<'a> Browser<'a> {
     }
 }
 
+impl Browser<'_> {
+    /// Runs WebDriver input `sources` (key, pointer, wheel) tick by tick.
+    fn act(&self, sources: Value) {
+        self.call("POST", "/actions", Some(json!({ "actions": sources })));
+    }
+
+    /// A pointer (`kind`: mouse, touch) pressed at `from`, moved to `to` over `ms`, released
+    /// (viewport pixels).
+    fn drag(id: &str, kind: &str, from: (i64, i64), to: (i64, i64), ms: u64) -> Value {
+        json!({ "type": "pointer", "id": id, "parameters": { "pointerType": kind }, "actions": [
+            { "type": "pointerMove", "x": from.0, "y": from.1, "origin": "viewport", "duration": 0 },
+            { "type": "pointerDown", "button": 0 },
+            { "type": "pointerMove", "x": to.0, "y": to.1, "origin": "viewport", "duration": ms },
+            { "type": "pointerUp", "button": 0 },
+        ]})
+    }
+
+    /// The fly camera: eye, yaw, pitch, speed.
+    fn flyer(&self) -> ([f64; 3], f64, f64, f64) {
+        let s = self.stats().unwrap();
+        let eye = [0, 1, 2].map(|i| s["eye"][i].as_f64().unwrap());
+        (eye, s["yaw"].as_f64().unwrap(), s["pitch"].as_f64().unwrap(), s["speed"].as_f64().unwrap())
+    }
+}
+
 impl Drop for Browser<'_> {
     fn drop(&mut self) {
         let _ = http(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
@@ -422,13 +447,35 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     for field in ["fps", "tiles in flight", "received", "MiB", "WebGPU"] {
         assert!(text.contains(field), "HUD lacks {field:?}: {text}");
     }
-    let eye = |b: &Browser<'_>| {
-        b.stats().unwrap()["eye"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>()
-    };
-    let before = eye(&browser);
+    let (eye, ..) = browser.flyer();
     browser.hold_key("w", 600);
-    let after = eye(&browser);
-    assert!(after[2] < before[2] - 1.0, "W flies forward: {before:?} -> {after:?}");
+    let (after, ..) = browser.flyer();
+    assert!(after[2] < eye[2] - 1.0, "W flies forward: {eye:?} -> {after:?}");
+    // A mouse drag to the right turns right (yaw grows), upwards pitches up.
+    let (_, yaw, pitch, speed) = browser.flyer();
+    browser.act(json!([Browser::drag("mouse", "mouse", (300, 150), (360, 120), 200)]));
+    let (_, yaw2, pitch2, _) = browser.flyer();
+    assert!(yaw2 > yaw + 0.1 && pitch2 > pitch + 0.05, "drag: yaw {yaw} -> {yaw2}, pitch {pitch} -> {pitch2}");
+    // The wheel (scrolling up) speeds up.
+    browser.act(json!([{ "type": "wheel", "id": "wheel", "actions": [
+        { "type": "scroll", "x": 300, "y": 120, "deltaX": 0, "deltaY": -300, "origin": "viewport" },
+    ]}]));
+    let (_, _, _, speed2) = browser.flyer();
+    assert!(speed2 > speed * 1.5, "wheel: speed {speed} -> {speed2}");
+    // Touch: two fingers spreading fly forward along the view; one finger looks around.
+    let (eye, yaw, ..) = browser.flyer();
+    browser.act(json!([
+        Browser::drag("finger1", "touch", (280, 120), (200, 120), 300),
+        Browser::drag("finger2", "touch", (340, 120), (420, 120), 300),
+    ]));
+    std::thread::sleep(Duration::from_millis(300));
+    let (after, yaw2, ..) = browser.flyer();
+    let moved = ((after[0] - eye[0]).powi(2) + (after[2] - eye[2]).powi(2)).sqrt();
+    assert!(moved > 1.0, "pinch: {eye:?} -> {after:?}");
+    assert!((yaw2 - yaw).abs() < 0.05, "a pinch does not turn: {yaw} -> {yaw2}");
+    browser.act(json!([Browser::drag("finger3", "touch", (300, 150), (240, 150), 200)]));
+    let (_, yaw3, ..) = browser.flyer();
+    assert!(yaw3 < yaw2 - 0.1, "one-finger drag to the left turns left: {yaw2} -> {yaw3}");
     assert!(browser.console().iter().all(|(level, _)| level != "SEVERE"));
 }
 

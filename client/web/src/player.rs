@@ -520,7 +520,8 @@ impl State {
             (None, None) => (0, false, None),
         };
         let frame = self.last.as_ref().map(|(_, f)| *f).unwrap_or_default();
-        let eye = self.fly.map_or(DVec3::ZERO, |f| f.eye);
+        let fly = self.fly.unwrap_or(FlyCamera { eye: DVec3::ZERO, yaw: 0.0, pitch: 0.0, speed: 1.0 });
+        let eye = fly.eye;
         let opt = |v: Option<f64>| v.map_or("null".to_owned(), |v| format!("{v:.1}"));
         let quote = |s: &str| {
             let mut out = String::from('"');
@@ -545,7 +546,8 @@ impl State {
                 "\"requests\":{},\"tiles_fetched\":{},\"bytes_fetched\":{},\"in_flight\":{},\"wanted\":{},",
                 "\"missing\":{},\"failures\":{},\"uploads\":{},\"max_uploads_per_frame\":{},\"upload_budget\":{},",
                 "\"max_frame_ms_streaming\":{:.1},",
-                "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"eye\":[{:.3},{:.3},{:.3}],\"error\":{}}}"
+                "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"eye\":[{:.3},{:.3},{:.3}],",
+                "\"yaw\":{:.4},\"pitch\":{:.4},\"speed\":{:.4},\"error\":{}}}"
             ),
             quote(&self.params.archive),
             quote(if self.gpu.info.backend == wgpu::Backend::Gl { "webgl2" } else { "webgpu" }),
@@ -578,6 +580,9 @@ impl State {
             eye.x,
             eye.y,
             eye.z,
+            fly.yaw,
+            fly.pitch,
+            fly.speed,
             error.as_deref().map_or("null".to_owned(), quote),
         )
     }
