@@ -403,3 +403,76 @@ fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
          (target/render-tests/precision-*.png)"
     );
 }
+
+/// Texture LODs beyond 16 (the original engine stopped at 12): a layer 2^18 tiles wide
+/// (19 LODs) whose 4x4 tiles in one corner exist at every LOD, each LOD one colour.
+/// Looking straight down at a point that LOD l covers and LOD l - 1 does not, from an
+/// altitude where the pixels want l - 1 (half a texel of l per pixel), the picture shows
+/// LOD l: each of LODs 0..=16 is resident, found through the page table and drawn.
+#[test]
+fn seventeen_texture_lods_are_each_drawn() {
+    use terrastream_packer::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    let Some(gpu) = gpu() else { return };
+    if !gpu.device.features().contains(wgpu::Features::TEXTURE_COMPRESSION_BC) {
+        eprintln!("\n!!!!! SKIPPING: {} has no BC texture support !!!!!\n", gpu.describe());
+        return;
+    }
+    const LODS: u8 = 19;
+    const SHOWN: u8 = 17;
+    // Colours with channels in {0, 128, 255} and at least one 255: distinct in hue and
+    // saturation, so the lighting (one factor for the whole flat view) cannot confuse them.
+    let palette: Vec<[u8; 3]> = (0..27u8)
+        .map(|i| [i % 3, i / 3 % 3, i / 9].map(|c| [0u8, 128, 255][usize::from(c)]))
+        .filter(|c| c.contains(&255))
+        .take(usize::from(LODS))
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("lods.tspack");
+    let layer = Layer {
+        name: "texture".into(),
+        kind: LayerKind::Texture,
+        format: TileFormat::Bc1,
+        compression: PayloadCompression::None,
+        tile_resolution: 4,
+        border: 0,
+        num_x_tiles: 1 << 18,
+        num_y_tiles: 1 << 18,
+        num_lods: LODS,
+        tile_world_size: 4.0, // texels of 1 m at LOD 0
+        elevation: None,
+    };
+    let metadata = Metadata::new("lods", vec![layer]);
+    let mut keys: Vec<TileKey> =
+        (0..LODS).flat_map(|lod| (0..16).filter_map(move |i| TileKey::new(0, lod, i % 4, i / 4).ok())).collect();
+    keys.retain(|k| u64::from(k.x()) < 1 << (18 - k.lod()) && u64::from(k.y()) < 1 << (18 - k.lod()));
+    keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+    let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
+    for key in keys {
+        writer.add(key, bc1_solid(palette[usize::from(key.lod())]).to_vec()).unwrap();
+    }
+    writer.finish().unwrap();
+
+    let settings = RenderSettings { fog_density: Some(0.0), ..RenderSettings::default() };
+    let mut seen = Vec::new();
+    for lod in 0..SHOWN {
+        // Footprint of a centre pixel: 2 h tan 30° / HEIGHT; texels at LOD l are 2^l m,
+        // tiles 4 * 2^l m: LOD l covers [0, 16 * 2^l] and LOD l - 1 [0, 8 * 2^l].
+        let texel = f64::from(lod).exp2();
+        let h = texel * 0.5 * f64::from(HEIGHT) / (2.0 * 30f64.to_radians().tan());
+        let centre = 12.0 * texel;
+        let cam = camera([centre, h, centre + h * 1e-6], [centre, 0.0, centre]);
+        let still = render(gpu, path.to_str().unwrap(), Some(cam), settings);
+        let i = ((HEIGHT as usize / 2) * WIDTH as usize + WIDTH as usize / 2) * 4;
+        let p = [0, 1, 2].map(|c| f64::from(still.rgba[i + c]));
+        let max = p.iter().copied().fold(1.0, f64::max);
+        let nearest = (0..palette.len())
+            .min_by(|&a, &b| {
+                let d = |k: usize| (0..3).map(|c| (p[c] / max - f64::from(palette[k][c]) / 255.0).powi(2)).sum::<f64>();
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap();
+        seen.push((lod, nearest, p));
+    }
+    let wrong: Vec<_> = seen.iter().filter(|(lod, nearest, _)| usize::from(*lod) != *nearest).collect();
+    assert!(wrong.is_empty(), "LOD drawn at the centre vs expected: {wrong:?}");
+}
