@@ -88,15 +88,7 @@ pub fn read_geotiff(path: &Path) -> Result<Raster> {
             limits
         });
     let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
-    let mut tag = |t: u16| -> Option<Vec<f64>> { decoder.find_tag(Tag::Unknown(t)).ok()??.into_f64_vec().ok() };
-    let scale = tag(MODEL_PIXEL_SCALE);
-    let tiepoint = tag(MODEL_TIEPOINT);
-    let keys: Option<Vec<f64>> = decoder
-        .find_tag(Tag::Unknown(GEO_KEY_DIRECTORY))
-        .ok()
-        .flatten()
-        .and_then(|v| v.into_u64_vec().ok())
-        .map(|v| v.into_iter().map(|k| k as f64).collect());
+    let tags = GeoTags::read(&mut decoder);
     let nodata: Option<f64> = decoder
         .find_tag(Tag::Unknown(GDAL_NODATA))
         .ok()
@@ -131,36 +123,66 @@ pub fn read_geotiff(path: &Path) -> Result<Raster> {
             }
         }
     }
-    // Georeference: model type 2 = geographic (degrees), else projected (metres assumed).
-    let key = |id: f64| -> Option<f64> {
-        let k = keys.as_ref()?;
-        k.chunks_exact(4).skip(1).find(|e| e[0] == id).map(|e| e[3])
-    };
-    let geographic = key(1024.0) == Some(2.0);
-    let epsg = key(2048.0).or_else(|| key(3072.0)).filter(|&c| c > 0.0 && c < 32767.0);
-    let (mut spacing, mut georeference) = ((1.0, 1.0), None);
-    if let (Some(s), Some(t)) = (&scale, &tiepoint) {
-        if s.len() >= 2 && t.len() >= 6 && s[0] > 0.0 && s[1] > 0.0 {
-            let (west, north) = (t[3] - t[0] * s[0], t[4] + t[1] * s[1]);
-            spacing = (s[0], s[1]);
-            let mut g = Georeference {
-                crs: epsg.map(|c| format!("EPSG:{c}")),
-                origin: Some([west, north]),
-                lat_lon_bounds: None,
-            };
-            if geographic {
-                let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
-                g.lat_lon_bounds = Some([west, south, east, north]);
-                let lat = ((north + south) / 2.0).to_radians();
-                spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
-            }
-            georeference = Some(g);
-        }
-    }
-    if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
-        return Err(bad(format!("bad pixel scale {spacing:?}")));
-    }
+    let (spacing, georeference) = tags.placement(width, height).map_err(bad)?;
     Ok(Raster { width, height, data, spacing, georeference })
+}
+
+/// The GeoTIFF tags that place a raster on the Earth.
+struct GeoTags {
+    scale: Option<Vec<f64>>,
+    tiepoint: Option<Vec<f64>>,
+    keys: Option<Vec<f64>>,
+}
+
+impl GeoTags {
+    fn read<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::decoder::Decoder<R>) -> Self {
+        use tiff::tags::Tag;
+        let mut tag = |t: u16| -> Option<Vec<f64>> { decoder.find_tag(Tag::Unknown(t)).ok()??.into_f64_vec().ok() };
+        let scale = tag(MODEL_PIXEL_SCALE);
+        let tiepoint = tag(MODEL_TIEPOINT);
+        let keys: Option<Vec<f64>> = decoder
+            .find_tag(Tag::Unknown(GEO_KEY_DIRECTORY))
+            .ok()
+            .flatten()
+            .and_then(|v| v.into_u64_vec().ok())
+            .map(|v| v.into_iter().map(|k| k as f64).collect());
+        Self { scale, tiepoint, keys }
+    }
+
+    /// Sample spacing in metres (x, y) and the georeference; (1, 1) and none without tags.
+    fn placement(&self, width: u32, height: u32) -> std::result::Result<((f64, f64), Option<Georeference>), String> {
+        let (scale, tiepoint, keys) = (&self.scale, &self.tiepoint, &self.keys);
+        // Georeference: model type 2 = geographic (degrees), else projected (metres assumed).
+        let key = |id: f64| -> Option<f64> {
+            let k = keys.as_ref()?;
+            k.chunks_exact(4).skip(1).find(|e| e[0] == id).map(|e| e[3])
+        };
+        let geographic = key(1024.0) == Some(2.0);
+        let epsg = key(2048.0).or_else(|| key(3072.0)).filter(|&c| c > 0.0 && c < 32767.0);
+        let (mut spacing, mut georeference) = ((1.0, 1.0), None);
+        if let (Some(s), Some(t)) = (&scale, &tiepoint) {
+            if s.len() >= 2 && t.len() >= 6 && s[0] > 0.0 && s[1] > 0.0 {
+                let (west, north) = (t[3] - t[0] * s[0], t[4] + t[1] * s[1]);
+                spacing = (s[0], s[1]);
+                let mut g = Georeference {
+                    crs: epsg.map(|c| format!("EPSG:{c}")),
+                    origin: Some([west, north]),
+                    lat_lon_bounds: None,
+                };
+                if geographic {
+                    let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
+                    g.lat_lon_bounds = Some([west, south, east, north]);
+                    let lat = ((north + south) / 2.0).to_radians();
+                    spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
+                }
+                georeference = Some(g);
+            }
+        }
+        if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
+            return Err(format!("bad pixel scale {spacing:?}"));
+        }
+        Ok((spacing, georeference))
+    }
 }
 
 impl Raster {
@@ -225,7 +247,8 @@ impl Raster {
     }
 }
 
-/// Packs an elevation raster into a pyramid archive at `out`.
+/// Packs an elevation raster into a pyramid archive at `out` (no texture: see
+/// [`tile_terrain`]).
 ///
 /// # Errors
 /// Bad options, writer and I/O errors, [`Error::Interrupted`].
@@ -236,7 +259,11 @@ pub fn tile_elevation(
     options: TileOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
-    let raster = raster.square();
+    tile_terrain(raster, None, name, out, options, progress)
+}
+
+/// The elevation layer (metadata with it as layer 0) and its levels, finest first.
+fn elevation_plan(raster: Raster, name: &str, options: TileOptions) -> Result<(Metadata, Vec<Raster>)> {
     let res = options.tile_size;
     if !(16..=4096).contains(&res) || options.border > 16 {
         return Err(Error::Writer(format!("tile size {res} (16..=4096) / border {} (0..=16)", options.border)));
@@ -287,16 +314,27 @@ pub fn tile_elevation(
     metadata.terrain.num_detail_levels = u32::from(layer.num_lods) + 6;
     metadata.georeference.clone_from(&raster.georeference);
 
-    // Every level, finest first; every tile of every level encoded in parallel.
+    // Every level, finest first.
     let mut levels = vec![raster];
     while levels.len() < usize::from(layer.num_lods) {
         let next = levels[levels.len() - 1].halve();
         levels.push(next);
     }
-    let total = layer.grid_tiles();
-    progress.start("tile", total);
-    let border = i64::from(options.border);
-    let mut tiles: Vec<(u64, TileKey, Vec<u8>)> = Vec::new();
+    Ok((metadata, levels))
+}
+
+/// Every elevation tile of every level, encoded in parallel.
+fn elevation_tiles(
+    metadata: &Metadata,
+    levels: &[Raster],
+    border: u8,
+    progress: &dyn Progress,
+) -> Result<Vec<EncodedTile>> {
+    let layer = &metadata.layers[0];
+    let res = layer.tile_resolution;
+    let Some(encoding) = layer.elevation else { return Err(Error::Writer("no elevation encoding".into())) };
+    let border = i64::from(border);
+    let mut tiles: Vec<EncodedTile> = Vec::new();
     for (lod, level) in levels.iter().enumerate() {
         let lod = u8::try_from(lod).map_err(|_| Error::Writer("too many levels".into()))?;
         progress.check()?;
@@ -322,18 +360,318 @@ pub fn tile_elevation(
                     return Ok(None);
                 }
                 let payload = encode(&samples, &encoding);
-                Ok(Some((Writer::order_key(&metadata, key)?, key, payload)))
+                Ok(Some((Writer::order_key(metadata, key)?, key, payload)))
             })
             .collect::<Result<_>>()?;
         tiles.extend(encoded.into_iter().flatten());
     }
-    drop(levels);
+    Ok(tiles)
+}
+
+/// An RGBA8 image: the texture input (orthophoto, satellite scene, shaded relief).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    /// Pixels across.
+    pub width: u32,
+    /// Pixels down.
+    pub height: u32,
+    /// Row-major RGBA8 pixels; alpha 0 where there is no data.
+    pub rgba: Vec<u8>,
+    /// Where the image lies, when the file says (GeoTIFF).
+    pub georeference: Option<Georeference>,
+}
+
+/// Reads an image: GeoTIFF (8-bit gray, RGB or RGBA; strips or tiles; none, LZW or
+/// Deflate), PNG (any colour type; 16-bit is reduced to 8) or JPEG; told apart by content.
+///
+/// # Errors
+/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+pub fn read_image(path: &Path) -> Result<Image> {
+    let bad = |why: String| Error::input(path, why);
+    let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
+    let rgba_of = |pixels: Vec<u8>, channels: usize| -> Vec<u8> {
+        match channels {
+            4 => pixels,
+            3 => pixels.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect(),
+            2 => pixels.chunks_exact(2).flat_map(|p| [p[0], p[0], p[0], p[1]]).collect(),
+            _ => pixels.iter().flat_map(|&g| [g, g, g, 255]).collect(),
+        }
+    };
+    let image = if bytes.starts_with(b"\x89PNG") {
+        let mut decoder = png::Decoder::new(std::io::Cursor::new(&bytes));
+        decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+        let mut reader = decoder.read_info().map_err(|e| bad(format!("PNG: {e}")))?;
+        let mut buf = vec![0; reader.output_buffer_size().ok_or_else(|| bad("PNG: too large".into()))?];
+        let info = reader.next_frame(&mut buf).map_err(|e| bad(format!("PNG: {e}")))?;
+        buf.truncate(info.buffer_size());
+        let channels = info.color_type.samples();
+        Image { width: info.width, height: info.height, rgba: rgba_of(buf, channels), georeference: None }
+    } else if bytes.starts_with(&[0xFF, 0xD8]) {
+        let options = zune_jpeg::zune_core::options::DecoderOptions::default()
+            .jpeg_set_out_colorspace(zune_jpeg::zune_core::colorspace::ColorSpace::RGB);
+        let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&bytes, options);
+        let pixels = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
+        let (w, h) = decoder.dimensions().ok_or_else(|| bad("JPEG: no dimensions".into()))?;
+        let dim = |n: usize| u32::try_from(n).map_err(|_| bad("JPEG: too large".into()));
+        Image { width: dim(w)?, height: dim(h)?, rgba: rgba_of(pixels, 3), georeference: None }
+    } else if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
+        use tiff::decoder::{Decoder, DecodingResult};
+        let mut decoder =
+            Decoder::new(std::io::Cursor::new(&bytes)).map_err(|e| bad(format!("not a readable TIFF: {e}")))?;
+        let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+        let tags = GeoTags::read(&mut decoder);
+        let channels = match decoder.colortype().map_err(|e| bad(e.to_string()))? {
+            tiff::ColorType::Gray(8) => 1,
+            tiff::ColorType::GrayA(8) => 2,
+            tiff::ColorType::RGB(8) => 3,
+            tiff::ColorType::RGBA(8) => 4,
+            other => return Err(bad(format!("{other:?} pixels: textures must be 8-bit gray, RGB or RGBA"))),
+        };
+        let DecodingResult::U8(pixels) = decoder.read_image().map_err(|e| bad(format!("reading pixels: {e}")))? else {
+            return Err(bad("textures must have 8-bit samples".into()));
+        };
+        let georeference = tags.placement(width, height).ok().and_then(|(_, g)| g);
+        Image { width, height, rgba: rgba_of(pixels, channels), georeference }
+    } else {
+        return Err(bad("not a GeoTIFF, PNG or JPEG image".into()));
+    };
+    if image.width == 0 || image.height == 0 {
+        return Err(bad("the image is empty (0 pixels)".into()));
+    }
+    if image.rgba.len() != image.width as usize * image.height as usize * 4 {
+        return Err(bad(format!("{} bytes of pixels for {}x{}", image.rgba.len(), image.width, image.height)));
+    }
+    Ok(image)
+}
+
+impl Image {
+    fn at(&self, x: i64, y: i64) -> [u8; 4] {
+        if x < 0 || y < 0 || x >= i64::from(self.width) || y >= i64::from(self.height) {
+            return [0; 4];
+        }
+        let i = usize::try_from(y * i64::from(self.width) + x).unwrap_or(0) * 4;
+        [self.rgba[i], self.rgba[i + 1], self.rgba[i + 2], self.rgba[i + 3]]
+    }
+
+    /// Resampled along x (linear, alpha-weighted) to `width` pixels.
+    #[must_use]
+    pub fn resample_width(&self, width: u32) -> Self {
+        let ratio = f64::from(width) / f64::from(self.width);
+        let mut rgba = Vec::with_capacity(width as usize * self.height as usize * 4);
+        for y in 0..i64::from(self.height) {
+            for x in 0..width {
+                let sx = ((f64::from(x) + 0.5) / ratio - 0.5).max(0.0);
+                let x0 = sx.floor();
+                let f = sx - x0;
+                #[expect(clippy::cast_possible_truncation, reason = "a pixel index")]
+                let x0 = (x0 as i64).min(i64::from(self.width) - 1);
+                let (a, b) = (self.at(x0, y), self.at((x0 + 1).min(i64::from(self.width) - 1), y));
+                let (wa, wb) = (f64::from(a[3]) * (1.0 - f), f64::from(b[3]) * f);
+                let alpha = wa + wb;
+                for c in 0..3 {
+                    let v = if alpha > 0.0 { (f64::from(a[c]) * wa + f64::from(b[c]) * wb) / alpha } else { 0.0 };
+                    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+                    rgba.push(v.round().clamp(0.0, 255.0) as u8);
+                }
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+                rgba.push((f64::from(a[3]) * (1.0 - f) + f64::from(b[3]) * f).round().clamp(0.0, 255.0) as u8);
+            }
+        }
+        Self { width, height: self.height, rgba, georeference: self.georeference.clone() }
+    }
+
+    /// The next coarser level: each pixel the alpha-weighted mean of 2x2 (area
+    /// averaging); odd edges are padded with transparent pixels.
+    #[must_use]
+    pub fn halve(&self) -> Self {
+        let (width, height) = (self.width.div_ceil(2), self.height.div_ceil(2));
+        let mut rgba = Vec::with_capacity(width as usize * height as usize * 4);
+        for y in 0..i64::from(height) {
+            for x in 0..i64::from(width) {
+                let mut sum = [0u32; 4];
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let p = self.at(2 * x + dx, 2 * y + dy);
+                    let a = u32::from(p[3]);
+                    for c in 0..3 {
+                        sum[c] += u32::from(p[c]) * a;
+                    }
+                    sum[3] += a;
+                }
+                if sum[3] == 0 {
+                    rgba.extend_from_slice(&[0; 4]);
+                    continue;
+                }
+                #[expect(clippy::cast_possible_truncation, reason = "means of u8 values")]
+                let mean = |c: usize| ((sum[c] + sum[3] / 2) / sum[3]) as u8;
+                #[expect(clippy::cast_possible_truncation, reason = "a mean of four u8 values")]
+                let alpha = ((sum[3] + 2) / 4) as u8;
+                rgba.extend_from_slice(&[mean(0), mean(1), mean(2), alpha]);
+            }
+        }
+        Self { width, height, rgba, georeference: self.georeference.clone() }
+    }
+}
+
+/// The texture input of [`tile_terrain`].
+#[derive(Clone, Debug)]
+pub struct TextureInput {
+    /// The image; it is stretched over the elevation's extent.
+    pub image: Image,
+    /// Where it came from (for errors).
+    pub path: std::path::PathBuf,
+    /// Pixels per tile edge, borders excluded.
+    pub tile_size: u32,
+}
+
+/// Packs an elevation raster and, optionally, a texture image covering the same extent
+/// into one archive at `out`: layer 0 the elevation pyramid, layer 1 the texture pyramid
+/// (PNG tiles, area-averaged LODs, the elevation's border width). The texture's grid is
+/// independent of the elevation's: its own resolution, its own tile size.
+///
+/// # Errors
+/// Bad options, a texture whose aspect ratio differs from the elevation's by more than
+/// 2 % ([`Error::Input`] naming it), writer and I/O errors, [`Error::Interrupted`].
+pub fn tile_terrain(
+    raster: Raster,
+    texture: Option<TextureInput>,
+    name: &str,
+    out: &Path,
+    options: TileOptions,
+    progress: &dyn Progress,
+) -> Result<WriteSummary> {
+    let grid_aspect = f64::from(raster.width) / f64::from(raster.height);
+    let raster = raster.square();
+    let (mut metadata, elevation_levels) = elevation_plan(raster, name, options)?;
+    let mut texture_levels = Vec::new();
+    if let Some(t) = texture {
+        let (ex, ez) = metadata.layers[0].world_extent();
+        let (ex, ez) = (
+            ex.min(f64::from(elevation_levels[0].width) * elevation_levels[0].spacing.0),
+            ez.min(f64::from(elevation_levels[0].height) * elevation_levels[0].spacing.1),
+        );
+        let (w, h) = (f64::from(t.image.width), f64::from(t.image.height));
+        // The texture covers the elevation's area on the same grid (both geographic, say:
+        // its pixels have the DEM's pixel shape) or in metres (square pixels).
+        let near = |a: f64, b: f64| (a / b - 1.0).abs() <= 0.02;
+        if !near(w / h, grid_aspect) && !near(w / h, ex / ez) {
+            return Err(Error::input(
+                &t.path,
+                format!(
+                    "mismatched extents: the elevation covers {ex:.0} x {ez:.0} m (aspect {:.3}; its grid {:.3}), \
+                     the texture is {w} x {h} px (aspect {:.3}); both must cover the same area",
+                    ex / ez,
+                    grid_aspect,
+                    w / h
+                ),
+            ));
+        }
+        // Texels square in metres, as tiles are: resample along x where they are not.
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel count")]
+        let square_width = ((h * ex / ez).round() as u32).max(1);
+        let mut t = t;
+        if square_width != t.image.width {
+            t.image = t.image.resample_width(square_width);
+        }
+        let w = f64::from(t.image.width);
+        if !(16..=4096).contains(&t.tile_size) {
+            return Err(Error::Writer(format!("texture tile size {} (16..=4096)", t.tile_size)));
+        }
+        let (nx, ny) = (t.image.width.div_ceil(t.tile_size), t.image.height.div_ceil(t.tile_size));
+        metadata.layers.push(Layer {
+            name: "texture".into(),
+            kind: LayerKind::Texture,
+            format: TileFormat::Png,
+            compression: PayloadCompression::None,
+            tile_resolution: t.tile_size,
+            border: options.border,
+            num_x_tiles: nx,
+            num_y_tiles: ny,
+            num_lods: levels_to_one(nx.max(ny)),
+            tile_world_size: f64::from(t.tile_size) * ex / w,
+            elevation: None,
+        });
+        texture_levels.push(t.image);
+        while texture_levels.len() < usize::from(metadata.layers[1].num_lods) {
+            let next = texture_levels[texture_levels.len() - 1].halve();
+            texture_levels.push(next);
+        }
+    }
+    let total = metadata.layers.iter().map(Layer::grid_tiles).sum();
+    progress.start("tile", total);
+    let mut tiles = elevation_tiles(&metadata, &elevation_levels, options.border, progress)?;
+    drop(elevation_levels);
+    tiles.extend(texture_tiles(&metadata, &texture_levels, options.border, progress)?);
+    drop(texture_levels);
     tiles.sort_unstable_by_key(|t| t.0);
     let mut writer = Writer::create(out, metadata, WriterOptions::default())?;
     for (_, key, payload) in tiles {
         writer.add(key, payload)?;
     }
     writer.finish()
+}
+
+type EncodedTile = (u64, TileKey, Vec<u8>);
+
+fn texture_tiles(
+    metadata: &Metadata,
+    levels: &[Image],
+    border: u8,
+    progress: &dyn Progress,
+) -> Result<Vec<EncodedTile>> {
+    let Some(layer) = metadata.layers.get(1) else { return Ok(Vec::new()) };
+    let res = i64::from(layer.tile_resolution);
+    let border = i64::from(border);
+    let mut tiles = Vec::new();
+    for (lod, level) in levels.iter().enumerate() {
+        let lod = u8::try_from(lod).map_err(|_| Error::Writer("too many levels".into()))?;
+        progress.check()?;
+        let keys: Vec<TileKey> = layer.tiles_at(1, lod).collect();
+        let encoded: Vec<Option<EncodedTile>> = keys
+            .par_iter()
+            .map(|&key| {
+                let (x0, y0) = (i64::from(key.x()) * res, i64::from(key.y()) * res);
+                let edge = res + 2 * border;
+                let mut any = false;
+                let mut opaque = true;
+                let mut pixels = Vec::with_capacity(usize::try_from(edge * edge * 4).unwrap_or(0));
+                for j in 0..edge {
+                    for i in 0..edge {
+                        let p = level.at(x0 + i - border, y0 + j - border);
+                        let inside = (border..border + res).contains(&i) && (border..border + res).contains(&j);
+                        any |= inside && p[3] > 0;
+                        opaque &= p[3] == 255;
+                        pixels.extend_from_slice(&p);
+                    }
+                }
+                progress.advance(1);
+                if !any {
+                    return Ok(None);
+                }
+                let payload =
+                    encode_png(&pixels, edge, opaque).map_err(|e| Error::Writer(format!("tile {key}: {e}")))?;
+                Ok(Some((Writer::order_key(metadata, key)?, key, payload)))
+            })
+            .collect::<Result<_>>()?;
+        tiles.extend(encoded.into_iter().flatten());
+    }
+    Ok(tiles)
+}
+
+/// A square RGBA8 tile as PNG: RGB when every pixel is opaque.
+fn encode_png(rgba: &[u8], edge: i64, opaque: bool) -> std::result::Result<Vec<u8>, png::EncodingError> {
+    let edge = u32::try_from(edge).unwrap_or(0);
+    let mut out = Vec::new();
+    let mut encoder = png::Encoder::new(&mut out, edge, edge);
+    encoder.set_depth(png::BitDepth::Eight);
+    if opaque {
+        encoder.set_color(png::ColorType::Rgb);
+        let rgb: Vec<u8> = rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+        encoder.write_header()?.write_image_data(&rgb)?;
+    } else {
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.write_header()?.write_image_data(rgba)?;
+    }
+    Ok(out)
 }
 
 fn encode(samples: &[f32], encoding: &ElevationEncoding) -> Vec<u8> {
@@ -380,5 +718,160 @@ mod tests {
         let s = r.square();
         assert_eq!((s.width, s.height, s.spacing), (5, 4, (30.0, 30.0)));
         assert!((s.data[1] - 2.5).abs() < 1e-6, "{:?}", &s.data[..5]);
+    }
+
+    fn png_file(path: &Path, width: u32, height: u32, rgba: &[u8]) {
+        let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+        let mut encoder = png::Encoder::new(file, width, height);
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.set_depth(png::BitDepth::Eight);
+        encoder.write_header().unwrap().write_image_data(rgba).unwrap();
+    }
+
+    fn decode_png(bytes: &[u8]) -> (u32, Vec<u8>) {
+        let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+        decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::ALPHA);
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        buf.truncate(info.buffer_size());
+        (info.width, buf)
+    }
+
+    /// A 64x64 texture: (x*4, y*4, x+y, 255), transparent where x, y >= 48.
+    #[allow(clippy::cast_possible_truncation)]
+    fn texture_pixels() -> Vec<u8> {
+        (0..64u32)
+            .flat_map(|y| (0..64u32).map(move |x| (x, y)))
+            .flat_map(
+                |(x, y)| {
+                    if x >= 48 && y >= 48 { [0; 4] } else { [(x * 4) as u8, (y * 4) as u8, (x + y) as u8, 255] }
+                },
+            )
+            .collect()
+    }
+
+    #[test]
+    fn texture_pyramid_is_aligned_bordered_averaged_and_sparse() {
+        let dir = tempfile::tempdir().unwrap();
+        let image_path = dir.path().join("ortho.png");
+        png_file(&image_path, 64, 64, &texture_pixels());
+        let image = read_image(&image_path).unwrap();
+        assert_eq!((image.width, image.height), (64, 64));
+        let texture = TextureInput { image, path: image_path, tile_size: 16 };
+        let out = dir.path().join("t.tspack");
+        let elevation = raster(100, 100, |x, y| (x + y) as f32);
+        let options = TileOptions { tile_size: 32, border: 1, storage: ElevationStorage::Auto };
+        tile_terrain(elevation, Some(texture), "t", &out, options, &crate::progress::Silent::default()).unwrap();
+        let reader = crate::Reader::open_mmap(&out).unwrap();
+        let m = reader.metadata();
+        assert_eq!(m.layers.len(), 2);
+        let t = &m.layers[1];
+        assert_eq!(
+            (t.kind, t.format, t.num_x_tiles, t.num_y_tiles, t.num_lods),
+            (LayerKind::Texture, TileFormat::Png, 4, 4, 3)
+        );
+        // The same world extent: 100 samples of 30 m = 64 texels of 46.875 m.
+        assert!((t.tile_world_size * 4.0 - 3000.0).abs() < 1e-9, "{}", t.tile_world_size);
+        let tile =
+            |lod: u8, x: u32, y: u32| reader.tile(TileKey::new(1, lod, x, y).unwrap()).unwrap().map(|b| decode_png(&b));
+        let px = |tile: &(u32, Vec<u8>), i: u32, j: u32| {
+            let k = ((j * tile.0 + i) * 4) as usize;
+            [tile.1[k], tile.1[k + 1], tile.1[k + 2], tile.1[k + 3]]
+        };
+        let (a, b) = (tile(0, 0, 0).unwrap(), tile(0, 1, 0).unwrap());
+        assert_eq!(a.0, 18, "16 px + a border of 1 on each side");
+        for j in 1..17 {
+            // b's left border column is a's last interior column, and the other way round.
+            assert_eq!(px(&b, 0, j), px(&a, 16, j), "row {j}");
+            assert_eq!(px(&a, 17, j), px(&b, 1, j), "row {j}");
+        }
+        assert_eq!(px(&a, 1, 1), [0, 0, 0, 255], "interior starts at texel (0, 0)");
+        // LOD 1: each texel the mean of 2x2 (here of (0,0), (1,0), (0,1), (1,1)).
+        let c = tile(1, 0, 0).unwrap();
+        assert_eq!(px(&c, 1, 1), [2, 2, 1, 255]);
+        // The transparent corner tile is left out; its coarser parents exist.
+        assert!(tile(0, 3, 3).is_none());
+        assert!(tile(0, 2, 3).is_some() && tile(1, 1, 1).is_some() && tile(2, 0, 0).is_some());
+    }
+
+    #[test]
+    fn a_texture_of_another_shape_is_refused_and_nothing_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let image_path = dir.path().join("wide.png");
+        png_file(&image_path, 64, 32, &vec![255; 64 * 32 * 4]);
+        let texture = TextureInput { image: read_image(&image_path).unwrap(), path: image_path.clone(), tile_size: 16 };
+        let out = dir.path().join("t.tspack");
+        let err = tile_terrain(
+            raster(50, 50, |_, _| 1.0),
+            Some(texture),
+            "t",
+            &out,
+            TileOptions::default(),
+            &crate::progress::Silent::default(),
+        )
+        .unwrap_err();
+        let text = err.to_string();
+        assert!(text.contains("wide.png") && text.contains("mismatched extents"), "{text}");
+        assert!(!out.exists());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temporary file left behind");
+    }
+
+    #[test]
+    fn images_are_read_from_tiff_and_png_and_bad_ones_named() {
+        let dir = tempfile::tempdir().unwrap();
+        // An RGB GeoTIFF.
+        let tif = dir.path().join("rgb.tif");
+        {
+            let file = std::fs::File::create(&tif).unwrap();
+            let mut encoder = tiff::encoder::TiffEncoder::new(file).unwrap();
+            let rgb: Vec<u8> = (0..6u8 * 4 * 3).collect();
+            encoder.write_image::<tiff::encoder::colortype::RGB8>(6, 4, &rgb).unwrap();
+        }
+        let image = read_image(&tif).unwrap();
+        assert_eq!((image.width, image.height), (6, 4));
+        assert_eq!(&image.rgba[..8], &[0, 1, 2, 255, 3, 4, 5, 255]);
+        // Not an image; a truncated PNG.
+        let junk = dir.path().join("junk.png");
+        std::fs::write(&junk, b"hello").unwrap();
+        let e = read_image(&junk).unwrap_err().to_string();
+        assert!(e.contains("junk.png") && e.contains("not a GeoTIFF, PNG or JPEG"), "{e}");
+        let png_path = dir.path().join("cut.png");
+        png_file(&png_path, 8, 8, &[7; 8 * 8 * 4]);
+        let bytes = std::fs::read(&png_path).unwrap();
+        std::fs::write(&png_path, &bytes[..bytes.len() / 2]).unwrap();
+        let e = read_image(&png_path).unwrap_err().to_string();
+        assert!(e.contains("cut.png") && e.contains("PNG"), "{e}");
+    }
+
+    #[test]
+    fn halving_an_image_weights_by_alpha() {
+        let image =
+            Image { width: 3, height: 1, rgba: vec![200, 0, 0, 255, 0, 0, 0, 0, 10, 20, 30, 255], georeference: None };
+        let h = image.halve();
+        assert_eq!((h.width, h.height), (2, 1));
+        // (200,0,0) opaque with a transparent pixel: its colour, a quarter... of the area's alpha.
+        assert_eq!(&h.rgba[..4], &[200, 0, 0, 64]);
+        assert_eq!(&h.rgba[4..], &[10, 20, 30, 64]);
+    }
+
+    #[test]
+    fn a_texture_on_the_dem_grid_is_resampled_to_square_texels() {
+        // A DEM with pixels twice as wide in degrees as in metres (a geographic grid), and
+        // a texture on that same grid: accepted, resampled along x to square texels.
+        let dir = tempfile::tempdir().unwrap();
+        let image_path = dir.path().join("grid.png");
+        png_file(&image_path, 64, 32, &vec![200; 64 * 32 * 4]);
+        let texture = TextureInput { image: read_image(&image_path).unwrap(), path: image_path, tile_size: 16 };
+        let mut elevation = raster(100, 50, |_, _| 1.0);
+        elevation.spacing = (15.0, 30.0);
+        let out = dir.path().join("g.tspack");
+        let options = TileOptions { tile_size: 16, ..TileOptions::default() };
+        tile_terrain(elevation, Some(texture), "g", &out, options, &crate::progress::Silent::default()).unwrap();
+        let reader = crate::Reader::open_mmap(&out).unwrap();
+        let t = &reader.metadata().layers[1];
+        // 1500 x 1500 m: 32 x 32 texels of 46.875 m.
+        assert_eq!((t.num_x_tiles, t.num_y_tiles), (2, 2));
+        assert!((t.tile_world_size - 750.0).abs() < 1e-9, "{}", t.tile_world_size);
     }
 }

@@ -82,18 +82,25 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Build a LOD pyramid archive from an elevation raster (GeoTIFF).
+    /// Build a LOD pyramid archive from an elevation raster (GeoTIFF) and optional imagery.
     Tile {
         /// Elevation raster: single-band GeoTIFF (int/uint 8-32, float32/64; strips or tiles;
         /// none, LZW or Deflate compression; GDAL nodata).
         #[arg(long)]
         elevation: PathBuf,
+        /// Texture image stretched over the same extent: GeoTIFF (8-bit gray/RGB/RGBA), PNG
+        /// or JPEG, at its own resolution; stored as PNG tiles with area-averaged LODs.
+        #[arg(long)]
+        texture: Option<PathBuf>,
         /// Output archive (written to a temporary name, then renamed).
         #[arg(short, long)]
         output: PathBuf,
         /// Samples per tile edge.
         #[arg(long, default_value_t = 256)]
         tile_size: u32,
+        /// Texture pixels per tile edge.
+        #[arg(long, default_value_t = 256)]
+        texture_tile_size: u32,
         /// Samples duplicated from the neighbours on each side.
         #[arg(long, default_value_t = 1)]
         border: u8,
@@ -258,9 +265,16 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
         Command::Player { output } => write_player(&output),
         Command::Render(args) => render::run(args),
         Command::View(args) => view::run(args),
-        Command::Tile { elevation, output, tile_size, border, storage } => {
-            use terrastream_packer::tiler::{ElevationStorage, TileOptions, read_geotiff, tile_elevation};
+        Command::Tile { elevation, texture, output, tile_size, texture_tile_size, border, storage } => {
+            use terrastream_packer::tiler::{
+                ElevationStorage, TextureInput, TileOptions, read_geotiff, read_image, tile_terrain,
+            };
             let raster = read_geotiff(&elevation)?;
+            let texture = texture
+                .map(|path| -> Result<TextureInput> {
+                    Ok(TextureInput { image: read_image(&path)?, path, tile_size: texture_tile_size })
+                })
+                .transpose()?;
             let name = elevation.file_stem().and_then(|s| s.to_str()).unwrap_or("terrain").to_owned();
             let storage = match storage {
                 StorageArg::Auto => ElevationStorage::Auto,
@@ -268,8 +282,8 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
                 StorageArg::F32 => ElevationStorage::F32,
             };
             let started = std::time::Instant::now();
-            let summary =
-                tile_elevation(raster, &name, &output, TileOptions { tile_size, border, storage }, &progress)?;
+            let options = TileOptions { tile_size, border, storage };
+            let summary = tile_terrain(raster, texture, &name, &output, options, &progress)?;
             progress.finish();
             println!(
                 "{}: {} tiles, {} bytes in {:.2} s",
