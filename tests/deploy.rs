@@ -7,6 +7,8 @@
 
 #[path = "../server/tests/common/mod.rs"]
 mod common;
+#[path = "support/http.rs"]
+mod http;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -62,24 +64,6 @@ fn start_server(dir: &Path) -> Server {
         std::thread::sleep(Duration::from_millis(25));
     }
     panic!("the server did not become healthy");
-}
-
-/// Requests the server answered for archive bytes (`/{file}` route), from `/metrics`.
-fn archive_requests(port: u16) -> u64 {
-    let body = http_get(port, "/metrics");
-    body.lines()
-        .filter(|l| l.starts_with("terrastream_requests_total{route=\"/{file}\""))
-        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
-        .sum()
-}
-
-fn http_get(port: u16, path: &str) -> String {
-    use std::io::{Read, Write};
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
-    write!(s, "GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out
 }
 
 fn camera(x: f64, z: f64) -> Camera {
@@ -157,11 +141,11 @@ fn nginx_caching_proxy_serves_the_second_pass_and_picks_up_a_replaced_archive() 
     }
 
     // Pass 2, a new client right away: served from the cache, the server sees nothing.
-    let before = archive_requests(server.port);
+    let before = http::archive_requests(server.port);
     let mut second = HashMap::new();
     stream(&mut Streamer::open(Origin::parse(&url).unwrap(), options()).unwrap(), &mut second, 1);
     assert_eq!(second.len(), first.len());
-    assert_eq!(archive_requests(server.port), before, "the second pass came from the cache");
+    assert_eq!(http::archive_requests(server.port), before, "the second pass came from the cache");
     let hit = Command::new("curl").args(["-s", "-o", "/dev/null", "-D", "-", "-r", "0-99", &url]).output();
     if let Ok(hit) = hit {
         let head = String::from_utf8_lossy(&hit.stdout).to_lowercase();

@@ -18,12 +18,14 @@
 mod common;
 #[path = "support/golden.rs"]
 mod golden;
+#[path = "support/http.rs"]
+mod http;
 
-use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use base64::Engine as _;
 use serde_json::{Value, json};
 
 const WIDTH: u32 = 640;
@@ -92,49 +94,6 @@ fn wait_for_port(port: u16, what: &str) {
     }
 }
 
-/// One HTTP/1.1 exchange on a fresh connection: (status, body).
-fn http(port: u16, method: &str, path: &str, body: Option<&Value>) -> (u16, Vec<u8>) {
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(180))).unwrap();
-    let body = body.map(Value::to_string).unwrap_or_default();
-    write!(
-        s,
-        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n\
-         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    )
-    .unwrap();
-    // Read by Content-Length: chromedriver keeps the connection open after answering.
-    let mut answer = Vec::new();
-    let mut buf = [0u8; 64 * 1024];
-    let end = loop {
-        if let Some(end) = answer.windows(4).position(|w| w == b"\r\n\r\n") {
-            break end;
-        }
-        let n = s.read(&mut buf).unwrap();
-        assert!(n > 0, "connection closed before an HTTP answer");
-        answer.extend_from_slice(&buf[..n]);
-    };
-    let head = String::from_utf8_lossy(&answer[..end]).to_lowercase();
-    let status = head.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
-    let length =
-        head.lines().find_map(|l| l.strip_prefix("content-length:")).and_then(|v| v.trim().parse::<usize>().ok());
-    let mut payload = answer[end + 4..].to_vec();
-    match length {
-        Some(length) => {
-            while payload.len() < length {
-                let n = s.read(&mut buf).unwrap();
-                assert!(n > 0, "connection closed mid-body");
-                payload.extend_from_slice(&buf[..n]);
-            }
-        }
-        None => {
-            s.read_to_end(&mut payload).unwrap();
-        }
-    }
-    (status, payload)
-}
-
 /// chromedriver on a loopback port.
 struct Driver {
     _process: Process,
@@ -155,7 +114,7 @@ impl Driver {
     }
 
     fn call(&self, method: &str, path: &str, body: Option<Value>) -> Value {
-        let (status, bytes) = http(self.port, method, path, body.as_ref());
+        let (status, bytes) = http::request(self.port, method, path, body.as_ref());
         let value: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
         assert!(status == 200, "WebDriver {method} {path}: {status} {value}");
         value["value"].clone()
@@ -272,7 +231,7 @@ impl<'a> Browser<'a> {
         let element = self.call("POST", "/element", Some(json!({ "using": "css selector", "value": css })));
         let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str).unwrap().to_owned();
         let png = self.call("GET", &format!("/element/{id}/screenshot"), None);
-        golden::decode_png(&base64(png.as_str().unwrap()))
+        golden::decode_png(&base64::engine::general_purpose::STANDARD.decode(png.as_str().unwrap()).unwrap())
     }
 
     /// Holds `key` (a WebDriver key value) down for `ms` milliseconds.
@@ -313,30 +272,8 @@ impl Browser<'_> {
 
 impl Drop for Browser<'_> {
     fn drop(&mut self) {
-        let _ = http(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
+        let _ = http::request(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
     }
-}
-
-fn base64(text: &str) -> Vec<u8> {
-    let value = |c: u8| match c {
-        b'A'..=b'Z' => c - b'A',
-        b'a'..=b'z' => c - b'a' + 26,
-        b'0'..=b'9' => c - b'0' + 52,
-        b'+' => 62,
-        b'/' => 63,
-        _ => panic!("not base64: {c}"),
-    };
-    let bytes: Vec<u8> = text.bytes().filter(|c| !c.is_ascii_whitespace() && *c != b'=').collect();
-    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
-    for chunk in bytes.chunks(4) {
-        let mut n = 0u32;
-        for (i, &c) in chunk.iter().enumerate() {
-            n |= u32::from(value(c)) << (18 - 6 * i);
-        }
-        let b = n.to_be_bytes();
-        out.extend_from_slice(&b[1..chunk.len()]);
-    }
-    out
 }
 
 fn terrastream(args: &[&str]) {
@@ -386,17 +323,6 @@ fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &
     assert!(console.iter().any(|(_, m)| m.contains("view fully streamed")), "the player logs: {console:?}");
 }
 
-/// Archive GETs the server answered, from its `/metrics` (route `/{file}`).
-fn served_archive_requests(port: u16) -> u64 {
-    let (_, body) = http(port, "GET", "/metrics", None);
-    String::from_utf8(body)
-        .unwrap()
-        .lines()
-        .filter(|l| l.starts_with("terrastream_requests_total") && l.contains("route=\"/{file}\""))
-        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
-        .sum()
-}
-
 /// nginx with the shipped static-host config (`deploy/nginx/tspack-static.conf`) serving
 /// `root`, logging requests to `access_log` if given.
 fn static_host(root: &Path, access_log: Option<&Path>) -> Option<common::Nginx> {
@@ -426,7 +352,7 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
         .unwrap();
     let _server = Process(server);
     wait_for_port(port, "terrastream serve");
-    let before = served_archive_requests(port);
+    let before = http::archive_requests(port);
 
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGPU_FLAGS);
@@ -435,7 +361,7 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     let stats = browser.wait_settled();
     eprintln!("loaded and streamed in {:.2} s (page load to complete view)", started.elapsed().as_secs_f64());
     // The server saw exactly the archive requests the page made.
-    assert_eq!(served_archive_requests(port) - before, stats["http_requests"].as_u64().unwrap(), "{stats}");
+    assert_eq!(http::archive_requests(port) - before, stats["http_requests"].as_u64().unwrap(), "{stats}");
     check_run(&browser, &stats, "webplayer-webgpu", "webgpu");
 
     // The HUD (H) and flying (W: forward, towards -z from the south).

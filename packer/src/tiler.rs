@@ -323,51 +323,6 @@ fn elevation_plan(raster: Raster, name: &str, options: TileOptions) -> Result<(M
     Ok((metadata, levels))
 }
 
-/// Every elevation tile of every level, encoded in parallel.
-fn elevation_tiles(
-    metadata: &Metadata,
-    levels: &[Raster],
-    border: u8,
-    progress: &dyn Progress,
-) -> Result<Vec<EncodedTile>> {
-    let layer = &metadata.layers[0];
-    let res = layer.tile_resolution;
-    let Some(encoding) = layer.elevation else { return Err(Error::Writer("no elevation encoding".into())) };
-    let border = i64::from(border);
-    let mut tiles: Vec<EncodedTile> = Vec::new();
-    for (lod, level) in levels.iter().enumerate() {
-        let lod = u8::try_from(lod).map_err(|_| Error::Writer("too many levels".into()))?;
-        progress.check()?;
-        let keys: Vec<TileKey> = layer.tiles_at(0, lod).collect();
-        let encoded: Vec<Option<(u64, TileKey, Vec<u8>)>> = keys
-            .par_iter()
-            .map(|&key| {
-                let (x0, y0) = (i64::from(key.x()) * i64::from(res), i64::from(key.y()) * i64::from(res));
-                let edge = i64::from(res) + 2 * border;
-                let mut any = false;
-                let mut samples = Vec::with_capacity(usize::try_from(edge * edge).unwrap_or(0));
-                for j in 0..edge {
-                    for i in 0..edge {
-                        let v = level.at(x0 + i - border, y0 + j - border);
-                        any |= !v.is_nan()
-                            && (border..border + i64::from(res)).contains(&i)
-                            && (border..border + i64::from(res)).contains(&j);
-                        samples.push(v);
-                    }
-                }
-                progress.advance(1);
-                if !any {
-                    return Ok(None);
-                }
-                let payload = encode(&samples, &encoding);
-                Ok(Some((Writer::order_key(metadata, key)?, key, payload)))
-            })
-            .collect::<Result<_>>()?;
-        tiles.extend(encoded.into_iter().flatten());
-    }
-    Ok(tiles)
-}
-
 /// An RGBA8 image: the texture input (orthophoto, satellite scene, shaded relief).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
@@ -544,11 +499,9 @@ pub fn tile_terrain(
     let (mut metadata, elevation_levels) = elevation_plan(raster, name, options)?;
     let mut texture_levels = Vec::new();
     if let Some(t) = texture {
-        let (ex, ez) = metadata.layers[0].world_extent();
-        let (ex, ez) = (
-            ex.min(f64::from(elevation_levels[0].width) * elevation_levels[0].spacing.0),
-            ez.min(f64::from(elevation_levels[0].height) * elevation_levels[0].spacing.1),
-        );
+        // The data's extent (the layer's grid is padded to whole tiles).
+        let dem = &elevation_levels[0];
+        let (ex, ez) = (f64::from(dem.width) * dem.spacing.0, f64::from(dem.height) * dem.spacing.1);
         let (w, h) = (f64::from(t.image.width), f64::from(t.image.height));
         // The texture covers the elevation's area on the same grid (both geographic, say:
         // its pixels have the DEM's pixel shape) or in metres (square pixels).
@@ -598,9 +551,15 @@ pub fn tile_terrain(
     }
     let total = metadata.layers.iter().map(Layer::grid_tiles).sum();
     progress.start("tile", total);
-    let mut tiles = elevation_tiles(&metadata, &elevation_levels, options.border, progress)?;
+    let encoding = metadata.layers[0].elevation.ok_or_else(|| Error::Writer("no elevation encoding".into()))?;
+    let mut tiles = encode_layer(&metadata, 0, &elevation_levels, options.border, progress, |_, samples, _| {
+        Ok(encode(samples, &encoding))
+    })?;
     drop(elevation_levels);
-    tiles.extend(texture_tiles(&metadata, &texture_levels, options.border, progress)?);
+    tiles.extend(encode_layer(&metadata, 1, &texture_levels, options.border, progress, |key, pixels, edge| {
+        let opaque = pixels.iter().all(|p| p[3] == 255);
+        encode_png(pixels.as_flattened(), edge, opaque).map_err(|e| Error::Writer(format!("tile {key}: {e}")))
+    })?);
     drop(texture_levels);
     tiles.sort_unstable_by_key(|t| t.0);
     let mut writer = Writer::create(out, metadata, WriterOptions::default())?;
@@ -612,44 +571,72 @@ pub fn tile_terrain(
 
 type EncodedTile = (u64, TileKey, Vec<u8>);
 
-fn texture_tiles(
+/// The levels of a pyramid, sampled by pixel with borders outside the raster.
+trait Samples: Sync {
+    type Sample: Copy + Send;
+    fn sample(&self, x: i64, y: i64) -> Self::Sample;
+    fn has_data(sample: &Self::Sample) -> bool;
+}
+
+impl Samples for Raster {
+    type Sample = f32;
+    fn sample(&self, x: i64, y: i64) -> f32 {
+        self.at(x, y)
+    }
+    fn has_data(sample: &f32) -> bool {
+        !sample.is_nan()
+    }
+}
+
+impl Samples for Image {
+    type Sample = [u8; 4];
+    fn sample(&self, x: i64, y: i64) -> [u8; 4] {
+        self.at(x, y)
+    }
+    fn has_data(sample: &[u8; 4]) -> bool {
+        sample[3] > 0
+    }
+}
+
+/// Every tile of layer `index`, one level of `levels` per LOD (finest first), cut with
+/// `border` samples from the neighbours and encoded in parallel by `encode(key, samples,
+/// edge)`. Tiles with no data inside their border are left out.
+fn encode_layer<L: Samples>(
     metadata: &Metadata,
-    levels: &[Image],
+    index: u8,
+    levels: &[L],
     border: u8,
     progress: &dyn Progress,
+    encode: impl Fn(TileKey, &[L::Sample], i64) -> Result<Vec<u8>> + Sync,
 ) -> Result<Vec<EncodedTile>> {
-    let Some(layer) = metadata.layers.get(1) else { return Ok(Vec::new()) };
+    let Some(layer) = metadata.layers.get(usize::from(index)) else { return Ok(Vec::new()) };
     let res = i64::from(layer.tile_resolution);
     let border = i64::from(border);
+    let edge = res + 2 * border;
     let mut tiles = Vec::new();
     for (lod, level) in levels.iter().enumerate() {
         let lod = u8::try_from(lod).map_err(|_| Error::Writer("too many levels".into()))?;
         progress.check()?;
-        let keys: Vec<TileKey> = layer.tiles_at(1, lod).collect();
+        let keys: Vec<TileKey> = layer.tiles_at(index, lod).collect();
         let encoded: Vec<Option<EncodedTile>> = keys
             .par_iter()
             .map(|&key| {
                 let (x0, y0) = (i64::from(key.x()) * res, i64::from(key.y()) * res);
-                let edge = res + 2 * border;
                 let mut any = false;
-                let mut opaque = true;
-                let mut pixels = Vec::with_capacity(usize::try_from(edge * edge * 4).unwrap_or(0));
+                let mut samples = Vec::with_capacity(usize::try_from(edge * edge).unwrap_or(0));
                 for j in 0..edge {
                     for i in 0..edge {
-                        let p = level.at(x0 + i - border, y0 + j - border);
+                        let v = level.sample(x0 + i - border, y0 + j - border);
                         let inside = (border..border + res).contains(&i) && (border..border + res).contains(&j);
-                        any |= inside && p[3] > 0;
-                        opaque &= p[3] == 255;
-                        pixels.extend_from_slice(&p);
+                        any |= inside && L::has_data(&v);
+                        samples.push(v);
                     }
                 }
                 progress.advance(1);
                 if !any {
                     return Ok(None);
                 }
-                let payload =
-                    encode_png(&pixels, edge, opaque).map_err(|e| Error::Writer(format!("tile {key}: {e}")))?;
-                Ok(Some((Writer::order_key(metadata, key)?, key, payload)))
+                Ok(Some((Writer::order_key(metadata, key)?, key, encode(key, &samples, edge)?)))
             })
             .collect::<Result<_>>()?;
         tiles.extend(encoded.into_iter().flatten());

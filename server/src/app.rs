@@ -26,7 +26,7 @@ use crate::body::Chunks;
 use crate::catalog::{Catalog, Served};
 use crate::config::ServerConfig;
 use crate::metrics::Metrics;
-use crate::range::{Precondition, RangeOutcome, if_range_allows, parse_range, preconditions};
+use crate::range::{Precondition, RangeOutcome, if_none_match, if_range_allows, parse_range, preconditions};
 
 /// Response header naming the nearest coarser LOD that exists for a missing tile.
 pub const FALLBACK_LOD: HeaderName = HeaderName::from_static("x-terrastream-fallback-lod");
@@ -281,7 +281,7 @@ async fn tile(
             info.name, info.num_lods
         )));
     }
-    let zstd_ok = info.compression == PayloadCompression::Zstd && accepts_zstd(headers);
+    let zstd_ok = info.compression == PayloadCompression::Zstd && accepts(headers, "zstd");
     let etag = format!("\"{}-{index}-{lod}-{x}-{y}{}\"", served.etag.trim_matches('"'), if zstd_ok { "z" } else { "" });
     let mut builder = Response::builder()
         .header(ETAG, header(&etag))
@@ -328,12 +328,13 @@ async fn tile(
     }
 }
 
-fn accepts_zstd(headers: &HeaderMap) -> bool {
-    headers.get_all(ACCEPT_ENCODING).iter().filter_map(|v| v.to_str().ok()).flat_map(|v| v.split(',')).any(|coding| {
-        let mut parts = coding.split(';');
+/// Does `Accept-Encoding` accept `coding` (named, and not with `q=0`)?
+fn accepts(headers: &HeaderMap, coding: &str) -> bool {
+    headers.get_all(ACCEPT_ENCODING).iter().filter_map(|v| v.to_str().ok()).flat_map(|v| v.split(',')).any(|c| {
+        let mut parts = c.split(';');
         let name = parts.next().unwrap_or("").trim();
         let refused = parts.any(|p| p.trim().replace(' ', "") == "q=0");
-        name.eq_ignore_ascii_case("zstd") && !refused
+        name.eq_ignore_ascii_case(coding) && !refused
     })
 }
 
@@ -398,27 +399,18 @@ async fn view(
     Path(name): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
-    let not_modified = |etag: &str| {
-        headers
-            .get(IF_NONE_MATCH)
-            .and_then(|v| v.to_str().ok())
-            .is_some_and(|v| v.split(',').any(|t| t.trim().trim_start_matches("W/") == etag || t.trim() == "*"))
-    };
     if let Some(asset) = crate::player::asset(&name) {
         let builder = Response::builder()
             .header(ETAG, header(&asset.etag))
             // Revalidated each time: a new binary serves a new player at once.
             .header(CACHE_CONTROL, HeaderValue::from_static("no-cache"))
             .header(VARY, HeaderValue::from_static("accept-encoding"));
-        if not_modified(&asset.etag) {
+        if if_none_match(&headers, &asset.etag) {
             return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
         }
-        let gzip_ok = headers
-            .get(ACCEPT_ENCODING)
-            .and_then(|v| v.to_str().ok())
-            .is_some_and(|v| v.split(',').any(|e| e.split(';').next().is_some_and(|e| e.trim() == "gzip")));
+        let gzipped = if accepts(&headers, "gzip") { asset.gzipped().await } else { None };
         let builder = builder.status(StatusCode::OK).header(CONTENT_TYPE, asset.content_type);
-        let response = match asset.gzipped().filter(|_| gzip_ok) {
+        let response = match gzipped {
             Some(gz) => builder
                 .header(CONTENT_ENCODING, HeaderValue::from_static("gzip"))
                 .header(CONTENT_LENGTH, gz.len())

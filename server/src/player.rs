@@ -41,17 +41,22 @@ impl Asset {
         Self { name, content_type, bytes, etag, gzip: OnceLock::new() }
     }
 
-    /// The bytes gzipped (computed once), or `None` where that does not make them smaller.
-    pub fn gzipped(&self) -> Option<&Bytes> {
-        self.gzip
-            .get_or_init(|| {
-                let mut encoder = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
-                encoder.write_all(&self.bytes).ok()?;
-                let out = encoder.finish().ok()?;
-                (out.len() < self.bytes.len()).then(|| Bytes::from(out))
-            })
-            .as_ref()
+    /// The bytes gzipped, or `None` where that does not make them smaller. Compressed
+    /// once, on first use, on a blocking thread (the wasm takes a good part of a second
+    /// at the best level): never on the runtime's workers.
+    pub async fn gzipped(&'static self) -> Option<Bytes> {
+        if let Some(done) = self.gzip.get() {
+            return done.clone();
+        }
+        tokio::task::spawn_blocking(move || self.gzip.get_or_init(|| gzip(&self.bytes)).clone()).await.ok().flatten()
     }
+}
+
+fn gzip(bytes: &[u8]) -> Option<Bytes> {
+    let mut encoder = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+    encoder.write_all(bytes).ok()?;
+    let out = encoder.finish().ok()?;
+    (out.len() < bytes.len()).then(|| Bytes::from(out))
 }
 
 static ASSETS: LazyLock<Vec<Asset>> =
@@ -86,14 +91,14 @@ pub fn page(archive_url: &str) -> Option<String> {
 mod tests {
     use super::*;
 
-    #[test]
-    fn assets_have_types_and_compress() {
-        let a = Asset::new("x.js", Bytes::from(vec![b'a'; 10_000]));
+    #[tokio::test]
+    async fn assets_have_types_and_compress() {
+        let a: &'static Asset = Box::leak(Box::new(Asset::new("x.js", Bytes::from(vec![b'a'; 10_000]))));
         assert_eq!(a.content_type, "text/javascript; charset=utf-8");
-        assert!(a.gzipped().is_some_and(|g| g.len() < 1000));
-        let b = Asset::new("y.wasm", Bytes::from_static(&[0, 97, 115, 109]));
+        assert!(a.gzipped().await.is_some_and(|g| g.len() < 1000));
+        let b: &'static Asset = Box::leak(Box::new(Asset::new("y.wasm", Bytes::from_static(&[0, 97, 115, 109]))));
         assert_eq!(b.content_type, "application/wasm");
-        assert!(b.gzipped().is_none(), "gzip of 4 bytes is larger: served plain");
+        assert!(b.gzipped().await.is_none(), "gzip of 4 bytes is larger: served plain");
     }
 
     #[test]

@@ -142,6 +142,11 @@ fn seconds(t: SystemTime) -> u64 {
     t.duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_secs())
 }
 
+/// Does `If-None-Match` list `etag` (weak comparison, `*` included)? False without one.
+pub fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
+    headers.get(IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|l| etag_list_matches(l, etag, true))
+}
+
 /// Evaluates If-Match, If-Unmodified-Since, If-None-Match and If-Modified-Since.
 pub fn preconditions(headers: &HeaderMap, etag: &str, modified: SystemTime, safe_method: bool) -> Precondition {
     if let Some(v) = headers.get(IF_MATCH) {
@@ -153,8 +158,8 @@ pub fn preconditions(headers: &HeaderMap, etag: &str, modified: SystemTime, safe
             return Precondition::Failed;
         }
     }
-    if let Some(v) = headers.get(IF_NONE_MATCH) {
-        if v.to_str().is_ok_and(|l| etag_list_matches(l, etag, true)) {
+    if headers.contains_key(IF_NONE_MATCH) {
+        if if_none_match(headers, etag) {
             return if safe_method { Precondition::NotModified } else { Precondition::Failed };
         }
     } else if let Some(since) = date(headers, IF_MODIFIED_SINCE) {

@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use terrastream_client::render::gpu::{Gpu, depth_target};
-use terrastream_client::render::hud::Hud;
+use terrastream_client::render::gpu::{Gpu, depth_target, next_frame};
+use terrastream_client::render::hud::{FrameTimes, Hud, Status, status_lines};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::still::{default_camera, terrain_bounds};
 use terrastream_client::render::wgpu;
@@ -60,7 +60,7 @@ struct App {
     cursor: Option<(f64, f64)>,
     show_hud: bool,
     last_frame: Instant,
-    frame_times: Vec<f64>,
+    frame_times: FrameTimes,
     uploads_last: u64,
     started: Instant,
 }
@@ -119,61 +119,23 @@ impl App {
         let camera = self.fly.camera(r.config.width, r.config.height);
         let (stream, frame) = r.session.frame(&r.gpu.device, &r.gpu.queue, &camera);
         self.frame_times.push(dt);
-        if self.frame_times.len() > 60 {
-            self.frame_times.remove(0);
-        }
         let uploads = stream.uploads - self.uploads_last;
         self.uploads_last = stream.uploads;
-        let surface_texture = match r.surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
-            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                r.surface.configure(&r.gpu.device, &r.config);
-                return Ok(());
-            }
-            other => {
-                tracing::warn!("no frame to draw into: {other:?}");
-                return Ok(());
-            }
-        };
+        let Some(surface_texture) = next_frame(&r.surface, &r.gpu.device, &r.config) else { return Ok(()) };
         if self.show_hud {
-            let mean = self.frame_times.iter().sum::<f64>() / self.frame_times.len().max(1) as f64;
-            let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
-            let lines = vec![
-                format!("fps {:5.1}   frame {:6.2} ms   {}", 1.0 / mean.max(1e-6), mean * 1e3, r.gpu.describe()),
-                format!(
-                    "tiles in flight {:3}   wanted {:5}   pending {:5}   fetched {:6}   missing {}   failures {}",
-                    stream.in_flight,
-                    stream.wanted,
-                    r.session.streamer.pending(),
-                    stream.tiles_fetched,
-                    stream.missing,
-                    stream.failures
-                ),
-                format!(
-                    "cache {:7.1} MiB ({} tiles)   GPU {:7.1} MiB (resident: {} elevation, {} texture)",
-                    mib(stream.cache_bytes),
-                    stream.cache_tiles,
-                    mib(frame.gpu_bytes),
-                    frame.resident.0,
-                    frame.resident.1
-                ),
-                format!(
-                    "uploads this frame {:2} (budget {} tiles, {:.1} MiB)   received {:8.1} MiB",
-                    uploads,
-                    r.session.budget.max_tiles,
-                    mib(r.session.budget.max_bytes as u64),
-                    mib(stream.bytes_fetched)
-                ),
-                format!(
-                    "mesh levels in view {}..{}   patches {}   triangles {}   draw calls {}",
-                    frame.levels.0, frame.levels.1, frame.patches, frame.triangles, frame.draw_calls
-                ),
-                format!(
-                    "eye {:.0} {:.0} {:.0}   speed x{:.2}",
-                    camera.position.x, camera.position.y, camera.position.z, self.fly.speed
-                ),
-                "WASD/QE fly  drag: look  wheel: speed  G wireframe  L LOD colours  H HUD  Esc quit".to_owned(),
-            ];
+            let mut lines = status_lines(&Status {
+                times: &self.frame_times,
+                api: &r.gpu.describe(),
+                stream: &stream,
+                pending: r.session.streamer.pending(),
+                frame: &frame,
+                uploads,
+                budget: r.session.budget,
+                received: (stream.bytes_fetched, stream.requests),
+                eye: camera.position,
+                speed: self.fly.speed,
+            });
+            lines.push("WASD/QE fly  drag: look  wheel: speed  G wireframe  L LOD colours  H HUD  Esc quit".to_owned());
             let scale = if r.config.width >= 1800 { 2 } else { 1 };
             r.hud.set_text(&r.gpu.queue, &lines, (r.config.width, r.config.height), scale);
         }
@@ -318,7 +280,7 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
         cursor: None,
         show_hud: true,
         last_frame: Instant::now(),
-        frame_times: Vec::new(),
+        frame_times: FrameTimes::default(),
         uploads_last: 0,
         started: Instant::now(),
     };

@@ -78,6 +78,26 @@ impl Gpu {
     }
 }
 
+/// The surface's next frame to draw into. An outdated or lost surface is configured
+/// again with `config` and gives `None` this time (the next frame will have one).
+pub fn next_frame(
+    surface: &wgpu::Surface<'_>,
+    device: &wgpu::Device,
+    config: &wgpu::SurfaceConfiguration,
+) -> Option<wgpu::SurfaceTexture> {
+    match surface.get_current_texture() {
+        wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => Some(t),
+        wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+            surface.configure(device, config);
+            None
+        }
+        other => {
+            tracing::warn!("no frame to draw into: {other:?}");
+            None
+        }
+    }
+}
+
 /// A 2D texture (`layers` > 1: an array) with one mip level.
 pub fn texture(
     device: &wgpu::Device,
@@ -124,6 +144,93 @@ pub fn write_layer(
         wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(bytes_per_row), rows_per_image: Some(rows) },
         wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
     );
+}
+
+/// What tells this crate's render pipelines apart; they all have one bind group, entry
+/// points `vs_main` and `fs_main`, one colour target and a [`DEPTH_FORMAT`] depth test.
+pub struct PipelineDesc<'a> {
+    /// Names the shader, layout and pipeline (`shader.{name}`, ...).
+    pub name: &'a str,
+    /// WGSL source.
+    pub wgsl: &'a str,
+    /// The bind group's layout.
+    pub layout: &'a wgpu::BindGroupLayout,
+    /// Vertex buffers.
+    pub buffers: &'a [Option<wgpu::VertexBufferLayout<'a>>],
+    /// Primitive topology.
+    pub topology: wgpu::PrimitiveTopology,
+    /// Write depth, and the depth test.
+    pub depth: (bool, wgpu::CompareFunction),
+    /// Colour target format and blending.
+    pub target: (wgpu::TextureFormat, Option<wgpu::BlendState>),
+}
+
+/// A render pipeline from `desc`.
+pub fn pipeline(device: &wgpu::Device, desc: &PipelineDesc<'_>) -> wgpu::RenderPipeline {
+    let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(&format!("shader.{}", desc.name)),
+        source: wgpu::ShaderSource::Wgsl(desc.wgsl.into()),
+    });
+    let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(&format!("pipeline_layout.{}", desc.name)),
+        bind_group_layouts: &[Some(desc.layout)],
+        immediate_size: 0,
+    });
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(&format!("pipeline.{}", desc.name)),
+        layout: Some(&layout),
+        vertex: wgpu::VertexState {
+            module: &shader,
+            entry_point: Some("vs_main"),
+            compilation_options: wgpu::PipelineCompilationOptions::default(),
+            buffers: desc.buffers,
+        },
+        primitive: wgpu::PrimitiveState { topology: desc.topology, cull_mode: None, ..Default::default() },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(desc.depth.0),
+            depth_compare: Some(desc.depth.1),
+            stencil: wgpu::StencilState::default(),
+            bias: wgpu::DepthBiasState::default(),
+        }),
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &shader,
+            entry_point: Some("fs_main"),
+            compilation_options: wgpu::PipelineCompilationOptions::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format: desc.target.0,
+                blend: desc.target.1,
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+/// A uniform buffer of `size` bytes, written with `queue.write_buffer`.
+pub fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: size as u64,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+/// A bind group whose entries are `resources` at bindings 0, 1, ...
+pub fn bind_group(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::BindGroupLayout,
+    resources: &[wgpu::BindingResource<'_>],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry<'_>> = (0u32..)
+        .zip(resources)
+        .map(|(binding, resource)| wgpu::BindGroupEntry { binding, resource: resource.clone() })
+        .collect();
+    device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
 }
 
 /// A bind-group layout entry for a uniform buffer seen by both stages.

@@ -1,9 +1,100 @@
 //! A heads-up display: lines of text rasterized on the CPU with an 8x8 bitmap font
 //! (public domain) and drawn over the frame in one small pass.
 
-use bytemuck::{Pod, Zeroable};
+use std::collections::VecDeque;
 
-use super::gpu::{texture, texture_entry, uniform_entry, write_layer};
+use bytemuck::{Pod, Zeroable};
+use glam::DVec3;
+
+use super::gpu::{
+    PipelineDesc, bind_group, pipeline, texture, texture_entry, uniform_buffer, uniform_entry, write_layer,
+};
+
+use super::renderer::FrameStats;
+use crate::stream::streamer::{StreamStats, UploadBudget};
+
+/// The last second or so of frame times: fps and frame time as a HUD shows them.
+#[derive(Clone, Debug, Default)]
+pub struct FrameTimes(VecDeque<f64>);
+
+impl FrameTimes {
+    /// Records a frame that took `seconds`.
+    pub fn push(&mut self, seconds: f64) {
+        self.0.push_back(seconds);
+        if self.0.len() > 60 {
+            self.0.pop_front();
+        }
+    }
+
+    /// Mean frame time in seconds over the last 60 frames.
+    pub fn mean(&self) -> f64 {
+        self.0.iter().sum::<f64>() / self.0.len().max(1) as f64
+    }
+
+    /// Frames per second over the last 60 frames.
+    pub fn fps(&self) -> f64 {
+        1.0 / self.mean().max(1e-6)
+    }
+}
+
+/// What the status lines of a viewer's HUD report.
+#[derive(Clone, Copy, Debug)]
+pub struct Status<'a> {
+    /// Frame times.
+    pub times: &'a FrameTimes,
+    /// The graphics API / adapter.
+    pub api: &'a str,
+    /// Streaming counters.
+    pub stream: &'a StreamStats,
+    /// Wanted tiles not on the GPU yet.
+    pub pending: usize,
+    /// What the last frame drew.
+    pub frame: &'a FrameStats,
+    /// Tiles uploaded this frame.
+    pub uploads: u64,
+    /// The upload budget.
+    pub budget: UploadBudget,
+    /// Bytes received and the requests that brought them.
+    pub received: (u64, u64),
+    /// The eye.
+    pub eye: DVec3,
+    /// The fly camera's speed factor.
+    pub speed: f64,
+}
+
+/// The HUD's status lines (ASCII, at most 96 columns), the same in every front end.
+pub fn status_lines(s: &Status<'_>) -> Vec<String> {
+    let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+    let (stream, frame) = (s.stream, s.frame);
+    vec![
+        format!("fps {:5.1}   frame {:6.2} ms   {}", s.times.fps(), s.times.mean() * 1e3, s.api),
+        format!(
+            "tiles in flight {:3}   wanted {:5}   pending {:5}   fetched {:6}   missing {}   failures {}",
+            stream.in_flight, stream.wanted, s.pending, stream.tiles_fetched, stream.missing, stream.failures
+        ),
+        format!(
+            "cache {:7.1} MiB ({} tiles)   GPU {:7.1} MiB (resident: {} elevation, {} texture)",
+            mib(stream.cache_bytes),
+            stream.cache_tiles,
+            mib(frame.gpu_bytes),
+            frame.resident.0,
+            frame.resident.1
+        ),
+        format!(
+            "uploads this frame {:2} (budget {} tiles, {:.1} MiB)   received {:6.1} MiB in {} requests",
+            s.uploads,
+            s.budget.max_tiles,
+            mib(s.budget.max_bytes as u64),
+            mib(s.received.0),
+            s.received.1
+        ),
+        format!(
+            "mesh levels in view {}..{}   patches {}   triangles {}   draw calls {}",
+            frame.levels.0, frame.levels.1, frame.patches, frame.triangles, frame.draw_calls
+        ),
+        format!("eye {:.0} {:.0} {:.0}   speed x{:.2}", s.eye.x, s.eye.y, s.eye.z, s.speed),
+    ]
+}
 
 /// The shader source.
 pub const HUD_WGSL: &str = include_str!("../../../shaders/hud.wgsl");
@@ -48,12 +139,7 @@ impl Hud {
             wgpu::TextureFormat::Rgba8UnormSrgb,
             wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
         );
-        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("buffer.hud.uniforms"),
-            size: size_of::<Uniforms>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let uniforms = uniform_buffer(device, "buffer.hud.uniforms", size_of::<Uniforms>());
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("layout.hud"),
             entries: &[
@@ -62,54 +148,24 @@ impl Hud {
             ],
         });
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("bind_group.hud"),
-            layout: &layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: uniforms.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&view) },
-            ],
-        });
-        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("shader.hud"),
-            source: wgpu::ShaderSource::Wgsl(HUD_WGSL.into()),
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("pipeline_layout.hud"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("pipeline.hud"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_main"),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
+        let bind_group = bind_group(
+            device,
+            "bind_group.hud",
+            &layout,
+            &[uniforms.as_entire_binding(), wgpu::BindingResource::TextureView(&view)],
+        );
+        let pipeline = pipeline(
+            device,
+            &PipelineDesc {
+                name: "hud",
+                wgsl: HUD_WGSL,
+                layout: &layout,
                 buffers: &[],
+                topology: wgpu::PrimitiveTopology::TriangleStrip,
+                depth: (false, wgpu::CompareFunction::Always),
+                target: (format, Some(wgpu::BlendState::ALPHA_BLENDING)),
             },
-            primitive: wgpu::PrimitiveState { topology: wgpu::PrimitiveTopology::TriangleStrip, ..Default::default() },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: super::renderer::DEPTH_FORMAT,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(wgpu::CompareFunction::Always),
-                stencil: wgpu::StencilState::default(),
-                bias: wgpu::DepthBiasState::default(),
-            }),
-            multisample: wgpu::MultisampleState::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_main"),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format,
-                    blend: Some(wgpu::BlendState::ALPHA_BLENDING),
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        );
         Self {
             pipeline,
             uniforms,

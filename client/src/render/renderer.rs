@@ -307,12 +307,7 @@ impl TerrainRenderer {
             wgpu::TextureFormat::Rgba32Uint,
             wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
         );
-        let globals = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("buffer.terrain.globals"),
-            size: size_of::<Globals>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let globals = gpu::uniform_buffer(device, "buffer.terrain.globals", size_of::<Globals>());
         let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("sampler.tiles.colour"),
             address_mode_u: wgpu::AddressMode::ClampToEdge,
@@ -345,33 +340,24 @@ impl TerrainRenderer {
             ],
         });
         let page_view = page_texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("bind_group.terrain"),
-            layout: &layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: globals.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&page_view) },
-                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::TextureView(&elevation_view) },
-                wgpu::BindGroupEntry { binding: 3, resource: wgpu::BindingResource::TextureView(&colour_view) },
-                wgpu::BindGroupEntry { binding: 4, resource: wgpu::BindingResource::Sampler(&sampler) },
+        let bind_group = gpu::bind_group(
+            device,
+            "bind_group.terrain",
+            &layout,
+            &[
+                globals.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&page_view),
+                wgpu::BindingResource::TextureView(&elevation_view),
+                wgpu::BindingResource::TextureView(&colour_view),
+                wgpu::BindingResource::Sampler(&sampler),
             ],
-        });
-        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("shader.terrain"),
-            source: wgpu::ShaderSource::Wgsl(TERRAIN_WGSL.into()),
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("pipeline_layout.terrain"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("pipeline.terrain"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_main"),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
+        );
+        let pipeline = gpu::pipeline(
+            device,
+            &gpu::PipelineDesc {
+                name: "terrain",
+                wgsl: TERRAIN_WGSL,
+                layout: &layout,
                 buffers: &[
                     Some(wgpu::VertexBufferLayout {
                         array_stride: 8,
@@ -384,33 +370,11 @@ impl TerrainRenderer {
                         attributes: &wgpu::vertex_attr_array![1 => Float32x4],
                     }),
                 ],
-            },
-            primitive: wgpu::PrimitiveState {
                 topology: wgpu::PrimitiveTopology::TriangleList,
-                cull_mode: None,
-                ..Default::default()
+                depth: (true, wgpu::CompareFunction::Greater),
+                target: (colour_format, None),
             },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Greater),
-                stencil: wgpu::StencilState::default(),
-                bias: wgpu::DepthBiasState::default(),
-            }),
-            multisample: wgpu::MultisampleState::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_main"),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: colour_format,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        );
         let mesh = PatchMesh::new(settings.patch);
         let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("buffer.terrain.patch_vertices"),

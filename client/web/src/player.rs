@@ -10,15 +10,15 @@
 //! - `hud=0`: start with the HUD hidden (H toggles it).
 
 use std::cell::RefCell;
-use std::collections::{HashMap, HashSet, VecDeque};
-use std::fmt::Write as _;
+use std::collections::{HashMap, HashSet};
 use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 
 use glam::DVec3;
 use terrastream_client::fly::default_camera;
-use terrastream_client::render::gpu::{Gpu, depth_target, render_pass};
+use terrastream_client::render::gpu::{Gpu, depth_target, next_frame, render_pass};
+use terrastream_client::render::hud::{FrameTimes, Status, status_lines};
 use terrastream_client::render::renderer::{FrameStats, RenderSettings};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
@@ -185,21 +185,21 @@ impl Surface {
         self.config.width = width;
         self.config.height = height;
         self.surface.configure(device, &self.config);
-        self.depth = depth_target(device, "texture.canvas.depth", width, height)
-            .create_view(&wgpu::TextureViewDescriptor::default());
+        self.depth = depth_view(device, (width, height));
     }
+}
+
+fn depth_view(device: &wgpu::Device, (width, height): (u32, u32)) -> wgpu::TextureView {
+    depth_target(device, "texture.canvas.depth", width, height).create_view(&wgpu::TextureViewDescriptor::default())
 }
 
 /// Counters the page (and tests) read through [`Player::stats`].
 #[derive(Default)]
 struct Timings {
-    /// Milliseconds from the start of [`run`] to the first frame with terrain drawn.
-    first_frame_ms: Option<f64>,
-    /// ... to the first frame with everything the view wants on the GPU.
-    settled_ms: Option<f64>,
-    /// Milliseconds from the page's navigation start to the first frame with terrain
-    /// (wasm download and compilation included).
-    page_first_frame_ms: Option<f64>,
+    /// Page time (ms since navigation start) of the first frame with terrain drawn.
+    first_frame_at: Option<f64>,
+    /// ... of the first frame with everything the view wants on the GPU.
+    settled_at: Option<f64>,
     frames: u64,
     max_uploads_per_frame: u64,
     /// Longest time between two frames while tiles were still coming: how responsive the
@@ -219,11 +219,12 @@ struct State {
     http: Arc<HttpStats>,
     input: Input,
     show_hud: bool,
-    frame_times: VecDeque<f64>,
+    frame_times: FrameTimes,
     started_ms: f64,
     last_frame_ms: f64,
     hud_at_ms: f64,
     uploads_seen: u64,
+    uploads_last_frame: u64,
     timings: Timings,
     last: Option<(StreamStats, FrameStats)>,
 }
@@ -233,10 +234,7 @@ impl State {
         let interval_ms = (now - self.last_frame_ms).max(0.0);
         let dt = (interval_ms / 1000.0).min(0.25);
         self.last_frame_ms = now;
-        self.frame_times.push_back(dt);
-        if self.frame_times.len() > 60 {
-            self.frame_times.pop_front();
-        }
+        self.frame_times.push(dt);
         let size = self.page.canvas_size(self.gpu.device.limits().max_texture_dimension_2d);
         if size != (self.surface.config.width, self.surface.config.height) {
             self.surface.configure(&self.gpu.device, size);
@@ -259,14 +257,13 @@ impl State {
         fly.step(dt, input, |x, z| session.streamer.height_at(x, z));
         let camera = fly.camera(size.0, size.1);
         let (stream, frame) = session.frame(&self.gpu.device, &self.gpu.queue, &camera);
-        let uploads = stream.uploads - self.uploads_seen;
+        self.uploads_last_frame = stream.uploads - self.uploads_seen;
         self.uploads_seen = stream.uploads;
-        self.timings.max_uploads_per_frame = self.timings.max_uploads_per_frame.max(uploads);
+        self.timings.max_uploads_per_frame = self.timings.max_uploads_per_frame.max(self.uploads_last_frame);
         self.timings.frames += 1;
-        self.draw(size);
-        if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_ms.is_none() {
-            self.timings.first_frame_ms = Some(now - self.started_ms);
-            self.timings.page_first_frame_ms = Some(now);
+        self.present();
+        if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_at.is_none() {
+            self.timings.first_frame_at = Some(now);
             tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
         }
         let Some(session) = &self.session else { return };
@@ -274,8 +271,8 @@ impl State {
         if pending > 0 || stream.in_flight > 0 {
             self.timings.max_frame_ms_streaming = self.timings.max_frame_ms_streaming.max(interval_ms);
         }
-        if session.settled() && self.timings.settled_ms.is_none() {
-            self.timings.settled_ms = Some(now - self.started_ms);
+        if session.settled() && self.timings.settled_at.is_none() {
+            self.timings.settled_at = Some(now);
             tracing::info!("view fully streamed after {:.0} ms", now - self.started_ms);
         }
         if pending > 0 {
@@ -303,7 +300,7 @@ impl State {
                     .status(Some(&format!("Cannot open the archive {}:\n{e}\n(retrying)", self.params.archive)), true),
                 None => self.page.status(Some(&format!("Opening {}…", self.params.archive)), false),
             }
-            self.clear();
+            self.present();
             return false;
         };
         let Some(streamer) = self.opening.take() else { return false };
@@ -327,52 +324,22 @@ impl State {
         }
     }
 
-    fn acquire(&mut self) -> Option<wgpu::SurfaceTexture> {
-        match self.surface.surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => Some(t),
-            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                let size = (self.surface.config.width, self.surface.config.height);
-                self.surface.configure(&self.gpu.device, size);
-                None
-            }
-            other => {
-                tracing::warn!("no frame to draw into: {other:?}");
-                None
-            }
-        }
-    }
-
-    fn view(&self, texture: &wgpu::SurfaceTexture) -> wgpu::TextureView {
-        texture.texture.create_view(&wgpu::TextureViewDescriptor {
+    /// Draws the terrain (or the sky alone before the archive opens) and shows it.
+    fn present(&mut self) {
+        let Some(texture) = next_frame(&self.surface.surface, &self.gpu.device, &self.surface.config) else {
+            return;
+        };
+        let view = texture.texture.create_view(&wgpu::TextureViewDescriptor {
             format: Some(self.surface.view_format),
             ..wgpu::TextureViewDescriptor::default()
-        })
-    }
-
-    /// The sky colour only (before the archive opens).
-    fn clear(&mut self) {
-        let Some(texture) = self.acquire() else { return };
-        let view = self.view(&texture);
-        let colour = RenderSettings::default().clear_colour();
-        render_pass(&self.gpu.device, &self.gpu.queue, &view, &self.surface.depth, colour, |_| {});
-        self.gpu.queue.present(texture);
-    }
-
-    fn draw(&mut self, _size: (u32, u32)) {
-        let Some(texture) = self.acquire() else { return };
-        let view = self.view(&texture);
-        let Some(session) = &self.session else { return };
-        let renderer = &session.renderer;
-        render_pass(
-            &self.gpu.device,
-            &self.gpu.queue,
-            &view,
-            &self.surface.depth,
-            renderer.settings().clear_colour(),
-            |pass| {
+        });
+        let renderer = self.session.as_ref().map(|s| &s.renderer);
+        let sky = renderer.map_or_else(|| RenderSettings::default().clear_colour(), |r| r.settings().clear_colour());
+        render_pass(&self.gpu.device, &self.gpu.queue, &view, &self.surface.depth, sky, |pass| {
+            if let Some(renderer) = renderer {
                 renderer.draw(pass);
-            },
-        );
+            }
+        });
         self.gpu.queue.present(texture);
     }
 
@@ -382,11 +349,6 @@ impl State {
         if self.gpu.info.name.is_empty() { api.to_owned() } else { format!("{api} on {}", self.gpu.info.name) }
     }
 
-    fn fps(&self) -> f64 {
-        let mean = self.frame_times.iter().sum::<f64>() / self.frame_times.len().max(1) as f64;
-        1.0 / mean.max(1e-6)
-    }
-
     fn update_hud(&self, camera: &Camera) {
         let Some(hud) = &self.page.hud else { return };
         hud.set_hidden(!self.show_hud);
@@ -394,41 +356,22 @@ impl State {
         if !self.show_hud {
             return;
         }
-        let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
-        let mut text = String::new();
-        let fps = self.fps();
-        let _ = writeln!(text, "fps {fps:5.1}   frame {:5.1} ms   {}", 1000.0 / fps, self.backend());
-        let _ = writeln!(
-            text,
-            "tiles in flight {:3}   wanted {:4}   pending {:4}   fetched {:5}",
-            stream.in_flight,
-            stream.wanted,
-            session.streamer.pending(),
-            stream.tiles_fetched
+        let mut lines = status_lines(&Status {
+            times: &self.frame_times,
+            api: &self.backend(),
+            stream,
+            pending: session.streamer.pending(),
+            frame,
+            uploads: self.uploads_last_frame,
+            budget: session.budget,
+            received: (self.http.bytes.load(Relaxed), self.http.requests.load(Relaxed)),
+            eye: camera.position,
+            speed: self.fly.map_or(1.0, |f| f.speed),
+        });
+        lines.push(
+            "WASD/arrows fly · Q/E down/up · drag look · wheel speed · pinch move · G wire · L LODs · H HUD".into(),
         );
-        let _ = writeln!(
-            text,
-            "received {:6.1} MiB in {} requests   cache {:6.1} MiB   GPU {:6.1} MiB",
-            mib(self.http.bytes.load(Relaxed)),
-            self.http.requests.load(Relaxed),
-            mib(stream.cache_bytes),
-            mib(frame.gpu_bytes)
-        );
-        let _ = writeln!(
-            text,
-            "uploads ≤ {} tiles/frame   mesh levels {}..{}   triangles {}",
-            session.budget.max_tiles, frame.levels.0, frame.levels.1, frame.triangles
-        );
-        let _ = writeln!(
-            text,
-            "eye {:.0} {:.0} {:.0}   speed ×{:.2}",
-            camera.position.x,
-            camera.position.y,
-            camera.position.z,
-            self.fly.map_or(1.0, |f| f.speed)
-        );
-        text.push_str("WASD/arrows fly · Q/E down/up · drag look · wheel speed · pinch move · G wire · L LODs · H HUD");
-        hud.set_text_content(Some(&text));
+        hud.set_text_content(Some(&lines.join("\n")));
     }
 
     fn key(&mut self, event: &KeyboardEvent, down: bool) {
@@ -513,78 +456,49 @@ impl State {
     }
 
     fn stats(&self) -> String {
-        let stream = self.session.as_ref().map(|s| s.streamer.stats()).unwrap_or_default();
         let (pending, settled, error) = match (&self.session, &self.opening) {
             (Some(s), _) => (s.streamer.pending(), s.settled(), s.streamer.last_error().map(str::to_owned)),
             (None, Some(o)) => (0, false, o.last_error().map(str::to_owned)),
             (None, None) => (0, false, None),
         };
-        let frame = self.last.as_ref().map(|(_, f)| *f).unwrap_or_default();
+        let (stream, frame) = self.last.clone().unwrap_or_default();
         let fly = self.fly.unwrap_or(FlyCamera { eye: DVec3::ZERO, yaw: 0.0, pitch: 0.0, speed: 1.0 });
-        let eye = fly.eye;
-        let opt = |v: Option<f64>| v.map_or("null".to_owned(), |v| format!("{v:.1}"));
-        let quote = |s: &str| {
-            let mut out = String::from('"');
-            for c in s.chars() {
-                match c {
-                    '"' => out.push_str("\\\""),
-                    '\\' => out.push_str("\\\\"),
-                    c if u32::from(c) < 0x20 => {
-                        let _ = write!(out, "\\u{:04x}", u32::from(c));
-                    }
-                    c => out.push(c),
-                }
-            }
-            out.push('"');
-            out
-        };
-        format!(
-            concat!(
-                "{{\"archive\":{},\"backend\":{},\"adapter\":{},\"frames\":{},\"fps\":{:.1},",
-                "\"first_frame_ms\":{},\"page_first_frame_ms\":{},\"settled_ms\":{},\"settled\":{},\"pending\":{},",
-                "\"http_requests\":{},\"http_bytes\":{},\"http_retries\":{},",
-                "\"requests\":{},\"tiles_fetched\":{},\"bytes_fetched\":{},\"in_flight\":{},\"wanted\":{},",
-                "\"missing\":{},\"failures\":{},\"uploads\":{},\"max_uploads_per_frame\":{},\"upload_budget\":{},",
-                "\"max_frame_ms_streaming\":{:.1},",
-                "\"resident\":[{},{}],\"triangles\":{},\"hud\":{},\"eye\":[{:.3},{:.3},{:.3}],",
-                "\"yaw\":{:.4},\"pitch\":{:.4},\"speed\":{:.4},\"error\":{}}}"
-            ),
-            quote(&self.params.archive),
-            quote(if self.gpu.info.backend == wgpu::Backend::Gl { "webgl2" } else { "webgpu" }),
-            quote(&self.gpu.info.name),
-            self.timings.frames,
-            self.fps(),
-            opt(self.timings.first_frame_ms),
-            opt(self.timings.page_first_frame_ms),
-            opt(self.timings.settled_ms),
-            settled,
-            pending,
-            self.http.requests.load(Relaxed),
-            self.http.bytes.load(Relaxed),
-            self.http.retries.load(Relaxed),
-            stream.requests,
-            stream.tiles_fetched,
-            stream.bytes_fetched,
-            stream.in_flight,
-            stream.wanted,
-            stream.missing,
-            stream.failures,
-            stream.uploads,
-            self.timings.max_uploads_per_frame,
-            self.session.as_ref().map_or(0, |s| s.budget.max_tiles),
-            self.timings.max_frame_ms_streaming,
-            frame.resident.0,
-            frame.resident.1,
-            frame.triangles,
-            self.show_hud,
-            eye.x,
-            eye.y,
-            eye.z,
-            fly.yaw,
-            fly.pitch,
-            fly.speed,
-            error.as_deref().map_or("null".to_owned(), quote),
-        )
+        let since_start = |at: Option<f64>| at.map(|t| t - self.started_ms);
+        serde_json::json!({
+            "archive": self.params.archive,
+            "backend": if self.gpu.info.backend == wgpu::Backend::Gl { "webgl2" } else { "webgpu" },
+            "adapter": self.gpu.info.name,
+            "frames": self.timings.frames,
+            "fps": self.frame_times.fps(),
+            "first_frame_ms": since_start(self.timings.first_frame_at),
+            "page_first_frame_ms": self.timings.first_frame_at,
+            "settled_ms": since_start(self.timings.settled_at),
+            "settled": settled,
+            "pending": pending,
+            "http_requests": self.http.requests.load(Relaxed),
+            "http_bytes": self.http.bytes.load(Relaxed),
+            "http_retries": self.http.retries.load(Relaxed),
+            "requests": stream.requests,
+            "tiles_fetched": stream.tiles_fetched,
+            "bytes_fetched": stream.bytes_fetched,
+            "in_flight": stream.in_flight,
+            "wanted": stream.wanted,
+            "missing": stream.missing,
+            "failures": stream.failures,
+            "uploads": stream.uploads,
+            "max_uploads_per_frame": self.timings.max_uploads_per_frame,
+            "upload_budget": self.session.as_ref().map_or(0, |s| s.budget.max_tiles),
+            "max_frame_ms_streaming": self.timings.max_frame_ms_streaming,
+            "resident": [frame.resident.0, frame.resident.1],
+            "triangles": frame.triangles,
+            "hud": self.show_hud,
+            "eye": [fly.eye.x, fly.eye.y, fly.eye.z],
+            "yaw": fly.yaw,
+            "pitch": fly.pitch,
+            "speed": fly.speed,
+            "error": error,
+        })
+        .to_string()
     }
 }
 
@@ -670,11 +584,12 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         http,
         input: Input::default(),
         show_hud,
-        frame_times: VecDeque::new(),
+        frame_times: FrameTimes::default(),
         started_ms,
         last_frame_ms: started_ms,
         hud_at_ms: f64::NEG_INFINITY,
         uploads_seen: 0,
+        uploads_last_frame: 0,
         timings: Timings::default(),
         last: None,
     }));
@@ -687,15 +602,7 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
 /// canvas configured for it.
 async fn open_gpu(page: &Page, backends: wgpu::Backends) -> Result<(Gpu, Surface), String> {
     let mut tried = Vec::new();
-    let webgpu_first = backends.contains(wgpu::Backends::BROWSER_WEBGPU);
-    let order: &[wgpu::Backends] = if webgpu_first && backends.contains(wgpu::Backends::GL) {
-        &[wgpu::Backends::BROWSER_WEBGPU, wgpu::Backends::GL]
-    } else if webgpu_first {
-        &[wgpu::Backends::BROWSER_WEBGPU]
-    } else {
-        &[wgpu::Backends::GL]
-    };
-    for &backend in order {
+    for backend in [wgpu::Backends::BROWSER_WEBGPU, wgpu::Backends::GL].into_iter().filter(|b| backends.contains(*b)) {
         let name = if backend == wgpu::Backends::GL { "WebGL2" } else { "WebGPU" };
         // WebGPU must be known to work before an instance is made for it: the choice of
         // backend is made at instance creation.
@@ -729,11 +636,9 @@ async fn open_gpu(page: &Page, backends: wgpu::Backends) -> Result<(Gpu, Surface
         if view_format != config.format {
             config.view_formats.push(view_format);
         }
-        let depth = depth_target(&gpu.device, "texture.canvas.depth", width, height)
-            .create_view(&wgpu::TextureViewDescriptor::default());
-        let mut surface = Surface { surface, config, view_format, depth };
-        surface.configure(&gpu.device, (width, height));
-        return Ok((gpu, surface));
+        surface.configure(&gpu.device, &config);
+        let depth = depth_view(&gpu.device, (width, height));
+        return Ok((gpu, Surface { surface, config, view_format, depth }));
     }
     Err(format!(
         "This browser cannot draw the terrain: it needs WebGPU or WebGL2 ({}). \
@@ -742,62 +647,43 @@ async fn open_gpu(page: &Page, backends: wgpu::Backends) -> Result<(Gpu, Surface
     ))
 }
 
+/// Calls `handle` with the state for every `name` event of type `E` on `target`, for as
+/// long as the page lives.
+fn on<E: JsCast + 'static>(
+    target: &web_sys::EventTarget,
+    name: &str,
+    state: &Rc<RefCell<State>>,
+    handle: impl Fn(&mut State, &E) + 'static,
+) {
+    let state = state.clone();
+    let closure = Closure::<dyn FnMut(JsValue)>::new(move |event: JsValue| {
+        if let Some(event) = event.dyn_ref::<E>() {
+            handle(&mut state.borrow_mut(), event);
+        }
+    });
+    let _ = target.add_event_listener_with_callback(name, closure.as_ref().unchecked_ref());
+    closure.forget();
+}
+
 /// Keyboard on the window; pointer and wheel on the canvas.
 fn listen(state: &Rc<RefCell<State>>) {
     let (window, canvas) = {
         let s = state.borrow();
         (s.page.window.clone(), s.page.canvas.clone())
     };
-    let on = |target: &web_sys::EventTarget, name: &str, f: Box<dyn FnMut(JsValue)>| {
-        let closure = Closure::<dyn FnMut(JsValue)>::wrap(f);
-        let _ = target.add_event_listener_with_callback(name, closure.as_ref().unchecked_ref());
-        // The listeners live as long as the page.
-        closure.forget();
-    };
-    for (name, down) in [("keydown", true), ("keyup", false)] {
-        let state = state.clone();
-        on(
-            &window,
-            name,
-            Box::new(move |e| {
-                if let Some(e) = e.dyn_ref::<KeyboardEvent>() {
-                    state.borrow_mut().key(e, down);
-                }
-            }),
-        );
-    }
-    {
-        // Keys held when the page loses focus would stay "down" forever.
-        let state = state.clone();
-        on(&window, "blur", Box::new(move |_| state.borrow_mut().input.keys.clear()));
-    }
+    on(&window, "keydown", state, |s, e: &KeyboardEvent| s.key(e, true));
+    on(&window, "keyup", state, |s, e: &KeyboardEvent| s.key(e, false));
+    // Keys held when the page loses focus would stay "down" forever.
+    on(&window, "blur", state, |s, _: &web_sys::Event| s.input.keys.clear());
     for (name, kind) in [
         ("pointerdown", PointerKind::Down),
         ("pointermove", PointerKind::Move),
         ("pointerup", PointerKind::Up),
         ("pointercancel", PointerKind::Up),
     ] {
-        let state = state.clone();
-        on(
-            &canvas,
-            name,
-            Box::new(move |e| {
-                if let Some(e) = e.dyn_ref::<PointerEvent>() {
-                    state.borrow_mut().pointer(e, kind);
-                }
-            }),
-        );
+        on(&canvas, name, state, move |s, e: &PointerEvent| s.pointer(e, kind));
     }
-    let state = state.clone();
-    on(
-        &canvas,
-        "wheel",
-        Box::new(move |e| {
-            if let Some(e) = e.dyn_ref::<WheelEvent>() {
-                state.borrow_mut().wheel(e);
-            }
-        }),
-    );
+    on(&canvas, "wheel", state, |s, e: &WheelEvent| s.wheel(e));
 }
 
 /// Steps a frame on every animation frame, for as long as the page lives.
