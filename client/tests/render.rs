@@ -60,7 +60,7 @@ fn dem_archive() -> &'static Path {
             let path = dir.path().join("tamalpais.tspack");
             let raster = read_geotiff(&repo().join("tests/data/srtm-tamalpais-320-public-domain.tif")).unwrap();
             let options = TileOptions { tile_size: 64, border: 1, ..TileOptions::default() };
-            tile_elevation(raster, "tamalpais", &path, options, &Silent::default()).unwrap();
+            tile_elevation(&raster, "tamalpais", &path, options, &Silent::default()).unwrap();
             (dir, path)
         })
         .1

@@ -45,6 +45,10 @@ pub enum LayerKind {
     Normals,
     /// Material / classification map.
     Material,
+    /// The lowest and highest height of each tile of an elevation layer with the same grid
+    /// (format [`TileFormat::MinMaxF32`]), for culling and LOD decisions before the tile
+    /// itself is loaded.
+    HeightRange,
 }
 
 /// Encoding of each tile payload of a layer.
@@ -65,6 +69,9 @@ pub enum TileFormat {
     Bc1,
     /// BC7 blocks, ready for GPU upload.
     Bc7,
+    /// Two little-endian f32: the lowest and highest height (world units) of the samples,
+    /// borders included, of the tile with the same LOD, x and y in the elevation layer.
+    MinMaxF32,
 }
 
 impl TileFormat {
@@ -78,6 +85,7 @@ impl TileFormat {
             Self::RawF32 => "f32",
             Self::Bc1 => "bc1",
             Self::Bc7 => "bc7",
+            Self::MinMaxF32 => "minmax",
         }
     }
 
@@ -87,7 +95,7 @@ impl TileFormat {
             Self::Png => "image/png",
             Self::Jpeg => "image/jpeg",
             Self::Webp => "image/webp",
-            Self::RawU16 | Self::RawF32 | Self::Bc1 | Self::Bc7 => "application/octet-stream",
+            Self::RawU16 | Self::RawF32 | Self::Bc1 | Self::Bc7 | Self::MinMaxF32 => "application/octet-stream",
         }
     }
 
@@ -148,6 +156,51 @@ pub struct ElevationEncoding {
     /// Raw sample value meaning "no data".
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub nodata: Option<f64>,
+}
+
+impl ElevationScheme {
+    /// The raw value this scheme reads from a pixel's first three channels (8-bit values;
+    /// gray images pass the same value three times).
+    pub fn value(self, r: f64, g: f64, b: f64) -> f64 {
+        match self {
+            Self::Gray8 | Self::QuantizedU16 | Self::Float32 => r,
+            Self::RgbThirds => r + g + b,
+            Self::TerrainRgb => r * 65_536.0 + g * 256.0 + b,
+            Self::Terrarium => r * 256.0 + g + b / 256.0,
+        }
+    }
+
+    /// True for the schemes that read three colour channels.
+    pub fn needs_rgb(self) -> bool {
+        matches!(self, Self::RgbThirds | Self::TerrainRgb | Self::Terrarium)
+    }
+}
+
+impl ElevationEncoding {
+    /// One raw value (see [`ElevationScheme::value`]) -> height in world units.
+    pub fn height(&self, v: f64) -> f64 {
+        match self.scheme {
+            ElevationScheme::Gray8 => self.offset + v / 255.0 * self.scale,
+            ElevationScheme::RgbThirds => self.offset + v / 765.0 * self.scale,
+            ElevationScheme::TerrainRgb => -10_000.0 + v * 0.1,
+            ElevationScheme::Terrarium => v - 32_768.0,
+            ElevationScheme::QuantizedU16 => self.offset + v * self.scale,
+            ElevationScheme::Float32 => v,
+        }
+    }
+
+    /// The height difference between two neighbouring raw values: the encoding's
+    /// resolution (0 for f32).
+    pub fn step(&self) -> f64 {
+        match self.scheme {
+            ElevationScheme::Gray8 => self.scale / 255.0,
+            ElevationScheme::RgbThirds => self.scale / 765.0,
+            ElevationScheme::TerrainRgb => 0.1,
+            ElevationScheme::Terrarium => 1.0 / 256.0,
+            ElevationScheme::QuantizedU16 => self.scale,
+            ElevationScheme::Float32 => 0.0,
+        }
+    }
 }
 
 fn one() -> f64 {

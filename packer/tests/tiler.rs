@@ -41,7 +41,7 @@ fn a_geotiff_becomes_a_pyramid_with_borders_nodata_and_georeference() {
     assert!((raster.spacing.0 / raster.spacing.1 - 1.0).abs() < 0.01, "{:?}", raster.spacing);
     let out = dir.path().join("dem.tspack");
     let options = TileOptions { tile_size: 16, border: 2, storage: ElevationStorage::Auto };
-    tile_elevation(raster, "dem", &out, options, &Silent::default()).unwrap();
+    tile_elevation(&raster, "dem", &out, options, &Silent::default()).unwrap();
     let reader = Reader::open_mmap(&out).unwrap();
     let meta = reader.metadata();
     let layer = &meta.layers[0];

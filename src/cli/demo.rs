@@ -177,7 +177,7 @@ pub(super) fn tile_builtin_dem(dir: &std::path::Path, archive: &std::path::Path,
     std::fs::write(&tif, TAMALPAIS_TIF).with_context(|| format!("writing {}", tif.display()))?;
     let raster = read_geotiff(&tif)?;
     let options = TileOptions { tile_size: 64, border: 1, ..TileOptions::default() };
-    tile_elevation(raster, "tamalpais", archive, options, progress)?;
+    tile_elevation(&raster, "tamalpais", archive, options, progress)?;
     progress.finish();
     println!("tiled the built-in SRTM 1\" DEM (Mt Tamalpais, public domain) into {}", archive.display());
     Ok(())

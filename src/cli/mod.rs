@@ -9,6 +9,7 @@ mod pack;
 mod progress;
 mod render;
 mod serve;
+mod tile;
 mod view;
 
 use std::path::PathBuf;
@@ -82,32 +83,9 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Build a LOD pyramid archive from an elevation raster (GeoTIFF) and optional imagery.
-    Tile {
-        /// Elevation raster: single-band GeoTIFF (int/uint 8-32, float32/64; strips or tiles;
-        /// none, LZW or Deflate compression; GDAL nodata).
-        #[arg(long)]
-        elevation: PathBuf,
-        /// Texture image stretched over the same extent: GeoTIFF (8-bit gray/RGB/RGBA), PNG
-        /// or JPEG, at its own resolution; stored as PNG tiles with area-averaged LODs.
-        #[arg(long)]
-        texture: Option<PathBuf>,
-        /// Output archive (written to a temporary name, then renamed).
-        #[arg(short, long)]
-        output: PathBuf,
-        /// Samples per tile edge.
-        #[arg(long, default_value_t = 256)]
-        tile_size: u32,
-        /// Texture pixels per tile edge.
-        #[arg(long, default_value_t = 256)]
-        texture_tile_size: u32,
-        /// Samples duplicated from the neighbours on each side.
-        #[arg(long, default_value_t = 1)]
-        border: u8,
-        /// Sample storage: quantized u16 (exact for integer sources) or f32.
-        #[arg(long, value_enum, default_value_t = StorageArg::Auto)]
-        storage: StorageArg,
-    },
+    /// Build a LOD pyramid archive from an elevation raster and/or imagery (GeoTIFF, PNG,
+    /// JPEG), read a band of rows at a time.
+    Tile(tile::TileArgs),
     /// Serve archives over HTTP: Range requests on the files, tiles, metadata, metrics.
     Serve(serve::ServeArgs),
     /// Exit 0 if a server answers 200 on its health URL (container health checks; no
@@ -162,16 +140,6 @@ fn write_player(output: &std::path::Path) -> Result<ExitCode> {
 enum ExportFormat {
     /// PMTiles v3 (web zoom z = coarsest 0), readable by any PMTiles reader.
     Pmtiles,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum StorageArg {
-    /// u16 when the height range allows a step of 1/16 or finer, else f32.
-    Auto,
-    /// Quantized u16.
-    U16,
-    /// f32.
-    F32,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -265,35 +233,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
         Command::Player { output } => write_player(&output),
         Command::Render(args) => render::run(args),
         Command::View(args) => view::run(args),
-        Command::Tile { elevation, texture, output, tile_size, texture_tile_size, border, storage } => {
-            use terrastream_packer::tiler::{
-                ElevationStorage, TextureInput, TileOptions, read_geotiff, read_image, tile_terrain,
-            };
-            let raster = read_geotiff(&elevation)?;
-            let texture = texture
-                .map(|path| -> Result<TextureInput> {
-                    Ok(TextureInput { image: read_image(&path)?, path, tile_size: texture_tile_size })
-                })
-                .transpose()?;
-            let name = elevation.file_stem().and_then(|s| s.to_str()).unwrap_or("terrain").to_owned();
-            let storage = match storage {
-                StorageArg::Auto => ElevationStorage::Auto,
-                StorageArg::U16 => ElevationStorage::U16,
-                StorageArg::F32 => ElevationStorage::F32,
-            };
-            let started = std::time::Instant::now();
-            let options = TileOptions { tile_size, border, storage };
-            let summary = tile_terrain(raster, texture, &name, &output, options, &progress)?;
-            progress.finish();
-            println!(
-                "{}: {} tiles, {} bytes in {:.2} s",
-                output.display(),
-                summary.tile_entries,
-                summary.file_len,
-                started.elapsed().as_secs_f64()
-            );
-            Ok(ExitCode::SUCCESS)
-        }
+        Command::Tile(args) => tile::run(args, &progress),
         Command::Health { url, timeout } => health(&url, std::time::Duration::from_secs(timeout)),
         Command::Bench(cmd) => bench::run(cmd, &progress),
     }

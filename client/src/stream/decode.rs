@@ -93,6 +93,7 @@ pub fn decode(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> 
             }
             tile(TileData::Compressed { format: layer.format, blocks: Bytes::copy_from_slice(bytes) })
         }
+        TileFormat::MinMaxF32 => Err(bad("a height-range tile is not drawn".into())),
         TileFormat::RawU16 | TileFormat::RawF32 => {
             let width = if layer.format == TileFormat::RawU16 { 2 } else { 4 };
             if bytes.len() != samples * width {
@@ -145,25 +146,13 @@ fn heights(encoding: &ElevationEncoding, values: impl Iterator<Item = f64>) -> T
                 return f32::NAN;
             }
             #[expect(clippy::cast_possible_truncation, reason = "heights are stored as f32 on the GPU")]
-            let h = to_height(encoding, v) as f32;
+            let h = encoding.height(v) as f32;
             min = min.min(h);
             max = max.max(h);
             h
         })
         .collect();
     TileData::Heights { heights, min, max }
-}
-
-/// One raw value (as [`Image::values`] or a raw sample) -> height in world units.
-pub fn to_height(encoding: &ElevationEncoding, v: f64) -> f64 {
-    match encoding.scheme {
-        ElevationScheme::Gray8 => encoding.offset + v / 255.0 * encoding.scale,
-        ElevationScheme::RgbThirds => encoding.offset + v / 765.0 * encoding.scale,
-        ElevationScheme::TerrainRgb => -10_000.0 + v * 0.1,
-        ElevationScheme::Terrarium => v - 32_768.0,
-        ElevationScheme::QuantizedU16 => encoding.offset + v * encoding.scale,
-        ElevationScheme::Float32 => v,
-    }
 }
 
 /// A decoded image: 1 to 4 channels of 8 or 16 bits.
@@ -217,15 +206,10 @@ impl Image {
         let value = |p: usize| -> f64 {
             let (rv, gv, bv) =
                 (f64::from(self.sample(p, r)), f64::from(self.sample(p, g)), f64::from(self.sample(p, b)));
-            match scheme {
-                ElevationScheme::Gray8 | ElevationScheme::QuantizedU16 | ElevationScheme::Float32 => rv,
-                ElevationScheme::RgbThirds => rv + gv + bv,
-                ElevationScheme::TerrainRgb => rv * 65_536.0 + gv * 256.0 + bv,
-                ElevationScheme::Terrarium => rv * 256.0 + gv + bv / 256.0,
-            }
+            scheme.value(rv, gv, bv)
         };
         match scheme {
-            ElevationScheme::RgbThirds | ElevationScheme::TerrainRgb | ElevationScheme::Terrarium if !colour => {
+            _ if scheme.needs_rgb() && !colour => {
                 Err(format!("{scheme:?} needs an RGB image, this one has {} channel(s)", self.channels))
             }
             ElevationScheme::Gray8

@@ -11,7 +11,7 @@
 use std::cmp::Ordering;
 
 use glam::DVec3;
-use terrastream_packer::{Layer, Metadata, TileKey};
+use terrastream_packer::{Layer, LayerKind, Metadata, TileKey};
 
 use super::camera::{Aabb, Camera};
 
@@ -81,10 +81,13 @@ pub fn select(
     let pixels_per_radian = camera.pixels_per_radian();
     let heights = metadata.terrain.height_range();
     let mut wants = Vec::new();
-    // Breadth-first over all layers at once, level by level from the top.
+    // Breadth-first over the drawn layers at once, level by level from the top.
     let mut level: Vec<TileKey> = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {
         let Ok(index) = u8::try_from(index) else { continue };
+        if !matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture) {
+            continue;
+        }
         level.extend(layer.tiles_at(index, layer.num_lods.saturating_sub(1)));
     }
     // Tiles already wanted or queued: refinement stops when four more would pass the cap.

@@ -200,6 +200,7 @@ fn scan_layer(
         LayerKind::Elevation => "elevation",
         LayerKind::Normals => "normals",
         LayerKind::Material => "material",
+        LayerKind::HeightRange => "elevation-range",
         LayerKind::Texture => "texture",
     };
     for (lod, lod_dir) in lod_folders(dir)? {

@@ -1,0 +1,421 @@
+//! A LOD pyramid built from a stream of rows, keeping only a band of rows per level.
+//!
+//! Rows of LOD 0 are pushed in from the top. Each level keeps the rows its next row of
+//! tiles needs (tile size + two borders) and halves pairs of rows into the level above as
+//! they arrive; a row of tiles is cut and encoded (in parallel) as soon as its rows, borders
+//! included, are all in. Memory per level is one band of about `tile + 2 * border + 1` rows
+//! of that level's width, so the whole pyramid holds under two LOD-0 bands whatever the
+//! raster's height. Encoded tiles go to a [`Spool`] on disk, then into the archive in the
+//! archive's order.
+
+use std::collections::VecDeque;
+use std::fs::File;
+use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::Path;
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::key::TileKey;
+use crate::metadata::Metadata;
+use crate::progress::Progress;
+use crate::writer::Writer;
+
+/// A sample of a pyramid: a height (NaN = nodata) or an RGBA8 pixel (alpha 0 = none).
+pub trait Sample: Copy + Send + Sync + 'static {
+    /// No data.
+    const NONE: Self;
+    /// Is this a real sample?
+    fn has_data(&self) -> bool;
+    /// The mean of up to four samples, ignoring (height) or weighting by (alpha) the
+    /// missing ones: the 2x2 area average of the next coarser level.
+    fn mean4(s: [Self; 4]) -> Self;
+    /// Linear interpolation between `a` and `b` at `f` in 0..1 (resampling along x).
+    fn lerp(a: Self, b: Self, f: f64) -> Self;
+}
+
+impl Sample for f32 {
+    const NONE: Self = f32::NAN;
+    fn has_data(&self) -> bool {
+        !self.is_nan()
+    }
+    fn mean4(s: [Self; 4]) -> Self {
+        let (mut sum, mut n) = (0.0f64, 0u32);
+        for v in s.into_iter().filter(|v| !v.is_nan()) {
+            sum += f64::from(v);
+            n += 1;
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+        if n == 0 { f32::NAN } else { (sum / f64::from(n)) as f32 }
+    }
+    fn lerp(a: Self, b: Self, f: f64) -> Self {
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+        match (a.is_nan(), b.is_nan()) {
+            (false, false) => (f64::from(a) * (1.0 - f) + f64::from(b) * f) as f32,
+            (false, true) => a,
+            (true, false) => b,
+            (true, true) => f32::NAN,
+        }
+    }
+}
+
+impl Sample for [u8; 4] {
+    const NONE: Self = [0; 4];
+    fn has_data(&self) -> bool {
+        self[3] > 0
+    }
+    fn mean4(s: [Self; 4]) -> Self {
+        let mut sum = [0u32; 4];
+        for p in s {
+            let a = u32::from(p[3]);
+            for c in 0..3 {
+                sum[c] += u32::from(p[c]) * a;
+            }
+            sum[3] += a;
+        }
+        if sum[3] == 0 {
+            return [0; 4];
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "means of u8 values")]
+        let mean = |c: usize| ((sum[c] + sum[3] / 2) / sum[3]) as u8;
+        #[expect(clippy::cast_possible_truncation, reason = "a mean of four u8 values")]
+        let alpha = ((sum[3] + 2) / 4) as u8;
+        [mean(0), mean(1), mean(2), alpha]
+    }
+    fn lerp(a: Self, b: Self, f: f64) -> Self {
+        let (wa, wb) = (f64::from(a[3]) * (1.0 - f), f64::from(b[3]) * f);
+        let alpha = wa + wb;
+        let mut out = [0u8; 4];
+        for c in 0..3 {
+            let v = if alpha > 0.0 { (f64::from(a[c]) * wa + f64::from(b[c]) * wb) / alpha } else { 0.0 };
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+            let v = v.round().clamp(0.0, 255.0) as u8;
+            out[c] = v;
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+        let a = alpha.round().clamp(0.0, 255.0) as u8;
+        out[3] = a;
+        out
+    }
+}
+
+/// `row` resampled linearly along x to `width` samples (edges clamped).
+pub fn resample_row<S: Sample>(row: &[S], width: usize) -> Vec<S> {
+    if row.len() == width || row.is_empty() {
+        return row.to_vec();
+    }
+    #[expect(clippy::cast_precision_loss, reason = "pixel counts")]
+    let ratio = width as f64 / row.len() as f64;
+    let last = row.len() - 1;
+    (0..width)
+        .map(|x| {
+            #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
+            let sx = ((x as f64 + 0.5) / ratio - 0.5).max(0.0);
+            let x0 = sx.floor();
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel index >= 0")]
+            let i = (x0 as usize).min(last);
+            S::lerp(row[i], row[(i + 1).min(last)], sx - x0)
+        })
+        .collect()
+}
+
+/// Two rows of a level -> one row of the next (2x2 means; an odd last column is padded
+/// with no data).
+pub fn halve_rows<S: Sample>(a: &[S], b: &[S]) -> Vec<S> {
+    let at = |r: &[S], x: usize| r.get(x).copied().unwrap_or(S::NONE);
+    (0..a.len().div_ceil(2))
+        .map(|x| S::mean4([at(a, 2 * x), at(a, 2 * x + 1), at(b, 2 * x), at(b, 2 * x + 1)]))
+        .collect()
+}
+
+/// Encodes one cut tile into the archive entries it makes (the tile, and for elevation its
+/// height range), or none when it should be left missing.
+pub type Encode<'a, S> = dyn Fn(TileKey, &[S], usize) -> Result<Vec<(TileKey, Vec<u8>)>> + Sync + 'a;
+
+struct Level<S> {
+    lod: u8,
+    width: usize,
+    height: usize,
+    /// Absolute index of `rows[0]`.
+    first: usize,
+    rows: VecDeque<Vec<S>>,
+    received: usize,
+    /// Rows of tiles cut so far.
+    cut: usize,
+    /// An even row waiting for its odd partner, to be halved into the next level.
+    pending: Option<Vec<S>>,
+}
+
+/// Cuts one layer's tiles out of a stream of LOD-0 rows.
+pub struct Pyramid<'a, S: Sample> {
+    layer: u8,
+    res: usize,
+    border: usize,
+    levels: Vec<Level<S>>,
+    encode: &'a Encode<'a, S>,
+    metadata: &'a Metadata,
+    spool: &'a mut Spool,
+    progress: &'a dyn Progress,
+}
+
+impl<'a, S: Sample> Pyramid<'a, S> {
+    /// A pyramid of `lods` levels over a `width` x `height` LOD 0, for layer `layer` of
+    /// `metadata` (its tile size and border).
+    pub fn new(
+        metadata: &'a Metadata,
+        layer: u8,
+        (width, height): (u32, u32),
+        encode: &'a Encode<'a, S>,
+        spool: &'a mut Spool,
+        progress: &'a dyn Progress,
+    ) -> Result<Self> {
+        let l = metadata.layers.get(usize::from(layer)).ok_or_else(|| Error::Writer(format!("no layer {layer}")))?;
+        let levels = (0..l.num_lods)
+            .map(|lod| {
+                let shrink = |n: u32| (n.div_ceil(1 << lod)).max(1) as usize;
+                Level {
+                    lod,
+                    width: shrink(width),
+                    height: shrink(height),
+                    first: 0,
+                    rows: VecDeque::new(),
+                    received: 0,
+                    cut: 0,
+                    pending: None,
+                }
+            })
+            .collect();
+        Ok(Self {
+            layer,
+            res: l.tile_resolution as usize,
+            border: usize::from(l.border),
+            levels,
+            encode,
+            metadata,
+            spool,
+            progress,
+        })
+    }
+
+    /// Tiles that will be cut (whole rows and columns of tiles over the data, every LOD).
+    pub fn tile_count(&self) -> u64 {
+        self.levels.iter().map(|l| (l.width.div_ceil(self.res) * l.height.div_ceil(self.res)) as u64).sum()
+    }
+
+    /// Samples held now, all levels (the band each keeps, and rows waiting to be halved).
+    pub fn held_samples(&self) -> usize {
+        self.levels.iter().map(|l| (l.rows.len() + usize::from(l.pending.is_some())) * l.width).sum()
+    }
+
+    /// Adds the next row of LOD 0.
+    ///
+    /// # Errors
+    /// Encoding and spool errors, [`Error::Interrupted`].
+    pub fn push(&mut self, row: Vec<S>) -> Result<()> {
+        self.push_at(0, row)
+    }
+
+    fn push_at(&mut self, l: usize, row: Vec<S>) -> Result<()> {
+        let has_next = l + 1 < self.levels.len();
+        let level = &mut self.levels[l];
+        if level.received >= level.height {
+            return Err(Error::Writer(format!("LOD {}: more than {} rows", level.lod, level.height)));
+        }
+        let half = match (has_next, level.pending.take()) {
+            (false, _) => None,
+            (true, None) => {
+                level.pending = Some(row.clone());
+                None
+            }
+            (true, Some(even)) => Some(halve_rows(&even, &row)),
+        };
+        level.rows.push_back(row);
+        level.received += 1;
+        self.cut_ready(l)?;
+        if let Some(half) = half {
+            self.push_at(l + 1, half)?;
+        }
+        Ok(())
+    }
+
+    /// Ends the stream: pads odd levels, cuts what is left.
+    ///
+    /// # Errors
+    /// As [`Pyramid::push`]; [`Error::Writer`] if rows are missing.
+    pub fn finish(mut self) -> Result<()> {
+        for l in 0..self.levels.len() {
+            let level = &self.levels[l];
+            if level.received != level.height {
+                return Err(Error::Writer(format!(
+                    "LOD {}: {} of {} rows arrived",
+                    level.lod, level.received, level.height
+                )));
+            }
+            if let Some(even) = self.levels[l].pending.take() {
+                let none = vec![S::NONE; even.len()];
+                self.push_at(l + 1, halve_rows(&even, &none))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Cuts every row of tiles of level `l` whose rows (and lower border) have arrived.
+    fn cut_ready(&mut self, l: usize) -> Result<()> {
+        let (res, border) = (self.res, self.border);
+        loop {
+            let level = &self.levels[l];
+            if level.cut >= level.height.div_ceil(res) {
+                return Ok(());
+            }
+            let need = ((level.cut + 1) * res + border).min(level.height);
+            if level.received < need {
+                return Ok(());
+            }
+            self.progress.check()?;
+            let ty = level.cut;
+            let edge = res + 2 * border;
+            let cols = level.width.div_ceil(res);
+            let encode = self.encode;
+            let (layer, lod, progress) = (self.layer, level.lod, self.progress);
+            // The band's row `y` (absolute), if it is in the raster.
+            let row_at = |y: usize| -> Option<&[S]> {
+                if y < level.first || y >= level.height {
+                    None
+                } else {
+                    level.rows.get(y - level.first).map(Vec::as_slice)
+                }
+            };
+            let tiles: Vec<Vec<(TileKey, Vec<u8>)>> = (0..cols)
+                .into_par_iter()
+                .map(|tx| {
+                    let mut any = false;
+                    let mut samples = Vec::with_capacity(edge * edge);
+                    // Columns x0 - border .. x0 + res + border, clipped to the raster.
+                    let (left, right) = ((tx * res).checked_sub(border), tx * res + res + border);
+                    let (from, to) = (left.unwrap_or(0), right.min(level.width));
+                    let pad_left = border.saturating_sub(tx * res);
+                    for j in 0..edge {
+                        let row = (ty * res + j).checked_sub(border).and_then(row_at);
+                        let Some(row) = row.filter(|_| from < to) else {
+                            samples.resize(samples.len() + edge, S::NONE);
+                            continue;
+                        };
+                        samples.resize(samples.len() + pad_left, S::NONE);
+                        let span = &row[from..to];
+                        if (border..border + res).contains(&j) {
+                            let inner = &row[(tx * res).min(to)..(tx * res + res).min(to)];
+                            any |= inner.iter().any(S::has_data);
+                        }
+                        samples.extend_from_slice(span);
+                        samples.resize(samples.len() + (edge - pad_left - span.len()), S::NONE);
+                    }
+                    progress.advance(1);
+                    if !any {
+                        return Ok(Vec::new());
+                    }
+                    let coordinate = |n: usize| u32::try_from(n).map_err(|_| Error::Writer("tile coordinate".into()));
+                    let key = TileKey::new(layer, lod, coordinate(tx)?, coordinate(ty)?)?;
+                    encode(key, &samples, edge)
+                })
+                .collect::<Result<_>>()?;
+            for (key, bytes) in tiles.into_iter().flatten() {
+                self.spool.add(self.metadata, key, &bytes)?;
+            }
+            let level = &mut self.levels[l];
+            level.cut += 1;
+            let keep_from = (level.cut * res).saturating_sub(border);
+            while level.first < keep_from && !level.rows.is_empty() {
+                level.rows.pop_front();
+                level.first += 1;
+            }
+        }
+    }
+}
+
+/// Encoded tiles on disk, in the order they were cut, with an in-memory index (about
+/// 24 bytes a tile) to hand them to the archive writer in archive order.
+pub struct Spool {
+    file: BufWriter<File>,
+    len: u64,
+    index: Vec<(u64, TileKey, u64, u32)>,
+}
+
+impl Spool {
+    /// A spool in a temporary file in `folder` (removed when dropped).
+    ///
+    /// # Errors
+    /// [`Error::File`] if the folder is not writable.
+    pub fn new(folder: &Path) -> Result<Self> {
+        let file = tempfile::tempfile_in(folder).map_err(|e| Error::file(folder, e))?;
+        Ok(Self { file: BufWriter::with_capacity(1 << 20, file), len: 0, index: Vec::new() })
+    }
+
+    fn add(&mut self, metadata: &Metadata, key: TileKey, bytes: &[u8]) -> Result<()> {
+        let order = Writer::order_key(metadata, key)?;
+        let len = u32::try_from(bytes.len()).map_err(|_| Error::Writer(format!("{key}: payload over 4 GiB")))?;
+        self.file.write_all(bytes)?;
+        self.index.push((order, key, self.len, len));
+        self.len += u64::from(len);
+        Ok(())
+    }
+
+    /// Tiles spooled so far.
+    pub fn tiles(&self) -> usize {
+        self.index.len()
+    }
+
+    /// Hands every tile, in archive order, to `writer` as stored bytes.
+    ///
+    /// # Errors
+    /// I/O and writer errors, [`Error::Interrupted`].
+    pub fn drain_into(self, writer: &mut Writer, progress: &dyn Progress) -> Result<()> {
+        let Self { file, mut index, .. } = self;
+        let mut file = file.into_inner().map_err(|e| e.into_error())?;
+        index.sort_unstable_by_key(|t| t.0);
+        progress.start("write", index.len() as u64);
+        for (n, (_, key, offset, len)) in index.into_iter().enumerate() {
+            if n.is_multiple_of(1024) {
+                progress.check()?;
+            }
+            let mut bytes = vec![0; len as usize];
+            file.seek(SeekFrom::Start(offset))?;
+            file.read_exact(&mut bytes)?;
+            writer.add_stored(key, bytes)?;
+            progress.advance(1);
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn halving_averages_and_ignores_nodata() {
+        let a = [0.0, f32::NAN, 2.0];
+        let b = [10.0, 11.0, 12.0];
+        let h = halve_rows(&a, &b);
+        assert_eq!(h.len(), 2);
+        assert_eq!(h[0], (0.0 + 10.0 + 11.0) / 3.0);
+        assert_eq!(h[1], (2.0 + 12.0) / 2.0);
+    }
+
+    #[test]
+    fn resampling_interpolates_and_clamps() {
+        let row: Vec<f32> = (0..10).map(|x| x as f32).collect();
+        let half = resample_row(&row, 5);
+        assert!((half[1] - 2.5).abs() < 1e-6, "{half:?}");
+        assert_eq!(half[0], 0.5);
+        let px = resample_row(&[[200, 0, 0, 255], [0, 0, 0, 0]], 4);
+        assert_eq!(px[0], [200, 0, 0, 255], "clamped at the left edge");
+        assert_eq!(px[3], [0, 0, 0, 0], "clamped at the right edge");
+        assert_eq!(px[1][0], 200, "colour weighted by alpha: the transparent pixel adds none");
+    }
+
+    #[test]
+    fn halving_an_image_weights_by_alpha() {
+        let h = halve_rows(&[[200, 0, 0, 255], [0, 0, 0, 0], [10, 20, 30, 255]], &[[0; 4]; 3]);
+        assert_eq!(h, vec![[200, 0, 0, 64], [10, 20, 30, 64]]);
+    }
+}

@@ -1,0 +1,665 @@
+//! The tiler's inputs, read a band of rows at a time: GeoTIFF by strips or by rows of
+//! tiles, PNG row by row, never the whole raster (JPEG, which cannot be read by rows
+//! here, is the one exception). Each pass over a source reopens its file, so a source can
+//! be read twice (statistics, then tiles) with memory bounded by one band.
+
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+use crate::metadata::{ElevationEncoding, ElevationScheme, Georeference};
+
+/// Rows of heights: the elevation input of the tiler.
+pub trait ElevationSource: Sync {
+    /// Where the samples come from (named in errors).
+    fn path(&self) -> &Path;
+    /// Samples across and down.
+    fn size(&self) -> (u32, u32);
+    /// Sample spacing in metres (x, y).
+    fn spacing(&self) -> (f64, f64);
+    /// Where the raster lies, when the file says.
+    fn georeference(&self) -> Option<&Georeference>;
+    /// Calls `row` with each row of heights, top to bottom; NaN where there is no data.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>;
+}
+
+/// Rows of RGBA8 pixels: the texture input of the tiler.
+pub trait ImageSource: Sync {
+    /// Where the pixels come from (named in errors).
+    fn path(&self) -> &Path;
+    /// Pixels across and down.
+    fn size(&self) -> (u32, u32);
+    /// Where the image lies, when the file says.
+    fn georeference(&self) -> Option<&Georeference>;
+    /// Calls `row` with each row of pixels, top to bottom; alpha 0 where there is no data.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()>;
+}
+
+/// A single-band raster in memory; NaN where there is no data.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Raster {
+    /// Samples across.
+    pub width: u32,
+    /// Samples down.
+    pub height: u32,
+    /// Row-major samples.
+    pub data: Vec<f32>,
+    /// Sample spacing in metres (x, y).
+    pub spacing: (f64, f64),
+    /// Where the raster lies, when the file says.
+    pub georeference: Option<Georeference>,
+}
+
+impl ElevationSource for Raster {
+    fn path(&self) -> &Path {
+        Path::new("<raster in memory>")
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn spacing(&self) -> (f64, f64) {
+        self.spacing
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        self.data.chunks_exact(self.width.max(1) as usize).try_for_each(row)
+    }
+}
+
+/// An RGBA8 image in memory: the texture input (orthophoto, satellite scene, shaded relief).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    /// Pixels across.
+    pub width: u32,
+    /// Pixels down.
+    pub height: u32,
+    /// Row-major RGBA8 pixels; alpha 0 where there is no data.
+    pub rgba: Vec<u8>,
+    /// Where the image lies, when the file says (GeoTIFF).
+    pub georeference: Option<Georeference>,
+}
+
+impl ImageSource for Image {
+    fn path(&self) -> &Path {
+        Path::new("<image in memory>")
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        self.rgba.chunks_exact(self.width.max(1) as usize * 4).try_for_each(|r| row(&as_pixels(r)))
+    }
+}
+
+fn as_pixels(rgba: &[u8]) -> Vec<[u8; 4]> {
+    rgba.chunks_exact(4).map(|p| [p[0], p[1], p[2], p[3]]).collect()
+}
+
+/// An image file read row by row (GeoTIFF, PNG) or, for JPEG, decoded once when opened.
+#[derive(Debug)]
+pub struct ImageFile {
+    path: PathBuf,
+    width: u32,
+    height: u32,
+    georeference: Option<Georeference>,
+    kind: ImageKind,
+}
+
+#[derive(Debug)]
+enum ImageKind {
+    Tiff {
+        channels: usize,
+    },
+    Png,
+    /// RGB pixels of a JPEG, decoded when opened.
+    Decoded(Vec<u8>),
+}
+
+/// An elevation file read row by row: a GeoTIFF of numbers or a PNG whose pixels encode
+/// heights (16-bit gray, or 8-bit gray / RGB in one of the [`ElevationScheme`]s).
+#[derive(Debug)]
+pub struct ElevationFile {
+    path: PathBuf,
+    width: u32,
+    height: u32,
+    spacing: (f64, f64),
+    georeference: Option<Georeference>,
+    nodata: Option<f64>,
+    /// How PNG pixels (or 8-bit TIFF samples) map to heights; None: samples are heights.
+    encoding: Option<ElevationEncoding>,
+    png: bool,
+}
+
+const MODEL_PIXEL_SCALE: u16 = 33550;
+const MODEL_TIEPOINT: u16 = 33922;
+const GEO_KEY_DIRECTORY: u16 = 34735;
+const GDAL_NODATA: u16 = 42113;
+const PLANAR_CONFIGURATION: u16 = 284;
+
+type TiffDecoder = tiff::decoder::Decoder<std::io::BufReader<std::fs::File>>;
+
+fn open_tiff(path: &Path) -> Result<TiffDecoder> {
+    use tiff::decoder::{Decoder, Limits};
+    let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let mut limits = Limits::default();
+    // One chunk (a strip or a tile) is decoded at a time: allow big ones, not the image.
+    limits.decoding_buffer_size = 1 << 30;
+    limits.intermediate_buffer_size = 1 << 30;
+    Ok(Decoder::new(std::io::BufReader::new(file))
+        .map_err(|e| Error::input(path, format!("not a readable TIFF: {e}")))?
+        .with_limits(limits))
+}
+
+/// The kind of file, by its first bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Sniffed {
+    Tiff,
+    Png,
+    Jpeg,
+}
+
+fn sniff(path: &Path) -> Result<Sniffed> {
+    use std::io::Read;
+    let mut head = [0u8; 8];
+    let mut file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let n = file.read(&mut head).map_err(|e| Error::file(path, e))?;
+    let head = &head[..n];
+    if head.starts_with(b"II*\0") || head.starts_with(b"MM\0*") || head.starts_with(b"II+\0") {
+        Ok(Sniffed::Tiff)
+    } else if head.starts_with(b"\x89PNG") {
+        Ok(Sniffed::Png)
+    } else if head.starts_with(&[0xFF, 0xD8]) {
+        Ok(Sniffed::Jpeg)
+    } else if n == 0 {
+        Err(Error::input(path, "the file is empty (0 bytes)"))
+    } else {
+        Err(Error::input(path, "not a GeoTIFF, PNG or JPEG image"))
+    }
+}
+
+/// Reads a single-band GeoTIFF whole (small rasters, tests); [`open_elevation`] streams.
+///
+/// # Errors
+/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+pub fn read_geotiff(path: &Path) -> Result<Raster> {
+    let file = open_elevation(path, None)?;
+    let (width, height) = file.size();
+    let mut data = Vec::with_capacity(width as usize * height as usize);
+    file.rows(&mut |row| {
+        data.extend_from_slice(row);
+        Ok(())
+    })?;
+    Ok(Raster { width, height, data, spacing: file.spacing, georeference: file.georeference })
+}
+
+/// Opens an elevation raster for reading by rows: a single-band GeoTIFF (int8..32,
+/// uint8..32, float32/64; strips or tiles; none, LZW or Deflate; GDAL nodata), whose
+/// samples are heights unless `encoding` maps them; or a PNG: 16-bit gray (heights, or
+/// mapped by a `quantized_u16` encoding), 8-bit gray (`gray8`) or RGB (`rgb_thirds`,
+/// `terrain_rgb`, `terrarium`), transparent pixels being nodata.
+///
+/// # Errors
+/// [`Error::Input`] naming the file: unreadable, not an elevation raster, a PNG whose
+/// pixels need an encoding that was not given or does not fit them.
+pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Result<ElevationFile> {
+    let bad = |why: String| Error::input(path, why);
+    match sniff(path)? {
+        Sniffed::Jpeg => Err(bad("JPEG is lossy: elevation must come from a GeoTIFF or a PNG".into())),
+        Sniffed::Png => {
+            let (info, _) = png_header(path)?;
+            let (colour, depth) = info;
+            let channels = colour.samples();
+            let rgb = channels >= 3;
+            let sixteen = depth == png::BitDepth::Sixteen;
+            let encoding = match encoding {
+                Some(e) if e.scheme.needs_rgb() && !rgb => {
+                    return Err(bad(format!("{:?} needs RGB pixels; this PNG is {colour:?}", e.scheme)));
+                }
+                Some(e) if e.scheme.needs_rgb() || e.scheme == ElevationScheme::Gray8 => {
+                    if sixteen {
+                        return Err(bad(format!("{:?} needs 8-bit pixels; this PNG is 16-bit", e.scheme)));
+                    }
+                    e
+                }
+                Some(e) if e.scheme == ElevationScheme::QuantizedU16 && sixteen && !rgb => e,
+                Some(e) => return Err(bad(format!("{:?} does not apply to a {colour:?} {depth:?} PNG", e.scheme))),
+                None if sixteen && !rgb => {
+                    ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 1.0, offset: 0.0, nodata: None }
+                }
+                None => {
+                    return Err(bad(format!(
+                        "a {depth:?}-bit {colour:?} PNG: say how its pixels map to heights (an elevation encoding: \
+                         gray8 with a minimum and displacement, rgb-thirds, terrain-rgb or terrarium)"
+                    )));
+                }
+            };
+            let (width, height) = png_header(path)?.1;
+            Ok(ElevationFile {
+                path: path.to_path_buf(),
+                width,
+                height,
+                spacing: (1.0, 1.0),
+                georeference: None,
+                nodata: encoding.nodata,
+                encoding: Some(encoding),
+                png: true,
+            })
+        }
+        Sniffed::Tiff => {
+            let mut decoder = open_tiff(path)?;
+            let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+            if width == 0 || height == 0 {
+                return Err(bad(format!("the raster is empty ({width}x{height})")));
+            }
+            let colour = decoder.colortype().map_err(|e| bad(e.to_string()))?;
+            let eight = matches!(colour, tiff::ColorType::Gray(8));
+            match colour {
+                tiff::ColorType::Gray(_) => {}
+                other => {
+                    return Err(bad(format!("{other:?} samples: an elevation GeoTIFF has a single band of numbers")));
+                }
+            }
+            if let Some(e) = encoding {
+                if e.scheme.needs_rgb() || (e.scheme == ElevationScheme::Gray8 && !eight) {
+                    return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
+                }
+            }
+            let nodata: Option<f64> = decoder
+                .find_tag(tiff::tags::Tag::Unknown(GDAL_NODATA))
+                .ok()
+                .flatten()
+                .and_then(|v| v.into_string().ok())
+                .and_then(|s| s.trim_matches(char::from(0)).trim().parse().ok());
+            let (spacing, georeference) = GeoTags::read(&mut decoder).placement(width, height).map_err(bad)?;
+            Ok(ElevationFile {
+                path: path.to_path_buf(),
+                width,
+                height,
+                spacing,
+                georeference,
+                nodata,
+                encoding,
+                png: false,
+            })
+        }
+    }
+}
+
+impl ElevationFile {
+    /// Replaces the sample spacing (metres), e.g. for a PNG, which carries none.
+    #[must_use]
+    pub fn with_spacing(mut self, spacing: f64) -> Self {
+        self.spacing = (spacing, spacing);
+        self
+    }
+
+    /// Does the file place itself (GeoTIFF georeference) or is its spacing a default?
+    pub fn is_georeferenced(&self) -> bool {
+        self.georeference.is_some()
+    }
+}
+
+impl ElevationSource for ElevationFile {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn spacing(&self) -> (f64, f64) {
+        self.spacing
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        let width = self.width as usize;
+        let mut out = vec![0f32; width];
+        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+        let convert = |raw: f64| -> f32 {
+            if self.nodata == Some(raw) || !raw.is_finite() {
+                return f32::NAN;
+            }
+            match &self.encoding {
+                Some(e) => e.height(raw) as f32,
+                None => raw as f32,
+            }
+        };
+        if self.png {
+            let scheme = self.encoding.map_or(ElevationScheme::QuantizedU16, |e| e.scheme);
+            return png_rows(&self.path, self.width, |values, channels, sixteen| {
+                let sample = |i: usize| -> f64 {
+                    if sixteen {
+                        f64::from(u16::from_be_bytes([values[2 * i], values[2 * i + 1]]))
+                    } else {
+                        f64::from(values[i])
+                    }
+                };
+                let alpha = matches!(channels, 2 | 4);
+                for (x, h) in out.iter_mut().enumerate() {
+                    let p = x * channels;
+                    let opaque = !alpha || sample(p + channels - 1) > 0.0;
+                    let (r, g, b) =
+                        if channels >= 3 { (sample(p), sample(p + 1), sample(p + 2)) } else { (sample(p), 0.0, 0.0) };
+                    *h = if opaque { convert(scheme.value(r, g, b)) } else { f32::NAN };
+                }
+                row(&out)
+            });
+        }
+        tiff_rows(&self.path, 1, &mut |chunk_row: &[f64]| {
+            for (h, &v) in out.iter_mut().zip(chunk_row) {
+                *h = convert(v);
+            }
+            row(&out)
+        })
+    }
+}
+
+/// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB or RGBA; strips
+/// or tiles; none, LZW or Deflate) or PNG (any colour type; 16-bit is reduced to 8), or
+/// JPEG (decoded here, whole); told apart by content.
+///
+/// # Errors
+/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+pub fn open_image(path: &Path) -> Result<ImageFile> {
+    let bad = |why: String| Error::input(path, why);
+    let (width, height, georeference, kind) = match sniff(path)? {
+        Sniffed::Png => {
+            let (_, (w, h)) = png_header(path)?;
+            (w, h, None, ImageKind::Png)
+        }
+        Sniffed::Jpeg => {
+            let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
+            let options = zune_jpeg::zune_core::options::DecoderOptions::default()
+                .jpeg_set_out_colorspace(zune_jpeg::zune_core::colorspace::ColorSpace::RGB)
+                .set_max_width(1 << 16)
+                .set_max_height(1 << 16);
+            let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&bytes, options);
+            let pixels = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
+            let (w, h) = decoder.dimensions().ok_or_else(|| bad("JPEG: no dimensions".into()))?;
+            let dim = |n: usize| u32::try_from(n).map_err(|_| bad("JPEG: too large".into()));
+            (dim(w)?, dim(h)?, None, ImageKind::Decoded(pixels))
+        }
+        Sniffed::Tiff => {
+            let mut decoder = open_tiff(path)?;
+            let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+            let channels = match decoder.colortype().map_err(|e| bad(e.to_string()))? {
+                tiff::ColorType::Gray(8) => 1,
+                tiff::ColorType::GrayA(8) => 2,
+                tiff::ColorType::RGB(8) => 3,
+                tiff::ColorType::RGBA(8) => 4,
+                other => return Err(bad(format!("{other:?} pixels: textures must be 8-bit gray, RGB or RGBA"))),
+            };
+            let planar = decoder.find_tag_unsigned::<u16>(tiff::tags::Tag::Unknown(PLANAR_CONFIGURATION));
+            if channels > 1 && matches!(planar, Ok(Some(2))) {
+                return Err(bad("planar (band-separate) pixels: store the bands interleaved".into()));
+            }
+            let georeference = GeoTags::read(&mut decoder).placement(width, height).ok().and_then(|(_, g)| g);
+            (width, height, georeference, ImageKind::Tiff { channels })
+        }
+    };
+    if width == 0 || height == 0 {
+        return Err(bad(format!("the image is empty ({width}x{height} pixels)")));
+    }
+    if let ImageKind::Decoded(rgb) = &kind {
+        if rgb.len() != width as usize * height as usize * 3 {
+            return Err(bad(format!("{} bytes of pixels for {width}x{height}", rgb.len())));
+        }
+    }
+    Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, kind })
+}
+
+/// Reads a whole image into memory (small images, tests); [`open_image`] streams.
+///
+/// # Errors
+/// As [`open_image`].
+pub fn read_image(path: &Path) -> Result<Image> {
+    let file = open_image(path)?;
+    let mut rgba = Vec::with_capacity(file.width as usize * file.height as usize * 4);
+    file.rows(&mut |row| {
+        rgba.extend_from_slice(row.as_flattened());
+        Ok(())
+    })?;
+    Ok(Image { width: file.width, height: file.height, rgba, georeference: file.georeference })
+}
+
+impl ImageSource for ImageFile {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        let width = self.width as usize;
+        let mut out = vec![[0u8; 4]; width];
+        let mut emit = |values: &[u8], channels: usize| {
+            for (p, px) in out.iter_mut().zip(values.chunks_exact(channels)) {
+                *p = match channels {
+                    4 => [px[0], px[1], px[2], px[3]],
+                    3 => [px[0], px[1], px[2], 255],
+                    2 => [px[0], px[0], px[0], px[1]],
+                    _ => [px[0], px[0], px[0], 255],
+                };
+            }
+            row(&out)
+        };
+        match &self.kind {
+            ImageKind::Decoded(rgb) => rgb.chunks_exact(width * 3).try_for_each(|r| emit(r, 3)),
+            ImageKind::Png => png_rows(&self.path, self.width, |values, channels, sixteen| {
+                if sixteen {
+                    let eight: Vec<u8> = values.chunks_exact(2).map(|v| v[0]).collect();
+                    emit(&eight, channels)
+                } else {
+                    emit(values, channels)
+                }
+            }),
+            ImageKind::Tiff { channels } => {
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "8-bit samples")]
+                let mut eight = |r: &[f64]| -> Result<()> {
+                    let bytes: Vec<u8> = r.iter().map(|&v| v as u8).collect();
+                    emit(&bytes, *channels)
+                };
+                tiff_rows(&self.path, *channels, &mut eight)
+            }
+        }
+    }
+}
+
+/// A PNG's (colour type, bit depth) after expansion, and its size.
+fn png_header(path: &Path) -> Result<((png::ColorType, png::BitDepth), (u32, u32))> {
+    let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let reader = decoder.read_info().map_err(|e| Error::input(path, format!("PNG: {e}")))?;
+    let info = reader.info();
+    let size = (info.width, info.height);
+    if size.0 == 0 || size.1 == 0 {
+        return Err(Error::input(path, "the image is empty (0 pixels)"));
+    }
+    Ok((reader.output_color_type(), size))
+}
+
+/// Calls `row(values, channels, sixteen)` for each row of a PNG (palette and low bit
+/// depths expanded; 16-bit samples big-endian).
+fn png_rows(path: &Path, width: u32, mut row: impl FnMut(&[u8], usize, bool) -> Result<()>) -> Result<()> {
+    let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let mut reader = decoder.read_info().map_err(|e| Error::input(path, format!("PNG: {e}")))?;
+    let (colour, depth) = reader.output_color_type();
+    let channels = colour.samples();
+    let sixteen = depth == png::BitDepth::Sixteen;
+    let expected = width as usize * channels * if sixteen { 2 } else { 1 };
+    let mut y = 0u32;
+    while let Some(r) = reader.next_row().map_err(|e| Error::input(path, format!("PNG, row {y}: {e}")))? {
+        let data = r.data();
+        if data.len() < expected {
+            return Err(Error::input(path, format!("PNG, row {y}: {} bytes, {expected} expected", data.len())));
+        }
+        row(&data[..expected], channels, sixteen)?;
+        y += 1;
+    }
+    Ok(())
+}
+
+/// Calls `row` with each row of a TIFF's samples (`channels` per pixel, as f64), reading
+/// one strip, or one row of tiles, at a time.
+fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result<()>) -> Result<()> {
+    use tiff::decoder::ChunkType;
+    let bad = |why: String| Error::input(path, why);
+    let mut decoder = open_tiff(path)?;
+    let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+    let (width, height) = (width as usize, height as usize);
+    let stride = width * channels;
+    let (chunk_w, chunk_h) = decoder.chunk_dimensions();
+    let (chunk_w, chunk_h) = (chunk_w as usize, chunk_h as usize);
+    if chunk_w == 0 || chunk_h == 0 {
+        return Err(bad("zero-size strips or tiles".into()));
+    }
+    let what = if decoder.get_chunk_type() == ChunkType::Strip { "strip" } else { "tile" };
+    let count = match decoder.get_chunk_type() {
+        ChunkType::Strip => decoder.strip_count(),
+        ChunkType::Tile => decoder.tile_count(),
+    }
+    .map_err(|e| bad(format!("{what}s: {e}")))? as usize;
+    let chunk = |decoder: &mut TiffDecoder, index: usize| -> Result<(Vec<f64>, usize, usize)> {
+        let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
+        if index >= count {
+            return Err(bad(format!("{what} {index} is missing (the file lists {count})")));
+        }
+        let (w, h) = decoder.chunk_data_dimensions(i);
+        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")))?;
+        let values = samples_f64(data).ok_or_else(|| bad("unsupported sample type".into()))?;
+        let (w, h) = (w as usize, h as usize);
+        if values.len() < w * h * channels {
+            return Err(bad(format!("{what} {index}: {} samples, {} expected", values.len(), w * h * channels)));
+        }
+        Ok((values, w, h))
+    };
+    match decoder.get_chunk_type() {
+        ChunkType::Strip => {
+            let mut y = 0;
+            for index in 0..height.div_ceil(chunk_h) {
+                let (values, _, h) = chunk(&mut decoder, index)?;
+                for r in values.chunks_exact(stride).take(h.min(height - y)) {
+                    row(r)?;
+                }
+                y += h;
+            }
+            if y < height {
+                return Err(bad(format!("strips hold {y} of {height} rows")));
+            }
+        }
+        ChunkType::Tile => {
+            let across = width.div_ceil(chunk_w);
+            let mut band = vec![0f64; stride * chunk_h];
+            for ty in 0..height.div_ceil(chunk_h) {
+                let mut rows_here = chunk_h.min(height - ty * chunk_h);
+                for tx in 0..across {
+                    let (values, w, h) = chunk(&mut decoder, ty * across + tx)?;
+                    rows_here = rows_here.min(h);
+                    let x0 = tx * chunk_w * channels;
+                    let w = w.min(width - tx * chunk_w) * channels;
+                    for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
+                        band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
+                    }
+                }
+                for r in band.chunks_exact(stride).take(rows_here) {
+                    row(r)?;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+#[expect(clippy::cast_precision_loss, reason = "32-bit integers as f64 are exact")]
+fn samples_f64(data: tiff::decoder::DecodingResult) -> Option<Vec<f64>> {
+    use tiff::decoder::DecodingResult as D;
+    Some(match data {
+        D::U8(v) => v.into_iter().map(f64::from).collect(),
+        D::I8(v) => v.into_iter().map(f64::from).collect(),
+        D::U16(v) => v.into_iter().map(f64::from).collect(),
+        D::I16(v) => v.into_iter().map(f64::from).collect(),
+        D::U32(v) => v.into_iter().map(f64::from).collect(),
+        D::I32(v) => v.into_iter().map(f64::from).collect(),
+        D::U64(v) => v.into_iter().map(|x| x as f64).collect(),
+        D::I64(v) => v.into_iter().map(|x| x as f64).collect(),
+        D::F32(v) => v.into_iter().map(f64::from).collect(),
+        D::F64(v) => v,
+        _ => return None,
+    })
+}
+
+/// The GeoTIFF tags that place a raster on the Earth.
+struct GeoTags {
+    scale: Option<Vec<f64>>,
+    tiepoint: Option<Vec<f64>>,
+    keys: Option<Vec<f64>>,
+}
+
+impl GeoTags {
+    fn read<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::decoder::Decoder<R>) -> Self {
+        use tiff::tags::Tag;
+        let mut tag = |t: u16| -> Option<Vec<f64>> { decoder.find_tag(Tag::Unknown(t)).ok()??.into_f64_vec().ok() };
+        let scale = tag(MODEL_PIXEL_SCALE);
+        let tiepoint = tag(MODEL_TIEPOINT);
+        #[expect(clippy::cast_precision_loss, reason = "GeoKey values are u16")]
+        let keys: Option<Vec<f64>> = decoder
+            .find_tag(Tag::Unknown(GEO_KEY_DIRECTORY))
+            .ok()
+            .flatten()
+            .and_then(|v| v.into_u64_vec().ok())
+            .map(|v| v.into_iter().map(|k| k as f64).collect());
+        Self { scale, tiepoint, keys }
+    }
+
+    /// Sample spacing in metres (x, y) and the georeference; (1, 1) and none without tags.
+    fn placement(&self, width: u32, height: u32) -> std::result::Result<((f64, f64), Option<Georeference>), String> {
+        let (scale, tiepoint, keys) = (&self.scale, &self.tiepoint, &self.keys);
+        // Georeference: model type 2 = geographic (degrees), else projected (metres assumed).
+        let key = |id: f64| -> Option<f64> {
+            let k = keys.as_ref()?;
+            k.chunks_exact(4).skip(1).find(|e| e[0] == id).map(|e| e[3])
+        };
+        let geographic = key(1024.0) == Some(2.0);
+        let epsg = key(2048.0).or_else(|| key(3072.0)).filter(|&c| c > 0.0 && c < 32767.0);
+        let (mut spacing, mut georeference) = ((1.0, 1.0), None);
+        if let (Some(s), Some(t)) = (&scale, &tiepoint) {
+            if s.len() >= 2 && t.len() >= 6 && s[0] > 0.0 && s[1] > 0.0 {
+                let (west, north) = (t[3] - t[0] * s[0], t[4] + t[1] * s[1]);
+                spacing = (s[0], s[1]);
+                let mut g = Georeference {
+                    crs: epsg.map(|c| format!("EPSG:{c}")),
+                    origin: Some([west, north]),
+                    lat_lon_bounds: None,
+                };
+                if geographic {
+                    let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
+                    g.lat_lon_bounds = Some([west, south, east, north]);
+                    let lat = ((north + south) / 2.0).to_radians();
+                    spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
+                }
+                georeference = Some(g);
+            }
+        }
+        if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
+            return Err(format!("bad pixel scale {spacing:?}"));
+        }
+        Ok((spacing, georeference))
+    }
+}

@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# Tiler benchmark: `terrastream tile` against gdal2tiles.py on the same inputs, same cores,
+# in one run; wall time, peak memory (max RSS) and output size side by side, with ratios.
+#
+#   bash scripts/bench-tile.sh [DEM.tif] [IMAGE.jpg]
+#
+# Defaults: the full SRTM 1" tile N37 W123 (3601 x 3601 int16) and the 10800 x 5400 global
+# shaded relief from the shared data folder beside the repository. Needs gdal-bin and
+# python3-gdal (apt-get install gdal-bin python3-gdal); GNU time (apt-get install time).
+#
+# gdal2tiles only tiles 8-bit rasters: its DEM job is `gdal_translate -ot Byte -scale`
+# (timed with it) then gdal2tiles, so its tiles hold 256 levels where ours are lossless u16.
+# Both use the raster profile (no reprojection) and area averaging for coarser levels.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DEM=${1:-../shared/data/srtm/n37_w123_1arc_v3.tif}
+IMAGE=${2:-../shared/data/imagery/shadedrelief.jpg}
+CORES=$(nproc)
+for tool in gdal2tiles.py gdal_translate /usr/bin/time; do
+  command -v "$tool" >/dev/null || { echo "$tool not found (apt-get install gdal-bin python3-gdal time)"; exit 1; }
+done
+[ -f "$DEM" ] && [ -f "$IMAGE" ] || { echo "inputs not found: $DEM $IMAGE"; exit 1; }
+
+cargo build --release --quiet
+bin=$PWD/target/release/terrastream
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT INT TERM
+
+# measure NAME OUTPUT CMD...: runs CMD under GNU time; records seconds, peak KiB, output bytes.
+declare -A secs peak size
+measure() {
+  local name=$1 out=$2; shift 2
+  rm -rf "$out"
+  /usr/bin/time -f '%e %M' -o "$work/time" "$@" >"$work/log" 2>&1 || { cat "$work/log"; exit 1; }
+  read -r s m <"$work/time"
+  secs[$name]=$s; peak[$name]=$m
+  size[$name]=$(du -sb "$out" | cut -f1)
+}
+# Two-step jobs (translate + tile) are timed as one shell.
+gdal_dem() {
+  gdal_translate -q -ot Byte -scale "$DEM" "$work/dem8.tif"
+  gdal2tiles.py -q -p raster -r average --processes="$CORES" "$work/dem8.tif" "$1"
+}
+export -f gdal_dem; export DEM work CORES
+
+echo "inputs: $DEM ($(gdalinfo "$DEM" | awk '/^Size is/ { print $3 $4 }')), $IMAGE ($(gdalinfo "$IMAGE" | awk '/^Size is/ { print $3 $4 }')); $CORES cores"
+measure ours-dem "$work/dem.tspack" "$bin" -q tile --elevation "$DEM" -o "$work/dem.tspack"
+measure gdal-dem "$work/dem-g2t" bash -c 'gdal_dem "$0"' "$work/dem-g2t"
+measure ours-img-png "$work/img.tspack" "$bin" -q tile --texture "$IMAGE" --texture-format png -o "$work/img.tspack"
+measure ours-img-jpeg "$work/imgj.tspack" "$bin" -q tile --texture "$IMAGE" --texture-format jpeg -o "$work/imgj.tspack"
+measure gdal-img-png "$work/img-g2t" gdal2tiles.py -q -p raster -r average --processes="$CORES" "$IMAGE" "$work/img-g2t"
+
+# Memory against input size: the same DEM a quarter as tall, and twice as tall (mirrored).
+gdal_translate -q -srcwin 0 0 3601 900 "$DEM" "$work/quarter.tif"
+gdal_translate -q -outsize 100% 200% -r near "$DEM" "$work/double.tif"
+gdal_translate -q -co TILED=YES -co COMPRESS=DEFLATE "$IMAGE" "$work/image-tiled.tif"
+measure ours-dem-quarter "$work/q.tspack" "$bin" -q tile --elevation "$work/quarter.tif" -o "$work/q.tspack"
+measure ours-dem-double "$work/d.tspack" "$bin" -q tile --elevation "$work/double.tif" -o "$work/d.tspack"
+measure ours-img-tiff "$work/it.tspack" "$bin" -q tile --texture "$work/image-tiled.tif" -o "$work/it.tspack"
+
+row() { printf '%-40s %9s s %9s MiB %10s MiB\n' "$1" "${secs[$2]}" "$((peak[$2] / 1024))" "$(awk -v b="${size[$2]}" 'BEGIN { printf "%.1f", b / 1048576 }')"; }
+ratio() { awk -v a="${secs[$1]}" -v b="${secs[$2]}" 'BEGIN { printf "%.1fx", a / b }'; }
+echo
+printf '%-40s %11s %13s %14s\n' job "wall" "peak RSS" "output"
+row "DEM: terrastream tile (u16, lossless)" ours-dem
+row "DEM: gdal_translate -ot Byte + gdal2tiles" gdal-dem
+row "image: terrastream tile (PNG)" ours-img-png
+row "image: terrastream tile (JPEG)" ours-img-jpeg
+row "image: gdal2tiles (PNG)" gdal-img-png
+row "DEM 3601x900 (quarter height)" ours-dem-quarter
+row "DEM 3601x7202 (double height)" ours-dem-double
+row "image as a tiled GeoTIFF (streamed)" ours-img-tiff
+echo
+echo "speed-up over gdal2tiles: DEM $(ratio gdal-dem ours-dem), image (PNG) $(ratio gdal-img-png ours-img-png)"
+echo "peak memory, DEM double / quarter height (8x the samples): $(awk -v a="${peak[ours-dem-double]}" -v b="${peak[ours-dem-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
+echo "peak memory, image streamed from TIFF / decoded JPEG: $(awk -v a="${peak[ours-img-tiff]}" -v b="${peak[ours-img-png]}" 'BEGIN { printf "%.2fx", a / b }')"

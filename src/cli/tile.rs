@@ -1,0 +1,219 @@
+//! `terrastream tile`: source rasters -> one archive (or, with `--dry-run`, the plan).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Result, bail};
+use clap::{Args, ValueEnum};
+use terrastream_packer::tiler::{
+    ElevationSource, ElevationStorage, ImageSource, TextureFormat, TextureInput, TileOptions, open_elevation,
+    open_image, plan, tile_terrain,
+};
+use terrastream_packer::{ElevationEncoding, ElevationScheme};
+
+use super::progress::CliProgress;
+
+#[derive(Debug, Args)]
+pub struct TileArgs {
+    /// Elevation raster: a single-band GeoTIFF (int/uint 8-32, float32/64; strips or tiles;
+    /// none, LZW or Deflate; GDAL nodata) or a PNG (16-bit gray heights, or 8-bit pixels in an
+    /// `--elevation-encoding`; transparent = nodata).
+    #[arg(long, required_unless_present = "texture")]
+    elevation: Option<PathBuf>,
+    /// How the elevation's pixels map to heights. `auto`: GeoTIFF samples and 16-bit PNG
+    /// values are heights (times `--height-step`, plus `--min-elevation`).
+    #[arg(long, value_enum, default_value_t = EncodingArg::Auto)]
+    elevation_encoding: EncodingArg,
+    /// Height of value 0 (gray8, rgb-thirds, u16).
+    #[arg(long, default_value_t = 0.0)]
+    min_elevation: f64,
+    /// Height span of the full value range (gray8: 0..255, rgb-thirds: 0..765).
+    #[arg(long)]
+    displacement: Option<f64>,
+    /// Height of one step of a 16-bit PNG's values.
+    #[arg(long, default_value_t = 1.0)]
+    height_step: f64,
+    /// Metres between elevation samples, for inputs that do not say (PNG).
+    #[arg(long)]
+    sample_spacing: Option<f64>,
+    /// Texture image: GeoTIFF (8-bit gray/RGB/RGBA), PNG or JPEG, at its own resolution;
+    /// stretched over the elevation's extent, or alone.
+    #[arg(long)]
+    texture: Option<PathBuf>,
+    /// Texture tile storage: png and webp are lossless; jpeg is smallest (no alpha); bc1 and
+    /// bc7 are GPU blocks (+ zstd) a renderer uploads with no decode.
+    #[arg(long, value_enum, default_value_t = TextureFormatArg::Png)]
+    texture_format: TextureFormatArg,
+    /// JPEG quality (1..=100).
+    #[arg(long, default_value_t = 85)]
+    jpeg_quality: u8,
+    /// Texture pixels per tile edge.
+    #[arg(long, default_value_t = 256)]
+    texture_tile_size: u32,
+    /// Metres per texture pixel, for a texture without elevation.
+    #[arg(long, default_value_t = 1.0)]
+    pixel_size: f64,
+    /// Output archive (written to a temporary name, then renamed).
+    #[arg(short, long, required_unless_present = "dry_run")]
+    output: Option<PathBuf>,
+    /// Samples per elevation tile edge.
+    #[arg(long, default_value_t = 256)]
+    tile_size: u32,
+    /// Samples duplicated from the neighbours on each side of a tile.
+    #[arg(long, default_value_t = 1)]
+    border: u8,
+    /// Elevation sample storage: quantized u16 (exact for integer sources) or f32.
+    #[arg(long, value_enum, default_value_t = StorageArg::Auto)]
+    storage: StorageArg,
+    /// Terrain name in the metadata (default: the input's file name).
+    #[arg(long)]
+    name: Option<String>,
+    /// Print the plan (grids, LODs, tile counts, estimated size) and write nothing.
+    #[arg(long)]
+    dry_run: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum StorageArg {
+    /// u16 when the height range allows a step of 1/16 or finer, else f32.
+    Auto,
+    /// Quantized u16.
+    U16,
+    /// f32.
+    F32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum EncodingArg {
+    /// Samples are heights.
+    Auto,
+    /// 8-bit gray over min-elevation..min-elevation+displacement.
+    Gray8,
+    /// The original engine's RGB thirds: R+G+B over min-elevation..+displacement.
+    RgbThirds,
+    /// Mapbox Terrain-RGB: -10000 + (R*65536 + G*256 + B) * 0.1.
+    TerrainRgb,
+    /// Terrarium: R*256 + G + B/256 - 32768.
+    Terrarium,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum TextureFormatArg {
+    Png,
+    Jpeg,
+    Webp,
+    Bc1,
+    Bc7,
+}
+
+impl TileArgs {
+    fn encoding(&self) -> Result<Option<ElevationEncoding>> {
+        let with = |scheme, scale, offset| Some(ElevationEncoding { scheme, scale, offset, nodata: None });
+        let span = || -> Result<f64> {
+            match self.displacement {
+                Some(d) if d.is_finite() && d > 0.0 => Ok(d),
+                Some(d) => bail!("--displacement {d}: must be a positive height span"),
+                None => {
+                    bail!("--elevation-encoding {:?} needs --displacement (the height span)", self.elevation_encoding)
+                }
+            }
+        };
+        Ok(match self.elevation_encoding {
+            EncodingArg::Auto if self.height_step == 1.0 && self.min_elevation == 0.0 => None,
+            EncodingArg::Auto => with(ElevationScheme::QuantizedU16, self.height_step, self.min_elevation),
+            EncodingArg::Gray8 => with(ElevationScheme::Gray8, span()?, self.min_elevation),
+            EncodingArg::RgbThirds => with(ElevationScheme::RgbThirds, span()?, self.min_elevation),
+            EncodingArg::TerrainRgb => with(ElevationScheme::TerrainRgb, 1.0, 0.0),
+            EncodingArg::Terrarium => with(ElevationScheme::Terrarium, 1.0, 0.0),
+        })
+    }
+}
+
+pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
+    let elevation = match &args.elevation {
+        Some(path) => {
+            let mut file = open_elevation(path, args.encoding()?)?;
+            match args.sample_spacing {
+                Some(s) if s.is_finite() && s > 0.0 => file = file.with_spacing(s),
+                Some(s) => bail!("--sample-spacing {s}: must be positive metres"),
+                None if !file.is_georeferenced() => tracing::warn!(
+                    "{} does not say where it lies: 1 m between samples (set --sample-spacing)",
+                    path.display()
+                ),
+                None => {}
+            }
+            Some(file)
+        }
+        None => None,
+    };
+    let image = args.texture.as_deref().map(open_image).transpose()?;
+    let format = match args.texture_format {
+        TextureFormatArg::Png => TextureFormat::Png,
+        TextureFormatArg::Jpeg => TextureFormat::Jpeg(args.jpeg_quality),
+        TextureFormatArg::Webp => TextureFormat::Webp,
+        TextureFormatArg::Bc1 => TextureFormat::Bc1,
+        TextureFormatArg::Bc7 => TextureFormat::Bc7,
+    };
+    let texture = image.as_ref().map(|source| TextureInput {
+        source: source as &dyn ImageSource,
+        tile_size: args.texture_tile_size,
+        format,
+        pixel_size: args.pixel_size,
+    });
+    let elevation: Option<&dyn ElevationSource> = elevation.as_ref().map(|e| e as &dyn ElevationSource);
+    let name = args.name.clone().unwrap_or_else(|| {
+        let input = args.elevation.as_ref().or(args.texture.as_ref());
+        input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()
+    });
+    let storage = match args.storage {
+        StorageArg::Auto => ElevationStorage::Auto,
+        StorageArg::U16 => ElevationStorage::U16,
+        StorageArg::F32 => ElevationStorage::F32,
+    };
+    let options = TileOptions { tile_size: args.tile_size, border: args.border, storage };
+    let started = std::time::Instant::now();
+    if args.dry_run {
+        let plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
+        progress.finish();
+        println!("{name}: plan (nothing written)");
+        println!(
+            "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
+            "layer", "kind", "format", "LOD 0 samples", "tile", "grid", "LODs", "tiles", "~bytes"
+        );
+        for (layer, p) in plan.metadata.layers.iter().zip(&plan.layers) {
+            println!(
+                "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
+                layer.name,
+                format!("{:?}", layer.kind),
+                format!("{:?}", layer.format),
+                format!("{}x{}", p.size.0, p.size.1),
+                format!("{}+{}", layer.tile_resolution, 2 * layer.border),
+                format!("{}x{}", layer.num_x_tiles, layer.num_y_tiles),
+                layer.num_lods,
+                p.tiles,
+                p.estimated_bytes
+            );
+        }
+        let t = &plan.metadata.terrain;
+        println!(
+            "heights {:.2} .. {:.2}, spacing {:.3} m; at most {} tiles, about {:.1} MiB (typical compression)",
+            t.min_elevation,
+            t.max_elevation,
+            t.base_tile_size,
+            plan.tiles(),
+            plan.estimated_bytes() as f64 / f64::from(1 << 20)
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let Some(output) = &args.output else { bail!("--output is required") };
+    let summary = tile_terrain(elevation, texture, &name, output, options, progress)?;
+    progress.finish();
+    println!(
+        "{}: {} tiles, {} bytes in {:.2} s",
+        output.display(),
+        summary.tile_entries,
+        summary.file_len,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
+}
