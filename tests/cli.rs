@@ -154,3 +154,58 @@ fn pack_then_serve_then_stop_on_sigterm() {
     let status = child.wait().unwrap();
     assert!(status.success(), "graceful exit on SIGTERM: {status}");
 }
+
+/// `tile`: a dry run prints the plan and writes nothing; a DEM (the committed tiled GeoTIFF
+/// crop) plus an image becomes an archive `info` and `verify` accept, with BC7 texture
+/// tiles and the height-range layer; an image alone makes a texture-only archive; bad input
+/// names the file and leaves nothing under the output name.
+#[test]
+fn tile_plans_writes_and_refuses_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/srtm-tamalpais-150x100-tiled-float32-public-domain.tif");
+    let dem = dem.to_str().unwrap();
+    // A 120 x 100 image: the DEM's 150 x 100 geographic grid is 120 x 100 in metres.
+    let image = work.join("ortho.png");
+    let pixels: Vec<u8> = (0..120u32 * 100).flat_map(|i| [(i % 120) as u8 * 2, (i / 120) as u8 * 2, 90]).collect();
+    let mut encoder = png::Encoder::new(std::fs::File::create(&image).unwrap(), 120, 100);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
+
+    let out =
+        terrastream(&["tile", "--elevation", dem, "--texture", "ortho.png", "--tile-size", "32", "--dry-run"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let plan = text(&out);
+    assert!(plan.contains("nothing written") && plan.contains("elevation-range"), "{plan}");
+    assert!(plan.contains("heights 148.00 .. 464.00"), "{plan}");
+    assert_eq!(std::fs::read_dir(work).unwrap().count(), 1, "a dry run writes nothing");
+
+    let args = ["tile", "--elevation", dem, "--texture", "ortho.png", "--tile-size", "32", "--texture-tile-size", "32"];
+    let out = terrastream(&[&args[..], &["--texture-format", "bc7", "-o", "t.tspack"]].concat(), work);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["info", "t.tspack", "--json"], work);
+    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let layers = &doc["metadata"]["layers"];
+    assert_eq!(layers[0]["kind"], "elevation");
+    assert_eq!((layers[1]["kind"].as_str(), layers[1]["format"].as_str()), (Some("texture"), Some("bc7")));
+    assert_eq!((layers[2]["kind"].as_str(), layers[2]["format"].as_str()), (Some("height_range"), Some("min_max_f32")));
+    assert_eq!(doc["metadata"]["georeference"]["crs"], "EPSG:4326");
+    let out = terrastream(&["verify", "t.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+
+    let out = terrastream(&["tile", "--texture", "ortho.png", "--pixel-size", "2", "-o", "img.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["info", "img.tspack", "--json"], work);
+    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(doc["metadata"]["layers"].as_array().unwrap().len(), 1);
+
+    std::fs::write(work.join("bad.tif"), b"II*\0garbage").unwrap();
+    let out = terrastream(&["tile", "--elevation", "bad.tif", "-o", "bad.tspack"], work);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("bad.tif"), "{}", text(&out));
+    assert!(!work.join("bad.tspack").exists());
+    let out = terrastream(&["tile", "--elevation", "ortho.png", "-o", "bad.tspack"], work);
+    assert!(!out.status.success() && text(&out).contains("ortho.png"), "{}", text(&out));
+    assert!(!work.join("bad.tspack").exists());
+}

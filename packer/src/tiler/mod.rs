@@ -459,12 +459,19 @@ pub fn tile_terrain(
             t.source.rows(&mut |row| push(resample_row(row, squaring.width as usize)))
         })?;
     }
-    let mut writer = Writer::create(out, plan.metadata.clone(), WriterOptions::default())?;
+    // Tiles come already compressed: small batches are enough for the writer's hashing.
+    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
+    let mut writer = Writer::create(out, plan.metadata.clone(), options)?;
     spool.drain_into(&mut writer, progress)?;
     writer.finish()
 }
 
-/// Streams `read`'s rows through a pyramid for layer `index`.
+/// Rows in flight between the reading thread and the pyramid.
+const ROWS_IN_FLIGHT: usize = 64;
+
+/// Streams `read`'s rows through a pyramid for layer `index`. Reading (decompression,
+/// conversion, resampling) runs on its own thread, overlapping the cutting and encoding,
+/// with at most [`ROWS_IN_FLIGHT`] rows between them.
 fn run_pyramid<S: Sample>(
     metadata: &Metadata,
     index: u8,
@@ -472,11 +479,23 @@ fn run_pyramid<S: Sample>(
     encode: &Encode<'_, S>,
     spool: &mut Spool,
     progress: &dyn Progress,
-    read: impl FnOnce(&mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()>,
+    read: impl FnOnce(&mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> + Send,
 ) -> Result<()> {
     let mut pyramid = Pyramid::new(metadata, index, size, encode, spool, progress)?;
-    read(&mut |row| pyramid.push(row))?;
-    pyramid.finish()
+    let (rows, received) = std::sync::mpsc::sync_channel::<Vec<S>>(ROWS_IN_FLIGHT);
+    std::thread::scope(|scope| {
+        let reader = scope.spawn(move || {
+            // A send fails only once the pyramid has stopped, with its own error.
+            read(&mut |row| rows.send(row).map_err(|_| Error::Interrupted))
+        });
+        let mut built = received.iter().try_for_each(|row| pyramid.push(row));
+        drop(received);
+        let read = reader.join().unwrap_or_else(|_| Err(Error::Writer("the reading thread panicked".into())));
+        // The pyramid's error first (it stopped the reader); else the reader's.
+        built = built.and(read);
+        built?;
+        pyramid.finish()
+    })
 }
 
 /// Heights -> the layer's raw little-endian samples, and the lowest and highest height as

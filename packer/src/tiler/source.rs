@@ -519,6 +519,8 @@ fn png_rows(path: &Path, width: u32, mut row: impl FnMut(&[u8], usize, bool) -> 
 /// Calls `row` with each row of a TIFF's samples (`channels` per pixel, as f64), reading
 /// one strip, or one row of tiles, at a time.
 fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result<()>) -> Result<()> {
+    // A row of tiles is held as f32 (exact for 8- and 16-bit values; heights are f32
+    // anyway), one row widened to f64 at a time.
     use tiff::decoder::ChunkType;
     let bad = |why: String| Error::input(path, why);
     let mut decoder = open_tiff(path)?;
@@ -566,7 +568,8 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result
         }
         ChunkType::Tile => {
             let across = width.div_ceil(chunk_w);
-            let mut band = vec![0f64; stride * chunk_h];
+            let mut band = vec![0f32; stride * chunk_h];
+            let mut wide = vec![0f64; stride];
             for ty in 0..height.div_ceil(chunk_h) {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
                 for tx in 0..across {
@@ -575,11 +578,17 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result
                     let x0 = tx * chunk_w * channels;
                     let w = w.min(width - tx * chunk_w) * channels;
                     for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
-                        band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
+                        #[expect(clippy::cast_possible_truncation, reason = "heights and 8-bit pixels fit f32")]
+                        for (d, &v) in band[j * stride + x0..j * stride + x0 + w].iter_mut().zip(&src[..w]) {
+                            *d = v as f32;
+                        }
                     }
                 }
                 for r in band.chunks_exact(stride).take(rows_here) {
-                    row(r)?;
+                    for (w, &v) in wide.iter_mut().zip(r) {
+                        *w = f64::from(v);
+                    }
+                    row(&wide)?;
                 }
             }
         }
