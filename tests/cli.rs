@@ -199,6 +199,14 @@ fn tile_plans_writes_and_refuses_bad_input() {
     let out = terrastream(&["info", "img.tspack", "--json"], work);
     let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(doc["metadata"]["layers"].as_array().unwrap().len(), 1);
+    // PMTiles round trip: exported, then packed back from the .pmtiles file.
+    let out =
+        terrastream(&["export", "img.tspack", "--layer", "texture", "--to", "pmtiles", "-o", "img.pmtiles"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["pack", "img.pmtiles", "-o", "back.tspack"], work);
+    assert!(out.status.success() && text(&out).contains("from PMTiles"), "{}", text(&out));
+    let out = terrastream(&["verify", "back.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
 
     std::fs::write(work.join("bad.tif"), b"II*\0garbage").unwrap();
     let out = terrastream(&["tile", "--elevation", "bad.tif", "-o", "bad.tspack"], work);

@@ -5,14 +5,17 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_packer::import::{OriginalLayout, Scheme, XyzOptions, pack, scan_original, scan_xyz};
+use terrastream_packer::import::{
+    OriginalLayout, PmtilesInput, Scheme, XyzOptions, pack, pack_pmtiles, scan_original, scan_xyz,
+};
 use terrastream_packer::{ElevationScheme, LayerKind, WriterOptions};
 
 use super::CliProgress;
 
 #[derive(Debug, Args)]
 pub struct PackArgs {
-    /// Input folder: original LOD folders (with their metadata text) or an XYZ/TMS tree.
+    /// Input: a folder of original LOD folders (with their metadata text) or an XYZ/TMS
+    /// tree, or a PMTiles v3 raster archive.
     input: PathBuf,
     /// Output archive (written to a temporary name, then renamed).
     #[arg(short, long)]
@@ -64,17 +67,43 @@ fn has_lod_folders(dir: &Path) -> bool {
             .any(|c| std::fs::read_dir(c).map(|r| r.filter_map(|e| e.ok()).any(|e| is_lod(&e.path()))).unwrap_or(false))
 }
 
+fn is_pmtiles(path: &Path) -> bool {
+    use std::io::Read;
+    let mut magic = [0u8; 7];
+    std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut magic)).is_ok() && &magic == b"PMTiles"
+}
+
 pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
-    if !args.input.is_dir() {
-        bail!(
-            "{}: not a folder (pack takes a folder of tiles; rasters are tiled by `terrastream tile`)",
-            args.input.display()
-        );
-    }
     let kind = match args.kind {
         KindArg::Texture => LayerKind::Texture,
         KindArg::Elevation => LayerKind::Elevation,
     };
+    let elevation = args.elevation_encoding.map(|e| match e {
+        EncodingArg::TerrainRgb => ElevationScheme::TerrainRgb,
+        EncodingArg::Terrarium => ElevationScheme::Terrarium,
+        EncodingArg::Gray8 => ElevationScheme::Gray8,
+    });
+    if args.input.is_file() && is_pmtiles(&args.input) {
+        let started = std::time::Instant::now();
+        let input = PmtilesInput { kind, elevation };
+        let summary = pack_pmtiles(&args.input, input, &args.output, WriterOptions::default(), progress)?;
+        progress.finish();
+        println!(
+            "{}: {} tiles ({} distinct) from PMTiles, {} bytes in {:.2} s",
+            summary.path.display(),
+            summary.addressed_tiles,
+            summary.tile_contents,
+            summary.file_len,
+            started.elapsed().as_secs_f64()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    if !args.input.is_dir() {
+        bail!(
+            "{}: not a folder or a PMTiles file (pack takes tile pyramids; rasters are tiled by `terrastream tile`)",
+            args.input.display()
+        );
+    }
     let scanned = if args.template.is_none() && has_lod_folders(&args.input) {
         scan_original(&args.input, &OriginalLayout { kind, swap_xy: args.swap_xy })?
     } else {
@@ -89,11 +118,7 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
                 SchemeArg::Tms => Scheme::Tms,
             },
             kind,
-            elevation: args.elevation_encoding.map(|e| match e {
-                EncodingArg::TerrainRgb => ElevationScheme::TerrainRgb,
-                EncodingArg::Terrarium => ElevationScheme::Terrarium,
-                EncodingArg::Gray8 => ElevationScheme::Gray8,
-            }),
+            elevation,
         };
         let mut last_err = None;
         let mut found = None;

@@ -144,28 +144,8 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
     let head = std::fs::read(first).map_err(|e| Error::file(first, e))?;
     let format = TileFormat::sniff(&head).ok_or_else(|| Error::input(first, "not a PNG, JPEG or WebP image"))?;
     let (width, _) = image_size(&head).unwrap_or((256, 256));
-    let side = 1u32 << max_zoom;
-    // Web Mercator: the world is 2 * pi * 6378137 m across at the equator.
-    let world = 40_075_016.685_578_49;
-    let layer = Layer {
-        name: if options.kind == LayerKind::Elevation { "elevation".into() } else { "texture".into() },
-        kind: options.kind,
-        format,
-        compression: PayloadCompression::None,
-        tile_resolution: width,
-        border: 0,
-        num_x_tiles: side,
-        num_y_tiles: side,
-        num_lods: max_zoom + 1,
-        tile_world_size: world / f64::from(side),
-        elevation: options.elevation.map(|scheme| ElevationEncoding { scheme, scale: 1.0, offset: 0.0, nodata: None }),
-    };
-    let mut metadata = Metadata::new(root.file_name().and_then(|n| n.to_str()).unwrap_or("terrain"), vec![layer]);
-    metadata.georeference = Some(Georeference {
-        crs: Some("EPSG:3857".into()),
-        origin: Some([-world / 2.0, world / 2.0]),
-        lat_lon_bounds: Some([-180.0, -85.051_128_779_806_59, 180.0, 85.051_128_779_806_59]),
-    });
+    let name = root.file_name().and_then(|n| n.to_str()).unwrap_or("terrain");
+    let mut metadata = web_mercator_metadata(name, options.kind, options.elevation, format, width, max_zoom);
     let record = XyzRecord {
         template: options.template.clone(),
         scheme: options.scheme,
@@ -183,6 +163,40 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
         })
         .collect::<Result<Vec<_>>>()?;
     ScannedPyramid::new(metadata, tiles)
+}
+
+/// One layer on the Web Mercator tile grid of zoom `max_zoom` (LOD 0), `width`-pixel tiles.
+pub(crate) fn web_mercator_metadata(
+    name: &str,
+    kind: LayerKind,
+    elevation: Option<ElevationScheme>,
+    format: TileFormat,
+    width: u32,
+    max_zoom: u8,
+) -> Metadata {
+    let side = 1u32 << max_zoom.min(27);
+    // Web Mercator: the world is 2 * pi * 6378137 m across at the equator.
+    let world = 40_075_016.685_578_49;
+    let layer = Layer {
+        name: if kind == LayerKind::Elevation { "elevation".into() } else { "texture".into() },
+        kind,
+        format,
+        compression: PayloadCompression::None,
+        tile_resolution: width,
+        border: 0,
+        num_x_tiles: side,
+        num_y_tiles: side,
+        num_lods: max_zoom.min(27) + 1,
+        tile_world_size: world / f64::from(side),
+        elevation: elevation.map(|scheme| ElevationEncoding { scheme, scale: 1.0, offset: 0.0, nodata: None }),
+    };
+    let mut metadata = Metadata::new(name, vec![layer]);
+    metadata.georeference = Some(Georeference {
+        crs: Some("EPSG:3857".into()),
+        origin: Some([-world / 2.0, world / 2.0]),
+        lat_lon_bounds: Some([-180.0, -85.051_128_779_806_59, 180.0, 85.051_128_779_806_59]),
+    });
+    metadata
 }
 
 /// Fills a template for one tile.
