@@ -6,8 +6,7 @@
 //! directory's bytes, leaf pointers must lie in the leaf section and may nest at most
 //! [`MAX_DEPTH`] deep, and every tile's range must lie in the tile-data section.
 
-use std::fs::File;
-use std::io::{Read, Seek, SeekFrom};
+use std::io::Read;
 use std::path::Path;
 
 use super::xyz::{XYZ_KEY, XyzRecord, web_mercator_metadata};
@@ -16,6 +15,7 @@ use crate::error::{Error, Result};
 use crate::key::{MAX_LODS, TileKey, tile_id_to_zxy};
 use crate::metadata::{ElevationScheme, LayerKind, TileFormat};
 use crate::progress::Progress;
+use crate::source::{FileSource, RangeSource};
 use crate::varint::Cursor;
 use crate::writer::{WriteSummary, Writer, WriterOptions};
 
@@ -42,19 +42,12 @@ struct Header {
     tile_type: u8,
 }
 
-fn read_at(file: &mut File, path: &Path, (offset, len): (u64, u64), what: &str) -> Result<Vec<u8>> {
-    let size = file.metadata().map_err(|e| Error::file(path, e))?.len();
-    if offset.checked_add(len).is_none_or(|end| end > size) {
-        return Err(Error::input(path, format!("{what} [{offset}, +{len}) lies outside the file ({size} bytes)")));
-    }
-    let len = usize::try_from(len).map_err(|_| Error::input(path, format!("{what} too large")))?;
-    let mut bytes = vec![0; len];
-    file.seek(SeekFrom::Start(offset)).map_err(|e| Error::file(path, e))?;
-    file.read_exact(&mut bytes).map_err(|e| Error::file(path, e))?;
-    Ok(bytes)
+/// `[offset, offset + len)` of the input; out of the file is an error naming `what`.
+fn read_at(file: &FileSource, path: &Path, (offset, len): (u64, u64), what: &str) -> Result<bytes::Bytes> {
+    file.read_range(offset, len).map_err(|e| Error::input(path, format!("{what}: {e}")))
 }
 
-fn header(file: &mut File, path: &Path) -> Result<Header> {
+fn header(file: &FileSource, path: &Path) -> Result<Header> {
     let bad = |why: &str| Error::input(path, format!("PMTiles header: {why}"));
     let h = read_at(file, path, (0, 127), "the header").map_err(|_| bad("shorter than 127 bytes"))?;
     if &h[..7] != b"PMTiles" {
@@ -142,8 +135,8 @@ pub fn pack_pmtiles(
     writer_options: WriterOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
-    let mut file = File::open(input).map_err(|e| Error::file(input, e))?;
-    let h = header(&mut file, input)?;
+    let file = FileSource::open(input)?;
+    let h = header(&file, input)?;
     let format = match h.tile_type {
         2 => TileFormat::Png,
         3 => TileFormat::Jpeg,
@@ -162,7 +155,7 @@ pub fn pack_pmtiles(
     let mut pending = vec![(h.root, 0usize, "root directory".to_owned())];
     while let Some((range, depth, what)) = pending.pop() {
         progress.check()?;
-        let stored = read_at(&mut file, input, range, &what)?;
+        let stored = read_at(&file, input, range, &what)?;
         let bytes = decompress(&stored, h.internal_compression, input, &what)?;
         for e in directory(&bytes, input, &what)? {
             if e.1 > 0 {
@@ -198,7 +191,7 @@ pub fn pack_pmtiles(
     let Some(first) = keyed.first().copied() else {
         return Err(Error::input(input, "no tiles"));
     };
-    let head = read_at(&mut file, input, (first.3, first.4.min(64)), "the first tile")?;
+    let head = read_at(&file, input, (first.3, first.4.min(64)), "the first tile")?;
     let (width, _) = image_size(&head).unwrap_or((256, 256));
     let name = input.file_stem().and_then(|n| n.to_str()).unwrap_or("terrain");
     let mut metadata = web_mercator_metadata(name, options.kind, options.elevation, format, width, max_zoom);
@@ -219,7 +212,7 @@ pub fn pack_pmtiles(
         if n.is_multiple_of(256) {
             progress.check()?;
         }
-        let bytes = read_at(&mut file, input, (offset, len), &format!("tile {key}"))?;
+        let bytes = read_at(&file, input, (offset, len), &format!("tile {key}"))?;
         match TileFormat::sniff(&bytes) {
             Some(found) if found == format => {}
             found => {
@@ -229,7 +222,7 @@ pub fn pack_pmtiles(
                 ));
             }
         }
-        writer.add_stored(key, bytes)?;
+        writer.add_stored(key, bytes.into())?;
         progress.advance(1);
     }
     writer.finish()

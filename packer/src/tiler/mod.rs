@@ -130,12 +130,10 @@ pub struct TextureInput<'a> {
 pub struct Plan {
     /// The archive's metadata.
     pub metadata: Metadata,
-    /// Per layer: LOD-0 size in samples after squaring, tiles to cut (an upper bound: those
-    /// with no data are left out) and typical stored bytes.
+    /// Per layer, in the metadata's order: LOD-0 size in samples after squaring (rows are
+    /// resampled to its width), tiles to cut (an upper bound: those with no data are left
+    /// out) and typical stored bytes.
     pub layers: Vec<LayerPlan>,
-    /// Elevation: the source's size before squaring, and whether rows are resampled.
-    elevation: Option<Squaring>,
-    texture: Option<Squaring>,
 }
 
 /// One layer of a [`Plan`].
@@ -147,12 +145,6 @@ pub struct LayerPlan {
     pub tiles: u64,
     /// A rough size of the stored tiles (typical compression ratios; within about 2x).
     pub estimated_bytes: u64,
-}
-
-#[derive(Clone, Copy, Debug)]
-struct Squaring {
-    /// Samples per row after resampling.
-    width: u32,
 }
 
 impl Plan {
@@ -220,7 +212,6 @@ pub fn plan(
     let mut layers = Vec::new();
     let mut plans = Vec::new();
     let mut metadata = Metadata::new(name, Vec::new());
-    let mut squared_elevation = None;
     // The data's extent in metres, when the elevation gives it.
     let mut extent = None;
     if let Some(e) = elevation {
@@ -237,7 +228,6 @@ pub fn plan(
             let width = ((f64::from(w) * ratio).round() as u32).max(1);
             (width, sy)
         };
-        squared_elevation = Some(Squaring { width });
         extent = Some((f64::from(width) * spacing, f64::from(h) * spacing, f64::from(w) / f64::from(h)));
         let (min, max) = height_range(e, progress)?;
         let span = max - min;
@@ -290,7 +280,6 @@ pub fn plan(
         metadata.georeference = e.georeference().cloned();
         layers.push(layer);
     }
-    let mut squared_texture = None;
     if let Some(t) = texture {
         let path = t.source.path();
         let (w, h) = t.source.size();
@@ -334,7 +323,6 @@ pub fn plan(
                 (w, fw * t.pixel_size)
             }
         };
-        squared_texture = Some(Squaring { width });
         let (nx, ny) = (width.div_ceil(t.tile_size), h.div_ceil(t.tile_size));
         let layer = Layer {
             name: "texture".into(),
@@ -384,7 +372,7 @@ pub fn plan(
     }
     metadata.layers = layers;
     metadata.validate()?;
-    Ok(Plan { metadata, layers: plans, elevation: squared_elevation, texture: squared_texture })
+    Ok(Plan { metadata, layers: plans })
 }
 
 /// Packs an elevation raster into a pyramid archive at `out` (no texture: see
@@ -428,7 +416,7 @@ pub fn tile_terrain(
     let level = WriterOptions::default().zstd_level;
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
 
-    if let (Some(source), Some(index), Some(squaring)) = (elevation, find(LayerKind::Elevation), plan.elevation) {
+    if let (Some(source), Some(index)) = (elevation, find(LayerKind::Elevation)) {
         let encoding = metadata.layers[usize::from(index)]
             .elevation
             .ok_or_else(|| Error::Writer("no elevation encoding".into()))?;
@@ -442,21 +430,21 @@ pub fn tile_terrain(
             }
             Ok(out)
         };
-        let size = (squaring.width, source.size().1);
+        let size = plan.layers[usize::from(index)].size;
         run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
-            source.rows(&mut |row| push(resample_row(row, squaring.width as usize)))
+            source.rows(&mut |row| push(resample_row(row, size.0 as usize)))
         })?;
     }
-    if let (Some(t), Some(index), Some(squaring)) = (texture, find(LayerKind::Texture), plan.texture) {
+    if let (Some(t), Some(index)) = (texture, find(LayerKind::Texture)) {
         let format = t.format;
         let encode = move |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
             let bytes =
                 encode_texture(pixels, edge, format, level).map_err(|e| Error::Writer(format!("tile {key}: {e}")))?;
             Ok(vec![(key, bytes)])
         };
-        let size = (squaring.width, t.source.size().1);
+        let size = plan.layers[usize::from(index)].size;
         run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
-            t.source.rows(&mut |row| push(resample_row(row, squaring.width as usize)))
+            t.source.rows(&mut |row| push(resample_row(row, size.0 as usize)))
         })?;
     }
     // Tiles come already compressed: small batches are enough for the writer's hashing.
@@ -533,7 +521,6 @@ fn encode_texture(pixels: &[[u8; 4]], edge: usize, format: TextureFormat, zstd_l
     let opaque = pixels.iter().all(|p| p[3] == 255);
     let rgb = || -> Vec<u8> { pixels.iter().flat_map(|p| [p[0], p[1], p[2]]).collect() };
     let side = u32::try_from(edge).map_err(|_| Error::Writer("tile too large".into()))?;
-    let side16 = u16::try_from(edge).map_err(|_| Error::Writer("tile too large for JPEG".into()))?;
     let err = |e: &dyn std::fmt::Display| Error::Writer(e.to_string());
     Ok(match format {
         TextureFormat::Png => {
@@ -547,6 +534,7 @@ fn encode_texture(pixels: &[[u8; 4]], edge: usize, format: TextureFormat, zstd_l
             out
         }
         TextureFormat::Jpeg(quality) => {
+            let side16 = u16::try_from(edge).map_err(|_| Error::Writer("tile too large for JPEG".into()))?;
             let mut out = Vec::new();
             jpeg_encoder::Encoder::new(&mut out, quality)
                 .encode(&rgb(), side16, side16, jpeg_encoder::ColorType::Rgb)

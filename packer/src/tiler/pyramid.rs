@@ -197,11 +197,6 @@ impl<'a, S: Sample> Pyramid<'a, S> {
         })
     }
 
-    /// Tiles that will be cut (whole rows and columns of tiles over the data, every LOD).
-    pub fn tile_count(&self) -> u64 {
-        self.levels.iter().map(|l| (l.width.div_ceil(self.res) * l.height.div_ceil(self.res)) as u64).sum()
-    }
-
     /// Samples held now, all levels (the band each keeps, and rows waiting to be halved).
     pub fn held_samples(&self) -> usize {
         self.levels.iter().map(|l| (l.rows.len() + usize::from(l.pending.is_some())) * l.width).sum()
@@ -290,24 +285,22 @@ impl<'a, S: Sample> Pyramid<'a, S> {
                 .map(|tx| {
                     let mut any = false;
                     let mut samples = Vec::with_capacity(edge * edge);
-                    // Columns x0 - border .. x0 + res + border, clipped to the raster.
-                    let (left, right) = ((tx * res).checked_sub(border), tx * res + res + border);
-                    let (from, to) = (left.unwrap_or(0), right.min(level.width));
+                    // Columns x0 - border .. x0 + res + border, clipped to the raster and
+                    // padded with no data outside it.
+                    let (from, to) = ((tx * res).saturating_sub(border), (tx * res + res + border).min(level.width));
                     let pad_left = border.saturating_sub(tx * res);
+                    let pad_right = edge - pad_left - (to - from);
                     for j in 0..edge {
-                        let row = (ty * res + j).checked_sub(border).and_then(row_at);
-                        let Some(row) = row.filter(|_| from < to) else {
+                        let Some(row) = (ty * res + j).checked_sub(border).and_then(row_at) else {
                             samples.resize(samples.len() + edge, S::NONE);
                             continue;
                         };
-                        samples.resize(samples.len() + pad_left, S::NONE);
-                        let span = &row[from..to];
                         if (border..border + res).contains(&j) {
-                            let inner = &row[(tx * res).min(to)..(tx * res + res).min(to)];
-                            any |= inner.iter().any(S::has_data);
+                            any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
                         }
-                        samples.extend_from_slice(span);
-                        samples.resize(samples.len() + (edge - pad_left - span.len()), S::NONE);
+                        samples.resize(samples.len() + pad_left, S::NONE);
+                        samples.extend_from_slice(&row[from..to]);
+                        samples.resize(samples.len() + pad_right, S::NONE);
                     }
                     progress.advance(1);
                     if !any {

@@ -216,8 +216,7 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
     match sniff(path)? {
         Sniffed::Jpeg => Err(bad("JPEG is lossy: elevation must come from a GeoTIFF or a PNG".into())),
         Sniffed::Png => {
-            let (info, _) = png_header(path)?;
-            let (colour, depth) = info;
+            let ((colour, depth), (width, height)) = png_header(path)?;
             let channels = colour.samples();
             let rgb = channels >= 3;
             let sixteen = depth == png::BitDepth::Sixteen;
@@ -243,7 +242,6 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
                     )));
                 }
             };
-            let (width, height) = png_header(path)?.1;
             Ok(ElevationFile {
                 path: path.to_path_buf(),
                 width,
@@ -325,9 +323,13 @@ impl ElevationSource for ElevationFile {
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         let width = self.width as usize;
         let mut out = vec![0f32; width];
+        // Nodata is compared as f32, as samples are kept (a GDAL nodata of "3.40282e+38"
+        // is f32::MAX only once rounded to f32).
+        #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
+        let nodata = self.nodata.map(|n| n as f32);
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
         let convert = |raw: f64| -> f32 {
-            if self.nodata == Some(raw) || !raw.is_finite() {
+            if !raw.is_finite() || nodata == Some(raw as f32) {
                 return f32::NAN;
             }
             match &self.encoding {
@@ -356,9 +358,9 @@ impl ElevationSource for ElevationFile {
                 row(&out)
             });
         }
-        tiff_rows(&self.path, 1, &mut |chunk_row: &[f64]| {
+        tiff_rows(&self.path, 1, &mut |chunk_row: &[f32]| {
             for (h, &v) in out.iter_mut().zip(chunk_row) {
-                *h = convert(v);
+                *h = convert(f64::from(v));
             }
             row(&out)
         })
@@ -468,9 +470,12 @@ impl ImageSource for ImageFile {
                 }
             }),
             ImageKind::Tiff { channels } => {
+                let mut bytes = vec![0u8; width * channels];
                 #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "8-bit samples")]
-                let mut eight = |r: &[f64]| -> Result<()> {
-                    let bytes: Vec<u8> = r.iter().map(|&v| v as u8).collect();
+                let mut eight = |r: &[f32]| -> Result<()> {
+                    for (b, &v) in bytes.iter_mut().zip(r) {
+                        *b = v as u8;
+                    }
                     emit(&bytes, *channels)
                 };
                 tiff_rows(&self.path, *channels, &mut eight)
@@ -516,11 +521,10 @@ fn png_rows(path: &Path, width: u32, mut row: impl FnMut(&[u8], usize, bool) -> 
     Ok(())
 }
 
-/// Calls `row` with each row of a TIFF's samples (`channels` per pixel, as f64), reading
-/// one strip, or one row of tiles, at a time.
-fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result<()>) -> Result<()> {
-    // A row of tiles is held as f32 (exact for 8- and 16-bit values; heights are f32
-    // anyway), one row widened to f64 at a time.
+/// Calls `row` with each row of a TIFF's samples (`channels` per pixel), reading one
+/// strip, or one row of tiles, at a time. Samples are f32: exact for 8- and 16-bit values,
+/// and heights are kept as f32 anyway.
+fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
     use tiff::decoder::ChunkType;
     let bad = |why: String| Error::input(path, why);
     let mut decoder = open_tiff(path)?;
@@ -538,14 +542,14 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result
         ChunkType::Tile => decoder.tile_count(),
     }
     .map_err(|e| bad(format!("{what}s: {e}")))? as usize;
-    let chunk = |decoder: &mut TiffDecoder, index: usize| -> Result<(Vec<f64>, usize, usize)> {
+    let chunk = |decoder: &mut TiffDecoder, index: usize| -> Result<(Vec<f32>, usize, usize)> {
         let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
         if index >= count {
             return Err(bad(format!("{what} {index} is missing (the file lists {count})")));
         }
         let (w, h) = decoder.chunk_data_dimensions(i);
         let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")))?;
-        let values = samples_f64(data).ok_or_else(|| bad("unsupported sample type".into()))?;
+        let values = samples_f32(data).ok_or_else(|| bad("unsupported sample type".into()))?;
         let (w, h) = (w as usize, h as usize);
         if values.len() < w * h * channels {
             return Err(bad(format!("{what} {index}: {} samples, {} expected", values.len(), w * h * channels)));
@@ -569,7 +573,6 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result
         ChunkType::Tile => {
             let across = width.div_ceil(chunk_w);
             let mut band = vec![0f32; stride * chunk_h];
-            let mut wide = vec![0f64; stride];
             for ty in 0..height.div_ceil(chunk_h) {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
                 for tx in 0..across {
@@ -578,17 +581,11 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result
                     let x0 = tx * chunk_w * channels;
                     let w = w.min(width - tx * chunk_w) * channels;
                     for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
-                        #[expect(clippy::cast_possible_truncation, reason = "heights and 8-bit pixels fit f32")]
-                        for (d, &v) in band[j * stride + x0..j * stride + x0 + w].iter_mut().zip(&src[..w]) {
-                            *d = v as f32;
-                        }
+                        band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
                     }
                 }
                 for r in band.chunks_exact(stride).take(rows_here) {
-                    for (w, &v) in wide.iter_mut().zip(r) {
-                        *w = f64::from(v);
-                    }
-                    row(&wide)?;
+                    row(r)?;
                 }
             }
         }
@@ -596,20 +593,24 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f64]) -> Result
     Ok(())
 }
 
-#[expect(clippy::cast_precision_loss, reason = "32-bit integers as f64 are exact")]
-fn samples_f64(data: tiff::decoder::DecodingResult) -> Option<Vec<f64>> {
+#[expect(
+    clippy::cast_precision_loss,
+    clippy::cast_possible_truncation,
+    reason = "samples are kept as f32: exact up to 24 bits, heights need no more"
+)]
+fn samples_f32(data: tiff::decoder::DecodingResult) -> Option<Vec<f32>> {
     use tiff::decoder::DecodingResult as D;
     Some(match data {
-        D::U8(v) => v.into_iter().map(f64::from).collect(),
-        D::I8(v) => v.into_iter().map(f64::from).collect(),
-        D::U16(v) => v.into_iter().map(f64::from).collect(),
-        D::I16(v) => v.into_iter().map(f64::from).collect(),
-        D::U32(v) => v.into_iter().map(f64::from).collect(),
-        D::I32(v) => v.into_iter().map(f64::from).collect(),
-        D::U64(v) => v.into_iter().map(|x| x as f64).collect(),
-        D::I64(v) => v.into_iter().map(|x| x as f64).collect(),
-        D::F32(v) => v.into_iter().map(f64::from).collect(),
-        D::F64(v) => v,
+        D::U8(v) => v.into_iter().map(f32::from).collect(),
+        D::I8(v) => v.into_iter().map(f32::from).collect(),
+        D::U16(v) => v.into_iter().map(f32::from).collect(),
+        D::I16(v) => v.into_iter().map(f32::from).collect(),
+        D::U32(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::I32(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::U64(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::I64(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::F32(v) => v,
+        D::F64(v) => v.into_iter().map(|x| x as f32).collect(),
         _ => return None,
     })
 }
