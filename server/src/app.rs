@@ -2,29 +2,25 @@
 //! binding and serving so tests drive it with `oneshot`.
 
 use std::sync::Arc;
-use std::time::Instant;
 
 use axum::Router;
 use axum::body::Body;
-use axum::extract::{MatchedPath, Path, Request, State};
+use axum::extract::{Path, Request, State};
 use axum::http::header::{
     ACCEPT, ACCEPT_ENCODING, ACCEPT_RANGES, CACHE_CONTROL, CONTENT_ENCODING, CONTENT_LENGTH, CONTENT_RANGE,
-    CONTENT_TYPE, ETAG, HeaderName, HeaderValue, IF_MATCH, IF_MODIFIED_SINCE, IF_NONE_MATCH, IF_RANGE, LAST_MODIFIED,
-    RANGE, VARY,
+    CONTENT_TYPE, ETAG, HeaderName, HeaderValue, LAST_MODIFIED, RANGE, VARY,
 };
 use axum::http::{HeaderMap, Method, StatusCode};
-use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use bytes::Bytes;
 use terrastream_packer::{Error as PackError, PayloadCompression, TileKey};
-use tower_http::cors::{Any, CorsLayer};
 use tower_http::timeout::TimeoutLayer;
-use tower_http::trace::TraceLayer;
 
 use crate::body::Chunks;
 use crate::catalog::{Catalog, Served};
 use crate::config::ServerConfig;
+use crate::edge::Edge;
 use crate::metrics::Metrics;
 use crate::range::{Precondition, RangeOutcome, if_none_match, if_range_allows, parse_range, preconditions};
 
@@ -100,50 +96,30 @@ impl IntoResponse for AppError {
     }
 }
 
-/// The router with all routes and layers.
+/// The application as an axum [`Router`] (for `oneshot` tests, extra layers, or nesting
+/// in another application): [`service`] behind a fallback.
 pub fn app(state: AppState) -> Router {
-    let cors = CorsLayer::new()
-        .allow_origin(Any)
-        .allow_methods([Method::GET, Method::HEAD, Method::OPTIONS])
-        .allow_headers([RANGE, IF_NONE_MATCH, IF_MATCH, IF_RANGE, IF_MODIFIED_SINCE, ACCEPT_ENCODING])
-        .expose_headers([
-            ETAG,
-            CONTENT_RANGE,
-            CONTENT_LENGTH,
-            CONTENT_ENCODING,
-            ACCEPT_RANGES,
-            LAST_MODIFIED,
-            FALLBACK_LOD,
-            ARCHIVE_ETAG,
-        ])
-        .max_age(std::time::Duration::from_secs(86_400));
-    Router::new()
+    Router::new().fallback_service(service(state))
+}
+
+/// The application as `serve` runs it: the routes wrapped in CORS, metrics and request
+/// spans ([`Edge`]).
+///
+/// Only `/view` waits on anything (the player's gzip, on a blocking thread): it alone
+/// carries a timeout. Every other handler answers from memory without waiting; slow
+/// clients are cut off by the connection's header-read timeout (see `serve`).
+pub fn service(state: AppState) -> Edge<Router> {
+    let timeout = TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, state.config.request_timeout());
+    let router = Router::new()
         .route("/", get(index))
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/metrics", get(metrics))
         .route("/{file}", get(archive_bytes))
         .route("/{name}/metadata", get(metadata))
-        .route("/view/{name}", get(view))
+        .route("/view/{name}", get(view).layer(timeout))
         .route("/{name}/{layer}/{lod}/{x}/{y}", get(tile))
-        .route_layer(middleware::from_fn_with_state(state.clone(), record_metrics))
-        .with_state(state.clone())
-        .layer(cors)
-        .layer(TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, state.config.request_timeout()))
-        .layer(TraceLayer::new_for_http())
-}
-
-async fn record_metrics(State(state): State<AppState>, req: Request, next: Next) -> Response {
-    let started = Instant::now();
-    // Index into the metrics table now (no allocation): the request moves below.
-    let route = req
-        .extensions()
-        .get::<MatchedPath>()
-        .map_or(crate::metrics::ROUTES.len() - 1, |p| crate::metrics::route_index(p.as_str()));
-    let response = next.run(req).await;
-    let bytes =
-        response.headers().get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse().ok()).unwrap_or(0);
-    state.metrics.record_at(route, response.status().as_u16(), bytes, started.elapsed());
-    response
+        .with_state(state.clone());
+    Edge::new(router, state)
 }
 
 fn archive(state: &AppState, name: &str) -> Result<Arc<Served>, AppError> {
@@ -295,7 +271,7 @@ async fn tile(
                 return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
             }
             let stored =
-                served.reader.read(&location).map_err(|e| AppError::Internal(format!("archive {name:?}: {e}")))?;
+                served.tile_payload(&location).map_err(|e| AppError::Internal(format!("archive {name:?}: {e}")))?;
             let body = match info.compression {
                 PayloadCompression::None => stored,
                 PayloadCompression::Zstd if zstd_ok => {

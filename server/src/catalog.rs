@@ -6,6 +6,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::SystemTime;
 
@@ -30,13 +31,47 @@ pub struct Served {
     /// `Last-Modified` header value, formatted once.
     pub last_modified_header: axum::http::HeaderValue,
     identity: FileIdentity,
+    /// Blobs whose checksum was verified: a direct-mapped table of offsets (+1; 0 is
+    /// empty), fixed in size, lock-free. A hit skips the CRC of a tile served before.
+    verified: Box<[AtomicU64]>,
 }
+
+/// Slots of the verified-blob table (128 KiB per archive).
+const VERIFIED_SLOTS: usize = 16 * 1024;
 
 impl Served {
     /// The whole file, zero-copy.
     pub fn bytes(&self) -> &Bytes {
         self.reader.source().bytes()
     }
+
+    /// A located tile's payload, zero-copy. Its CRC32C is checked the first time the blob
+    /// is served (and again whenever another blob took its slot in the table since): the
+    /// mapping is immutable (a changed file is a new `Served`), so a blob that checked out
+    /// once stays good.
+    ///
+    /// # Errors
+    /// As [`Reader::read`].
+    pub fn tile_payload(&self, location: &terrastream_packer::TileLocation) -> terrastream_packer::Result<Bytes> {
+        let slot = &self.verified[slot_of(location.offset)];
+        if slot.load(Ordering::Relaxed) == location.offset + 1 {
+            return self.reader.read_unchecked(location);
+        }
+        let payload = self.reader.read(location)?;
+        slot.store(location.offset + 1, Ordering::Relaxed);
+        Ok(payload)
+    }
+
+    /// Whether the blob at `offset` is in the verified table (tests).
+    pub fn is_verified(&self, offset: u64) -> bool {
+        self.verified[slot_of(offset)].load(Ordering::Relaxed) == offset + 1
+    }
+}
+
+fn slot_of(offset: u64) -> usize {
+    // Fibonacci hashing: neighbouring blobs land far apart.
+    let hash = offset.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 32;
+    usize::try_from(hash).unwrap_or(0) % VERIFIED_SLOTS
 }
 
 /// What tells two versions of a file apart without reading it.
@@ -180,5 +215,6 @@ fn open(
         etag,
         modified,
         identity: id,
+        verified: (0..VERIFIED_SLOTS).map(|_| AtomicU64::new(0)).collect(),
     })
 }

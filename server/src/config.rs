@@ -29,6 +29,9 @@ pub struct ServerConfig {
     pub reload_interval_ms: u64,
     /// Seconds in-flight requests get to finish on shutdown.
     pub shutdown_grace_secs: u64,
+    /// Threads serving connections, each with its own runtime and listening socket
+    /// (0: one per core).
+    pub workers: usize,
     /// PEM certificate chain: with `tls_key`, serve HTTPS (HTTP/2 and HTTP/1.1 by ALPN).
     pub tls_cert: Option<PathBuf>,
     /// PEM private key of `tls_cert`.
@@ -47,6 +50,7 @@ impl Default for ServerConfig {
             max_header_bytes: 16 * 1024,
             reload_interval_ms: 1000,
             shutdown_grace_secs: 10,
+            workers: 0,
             tls_cert: None,
             tls_key: None,
         }

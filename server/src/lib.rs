@@ -8,14 +8,16 @@ mod app;
 mod body;
 mod catalog;
 mod config;
+mod edge;
 mod metrics;
 pub mod player;
 mod range;
 mod serve;
 
-pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app};
+pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app, service};
 pub use catalog::{Catalog, Served, archive_name};
 pub use config::ServerConfig;
+pub use edge::Edge;
 pub use metrics::Metrics;
 pub use range::{Precondition, RangeOutcome, if_range_allows, parse_range, preconditions};
-pub use serve::{serve, shutdown_signal};
+pub use serve::{serve, serve_workers, shutdown_signal};

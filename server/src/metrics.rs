@@ -1,6 +1,8 @@
 //! Prometheus metrics: requests by status, bytes, errors and a latency histogram per route.
 //! Lock-free: every counter is an atomic in a table fixed at compile time, so recording
-//! costs a few relaxed increments per request.
+//! costs a few relaxed increments per request. The table is sharded: each thread counts in
+//! its own cache-line-aligned copy (summed when rendered), so serving threads never write
+//! to the same cache line.
 
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -24,23 +26,80 @@ const STATUSES: [u16; 20] =
 const BUCKETS: [f64; 12] = [0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5, 2.5];
 
 #[derive(Debug, Default)]
-struct RouteStats {
-    by_status: [AtomicU64; STATUSES.len() + 1],
-    bytes: AtomicU64,
-    buckets: [AtomicU64; BUCKETS.len()],
-    count: AtomicU64,
-    sum_nanos: AtomicU64,
+struct RouteStats<T = AtomicU64> {
+    by_status: [T; STATUSES.len() + 1],
+    bytes: T,
+    buckets: [T; BUCKETS.len()],
+    count: T,
+    sum_nanos: T,
 }
 
-/// Counters shared by all requests.
+impl RouteStats {
+    /// Adds this shard's counts to `total`.
+    fn add_to(&self, total: &mut RouteStats<u64>) {
+        let add = |t: &mut u64, a: &AtomicU64| *t += a.load(Relaxed);
+        total.by_status.iter_mut().zip(&self.by_status).for_each(|(t, a)| add(t, a));
+        total.buckets.iter_mut().zip(&self.buckets).for_each(|(t, a)| add(t, a));
+        add(&mut total.bytes, &self.bytes);
+        add(&mut total.count, &self.count);
+        add(&mut total.sum_nanos, &self.sum_nanos);
+    }
+}
+
+/// Shards of the counters: threads are spread over them round-robin.
+const SHARDS: usize = 16;
+
+/// One thread's copy of the table, on its own cache lines.
 #[derive(Debug, Default)]
+#[repr(align(128))]
+struct Shard([RouteStats; ROUTES.len()]);
+
+/// Counters shared by all requests.
+#[derive(Debug)]
 pub struct Metrics {
-    routes: [RouteStats; ROUTES.len()],
+    shards: Box<[Shard]>,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self { shards: (0..SHARDS).map(|_| Shard::default()).collect() }
+    }
+}
+
+/// The shard of the calling thread.
+fn shard_index() -> usize {
+    use std::sync::atomic::AtomicUsize;
+    static NEXT: AtomicUsize = AtomicUsize::new(0);
+    thread_local! {
+        static SHARD: usize = NEXT.fetch_add(1, Relaxed) % SHARDS;
+    }
+    SHARD.with(|s| *s)
 }
 
 /// Index of a route template in [`ROUTES`] ("other" for anything else).
 pub fn route_index(route: &str) -> usize {
     ROUTES.iter().position(|r| *r == route).unwrap_or(ROUTES.len() - 1)
+}
+
+/// Index in [`ROUTES`] of the route that serves a request path, as the router matches it
+/// (static segments before parameters), without running the router.
+pub fn route_of(path: &str) -> usize {
+    let mut segments = path.strip_prefix('/').unwrap_or(path).split('/');
+    let first = segments.next().unwrap_or("");
+    let rest: [Option<&str>; 5] = std::array::from_fn(|_| segments.next());
+    let route = match (first, rest) {
+        ("", [None, ..]) => "/",
+        ("healthz", [None, ..]) => "/healthz",
+        ("metrics", [None, ..]) => "/metrics",
+        (f, [None, ..]) if !f.is_empty() => "/{file}",
+        ("view", [Some(n), None, ..]) if !n.is_empty() => "/view/{name}",
+        (f, [Some("metadata"), None, ..]) if !f.is_empty() => "/{name}/metadata",
+        (f, [Some(a), Some(b), Some(c), Some(d), None]) if ![f, a, b, c, d].contains(&"") => {
+            "/{name}/{layer}/{lod}/{x}/{y}"
+        }
+        _ => "other",
+    };
+    route_index(route)
 }
 
 impl Metrics {
@@ -51,7 +110,7 @@ impl Metrics {
 
     /// Records one answered request on the route at `index` (see [`route_index`]).
     pub fn record_at(&self, index: usize, status: u16, bytes: u64, latency: Duration) {
-        let s = &self.routes[index.min(ROUTES.len() - 1)];
+        let s = &self.shards[shard_index()].0[index.min(ROUTES.len() - 1)];
         let status_slot = STATUSES.iter().position(|&c| c == status).unwrap_or(STATUSES.len());
         s.by_status[status_slot].fetch_add(1, Relaxed);
         s.bytes.fetch_add(bytes, Relaxed);
@@ -66,7 +125,16 @@ impl Metrics {
 
     /// Requests answered on a route (all statuses); tests and caches use it.
     pub fn requests(&self, route: &str) -> u64 {
-        self.routes[route_index(route)].count.load(Relaxed)
+        self.totals()[route_index(route)].count
+    }
+
+    /// Every route's counts, summed over the shards.
+    fn totals(&self) -> [RouteStats<u64>; ROUTES.len()] {
+        let mut totals: [RouteStats<u64>; ROUTES.len()] = Default::default();
+        for shard in &self.shards {
+            shard.0.iter().zip(&mut totals).for_each(|(s, t)| s.add_to(t));
+        }
+        totals
     }
 
     /// The Prometheus text exposition.
@@ -74,15 +142,15 @@ impl Metrics {
         let mut out = String::new();
         let _ = writeln!(out, "# HELP terrastream_archives Archives being served.\n# TYPE terrastream_archives gauge");
         let _ = writeln!(out, "terrastream_archives {archives}");
-        let used: Vec<(&str, &RouteStats)> =
-            ROUTES.iter().copied().zip(&self.routes).filter(|(_, s)| s.count.load(Relaxed) > 0).collect();
+        let totals = self.totals();
+        let used: Vec<(&str, &RouteStats<u64>)> =
+            ROUTES.iter().copied().zip(&totals).filter(|(_, s)| s.count > 0).collect();
         let _ = writeln!(
             out,
             "# HELP terrastream_requests_total Requests answered.\n# TYPE terrastream_requests_total counter"
         );
         for (route, s) in &used {
-            for (i, n) in s.by_status.iter().enumerate() {
-                let n = n.load(Relaxed);
+            for (i, &n) in s.by_status.iter().enumerate() {
                 if n > 0 {
                     let status = STATUSES.get(i).map_or_else(|| "other".to_owned(), u16::to_string);
                     let _ = writeln!(out, "terrastream_requests_total{{route=\"{route}\",status=\"{status}\"}} {n}");
@@ -94,8 +162,7 @@ impl Metrics {
             "# HELP terrastream_errors_total Requests answered 5xx.\n# TYPE terrastream_errors_total counter"
         );
         for (route, s) in &used {
-            let errors: u64 =
-                STATUSES.iter().zip(&s.by_status).filter(|(code, _)| **code >= 500).map(|(_, n)| n.load(Relaxed)).sum();
+            let errors: u64 = STATUSES.iter().zip(&s.by_status).filter(|(code, _)| **code >= 500).map(|(_, n)| n).sum();
             let _ = writeln!(out, "terrastream_errors_total{{route=\"{route}\"}} {errors}");
         }
         let _ = writeln!(
@@ -103,7 +170,7 @@ impl Metrics {
             "# HELP terrastream_response_bytes_total Body bytes sent.\n# TYPE terrastream_response_bytes_total counter"
         );
         for (route, s) in &used {
-            let _ = writeln!(out, "terrastream_response_bytes_total{{route=\"{route}\"}} {}", s.bytes.load(Relaxed));
+            let _ = writeln!(out, "terrastream_response_bytes_total{{route=\"{route}\"}} {}", s.bytes);
         }
         let _ = writeln!(
             out,
@@ -112,14 +179,14 @@ impl Metrics {
         for (route, s) in &used {
             let mut cumulative = 0;
             for (bound, n) in BUCKETS.iter().zip(&s.buckets) {
-                cumulative += n.load(Relaxed);
+                cumulative += n;
                 let _ = writeln!(
                     out,
                     "terrastream_request_duration_seconds_bucket{{route=\"{route}\",le=\"{bound}\"}} {cumulative}"
                 );
             }
-            let count = s.count.load(Relaxed);
-            let sum = s.sum_nanos.load(Relaxed) as f64 / 1e9;
+            let count = s.count;
+            let sum = s.sum_nanos as f64 / 1e9;
             let _ =
                 writeln!(out, "terrastream_request_duration_seconds_bucket{{route=\"{route}\",le=\"+Inf\"}} {count}");
             let _ = writeln!(out, "terrastream_request_duration_seconds_sum{{route=\"{route}\"}} {sum}");
@@ -148,5 +215,45 @@ mod tests {
         assert!(text.contains("route=\"/{file}\",le=\"+Inf\"} 3"), "{text}");
         assert!(text.contains("terrastream_response_bytes_total{route=\"/{file}\"} 15"), "{text}");
         assert_eq!(m.requests("other"), 1);
+    }
+
+    #[test]
+    fn counts_from_many_threads_are_summed_over_the_shards() {
+        let m = Metrics::default();
+        std::thread::scope(|scope| {
+            for _ in 0..2 * SHARDS + 3 {
+                scope.spawn(|| {
+                    for _ in 0..100 {
+                        m.record("/{file}", 206, 2, Duration::from_micros(50));
+                    }
+                });
+            }
+        });
+        let n = (2 * SHARDS + 3) as u64 * 100;
+        assert_eq!(m.requests("/{file}"), n);
+        let text = m.render(1);
+        assert!(text.contains(&format!("terrastream_response_bytes_total{{route=\"/{{file}}\"}} {}", 2 * n)), "{text}");
+    }
+
+    #[test]
+    fn paths_are_classified_as_the_router_matches_them() {
+        let cases = [
+            ("/", "/"),
+            ("/healthz", "/healthz"),
+            ("/metrics", "/metrics"),
+            ("/a.tspack", "/{file}"),
+            ("/view/a", "/view/{name}"),
+            ("/view/metadata", "/view/{name}"),
+            ("/a/metadata", "/{name}/metadata"),
+            ("/a/texture/0/1/2", "/{name}/{layer}/{lod}/{x}/{y}"),
+            ("/a/b", "other"),
+            ("/a/b/c", "other"),
+            ("/a/texture/0/1/2/3", "other"),
+            ("/a//0/1/2", "other"),
+            ("/view/", "other"),
+        ];
+        for (path, route) in cases {
+            assert_eq!(ROUTES[route_of(path)], route, "{path}");
+        }
     }
 }

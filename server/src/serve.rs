@@ -1,8 +1,16 @@
 //! Binding and serving: HTTP/1.1 and HTTP/2 (h2c) on one port, a cap on connections,
 //! header limits, graceful shutdown that lets requests in flight finish, and the
 //! hot-reload loop.
+//!
+//! [`serve_workers`] is what `terrastream serve` runs: one thread per core, each with its
+//! own single-threaded runtime and its own listening socket on the same port
+//! (`SO_REUSEPORT`: the kernel spreads new connections over them), as nginx runs one
+//! worker process per core. A connection lives on one thread from accept to close: no
+//! work stealing, no wake-ups across threads, no shared run queue. [`serve`] runs the same
+//! accept loop on whatever runtime calls it (tests, embedding).
 
 use std::future::Future;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -11,43 +19,182 @@ use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto::Builder;
 use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
-use tokio::net::TcpListener;
-use tokio::sync::Semaphore;
+use tokio::net::{TcpListener, TcpSocket};
+use tokio::sync::{Semaphore, watch};
 
-use crate::app::{AppState, app};
+use crate::app::{AppState, service};
+use crate::edge::Edge;
 
 /// Serves `state` on `listener` until `shutdown` resolves, then stops accepting and waits up
 /// to the configured grace period for requests in flight.
 ///
 /// # Errors
-/// Only if the listener itself fails.
+/// Only if the listener itself fails, or the TLS settings are wrong.
 pub async fn serve(listener: TcpListener, state: AppState, shutdown: impl Future<Output = ()>) -> std::io::Result<()> {
-    let config = Arc::clone(&state.config);
-    let tls = match (&config.tls_cert, &config.tls_key) {
-        (Some(cert), Some(key)) => Some(tls_acceptor(cert, key)?),
-        (None, None) => None,
-        _ => return Err(std::io::Error::other("TLS needs both a certificate and a key")),
-    };
-    let reload = tokio::spawn(reload_loop(state.clone()));
-    let router: Router = app(state);
-    let mut builder = Builder::new(TokioExecutor::new());
-    builder
-        .http1()
-        .timer(TokioTimer::new())
-        .header_read_timeout(config.request_timeout())
-        .max_buf_size(config.max_header_bytes.max(8192))
-        .keep_alive(true);
-    builder
-        .http2()
-        .timer(TokioTimer::new())
-        .max_header_list_size(u32::try_from(config.max_header_bytes).unwrap_or(u32::MAX));
-    let slots = Arc::new(Semaphore::new(config.max_connections.max(1)));
+    let shared = Shared::new(&state)?;
+    let reload = tokio::spawn(reload_loop(state));
+    let result = accept_loop(listener, shared, shutdown).await;
+    reload.abort();
+    result
+}
+
+/// Serves `state` on `workers` threads (0: one per core), each accepting on its own socket
+/// bound to `addr`, until `shutdown` resolves; then every worker stops accepting and waits
+/// up to the grace period for its requests in flight. `bound` is told the address once
+/// every socket is bound (the port, when `addr` asked for port 0). Blocks until all workers
+/// are done; `shutdown` and the hot-reload loop run on the calling thread.
+///
+/// # Errors
+/// Binding, or a listener failing, or wrong TLS settings.
+pub fn serve_workers(
+    addr: SocketAddr,
+    workers: usize,
+    state: AppState,
+    shutdown: impl Future<Output = ()>,
+    bound: impl FnOnce(SocketAddr),
+) -> std::io::Result<()> {
+    let workers = if workers == 0 { std::thread::available_parallelism().map_or(1, usize::from) } else { workers };
+    let shared = Shared::new(&state)?;
+    let (sockets, local) = bind_sockets(addr, workers)?;
+    let (stop, stopped) = watch::channel(false);
+    let (listening, listened) = std::sync::mpsc::channel::<std::io::Result<()>>();
+    let threads = sockets
+        .into_iter()
+        .enumerate()
+        .map(|(i, socket)| {
+            let (shared, mut stopped, listening) = (shared.clone(), stopped.clone(), listening.clone());
+            std::thread::Builder::new().name(format!("serve-{i}")).spawn(move || {
+                let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+                runtime.block_on(async move {
+                    let listener = match socket.listen(1024) {
+                        Ok(l) => l,
+                        Err(err) => {
+                            let _ = listening.send(Err(std::io::Error::new(err.kind(), err.to_string())));
+                            return Err(err);
+                        }
+                    };
+                    let _ = listening.send(Ok(()));
+                    accept_loop(listener, shared, async move {
+                        let _ = stopped.wait_for(|stop| *stop).await;
+                    })
+                    .await
+                })
+            })
+        })
+        .collect::<std::io::Result<Vec<_>>>()?;
+    drop(listening);
+    // Told once every socket listens: a client may connect at once, and a second server on
+    // this port is refused from then on.
+    let failed = (0..threads.len()).find_map(|_| match listened.recv() {
+        Ok(Ok(())) => None,
+        Ok(Err(err)) => Some(err),
+        Err(_) => Some(std::io::Error::other("a server thread ended before listening")),
+    });
+    if failed.is_none() {
+        bound(local);
+    }
+    drop(stopped);
+    if failed.is_none() {
+        let control = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+        control.block_on(async {
+            let reload = tokio::spawn(reload_loop(state));
+            shutdown.await;
+            reload.abort();
+        });
+    }
+    let _ = stop.send(true);
+    let mut result = failed.map_or(Ok(()), Err);
+    for thread in threads {
+        match thread.join() {
+            Ok(Ok(())) => {}
+            Ok(Err(err)) => result = Err(err),
+            Err(_) => result = Err(std::io::Error::other("a server thread panicked")),
+        }
+    }
+    result
+}
+
+/// `workers` sockets bound to one address. With `SO_REUSEPORT` each gets its own accept
+/// queue and the kernel balances connections over them; elsewhere they would all share the
+/// first socket's queue, so only one is made.
+///
+/// `SO_REUSEPORT` would also let a second server started on the same port silently take
+/// half of its connections: the address is first bound without it, which fails if anything
+/// listens there (and picks the port when `addr` asks for port 0).
+fn bind_sockets(addr: SocketAddr, workers: usize) -> std::io::Result<(Vec<TcpSocket>, SocketAddr)> {
+    let named = |e: std::io::Error| std::io::Error::new(e.kind(), format!("binding {addr}: {e}"));
+    let new_socket = |at: SocketAddr| if at.is_ipv4() { TcpSocket::new_v4() } else { TcpSocket::new_v6() };
+    let probe = new_socket(addr)?;
+    probe.set_reuseaddr(true)?;
+    probe.bind(addr).map_err(named)?;
+    let local = probe.local_addr()?;
+    drop(probe);
+    let reuse_port = cfg!(all(unix, not(any(target_os = "solaris", target_os = "illumos", target_os = "cygwin"))));
+    let count = if reuse_port { workers.max(1) } else { 1 };
+    let sockets = (0..count)
+        .map(|_| {
+            let s = new_socket(local)?;
+            s.set_reuseaddr(true)?;
+            #[cfg(all(unix, not(any(target_os = "solaris", target_os = "illumos", target_os = "cygwin"))))]
+            s.set_reuseport(true)?;
+            s.bind(local)?;
+            Ok(s)
+        })
+        .collect::<std::io::Result<Vec<_>>>()
+        .map_err(named)?;
+    Ok((sockets, local))
+}
+
+/// What every accept loop shares: the router, the HTTP settings, the connection cap, TLS.
+#[derive(Clone)]
+struct Shared {
+    service: Edge<Router>,
+    builder: Builder<TokioExecutor>,
+    slots: Arc<Semaphore>,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+    request_timeout: Duration,
+    grace: Duration,
+}
+
+impl Shared {
+    fn new(state: &AppState) -> std::io::Result<Self> {
+        let config = &state.config;
+        let tls = match (&config.tls_cert, &config.tls_key) {
+            (Some(cert), Some(key)) => Some(tls_acceptor(cert, key)?),
+            (None, None) => None,
+            _ => return Err(std::io::Error::other("TLS needs both a certificate and a key")),
+        };
+        let mut builder = Builder::new(TokioExecutor::new());
+        builder
+            .http1()
+            .timer(TokioTimer::new())
+            .header_read_timeout(config.request_timeout())
+            .max_buf_size(config.max_header_bytes.max(8192))
+            .keep_alive(true);
+        builder
+            .http2()
+            .timer(TokioTimer::new())
+            .max_header_list_size(u32::try_from(config.max_header_bytes).unwrap_or(u32::MAX));
+        Ok(Self {
+            service: service(state.clone()),
+            builder,
+            slots: Arc::new(Semaphore::new(config.max_connections.max(1))),
+            tls,
+            request_timeout: config.request_timeout(),
+            grace: Duration::from_secs(config.shutdown_grace_secs),
+        })
+    }
+}
+
+/// Accepts and serves connections on the current runtime until `shutdown` resolves, then
+/// drains them for up to the grace period.
+async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Future<Output = ()>) -> std::io::Result<()> {
     let graceful = GracefulShutdown::new();
     let mut shutdown = std::pin::pin!(shutdown);
     loop {
         // Wait for a free slot before accepting: excess clients stay in the backlog.
         let permit = tokio::select! {
-            permit = Arc::clone(&slots).acquire_owned() => permit.map_err(std::io::Error::other)?,
+            permit = Arc::clone(&shared.slots).acquire_owned() => permit.map_err(std::io::Error::other)?,
             () = &mut shutdown => break,
         };
         let (stream, peer) = tokio::select! {
@@ -63,9 +210,9 @@ pub async fn serve(listener: TcpListener, state: AppState, shutdown: impl Future
             () = &mut shutdown => break,
         };
         let _ = stream.set_nodelay(true);
-        let service = TowerToHyperService::new(router.clone());
-        let (builder, watcher, tls) = (builder.clone(), graceful.watcher(), tls.clone());
-        let handshake_timeout = config.request_timeout();
+        let service = TowerToHyperService::new(shared.service.clone());
+        let (builder, watcher, tls) = (shared.builder.clone(), graceful.watcher(), shared.tls.clone());
+        let handshake_timeout = shared.request_timeout;
         tokio::spawn(async move {
             let result = match tls {
                 None => {
@@ -89,9 +236,8 @@ pub async fn serve(listener: TcpListener, state: AppState, shutdown: impl Future
         });
     }
     drop(listener);
-    reload.abort();
     tracing::info!("shutting down: waiting for requests in flight");
-    if tokio::time::timeout(Duration::from_secs(config.shutdown_grace_secs), graceful.shutdown()).await.is_err() {
+    if tokio::time::timeout(shared.grace, graceful.shutdown()).await.is_err() {
         tracing::warn!("grace period over: closing the remaining connections");
     }
     Ok(())

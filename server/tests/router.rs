@@ -264,3 +264,33 @@ async fn listing_health_metrics_and_cors() {
         assert!(exposed.contains(name), "{exposed}");
     }
 }
+
+/// A tile's checksum is verified the first time it is served (then remembered: the
+/// mapping is immutable); a damaged tile is refused with a 500 every time, never
+/// remembered as good, and the archive's other tiles are still served.
+#[tokio::test]
+async fn damaged_tiles_are_refused_every_time_and_good_ones_checked_once() {
+    let (dir, path) = archives();
+    let reader = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
+    let good = reader.locate(TileKey::new(0, 1, 2, 1).unwrap()).unwrap().unwrap();
+    let bad = reader.locate(TileKey::new(0, 1, 0, 0).unwrap()).unwrap().unwrap();
+    assert_ne!(good.offset, bad.offset);
+    let want = reader.read(&good).unwrap().to_vec();
+    drop(reader);
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes[bad.offset as usize + 20] ^= 0x55;
+    std::fs::write(&path, &bytes).unwrap();
+    let s = state(dir.path());
+    let served = s.catalog.get("sample").unwrap();
+    assert!(!served.is_verified(good.offset));
+    for _ in 0..2 {
+        let (r, body) = send(&s, get("/sample/texture/1/2/1", &[])).await;
+        assert_eq!(r.status(), StatusCode::OK);
+        assert_eq!(body, want);
+        assert!(served.is_verified(good.offset));
+        let (r, body) = send(&s, get("/sample/texture/1/0/0", &[])).await;
+        assert_eq!(r.status(), StatusCode::INTERNAL_SERVER_ERROR);
+        assert_eq!(body, b"internal server error");
+        assert!(!served.is_verified(bad.offset));
+    }
+}

@@ -288,3 +288,79 @@ async fn archives_added_and_removed_are_picked_up() {
     assert_eq!(status, (200, 404), "new archive served, removed one gone");
     server.stop().await;
 }
+
+/// `serve_workers`, as `terrastream serve` runs it: several threads, each with its own
+/// socket on one port. Every connection is served whichever thread the kernel gives it to;
+/// hot reload (run on the calling thread) reaches all of them; shutdown stops them all and
+/// closes the port.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn worker_threads_share_one_port_reload_and_stop_together() {
+    let (dir, path) = archives();
+    let file = std::fs::read(&path).unwrap();
+    let config =
+        ServerConfig { paths: vec![dir.path().to_path_buf()], reload_interval_ms: 50, ..ServerConfig::default() };
+    let state = AppState::new(config);
+    state.catalog.reload();
+    let (stop, stopped) = oneshot::channel::<()>();
+    let (bound_tx, bound_rx) = std::sync::mpsc::channel();
+    let thread = std::thread::spawn(move || {
+        let addr = SocketAddr::from(([127, 0, 0, 1], 0));
+        terrastream_server::serve_workers(
+            addr,
+            3,
+            state,
+            async {
+                let _ = stopped.await;
+            },
+            move |a| bound_tx.send(a).unwrap(),
+        )
+    });
+    let addr = tokio::task::spawn_blocking(move || bound_rx.recv().unwrap()).await.unwrap();
+    // A second server on the same port is refused, not handed half of the connections.
+    let again = terrastream_server::serve_workers(addr, 2, AppState::new(ServerConfig::default()), async {}, |_| {
+        panic!("bound a port in use")
+    });
+    assert_eq!(again.unwrap_err().kind(), std::io::ErrorKind::AddrInUse);
+    // 48 separate connections (a client each: no pooling), 4 requests on each.
+    let mut tasks = Vec::new();
+    for i in 0..48u64 {
+        let want = file.clone();
+        tasks.push(tokio::spawn(async move {
+            let client = reqwest::Client::new();
+            for j in 0..4u64 {
+                let start = (i * 97 + j * 13) % (want.len() as u64 - 64);
+                let r = client
+                    .get(format!("http://{addr}/sample.tspack"))
+                    .header("range", format!("bytes={start}-{}", start + 63))
+                    .send()
+                    .await
+                    .unwrap();
+                assert_eq!(r.status(), 206);
+                assert_eq!(r.bytes().await.unwrap(), &want[start as usize..start as usize + 64]);
+            }
+        }));
+    }
+    for t in tasks {
+        t.await.unwrap();
+    }
+    // A removed archive disappears for every worker.
+    std::fs::remove_file(&path).unwrap();
+    let mut statuses = Vec::new();
+    for _ in 0..100 {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        statuses.clear();
+        for _ in 0..6 {
+            // A fresh connection each time: the kernel spreads them over the workers.
+            let r = reqwest::Client::new().get(format!("http://{addr}/sample.tspack")).send().await.unwrap();
+            statuses.push(r.status().as_u16());
+        }
+        if statuses.iter().all(|&s| s == 404) {
+            break;
+        }
+    }
+    assert!(statuses.iter().all(|&s| s == 404), "removed archive still served: {statuses:?}");
+    stop.send(()).unwrap();
+    let result = tokio::task::spawn_blocking(move || thread.join().unwrap()).await.unwrap();
+    result.unwrap();
+    assert!(tokio::net::TcpStream::connect(addr).await.is_err(), "port still open after shutdown");
+}

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_packer::import::{
-    OriginalLayout, PmtilesInput, Scheme, XyzOptions, pack, pack_pmtiles, scan_original, scan_xyz,
+    OriginalLayout, Scheme, TilesetInput, XyzOptions, pack, pack_mbtiles, pack_pmtiles, scan_original, scan_xyz,
 };
 use terrastream_packer::{ElevationScheme, LayerKind, WriterOptions};
 
@@ -15,7 +15,7 @@ use super::CliProgress;
 #[derive(Debug, Args)]
 pub struct PackArgs {
     /// Input: a folder of original LOD folders (with their metadata text) or an XYZ/TMS
-    /// tree, or a PMTiles v3 raster archive.
+    /// tree, or a PMTiles v3 or MBTiles raster tileset.
     input: PathBuf,
     /// Output archive (written to a temporary name, then renamed).
     #[arg(short, long)]
@@ -67,10 +67,30 @@ fn has_lod_folders(dir: &Path) -> bool {
             .any(|c| std::fs::read_dir(c).map(|r| r.filter_map(|e| e.ok()).any(|e| is_lod(&e.path()))).unwrap_or(false))
 }
 
-fn is_pmtiles(path: &Path) -> bool {
+/// What a single-file tileset is, by its first bytes (or, for an unreadable or short
+/// file, its extension, so that the importer names what is wrong with it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Tileset {
+    Pmtiles,
+    Mbtiles,
+}
+
+fn tileset(path: &Path) -> Option<Tileset> {
     use std::io::Read;
-    let mut magic = [0u8; 7];
-    std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut magic)).is_ok() && &magic == b"PMTiles"
+    let mut magic = [0u8; 16];
+    let read = std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut magic)).is_ok();
+    let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    if read && magic.starts_with(b"PMTiles") {
+        Some(Tileset::Pmtiles)
+    } else if read && &magic == b"SQLite format 3\0" {
+        Some(Tileset::Mbtiles)
+    } else {
+        match ext.as_deref() {
+            Some("pmtiles") => Some(Tileset::Pmtiles),
+            Some("mbtiles") => Some(Tileset::Mbtiles),
+            _ => None,
+        }
+    }
 }
 
 pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
@@ -83,13 +103,20 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         EncodingArg::Terrarium => ElevationScheme::Terrarium,
         EncodingArg::Gray8 => ElevationScheme::Gray8,
     });
-    if args.input.is_file() && is_pmtiles(&args.input) {
+    if let Some(set) = tileset(&args.input).filter(|_| !args.input.is_dir()) {
         let started = std::time::Instant::now();
-        let input = PmtilesInput { kind, elevation };
-        let summary = pack_pmtiles(&args.input, input, &args.output, WriterOptions::default(), progress)?;
+        let input = TilesetInput { kind, elevation };
+        let (summary, from) = match set {
+            Tileset::Pmtiles => {
+                (pack_pmtiles(&args.input, input, &args.output, WriterOptions::default(), progress)?, "PMTiles")
+            }
+            Tileset::Mbtiles => {
+                (pack_mbtiles(&args.input, input, &args.output, WriterOptions::default(), progress)?, "MBTiles")
+            }
+        };
         progress.finish();
         println!(
-            "{}: {} tiles ({} distinct) from PMTiles, {} bytes in {:.2} s",
+            "{}: {} tiles ({} distinct) from {from}, {} bytes in {:.2} s",
             summary.path.display(),
             summary.addressed_tiles,
             summary.tile_contents,
@@ -100,7 +127,7 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
     }
     if !args.input.is_dir() {
         bail!(
-            "{}: not a folder or a PMTiles file (pack takes tile pyramids; rasters are tiled by `terrastream tile`)",
+            "{}: not a folder, a PMTiles or an MBTiles file (pack takes tile pyramids; rasters are tiled by `terrastream tile`)",
             args.input.display()
         );
     }

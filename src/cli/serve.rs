@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use terrastream_server::{AppState, ServerConfig, serve, shutdown_signal};
+use terrastream_server::{AppState, ServerConfig, serve_workers, shutdown_signal};
 
 #[derive(Debug, Args)]
 pub struct ServeArgs {
@@ -27,6 +27,9 @@ pub struct ServeArgs {
     /// Most connections served at once.
     #[arg(long)]
     max_connections: Option<usize>,
+    /// Serving threads, each with its own listening socket [default: one per core].
+    #[arg(long)]
+    workers: Option<usize>,
     /// PEM certificate chain: serve HTTPS (HTTP/2 and HTTP/1.1 by ALPN).
     #[arg(long, requires = "tls_key")]
     tls_cert: Option<PathBuf>,
@@ -56,6 +59,9 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     if let Some(n) = args.max_connections {
         config.max_connections = n;
     }
+    if let Some(n) = args.workers {
+        config.workers = n;
+    }
     if args.tls_cert.is_some() {
         config.tls_cert = args.tls_cert;
         config.tls_key = args.tls_key;
@@ -68,21 +74,15 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
             bail!("{}: no such file or folder", p.display());
         }
     }
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
-    runtime.block_on(async move {
-        let state = AppState::new(config.clone());
-        let catalog = std::sync::Arc::clone(&state.catalog);
-        tokio::task::spawn_blocking(move || catalog.reload()).await?;
-        let listener =
-            tokio::net::TcpListener::bind(config.addr).await.with_context(|| format!("binding {}", config.addr))?;
-        let addr = listener.local_addr()?;
+    let state = AppState::new(config.clone());
+    state.catalog.reload();
+    let scheme = if config.tls_cert.is_some() { "https" } else { "http" };
+    serve_workers(config.addr, config.workers, state.clone(), shutdown_signal(), |addr| {
         for a in state.catalog.list() {
             println!("serving http://{addr}/{}.tspack  ({})", a.name, a.path.display());
         }
-        let scheme = if config.tls_cert.is_some() { "https" } else { "http" };
         println!("listening on {scheme}://{addr}/ (Ctrl-C to stop)");
-        serve(listener, state, shutdown_signal()).await?;
-        anyhow::Ok(())
-    })?;
+    })
+    .with_context(|| format!("serving on {}", config.addr))?;
     Ok(ExitCode::SUCCESS)
 }

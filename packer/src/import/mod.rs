@@ -1,12 +1,14 @@
 //! `terrastream pack`: existing tile pyramids into one archive.
 //!
-//! A PMTiles v3 raster archive ([`pack_pmtiles`]) is read directly. Two folder layouts:
+//! PMTiles v3 ([`pack_pmtiles`]) and MBTiles ([`pack_mbtiles`]) raster tilesets are read
+//! directly. Two folder layouts:
 //! the original engine's folders (`LOD0`, `LOD1`, ... with a metadata
 //! text of C# field declarations) and XYZ / TMS trees addressed by a path template such as
 //! `{z}/{x}/{y}.png`. Both importers first scan the tree (names only), then stream the
 //! files in archive order into a [`Writer`]; tile bytes are stored unchanged so that
 //! `extract` gives back the same files.
 
+mod mbtiles;
 mod original;
 mod pmtiles;
 mod xyz;
@@ -15,9 +17,10 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
+pub use mbtiles::pack_mbtiles;
 pub use original::{LAYOUT_KEY, LayerNaming, LayoutRecord, OriginalLayout, scan_original};
-pub use pmtiles::{PmtilesInput, pack_pmtiles};
-pub use xyz::{Scheme, XYZ_KEY, XyzOptions, XyzRecord, fill_template, scan_xyz};
+pub use pmtiles::pack_pmtiles;
+pub use xyz::{Scheme, TilesetInput, XYZ_KEY, XyzOptions, XyzRecord, fill_template, scan_xyz};
 
 use crate::error::{Error, Result};
 use crate::key::TileKey;

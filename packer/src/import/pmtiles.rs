@@ -9,29 +9,19 @@
 use std::io::Read;
 use std::path::Path;
 
-use super::xyz::{XYZ_KEY, XyzRecord, web_mercator_metadata};
-use super::{Scheme, image_size};
+use super::xyz::{TilesetInput, WebTile, pack_web_tiles};
 use crate::error::{Error, Result};
-use crate::key::{MAX_LODS, TileKey, tile_id_to_zxy};
-use crate::metadata::{ElevationScheme, LayerKind, TileFormat};
+use crate::key::{MAX_LODS, tile_id_to_zxy};
+use crate::metadata::TileFormat;
 use crate::progress::Progress;
 use crate::source::{FileSource, RangeSource};
 use crate::varint::Cursor;
-use crate::writer::{WriteSummary, Writer, WriterOptions};
+use crate::writer::{WriteSummary, WriterOptions};
 
 /// Leaf directories nest at most this deep (the reference writer uses one level).
 pub const MAX_DEPTH: usize = 4;
 /// Largest decompressed directory accepted.
 const MAX_DIRECTORY: u64 = 64 << 20;
-
-/// What the input is, beyond what the file says.
-#[derive(Clone, Copy, Debug)]
-pub struct PmtilesInput {
-    /// Layer kind.
-    pub kind: LayerKind,
-    /// Height encoding of an elevation layer (Terrain-RGB, Terrarium, gray).
-    pub elevation: Option<ElevationScheme>,
-}
 
 struct Header {
     root: (u64, u64),
@@ -130,7 +120,7 @@ fn directory(bytes: &[u8], path: &Path, what: &str) -> Result<Vec<(u64, u64, u64
 /// and I/O errors; [`Error::Interrupted`]. Nothing is written under `out` on error.
 pub fn pack_pmtiles(
     input: &Path,
-    options: PmtilesInput,
+    options: TilesetInput,
     out: &Path,
     writer_options: WriterOptions,
     progress: &dyn Progress,
@@ -172,8 +162,7 @@ pub fn pack_pmtiles(
         }
     }
     // Tiles by key; zooms and coordinates checked.
-    let mut keyed: Vec<(u8, u32, u32, u64, u64)> = Vec::new();
-    let mut max_zoom = 0u8;
+    let mut keyed: Vec<WebTile<(u64, u64)>> = Vec::new();
     for &(id, run, offset, len) in &tiles {
         if offset.checked_add(len).is_none_or(|end| end > h.data.1) || len == 0 || len > u64::from(u32::MAX) {
             return Err(Error::input(input, format!("tile {id}: data [{offset}, +{len}) outside the tile data")));
@@ -184,55 +173,19 @@ pub fn pack_pmtiles(
         }
         for t in id..=last {
             let (z, x, y) = tile_id_to_zxy(t);
-            max_zoom = max_zoom.max(z);
-            keyed.push((z, x, y, h.data.0 + offset, len));
+            keyed.push(WebTile { z, x, y, at: (h.data.0 + offset, len) });
         }
     }
-    let Some(first) = keyed.first().copied() else {
-        return Err(Error::input(input, "no tiles"));
-    };
-    let head = read_at(&file, input, (first.3, first.4.min(64)), "the first tile")?;
-    let (width, _) = image_size(&head).unwrap_or((256, 256));
-    let name = input.file_stem().and_then(|n| n.to_str()).unwrap_or("terrain");
-    let mut metadata = web_mercator_metadata(name, options.kind, options.elevation, format, width, max_zoom);
-    let min_zoom = keyed.iter().map(|t| t.0).min().unwrap_or(0);
-    let record = XyzRecord { template: "{z}/{x}/{y}".into(), scheme: Scheme::Xyz, min_zoom, max_zoom };
-    metadata.extra.insert(XYZ_KEY.into(), serde_json::to_value(record).map_err(|e| Error::Metadata(e.to_string()))?);
-    let mut ordered = keyed
-        .into_iter()
-        .map(|(z, x, y, offset, len)| {
-            let key = TileKey::new(0, max_zoom - z, x, y)?;
-            Ok((Writer::order_key(&metadata, key)?, key, offset, len))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    ordered.sort_unstable_by_key(|t| t.0);
-    let mut writer = Writer::create(out, metadata, writer_options)?;
-    progress.start("pack", ordered.len() as u64);
-    for (n, (_, key, offset, len)) in ordered.into_iter().enumerate() {
-        if n.is_multiple_of(256) {
-            progress.check()?;
-        }
-        let bytes = read_at(&file, input, (offset, len), &format!("tile {key}"))?;
-        match TileFormat::sniff(&bytes) {
-            Some(found) if found == format => {}
-            found => {
-                return Err(Error::input(
-                    input,
-                    format!("tile {key}: {found:?} bytes where the header says {format:?}"),
-                ));
-            }
-        }
-        writer.add_stored(key, bytes.into())?;
-        progress.advance(1);
-    }
-    writer.finish()
+    let read = |&(offset, len): &(u64, u64), what: &str| read_at(&file, input, (offset, len), what);
+    pack_web_tiles(input, options, Some(format), keyed, read, out, writer_options, progress)
 }
 
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::Reader;
+    use crate::{Reader, TileKey};
+    use crate::metadata::LayerKind;
     use crate::pmtiles::export_pmtiles;
     use crate::progress::Silent;
 
@@ -246,7 +199,7 @@ mod tests {
         let pm = dir.path().join("a.pmtiles");
         export_pmtiles(&reader, texture, &pm, &Silent::default()).unwrap();
         let out = dir.path().join("b.tspack");
-        let options = PmtilesInput { kind: LayerKind::Texture, elevation: None };
+        let options = TilesetInput { kind: LayerKind::Texture, elevation: None };
         pack_pmtiles(&pm, options, &out, WriterOptions::default(), &Silent::default()).unwrap();
         let back = Reader::open_mmap(&out).unwrap();
         let (a, b) = (&reader.metadata().layers[usize::from(texture)], &back.metadata().layers[0]);

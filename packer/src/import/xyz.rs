@@ -11,6 +11,8 @@ use crate::key::{MAX_LODS, TileKey};
 use crate::metadata::{
     ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
 };
+use crate::progress::Progress;
+use crate::writer::{WriteSummary, Writer, WriterOptions};
 
 /// Row order of the tree.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -163,6 +165,92 @@ pub fn scan_xyz(root: &Path, options: &XyzOptions) -> Result<ScannedPyramid> {
         })
         .collect::<Result<Vec<_>>>()?;
     ScannedPyramid::new(metadata, tiles)
+}
+
+/// What a tileset is, beyond what its file says (PMTiles, MBTiles).
+#[derive(Clone, Copy, Debug)]
+pub struct TilesetInput {
+    /// Layer kind.
+    pub kind: LayerKind,
+    /// Height encoding of an elevation layer (Terrain-RGB, Terrarium, gray).
+    pub elevation: Option<ElevationScheme>,
+}
+
+/// One tile of a Web Mercator tileset (XYZ numbering: row 0 at the north) and where its
+/// bytes are in the input.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct WebTile<T> {
+    pub z: u8,
+    pub x: u32,
+    pub y: u32,
+    pub at: T,
+}
+
+/// Packs the tiles of a Web Mercator tileset into a one-layer archive at `out`: zoom `z`
+/// becomes LOD `max_zoom - z`, tile bytes are stored unchanged (identical tiles once), each
+/// checked to be an image of the tileset's `format` (`None`: the first tile's). `read`
+/// fetches a tile's bytes; its second argument names the tile for errors.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn pack_web_tiles<T>(
+    input: &Path,
+    options: TilesetInput,
+    format: Option<TileFormat>,
+    tiles: Vec<WebTile<T>>,
+    mut read: impl FnMut(&T, &str) -> Result<bytes::Bytes>,
+    out: &Path,
+    writer_options: WriterOptions,
+    progress: &dyn Progress,
+) -> Result<WriteSummary> {
+    let Some(first) = tiles.first() else {
+        return Err(Error::input(input, "no tiles"));
+    };
+    let what = |t: &WebTile<T>| format!("tile z{} x{} y{}", t.z, t.x, t.y);
+    let head = read(&first.at, &what(first))?;
+    let format = match format.or_else(|| TileFormat::sniff(&head)) {
+        Some(f @ (TileFormat::Png | TileFormat::Jpeg | TileFormat::Webp)) => f,
+        _ => return Err(Error::input(input, format!("{}: not a PNG, JPEG or WebP image", what(first)))),
+    };
+    let (width, _) = image_size(&head).unwrap_or((256, 256));
+    let max_zoom = tiles.iter().map(|t| t.z).max().unwrap_or(0);
+    let min_zoom = tiles.iter().map(|t| t.z).min().unwrap_or(0);
+    if max_zoom >= MAX_LODS {
+        return Err(Error::input(input, format!("zoom {max_zoom}: at most {} levels", MAX_LODS)));
+    }
+    let name = input.file_stem().and_then(|n| n.to_str()).unwrap_or("terrain");
+    let mut metadata = web_mercator_metadata(name, options.kind, options.elevation, format, width, max_zoom);
+    let record = XyzRecord { template: "{z}/{x}/{y}".into(), scheme: Scheme::Xyz, min_zoom, max_zoom };
+    metadata.extra.insert(XYZ_KEY.into(), serde_json::to_value(record).map_err(|e| Error::Metadata(e.to_string()))?);
+    let mut ordered = tiles
+        .into_iter()
+        .map(|t| {
+            let key = TileKey::new(0, max_zoom - t.z, t.x, t.y)
+                .map_err(|e| Error::input(input, format!("{}: {e}", what(&t))))?;
+            let order =
+                Writer::order_key(&metadata, key).map_err(|e| Error::input(input, format!("{}: {e}", what(&t))))?;
+            Ok((order, key, t))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    ordered.sort_unstable_by_key(|t| t.0);
+    if let Some(pair) = ordered.windows(2).find(|w| w[0].0 == w[1].0) {
+        return Err(Error::input(input, format!("{} appears twice", what(&pair[1].2))));
+    }
+    let mut writer = Writer::create(out, metadata, writer_options)?;
+    progress.start("pack", ordered.len() as u64);
+    for (n, (_, key, t)) in ordered.into_iter().enumerate() {
+        if n.is_multiple_of(256) {
+            progress.check()?;
+        }
+        let bytes = read(&t.at, &what(&t))?;
+        match TileFormat::sniff(&bytes) {
+            Some(found) if found == format => {}
+            found => {
+                return Err(Error::input(input, format!("{}: {found:?} bytes in a {format:?} tileset", what(&t))));
+            }
+        }
+        writer.add_stored(key, bytes.into())?;
+        progress.advance(1);
+    }
+    writer.finish()
 }
 
 /// One layer on the Web Mercator tile grid of zoom `max_zoom` (LOD 0), `width`-pixel tiles.
