@@ -62,25 +62,44 @@ end
 LUA
 export TILE_PATHS="$work/tile-paths.txt" RANGES="$work/ranges.txt"
 
-run() { # name url script
-  local out
-  out=$(wrk -t2 -c"$CONNS" -d"${SECS}s" --latency -s "$3" "$2")
-  local rps p50 p99 errs
+run() { # url script -> "requests/s p50 p99 errors"
+  local out rps p50 p99 errs
+  out=$(wrk -t2 -c"$CONNS" -d"${SECS}s" --latency -s "$2" "$1")
   rps=$(awk '/Requests\/sec/ { print $2 }' <<<"$out")
   p50=$(awk '$1 == "50%" { print $2 }' <<<"$out")
   p99=$(awk '$1 == "99%" { print $2 }' <<<"$out")
   errs=$(awk '/Non-2xx|Socket errors/ { $1 = $1; print }' <<<"$out" | paste -sd' ' -)
   # A benchmark of error answers measures nothing: say so loudly.
-  [ -n "$errs" ] && echo "WARNING: $1 answered errors: $errs" >&2
-  printf '%-44s %12s %10s %10s  %s\n' "$1" "$rps" "$p50" "$p99" "${errs:-no errors}"
+  [ -n "$errs" ] && echo "WARNING: errors answered: $errs" >&2
+  echo "$rps $p50 $p99 ${errs:+errors}"
 }
 
+# This machine is shared and noisy: the three targets take turns, ROUNDS times, and each
+# round's ratio against nginx is computed from runs a few seconds apart.
+ROUNDS=${ROUNDS:-3}
 echo
-echo "wrk, $CONNS connections, ${SECS}s each, 2 threads, loopback, $(nproc) cores"
-printf '%-44s %12s %10s %10s\n' "target" "requests/s" "p50" "p99"
-run "(a) terrastream tile endpoint, random tiles" "http://127.0.0.1:$ours" "$work/tiles.lua"
-run "(b) terrastream archive, random tile Ranges" "http://127.0.0.1:$ours" "$work/ranges.lua"
-run "(c) nginx archive, same Ranges" "http://127.0.0.1:$theirs" "$work/ranges.lua"
+echo "wrk, $CONNS connections, ${SECS}s each, 2 threads, loopback, $(nproc) cores, $ROUNDS rounds"
+printf '%-6s %-44s %12s %10s %10s %8s\n' "round" "target" "requests/s" "p50" "p99" "x nginx"
+: > "$work/results.txt"
+for round in $(seq "$ROUNDS"); do
+  a=$(run "http://127.0.0.1:$ours" "$work/tiles.lua")
+  b=$(run "http://127.0.0.1:$ours" "$work/ranges.lua")
+  c=$(run "http://127.0.0.1:$theirs" "$work/ranges.lua")
+  nginx_rps=${c%% *}
+  for row in "(a) terrastream tile endpoint, random tiles|$a" "(b) terrastream archive, random tile Ranges|$b" \
+    "(c) nginx archive, same Ranges|$c"; do
+    name=${row%%|*}; read -r rps p50 p99 errs <<<"${row#*|}"
+    ratio=$(awk -v x="$rps" -v y="$nginx_rps" 'BEGIN { printf "%.2f", x / y }')
+    printf '%-6s %-44s %12s %10s %10s %8s %s\n' "$round" "$name" "$rps" "$p50" "$p99" "$ratio" "$errs"
+    echo "${name:1:1} $ratio $p99" >> "$work/results.txt"
+  done
+done
+echo
+echo "median over the rounds:"
+for t in a b; do
+  sort -k2 -n <(grep "^$t " "$work/results.txt") | awk -v t="$t" '{ r[NR] = $2 } END {
+    printf "  (%s) %.2fx nginx\n", t, (NR % 2) ? r[(NR + 1) / 2] : (r[NR / 2] + r[NR / 2 + 1]) / 2 }'
+done
 
 if [ "$SOAK_SECS" -gt 0 ]; then
   echo; echo "soak: (b) for ${SOAK_SECS}s, server RSS every 10 s (KiB):"

@@ -184,10 +184,10 @@ pub fn pack_pmtiles(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::{Reader, TileKey};
     use crate::metadata::LayerKind;
     use crate::pmtiles::export_pmtiles;
     use crate::progress::Silent;
+    use crate::{Reader, TileKey};
 
     #[test]
     fn an_exported_pmtiles_packs_back_to_the_same_tiles_and_bad_files_are_named() {
