@@ -6,8 +6,8 @@ use std::process::ExitCode;
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_packer::tiler::{
-    ElevationSource, ElevationStorage, ImageSource, TextureFormat, TextureInput, TileOptions, open_elevation,
-    open_image, plan, tile_terrain,
+    ElevationSource, ElevationStorage, ImageSource, ImageWindow, TextureFormat, TextureInput, TileOptions,
+    open_elevation, open_image, plan, tile_terrain,
 };
 use terrastream_packer::{ElevationEncoding, ElevationScheme};
 
@@ -154,13 +154,22 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         TextureFormatArg::Bc1 => TextureFormat::Bc1,
         TextureFormatArg::Bc7 => TextureFormat::Bc7,
     };
-    let texture = image.as_ref().map(|source| TextureInput {
-        source: source as &dyn ImageSource,
+    let elevation: Option<&dyn ElevationSource> = elevation.as_ref().map(|e| e as &dyn ElevationSource);
+    // Both georeferenced in one CRS: only the part of the image over the elevation is used.
+    let window = match (elevation, &image) {
+        (Some(e), Some(i)) => ImageWindow::over(e, i)?,
+        _ => None,
+    };
+    if let Some(w) = &window {
+        let (x, y, width, height) = w.bounds();
+        tracing::info!("texture: pixels {x}..{}, {y}..{} of the image lie over the elevation", x + width, y + height);
+    }
+    let texture = image.as_ref().map(|image| TextureInput {
+        source: window.as_ref().map_or(image as &dyn ImageSource, |w| w as &dyn ImageSource),
         tile_size: args.texture_tile_size,
         format,
         pixel_size: args.pixel_size,
     });
-    let elevation: Option<&dyn ElevationSource> = elevation.as_ref().map(|e| e as &dyn ElevationSource);
     let name = args.name.clone().unwrap_or_else(|| {
         let input = args.elevation.as_ref().or(args.texture.as_ref());
         input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()

@@ -24,8 +24,8 @@ pub mod source;
 use std::path::Path;
 
 pub use source::{
-    ElevationFile, ElevationSource, Image, ImageFile, ImageSource, Raster, open_elevation, open_image, read_geotiff,
-    read_image,
+    ElevationFile, ElevationSource, Image, ImageFile, ImageSource, ImageWindow, Raster, open_elevation, open_image,
+    read_geotiff, read_image,
 };
 
 use crate::compression::zstd_compress;
@@ -123,6 +123,28 @@ pub struct TextureInput<'a> {
     pub format: TextureFormat,
     /// Metres per pixel when there is no elevation to take the extent from.
     pub pixel_size: f64,
+}
+
+/// Do the elevation and the image both lie, by their georeference, over the same area of
+/// one CRS (each edge within 2% of the extent)?
+fn same_crs_extent(elevation: &dyn ElevationSource, image: &dyn ImageSource) -> bool {
+    let extent = |g: Option<&crate::metadata::Georeference>, pixel: Option<(f64, f64)>, (w, h): (u32, u32)| {
+        let g = g?;
+        let (origin, pixel) = (g.origin?, pixel?);
+        Some((g.crs.clone()?, [origin[0], origin[1], f64::from(w) * pixel.0, f64::from(h) * pixel.1]))
+    };
+    let (Some((a_crs, a)), Some((b_crs, b))) = (
+        extent(elevation.georeference(), elevation.crs_pixel_size(), elevation.size()),
+        extent(image.georeference(), image.crs_pixel_size(), image.size()),
+    ) else {
+        return false;
+    };
+    let close = |x: f64, y: f64, span: f64| (x - y).abs() <= 0.02 * span;
+    a_crs == b_crs
+        && close(a[0], b[0], a[2])
+        && close(a[0] + a[2], b[0] + b[2], a[2])
+        && close(a[1], b[1], a[3])
+        && close(a[1] - a[3], b[1] - b[3], a[3])
 }
 
 /// What [`plan`] decides: the metadata (grids, LOD counts, encodings) and the work.
@@ -300,7 +322,10 @@ pub fn plan(
                 // The texture covers the elevation's area on the same grid (both geographic,
                 // say: its pixels have the DEM's pixel shape) or in metres (square pixels).
                 let near = |a: f64, b: f64| (a / b - 1.0).abs() <= 0.02;
-                if !near(fw / fh, grid_aspect) && !near(fw / fh, ex / ez) {
+                // Or both say where they lie, in one CRS, and cover the same area there
+                // (pixels of any shape: degrees square in the image, not in the DEM).
+                let same_place = elevation.is_some_and(|e| same_crs_extent(e, t.source));
+                if !same_place && !near(fw / fh, grid_aspect) && !near(fw / fh, ex / ez) {
                     return Err(Error::input(
                         path,
                         format!(

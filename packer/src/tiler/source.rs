@@ -18,6 +18,10 @@ pub trait ElevationSource: Sync {
     fn spacing(&self) -> (f64, f64);
     /// Where the raster lies, when the file says.
     fn georeference(&self) -> Option<&Georeference>;
+    /// Size of a sample in the georeference's CRS units (x, y), when the file says.
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        None
+    }
     /// Calls `row` with each row of heights, top to bottom; NaN where there is no data.
     ///
     /// # Errors
@@ -33,6 +37,10 @@ pub trait ImageSource: Sync {
     fn size(&self) -> (u32, u32);
     /// Where the image lies, when the file says.
     fn georeference(&self) -> Option<&Georeference>;
+    /// Size of a pixel in the georeference's CRS units (x, y), when the file says.
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        None
+    }
     /// Calls `row` with each row of pixels, top to bottom; alpha 0 where there is no data.
     ///
     /// # Errors
@@ -101,6 +109,122 @@ impl ImageSource for Image {
     }
 }
 
+/// The part of an image that lies over an elevation raster, when both are georeferenced
+/// in one CRS: an aerial image is usually cut wider than the DEM (or the other way round).
+/// Read through [`ImageSource`] like the whole image; rows above the window are skipped and
+/// reading stops after its last row.
+#[derive(Debug)]
+pub struct ImageWindow<'a> {
+    inner: &'a dyn ImageSource,
+    /// First column and row, width and height, in the image's pixels.
+    x0: u32,
+    y0: u32,
+    width: u32,
+    height: u32,
+    georeference: Option<Georeference>,
+}
+
+impl std::fmt::Debug for dyn ImageSource + '_ {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ImageSource({})", self.path().display())
+    }
+}
+
+impl<'a> ImageWindow<'a> {
+    /// The window of `image` over `elevation`'s extent; `None` when they cannot be matched
+    /// by georeference (either lacks one, or their CRSs differ) or the window is the whole
+    /// image.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the image when it does not cover the elevation's extent.
+    pub fn over(elevation: &dyn ElevationSource, image: &'a dyn ImageSource) -> Result<Option<Self>> {
+        let placed = |g: Option<&Georeference>, p: Option<(f64, f64)>| Some((g?.crs.clone()?, g?.origin?, p?));
+        let (Some((dem_crs, dem_origin, dem_px)), Some((img_crs, img_origin, img_px))) = (
+            placed(elevation.georeference(), elevation.crs_pixel_size()),
+            placed(image.georeference(), image.crs_pixel_size()),
+        ) else {
+            return Ok(None);
+        };
+        if dem_crs != img_crs {
+            return Ok(None);
+        }
+        let (dw, dh) = elevation.size();
+        let (iw, ih) = image.size();
+        // The DEM's edges in the image's pixel coordinates (CRS y grows north, rows south).
+        let left = (dem_origin[0] - img_origin[0]) / img_px.0;
+        let right = (dem_origin[0] + f64::from(dw) * dem_px.0 - img_origin[0]) / img_px.0;
+        let top = (img_origin[1] - dem_origin[1]) / img_px.1;
+        let bottom = (img_origin[1] - (dem_origin[1] - f64::from(dh) * dem_px.1)) / img_px.1;
+        let (fw, fh) = (f64::from(iw), f64::from(ih));
+        if left < -0.5 || top < -0.5 || right > fw + 0.5 || bottom > fh + 0.5 {
+            return Err(Error::input(
+                image.path(),
+                format!(
+                    "mismatched extents: the elevation lies over pixels x {left:.1}..{right:.1}, y {top:.1}..{bottom:.1} \
+                     of this {iw}x{ih} image ({dem_crs}); the texture must cover the whole elevation"
+                ),
+            ));
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the image")]
+        let edge = |v: f64, max: f64| v.round().clamp(0.0, max) as u32;
+        let (x0, x1, y0, y1) = (edge(left, fw), edge(right, fw), edge(top, fh), edge(bottom, fh));
+        if x1 <= x0 || y1 <= y0 {
+            return Err(Error::input(image.path(), "the elevation covers less than one pixel of the texture"));
+        }
+        if (x0, y0, x1, y1) == (0, 0, iw, ih) {
+            return Ok(None);
+        }
+        let georeference = image.georeference().map(|g| Georeference {
+            origin: Some([img_origin[0] + f64::from(x0) * img_px.0, img_origin[1] - f64::from(y0) * img_px.1]),
+            lat_lon_bounds: None,
+            ..g.clone()
+        });
+        Ok(Some(Self { inner: image, x0, y0, width: x1 - x0, height: y1 - y0, georeference }))
+    }
+
+    /// First column and row of the window in the image, and its size.
+    pub fn bounds(&self) -> (u32, u32, u32, u32) {
+        (self.x0, self.y0, self.width, self.height)
+    }
+}
+
+impl ImageSource for ImageWindow<'_> {
+    fn path(&self) -> &Path {
+        self.inner.path()
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        self.inner.crs_pixel_size()
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        let (columns, rows) = (self.x0 as usize..(self.x0 + self.width) as usize, self.y0..self.y0 + self.height);
+        let (mut y, mut done) = (0u32, false);
+        let result = self.inner.rows(&mut |pixels| {
+            let here = y;
+            y += 1;
+            if here < rows.start {
+                return Ok(());
+            }
+            row(&pixels[columns.clone()])?;
+            if here + 1 == rows.end {
+                // Past the window: stop reading the file (told apart from a real interrupt).
+                done = true;
+                return Err(Error::Interrupted);
+            }
+            Ok(())
+        });
+        match result {
+            Err(Error::Interrupted) if done => Ok(()),
+            other => other,
+        }
+    }
+}
+
 fn as_pixels(rgba: &[u8]) -> Vec<[u8; 4]> {
     rgba.chunks_exact(4).map(|p| [p[0], p[1], p[2], p[3]]).collect()
 }
@@ -112,6 +236,7 @@ pub struct ImageFile {
     width: u32,
     height: u32,
     georeference: Option<Georeference>,
+    crs_pixel: Option<(f64, f64)>,
     kind: ImageKind,
 }
 
@@ -134,6 +259,7 @@ pub struct ElevationFile {
     height: u32,
     spacing: (f64, f64),
     georeference: Option<Georeference>,
+    crs_pixel: Option<(f64, f64)>,
     nodata: Option<f64>,
     /// How PNG pixels (or 8-bit TIFF samples) map to heights; None: samples are heights.
     encoding: Option<ElevationEncoding>,
@@ -248,6 +374,7 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
                 height,
                 spacing: (1.0, 1.0),
                 georeference: None,
+                crs_pixel: None,
                 nodata: encoding.nodata,
                 encoding: Some(encoding),
                 png: true,
@@ -278,12 +405,14 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
                 .flatten()
                 .and_then(|v| v.into_string().ok())
                 .and_then(|s| s.trim_matches(char::from(0)).trim().parse().ok());
-            let (spacing, georeference) = GeoTags::read(&mut decoder).placement(width, height).map_err(bad)?;
+            let tags = GeoTags::read(&mut decoder);
+            let (spacing, georeference) = tags.placement(width, height).map_err(bad)?;
             Ok(ElevationFile {
                 path: path.to_path_buf(),
                 width,
                 height,
                 spacing,
+                crs_pixel: georeference.as_ref().and_then(|_| tags.crs_pixel()),
                 georeference,
                 nodata,
                 encoding,
@@ -319,6 +448,9 @@ impl ElevationSource for ElevationFile {
     }
     fn georeference(&self) -> Option<&Georeference> {
         self.georeference.as_ref()
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        self.crs_pixel
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         let width = self.width as usize;
@@ -375,6 +507,7 @@ impl ElevationSource for ElevationFile {
 /// [`Error::Input`] naming the file for anything unreadable or unsupported.
 pub fn open_image(path: &Path) -> Result<ImageFile> {
     let bad = |why: String| Error::input(path, why);
+    let mut crs_pixel = None;
     let (width, height, georeference, kind) = match sniff(path)? {
         Sniffed::Png => {
             let (_, (w, h)) = png_header(path)?;
@@ -406,7 +539,9 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
             if channels > 1 && matches!(planar, Ok(Some(2))) {
                 return Err(bad("planar (band-separate) pixels: store the bands interleaved".into()));
             }
-            let georeference = GeoTags::read(&mut decoder).placement(width, height).ok().and_then(|(_, g)| g);
+            let tags = GeoTags::read(&mut decoder);
+            let georeference = tags.placement(width, height).ok().and_then(|(_, g)| g);
+            crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
             (width, height, georeference, ImageKind::Tiff { channels })
         }
     };
@@ -418,7 +553,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
             return Err(bad(format!("{} bytes of pixels for {width}x{height}", rgb.len())));
         }
     }
-    Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, kind })
+    Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, crs_pixel, kind })
 }
 
 /// Reads a whole image into memory (small images, tests); [`open_image`] streams.
@@ -444,6 +579,9 @@ impl ImageSource for ImageFile {
     }
     fn georeference(&self) -> Option<&Georeference> {
         self.georeference.as_ref()
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        self.crs_pixel
     }
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         let width = self.width as usize;
@@ -636,6 +774,12 @@ impl GeoTags {
             .and_then(|v| v.into_u64_vec().ok())
             .map(|v| v.into_iter().map(|k| k as f64).collect());
         Self { scale, tiepoint, keys }
+    }
+
+    /// The pixel scale in CRS units, when it is a usable one.
+    fn crs_pixel(&self) -> Option<(f64, f64)> {
+        let s = self.scale.as_ref()?;
+        (s.len() >= 2 && s[0].is_finite() && s[1].is_finite() && s[0] > 0.0 && s[1] > 0.0).then(|| (s[0], s[1]))
     }
 
     /// Sample spacing in metres (x, y) and the georeference; (1, 1) and none without tags.

@@ -626,3 +626,85 @@ fn the_plan_gives_grids_and_counts_without_writing() {
     assert_eq!(p.layers.iter().map(|l| l.tiles).collect::<Vec<_>>(), vec![17, 57, 17]);
     assert!(p.estimated_bytes() > 0);
 }
+
+/// A GeoTIFF in EPSG:4326 with the north-west corner at `origin` and `pixel` degrees per
+/// pixel: f32 heights (`rgb` = None) or RGB pixels.
+fn geotiff(path: &Path, (width, height): (u32, u32), origin: [f64; 2], pixel: f64, rgb: Option<&[u8]>) {
+    use tiff::encoder::{TiffEncoder, colortype};
+    use tiff::tags::Tag;
+    let file = std::fs::File::create(path).unwrap();
+    let mut encoder = TiffEncoder::new(file).unwrap();
+    let tag = |image: &mut tiff::encoder::DirectoryEncoder<'_, _, _>| {
+        image.write_tag(Tag::Unknown(33550), &[pixel, pixel, 0.0][..]).unwrap();
+        image.write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, origin[0], origin[1], 0.0][..]).unwrap();
+        image.write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326][..]).unwrap();
+    };
+    match rgb {
+        Some(pixels) => {
+            let mut image = encoder.new_image::<colortype::RGB8>(width, height).unwrap();
+            tag(image.encoder());
+            image.write_data(pixels).unwrap();
+        }
+        None => {
+            let mut image = encoder.new_image::<colortype::Gray32Float>(width, height).unwrap();
+            tag(image.encoder());
+            let heights: Vec<f32> = (0..width * height).map(|i| (i % 97) as f32).collect();
+            image.write_data(&heights).unwrap();
+        }
+    }
+}
+
+#[test]
+fn a_wider_georeferenced_texture_is_cut_to_the_elevation() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem_path = dir.path().join("dem.tif");
+    // 20 x 10 samples of 0.01 degrees from (-106.0, 40.5): to -105.8 east, 40.4 south.
+    geotiff(&dem_path, (20, 10), [-106.0, 40.5], 0.01, None);
+    let dem = open_elevation(&dem_path, None).unwrap();
+    // A 60 x 40 image of 0.005 degrees from (-106.05, 40.55); red = column, green = row.
+    let (iw, ih) = (60u32, 40u32);
+    let pixels: Vec<u8> = (0..ih).flat_map(|y| (0..iw).flat_map(move |x| [x as u8, y as u8, 7])).collect();
+    let image_path = dir.path().join("image.tif");
+    geotiff(&image_path, (iw, ih), [-106.05, 40.55], 0.005, Some(&pixels));
+    let image = open_image(&image_path).unwrap();
+    let window = ImageWindow::over(&dem, &image).unwrap().expect("a window");
+    assert_eq!(window.bounds(), (10, 10, 40, 20));
+    let origin = window.georeference().unwrap().origin.unwrap();
+    assert!((origin[0] + 106.0).abs() < 1e-9 && (origin[1] - 40.5).abs() < 1e-9, "{origin:?}");
+    let mut rows = Vec::new();
+    window
+        .rows(&mut |r| {
+            rows.push(r.to_vec());
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!(rows.len(), 20);
+    assert!(rows.iter().all(|r| r.len() == 40));
+    assert_eq!((rows[0][0], rows[19][39]), ([10, 10, 7, 255], [49, 29, 7, 255]));
+    // Tiled with the window: the texture's LOD 0 is the window's 20 rows, its columns
+    // resampled to square texels in metres (0.005 deg is 424 x 553 m here): 31 x 20 px.
+    let out = dir.path().join("t.tspack");
+    let input = TextureInput { source: &window, tile_size: 16, format: TextureFormat::Png, pixel_size: 1.0 };
+    let options = TileOptions { tile_size: 16, border: 0, storage: ElevationStorage::Auto };
+    tile_terrain(Some(&dem), Some(input), "t", &out, options, &Silent::default()).unwrap();
+    let reader = Reader::open_mmap(&out).unwrap();
+    let t = reader.metadata().layers.iter().find(|l| l.kind == LayerKind::Texture).unwrap();
+    assert_eq!((t.num_x_tiles, t.num_y_tiles), (2, 2));
+    let lod0 = t.tile_world_size / 16.0;
+    assert!((lod0 - 553.0).abs() < 5.0, "texel {lod0} m");
+
+    // The whole image exactly over the DEM: no window needed.
+    let exact = dir.path().join("exact.tif");
+    let small: Vec<u8> = vec![9; 40 * 20 * 3];
+    geotiff(&exact, (40, 20), [-106.0, 40.5], 0.005, Some(&small));
+    assert!(ImageWindow::over(&dem, &open_image(&exact).unwrap()).unwrap().is_none());
+    // An image that misses part of the DEM: named, with where the DEM would lie.
+    let short = dir.path().join("short.tif");
+    geotiff(&short, (30, 40), [-106.05, 40.55], 0.005, Some(&vec![1; 30 * 40 * 3]));
+    let e = ImageWindow::over(&dem, &open_image(&short).unwrap()).unwrap_err().to_string();
+    assert!(e.contains("short.tif") && e.contains("mismatched extents") && e.contains("10.0..50.0"), "{e}");
+    // No georeference on one side (a PNG): not matched by place.
+    let png_path = dir.path().join("plain.png");
+    png_file(&png_path, 8, 4, &[5; 8 * 4 * 4]);
+    assert!(ImageWindow::over(&dem, &open_image(&png_path).unwrap()).unwrap().is_none());
+}
