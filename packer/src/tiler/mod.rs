@@ -446,19 +446,26 @@ pub fn tile_terrain(
             .elevation
             .ok_or_else(|| Error::Writer("no elevation encoding".into()))?;
         let range = find(LayerKind::HeightRange);
-        let encode = move |key: TileKey, samples: &[f32], _edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+        // Each tile's own stored range, gathered as tiles are encoded (8 bytes + key each).
+        let ranges = std::sync::Mutex::new(Vec::<(TileKey, f32, f32)>::new());
+        let encode = |key: TileKey, samples: &[f32], _edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
             let (raw, lo, hi) = encode_heights(samples, &encoding);
-            let mut out = vec![(key, zstd_compress(&raw, level)?)];
-            if let Some(r) = range {
-                let bounds = [lo.to_le_bytes(), hi.to_le_bytes()].concat();
-                out.push((TileKey::new(r, key.lod(), key.x(), key.y())?, bounds));
+            if range.is_some() && lo <= hi {
+                ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));
             }
-            Ok(out)
+            Ok(vec![(key, zstd_compress(&raw, level)?)])
         };
         let size = plan.layers[usize::from(index)].size;
         run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
             source.rows(&mut |row| push(resample_row(row, size.0 as usize)))
         })?;
+        if let Some(r) = range {
+            let ranges = ranges.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
+            for (key, lo, hi) in conservative_ranges(ranges) {
+                let bounds = [lo.to_le_bytes(), hi.to_le_bytes()].concat();
+                spool.add(metadata, TileKey::new(r, key.lod(), key.x(), key.y())?, &bounds)?;
+            }
+        }
     }
     if let (Some(t), Some(index)) = (texture, find(LayerKind::Texture)) {
         let format = t.format;
@@ -477,6 +484,24 @@ pub fn tile_terrain(
     let mut writer = Writer::create(out, plan.metadata.clone(), options)?;
     spool.drain_into(&mut writer, progress)?;
     writer.finish()
+}
+
+/// Height ranges for culling: a tile's range must hold every height drawn anywhere under
+/// it, at any LOD. A coarser tile's own samples are averages, which never reach its finer
+/// tiles' extremes, so each tile's range is widened by its children's, finest LOD first.
+fn conservative_ranges(mut ranges: Vec<(TileKey, f32, f32)>) -> Vec<(TileKey, f32, f32)> {
+    ranges.sort_unstable_by_key(|(k, ..)| (k.lod(), k.y(), k.x()));
+    let index: std::collections::HashMap<TileKey, usize> =
+        ranges.iter().enumerate().map(|(i, (k, ..))| (*k, i)).collect();
+    for i in 0..ranges.len() {
+        let (key, lo, hi) = ranges[i];
+        if let Some(&p) = key.parent().as_ref().and_then(|p| index.get(p)) {
+            let parent = &mut ranges[p];
+            parent.1 = parent.1.min(lo);
+            parent.2 = parent.2.max(hi);
+        }
+    }
+    ranges
 }
 
 /// Rows in flight between the reading thread and the pyramid.

@@ -343,7 +343,7 @@ impl Spool {
         Ok(Self { file: BufWriter::with_capacity(1 << 20, file), len: 0, index: Vec::new() })
     }
 
-    fn add(&mut self, metadata: &Metadata, key: TileKey, bytes: &[u8]) -> Result<()> {
+    pub(crate) fn add(&mut self, metadata: &Metadata, key: TileKey, bytes: &[u8]) -> Result<()> {
         let order = Writer::order_key(metadata, key)?;
         let len = u32::try_from(bytes.len()).map_err(|_| Error::Writer(format!("{key}: payload over 4 GiB")))?;
         self.file.write_all(bytes)?;

@@ -225,7 +225,7 @@ fn memory_is_a_band_of_rows_per_level_whatever_the_height() {
 }
 
 #[test]
-fn height_range_tiles_hold_each_elevation_tiles_lowest_and_highest_height() {
+fn height_range_tiles_hold_every_height_under_each_elevation_tile() {
     let r = raster(50, 40, |x, y| if x > 45 { f32::NAN } else { (x * x) as f32 - y as f32 * 0.5 });
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("r.tspack");
@@ -234,23 +234,40 @@ fn height_range_tiles_hold_each_elevation_tiles_lowest_and_highest_height() {
     let m = reader.metadata();
     let range = m.layers.iter().position(|l| l.kind == LayerKind::HeightRange).unwrap() as u8;
     assert_eq!(m.layers[usize::from(range)].format, TileFormat::MinMaxF32);
+    // Expected: the stored heights of the tile and of every tile under it, finest first.
+    let mut expected: std::collections::HashMap<(u8, u32, u32), (f32, f32)> = std::collections::HashMap::new();
     let mut n = 0;
-    for key in m.layers[0].tiles_at(0, 0).chain(m.layers[0].tiles_at(0, 2)) {
-        let range_tile = reader.tile(TileKey::new(range, key.lod(), key.x(), key.y()).unwrap()).unwrap();
-        let Some(h) = heights(&reader, key) else {
-            assert!(range_tile.is_none() && key.x() == 3, "{key}: no elevation, no range");
-            continue;
-        };
-        let lo = h.iter().copied().filter(|v| !v.is_nan()).fold(f64::INFINITY, f64::min);
-        let hi = h.iter().copied().filter(|v| !v.is_nan()).fold(f64::NEG_INFINITY, f64::max);
-        let b = range_tile.unwrap();
-        assert_eq!(b.len(), 8);
-        let (blo, bhi) =
-            (f32::from_le_bytes(b[..4].try_into().unwrap()), f32::from_le_bytes(b[4..].try_into().unwrap()));
-        assert_eq!((f64::from(blo), f64::from(bhi)), (lo as f32 as f64, hi as f32 as f64), "{key}");
-        n += 1;
+    for lod in 0..m.layers[0].num_lods {
+        for key in m.layers[0].tiles_at(0, lod) {
+            let range_tile = reader.tile(TileKey::new(range, key.lod(), key.x(), key.y()).unwrap()).unwrap();
+            let Some(h) = heights(&reader, key) else {
+                assert!(range_tile.is_none(), "{key}: no elevation, no range");
+                continue;
+            };
+            let mut lo = h.iter().copied().filter(|v| !v.is_nan()).fold(f64::INFINITY, f64::min) as f32;
+            let mut hi = h.iter().copied().filter(|v| !v.is_nan()).fold(f64::NEG_INFINITY, f64::max) as f32;
+            let own = (lo, hi);
+            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                if let Some(&(clo, chi)) =
+                    lod.checked_sub(1).and_then(|c| expected.get(&(c, key.x() * 2 + dx, key.y() * 2 + dy)))
+                {
+                    lo = lo.min(clo);
+                    hi = hi.max(chi);
+                }
+            }
+            expected.insert((lod, key.x(), key.y()), (lo, hi));
+            let b = range_tile.unwrap();
+            assert_eq!(b.len(), 8);
+            let got = (f32::from_le_bytes(b[..4].try_into().unwrap()), f32::from_le_bytes(b[4..].try_into().unwrap()));
+            assert_eq!(got, (lo, hi), "{key}");
+            if lod > 0 && (lo, hi) != own {
+                // A coarse tile's averages miss its children's extremes: the range is wider.
+                assert!(lo <= own.0 && hi >= own.1, "{key}");
+                n += 1;
+            }
+        }
     }
-    assert_eq!(n, 3 * 3 + 1);
+    assert!(n > 0, "no coarse tile was widened by its children");
 }
 
 #[test]
