@@ -47,14 +47,24 @@ fn header(file: &FileSource, path: &Path) -> Result<Header> {
         return Err(bad(&format!("version {} (only v3 is read)", h[7])));
     }
     let u64_at = |i: usize| u64::from_le_bytes(h[i..i + 8].try_into().unwrap_or([0; 8]));
-    Ok(Header {
+    let header = Header {
         root: (u64_at(8), u64_at(16)),
         leaves: (u64_at(40), u64_at(48)),
         data: (u64_at(56), u64_at(64)),
         internal_compression: h[97],
         tile_compression: h[98],
         tile_type: h[99],
-    })
+    };
+    // Every section inside the file: offsets within a section then never overflow.
+    let size = file.len();
+    for (name, (offset, len)) in
+        [("root directory", header.root), ("leaf section", header.leaves), ("tile data", header.data)]
+    {
+        if offset.checked_add(len).is_none_or(|end| end > size) {
+            return Err(bad(&format!("{name} [{offset}, +{len}) outside the {size}-byte file")));
+        }
+    }
+    Ok(header)
 }
 
 fn decompress(bytes: &[u8], compression: u8, path: &Path, what: &str) -> Result<Vec<u8>> {
@@ -218,7 +228,7 @@ mod tests {
 
         // Damage: bad magic, a root directory past the end, a truncated file.
         let bytes = std::fs::read(&pm).unwrap();
-        let cases: [(&str, Vec<u8>, &str); 3] = [
+        let cases: [(&str, Vec<u8>, &str); 4] = [
             ("magic.pmtiles", [b"PMTilez".as_slice(), &bytes[7..]].concat(), "bad magic"),
             (
                 "root.pmtiles",
@@ -230,6 +240,16 @@ mod tests {
                 "root directory",
             ),
             ("cut.pmtiles", bytes[..bytes.len() - 10].to_vec(), "outside"),
+            // Found by fuzzing: a leaf section offset near u64::MAX overflowed offset + entry.
+            (
+                "leaves.pmtiles",
+                {
+                    let mut b = bytes.clone();
+                    b[40..48].copy_from_slice(&(u64::MAX - 7).to_le_bytes());
+                    b
+                },
+                "leaf section",
+            ),
         ];
         for (name, damaged, expect) in cases {
             let path = dir.path().join(name);
