@@ -539,31 +539,42 @@ fn run_pyramid<S: Sample>(
 /// Heights -> the layer's raw little-endian samples, and the lowest and highest height as
 /// stored (after quantization).
 fn encode_heights(samples: &[f32], encoding: &ElevationEncoding) -> (Vec<u8>, f32, f32) {
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    let mut raw = Vec::with_capacity(samples.len() * 4);
-    for &v in samples {
-        if encoding.scheme == ElevationScheme::Float32 {
+    if encoding.scheme == ElevationScheme::Float32 {
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        let mut raw = Vec::with_capacity(samples.len() * 4);
+        for &v in samples {
             raw.extend_from_slice(&v.to_le_bytes());
             if !v.is_nan() {
                 lo = lo.min(v);
                 hi = hi.max(v);
             }
-            continue;
         }
+        return (raw, lo, hi);
+    }
+    // The hot loop of a DEM: no libm call (`round` is one on baseline x86-64) and no height
+    // decoded per sample. Clamped to 1..=65535 first, so `+ 0.5` then truncation rounds
+    // half up; heights grow with `q`, so the range is that of the lowest and highest `q`.
+    let (offset, inverse) = (encoding.offset, 1.0 / encoding.scale);
+    let (mut lo, mut hi) = (u16::MAX, 0u16);
+    let mut raw = Vec::with_capacity(samples.len() * 2);
+    for &v in samples {
         let q = if v.is_nan() {
             0
         } else {
             #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 1..=65535 first")]
-            let q = ((f64::from(v) - encoding.offset) / encoding.scale).round().clamp(1.0, 65_535.0) as u16;
-            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
-            let h = encoding.height(f64::from(q)) as f32;
-            lo = lo.min(h);
-            hi = hi.max(h);
+            let q = (((f64::from(v) - offset) * inverse).clamp(1.0, 65_535.0) + 0.5) as u16;
+            lo = lo.min(q);
+            hi = hi.max(q);
             q
         };
         raw.extend_from_slice(&q.to_le_bytes());
     }
-    (raw, lo, hi)
+    if lo > hi {
+        return (raw, f32::INFINITY, f32::NEG_INFINITY);
+    }
+    #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+    let height = |q: u16| encoding.height(f64::from(q)) as f32;
+    (raw, height(lo), height(hi))
 }
 
 /// One texture tile's stored bytes.

@@ -111,10 +111,13 @@ pub fn resample_row<S: Sample>(row: &[S], width: usize) -> Vec<S> {
         .map(|x| {
             #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
             let sx = ((x as f64 + 0.5) / ratio - 0.5).max(0.0);
-            let x0 = sx.floor();
+            // sx >= 0: truncation is its floor, without a libm call per sample.
             #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel index >= 0")]
-            let i = (x0 as usize).min(last);
-            S::lerp(row[i], row[(i + 1).min(last)], sx - x0)
+            let x0 = sx as usize;
+            #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
+            let frac = sx - x0 as f64;
+            let i = x0.min(last);
+            S::lerp(row[i], row[(i + 1).min(last)], frac)
         })
         .collect()
 }
