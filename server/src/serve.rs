@@ -69,8 +69,9 @@ pub fn serve_workers(
                     let listener = match socket.listen(1024) {
                         Ok(l) => l,
                         Err(err) => {
-                            let _ = listening.send(Err(std::io::Error::new(err.kind(), err.to_string())));
-                            return Err(err);
+                            // Reported once, through the channel: `serve_workers` returns it.
+                            let _ = listening.send(Err(err));
+                            return Ok(());
                         }
                     };
                     let _ = listening.send(Ok(()));

@@ -128,14 +128,13 @@ pub struct TextureInput<'a> {
 /// Do the elevation and the image both lie, by their georeference, over the same area of
 /// one CRS (each edge within 2% of the extent)?
 fn same_crs_extent(elevation: &dyn ElevationSource, image: &dyn ImageSource) -> bool {
-    let extent = |g: Option<&crate::metadata::Georeference>, pixel: Option<(f64, f64)>, (w, h): (u32, u32)| {
-        let g = g?;
-        let (origin, pixel) = (g.origin?, pixel?);
-        Some((g.crs.clone()?, [origin[0], origin[1], f64::from(w) * pixel.0, f64::from(h) * pixel.1]))
-    };
+    // The CRS, and west, north, width and height in its units.
+    fn extent(placed: Option<(&str, [f64; 2], (f64, f64))>, (w, h): (u32, u32)) -> Option<(&str, [f64; 4])> {
+        placed.map(|(crs, origin, pixel)| (crs, [origin[0], origin[1], f64::from(w) * pixel.0, f64::from(h) * pixel.1]))
+    }
     let (Some((a_crs, a)), Some((b_crs, b))) = (
-        extent(elevation.georeference(), elevation.crs_pixel_size(), elevation.size()),
-        extent(image.georeference(), image.crs_pixel_size(), image.size()),
+        extent(source::crs_placement(elevation.georeference(), elevation.crs_pixel_size()), elevation.size()),
+        extent(source::crs_placement(image.georeference(), image.crs_pixel_size()), image.size()),
     ) else {
         return false;
     };

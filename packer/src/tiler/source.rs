@@ -130,6 +130,16 @@ impl std::fmt::Debug for dyn ImageSource + '_ {
     }
 }
 
+/// Where a raster lies in its CRS, when its file says: the CRS, the north-west corner and
+/// the pixel size in CRS units.
+pub(crate) fn crs_placement(
+    georeference: Option<&Georeference>,
+    pixel: Option<(f64, f64)>,
+) -> Option<(&str, [f64; 2], (f64, f64))> {
+    let g = georeference?;
+    Some((g.crs.as_deref()?, g.origin?, pixel?))
+}
+
 impl<'a> ImageWindow<'a> {
     /// The window of `image` over `elevation`'s extent; `None` when they cannot be matched
     /// by georeference (either lacks one, or their CRSs differ) or the window is the whole
@@ -138,10 +148,9 @@ impl<'a> ImageWindow<'a> {
     /// # Errors
     /// [`Error::Input`] naming the image when it does not cover the elevation's extent.
     pub fn over(elevation: &dyn ElevationSource, image: &'a dyn ImageSource) -> Result<Option<Self>> {
-        let placed = |g: Option<&Georeference>, p: Option<(f64, f64)>| Some((g?.crs.clone()?, g?.origin?, p?));
         let (Some((dem_crs, dem_origin, dem_px)), Some((img_crs, img_origin, img_px))) = (
-            placed(elevation.georeference(), elevation.crs_pixel_size()),
-            placed(image.georeference(), image.crs_pixel_size()),
+            crs_placement(elevation.georeference(), elevation.crs_pixel_size()),
+            crs_placement(image.georeference(), image.crs_pixel_size()),
         ) else {
             return Ok(None);
         };
