@@ -48,7 +48,21 @@ pub fn zstd_decompress(bytes: &[u8], limit: u64, section: &str) -> Result<Vec<u8
 /// I/O errors from the compressor (allocation failure).
 #[cfg(feature = "write")]
 pub fn zstd_compress(bytes: &[u8], level: i32) -> Result<Vec<u8>> {
-    Ok(zstd::bulk::compress(bytes, level)?)
+    use std::cell::RefCell;
+    // One compression context per thread and level, kept: making one allocates and
+    // clears its tables, which for tile-sized inputs costs as much as compressing them.
+    // The output is the same as a fresh context's.
+    thread_local! {
+        static CONTEXT: RefCell<Option<(i32, zstd::bulk::Compressor<'static>)>> = const { RefCell::new(None) };
+    }
+    CONTEXT.with(|context| {
+        let mut context = context.borrow_mut();
+        let compressor = match &mut *context {
+            Some((l, c)) if *l == level => c,
+            slot => &mut slot.insert((level, zstd::bulk::Compressor::new(level)?)).1,
+        };
+        Ok(compressor.compress(bytes)?)
+    })
 }
 
 #[cfg(all(test, feature = "write"))]

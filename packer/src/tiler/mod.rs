@@ -36,7 +36,7 @@ use crate::metadata::{
 };
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, Writer, WriterOptions};
-use pyramid::{Encode, Pyramid, Sample, Spool, resample_row};
+use pyramid::{Encode, Pyramid, Resample, Sample, Spool};
 
 /// How to store elevation samples.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -193,13 +193,12 @@ fn tiles_over(size: (u32, u32), res: u32, lods: u8) -> u64 {
 /// The elevation's height range (a pass over its rows).
 fn height_range(elevation: &dyn ElevationSource, progress: &dyn Progress) -> Result<(f64, f64)> {
     progress.start("scan", u64::from(elevation.size().1));
-    let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
+    let (mut min, mut max) = (f32::INFINITY, f32::NEG_INFINITY);
     let mut n = 0u32;
     elevation.rows(&mut |row| {
-        for &v in row.iter().filter(|v| !v.is_nan()) {
-            min = min.min(f64::from(v));
-            max = max.max(f64::from(v));
-        }
+        let (lo, hi) = min_max(row);
+        min = min.min(lo);
+        max = max.max(hi);
         n += 1;
         if n.is_multiple_of(64) {
             progress.check()?;
@@ -207,10 +206,31 @@ fn height_range(elevation: &dyn ElevationSource, progress: &dyn Progress) -> Res
         progress.advance(1);
         Ok(())
     })?;
+    let (min, max) = (f64::from(min), f64::from(max));
     if !min.is_finite() {
         return Err(Error::input(elevation.path(), "the raster holds no data (every sample is nodata)"));
     }
     Ok((min, max))
+}
+
+/// The lowest and highest of `values`, NaN (nodata) skipped; (inf, -inf) if there are none.
+/// Eight independent lanes of compare-and-select (a NaN compares false and is never taken):
+/// the loop vectorizes, where a chain of `f32::min` (NaN-aware) does not.
+fn min_max(values: &[f32]) -> (f32, f32) {
+    let (mut lo, mut hi) = ([f32::INFINITY; 8], [f32::NEG_INFINITY; 8]);
+    let chunks = values.chunks_exact(8);
+    let rest = chunks.remainder();
+    for chunk in chunks {
+        for i in 0..8 {
+            lo[i] = if chunk[i] < lo[i] { chunk[i] } else { lo[i] };
+            hi[i] = if chunk[i] > hi[i] { chunk[i] } else { hi[i] };
+        }
+    }
+    for (i, &v) in rest.iter().enumerate() {
+        lo[i] = if v < lo[i] { v } else { lo[i] };
+        hi[i] = if v > hi[i] { v } else { hi[i] };
+    }
+    (lo.into_iter().fold(f32::INFINITY, f32::min), hi.into_iter().fold(f32::NEG_INFINITY, f32::max))
 }
 
 /// Decides grids, LOD counts and encodings: everything but the tiles. Reads the elevation
@@ -455,8 +475,9 @@ pub fn tile_terrain(
             Ok(vec![(key, zstd_compress(&raw, level)?)])
         };
         let size = plan.layers[usize::from(index)].size;
+        let resample = Resample::new(source.size().0 as usize, size.0 as usize);
         run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
-            source.rows(&mut |row| push(resample_row(row, size.0 as usize)))
+            source.rows(&mut |row| push(resample.row(row)))
         })?;
         if let Some(r) = range {
             let ranges = ranges.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -474,8 +495,9 @@ pub fn tile_terrain(
             Ok(vec![(key, bytes)])
         };
         let size = plan.layers[usize::from(index)].size;
+        let resample = Resample::new(t.source.size().0 as usize, size.0 as usize);
         run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
-            t.source.rows(&mut |row| push(resample_row(row, size.0 as usize)))
+            t.source.rows(&mut |row| push(resample.row(row)))
         })?;
     }
     // Tiles come already compressed: small batches are enough for the writer's hashing.
@@ -503,12 +525,11 @@ fn conservative_ranges(mut ranges: Vec<(TileKey, f32, f32)>) -> Vec<(TileKey, f3
     ranges
 }
 
-/// Rows in flight between the reading thread and the pyramid.
-const ROWS_IN_FLIGHT: usize = 64;
-
 /// Streams `read`'s rows through a pyramid for layer `index`. Reading (decompression,
 /// conversion, resampling) runs on its own thread, overlapping the cutting and encoding,
-/// with at most [`ROWS_IN_FLIGHT`] rows between them.
+/// with at most one band of LOD-0 rows (a row of tiles and its borders) between them: the
+/// reader fills the next band while the pyramid cuts and encodes this one. (With fewer,
+/// the reader stalls during each cut, and the encoders while it catches up.)
 fn run_pyramid<S: Sample>(
     metadata: &Metadata,
     index: u8,
@@ -519,7 +540,7 @@ fn run_pyramid<S: Sample>(
     read: impl FnOnce(&mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> + Send,
 ) -> Result<()> {
     let mut pyramid = Pyramid::new(metadata, index, size, encode, spool, progress)?;
-    let (rows, received) = std::sync::mpsc::sync_channel::<Vec<S>>(ROWS_IN_FLIGHT);
+    let (rows, received) = std::sync::mpsc::sync_channel::<Vec<S>>(pyramid.band_rows());
     std::thread::scope(|scope| {
         let reader = scope.spawn(move || {
             // A send fails only once the pyramid has stopped, with its own error.
@@ -550,27 +571,25 @@ fn encode_heights(samples: &[f32], encoding: &ElevationEncoding) -> (Vec<u8>, f3
         }
         return (raw, lo, hi);
     }
-    // The hot loop of a DEM: no libm call (`round` is one on baseline x86-64) and no height
-    // decoded per sample. Clamped to 1..=65535 first, so `+ 0.5` then truncation rounds
-    // half up; heights grow with `q`, so the range is that of the lowest and highest `q`.
+    // The hot loop of a DEM, without branches so that it vectorizes: no libm call (`round`
+    // is one on baseline x86-64) and no height decoded per sample. Clamped to 1..=65535
+    // first, so `+ 0.5` then truncation rounds half up; a NaN (nodata) stays NaN through
+    // the clamp and casts to 0. Heights grow with `q`, so the range is that of the lowest
+    // and highest `q` other than 0 (`q - 1` wraps 0 to the top, out of the way).
     let (offset, inverse) = (encoding.offset, 1.0 / encoding.scale);
     let (mut lo, mut hi) = (u16::MAX, 0u16);
-    let mut raw = Vec::with_capacity(samples.len() * 2);
-    for &v in samples {
-        let q = if v.is_nan() {
-            0
-        } else {
-            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 1..=65535 first")]
-            let q = (((f64::from(v) - offset) * inverse).clamp(1.0, 65_535.0) + 0.5) as u16;
-            lo = lo.min(q);
-            hi = hi.max(q);
-            q
-        };
-        raw.extend_from_slice(&q.to_le_bytes());
+    let mut raw = vec![0u8; samples.len() * 2];
+    for (out, &v) in raw.chunks_exact_mut(2).zip(samples) {
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 1..=65535; NaN -> 0")]
+        let q = (((f64::from(v) - offset) * inverse).clamp(1.0, 65_535.0) + 0.5) as u16;
+        lo = lo.min(q.wrapping_sub(1));
+        hi = hi.max(q);
+        out.copy_from_slice(&q.to_le_bytes());
     }
-    if lo > hi {
+    if hi == 0 {
         return (raw, f32::INFINITY, f32::NEG_INFINITY);
     }
+    let lo = lo + 1;
     #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
     let height = |q: u16| encoding.height(f64::from(q)) as f32;
     (raw, height(lo), height(hi))

@@ -5,8 +5,8 @@
 //! they arrive; a row of tiles is cut and encoded (in parallel) as soon as its rows, borders
 //! included, are all in. Memory per level is one band of about `tile + 2 * border + 1` rows
 //! of that level's width, so the whole pyramid holds under two LOD-0 bands whatever the
-//! raster's height. Encoded tiles go to a [`Spool`] on disk, then into the archive in the
-//! archive's order.
+//! raster's height (the tiler keeps one more band in flight from its reading thread).
+//! Encoded tiles go to a [`Spool`] on disk, then into the archive in the archive's order.
 
 use std::collections::VecDeque;
 use std::fs::File;
@@ -40,6 +40,12 @@ impl Sample for f32 {
         !self.is_nan()
     }
     fn mean4(s: [Self; 4]) -> Self {
+        if !s.iter().any(|v| v.is_nan()) {
+            // The usual case, summed in the same order as below.
+            let sum = f64::from(s[0]) + f64::from(s[1]) + f64::from(s[2]) + f64::from(s[3]);
+            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+            return (sum / 4.0) as f32;
+        }
         let (mut sum, mut n) = (0.0f64, 0u32);
         for v in s.into_iter().filter(|v| !v.is_nan()) {
             sum += f64::from(v);
@@ -65,6 +71,17 @@ impl Sample for [u8; 4] {
         self[3] > 0
     }
     fn mean4(s: [Self; 4]) -> Self {
+        if s.iter().all(|p| p[3] == 255) {
+            // All opaque (the usual case): the weighted mean below reduces exactly to
+            // (sum + 2) / 4 per channel.
+            let mean = |c: usize| {
+                let sum = u16::from(s[0][c]) + u16::from(s[1][c]) + u16::from(s[2][c]) + u16::from(s[3][c]);
+                #[expect(clippy::cast_possible_truncation, reason = "a mean of four u8 values")]
+                let mean = ((sum + 2) / 4) as u8;
+                mean
+            };
+            return [mean(0), mean(1), mean(2), 255];
+        }
         let mut sum = [0u32; 4];
         for p in s {
             let a = u32::from(p[3]);
@@ -99,36 +116,66 @@ impl Sample for [u8; 4] {
     }
 }
 
+/// Linear resampling of rows along x (edges clamped), from one width to another: each
+/// output sample's source index and weight, computed once for every row of a raster.
+pub struct Resample {
+    /// (left source sample, weight of the right one) per output sample.
+    taps: Vec<(usize, f64)>,
+    from: usize,
+}
+
+impl Resample {
+    /// Resamples rows of `from` samples to `to` samples.
+    #[must_use]
+    pub fn new(from: usize, to: usize) -> Self {
+        if from == to || from == 0 {
+            return Self { taps: Vec::new(), from };
+        }
+        #[expect(clippy::cast_precision_loss, reason = "pixel counts")]
+        let ratio = to as f64 / from as f64;
+        let last = from - 1;
+        let taps = (0..to)
+            .map(|x| {
+                #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
+                let sx = ((x as f64 + 0.5) / ratio - 0.5).max(0.0);
+                // sx >= 0: truncation is its floor.
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel index >= 0")]
+                let x0 = sx as usize;
+                #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
+                let frac = sx - x0 as f64;
+                (x0.min(last), frac)
+            })
+            .collect();
+        Self { taps, from }
+    }
+
+    /// `row` (of the width this was made for) at the new width.
+    #[must_use]
+    pub fn row<S: Sample>(&self, row: &[S]) -> Vec<S> {
+        if self.taps.is_empty() || row.len() != self.from {
+            return row.to_vec();
+        }
+        let last = self.from - 1;
+        self.taps.iter().map(|&(i, frac)| S::lerp(row[i], row[(i + 1).min(last)], frac)).collect()
+    }
+}
+
 /// `row` resampled linearly along x to `width` samples (edges clamped).
 pub fn resample_row<S: Sample>(row: &[S], width: usize) -> Vec<S> {
-    if row.len() == width || row.is_empty() {
-        return row.to_vec();
-    }
-    #[expect(clippy::cast_precision_loss, reason = "pixel counts")]
-    let ratio = width as f64 / row.len() as f64;
-    let last = row.len() - 1;
-    (0..width)
-        .map(|x| {
-            #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
-            let sx = ((x as f64 + 0.5) / ratio - 0.5).max(0.0);
-            // sx >= 0: truncation is its floor, without a libm call per sample.
-            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel index >= 0")]
-            let x0 = sx as usize;
-            #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
-            let frac = sx - x0 as f64;
-            let i = x0.min(last);
-            S::lerp(row[i], row[(i + 1).min(last)], frac)
-        })
-        .collect()
+    Resample::new(row.len(), width).row(row)
 }
 
 /// Two rows of a level -> one row of the next (2x2 means; an odd last column is padded
 /// with no data).
 pub fn halve_rows<S: Sample>(a: &[S], b: &[S]) -> Vec<S> {
-    let at = |r: &[S], x: usize| r.get(x).copied().unwrap_or(S::NONE);
-    (0..a.len().div_ceil(2))
-        .map(|x| S::mean4([at(a, 2 * x), at(a, 2 * x + 1), at(b, 2 * x), at(b, 2 * x + 1)]))
-        .collect()
+    let mut out: Vec<S> =
+        a.chunks_exact(2).zip(b.chunks_exact(2)).map(|(a, b)| S::mean4([a[0], a[1], b[0], b[1]])).collect();
+    if a.len() % 2 == 1 {
+        let at = |r: &[S], x: usize| r.get(x).copied().unwrap_or(S::NONE);
+        let x = a.len() - 1;
+        out.push(S::mean4([at(a, x), S::NONE, at(b, x), S::NONE]));
+    }
+    out
 }
 
 /// Encodes one cut tile into the archive entries it makes (the tile, and for elevation its
@@ -198,6 +245,11 @@ impl<'a, S: Sample> Pyramid<'a, S> {
             spool,
             progress,
         })
+    }
+
+    /// Rows of LOD 0 that one row of tiles is cut from, borders included.
+    pub fn band_rows(&self) -> usize {
+        self.res + 2 * self.border
     }
 
     /// Samples held now, all levels (the band each keeps, and rows waiting to be halved).

@@ -499,12 +499,25 @@ impl ElevationSource for ElevationFile {
                 row(&out)
             });
         }
-        tiff_rows(&self.path, 1, &mut |chunk_row: &[f32]| {
-            for (h, &v) in out.iter_mut().zip(chunk_row) {
-                *h = convert(f64::from(v));
+        // Samples become heights in place, in the decoding threads.
+        if self.encoding.is_none() {
+            // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata"
+            // equals nothing.
+            let nodata = nodata.unwrap_or(f32::NAN);
+            let heights = |samples: &mut [f32]| {
+                for v in samples {
+                    // `&`, not `&&`: both compares, no branch. NaN and infinities fail the first.
+                    *v = if (v.abs() < f32::INFINITY) & (*v != nodata) { *v } else { f32::NAN };
+                }
+            };
+            return tiff_rows(&self.path, 1, &heights, row);
+        }
+        let heights = |samples: &mut [f32]| {
+            for v in samples {
+                *v = convert(f64::from(*v));
             }
-            row(&out)
-        })
+        };
+        tiff_rows(&self.path, 1, &heights, row)
     }
 }
 
@@ -625,7 +638,7 @@ impl ImageSource for ImageFile {
                     }
                     emit(&bytes, *channels)
                 };
-                tiff_rows(&self.path, *channels, &mut eight)
+                tiff_rows(&self.path, *channels, &|_| {}, &mut eight)
             }
         }
     }
@@ -668,10 +681,22 @@ fn png_rows(path: &Path, width: u32, mut row: impl FnMut(&[u8], usize, bool) -> 
     Ok(())
 }
 
-/// Calls `row` with each row of a TIFF's samples (`channels` per pixel), reading one
-/// strip, or one row of tiles, at a time. Samples are f32: exact for 8- and 16-bit values,
-/// and heights are kept as f32 anyway.
-fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+/// Bytes of samples decoded per batch of strips (at least two strips a thread).
+const STRIP_BATCH_BYTES: usize = 1 << 20;
+
+/// Calls `row` with each row of a TIFF's samples (`channels` per pixel), in order, after
+/// `prepare` has seen them (in the decoding threads: a conversion in place). Strips
+/// (a batch of about [`STRIP_BATCH_BYTES`]) or a row of tiles are read and decoded in
+/// parallel, each thread with a decoder of its own, so decompression (LZW, Deflate) and
+/// conversion use every core; memory is one batch or one row of tiles. Samples are f32:
+/// exact for 8- and 16-bit values, and heights are kept as f32 anyway.
+fn tiff_rows(
+    path: &Path,
+    channels: usize,
+    prepare: &(dyn Fn(&mut [f32]) + Sync),
+    row: &mut dyn FnMut(&[f32]) -> Result<()>,
+) -> Result<()> {
+    use rayon::prelude::*;
     use tiff::decoder::ChunkType;
     let bad = |why: String| Error::input(path, why);
     let mut decoder = open_tiff(path)?;
@@ -683,35 +708,53 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f32]) -> Result
     if chunk_w == 0 || chunk_h == 0 {
         return Err(bad("zero-size strips or tiles".into()));
     }
-    let what = if decoder.get_chunk_type() == ChunkType::Strip { "strip" } else { "tile" };
-    let count = match decoder.get_chunk_type() {
+    let kind = decoder.get_chunk_type();
+    let what = if kind == ChunkType::Strip { "strip" } else { "tile" };
+    let count = match kind {
         ChunkType::Strip => decoder.strip_count(),
         ChunkType::Tile => decoder.tile_count(),
     }
     .map_err(|e| bad(format!("{what}s: {e}")))? as usize;
-    let chunk = |decoder: &mut TiffDecoder, index: usize| -> Result<(Vec<f32>, usize, usize)> {
+    // Decoders not in use; a thread takes one (or opens one) per chunk and gives it back.
+    let spare = std::sync::Mutex::new(vec![decoder]);
+    let take = || spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop();
+    let chunk = |index: usize| -> Result<(Vec<f32>, usize, usize)> {
         let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
         if index >= count {
             return Err(bad(format!("{what} {index} is missing (the file lists {count})")));
         }
+        let mut decoder = match take() {
+            Some(d) => d,
+            None => open_tiff(path)?,
+        };
         let (w, h) = decoder.chunk_data_dimensions(i);
-        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")))?;
-        let values = samples_f32(data).ok_or_else(|| bad("unsupported sample type".into()))?;
+        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")));
+        spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(decoder);
+        let mut values = samples_f32(data?).ok_or_else(|| bad("unsupported sample type".into()))?;
+        prepare(&mut values);
         let (w, h) = (w as usize, h as usize);
         if values.len() < w * h * channels {
             return Err(bad(format!("{what} {index}: {} samples, {} expected", values.len(), w * h * channels)));
         }
         Ok((values, w, h))
     };
-    match decoder.get_chunk_type() {
+    // Chunks `range`, decoded in parallel; the first failure in file order is the error.
+    let decode = |range: std::ops::Range<usize>| -> Result<Vec<(Vec<f32>, usize, usize)>> {
+        range.into_par_iter().map(chunk).collect::<Vec<_>>().into_iter().collect()
+    };
+    match kind {
         ChunkType::Strip => {
+            let strips = height.div_ceil(chunk_h);
+            let strip_bytes = (stride * chunk_h * 4).max(1);
+            let batch = (STRIP_BATCH_BYTES / strip_bytes).max(2 * rayon::current_num_threads());
             let mut y = 0;
-            for index in 0..height.div_ceil(chunk_h) {
-                let (values, _, h) = chunk(&mut decoder, index)?;
-                for r in values.chunks_exact(stride).take(h.min(height - y)) {
-                    row(r)?;
+            for first in (0..strips).step_by(batch) {
+                for (values, _, h) in decode(first..strips.min(first + batch))? {
+                    for r in values.chunks_exact(stride).take(h.min(height - y)) {
+                        row(r)?;
+                    }
+                    y += h;
                 }
-                y += h;
             }
             if y < height {
                 return Err(bad(format!("strips hold {y} of {height} rows")));
@@ -722,8 +765,7 @@ fn tiff_rows(path: &Path, channels: usize, row: &mut dyn FnMut(&[f32]) -> Result
             let mut band = vec![0f32; stride * chunk_h];
             for ty in 0..height.div_ceil(chunk_h) {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
-                for tx in 0..across {
-                    let (values, w, h) = chunk(&mut decoder, ty * across + tx)?;
+                for (tx, (values, w, h)) in decode(ty * across..(ty + 1) * across)?.into_iter().enumerate() {
                     rows_here = rows_here.min(h);
                     let x0 = tx * chunk_w * channels;
                     let w = w.min(width - tx * chunk_w) * channels;

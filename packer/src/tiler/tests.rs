@@ -725,3 +725,17 @@ fn a_wider_georeferenced_texture_is_cut_to_the_elevation() {
     png_file(&png_path, 8, 4, &[5; 8 * 4 * 4]);
     assert!(ImageWindow::over(&dem, &open_image(&png_path).unwrap()).unwrap().is_none());
 }
+
+#[test]
+fn min_max_skips_nodata_in_every_lane_and_the_remainder() {
+    assert_eq!(min_max(&[]), (f32::INFINITY, f32::NEG_INFINITY));
+    assert_eq!(min_max(&[f32::NAN; 11]), (f32::INFINITY, f32::NEG_INFINITY));
+    // 8 lanes + a remainder of 5; the extremes in a lane, in the remainder, beside NaN.
+    for at in [0, 3, 7, 9, 12] {
+        let mut v: Vec<f32> = (0..13).map(|i| (i % 5) as f32).collect();
+        v[(at + 1) % 13] = f32::NAN;
+        v[at] = -40.5;
+        v[(at + 5) % 13] = 9000.25;
+        assert_eq!(min_max(&v), (-40.5, 9000.25), "extremes at {at}: {v:?}");
+    }
+}
