@@ -172,6 +172,9 @@ mod native {
     #[derive(Clone, Debug)]
     pub struct MmapSource {
         bytes: Bytes,
+        /// The file mapped (kept open: a server can `sendfile` from it what the mapping
+        /// shows, the same inode even after the path was replaced).
+        file: Option<std::sync::Arc<File>>,
     }
 
     impl MmapSource {
@@ -184,7 +187,7 @@ mod native {
             let file = File::open(path).map_err(|e| Error::file(path, e))?;
             if file.metadata().map_err(|e| Error::file(path, e))?.len() == 0 {
                 // Mapping an empty file fails on some systems; an empty archive is just invalid.
-                return Ok(Self { bytes: Bytes::new() });
+                return Ok(Self { bytes: Bytes::new(), file: None });
             }
             #[expect(unsafe_code, reason = "memory-mapping a file is the one unsafe operation of the project")]
             // SAFETY: archives are immutable once written: the writer publishes a new archive by
@@ -192,7 +195,12 @@ mod native {
             // under us. A file truncated by a third party would raise SIGBUS; that is the
             // documented contract of serving archives by mmap (FORMAT.md §7).
             let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| Error::file(path, e))?;
-            Ok(Self { bytes: Bytes::from_owner(map) })
+            Ok(Self { bytes: Bytes::from_owner(map), file: Some(std::sync::Arc::new(file)) })
+        }
+
+        /// The file the mapping is of (none for an empty file, which is not mapped).
+        pub fn file(&self) -> Option<&std::sync::Arc<File>> {
+            self.file.as_ref()
         }
 
         /// The whole mapping.

@@ -34,6 +34,8 @@ pub struct Served {
     /// Blobs whose checksum was verified: a direct-mapped table of offsets (+1; 0 is
     /// empty), fixed in size, lock-free. A hit skips the CRC of a tile served before.
     verified: Box<[AtomicU64]>,
+    /// The mapping, registered for `sendfile` while this version is served.
+    _sendfile: Option<crate::sendfile::Registration>,
 }
 
 /// Slots of the verified-blob table (128 KiB per archive).
@@ -197,6 +199,8 @@ fn open(
     id: FileIdentity,
 ) -> Result<Served, terrastream_packer::Error> {
     let reader = Reader::new(MmapSource::open(path)?)?;
+    let registration =
+        reader.source().file().and_then(|file| crate::sendfile::register(reader.source().bytes(), Arc::clone(file)));
     let mut tag = Vec::with_capacity(160);
     tag.extend_from_slice(&reader.source().bytes()[..terrastream_packer::HEADER_LEN]);
     tag.extend_from_slice(&id.len.to_le_bytes());
@@ -216,5 +220,6 @@ fn open(
         modified,
         identity: id,
         verified: (0..VERIFIED_SLOTS).map(|_| AtomicU64::new(0)).collect(),
+        _sendfile: registration,
     })
 }

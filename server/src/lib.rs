@@ -12,6 +12,7 @@ mod edge;
 mod metrics;
 pub mod player;
 mod range;
+mod sendfile;
 mod serve;
 
 pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app, service};

@@ -174,6 +174,11 @@ impl Metrics {
         }
         let _ = writeln!(
             out,
+            "# HELP terrastream_sendfile_bytes_total Body bytes sent from the archive file by sendfile (no copy).\n# TYPE terrastream_sendfile_bytes_total counter"
+        );
+        let _ = writeln!(out, "terrastream_sendfile_bytes_total {}", crate::sendfile::sent_bytes());
+        let _ = writeln!(
+            out,
             "# HELP terrastream_request_duration_seconds Time to answer.\n# TYPE terrastream_request_duration_seconds histogram"
         );
         for (route, s) in &used {

@@ -24,6 +24,7 @@ use tokio::sync::{Semaphore, watch};
 
 use crate::app::{AppState, service};
 use crate::edge::Edge;
+use crate::sendfile::Stream;
 
 /// Serves `state` on `listener` until `shutdown` resolves, then stops accepting and waits up
 /// to the configured grace period for requests in flight.
@@ -218,7 +219,11 @@ async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Futur
             let result = match tls {
                 None => {
                     watcher
-                        .watch(builder.serve_connection_with_upgrades(TokioIo::new(stream), service).into_owned())
+                        .watch(
+                            builder
+                                .serve_connection_with_upgrades(TokioIo::new(Stream::new(stream)), service)
+                                .into_owned(),
+                        )
                         .await
                 }
                 Some(acceptor) => match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {

@@ -101,7 +101,20 @@ async fn range_answers_match_nginx() {
             mismatches.push(format!("{range:.60}: ours {} / nginx {}", show(&ours), show(&theirs)));
         }
     }
+    // The whole-file and open ranges above went out through sendfile (on Linux), and their
+    // bytes matched nginx's.
+    let metrics = client.get(format!("http://{addr}/metrics")).send().await.unwrap().text().await.unwrap();
+    let sent: u64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("terrastream_sendfile_bytes_total "))
+        .expect("the sendfile counter in /metrics")
+        .parse()
+        .unwrap();
     let _ = stop.send(());
     server.await.unwrap().unwrap();
     assert!(mismatches.is_empty(), "differences from nginx:\n{}", mismatches.join("\n"));
+    assert!(len > 8192, "the sample archive is large enough for sendfile ({len} bytes)");
+    if cfg!(target_os = "linux") {
+        assert!(sent >= 2 * len, "{sent} bytes through sendfile, {len} in the file");
+    }
 }
