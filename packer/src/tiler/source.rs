@@ -686,9 +686,10 @@ const STRIP_BATCH_BYTES: usize = 1 << 20;
 
 /// Calls `row` with each row of a TIFF's samples (`channels` per pixel), in order, after
 /// `prepare` has seen them (in the decoding threads: a conversion in place). Strips
-/// (a batch of about [`STRIP_BATCH_BYTES`]) or a row of tiles are read and decoded in
-/// parallel, each thread with a decoder of its own, so decompression (LZW, Deflate) and
-/// conversion use every core; memory is one batch or one row of tiles. Samples are f32:
+/// (a batch of about [`STRIP_BATCH_BYTES`]) or tiles (one per thread) are read and decoded
+/// in parallel, each thread with a decoder of its own, so decompression (LZW, Deflate) and
+/// conversion use every core; memory is one batch of strips, or a row of tiles and one
+/// tile per thread. Samples are f32:
 /// exact for 8- and 16-bit values, and heights are kept as f32 anyway.
 fn tiff_rows(
     path: &Path,
@@ -765,12 +766,17 @@ fn tiff_rows(
             let mut band = vec![0f32; stride * chunk_h];
             for ty in 0..height.div_ceil(chunk_h) {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
-                for (tx, (values, w, h)) in decode(ty * across..(ty + 1) * across)?.into_iter().enumerate() {
-                    rows_here = rows_here.min(h);
-                    let x0 = tx * chunk_w * channels;
-                    let w = w.min(width - tx * chunk_w) * channels;
-                    for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
-                        band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
+                // A tile per thread at a time: the decoded tiles held are as many as threads.
+                let group = rayon::current_num_threads().max(1);
+                for first in (0..across).step_by(group) {
+                    let tiles = decode(ty * across + first..ty * across + across.min(first + group))?;
+                    for (tx, (values, w, h)) in (first..).zip(tiles) {
+                        rows_here = rows_here.min(h);
+                        let x0 = tx * chunk_w * channels;
+                        let w = w.min(width - tx * chunk_w) * channels;
+                        for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
+                            band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
+                        }
                     }
                 }
                 for r in band.chunks_exact(stride).take(rows_here) {
