@@ -193,12 +193,8 @@ fn tiles_over(size: (u32, u32), res: u32, lods: u8) -> u64 {
 /// The elevation's height range (a pass over its rows).
 fn height_range(elevation: &dyn ElevationSource, progress: &dyn Progress) -> Result<(f64, f64)> {
     progress.start("scan", u64::from(elevation.size().1));
-    let (mut min, mut max) = (f32::INFINITY, f32::NEG_INFINITY);
     let mut n = 0u32;
-    elevation.rows(&mut |row| {
-        let (lo, hi) = min_max(row);
-        min = min.min(lo);
-        max = max.max(hi);
+    let (min, max) = elevation.rows_and_range(&mut |_| {
         n += 1;
         if n.is_multiple_of(64) {
             progress.check()?;

@@ -27,6 +27,21 @@ pub trait ElevationSource: Sync {
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>;
+    /// As [`ElevationSource::rows`], and the lowest and highest height met (NaN skipped;
+    /// infinities when there is no data). A source may find them where it decodes, in
+    /// parallel.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`].
+    fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        self.rows(&mut |r| {
+            let (l, h) = super::min_max(r);
+            (lo, hi) = (lo.min(l), hi.max(h));
+            row(r)
+        })?;
+        Ok((lo, hi))
+    }
 }
 
 /// Rows of RGBA8 pixels: the texture input of the tiler.
@@ -443,6 +458,49 @@ impl ElevationFile {
     pub fn is_georeferenced(&self) -> bool {
         self.georeference.is_some()
     }
+
+    /// A stored value -> its height (NaN for nodata and non-finite values).
+    fn convert(&self) -> impl Fn(f64) -> f32 + Sync + '_ {
+        // Nodata is compared as f32, as samples are kept (a GDAL nodata of "3.40282e+38"
+        // is f32::MAX only once rounded to f32).
+        #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
+        let nodata = self.nodata.map(|n| n as f32);
+        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+        move |raw: f64| -> f32 {
+            if !raw.is_finite() || nodata == Some(raw as f32) {
+                return f32::NAN;
+            }
+            match &self.encoding {
+                Some(e) => e.height(raw) as f32,
+                None => raw as f32,
+            }
+        }
+    }
+
+    /// A PNG's rows of heights (16-bit values, or 8-bit encodings; transparent = nodata).
+    fn png_heights(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        let mut out = vec![0f32; self.width as usize];
+        let convert = self.convert();
+        let scheme = self.encoding.map_or(ElevationScheme::QuantizedU16, |e| e.scheme);
+        png_rows(&self.path, self.width, |values, channels, sixteen| {
+            let sample = |i: usize| -> f64 {
+                if sixteen {
+                    f64::from(u16::from_be_bytes([values[2 * i], values[2 * i + 1]]))
+                } else {
+                    f64::from(values[i])
+                }
+            };
+            let alpha = matches!(channels, 2 | 4);
+            for (x, h) in out.iter_mut().enumerate() {
+                let p = x * channels;
+                let opaque = !alpha || sample(p + channels - 1) > 0.0;
+                let (r, g, b) =
+                    if channels >= 3 { (sample(p), sample(p + 1), sample(p + 2)) } else { (sample(p), 0.0, 0.0) };
+                *h = if opaque { convert(scheme.value(r, g, b)) } else { f32::NAN };
+            }
+            row(&out)
+        })
+    }
 }
 
 impl ElevationSource for ElevationFile {
@@ -462,62 +520,51 @@ impl ElevationSource for ElevationFile {
         self.crs_pixel
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        let width = self.width as usize;
-        let mut out = vec![0f32; width];
-        // Nodata is compared as f32, as samples are kept (a GDAL nodata of "3.40282e+38"
-        // is f32::MAX only once rounded to f32).
+        self.rows_and_range(row).map(|_| ())
+    }
+
+    fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
+        if self.png {
+            let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+            self.png_heights(&mut |r| {
+                let (l, h) = super::min_max(r);
+                (lo, hi) = (lo.min(l), hi.max(h));
+                row(r)
+            })?;
+            return Ok((lo, hi));
+        }
         #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
         let nodata = self.nodata.map(|n| n as f32);
-        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
-        let convert = |raw: f64| -> f32 {
-            if !raw.is_finite() || nodata == Some(raw as f32) {
-                return f32::NAN;
-            }
-            match &self.encoding {
-                Some(e) => e.height(raw) as f32,
-                None => raw as f32,
-            }
+        // Samples become heights in place, and their range is found, in the decoding threads.
+        let range = std::sync::Mutex::new((f32::INFINITY, f32::NEG_INFINITY));
+        let merge = |samples: &[f32]| {
+            let (l, h) = super::min_max(samples);
+            let mut range = range.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            *range = (range.0.min(l), range.1.max(h));
         };
-        if self.png {
-            let scheme = self.encoding.map_or(ElevationScheme::QuantizedU16, |e| e.scheme);
-            return png_rows(&self.path, self.width, |values, channels, sixteen| {
-                let sample = |i: usize| -> f64 {
-                    if sixteen {
-                        f64::from(u16::from_be_bytes([values[2 * i], values[2 * i + 1]]))
-                    } else {
-                        f64::from(values[i])
-                    }
-                };
-                let alpha = matches!(channels, 2 | 4);
-                for (x, h) in out.iter_mut().enumerate() {
-                    let p = x * channels;
-                    let opaque = !alpha || sample(p + channels - 1) > 0.0;
-                    let (r, g, b) =
-                        if channels >= 3 { (sample(p), sample(p + 1), sample(p + 2)) } else { (sample(p), 0.0, 0.0) };
-                    *h = if opaque { convert(scheme.value(r, g, b)) } else { f32::NAN };
-                }
-                row(&out)
-            });
-        }
-        // Samples become heights in place, in the decoding threads.
         if self.encoding.is_none() {
             // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata"
             // equals nothing.
             let nodata = nodata.unwrap_or(f32::NAN);
             let heights = |samples: &mut [f32]| {
-                for v in samples {
+                for v in samples.iter_mut() {
                     // `&`, not `&&`: both compares, no branch. NaN and infinities fail the first.
                     *v = if (v.abs() < f32::INFINITY) & (*v != nodata) { *v } else { f32::NAN };
                 }
+                merge(samples);
             };
-            return tiff_rows(&self.path, 1, &heights, row);
+            tiff_rows(&self.path, 1, &heights, row)?;
+        } else {
+            let convert = self.convert();
+            let heights = |samples: &mut [f32]| {
+                for v in samples.iter_mut() {
+                    *v = convert(f64::from(*v));
+                }
+                merge(samples);
+            };
+            tiff_rows(&self.path, 1, &heights, row)?;
         }
-        let heights = |samples: &mut [f32]| {
-            for v in samples {
-                *v = convert(f64::from(*v));
-            }
-        };
-        tiff_rows(&self.path, 1, &heights, row)
+        Ok(range.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner))
     }
 }
 

@@ -739,3 +739,37 @@ fn min_max_skips_nodata_in_every_lane_and_the_remainder() {
         assert_eq!(min_max(&v), (-40.5, 9000.25), "extremes at {at}: {v:?}");
     }
 }
+
+#[test]
+fn the_range_found_while_decoding_is_that_of_the_rows() {
+    // Deflate strips with ocean nodata (the range must skip it), LZW tiles with clipped
+    // edge tiles, int16 strips: each file's range from its decoding threads against a pass
+    // over the rows it hands out.
+    for name in [
+        "srtm-tamalpais-320-public-domain.tif",
+        "srtm-tamalpais-150x100-tiled-float32-public-domain.tif",
+        "srtm-tamalpais-150x100-strips-int16-public-domain.tif",
+    ] {
+        let file = open_elevation(&repo_data(name), None).unwrap();
+        let (mut lo, mut hi, mut nodata, mut rows) = (f32::INFINITY, f32::NEG_INFINITY, 0, 0);
+        let range = file
+            .rows_and_range(&mut |row| {
+                for &v in row {
+                    if v.is_nan() {
+                        nodata += 1;
+                    } else {
+                        (lo, hi) = (lo.min(v), hi.max(v));
+                    }
+                }
+                rows += 1;
+                Ok(())
+            })
+            .unwrap();
+        assert_eq!(rows, file.size().1, "{name}");
+        assert_eq!(range, (lo, hi), "{name}");
+        assert!(lo < hi && lo > -100.0 && hi < 1000.0, "{name}: {lo}..{hi}");
+        if name.contains("320") {
+            assert!(nodata > 0 && lo > 0.0, "{name}: the ocean is nodata, not a height ({nodata} samples)");
+        }
+    }
+}
