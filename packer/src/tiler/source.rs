@@ -589,8 +589,10 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
                 .set_max_width(1 << 16)
                 .set_max_height(1 << 16);
             let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&bytes, options);
-            let pixels = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
+            decoder.decode_headers().map_err(|e| bad(format!("JPEG: {e:?}")))?;
             let (w, h) = decoder.dimensions().ok_or_else(|| bad("JPEG: no dimensions".into()))?;
+            jpeg_fits(path, w, h)?;
+            let pixels = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
             let dim = |n: usize| u32::try_from(n).map_err(|_| bad("JPEG: too large".into()));
             (dim(w)?, dim(h)?, None, ImageKind::Decoded(pixels))
         }
@@ -623,6 +625,28 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
         }
     }
     Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, crs_pixel, kind })
+}
+
+/// Most bytes a JPEG may take decoded. A JPEG is decoded whole (it cannot be read by rows,
+/// unlike every other input), so this bounds the tiler's memory for one.
+pub const JPEG_MAX_DECODED_BYTES: usize = 1 << 30;
+
+/// Refuses a JPEG too large to decode whole, naming the way out.
+pub(super) fn jpeg_fits(path: &Path, width: usize, height: usize) -> Result<()> {
+    let bytes = width.saturating_mul(height).saturating_mul(3);
+    if bytes > JPEG_MAX_DECODED_BYTES {
+        return Err(Error::input(
+            path,
+            format!(
+                "a {width}x{height} JPEG takes {} MiB decoded, over the {} MiB a JPEG may take (it cannot be \
+                 read by rows): convert it to a tiled GeoTIFF, which is streamed (gdal_translate -co TILED=YES \
+                 -co COMPRESS=JPEG in.jpg out.tif)",
+                bytes >> 20,
+                JPEG_MAX_DECODED_BYTES >> 20
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Reads a whole image into memory (small images, tests); [`open_image`] streams.

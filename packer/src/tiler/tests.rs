@@ -773,3 +773,12 @@ fn the_range_found_while_decoding_is_that_of_the_rows() {
         }
     }
 }
+
+#[test]
+fn a_jpeg_too_large_to_decode_whole_is_refused_by_name() {
+    let path = Path::new("ortho.jpg");
+    assert!(source::jpeg_fits(path, 10_800, 5_400).is_ok(), "the shaded relief (175 MB decoded) fits");
+    let e = source::jpeg_fits(path, 40_000, 30_000).unwrap_err().to_string();
+    assert!(e.contains("ortho.jpg") && e.contains("40000x30000") && e.contains("tiled GeoTIFF"), "{e}");
+    assert!(source::jpeg_fits(path, usize::MAX, 3).is_err(), "no overflow");
+}
