@@ -34,14 +34,22 @@ pub trait ElevationSource: Sync {
     /// # Errors
     /// As [`ElevationSource::rows`].
     fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
-        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        self.rows(&mut |r| {
-            let (l, h) = super::min_max(r);
-            (lo, hi) = (lo.min(l), hi.max(h));
-            row(r)
-        })?;
-        Ok((lo, hi))
+        ranged(row, |row| self.rows(row))
     }
+}
+
+/// Runs `read` with `row`, and returns the range of the rows it passed on.
+fn ranged(
+    row: &mut dyn FnMut(&[f32]) -> Result<()>,
+    read: impl FnOnce(&mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>,
+) -> Result<(f32, f32)> {
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    read(&mut |r| {
+        let (l, h) = super::min_max(r);
+        (lo, hi) = (lo.min(l), hi.max(h));
+        row(r)
+    })?;
+    Ok((lo, hi))
 }
 
 /// Rows of RGBA8 pixels: the texture input of the tiler.
@@ -525,13 +533,7 @@ impl ElevationSource for ElevationFile {
 
     fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
         if self.png {
-            let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-            self.png_heights(&mut |r| {
-                let (l, h) = super::min_max(r);
-                (lo, hi) = (lo.min(l), hi.max(h));
-                row(r)
-            })?;
-            return Ok((lo, hi));
+            return ranged(row, |row| self.png_heights(row));
         }
         #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
         let nodata = self.nodata.map(|n| n as f32);
