@@ -59,6 +59,15 @@ async fn ranges_over_http1_and_h2c() {
         assert_eq!(r.version(), version);
         assert_eq!(r.headers()["content-range"], format!("bytes 128-1151/{}", file.len()).as_str());
         assert_eq!(r.bytes().await.unwrap(), &file[128..1152]);
+        // Bodies of 4 KiB and more leave through sendfile (Linux), in h2 DATA frames too:
+        // the whole file, and from an odd offset.
+        assert!(file.len() > 8192);
+        let r = client.get(&url).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+        assert_eq!(r.bytes().await.unwrap(), &file[..], "{version:?}");
+        let r = client.get(&url).header("range", "bytes=3-").send().await.unwrap();
+        assert_eq!(r.status(), 206);
+        assert_eq!(r.bytes().await.unwrap(), &file[3..], "{version:?}");
         let r = client.get(format!("http://{}/sample/texture/3/0/0", server.addr)).send().await.unwrap();
         assert_eq!(r.status(), 200);
         assert_eq!(r.headers()["content-type"], "image/png");
