@@ -42,6 +42,9 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         .into_iter()
         .map(|k| u16::try_from(k).unwrap_or(0))
         .collect();
+    // The GeoKeys' parameters: keys of type double or ASCII point into these two tags.
+    let doubles = f64s(&mut decoder, 34736);
+    let ascii = decoder.find_tag(Tag::Unknown(34737))?.and_then(|v| v.into_string().ok());
     let nodata = decoder.find_tag(Tag::Unknown(42113))?.and_then(|v| v.into_string().ok());
     let DecodingResult::I16(data) = decoder.read_image()? else { return Err("not int16".into()) };
     let nodata_value = nodata.as_deref().and_then(|s| s.trim_matches(char::from(0)).trim().parse::<i16>().ok());
@@ -60,6 +63,12 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     enc.write_tag(Tag::Unknown(33550), &scale[..])?;
     enc.write_tag(Tag::Unknown(33922), &tiepoint[..])?;
     enc.write_tag(Tag::Unknown(34735), &keys[..])?;
+    if let Some(doubles) = &doubles {
+        enc.write_tag(Tag::Unknown(34736), &doubles[..])?;
+    }
+    if let Some(ascii) = &ascii {
+        enc.write_tag(Tag::Unknown(34737), ascii.trim_end_matches(char::from(0)))?;
+    }
     if ocean || nodata.is_some() {
         enc.write_tag(Tag::Unknown(42113), fill.to_string().as_str())?;
     }

@@ -925,7 +925,11 @@ impl GeoTags {
         let (mut spacing, mut georeference) = ((1.0, 1.0), None);
         if let (Some(s), Some(t)) = (&scale, &tiepoint) {
             if s.len() >= 2 && t.len() >= 6 && s[0] > 0.0 && s[1] > 0.0 {
-                let (west, north) = (t[3] - t[0] * s[0], t[4] + t[1] * s[1]);
+                // GTRasterTypeGeoKey 2 = PixelIsPoint (SRTM, most DEMs): the tiepoint is a
+                // sample's centre, so the raster's corner is half a sample further out (as
+                // GDAL reads it).
+                let half = if key(1025.0) == Some(2.0) { 0.5 } else { 0.0 };
+                let (west, north) = (t[3] - (t[0] + half) * s[0], t[4] + (t[1] + half) * s[1]);
                 spacing = (s[0], s[1]);
                 let mut g = Georeference {
                     crs: epsg.map(|c| format!("EPSG:{c}")),

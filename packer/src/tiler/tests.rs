@@ -782,3 +782,25 @@ fn a_jpeg_too_large_to_decode_whole_is_refused_by_name() {
     assert!(e.contains("ortho.jpg") && e.contains("40000x30000") && e.contains("tiled GeoTIFF"), "{e}");
     assert!(source::jpeg_fits(path, usize::MAX, 3).is_err(), "no overflow");
 }
+
+#[test]
+fn a_pixel_is_point_raster_is_placed_by_its_corner_as_gdal_reads_it() {
+    // SRTM marks its tiepoint as a sample's centre (GTRasterTypeGeoKey = PixelIsPoint): the
+    // raster's corner is half a sample further out. gdalinfo reports the upper-left corner
+    // of all three fixtures as (-122.6418056, 37.9668056).
+    for name in [
+        "srtm-tamalpais-320-public-domain.tif",
+        "srtm-tamalpais-150x100-tiled-float32-public-domain.tif",
+        "srtm-tamalpais-150x100-strips-int16-public-domain.tif",
+    ] {
+        let file = open_elevation(&repo_data(name), None).unwrap();
+        let g = file.georeference().unwrap();
+        let [west, north] = g.origin.unwrap();
+        assert!((west + 122.641_805_6).abs() < 1e-7 && (north - 37.966_805_6).abs() < 1e-7, "{name}: {west}, {north}");
+        let bounds = g.lat_lon_bounds.unwrap();
+        let (w, h) = file.size();
+        let step = 1.0 / 3600.0;
+        assert!((bounds[2] - (west + f64::from(w) * step)).abs() < 1e-9, "{name}: {bounds:?}");
+        assert!((bounds[1] - (north - f64::from(h) * step)).abs() < 1e-9, "{name}: {bounds:?}");
+    }
+}
