@@ -542,13 +542,16 @@ fn run_pyramid<S: Sample>(
             // A send fails only once the pyramid has stopped, with its own error.
             read(&mut |row| rows.send(row).map_err(|_| Error::Interrupted))
         });
-        let mut built = received.iter().try_for_each(|row| pyramid.push(row));
-        drop(received);
-        let read = reader.join().unwrap_or_else(|_| Err(Error::Writer("the reading thread panicked".into())));
-        // The pyramid's error first (it stopped the reader); else the reader's.
-        built = built.and(read);
-        built?;
-        pyramid.finish()
+        // Rows of tiles are cut on the pool while this thread halves the next rows.
+        rayon::in_place_scope(|cuts| {
+            let mut built = received.iter().try_for_each(|row| pyramid.push(row, cuts));
+            drop(received);
+            let read = reader.join().unwrap_or_else(|_| Err(Error::Writer("the reading thread panicked".into())));
+            // The pyramid's error first (it stopped the reader); else the reader's.
+            built = built.and(read);
+            built?;
+            pyramid.finish(cuts)
+        })
     })
 }
 

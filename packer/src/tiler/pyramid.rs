@@ -2,16 +2,19 @@
 //!
 //! Rows of LOD 0 are pushed in from the top. Each level keeps the rows its next row of
 //! tiles needs (tile size + two borders) and halves pairs of rows into the level above as
-//! they arrive; a row of tiles is cut and encoded (in parallel) as soon as its rows, borders
-//! included, are all in. Memory per level is one band of about `tile + 2 * border + 1` rows
-//! of that level's width, so the whole pyramid holds under two LOD-0 bands whatever the
-//! raster's height (the tiler keeps one more band in flight from its reading thread).
-//! Encoded tiles go to a [`Spool`] on disk, then into the archive in the archive's order.
+//! they arrive; a row of tiles is cut and encoded (its tiles in parallel, on the pool, while
+//! the caller goes on halving) as soon as its rows, borders included, are all in. Memory
+//! per level is one band of about `tile + 2 * border + 1` rows of that level's width, so
+//! the whole pyramid holds under two LOD-0 bands whatever the raster's height (the tiler
+//! keeps one more band in flight from its reading thread, and the rows of tiles being cut
+//! on the pool hold up to two more). Encoded tiles go to a [`Spool`] on disk, then into the
+//! archive in the archive's order.
 
 use std::collections::VecDeque;
 use std::fs::File;
 use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
 use std::path::Path;
+use std::sync::{Arc, mpsc};
 
 use rayon::prelude::*;
 
@@ -188,13 +191,17 @@ struct Level<S> {
     height: usize,
     /// Absolute index of `rows[0]`.
     first: usize,
-    rows: VecDeque<Vec<S>>,
+    /// Shared with the cuts in flight that need them.
+    rows: VecDeque<Arc<Vec<S>>>,
     received: usize,
     /// Rows of tiles cut so far.
     cut: usize,
     /// An even row waiting for its odd partner, to be halved into the next level.
-    pending: Option<Vec<S>>,
+    pending: Option<Arc<Vec<S>>>,
 }
+
+/// The entries of one cut row of tiles.
+type Cut = Result<Vec<(TileKey, Vec<u8>)>>;
 
 /// Cuts one layer's tiles out of a stream of LOD-0 rows.
 pub struct Pyramid<'a, S: Sample> {
@@ -206,7 +213,14 @@ pub struct Pyramid<'a, S: Sample> {
     metadata: &'a Metadata,
     spool: &'a mut Spool,
     progress: &'a dyn Progress,
+    /// Rows of tiles being cut and encoded on the pool, and where they report.
+    in_flight: usize,
+    done: (mpsc::Sender<Cut>, mpsc::Receiver<Cut>),
 }
+
+/// Rows of tiles cut at once, all levels: a cut runs on the pool while the next rows are
+/// halved and the next band is read; each holds its band's rows until it is done.
+const CUTS_IN_FLIGHT: usize = 2;
 
 impl<'a, S: Sample> Pyramid<'a, S> {
     /// A pyramid of `lods` levels over a `width` x `height` LOD 0, for layer `layer` of
@@ -244,6 +258,8 @@ impl<'a, S: Sample> Pyramid<'a, S> {
             metadata,
             spool,
             progress,
+            in_flight: 0,
+            done: mpsc::channel(),
         })
     }
 
@@ -252,20 +268,28 @@ impl<'a, S: Sample> Pyramid<'a, S> {
         self.res + 2 * self.border
     }
 
-    /// Samples held now, all levels (the band each keeps, and rows waiting to be halved).
+    /// Samples held now, all levels (the band each keeps, and rows waiting to be halved;
+    /// the cuts in flight hold up to [`CUTS_IN_FLIGHT`] bands more).
     pub fn held_samples(&self) -> usize {
         self.levels.iter().map(|l| (l.rows.len() + usize::from(l.pending.is_some())) * l.width).sum()
     }
 
-    /// Adds the next row of LOD 0.
+    /// Adds the next row of LOD 0. Rows of tiles are cut on `scope`'s pool while the
+    /// caller goes on.
     ///
     /// # Errors
     /// Encoding and spool errors, [`Error::Interrupted`].
-    pub fn push(&mut self, row: Vec<S>) -> Result<()> {
-        self.push_at(0, row)
+    pub fn push<'s>(&mut self, row: Vec<S>, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
+        self.push_at(0, Arc::new(row), scope)
     }
 
-    fn push_at(&mut self, l: usize, row: Vec<S>) -> Result<()> {
+    fn push_at<'s>(&mut self, l: usize, row: Arc<Vec<S>>, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
         let has_next = l + 1 < self.levels.len();
         let level = &mut self.levels[l];
         if level.received >= level.height {
@@ -274,25 +298,28 @@ impl<'a, S: Sample> Pyramid<'a, S> {
         let half = match (has_next, level.pending.take()) {
             (false, _) => None,
             (true, None) => {
-                level.pending = Some(row.clone());
+                level.pending = Some(Arc::clone(&row));
                 None
             }
             (true, Some(even)) => Some(halve_rows(&even, &row)),
         };
         level.rows.push_back(row);
         level.received += 1;
-        self.cut_ready(l)?;
+        self.cut_ready(l, scope)?;
         if let Some(half) = half {
-            self.push_at(l + 1, half)?;
+            self.push_at(l + 1, Arc::new(half), scope)?;
         }
         Ok(())
     }
 
-    /// Ends the stream: pads odd levels, cuts what is left.
+    /// Ends the stream: pads odd levels, cuts what is left, and waits for every cut.
     ///
     /// # Errors
     /// As [`Pyramid::push`]; [`Error::Writer`] if rows are missing.
-    pub fn finish(mut self) -> Result<()> {
+    pub fn finish<'s>(mut self, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
         for l in 0..self.levels.len() {
             let level = &self.levels[l];
             if level.received != level.height {
@@ -303,14 +330,32 @@ impl<'a, S: Sample> Pyramid<'a, S> {
             }
             if let Some(even) = self.levels[l].pending.take() {
                 let none = vec![S::NONE; even.len()];
-                self.push_at(l + 1, halve_rows(&even, &none))?;
+                self.push_at(l + 1, Arc::new(halve_rows(&even, &none)), scope)?;
             }
+        }
+        while self.in_flight > 0 {
+            self.collect_one()?;
         }
         Ok(())
     }
 
-    /// Cuts every row of tiles of level `l` whose rows (and lower border) have arrived.
-    fn cut_ready(&mut self, l: usize) -> Result<()> {
+    /// Waits for one cut in flight and spools its tiles.
+    fn collect_one(&mut self) -> Result<()> {
+        let tiles = self.done.1.recv().map_err(|_| Error::Writer("a cut was lost".into()))?;
+        self.in_flight -= 1;
+        for (key, bytes) in tiles? {
+            self.spool.add(self.metadata, key, &bytes)?;
+        }
+        Ok(())
+    }
+
+    /// Starts cutting every row of tiles of level `l` whose rows (and lower border) have
+    /// arrived, on `scope`'s pool (the tiles of a row in parallel); first waits for older
+    /// cuts while [`CUTS_IN_FLIGHT`] are running.
+    fn cut_ready<'s>(&mut self, l: usize, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
         let (res, border) = (self.res, self.border);
         loop {
             let level = &self.levels[l];
@@ -322,53 +367,63 @@ impl<'a, S: Sample> Pyramid<'a, S> {
                 return Ok(());
             }
             self.progress.check()?;
+            while self.in_flight >= CUTS_IN_FLIGHT {
+                self.collect_one()?;
+            }
+            let level = &self.levels[l];
             let ty = level.cut;
             let edge = res + 2 * border;
-            let cols = level.width.div_ceil(res);
-            let encode = self.encode;
-            let (layer, lod, progress) = (self.layer, level.lod, self.progress);
-            // The band's row `y` (absolute), if it is in the raster.
-            let row_at = |y: usize| -> Option<&[S]> {
-                if y < level.first || y >= level.height {
-                    None
-                } else {
-                    level.rows.get(y - level.first).map(Vec::as_slice)
-                }
-            };
-            let tiles: Vec<Vec<(TileKey, Vec<u8>)>> = (0..cols)
-                .into_par_iter()
-                .map(|tx| {
-                    let mut any = false;
-                    let mut samples = Vec::with_capacity(edge * edge);
-                    // Columns x0 - border .. x0 + res + border, clipped to the raster and
-                    // padded with no data outside it.
-                    let (from, to) = ((tx * res).saturating_sub(border), (tx * res + res + border).min(level.width));
-                    let pad_left = border.saturating_sub(tx * res);
-                    let pad_right = edge - pad_left - (to - from);
-                    for j in 0..edge {
-                        let Some(row) = (ty * res + j).checked_sub(border).and_then(row_at) else {
-                            samples.resize(samples.len() + edge, S::NONE);
-                            continue;
-                        };
-                        if (border..border + res).contains(&j) {
-                            any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
-                        }
-                        samples.resize(samples.len() + pad_left, S::NONE);
-                        samples.extend_from_slice(&row[from..to]);
-                        samples.resize(samples.len() + pad_right, S::NONE);
-                    }
-                    progress.advance(1);
-                    if !any {
-                        return Ok(Vec::new());
-                    }
-                    let coordinate = |n: usize| u32::try_from(n).map_err(|_| Error::Writer("tile coordinate".into()));
-                    let key = TileKey::new(layer, lod, coordinate(tx)?, coordinate(ty)?)?;
-                    encode(key, &samples, edge)
+            let (width, cols) = (level.width, level.width.div_ceil(res));
+            // The band: row `j` of the tiles is the level's row `ty * res + j - border`,
+            // none above or below the raster.
+            let band: Vec<Option<Arc<Vec<S>>>> = (0..edge)
+                .map(|j| {
+                    (ty * res + j)
+                        .checked_sub(border)
+                        .filter(|&y| y >= level.first && y < level.height)
+                        .and_then(|y| level.rows.get(y - level.first).cloned())
                 })
-                .collect::<Result<_>>()?;
-            for (key, bytes) in tiles.into_iter().flatten() {
-                self.spool.add(self.metadata, key, &bytes)?;
-            }
+                .collect();
+            let (encode, progress, sender) = (self.encode, self.progress, self.done.0.clone());
+            let (layer, lod) = (self.layer, level.lod);
+            self.in_flight += 1;
+            scope.spawn(move |_| {
+                let tiles = (0..cols)
+                    .into_par_iter()
+                    .map(|tx| {
+                        let mut any = false;
+                        let mut samples = Vec::with_capacity(edge * edge);
+                        // Columns x0 - border .. x0 + res + border, clipped to the raster
+                        // and padded with no data outside it.
+                        let (from, to) = ((tx * res).saturating_sub(border), (tx * res + res + border).min(width));
+                        let pad_left = border.saturating_sub(tx * res);
+                        let pad_right = edge - pad_left - (to - from);
+                        for (j, row) in band.iter().enumerate() {
+                            let Some(row) = row else {
+                                samples.resize(samples.len() + edge, S::NONE);
+                                continue;
+                            };
+                            if (border..border + res).contains(&j) {
+                                any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
+                            }
+                            samples.resize(samples.len() + pad_left, S::NONE);
+                            samples.extend_from_slice(&row[from..to]);
+                            samples.resize(samples.len() + pad_right, S::NONE);
+                        }
+                        progress.advance(1);
+                        if !any {
+                            return Ok(Vec::new());
+                        }
+                        let coordinate =
+                            |n: usize| u32::try_from(n).map_err(|_| Error::Writer("tile coordinate".into()));
+                        let key = TileKey::new(layer, lod, coordinate(tx)?, coordinate(ty)?)?;
+                        encode(key, &samples, edge)
+                    })
+                    .collect::<Result<Vec<_>>>()
+                    .map(|tiles| tiles.into_iter().flatten().collect());
+                // The receiver lives until every cut is collected.
+                let _ = sender.send(tiles);
+            });
             let level = &mut self.levels[l];
             level.cut += 1;
             let keep_from = (level.cut * res).saturating_sub(border);

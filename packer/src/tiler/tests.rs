@@ -199,13 +199,15 @@ fn memory_is_a_band_of_rows_per_level_whatever_the_height() {
         let silent = Silent::default();
         let mut p = Pyramid::new(&metadata, 0, (64, height), &encode, &mut spool, &silent).unwrap();
         let mut peak = 0;
-        r.rows(&mut |row| {
-            p.push(row.to_vec())?;
-            peak = peak.max(p.held_samples());
-            Ok(())
-        })
-        .unwrap();
-        p.finish().unwrap();
+        rayon::in_place_scope(|cuts| {
+            r.rows(&mut |row| {
+                p.push(row.to_vec(), cuts)?;
+                peak = peak.max(p.held_samples());
+                Ok(())
+            })
+            .unwrap();
+            p.finish(cuts).unwrap();
+        });
         // LOD 0 holds at most 32 + 2 * 2 + 1 rows of 64; each coarser level half as wide.
         assert!(peak <= 2 * 64 * (32 + 2 * 2 + 1), "height {height}: {peak} samples held");
         assert_eq!(
