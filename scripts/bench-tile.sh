@@ -35,8 +35,14 @@ measure() {
   local name=$1 out=$2 best="" most=0; shift 2
   for _ in $(seq "$REPEAT"); do
     rm -rf "$out"
-    /usr/bin/time -f '%e %M' -o "$work/time" "$@" >"$work/log" 2>&1 || { cat "$work/log"; exit 1; }
-    read -r s m <"$work/time"
+    # GNU time for the peak memory; the wall time from the clock in ms (time's %e has
+    # 10 ms steps, 6% of the DEM job).
+    local t0 t1
+    t0=$(date +%s%N)
+    /usr/bin/time -f '%M' -o "$work/time" "$@" >"$work/log" 2>&1 || { cat "$work/log"; exit 1; }
+    t1=$(date +%s%N)
+    read -r m <"$work/time"
+    s=$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.3f", (b - a) / 1e9 }')
     if [ -z "$best" ] || awk -v a="$s" -v b="$best" 'BEGIN { exit !(a < b) }'; then best=$s; fi
     [ "$m" -gt "$most" ] && most=$m
   done
