@@ -742,16 +742,20 @@ fn min_max_skips_nodata_in_every_lane_and_the_remainder() {
     }
 }
 
+/// The committed SRTM crops: Deflate strips with ocean nodata, LZW float32 tiles (clipped
+/// at the edges), Deflate int16 strips.
+const SRTM_FIXTURES: [&str; 3] = [
+    "srtm-tamalpais-320-public-domain.tif",
+    "srtm-tamalpais-150x100-tiled-float32-public-domain.tif",
+    "srtm-tamalpais-150x100-strips-int16-public-domain.tif",
+];
+
 #[test]
 fn the_range_found_while_decoding_is_that_of_the_rows() {
     // Deflate strips with ocean nodata (the range must skip it), LZW tiles with clipped
     // edge tiles, int16 strips: each file's range from its decoding threads against a pass
     // over the rows it hands out.
-    for name in [
-        "srtm-tamalpais-320-public-domain.tif",
-        "srtm-tamalpais-150x100-tiled-float32-public-domain.tif",
-        "srtm-tamalpais-150x100-strips-int16-public-domain.tif",
-    ] {
+    for name in SRTM_FIXTURES {
         let file = open_elevation(&repo_data(name), None).unwrap();
         let (mut lo, mut hi, mut nodata, mut rows) = (f32::INFINITY, f32::NEG_INFINITY, 0, 0);
         let range = file
@@ -790,11 +794,7 @@ fn a_pixel_is_point_raster_is_placed_by_its_corner_as_gdal_reads_it() {
     // SRTM marks its tiepoint as a sample's centre (GTRasterTypeGeoKey = PixelIsPoint): the
     // raster's corner is half a sample further out. gdalinfo reports the upper-left corner
     // of all three fixtures as (-122.6418056, 37.9668056).
-    for name in [
-        "srtm-tamalpais-320-public-domain.tif",
-        "srtm-tamalpais-150x100-tiled-float32-public-domain.tif",
-        "srtm-tamalpais-150x100-strips-int16-public-domain.tif",
-    ] {
+    for name in SRTM_FIXTURES {
         let file = open_elevation(&repo_data(name), None).unwrap();
         let g = file.georeference().unwrap();
         let [west, north] = g.origin.unwrap();
