@@ -62,16 +62,26 @@ end
 LUA
 export TILE_PATHS="$work/tile-paths.txt" RANGES="$work/ranges.txt"
 
-run() { # url script -> "requests/s p50 p99 errors"
-  local out rps p50 p99 errs
-  out=$(wrk -t2 -c"$CONNS" -d"${SECS}s" --latency -s "$2" "$1")
+# CPU time (clock ticks, user + system) of processes, all their threads.
+ticks() { local t=0 p; for p in "$@"; do t=$((t + $(awk '{ print $14 + $15 }' "/proc/$p/stat" 2>/dev/null || echo 0))); done; echo "$t"; }
+hz=$(getconf CLK_TCK)
+
+run() { # url script pids... -> "requests/s p50 p99 cpu-us-per-answer errors"
+  local out rps p50 p99 errs url=$1 script=$2 before after requests; shift 2
+  before=$(ticks "$@")
+  out=$(wrk -t2 -c"$CONNS" -d"${SECS}s" --latency -s "$script" "$url")
+  after=$(ticks "$@")
   rps=$(awk '/Requests\/sec/ { print $2 }' <<<"$out")
   p50=$(awk '$1 == "50%" { print $2 }' <<<"$out")
   p99=$(awk '$1 == "99%" { print $2 }' <<<"$out")
+  requests=$(awk '/requests in/ { print $1 }' <<<"$out")
   errs=$(awk '/Non-2xx|Socket errors/ { $1 = $1; print }' <<<"$out" | paste -sd' ' -)
   # A benchmark of error answers measures nothing: say so loudly.
   [ -n "$errs" ] && echo "WARNING: errors answered: $errs" >&2
-  echo "$rps $p50 $p99 ${errs:+errors}"
+  # The server's CPU per answer: on 2 cores wrk takes the rest, so this sets the rate.
+  local cpu
+  cpu=$(awk -v t=$((after - before)) -v hz="$hz" -v n="$requests" 'BEGIN { printf "%.1f", (n > 0 ? t / hz * 1e6 / n : 0) }')
+  echo "$rps $p50 $p99 $cpu ${errs:+errors}"
 }
 
 # This machine is shared and noisy: the three targets take turns, ROUNDS times, and each
@@ -79,18 +89,18 @@ run() { # url script -> "requests/s p50 p99 errors"
 ROUNDS=${ROUNDS:-3}
 echo
 echo "wrk, $CONNS connections, ${SECS}s each, 2 threads, loopback, $(nproc) cores, $ROUNDS rounds"
-printf '%-6s %-44s %12s %10s %10s %8s\n' "round" "target" "requests/s" "p50" "p99" "x nginx"
+printf '%-6s %-44s %12s %10s %10s %8s %12s\n' "round" "target" "requests/s" "p50" "p99" "x nginx" "CPU us/ans"
 : > "$work/results.txt"
 for round in $(seq "$ROUNDS"); do
-  a=$(run "http://127.0.0.1:$ours" "$work/tiles.lua")
-  b=$(run "http://127.0.0.1:$ours" "$work/ranges.lua")
-  c=$(run "http://127.0.0.1:$theirs" "$work/ranges.lua")
+  a=$(run "http://127.0.0.1:$ours" "$work/tiles.lua" "${pids[0]}")
+  b=$(run "http://127.0.0.1:$ours" "$work/ranges.lua" "${pids[0]}")
+  c=$(run "http://127.0.0.1:$theirs" "$work/ranges.lua" $(pgrep -P "${pids[1]}" | tr '\n' ' '))
   nginx_rps=${c%% *}
   for row in "(a) terrastream tile endpoint, random tiles|$a" "(b) terrastream archive, random tile Ranges|$b" \
     "(c) nginx archive, same Ranges|$c"; do
-    name=${row%%|*}; read -r rps p50 p99 errs <<<"${row#*|}"
+    name=${row%%|*}; read -r rps p50 p99 cpu errs <<<"${row#*|}"
     ratio=$(awk -v x="$rps" -v y="$nginx_rps" 'BEGIN { printf "%.2f", x / y }')
-    printf '%-6s %-44s %12s %10s %10s %8s %s\n' "$round" "$name" "$rps" "$p50" "$p99" "$ratio" "$errs"
+    printf '%-6s %-44s %12s %10s %10s %8s %12s %s\n' "$round" "$name" "$rps" "$p50" "$p99" "$ratio" "$cpu" "$errs"
     echo "${name:1:1} $ratio $p99" >> "$work/results.txt"
   done
 done
