@@ -597,7 +597,14 @@ fn encode_heights(samples: &[f32], encoding: &ElevationEncoding) -> (Vec<u8>, f3
 /// One texture tile's stored bytes.
 fn encode_texture(pixels: &[[u8; 4]], edge: usize, format: TextureFormat, zstd_level: i32) -> Result<Vec<u8>> {
     let opaque = pixels.iter().all(|p| p[3] == 255);
-    let rgb = || -> Vec<u8> { pixels.iter().flat_map(|p| [p[0], p[1], p[2]]).collect() };
+    let rgb = || -> Vec<u8> {
+        // Sized once: a `flat_map` collect cannot know its length and grows by doubling.
+        let mut rgb = Vec::with_capacity(pixels.len() * 3);
+        for p in pixels {
+            rgb.extend_from_slice(&p[..3]);
+        }
+        rgb
+    };
     let side = u32::try_from(edge).map_err(|_| Error::Writer("tile too large".into()))?;
     let err = |e: &dyn std::fmt::Display| Error::Writer(e.to_string());
     Ok(match format {
