@@ -544,7 +544,8 @@ fn run_pyramid<S: Sample>(
         });
         // Rows of tiles are cut on the pool while this thread halves the next rows.
         rayon::in_place_scope(|cuts| {
-            let mut built = received.iter().try_for_each(|row| pyramid.push(row, cuts));
+            let mut built =
+                std::iter::from_fn(|| pyramid::receive(&received)).try_for_each(|row| pyramid.push(row, cuts));
             drop(received);
             let read = reader.join().unwrap_or_else(|_| Err(Error::Writer("the reading thread panicked".into())));
             // The pyramid's error first (it stopped the reader); else the reader's.

@@ -341,7 +341,7 @@ impl<'a, S: Sample> Pyramid<'a, S> {
 
     /// Waits for one cut in flight and spools its tiles.
     fn collect_one(&mut self) -> Result<()> {
-        let tiles = self.done.1.recv().map_err(|_| Error::Writer("a cut was lost".into()))?;
+        let tiles = receive(&self.done.1).ok_or_else(|| Error::Writer("a cut was lost".into()))?;
         self.in_flight -= 1;
         for (key, bytes) in tiles? {
             self.spool.add(self.metadata, key, &bytes)?;
@@ -431,6 +431,27 @@ impl<'a, S: Sample> Pyramid<'a, S> {
                 level.rows.pop_front();
                 level.first += 1;
             }
+        }
+    }
+}
+
+/// The next message of `from`, None once every sender is gone. On one of rayon's own
+/// threads (a caller tiling from inside the pool), blocking would keep that thread from
+/// running the pool work the message waits for (the cuts, the reader's decoding), so it
+/// runs pool work until the message comes.
+pub(crate) fn receive<T>(from: &mpsc::Receiver<T>) -> Option<T> {
+    if rayon::current_thread_index().is_none() {
+        return from.recv().ok();
+    }
+    loop {
+        match from.try_recv() {
+            Ok(message) => return Some(message),
+            Err(mpsc::TryRecvError::Empty) => {
+                if rayon::yield_now() != Some(rayon::Yield::Executed) {
+                    std::thread::yield_now();
+                }
+            }
+            Err(mpsc::TryRecvError::Disconnected) => return None,
         }
     }
 }

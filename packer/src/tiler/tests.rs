@@ -806,3 +806,33 @@ fn a_pixel_is_point_raster_is_placed_by_its_corner_as_gdal_reads_it() {
         assert!((bounds[1] - (north - f64::from(h) * step)).abs() < 1e-9, "{name}: {bounds:?}");
     }
 }
+
+#[test]
+fn tiling_from_inside_a_one_thread_pool_finishes() {
+    // A caller on one of rayon's own threads (a program tiling several rasters in
+    // parallel): waiting for the cuts must not keep that thread from running them.
+    // An in-memory raster, and a GeoTIFF (whose reading thread decodes on the global pool).
+    let dir = tempfile::tempdir().unwrap();
+    for tiff in [false, true] {
+        let out = dir.path().join(format!("pooled-{tiff}.tspack"));
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let (done, finished) = std::sync::mpsc::channel();
+        let job = out.clone();
+        std::thread::spawn(move || {
+            let options = TileOptions { tile_size: 32, ..TileOptions::default() };
+            let result = pool.install(|| {
+                if tiff {
+                    let source = open_elevation(&repo_data(SRTM_FIXTURES[0]), None)?;
+                    tile_elevation(&source, "pooled", &job, options, &Silent::default())
+                } else {
+                    let r = raster(200, 150, |x, y| (x * 3 + y) as f32);
+                    tile_elevation(&r, "pooled", &job, options, &Silent::default())
+                }
+            });
+            let _ = done.send(result.map(|summary| summary.addressed_tiles));
+        });
+        // A deadlock would leave the thread waiting: fail instead of hanging the test run.
+        let tiles = finished.recv_timeout(std::time::Duration::from_secs(60)).expect("tiling finished").unwrap();
+        assert!(tiles > 0 && out.exists(), "tiff {tiff}: {tiles} tiles");
+    }
+}
