@@ -92,11 +92,9 @@ pub fn serve_workers(
         Ok(Err(err)) => Some(err),
         Err(_) => Some(std::io::Error::other("a server thread ended before listening")),
     });
-    if failed.is_none() {
-        bound(local);
-    }
     drop(stopped);
     if failed.is_none() {
+        bound(local);
         let control = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         control.block_on(async {
             let reload = tokio::spawn(reload_loop(state));

@@ -560,15 +560,11 @@ fn run_pyramid<S: Sample>(
 /// stored (after quantization).
 fn encode_heights(samples: &[f32], encoding: &ElevationEncoding) -> (Vec<u8>, f32, f32) {
     if encoding.scheme == ElevationScheme::Float32 {
-        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
         let mut raw = Vec::with_capacity(samples.len() * 4);
-        for &v in samples {
+        for v in samples {
             raw.extend_from_slice(&v.to_le_bytes());
-            if !v.is_nan() {
-                lo = lo.min(v);
-                hi = hi.max(v);
-            }
         }
+        let (lo, hi) = min_max(samples);
         return (raw, lo, hi);
     }
     // The hot loop of a DEM, without branches so that it vectorizes: no libm call (`round`

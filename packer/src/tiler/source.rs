@@ -544,28 +544,24 @@ impl ElevationSource for ElevationFile {
             let mut range = range.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             *range = (range.0.min(l), range.1.max(h));
         };
-        if self.encoding.is_none() {
-            // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata"
-            // equals nothing.
-            let nodata = nodata.unwrap_or(f32::NAN);
-            let heights = |samples: &mut [f32]| {
+        // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata" equals
+        // nothing.
+        let (stored, nodata) = (self.encoding.is_none(), nodata.unwrap_or(f32::NAN));
+        let convert = self.convert();
+        let heights = |samples: &mut [f32]| {
+            if stored {
                 for v in samples.iter_mut() {
                     // `&`, not `&&`: both compares, no branch. NaN and infinities fail the first.
                     *v = if (v.abs() < f32::INFINITY) & (*v != nodata) { *v } else { f32::NAN };
                 }
-                merge(samples);
-            };
-            tiff_rows(&self.path, 1, &heights, row)?;
-        } else {
-            let convert = self.convert();
-            let heights = |samples: &mut [f32]| {
+            } else {
                 for v in samples.iter_mut() {
                     *v = convert(f64::from(*v));
                 }
-                merge(samples);
-            };
-            tiff_rows(&self.path, 1, &heights, row)?;
-        }
+            }
+            merge(samples);
+        };
+        tiff_rows(&self.path, 1, &heights, row)?;
         Ok(range.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner))
     }
 }
@@ -762,8 +758,8 @@ const STRIP_BATCH_BYTES: usize = 1 << 20;
 /// (a batch of about [`STRIP_BATCH_BYTES`]) or tiles (one per thread) are read and decoded
 /// in parallel, each thread with a decoder of its own, so decompression (LZW, Deflate) and
 /// conversion use every core; memory is one batch of strips, or a row of tiles and one
-/// tile per thread. Samples are f32:
-/// exact for 8- and 16-bit values, and heights are kept as f32 anyway.
+/// tile per thread. Samples are f32: exact for 8- and 16-bit values, and heights are kept
+/// as f32 anyway.
 fn tiff_rows(
     path: &Path,
     channels: usize,
