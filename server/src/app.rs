@@ -17,12 +17,18 @@ use bytes::Bytes;
 use terrastream_packer::{Error as PackError, PayloadCompression, TileKey};
 use tower_http::timeout::TimeoutLayer;
 
-use crate::body::Chunks;
+use crate::body::Payload;
 use crate::catalog::{Catalog, Served};
 use crate::config::ServerConfig;
 use crate::edge::Edge;
 use crate::metrics::Metrics;
 use crate::range::{Precondition, RangeOutcome, if_none_match, if_range_allows, parse_range, preconditions};
+
+/// A response whose body is slices of the archive (or small texts): what the archive and
+/// tile routes answer, sent by hyper (as a boxed body) or by the lean HTTP/1.1 path.
+pub(crate) type Answer = axum::http::Response<Payload>;
+
+const OCTET_STREAM: HeaderValue = HeaderValue::from_static("application/octet-stream");
 
 /// Response header naming the nearest coarser LOD that exists for a missing tile.
 pub const FALLBACK_LOD: HeaderName = HeaderName::from_static("x-terrastream-fallback-lod");
@@ -83,16 +89,27 @@ pub enum AppError {
     Internal(String),
 }
 
-impl IntoResponse for AppError {
-    fn into_response(self) -> Response {
-        match self {
-            Self::NotFound(m) => (StatusCode::NOT_FOUND, m).into_response(),
-            Self::BadRequest(m) => (StatusCode::BAD_REQUEST, m).into_response(),
+impl AppError {
+    /// The error as an answer: its status and a plain-text reason.
+    pub(crate) fn into_answer(self) -> Answer {
+        let (status, text) = match self {
+            Self::NotFound(m) => (StatusCode::NOT_FOUND, Payload::from(m)),
+            Self::BadRequest(m) => (StatusCode::BAD_REQUEST, Payload::from(m)),
             Self::Internal(m) => {
                 tracing::error!("internal error: {m}");
-                (StatusCode::INTERNAL_SERVER_ERROR, "internal server error").into_response()
+                (StatusCode::INTERNAL_SERVER_ERROR, Payload::from("internal server error"))
             }
-        }
+        };
+        let mut answer = Answer::new(text);
+        *answer.status_mut() = status;
+        answer.headers_mut().insert(CONTENT_TYPE, HeaderValue::from_static("text/plain; charset=utf-8"));
+        answer
+    }
+}
+
+impl IntoResponse for AppError {
+    fn into_response(self) -> Response {
+        self.into_answer().map(Body::new)
     }
 }
 
@@ -131,27 +148,33 @@ fn header(v: &str) -> HeaderValue {
 }
 
 /// `GET|HEAD /{name}.tspack`: the archive's bytes with Range and conditional requests.
-#[tracing::instrument(level = "debug", skip_all, fields(file = %file))]
-async fn archive_bytes(
-    State(state): State<AppState>,
-    Path(file): Path<String>,
-    req: Request,
-) -> Result<Response, AppError> {
+async fn archive_bytes(State(state): State<AppState>, Path(file): Path<String>, req: Request) -> Response {
     // The request by value, not a `HeaderMap` extractor: that one clones every header.
-    let (method, headers) = (req.method(), req.headers());
+    archive_answer(&state, &file, req.method(), req.headers()).map(Body::new)
+}
+
+/// The answer of `GET|HEAD /{file}`, for the router and for the lean HTTP/1.1 path.
+#[tracing::instrument(level = "debug", skip_all, fields(file = %file))]
+pub(crate) fn archive_answer(state: &AppState, file: &str, method: &Method, headers: &HeaderMap) -> Answer {
+    archive_range(state, file, method, headers).unwrap_or_else(AppError::into_answer)
+}
+
+fn archive_range(state: &AppState, file: &str, method: &Method, headers: &HeaderMap) -> Result<Answer, AppError> {
     let name = file.strip_suffix(".tspack").ok_or_else(|| AppError::NotFound("not found\n".into()))?;
-    let served = archive(&state, name)?;
+    let served = archive(state, name)?;
     let bytes = served.bytes();
     let len = bytes.len() as u64;
-    let response = Response::builder()
-        .header(ETAG, served.etag_header.clone())
-        .header(LAST_MODIFIED, served.last_modified_header.clone())
-        .header(ACCEPT_RANGES, HeaderValue::from_static("bytes"))
-        .header(CACHE_CONTROL, state.cache_control.clone());
+    // Headers inserted into a map sized once (CORS adds two): a builder chain re-checks and
+    // grows the map header by header, on the hottest route.
+    let mut h = HeaderMap::with_capacity(12);
+    h.insert(ETAG, served.etag_header.clone());
+    h.insert(LAST_MODIFIED, served.last_modified_header.clone());
+    h.insert(ACCEPT_RANGES, HeaderValue::from_static("bytes"));
+    h.insert(CACHE_CONTROL, state.cache_control.clone());
     let safe = method == Method::GET || method == Method::HEAD;
     match preconditions(headers, &served.etag, served.modified, safe) {
-        Precondition::NotModified => return Ok(empty(response.status(StatusCode::NOT_MODIFIED))),
-        Precondition::Failed => return Ok(empty(response.status(StatusCode::PRECONDITION_FAILED))),
+        Precondition::NotModified => return Ok(answer(StatusCode::NOT_MODIFIED, h, Payload::empty())),
+        Precondition::Failed => return Ok(answer(StatusCode::PRECONDITION_FAILED, h, Payload::empty())),
         Precondition::Proceed => {}
     }
     let outcome = match headers.get(RANGE) {
@@ -164,25 +187,20 @@ async fn archive_bytes(
         // Ranges are clamped to the file's length, which is a usize (it is mapped).
         usize::try_from(r.start).unwrap_or(usize::MAX)..usize::try_from(r.end).unwrap_or(usize::MAX)
     };
-    let result = match outcome {
-        RangeOutcome::Full => response
-            .status(StatusCode::OK)
-            .header(CONTENT_TYPE, "application/octet-stream")
-            .header(CONTENT_LENGTH, len)
-            .body(Body::from(bytes.clone())),
-        RangeOutcome::Unsatisfiable => response
-            .status(StatusCode::RANGE_NOT_SATISFIABLE)
-            .header(CONTENT_RANGE, format!("bytes */{len}"))
-            .header(CONTENT_LENGTH, 0)
-            .body(Body::empty()),
+    let (status, body) = match outcome {
+        RangeOutcome::Full => {
+            h.insert(CONTENT_TYPE, OCTET_STREAM);
+            (StatusCode::OK, Payload::from(bytes.clone()))
+        }
+        RangeOutcome::Unsatisfiable => {
+            h.insert(CONTENT_RANGE, header(&format!("bytes */{len}")));
+            (StatusCode::RANGE_NOT_SATISFIABLE, Payload::empty())
+        }
         RangeOutcome::Partial(ranges) if ranges.len() == 1 => {
             let r = &ranges[0];
-            response
-                .status(StatusCode::PARTIAL_CONTENT)
-                .header(CONTENT_TYPE, "application/octet-stream")
-                .header(CONTENT_RANGE, format!("bytes {}-{}/{len}", r.start, r.end - 1))
-                .header(CONTENT_LENGTH, r.end - r.start)
-                .body(Body::from(bytes.slice(to_usize(r))))
+            h.insert(CONTENT_TYPE, OCTET_STREAM);
+            h.insert(CONTENT_RANGE, header(&format!("bytes {}-{}/{len}", r.start, r.end - 1)));
+            (StatusCode::PARTIAL_CONTENT, Payload::from(bytes.slice(to_usize(r))))
         }
         RangeOutcome::Partial(ranges) => {
             let boundary = format!("tspack{}", served.etag.trim_matches('"'));
@@ -196,20 +214,24 @@ async fn archive_bytes(
                 chunks.push(bytes.slice(to_usize(r)));
             }
             chunks.push(Bytes::from(format!("\r\n--{boundary}--\r\n")));
-            let body = Chunks::new(chunks);
-            let length = http_body::Body::size_hint(&body).exact().unwrap_or(0);
-            response
-                .status(StatusCode::PARTIAL_CONTENT)
-                .header(CONTENT_TYPE, format!("multipart/byteranges; boundary={boundary}"))
-                .header(CONTENT_LENGTH, length)
-                .body(Body::new(body))
+            h.insert(CONTENT_TYPE, header(&format!("multipart/byteranges; boundary={boundary}")));
+            (StatusCode::PARTIAL_CONTENT, Payload::chunks(chunks))
         }
     };
-    result.map_err(|e| AppError::Internal(e.to_string()))
+    h.insert(CONTENT_LENGTH, HeaderValue::from(body.len()));
+    Ok(answer(status, h, body))
 }
 
-fn empty(builder: axum::http::response::Builder) -> Response {
-    builder.body(Body::empty()).unwrap_or_default()
+/// An answer of these parts.
+fn answer(status: StatusCode, headers: HeaderMap, body: Payload) -> Answer {
+    let mut answer = Answer::new(body);
+    *answer.status_mut() = status;
+    *answer.headers_mut() = headers;
+    answer
+}
+
+fn empty(builder: axum::http::response::Builder) -> Answer {
+    builder.body(Payload::empty()).unwrap_or_default()
 }
 
 /// `GET /{name}/metadata`.
@@ -226,7 +248,7 @@ async fn metadata(
         .header(ARCHIVE_ETAG, served.etag_header.clone())
         .header(CACHE_CONTROL, state.cache_control.clone());
     if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
-        return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
+        return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)).map(Body::new));
     }
     let json = serde_json::to_vec(served.reader.metadata()).map_err(|e| AppError::Internal(e.to_string()))?;
     builder
@@ -236,17 +258,38 @@ async fn metadata(
 }
 
 /// `GET /{name}/{layer}/{lod}/{x}/{y}`: one tile; the layer by name or index.
-#[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod, x, y))]
 async fn tile(
     State(state): State<AppState>,
     Path((name, layer, lod, x, y)): Path<(String, String, u8, u32, u32)>,
     req: Request,
-) -> Result<Response, AppError> {
-    let headers = req.headers();
-    let served = archive(&state, &name)?;
+) -> Response {
+    tile_answer(&state, &name, &layer, (lod, x, y), req.headers()).map(Body::new)
+}
+
+/// The answer of `GET|HEAD /{name}/{layer}/{lod}/{x}/{y}`, for the router and for the lean
+/// HTTP/1.1 path.
+#[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod = at.0, x = at.1, y = at.2))]
+pub(crate) fn tile_answer(
+    state: &AppState,
+    name: &str,
+    layer: &str,
+    at: (u8, u32, u32),
+    headers: &HeaderMap,
+) -> Answer {
+    tile_located(state, name, layer, at, headers).unwrap_or_else(AppError::into_answer)
+}
+
+fn tile_located(
+    state: &AppState,
+    name: &str,
+    layer: &str,
+    (lod, x, y): (u8, u32, u32),
+    headers: &HeaderMap,
+) -> Result<Answer, AppError> {
+    let served = archive(state, name)?;
     let meta = served.reader.metadata();
     let index = meta
-        .resolve_layer(&layer)
+        .resolve_layer(layer)
         .ok_or_else(|| AppError::NotFound(format!("archive {name:?} has no layer {layer:?}\n")))?;
     let info = &meta.layers[usize::from(index)];
     let key = TileKey::new(index, lod, x, y).map_err(|e| AppError::BadRequest(format!("{e}\n")))?;
@@ -259,23 +302,23 @@ async fn tile(
     }
     let zstd_ok = info.compression == PayloadCompression::Zstd && accepts(headers, "zstd");
     let etag = format!("\"{}-{index}-{lod}-{x}-{y}{}\"", served.etag.trim_matches('"'), if zstd_ok { "z" } else { "" });
-    let mut builder = Response::builder()
-        .header(ETAG, header(&etag))
-        .header(ARCHIVE_ETAG, served.etag_header.clone())
-        .header(CACHE_CONTROL, state.cache_control.clone())
-        .header(VARY, "Accept-Encoding");
+    let mut h = HeaderMap::with_capacity(12);
+    h.insert(ETAG, header(&etag));
+    h.insert(ARCHIVE_ETAG, served.etag_header.clone());
+    h.insert(CACHE_CONTROL, state.cache_control.clone());
+    h.insert(VARY, HeaderValue::from_static("Accept-Encoding"));
     // Locate first: a revalidation (304) costs no read and no checksum of the tile.
     match served.reader.locate(key) {
         Ok(Some(location)) => {
             if preconditions(headers, &etag, served.modified, true) == Precondition::NotModified {
-                return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
+                return Ok(answer(StatusCode::NOT_MODIFIED, h, Payload::empty()));
             }
             let stored =
                 served.tile_payload(&location).map_err(|e| AppError::Internal(format!("archive {name:?}: {e}")))?;
             let body = match info.compression {
                 PayloadCompression::None => stored,
                 PayloadCompression::Zstd if zstd_ok => {
-                    builder = builder.header(CONTENT_ENCODING, "zstd");
+                    h.insert(CONTENT_ENCODING, HeaderValue::from_static("zstd"));
                     stored
                 }
                 PayloadCompression::Zstd => {
@@ -285,19 +328,17 @@ async fn tile(
                     Bytes::from(raw)
                 }
             };
-            builder
-                .header(CONTENT_TYPE, info.format.media_type())
-                .header(CONTENT_LENGTH, body.len())
-                .body(Body::from(body))
-                .map_err(|e| AppError::Internal(e.to_string()))
+            h.insert(CONTENT_TYPE, HeaderValue::from_static(info.format.media_type()));
+            h.insert(CONTENT_LENGTH, HeaderValue::from(body.len()));
+            Ok(answer(StatusCode::OK, h, Payload::from(body)))
         }
         Ok(None) => {
             let fallback = key.parent().map(|p| served.reader.tile_or_coarser(p)).transpose();
             let fallback = fallback.map_err(|e| AppError::Internal(e.to_string()))?.flatten();
             if let Some((coarser, _)) = fallback {
-                builder = builder.header(FALLBACK_LOD, u16::from(coarser.lod()));
+                h.insert(FALLBACK_LOD, HeaderValue::from(u16::from(coarser.lod())));
             }
-            Ok(builder.status(StatusCode::NOT_FOUND).body(Body::from("tile missing\n")).unwrap_or_default())
+            Ok(answer(StatusCode::NOT_FOUND, h, Payload::from("tile missing\n")))
         }
         Err(err @ PackError::InvalidTile { .. }) => Err(AppError::BadRequest(format!("{err}\n"))),
         Err(err) => Err(AppError::Internal(format!("archive {name:?}: {err}"))),
@@ -382,7 +423,7 @@ async fn view(
             .header(CACHE_CONTROL, HeaderValue::from_static("no-cache"))
             .header(VARY, HeaderValue::from_static("accept-encoding"));
         if if_none_match(&headers, &asset.etag) {
-            return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
+            return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)).map(Body::new));
         }
         let gzipped = if accepts(&headers, "gzip") { asset.gzipped().await } else { None };
         let builder = builder.status(StatusCode::OK).header(CONTENT_TYPE, asset.content_type);

@@ -36,6 +36,10 @@ pub struct ServerConfig {
     pub tls_cert: Option<PathBuf>,
     /// PEM private key of `tls_cert`.
     pub tls_key: Option<PathBuf>,
+    /// Answer plain `GET`/`HEAD` requests of archive bytes and tiles over HTTP/1.1 on the
+    /// lean path (see the `h1` module) rather than through hyper and the router. The
+    /// answers are the same; `false` routes everything through hyper.
+    pub lean_http1: bool,
 }
 
 impl Default for ServerConfig {
@@ -53,6 +57,7 @@ impl Default for ServerConfig {
             workers: 0,
             tls_cert: None,
             tls_key: None,
+            lean_http1: true,
         }
     }
 }

@@ -40,6 +40,18 @@ const EXPOSE_HEADERS: HeaderValue = HeaderValue::from_static(
 /// How long a browser may cache a preflight answer (seconds).
 const MAX_AGE: HeaderValue = HeaderValue::from_static("86400");
 
+/// What every answer gets on its way out, whichever path served it: the CORS headers, and
+/// its line in the metrics (`route`: see [`route_of`]).
+pub(crate) fn finish<B>(state: &AppState, route: usize, started: Instant, response: &mut axum::http::Response<B>) {
+    // On every response, not only to requests with an `Origin`: a shared cache may hand
+    // one answer to both kinds of client (no `Vary: Origin` needed).
+    let h = response.headers_mut();
+    h.insert(ACCESS_CONTROL_ALLOW_ORIGIN, HeaderValue::from_static("*"));
+    h.insert(ACCESS_CONTROL_EXPOSE_HEADERS, EXPOSE_HEADERS);
+    let bytes = h.get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse().ok()).unwrap_or(0);
+    state.metrics.record_at(route, response.status().as_u16(), bytes, started.elapsed());
+}
+
 /// Wraps the router: see the module's documentation.
 #[derive(Clone)]
 pub struct Edge<S> {
@@ -72,18 +84,7 @@ where
         let route = route_of(req.uri().path());
         let state = self.state.clone();
         let finish = move |mut response: Response| {
-            // On every response, not only to requests with an `Origin`: a shared cache may
-            // hand one answer to both kinds of client (no `Vary: Origin` needed).
-            let h = response.headers_mut();
-            h.insert(ACCESS_CONTROL_ALLOW_ORIGIN, HeaderValue::from_static("*"));
-            h.insert(ACCESS_CONTROL_EXPOSE_HEADERS, EXPOSE_HEADERS);
-            let bytes = response
-                .headers()
-                .get(CONTENT_LENGTH)
-                .and_then(|v| v.to_str().ok())
-                .and_then(|v| v.parse().ok())
-                .unwrap_or(0);
-            state.metrics.record_at(route, response.status().as_u16(), bytes, started.elapsed());
+            finish(&state, route, started, &mut response);
             Ok(response)
         };
         // A CORS preflight is answered here: any origin may read (archives are public).

@@ -9,6 +9,7 @@ mod body;
 mod catalog;
 mod config;
 mod edge;
+mod h1;
 mod metrics;
 pub mod player;
 mod range;

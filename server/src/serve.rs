@@ -24,6 +24,7 @@ use tokio::sync::{Semaphore, watch};
 
 use crate::app::{AppState, service};
 use crate::edge::Edge;
+use crate::h1::{self, Rewind};
 use crate::sendfile::Stream;
 
 /// Serves `state` on `listener` until `shutdown` resolves, then stops accepting and waits up
@@ -148,7 +149,9 @@ fn bind_sockets(addr: SocketAddr, workers: usize) -> std::io::Result<(Vec<TcpSoc
 /// What every accept loop shares: the router, the HTTP settings, the connection cap, TLS.
 #[derive(Clone)]
 struct Shared {
+    state: AppState,
     service: Edge<Router>,
+    lean: Option<h1::Limits>,
     builder: Builder<TokioExecutor>,
     slots: Arc<Semaphore>,
     tls: Option<tokio_rustls::TlsAcceptor>,
@@ -175,8 +178,13 @@ impl Shared {
             .http2()
             .timer(TokioTimer::new())
             .max_header_list_size(u32::try_from(config.max_header_bytes).unwrap_or(u32::MAX));
+        let lean = config
+            .lean_http1
+            .then_some(h1::Limits { timeout: config.request_timeout(), max_head: config.max_header_bytes.max(8192) });
         Ok(Self {
+            state: state.clone(),
             service: service(state.clone()),
+            lean,
             builder,
             slots: Arc::new(Semaphore::new(config.max_connections.max(1))),
             tls,
@@ -190,6 +198,8 @@ impl Shared {
 /// drains them for up to the grace period.
 async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Future<Output = ()>) -> std::io::Result<()> {
     let graceful = GracefulShutdown::new();
+    // Tells connections on the lean path to close once idle (hyper's learn it from `graceful`).
+    let (closing, closed) = watch::channel(false);
     let mut shutdown = std::pin::pin!(shutdown);
     loop {
         // Wait for a free slot before accepting: excess clients stay in the backlog.
@@ -210,23 +220,37 @@ async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Futur
             () = &mut shutdown => break,
         };
         let _ = stream.set_nodelay(true);
-        let service = TowerToHyperService::new(shared.service.clone());
-        let (builder, watcher, tls) = (shared.builder.clone(), graceful.watcher(), shared.tls.clone());
-        let handshake_timeout = shared.request_timeout;
+        let (watcher, closed) = (graceful.watcher(), closed.clone());
+        let (state, service, builder, tls) =
+            (shared.state.clone(), shared.service.clone(), shared.builder.clone(), shared.tls.clone());
+        let (lean, handshake_timeout) = (shared.lean, shared.request_timeout);
         tokio::spawn(async move {
             let result = match tls {
                 None => {
-                    watcher
-                        .watch(
-                            builder
-                                .serve_connection_with_upgrades(TokioIo::new(Stream::new(stream)), service)
-                                .into_owned(),
-                        )
-                        .await
+                    let stream = Stream::new(stream);
+                    // The watcher lives as long as the task: shutdown waits for the lean path too.
+                    let io = match lean {
+                        None => Ok(Rewind::new(bytes::Bytes::new(), stream)),
+                        Some(limits) => match h1::serve(stream, &state, closed, limits).await {
+                            Ok(h1::Ended::Hyper(io)) => Ok(io),
+                            Ok(h1::Ended::Closed) => Err(None),
+                            Err(err) => Err(Some(err.into())),
+                        },
+                    };
+                    match io {
+                        Ok(io) => {
+                            let connection = builder
+                                .serve_connection_with_upgrades(TokioIo::new(io), TowerToHyperService::new(service));
+                            watcher.watch(connection.into_owned()).await
+                        }
+                        Err(None) => Ok(()),
+                        Err(Some(err)) => Err(err),
+                    }
                 }
                 Some(acceptor) => match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
                     Ok(Ok(tls_stream)) => {
                         let io = TokioIo::new(tls_stream);
+                        let service = TowerToHyperService::new(service);
                         watcher.watch(builder.serve_connection_with_upgrades(io, service).into_owned()).await
                     }
                     Ok(Err(err)) => Err(err.into()),
@@ -240,6 +264,7 @@ async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Futur
         });
     }
     drop(listener);
+    let _ = closing.send(true);
     tracing::info!("shutting down: waiting for requests in flight");
     if tokio::time::timeout(shared.grace, graceful.shutdown()).await.is_err() {
         tracing::warn!("grace period over: closing the remaining connections");
