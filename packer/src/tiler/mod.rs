@@ -611,6 +611,7 @@ fn encode_texture(pixels: &[[u8; 4]], edge: usize, format: TextureFormat, zstd_l
             encoder.set_depth(png::BitDepth::Eight);
             encoder.set_color(if opaque { png::ColorType::Rgb } else { png::ColorType::Rgba });
             encoder.set_compression(png::Compression::Fast);
+            encoder.set_filter(png::Filter::Paeth);
             let data = if opaque { rgb() } else { pixels.as_flattened().to_vec() };
             encoder.write_header().map_err(|e| err(&e))?.write_image_data(&data).map_err(|e| err(&e))?;
             out
