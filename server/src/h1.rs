@@ -227,6 +227,30 @@ fn parse(buf: &[u8], max_head: usize) -> Parsed<'_> {
     Parsed::Request(Request { len, method, path, route, headers })
 }
 
+/// Parses `bytes` as the lean path does, for fuzzing and tests: the head's length and the
+/// route template (as the metrics name it) of a request it would answer, checking that the
+/// two routers agree.
+///
+/// # Panics
+/// When the lean path's route and the router's differ, or the head overruns `bytes`.
+#[doc(hidden)]
+pub fn inspect_head(bytes: &[u8], max_head: usize) -> Option<(usize, &'static str)> {
+    let Parsed::Request(request) = parse(bytes, max_head) else { return None };
+    assert!(request.len <= bytes.len() && request.len <= max_head, "head of {} bytes", request.len);
+    let template = match request.route {
+        Route::Archive(file) => {
+            assert!(file.ends_with(".tspack") && !file.contains('/'));
+            "/{file}"
+        }
+        Route::Tile { name, layer, .. } => {
+            assert!(!name.is_empty() && !layer.is_empty());
+            "/{name}/{layer}/{lod}/{x}/{y}"
+        }
+    };
+    assert_eq!(route_of(request.path), crate::metrics::route_index(template), "{:?}", request.path);
+    Some((request.len, template))
+}
+
 /// The lean route a path names, if any: only paths that the router would match the same
 /// way and whose segments need no decoding.
 fn route(path: &str) -> Option<Route<'_>> {
@@ -395,6 +419,51 @@ mod tests {
         }
         let many: String = (0..=MAX_HEADERS).map(|i| format!("x-{i}: 1\r\n")).collect();
         assert!(!lean(&format!("GET /a.tspack HTTP/1.1\r\n{many}\r\n")));
+    }
+
+    /// Mutated requests (bytes changed, dropped, duplicated, truncated), deterministic: the
+    /// parser never panics, and what it takes, it routes as the router does.
+    #[test]
+    #[allow(clippy::cast_possible_truncation)]
+    fn mutated_heads_never_panic_and_route_as_the_router() {
+        let seeds: [&[u8]; 4] = [
+            b"GET /a.tspack HTTP/1.1\r\nHost: x\r\nRange: bytes=0-9\r\n\r\n",
+            b"HEAD /a/elevation/3/1/2 HTTP/1.1\r\nConnection: keep-alive\r\n\r\n",
+            b"GET /n/0/0/0/0 HTTP/1.1\r\nAccept-Encoding: zstd\r\nIf-None-Match: \"x\"\r\n\r\n",
+            b"GET /b.tspack HTTP/1.1\r\n\r\nGET /c.tspack HTTP/1.1\r\n\r\n",
+        ];
+        let mut state = 0x9E37_79B9_7F4A_7C15_u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let (mut taken, mut refused) = (0, 0);
+        for round in 0..100_000 {
+            let mut bytes = seeds[round % seeds.len()].to_vec();
+            const PICKS: &[u8] = b"/%.?:\r\n 0aZ-+";
+            for _ in 0..1 + next() % 4 {
+                if bytes.is_empty() {
+                    bytes.push(b'G');
+                }
+                let at = (next() as usize) % bytes.len();
+                match next() % 5 {
+                    0 => bytes[at] = next() as u8,
+                    1 => bytes[at] = PICKS[(next() as usize) % PICKS.len()],
+                    2 if bytes.len() > 1 => {
+                        bytes.remove(at);
+                    }
+                    3 => bytes.insert(at, bytes[at]),
+                    _ => bytes.truncate(at),
+                }
+            }
+            match inspect_head(&bytes, 1024) {
+                Some(_) => taken += 1,
+                None => refused += 1,
+            }
+        }
+        assert!(taken > 1000 && refused > 1000, "{taken} taken, {refused} refused");
     }
 
     #[test]

@@ -20,6 +20,8 @@ pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app, ser
 pub use catalog::{Catalog, Served, archive_name};
 pub use config::ServerConfig;
 pub use edge::Edge;
+#[doc(hidden)]
+pub use h1::inspect_head;
 pub use metrics::Metrics;
 pub use range::{Precondition, RangeOutcome, if_range_allows, parse_range, preconditions};
 pub use serve::{serve, serve_workers, shutdown_signal};
