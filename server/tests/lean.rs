@@ -7,35 +7,16 @@
 
 mod common;
 
-use std::net::SocketAddr;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use terrastream_server::{AppState, ServerConfig, serve};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
-use tokio::sync::oneshot;
 
-use common::archives;
-
-struct Running {
-    addr: SocketAddr,
-    stop: oneshot::Sender<()>,
-    task: tokio::task::JoinHandle<std::io::Result<()>>,
-    state: AppState,
-}
+use common::{Running, archives};
 
 async fn start(dir: &Path, lean: bool) -> Running {
-    let config = ServerConfig { paths: vec![dir.to_path_buf()], lean_http1: lean, ..ServerConfig::default() };
-    let state = AppState::new(config);
-    state.catalog.reload();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (stop, stopped) = oneshot::channel::<()>();
-    let task = tokio::spawn(serve(listener, state.clone(), async {
-        let _ = stopped.await;
-    }));
-    Running { addr, stop, task, state }
+    common::start(dir, |c| c.lean_http1 = lean).await
 }
 
 /// One answer: status line, headers (lowercase, sorted, without `date`), body.
@@ -170,10 +151,8 @@ async fn lean_answers_equal_hypers() {
         plain.state.metrics.requests("/{name}/{layer}/{lod}/{x}/{y}")
     );
     assert!(lean.state.metrics.requests("/{file}") >= 15);
-    for server in [lean, plain] {
-        let _ = server.stop.send(());
-        server.task.await.unwrap().unwrap();
-    }
+    lean.stop().await;
+    plain.stop().await;
 }
 
 #[tokio::test]
@@ -213,8 +192,7 @@ async fn pipelined_requests_are_answered_in_order_then_hyper_takes_over() {
         assert!(buf.is_empty());
         stream = TcpStream::connect(server.addr).await.unwrap();
     }
-    let _ = server.stop.send(());
-    server.task.await.unwrap().unwrap();
+    server.stop().await;
 }
 
 #[tokio::test]
@@ -226,8 +204,7 @@ async fn shutdown_closes_idle_lean_connections_at_once() {
     let mut buf = Vec::new();
     assert_eq!(read_answer(&mut idle, &mut buf, false).await.body.len(), 1);
     let started = Instant::now();
-    let _ = server.stop.send(());
-    server.task.await.unwrap().unwrap();
+    server.stop().await;
     assert!(
         started.elapsed() < Duration::from_secs(5),
         "shutdown waited {:?} for an idle connection",
@@ -241,20 +218,12 @@ async fn shutdown_closes_idle_lean_connections_at_once() {
 #[tokio::test]
 async fn slow_and_oversized_lean_heads_are_cut_off_or_refused() {
     let (dir, _) = archives();
-    let config = |c: &mut ServerConfig| {
+    let server = common::start(dir.path(), |c| {
         c.request_timeout_secs = 1;
         c.max_header_bytes = 8192;
-    };
-    let mut cfg = ServerConfig { paths: vec![dir.path().to_path_buf()], ..ServerConfig::default() };
-    config(&mut cfg);
-    let state = AppState::new(cfg);
-    state.catalog.reload();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (stop, stopped) = oneshot::channel::<()>();
-    let task = tokio::spawn(serve(listener, state, async {
-        let _ = stopped.await;
-    }));
+    })
+    .await;
+    let addr = server.addr;
     // A head never finished: closed after the timeout.
     let mut slow = TcpStream::connect(addr).await.unwrap();
     slow.write_all(b"GET /sample.tspack HTTP/1.1\r\nHost: x\r\n").await.unwrap();
@@ -273,6 +242,5 @@ async fn slow_and_oversized_lean_heads_are_cut_off_or_refused() {
     let _ = tokio::time::timeout(Duration::from_secs(5), big.read_to_end(&mut answer)).await;
     let text = String::from_utf8_lossy(&answer);
     assert!(text.starts_with("HTTP/1.1 431"), "{text}");
-    let _ = stop.send(());
-    task.await.unwrap().unwrap();
+    server.stop().await;
 }

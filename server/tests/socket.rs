@@ -5,45 +5,16 @@
 mod common;
 
 use std::net::SocketAddr;
-use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
 use terrastream_packer::TileKey;
-use terrastream_server::{AppState, ServerConfig, serve};
+use terrastream_server::{AppState, ServerConfig};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::oneshot;
 
-use common::{archives, raw_tile, write_zstd_archive};
-
-struct Running {
-    addr: SocketAddr,
-    stop: Option<oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<std::io::Result<()>>,
-    state: AppState,
-}
-
-async fn start(dir: &Path, tweak: impl FnOnce(&mut ServerConfig)) -> Running {
-    let mut config = ServerConfig { paths: vec![dir.to_path_buf()], reload_interval_ms: 50, ..ServerConfig::default() };
-    tweak(&mut config);
-    let state = AppState::new(config);
-    state.catalog.reload();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (stop, stopped) = oneshot::channel::<()>();
-    let task = tokio::spawn(serve(listener, state.clone(), async {
-        let _ = stopped.await;
-    }));
-    Running { addr, stop: Some(stop), task, state }
-}
-
-impl Running {
-    async fn stop(mut self) {
-        let _ = self.stop.take().unwrap().send(());
-        self.task.await.unwrap().unwrap();
-    }
-}
+use common::{archives, raw_tile, start, write_zstd_archive};
 
 #[tokio::test]
 async fn ranges_over_http1_and_h2c() {

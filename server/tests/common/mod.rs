@@ -4,7 +4,8 @@
 use std::path::{Path, PathBuf};
 
 use terrastream_packer::{Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey, Writer, WriterOptions};
-use terrastream_server::{AppState, ServerConfig};
+use terrastream_server::{AppState, ServerConfig, serve};
+use tokio::sync::oneshot;
 
 /// A folder holding `sample.tspack` (the built-in sample) and `elev.tspack` (a zstd layer).
 pub fn archives() -> (tempfile::TempDir, PathBuf) {
@@ -143,4 +144,35 @@ pub fn split_multipart(body: &[u8], boundary: &str) -> Vec<(String, Vec<u8>)> {
         rest = &rest[start + len..];
     }
     out
+}
+
+/// A server on a loopback port, serving `dir`, until [`Running::stop`].
+pub struct Running {
+    pub addr: std::net::SocketAddr,
+    stop: Option<oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<std::io::Result<()>>,
+    pub state: AppState,
+}
+
+/// Starts [`serve`] on a free loopback port with `dir` and the settings `tweak` makes.
+pub async fn start(dir: &Path, tweak: impl FnOnce(&mut ServerConfig)) -> Running {
+    let mut config = ServerConfig { paths: vec![dir.to_path_buf()], reload_interval_ms: 50, ..ServerConfig::default() };
+    tweak(&mut config);
+    let state = AppState::new(config);
+    state.catalog.reload();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (stop, stopped) = oneshot::channel::<()>();
+    let task = tokio::spawn(serve(listener, state.clone(), async {
+        let _ = stopped.await;
+    }));
+    Running { addr, stop: Some(stop), task, state }
+}
+
+impl Running {
+    /// Shuts the server down gracefully and waits for it.
+    pub async fn stop(mut self) {
+        let _ = self.stop.take().unwrap().send(());
+        self.task.await.unwrap().unwrap();
+    }
 }
