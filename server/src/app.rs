@@ -230,8 +230,8 @@ fn answer(status: StatusCode, headers: HeaderMap, body: Payload) -> Answer {
     answer
 }
 
-fn empty(builder: axum::http::response::Builder) -> Answer {
-    builder.body(Payload::empty()).unwrap_or_default()
+fn empty(builder: axum::http::response::Builder) -> Response {
+    builder.body(Body::empty()).unwrap_or_default()
 }
 
 /// `GET /{name}/metadata`.
@@ -248,7 +248,7 @@ async fn metadata(
         .header(ARCHIVE_ETAG, served.etag_header.clone())
         .header(CACHE_CONTROL, state.cache_control.clone());
     if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
-        return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)).map(Body::new));
+        return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
     }
     let json = serde_json::to_vec(served.reader.metadata()).map_err(|e| AppError::Internal(e.to_string()))?;
     builder
@@ -423,7 +423,7 @@ async fn view(
             .header(CACHE_CONTROL, HeaderValue::from_static("no-cache"))
             .header(VARY, HeaderValue::from_static("accept-encoding"));
         if if_none_match(&headers, &asset.etag) {
-            return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)).map(Body::new));
+            return Ok(empty(builder.status(StatusCode::NOT_MODIFIED)));
         }
         let gzipped = if accepts(&headers, "gzip") { asset.gzipped().await } else { None };
         let builder = builder.status(StatusCode::OK).header(CONTENT_TYPE, asset.content_type);

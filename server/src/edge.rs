@@ -64,6 +64,11 @@ impl<S> Edge<S> {
     pub fn new(inner: S, state: AppState) -> Self {
         Self { inner, state }
     }
+
+    /// The application state it answers with.
+    pub(crate) fn state(&self) -> &AppState {
+        &self.state
+    }
 }
 
 impl<S, B> Service<Request<B>> for Edge<S>

@@ -35,7 +35,7 @@ use tokio::sync::watch;
 
 use crate::app::{Answer, AppState, archive_answer, tile_answer};
 use crate::edge::finish;
-use crate::metrics::route_of;
+use crate::metrics::{route_index, route_of};
 use crate::sendfile::Stream;
 
 /// Most request headers the lean path parses; a request with more goes to hyper.
@@ -77,6 +77,16 @@ enum Route<'a> {
     Tile { name: &'a str, layer: &'a str, at: (u8, u32, u32) },
 }
 
+impl Route<'_> {
+    /// The router's template of this route, as the metrics name it.
+    fn template(&self) -> &'static str {
+        match self {
+            Route::Archive(_) => "/{file}",
+            Route::Tile { .. } => "/{name}/{layer}/{lod}/{x}/{y}",
+        }
+    }
+}
+
 enum Parsed<'a> {
     /// More bytes needed.
     Partial,
@@ -115,7 +125,8 @@ pub(crate) async fn serve(
             deadline = Instant::now() + limits.timeout;
         }
         if at == buf.len() {
-            (at, _) = (0, buf.clear());
+            buf.clear();
+            at = 0;
             if *closing.borrow() {
                 return Ok(Ended::Closed);
             }
@@ -161,7 +172,7 @@ async fn answer(
         Route::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
         Route::Tile { name, layer, at } => tile_answer(state, name, layer, at, &request.headers),
     };
-    finish(state, route_of(request.path), started, &mut answer);
+    finish(state, route_index(request.route.template()), started, &mut answer);
     if tracing::enabled!(tracing::Level::DEBUG) {
         let (method, path, status) = (&request.method, request.path, answer.status().as_u16());
         tracing::debug!(%method, path, status, latency = ?started.elapsed(), "answered");
@@ -237,17 +248,12 @@ fn parse(buf: &[u8], max_head: usize) -> Parsed<'_> {
 pub fn inspect_head(bytes: &[u8], max_head: usize) -> Option<(usize, &'static str)> {
     let Parsed::Request(request) = parse(bytes, max_head) else { return None };
     assert!(request.len <= bytes.len() && request.len <= max_head, "head of {} bytes", request.len);
-    let template = match request.route {
-        Route::Archive(file) => {
-            assert!(file.ends_with(".tspack") && !file.contains('/'));
-            "/{file}"
-        }
-        Route::Tile { name, layer, .. } => {
-            assert!(!name.is_empty() && !layer.is_empty());
-            "/{name}/{layer}/{lod}/{x}/{y}"
-        }
-    };
-    assert_eq!(route_of(request.path), crate::metrics::route_index(template), "{:?}", request.path);
+    match request.route {
+        Route::Archive(file) => assert!(file.ends_with(".tspack") && !file.contains('/')),
+        Route::Tile { name, layer, .. } => assert!(!name.is_empty() && !layer.is_empty()),
+    }
+    let template = request.route.template();
+    assert_eq!(route_of(request.path), route_index(template), "{:?}", request.path);
     Some((request.len, template))
 }
 

@@ -149,7 +149,6 @@ fn bind_sockets(addr: SocketAddr, workers: usize) -> std::io::Result<(Vec<TcpSoc
 /// What every accept loop shares: the router, the HTTP settings, the connection cap, TLS.
 #[derive(Clone)]
 struct Shared {
-    state: AppState,
     service: Edge<Router>,
     lean: Option<h1::Limits>,
     builder: Builder<TokioExecutor>,
@@ -182,7 +181,6 @@ impl Shared {
             .lean_http1
             .then_some(h1::Limits { timeout: config.request_timeout(), max_head: config.max_header_bytes.max(8192) });
         Ok(Self {
-            state: state.clone(),
             service: service(state.clone()),
             lean,
             builder,
@@ -221,30 +219,25 @@ async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Futur
         };
         let _ = stream.set_nodelay(true);
         let (watcher, closed) = (graceful.watcher(), closed.clone());
-        let (state, service, builder, tls) =
-            (shared.state.clone(), shared.service.clone(), shared.builder.clone(), shared.tls.clone());
+        let (service, builder, tls) = (shared.service.clone(), shared.builder.clone(), shared.tls.clone());
         let (lean, handshake_timeout) = (shared.lean, shared.request_timeout);
         tokio::spawn(async move {
             let result = match tls {
                 None => {
                     let stream = Stream::new(stream);
                     // The watcher lives as long as the task: shutdown waits for the lean path too.
-                    let io = match lean {
-                        None => Ok(Rewind::new(bytes::Bytes::new(), stream)),
-                        Some(limits) => match h1::serve(stream, &state, closed, limits).await {
-                            Ok(h1::Ended::Hyper(io)) => Ok(io),
-                            Ok(h1::Ended::Closed) => Err(None),
-                            Err(err) => Err(Some(err.into())),
-                        },
+                    let handed = match lean {
+                        Some(limits) => h1::serve(stream, service.state(), closed, limits).await,
+                        None => Ok(h1::Ended::Hyper(Rewind::new(bytes::Bytes::new(), stream))),
                     };
-                    match io {
-                        Ok(io) => {
+                    match handed {
+                        Ok(h1::Ended::Hyper(io)) => {
                             let connection = builder
                                 .serve_connection_with_upgrades(TokioIo::new(io), TowerToHyperService::new(service));
                             watcher.watch(connection.into_owned()).await
                         }
-                        Err(None) => Ok(()),
-                        Err(Some(err)) => Err(err),
+                        Ok(h1::Ended::Closed) => Ok(()),
+                        Err(err) => Err(err.into()),
                     }
                 }
                 Some(acceptor) => match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {

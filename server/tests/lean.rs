@@ -33,10 +33,7 @@ async fn read_answer(stream: &mut TcpStream, buf: &mut Vec<u8>, head_request: bo
         if let Some(at) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
             break at + 4;
         }
-        let mut chunk = [0u8; 65536];
-        let n = tokio::time::timeout(Duration::from_secs(10), stream.read(&mut chunk)).await.unwrap().unwrap();
-        assert!(n > 0, "closed before a whole head: {:?}", String::from_utf8_lossy(buf));
-        buf.extend_from_slice(&chunk[..n]);
+        read_more(stream, buf, "a whole head").await;
     };
     let head = String::from_utf8(buf[..end].to_vec()).unwrap();
     let mut lines = head.trim_end().split("\r\n");
@@ -53,14 +50,19 @@ async fn read_answer(stream: &mut TcpStream, buf: &mut Vec<u8>, head_request: bo
         headers.iter().find_map(|h| h.strip_prefix("content-length: ")).map_or(0, |v| v.parse::<usize>().unwrap());
     let length = if head_request || status.contains(" 304 ") { 0 } else { length };
     while buf.len() < end + length {
-        let mut chunk = [0u8; 65536];
-        let n = tokio::time::timeout(Duration::from_secs(10), stream.read(&mut chunk)).await.unwrap().unwrap();
-        assert!(n > 0, "closed before the whole body");
-        buf.extend_from_slice(&chunk[..n]);
+        read_more(stream, buf, "the whole body").await;
     }
     let body = buf[end..end + length].to_vec();
     buf.drain(..end + length);
     Answer { status, headers, body }
+}
+
+/// Appends what the server sends next to `buf`; it must send something before closing.
+async fn read_more(stream: &mut TcpStream, buf: &mut Vec<u8>, wanted: &str) {
+    let mut chunk = [0u8; 65536];
+    let n = tokio::time::timeout(Duration::from_secs(10), stream.read(&mut chunk)).await.unwrap().unwrap();
+    assert!(n > 0, "closed before {wanted}: {:?}", String::from_utf8_lossy(buf));
+    buf.extend_from_slice(&chunk[..n]);
 }
 
 fn request(method: &str, path: &str, headers: &[&str]) -> String {
@@ -168,6 +170,7 @@ async fn pipelined_requests_are_answered_in_order_then_hyper_takes_over() {
         request("GET", "/sample.tspack", &["Range: bytes=8-11"]),
     ]
     .concat();
+    let file = std::fs::read(dir.path().join("sample.tspack")).unwrap();
     // In one write, then byte by byte: heads split anywhere are put together.
     for split in [false, true] {
         if split {
@@ -178,7 +181,6 @@ async fn pipelined_requests_are_answered_in_order_then_hyper_takes_over() {
             stream.write_all(batch.as_bytes()).await.unwrap();
         }
         let mut buf = Vec::new();
-        let file = std::fs::read(dir.path().join("sample.tspack")).unwrap();
         let first = read_answer(&mut stream, &mut buf, false).await;
         assert_eq!((first.status.as_str(), first.body.as_slice()), ("HTTP/1.1 206 Partial Content", &file[0..4]));
         let second = read_answer(&mut stream, &mut buf, true).await;
