@@ -34,7 +34,7 @@ pub trait Sample: Copy + Send + Sync + 'static {
     /// missing ones: the 2x2 area average of the next coarser level.
     fn mean4(s: [Self; 4]) -> Self;
     /// Linear interpolation between `a` and `b` at `f` in 0..1 (resampling along x).
-    fn lerp(a: Self, b: Self, f: f64) -> Self;
+    fn lerp(a: Self, b: Self, f: f32) -> Self;
 }
 
 impl Sample for f32 {
@@ -57,14 +57,11 @@ impl Sample for f32 {
         #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
         if n == 0 { f32::NAN } else { (sum / f64::from(n)) as f32 }
     }
-    fn lerp(a: Self, b: Self, f: f64) -> Self {
-        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
-        match (a.is_nan(), b.is_nan()) {
-            (false, false) => (f64::from(a) * (1.0 - f) + f64::from(b) * f) as f32,
-            (false, true) => a,
-            (true, false) => b,
-            (true, true) => f32::NAN,
-        }
+    fn lerp(a: Self, b: Self, f: f32) -> Self {
+        // NaN exactly when either is: then the other (or NaN). Selects, not branches, in
+        // the usual case.
+        let v = a + (b - a) * f;
+        if v.is_nan() { if a.is_nan() { b } else { a } } else { v }
     }
 }
 
@@ -102,7 +99,8 @@ impl Sample for [u8; 4] {
         let alpha = ((sum[3] + 2) / 4) as u8;
         [mean(0), mean(1), mean(2), alpha]
     }
-    fn lerp(a: Self, b: Self, f: f64) -> Self {
+    fn lerp(a: Self, b: Self, f: f32) -> Self {
+        let f = f64::from(f);
         let (wa, wb) = (f64::from(a[3]) * (1.0 - f), f64::from(b[3]) * f);
         let alpha = wa + wb;
         let mut out = [0u8; 4];
@@ -123,7 +121,7 @@ impl Sample for [u8; 4] {
 /// output sample's source index and weight, computed once for every row of a raster.
 pub struct Resample {
     /// (left source sample, weight of the right one) per output sample.
-    taps: Vec<(usize, f64)>,
+    taps: Vec<(u32, f32)>,
     from: usize,
 }
 
@@ -131,7 +129,8 @@ impl Resample {
     /// Resamples rows of `from` samples to `to` samples.
     #[must_use]
     pub fn new(from: usize, to: usize) -> Self {
-        if from == to || from == 0 {
+        // Rows are a raster's: u32 samples at most (a wider one is copied as it is).
+        if from == to || from == 0 || u32::try_from(from).is_err() {
             return Self { taps: Vec::new(), from };
         }
         #[expect(clippy::cast_precision_loss, reason = "pixel counts")]
@@ -146,7 +145,8 @@ impl Resample {
                 let x0 = sx as usize;
                 #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
                 let frac = sx - x0 as f64;
-                (x0.min(last), frac)
+                #[expect(clippy::cast_possible_truncation, reason = "below `from`, a u32; a weight")]
+                (x0.min(last) as u32, frac as f32)
             })
             .collect();
         Self { taps, from }
@@ -159,7 +159,13 @@ impl Resample {
             return row.to_vec();
         }
         let last = self.from - 1;
-        self.taps.iter().map(|&(i, frac)| S::lerp(row[i], row[(i + 1).min(last)], frac)).collect()
+        self.taps
+            .iter()
+            .map(|&(i, frac)| {
+                let i = i as usize;
+                S::lerp(row[i], row[(i + 1).min(last)], frac)
+            })
+            .collect()
     }
 }
 

@@ -36,6 +36,19 @@ pub trait ElevationSource: Sync {
     fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
         ranged(row, |row| self.rows(row))
     }
+    /// The lowest and highest height (NaN skipped; infinities when there is no data),
+    /// telling `progress` how many rows have been read so far, now and then. A source may
+    /// find them without making rows of heights.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`]; `progress`'s errors.
+    fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+        let mut n = 0;
+        self.rows_and_range(&mut |_| {
+            n += 1;
+            progress(n)
+        })
+    }
 }
 
 /// Runs `read` with `row`, and returns the range of the rows it passed on.
@@ -528,42 +541,151 @@ impl ElevationSource for ElevationFile {
         self.crs_pixel
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        self.rows_and_range(row).map(|_| ())
+        if self.png {
+            return self.png_heights(row);
+        }
+        tiff_rows(&self.path, 1, &|samples: &mut [f32]| self.heights(samples), row)
     }
 
     fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
         if self.png {
             return ranged(row, |row| self.png_heights(row));
         }
-        #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
-        let nodata = self.nodata.map(|n| n as f32);
         // Samples become heights in place, and their range is found, in the decoding threads.
         let range = std::sync::Mutex::new((f32::INFINITY, f32::NEG_INFINITY));
-        let merge = |samples: &[f32]| {
+        let heights = |samples: &mut [f32]| {
+            self.heights(samples);
             let (l, h) = super::min_max(samples);
             let mut range = range.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             *range = (range.0.min(l), range.1.max(h));
         };
-        // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata" equals
-        // nothing.
-        let (stored, nodata) = (self.encoding.is_none(), nodata.unwrap_or(f32::NAN));
-        let convert = self.convert();
-        let heights = |samples: &mut [f32]| {
-            if stored {
-                for v in samples.iter_mut() {
-                    // `&`, not `&&`: both compares, no branch. NaN and infinities fail the first.
-                    *v = if (v.abs() < f32::INFINITY) & (*v != nodata) { *v } else { f32::NAN };
-                }
-            } else {
-                for v in samples.iter_mut() {
-                    *v = convert(f64::from(*v));
-                }
-            }
-            merge(samples);
-        };
         tiff_rows(&self.path, 1, &heights, row)?;
         Ok(range.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner))
     }
+
+    fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+        if self.png {
+            let mut n = 0;
+            return ranged(
+                &mut |_| {
+                    n += 1;
+                    progress(n)
+                },
+                |row| self.png_heights(row),
+            );
+        }
+        // Every strip or tile, in parallel and in any order, reduced to its range where
+        // it is decoded; no rows are made.
+        let chunks = TiffChunks::open(&self.path, 1)?;
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        let batch = chunks.batch();
+        let needed = chunks.needed();
+        for first in (0..needed).step_by(batch) {
+            let end = needed.min(first + batch);
+            let ranges: Vec<Result<(f32, f32)>> = {
+                use rayon::prelude::*;
+                (first..end)
+                    .into_par_iter()
+                    .map(|i| {
+                        let (data, w, h) = chunks.read(i)?;
+                        self.chunk_range(data, w * h)
+                            .ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
+                    })
+                    .collect()
+            };
+            for range in ranges {
+                let (l, h) = range?;
+                (lo, hi) = (lo.min(l), hi.max(h));
+            }
+            progress(chunks.rows_before(end))?;
+        }
+        Ok((lo, hi))
+    }
+}
+
+impl ElevationFile {
+    /// Stored samples -> heights in place (NaN for nodata and non-finite values).
+    fn heights(&self, samples: &mut [f32]) {
+        #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
+        let nodata = self.nodata.map(|n| n as f32);
+        if self.encoding.is_none() {
+            // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata"
+            // equals nothing; `&`, not `&&`: both compares, no branch. NaN and infinities
+            // fail the first.
+            let nodata = nodata.unwrap_or(f32::NAN);
+            for v in samples.iter_mut() {
+                *v = if (v.abs() < f32::INFINITY) & (*v != nodata) { *v } else { f32::NAN };
+            }
+        } else {
+            let convert = self.convert();
+            for v in samples.iter_mut() {
+                *v = convert(f64::from(*v));
+            }
+        }
+    }
+
+    /// The range of heights in the first `n` samples of a decoded chunk (which holds at
+    /// least `n`, see [`TiffChunks::read`]); None for a sample
+    /// type heights are not read from. 8- and 16-bit samples stored as heights are
+    /// compared as integers, as they are (no conversion, 8 or 16 lanes a vector).
+    fn chunk_range(&self, data: tiff::decoder::DecodingResult, n: usize) -> Option<(f32, f32)> {
+        use tiff::decoder::DecodingResult as D;
+        #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]
+        let nodata = self.nodata.map(|n| n as f32);
+        if self.encoding.is_none() {
+            match &data {
+                D::U8(v) => return Some(integer_range(&v[..n], nodata)),
+                D::I8(v) => return Some(integer_range(&v[..n], nodata)),
+                D::U16(v) => return Some(integer_range(&v[..n], nodata)),
+                D::I16(v) => return Some(integer_range(&v[..n], nodata)),
+                _ => {}
+            }
+        }
+        let mut samples = samples_f32(data)?;
+        samples.truncate(n);
+        self.heights(&mut samples);
+        Some(super::min_max(&samples))
+    }
+}
+
+/// Integer samples of at most 16 bits, and the arithmetic their range needs.
+pub(super) trait Small: Copy + Ord + Into<f32> + TryFrom<i32> {
+    const LOWEST: Self;
+    const HIGHEST: Self;
+}
+macro_rules! small {
+    ($($t:ty),*) => {$(impl Small for $t { const LOWEST: Self = <$t>::MIN; const HIGHEST: Self = <$t>::MAX; })*};
+}
+small!(u8, i8, u16, i16);
+
+/// The range of integer samples as heights (those equal to `nodata` skipped; infinities
+/// when none is left). A nodata that no sample of the type can equal skips nothing.
+pub(super) fn integer_range<T: Small>(values: &[T], nodata: Option<f32>) -> (f32, f32) {
+    #[expect(clippy::cast_possible_truncation, reason = "an integral f32 within the type's range")]
+    let nodata = nodata
+        .filter(|n| n.fract() == 0.0 && (T::LOWEST.into()..=T::HIGHEST.into()).contains(n))
+        .and_then(|n| T::try_from(n as i32).ok());
+    // Is there a sample to take? (Usually the first says.) Then the lowest and highest
+    // with selects, not branches, so that the loops vectorize.
+    if !values.iter().any(|&v| Some(v) != nodata) {
+        return (f32::INFINITY, f32::NEG_INFINITY);
+    }
+    let (mut lo, mut hi) = (T::HIGHEST, T::LOWEST);
+    match nodata {
+        Some(skip) => {
+            for &v in values {
+                lo = lo.min(if v == skip { T::HIGHEST } else { v });
+                hi = hi.max(if v == skip { T::LOWEST } else { v });
+            }
+        }
+        None => {
+            for &v in values {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+    }
+    (lo.into(), hi.into())
 }
 
 /// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB or RGBA; strips
@@ -753,6 +875,118 @@ fn png_rows(path: &Path, width: u32, mut row: impl FnMut(&[u8], usize, bool) -> 
 /// Bytes of samples decoded per batch of strips (at least two strips a thread).
 const STRIP_BATCH_BYTES: usize = 1 << 20;
 
+/// A TIFF's strips or tiles, read and decoded by any thread: each read takes a spare
+/// decoder (or opens one) and gives it back, so that chunks decode in parallel.
+struct TiffChunks<'p> {
+    path: &'p Path,
+    /// Decoders not in use.
+    spare: std::sync::Mutex<Vec<TiffDecoder>>,
+    kind: tiff::decoder::ChunkType,
+    count: usize,
+    /// Samples per pixel.
+    channels: usize,
+    width: usize,
+    height: usize,
+    chunk_w: usize,
+    chunk_h: usize,
+}
+
+impl<'p> TiffChunks<'p> {
+    fn open(path: &'p Path, channels: usize) -> Result<Self> {
+        use tiff::decoder::ChunkType;
+        let bad = |why: String| Error::input(path, why);
+        let mut decoder = open_tiff(path)?;
+        let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+        let (chunk_w, chunk_h) = decoder.chunk_dimensions();
+        if chunk_w == 0 || chunk_h == 0 {
+            return Err(bad("zero-size strips or tiles".into()));
+        }
+        let kind = decoder.get_chunk_type();
+        let count = match kind {
+            ChunkType::Strip => decoder.strip_count(),
+            ChunkType::Tile => decoder.tile_count(),
+        }
+        .map_err(|e| bad(format!("{}s: {e}", Self::name(kind))))? as usize;
+        Ok(Self {
+            path,
+            spare: std::sync::Mutex::new(vec![decoder]),
+            kind,
+            count,
+            channels,
+            width: width as usize,
+            height: height as usize,
+            chunk_w: chunk_w as usize,
+            chunk_h: chunk_h as usize,
+        })
+    }
+
+    fn name(kind: tiff::decoder::ChunkType) -> &'static str {
+        if kind == tiff::decoder::ChunkType::Strip { "strip" } else { "tile" }
+    }
+
+    /// Strips decoded at a time: about [`STRIP_BATCH_BYTES`] of samples, at least two a
+    /// thread.
+    fn batch(&self) -> usize {
+        let strip_bytes = (self.width * self.channels * self.chunk_h * 4).max(1);
+        (STRIP_BATCH_BYTES / strip_bytes).max(2 * rayon::current_num_threads())
+    }
+
+    /// The chunks the raster needs: a strip per `chunk_h` rows, or rows of tiles.
+    fn needed(&self) -> usize {
+        let down = self.height.div_ceil(self.chunk_h);
+        if self.kind == tiff::decoder::ChunkType::Strip { down } else { down * self.width.div_ceil(self.chunk_w) }
+    }
+
+    /// Rows of the raster read once chunks `..end` (in file order) are.
+    fn rows_before(&self, end: usize) -> u32 {
+        let across = if self.kind == tiff::decoder::ChunkType::Strip { 1 } else { self.width.div_ceil(self.chunk_w) };
+        u32::try_from((end / across.max(1) * self.chunk_h).min(self.height)).unwrap_or(u32::MAX)
+    }
+
+    /// Chunk `index` decoded, and the pixels across and down it holds.
+    fn read(&self, index: usize) -> Result<(tiff::decoder::DecodingResult, usize, usize)> {
+        let what = Self::name(self.kind);
+        let bad = |why: String| Error::input(self.path, why);
+        let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
+        if index >= self.count {
+            return Err(bad(format!("{what} {index} is missing (the file lists {})", self.count)));
+        }
+        let spare = self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop();
+        let mut decoder = match spare {
+            Some(d) => d,
+            None => open_tiff(self.path)?,
+        };
+        let (w, h) = decoder.chunk_data_dimensions(i);
+        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")));
+        self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(decoder);
+        let data = data?;
+        let (w, h) = (w as usize, h as usize);
+        let (held, expected) = (samples_in(&data), w * h * self.channels);
+        if held < expected {
+            return Err(bad(format!("{what} {index}: {held} samples, {expected} expected")));
+        }
+        Ok((data, w, h))
+    }
+}
+
+/// How many samples a decoded chunk holds.
+fn samples_in(data: &tiff::decoder::DecodingResult) -> usize {
+    use tiff::decoder::DecodingResult as D;
+    match data {
+        D::U8(v) => v.len(),
+        D::I8(v) => v.len(),
+        D::U16(v) => v.len(),
+        D::I16(v) => v.len(),
+        D::U32(v) => v.len(),
+        D::I32(v) => v.len(),
+        D::U64(v) => v.len(),
+        D::I64(v) => v.len(),
+        D::F32(v) => v.len(),
+        D::F64(v) => v.len(),
+        _ => 0,
+    }
+}
+
 /// Calls `row` with each row of a TIFF's samples (`channels` per pixel), in order, after
 /// `prepare` has seen them (in the decoding threads: a conversion in place). Strips
 /// (a batch of about [`STRIP_BATCH_BYTES`]) or tiles (one per thread) are read and decoded
@@ -769,43 +1003,14 @@ fn tiff_rows(
     use rayon::prelude::*;
     use tiff::decoder::ChunkType;
     let bad = |why: String| Error::input(path, why);
-    let mut decoder = open_tiff(path)?;
-    let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
-    let (width, height) = (width as usize, height as usize);
+    let chunks = TiffChunks::open(path, channels)?;
+    let (width, height, kind) = (chunks.width, chunks.height, chunks.kind);
     let stride = width * channels;
-    let (chunk_w, chunk_h) = decoder.chunk_dimensions();
-    let (chunk_w, chunk_h) = (chunk_w as usize, chunk_h as usize);
-    if chunk_w == 0 || chunk_h == 0 {
-        return Err(bad("zero-size strips or tiles".into()));
-    }
-    let kind = decoder.get_chunk_type();
-    let what = if kind == ChunkType::Strip { "strip" } else { "tile" };
-    let count = match kind {
-        ChunkType::Strip => decoder.strip_count(),
-        ChunkType::Tile => decoder.tile_count(),
-    }
-    .map_err(|e| bad(format!("{what}s: {e}")))? as usize;
-    // Decoders not in use; a thread takes one (or opens one) per chunk and gives it back.
-    let spare = std::sync::Mutex::new(vec![decoder]);
-    let take = || spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop();
+    let (chunk_w, chunk_h) = (chunks.chunk_w, chunks.chunk_h);
     let chunk = |index: usize| -> Result<(Vec<f32>, usize, usize)> {
-        let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
-        if index >= count {
-            return Err(bad(format!("{what} {index} is missing (the file lists {count})")));
-        }
-        let mut decoder = match take() {
-            Some(d) => d,
-            None => open_tiff(path)?,
-        };
-        let (w, h) = decoder.chunk_data_dimensions(i);
-        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")));
-        spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(decoder);
-        let mut values = samples_f32(data?).ok_or_else(|| bad("unsupported sample type".into()))?;
+        let (data, w, h) = chunks.read(index)?;
+        let mut values = samples_f32(data).ok_or_else(|| bad("unsupported sample type".into()))?;
         prepare(&mut values);
-        let (w, h) = (w as usize, h as usize);
-        if values.len() < w * h * channels {
-            return Err(bad(format!("{what} {index}: {} samples, {} expected", values.len(), w * h * channels)));
-        }
         Ok((values, w, h))
     };
     // Chunks `range`, decoded in parallel; the first failure in file order is the error.
@@ -815,8 +1020,7 @@ fn tiff_rows(
     match kind {
         ChunkType::Strip => {
             let strips = height.div_ceil(chunk_h);
-            let strip_bytes = (stride * chunk_h * 4).max(1);
-            let batch = (STRIP_BATCH_BYTES / strip_bytes).max(2 * rayon::current_num_threads());
+            let batch = chunks.batch();
             let mut y = 0;
             for first in (0..strips).step_by(batch) {
                 for (values, _, h) in decode(first..strips.min(first + batch))? {

@@ -773,6 +773,18 @@ fn the_range_found_while_decoding_is_that_of_the_rows() {
             .unwrap();
         assert_eq!(rows, file.size().1, "{name}");
         assert_eq!(range, (lo, hi), "{name}");
+        // The scan that makes no rows (integers compared as integers for int16) agrees,
+        // and reports rows read up to the last.
+        let mut told = Vec::new();
+        let scanned = file
+            .height_range(&mut |n| {
+                told.push(n);
+                Ok(())
+            })
+            .unwrap();
+        assert_eq!(scanned, (lo, hi), "{name}");
+        assert!(told.windows(2).all(|w| w[0] < w[1]), "{name}: {told:?}");
+        assert_eq!(told.last(), Some(&file.size().1), "{name}");
         assert!(lo < hi && lo > -100.0 && hi < 1000.0, "{name}: {lo}..{hi}");
         if name.contains("320") {
             assert!(nodata > 0 && lo > 0.0, "{name}: the ocean is nodata, not a height ({nodata} samples)");
@@ -835,4 +847,31 @@ fn tiling_from_inside_a_one_thread_pool_finishes() {
         let tiles = finished.recv_timeout(std::time::Duration::from_secs(60)).expect("tiling finished").unwrap();
         assert!(tiles > 0 && out.exists(), "tiff {tiff}: {tiles} tiles");
     }
+}
+
+#[test]
+fn integer_samples_give_their_range_without_nodata() {
+    use source::integer_range;
+    let none = (f32::INFINITY, f32::NEG_INFINITY);
+    // Nodata at either end, in every lane of a vector and the remainder.
+    for at in 0..37 {
+        let mut v: Vec<i16> = (0..37).map(|i| (i * 7 % 23) as i16 - 5).collect();
+        v[at] = -32767;
+        v[(at + 11) % 37] = -32767;
+        let real: Vec<f32> = v.iter().filter(|&&x| x != -32767).map(|&x| f32::from(x)).collect();
+        let want = (
+            real.iter().copied().fold(f32::INFINITY, f32::min),
+            real.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+        );
+        assert_eq!(integer_range(&v, Some(-32767.0)), want, "nodata at {at}");
+        assert_eq!(integer_range(&v, None), (-32767.0, want.1), "no nodata: it is a height");
+    }
+    assert_eq!(integer_range::<i16>(&[], None), none);
+    assert_eq!(integer_range(&[-32767i16; 19], Some(-32767.0)), none, "all nodata: no range");
+    // A nodata no sample of the type can hold skips nothing.
+    assert_eq!(integer_range(&[0u8, 255, 7], Some(-1.0)), (0.0, 255.0));
+    assert_eq!(integer_range(&[0u8, 255, 7], Some(255.5)), (0.0, 255.0));
+    assert_eq!(integer_range(&[3u16, 65_535, 7], Some(1e30)), (3.0, 65_535.0));
+    assert_eq!(integer_range(&[3u16, 65_535, 7], Some(65_535.0)), (3.0, 7.0));
+    assert_eq!(integer_range(&[-128i8, 127, 0], Some(-128.0)), (0.0, 127.0));
 }
