@@ -8,6 +8,9 @@ use clap::Parser;
 
 // The server allocates a little per request on every core; glibc's malloc showed up at
 // ~10% of its profile under load, mimalloc's thread-local free lists make that negligible.
+// Built without transparent huge pages (feature `no_thp`): with them, every thread's first
+// touch of an arena zeroes 2 MiB at once; the DEM tiling job took 13% more CPU and 40%
+// more peak memory (54 against 38.6 MiB), and the server ran no faster.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
