@@ -625,9 +625,9 @@ impl ElevationFile {
     }
 
     /// The range of heights in the first `n` samples of a decoded chunk (which holds at
-    /// least `n`, see [`TiffChunks::read`]); None for a sample
-    /// type heights are not read from. 8- and 16-bit samples stored as heights are
-    /// compared as integers, as they are (no conversion, 8 or 16 lanes a vector).
+    /// least `n`, see [`TiffChunks::read`]); None for a sample type heights are not read
+    /// from. 8- and 16-bit samples stored as heights are compared as integers, as they are
+    /// (no conversion, 8 or 16 lanes a vector).
     fn chunk_range(&self, data: tiff::decoder::DecodingResult, n: usize) -> Option<(f32, f32)> {
         use tiff::decoder::DecodingResult as D;
         #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]
