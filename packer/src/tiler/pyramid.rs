@@ -169,11 +169,6 @@ impl Resample {
     }
 }
 
-/// `row` resampled linearly along x to `width` samples (edges clamped).
-pub fn resample_row<S: Sample>(row: &[S], width: usize) -> Vec<S> {
-    Resample::new(row.len(), width).row(row)
-}
-
 /// Two rows of a level -> one row of the next (2x2 means; an odd last column is padded
 /// with no data).
 pub fn halve_rows<S: Sample>(a: &[S], b: &[S]) -> Vec<S> {
@@ -520,6 +515,11 @@ impl Spool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `row` resampled linearly along x to `width` samples (edges clamped).
+    fn resample_row<S: Sample>(row: &[S], width: usize) -> Vec<S> {
+        Resample::new(row.len(), width).row(row)
+    }
 
     #[test]
     fn halving_averages_and_ignores_nodata() {

@@ -27,15 +27,6 @@ pub trait ElevationSource: Sync {
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>;
-    /// As [`ElevationSource::rows`], and the lowest and highest height met (NaN skipped;
-    /// infinities when there is no data). A source may find them where it decodes, in
-    /// parallel.
-    ///
-    /// # Errors
-    /// As [`ElevationSource::rows`].
-    fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
-        ranged(row, |row| self.rows(row))
-    }
     /// The lowest and highest height (NaN skipped; infinities when there is no data),
     /// telling `progress` how many rows have been read so far, now and then. A source may
     /// find them without making rows of heights.
@@ -43,24 +34,21 @@ pub trait ElevationSource: Sync {
     /// # Errors
     /// As [`ElevationSource::rows`]; `progress`'s errors.
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
-        let mut n = 0;
-        self.rows_and_range(&mut |_| {
-            n += 1;
-            progress(n)
-        })
+        range_of_rows(progress, |row| self.rows(row))
     }
 }
 
-/// Runs `read` with `row`, and returns the range of the rows it passed on.
-fn ranged(
-    row: &mut dyn FnMut(&[f32]) -> Result<()>,
+/// The range of the rows `read` passes on, `progress` told after each one.
+fn range_of_rows(
+    progress: &mut dyn FnMut(u32) -> Result<()>,
     read: impl FnOnce(&mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>,
 ) -> Result<(f32, f32)> {
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    let (mut lo, mut hi, mut n) = (f32::INFINITY, f32::NEG_INFINITY, 0);
     read(&mut |r| {
         let (l, h) = super::min_max(r);
         (lo, hi) = (lo.min(l), hi.max(h));
-        row(r)
+        n += 1;
+        progress(n)
     })?;
     Ok((lo, hi))
 }
@@ -547,32 +535,9 @@ impl ElevationSource for ElevationFile {
         tiff_rows(&self.path, 1, &|samples: &mut [f32]| self.heights(samples), row)
     }
 
-    fn rows_and_range(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<(f32, f32)> {
-        if self.png {
-            return ranged(row, |row| self.png_heights(row));
-        }
-        // Samples become heights in place, and their range is found, in the decoding threads.
-        let range = std::sync::Mutex::new((f32::INFINITY, f32::NEG_INFINITY));
-        let heights = |samples: &mut [f32]| {
-            self.heights(samples);
-            let (l, h) = super::min_max(samples);
-            let mut range = range.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-            *range = (range.0.min(l), range.1.max(h));
-        };
-        tiff_rows(&self.path, 1, &heights, row)?;
-        Ok(range.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner))
-    }
-
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         if self.png {
-            let mut n = 0;
-            return ranged(
-                &mut |_| {
-                    n += 1;
-                    progress(n)
-                },
-                |row| self.png_heights(row),
-            );
+            return range_of_rows(progress, |row| self.png_heights(row));
         }
         // Every strip or tile, in parallel and in any order, reduced to its range where
         // it is decoded; no rows are made.
@@ -931,16 +896,19 @@ impl<'p> TiffChunks<'p> {
         (STRIP_BATCH_BYTES / strip_bytes).max(2 * rayon::current_num_threads())
     }
 
-    /// The chunks the raster needs: a strip per `chunk_h` rows, or rows of tiles.
+    /// Chunks across the raster: one strip, or a row of tiles.
+    fn across(&self) -> usize {
+        if self.kind == tiff::decoder::ChunkType::Strip { 1 } else { self.width.div_ceil(self.chunk_w) }
+    }
+
+    /// The chunks the raster needs.
     fn needed(&self) -> usize {
-        let down = self.height.div_ceil(self.chunk_h);
-        if self.kind == tiff::decoder::ChunkType::Strip { down } else { down * self.width.div_ceil(self.chunk_w) }
+        self.height.div_ceil(self.chunk_h) * self.across()
     }
 
     /// Rows of the raster read once chunks `..end` (in file order) are.
     fn rows_before(&self, end: usize) -> u32 {
-        let across = if self.kind == tiff::decoder::ChunkType::Strip { 1 } else { self.width.div_ceil(self.chunk_w) };
-        u32::try_from((end / across.max(1) * self.chunk_h).min(self.height)).unwrap_or(u32::MAX)
+        u32::try_from((end / self.across().max(1) * self.chunk_h).min(self.height)).unwrap_or(u32::MAX)
     }
 
     /// Chunk `index` decoded, and the pixels across and down it holds.
@@ -1035,7 +1003,7 @@ fn tiff_rows(
             }
         }
         ChunkType::Tile => {
-            let across = width.div_ceil(chunk_w);
+            let across = chunks.across();
             let mut band = vec![0f32; stride * chunk_h];
             for ty in 0..height.div_ceil(chunk_h) {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
