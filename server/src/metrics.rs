@@ -5,7 +5,8 @@
 //! to the same cache line.
 
 use std::fmt::Write;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 /// Routes of the application, as axum's matched-path templates; "other" for the rest.
@@ -58,11 +59,96 @@ struct Shard([RouteStats; ROUTES.len()]);
 #[derive(Debug)]
 pub struct Metrics {
     shards: Box<[Shard]>,
+    /// The serving threads' connections, once a server runs.
+    connections: Mutex<Option<Arc<Connections>>>,
 }
 
 impl Default for Metrics {
     fn default() -> Self {
-        Self { shards: (0..SHARDS).map(|_| Shard::default()).collect() }
+        Self { shards: (0..SHARDS).map(|_| Shard::default()).collect(), connections: Mutex::new(None) }
+    }
+}
+
+/// A counter on its own cache line.
+#[derive(Debug, Default)]
+#[repr(align(128))]
+struct Padded(AtomicUsize);
+
+/// Open connections of each serving thread, and the rule that keeps them even.
+///
+/// The kernel picks the thread of a new connection (see `serve_workers`); a thread that
+/// accepts one while it serves [`Connections::SLACK`] more than the least busy thread
+/// hands it to that thread instead — unless that thread has connections of its own
+/// waiting to be accepted (then the counts lag behind the kernel's choices, as when many
+/// clients connect at once). No choice of the kernel's can load one thread with every
+/// connection.
+#[derive(Debug)]
+pub(crate) struct Connections {
+    open: Box<[Padded]>,
+    handed: AtomicU64,
+}
+
+impl Connections {
+    /// How many more connections than the least busy thread a thread keeps for itself.
+    ///
+    /// Counts lag behind the kernel's choices: when one client thread opens its
+    /// connections a moment before another, the first serving thread has accepted them all
+    /// before any of the second one's arrive. A small slack would hand those away and split
+    /// each client thread's connections over the serving threads again; a large one leaves
+    /// more of an imbalance the kernel makes. 32: a browser opens 6 connections to a host,
+    /// a load generator or prefetching client a few dozen per thread.
+    pub const SLACK: usize = 32;
+
+    /// No connections yet, on `threads` threads.
+    pub fn new(threads: usize) -> Self {
+        Self { open: (0..threads.max(1)).map(|_| Padded::default()).collect(), handed: AtomicU64::new(0) }
+    }
+
+    /// The thread that serves a connection `thread` accepted, counted as open there until
+    /// the returned seat is dropped. `accepting(t)`: whether connections wait for thread `t`
+    /// to accept them.
+    pub fn seat(self: &Arc<Self>, thread: usize, accepting: impl Fn(usize) -> bool) -> Seat {
+        let mine = self.open[thread].0.load(Relaxed);
+        let (least, fewest) =
+            self.open.iter().map(|c| c.0.load(Relaxed)).enumerate().min_by_key(|&(_, n)| n).unwrap_or((thread, mine));
+        let thread = if mine >= fewest + Self::SLACK && !accepting(least) {
+            self.handed.fetch_add(1, Relaxed);
+            least
+        } else {
+            thread
+        };
+        self.open[thread].0.fetch_add(1, Relaxed);
+        Seat { connections: Arc::clone(self), thread }
+    }
+
+    /// Open connections, by thread.
+    pub fn open(&self) -> Vec<usize> {
+        self.open.iter().map(|c| c.0.load(Relaxed)).collect()
+    }
+
+    /// Connections handed from the thread that accepted them to another.
+    pub fn handed(&self) -> u64 {
+        self.handed.load(Relaxed)
+    }
+}
+
+/// One open connection, counted on its thread until dropped.
+#[derive(Debug)]
+pub(crate) struct Seat {
+    connections: Arc<Connections>,
+    thread: usize,
+}
+
+impl Seat {
+    /// The thread that serves the connection.
+    pub fn thread(&self) -> usize {
+        self.thread
+    }
+}
+
+impl Drop for Seat {
+    fn drop(&mut self) {
+        self.connections.open[self.thread].0.fetch_sub(1, Relaxed);
     }
 }
 
@@ -137,11 +223,30 @@ impl Metrics {
         totals
     }
 
+    /// Reports the open connections of `connections` from now on.
+    pub(crate) fn watch_connections(&self, connections: Arc<Connections>) {
+        *self.connections.lock().unwrap_or_else(PoisonError::into_inner) = Some(connections);
+    }
+
     /// The Prometheus text exposition.
     pub fn render(&self, archives: usize) -> String {
         let mut out = String::new();
         let _ = writeln!(out, "# HELP terrastream_archives Archives being served.\n# TYPE terrastream_archives gauge");
         let _ = writeln!(out, "terrastream_archives {archives}");
+        if let Some(connections) = self.connections.lock().unwrap_or_else(PoisonError::into_inner).as_ref() {
+            let _ = writeln!(
+                out,
+                "# HELP terrastream_connections Open connections, by serving thread.\n# TYPE terrastream_connections gauge"
+            );
+            for (thread, n) in connections.open().iter().enumerate() {
+                let _ = writeln!(out, "terrastream_connections{{thread=\"{thread}\"}} {n}");
+            }
+            let _ = writeln!(
+                out,
+                "# HELP terrastream_connections_handed_total Connections handed by the thread that accepted them to a less busy one.\n# TYPE terrastream_connections_handed_total counter"
+            );
+            let _ = writeln!(out, "terrastream_connections_handed_total {}", connections.handed());
+        }
         let totals = self.totals();
         let used: Vec<(&str, &RouteStats<u64>)> =
             ROUTES.iter().copied().zip(&totals).filter(|(_, s)| s.count > 0).collect();
@@ -238,6 +343,34 @@ mod tests {
         assert_eq!(m.requests("/{file}"), n);
         let text = m.render(1);
         assert!(text.contains(&format!("terrastream_response_bytes_total{{route=\"/{{file}}\"}} {}", 2 * n)), "{text}");
+    }
+
+    #[test]
+    fn connections_stay_within_the_slack_of_the_least_busy_thread() {
+        let connections = Arc::new(Connections::new(3));
+        // Every connection accepted by thread 0, as when the kernel picks one thread.
+        let seats: Vec<Seat> = (0..200).map(|_| connections.seat(0, |_| false)).collect();
+        let open = connections.open();
+        assert_eq!(open.iter().sum::<usize>(), 200);
+        let (most, fewest) = (open.iter().max().unwrap(), open.iter().min().unwrap());
+        assert!(most - fewest <= Connections::SLACK, "{open:?}");
+        assert_eq!(connections.handed(), 200 - open[0] as u64);
+        assert!(seats.iter().all(|s| s.thread() < 3));
+        drop(seats);
+        assert_eq!(connections.open(), [0, 0, 0]);
+        // A thread that has connections of its own waiting to be accepted is given none.
+        let seats: Vec<Seat> = (0..100).map(|_| connections.seat(1, |t| t != 1)).collect();
+        assert_eq!(connections.open(), [0, 100, 0]);
+        assert_eq!(connections.handed(), 200 - open[0] as u64);
+        drop(seats);
+        let m = Metrics::default();
+        assert!(!m.render(0).contains("terrastream_connections"));
+        m.watch_connections(Arc::clone(&connections));
+        let _seat = connections.seat(2, |_| false);
+        let text = m.render(0);
+        assert!(text.contains("terrastream_connections{thread=\"2\"} 1\n"), "{text}");
+        assert!(text.contains("terrastream_connections{thread=\"0\"} 0\n"), "{text}");
+        assert!(text.contains(&format!("terrastream_connections_handed_total {}\n", connections.handed())), "{text}");
     }
 
     #[test]

@@ -4,10 +4,24 @@
 //!
 //! [`serve_workers`] is what `terrastream serve` runs: one thread per core, each with its
 //! own single-threaded runtime and its own listening socket on the same port
-//! (`SO_REUSEPORT`: the kernel spreads new connections over them), as nginx runs one
-//! worker process per core. A connection lives on one thread from accept to close: no
-//! work stealing, no wake-ups across threads, no shared run queue. [`serve`] runs the same
-//! accept loop on whatever runtime calls it (tests, embedding).
+//! (`SO_REUSEPORT`), as nginx runs one worker process per core. A connection lives on one
+//! thread from accept to close: no work stealing, no wake-ups across threads, no shared
+//! run queue. [`serve`] runs the same accept loop on whatever runtime calls it (tests,
+//! embedding).
+//!
+//! Which thread gets a connection: on Linux, socket *i* asks for the connections whose
+//! handshake the kernel processes on CPU *i* (`SO_INCOMING_CPU`), so a connection is
+//! served where its packets arrive — on a network, the CPU of the card's receive queue;
+//! on one machine, the CPU of the client thread that connected. The connections of one
+//! client thread then stay together on one serving thread, and the scheduler can keep the
+//! pair on one core; spread by a hash instead, every client thread talks to every serving
+//! thread, and under load each core's pair keeps feeding the other core's, which is where
+//! the latency tail came from (`scripts/bench-server.sh`: p99 about 4.5 ms against 0.9 ms
+//! with this, at 64 connections on 2 cores). The kernel's choice alone could put every
+//! connection on one thread (a card with one receive queue, clients that all connected
+//! from one CPU): a thread that serves [`Connections::SLACK`] more connections than the
+//! least busy one hands each new connection to it, unless that thread has connections
+//! waiting in its own accept queue.
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -19,12 +33,13 @@ use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto::Builder;
 use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
-use tokio::net::{TcpListener, TcpSocket};
-use tokio::sync::{Semaphore, watch};
+use tokio::net::{TcpListener, TcpSocket, TcpStream};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 
 use crate::app::{AppState, service};
 use crate::edge::Edge;
 use crate::h1::{self, Rewind};
+use crate::metrics::{Connections, Seat};
 use crate::sendfile::Stream;
 
 /// Serves `state` on `listener` until `shutdown` resolves, then stops accepting and waits up
@@ -34,8 +49,11 @@ use crate::sendfile::Stream;
 /// Only if the listener itself fails, or the TLS settings are wrong.
 pub async fn serve(listener: TcpListener, state: AppState, shutdown: impl Future<Output = ()>) -> std::io::Result<()> {
     let shared = Shared::new(&state)?;
+    let connections = Arc::new(Connections::new(1));
+    state.metrics.watch_connections(Arc::clone(&connections));
+    let place = Place { thread: 0, connections, inboxes: Arc::new([]), inbox: None, listeners: Arc::new([]) };
     let reload = tokio::spawn(reload_loop(state));
-    let result = accept_loop(listener, shared, shutdown).await;
+    let result = accept_loop(listener, shared, place, shutdown).await;
     reload.abort();
     result
 }
@@ -58,13 +76,26 @@ pub fn serve_workers(
     let workers = if workers == 0 { std::thread::available_parallelism().map_or(1, usize::from) } else { workers };
     let shared = Shared::new(&state)?;
     let (sockets, local) = bind_sockets(addr, workers)?;
+    let connections = Arc::new(Connections::new(sockets.len()));
+    state.metrics.watch_connections(Arc::clone(&connections));
+    let (inboxes, mut receivers): (Vec<_>, Vec<_>) = sockets.iter().map(|_| mpsc::unbounded_channel()).unzip();
+    let inboxes: Arc<[Inbox]> = inboxes.into();
+    let listeners = sockets.iter().map(probe).collect::<std::io::Result<Arc<[_]>>>()?;
     let (stop, stopped) = watch::channel(false);
     let (listening, listened) = std::sync::mpsc::channel::<std::io::Result<()>>();
     let threads = sockets
         .into_iter()
+        .zip(receivers.drain(..))
         .enumerate()
-        .map(|(i, socket)| {
+        .map(|(i, (socket, inbox))| {
             let (shared, mut stopped, listening) = (shared.clone(), stopped.clone(), listening.clone());
+            let place = Place {
+                thread: i,
+                connections: Arc::clone(&connections),
+                inboxes: Arc::clone(&inboxes),
+                inbox: Some(inbox),
+                listeners: Arc::clone(&listeners),
+            };
             std::thread::Builder::new().name(format!("serve-{i}")).spawn(move || {
                 let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
                 runtime.block_on(async move {
@@ -77,7 +108,7 @@ pub fn serve_workers(
                         }
                     };
                     let _ = listening.send(Ok(()));
-                    accept_loop(listener, shared, async move {
+                    accept_loop(listener, shared, place, async move {
                         let _ = stopped.wait_for(|stop| *stop).await;
                     })
                     .await
@@ -119,6 +150,9 @@ pub fn serve_workers(
 /// queue and the kernel balances connections over them; elsewhere they would all share the
 /// first socket's queue, so only one is made.
 ///
+/// On Linux, socket *i* prefers the connections the kernel receives on the *i*-th CPU this
+/// process may run on (see the module's documentation).
+///
 /// `SO_REUSEPORT` would also let a second server started on the same port silently take
 /// half of its connections: the address is first bound without it, which fails if anything
 /// listens there (and picks the port when `addr` asks for port 0).
@@ -132,18 +166,88 @@ fn bind_sockets(addr: SocketAddr, workers: usize) -> std::io::Result<(Vec<TcpSoc
     drop(probe);
     let reuse_port = cfg!(all(unix, not(any(target_os = "solaris", target_os = "illumos", target_os = "cygwin"))));
     let count = if reuse_port { workers.max(1) } else { 1 };
+    let cpus = allowed_cpus();
     let sockets = (0..count)
-        .map(|_| {
+        .map(|i| {
             let s = new_socket(local)?;
             s.set_reuseaddr(true)?;
             #[cfg(all(unix, not(any(target_os = "solaris", target_os = "illumos", target_os = "cygwin"))))]
             s.set_reuseport(true)?;
+            #[cfg(target_os = "linux")]
+            if count > 1 && !cpus.is_empty() {
+                // A preference only: without it (older kernels) the kernel spreads by hash.
+                if let Err(err) = rustix::net::sockopt::set_socket_incoming_cpu(&s, cpus[i % cpus.len()]) {
+                    tracing::debug!("SO_INCOMING_CPU: {err}");
+                }
+            }
             s.bind(local)?;
             Ok(s)
         })
         .collect::<std::io::Result<Vec<_>>>()
         .map_err(named)?;
     Ok((sockets, local))
+}
+
+/// The CPUs this process may run on, in order (none where that cannot be known).
+fn allowed_cpus() -> Vec<u32> {
+    #[cfg(target_os = "linux")]
+    if let Ok(set) = rustix::thread::sched_getaffinity(None) {
+        return (0..rustix::thread::CpuSet::MAX_CPU)
+            .filter(|&c| set.is_set(c))
+            .filter_map(|c| u32::try_from(c).ok())
+            .collect();
+    }
+    Vec::new()
+}
+
+/// A connection one thread accepted and hands to another, with its place in the count.
+struct Handed {
+    stream: std::net::TcpStream,
+    peer: SocketAddr,
+    permit: OwnedSemaphorePermit,
+    seat: Seat,
+}
+
+/// Where a thread sends the connections it hands to another.
+type Inbox = mpsc::UnboundedSender<Handed>;
+
+/// An accept loop's thread among the others: its number, every thread's connections, the
+/// way connections are handed between threads, and every thread's listening socket (to
+/// see whether connections wait there).
+struct Place {
+    thread: usize,
+    connections: Arc<Connections>,
+    inboxes: Arc<[Inbox]>,
+    inbox: Option<mpsc::UnboundedReceiver<Handed>>,
+    listeners: Arc<[Probe]>,
+}
+
+/// A listening socket, seen from another thread.
+#[cfg(unix)]
+type Probe = std::os::fd::OwnedFd;
+#[cfg(not(unix))]
+type Probe = ();
+
+fn probe(socket: &TcpSocket) -> std::io::Result<Probe> {
+    #[cfg(unix)]
+    return std::os::fd::AsFd::as_fd(socket).try_clone_to_owned();
+    #[cfg(not(unix))]
+    Ok(())
+}
+
+/// Whether connections wait in `listener`'s accept queue.
+fn waiting(listener: &Probe) -> bool {
+    #[cfg(target_os = "linux")]
+    {
+        use rustix::event::{PollFd, PollFlags, Timespec, poll};
+        let mut fds = [PollFd::new(listener, PollFlags::IN)];
+        matches!(poll(&mut fds, Some(&Timespec { tv_sec: 0, tv_nsec: 0 })), Ok(n) if n > 0)
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = listener;
+        false
+    }
 }
 
 /// What every accept loop shares: the router, the HTTP settings, the connection cap, TLS.
@@ -193,76 +297,122 @@ impl Shared {
 }
 
 /// Accepts and serves connections on the current runtime until `shutdown` resolves, then
-/// drains them for up to the grace period.
-async fn accept_loop(listener: TcpListener, shared: Shared, shutdown: impl Future<Output = ()>) -> std::io::Result<()> {
+/// drains them for up to the grace period. Connections handed over by other threads are
+/// served too.
+async fn accept_loop(
+    listener: TcpListener,
+    shared: Shared,
+    mut place: Place,
+    shutdown: impl Future<Output = ()>,
+) -> std::io::Result<()> {
     let graceful = GracefulShutdown::new();
     // Tells connections on the lean path to close once idle (hyper's learn it from `graceful`).
     let (closing, closed) = watch::channel(false);
     let mut shutdown = std::pin::pin!(shutdown);
+    let mut inbox = place.inbox.take();
     loop {
-        // Wait for a free slot before accepting: excess clients stay in the backlog.
-        let permit = tokio::select! {
-            permit = Arc::clone(&shared.slots).acquire_owned() => permit.map_err(std::io::Error::other)?,
-            () = &mut shutdown => break,
-        };
-        let (stream, peer) = tokio::select! {
-            accepted = listener.accept() => match accepted {
-                Ok(a) => a,
-                Err(err) => {
-                    // Out of file descriptors and the like: back off instead of spinning.
-                    tracing::warn!("accept failed: {err}");
-                    tokio::time::sleep(Duration::from_millis(50)).await;
-                    continue;
-                }
-            },
-            () = &mut shutdown => break,
-        };
-        let _ = stream.set_nodelay(true);
-        let (watcher, closed) = (graceful.watcher(), closed.clone());
-        let (service, builder, tls) = (shared.service.clone(), shared.builder.clone(), shared.tls.clone());
-        let (lean, handshake_timeout) = (shared.lean, shared.request_timeout);
-        tokio::spawn(async move {
-            let result = match tls {
-                None => {
-                    let stream = Stream::new(stream);
-                    // The watcher lives as long as the task: shutdown waits for the lean path too.
-                    let handed = match lean {
-                        Some(limits) => h1::serve(stream, service.state(), closed, limits).await,
-                        None => Ok(h1::Ended::Hyper(Rewind::new(bytes::Bytes::new(), stream))),
-                    };
-                    match handed {
-                        Ok(h1::Ended::Hyper(io)) => {
-                            let connection = builder
-                                .serve_connection_with_upgrades(TokioIo::new(io), TowerToHyperService::new(service));
-                            watcher.watch(connection.into_owned()).await
-                        }
-                        Ok(h1::Ended::Closed) => Ok(()),
-                        Err(err) => Err(err.into()),
-                    }
-                }
-                Some(acceptor) => match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
-                    Ok(Ok(tls_stream)) => {
-                        let io = TokioIo::new(tls_stream);
-                        let service = TowerToHyperService::new(service);
-                        watcher.watch(builder.serve_connection_with_upgrades(io, service).into_owned()).await
-                    }
-                    Ok(Err(err)) => Err(err.into()),
-                    Err(_) => Err("TLS handshake timed out".into()),
-                },
-            };
-            if let Err(err) = result {
-                tracing::debug!(%peer, "connection ended: {err}");
+        let handed = async {
+            match inbox.as_mut() {
+                Some(inbox) => inbox.recv().await,
+                None => std::future::pending().await,
             }
-            drop(permit);
-        });
+        };
+        tokio::select! {
+            biased;
+            () = &mut shutdown => break,
+            Some(handed) = handed => match TcpStream::from_std(handed.stream) {
+                Ok(stream) => spawn_connection(&shared, &graceful, &closed, stream, handed.peer, (handed.permit, handed.seat)),
+                Err(err) => tracing::debug!(peer = %handed.peer, "handed connection lost: {err}"),
+            },
+            accepted = accept(&listener, &shared.slots) => {
+                let (stream, peer, permit) = match accepted {
+                    Ok(a) => a,
+                    Err(err) => {
+                        // Out of file descriptors and the like: back off instead of spinning.
+                        tracing::warn!("accept failed: {err}");
+                        tokio::time::sleep(Duration::from_millis(50)).await;
+                        continue;
+                    }
+                };
+                let _ = stream.set_nodelay(true);
+                let seat = place.connections.seat(place.thread, |t| place.listeners.get(t).is_some_and(waiting));
+                let to = seat.thread();
+                if to == place.thread {
+                    spawn_connection(&shared, &graceful, &closed, stream, peer, (permit, seat));
+                } else if let Ok(stream) = stream.into_std() {
+                    // A thread that has stopped drops it: the server is shutting down.
+                    let _ = place.inboxes[to].send(Handed { stream, peer, permit, seat });
+                }
+            }
+        }
     }
     drop(listener);
+    drop(inbox);
     let _ = closing.send(true);
     tracing::info!("shutting down: waiting for requests in flight");
     if tokio::time::timeout(shared.grace, graceful.shutdown()).await.is_err() {
         tracing::warn!("grace period over: closing the remaining connections");
     }
     Ok(())
+}
+
+/// The next connection, once a connection slot is free: excess clients wait in the
+/// backlog.
+async fn accept(
+    listener: &TcpListener,
+    slots: &Arc<Semaphore>,
+) -> std::io::Result<(TcpStream, SocketAddr, OwnedSemaphorePermit)> {
+    let permit = Arc::clone(slots).acquire_owned().await.map_err(std::io::Error::other)?;
+    let (stream, peer) = listener.accept().await?;
+    Ok((stream, peer, permit))
+}
+
+/// Serves one connection on the current runtime, holding its slot and seat until it closes.
+fn spawn_connection(
+    shared: &Shared,
+    graceful: &GracefulShutdown,
+    closed: &watch::Receiver<bool>,
+    stream: TcpStream,
+    peer: SocketAddr,
+    held: (OwnedSemaphorePermit, Seat),
+) {
+    let (watcher, closed) = (graceful.watcher(), closed.clone());
+    let (service, builder, tls) = (shared.service.clone(), shared.builder.clone(), shared.tls.clone());
+    let (lean, handshake_timeout) = (shared.lean, shared.request_timeout);
+    tokio::spawn(async move {
+        let result = match tls {
+            None => {
+                let stream = Stream::new(stream);
+                // The watcher lives as long as the task: shutdown waits for the lean path too.
+                let handed = match lean {
+                    Some(limits) => h1::serve(stream, service.state(), closed, limits).await,
+                    None => Ok(h1::Ended::Hyper(Rewind::new(bytes::Bytes::new(), stream))),
+                };
+                match handed {
+                    Ok(h1::Ended::Hyper(io)) => {
+                        let connection =
+                            builder.serve_connection_with_upgrades(TokioIo::new(io), TowerToHyperService::new(service));
+                        watcher.watch(connection.into_owned()).await
+                    }
+                    Ok(h1::Ended::Closed) => Ok(()),
+                    Err(err) => Err(err.into()),
+                }
+            }
+            Some(acceptor) => match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
+                Ok(Ok(tls_stream)) => {
+                    let io = TokioIo::new(tls_stream);
+                    let service = TowerToHyperService::new(service);
+                    watcher.watch(builder.serve_connection_with_upgrades(io, service).into_owned()).await
+                }
+                Ok(Err(err)) => Err(err.into()),
+                Err(_) => Err("TLS handshake timed out".into()),
+            },
+        };
+        if let Err(err) = result {
+            tracing::debug!(%peer, "connection ended: {err}");
+        }
+        drop(held);
+    });
 }
 
 /// A TLS acceptor for a PEM certificate chain and key, offering h2 and http/1.1.
@@ -327,5 +477,84 @@ pub async fn shutdown_signal() {
     tokio::select! {
         () = ctrl_c => {},
         () = terminate => {},
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::ServerConfig;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    /// A thread that accepts a connection while it serves `SLACK` more than another hands
+    /// it over: the other thread answers it, and the counts follow the connection.
+    #[test]
+    fn a_busy_thread_hands_new_connections_to_the_least_busy_one() {
+        let state = AppState::new(ServerConfig::default());
+        let shared = Shared::new(&state).unwrap();
+        let connections = Arc::new(Connections::new(2));
+        // Thread 0 already serves SLACK connections; thread 1 none.
+        let held: Vec<Seat> = (0..Connections::SLACK).map(|_| connections.seat(0, |_| false)).collect();
+        assert_eq!(connections.open(), [Connections::SLACK, 0]);
+        let sockets: Vec<TcpSocket> = (0..2)
+            .map(|_| {
+                let s = TcpSocket::new_v4().unwrap();
+                s.bind(SocketAddr::from(([127, 0, 0, 1], 0))).unwrap();
+                s
+            })
+            .collect();
+        let addr = sockets[0].local_addr().unwrap();
+        let listeners: Arc<[Probe]> = sockets.iter().map(probe).collect::<std::io::Result<_>>().unwrap();
+        let (inboxes, receivers): (Vec<_>, Vec<_>) = (0..2).map(|_| mpsc::unbounded_channel()).unzip();
+        let inboxes: Arc<[Inbox]> = inboxes.into();
+        let (stop, stopped) = watch::channel(false);
+        let (listening, listened) = std::sync::mpsc::channel();
+        let threads: Vec<_> = sockets
+            .into_iter()
+            .zip(receivers)
+            .enumerate()
+            .map(|(thread, (socket, inbox))| {
+                let place = Place {
+                    thread,
+                    connections: Arc::clone(&connections),
+                    inboxes: Arc::clone(&inboxes),
+                    inbox: Some(inbox),
+                    listeners: Arc::clone(&listeners),
+                };
+                let (shared, mut stopped, listening) = (shared.clone(), stopped.clone(), listening.clone());
+                std::thread::spawn(move || {
+                    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+                    runtime.block_on(async move {
+                        let listener = socket.listen(16).unwrap();
+                        listening.send(()).unwrap();
+                        accept_loop(listener, shared, place, async move {
+                            let _ = stopped.wait_for(|stop| *stop).await;
+                        })
+                        .await
+                    })
+                })
+            })
+            .collect();
+        listened.recv().unwrap();
+        listened.recv().unwrap();
+        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        let answer = runtime.block_on(async {
+            let mut client = TcpStream::connect(addr).await.unwrap();
+            client.write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n").await.unwrap();
+            let mut answer = String::new();
+            client.read_to_string(&mut answer).await.unwrap();
+            answer
+        });
+        assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+        assert!(answer.ends_with("ok\n"), "{answer}");
+        assert_eq!(connections.handed(), 1);
+        // Counted on thread 1 while open, and no longer once closed.
+        let _ = stop.send(true);
+        for thread in threads {
+            thread.join().unwrap().unwrap();
+        }
+        assert_eq!(connections.open(), [Connections::SLACK, 0]);
+        drop(held);
+        assert_eq!(connections.open(), [0, 0]);
     }
 }

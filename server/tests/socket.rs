@@ -323,6 +323,27 @@ async fn worker_threads_share_one_port_reload_and_stop_together() {
     for t in tasks {
         t.await.unwrap();
     }
+    // Every thread's connections are counted, and the 48 closed ones no longer.
+    let client = reqwest::Client::new();
+    let (mut metrics, mut open) = (String::new(), 0);
+    for _ in 0..100 {
+        metrics = client.get(format!("http://{addr}/metrics")).send().await.unwrap().text().await.unwrap();
+        open = metrics
+            .lines()
+            .filter(|l| l.starts_with("terrastream_connections{"))
+            .map(|l| l.rsplit(' ').next().unwrap().parse::<usize>().unwrap())
+            .sum::<usize>();
+        if open == 1 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(open, 1, "only the connection asking is open: {metrics}");
+    for thread in 0..3 {
+        assert!(metrics.contains(&format!("terrastream_connections{{thread=\"{thread}\"}} ")), "{metrics}");
+    }
+    assert!(metrics.contains("terrastream_connections_handed_total "), "{metrics}");
+    drop(client);
     // A removed archive disappears for every worker.
     std::fs::remove_file(&path).unwrap();
     let mut statuses = Vec::new();
