@@ -194,7 +194,7 @@ impl Metrics {
         self.record_at(route_index(route), status, bytes, latency);
     }
 
-    /// Records one answered request on the route at `index` (see [`route_index`]).
+    /// Records one answered request on the route at `index` (the index `route_index` gives a route template).
     pub fn record_at(&self, index: usize, status: u16, bytes: u64, latency: Duration) {
         let s = &self.shards[shard_index()].0[index.min(ROUTES.len() - 1)];
         let status_slot = STATUSES.iter().position(|&c| c == status).unwrap_or(STATUSES.len());
