@@ -31,15 +31,19 @@ pub struct Served {
     /// `Last-Modified` header value, formatted once.
     pub last_modified_header: axum::http::HeaderValue,
     identity: FileIdentity,
-    /// Blobs whose checksum was verified: a direct-mapped table of offsets (+1; 0 is
-    /// empty), fixed in size, lock-free. A hit skips the CRC of a tile served before.
-    verified: Box<[AtomicU64]>,
+    /// Blobs whose checksum was verified: a hit skips the CRC of a tile served before.
+    verified: Verified,
     /// The mapping, registered for `sendfile` while this version is served.
     _sendfile: Option<crate::sendfile::Registration>,
 }
 
 /// Slots of the verified-blob table (128 KiB per archive).
 const VERIFIED_SLOTS: usize = 16 * 1024;
+/// Slots a blob may take in the table: its bucket. Direct-mapped (one slot), a quarter of
+/// the 4 902 distinct blobs of `scripts/bench-server.sh`'s archive shared a slot with
+/// another and were checked again and again (3% of the server's time on random tiles);
+/// with buckets of 4, under 1% of buckets overflow.
+const VERIFIED_WAYS: usize = 4;
 
 impl Served {
     /// The whole file, zero-copy.
@@ -55,25 +59,49 @@ impl Served {
     /// # Errors
     /// As [`Reader::read`].
     pub fn tile_payload(&self, location: &terrastream_packer::TileLocation) -> terrastream_packer::Result<Bytes> {
-        let slot = &self.verified[slot_of(location.offset)];
-        if slot.load(Ordering::Relaxed) == location.offset + 1 {
+        if self.verified.contains(location.offset) {
             return self.reader.read_unchecked(location);
         }
         let payload = self.reader.read(location)?;
-        slot.store(location.offset + 1, Ordering::Relaxed);
+        self.verified.insert(location.offset);
         Ok(payload)
     }
 
-    /// Whether the blob at `offset` is in the verified table (tests).
+    /// Whether the blob at `offset` is in the verified table.
     pub fn is_verified(&self, offset: u64) -> bool {
-        self.verified[slot_of(offset)].load(Ordering::Relaxed) == offset + 1
+        self.verified.contains(offset)
     }
 }
 
-fn slot_of(offset: u64) -> usize {
-    // Fibonacci hashing: neighbouring blobs land far apart.
-    let hash = offset.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 32;
-    usize::try_from(hash).unwrap_or(0) % VERIFIED_SLOTS
+/// Offsets of verified blobs: a 4-way set-associative table of offsets (+1; 0 is empty),
+/// fixed in size, lock-free.
+#[derive(Debug)]
+struct Verified(Box<[AtomicU64]>);
+
+impl Verified {
+    fn new() -> Self {
+        Self((0..VERIFIED_SLOTS).map(|_| AtomicU64::new(0)).collect())
+    }
+
+    fn contains(&self, offset: u64) -> bool {
+        self.bucket(offset).0.iter().any(|s| s.load(Ordering::Relaxed) == offset + 1)
+    }
+
+    fn insert(&self, offset: u64) {
+        let (bucket, victim) = self.bucket(offset);
+        // An empty slot of the bucket, or else the blob's own choice among the four.
+        let slot = bucket.iter().find(|s| s.load(Ordering::Relaxed) == 0).unwrap_or(&bucket[victim]);
+        slot.store(offset + 1, Ordering::Relaxed);
+    }
+
+    /// The slots the blob at `offset` may take, and the one it replaces when all are taken.
+    fn bucket(&self, offset: u64) -> (&[AtomicU64], usize) {
+        // Fibonacci hashing: neighbouring blobs land far apart.
+        let hash = offset.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let bucket = usize::try_from(hash >> 32).unwrap_or(0) % (VERIFIED_SLOTS / VERIFIED_WAYS);
+        let victim = usize::try_from(hash >> 24).unwrap_or(0) % VERIFIED_WAYS;
+        (&self.0[bucket * VERIFIED_WAYS..][..VERIFIED_WAYS], victim)
+    }
 }
 
 /// What tells two versions of a file apart without reading it.
@@ -219,7 +247,36 @@ fn open(
         etag,
         modified,
         identity: id,
-        verified: (0..VERIFIED_SLOTS).map(|_| AtomicU64::new(0)).collect(),
+        verified: Verified::new(),
         _sendfile: registration,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Blobs that share a bucket all stay verified up to its four slots; a fifth replaces
+    /// one of them, never more, and blobs of other buckets are untouched.
+    #[test]
+    fn verified_blobs_share_a_bucket_four_at_a_time() {
+        let table = Verified::new();
+        let first = |offset: u64| table.bucket(offset).0.as_ptr();
+        let bucket = first(1000);
+        let same: Vec<u64> = (1000..).step_by(8).filter(|&o| first(o) == bucket).take(5).collect();
+        let other = (1000..).step_by(8).find(|&o| first(o) != bucket).unwrap();
+        table.insert(other);
+        for (i, &o) in same[..4].iter().enumerate() {
+            assert!(!table.contains(o));
+            table.insert(o);
+            assert!(same[..=i].iter().all(|&o| table.contains(o)), "{i}");
+        }
+        table.insert(same[4]);
+        assert!(table.contains(same[4]));
+        assert_eq!(same[..4].iter().filter(|&&o| table.contains(o)).count(), 3);
+        assert!(table.contains(other));
+        // Offset 0 is a blob like any other (slots hold offset + 1).
+        table.insert(0);
+        assert!(table.contains(0));
+    }
 }
