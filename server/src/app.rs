@@ -153,7 +153,8 @@ async fn archive_bytes(State(state): State<AppState>, Path(file): Path<String>, 
     archive_answer(&state, &file, req.method(), req.headers()).map(Body::new)
 }
 
-/// The answer of `GET|HEAD /{file}`, for the router and for the lean HTTP/1.1 path.
+/// The answer of `GET|HEAD /{file}`, for the router and for the lean HTTP/1.1 path. Reads
+/// no request header but those in `h1::READ_HEADERS`: the lean path passes no others.
 #[tracing::instrument(level = "debug", skip_all, fields(file = %file))]
 pub(crate) fn archive_answer(state: &AppState, file: &str, method: &Method, headers: &HeaderMap) -> Answer {
     archive_range(state, file, method, headers).unwrap_or_else(AppError::into_answer)
@@ -267,7 +268,7 @@ async fn tile(
 }
 
 /// The answer of `GET|HEAD /{name}/{layer}/{lod}/{x}/{y}`, for the router and for the lean
-/// HTTP/1.1 path.
+/// HTTP/1.1 path. Reads no request header but those in `h1::READ_HEADERS`.
 #[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod = at.0, x = at.1, y = at.2))]
 pub(crate) fn tile_answer(
     state: &AppState,

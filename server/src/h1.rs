@@ -45,6 +45,18 @@ pub(crate) const MAX_HEADERS: usize = 32;
 /// path does: a request with one goes to hyper (`connection: keep-alive` excepted).
 const HYPER_HEADERS: [&str; 6] = ["content-length", "transfer-encoding", "connection", "upgrade", "expect", "te"];
 
+/// The request headers the two handlers read ([`archive_answer`], [`tile_answer`]); the
+/// lean path keeps only these (others are checked, not copied).
+const READ_HEADERS: [HeaderName; 7] = [
+    axum::http::header::RANGE,
+    axum::http::header::IF_RANGE,
+    axum::http::header::IF_MATCH,
+    axum::http::header::IF_NONE_MATCH,
+    axum::http::header::IF_MODIFIED_SINCE,
+    axum::http::header::IF_UNMODIFIED_SINCE,
+    axum::http::header::ACCEPT_ENCODING,
+];
+
 /// How a connection left the lean path.
 pub(crate) enum Ended {
     /// Closed: by the client, the timeout, or shutdown.
@@ -227,18 +239,25 @@ fn parse(buf: &[u8], max_head: usize) -> Parsed<'_> {
     };
     let (Some(1), Some(path)) = (req.version, req.path) else { return Parsed::Hyper };
     let Some(route) = route(path) else { return Parsed::Hyper };
-    let mut headers = HeaderMap::with_capacity(req.headers.len());
+    let mut headers = HeaderMap::new();
     for h in req.headers.iter() {
         if HYPER_HEADERS.iter().any(|n| h.name.eq_ignore_ascii_case(n))
             && !(h.name.eq_ignore_ascii_case("connection") && h.value.eq_ignore_ascii_case(b"keep-alive"))
         {
             return Parsed::Hyper;
         }
-        let (Ok(name), Ok(value)) = (HeaderName::from_bytes(h.name.as_bytes()), HeaderValue::from_bytes(h.value))
-        else {
-            return Parsed::Hyper;
-        };
-        headers.append(name, value);
+        // `httparse` allows only token characters in names, as `HeaderName` does; values are
+        // checked as `HeaderValue` checks them, without copying the ones no handler reads.
+        match READ_HEADERS.iter().find(|n| h.name.eq_ignore_ascii_case(n.as_str())) {
+            Some(name) => match HeaderValue::from_bytes(h.value) {
+                Ok(value) => {
+                    headers.append(name.clone(), value);
+                }
+                Err(_) => return Parsed::Hyper,
+            },
+            None if !h.value.iter().all(|&b| (b >= b' ' && b != 0x7f) || b == b'\t') => return Parsed::Hyper,
+            None => {}
+        }
     }
     Parsed::Request(Request { len, method, path, route, headers })
 }
@@ -475,6 +494,27 @@ mod tests {
             }
         }
         assert!(taken > 1000 && refused > 1000, "{taken} taken, {refused} refused");
+    }
+
+    #[test]
+    fn only_the_headers_handlers_read_are_kept_and_every_value_is_checked() {
+        let request = b"GET /a.tspack HTTP/1.1\r\nHost: x\r\nUser-Agent: y\r\nRANGE: bytes=0-9\r\nX-Custom: \xff z\r\n\
+                        If-None-Match: \"e\"\r\nAccept-Encoding: zstd\r\nAccept-Encoding: gzip\r\n\r\n";
+        let Parsed::Request(r) = parse(request, 1024) else { panic!("not lean") };
+        let kept: Vec<(&str, &[u8])> = r.headers.iter().map(|(n, v)| (n.as_str(), v.as_bytes())).collect();
+        assert_eq!(
+            kept,
+            [
+                ("range", &b"bytes=0-9"[..]),
+                ("if-none-match", b"\"e\""),
+                ("accept-encoding", b"zstd"),
+                ("accept-encoding", b"gzip")
+            ]
+        );
+        // A control character in a header no handler reads still sends the request to hyper.
+        let mut bad = b"GET /a.tspack HTTP/1.1\r\nX-Custom: a".to_vec();
+        bad.extend_from_slice(b"\x01b\r\n\r\n");
+        assert!(!matches!(parse(&bad, 1024), Parsed::Request(_)));
     }
 
     #[test]
