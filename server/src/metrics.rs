@@ -3,6 +3,9 @@
 //! costs a few relaxed increments per request. The table is sharded: each thread counts in
 //! its own cache-line-aligned copy (summed when rendered), so serving threads never write
 //! to the same cache line.
+//!
+//! Also the open connections of each serving thread ([`Connections`]): counted when a
+//! connection is accepted and when it closes, and used to keep the threads even.
 
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
