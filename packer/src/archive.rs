@@ -2,7 +2,9 @@
 //! and says which bytes to fetch next. The blocking [`crate::Reader`], the async
 //! [`crate::AsyncReader`] and the client's HTTP reader are thin loops around it.
 
-use std::sync::{Arc, Mutex};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, PoisonError, RwLock};
 
 use bytes::Bytes;
 
@@ -70,8 +72,48 @@ pub struct Archive {
     root: Directory,
     depths: Vec<u8>,
     file_len: u64,
-    leaves: Mutex<Vec<(u64, Arc<Vec<Entry>>)>>,
+    leaves: RwLock<LeafCache>,
     leaf_cache_capacity: usize,
+}
+
+/// Decoded leaves, by their offset in the leaf section, evicted by CLOCK (second chance):
+/// a hit takes a shared lock and sets the leaf's bit, so readers on many threads never
+/// wait for each other; a miss sweeps the hand past leaves used since its last turn.
+#[derive(Debug, Default)]
+struct LeafCache {
+    slots: Vec<(u64, Arc<Vec<Entry>>, AtomicBool)>,
+    by_offset: HashMap<u64, usize>,
+    hand: usize,
+}
+
+impl LeafCache {
+    /// Runs `f` on the leaf at `offset`, if cached.
+    fn with<R>(&self, offset: u64, f: impl FnOnce(&[Entry]) -> R) -> Option<R> {
+        let (_, entries, used) = &self.slots[*self.by_offset.get(&offset)?];
+        used.store(true, Ordering::Relaxed);
+        Some(f(entries))
+    }
+
+    /// Keeps `entries` as the leaf at `offset`, within `capacity` leaves.
+    fn insert(&mut self, offset: u64, entries: Arc<Vec<Entry>>, capacity: usize) {
+        if self.by_offset.contains_key(&offset) {
+            return;
+        }
+        if self.slots.len() < capacity {
+            self.by_offset.insert(offset, self.slots.len());
+            self.slots.push((offset, entries, AtomicBool::new(false)));
+            return;
+        }
+        // At most one full turn clears every bit; the next slot is then the victim.
+        while self.slots[self.hand].2.swap(false, Ordering::Relaxed) {
+            self.hand = (self.hand + 1) % self.slots.len();
+        }
+        let victim = self.hand;
+        self.by_offset.remove(&self.slots[victim].0);
+        self.by_offset.insert(offset, victim);
+        self.slots[victim] = (offset, entries, AtomicBool::new(false));
+        self.hand = (victim + 1) % self.slots.len();
+    }
 }
 
 impl Archive {
@@ -117,7 +159,7 @@ impl Archive {
             root,
             depths,
             file_len,
-            leaves: Mutex::new(Vec::new()),
+            leaves: RwLock::new(LeafCache::default()),
             leaf_cache_capacity: DEFAULT_LEAF_CACHE,
         })))
     }
@@ -166,26 +208,22 @@ impl Archive {
     /// [`Error::InvalidTile`] for a tile outside its layer's grid.
     pub fn locate(&self, tile: TileKey) -> Result<Locate> {
         let key = self.key_of(tile)?;
-        let entries = match &self.root {
-            Directory::Tiles(entries) => {
-                return Ok(self.found(tile, Directory::find_tile(entries, key)));
-            }
+        match &self.root {
+            Directory::Tiles(entries) => Ok(self.found(tile, Directory::find_tile(entries, key))),
             Directory::Leaves(leaves) => {
                 let Some(leaf) = Directory::find_leaf(leaves, key) else {
                     return Ok(Locate::Missing);
                 };
-                match self.cached_leaf(leaf.offset) {
-                    Some(entries) => entries,
-                    None => {
-                        return Ok(Locate::NeedLeaf {
-                            offset: self.header.leaf_dirs.offset + leaf.offset,
-                            len: u64::from(leaf.length),
-                        });
-                    }
+                let cache = self.leaves.read().unwrap_or_else(PoisonError::into_inner);
+                match cache.with(leaf.offset, |entries| Directory::find_tile(entries, key)) {
+                    Some(entry) => Ok(self.found(tile, entry)),
+                    None => Ok(Locate::NeedLeaf {
+                        offset: self.header.leaf_dirs.offset + leaf.offset,
+                        len: u64::from(leaf.length),
+                    }),
                 }
             }
-        };
-        Ok(self.found(tile, Directory::find_tile(&entries, key)))
+        }
     }
 
     fn found(&self, tile: TileKey, entry: Option<Entry>) -> Locate {
@@ -195,16 +233,6 @@ impl Archive {
             }
             None => Locate::Missing,
         }
-    }
-
-    fn cached_leaf(&self, leaf_offset: u64) -> Option<Arc<Vec<Entry>>> {
-        let mut cache = self.leaves.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        let i = cache.iter().position(|(o, _)| *o == leaf_offset)?;
-        // Move to the back: most recently used.
-        let hit = cache.remove(i);
-        let entries = Arc::clone(&hit.1);
-        cache.push(hit);
-        Some(entries)
     }
 
     /// The leaf pointer whose stored bytes start at absolute `offset`.
@@ -225,13 +253,8 @@ impl Archive {
         let section = format!("leaf directory at offset {offset}");
         let leaf = self.leaf_at(offset).ok_or_else(|| Error::corrupt(&section, "no root entry points here"))?;
         let entries = self.decode_leaf(leaf, bytes)?;
-        let mut cache = self.leaves.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        if !cache.iter().any(|(o, _)| *o == leaf.offset) {
-            if cache.len() >= self.leaf_cache_capacity {
-                cache.remove(0);
-            }
-            cache.push((leaf.offset, Arc::clone(&entries)));
-        }
+        let mut cache = self.leaves.write().unwrap_or_else(PoisonError::into_inner);
+        cache.insert(leaf.offset, Arc::clone(&entries), self.leaf_cache_capacity);
         Ok(entries)
     }
 
@@ -303,4 +326,50 @@ fn check_crc(bytes: &[u8], stored: u32, section: &str) -> Result<()> {
         return Err(Error::SectionChecksum { section: section.to_owned(), stored, computed });
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn leaf(first_key: u64) -> Arc<Vec<Entry>> {
+        Arc::new(vec![Entry { key: first_key, offset: 0, length: 1, run_length: 1 }])
+    }
+
+    fn cached(cache: &LeafCache) -> Vec<u64> {
+        let mut offsets: Vec<u64> = cache.slots.iter().map(|s| s.0).collect();
+        offsets.sort_unstable();
+        offsets
+    }
+
+    /// CLOCK keeps the leaves used since the hand last passed and evicts the others, in
+    /// the hand's order; it never holds more than its capacity, nor a leaf twice.
+    #[test]
+    fn the_leaf_cache_evicts_leaves_not_used_since_the_hand_passed() {
+        let mut cache = LeafCache::default();
+        for offset in [10, 20, 30] {
+            cache.insert(offset, leaf(offset), 3);
+        }
+        cache.insert(20, leaf(20), 3);
+        assert_eq!(cached(&cache), [10, 20, 30]);
+        assert_eq!(cache.with(20, |e| e[0].key), Some(20));
+        assert_eq!(cache.with(40, |e| e[0].key), None);
+        // 20 was used: 10, the first unused one from the hand, goes.
+        cache.insert(40, leaf(40), 3);
+        assert_eq!(cached(&cache), [20, 30, 40]);
+        // The hand moved past 10's slot: 20's bit is cleared on this turn, 30 goes.
+        cache.insert(50, leaf(50), 3);
+        assert_eq!(cached(&cache), [20, 40, 50]);
+        // Every leaf used: a full turn clears them all and the hand's next one goes.
+        for offset in [20, 40, 50] {
+            cache.with(offset, |_| ());
+        }
+        cache.insert(60, leaf(60), 3);
+        assert_eq!(cache.slots.len(), 3);
+        assert_eq!(cache.by_offset.len(), 3);
+        assert!(cache.with(60, |_| ()).is_some());
+        for (i, (offset, ..)) in cache.slots.iter().enumerate() {
+            assert_eq!(cache.by_offset[offset], i);
+        }
+    }
 }

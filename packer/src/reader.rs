@@ -39,6 +39,12 @@ impl<S: RangeSource> Reader<S> {
         Ok(Self { source, archive })
     }
 
+    /// Sets how many decoded leaf directories are kept (at least 1; by default
+    /// [`crate::DEFAULT_LEAF_CACHE`]).
+    pub fn set_leaf_cache_capacity(&mut self, capacity: usize) {
+        self.archive.set_leaf_cache_capacity(capacity);
+    }
+
     /// The parsed archive core.
     pub fn archive(&self) -> &Archive {
         &self.archive

@@ -129,6 +129,10 @@ proptest! {
         check_all_tiles(&case, &Reader::new(FileSource::open(&path).unwrap()).unwrap());
         let mmap = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
         check_all_tiles(&case, &mmap);
+        // One leaf kept: every other lookup evicts it.
+        let mut one_leaf = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
+        one_leaf.set_leaf_cache_capacity(1);
+        check_all_tiles(&case, &one_leaf);
 
         let report = verify(&mmap, |_| {}).unwrap();
         prop_assert!(report.is_ok(), "{:?}", report.problems);

@@ -66,7 +66,7 @@ impl AppState {
     /// State for a configuration; call `catalog.reload()` to load the archives.
     pub fn new(config: ServerConfig) -> Self {
         Self(Arc::new(AppInner {
-            catalog: Arc::new(Catalog::new(config.paths.clone())),
+            catalog: Arc::new(Catalog::new(config.paths.clone()).with_leaf_cache(config.leaf_cache)),
             metrics: Arc::new(Metrics::default()),
             cache_control: HeaderValue::from_str(&config.cache_control)
                 .unwrap_or_else(|_| HeaderValue::from_static("no-cache")),

@@ -123,16 +123,24 @@ fn identity(meta: &std::fs::Metadata) -> FileIdentity {
 }
 
 /// The served archives by name.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct Catalog {
     roots: Vec<PathBuf>,
     archives: RwLock<BTreeMap<String, Arc<Served>>>,
+    leaf_cache: usize,
 }
 
 impl Catalog {
     /// A catalog of the given files and folders (scanned by [`Catalog::reload`]).
     pub fn new(roots: Vec<PathBuf>) -> Self {
-        Self { roots, archives: RwLock::new(BTreeMap::new()) }
+        Self { roots, archives: RwLock::new(BTreeMap::new()), leaf_cache: terrastream_packer::DEFAULT_LEAF_CACHE }
+    }
+
+    /// Keeps up to `leaves` decoded leaf directories per archive opened from now on.
+    #[must_use]
+    pub fn with_leaf_cache(mut self, leaves: usize) -> Self {
+        self.leaf_cache = leaves;
+        self
     }
 
     /// The current version of an archive.
@@ -191,7 +199,7 @@ impl Catalog {
                 next.insert(name, Arc::clone(old));
                 continue;
             }
-            match open(&name, &path, &meta, id) {
+            match open(&name, &path, &meta, id, self.leaf_cache) {
                 Ok(served) => {
                     tracing::info!(archive = %name, etag = %served.etag, "serving {}", path.display());
                     next.insert(name, Arc::new(served));
@@ -225,8 +233,10 @@ fn open(
     path: &Path,
     meta: &std::fs::Metadata,
     id: FileIdentity,
+    leaf_cache: usize,
 ) -> Result<Served, terrastream_packer::Error> {
-    let reader = Reader::new(MmapSource::open(path)?)?;
+    let mut reader = Reader::new(MmapSource::open(path)?)?;
+    reader.set_leaf_cache_capacity(leaf_cache);
     let registration =
         reader.source().file().and_then(|file| crate::sendfile::register(reader.source().bytes(), Arc::clone(file)));
     let mut tag = Vec::with_capacity(160);
