@@ -34,7 +34,20 @@ impl<'a> Cursor<'a> {
     ///
     /// # Errors
     /// [`Error::Corrupt`] on truncation or overflow.
+    #[inline]
     pub fn varint(&mut self) -> Result<u64> {
+        // Most directory varints are one byte (runs of 1, offsets that follow the previous
+        // blob, small key steps).
+        match self.bytes.get(self.pos) {
+            Some(&byte) if byte < 0x80 => {
+                self.pos += 1;
+                Ok(u64::from(byte))
+            }
+            _ => self.varint_long(),
+        }
+    }
+
+    fn varint_long(&mut self) -> Result<u64> {
         let mut value: u64 = 0;
         for shift in (0..64).step_by(7) {
             let Some(&byte) = self.bytes.get(self.pos) else {
