@@ -74,6 +74,10 @@ pub struct Archive {
     file_len: u64,
     leaves: RwLock<LeafCache>,
     leaf_cache_capacity: usize,
+    /// Offsets of the root's leaf pointers, sorted, with each one's index (FORMAT.md orders
+    /// leaves by key, not by offset): a fetched leaf is found by its offset in a bisection,
+    /// not a scan of every pointer (thousands in a planet's archive).
+    leaf_offsets: Vec<(u64, usize)>,
 }
 
 /// Decoded leaves, by their offset in the leaf section, evicted by CLOCK (second chance):
@@ -153,6 +157,11 @@ impl Archive {
             header.leaf_dirs.len,
         )?;
         let depths = metadata.depths();
+        let mut leaf_offsets = match &root {
+            Directory::Leaves(leaves) => leaves.iter().enumerate().map(|(i, l)| (l.offset, i)).collect(),
+            Directory::Tiles(_) => Vec::new(),
+        };
+        leaf_offsets.sort_unstable();
         Ok(Bootstrap::Ready(Box::new(Self {
             header,
             metadata,
@@ -161,6 +170,7 @@ impl Archive {
             file_len,
             leaves: RwLock::new(LeafCache::default()),
             leaf_cache_capacity: DEFAULT_LEAF_CACHE,
+            leaf_offsets,
         })))
     }
 
@@ -241,8 +251,9 @@ impl Archive {
             return None;
         };
         let relative = offset.checked_sub(self.header.leaf_dirs.offset)?;
-        // FORMAT.md orders leaves by key, not by offset: search, don't bisect. Only on a miss.
-        leaves.iter().find(|l| l.offset == relative).copied()
+        let at = self.leaf_offsets.partition_point(|&(o, _)| o < relative);
+        let &(found, index) = self.leaf_offsets.get(at)?;
+        (found == relative).then(|| leaves[index])
     }
 
     /// Checks, decodes and caches a leaf fetched after [`Locate::NeedLeaf`].
