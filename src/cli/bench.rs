@@ -37,6 +37,9 @@ pub struct ArchiveBench {
     /// Working folder (a temporary one by default).
     #[arg(long)]
     dir: Option<PathBuf>,
+    /// Only pack (no copy baselines): to make a large archive for other benchmarks.
+    #[arg(long)]
+    no_copies: bool,
 }
 
 pub fn run(cmd: BenchCommand, progress: &super::CliProgress) -> Result<ExitCode> {
@@ -169,12 +172,15 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
     for f in files_under(&input)? {
         std::fs::read(f)?;
     }
-    let t = Instant::now();
-    copy_tree(&input, &root.join("copy"), false)?;
-    let copy = t.elapsed();
-    let t = Instant::now();
-    copy_tree(&input, &root.join("copy-durable"), true)?;
-    let durable_copy = t.elapsed();
+    let (mut copy, mut durable_copy) = (Duration::ZERO, Duration::ZERO);
+    if !args.no_copies {
+        let t = Instant::now();
+        copy_tree(&input, &root.join("copy"), false)?;
+        copy = t.elapsed();
+        let t = Instant::now();
+        copy_tree(&input, &root.join("copy-durable"), true)?;
+        durable_copy = t.elapsed();
+    }
 
     let t = Instant::now();
     let scanned = scan_original(&input, &OriginalLayout::default())?;
@@ -191,15 +197,19 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
             d.as_secs_f64()
         );
     };
-    line("recursive copy (page cache only)", copy);
-    line("recursive copy, each file fsynced", durable_copy);
+    if !args.no_copies {
+        line("recursive copy (page cache only)", copy);
+        line("recursive copy, each file fsynced", durable_copy);
+    }
     line("terrastream pack (output fsynced)", packed);
-    let ratio = |d: Duration| packed.as_secs_f64() / d.as_secs_f64().max(1e-9);
-    println!(
-        "  pack / copy time                  : {:.2}x (cache only), {:.2}x (durable)",
-        ratio(copy),
-        ratio(durable_copy)
-    );
+    if !args.no_copies {
+        let ratio = |d: Duration| packed.as_secs_f64() / d.as_secs_f64().max(1e-9);
+        println!(
+            "  pack / copy time                  : {:.2}x (cache only), {:.2}x (durable)",
+            ratio(copy),
+            ratio(durable_copy)
+        );
+    }
 
     let reader = Reader::new(MmapSource::open(&out)?)?;
     let mut keys = Vec::new();
