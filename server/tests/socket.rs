@@ -326,7 +326,8 @@ async fn worker_threads_share_one_port_reload_and_stop_together() {
     // Every thread's connections are counted, and the 48 closed ones no longer.
     let client = reqwest::Client::new();
     let (mut metrics, mut open) = (String::new(), 0);
-    for _ in 0..100 {
+    // Up to 5 s for the clients' pools to close their sockets.
+    for _ in 0..250 {
         metrics = client.get(format!("http://{addr}/metrics")).send().await.unwrap().text().await.unwrap();
         open = metrics
             .lines()
