@@ -32,10 +32,8 @@ pub fn decompress(bytes: &[u8], compression: Compression, limit: u64, section: &
 /// [`Error::Decompress`] if the frame is invalid, truncated or inflates past `limit`.
 pub fn zstd_decompress(bytes: &[u8], limit: u64, section: &str) -> Result<Vec<u8>> {
     #[cfg(feature = "write")]
-    match zstd_native(bytes, limit) {
-        Some(Ok(out)) => return Ok(out),
-        Some(Err(reason)) => return Err(Error::Decompress { section: section.into(), reason }),
-        None => {}
+    if let Some(out) = zstd_native(bytes, limit) {
+        return Ok(out);
     }
     zstd_pure(bytes, limit, section)
 }
@@ -54,21 +52,19 @@ fn zstd_pure(bytes: &[u8], limit: u64, section: &str) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// Decodes a frame that states its size (every frame the writer makes) with libzstd, about
-/// twice as fast as the pure-Rust decoder, with a context kept per thread. `None`: left to
-/// the pure-Rust decoder, which then decides (a frame without a size, several frames,
-/// bytes libzstd refuses), so what is accepted does not depend on the build.
+/// Decodes a frame that states its size (every frame the writer makes), within `limit`,
+/// with libzstd, about twice as fast as the pure-Rust decoder, with a context kept per
+/// thread. `None`: left to the pure-Rust decoder, which then decides (a frame without a
+/// size or over the limit, several frames, bytes libzstd refuses), so what is accepted,
+/// and every error, does not depend on the build.
 #[cfg(feature = "write")]
-fn zstd_native(bytes: &[u8], limit: u64) -> Option<std::result::Result<Vec<u8>, String>> {
+fn zstd_native(bytes: &[u8], limit: u64) -> Option<Vec<u8>> {
     use std::cell::RefCell;
     thread_local! {
         static CONTEXT: RefCell<Option<zstd::bulk::Decompressor<'static>>> = const { RefCell::new(None) };
     }
     let size = zstd::zstd_safe::get_frame_content_size(bytes).ok()??;
-    if size > limit {
-        return Some(Err(format!("inflates past {limit} bytes")));
-    }
-    let capacity = usize::try_from(size).ok()?;
+    let capacity = usize::try_from(size).ok().filter(|_| size <= limit)?;
     CONTEXT.with(|context| {
         let mut context = context.borrow_mut();
         let decompressor = match &mut *context {
@@ -76,7 +72,7 @@ fn zstd_native(bytes: &[u8], limit: u64) -> Option<std::result::Result<Vec<u8>, 
             slot => slot.insert(zstd::bulk::Decompressor::new().ok()?),
         };
         // Exactly the stated size, or the pure-Rust decoder has its say.
-        decompressor.decompress(bytes, capacity).ok().filter(|out| out.len() == capacity).map(Ok)
+        decompressor.decompress(bytes, capacity).ok().filter(|out| out.len() == capacity)
     })
 }
 
@@ -133,7 +129,7 @@ mod tests {
         }
         assert!(zstd::zstd_safe::get_frame_content_size(&sizeless).unwrap().is_none());
         // The writer's frames go to libzstd, the others to the pure-Rust decoder.
-        assert_eq!(zstd_native(&sized, 50_000), Some(Ok(data.clone())));
+        assert_eq!(zstd_native(&sized, 50_000), Some(data.clone()));
         assert_eq!(zstd_native(&sizeless, 50_000), None);
         let mut trailing = sized.clone();
         trailing.extend_from_slice(b"junk");
