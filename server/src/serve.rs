@@ -80,7 +80,7 @@ pub fn serve_workers(
     state.metrics.watch_connections(Arc::clone(&connections));
     let (inboxes, mut receivers): (Vec<_>, Vec<_>) = sockets.iter().map(|_| mpsc::unbounded_channel()).unzip();
     let inboxes: Arc<[Inbox]> = inboxes.into();
-    let listeners = sockets.iter().map(probe).collect::<std::io::Result<Arc<[_]>>>()?;
+    let listeners = sockets.iter().map(Probe::new).collect::<std::io::Result<Arc<[_]>>>()?;
     let (stop, stopped) = watch::channel(false);
     let (listening, listened) = std::sync::mpsc::channel::<std::io::Result<()>>();
     let threads = sockets
@@ -166,46 +166,52 @@ fn bind_sockets(addr: SocketAddr, workers: usize) -> std::io::Result<(Vec<TcpSoc
     drop(probe);
     let reuse_port = cfg!(all(unix, not(any(target_os = "solaris", target_os = "illumos", target_os = "cygwin"))));
     let count = if reuse_port { workers.max(1) } else { 1 };
-    let cpus = allowed_cpus();
     let sockets = (0..count)
-        .map(|i| {
+        .map(|_| {
             let s = new_socket(local)?;
             s.set_reuseaddr(true)?;
             #[cfg(all(unix, not(any(target_os = "solaris", target_os = "illumos", target_os = "cygwin"))))]
             s.set_reuseport(true)?;
-            #[cfg(target_os = "linux")]
-            if count > 1 && !cpus.is_empty() {
-                // A preference only: without it (older kernels) the kernel spreads by hash.
-                if let Err(err) = rustix::net::sockopt::set_socket_incoming_cpu(&s, cpus[i % cpus.len()]) {
-                    tracing::debug!("SO_INCOMING_CPU: {err}");
-                }
-            }
-            s.bind(local)?;
             Ok(s)
         })
         .collect::<std::io::Result<Vec<_>>>()
         .map_err(named)?;
+    #[cfg(target_os = "linux")]
+    if count > 1 {
+        prefer_cpus(&sockets);
+    }
+    for s in &sockets {
+        s.bind(local).map_err(named)?;
+    }
     Ok((sockets, local))
 }
 
-/// The CPUs this process may run on, in order (none where that cannot be known).
-fn allowed_cpus() -> Vec<u32> {
-    #[cfg(target_os = "linux")]
-    if let Ok(set) = rustix::thread::sched_getaffinity(None) {
-        return (0..rustix::thread::CpuSet::MAX_CPU)
-            .filter(|&c| set.is_set(c))
-            .filter_map(|c| u32::try_from(c).ok())
-            .collect();
+/// Socket *i* asks for the connections received on the *i*-th CPU this process may run on
+/// (`SO_INCOMING_CPU`). A preference only: without it (older kernels, an unknown CPU set)
+/// the kernel spreads connections by hash.
+#[cfg(target_os = "linux")]
+fn prefer_cpus(sockets: &[TcpSocket]) {
+    let Ok(set) = rustix::thread::sched_getaffinity(None) else { return };
+    let cpus = (0..rustix::thread::CpuSet::MAX_CPU).filter(|&c| set.is_set(c)).filter_map(|c| u32::try_from(c).ok());
+    for (socket, cpu) in sockets.iter().zip(cpus.cycle()) {
+        if let Err(err) = rustix::net::sockopt::set_socket_incoming_cpu(socket, cpu) {
+            tracing::debug!("SO_INCOMING_CPU: {err}");
+        }
     }
-    Vec::new()
 }
 
-/// A connection one thread accepted and hands to another, with its place in the count.
+/// What a connection holds until it closes: its slot under the connection cap and its
+/// place in its thread's count.
+struct Held {
+    _permit: OwnedSemaphorePermit,
+    _seat: Seat,
+}
+
+/// A connection one thread accepted and hands to another.
 struct Handed {
     stream: std::net::TcpStream,
     peer: SocketAddr,
-    permit: OwnedSemaphorePermit,
-    seat: Seat,
+    held: Held,
 }
 
 /// Where a thread sends the connections it hands to another.
@@ -222,30 +228,29 @@ struct Place {
     listeners: Arc<[Probe]>,
 }
 
-/// A listening socket, seen from another thread.
-#[cfg(unix)]
-type Probe = std::os::fd::OwnedFd;
-#[cfg(not(unix))]
-type Probe = ();
+/// A listening socket, seen from another thread: whether connections wait in its accept
+/// queue (Linux; elsewhere never).
+struct Probe(#[cfg(target_os = "linux")] std::os::fd::OwnedFd);
 
-fn probe(socket: &TcpSocket) -> std::io::Result<Probe> {
-    #[cfg(unix)]
-    return std::os::fd::AsFd::as_fd(socket).try_clone_to_owned();
-    #[cfg(not(unix))]
-    Ok(())
-}
-
-/// Whether connections wait in `listener`'s accept queue.
-fn waiting(listener: &Probe) -> bool {
-    #[cfg(target_os = "linux")]
-    {
-        use rustix::event::{PollFd, PollFlags, Timespec, poll};
-        let mut fds = [PollFd::new(listener, PollFlags::IN)];
-        matches!(poll(&mut fds, Some(&Timespec { tv_sec: 0, tv_nsec: 0 })), Ok(n) if n > 0)
+impl Probe {
+    fn new(socket: &TcpSocket) -> std::io::Result<Self> {
+        #[cfg(target_os = "linux")]
+        return Ok(Self(std::os::fd::AsFd::as_fd(socket).try_clone_to_owned()?));
+        #[cfg(not(target_os = "linux"))]
+        {
+            let _ = socket;
+            Ok(Self())
+        }
     }
-    #[cfg(not(target_os = "linux"))]
-    {
-        let _ = listener;
+
+    fn waiting(&self) -> bool {
+        #[cfg(target_os = "linux")]
+        {
+            use rustix::event::{PollFd, PollFlags, Timespec, poll};
+            let mut fds = [PollFd::new(&self.0, PollFlags::IN)];
+            matches!(poll(&mut fds, Some(&Timespec { tv_sec: 0, tv_nsec: 0 })), Ok(n) if n > 0)
+        }
+        #[cfg(not(target_os = "linux"))]
         false
     }
 }
@@ -302,14 +307,14 @@ impl Shared {
 async fn accept_loop(
     listener: TcpListener,
     shared: Shared,
-    mut place: Place,
+    place: Place,
     shutdown: impl Future<Output = ()>,
 ) -> std::io::Result<()> {
+    let Place { thread, connections, inboxes, mut inbox, listeners } = place;
     let graceful = GracefulShutdown::new();
     // Tells connections on the lean path to close once idle (hyper's learn it from `graceful`).
     let (closing, closed) = watch::channel(false);
     let mut shutdown = std::pin::pin!(shutdown);
-    let mut inbox = place.inbox.take();
     loop {
         let handed = async {
             match inbox.as_mut() {
@@ -321,7 +326,7 @@ async fn accept_loop(
             biased;
             () = &mut shutdown => break,
             Some(handed) = handed => match TcpStream::from_std(handed.stream) {
-                Ok(stream) => spawn_connection(&shared, &graceful, &closed, stream, handed.peer, (handed.permit, handed.seat)),
+                Ok(stream) => spawn_connection(&shared, &graceful, &closed, stream, handed.peer, handed.held),
                 Err(err) => tracing::debug!(peer = %handed.peer, "handed connection lost: {err}"),
             },
             accepted = accept(&listener, &shared.slots) => {
@@ -335,13 +340,14 @@ async fn accept_loop(
                     }
                 };
                 let _ = stream.set_nodelay(true);
-                let seat = place.connections.seat(place.thread, |t| place.listeners.get(t).is_some_and(waiting));
+                let seat = connections.seat(thread, |t| listeners.get(t).is_some_and(Probe::waiting));
                 let to = seat.thread();
-                if to == place.thread {
-                    spawn_connection(&shared, &graceful, &closed, stream, peer, (permit, seat));
+                let held = Held { _permit: permit, _seat: seat };
+                if to == thread {
+                    spawn_connection(&shared, &graceful, &closed, stream, peer, held);
                 } else if let Ok(stream) = stream.into_std() {
                     // A thread that has stopped drops it: the server is shutting down.
-                    let _ = place.inboxes[to].send(Handed { stream, peer, permit, seat });
+                    let _ = inboxes[to].send(Handed { stream, peer, held });
                 }
             }
         }
@@ -374,7 +380,7 @@ fn spawn_connection(
     closed: &watch::Receiver<bool>,
     stream: TcpStream,
     peer: SocketAddr,
-    held: (OwnedSemaphorePermit, Seat),
+    held: Held,
 ) {
     let (watcher, closed) = (graceful.watcher(), closed.clone());
     let (service, builder, tls) = (shared.service.clone(), shared.builder.clone(), shared.tls.clone());
@@ -504,7 +510,7 @@ mod tests {
             })
             .collect();
         let addr = sockets[0].local_addr().unwrap();
-        let listeners: Arc<[Probe]> = sockets.iter().map(probe).collect::<std::io::Result<_>>().unwrap();
+        let listeners: Arc<[Probe]> = sockets.iter().map(Probe::new).collect::<std::io::Result<_>>().unwrap();
         let (inboxes, receivers): (Vec<_>, Vec<_>) = (0..2).map(|_| mpsc::unbounded_channel()).unzip();
         let inboxes: Arc<[Inbox]> = inboxes.into();
         let (stop, stopped) = watch::channel(false);
