@@ -145,8 +145,9 @@ fn column_distance(p: vec2<f32>) -> f32 {
 // The height drawn at p: a continuous mix of two elevation LODs chosen by distance (a
 // function of position only, so neighbouring patches agree on every shared vertex).
 fn terrain_height(p: vec2<f32>) -> f32 {
+    // No elevation layer: flat, at the height the renderer chose (terrain.x = terrain.y).
     if G.counts.x == 0u {
-        return 0.0;
+        return G.terrain.x;
     }
     let d = column_distance(p);
     let top = f32(G.counts.x - 1u);

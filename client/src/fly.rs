@@ -1,12 +1,30 @@
-//! Framing a dataset and flying over it: the camera model shared by the native viewer
-//! and the webplayer, so both fly the same way.
+//! Framing a dataset and flying over it: the one camera model of every front end. The
+//! headless `render`, the native viewer and the webplayer all start from
+//! [`start_camera`]; the viewers fly on with [`FlyCamera`]; and every frame's camera gets
+//! clip planes that enclose the whole terrain ([`Camera::enclosing`], applied by the
+//! render session), so that none of them can cull what another draws (a continent is
+//! 10^7 m across: a fixed far plane of a hundred kilometres once left the viewers with
+//! nothing to draw).
 
-use glam::DVec3;
+use glam::{DMat4, DVec3};
 use terrastream_packer::{Layer, LayerKind, Metadata};
 
-use crate::stream::camera::Camera;
+use crate::stream::camera::{Aabb, Camera};
 
-/// The terrain's extent (x, z) in world units and its height range.
+/// The heights the terrain is drawn between: the metadata's range where an elevation
+/// layer gives heights, else the flat height a texture-only archive is drawn at (the
+/// metadata's minimum elevation, else 0) for both.
+pub fn drawn_heights(metadata: &Metadata) -> (f64, f64) {
+    let (lo, hi) = metadata.terrain.height_range();
+    if metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation) {
+        (lo, hi)
+    } else {
+        let flat = if lo.is_finite() { lo } else { 0.0 };
+        (flat, flat)
+    }
+}
+
+/// The terrain's extent (x, z) in world units and the heights it is drawn between.
 pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
     let layer = metadata
         .layers
@@ -14,17 +32,82 @@ pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
         .find(|l| l.kind == LayerKind::Elevation)
         .or_else(|| metadata.layers.iter().find(|l| l.kind == LayerKind::Texture))
         .or(metadata.layers.first());
-    (layer.map_or((1.0, 1.0), Layer::world_extent), metadata.terrain.height_range())
+    (layer.map_or((1.0, 1.0), Layer::world_extent), drawn_heights(metadata))
 }
 
-/// An oblique view from the south framing the whole dataset.
-pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
+/// The box the terrain is drawn in.
+pub fn terrain_box(metadata: &Metadata) -> Aabb {
     let ((ex, ez), (lo, hi)) = terrain_bounds(metadata);
-    let centre = DVec3::new(ex / 2.0, (lo + hi) / 2.0, ez / 2.0);
-    let distance = ex.max(ez) * 1.1;
-    let pitch = 40f64.to_radians();
-    let eye = centre + DVec3::new(0.0, distance * pitch.sin(), distance * pitch.cos());
-    Camera::look_at(eye, centre, width, height)
+    Aabb { min: DVec3::new(0.0, lo, 0.0), max: DVec3::new(ex, hi, ez) }
+}
+
+/// Pitch of the default view, below the horizon.
+const DEFAULT_PITCH_DEGREES: f64 = 40.0;
+/// Share of the frame's half-width and half-height the default view may fill.
+const FRAME_FILL: f64 = 0.92;
+
+/// An oblique view from the south framing the whole dataset: as close as it can be while
+/// every corner of the terrain's box stays inside [`FRAME_FILL`] of the frame.
+pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
+    let terrain = terrain_box(metadata);
+    let centre = (terrain.min + terrain.max) * 0.5;
+    let pitch = DEFAULT_PITCH_DEGREES.to_radians();
+    let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
+    let at = |distance: f64| Camera::look_at(centre + back * distance, centre, width, height).enclosing(&terrain);
+    let fits = |camera: &Camera| {
+        let clip = camera.projection() * camera.view();
+        corners(&terrain).iter().all(|&corner| {
+            let p = clip * corner.extend(1.0);
+            p.w > 0.0 && (p.x / p.w).abs() <= FRAME_FILL && (p.y / p.w).abs() <= FRAME_FILL
+        })
+    };
+    let size = (terrain.max - terrain.min).length().max(1.0);
+    // Far enough to fit for sure, then bisect towards the closest distance that fits.
+    let (mut near, mut far) = (size * 1e-3, size * 4.0);
+    while !fits(&at(far)) && far < size * 1e4 {
+        far *= 2.0;
+    }
+    for _ in 0..48 {
+        let mid = (near + far) * 0.5;
+        if fits(&at(mid)) { far = mid } else { near = mid }
+    }
+    at(far)
+}
+
+/// Where every front end starts: the eye and target asked for, else [`default_camera`].
+pub fn start_camera(metadata: &Metadata, start: Option<(DVec3, DVec3)>, width: u32, height: u32) -> Camera {
+    match start {
+        Some((eye, target)) => Camera::look_at(eye, target, width, height).enclosing(&terrain_box(metadata)),
+        None => default_camera(metadata, width, height),
+    }
+}
+
+fn corners(b: &Aabb) -> [DVec3; 8] {
+    let (lo, hi) = (b.min, b.max);
+    [0, 1, 2, 3, 4, 5, 6, 7].map(|i| {
+        DVec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    })
+}
+
+impl Camera {
+    /// This camera with near and far planes that enclose `terrain` wherever the eye is:
+    /// far beyond its farthest corner, near a tenth of the way to its closest point.
+    #[must_use]
+    pub fn enclosing(mut self, terrain: &Aabb) -> Self {
+        let farthest = corners(terrain).iter().map(|c| c.distance(self.position)).fold(0.0, f64::max);
+        self.near = (terrain.distance(self.position) * 0.1).max(0.05);
+        self.far = (farthest * 1.05 + 1.0).max(self.near * 2.0);
+        self
+    }
+
+    /// World-to-clip matrix.
+    pub fn view_projection(&self) -> DMat4 {
+        self.projection() * self.view()
+    }
 }
 
 /// Which way the flyer is asked to move this frame: each component in -1..=1
@@ -69,12 +152,10 @@ impl FlyCamera {
         DVec3::new(self.pitch.cos() * self.yaw.sin(), self.pitch.sin(), -self.pitch.cos() * self.yaw.cos())
     }
 
-    /// The camera for a `width` x `height` viewport. The near plane follows the eye's
-    /// height, which keeps depth precise low and high.
+    /// The camera for a `width` x `height` viewport (a render session fits its clip
+    /// planes to the terrain: [`Camera::enclosing`]).
     pub fn camera(&self, width: u32, height: u32) -> Camera {
-        let mut c = Camera::look_at(self.eye, self.eye + self.forward() * 100.0, width, height);
-        c.near = (self.eye.y.abs() * 1e-3).clamp(0.05, 50.0);
-        c
+        Camera::look_at(self.eye, self.eye + self.forward() * 100.0, width, height)
     }
 
     /// Turns the view by a pointer drag of (`dx`, `dy`) pixels.
@@ -113,6 +194,75 @@ mod tests {
         let fly = FlyCamera::from_camera(&c);
         assert!((fly.forward() - c.direction()).length() < 1e-9);
         assert!((fly.camera(64, 64).direction() - c.direction()).length() < 1e-9);
+    }
+
+    fn continent() -> Metadata {
+        let layer = Layer {
+            name: "elevation".into(),
+            kind: LayerKind::Elevation,
+            format: terrastream_packer::TileFormat::RawU16,
+            compression: terrastream_packer::PayloadCompression::Zstd,
+            tile_resolution: 256,
+            border: 1,
+            num_x_tiles: 40,
+            num_y_tiles: 24,
+            num_lods: 7,
+            tile_world_size: 250_000.0, // 10 000 km x 6 000 km
+            elevation: None,
+        };
+        let mut m = Metadata::new("continent", vec![layer]);
+        m.terrain.min_elevation = -100.0;
+        m.terrain.max_elevation = 5000.0;
+        m
+    }
+
+    #[test]
+    fn every_front_end_camera_sees_the_whole_continent() {
+        let m = continent();
+        let terrain = terrain_box(&m);
+        let start = start_camera(&m, None, 1280, 720);
+        // The flyer's camera (view, webplayer) and the still's (render) are one camera.
+        let flown = FlyCamera::from_camera(&start).camera(1280, 720).enclosing(&terrain);
+        assert!((flown.position - start.position).length() < 1e-6 && (flown.far - start.far).abs() < 1e-3);
+        for camera in [start, flown] {
+            let farthest = corners(&terrain).iter().map(|c| c.distance(camera.position)).fold(0.0, f64::max);
+            assert!(camera.far > farthest, "far {} < farthest corner {farthest}", camera.far);
+            assert!(camera.frustum().intersects(&terrain));
+        }
+        // Low over one corner, looking across: the far side is still inside the far plane.
+        let low = FlyCamera { eye: DVec3::new(10.0, 300.0, 10.0), yaw: 2.3, pitch: -0.05, speed: 1.0 };
+        let camera = low.camera(1280, 720).enclosing(&terrain);
+        assert!(camera.far > DVec3::new(1.0e7, 0.0, 6.0e6).length());
+        assert!(camera.near <= 0.1 * 300.0 + 1e-9);
+    }
+
+    #[test]
+    fn the_default_view_fills_most_of_the_frame() {
+        for (width, height) in [(1280, 720), (800, 600), (600, 900)] {
+            let m = continent();
+            let camera = default_camera(&m, width, height);
+            let clip = camera.view_projection();
+            let (mut lo, mut hi) = (glam::DVec2::splat(f64::MAX), glam::DVec2::splat(f64::MIN));
+            for c in corners(&terrain_box(&m)) {
+                let p = clip * c.extend(1.0);
+                let ndc = glam::DVec2::new(p.x / p.w, p.y / p.w);
+                lo = lo.min(ndc);
+                hi = hi.max(ndc);
+            }
+            let filled = ((hi.x - lo.x) / 2.0).max((hi.y - lo.y) / 2.0);
+            assert!(lo.x >= -FRAME_FILL - 1e-6 && hi.x <= FRAME_FILL + 1e-6, "{lo} {hi}");
+            assert!(filled > 0.85, "{width}x{height}: the terrain spans {filled:.2} of the frame");
+        }
+    }
+
+    #[test]
+    fn a_texture_only_archive_is_drawn_flat_at_its_minimum_elevation() {
+        let mut m = continent();
+        m.layers[0].kind = LayerKind::Texture;
+        assert_eq!(drawn_heights(&m), (-100.0, -100.0));
+        m.terrain.min_elevation = 0.0;
+        m.terrain.max_elevation = 0.0;
+        assert_eq!(drawn_heights(&m), (0.0, 0.0));
     }
 
     #[test]

@@ -87,15 +87,19 @@ impl Namer {
             }
             Layout::Xyz => {
                 let z = u32::from(layer.depth() - 1 - tile.lod());
-                match (&self.xyz, self.single_layer) {
-                    (Some(record), true) => {
-                        let y = match record.scheme {
-                            crate::import::Scheme::Xyz => tile.y(),
-                            crate::import::Scheme::Tms => (1u32 << z) - 1 - tile.y(),
-                        };
-                        PathBuf::from(crate::import::fill_template(&record.template, z, tile.x(), y))
-                    }
-                    _ => PathBuf::from(format!(
+                // The tree's own names, where it was packed from one (zooms counted from its
+                // finest, rows flipped against its own grid: a geodetic tree is 2x1 at zoom 0).
+                let original = self.xyz.as_ref().filter(|_| self.single_layer).and_then(|record| {
+                    let z = u32::from(record.max_zoom.checked_sub(tile.lod())?);
+                    let y = match record.scheme {
+                        crate::import::Scheme::Xyz => tile.y(),
+                        crate::import::Scheme::Tms => layer.grid_at(tile.lod()).1.checked_sub(tile.y() + 1)?,
+                    };
+                    crate::import::fill_template(&record.template, z, tile.x(), y).ok()
+                });
+                match original {
+                    Some(name) => PathBuf::from(name),
+                    None => PathBuf::from(format!(
                         "{}/{z}/{}/{}.{}",
                         layer.name,
                         tile.x(),

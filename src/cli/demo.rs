@@ -120,9 +120,10 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
 /// Opens the viewer on the served DEM when there is a display, else renders PNG views
 /// of both served archives over HTTP.
 fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
+    use terrastream_client::fly::start_camera;
     use terrastream_client::render::gpu::Gpu;
-    use terrastream_client::render::still::{StillOptions, default_camera, render_still, write_png};
-    use terrastream_client::{Camera, Origin};
+    use terrastream_client::render::still::{StillOptions, render_still, write_png};
+    use terrastream_client::Origin;
     let url = format!("{base}/tamalpais.tspack");
     let display = ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()));
     if display && !no_window {
@@ -146,9 +147,9 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     ];
     for (name, location, pose) in views {
         let started = std::time::Instant::now();
-        let camera = |metadata: &terrastream_packer::Metadata| match pose {
-            Some((eye, target)) => Camera::look_at(glam::DVec3::from_array(eye), glam::DVec3::from_array(target), w, h),
-            None => default_camera(metadata, w, h),
+        let camera = |metadata: &terrastream_packer::Metadata| {
+            let pose = pose.map(|(eye, target)| (glam::DVec3::from_array(eye), glam::DVec3::from_array(target)));
+            start_camera(metadata, pose, w, h)
         };
         let options = StillOptions { width: w, height: h, ..StillOptions::default() };
         let still = render_still(&gpu, Origin::parse(&location)?, camera, &options)

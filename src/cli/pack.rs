@@ -20,8 +20,13 @@ pub struct PackArgs {
     /// Output archive (written to a temporary name, then renamed).
     #[arg(short, long)]
     output: PathBuf,
-    /// Path template of an XYZ/TMS tree, e.g. "{z}/{x}/{y}.png" (z = 0 is the coarsest zoom).
-    #[arg(long)]
+    /// Path template of an XYZ/TMS tree, relative to the input folder, e.g. "{z}/{x}/{y}.png"
+    /// (z = 0 is the coarsest zoom). Each of {z}, {x}, {y} appears at least once; a repeated
+    /// one must agree; {y:06} is y zero-padded to 6 digits. Rows of `row_col` names under
+    /// row folders: "{z}/{y:06}/{y:06}_{x:06}.jpg". The grid is what the coarsest zoom's
+    /// tiles imply (1x1 at zoom 0 for Web Mercator, 2x1 for the geodetic profile), doubled
+    /// at each finer zoom.
+    #[arg(long, verbatim_doc_comment)]
     template: Option<String>,
     /// Row order of the XYZ tree.
     #[arg(long, value_enum, default_value_t = SchemeArg::Xyz)]

@@ -7,9 +7,10 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
+use terrastream_client::fly::start_camera;
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
-use terrastream_client::render::still::{StillOptions, default_camera, render_still, write_png};
+use terrastream_client::render::still::{StillOptions, render_still, write_png};
 use terrastream_client::{Camera, Origin, StreamOptions, UploadBudget};
 
 /// Renderer and streaming settings shared by `render` and `view`.
@@ -154,9 +155,9 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         timeout: Duration::from_secs(args.timeout),
     };
     let fov = args.fov.clamp(1.0, 170.0).to_radians();
-    let make_camera = |metadata: &terrastream_packer::Metadata| match camera {
-        Some((eye, target)) => Camera { fov_y: fov, ..Camera::look_at(eye, target, width, height) },
-        None => default_camera(metadata, width, height),
+    let make_camera = |metadata: &terrastream_packer::Metadata| {
+        let start = start_camera(metadata, camera, width, height);
+        if camera.is_some() { Camera { fov_y: fov, ..start } } else { start }
     };
     let started = std::time::Instant::now();
     let still =

@@ -7,12 +7,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
+use terrastream_client::fly::{start_camera, terrain_bounds};
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame};
 use terrastream_client::render::hud::{FrameTimes, Hud, Status, status_lines};
 use terrastream_client::render::session::Session;
-use terrastream_client::render::still::{default_camera, terrain_bounds};
 use terrastream_client::render::wgpu;
-use terrastream_client::{Camera, FlyCamera, FlyInput, Origin, Streamer};
+use terrastream_client::{FlyCamera, FlyInput, Origin, Streamer};
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
@@ -252,10 +252,7 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
     let streamer = Streamer::open(origin, args.look.stream()).with_context(|| format!("opening {}", args.archive))?;
     let metadata = streamer.metadata().cloned().context("the archive has no metadata")?;
-    let camera = match start {
-        Some((eye, target)) => Camera::look_at(eye, target, width, height),
-        None => default_camera(&metadata, width, height),
-    };
+    let camera = start_camera(&metadata, start, width, height);
     let ((ex, ez), _) = terrain_bounds(&metadata);
     tracing::info!(extent_m = format!("{ex:.0} x {ez:.0}"), "viewing {}", args.archive);
     // Any thread: the demo opens the viewer beside the server's runtime.

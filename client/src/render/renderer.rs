@@ -398,7 +398,7 @@ impl TerrainRenderer {
         Self {
             settings,
             extent: elevation.as_ref().or(texture.as_ref()).map_or((0.0, 0.0), |a| a.layer.world_extent()),
-            column: if elevation.is_some() { terrain.height_range() } else { (0.0, 0.0) },
+            column: crate::fly::drawn_heights(metadata),
             elevation,
             texture,
             page_table,
@@ -556,7 +556,7 @@ impl TerrainRenderer {
         let has_elevation = self.elevation.is_some();
         let heights = |x0: f64, z0: f64, x1: f64, z1: f64| -> (f64, f64) {
             if !has_elevation {
-                return (0.0, 0.0);
+                return column;
             }
             let overlapping = boxes.iter().filter(|b| b[0] < x1 && b[2] > x0 && b[1] < z1 && b[3] > z0);
             overlapping

@@ -3,6 +3,7 @@
 use terrastream_packer::Metadata;
 
 use super::renderer::{FrameStats, RenderSettings, TerrainRenderer};
+use crate::fly::terrain_box;
 use crate::stream::camera::Camera;
 use crate::stream::streamer::{StreamStats, Streamer, UploadBudget};
 
@@ -44,8 +45,11 @@ impl Session {
         Ok(Self { streamer, renderer, budget, generation, metadata, format })
     }
 
-    /// One frame: stream for `camera`, upload within the budget, prepare the draw.
+    /// One frame: stream for `camera`, upload within the budget, prepare the draw. The
+    /// camera's clip planes are fitted to the terrain first ([`Camera::enclosing`]), the
+    /// same for every front end.
     pub fn frame(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, camera: &Camera) -> (StreamStats, FrameStats) {
+        let camera = &camera.enclosing(&terrain_box(&self.metadata));
         self.streamer.update(camera);
         if self.streamer.generation() != self.generation {
             self.generation = self.streamer.generation();

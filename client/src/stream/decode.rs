@@ -165,6 +165,27 @@ struct Image {
 }
 
 impl Image {
+    /// An image whose `data` holds exactly `width` x `height` pixels of `channels` (1 to 4)
+    /// samples of 8 or 16 bits: what a decoder hands back is checked, never trusted, so
+    /// the sample accessors below cannot index out of bounds.
+    fn new(
+        what: &str,
+        (width, height): (u32, u32),
+        channels: usize,
+        sixteen: bool,
+        data: Vec<u8>,
+    ) -> std::result::Result<Self, String> {
+        let expected = u64::from(width) * u64::from(height) * channels as u64 * if sixteen { 2 } else { 1 };
+        if !(1..=4).contains(&channels) || data.len() as u64 != expected {
+            return Err(format!(
+                "{what}: {} bytes for {width}x{height} pixels of {channels} channel(s){}",
+                data.len(),
+                if sixteen { " of 16 bits" } else { "" }
+            ));
+        }
+        Ok(Self { width, height, channels, sixteen, data })
+    }
+
     fn sample(&self, pixel: usize, channel: usize) -> u32 {
         let c = channel.min(self.channels - 1);
         if self.sixteen {
@@ -234,13 +255,8 @@ fn decode_image(format: TileFormat, bytes: &[u8]) -> std::result::Result<Image, 
             let mut data = vec![0; reader.output_buffer_size().ok_or("PNG: too large")?];
             let info = reader.next_frame(&mut data).map_err(|e| format!("PNG: {e}"))?;
             data.truncate(info.buffer_size());
-            Ok(Image {
-                width: info.width,
-                height: info.height,
-                channels: info.color_type.samples(),
-                sixteen: info.bit_depth == png::BitDepth::Sixteen,
-                data,
-            })
+            let sixteen = info.bit_depth == png::BitDepth::Sixteen;
+            Image::new("PNG", (info.width, info.height), info.color_type.samples(), sixteen, data)
         }
         TileFormat::Jpeg => {
             let options = zune_jpeg::zune_core::options::DecoderOptions::default()
@@ -249,7 +265,13 @@ fn decode_image(format: TileFormat, bytes: &[u8]) -> std::result::Result<Image, 
             let data = decoder.decode().map_err(|e| format!("JPEG: {e:?}"))?;
             let (w, h) = decoder.dimensions().ok_or("JPEG: no dimensions")?;
             let dim = |n: usize| u32::try_from(n).map_err(|_| "JPEG: too large".to_owned());
-            Ok(Image { width: dim(w)?, height: dim(h)?, channels: 3, sixteen: false, data })
+            // Colour JPEGs (YCbCr, CMYK, YCCK) come out as RGB; a one-component (gray)
+            // JPEG stays one channel whatever colour space was asked for.
+            let channels = match decoder.get_output_colorspace() {
+                Some(space) => space.num_components(),
+                None => 3,
+            };
+            Image::new("JPEG", (dim(w)?, dim(h)?), channels, false, data)
         }
         TileFormat::Webp => {
             let mut decoder =
@@ -258,7 +280,7 @@ fn decode_image(format: TileFormat, bytes: &[u8]) -> std::result::Result<Image, 
             let channels = if decoder.has_alpha() { 4 } else { 3 };
             let mut data = vec![0; decoder.output_buffer_size().ok_or("WebP: too large")?];
             decoder.read_image(&mut data).map_err(|e| format!("WebP: {e}"))?;
-            Ok(Image { width, height, channels, sixteen: false, data })
+            Image::new("WebP", (width, height), channels, false, data)
         }
         other => Err(format!("{other:?} is not an image format")),
     }

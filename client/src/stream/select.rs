@@ -79,7 +79,7 @@ pub fn select(
 ) -> Vec<Want> {
     let frustum = camera.frustum();
     let pixels_per_radian = camera.pixels_per_radian();
-    let heights = metadata.terrain.height_range();
+    let heights = crate::fly::drawn_heights(metadata);
     let mut wants = Vec::new();
     // Breadth-first over the drawn layers at once, level by level from the top.
     let mut level: Vec<TileKey> = Vec::new();

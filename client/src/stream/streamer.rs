@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::future::{AbortHandle, Abortable};
-use terrastream_packer::{AsyncRangeSource, Error, LayerKind, Locate, Metadata, Result, TileKey, TileLocation};
+use terrastream_packer::{AsyncRangeSource, Error, Layer, LayerKind, Locate, Metadata, Result, TileKey, TileLocation};
 use web_time::Instant;
 
 use super::cache::TileCache;
@@ -116,6 +116,9 @@ pub struct StreamStats {
     pub failures: u64,
     /// Tiles the origin does not have.
     pub missing: u64,
+    /// Tiles fetched whole whose bytes could not be decoded (not retried; coverage falls
+    /// back to the parent there). Also counted in `failures`.
+    pub undecodable: u64,
     /// Tiles handed to the renderer.
     pub uploads: u64,
     /// Bytes handed to the renderer.
@@ -130,13 +133,21 @@ pub struct StreamStats {
 enum TileState {
     Requested(u64),
     Missing,
-    Failed { failures: u32, retry_at: Instant },
+    Failed {
+        failures: u32,
+        retry_at: Instant,
+    },
+    /// Fetched, but the payload does not decode: asking again would give the same bytes.
+    Undecodable,
 }
 
 enum Outcome {
     Ready(Arc<DecodedTile>),
     Missing,
+    /// The fetch failed (worth a retry).
     Failed(String),
+    /// The bytes arrived but are not a tile of their layer (a retry gives the same bytes).
+    Undecodable(String),
 }
 
 enum Completion {
@@ -305,7 +316,7 @@ impl Streamer {
     /// Does the origin lack this tile (or keep failing to give it)? Coverage falls back
     /// to the nearest coarser LOD there.
     pub fn is_unavailable(&self, key: TileKey) -> bool {
-        matches!(self.states.get(&key), Some(TileState::Missing | TileState::Failed { .. }))
+        matches!(self.states.get(&key), Some(TileState::Missing | TileState::Failed { .. } | TileState::Undecodable))
     }
 
     /// Is the tile known to be absent from the origin?
@@ -318,10 +329,16 @@ impl Streamer {
         self.delivered.remove(&key);
     }
 
-    /// Wanted tiles not delivered yet (excluding those the origin lacks): 0 means the
-    /// view is fully streamed.
+    /// Wanted tiles not delivered yet (excluding those the origin lacks and those that
+    /// arrived undecodable): 0 means the view is fully streamed.
     pub fn pending(&self) -> usize {
-        self.wanted.iter().filter(|w| !self.delivered.contains(&w.key) && !self.is_missing(w.key)).count()
+        self.wanted
+            .iter()
+            .filter(|w| {
+                !self.delivered.contains(&w.key)
+                    && !matches!(self.states.get(&w.key), Some(TileState::Missing | TileState::Undecodable))
+            })
+            .count()
     }
 
     /// A decoded tile from the cache.
@@ -344,7 +361,7 @@ impl Streamer {
             let version = host.version();
             if version != self.host_version {
                 self.host_version = version;
-                self.states.retain(|_, s| !matches!(s, TileState::Missing));
+                self.states.retain(|_, s| !matches!(s, TileState::Missing | TileState::Undecodable));
             }
         }
         let Some(metadata) = self.metadata() else { return };
@@ -461,6 +478,13 @@ impl Streamer {
                                 self.stats.missing += 1;
                                 self.states.insert(key, TileState::Missing);
                             }
+                            Outcome::Undecodable(why) => {
+                                self.stats.failures += 1;
+                                self.stats.undecodable += 1;
+                                tracing::warn!("{why}: drawn from a coarser tile");
+                                self.last_error = Some(why);
+                                self.states.insert(key, TileState::Undecodable);
+                            }
                             Outcome::Failed(why) => {
                                 self.stats.failures += 1;
                                 tracing::debug!("tile {key}: {why}");
@@ -556,7 +580,7 @@ impl Streamer {
                 continue;
             }
             match self.states.get(&key) {
-                Some(TileState::Requested(_) | TileState::Missing) => continue,
+                Some(TileState::Requested(_) | TileState::Missing | TileState::Undecodable) => continue,
                 Some(TileState::Failed { retry_at, .. }) if *retry_at > now => continue,
                 _ => {}
             }
@@ -738,7 +762,7 @@ impl Streamer {
                         match outcome {
                             Outcome::Ready(tile) => self.cache.insert(tile),
                             Outcome::Missing => {}
-                            Outcome::Failed(why) => {
+                            Outcome::Failed(why) | Outcome::Undecodable(why) => {
                                 return Err(Error::Source { offset: 0, len: 0, reason: why });
                             }
                         }
@@ -844,6 +868,17 @@ fn tile_at(metadata: &Metadata, layer: u8, lod: u8, x: f64, z: f64) -> Option<Ti
     TileKey::new(layer, lod, tx as u32, tz as u32).ok()
 }
 
+/// Decodes one payload. A decoder that panics on some input (a bug: the decoders are
+/// fuzzed so as not to) costs that tile, never the worker thread or the page.
+fn decode_guarded(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> Outcome {
+    let attempt = std::panic::catch_unwind(|| decode(layer, key, payload, compressed));
+    match attempt {
+        Ok(Ok(tile)) => Outcome::Ready(Arc::new(tile)),
+        Ok(Err(e)) => Outcome::Undecodable(e.to_string()),
+        Err(_) => Outcome::Undecodable(format!("tile {key} of layer {:?}: the decoder failed", layer.name)),
+    }
+}
+
 /// Fetches a group of tiles (one request) and decodes them off the calling thread.
 async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generation: u64) -> Completion {
     let changed = |what| Completion::Changed { generation, what };
@@ -906,10 +941,7 @@ async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generati
                 let outcome = match r {
                     Ok(None) => Outcome::Missing,
                     Ok(Some(payload)) => match metadata.layers.get(usize::from(key.layer())) {
-                        Some(layer) => match decode(layer, key, &payload, compressed) {
-                            Ok(tile) => Outcome::Ready(Arc::new(tile)),
-                            Err(e) => Outcome::Failed(e.to_string()),
-                        },
+                        Some(layer) => decode_guarded(layer, key, &payload, compressed),
                         None => Outcome::Failed(format!("tile {key}: no such layer")),
                     },
                     Err(why) => Outcome::Failed(why),

@@ -16,7 +16,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 
 use glam::DVec3;
-use terrastream_client::fly::default_camera;
+use terrastream_client::fly::start_camera;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame, render_pass};
 use terrastream_client::render::hud::{FrameTimes, Status, status_lines};
 use terrastream_client::render::renderer::{FrameStats, RenderSettings};
@@ -308,10 +308,7 @@ impl State {
             RenderSettings { elevation_slots: GPU_SLOTS, texture_slots: GPU_SLOTS, ..RenderSettings::default() };
         match Session::new(streamer, &self.gpu.device, settings, self.surface.view_format, UploadBudget::default()) {
             Ok(session) => {
-                let camera = match self.params.camera {
-                    Some((eye, target)) => Camera::look_at(eye, target, width, height),
-                    None => default_camera(&metadata, width, height),
-                };
+                let camera = start_camera(&metadata, self.params.camera, width, height);
                 self.fly = Some(FlyCamera::from_camera(&camera));
                 self.session = Some(session);
                 tracing::info!(archive = %self.params.archive, "opened: {} layers", metadata.layers.len());
