@@ -6,7 +6,7 @@
 //! 10^7 m across: a fixed far plane of a hundred kilometres once left the viewers with
 //! nothing to draw).
 
-use glam::{DMat4, DVec3};
+use glam::{DMat4, DVec2, DVec3};
 use terrastream_packer::{Layer, LayerKind, Metadata};
 
 use crate::stream::camera::{Aabb, Camera};
@@ -42,36 +42,63 @@ pub fn terrain_box(metadata: &Metadata) -> Aabb {
 }
 
 /// Pitch of the default view, below the horizon.
-const DEFAULT_PITCH_DEGREES: f64 = 40.0;
+const DEFAULT_PITCH_DEGREES: f64 = 50.0;
 /// Share of the frame's half-width and half-height the default view may fill.
 const FRAME_FILL: f64 = 0.92;
 
-/// An oblique view from the south framing the whole dataset: as close as it can be while
-/// every corner of the terrain's box stays inside [`FRAME_FILL`] of the frame.
+/// An oblique view from the south framing the whole dataset: looking down at
+/// [`DEFAULT_PITCH_DEGREES`], the terrain's box centred in the frame and as close as it
+/// can be while every corner stays inside [`FRAME_FILL`] of the frame.
 pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
     let terrain = terrain_box(metadata);
     let centre = (terrain.min + terrain.max) * 0.5;
     let pitch = DEFAULT_PITCH_DEGREES.to_radians();
     let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
-    let at = |distance: f64| Camera::look_at(centre + back * distance, centre, width, height).enclosing(&terrain);
-    let fits = |camera: &Camera| {
-        let clip = camera.projection() * camera.view();
-        corners(&terrain).iter().all(|&corner| {
+    // The camera's up: moving the eye along it moves the picture down, direction kept.
+    let up = DVec3::new(0.0, pitch.cos(), -pitch.sin());
+    let at = |distance: f64, lift: f64| {
+        let eye = centre + back * distance + up * lift;
+        Camera::look_at(eye, eye - back, width, height).enclosing(&terrain)
+    };
+    // The box's extent on screen (normalized device coordinates), None if behind the eye.
+    let extent = |camera: &Camera| {
+        let clip = camera.view_projection();
+        let (mut lo, mut hi) = (DVec2::splat(f64::MAX), DVec2::splat(f64::MIN));
+        for corner in corners(&terrain) {
             let p = clip * corner.extend(1.0);
-            p.w > 0.0 && (p.x / p.w).abs() <= FRAME_FILL && (p.y / p.w).abs() <= FRAME_FILL
+            if p.w <= 0.0 {
+                return None;
+            }
+            let ndc = DVec2::new(p.x / p.w, p.y / p.w);
+            (lo, hi) = (lo.min(ndc), hi.max(ndc));
+        }
+        Some((lo, hi))
+    };
+    let fits = |camera: &Camera| {
+        extent(camera).is_some_and(|(lo, hi)| {
+            lo.cmpge(DVec2::splat(-FRAME_FILL)).all() && hi.cmple(DVec2::splat(FRAME_FILL)).all()
         })
     };
     let size = (terrain.max - terrain.min).length().max(1.0);
-    // Far enough to fit for sure, then bisect towards the closest distance that fits.
-    let (mut near, mut far) = (size * 1e-3, size * 4.0);
-    while !fits(&at(far)) && far < size * 1e4 {
-        far *= 2.0;
+    let (mut distance, mut lift) = (size * 4.0, 0.0);
+    // Alternately: centre the box vertically, then come as close as the fill allows.
+    for round in 0..4 {
+        let (mut near, mut far) = (size * 1e-3, distance);
+        while !fits(&at(far, lift)) && far < size * 1e4 {
+            far *= 2.0;
+        }
+        for _ in 0..48 {
+            let mid = (near + far) * 0.5;
+            if fits(&at(mid, lift)) { far = mid } else { near = mid }
+        }
+        distance = far;
+        let Some((lo, hi)) = extent(&at(distance, lift)).filter(|_| round < 3) else { break };
+        // One unit of NDC is distance * tan(fov / 2) world units across the view's centre.
+        let camera = at(distance, lift);
+        lift += (lo.y + hi.y) * 0.5 * distance * (camera.fov_y * 0.5).tan();
     }
-    for _ in 0..48 {
-        let mid = (near + far) * 0.5;
-        if fits(&at(mid)) { far = mid } else { near = mid }
-    }
-    at(far)
+    let camera = at(distance, lift);
+    if fits(&camera) { camera } else { at(size * 4.0, 0.0) }
 }
 
 /// Where every front end starts: the eye and target asked for, else [`default_camera`].

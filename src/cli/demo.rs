@@ -120,10 +120,10 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
 /// Opens the viewer on the served DEM when there is a display, else renders PNG views
 /// of both served archives over HTTP.
 fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
+    use terrastream_client::Origin;
     use terrastream_client::fly::start_camera;
     use terrastream_client::render::gpu::Gpu;
     use terrastream_client::render::still::{StillOptions, render_still, write_png};
-    use terrastream_client::Origin;
     let url = format!("{base}/tamalpais.tspack");
     let display = ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()));
     if display && !no_window {

@@ -164,6 +164,13 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         render_still(&gpu, origin, make_camera, &options).with_context(|| format!("rendering {}", args.archive))?;
     write_png(&args.output, still.width, still.height, &still.rgba)
         .with_context(|| format!("writing {}", args.output.display()))?;
+    if still.stream.undecodable > 0 {
+        tracing::warn!(
+            "{} tiles could not be decoded and were drawn from coarser ones (last: {})",
+            still.stream.undecodable,
+            still.last_error.as_deref().unwrap_or("?")
+        );
+    }
     let p = still.camera.position;
     println!(
         "wrote {} ({}x{}) in {:.2} s on {}: {} frames, {} tiles fetched in {} requests, {} patches, {} triangles, mesh levels {}..={}, eye {:.1},{:.1},{:.1}",
@@ -183,5 +190,13 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         p.y,
         p.z
     );
+    if still.frame.drew_nothing_in_view() {
+        eprintln!(
+            "error: {} tiles in view were on the GPU but no terrain was drawn: {} shows only sky",
+            still.frame.in_view_resident,
+            args.output.display()
+        );
+        return Ok(ExitCode::FAILURE);
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -34,6 +34,9 @@ pub struct ViewArgs {
     /// Close the window after this many seconds (scripted screenshots, smoke tests).
     #[arg(long)]
     pub exit_after: Option<f64>,
+    /// Start with the HUD hidden (H shows it).
+    #[arg(long)]
+    pub no_hud: bool,
     #[command(flatten)]
     pub look: LookArgs,
 }
@@ -59,6 +62,8 @@ struct App {
     dragging: bool,
     cursor: Option<(f64, f64)>,
     show_hud: bool,
+    /// The view has been complete once (logged then, for scripts and tests).
+    settled_once: bool,
     last_frame: Instant,
     frame_times: FrameTimes,
     uploads_last: u64,
@@ -118,6 +123,15 @@ impl App {
         let Some(r) = &mut self.running else { return Ok(()) };
         let camera = self.fly.camera(r.config.width, r.config.height);
         let (stream, frame) = r.session.frame(&r.gpu.device, &r.gpu.queue, &camera);
+        if !self.settled_once && r.session.settled() {
+            self.settled_once = true;
+            tracing::info!(
+                patches = frame.patches,
+                tiles = stream.tiles_fetched,
+                "view fully streamed in {:.2} s",
+                self.started.elapsed().as_secs_f64()
+            );
+        }
         self.frame_times.push(dt);
         let uploads = stream.uploads - self.uploads_last;
         self.uploads_last = stream.uploads;
@@ -265,6 +279,7 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let event_loop = EventLoop::new();
     let event_loop = event_loop.context("no display to open a window on (try `terrastream render`)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
+    let show_hud = !args.no_hud;
     let mut app = App {
         args,
         streamer: Some(streamer),
@@ -275,7 +290,8 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
         keys: HashSet::new(),
         dragging: false,
         cursor: None,
-        show_hud: true,
+        show_hud,
+        settled_once: false,
         last_frame: Instant::now(),
         frame_times: FrameTimes::default(),
         uploads_last: 0,

@@ -66,7 +66,7 @@ pub struct Status<'a> {
 pub fn status_lines(s: &Status<'_>) -> Vec<String> {
     let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
     let (stream, frame) = (s.stream, s.frame);
-    vec![
+    let mut lines = vec![
         format!("fps {:5.1}   frame {:6.2} ms   {}", s.times.fps(), s.times.mean() * 1e3, s.api),
         format!(
             "tiles in flight {:3}   wanted {:5}   pending {:5}   fetched {:6}   missing {}   failures {}",
@@ -93,7 +93,11 @@ pub fn status_lines(s: &Status<'_>) -> Vec<String> {
             frame.levels.0, frame.levels.1, frame.patches, frame.triangles, frame.draw_calls
         ),
         format!("eye {:.0} {:.0} {:.0}   speed x{:.2}", s.eye.x, s.eye.y, s.eye.z, s.speed),
-    ]
+    ];
+    if frame.drew_nothing_in_view() {
+        lines.push(format!("WARNING: {} tiles in view are resident but no terrain is drawn", frame.in_view_resident));
+    }
+    lines
 }
 
 /// The shader source.

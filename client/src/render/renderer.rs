@@ -109,6 +109,16 @@ pub struct FrameStats {
     pub resident: (u32, u32),
     /// GPU memory of the tile arrays and page table, bytes.
     pub gpu_bytes: u64,
+    /// Tiles the streaming selection has in view that are on the GPU (set by the session).
+    pub in_view_resident: u32,
+}
+
+impl FrameStats {
+    /// Tiles in view are on the GPU and yet the frame draws no terrain: always a defect
+    /// (the front ends warn; `render` fails), never a picture of the sky to accept.
+    pub fn drew_nothing_in_view(&self) -> bool {
+        self.in_view_resident > 0 && self.patches == 0
+    }
 }
 
 #[repr(C)]
@@ -667,6 +677,7 @@ impl TerrainRenderer {
             ),
             resident: (resident(&self.elevation), resident(&self.texture)),
             gpu_bytes: self.arrays().map(|a| a.bytes).sum::<u64>() + self.page_table.entries.len() as u64 * 16,
+            in_view_resident: 0,
         };
     }
 

@@ -19,6 +19,9 @@ pub struct Session {
     generation: u64,
     metadata: Metadata,
     format: wgpu::TextureFormat,
+    /// The last frame drew no terrain although tiles in view were resident (warned once
+    /// per such spell, not once per frame).
+    blank: bool,
 }
 
 impl Session {
@@ -42,7 +45,7 @@ impl Session {
         options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());
         streamer.set_options(options);
         let generation = streamer.generation();
-        Ok(Self { streamer, renderer, budget, generation, metadata, format })
+        Ok(Self { streamer, renderer, budget, generation, metadata, format, blank: false })
     }
 
     /// One frame: stream for `camera`, upload within the budget, prepare the draw. The
@@ -66,7 +69,18 @@ impl Session {
         for key in self.renderer.upload(queue, &uploads) {
             self.streamer.release(key);
         }
-        let stats = self.renderer.prepare(device, queue, camera, self.streamer.wanted().iter().map(|w| w.key));
+        let mut stats = self.renderer.prepare(device, queue, camera, self.streamer.wanted().iter().map(|w| w.key));
+        let in_view = self.streamer.wanted().iter().filter(|w| w.in_view && self.renderer.is_resident(w.key));
+        stats.in_view_resident = u32::try_from(in_view.count()).unwrap_or(u32::MAX);
+        let blank = stats.drew_nothing_in_view();
+        if blank && !self.blank {
+            tracing::warn!(
+                resident_in_view = stats.in_view_resident,
+                eye = ?camera.position,
+                "tiles in view are resident but the frame draws no terrain"
+            );
+        }
+        self.blank = blank;
         (self.streamer.stats(), stats)
     }
 

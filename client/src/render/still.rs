@@ -111,6 +111,8 @@ pub struct Still {
     pub camera: Camera,
     /// The GPU format texture tiles were drawn from (`None`: no texture layer drawn).
     pub texture_format: Option<wgpu::TextureFormat>,
+    /// The streamer's last error (a tile that failed or could not be decoded), if any.
+    pub last_error: Option<String>,
 }
 
 /// Streams `origin` for the camera `camera` makes from the archive's metadata (e.g.
@@ -129,7 +131,7 @@ pub fn render_still(
     let metadata = streamer
         .metadata()
         .ok_or_else(|| terrastream_packer::Error::InvalidTile { what: "the archive opened without metadata".into() })?;
-    let camera = camera(metadata);
+    let camera = camera(metadata).enclosing(&crate::fly::terrain_box(metadata));
     let mut session = Session::new(streamer, &gpu.device, options.settings, OFFSCREEN_FORMAT, options.budget)?;
     let wait = options.wait;
     let ready = |s: &Session| {
@@ -153,7 +155,9 @@ pub fn render_still(
     );
     let rgba = target.read_rgba(&gpu.device, &gpu.queue)?;
     let texture_format = session.renderer.texture_format();
-    Ok(Still { rgba, width: options.width, height: options.height, frames, stream, frame, camera, texture_format })
+    let last_error = session.streamer.last_error().map(str::to_owned);
+    let (width, height) = (options.width, options.height);
+    Ok(Still { rgba, width, height, frames, stream, frame, camera, texture_format, last_error })
 }
 
 /// Writes RGBA8 pixels as a PNG.

@@ -488,6 +488,8 @@ impl State {
             "max_frame_ms_streaming": self.timings.max_frame_ms_streaming,
             "resident": [frame.resident.0, frame.resident.1],
             "triangles": frame.triangles,
+            "patches": frame.patches,
+            "drew_nothing_in_view": frame.drew_nothing_in_view(),
             "hud": self.show_hud,
             "eye": [fly.eye.x, fly.eye.y, fly.eye.z],
             "yaw": fly.yaw,
