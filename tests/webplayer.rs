@@ -16,6 +16,8 @@
 
 #[path = "../server/tests/common/mod.rs"]
 mod common;
+#[path = "support/continent.rs"]
+mod continent;
 #[path = "support/golden.rs"]
 mod golden;
 #[path = "support/http.rs"]
@@ -335,6 +337,46 @@ fn static_host(root: &Path, access_log: Option<&Path>) -> Option<common::Nginx> 
         config = config.replacen("{port};", &format!("{{port}};\n    access_log {};", log.display()), 1);
     }
     common::start_nginx(root, &config)
+}
+
+/// A continent-sized terrain (10^7 m across) on both back ends: the view completes and
+/// draws terrain over most of the picture, as `render` and `view` do (tests/continent.rs).
+#[test]
+fn a_continent_draws_on_webgpu_and_on_webgl2() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = continent::continent_archive(dir.path());
+    let port = common::free_port();
+    let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let _server = Process(server);
+    wait_for_port(port, "terrastream serve");
+    let driver = Driver::start();
+    for (flags, backend) in [(WEBGPU_FLAGS, "webgpu"), (WEBGL_FLAGS, "webgl2")] {
+        let browser = Browser::open(&driver, flags);
+        browser.goto(&format!("http://127.0.0.1:{port}/view/continent?hud=0"));
+        let stats = browser.wait_settled();
+        eprintln!("continent on {backend}: {stats}");
+        assert_eq!(stats["backend"], json!(backend), "{stats}");
+        assert_eq!(stats["failures"], json!(0), "{stats}");
+        assert!(stats["patches"].as_u64().unwrap() > 0, "{stats}");
+        assert_eq!(stats["drew_nothing_in_view"], json!(false), "{stats}");
+        std::thread::sleep(Duration::from_millis(500));
+        let (w, h, rgba) = browser.screenshot("#terrain");
+        golden::assert_golden(&format!("continent-{backend}"), w, h, &rgba, TOLERANCE);
+        // Most of the picture is terrain, not the sky of the top-left corner.
+        let sky = &rgba[..3];
+        let terrain = rgba.chunks_exact(4).filter(|p| p[..3].iter().zip(sky).any(|(a, b)| a.abs_diff(*b) > 12));
+        let share = terrain.count() as f64 / f64::from(w * h);
+        assert!(share > 0.4, "{backend}: only {:.0} % of the picture is terrain", share * 100.0);
+        let console = browser.console();
+        assert!(console.iter().all(|(level, _)| level != "SEVERE"), "{console:?}");
+    }
 }
 
 #[test]

@@ -379,6 +379,91 @@ mod tests {
         assert!(e.contains("WebP"), "{e}");
     }
 
+    fn jpeg(width: u16, colour: jpeg_encoder::ColorType, data: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        jpeg_encoder::Encoder::new(&mut out, 100).encode(data, width, width, colour).unwrap();
+        out
+    }
+
+    fn rgba(tile: Result<DecodedTile>) -> Vec<u8> {
+        match tile.unwrap().data {
+            TileData::Rgba8(p) => p,
+            other => panic!("not RGBA: {other:?}"),
+        }
+    }
+
+    fn close(a: &[u8], b: &[u8]) -> bool {
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.abs_diff(*y) <= 3)
+    }
+
+    /// Every colour type the packer accepts decodes, for texture and elevation layers,
+    /// and a colour type a scheme cannot read is an error naming the tile, not a panic.
+    #[test]
+    fn every_colour_type_decodes() {
+        use jpeg_encoder::ColorType as J;
+        let key = TileKey::new(0, 3, 1, 2).unwrap();
+        let mut l = layer(LayerKind::Texture, TileFormat::Jpeg, None);
+        l.tile_resolution = 8;
+        // One-component (gray) JPEG: once an index out of bounds in the decoder task.
+        let t = rgba(decode(&l, key, &jpeg(8, J::Luma, &[100; 64]), false));
+        assert!(close(&t, &[100, 100, 100, 255].repeat(64)), "{t:?}");
+        // RGB and CMYK JPEGs come out as RGB (CMYK 0,0,0,0 is white; jpeg-encoder writes
+        // Adobe's inverted CMYK, as Photoshop does).
+        let t = rgba(decode(&l, key, &jpeg(8, J::Rgb, &[200, 40, 10].repeat(64)), false));
+        assert!(close(&t, &[200, 40, 10, 255].repeat(64)), "{t:?}");
+        let t = rgba(decode(&l, key, &jpeg(8, J::Cmyk, &[0, 0, 0, 0].repeat(64)), false));
+        assert!(t.chunks(4).all(|p| p[..3].iter().all(|&c| c > 240) || p[..3].iter().all(|&c| c < 15)), "{t:?}");
+        assert!(t.chunks(4).all(|p| p == &t[..4]), "{t:?}");
+        // Gray JPEG elevation (gray8): every sample the same height.
+        let gray = Some(ElevationEncoding { scheme: ElevationScheme::Gray8, scale: 255.0, offset: 10.0, nodata: None });
+        let mut e = layer(LayerKind::Elevation, TileFormat::Jpeg, gray);
+        e.tile_resolution = 8;
+        let t = decode(&e, key, &jpeg(8, J::Luma, &[100; 64]), false).unwrap();
+        let h = t.height(7, 7).unwrap();
+        assert!((h - 110.0).abs() <= 2.0, "{h}");
+        // A gray JPEG where RGB is needed: an error naming the tile.
+        let rgb =
+            Some(ElevationEncoding { scheme: ElevationScheme::TerrainRgb, scale: 1.0, offset: 0.0, nodata: None });
+        let mut e = layer(LayerKind::Elevation, TileFormat::Jpeg, rgb);
+        e.tile_resolution = 8;
+        let err = decode(&e, key, &jpeg(8, J::Luma, &[100; 64]), false).unwrap_err().to_string();
+        assert!(err.contains("lod 3 x 1 y 2") && err.contains("RGB"), "{err}");
+        // PNG: gray + alpha, 16-bit RGBA, 16-bit gray as gray8 elevation (refused: 8-bit only).
+        let l = layer(LayerKind::Texture, TileFormat::Png, None);
+        let t = rgba(decode(
+            &l,
+            key,
+            &png(2, png::ColorType::GrayscaleAlpha, png::BitDepth::Eight, &[90, 30].repeat(4)),
+            false,
+        ));
+        assert_eq!(t, [90, 90, 90, 30].repeat(4));
+        let sixteen = [0x12, 0x34, 0x56, 0x78, 0x9a, 0xbc, 0xff, 0xff].repeat(4);
+        let t = rgba(decode(&l, key, &png(2, png::ColorType::Rgba, png::BitDepth::Sixteen, &sixteen), false));
+        assert_eq!(t, [0x12, 0x56, 0x9a, 0xff].repeat(4));
+        let mut e = layer(LayerKind::Elevation, TileFormat::Png, gray);
+        e.tile_resolution = 2;
+        let err = decode(&e, key, &png(2, png::ColorType::Grayscale, png::BitDepth::Sixteen, &[1; 8]), false);
+        assert!(err.unwrap_err().to_string().contains("8-bit"));
+    }
+
+    /// Truncated and bit-flipped payloads of every image format are errors, never panics
+    /// (the fuzz target `tiles` does this at scale).
+    #[test]
+    fn damaged_images_are_errors() {
+        use jpeg_encoder::ColorType as J;
+        let key = TileKey::new(0, 0, 0, 0).unwrap();
+        let mut l = layer(LayerKind::Texture, TileFormat::Jpeg, None);
+        l.tile_resolution = 8;
+        let good = jpeg(8, J::Luma, &(0..64).collect::<Vec<u8>>());
+        for cut in (0..good.len()).step_by(7) {
+            let _ = decode(&l, key, &good[..cut], false);
+            let mut flipped = good.clone();
+            flipped[cut] ^= 0x5a;
+            let _ = decode(&l, key, &flipped, false);
+        }
+        assert!(decode(&l, key, &good[..good.len() / 2], false).is_err());
+    }
+
     #[test]
     fn texture_becomes_rgba() {
         let key = TileKey::new(0, 0, 0, 0).unwrap();

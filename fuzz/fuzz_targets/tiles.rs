@@ -1,0 +1,58 @@
+//! Any bytes as a tile payload of every format of every layer kind the client decodes
+//! (PNG, JPEG, WebP, raw u16/f32, BC1/BC7; texture and elevation in every encoding;
+//! zstd-wrapped or not). `decode` must return a tile or an error, never panic.
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use terrastream_client::decode;
+use terrastream_packer::{
+    ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat, TileKey,
+};
+
+const FORMATS: [TileFormat; 7] = [
+    TileFormat::Png,
+    TileFormat::Jpeg,
+    TileFormat::Webp,
+    TileFormat::RawU16,
+    TileFormat::RawF32,
+    TileFormat::Bc1,
+    TileFormat::Bc7,
+];
+const SCHEMES: [ElevationScheme; 6] = [
+    ElevationScheme::Gray8,
+    ElevationScheme::RgbThirds,
+    ElevationScheme::TerrainRgb,
+    ElevationScheme::Terrarium,
+    ElevationScheme::QuantizedU16,
+    ElevationScheme::Float32,
+];
+
+fuzz_target!(|data: &[u8]| {
+    // The first byte picks the layer, the second the tile size; the rest is the payload.
+    let [pick, size, payload @ ..] = data else { return };
+    let format = FORMATS[usize::from(pick % 7)];
+    let kind = if pick & 8 == 0 { LayerKind::Texture } else { LayerKind::Elevation };
+    let scheme = SCHEMES[usize::from((pick >> 4) % 6)];
+    let compression = if pick & 128 == 0 { PayloadCompression::None } else { PayloadCompression::Zstd };
+    let layer = Layer {
+        name: "fuzz".into(),
+        kind,
+        format,
+        compression,
+        tile_resolution: u32::from(size % 64) + 1,
+        border: size >> 6,
+        num_x_tiles: 1,
+        num_y_tiles: 1,
+        num_lods: 1,
+        tile_world_size: 1.0,
+        elevation: (kind == LayerKind::Elevation).then_some(ElevationEncoding {
+            scheme,
+            scale: 1.0,
+            offset: 0.0,
+            nodata: Some(0.0),
+        }),
+    };
+    let key = TileKey::new(0, 0, 0, 0).expect("tile (0, 0) of LOD 0 exists");
+    let _ = decode(&layer, key, payload, true);
+    let _ = decode(&layer, key, payload, false);
+});
