@@ -476,3 +476,58 @@ fn seventeen_texture_lods_are_each_drawn() {
     let wrong: Vec<_> = seen.iter().filter(|(lod, nearest, _)| usize::from(*lod) != *nearest).collect();
     assert!(wrong.is_empty(), "LOD drawn at the centre vs expected: {wrong:?}");
 }
+
+/// A texture-only archive (no elevation layer) whose metadata puts the ground at 3 000 m,
+/// 2 km across: once drawn at height 0 while the default view looked at 3 000 m, which
+/// left a sky-only picture. It is drawn flat at its minimum elevation, textured, framed.
+#[test]
+fn a_texture_only_archive_draws_flat_at_its_minimum_elevation() {
+    use terrastream_packer::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    let Some(gpu) = gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("texture-only.tspack");
+    let layer = Layer {
+        name: "texture".into(),
+        kind: LayerKind::Texture,
+        format: TileFormat::Png,
+        compression: PayloadCompression::None,
+        tile_resolution: 64,
+        border: 0,
+        num_x_tiles: 2,
+        num_y_tiles: 2,
+        num_lods: 2,
+        tile_world_size: 1000.0,
+        elevation: None,
+    };
+    let mut metadata = Metadata::new("texture-only", vec![layer]);
+    metadata.terrain.min_elevation = 3000.0;
+    metadata.terrain.max_elevation = 3000.0;
+    let tile = |rgb: [u8; 3]| {
+        let mut out = Vec::new();
+        let mut encoder = png::Encoder::new(&mut out, 64, 64);
+        encoder.set_color(png::ColorType::Rgb);
+        let pixels: Vec<u8> =
+            (0..64 * 64).flat_map(|i| if (i % 64 / 8 + i / 512) % 2 == 0 { rgb } else { [20; 3] }).collect();
+        encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
+        out
+    };
+    let mut keys = vec![TileKey::new(0, 1, 0, 0).unwrap()];
+    keys.extend((0..4).map(|i| TileKey::new(0, 0, i % 2, i / 2).unwrap()));
+    keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+    let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
+    for key in keys {
+        let colour = [[230, 60, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]][(key.x() + 2 * key.y()) as usize];
+        writer.add(key, tile(if key.lod() == 1 { [128; 3] } else { colour })).unwrap();
+    }
+    writer.finish().unwrap();
+
+    let still = render(gpu, path.to_str().unwrap(), None, RenderSettings::default());
+    assert!(still.frame.patches > 0 && !still.frame.drew_nothing_in_view(), "{:?}", still.frame);
+    assert_eq!(still.stream.tiles_fetched, 5, "{:?}", still.stream);
+    // Every LOD-0 colour shows: the finest texture is drawn over the whole terrain.
+    for colour in [[230, 60, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]] {
+        let seen = still.rgba.chunks_exact(4).filter(|p| p[..3].iter().zip(colour).all(|(a, b)| a.abs_diff(b) < 60));
+        assert!(seen.count() > 300, "colour {colour:?} not drawn");
+    }
+    assert_golden("texture-only-flat", &still);
+}
