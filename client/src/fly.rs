@@ -269,10 +269,10 @@ mod tests {
             let m = continent();
             let camera = default_camera(&m, width, height);
             let clip = camera.view_projection();
-            let (mut lo, mut hi) = (glam::DVec2::splat(f64::MAX), glam::DVec2::splat(f64::MIN));
+            let (mut lo, mut hi) = (DVec2::splat(f64::MAX), DVec2::splat(f64::MIN));
             for c in corners(&terrain_box(&m)) {
                 let p = clip * c.extend(1.0);
-                let ndc = glam::DVec2::new(p.x / p.w, p.y / p.w);
+                let ndc = DVec2::new(p.x / p.w, p.y / p.w);
                 lo = lo.min(ndc);
                 hi = hi.max(ndc);
             }
