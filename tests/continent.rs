@@ -9,6 +9,8 @@
 //! `TERRASTREAM_ALLOW_NO_DISPLAY=1` (then it skips loudly).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
+#[path = "support/cli.rs"]
+mod cli;
 #[path = "support/continent.rs"]
 mod continent;
 #[path = "support/golden.rs"]
@@ -16,7 +18,9 @@ mod golden;
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
+
+use cli::{Killed, terrastream};
 use std::time::{Duration, Instant};
 
 const WIDTH: u32 = 480;
@@ -26,25 +30,6 @@ const HEIGHT: u32 = 270;
 /// presented through X): mean <= 2/255, at most 2 % of pixels off by more than 24/255.
 /// A missing drape, a culled terrain or a moved camera breaks both.
 const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 2.0, pixel: 24, off_share: 0.02 };
-
-struct Killed(Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn terrastream() -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_terrastream"));
-    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        let dir = std::env::temp_dir().join(format!("terrastream-xdg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        command.env("XDG_RUNTIME_DIR", dir);
-    }
-    command
-}
 
 /// Share of pixels that are not the sky colour of the top-left corner.
 fn terrain_share(rgba: &[u8]) -> f64 {

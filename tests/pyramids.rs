@@ -5,25 +5,21 @@
 //! terrain at a flat height (there is no elevation layer), compared with a reference.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
+#[path = "support/cli.rs"]
+mod cli;
 #[path = "support/golden.rs"]
 mod golden;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 const TILE: u16 = 64;
 /// lavapipe's output, rendered on another Mesa release: see tests/golden/README.md.
 const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
 
 fn terrastream(args: &[&str], cwd: &Path) -> Output {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_terrastream"));
-    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        let dir = std::env::temp_dir().join(format!("terrastream-xdg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        command.env("XDG_RUNTIME_DIR", dir);
-    }
-    command.args(args).current_dir(cwd).output().unwrap()
+    cli::terrastream().args(args).current_dir(cwd).output().unwrap()
 }
 
 fn text(o: &Output) -> String {

@@ -283,6 +283,20 @@ fn terrastream(args: &[&str]) {
     assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// `terrastream serve` of `archive` on a free loopback port, answering: the port and the
+/// server (stopped when dropped).
+fn serve(archive: &Path) -> (u16, Process) {
+    let port = common::free_port();
+    let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let server = Process(server);
+    wait_for_port(port, "terrastream serve");
+    (port, server)
+}
+
 /// The committed DEM crop as an archive, as `terrastream tile --tile-size 64` makes it.
 fn archive(dir: &Path) -> PathBuf {
     let path = dir.join("tamalpais.tspack");
@@ -348,14 +362,7 @@ fn a_continent_draws_on_webgpu_and_on_webgl2() {
     }
     let dir = tempfile::tempdir().unwrap();
     let archive = continent::continent_archive(dir.path());
-    let port = common::free_port();
-    let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let _server = Process(server);
-    wait_for_port(port, "terrastream serve");
+    let (port, _server) = serve(&archive);
     let driver = Driver::start();
     for (flags, backend) in [(WEBGPU_FLAGS, "webgpu"), (WEBGL_FLAGS, "webgl2")] {
         let browser = Browser::open(&driver, flags);
@@ -386,14 +393,7 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     }
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
-    let port = common::free_port();
-    let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let _server = Process(server);
-    wait_for_port(port, "terrastream serve");
+    let (port, _server) = serve(&archive);
     let before = http::archive_requests(port);
 
     let driver = Driver::start();

@@ -10,19 +10,7 @@ use glam::{DMat4, DVec2, DVec3};
 use terrastream_packer::{Layer, LayerKind, Metadata};
 
 use crate::stream::camera::{Aabb, Camera};
-
-/// The heights the terrain is drawn between: the metadata's range where an elevation
-/// layer gives heights, else the flat height a texture-only archive is drawn at (the
-/// metadata's minimum elevation, else 0) for both.
-pub fn drawn_heights(metadata: &Metadata) -> (f64, f64) {
-    let (lo, hi) = metadata.terrain.height_range();
-    if metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation) {
-        (lo, hi)
-    } else {
-        let flat = if lo.is_finite() { lo } else { 0.0 };
-        (flat, flat)
-    }
-}
+pub use crate::stream::select::drawn_heights;
 
 /// The terrain's extent (x, z) in world units and the heights it is drawn between.
 pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {

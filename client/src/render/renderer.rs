@@ -408,7 +408,7 @@ impl TerrainRenderer {
         Self {
             settings,
             extent: elevation.as_ref().or(texture.as_ref()).map_or((0.0, 0.0), |a| a.layer.world_extent()),
-            column: crate::fly::drawn_heights(metadata),
+            column: crate::stream::select::drawn_heights(metadata),
             elevation,
             texture,
             page_table,

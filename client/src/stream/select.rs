@@ -60,6 +60,19 @@ impl Want {
     }
 }
 
+/// The heights the terrain is drawn between: the metadata's range where an elevation
+/// layer gives heights, else the flat height a texture-only archive is drawn at (the
+/// metadata's minimum elevation, else 0) for both.
+pub fn drawn_heights(metadata: &Metadata) -> (f64, f64) {
+    let (lo, hi) = metadata.terrain.height_range();
+    if metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation) {
+        (lo, hi)
+    } else {
+        let flat = if lo.is_finite() { lo } else { 0.0 };
+        (flat, flat)
+    }
+}
+
 /// World-space box of a tile: `(x, z)` from the grid, `y` over the given height range.
 pub fn tile_box(layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
     let size = layer.world_size_at(key.lod());
@@ -79,7 +92,7 @@ pub fn select(
 ) -> Vec<Want> {
     let frustum = camera.frustum();
     let pixels_per_radian = camera.pixels_per_radian();
-    let heights = crate::fly::drawn_heights(metadata);
+    let heights = drawn_heights(metadata);
     let mut wants = Vec::new();
     // Breadth-first over the drawn layers at once, level by level from the top.
     let mut level: Vec<TileKey> = Vec::new();

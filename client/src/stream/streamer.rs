@@ -141,6 +141,14 @@ enum TileState {
     Undecodable,
 }
 
+impl TileState {
+    /// Nothing more will come for the tile in this generation of the archive: the view
+    /// neither waits for it nor asks again, and coverage falls back to a coarser tile.
+    fn is_settled_without_data(self) -> bool {
+        matches!(self, Self::Missing | Self::Undecodable)
+    }
+}
+
 enum Outcome {
     Ready(Arc<DecodedTile>),
     Missing,
@@ -336,7 +344,7 @@ impl Streamer {
             .iter()
             .filter(|w| {
                 !self.delivered.contains(&w.key)
-                    && !matches!(self.states.get(&w.key), Some(TileState::Missing | TileState::Undecodable))
+                    && !self.states.get(&w.key).is_some_and(|s| s.is_settled_without_data())
             })
             .count()
     }
@@ -361,7 +369,7 @@ impl Streamer {
             let version = host.version();
             if version != self.host_version {
                 self.host_version = version;
-                self.states.retain(|_, s| !matches!(s, TileState::Missing | TileState::Undecodable));
+                self.states.retain(|_, s| !s.is_settled_without_data());
             }
         }
         let Some(metadata) = self.metadata() else { return };
@@ -580,7 +588,8 @@ impl Streamer {
                 continue;
             }
             match self.states.get(&key) {
-                Some(TileState::Requested(_) | TileState::Missing | TileState::Undecodable) => continue,
+                Some(TileState::Requested(_)) => continue,
+                Some(state) if state.is_settled_without_data() => continue,
                 Some(TileState::Failed { retry_at, .. }) if *retry_at > now => continue,
                 _ => {}
             }

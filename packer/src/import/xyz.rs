@@ -291,7 +291,7 @@ pub(crate) fn pack_web_tiles<T>(
         return Err(Error::input(input, format!("zoom {max_zoom}: at most {} levels", MAX_LODS)));
     }
     let name = input.file_stem().and_then(|n| n.to_str()).unwrap_or("terrain");
-    let mut metadata = web_mercator_metadata(name, options.kind, options.elevation, format, width, max_zoom);
+    let mut metadata = grid_metadata(name, options.kind, options.elevation, format, width, max_zoom, (1, 1))?;
     let record = XyzRecord { template: "{z}/{x}/{y}".into(), scheme: Scheme::Xyz, min_zoom, max_zoom };
     metadata.extra.insert(XYZ_KEY.into(), serde_json::to_value(record).map_err(|e| Error::Metadata(e.to_string()))?);
     let mut ordered = tiles
@@ -327,34 +327,15 @@ pub(crate) fn pack_web_tiles<T>(
     writer.finish()
 }
 
-/// One layer on the Web Mercator tile grid of zoom `max_zoom` (LOD 0), `width`-pixel tiles.
-pub(crate) fn web_mercator_metadata(
-    name: &str,
-    kind: LayerKind,
-    elevation: Option<ElevationScheme>,
-    format: TileFormat,
-    width: u32,
-    max_zoom: u8,
-) -> Metadata {
-    let max_zoom = max_zoom.min(27);
-    let side = 1u32 << max_zoom;
-    let world = EQUATOR;
-    let mut metadata = Metadata::new(name, vec![web_layer(kind, elevation, format, width, (side, side), max_zoom)]);
-    metadata.georeference = Some(Georeference {
-        crs: Some("EPSG:3857".into()),
-        origin: Some([-world / 2.0, world / 2.0]),
-        lat_lon_bounds: Some([-180.0, -85.051_128_779_806_59, 180.0, 85.051_128_779_806_59]),
-    });
-    metadata
-}
-
 /// The equator's length on the WGS 84 ellipsoid, metres: Web Mercator's world width.
 const EQUATOR: f64 = 40_075_016.685_578_49;
 
 /// One layer of `top.0` x `top.1` tiles at zoom 0, doubled per zoom down to `max_zoom`
-/// (LOD 0). 1x1 is Web Mercator; 2x1 the geodetic profile (EPSG:4326, 180 degrees per
-/// zoom-0 tile, world units metres along the equator); other shapes carry no georeference.
-fn grid_metadata(
+/// (LOD 0), `width`-pixel tiles, the grid spanning the equator's length. 1x1 is Web
+/// Mercator (EPSG:3857); 2x1 the geodetic profile (EPSG:4326, 180 degrees per zoom-0
+/// tile); other shapes carry no georeference.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn grid_metadata(
     name: &str,
     kind: LayerKind,
     elevation: Option<ElevationScheme>,
@@ -363,23 +344,24 @@ fn grid_metadata(
     max_zoom: u8,
     top: (u32, u32),
 ) -> Result<Metadata> {
-    if top == (1, 1) {
-        return Ok(web_mercator_metadata(name, kind, elevation, format, width, max_zoom));
-    }
     let grid = |n: u32| n.checked_shl(u32::from(max_zoom)).filter(|g| g >> max_zoom == n);
     let (Some(nx), Some(ny)) = (grid(top.0), grid(top.1)) else {
         return Err(Error::Metadata(format!("{}x{} tiles at zoom 0 over {max_zoom} zooms: too many", top.0, top.1)));
     };
-    let mut layer = web_layer(kind, elevation, format, width, (nx, ny), max_zoom);
-    layer.tile_world_size = EQUATOR / f64::from(nx);
-    let mut metadata = Metadata::new(name, vec![layer]);
-    if top == (2, 1) {
-        metadata.georeference = Some(Georeference {
+    let mut metadata = Metadata::new(name, vec![web_layer(kind, elevation, format, width, (nx, ny), max_zoom)]);
+    metadata.georeference = match top {
+        (1, 1) => Some(Georeference {
+            crs: Some("EPSG:3857".into()),
+            origin: Some([-EQUATOR / 2.0, EQUATOR / 2.0]),
+            lat_lon_bounds: Some([-180.0, -85.051_128_779_806_59, 180.0, 85.051_128_779_806_59]),
+        }),
+        (2, 1) => Some(Georeference {
             crs: Some("EPSG:4326".into()),
             origin: Some([-180.0, 90.0]),
             lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
-        });
-    }
+        }),
+        _ => None,
+    };
     Ok(metadata)
 }
 
