@@ -217,3 +217,14 @@ fn tile_plans_writes_and_refuses_bad_input() {
     assert!(!out.status.success() && text(&out).contains("ortho.png"), "{}", text(&out));
     assert!(!work.join("bad.tspack").exists());
 }
+
+/// A missing archive: the message names the file once and the OS error once.
+#[test]
+fn a_missing_archive_is_named_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = terrastream(&["info", "missing.tspack"], dir.path());
+    assert!(!out.status.success());
+    let said = text(&out);
+    assert_eq!(said.matches("missing.tspack").count(), 1, "{said}");
+    assert_eq!(said.matches("No such file or directory").count(), 1, "{said}");
+}

@@ -108,13 +108,14 @@ pub enum Error {
     /// The operation was interrupted (Ctrl-C); nothing was written under the final name.
     #[error("interrupted")]
     Interrupted,
-    /// An I/O error on a named file.
-    #[error("{path}: {source}")]
+    /// An I/O error on a named file. The message carries the OS error itself (it is not
+    /// also the error's `source`, which would print it twice in a chain of causes).
+    #[error("{path}: {error}")]
     File {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// An I/O error from a byte source (file, mmap, network).
     #[error("read error at [{offset}, +{len}): {reason}")]
@@ -144,8 +145,8 @@ impl Error {
     }
 
     #[cfg_attr(not(any(feature = "write", not(target_arch = "wasm32"))), expect(dead_code, reason = "file backends"))]
-    pub(crate) fn file(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        Self::File { path: path.into(), source }
+    pub(crate) fn file(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
+        Self::File { path: path.into(), error }
     }
 
     #[cfg_attr(not(feature = "write"), expect(dead_code, reason = "importers"))]

@@ -272,6 +272,14 @@ fn health(url: &str, timeout: std::time::Duration) -> Result<ExitCode> {
 /// # Errors
 /// Names the file or URL when it cannot be read or is not a valid archive.
 pub fn open(location: &str) -> Result<Reader<AnySource>> {
-    let source = open_source(location).with_context(|| format!("cannot open archive {location}"))?;
+    // A file error names the file already; anything else gets the location said once.
+    let context = |e: &terrastream_packer::Error| match e {
+        terrastream_packer::Error::File { .. } => "cannot open archive".to_owned(),
+        _ => format!("cannot open archive {location}"),
+    };
+    let source = open_source(location).map_err(|e| {
+        let context = context(&e);
+        anyhow::Error::new(e).context(context)
+    })?;
     Reader::new(source).with_context(|| format!("cannot open archive {location}"))
 }
