@@ -4,12 +4,14 @@
 #![forbid(unsafe_code)]
 
 pub mod fly;
+pub mod input;
 #[cfg(feature = "render")]
 pub mod render;
 mod source;
 pub mod stream;
 
 pub use fly::{FlyCamera, FlyInput};
+pub use input::{Action, Keys};
 #[cfg(not(target_arch = "wasm32"))]
 pub use source::blocking::{AnySource, BlockingSource, open_source};
 pub use source::http::{HttpSource, HttpStats, RetryPolicy};

@@ -1,6 +1,5 @@
 //! `terrastream view`: a window, a fly camera, the terrain streaming in, and a HUD.
 
-use std::collections::HashSet;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -8,15 +7,16 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::Args;
 use terrastream_client::fly::{start_camera, terrain_bounds};
+use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame};
 use terrastream_client::render::hud::{FrameTimes, Hud, Status, status_lines};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
-use terrastream_client::{FlyCamera, FlyInput, Origin, Streamer};
+use terrastream_client::{Action, FlyCamera, Keys, Origin, Streamer};
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
-use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::keyboard::PhysicalKey;
 use winit::window::{Window, WindowId};
 
 use super::render::{LookArgs, parse_camera, parse_size};
@@ -58,7 +58,7 @@ struct App {
     fly: FlyCamera,
     running: Option<Running>,
     error: Option<anyhow::Error>,
-    keys: HashSet<KeyCode>,
+    keys: Keys,
     dragging: bool,
     cursor: Option<(f64, f64)>,
     show_hud: bool,
@@ -103,16 +103,8 @@ impl App {
 
     fn step(&mut self, dt: f64) {
         let Some(r) = &self.running else { return };
-        let axis = |plus: KeyCode, minus: KeyCode| {
-            f64::from(u8::from(self.keys.contains(&plus))) - f64::from(u8::from(self.keys.contains(&minus)))
-        };
-        let input = FlyInput {
-            forward: axis(KeyCode::KeyW, KeyCode::KeyS),
-            right: axis(KeyCode::KeyD, KeyCode::KeyA),
-            up: axis(KeyCode::KeyE, KeyCode::KeyQ),
-        };
         let streamer = &r.session.streamer;
-        self.fly.step(dt, input, |x, z| streamer.height_at(x, z));
+        self.fly.step(dt, self.keys.fly(), |x, z| streamer.height_at(x, z));
     }
 
     fn redraw(&mut self) -> Result<()> {
@@ -149,7 +141,7 @@ impl App {
                 eye: camera.position,
                 speed: self.fly.speed,
             });
-            lines.push("WASD/QE fly  drag: look  wheel: speed  G wireframe  L LOD colours  H HUD  Esc quit".to_owned());
+            lines.push(format!("{CONTROLS}  Esc quit"));
             let scale = if r.config.width >= 1800 { 2 } else { 1 };
             r.hud.set_text(&r.gpu.queue, &lines, (r.config.width, r.config.height), scale);
         }
@@ -188,6 +180,7 @@ impl ApplicationHandler for App {
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Focused(false) => self.keys.release_all(),
             WindowEvent::Resized(size) => {
                 if let Some(r) = &mut self.running {
                     r.config.width = size.width.max(1);
@@ -198,21 +191,22 @@ impl ApplicationHandler for App {
             }
             WindowEvent::KeyboardInput { event, .. } => {
                 let PhysicalKey::Code(code) = event.physical_key else { return };
-                if event.state == ElementState::Pressed {
-                    self.keys.insert(code);
-                    if let Some(r) = &mut self.running {
-                        let mut s = *r.session.renderer.settings();
-                        match code {
-                            KeyCode::Escape => event_loop.exit(),
-                            KeyCode::KeyG => s.wireframe = !s.wireframe,
-                            KeyCode::KeyL => s.lod_colours = !s.lod_colours,
-                            KeyCode::KeyH => self.show_hud = !self.show_hud,
-                            _ => {}
+                // winit's key names are the DOM's `code` names the shared key map uses.
+                let name = format!("{code:?}");
+                if event.state != ElementState::Pressed {
+                    self.keys.release(&name);
+                    return;
+                }
+                match self.keys.press(&name, event.repeat) {
+                    Some(Action::Quit) => event_loop.exit(),
+                    Some(action) => {
+                        if let Some(r) = &mut self.running {
+                            let mut s = *r.session.renderer.settings();
+                            action.toggle(&mut s, &mut self.show_hud);
+                            r.session.renderer.set_view_settings(s);
                         }
-                        r.session.renderer.set_view_settings(s);
                     }
-                } else {
-                    self.keys.remove(&code);
+                    None => {}
                 }
             }
             WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
@@ -287,7 +281,7 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
         fly: FlyCamera::from_camera(&camera),
         running: None,
         error: None,
-        keys: HashSet::new(),
+        keys: Keys::default(),
         dragging: false,
         cursor: None,
         show_hud,
@@ -301,5 +295,25 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     match app.error {
         Some(e) => Err(e),
         None => Ok(ExitCode::SUCCESS),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use winit::keyboard::KeyCode;
+
+    /// The shared key map names keys as the DOM does; winit's names must be the same.
+    #[test]
+    fn winit_key_names_are_the_dom_codes_the_key_map_uses() {
+        let pairs = [
+            (KeyCode::KeyW, "KeyW"),
+            (KeyCode::ArrowUp, "ArrowUp"),
+            (KeyCode::PageDown, "PageDown"),
+            (KeyCode::KeyG, "KeyG"),
+            (KeyCode::Escape, "Escape"),
+        ];
+        for (code, dom) in pairs {
+            assert_eq!(format!("{code:?}"), dom);
+        }
     }
 }

@@ -10,20 +10,22 @@
 //! - `hud=0`: start with the HUD hidden (H toggles it).
 
 use std::cell::RefCell;
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 
 use glam::DVec3;
 use terrastream_client::fly::start_camera;
+use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame, render_pass};
 use terrastream_client::render::hud::{FrameTimes, Status, status_lines};
 use terrastream_client::render::renderer::{FrameStats, RenderSettings};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
 use terrastream_client::{
-    Camera, FlyCamera, FlyInput, HttpSource, HttpStats, Origin, StreamOptions, StreamStats, Streamer, UploadBudget,
+    Camera, FlyCamera, FlyInput, HttpSource, HttpStats, Keys, Origin, StreamOptions, StreamStats, Streamer,
+    UploadBudget,
 };
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -148,28 +150,13 @@ fn js_text(v: JsValue) -> String {
 /// Keyboard, pointer and wheel state between frames.
 #[derive(Default)]
 struct Input {
-    keys: HashSet<String>,
+    keys: Keys,
     /// Active pointers (mouse buttons held, fingers down): id -> last position.
     pointers: HashMap<i32, (f64, f64)>,
     /// Distance between two fingers at the last move.
     pinch: Option<f64>,
     /// Flight along the view asked for by pinching, in seconds at the current speed.
     pinch_seconds: f64,
-}
-
-impl Input {
-    fn axis(&self, plus: &[&str], minus: &[&str]) -> f64 {
-        let held = |codes: &[&str]| codes.iter().any(|c| self.keys.contains(*c));
-        f64::from(u8::from(held(plus))) - f64::from(u8::from(held(minus)))
-    }
-
-    fn fly(&self) -> FlyInput {
-        FlyInput {
-            forward: self.axis(&["KeyW", "ArrowUp"], &["KeyS", "ArrowDown"]),
-            right: self.axis(&["KeyD", "ArrowRight"], &["KeyA", "ArrowLeft"]),
-            up: self.axis(&["KeyE", "PageUp"], &["KeyQ", "PageDown"]),
-        }
-    }
 }
 
 struct Surface {
@@ -243,7 +230,7 @@ impl State {
             return;
         }
         let (Some(session), Some(fly)) = (&mut self.session, &mut self.fly) else { return };
-        let mut input = self.input.fly();
+        let mut input = self.input.keys.fly();
         if self.input.pinch_seconds != 0.0 {
             // A pinch moves along the view as far as that many seconds of flight would.
             fly.step(
@@ -365,42 +352,28 @@ impl State {
             eye: camera.position,
             speed: self.fly.map_or(1.0, |f| f.speed),
         });
-        lines.push(
-            "WASD/arrows fly · Q/E down/up · drag look · wheel speed · pinch move · G wire · L LODs · H HUD".into(),
-        );
+        lines.push(format!("{CONTROLS}  pinch move"));
         hud.set_text_content(Some(&lines.join("\n")));
     }
 
     fn key(&mut self, event: &KeyboardEvent, down: bool) {
         let code = event.code();
-        if matches!(
-            code.as_str(),
-            "ArrowUp" | "ArrowDown" | "ArrowLeft" | "ArrowRight" | "PageUp" | "PageDown" | "Space"
-        ) {
+        if Keys::is_navigation(&code) {
             event.prevent_default();
         }
         if !down {
-            self.input.keys.remove(&code);
+            self.input.keys.release(&code);
             return;
         }
-        if !event.repeat() {
-            if let Some(session) = &mut self.session {
-                let mut s = *session.renderer.settings();
-                match code.as_str() {
-                    "KeyG" => s.wireframe = !s.wireframe,
-                    "KeyL" => s.lod_colours = !s.lod_colours,
-                    "KeyH" => {
-                        self.show_hud = !self.show_hud;
-                        if let Some(hud) = &self.page.hud {
-                            hud.set_hidden(!self.show_hud);
-                        }
-                    }
-                    _ => {}
-                }
-                session.renderer.set_view_settings(s);
+        let action = self.input.keys.press(&code, event.repeat());
+        if let (Some(action), Some(session)) = (action, &mut self.session) {
+            let mut s = *session.renderer.settings();
+            action.toggle(&mut s, &mut self.show_hud);
+            session.renderer.set_view_settings(s);
+            if let Some(hud) = &self.page.hud {
+                hud.set_hidden(!self.show_hud);
             }
         }
-        self.input.keys.insert(code);
     }
 
     fn pointer(&mut self, event: &PointerEvent, kind: PointerKind) {
@@ -673,7 +646,7 @@ fn listen(state: &Rc<RefCell<State>>) {
     on(&window, "keydown", state, |s, e: &KeyboardEvent| s.key(e, true));
     on(&window, "keyup", state, |s, e: &KeyboardEvent| s.key(e, false));
     // Keys held when the page loses focus would stay "down" forever.
-    on(&window, "blur", state, |s, _: &web_sys::Event| s.input.keys.clear());
+    on(&window, "blur", state, |s, _: &web_sys::Event| s.input.keys.release_all());
     for (name, kind) in [
         ("pointerdown", PointerKind::Down),
         ("pointermove", PointerKind::Move),
