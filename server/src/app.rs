@@ -23,6 +23,7 @@ use crate::config::ServerConfig;
 use crate::edge::Edge;
 use crate::metrics::Metrics;
 use crate::range::{Precondition, RangeOutcome, if_none_match, if_range_allows, parse_range, preconditions};
+use crate::route::Route;
 
 /// A response whose body is slices of the archive (or small texts): what the archive and
 /// tile routes answer, sent by hyper (as a boxed body) or by the lean HTTP/1.1 path.
@@ -127,15 +128,22 @@ pub fn app(state: AppState) -> Router {
 /// clients are cut off by the connection's header-read timeout (see `serve`).
 pub fn service(state: AppState) -> Edge<Router> {
     let timeout = TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, state.config.request_timeout());
-    let router = Router::new()
-        .route("/", get(index))
-        .route("/healthz", get(|| async { "ok\n" }))
-        .route("/metrics", get(metrics))
-        .route("/{file}", get(archive_bytes))
-        .route("/{name}/metadata", get(metadata))
-        .route("/view/{name}", get(view).layer(timeout))
-        .route("/{name}/{layer}/{lod}/{x}/{y}", get(tile))
-        .with_state(state.clone());
+    // One handler per route, mounted on the route's template (the match makes a new
+    // route without a handler a compile error).
+    let router = Route::ALL.into_iter().fold(Router::new(), |router, route| {
+        let handler = match route {
+            Route::Index => get(index),
+            Route::Health => get(|| async { "ok\n" }),
+            Route::Metrics => get(metrics),
+            Route::Archive => get(archive_bytes),
+            Route::Metadata => get(metadata),
+            Route::Tile => get(tile),
+            Route::View => get(view).layer(timeout),
+            Route::Other => return router,
+        };
+        router.route(route.template(), handler)
+    });
+    let router = router.with_state(state.clone());
     Edge::new(router, state)
 }
 
@@ -154,7 +162,7 @@ async fn archive_bytes(State(state): State<AppState>, Path(file): Path<String>, 
 }
 
 /// The answer of `GET|HEAD /{file}`, for the router and for the lean HTTP/1.1 path. Reads
-/// no request header but those in `h1::READ_HEADERS`: the lean path passes no others.
+/// no request header but those in `route::READ_HEADERS`: the lean path passes no others.
 #[tracing::instrument(level = "debug", skip_all, fields(file = %file))]
 pub(crate) fn archive_answer(state: &AppState, file: &str, method: &Method, headers: &HeaderMap) -> Answer {
     archive_range(state, file, method, headers).unwrap_or_else(AppError::into_answer)
@@ -268,7 +276,7 @@ async fn tile(
 }
 
 /// The answer of `GET|HEAD /{name}/{layer}/{lod}/{x}/{y}`, for the router and for the lean
-/// HTTP/1.1 path. Reads no request header but those in `h1::READ_HEADERS`.
+/// HTTP/1.1 path. Reads no request header but those in `route::READ_HEADERS`.
 #[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod = at.0, x = at.1, y = at.2))]
 pub(crate) fn tile_answer(
     state: &AppState,

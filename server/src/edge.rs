@@ -25,13 +25,10 @@ use tower::Service;
 use tracing::Instrument;
 
 use crate::app::AppState;
-use crate::metrics::route_of;
+use crate::route::{READ_HEADERS, Route};
 
 /// Methods a browser may use (preflight answer).
 const ALLOW_METHODS: HeaderValue = HeaderValue::from_static("GET, HEAD, OPTIONS");
-/// Request headers a browser may send (preflight answer).
-const ALLOW_HEADERS: HeaderValue =
-    HeaderValue::from_static("range, if-none-match, if-match, if-range, if-modified-since, accept-encoding");
 /// Response headers a page may read.
 const EXPOSE_HEADERS: HeaderValue = HeaderValue::from_static(
     "etag, content-range, content-length, content-encoding, accept-ranges, last-modified, \
@@ -41,15 +38,15 @@ const EXPOSE_HEADERS: HeaderValue = HeaderValue::from_static(
 const MAX_AGE: HeaderValue = HeaderValue::from_static("86400");
 
 /// What every answer gets on its way out, whichever path served it: the CORS headers, and
-/// its line in the metrics (`route`: see [`route_of`]).
-pub(crate) fn finish<B>(state: &AppState, route: usize, started: Instant, response: &mut axum::http::Response<B>) {
+/// its line in the metrics under `route`.
+pub(crate) fn finish<B>(state: &AppState, route: Route, started: Instant, response: &mut axum::http::Response<B>) {
     // On every response, not only to requests with an `Origin`: a shared cache may hand
     // one answer to both kinds of client (no `Vary: Origin` needed).
     let h = response.headers_mut();
     h.insert(ACCESS_CONTROL_ALLOW_ORIGIN, HeaderValue::from_static("*"));
     h.insert(ACCESS_CONTROL_EXPOSE_HEADERS, EXPOSE_HEADERS);
     let bytes = h.get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse().ok()).unwrap_or(0);
-    state.metrics.record_at(route, response.status().as_u16(), bytes, started.elapsed());
+    state.metrics.record(route, response.status().as_u16(), bytes, started.elapsed());
 }
 
 /// Wraps the router: see the module's documentation.
@@ -86,7 +83,7 @@ where
 
     fn call(&mut self, req: Request<B>) -> Self::Future {
         let started = Instant::now();
-        let route = route_of(req.uri().path());
+        let route = Route::of(req.uri().path());
         let state = self.state.clone();
         let finish = move |mut response: Response| {
             finish(&state, route, started, &mut response);
@@ -101,7 +98,11 @@ where
             *response.status_mut() = StatusCode::NO_CONTENT;
             let h = response.headers_mut();
             h.insert(ACCESS_CONTROL_ALLOW_METHODS, ALLOW_METHODS);
-            h.insert(ACCESS_CONTROL_ALLOW_HEADERS, ALLOW_HEADERS);
+            // The request headers a browser may send: those the handlers read.
+            let allowed = READ_HEADERS.iter().map(axum::http::HeaderName::as_str).collect::<Vec<_>>().join(", ");
+            if let Ok(allowed) = HeaderValue::from_str(&allowed) {
+                h.insert(ACCESS_CONTROL_ALLOW_HEADERS, allowed);
+            }
             h.insert(ACCESS_CONTROL_MAX_AGE, MAX_AGE);
             return Box::pin(std::future::ready(finish(response)));
         }

@@ -28,14 +28,14 @@ use std::task::{Context, Poll};
 use std::time::{Duration, Instant, SystemTime};
 
 use axum::http::header::{CONTENT_LENGTH, DATE};
-use axum::http::{HeaderMap, HeaderName, HeaderValue, Method, StatusCode};
+use axum::http::{HeaderMap, HeaderValue, Method, StatusCode};
 use bytes::{Buf, Bytes};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, ReadBuf};
 use tokio::sync::watch;
 
 use crate::app::{Answer, AppState, archive_answer, tile_answer};
 use crate::edge::finish;
-use crate::metrics::{route_index, route_of};
+use crate::route::{READ_HEADERS, Route};
 use crate::sendfile::Stream;
 
 /// Most request headers the lean path parses; a request with more goes to hyper.
@@ -44,18 +44,6 @@ pub(crate) const MAX_HEADERS: usize = 32;
 /// Request headers that change how a request is framed or answered beyond what the lean
 /// path does: a request with one goes to hyper (`connection: keep-alive` excepted).
 const HYPER_HEADERS: [&str; 6] = ["content-length", "transfer-encoding", "connection", "upgrade", "expect", "te"];
-
-/// The request headers the two handlers read ([`archive_answer`], [`tile_answer`]); the
-/// lean path keeps only these (others are checked, not copied).
-const READ_HEADERS: [HeaderName; 7] = [
-    axum::http::header::RANGE,
-    axum::http::header::IF_RANGE,
-    axum::http::header::IF_MATCH,
-    axum::http::header::IF_NONE_MATCH,
-    axum::http::header::IF_MODIFIED_SINCE,
-    axum::http::header::IF_UNMODIFIED_SINCE,
-    axum::http::header::ACCEPT_ENCODING,
-];
 
 /// How a connection left the lean path.
 pub(crate) enum Ended {
@@ -80,21 +68,22 @@ struct Request<'a> {
     len: usize,
     method: Method,
     path: &'a str,
-    route: Route<'a>,
+    route: Lean<'a>,
     headers: HeaderMap,
 }
 
-enum Route<'a> {
+/// A request the lean path answers itself, its path's segments captured.
+enum Lean<'a> {
     Archive(&'a str),
     Tile { name: &'a str, layer: &'a str, at: (u8, u32, u32) },
 }
 
-impl Route<'_> {
-    /// The router's template of this route, as the metrics name it.
-    fn template(&self) -> &'static str {
+impl Lean<'_> {
+    /// The router's route for this request.
+    fn route(&self) -> Route {
         match self {
-            Route::Archive(_) => "/{file}",
-            Route::Tile { .. } => "/{name}/{layer}/{lod}/{x}/{y}",
+            Lean::Archive(_) => Route::Archive,
+            Lean::Tile { .. } => Route::Tile,
         }
     }
 }
@@ -187,10 +176,10 @@ async fn answer(
 ) -> std::io::Result<Instant> {
     let started = Instant::now();
     let mut answer = match request.route {
-        Route::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
-        Route::Tile { name, layer, at } => tile_answer(state, name, layer, at, &request.headers),
+        Lean::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
+        Lean::Tile { name, layer, at } => tile_answer(state, name, layer, at, &request.headers),
     };
-    finish(state, route_index(request.route.template()), started, &mut answer);
+    finish(state, request.route.route(), started, &mut answer);
     if tracing::enabled!(tracing::Level::DEBUG) {
         let (method, path, status) = (&request.method, request.path, answer.status().as_u16());
         tracing::debug!(%method, path, status, latency = ?started.elapsed(), "answered");
@@ -273,17 +262,17 @@ pub fn inspect_head(bytes: &[u8], max_head: usize) -> Option<(usize, &'static st
     let Parsed::Request(request) = parse(bytes, max_head) else { return None };
     assert!(request.len <= bytes.len() && request.len <= max_head, "head of {} bytes", request.len);
     match request.route {
-        Route::Archive(file) => assert!(file.ends_with(".tspack") && !file.contains('/')),
-        Route::Tile { name, layer, .. } => assert!(!name.is_empty() && !layer.is_empty()),
+        Lean::Archive(file) => assert!(file.ends_with(".tspack") && !file.contains('/')),
+        Lean::Tile { name, layer, .. } => assert!(!name.is_empty() && !layer.is_empty()),
     }
-    let template = request.route.template();
-    assert_eq!(route_of(request.path), route_index(template), "{:?}", request.path);
-    Some((request.len, template))
+    let route = request.route.route();
+    assert_eq!(Route::of(request.path), route, "{:?}", request.path);
+    Some((request.len, route.template()))
 }
 
 /// The lean route a path names, if any: only paths that the router would match the same
 /// way and whose segments need no decoding.
-fn route(path: &str) -> Option<Route<'_>> {
+fn route(path: &str) -> Option<Lean<'_>> {
     if !path.is_ascii() || path.contains(['%', '?', '#']) {
         return None;
     }
@@ -291,10 +280,10 @@ fn route(path: &str) -> Option<Route<'_>> {
     let s: [Option<&str>; 6] = std::array::from_fn(|_| segments.next());
     match s {
         [Some(file), None, ..] if file.len() > ".tspack".len() && file.ends_with(".tspack") => {
-            Some(Route::Archive(file))
+            Some(Lean::Archive(file))
         }
         [Some(name), Some(layer), Some(lod), Some(x), Some(y), None] if !name.is_empty() && !layer.is_empty() => {
-            Some(Route::Tile { name, layer, at: (lod.parse().ok()?, x.parse().ok()?, y.parse().ok()?) })
+            Some(Lean::Tile { name, layer, at: (lod.parse().ok()?, x.parse().ok()?, y.parse().ok()?) })
         }
         _ => None,
     }

@@ -13,6 +13,7 @@ mod h1;
 mod metrics;
 pub mod player;
 mod range;
+mod route;
 mod sendfile;
 mod serve;
 
@@ -24,4 +25,5 @@ pub use edge::Edge;
 pub use h1::inspect_head;
 pub use metrics::Metrics;
 pub use range::{Precondition, RangeOutcome, if_range_allows, parse_range, preconditions};
+pub use route::Route;
 pub use serve::{serve, serve_workers, shutdown_signal};

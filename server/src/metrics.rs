@@ -12,17 +12,8 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
-/// Routes of the application, as axum's matched-path templates; "other" for the rest.
-pub const ROUTES: [&str; 8] = [
-    "/",
-    "/healthz",
-    "/metrics",
-    "/{file}",
-    "/{name}/metadata",
-    "/{name}/{layer}/{lod}/{x}/{y}",
-    "/view/{name}",
-    "other",
-];
+use crate::route::Route;
+
 /// Status codes counted one by one; any other lands in "other".
 const STATUSES: [u16; 20] =
     [200, 204, 206, 301, 302, 304, 400, 403, 404, 405, 408, 412, 413, 416, 429, 431, 500, 502, 503, 504];
@@ -56,7 +47,7 @@ const SHARDS: usize = 16;
 /// One thread's copy of the table, on its own cache lines.
 #[derive(Debug, Default)]
 #[repr(align(128))]
-struct Shard([RouteStats; ROUTES.len()]);
+struct Shard([RouteStats; Route::ALL.len()]);
 
 /// Counters shared by all requests.
 #[derive(Debug)]
@@ -165,41 +156,10 @@ fn shard_index() -> usize {
     SHARD.with(|s| *s)
 }
 
-/// Index of a route template in [`ROUTES`] ("other" for anything else).
-pub fn route_index(route: &str) -> usize {
-    ROUTES.iter().position(|r| *r == route).unwrap_or(ROUTES.len() - 1)
-}
-
-/// Index in [`ROUTES`] of the route that serves a request path, as the router matches it
-/// (static segments before parameters), without running the router.
-pub fn route_of(path: &str) -> usize {
-    let mut segments = path.strip_prefix('/').unwrap_or(path).split('/');
-    let first = segments.next().unwrap_or("");
-    let rest: [Option<&str>; 5] = std::array::from_fn(|_| segments.next());
-    let route = match (first, rest) {
-        ("", [None, ..]) => "/",
-        ("healthz", [None, ..]) => "/healthz",
-        ("metrics", [None, ..]) => "/metrics",
-        (f, [None, ..]) if !f.is_empty() => "/{file}",
-        ("view", [Some(n), None, ..]) if !n.is_empty() => "/view/{name}",
-        (f, [Some("metadata"), None, ..]) if !f.is_empty() => "/{name}/metadata",
-        (f, [Some(a), Some(b), Some(c), Some(d), None]) if ![f, a, b, c, d].contains(&"") => {
-            "/{name}/{layer}/{lod}/{x}/{y}"
-        }
-        _ => "other",
-    };
-    route_index(route)
-}
-
 impl Metrics {
     /// Records one answered request.
-    pub fn record(&self, route: &str, status: u16, bytes: u64, latency: Duration) {
-        self.record_at(route_index(route), status, bytes, latency);
-    }
-
-    /// Records one answered request on the route at `index` (the index `route_index` gives a route template).
-    pub fn record_at(&self, index: usize, status: u16, bytes: u64, latency: Duration) {
-        let s = &self.shards[shard_index()].0[index.min(ROUTES.len() - 1)];
+    pub fn record(&self, route: Route, status: u16, bytes: u64, latency: Duration) {
+        let s = &self.shards[shard_index()].0[route.index()];
         let status_slot = STATUSES.iter().position(|&c| c == status).unwrap_or(STATUSES.len());
         s.by_status[status_slot].fetch_add(1, Relaxed);
         s.bytes.fetch_add(bytes, Relaxed);
@@ -212,14 +172,14 @@ impl Metrics {
         s.sum_nanos.fetch_add(u64::try_from(latency.as_nanos()).unwrap_or(u64::MAX), Relaxed);
     }
 
-    /// Requests answered on a route (all statuses); tests and caches use it.
-    pub fn requests(&self, route: &str) -> u64 {
-        self.totals()[route_index(route)].count
+    /// Requests answered on the route of a template (all statuses); tests and caches use it.
+    pub fn requests(&self, template: &str) -> u64 {
+        self.totals()[Route::from_template(template).index()].count
     }
 
     /// Every route's counts, summed over the shards.
-    fn totals(&self) -> [RouteStats<u64>; ROUTES.len()] {
-        let mut totals: [RouteStats<u64>; ROUTES.len()] = Default::default();
+    fn totals(&self) -> [RouteStats<u64>; Route::ALL.len()] {
+        let mut totals: [RouteStats<u64>; Route::ALL.len()] = Default::default();
         for shard in &self.shards {
             shard.0.iter().zip(&mut totals).for_each(|(s, t)| s.add_to(t));
         }
@@ -252,7 +212,7 @@ impl Metrics {
         }
         let totals = self.totals();
         let used: Vec<(&str, &RouteStats<u64>)> =
-            ROUTES.iter().copied().zip(&totals).filter(|(_, s)| s.count > 0).collect();
+            Route::ALL.iter().map(|r| r.template()).zip(&totals).filter(|(_, s)| s.count > 0).collect();
         let _ = writeln!(
             out,
             "# HELP terrastream_requests_total Requests answered.\n# TYPE terrastream_requests_total counter"
@@ -316,10 +276,10 @@ mod tests {
     #[test]
     fn buckets_are_cumulative_and_statuses_counted() {
         let m = Metrics::default();
-        m.record("/{file}", 206, 10, Duration::from_micros(50));
-        m.record("/{file}", 206, 5, Duration::from_millis(3));
-        m.record("/{file}", 599, 0, Duration::from_secs(9));
-        m.record("/nope", 404, 0, Duration::from_micros(1));
+        m.record(Route::Archive, 206, 10, Duration::from_micros(50));
+        m.record(Route::Archive, 206, 5, Duration::from_millis(3));
+        m.record(Route::Archive, 599, 0, Duration::from_secs(9));
+        m.record(Route::Other, 404, 0, Duration::from_micros(1));
         let text = m.render(1);
         assert!(text.contains("terrastream_requests_total{route=\"/{file}\",status=\"206\"} 2"), "{text}");
         assert!(text.contains("terrastream_requests_total{route=\"/{file}\",status=\"other\"} 1"), "{text}");
@@ -337,7 +297,7 @@ mod tests {
             for _ in 0..2 * SHARDS + 3 {
                 scope.spawn(|| {
                     for _ in 0..100 {
-                        m.record("/{file}", 206, 2, Duration::from_micros(50));
+                        m.record(Route::Archive, 206, 2, Duration::from_micros(50));
                     }
                 });
             }
@@ -374,27 +334,5 @@ mod tests {
         assert!(text.contains("terrastream_connections{thread=\"2\"} 1\n"), "{text}");
         assert!(text.contains("terrastream_connections{thread=\"0\"} 0\n"), "{text}");
         assert!(text.contains(&format!("terrastream_connections_handed_total {}\n", connections.handed())), "{text}");
-    }
-
-    #[test]
-    fn paths_are_classified_as_the_router_matches_them() {
-        let cases = [
-            ("/", "/"),
-            ("/healthz", "/healthz"),
-            ("/metrics", "/metrics"),
-            ("/a.tspack", "/{file}"),
-            ("/view/a", "/view/{name}"),
-            ("/view/metadata", "/view/{name}"),
-            ("/a/metadata", "/{name}/metadata"),
-            ("/a/texture/0/1/2", "/{name}/{layer}/{lod}/{x}/{y}"),
-            ("/a/b", "other"),
-            ("/a/b/c", "other"),
-            ("/a/texture/0/1/2/3", "other"),
-            ("/a//0/1/2", "other"),
-            ("/view/", "other"),
-        ];
-        for (path, route) in cases {
-            assert_eq!(ROUTES[route_of(path)], route, "{path}");
-        }
     }
 }
