@@ -29,6 +29,7 @@ mod header;
 mod key;
 mod metadata;
 pub mod progress;
+pub mod protocol;
 mod reader;
 mod source;
 mod stats;

@@ -14,7 +14,7 @@ use axum::http::{HeaderMap, Method, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use bytes::Bytes;
-use terrastream_packer::{Error as PackError, PayloadCompression, TileKey};
+use terrastream_packer::{Error as PackError, PayloadCompression, TileKey, protocol};
 use tower_http::timeout::TimeoutLayer;
 
 use crate::body::Payload;
@@ -32,11 +32,10 @@ pub(crate) type Answer = axum::http::Response<Payload>;
 const OCTET_STREAM: HeaderValue = HeaderValue::from_static("application/octet-stream");
 
 /// Response header naming the nearest coarser LOD that exists for a missing tile.
-pub const FALLBACK_LOD: HeaderName = HeaderName::from_static("x-terrastream-fallback-lod");
+pub const FALLBACK_LOD: HeaderName = HeaderName::from_static(protocol::FALLBACK_LOD_HEADER);
 /// Header on metadata and tile responses: the strong ETag of the archive file they come
-/// from, so that a client of the tile endpoint can tell when the archive was replaced and
-/// never mix tiles of two versions.
-pub const ARCHIVE_ETAG: HeaderName = HeaderName::from_static("x-terrastream-archive-etag");
+/// from ([`protocol::ARCHIVE_ETAG_HEADER`]).
+pub const ARCHIVE_ETAG: HeaderName = HeaderName::from_static(protocol::ARCHIVE_ETAG_HEADER);
 
 /// Shared state of all handlers: one `Arc`, so the per-request clone (by each extractor)
 /// is one atomic increment rather than one per field.

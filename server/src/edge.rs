@@ -123,3 +123,19 @@ where
         Box::pin(async move { finish(answer.await?) })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pages_may_read_the_protocol_headers() {
+        let exposed = EXPOSE_HEADERS;
+        let exposed = exposed.to_str().unwrap();
+        for name in
+            [terrastream_packer::protocol::ARCHIVE_ETAG_HEADER, terrastream_packer::protocol::FALLBACK_LOD_HEADER]
+        {
+            assert!(exposed.contains(name), "{exposed}");
+        }
+    }
+}

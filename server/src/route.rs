@@ -106,6 +106,11 @@ mod tests {
         for (path, route) in cases {
             assert_eq!(Route::of(path).template(), route, "{path}");
         }
+        // The paths the clients build (terrastream_packer::protocol) land on their routes.
+        use terrastream_packer::{TileKey, protocol};
+        assert_eq!(Route::of(&format!("/alps/{}", protocol::METADATA_PATH)), Route::Metadata);
+        let tile = protocol::tile_path(TileKey::new(1, 2, 3, 4).unwrap());
+        assert_eq!(Route::of(&format!("/alps/{tile}")), Route::Tile);
         for (i, route) in Route::ALL.into_iter().enumerate() {
             assert_eq!(route.index(), i);
             assert_eq!(Route::from_template(route.template()), route);

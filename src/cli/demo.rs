@@ -88,7 +88,7 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
                 let detail = [
                     pick("content-range"),
                     pick("content-type"),
-                    pick("x-terrastream-fallback-lod").map(|l| format!("use LOD {l}")),
+                    pick(terrastream_packer::protocol::FALLBACK_LOD_HEADER).map(|l| format!("use LOD {l}")),
                 ]
                 .into_iter()
                 .flatten()

@@ -10,7 +10,9 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use bytes::Bytes;
 use reqwest::StatusCode;
-use terrastream_packer::{AsyncRangeSource, AsyncReader, Error, MaybeSend, MaybeSync, Metadata, Result, TileKey};
+use terrastream_packer::{
+    AsyncRangeSource, AsyncReader, Error, MaybeSend, MaybeSync, Metadata, Result, TileKey, protocol,
+};
 
 use crate::source::http::HttpSource;
 use crate::source::is_http_url;
@@ -84,8 +86,6 @@ pub struct EndpointSource {
     requests: AtomicU64,
 }
 
-const ARCHIVE_ETAG: &str = "x-terrastream-archive-etag";
-
 impl EndpointSource {
     /// The archive served at `base` (e.g. `http://host:8080/alps`).
     ///
@@ -118,7 +118,8 @@ impl EndpointSource {
         let fail = |reason: String| Error::Source { offset: 0, len: 0, reason: format!("{url}: {reason}") };
         self.requests.fetch_add(1, Relaxed);
         let response = self.client.get(&url).send().await.map_err(|e| fail(e.to_string()))?;
-        let etag = response.headers().get(ARCHIVE_ETAG).and_then(|v| v.to_str().ok()).map(str::to_owned);
+        let etag =
+            response.headers().get(protocol::ARCHIVE_ETAG_HEADER).and_then(|v| v.to_str().ok()).map(str::to_owned);
         {
             let mut known = self.archive_etag.lock().unwrap_or_else(PoisonError::into_inner);
             match (&*known, etag) {
@@ -131,7 +132,7 @@ impl EndpointSource {
         }
         match response.status() {
             StatusCode::OK => response.bytes().await.map(Some).map_err(|e| fail(format!("body: {e}"))),
-            StatusCode::NOT_FOUND if path != "metadata" => Ok(None),
+            StatusCode::NOT_FOUND if path != protocol::METADATA_PATH => Ok(None),
             status => Err(fail(format!("HTTP {status}"))),
         }
     }
@@ -141,7 +142,7 @@ impl EndpointSource {
     /// # Errors
     /// Source errors; [`Error::Metadata`] for a bad document.
     pub async fn metadata(&self) -> Result<Metadata> {
-        let bytes = self.get("metadata").await?.unwrap_or_default();
+        let bytes = self.get(protocol::METADATA_PATH).await?.unwrap_or_default();
         Metadata::from_json(&bytes)
     }
 
@@ -150,7 +151,7 @@ impl EndpointSource {
     /// # Errors
     /// Source errors; [`Error::Changed`] when the archive was replaced.
     pub async fn tile(&self, key: TileKey) -> Result<Option<Bytes>> {
-        self.get(&format!("{}/{}/{}/{}", key.layer(), key.lod(), key.x(), key.y())).await
+        self.get(&protocol::tile_path(key)).await
     }
 
     fn forget(&self) {
