@@ -194,15 +194,23 @@ struct Timings {
     max_frame_ms_streaming: f64,
 }
 
+/// Where the player is: opening the archive, showing it, or stopped with the reason on
+/// the page.
+enum Phase {
+    /// Until the archive's metadata is in.
+    Opening(Box<Streamer>),
+    /// Streaming, drawing and flying.
+    Running { session: Box<Session>, fly: FlyCamera },
+    /// The archive opened but cannot be shown.
+    Failed,
+}
+
 struct State {
     page: Page,
     params: Params,
     gpu: Gpu,
     surface: Surface,
-    /// Until the archive is open; then moved into the session.
-    opening: Option<Streamer>,
-    session: Option<Session>,
-    fly: Option<FlyCamera>,
+    phase: Phase,
     http: Arc<HttpStats>,
     input: Input,
     show_hud: bool,
@@ -226,10 +234,10 @@ impl State {
         if size != (self.surface.config.width, self.surface.config.height) {
             self.surface.configure(&self.gpu.device, size);
         }
-        if self.session.is_none() && !self.open_session() {
+        if !matches!(self.phase, Phase::Running { .. }) && !self.open_session() {
             return;
         }
-        let (Some(session), Some(fly)) = (&mut self.session, &mut self.fly) else { return };
+        let Phase::Running { session, fly } = &mut self.phase else { return };
         let mut input = self.input.keys.fly();
         if self.input.pinch_seconds != 0.0 {
             // A pinch moves along the view as far as that many seconds of flight would.
@@ -253,7 +261,7 @@ impl State {
             self.timings.first_frame_at = Some(now);
             tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
         }
-        let Some(session) = &self.session else { return };
+        let Phase::Running { session, .. } = &self.phase else { return };
         let pending = session.streamer.pending();
         if pending > 0 || stream.in_flight > 0 {
             self.timings.max_frame_ms_streaming = self.timings.max_frame_ms_streaming.max(interval_ms);
@@ -278,7 +286,7 @@ impl State {
     /// while there is nothing to draw yet.
     fn open_session(&mut self) -> bool {
         let (width, height) = (self.surface.config.width, self.surface.config.height);
-        let Some(streamer) = &mut self.opening else { return false };
+        let Phase::Opening(streamer) = &mut self.phase else { return false };
         streamer.update(&Camera::look_at(DVec3::ONE, DVec3::ZERO, width, height));
         let Some(metadata) = streamer.metadata().cloned() else {
             match streamer.last_error() {
@@ -290,14 +298,13 @@ impl State {
             self.present();
             return false;
         };
-        let Some(streamer) = self.opening.take() else { return false };
+        let Phase::Opening(streamer) = std::mem::replace(&mut self.phase, Phase::Failed) else { return false };
         let settings =
             RenderSettings { elevation_slots: GPU_SLOTS, texture_slots: GPU_SLOTS, ..RenderSettings::default() };
-        match Session::new(streamer, &self.gpu.device, settings, self.surface.view_format, UploadBudget::default()) {
+        match Session::new(*streamer, &self.gpu.device, settings, self.surface.view_format, UploadBudget::default()) {
             Ok(session) => {
                 let camera = start_camera(&metadata, self.params.camera, width, height);
-                self.fly = Some(FlyCamera::from_camera(&camera));
-                self.session = Some(session);
+                self.phase = Phase::Running { session: Box::new(session), fly: FlyCamera::from_camera(&camera) };
                 tracing::info!(archive = %self.params.archive, "opened: {} layers", metadata.layers.len());
                 true
             }
@@ -317,7 +324,10 @@ impl State {
             format: Some(self.surface.view_format),
             ..wgpu::TextureViewDescriptor::default()
         });
-        let renderer = self.session.as_ref().map(|s| &s.renderer);
+        let renderer = match &self.phase {
+            Phase::Running { session, .. } => Some(&session.renderer),
+            Phase::Opening(_) | Phase::Failed => None,
+        };
         let sky = renderer.map_or_else(|| RenderSettings::default().clear_colour(), |r| r.settings().clear_colour());
         render_pass(&self.gpu.device, &self.gpu.queue, &view, &self.surface.depth, sky, |pass| {
             if let Some(renderer) = renderer {
@@ -336,7 +346,7 @@ impl State {
     fn update_hud(&self, camera: &Camera) {
         let Some(hud) = &self.page.hud else { return };
         hud.set_hidden(!self.show_hud);
-        let (Some(session), Some((stream, frame))) = (&self.session, &self.last) else { return };
+        let (Phase::Running { session, fly }, Some((stream, frame))) = (&self.phase, &self.last) else { return };
         if !self.show_hud {
             return;
         }
@@ -350,7 +360,7 @@ impl State {
             budget: session.budget,
             received: (self.http.bytes.load(Relaxed), self.http.requests.load(Relaxed)),
             eye: camera.position,
-            speed: self.fly.map_or(1.0, |f| f.speed),
+            speed: fly.speed,
         });
         lines.push(format!("{CONTROLS}  pinch move"));
         hud.set_text_content(Some(&lines.join("\n")));
@@ -366,7 +376,7 @@ impl State {
             return;
         }
         let action = self.input.keys.press(&code, event.repeat());
-        if let (Some(action), Some(session)) = (action, &mut self.session) {
+        if let (Some(action), Phase::Running { session, .. }) = (action, &mut self.phase) {
             let mut s = *session.renderer.settings();
             action.toggle(&mut s, &mut self.show_hud);
             session.renderer.set_view_settings(s);
@@ -393,7 +403,7 @@ impl State {
             PointerKind::Move => {
                 let Some(last) = self.input.pointers.get(&id).copied() else { return };
                 self.input.pointers.insert(id, at);
-                let Some(fly) = &mut self.fly else { return };
+                let Phase::Running { fly, .. } = &mut self.phase else { return };
                 match self.input.pointers.len() {
                     1 => fly.look(at.0 - last.0, at.1 - last.1),
                     2 => {
@@ -420,19 +430,21 @@ impl State {
             1 => -event.delta_y() / 3.0,
             _ => -event.delta_y(),
         };
-        if let Some(fly) = &mut self.fly {
+        if let Phase::Running { fly, .. } = &mut self.phase {
             fly.scale_speed(notches);
         }
     }
 
     fn stats(&self) -> String {
-        let (pending, settled, error) = match (&self.session, &self.opening) {
-            (Some(s), _) => (s.streamer.pending(), s.settled(), s.streamer.last_error().map(str::to_owned)),
-            (None, Some(o)) => (0, false, o.last_error().map(str::to_owned)),
-            (None, None) => (0, false, None),
+        let still = FlyCamera { eye: DVec3::ZERO, yaw: 0.0, pitch: 0.0, speed: 1.0 };
+        let (pending, settled, error, fly) = match &self.phase {
+            Phase::Running { session, fly } => {
+                (session.streamer.pending(), session.settled(), session.streamer.last_error().map(str::to_owned), *fly)
+            }
+            Phase::Opening(o) => (0, false, o.last_error().map(str::to_owned), still),
+            Phase::Failed => (0, false, None, still),
         };
         let (stream, frame) = self.last.clone().unwrap_or_default();
-        let fly = self.fly.unwrap_or(FlyCamera { eye: DVec3::ZERO, yaw: 0.0, pitch: 0.0, speed: 1.0 });
         let since_start = |at: Option<f64>| at.map(|t| t - self.started_ms);
         serde_json::json!({
             "archive": self.params.archive,
@@ -457,7 +469,10 @@ impl State {
             "failures": stream.failures,
             "uploads": stream.uploads,
             "max_uploads_per_frame": self.timings.max_uploads_per_frame,
-            "upload_budget": self.session.as_ref().map_or(0, |s| s.budget.max_tiles),
+            "upload_budget": match &self.phase {
+                Phase::Running { session, .. } => session.budget.max_tiles,
+                Phase::Opening(_) | Phase::Failed => 0,
+            },
             "max_frame_ms_streaming": self.timings.max_frame_ms_streaming,
             "resident": [frame.resident.0, frame.resident.1],
             "triangles": frame.triangles,
@@ -550,9 +565,7 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         params,
         gpu,
         surface,
-        opening: Some(streamer),
-        session: None,
-        fly: None,
+        phase: Phase::Opening(Box::new(streamer)),
         http,
         input: Input::default(),
         show_hud,
