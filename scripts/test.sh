@@ -32,7 +32,7 @@ cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 echo "== reader, client and renderer for wasm32"
-cargo check -p terrastream-packer --no-default-features --target wasm32-unknown-unknown --locked
+cargo check -p terrastream-format --target wasm32-unknown-unknown --locked
 cargo check -p terrastream-client --target wasm32-unknown-unknown --locked
 cargo check -p terrastream-client --features render --target wasm32-unknown-unknown --locked
 cargo clippy -p terrastream-web --target wasm32-unknown-unknown --locked -- -D warnings

@@ -20,7 +20,7 @@ fn main() -> ExitCode {
     match cli::run(args) {
         Ok(code) => code,
         Err(err) => {
-            if matches!(err.downcast_ref::<terrastream_packer::Error>(), Some(terrastream_packer::Error::Interrupted)) {
+            if interrupted(&err) {
                 eprintln!("interrupted: nothing was written under the output name");
                 return ExitCode::from(130);
             }
@@ -28,4 +28,10 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Did the command stop because it was asked to (Ctrl-C)?
+fn interrupted(err: &anyhow::Error) -> bool {
+    matches!(err.downcast_ref::<terrastream_pack::Error>(), Some(terrastream_pack::Error::Interrupted))
+        || err.downcast_ref::<terrastream_tiler::Error>().is_some_and(terrastream_tiler::Error::is_interrupted)
 }

@@ -11,10 +11,6 @@
 
 #[path = "support/cli.rs"]
 mod cli;
-#[path = "support/continent.rs"]
-mod continent;
-#[path = "support/golden.rs"]
-mod golden;
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -29,7 +25,8 @@ const HEIGHT: u32 = 270;
 /// and the window's swapchain against the offscreen target (the same sRGB format, but
 /// presented through X): mean <= 2/255, at most 2 % of pixels off by more than 24/255.
 /// A missing drape, a culled terrain or a moved camera breaks both.
-const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 2.0, pixel: 24, off_share: 0.02 };
+const TOLERANCE: terrastream_testkit::golden::Tolerance =
+    terrastream_testkit::golden::Tolerance { mean: 2.0, pixel: 24, off_share: 0.02 };
 
 /// Share of pixels that are not the sky colour of the top-left corner.
 fn terrain_share(rgba: &[u8]) -> f64 {
@@ -105,7 +102,8 @@ fn xvfb() -> (String, Killed) {
 #[test]
 fn a_continent_draws_in_render_and_in_a_window_alike() {
     let dir = tempfile::tempdir().unwrap();
-    let archive = continent::continent_archive(dir.path());
+    let archive =
+        terrastream_testkit::continent::continent_archive(Path::new(env!("CARGO_BIN_EXE_terrastream")), dir.path());
 
     // Headless.
     let png = dir.path().join("render.png");
@@ -117,9 +115,9 @@ fn a_continent_draws_in_render_and_in_a_window_alike() {
     let said = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "render: {said} {}", String::from_utf8_lossy(&out.stderr));
     eprintln!("render: {said}");
-    let (w, h, rendered) = golden::decode_png(&std::fs::read(&png).unwrap());
+    let (w, h, rendered) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
     assert_eq!((w, h), (WIDTH, HEIGHT));
-    golden::assert_golden("continent-render", w, h, &rendered, TOLERANCE);
+    terrastream_testkit::golden::assert_golden("continent-render", w, h, &rendered, TOLERANCE);
     let share = terrain_share(&rendered);
     // The default view frames the continent: most of the picture is terrain.
     assert!(share > 0.4, "only {:.0} % of the render is terrain", share * 100.0);
@@ -166,11 +164,11 @@ fn a_continent_draws_in_render_and_in_a_window_alike() {
     let (w, h, shown) = read_xwd(&dump.stdout);
     assert_eq!((w, h), (WIDTH, HEIGHT));
     assert!(seen.iter().all(|l| !l.contains("no terrain")), "{seen:#?}");
-    golden::assert_golden("continent-view", w, h, &shown, TOLERANCE);
+    terrastream_testkit::golden::assert_golden("continent-view", w, h, &shown, TOLERANCE);
     let share = terrain_share(&shown);
     assert!(share > 0.4, "only {:.0} % of the window is terrain", share * 100.0);
     // One code path: the window shows what the still shows.
-    let (mean, off) = golden::difference(&shown, &rendered, TOLERANCE.pixel);
+    let (mean, off) = terrastream_testkit::golden::difference(&shown, &rendered, TOLERANCE.pixel);
     assert!(
         mean <= TOLERANCE.mean && off as f64 <= TOLERANCE.off_share * f64::from(WIDTH * HEIGHT),
         "the window and the still differ: mean {mean:.2}, {off} pixels off"

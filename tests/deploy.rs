@@ -5,11 +5,6 @@
 //! (nginx as a static host of archives is exercised by `client/tests/stream.rs`.)
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-#[path = "../server/tests/common/mod.rs"]
-mod common;
-#[path = "support/http.rs"]
-mod http;
-
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -17,8 +12,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use terrastream_client::{Camera, DecodedTile, Origin, SelectOptions, StreamOptions, Streamer, TileData, UploadBudget};
-use terrastream_packer::TileKey;
-use terrastream_packer::sample::{LabelledSpec, label_colour, write_labelled_archive};
+use terrastream_format::TileKey;
+use terrastream_testkit::labelled::{LabelledSpec, label_colour, write_labelled_archive};
 
 fn deploy(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy").join(path)
@@ -38,7 +33,7 @@ impl Drop for Server {
 }
 
 fn start_server(dir: &Path) -> Server {
-    let port = common::free_port();
+    let port = terrastream_testkit::nginx::free_port();
     let config = dir.join("server.toml");
     // The shipped config, with this test's address, folder and a quick rescan.
     let shipped = std::fs::read_to_string(deploy("k8s/server.toml")).unwrap();
@@ -125,7 +120,7 @@ fn nginx_caching_proxy_serves_the_second_pass_and_picks_up_a_replaced_archive() 
         .replace("listen 8080;", "listen 127.0.0.1:{port};")
         .replace(" 10s;", " 1s;");
     assert_eq!(config.matches(" 1s;").count(), 2, "both validities replaced");
-    let Some(nginx) = common::start_nginx(dir.path(), &config) else { return };
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(dir.path(), &config) else { return };
     let url = format!("http://127.0.0.1:{}/terrain.tspack", nginx.port);
 
     // Pass 1 fills the cache; what is shown equals what the server itself streams.
@@ -141,11 +136,11 @@ fn nginx_caching_proxy_serves_the_second_pass_and_picks_up_a_replaced_archive() 
     }
 
     // Pass 2, a new client right away: served from the cache, the server sees nothing.
-    let before = http::archive_requests(server.port);
+    let before = terrastream_testkit::http::archive_requests(server.port);
     let mut second = HashMap::new();
     stream(&mut Streamer::open(Origin::parse(&url).unwrap(), options()).unwrap(), &mut second, 1);
     assert_eq!(second.len(), first.len());
-    assert_eq!(http::archive_requests(server.port), before, "the second pass came from the cache");
+    assert_eq!(terrastream_testkit::http::archive_requests(server.port), before, "the second pass came from the cache");
     let hit = Command::new("curl").args(["-s", "-o", "/dev/null", "-D", "-", "-r", "0-99", &url]).output();
     if let Ok(hit) = hit {
         let head = String::from_utf8_lossy(&hit.stdout).to_lowercase();

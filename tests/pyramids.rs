@@ -7,8 +7,6 @@
 
 #[path = "support/cli.rs"]
 mod cli;
-#[path = "support/golden.rs"]
-mod golden;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -16,7 +14,8 @@ use std::process::Output;
 
 const TILE: u16 = 64;
 /// lavapipe's output, rendered on another Mesa release: see tests/golden/README.md.
-const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
+const TOLERANCE: terrastream_testkit::golden::Tolerance =
+    terrastream_testkit::golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
 
 fn terrastream(args: &[&str], cwd: &Path) -> Output {
     cli::terrastream().args(args).current_dir(cwd).output().unwrap()
@@ -125,8 +124,8 @@ fn a_geodetic_tree_of_gray_jpegs_packs_extracts_and_renders() {
     let out = terrastream(&["render", a.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "480x270"], work);
     assert!(out.status.success(), "{}", text(&out));
     assert!(text(&out).contains("patches"), "{}", text(&out));
-    let (w, h, rgba) = golden::decode_png(&std::fs::read(&png).unwrap());
-    golden::assert_golden("geodetic-gray-jpeg", w, h, &rgba, TOLERANCE);
+    let (w, h, rgba) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
+    terrastream_testkit::golden::assert_golden("geodetic-gray-jpeg", w, h, &rgba, TOLERANCE);
     // The picture is gray terrain (R = G = B) over most of the frame, with both checker
     // shades: a texture drawn, not the untextured tint or the sky.
     let sky = &rgba[..3];
@@ -139,7 +138,7 @@ fn a_geodetic_tree_of_gray_jpegs_packs_extracts_and_renders() {
     let png_b = work.join("rows.png");
     let out = terrastream(&["render", b.to_str().unwrap(), "-o", png_b.to_str().unwrap(), "--size", "480x270"], work);
     assert!(out.status.success(), "{}", text(&out));
-    assert_eq!(golden::decode_png(&std::fs::read(&png_b).unwrap()).2, rgba);
+    assert_eq!(terrastream_testkit::golden::decode_png(&std::fs::read(&png_b).unwrap()).2, rgba);
 }
 
 /// A tile beyond the grid the coarsest zoom implies is refused, naming the file, and

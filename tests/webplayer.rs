@@ -14,15 +14,6 @@
 //! the tests fail, unless `TERRASTREAM_ALLOW_NO_BROWSER=1` (then they skip loudly).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-#[path = "../server/tests/common/mod.rs"]
-mod common;
-#[path = "support/continent.rs"]
-mod continent;
-#[path = "support/golden.rs"]
-mod golden;
-#[path = "support/http.rs"]
-mod http;
-
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -41,7 +32,8 @@ const TILES: u64 = 29;
 /// allowance covers another Chromium release (anti-aliasing of the silhouette, dithering):
 /// mean absolute difference <= 1.5/255 and at most 1.5 % of pixels off by more than 24/255.
 /// A missing tile, a wrong LOD or a shifted camera breaks both.
-const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
+const TOLERANCE: terrastream_testkit::golden::Tolerance =
+    terrastream_testkit::golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
 
 /// Flags that give headless Chromium WebGPU on SwiftShader's Vulkan (and compose its
 /// canvas into screenshots). WebGL2 is not available with them.
@@ -104,7 +96,7 @@ struct Driver {
 
 impl Driver {
     fn start() -> Self {
-        let port = common::free_port();
+        let port = terrastream_testkit::nginx::free_port();
         let child = Command::new(CHROMEDRIVER)
             .arg(format!("--port={port}"))
             .stdout(Stdio::null())
@@ -116,7 +108,7 @@ impl Driver {
     }
 
     fn call(&self, method: &str, path: &str, body: Option<Value>) -> Value {
-        let (status, bytes) = http::request(self.port, method, path, body.as_ref());
+        let (status, bytes) = terrastream_testkit::http::request(self.port, method, path, body.as_ref());
         let value: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
         assert!(status == 200, "WebDriver {method} {path}: {status} {value}");
         value["value"].clone()
@@ -233,7 +225,9 @@ impl<'a> Browser<'a> {
         let element = self.call("POST", "/element", Some(json!({ "using": "css selector", "value": css })));
         let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str).unwrap().to_owned();
         let png = self.call("GET", &format!("/element/{id}/screenshot"), None);
-        golden::decode_png(&base64::engine::general_purpose::STANDARD.decode(png.as_str().unwrap()).unwrap())
+        terrastream_testkit::golden::decode_png(
+            &base64::engine::general_purpose::STANDARD.decode(png.as_str().unwrap()).unwrap(),
+        )
     }
 
     /// Holds `key` (a WebDriver key value) down for `ms` milliseconds.
@@ -274,7 +268,8 @@ impl Browser<'_> {
 
 impl Drop for Browser<'_> {
     fn drop(&mut self) {
-        let _ = http::request(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
+        let _ =
+            terrastream_testkit::http::request(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
     }
 }
 
@@ -286,7 +281,7 @@ fn terrastream(args: &[&str]) {
 /// `terrastream serve` of `archive` on a free loopback port, answering: the port and the
 /// server (stopped when dropped).
 fn serve(archive: &Path) -> (u16, Process) {
-    let port = common::free_port();
+    let port = terrastream_testkit::nginx::free_port();
     let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
         .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
         .stdout(Stdio::null())
@@ -300,7 +295,7 @@ fn serve(archive: &Path) -> (u16, Process) {
 /// The committed DEM crop as an archive, as `terrastream tile --tile-size 64` makes it.
 fn archive(dir: &Path) -> PathBuf {
     let path = dir.join("tamalpais.tspack");
-    let dem = golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
     terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", path.to_str().unwrap(), "--tile-size", "64"]);
     path
 }
@@ -332,7 +327,7 @@ fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &
     // A few frames more, then the picture.
     std::thread::sleep(Duration::from_millis(500));
     let (w, h, rgba) = browser.screenshot("#terrain");
-    golden::assert_golden(golden_name, w, h, &rgba, TOLERANCE);
+    terrastream_testkit::golden::assert_golden(golden_name, w, h, &rgba, TOLERANCE);
     let console = browser.console();
     let errors: Vec<_> = console.iter().filter(|(level, _)| level == "SEVERE").collect();
     assert!(errors.is_empty(), "console errors: {errors:?}");
@@ -341,8 +336,9 @@ fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &
 
 /// nginx with the shipped static-host config (`deploy/nginx/tspack-static.conf`) serving
 /// `root`, logging requests to `access_log` if given.
-fn static_host(root: &Path, access_log: Option<&Path>) -> Option<common::Nginx> {
-    let shipped = std::fs::read_to_string(golden::repo().join("deploy/nginx/tspack-static.conf")).unwrap();
+fn static_host(root: &Path, access_log: Option<&Path>) -> Option<terrastream_testkit::nginx::Nginx> {
+    let shipped =
+        std::fs::read_to_string(terrastream_testkit::golden::repo().join("deploy/nginx/tspack-static.conf")).unwrap();
     let mut config = shipped
         .replace("listen 8080;", "listen 127.0.0.1:{port};")
         .replace("root /srv/terrastream;", &format!("root {};", root.display()));
@@ -350,7 +346,7 @@ fn static_host(root: &Path, access_log: Option<&Path>) -> Option<common::Nginx> 
     if let Some(log) = access_log {
         config = config.replacen("{port};", &format!("{{port}};\n    access_log {};", log.display()), 1);
     }
-    common::start_nginx(root, &config)
+    terrastream_testkit::nginx::start_nginx(root, &config)
 }
 
 /// A continent-sized terrain (10^7 m across) on both back ends: the view completes and
@@ -361,7 +357,8 @@ fn a_continent_draws_on_webgpu_and_on_webgl2() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let archive = continent::continent_archive(dir.path());
+    let archive =
+        terrastream_testkit::continent::continent_archive(Path::new(env!("CARGO_BIN_EXE_terrastream")), dir.path());
     let (port, _server) = serve(&archive);
     let driver = Driver::start();
     for (flags, backend) in [(WEBGPU_FLAGS, "webgpu"), (WEBGL_FLAGS, "webgl2")] {
@@ -375,7 +372,7 @@ fn a_continent_draws_on_webgpu_and_on_webgl2() {
         assert_eq!(stats["drew_nothing_in_view"], json!(false), "{stats}");
         std::thread::sleep(Duration::from_millis(500));
         let (w, h, rgba) = browser.screenshot("#terrain");
-        golden::assert_golden(&format!("continent-{backend}"), w, h, &rgba, TOLERANCE);
+        terrastream_testkit::golden::assert_golden(&format!("continent-{backend}"), w, h, &rgba, TOLERANCE);
         // Most of the picture is terrain, not the sky of the top-left corner.
         let sky = &rgba[..3];
         let terrain = rgba.chunks_exact(4).filter(|p| p[..3].iter().zip(sky).any(|(a, b)| a.abs_diff(*b) > 12));
@@ -394,7 +391,7 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
     let (port, _server) = serve(&archive);
-    let before = http::archive_requests(port);
+    let before = terrastream_testkit::http::archive_requests(port);
 
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGPU_FLAGS);
@@ -403,7 +400,11 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     let stats = browser.wait_settled();
     eprintln!("loaded and streamed in {:.2} s (page load to complete view)", started.elapsed().as_secs_f64());
     // The server saw exactly the archive requests the page made.
-    assert_eq!(http::archive_requests(port) - before, stats["http_requests"].as_u64().unwrap(), "{stats}");
+    assert_eq!(
+        terrastream_testkit::http::archive_requests(port) - before,
+        stats["http_requests"].as_u64().unwrap(),
+        "{stats}"
+    );
     check_run(&browser, &stats, "webplayer-webgpu", "webgpu");
 
     // The HUD (H) and flying (W: forward, towards -z from the south).

@@ -7,7 +7,7 @@
 //! nothing to draw).
 
 use glam::{DMat4, DVec2, DVec3};
-use terrastream_packer::{Layer, LayerKind, Metadata};
+use terrastream_format::{Layer, LayerKind, Metadata};
 
 use crate::stream::camera::{Aabb, Camera};
 pub use crate::stream::select::drawn_heights;
@@ -215,8 +215,8 @@ mod tests {
         let layer = Layer {
             name: "elevation".into(),
             kind: LayerKind::Elevation,
-            format: terrastream_packer::TileFormat::RawU16,
-            compression: terrastream_packer::PayloadCompression::Zstd,
+            format: terrastream_format::TileFormat::RawU16,
+            compression: terrastream_format::PayloadCompression::Zstd,
             tile_resolution: 256,
             border: 1,
             num_x_tiles: 40,

@@ -2,10 +2,6 @@
 //! open, replaced archives detected, transient failures retried.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-#[path = "../../server/tests/common/mod.rs"]
-mod common;
-mod support;
-
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
@@ -15,11 +11,13 @@ use axum::http::{Request, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use terrastream_client::{HttpSource, RetryPolicy};
-use terrastream_packer::{AsyncReader, Error, MmapSource, Reader, TileKey};
+use terrastream_format::{AsyncReader, Error, MmapSource, Reader, TileKey};
 use terrastream_server::app;
 
-use common::{archives, start_nginx, state, write_zstd_archive};
-use support::serve;
+use terrastream_testkit::archives::{archives, write_zstd_archive};
+use terrastream_testkit::nginx::start_nginx;
+use terrastream_testkit::server::serve_router as serve;
+use terrastream_testkit::server::state;
 
 /// Every tile of every layer and LOD, read through `reader`, equals the mmap reader's.
 async fn same_tiles(reader: &AsyncReader<HttpSource>, local: &Reader<MmapSource>) -> usize {
@@ -82,7 +80,7 @@ async fn same_tiles_from_our_server_and_nginx_with_one_request_to_open() {
         // 16 KiB (those came with the bootstrap), none for missing ones.
         let mut beyond_head = 0;
         local
-            .for_each_entry(|e| {
+            .for_each_entry(|e| -> terrastream_format::Result<()> {
                 if local.header().data.offset + e.offset + e.stored_len() > 16 * 1024 {
                     beyond_head += u64::from(e.run_length);
                 }
@@ -114,7 +112,10 @@ async fn a_replaced_archive_is_detected_not_mixed() {
     s.catalog.reload();
     let key = TileKey::new(0, 0, 1, 1).unwrap();
     let tile = small.tile(key).await.unwrap().unwrap();
-    assert_eq!(terrastream_packer::zstd_decompress(&tile, 1 << 20, "t").unwrap(), common::raw_tile(key, 1));
+    assert_eq!(
+        terrastream_format::zstd_decompress(&tile, 1 << 20, "t").unwrap(),
+        terrastream_testkit::archives::raw_tile(key, 1)
+    );
 }
 
 #[tokio::test]

@@ -7,13 +7,6 @@
 //! skips them loudly (for machines without Mesa; never set on CI).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-#[path = "../../tests/support/golden.rs"]
-mod golden;
-
-#[path = "../../server/tests/common/mod.rs"]
-mod common;
-mod support;
-
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -23,14 +16,15 @@ use terrastream_client::render::renderer::{RenderSettings, Shading};
 use terrastream_client::render::still::{Still, StillOptions, default_camera, render_still};
 use terrastream_client::render::wgpu;
 use terrastream_client::{Camera, Origin};
-use terrastream_packer::progress::Silent;
-use terrastream_packer::tiler::{TileOptions, read_geotiff, tile_elevation};
-use terrastream_packer::{Metadata, Reader, Writer, WriterOptions};
+use terrastream_format::{Metadata, Reader};
+use terrastream_pack::progress::Silent;
+use terrastream_pack::{Writer, WriterOptions};
+use terrastream_tiler::{TileOptions, read_geotiff, tile_elevation};
 
 const WIDTH: u32 = 320;
 const HEIGHT: u32 = 200;
 
-use golden::repo;
+use terrastream_testkit::golden::repo;
 
 /// One device for all tests of this binary (lavapipe is slow to start).
 fn gpu() -> Option<&'static Gpu> {
@@ -101,10 +95,11 @@ fn render(gpu: &Gpu, location: &str, cam: Option<Camera>, settings: RenderSettin
 /// pixels (PLATFORM.md); allowed here: mean absolute channel difference <= 0.5/255 and at
 /// most 0.5 % of pixels off by more than 8/255 — a shifted LOD ring, a missing tile or a
 /// crack breaks both.
-const TOLERANCE: golden::Tolerance = golden::Tolerance { mean: 0.5, pixel: 8, off_share: 0.005 };
+const TOLERANCE: terrastream_testkit::golden::Tolerance =
+    terrastream_testkit::golden::Tolerance { mean: 0.5, pixel: 8, off_share: 0.005 };
 
 fn assert_golden(name: &str, still: &Still) {
-    golden::assert_golden(name, still.width, still.height, &still.rgba, TOLERANCE);
+    terrastream_testkit::golden::assert_golden(name, still.width, still.height, &still.rgba, TOLERANCE);
 }
 
 #[test]
@@ -148,8 +143,9 @@ fn mmap_and_http_give_identical_images() {
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let dir = tempfile::tempdir().unwrap();
     std::fs::copy(archive, dir.path().join("tamalpais.tspack")).unwrap();
-    let state = common::state(dir.path());
-    let (addr, server) = runtime.block_on(support::serve(terrastream_server::app(state), "127.0.0.1:0"));
+    let state = terrastream_testkit::server::state(dir.path());
+    let (addr, server) =
+        runtime.block_on(terrastream_testkit::server::serve_router(terrastream_server::app(state), "127.0.0.1:0"));
     let from_http = render(gpu, &format!("http://{addr}/tamalpais.tspack"), Some(cam), RenderSettings::default());
     let from_endpoint = render(gpu, &format!("http://{addr}/tamalpais"), Some(cam), RenderSettings::default());
     server.abort();
@@ -173,7 +169,7 @@ fn morphing_leaves_no_cracks() {
     {
         let still = render(gpu, &archive, Some(camera(eye, target)), flat);
         std::fs::create_dir_all(repo().join("target/render-tests")).unwrap();
-        golden::write_png(
+        terrastream_testkit::golden::write_png(
             &repo().join(format!("target/render-tests/cracks-{i}.png")),
             still.width,
             still.height,
@@ -251,7 +247,7 @@ fn bc7_solid(rgb: [u8; 3]) -> [u8; 16] {
 /// those colours in its four quadrants, from a BC texture array.
 #[test]
 fn bc1_and_bc7_tiles_are_drawn_from_blocks() {
-    use terrastream_packer::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    use terrastream_format::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
     let Some(gpu) = gpu() else { return };
     if !gpu.device.features().contains(wgpu::Features::TEXTURE_COMPRESSION_BC) {
         // Lavapipe (the test command's adapter) has BC; only another adapter lands here.
@@ -296,7 +292,7 @@ fn bc1_and_bc7_tiles_are_drawn_from_blocks() {
             wgpu::TextureFormat::Bc7RgbaUnormSrgb
         };
         assert_eq!(still.texture_format, Some(expected), "{format:?} tiles went up as blocks");
-        golden::write_png(
+        terrastream_testkit::golden::write_png(
             &repo().join(format!("target/render-tests/bc-{format:?}.png")),
             still.width,
             still.height,
@@ -327,7 +323,7 @@ fn bc1_and_bc7_tiles_are_drawn_from_blocks() {
 /// exact.
 #[test]
 fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
-    use terrastream_packer::{ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat};
+    use terrastream_format::{ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat};
     let Some(gpu) = gpu() else { return };
     const GRID: u32 = 256;
     const RES: u32 = 64;
@@ -344,7 +340,7 @@ fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
         border: 1,
         num_x_tiles: GRID,
         num_y_tiles: GRID,
-        num_lods: terrastream_packer::levels_to_one(GRID),
+        num_lods: terrastream_format::levels_to_one(GRID),
         tile_world_size: tile,
         elevation: Some(ElevationEncoding { scheme: ElevationScheme::Float32, scale: 1.0, offset: 0.0, nodata: None }),
     };
@@ -369,7 +365,7 @@ fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
                     raw.extend_from_slice(&(h as f32).to_le_bytes());
                 }
             }
-            terrastream_packer::zstd_compress(&raw, 3).unwrap()
+            terrastream_pack::zstd_compress(&raw, 3).unwrap()
         })
         .collect();
     let layer = &metadata.layers[0];
@@ -392,11 +388,11 @@ fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
     assert!(192.0 * tile > 780_000.0 && GRID as f64 * tile > 1_000_000.0);
     let out = repo().join("target/render-tests");
     std::fs::create_dir_all(&out).unwrap();
-    golden::write_png(&out.join("precision-near.png"), near.width, near.height, &near.rgba);
-    golden::write_png(&out.join("precision-far.png"), far.width, far.height, &far.rgba);
+    terrastream_testkit::golden::write_png(&out.join("precision-near.png"), near.width, near.height, &near.rgba);
+    terrastream_testkit::golden::write_png(&out.join("precision-far.png"), far.width, far.height, &far.rgba);
     let sky = near.rgba.chunks_exact(4).filter(|p| p[..3] == near.rgba[..3]).count();
     assert!(sky < (WIDTH * HEIGHT / 2) as usize, "the view shows the terrain");
-    let (mean, off) = golden::difference(&near.rgba, &far.rgba, 8);
+    let (mean, off) = terrastream_testkit::golden::difference(&near.rgba, &far.rgba, 8);
     assert!(
         mean <= 0.5 && off * 200 <= (WIDTH * HEIGHT) as usize,
         "the view 786 km out differs from the same view near the origin: mean {mean:.3}/255, {off} pixels off by > 8/255 \
@@ -411,7 +407,7 @@ fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
 /// LOD l: each of LODs 0..=16 is resident, found through the page table and drawn.
 #[test]
 fn seventeen_texture_lods_are_each_drawn() {
-    use terrastream_packer::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    use terrastream_format::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
     let Some(gpu) = gpu() else { return };
     if !gpu.device.features().contains(wgpu::Features::TEXTURE_COMPRESSION_BC) {
         eprintln!("\n!!!!! SKIPPING: {} has no BC texture support !!!!!\n", gpu.describe());
@@ -482,7 +478,7 @@ fn seventeen_texture_lods_are_each_drawn() {
 /// left a sky-only picture. It is drawn flat at its minimum elevation, textured, framed.
 #[test]
 fn a_texture_only_archive_draws_flat_at_its_minimum_elevation() {
-    use terrastream_packer::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    use terrastream_format::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
     let Some(gpu) = gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("texture-only.tspack");

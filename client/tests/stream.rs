@@ -5,12 +5,8 @@
 //! timeouts, the archive replaced mid-stream).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-#[path = "../../server/tests/common/mod.rs"]
-mod common;
-mod support;
-
-use common::state;
-use support::serve;
+use terrastream_testkit::server::serve_router as serve;
+use terrastream_testkit::server::state;
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -27,9 +23,9 @@ use glam::DVec3;
 use terrastream_client::{
     Camera, DecodedTile, HostTiles, HttpSource, Origin, RetryPolicy, StreamOptions, Streamer, TileData, UploadBudget,
 };
-use terrastream_packer::sample::{LabelledSpec, label_colour, label_height, write_labelled_archive};
-use terrastream_packer::{AsyncRangeSource, MemorySource, Metadata, Reader, TileKey};
+use terrastream_format::{AsyncRangeSource, MemorySource, Metadata, Reader, TileKey};
 use terrastream_server::app;
+use terrastream_testkit::labelled::{LabelledSpec, label_colour, label_height, write_labelled_archive};
 
 const BUDGET: UploadBudget = UploadBudget { max_tiles: 6, max_bytes: 5 * 1024 };
 
@@ -196,14 +192,14 @@ struct Slow {
 }
 
 impl AsyncRangeSource for Slow {
-    async fn size(&self) -> terrastream_packer::Result<u64> {
-        Ok(terrastream_packer::RangeSource::len(&self.inner))
+    async fn size(&self) -> terrastream_format::Result<u64> {
+        Ok(terrastream_format::RangeSource::len(&self.inner))
     }
-    async fn fetch(&self, offset: u64, len: u64) -> terrastream_packer::Result<Bytes> {
+    async fn fetch(&self, offset: u64, len: u64) -> terrastream_format::Result<Bytes> {
         if offset > 0 {
             tokio::time::sleep(self.delay).await;
         }
-        terrastream_packer::RangeSource::read_range(&self.inner, offset, len)
+        terrastream_format::RangeSource::read_range(&self.inner, offset, len)
     }
 }
 
@@ -269,7 +265,7 @@ fn the_same_tiles_come_from_mmap_http_nginx_the_tile_endpoint_and_host_tiles() {
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/nginx/tspack-static.conf")).unwrap();
     let config =
         shipped.replace("listen 8080;", "listen 127.0.0.1:{port};").replace("root /srv/terrastream;", "root {root};");
-    if let Some(nginx) = common::start_nginx(dir.path(), &config) {
+    if let Some(nginx) = terrastream_testkit::nginx::start_nginx(dir.path(), &config) {
         let url = format!("http://127.0.0.1:{}/terrain.tspack", nginx.port);
         let (tiles, _) = fly(Origin::parse(&url).unwrap(), options());
         same("HTTP Range, nginx", &tiles);
@@ -279,7 +275,7 @@ fn the_same_tiles_come_from_mmap_http_nginx_the_tile_endpoint_and_host_tiles() {
     let reader = Reader::open_mmap(&path).unwrap();
     let host = Arc::new(HostTiles::new(reader.metadata().clone()).unwrap());
     reader
-        .for_each_entry(|e| {
+        .for_each_entry(|e| -> terrastream_format::Result<()> {
             for i in 0..e.run_length {
                 let key = reader.archive().tile_of(e.key + u64::from(i) * 16).unwrap();
                 host.insert(key, reader.tile(key).unwrap().unwrap()).unwrap();

@@ -1,6 +1,6 @@
 //! What both reader targets do with bytes that open as an archive.
 
-use terrastream_packer::{MemorySource, Reader, TileKey, verify};
+use terrastream_format::{MemorySource, Reader, TileKey, verify};
 
 /// Opens, verifies, and looks tiles up (with coarser fallback); must never panic.
 pub fn exercise(bytes: Vec<u8>) {

@@ -2,7 +2,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_packer::{Compression, Directory};
+use terrastream_format::{Compression, Directory};
 
 fuzz_target!(|data: &[u8]| {
     let _ = Directory::decode_raw(data, "fuzz", 1 << 40, 1 << 40);

@@ -5,9 +5,7 @@
 
 use libfuzzer_sys::fuzz_target;
 use terrastream_client::decode;
-use terrastream_packer::{
-    ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat, TileKey,
-};
+use terrastream_format::{ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
 
 const FORMATS: [TileFormat; 7] = [
     TileFormat::Png,

@@ -14,7 +14,7 @@ use axum::http::{HeaderMap, Method, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use bytes::Bytes;
-use terrastream_packer::{Error as PackError, PayloadCompression, TileKey, protocol};
+use terrastream_format::{Error as PackError, PayloadCompression, TileKey, protocol};
 use tower_http::timeout::TimeoutLayer;
 
 use crate::body::Payload;
@@ -331,7 +331,7 @@ fn tile_located(
                 }
                 PayloadCompression::Zstd => {
                     let raw =
-                        terrastream_packer::zstd_decompress(&stored, info.max_payload_bytes(), &format!("tile {key}"))
+                        terrastream_format::zstd_decompress(&stored, info.max_payload_bytes(), &format!("tile {key}"))
                             .map_err(|e| AppError::Internal(e.to_string()))?;
                     Bytes::from(raw)
                 }

@@ -11,7 +11,7 @@ use std::sync::{Arc, RwLock};
 use std::time::SystemTime;
 
 use bytes::Bytes;
-use terrastream_packer::{MmapSource, Reader};
+use terrastream_format::{MmapSource, Reader};
 
 /// One archive as served.
 #[derive(Debug)]
@@ -58,7 +58,7 @@ impl Served {
     ///
     /// # Errors
     /// As [`Reader::read`].
-    pub fn tile_payload(&self, location: &terrastream_packer::TileLocation) -> terrastream_packer::Result<Bytes> {
+    pub fn tile_payload(&self, location: &terrastream_format::TileLocation) -> terrastream_format::Result<Bytes> {
         if self.verified.contains(location.offset) {
             return self.reader.read_unchecked(location);
         }
@@ -133,7 +133,7 @@ pub struct Catalog {
 impl Catalog {
     /// A catalog of the given files and folders (scanned by [`Catalog::reload`]).
     pub fn new(roots: Vec<PathBuf>) -> Self {
-        Self { roots, archives: RwLock::new(BTreeMap::new()), leaf_cache: terrastream_packer::DEFAULT_LEAF_CACHE }
+        Self { roots, archives: RwLock::new(BTreeMap::new()), leaf_cache: terrastream_format::DEFAULT_LEAF_CACHE }
     }
 
     /// Keeps up to `leaves` decoded leaf directories per archive opened from now on.
@@ -234,13 +234,13 @@ fn open(
     meta: &std::fs::Metadata,
     id: FileIdentity,
     leaf_cache: usize,
-) -> Result<Served, terrastream_packer::Error> {
+) -> Result<Served, terrastream_format::Error> {
     let mut reader = Reader::new(MmapSource::open(path)?)?;
     reader.set_leaf_cache_capacity(leaf_cache);
     let registration =
         reader.source().file().and_then(|file| crate::sendfile::register(reader.source().bytes(), Arc::clone(file)));
     let mut tag = Vec::with_capacity(160);
-    tag.extend_from_slice(&reader.source().bytes()[..terrastream_packer::HEADER_LEN]);
+    tag.extend_from_slice(&reader.source().bytes()[..terrastream_format::HEADER_LEN]);
     tag.extend_from_slice(&id.len.to_le_bytes());
     tag.extend_from_slice(&id.modified_ns.to_le_bytes());
     tag.extend_from_slice(&id.inode.to_le_bytes());

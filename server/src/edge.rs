@@ -133,7 +133,7 @@ mod tests {
         let exposed = EXPOSE_HEADERS;
         let exposed = exposed.to_str().unwrap();
         for name in
-            [terrastream_packer::protocol::ARCHIVE_ETAG_HEADER, terrastream_packer::protocol::FALLBACK_LOD_HEADER]
+            [terrastream_format::protocol::ARCHIVE_ETAG_HEADER, terrastream_format::protocol::FALLBACK_LOD_HEADER]
         {
             assert!(exposed.contains(name), "{exposed}");
         }

@@ -106,8 +106,8 @@ mod tests {
         for (path, route) in cases {
             assert_eq!(Route::of(path).template(), route, "{path}");
         }
-        // The paths the clients build (terrastream_packer::protocol) land on their routes.
-        use terrastream_packer::{TileKey, protocol};
+        // The paths the clients build (terrastream_format::protocol) land on their routes.
+        use terrastream_format::{TileKey, protocol};
         assert_eq!(Route::of(&format!("/alps/{}", protocol::METADATA_PATH)), Route::Metadata);
         let tile = protocol::tile_path(TileKey::new(1, 2, 3, 4).unwrap());
         assert_eq!(Route::of(&format!("/alps/{tile}")), Route::Tile);

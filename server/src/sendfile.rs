@@ -186,7 +186,7 @@ mod tests {
         let path = dir.path().join("blob");
         let data: Vec<u8> = (0..600_000u32).map(|i| (i * 7 % 251) as u8).collect();
         std::fs::write(&path, &data).unwrap();
-        let source = terrastream_packer::MmapSource::open(&path).unwrap();
+        let source = terrastream_format::MmapSource::open(&path).unwrap();
         let mapping = source.bytes().clone();
         let registration = register(&mapping, Arc::clone(source.file().unwrap())).unwrap();
 

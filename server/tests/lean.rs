@@ -5,18 +5,17 @@
 //! connections at once.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
-mod common;
-
 use std::path::Path;
 use std::time::{Duration, Instant};
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-use common::{Running, archives};
+use terrastream_testkit::archives::archives;
+use terrastream_testkit::server::Running;
 
 async fn start(dir: &Path, lean: bool) -> Running {
-    common::start(dir, |c| c.lean_http1 = lean).await
+    terrastream_testkit::server::start(dir, |c| c.lean_http1 = lean).await
 }
 
 /// One answer: status line, headers (lowercase, sorted, without `date`), body.
@@ -220,7 +219,7 @@ async fn shutdown_closes_idle_lean_connections_at_once() {
 #[tokio::test]
 async fn slow_and_oversized_lean_heads_are_cut_off_or_refused() {
     let (dir, _) = archives();
-    let server = common::start(dir.path(), |c| {
+    let server = terrastream_testkit::server::start(dir.path(), |c| {
         c.request_timeout_secs = 1;
         c.max_header_bytes = 8192;
     })

@@ -2,11 +2,11 @@
 //! status codes, `Content-Range` and bodies: nginx is the reference behaviour.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-mod common;
-
 use terrastream_server::{AppState, ServerConfig, serve};
 
-use common::{archives, split_multipart, start_nginx};
+use terrastream_testkit::archives::archives;
+use terrastream_testkit::http::split_multipart;
+use terrastream_testkit::nginx::start_nginx;
 
 /// (status, Content-Range, body parts as (Content-Range, bytes)).
 type Answer = (u16, String, Vec<(String, Vec<u8>)>);

@@ -1,16 +1,16 @@
 //! Every route and case through the router with `oneshot`.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-mod common;
-
 use axum::body::{Body, to_bytes};
 use axum::http::{Request, StatusCode};
 use axum::response::Response;
-use terrastream_packer::{MmapSource, Reader, TileKey};
+use terrastream_format::{MmapSource, Reader, TileKey};
 use terrastream_server::{FALLBACK_LOD, app};
 use tower::ServiceExt;
 
-use common::{archives, raw_tile, split_multipart, state};
+use terrastream_testkit::archives::{archives, raw_tile};
+use terrastream_testkit::http::split_multipart;
+use terrastream_testkit::server::state;
 
 async fn send(state: &terrastream_server::AppState, req: Request<Body>) -> (Response, Vec<u8>) {
     let response = app(state.clone()).oneshot(req).await.unwrap();
@@ -162,7 +162,7 @@ async fn metadata_and_tiles() {
     let (r, body) = send(&s, get("/sample/metadata", &[])).await;
     assert_eq!(r.status(), StatusCode::OK);
     assert_eq!(h(&r, "content-type"), "application/json");
-    let meta: terrastream_packer::Metadata = serde_json::from_slice(&body).unwrap();
+    let meta: terrastream_format::Metadata = serde_json::from_slice(&body).unwrap();
     assert_eq!(&meta, reader.metadata());
 
     let want = reader.tile(TileKey::new(0, 1, 2, 1).unwrap()).unwrap().unwrap();
@@ -204,7 +204,7 @@ async fn zstd_tiles_pass_through_only_when_accepted() {
     assert_eq!(r.status(), StatusCode::OK);
     assert_eq!(h(&r, "content-encoding"), "zstd");
     assert_eq!(h(&r, "vary"), "Accept-Encoding");
-    assert_eq!(terrastream_packer::zstd_decompress(&body, 1 << 20, "t").unwrap(), raw_tile(key, 1));
+    assert_eq!(terrastream_format::zstd_decompress(&body, 1 << 20, "t").unwrap(), raw_tile(key, 1));
     let zstd_etag = h(&r, "etag");
     for accept in [None, Some("gzip"), Some("zstd;q=0")] {
         let headers: Vec<(&str, &str)> = accept.map(|a| vec![("accept-encoding", a)]).unwrap_or_default();

@@ -2,19 +2,18 @@
 //! graceful shutdown, header limits.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-mod common;
-
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
-use terrastream_packer::TileKey;
+use terrastream_format::TileKey;
 use terrastream_server::{AppState, ServerConfig};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::oneshot;
 
-use common::{archives, raw_tile, start, write_zstd_archive};
+use terrastream_testkit::archives::{archives, raw_tile, write_zstd_archive};
+use terrastream_testkit::server::start;
 
 #[tokio::test]
 async fn ranges_over_http1_and_h2c() {

@@ -9,9 +9,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::Result;
 use clap::{Args, Subcommand};
-use terrastream_packer::import::{OriginalLayout, pack, scan_original};
-use terrastream_packer::progress::Silent;
-use terrastream_packer::{Directory, Entry, MmapSource, Reader, TileKey, WriterOptions};
+use terrastream_format::{Directory, Entry, MmapSource, Reader, TileKey};
+use terrastream_pack::WriterOptions;
+use terrastream_pack::import::{OriginalLayout, pack, scan_original};
+use terrastream_pack::progress::Silent;
 
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
@@ -132,7 +133,7 @@ fn pmtiles_directory_bytes(entries: &[Entry]) -> Result<usize> {
     // PMTiles stores no checksum trailer: re-lay the blobs back to back.
     let mut remap: HashMap<u64, u64> = HashMap::new();
     let mut next = 0u64;
-    let rows: Vec<terrastream_packer::pmtiles::Row> = entries
+    let rows: Vec<terrastream_pack::export::pmtiles::Row> = entries
         .iter()
         .map(|e| {
             let offset = *remap.entry(e.offset).or_insert_with(|| {
@@ -143,7 +144,7 @@ fn pmtiles_directory_bytes(entries: &[Entry]) -> Result<usize> {
             (e.key >> 4, e.run_length, offset, e.length)
         })
         .collect();
-    let (root, leaves) = terrastream_packer::pmtiles::directories(&rows)?;
+    let (root, leaves) = terrastream_pack::export::pmtiles::directories(&rows)?;
     Ok(root.len() + leaves.len())
 }
 
@@ -216,7 +217,7 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
     let reader = Reader::new(MmapSource::open(&out)?)?;
     let mut keys = Vec::new();
     let mut entries = Vec::new();
-    reader.for_each_entry(|e| {
+    reader.for_each_entry(|e| -> Result<()> {
         entries.push(*e);
         for i in 0..u64::from(e.run_length) {
             keys.push(reader.archive().tile_of(e.key + i * 16)?);

@@ -37,7 +37,7 @@ pub struct RenderBench {
 
 /// The flight: from the south-west corner to the north-east one, low over the terrain,
 /// looking ahead and down.
-fn flight(metadata: &terrastream_packer::Metadata, frames: usize, w: u32, h: u32) -> Vec<Camera> {
+fn flight(metadata: &terrastream_format::Metadata, frames: usize, w: u32, h: u32) -> Vec<Camera> {
     let ((ex, ez), (_, hi)) = terrain_bounds(metadata);
     let altitude = hi + 0.04 * ex.max(ez);
     (0..frames)

@@ -9,9 +9,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::Args;
 use terrastream_client::{Camera, Origin, SelectOptions, StreamOptions, StreamStats, Streamer, UploadBudget};
-use terrastream_packer::Metadata;
-use terrastream_packer::sample::{LabelledSpec, write_labelled_archive};
+use terrastream_format::Metadata;
 use terrastream_server::{AppState, ServerConfig};
+use terrastream_testkit::labelled::{LabelledSpec, write_labelled_archive};
 
 #[derive(Debug, Args)]
 pub struct StreamBench {

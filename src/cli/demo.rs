@@ -5,9 +5,10 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use terrastream_packer::import::{OriginalLayout, pack, scan_original};
-use terrastream_packer::sample::write_sample_pyramid;
-use terrastream_packer::{ArchiveStats, WriterOptions, verify};
+use terrastream_format::{ArchiveStats, verify};
+use terrastream_pack::WriterOptions;
+use terrastream_pack::import::{OriginalLayout, pack, scan_original};
+use terrastream_pack::sample::write_sample_pyramid;
 
 use super::CliProgress;
 
@@ -88,7 +89,7 @@ fn serve_and_show(args: &DemoArgs) -> Result<()> {
                 let detail = [
                     pick("content-range"),
                     pick("content-type"),
-                    pick(terrastream_packer::protocol::FALLBACK_LOD_HEADER).map(|l| format!("use LOD {l}")),
+                    pick(terrastream_format::protocol::FALLBACK_LOD_HEADER).map(|l| format!("use LOD {l}")),
                 ]
                 .into_iter()
                 .flatten()
@@ -147,7 +148,7 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     ];
     for (name, location, pose) in views {
         let started = std::time::Instant::now();
-        let camera = |metadata: &terrastream_packer::Metadata| {
+        let camera = |metadata: &terrastream_format::Metadata| {
             let pose = pose.map(|(eye, target)| (glam::DVec3::from_array(eye), glam::DVec3::from_array(target)));
             start_camera(metadata, pose, w, h)
         };
@@ -170,7 +171,7 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
 
 /// Tiles the built-in DEM into `archive` (once).
 pub(super) fn tile_builtin_dem(dir: &std::path::Path, archive: &std::path::Path, progress: &CliProgress) -> Result<()> {
-    use terrastream_packer::tiler::{TileOptions, read_geotiff, tile_elevation};
+    use terrastream_tiler::{TileOptions, read_geotiff, tile_elevation};
     if archive.exists() {
         return Ok(());
     }

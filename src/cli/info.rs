@@ -3,7 +3,7 @@
 use std::process::ExitCode;
 
 use anyhow::Result;
-use terrastream_packer::ArchiveStats;
+use terrastream_format::ArchiveStats;
 
 pub fn run(path: &str, json: bool, tiles: bool) -> Result<ExitCode> {
     let reader = super::open(path)?;
@@ -11,9 +11,9 @@ pub fn run(path: &str, json: bool, tiles: bool) -> Result<ExitCode> {
         use std::io::Write;
         let mut out = std::io::BufWriter::new(std::io::stdout().lock());
         let data = reader.header().data.offset;
-        reader.for_each_entry(|e| {
+        reader.for_each_entry(|e| -> Result<()> {
             for i in 0..u64::from(e.run_length) {
-                let t = reader.archive().tile_of(e.key + i * terrastream_packer::MAX_LAYERS as u64)?;
+                let t = reader.archive().tile_of(e.key + i * terrastream_format::MAX_LAYERS as u64)?;
                 let line = format!(
                     "{}\t{}\t{}\t{}\t{}\t{}",
                     t.layer(),
@@ -51,7 +51,7 @@ pub fn human(bytes: u64) -> String {
     if unit == 0 { format!("{bytes} B") } else { format!("{v:.1} {}", units[unit]) }
 }
 
-pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_packer::Metadata) -> String {
+pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) -> String {
     use std::fmt::Write;
     let mut out = String::new();
     let _ = writeln!(out, "archive     {path} — {}, format {}", human(s.file_bytes), s.version);
@@ -87,7 +87,7 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_packer::Metadata) ->
             l.name,
             l.kind,
             l.format,
-            if l.compression == terrastream_packer::PayloadCompression::Zstd { "+zstd" } else { "" },
+            if l.compression == terrastream_format::PayloadCompression::Zstd { "+zstd" } else { "" },
             l.tile_resolution,
             l.border,
             l.grid[0],

@@ -18,8 +18,8 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use terrastream_client::{AnySource, open_source};
-use terrastream_packer::export::{Layout, extract};
-use terrastream_packer::{Reader, verify};
+use terrastream_format::{Reader, verify};
+use terrastream_pack::extract::{Layout, extract};
 
 pub use progress::CliProgress;
 
@@ -218,7 +218,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
                 let names: Vec<&str> = meta.layers.iter().map(|l| l.name.as_str()).collect();
                 format!("{archive} has no layer {layer:?} (layers: {})", names.join(", "))
             })?;
-            let summary = terrastream_packer::pmtiles::export_pmtiles(&reader, index, &output, &progress)?;
+            let summary = terrastream_pack::export::pmtiles::export_pmtiles(&reader, index, &output, &progress)?;
             progress.finish();
             println!(
                 "{}: PMTiles v3, {} tiles ({} distinct), {} bytes",
@@ -273,8 +273,8 @@ fn health(url: &str, timeout: std::time::Duration) -> Result<ExitCode> {
 /// Names the file or URL when it cannot be read or is not a valid archive.
 pub fn open(location: &str) -> Result<Reader<AnySource>> {
     // A file error names the file already; anything else gets the location said once.
-    let context = |e: &terrastream_packer::Error| match e {
-        terrastream_packer::Error::File { .. } => "cannot open archive".to_owned(),
+    let context = |e: &terrastream_format::Error| match e {
+        terrastream_format::Error::File { .. } => "cannot open archive".to_owned(),
         _ => format!("cannot open archive {location}"),
     };
     let source = open_source(location).map_err(|e| {

@@ -5,10 +5,11 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_packer::import::{
+use terrastream_format::{ElevationScheme, LayerKind};
+use terrastream_pack::WriterOptions;
+use terrastream_pack::import::{
     OriginalLayout, Scheme, TilesetInput, XyzOptions, pack, pack_mbtiles, pack_pmtiles, scan_original, scan_xyz,
 };
-use terrastream_packer::{ElevationScheme, LayerKind, WriterOptions};
 
 use super::CliProgress;
 

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use terrastream_packer::progress::Progress;
+use terrastream_pack::progress::Progress;
 
 /// A progress bar on stderr that also carries the Ctrl-C flag.
 pub struct CliProgress {

@@ -155,7 +155,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         timeout: Duration::from_secs(args.timeout),
     };
     let fov = args.fov.clamp(1.0, 170.0).to_radians();
-    let make_camera = |metadata: &terrastream_packer::Metadata| {
+    let make_camera = |metadata: &terrastream_format::Metadata| {
         let start = start_camera(metadata, camera, width, height);
         if camera.is_some() { Camera { fov_y: fov, ..start } } else { start }
     };

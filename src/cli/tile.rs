@@ -5,11 +5,11 @@ use std::process::ExitCode;
 
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_packer::tiler::{
+use terrastream_format::{ElevationEncoding, ElevationScheme};
+use terrastream_tiler::{
     ElevationSource, ElevationStorage, ImageSource, ImageWindow, TextureFormat, TextureInput, TileOptions,
     open_elevation, open_image, plan, tile_terrain,
 };
-use terrastream_packer::{ElevationEncoding, ElevationScheme};
 
 use super::progress::CliProgress;
 

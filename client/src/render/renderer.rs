@@ -5,7 +5,7 @@ use std::collections::HashSet;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{DMat4, DVec3, Mat4};
-use terrastream_packer::{Layer, LayerKind, Metadata, TileFormat, TileKey};
+use terrastream_format::{Layer, LayerKind, Metadata, TileFormat, TileKey};
 use wgpu::util::DeviceExt;
 
 use super::gpu::{self, texture_entry, uniform_entry, write_layer};

@@ -9,7 +9,7 @@
 
 use std::collections::HashMap;
 
-use terrastream_packer::TileKey;
+use terrastream_format::TileKey;
 
 /// Layer kind in a page-table key: elevation.
 pub const KIND_ELEVATION: u32 = 0;

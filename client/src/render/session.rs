@@ -1,6 +1,6 @@
 //! The streaming core and the renderer, stepped together once per frame.
 
-use terrastream_packer::Metadata;
+use terrastream_format::Metadata;
 
 use super::renderer::{FrameStats, RenderSettings, TerrainRenderer};
 use crate::fly::terrain_box;
@@ -36,8 +36,8 @@ impl Session {
         settings: RenderSettings,
         format: wgpu::TextureFormat,
         budget: UploadBudget,
-    ) -> Result<Self, terrastream_packer::Error> {
-        let metadata = streamer.metadata().cloned().ok_or_else(|| terrastream_packer::Error::InvalidTile {
+    ) -> Result<Self, terrastream_format::Error> {
+        let metadata = streamer.metadata().cloned().ok_or_else(|| terrastream_format::Error::InvalidTile {
             what: "the archive is not open yet (no metadata)".into(),
         })?;
         let renderer = TerrainRenderer::new(device, &metadata, settings, format);

@@ -3,7 +3,7 @@
 use std::fmt;
 use std::time::Duration;
 
-use terrastream_packer::Metadata;
+use terrastream_format::Metadata;
 
 use super::gpu::{Gpu, GpuError, OFFSCREEN_FORMAT, Offscreen, render_pass};
 use super::renderer::{FrameStats, RenderSettings};
@@ -19,7 +19,7 @@ pub enum StillError {
     /// No GPU.
     Gpu(GpuError),
     /// The archive could not be opened or read.
-    Archive(terrastream_packer::Error),
+    Archive(terrastream_format::Error),
     /// The view was not complete in time (`--no-wait` renders what is there).
     Timeout {
         /// Tiles still pending.
@@ -53,8 +53,8 @@ impl From<GpuError> for StillError {
     }
 }
 
-impl From<terrastream_packer::Error> for StillError {
-    fn from(e: terrastream_packer::Error) -> Self {
+impl From<terrastream_format::Error> for StillError {
+    fn from(e: terrastream_format::Error) -> Self {
         Self::Archive(e)
     }
 }
@@ -130,7 +130,7 @@ pub fn render_still(
     let streamer = Streamer::open(origin, options.stream.clone())?;
     let metadata = streamer
         .metadata()
-        .ok_or_else(|| terrastream_packer::Error::InvalidTile { what: "the archive opened without metadata".into() })?;
+        .ok_or_else(|| terrastream_format::Error::InvalidTile { what: "the archive opened without metadata".into() })?;
     let camera = camera(metadata).enclosing(&crate::fly::terrain_box(metadata));
     let mut session = Session::new(streamer, &gpu.device, options.settings, OFFSCREEN_FORMAT, options.budget)?;
     let wait = options.wait;

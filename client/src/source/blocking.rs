@@ -2,7 +2,7 @@
 //! on a URL). Never used on a frame loop or inside an async runtime.
 
 use bytes::Bytes;
-use terrastream_packer::{AsyncRangeSource, MmapSource, RangeSource, Result};
+use terrastream_format::{AsyncRangeSource, MmapSource, RangeSource, Result};
 
 use super::http::HttpSource;
 

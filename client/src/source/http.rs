@@ -12,7 +12,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use reqwest::StatusCode;
 use reqwest::header::{CONTENT_RANGE, ETAG, IF_MATCH, RANGE};
-use terrastream_packer::{AsyncRangeSource, BOOTSTRAP_READ, Error, Result};
+use terrastream_format::{AsyncRangeSource, BOOTSTRAP_READ, Error, Result};
 
 /// How often and how patiently to retry a failed request.
 #[derive(Clone, Copy, Debug)]

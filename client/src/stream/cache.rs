@@ -5,7 +5,7 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 
-use terrastream_packer::TileKey;
+use terrastream_format::TileKey;
 
 use super::decode::DecodedTile;
 

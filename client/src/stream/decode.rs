@@ -3,7 +3,7 @@
 //! frame thread.
 
 use bytes::Bytes;
-use terrastream_packer::{
+use terrastream_format::{
     ElevationEncoding, ElevationScheme, Error, Layer, LayerKind, PayloadCompression, Result, TileFormat, TileKey,
     zstd_decompress,
 };
@@ -340,7 +340,7 @@ mod tests {
         l.elevation.as_mut().unwrap().nodata = Some(-9999.0);
         l.compression = PayloadCompression::Zstd;
         let raw: Vec<u8> = [1.5f32, -9999.0, 7.0, 2.0].iter().flat_map(|v| v.to_le_bytes()).collect();
-        let t = decode(&l, key, &terrastream_packer::zstd_compress(&raw, 3).unwrap(), true).unwrap();
+        let t = decode(&l, key, &terrastream_pack::zstd_compress(&raw, 3).unwrap(), true).unwrap();
         assert!(t.height(1, 0).unwrap().is_nan());
         assert!(matches!(t.data, TileData::Heights { min: 1.5, max: 7.0, .. }), "{:?}", t.data);
         assert_eq!((t.height(0, 0), t.height(0, 1)), (Some(1.5), Some(7.0)));

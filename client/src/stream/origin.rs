@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use bytes::Bytes;
 use reqwest::StatusCode;
-use terrastream_packer::{
+use terrastream_format::{
     AsyncRangeSource, AsyncReader, Error, MaybeSend, MaybeSync, Metadata, Result, TileKey, protocol,
 };
 
@@ -246,7 +246,7 @@ impl Origin {
         }
         #[cfg(not(target_arch = "wasm32"))]
         {
-            Ok(Self::archive(terrastream_packer::MmapSource::open(location)?))
+            Ok(Self::archive(terrastream_format::MmapSource::open(location)?))
         }
         #[cfg(target_arch = "wasm32")]
         {

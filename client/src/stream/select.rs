@@ -11,7 +11,7 @@
 use std::cmp::Ordering;
 
 use glam::DVec3;
-use terrastream_packer::{Layer, LayerKind, Metadata, TileKey};
+use terrastream_format::{Layer, LayerKind, Metadata, TileKey};
 
 use super::camera::{Aabb, Camera};
 
@@ -144,7 +144,7 @@ pub fn select(
 
 #[cfg(test)]
 mod tests {
-    use terrastream_packer::{LayerKind, PayloadCompression, TileFormat};
+    use terrastream_format::{LayerKind, PayloadCompression, TileFormat};
 
     use super::*;
 

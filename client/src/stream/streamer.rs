@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::future::{AbortHandle, Abortable};
-use terrastream_packer::{AsyncRangeSource, Error, Layer, LayerKind, Locate, Metadata, Result, TileKey, TileLocation};
+use terrastream_format::{AsyncRangeSource, Error, Layer, LayerKind, Locate, Metadata, Result, TileKey, TileLocation};
 use web_time::Instant;
 
 use super::cache::TileCache;
@@ -663,7 +663,7 @@ impl Streamer {
 
     fn fetch_leaf(
         &mut self,
-        reader: Arc<terrastream_packer::AsyncReader<super::origin::DynSource>>,
+        reader: Arc<terrastream_format::AsyncReader<super::origin::DynSource>>,
         offset: u64,
         len: u64,
     ) {

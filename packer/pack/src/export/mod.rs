@@ -1,0 +1,3 @@
+//! Exporting a layer to another tile-archive format.
+
+pub mod pmtiles;

@@ -1,0 +1,225 @@
+//! `terrastream export --to pmtiles`: one layer as a PMTiles v3 archive that any PMTiles
+//! reader opens. Our directory keys are PMTiles tile ids times 16 plus the layer, so this
+//! re-encodes the directory and copies the (checked) payloads in the same order.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use terrastream_format::Entry;
+use terrastream_format::RangeSource;
+use terrastream_format::Reader;
+use terrastream_format::{MAX_LAYERS, layer_of, tile_id_to_zxy};
+use terrastream_format::{PayloadCompression, TileFormat};
+
+const HEADER_LEN: u64 = 127;
+/// The root directory must end within the first 16 KiB.
+const ROOT_LIMIT: usize = 16_384 - 127;
+
+/// What [`export_pmtiles`] wrote.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PmtilesSummary {
+    /// Tiles addressed.
+    pub addressed_tiles: u64,
+    /// Directory entries.
+    pub tile_entries: u64,
+    /// Distinct tile contents.
+    pub tile_contents: u64,
+    /// File size.
+    pub file_len: u64,
+}
+
+/// (tile id, run length, offset, length) as PMTiles stores them.
+pub type Row = (u64, u32, u64, u32);
+
+fn varint(out: &mut Vec<u8>, v: u64) {
+    terrastream_format::write_varint(out, v);
+}
+
+/// PMTiles v3 directory: columnar varints (offset 0 = right after the previous entry), gzip.
+fn encode_directory(rows: &[Row]) -> Result<Vec<u8>> {
+    let mut raw = Vec::with_capacity(rows.len() * 5 + 8);
+    varint(&mut raw, rows.len() as u64);
+    let mut last = 0;
+    for r in rows {
+        varint(&mut raw, r.0 - last);
+        last = r.0;
+    }
+    for r in rows {
+        varint(&mut raw, u64::from(r.1));
+    }
+    for r in rows {
+        varint(&mut raw, u64::from(r.3));
+    }
+    for (i, r) in rows.iter().enumerate() {
+        let contiguous = i > 0 && r.2 == rows[i - 1].2 + u64::from(rows[i - 1].3);
+        varint(&mut raw, if contiguous { 0 } else { r.2 + 1 });
+    }
+    gzip(&raw)
+}
+
+fn gzip(bytes: &[u8]) -> Result<Vec<u8>> {
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+    let compress = |error| Error::Compress { what: "a PMTiles section", error };
+    gz.write_all(bytes).map_err(compress)?;
+    gz.finish().map_err(compress)
+}
+
+/// Root (and leaves) as the PMTiles reference writer lays them out: everything in the root
+/// if it fits, else leaves of at least 4096 entries grown by 1.2x until the root fits.
+///
+/// # Errors
+/// Only if compression fails or a leaf exceeds 4 GiB.
+pub fn directories(rows: &[Row]) -> Result<(Vec<u8>, Vec<u8>)> {
+    let root = encode_directory(rows)?;
+    if root.len() <= ROOT_LIMIT {
+        return Ok((root, Vec::new()));
+    }
+    let mut leaf_size = (rows.len() / 3500).max(4096);
+    loop {
+        let mut leaves = Vec::new();
+        let mut pointers = Vec::new();
+        for chunk in rows.chunks(leaf_size) {
+            let leaf = encode_directory(chunk)?;
+            let len =
+                u32::try_from(leaf.len()).map_err(|_| Error::too_large("a PMTiles leaf directory", leaf.len()))?;
+            pointers.push((chunk[0].0, 0, leaves.len() as u64, len));
+            leaves.extend(leaf);
+        }
+        let root = encode_directory(&pointers)?;
+        if root.len() <= ROOT_LIMIT {
+            return Ok((root, leaves));
+        }
+        leaf_size += leaf_size / 5;
+    }
+}
+
+fn e7(degrees: f64) -> i32 {
+    // Degrees are within ±180, so ×1e7 fits an i32.
+    let v = (degrees * 1e7).round().clamp(f64::from(i32::MIN), f64::from(i32::MAX));
+    #[expect(clippy::cast_possible_truncation, reason = "clamped to the i32 range")]
+    let v = v as i32;
+    v
+}
+
+/// Writes layer `layer` of the archive as a PMTiles v3 file at `out` (temporary name,
+/// fsync, rename). Tiles are checked against their CRC32C on the way.
+///
+/// # Errors
+/// Archive read errors (a damaged tile names itself), [`Error::File`] on write failure,
+/// [`Error::Interrupted`] on cancel.
+pub fn export_pmtiles<S: RangeSource>(
+    reader: &Reader<S>,
+    layer: u8,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<PmtilesSummary> {
+    let meta = reader.metadata();
+    let info = meta.layers.get(usize::from(layer)).ok_or_else(|| Error::NoSuchLayer { layer: layer.to_string() })?;
+    // Entries of the layer in key order = PMTiles tile-id order.
+    let mut entries: Vec<Entry> = Vec::new();
+    reader.for_each_entry(|e| -> Result<()> {
+        if layer_of(e.key) == layer {
+            entries.push(*e);
+        }
+        Ok(())
+    })?;
+    // New layout: blobs without our checksum trailer, back to back, first use first.
+    let mut new_offset: HashMap<u64, u64> = HashMap::new();
+    let mut data_len = 0u64;
+    let mut rows: Vec<Row> = Vec::with_capacity(entries.len());
+    let mut first_use = Vec::with_capacity(entries.len());
+    for e in &entries {
+        let fresh = !new_offset.contains_key(&e.offset);
+        let offset = *new_offset.entry(e.offset).or_insert_with(|| {
+            let o = data_len;
+            data_len += u64::from(e.length);
+            o
+        });
+        first_use.push(fresh);
+        rows.push((e.key / MAX_LAYERS as u64, e.run_length, offset, e.length));
+    }
+    let (root, leaves) = directories(&rows)?;
+    let zooms: Vec<u8> = rows.iter().map(|r| tile_id_to_zxy(r.0).0).collect();
+    let (min_zoom, max_zoom) = (zooms.iter().copied().min().unwrap_or(0), zooms.iter().copied().max().unwrap_or(0));
+    let bounds =
+        meta.georeference.as_ref().and_then(|g| g.lat_lon_bounds).unwrap_or([-180.0, -85.051_13, 180.0, 85.051_13]);
+    let json = serde_json::json!({
+        "name": meta.name,
+        "description": meta.description,
+        "type": "baselayer",
+        "format": info.format.extension().replace("jpg", "jpeg"),
+        "terrastream": { "layer": info, "terrain": meta.terrain, "georeference": meta.georeference },
+    });
+    let metadata = gzip(&serde_json::to_vec(&json).map_err(|e| Error::metadata(&e))?)?;
+
+    let root_offset = HEADER_LEN;
+    let metadata_offset = root_offset + root.len() as u64;
+    let leaves_offset = metadata_offset + metadata.len() as u64;
+    let data_offset = leaves_offset + leaves.len() as u64;
+    let mut h = Vec::with_capacity(127);
+    h.extend_from_slice(b"PMTiles");
+    h.push(3);
+    for v in [
+        root_offset,
+        root.len() as u64,
+        metadata_offset,
+        metadata.len() as u64,
+        leaves_offset,
+        leaves.len() as u64,
+        data_offset,
+        data_len,
+        rows.iter().map(|r| u64::from(r.1)).sum(),
+        rows.len() as u64,
+        new_offset.len() as u64,
+    ] {
+        h.extend_from_slice(&v.to_le_bytes());
+    }
+    let tile_type = match info.format {
+        TileFormat::Png => 2,
+        TileFormat::Jpeg => 3,
+        TileFormat::Webp => 4,
+        _ => 0,
+    };
+    let tile_compression = if info.compression == PayloadCompression::Zstd { 4 } else { 1 };
+    h.extend_from_slice(&[1, 2, tile_compression, tile_type, min_zoom, max_zoom]);
+    for v in [bounds[0], bounds[1], bounds[2], bounds[3]] {
+        h.extend_from_slice(&e7(v).to_le_bytes());
+    }
+    h.push(min_zoom);
+    h.extend_from_slice(&e7((bounds[0] + bounds[2]) / 2.0).to_le_bytes());
+    h.extend_from_slice(&e7((bounds[1] + bounds[3]) / 2.0).to_le_bytes());
+    debug_assert_eq!(h.len(), 127);
+
+    let folder = crate::writer::output_folder(out);
+    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
+        .tempfile_in(&folder)
+        .map_err(|e| Error::file(&folder, e))?;
+    let io = |e: std::io::Error| Error::file(out, e);
+    {
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, file.as_file_mut());
+        w.write_all(&h).map_err(io)?;
+        w.write_all(&root).map_err(io)?;
+        w.write_all(&metadata).map_err(io)?;
+        w.write_all(&leaves).map_err(io)?;
+        progress.start("export", entries.len() as u64);
+        for (e, fresh) in entries.iter().zip(first_use) {
+            progress.check()?;
+            if fresh {
+                w.write_all(&reader.entry_payload(e)?).map_err(io)?;
+            }
+            progress.advance(1);
+        }
+        w.flush().map_err(io)?;
+    }
+    file.as_file().sync_all().map_err(io)?;
+    file.persist(out).map_err(|e| Error::file(out, e.error))?;
+    Ok(PmtilesSummary {
+        addressed_tiles: rows.iter().map(|r| u64::from(r.1)).sum(),
+        tile_entries: rows.len() as u64,
+        tile_contents: new_offset.len() as u64,
+        file_len: data_offset + data_len,
+    })
+}

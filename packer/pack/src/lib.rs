@@ -1,0 +1,17 @@
+//! Writing terrastream archives (`*.tspack`): the streaming [`Writer`], the importers
+//! behind `terrastream pack` (original LOD folders, XYZ/TMS trees, PMTiles, MBTiles),
+//! [`extract`](extract::extract) back to folders, exporters to other formats, and the
+//! built-in [`sample`] terrain. Reading is `terrastream-format`'s.
+
+mod compress;
+mod error;
+pub mod export;
+pub mod extract;
+pub mod import;
+pub mod progress;
+pub mod sample;
+mod writer;
+
+pub use compress::zstd_compress;
+pub use error::{Error, Result};
+pub use writer::{WriteSummary, Writer, WriterOptions, output_folder};

@@ -1,0 +1,510 @@
+//! The streaming archive writer.
+//!
+//! Memory stays bounded whatever the archive size: tile blobs go straight to a temporary
+//! data file, directory entries are spilled to a second temporary file as fixed-size
+//! records, and only one batch of tiles (compressed in parallel), the dedup table (capped)
+//! and the root directory (one entry per leaf) live in memory. `finish` builds the
+//! directories, writes the final file under a temporary name in the destination folder,
+//! fsyncs it and renames it into place: a crash or Ctrl-C never leaves a partial archive
+//! under the final name.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+
+use crate::compress::zstd_compress;
+use crate::error::{Error, Result};
+use terrastream_format::crc32c;
+use terrastream_format::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, Section, VERSION_MINOR};
+use terrastream_format::{Directory, Entry, LeafPointer, TILE_TRAILER_LEN};
+use terrastream_format::{MAX_LAYERS, TileKey};
+use terrastream_format::{Metadata, PayloadCompression};
+
+/// Tunables of the writer. The defaults suit archives from kilobytes to terabytes.
+#[derive(Clone, Debug)]
+pub struct WriterOptions {
+    /// zstd level for payloads of layers with `compression: zstd`.
+    pub zstd_level: i32,
+    /// zstd level for directories and metadata (small, read often: compress hard).
+    pub directory_zstd_level: i32,
+    /// Distinct contents remembered for dedup (~48 bytes each). Past it, new contents are
+    /// still written but no longer deduplicated against.
+    pub dedup_capacity: usize,
+    /// Input bytes gathered before a batch is compressed in parallel.
+    pub batch_bytes: usize,
+    /// Tiles gathered before a batch is compressed in parallel.
+    pub batch_tiles: usize,
+    /// Entries per leaf directory to start with; doubled until the root fits the bootstrap.
+    pub leaf_entries: usize,
+    /// Bytes the header, metadata and root directory should fit in.
+    pub bootstrap_target: u64,
+}
+
+impl Default for WriterOptions {
+    fn default() -> Self {
+        Self {
+            zstd_level: 3,
+            directory_zstd_level: 19,
+            dedup_capacity: 1 << 22,
+            batch_bytes: 32 << 20,
+            batch_tiles: 2048,
+            leaf_entries: 4096,
+            bootstrap_target: BOOTSTRAP_READ,
+        }
+    }
+}
+
+/// What [`Writer::finish`] wrote.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WriteSummary {
+    /// Final path.
+    pub path: PathBuf,
+    /// Size of the archive.
+    pub file_len: u64,
+    /// Tiles addressed (runs expanded).
+    pub addressed_tiles: u64,
+    /// Directory entries.
+    pub tile_entries: u64,
+    /// Distinct blobs stored.
+    pub tile_contents: u64,
+    /// Bytes of the data section.
+    pub data_bytes: u64,
+    /// Bytes of the root and leaf directories.
+    pub directory_bytes: u64,
+    /// Bytes of the stored metadata.
+    pub metadata_bytes: u64,
+    /// Number of leaf directories.
+    pub leaf_count: u64,
+}
+
+const SPILL_RECORD: usize = 24;
+
+type Prepared = (u64, TileKey, Vec<u8>, u128);
+
+struct Pending {
+    key: u64,
+    tile: TileKey,
+    bytes: Vec<u8>,
+    compress: bool,
+}
+
+/// Streams tiles into a new archive. Tiles must arrive in archive order
+/// (see [`Writer::order_key`]); each batch is compressed on all cores.
+pub struct Writer {
+    path: PathBuf,
+    folder: PathBuf,
+    metadata: Metadata,
+    options: WriterOptions,
+    data: BufWriter<File>,
+    data_len: u64,
+    spill: BufWriter<File>,
+    spilled: u64,
+    open: Option<(Entry, u128)>,
+    dedup: HashMap<u128, (u64, u32)>,
+    batch: Vec<Pending>,
+    batch_bytes: usize,
+    last_key: Option<u64>,
+    addressed: u64,
+    contents: u64,
+}
+
+impl std::fmt::Debug for Writer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Writer").field("path", &self.path).field("addressed", &self.addressed).finish_non_exhaustive()
+    }
+}
+
+impl Writer {
+    /// Starts an archive that will be published at `path` by [`Writer::finish`].
+    /// Temporary files live next to it (same filesystem, so the final rename is atomic).
+    ///
+    /// # Errors
+    /// [`Error::Metadata`] for invalid metadata, [`Error::File`] if the folder is not writable.
+    pub fn create(path: impl AsRef<Path>, metadata: Metadata, options: WriterOptions) -> Result<Self> {
+        metadata.validate()?;
+        let path = path.as_ref().to_path_buf();
+        let folder = output_folder(&path);
+        let temp = || tempfile::tempfile_in(&folder).map_err(|e| Error::file(&folder, e));
+        Ok(Self {
+            data: BufWriter::with_capacity(1 << 20, temp()?),
+            spill: BufWriter::with_capacity(1 << 16, temp()?),
+            path,
+            folder,
+            metadata,
+            options,
+            data_len: 0,
+            spilled: 0,
+            open: None,
+            dedup: HashMap::new(),
+            batch: Vec::new(),
+            batch_bytes: 0,
+            last_key: None,
+            addressed: 0,
+            contents: 0,
+        })
+    }
+
+    /// The position of `tile` in archive order: sort tiles by it before adding them.
+    ///
+    /// # Errors
+    /// [`Error::InvalidTile`] if the tile is outside its layer's grid.
+    pub fn order_key(metadata: &Metadata, tile: TileKey) -> Result<u64> {
+        Ok(metadata.directory_key(tile)?)
+    }
+
+    /// The metadata that will be written.
+    pub fn metadata(&self) -> &Metadata {
+        &self.metadata
+    }
+
+    /// Replaces the metadata (e.g. with statistics known only at the end). The layers' grids
+    /// must not change: tiles already added were placed by them.
+    ///
+    /// # Errors
+    /// [`Error::GridChanged`] if a layer's grid differs, a metadata error if invalid.
+    pub fn set_metadata(&mut self, metadata: Metadata) -> Result<()> {
+        metadata.validate()?;
+        let grid = |l: &terrastream_format::Layer| (l.num_x_tiles, l.num_y_tiles, l.num_lods, l.compression);
+        if metadata.layers.len() != self.metadata.layers.len() {
+            return Err(Error::GridChanged {
+                layer: format!("{} layers instead of {}", metadata.layers.len(), self.metadata.layers.len()),
+            });
+        }
+        if let Some((a, _)) = metadata.layers.iter().zip(&self.metadata.layers).find(|(a, b)| grid(a) != grid(b)) {
+            return Err(Error::GridChanged { layer: a.name.clone() });
+        }
+        self.metadata = metadata;
+        Ok(())
+    }
+
+    /// Adds a tile's payload in its layer's format; the writer applies the layer's
+    /// compression (zstd for `compression: zstd`).
+    ///
+    /// # Errors
+    /// [`Error::Writer`] if the tile is out of order or empty, [`Error::InvalidTile`],
+    /// I/O errors.
+    pub fn add(&mut self, tile: TileKey, payload: Vec<u8>) -> Result<()> {
+        let compress = self
+            .metadata
+            .layers
+            .get(usize::from(tile.layer()))
+            .is_some_and(|l| l.compression == PayloadCompression::Zstd);
+        self.push(tile, payload, compress)
+    }
+
+    /// Adds a tile's stored bytes exactly as given (already compressed if the layer says so).
+    ///
+    /// # Errors
+    /// As [`Writer::add`].
+    pub fn add_stored(&mut self, tile: TileKey, stored: Vec<u8>) -> Result<()> {
+        self.push(tile, stored, false)
+    }
+
+    fn push(&mut self, tile: TileKey, bytes: Vec<u8>, compress: bool) -> Result<()> {
+        let key = Self::order_key(&self.metadata, tile)?;
+        if self.last_key.is_some_and(|last| key <= last) {
+            return Err(Error::OutOfOrder { tile });
+        }
+        if bytes.is_empty() {
+            return Err(Error::EmptyTile { tile });
+        }
+        if u32::try_from(bytes.len()).is_err() {
+            return Err(Error::too_large(format!("tile {tile}"), bytes.len()));
+        }
+        self.last_key = Some(key);
+        self.batch_bytes += bytes.len();
+        self.batch.push(Pending { key, tile, bytes, compress });
+        if self.batch_bytes >= self.options.batch_bytes || self.batch.len() >= self.options.batch_tiles {
+            self.flush_batch()?;
+        }
+        Ok(())
+    }
+
+    fn flush_batch(&mut self) -> Result<()> {
+        let level = self.options.zstd_level;
+        let batch = std::mem::take(&mut self.batch);
+        self.batch_bytes = 0;
+        let prepared: Vec<Result<Prepared>> = batch
+            .into_par_iter()
+            .map(|p| {
+                let bytes = if p.compress {
+                    zstd_compress(&p.bytes, level).map_err(|error| Error::Compress { what: "a tile", error })?
+                } else {
+                    p.bytes
+                };
+                let hash = xxhash_rust::xxh3::xxh3_128(&bytes);
+                Ok((p.key, p.tile, bytes, hash))
+            })
+            .collect();
+        for item in prepared {
+            let (key, tile, bytes, hash) = item?;
+            self.append(key, tile, &bytes, hash)?;
+        }
+        Ok(())
+    }
+
+    fn append(&mut self, key: u64, tile: TileKey, bytes: &[u8], hash: u128) -> Result<()> {
+        let length = u32::try_from(bytes.len()).map_err(|_| Error::too_large(format!("tile {tile}"), bytes.len()))?;
+        self.addressed += 1;
+        // Extend the open run: next tile of the same layer, same content.
+        if let Some((open, open_hash)) = &mut self.open {
+            if *open_hash == hash
+                && open.last_key().checked_add(MAX_LAYERS as u64) == Some(key)
+                && open.run_length < u32::MAX
+            {
+                open.run_length += 1;
+                return Ok(());
+            }
+        }
+        let offset = match self.dedup.get(&hash) {
+            Some(&(offset, _)) => offset,
+            None => {
+                let offset = self.data_len;
+                let temp = |e| temporary(&self.folder, e);
+                self.data.write_all(bytes).map_err(temp)?;
+                self.data.write_all(&crc32c(bytes).to_le_bytes()).map_err(temp)?;
+                self.data_len += u64::from(length) + TILE_TRAILER_LEN;
+                self.contents += 1;
+                if self.dedup.len() < self.options.dedup_capacity {
+                    self.dedup.insert(hash, (offset, length));
+                }
+                offset
+            }
+        };
+        self.close_run()?;
+        self.open = Some((Entry { key, run_length: 1, offset, length }, hash));
+        Ok(())
+    }
+
+    fn close_run(&mut self) -> Result<()> {
+        if let Some((e, _)) = self.open.take() {
+            let mut record = [0u8; SPILL_RECORD];
+            record[0..8].copy_from_slice(&e.key.to_le_bytes());
+            record[8..12].copy_from_slice(&e.run_length.to_le_bytes());
+            record[12..20].copy_from_slice(&e.offset.to_le_bytes());
+            record[20..24].copy_from_slice(&e.length.to_le_bytes());
+            self.spill.write_all(&record).map_err(|e| temporary(&self.folder, e))?;
+            self.spilled += 1;
+        }
+        Ok(())
+    }
+
+    /// Builds the directories, writes the archive and renames it into place.
+    ///
+    /// # Errors
+    /// I/O errors; nothing is left under the final name on error.
+    pub fn finish(mut self) -> Result<WriteSummary> {
+        self.flush_batch()?;
+        self.close_run()?;
+        let temp = |e| temporary(&self.folder, e);
+        let level = self.options.directory_zstd_level;
+        let metadata_bytes = zstd_compress(&self.metadata.to_json(), level)
+            .map_err(|error| Error::Compress { what: "the metadata", error })?;
+        let budget = self.options.bootstrap_target.saturating_sub(HEADER_LEN as u64 + metadata_bytes.len() as u64);
+        let mut spill = self.spill.into_inner().map_err(|e| temp(e.into_error()))?;
+        let mut directories =
+            build_directories(&mut spill, self.spilled, &self.options, budget, &self.folder).map_err(temp)?;
+
+        let metadata = Section { offset: HEADER_LEN as u64, len: metadata_bytes.len() as u64 };
+        let root_dir = Section { offset: metadata.offset + metadata.len, len: directories.root.len() as u64 };
+        let leaf_dirs = Section { offset: root_dir.offset + root_dir.len, len: directories.leaves_len };
+        let data = Section { offset: leaf_dirs.offset + leaf_dirs.len, len: self.data_len };
+        let header = Header {
+            version_minor: VERSION_MINOR,
+            metadata,
+            root_dir,
+            leaf_dirs,
+            data,
+            addressed_tiles: self.addressed,
+            tile_entries: self.spilled,
+            tile_contents: self.contents,
+            metadata_crc: crc32c(&metadata_bytes),
+            root_dir_crc: crc32c(&directories.root),
+            metadata_compression: Compression::Zstd,
+            directory_compression: Compression::Zstd,
+        };
+        let mut data_file = self.data.into_inner().map_err(|e| temporary(&self.folder, e.into_error()))?;
+        let parts = [
+            Part::Bytes(&header.encode()),
+            Part::Bytes(&metadata_bytes),
+            Part::Bytes(&directories.root),
+            Part::File(&mut directories.leaves, directories.leaves_len),
+            Part::File(&mut data_file, self.data_len),
+        ];
+        publish(&self.path, &self.folder, parts)?;
+        Ok(WriteSummary {
+            path: self.path,
+            file_len: data.end().unwrap_or(u64::MAX),
+            addressed_tiles: self.addressed,
+            tile_entries: self.spilled,
+            tile_contents: self.contents,
+            data_bytes: self.data_len,
+            directory_bytes: root_dir.len + leaf_dirs.len,
+            metadata_bytes: metadata.len,
+            leaf_count: directories.leaf_count,
+        })
+    }
+}
+
+/// The root directory and the leaves of an archive being finished.
+struct Directories {
+    /// The root, compressed.
+    root: Vec<u8>,
+    /// The leaves, compressed and concatenated, at the start of a temporary file.
+    leaves: File,
+    leaves_len: u64,
+    leaf_count: u64,
+}
+
+/// Reads the `count` spilled entries back and builds the directories: every entry in the
+/// root when it fits the bootstrap `budget` (a cold tile then costs 2 reads), else leaves
+/// of `leaf_entries` entries, doubled until the root of leaf pointers fits.
+fn build_directories(
+    spill: &mut File,
+    count: u64,
+    options: &WriterOptions,
+    budget: u64,
+    folder: &Path,
+) -> std::io::Result<Directories> {
+    let level = options.directory_zstd_level;
+    let mut leaves = tempfile::tempfile_in(folder)?;
+    // Every entry costs at least one compressed byte: only then can the root hold them all.
+    if count <= budget.max(options.leaf_entries as u64) {
+        spill.seek(SeekFrom::Start(0))?;
+        let entries = read_entries(&mut BufReader::new(&mut *spill), count)?;
+        let root = zstd_compress(&Directory::Tiles(entries).encode_raw(), level)?;
+        if root.len() as u64 <= budget || count <= 1 {
+            return Ok(Directories { root, leaves, leaves_len: 0, leaf_count: 0 });
+        }
+    }
+    let mut leaf_entries = options.leaf_entries.max(1);
+    loop {
+        spill.seek(SeekFrom::Start(0))?;
+        leaves.set_len(0)?;
+        leaves.seek(SeekFrom::Start(0))?;
+        let pointers = write_leaves(spill, count, leaf_entries, level, &mut leaves)?;
+        let root = zstd_compress(&Directory::Leaves(pointers.clone()).encode_raw(), level)?;
+        if root.len() as u64 <= budget || pointers.len() <= 1 {
+            let leaves_len = pointers.last().map_or(0, |p| p.offset + u64::from(p.length));
+            return Ok(Directories { root, leaves, leaves_len, leaf_count: pointers.len() as u64 });
+        }
+        leaf_entries *= 2;
+    }
+}
+
+/// A piece of a file being published: bytes, or the first `len` bytes of a temporary file.
+enum Part<'a> {
+    Bytes(&'a [u8]),
+    File(&'a mut File, u64),
+}
+
+/// Writes `parts` to a temporary file in `folder`, syncs it and renames it to `path`:
+/// nothing is left under the final name on error.
+fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<'a>>) -> Result<()> {
+    let file_name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let mut out = published(tempfile::Builder::new().prefix(&format!(".{file_name}.")).suffix(".partial"))
+        .tempfile_in(folder)
+        .map_err(|e| Error::file(folder, e))?;
+    let io = |e: std::io::Error| Error::file(path, e);
+    let file = out.as_file_mut();
+    for part in parts {
+        match part {
+            Part::Bytes(bytes) => file.write_all(bytes).map_err(io)?,
+            Part::File(source, len) => {
+                source.seek(SeekFrom::Start(0)).map_err(|e| temporary(folder, e))?;
+                let copied = std::io::copy(&mut Read::take(source, len), file).map_err(io)?;
+                if copied != len {
+                    let short = std::io::Error::new(std::io::ErrorKind::UnexpectedEof, "shorter than written");
+                    return Err(temporary(folder, short));
+                }
+            }
+        }
+    }
+    file.sync_all().map_err(io)?;
+    out.persist(path).map_err(|e| Error::file(path, e.error))?;
+    sync_folder(folder);
+    Ok(())
+}
+
+/// An I/O error on one of the writer's temporary files in `folder`.
+fn temporary(folder: &Path, error: std::io::Error) -> Error {
+    Error::Temporary { folder: folder.to_path_buf(), error }
+}
+
+/// The folder a file will be published in: temporary files go there, so that the final
+/// rename stays on one filesystem and is atomic.
+pub fn output_folder(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    }
+}
+
+/// Makes the rename durable. Best effort: not every platform can open a folder.
+fn sync_folder(folder: &Path) {
+    if let Ok(dir) = File::open(folder) {
+        let _ = dir.sync_all();
+    }
+}
+
+fn read_entries(reader: &mut impl Read, count: u64) -> std::io::Result<Vec<Entry>> {
+    let mut entries = Vec::new();
+    let mut record = [0u8; SPILL_RECORD];
+    for _ in 0..count {
+        reader.read_exact(&mut record)?;
+        let u64_at = |at: usize| {
+            let mut b = [0u8; 8];
+            b.copy_from_slice(&record[at..at + 8]);
+            u64::from_le_bytes(b)
+        };
+        let u32_at = |at: usize| u32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]]);
+        entries.push(Entry { key: u64_at(0), run_length: u32_at(8), offset: u64_at(12), length: u32_at(20) });
+    }
+    Ok(entries)
+}
+
+/// Streams the spilled entries into leaves of `per_leaf` entries; returns their pointers.
+fn write_leaves(
+    spill: &mut File,
+    count: u64,
+    per_leaf: usize,
+    level: i32,
+    out: &mut File,
+) -> std::io::Result<Vec<LeafPointer>> {
+    let mut reader = BufReader::with_capacity(1 << 16, spill);
+    let mut out = BufWriter::new(out);
+    let mut pointers = Vec::new();
+    let mut offset = 0u64;
+    let mut remaining = count;
+    while remaining > 0 {
+        let n = remaining.min(per_leaf as u64);
+        remaining -= n;
+        let entries = read_entries(&mut reader, n)?;
+        let first_key = entries.first().map_or(0, |e| e.key);
+        let stored = zstd_compress(&Directory::Tiles(entries).encode_raw(), level)?;
+        let length = u32::try_from(stored.len()).map_err(|_| std::io::Error::other("a leaf directory over 4 GiB"))?;
+        out.write_all(&stored)?;
+        pointers.push(LeafPointer { first_key, offset, length, crc: crc32c(&stored) });
+        offset += u64::from(length);
+    }
+    out.flush()?;
+    Ok(pointers)
+}
+
+/// A temporary file that is renamed into place when done gets a published file's mode
+/// (0666 less the umask, as any new file), not the private 0600 of temporary files: a
+/// web server running as another user must be able to read the archive.
+pub(crate) fn published<'s, 'a, 'b>(builder: &'s mut tempfile::Builder<'a, 'b>) -> &'s mut tempfile::Builder<'a, 'b> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666))
+    }
+    #[cfg(not(unix))]
+    {
+        builder
+    }
+}

@@ -1,0 +1,106 @@
+//! Encoding tiles: heights (quantized u16 or f32) and imagery (PNG, JPEG, WebP, BC1/BC7).
+
+use terrastream_format::{ElevationEncoding, ElevationScheme, TileKey};
+use terrastream_pack::zstd_compress;
+
+use crate::bc;
+use crate::error::{Error, Result};
+use crate::options::TextureFormat;
+use crate::plan::min_max;
+
+/// Heights -> the layer's raw little-endian samples, and the lowest and highest height as
+/// stored (after quantization).
+pub(crate) fn encode_heights(samples: &[f32], encoding: &ElevationEncoding) -> (Vec<u8>, f32, f32) {
+    if encoding.scheme == ElevationScheme::Float32 {
+        let mut raw = Vec::with_capacity(samples.len() * 4);
+        for v in samples {
+            raw.extend_from_slice(&v.to_le_bytes());
+        }
+        let (lo, hi) = min_max(samples);
+        return (raw, lo, hi);
+    }
+    // The hot loop of a DEM, without branches so that it vectorizes (measured 3x faster
+    // than a scalar loop): f32 arithmetic (4 lanes on baseline x86-64), no libm call, no
+    // float-to-int conversion (Rust's saturating `as` stays scalar there) and no height
+    // decoded per sample. Steps are powers of two (see `plan`), so the scaling is exact and
+    // the one rounding is the subtraction's, under 1/200 of a step on the u16 range.
+    // Clamped to 1..=65535, adding 2^23 puts the nearest integer (ties to even) in the low
+    // mantissa bits. A NaN (nodata) stays NaN through the clamp and becomes 0. Heights grow
+    // with `q`, so the range is that of the lowest and highest `q` other than 0 (`q - 1`
+    // wraps 0 to the top, out of the way).
+    const TO_INTEGER: f32 = 8_388_608.0;
+    #[expect(clippy::cast_possible_truncation, reason = "see above: f32 arithmetic on heights kept as f32")]
+    let (offset, inverse) = (encoding.offset as f32, (1.0 / encoding.scale) as f32);
+    let (mut lo, mut hi) = (u16::MAX, 0u16);
+    let mut raw = vec![0u8; samples.len() * 2];
+    for (out, &v) in raw.chunks_exact_mut(2).zip(samples) {
+        let x = ((v - offset) * inverse).clamp(1.0, 65_535.0);
+        #[expect(clippy::cast_possible_truncation, reason = "the low 16 bits hold the integer")]
+        let q = if x.is_nan() { 0 } else { (x + TO_INTEGER).to_bits() as u16 };
+        lo = lo.min(q.wrapping_sub(1));
+        hi = hi.max(q);
+        out.copy_from_slice(&q.to_le_bytes());
+    }
+    if hi == 0 {
+        return (raw, f32::INFINITY, f32::NEG_INFINITY);
+    }
+    let lo = lo + 1;
+    #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+    let height = |q: u16| encoding.height(f64::from(q)) as f32;
+    (raw, height(lo), height(hi))
+}
+
+/// One texture tile's stored bytes.
+pub(crate) fn encode_texture(
+    key: TileKey,
+    pixels: &[[u8; 4]],
+    edge: usize,
+    format: TextureFormat,
+    zstd_level: i32,
+) -> Result<Vec<u8>> {
+    let opaque = pixels.iter().all(|p| p[3] == 255);
+    let rgb = || -> Vec<u8> {
+        // Sized once: a `flat_map` collect cannot know its length and grows by doubling.
+        let mut rgb = Vec::with_capacity(pixels.len() * 3);
+        for p in pixels {
+            rgb.extend_from_slice(&p[..3]);
+        }
+        rgb
+    };
+    let side = u32::try_from(edge).map_err(|_| Error::TileTooLarge { edge, format: format.name() })?;
+    let err = |e: &dyn std::fmt::Display| Error::Encode { tile: key, reason: e.to_string() };
+    Ok(match format {
+        TextureFormat::Png => {
+            let mut out = Vec::new();
+            let mut encoder = png::Encoder::new(&mut out, side, side);
+            encoder.set_depth(png::BitDepth::Eight);
+            encoder.set_color(if opaque { png::ColorType::Rgb } else { png::ColorType::Rgba });
+            encoder.set_compression(png::Compression::Fast);
+            encoder.set_filter(png::Filter::Paeth);
+            let data = if opaque { rgb() } else { pixels.as_flattened().to_vec() };
+            encoder.write_header().map_err(|e| err(&e))?.write_image_data(&data).map_err(|e| err(&e))?;
+            out
+        }
+        TextureFormat::Jpeg(quality) => {
+            let side16 = u16::try_from(edge).map_err(|_| Error::TileTooLarge { edge, format: "JPEG" })?;
+            let mut out = Vec::new();
+            jpeg_encoder::Encoder::new(&mut out, quality)
+                .encode(&rgb(), side16, side16, jpeg_encoder::ColorType::Rgb)
+                .map_err(|e| err(&e))?;
+            out
+        }
+        TextureFormat::Webp => {
+            let mut out = Vec::new();
+            let (data, colour) = if opaque {
+                (rgb(), image_webp::ColorType::Rgb8)
+            } else {
+                (pixels.as_flattened().to_vec(), image_webp::ColorType::Rgba8)
+            };
+            image_webp::WebPEncoder::new(&mut out).encode(&data, side, side, colour).map_err(|e| err(&e))?;
+            out
+        }
+        TextureFormat::Bc1 | TextureFormat::Bc7 => {
+            zstd_compress(&bc::encode(pixels, edge, format == TextureFormat::Bc7), zstd_level).map_err(|e| err(&e))?
+        }
+    })
+}

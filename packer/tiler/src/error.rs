@@ -1,0 +1,114 @@
+//! The tiler's error type.
+
+use std::path::PathBuf;
+
+use terrastream_format::TileKey;
+
+/// Everything that can go wrong while tiling rasters into an archive.
+///
+/// Variants carry the file, option or tile at fault so that a message names it.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    /// Writing the archive failed (or was interrupted: `terrastream_pack::Error::Interrupted`).
+    #[error(transparent)]
+    Pack(#[from] terrastream_pack::Error),
+    /// An option is out of its range.
+    #[error("{option} {value}: allowed {allowed}")]
+    Option {
+        /// The option, as the CLI names it.
+        option: &'static str,
+        /// The value given.
+        value: String,
+        /// What is allowed.
+        allowed: &'static str,
+    },
+    /// Neither an elevation raster nor a texture image was given.
+    #[error("nothing to tile: give an elevation raster, a texture image or both")]
+    NothingToTile,
+    /// An input raster is unusable: unreadable, unsupported, or not where it should be.
+    #[error("{path}: {reason}")]
+    Input {
+        /// The file at fault.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// An I/O error on a named file (the message carries the OS error itself).
+    #[error("{path}: {error}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        error: std::io::Error,
+    },
+    /// A tile could not be encoded in its layer's format.
+    #[error("tile {tile}: cannot encode: {reason}")]
+    Encode {
+        /// The tile.
+        tile: TileKey,
+        /// The encoder's message.
+        reason: String,
+    },
+    /// A tile is larger than its format can hold.
+    #[error("tile edge {edge} is too large for {format}")]
+    TileTooLarge {
+        /// Pixels per tile edge.
+        edge: usize,
+        /// The format's name.
+        format: &'static str,
+    },
+    /// The pyramid was fed against its contract (a bug of the caller, reported rather than
+    /// panicking): a row too many or too few, a layer not in the metadata.
+    #[error("pyramid of layer {layer}, LOD {lod}: {reason}")]
+    Pyramid {
+        /// The layer.
+        layer: u8,
+        /// The level.
+        lod: u8,
+        /// What went wrong.
+        reason: String,
+    },
+    /// Reading or writing the spool of encoded tiles (a temporary file) failed.
+    #[error("the tile spool (a temporary file): {0}")]
+    Spool(std::io::Error),
+    /// A worker thread panicked; its work is lost and nothing was written.
+    #[error("the {thread} thread panicked")]
+    Panicked {
+        /// Which thread.
+        thread: &'static str,
+    },
+}
+
+impl Error {
+    pub(crate) fn file(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
+        Self::File { path: path.into(), error }
+    }
+
+    pub(crate) fn input(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
+        Self::Input { path: path.into(), reason: reason.into() }
+    }
+
+    pub(crate) fn option(option: &'static str, value: impl ToString, allowed: &'static str) -> Self {
+        Self::Option { option, value: value.to_string(), allowed }
+    }
+
+    /// True when the run stopped because it was asked to (Ctrl-C).
+    pub fn is_interrupted(&self) -> bool {
+        matches!(self, Self::Pack(terrastream_pack::Error::Interrupted))
+    }
+}
+
+impl From<terrastream_format::Error> for Error {
+    fn from(error: terrastream_format::Error) -> Self {
+        Self::Pack(error.into())
+    }
+}
+
+/// Result alias of this crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// The error of a run stopped on request.
+pub(crate) fn interrupted() -> Error {
+    Error::Pack(terrastream_pack::Error::Interrupted)
+}

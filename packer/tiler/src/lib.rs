@@ -1,0 +1,39 @@
+//! Source rasters -> a LOD pyramid in an archive (`terrastream tile`).
+//!
+//! Inputs are read a band of rows at a time ([`raster`]): an elevation raster (GeoTIFF of
+//! numbers, or a PNG whose pixels encode heights), an optional texture image, or a texture
+//! alone. Each is resampled along x to square samples in metres when its pixels are more
+//! than 1 % from square (a geographic raster is converted to metres at its centre
+//! latitude), then streamed through a [`pyramid::Pyramid`]: LOD 0 keeps the source's
+//! spacing; each coarser LOD averages 2x2 of the previous one (ignoring nodata for heights,
+//! weighted by alpha for imagery); odd edges are padded with no data; tiles that hold only
+//! no data are left missing. Only a band of rows per level is held, so memory does not grow
+//! with the raster's height; it grows with its width (about `2 x width x (tile + 2 x
+//! border + 1)` samples for all levels together) and with the tile count (the spool's index,
+//! 24 bytes a tile).
+//!
+//! Elevation is stored losslessly (quantized u16 with a power-of-two step that keeps integer
+//! sources exact at LOD 0, or f32; zstd) beside a height-range layer: each elevation tile's
+//! lowest and highest height, for culling before the tile is loaded. Imagery is stored as
+//! PNG, JPEG, lossless WebP, or GPU-ready BC1/BC7 blocks (zstd).
+
+mod bc;
+mod encode;
+mod error;
+mod options;
+mod plan;
+pub mod pyramid;
+pub mod raster;
+mod tile;
+
+pub use error::{Error, Result};
+pub use options::{ElevationStorage, TextureFormat, TextureInput, TileOptions};
+pub use plan::{LayerPlan, Plan, plan};
+pub use raster::{
+    ElevationFile, ElevationSource, Image, ImageFile, ImageSource, ImageWindow, Raster, open_elevation, open_image,
+    read_geotiff, read_image,
+};
+pub use tile::{tile_elevation, tile_terrain};
+
+#[cfg(test)]
+mod tests;

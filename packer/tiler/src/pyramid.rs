@@ -1,0 +1,566 @@
+//! A LOD pyramid built from a stream of rows, keeping only a band of rows per level.
+//!
+//! Rows of LOD 0 are pushed in from the top. Each level keeps the rows its next row of
+//! tiles needs (tile size + two borders) and halves pairs of rows into the level above as
+//! they arrive; a row of tiles is cut and encoded (its tiles in parallel, on the pool, while
+//! the caller goes on halving) as soon as its rows, borders included, are all in. Memory
+//! per level is one band of about `tile + 2 * border + 1` rows of that level's width, so
+//! the whole pyramid holds under two LOD-0 bands whatever the raster's height (the tiler
+//! keeps one more band in flight from its reading thread, and the rows of tiles being cut
+//! on the pool hold up to two more). Encoded tiles go to a [`Spool`] on disk, then into the
+//! archive in the archive's order.
+
+use std::collections::VecDeque;
+use std::fs::File;
+use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::Path;
+use std::sync::{Arc, mpsc};
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use terrastream_format::Metadata;
+use terrastream_format::TileKey;
+use terrastream_pack::Writer;
+use terrastream_pack::progress::Progress;
+
+/// A sample of a pyramid: a height (NaN = nodata) or an RGBA8 pixel (alpha 0 = none).
+pub trait Pixel: Copy + Send + Sync + 'static {
+    /// No data.
+    const NONE: Self;
+    /// Is this a real sample?
+    fn has_data(&self) -> bool;
+    /// The mean of up to four samples, ignoring (height) or weighting by (alpha) the
+    /// missing ones: the 2x2 area average of the next coarser level.
+    fn mean4(s: [Self; 4]) -> Self;
+    /// Linear interpolation between `a` and `b` at `f` in 0..1 (resampling along x).
+    fn lerp(a: Self, b: Self, f: f32) -> Self;
+}
+
+impl Pixel for f32 {
+    const NONE: Self = f32::NAN;
+    fn has_data(&self) -> bool {
+        !self.is_nan()
+    }
+    fn mean4(s: [Self; 4]) -> Self {
+        if !s.iter().any(|v| v.is_nan()) {
+            // The usual case, summed in the same order as below.
+            let sum = f64::from(s[0]) + f64::from(s[1]) + f64::from(s[2]) + f64::from(s[3]);
+            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+            return (sum / 4.0) as f32;
+        }
+        let (mut sum, mut n) = (0.0f64, 0u32);
+        for v in s.into_iter().filter(|v| !v.is_nan()) {
+            sum += f64::from(v);
+            n += 1;
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+        if n == 0 { f32::NAN } else { (sum / f64::from(n)) as f32 }
+    }
+    fn lerp(a: Self, b: Self, f: f32) -> Self {
+        // NaN exactly when either is: then the other (or NaN). Selects, not branches, in
+        // the usual case.
+        let v = a + (b - a) * f;
+        if v.is_nan() { if a.is_nan() { b } else { a } } else { v }
+    }
+}
+
+impl Pixel for [u8; 4] {
+    const NONE: Self = [0; 4];
+    fn has_data(&self) -> bool {
+        self[3] > 0
+    }
+    fn mean4(s: [Self; 4]) -> Self {
+        if s.iter().all(|p| p[3] == 255) {
+            // All opaque (the usual case): the weighted mean below reduces exactly to
+            // (sum + 2) / 4 per channel.
+            let mean = |c: usize| {
+                let sum = u16::from(s[0][c]) + u16::from(s[1][c]) + u16::from(s[2][c]) + u16::from(s[3][c]);
+                #[expect(clippy::cast_possible_truncation, reason = "a mean of four u8 values")]
+                let mean = ((sum + 2) / 4) as u8;
+                mean
+            };
+            return [mean(0), mean(1), mean(2), 255];
+        }
+        let mut sum = [0u32; 4];
+        for p in s {
+            let a = u32::from(p[3]);
+            for c in 0..3 {
+                sum[c] += u32::from(p[c]) * a;
+            }
+            sum[3] += a;
+        }
+        if sum[3] == 0 {
+            return [0; 4];
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "means of u8 values")]
+        let mean = |c: usize| ((sum[c] + sum[3] / 2) / sum[3]) as u8;
+        #[expect(clippy::cast_possible_truncation, reason = "a mean of four u8 values")]
+        let alpha = ((sum[3] + 2) / 4) as u8;
+        [mean(0), mean(1), mean(2), alpha]
+    }
+    fn lerp(a: Self, b: Self, f: f32) -> Self {
+        let f = f64::from(f);
+        let (wa, wb) = (f64::from(a[3]) * (1.0 - f), f64::from(b[3]) * f);
+        let alpha = wa + wb;
+        let mut out = [0u8; 4];
+        for c in 0..3 {
+            let v = if alpha > 0.0 { (f64::from(a[c]) * wa + f64::from(b[c]) * wb) / alpha } else { 0.0 };
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+            let v = v.round().clamp(0.0, 255.0) as u8;
+            out[c] = v;
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+        let a = alpha.round().clamp(0.0, 255.0) as u8;
+        out[3] = a;
+        out
+    }
+}
+
+/// Linear resampling of rows along x (edges clamped), from one width to another: each
+/// output sample's source index and weight, computed once for every row of a raster.
+pub struct Resample {
+    /// (left source sample, weight of the right one) per output sample.
+    taps: Vec<(u32, f32)>,
+    from: usize,
+}
+
+impl Resample {
+    /// Resamples rows of `from` samples to `to` samples.
+    #[must_use]
+    pub fn new(from: usize, to: usize) -> Self {
+        // Rows are a raster's: u32 samples at most (a wider one is copied as it is).
+        if from == to || from == 0 || u32::try_from(from).is_err() {
+            return Self { taps: Vec::new(), from };
+        }
+        #[expect(clippy::cast_precision_loss, reason = "pixel counts")]
+        let ratio = to as f64 / from as f64;
+        let last = from - 1;
+        let taps = (0..to)
+            .map(|x| {
+                #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
+                let sx = ((x as f64 + 0.5) / ratio - 0.5).max(0.0);
+                // sx >= 0: truncation is its floor.
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel index >= 0")]
+                let x0 = sx as usize;
+                #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
+                let frac = sx - x0 as f64;
+                #[expect(clippy::cast_possible_truncation, reason = "below `from`, a u32; a weight")]
+                (x0.min(last) as u32, frac as f32)
+            })
+            .collect();
+        Self { taps, from }
+    }
+
+    /// `row` (of the width this was made for) at the new width.
+    #[must_use]
+    pub fn row<S: Pixel>(&self, row: &[S]) -> Vec<S> {
+        if self.taps.is_empty() || row.len() != self.from {
+            return row.to_vec();
+        }
+        let last = self.from - 1;
+        self.taps
+            .iter()
+            .map(|&(i, frac)| {
+                let i = i as usize;
+                S::lerp(row[i], row[(i + 1).min(last)], frac)
+            })
+            .collect()
+    }
+}
+
+/// Two rows of a level -> one row of the next (2x2 means; an odd last column is padded
+/// with no data).
+pub fn halve_rows<S: Pixel>(a: &[S], b: &[S]) -> Vec<S> {
+    let mut out: Vec<S> =
+        a.chunks_exact(2).zip(b.chunks_exact(2)).map(|(a, b)| S::mean4([a[0], a[1], b[0], b[1]])).collect();
+    if a.len() % 2 == 1 {
+        let at = |r: &[S], x: usize| r.get(x).copied().unwrap_or(S::NONE);
+        let x = a.len() - 1;
+        out.push(S::mean4([at(a, x), S::NONE, at(b, x), S::NONE]));
+    }
+    out
+}
+
+/// Encodes one cut tile into the archive entries it makes (the tile, and for elevation its
+/// height range), or none when it should be left missing.
+pub type Encode<'a, S> = dyn Fn(TileKey, &[S], usize) -> Result<Vec<(TileKey, Vec<u8>)>> + Sync + 'a;
+
+struct Level<S> {
+    lod: u8,
+    width: usize,
+    height: usize,
+    /// Absolute index of `rows[0]`.
+    first: usize,
+    /// Shared with the cuts in flight that need them.
+    rows: VecDeque<Arc<Vec<S>>>,
+    received: usize,
+    /// Rows of tiles cut so far.
+    cut: usize,
+    /// An even row waiting for its odd partner, to be halved into the next level.
+    pending: Option<Arc<Vec<S>>>,
+}
+
+/// The entries of one cut row of tiles.
+type Cut = Result<Vec<(TileKey, Vec<u8>)>>;
+
+/// Cuts one layer's tiles out of a stream of LOD-0 rows.
+pub struct Pyramid<'a, S: Pixel> {
+    layer: u8,
+    res: usize,
+    border: usize,
+    levels: Vec<Level<S>>,
+    encode: &'a Encode<'a, S>,
+    metadata: &'a Metadata,
+    spool: &'a mut Spool,
+    progress: &'a dyn Progress,
+    /// Rows of tiles being cut and encoded on the pool, and where they report.
+    in_flight: usize,
+    done: (mpsc::Sender<Cut>, mpsc::Receiver<Cut>),
+}
+
+/// Rows of tiles cut at once, all levels: a cut runs on the pool while the next rows are
+/// halved and the next band is read; each holds its band's rows until it is done.
+const CUTS_IN_FLIGHT: usize = 2;
+
+impl<'a, S: Pixel> Pyramid<'a, S> {
+    /// A pyramid of `lods` levels over a `width` x `height` LOD 0, for layer `layer` of
+    /// `metadata` (its tile size and border).
+    pub fn new(
+        metadata: &'a Metadata,
+        layer: u8,
+        (width, height): (u32, u32),
+        encode: &'a Encode<'a, S>,
+        spool: &'a mut Spool,
+        progress: &'a dyn Progress,
+    ) -> Result<Self> {
+        let l = metadata.layers.get(usize::from(layer)).ok_or_else(|| Error::Pyramid {
+            layer,
+            lod: 0,
+            reason: "no such layer in the metadata".into(),
+        })?;
+        let levels = (0..l.num_lods)
+            .map(|lod| {
+                let shrink = |n: u32| (n.div_ceil(1 << lod)).max(1) as usize;
+                Level {
+                    lod,
+                    width: shrink(width),
+                    height: shrink(height),
+                    first: 0,
+                    rows: VecDeque::new(),
+                    received: 0,
+                    cut: 0,
+                    pending: None,
+                }
+            })
+            .collect();
+        Ok(Self {
+            layer,
+            res: l.tile_resolution as usize,
+            border: usize::from(l.border),
+            levels,
+            encode,
+            metadata,
+            spool,
+            progress,
+            in_flight: 0,
+            done: mpsc::channel(),
+        })
+    }
+
+    /// Rows of LOD 0 that one row of tiles is cut from, borders included.
+    pub fn band_rows(&self) -> usize {
+        self.res + 2 * self.border
+    }
+
+    /// Samples held now, all levels (the band each keeps, and rows waiting to be halved;
+    /// the cuts in flight hold up to [`CUTS_IN_FLIGHT`] bands more).
+    pub fn held_samples(&self) -> usize {
+        self.levels.iter().map(|l| (l.rows.len() + usize::from(l.pending.is_some())) * l.width).sum()
+    }
+
+    /// Adds the next row of LOD 0. Rows of tiles are cut on `scope`'s pool while the
+    /// caller goes on.
+    ///
+    /// # Errors
+    /// Encoding and spool errors, an interrupted error (Ctrl-C).
+    pub fn push<'s>(&mut self, row: Vec<S>, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
+        self.push_at(0, Arc::new(row), scope)
+    }
+
+    fn push_at<'s>(&mut self, l: usize, row: Arc<Vec<S>>, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
+        let has_next = l + 1 < self.levels.len();
+        let level = &mut self.levels[l];
+        if level.received >= level.height {
+            return Err(Error::Pyramid {
+                layer: self.layer,
+                lod: level.lod,
+                reason: format!("more than {} rows", level.height),
+            });
+        }
+        let half = match (has_next, level.pending.take()) {
+            (false, _) => None,
+            (true, None) => {
+                level.pending = Some(Arc::clone(&row));
+                None
+            }
+            (true, Some(even)) => Some(halve_rows(&even, &row)),
+        };
+        level.rows.push_back(row);
+        level.received += 1;
+        self.cut_ready(l, scope)?;
+        if let Some(half) = half {
+            self.push_at(l + 1, Arc::new(half), scope)?;
+        }
+        Ok(())
+    }
+
+    /// Ends the stream: pads odd levels, cuts what is left, and waits for every cut.
+    ///
+    /// # Errors
+    /// As [`Pyramid::push`]; [`Error::Pyramid`] if rows are missing.
+    pub fn finish<'s>(mut self, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
+        for l in 0..self.levels.len() {
+            let level = &self.levels[l];
+            if level.received != level.height {
+                return Err(Error::Pyramid {
+                    layer: self.layer,
+                    lod: level.lod,
+                    reason: format!("{} of {} rows arrived", level.received, level.height),
+                });
+            }
+            if let Some(even) = self.levels[l].pending.take() {
+                let none = vec![S::NONE; even.len()];
+                self.push_at(l + 1, Arc::new(halve_rows(&even, &none)), scope)?;
+            }
+        }
+        while self.in_flight > 0 {
+            self.collect_one()?;
+        }
+        Ok(())
+    }
+
+    /// Waits for one cut in flight and spools its tiles.
+    fn collect_one(&mut self) -> Result<()> {
+        let tiles = receive(&self.done.1).ok_or(Error::Panicked { thread: "tile cutting" })?;
+        self.in_flight -= 1;
+        for (key, bytes) in tiles? {
+            self.spool.add(self.metadata, key, &bytes)?;
+        }
+        Ok(())
+    }
+
+    /// Starts cutting every row of tiles of level `l` whose rows (and lower border) have
+    /// arrived, on `scope`'s pool (the tiles of a row in parallel); first waits for older
+    /// cuts while [`CUTS_IN_FLIGHT`] are running.
+    fn cut_ready<'s>(&mut self, l: usize, scope: &rayon::Scope<'s>) -> Result<()>
+    where
+        'a: 's,
+    {
+        let (res, border) = (self.res, self.border);
+        loop {
+            let level = &self.levels[l];
+            if level.cut >= level.height.div_ceil(res) {
+                return Ok(());
+            }
+            let need = ((level.cut + 1) * res + border).min(level.height);
+            if level.received < need {
+                return Ok(());
+            }
+            self.progress.check()?;
+            while self.in_flight >= CUTS_IN_FLIGHT {
+                self.collect_one()?;
+            }
+            let level = &self.levels[l];
+            let ty = level.cut;
+            let edge = res + 2 * border;
+            let (width, cols) = (level.width, level.width.div_ceil(res));
+            // The band: row `j` of the tiles is the level's row `ty * res + j - border`,
+            // none above or below the raster.
+            let band: Vec<Option<Arc<Vec<S>>>> = (0..edge)
+                .map(|j| {
+                    (ty * res + j)
+                        .checked_sub(border)
+                        .filter(|&y| y >= level.first && y < level.height)
+                        .and_then(|y| level.rows.get(y - level.first).cloned())
+                })
+                .collect();
+            let (encode, progress, sender) = (self.encode, self.progress, self.done.0.clone());
+            let (layer, lod) = (self.layer, level.lod);
+            self.in_flight += 1;
+            scope.spawn(move |_| {
+                let tiles = (0..cols)
+                    .into_par_iter()
+                    .map(|tx| {
+                        let mut any = false;
+                        let mut samples = Vec::with_capacity(edge * edge);
+                        // Columns x0 - border .. x0 + res + border, clipped to the raster
+                        // and padded with no data outside it.
+                        let (from, to) = ((tx * res).saturating_sub(border), (tx * res + res + border).min(width));
+                        let pad_left = border.saturating_sub(tx * res);
+                        let pad_right = edge - pad_left - (to - from);
+                        for (j, row) in band.iter().enumerate() {
+                            let Some(row) = row else {
+                                samples.resize(samples.len() + edge, S::NONE);
+                                continue;
+                            };
+                            if (border..border + res).contains(&j) {
+                                any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
+                            }
+                            samples.resize(samples.len() + pad_left, S::NONE);
+                            samples.extend_from_slice(&row[from..to]);
+                            samples.resize(samples.len() + pad_right, S::NONE);
+                        }
+                        progress.advance(1);
+                        if !any {
+                            return Ok(Vec::new());
+                        }
+                        let coordinate = |n: usize| {
+                            u32::try_from(n).map_err(|_| Error::Pyramid {
+                                layer,
+                                lod,
+                                reason: format!("tile coordinate {n} out of range"),
+                            })
+                        };
+                        let key = TileKey::new(layer, lod, coordinate(tx)?, coordinate(ty)?)?;
+                        encode(key, &samples, edge)
+                    })
+                    .collect::<Result<Vec<_>>>()
+                    .map(|tiles| tiles.into_iter().flatten().collect());
+                // The receiver lives until every cut is collected.
+                let _ = sender.send(tiles);
+            });
+            let level = &mut self.levels[l];
+            level.cut += 1;
+            let keep_from = (level.cut * res).saturating_sub(border);
+            while level.first < keep_from && !level.rows.is_empty() {
+                level.rows.pop_front();
+                level.first += 1;
+            }
+        }
+    }
+}
+
+/// The next message of `from`, None once every sender is gone. On one of rayon's own
+/// threads (a caller tiling from inside the pool), blocking would keep that thread from
+/// running the pool work the message waits for (the cuts, the reader's decoding), so it
+/// runs pool work until the message comes.
+pub(crate) fn receive<T>(from: &mpsc::Receiver<T>) -> Option<T> {
+    if rayon::current_thread_index().is_none() {
+        return from.recv().ok();
+    }
+    loop {
+        match from.try_recv() {
+            Ok(message) => return Some(message),
+            Err(mpsc::TryRecvError::Empty) => {
+                if rayon::yield_now() != Some(rayon::Yield::Executed) {
+                    std::thread::yield_now();
+                }
+            }
+            Err(mpsc::TryRecvError::Disconnected) => return None,
+        }
+    }
+}
+
+/// Encoded tiles on disk, in the order they were cut, with an in-memory index (about
+/// 24 bytes a tile) to hand them to the archive writer in archive order.
+pub struct Spool {
+    file: BufWriter<File>,
+    len: u64,
+    index: Vec<(u64, TileKey, u64, u32)>,
+}
+
+impl Spool {
+    /// A spool in a temporary file in `folder` (removed when dropped).
+    ///
+    /// # Errors
+    /// [`Error::File`] if the folder is not writable.
+    pub fn new(folder: &Path) -> Result<Self> {
+        let file = tempfile::tempfile_in(folder).map_err(|e| Error::file(folder, e))?;
+        Ok(Self { file: BufWriter::with_capacity(1 << 20, file), len: 0, index: Vec::new() })
+    }
+
+    pub(crate) fn add(&mut self, metadata: &Metadata, key: TileKey, bytes: &[u8]) -> Result<()> {
+        let order = Writer::order_key(metadata, key)?;
+        let len = u32::try_from(bytes.len())
+            .map_err(|_| terrastream_pack::Error::TooLarge { what: format!("tile {key}"), len: bytes.len() as u64 })?;
+        self.file.write_all(bytes).map_err(Error::Spool)?;
+        self.index.push((order, key, self.len, len));
+        self.len += u64::from(len);
+        Ok(())
+    }
+
+    /// Tiles spooled so far.
+    pub fn tiles(&self) -> usize {
+        self.index.len()
+    }
+
+    /// Hands every tile, in archive order, to `writer` as stored bytes.
+    ///
+    /// # Errors
+    /// I/O and writer errors, an interrupted error (Ctrl-C).
+    pub fn drain_into(self, writer: &mut Writer, progress: &dyn Progress) -> Result<()> {
+        let Self { file, mut index, .. } = self;
+        let mut file = file.into_inner().map_err(|e| Error::Spool(e.into_error()))?;
+        index.sort_unstable_by_key(|t| t.0);
+        progress.start("write", index.len() as u64);
+        for (n, (_, key, offset, len)) in index.into_iter().enumerate() {
+            if n.is_multiple_of(1024) {
+                progress.check()?;
+            }
+            let mut bytes = vec![0; len as usize];
+            file.seek(SeekFrom::Start(offset)).map_err(Error::Spool)?;
+            file.read_exact(&mut bytes).map_err(Error::Spool)?;
+            writer.add_stored(key, bytes)?;
+            progress.advance(1);
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `row` resampled linearly along x to `width` samples (edges clamped).
+    fn resample_row<S: Pixel>(row: &[S], width: usize) -> Vec<S> {
+        Resample::new(row.len(), width).row(row)
+    }
+
+    #[test]
+    fn halving_averages_and_ignores_nodata() {
+        let a = [0.0, f32::NAN, 2.0];
+        let b = [10.0, 11.0, 12.0];
+        let h = halve_rows(&a, &b);
+        assert_eq!(h.len(), 2);
+        assert_eq!(h[0], (0.0 + 10.0 + 11.0) / 3.0);
+        assert_eq!(h[1], (2.0 + 12.0) / 2.0);
+    }
+
+    #[test]
+    fn resampling_interpolates_and_clamps() {
+        let row: Vec<f32> = (0..10).map(|x| x as f32).collect();
+        let half = resample_row(&row, 5);
+        assert!((half[1] - 2.5).abs() < 1e-6, "{half:?}");
+        assert_eq!(half[0], 0.5);
+        let px = resample_row(&[[200, 0, 0, 255], [0, 0, 0, 0]], 4);
+        assert_eq!(px[0], [200, 0, 0, 255], "clamped at the left edge");
+        assert_eq!(px[3], [0, 0, 0, 0], "clamped at the right edge");
+        assert_eq!(px[1][0], 200, "colour weighted by alpha: the transparent pixel adds none");
+    }
+
+    #[test]
+    fn halving_an_image_weights_by_alpha() {
+        let h = halve_rows(&[[200, 0, 0, 255], [0, 0, 0, 0], [10, 20, 30, 255]], &[[0; 4]; 3]);
+        assert_eq!(h, vec![[200, 0, 0, 64], [10, 20, 30, 64]]);
+    }
+}

@@ -1,0 +1,331 @@
+//! Elevation files: a GeoTIFF of numbers, or a PNG whose pixels encode heights.
+
+use std::path::{Path, PathBuf};
+
+use terrastream_format::{ElevationEncoding, ElevationScheme, Georeference};
+
+use super::geotiff::{GeoTags, gdal_nodata};
+use super::memory::Raster;
+use super::png::{png_header, png_rows};
+use super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows};
+use super::{ElevationSource, Sniffed, range_of_rows, sniff};
+use crate::error::{Error, Result};
+
+/// An elevation file read row by row: a GeoTIFF of numbers or a PNG whose pixels encode
+/// heights (16-bit gray, or 8-bit gray / RGB in one of the [`ElevationScheme`]s).
+#[derive(Debug)]
+pub struct ElevationFile {
+    path: PathBuf,
+    width: u32,
+    height: u32,
+    spacing: (f64, f64),
+    georeference: Option<Georeference>,
+    crs_pixel: Option<(f64, f64)>,
+    nodata: Option<f64>,
+    /// How PNG pixels (or 8-bit TIFF samples) map to heights; None: samples are heights.
+    encoding: Option<ElevationEncoding>,
+    png: bool,
+}
+
+/// Reads a single-band GeoTIFF whole (small rasters, tests); [`open_elevation`] streams.
+///
+/// # Errors
+/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+pub fn read_geotiff(path: &Path) -> Result<Raster> {
+    let file = open_elevation(path, None)?;
+    let (width, height) = file.size();
+    let mut data = Vec::with_capacity(width as usize * height as usize);
+    file.rows(&mut |row| {
+        data.extend_from_slice(row);
+        Ok(())
+    })?;
+    Ok(Raster { width, height, data, spacing: file.spacing, georeference: file.georeference })
+}
+
+/// Opens an elevation raster for reading by rows: a single-band GeoTIFF (int8..32,
+/// uint8..32, float32/64; strips or tiles; none, LZW or Deflate; GDAL nodata), whose
+/// samples are heights unless `encoding` maps them; or a PNG: 16-bit gray (heights, or
+/// mapped by a `quantized_u16` encoding), 8-bit gray (`gray8`) or RGB (`rgb_thirds`,
+/// `terrain_rgb`, `terrarium`), transparent pixels being nodata.
+///
+/// # Errors
+/// [`Error::Input`] naming the file: unreadable, not an elevation raster, a PNG whose
+/// pixels need an encoding that was not given or does not fit them.
+pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Result<ElevationFile> {
+    let bad = |why: String| Error::input(path, why);
+    match sniff(path)? {
+        Sniffed::Jpeg => Err(bad("JPEG is lossy: elevation must come from a GeoTIFF or a PNG".into())),
+        Sniffed::Png => {
+            let ((colour, depth), (width, height)) = png_header(path)?;
+            let channels = colour.samples();
+            let rgb = channels >= 3;
+            let sixteen = depth == png::BitDepth::Sixteen;
+            let encoding = match encoding {
+                Some(e) if e.scheme.needs_rgb() && !rgb => {
+                    return Err(bad(format!("{:?} needs RGB pixels; this PNG is {colour:?}", e.scheme)));
+                }
+                Some(e) if e.scheme.needs_rgb() || e.scheme == ElevationScheme::Gray8 => {
+                    if sixteen {
+                        return Err(bad(format!("{:?} needs 8-bit pixels; this PNG is 16-bit", e.scheme)));
+                    }
+                    e
+                }
+                Some(e) if e.scheme == ElevationScheme::QuantizedU16 && sixteen && !rgb => e,
+                Some(e) => return Err(bad(format!("{:?} does not apply to a {colour:?} {depth:?} PNG", e.scheme))),
+                None if sixteen && !rgb => {
+                    ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 1.0, offset: 0.0, nodata: None }
+                }
+                None => {
+                    return Err(bad(format!(
+                        "a {depth:?}-bit {colour:?} PNG: say how its pixels map to heights (an elevation encoding: \
+                         gray8 with a minimum and displacement, rgb-thirds, terrain-rgb or terrarium)"
+                    )));
+                }
+            };
+            Ok(ElevationFile {
+                path: path.to_path_buf(),
+                width,
+                height,
+                spacing: (1.0, 1.0),
+                georeference: None,
+                crs_pixel: None,
+                nodata: encoding.nodata,
+                encoding: Some(encoding),
+                png: true,
+            })
+        }
+        Sniffed::Tiff => {
+            let mut decoder = open_tiff(path)?;
+            let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+            if width == 0 || height == 0 {
+                return Err(bad(format!("the raster is empty ({width}x{height})")));
+            }
+            let colour = decoder.colortype().map_err(|e| bad(e.to_string()))?;
+            let eight = matches!(colour, tiff::ColorType::Gray(8));
+            match colour {
+                tiff::ColorType::Gray(_) => {}
+                other => {
+                    return Err(bad(format!("{other:?} samples: an elevation GeoTIFF has a single band of numbers")));
+                }
+            }
+            if let Some(e) = encoding {
+                if e.scheme.needs_rgb() || (e.scheme == ElevationScheme::Gray8 && !eight) {
+                    return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
+                }
+            }
+            let nodata = gdal_nodata(&mut decoder);
+            let tags = GeoTags::read(&mut decoder);
+            let (spacing, georeference) = tags.placement(width, height).map_err(bad)?;
+            Ok(ElevationFile {
+                path: path.to_path_buf(),
+                width,
+                height,
+                spacing,
+                crs_pixel: georeference.as_ref().and_then(|_| tags.crs_pixel()),
+                georeference,
+                nodata,
+                encoding,
+                png: false,
+            })
+        }
+    }
+}
+
+impl ElevationFile {
+    /// Replaces the sample spacing (metres), e.g. for a PNG, which carries none.
+    #[must_use]
+    pub fn with_spacing(mut self, spacing: f64) -> Self {
+        self.spacing = (spacing, spacing);
+        self
+    }
+
+    /// Does the file place itself (GeoTIFF georeference) or is its spacing a default?
+    pub fn is_georeferenced(&self) -> bool {
+        self.georeference.is_some()
+    }
+
+    /// A stored value -> its height (NaN for nodata and non-finite values).
+    fn convert(&self) -> impl Fn(f64) -> f32 + Sync + '_ {
+        // Nodata is compared as f32, as samples are kept (a GDAL nodata of "3.40282e+38"
+        // is f32::MAX only once rounded to f32).
+        #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
+        let nodata = self.nodata.map(|n| n as f32);
+        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+        move |raw: f64| -> f32 {
+            if !raw.is_finite() || nodata == Some(raw as f32) {
+                return f32::NAN;
+            }
+            match &self.encoding {
+                Some(e) => e.height(raw) as f32,
+                None => raw as f32,
+            }
+        }
+    }
+
+    /// A PNG's rows of heights (16-bit values, or 8-bit encodings; transparent = nodata).
+    fn png_heights(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        let mut out = vec![0f32; self.width as usize];
+        let convert = self.convert();
+        let scheme = self.encoding.map_or(ElevationScheme::QuantizedU16, |e| e.scheme);
+        png_rows(&self.path, self.width, |values, channels, sixteen| {
+            let sample = |i: usize| -> f64 {
+                if sixteen {
+                    f64::from(u16::from_be_bytes([values[2 * i], values[2 * i + 1]]))
+                } else {
+                    f64::from(values[i])
+                }
+            };
+            let alpha = matches!(channels, 2 | 4);
+            for (x, h) in out.iter_mut().enumerate() {
+                let p = x * channels;
+                let opaque = !alpha || sample(p + channels - 1) > 0.0;
+                let (r, g, b) =
+                    if channels >= 3 { (sample(p), sample(p + 1), sample(p + 2)) } else { (sample(p), 0.0, 0.0) };
+                *h = if opaque { convert(scheme.value(r, g, b)) } else { f32::NAN };
+            }
+            row(&out)
+        })
+    }
+}
+
+impl ElevationSource for ElevationFile {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn spacing(&self) -> (f64, f64) {
+        self.spacing
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        self.crs_pixel
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        if self.png {
+            return self.png_heights(row);
+        }
+        tiff_rows(&self.path, 1, &|samples: &mut [f32]| self.heights(samples), row)
+    }
+
+    fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+        if self.png {
+            return range_of_rows(progress, |row| self.png_heights(row));
+        }
+        // Every strip or tile, in parallel and in any order, reduced to its range where
+        // it is decoded; no rows are made.
+        let chunks = TiffChunks::open(&self.path, 1)?;
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        let batch = chunks.batch();
+        let needed = chunks.needed();
+        for first in (0..needed).step_by(batch) {
+            let end = needed.min(first + batch);
+            let ranges: Vec<Result<(f32, f32)>> = {
+                use rayon::prelude::*;
+                (first..end)
+                    .into_par_iter()
+                    .map(|i| {
+                        let (data, w, h) = chunks.read(i)?;
+                        self.chunk_range(data, w * h)
+                            .ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
+                    })
+                    .collect()
+            };
+            for range in ranges {
+                let (l, h) = range?;
+                (lo, hi) = (lo.min(l), hi.max(h));
+            }
+            progress(chunks.rows_before(end))?;
+        }
+        Ok((lo, hi))
+    }
+}
+
+impl ElevationFile {
+    /// Stored samples -> heights in place (NaN for nodata and non-finite values).
+    fn heights(&self, samples: &mut [f32]) {
+        #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
+        let nodata = self.nodata.map(|n| n as f32);
+        if self.encoding.is_none() {
+            // Heights as stored (the usual DEM): a branch-free loop. NaN as "no nodata"
+            // equals nothing; `&`, not `&&`: both compares, no branch. NaN and infinities
+            // fail the first.
+            let nodata = nodata.unwrap_or(f32::NAN);
+            for v in samples.iter_mut() {
+                *v = if (v.abs() < f32::INFINITY) & (*v != nodata) { *v } else { f32::NAN };
+            }
+        } else {
+            let convert = self.convert();
+            for v in samples.iter_mut() {
+                *v = convert(f64::from(*v));
+            }
+        }
+    }
+
+    /// The range of heights in the first `n` samples of a decoded chunk (which holds at
+    /// least `n`, see [`TiffChunks::read`]); None for a sample type heights are not read
+    /// from. 8- and 16-bit samples stored as heights are compared as integers, as they are
+    /// (no conversion, 8 or 16 lanes a vector).
+    fn chunk_range(&self, data: tiff::decoder::DecodingResult, n: usize) -> Option<(f32, f32)> {
+        use tiff::decoder::DecodingResult as D;
+        #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]
+        let nodata = self.nodata.map(|n| n as f32);
+        if self.encoding.is_none() {
+            match &data {
+                D::U8(v) => return Some(integer_range(&v[..n], nodata)),
+                D::I8(v) => return Some(integer_range(&v[..n], nodata)),
+                D::U16(v) => return Some(integer_range(&v[..n], nodata)),
+                D::I16(v) => return Some(integer_range(&v[..n], nodata)),
+                _ => {}
+            }
+        }
+        let mut samples = samples_f32(data)?;
+        samples.truncate(n);
+        self.heights(&mut samples);
+        Some(crate::plan::min_max(&samples))
+    }
+}
+
+/// Integer samples of at most 16 bits, and the arithmetic their range needs.
+pub(crate) trait Small: Copy + Ord + Into<f32> + TryFrom<i32> {
+    const LOWEST: Self;
+    const HIGHEST: Self;
+}
+
+macro_rules! small {
+    ($($t:ty),*) => {$(impl Small for $t { const LOWEST: Self = <$t>::MIN; const HIGHEST: Self = <$t>::MAX; })*};
+}
+small!(u8, i8, u16, i16);
+
+/// The range of integer samples as heights (those equal to `nodata` skipped; infinities
+/// when none is left). A nodata that no sample of the type can equal skips nothing.
+pub(crate) fn integer_range<T: Small>(values: &[T], nodata: Option<f32>) -> (f32, f32) {
+    #[expect(clippy::cast_possible_truncation, reason = "an integral f32 within the type's range")]
+    let nodata = nodata
+        .filter(|n| n.fract() == 0.0 && (T::LOWEST.into()..=T::HIGHEST.into()).contains(n))
+        .and_then(|n| T::try_from(n as i32).ok());
+    // Is there a sample to take? (Usually the first says.) Then the lowest and highest
+    // with selects, not branches, so that the loops vectorize.
+    if !values.iter().any(|&v| Some(v) != nodata) {
+        return (f32::INFINITY, f32::NEG_INFINITY);
+    }
+    let (mut lo, mut hi) = (T::HIGHEST, T::LOWEST);
+    match nodata {
+        Some(skip) => {
+            for &v in values {
+                lo = lo.min(if v == skip { T::HIGHEST } else { v });
+                hi = hi.max(if v == skip { T::LOWEST } else { v });
+            }
+        }
+        None => {
+            for &v in values {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+    }
+    (lo.into(), hi.into())
+}

@@ -1,0 +1,98 @@
+//! GeoTIFF tags: where a raster lies (model pixel scale, tiepoint, GeoKeys) and its GDAL
+//! nodata value.
+
+use terrastream_format::Georeference;
+
+const MODEL_PIXEL_SCALE: u16 = 33550;
+const MODEL_TIEPOINT: u16 = 33922;
+const GEO_KEY_DIRECTORY: u16 = 34735;
+const GDAL_NODATA: u16 = 42113;
+
+/// Where a raster lies in its CRS, when its file says: the CRS, the north-west corner and
+/// the pixel size in CRS units.
+pub(crate) fn crs_placement(
+    georeference: Option<&Georeference>,
+    pixel: Option<(f64, f64)>,
+) -> Option<(&str, [f64; 2], (f64, f64))> {
+    let g = georeference?;
+    Some((g.crs.as_deref()?, g.origin?, pixel?))
+}
+
+/// The GeoTIFF tags that place a raster on the Earth.
+pub(super) struct GeoTags {
+    scale: Option<Vec<f64>>,
+    tiepoint: Option<Vec<f64>>,
+    keys: Option<Vec<f64>>,
+}
+
+impl GeoTags {
+    pub(super) fn read<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::decoder::Decoder<R>) -> Self {
+        use tiff::tags::Tag;
+        let mut tag = |t: u16| -> Option<Vec<f64>> { decoder.find_tag(Tag::Unknown(t)).ok()??.into_f64_vec().ok() };
+        let scale = tag(MODEL_PIXEL_SCALE);
+        let tiepoint = tag(MODEL_TIEPOINT);
+        #[expect(clippy::cast_precision_loss, reason = "GeoKey values are u16")]
+        let keys: Option<Vec<f64>> = decoder
+            .find_tag(Tag::Unknown(GEO_KEY_DIRECTORY))
+            .ok()
+            .flatten()
+            .and_then(|v| v.into_u64_vec().ok())
+            .map(|v| v.into_iter().map(|k| k as f64).collect());
+        Self { scale, tiepoint, keys }
+    }
+
+    /// The pixel scale in CRS units, when it is a usable one.
+    pub(super) fn crs_pixel(&self) -> Option<(f64, f64)> {
+        let s = self.scale.as_ref()?;
+        (s.len() >= 2 && s[0].is_finite() && s[1].is_finite() && s[0] > 0.0 && s[1] > 0.0).then(|| (s[0], s[1]))
+    }
+
+    /// Sample spacing in metres (x, y) and the georeference; (1, 1) and none without tags.
+    pub(super) fn placement(&self, width: u32, height: u32) -> Result<((f64, f64), Option<Georeference>), String> {
+        let (scale, tiepoint, keys) = (&self.scale, &self.tiepoint, &self.keys);
+        // Georeference: model type 2 = geographic (degrees), else projected (metres assumed).
+        let key = |id: f64| -> Option<f64> {
+            let k = keys.as_ref()?;
+            k.chunks_exact(4).skip(1).find(|e| e[0] == id).map(|e| e[3])
+        };
+        let geographic = key(1024.0) == Some(2.0);
+        let epsg = key(2048.0).or_else(|| key(3072.0)).filter(|&c| c > 0.0 && c < 32767.0);
+        let (mut spacing, mut georeference) = ((1.0, 1.0), None);
+        if let (Some(s), Some(t)) = (&scale, &tiepoint) {
+            if s.len() >= 2 && t.len() >= 6 && s[0] > 0.0 && s[1] > 0.0 {
+                // GTRasterTypeGeoKey 2 = PixelIsPoint (SRTM, most DEMs): the tiepoint is a
+                // sample's centre, so the raster's corner is half a sample further out (as
+                // GDAL reads it).
+                let half = if key(1025.0) == Some(2.0) { 0.5 } else { 0.0 };
+                let (west, north) = (t[3] - (t[0] + half) * s[0], t[4] + (t[1] + half) * s[1]);
+                spacing = (s[0], s[1]);
+                let mut g = Georeference {
+                    crs: epsg.map(|c| format!("EPSG:{c}")),
+                    origin: Some([west, north]),
+                    lat_lon_bounds: None,
+                };
+                if geographic {
+                    let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
+                    g.lat_lon_bounds = Some([west, south, east, north]);
+                    let lat = ((north + south) / 2.0).to_radians();
+                    spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
+                }
+                georeference = Some(g);
+            }
+        }
+        if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
+            return Err(format!("bad pixel scale {spacing:?}"));
+        }
+        Ok((spacing, georeference))
+    }
+}
+
+/// The GDAL nodata tag's value, when there is one and it is a number.
+pub(super) fn gdal_nodata<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::decoder::Decoder<R>) -> Option<f64> {
+    decoder
+        .find_tag(tiff::tags::Tag::Unknown(GDAL_NODATA))
+        .ok()
+        .flatten()
+        .and_then(|v| v.into_string().ok())
+        .and_then(|s| s.trim_matches(char::from(0)).trim().parse().ok())
+}

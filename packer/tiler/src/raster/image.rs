@@ -1,0 +1,149 @@
+//! Image files: GeoTIFF, PNG or JPEG pixels as rows of RGBA8.
+
+use std::path::{Path, PathBuf};
+
+use terrastream_format::Georeference;
+
+use super::geotiff::GeoTags;
+use super::jpeg::decode_jpeg;
+use super::memory::Image;
+use super::png::{png_header, png_rows};
+use super::tiff::{PLANAR_CONFIGURATION, open_tiff, tiff_rows};
+use super::{ImageSource, Sniffed, sniff};
+use crate::error::{Error, Result};
+
+/// An image file read row by row (GeoTIFF, PNG) or, for JPEG, decoded once when opened.
+#[derive(Debug)]
+pub struct ImageFile {
+    path: PathBuf,
+    width: u32,
+    height: u32,
+    georeference: Option<Georeference>,
+    crs_pixel: Option<(f64, f64)>,
+    kind: ImageKind,
+}
+
+#[derive(Debug)]
+enum ImageKind {
+    Tiff {
+        channels: usize,
+    },
+    Png,
+    /// RGB pixels of a JPEG, decoded when opened.
+    Decoded(Vec<u8>),
+}
+
+/// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB or RGBA; strips
+/// or tiles; none, LZW or Deflate) or PNG (any colour type; 16-bit is reduced to 8), or
+/// JPEG (decoded here, whole); told apart by content.
+///
+/// # Errors
+/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+pub fn open_image(path: &Path) -> Result<ImageFile> {
+    let bad = |why: String| Error::input(path, why);
+    let mut crs_pixel = None;
+    let (width, height, georeference, kind) = match sniff(path)? {
+        Sniffed::Png => {
+            let (_, (w, h)) = png_header(path)?;
+            (w, h, None, ImageKind::Png)
+        }
+        Sniffed::Jpeg => {
+            let (w, h, pixels) = decode_jpeg(path)?;
+            (w, h, None, ImageKind::Decoded(pixels))
+        }
+        Sniffed::Tiff => {
+            let mut decoder = open_tiff(path)?;
+            let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+            let channels = match decoder.colortype().map_err(|e| bad(e.to_string()))? {
+                tiff::ColorType::Gray(8) => 1,
+                tiff::ColorType::GrayA(8) => 2,
+                tiff::ColorType::RGB(8) => 3,
+                tiff::ColorType::RGBA(8) => 4,
+                other => return Err(bad(format!("{other:?} pixels: textures must be 8-bit gray, RGB or RGBA"))),
+            };
+            let planar = decoder.find_tag_unsigned::<u16>(tiff::tags::Tag::Unknown(PLANAR_CONFIGURATION));
+            if channels > 1 && matches!(planar, Ok(Some(2))) {
+                return Err(bad("planar (band-separate) pixels: store the bands interleaved".into()));
+            }
+            let tags = GeoTags::read(&mut decoder);
+            let georeference = tags.placement(width, height).ok().and_then(|(_, g)| g);
+            crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
+            (width, height, georeference, ImageKind::Tiff { channels })
+        }
+    };
+    if width == 0 || height == 0 {
+        return Err(bad(format!("the image is empty ({width}x{height} pixels)")));
+    }
+    if let ImageKind::Decoded(rgb) = &kind {
+        if rgb.len() != width as usize * height as usize * 3 {
+            return Err(bad(format!("{} bytes of pixels for {width}x{height}", rgb.len())));
+        }
+    }
+    Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, crs_pixel, kind })
+}
+
+/// Reads a whole image into memory (small images, tests); [`open_image`] streams.
+///
+/// # Errors
+/// As [`open_image`].
+pub fn read_image(path: &Path) -> Result<Image> {
+    let file = open_image(path)?;
+    let mut rgba = Vec::with_capacity(file.width as usize * file.height as usize * 4);
+    file.rows(&mut |row| {
+        rgba.extend_from_slice(row.as_flattened());
+        Ok(())
+    })?;
+    Ok(Image { width: file.width, height: file.height, rgba, georeference: file.georeference })
+}
+
+impl ImageSource for ImageFile {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.georeference.as_ref()
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        self.crs_pixel
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        let width = self.width as usize;
+        let mut out = vec![[0u8; 4]; width];
+        let mut emit = |values: &[u8], channels: usize| {
+            for (p, px) in out.iter_mut().zip(values.chunks_exact(channels)) {
+                *p = match channels {
+                    4 => [px[0], px[1], px[2], px[3]],
+                    3 => [px[0], px[1], px[2], 255],
+                    2 => [px[0], px[0], px[0], px[1]],
+                    _ => [px[0], px[0], px[0], 255],
+                };
+            }
+            row(&out)
+        };
+        match &self.kind {
+            ImageKind::Decoded(rgb) => rgb.chunks_exact(width * 3).try_for_each(|r| emit(r, 3)),
+            ImageKind::Png => png_rows(&self.path, self.width, |values, channels, sixteen| {
+                if sixteen {
+                    let eight: Vec<u8> = values.chunks_exact(2).map(|v| v[0]).collect();
+                    emit(&eight, channels)
+                } else {
+                    emit(values, channels)
+                }
+            }),
+            ImageKind::Tiff { channels } => {
+                let mut bytes = vec![0u8; width * channels];
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "8-bit samples")]
+                let mut eight = |r: &[f32]| -> Result<()> {
+                    for (b, &v) in bytes.iter_mut().zip(r) {
+                        *b = v as u8;
+                    }
+                    emit(&bytes, *channels)
+                };
+                tiff_rows(&self.path, *channels, &|_| {}, &mut eight)
+            }
+        }
+    }
+}

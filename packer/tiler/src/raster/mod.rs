@@ -1,0 +1,129 @@
+//! The tiler's inputs, read a band of rows at a time: GeoTIFF by strips or by rows of
+//! tiles, PNG row by row, never the whole raster (JPEG, which cannot be read by rows
+//! here, is the one exception). Each pass over a source reopens its file, so a source can
+//! be read twice (statistics, then tiles) with memory bounded by one band.
+//!
+//! [`ElevationSource`] and [`ImageSource`] are what the tiler reads; [`ElevationFile`] and
+//! [`ImageFile`] open a file of any supported format (told apart by content), one format
+//! per module below; [`Raster`], [`Image`] and [`ImageWindow`] are sources in memory.
+
+mod elevation;
+mod geotiff;
+mod image;
+mod jpeg;
+mod memory;
+mod png;
+mod tiff;
+
+use std::path::Path;
+
+use terrastream_format::Georeference;
+
+use crate::error::{Error, Result};
+
+#[cfg(test)]
+pub(crate) use elevation::integer_range;
+pub use elevation::{ElevationFile, open_elevation, read_geotiff};
+pub(crate) use geotiff::crs_placement;
+pub use image::{ImageFile, open_image, read_image};
+pub use jpeg::JPEG_MAX_DECODED_BYTES;
+#[cfg(test)]
+pub(crate) use jpeg::jpeg_fits;
+pub use memory::{Image, ImageWindow, Raster};
+
+/// Rows of heights: the elevation input of the tiler.
+pub trait ElevationSource: Sync {
+    /// Where the samples come from (named in errors).
+    fn path(&self) -> &Path;
+    /// Samples across and down.
+    fn size(&self) -> (u32, u32);
+    /// Sample spacing in metres (x, y).
+    fn spacing(&self) -> (f64, f64);
+    /// Where the raster lies, when the file says.
+    fn georeference(&self) -> Option<&Georeference>;
+    /// Size of a sample in the georeference's CRS units (x, y), when the file says.
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        None
+    }
+    /// Calls `row` with each row of heights, top to bottom; NaN where there is no data.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>;
+    /// The lowest and highest height (NaN skipped; infinities when there is no data),
+    /// telling `progress` how many rows have been read so far, now and then. A source may
+    /// find them without making rows of heights.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`]; `progress`'s errors.
+    fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+        range_of_rows(progress, |row| self.rows(row))
+    }
+}
+
+/// The range of the rows `read` passes on, `progress` told after each one.
+fn range_of_rows(
+    progress: &mut dyn FnMut(u32) -> Result<()>,
+    read: impl FnOnce(&mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>,
+) -> Result<(f32, f32)> {
+    let (mut lo, mut hi, mut n) = (f32::INFINITY, f32::NEG_INFINITY, 0);
+    read(&mut |r| {
+        let (l, h) = crate::plan::min_max(r);
+        (lo, hi) = (lo.min(l), hi.max(h));
+        n += 1;
+        progress(n)
+    })?;
+    Ok((lo, hi))
+}
+
+/// Rows of RGBA8 pixels: the texture input of the tiler.
+pub trait ImageSource: Sync {
+    /// Where the pixels come from (named in errors).
+    fn path(&self) -> &Path;
+    /// Pixels across and down.
+    fn size(&self) -> (u32, u32);
+    /// Where the image lies, when the file says.
+    fn georeference(&self) -> Option<&Georeference>;
+    /// Size of a pixel in the georeference's CRS units (x, y), when the file says.
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        None
+    }
+    /// Calls `row` with each row of pixels, top to bottom; alpha 0 where there is no data.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()>;
+}
+
+impl std::fmt::Debug for dyn ImageSource + '_ {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ImageSource({})", self.path().display())
+    }
+}
+
+/// The kind of file, by its first bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Sniffed {
+    Tiff,
+    Png,
+    Jpeg,
+}
+
+fn sniff(path: &Path) -> Result<Sniffed> {
+    use std::io::Read;
+    let mut head = [0u8; 8];
+    let mut file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let n = file.read(&mut head).map_err(|e| Error::file(path, e))?;
+    let head = &head[..n];
+    if head.starts_with(b"II*\0") || head.starts_with(b"MM\0*") || head.starts_with(b"II+\0") {
+        Ok(Sniffed::Tiff)
+    } else if head.starts_with(b"\x89PNG") {
+        Ok(Sniffed::Png)
+    } else if head.starts_with(&[0xFF, 0xD8]) {
+        Ok(Sniffed::Jpeg)
+    } else if n == 0 {
+        Err(Error::input(path, "the file is empty (0 bytes)"))
+    } else {
+        Err(Error::input(path, "not a GeoTIFF, PNG or JPEG image"))
+    }
+}

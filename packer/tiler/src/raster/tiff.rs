@@ -1,0 +1,235 @@
+//! TIFF strips and tiles, read and decoded in parallel, as rows of samples.
+
+use std::path::Path;
+
+use crate::error::{Error, Result};
+
+pub(super) const PLANAR_CONFIGURATION: u16 = 284;
+
+pub(super) type TiffDecoder = tiff::decoder::Decoder<std::io::BufReader<std::fs::File>>;
+
+pub(super) fn open_tiff(path: &Path) -> Result<TiffDecoder> {
+    use tiff::decoder::{Decoder, Limits};
+    let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let mut limits = Limits::default();
+    // One chunk (a strip or a tile) is decoded at a time: allow big ones, not the image.
+    limits.decoding_buffer_size = 1 << 30;
+    limits.intermediate_buffer_size = 1 << 30;
+    Ok(Decoder::new(std::io::BufReader::new(file))
+        .map_err(|e| Error::input(path, format!("not a readable TIFF: {e}")))?
+        .with_limits(limits))
+}
+
+/// Bytes of samples decoded per batch of strips (at least two strips a thread).
+const STRIP_BATCH_BYTES: usize = 1 << 20;
+
+/// A TIFF's strips or tiles, read and decoded by any thread: each read takes a spare
+/// decoder (or opens one) and gives it back, so that chunks decode in parallel.
+pub(super) struct TiffChunks<'p> {
+    path: &'p Path,
+    /// Decoders not in use.
+    spare: std::sync::Mutex<Vec<TiffDecoder>>,
+    kind: tiff::decoder::ChunkType,
+    count: usize,
+    /// Samples per pixel.
+    channels: usize,
+    width: usize,
+    height: usize,
+    chunk_w: usize,
+    chunk_h: usize,
+}
+
+impl<'p> TiffChunks<'p> {
+    pub(super) fn open(path: &'p Path, channels: usize) -> Result<Self> {
+        use tiff::decoder::ChunkType;
+        let bad = |why: String| Error::input(path, why);
+        let mut decoder = open_tiff(path)?;
+        let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+        let (chunk_w, chunk_h) = decoder.chunk_dimensions();
+        if chunk_w == 0 || chunk_h == 0 {
+            return Err(bad("zero-size strips or tiles".into()));
+        }
+        let kind = decoder.get_chunk_type();
+        let count = match kind {
+            ChunkType::Strip => decoder.strip_count(),
+            ChunkType::Tile => decoder.tile_count(),
+        }
+        .map_err(|e| bad(format!("{}s: {e}", Self::name(kind))))? as usize;
+        Ok(Self {
+            path,
+            spare: std::sync::Mutex::new(vec![decoder]),
+            kind,
+            count,
+            channels,
+            width: width as usize,
+            height: height as usize,
+            chunk_w: chunk_w as usize,
+            chunk_h: chunk_h as usize,
+        })
+    }
+
+    fn name(kind: tiff::decoder::ChunkType) -> &'static str {
+        if kind == tiff::decoder::ChunkType::Strip { "strip" } else { "tile" }
+    }
+
+    /// Strips decoded at a time: about [`STRIP_BATCH_BYTES`] of samples, at least two a
+    /// thread.
+    pub(super) fn batch(&self) -> usize {
+        let strip_bytes = (self.width * self.channels * self.chunk_h * 4).max(1);
+        (STRIP_BATCH_BYTES / strip_bytes).max(2 * rayon::current_num_threads())
+    }
+
+    /// Chunks across the raster: one strip, or a row of tiles.
+    fn across(&self) -> usize {
+        if self.kind == tiff::decoder::ChunkType::Strip { 1 } else { self.width.div_ceil(self.chunk_w) }
+    }
+
+    /// The chunks the raster needs.
+    pub(super) fn needed(&self) -> usize {
+        self.height.div_ceil(self.chunk_h) * self.across()
+    }
+
+    /// Rows of the raster read once chunks `..end` (in file order) are.
+    pub(super) fn rows_before(&self, end: usize) -> u32 {
+        u32::try_from((end / self.across().max(1) * self.chunk_h).min(self.height)).unwrap_or(u32::MAX)
+    }
+
+    /// Chunk `index` decoded, and the pixels across and down it holds.
+    pub(super) fn read(&self, index: usize) -> Result<(tiff::decoder::DecodingResult, usize, usize)> {
+        let what = Self::name(self.kind);
+        let bad = |why: String| Error::input(self.path, why);
+        let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
+        if index >= self.count {
+            return Err(bad(format!("{what} {index} is missing (the file lists {})", self.count)));
+        }
+        let spare = self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop();
+        let mut decoder = match spare {
+            Some(d) => d,
+            None => open_tiff(self.path)?,
+        };
+        let (w, h) = decoder.chunk_data_dimensions(i);
+        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")));
+        self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(decoder);
+        let data = data?;
+        let (w, h) = (w as usize, h as usize);
+        let (held, expected) = (samples_in(&data), w * h * self.channels);
+        if held < expected {
+            return Err(bad(format!("{what} {index}: {held} samples, {expected} expected")));
+        }
+        Ok((data, w, h))
+    }
+}
+
+/// How many samples a decoded chunk holds.
+fn samples_in(data: &tiff::decoder::DecodingResult) -> usize {
+    use tiff::decoder::DecodingResult as D;
+    match data {
+        D::U8(v) => v.len(),
+        D::I8(v) => v.len(),
+        D::U16(v) => v.len(),
+        D::I16(v) => v.len(),
+        D::U32(v) => v.len(),
+        D::I32(v) => v.len(),
+        D::U64(v) => v.len(),
+        D::I64(v) => v.len(),
+        D::F32(v) => v.len(),
+        D::F64(v) => v.len(),
+        _ => 0,
+    }
+}
+
+/// Calls `row` with each row of a TIFF's samples (`channels` per pixel), in order, after
+/// `prepare` has seen them (in the decoding threads: a conversion in place). Strips
+/// (a batch of about [`STRIP_BATCH_BYTES`]) or tiles (one per thread) are read and decoded
+/// in parallel, each thread with a decoder of its own, so decompression (LZW, Deflate) and
+/// conversion use every core; memory is one batch of strips, or a row of tiles and one
+/// tile per thread. Samples are f32: exact for 8- and 16-bit values, and heights are kept
+/// as f32 anyway.
+pub(super) fn tiff_rows(
+    path: &Path,
+    channels: usize,
+    prepare: &(dyn Fn(&mut [f32]) + Sync),
+    row: &mut dyn FnMut(&[f32]) -> Result<()>,
+) -> Result<()> {
+    use rayon::prelude::*;
+    use tiff::decoder::ChunkType;
+    let bad = |why: String| Error::input(path, why);
+    let chunks = TiffChunks::open(path, channels)?;
+    let (width, height, kind) = (chunks.width, chunks.height, chunks.kind);
+    let stride = width * channels;
+    let (chunk_w, chunk_h) = (chunks.chunk_w, chunks.chunk_h);
+    let chunk = |index: usize| -> Result<(Vec<f32>, usize, usize)> {
+        let (data, w, h) = chunks.read(index)?;
+        let mut values = samples_f32(data).ok_or_else(|| bad("unsupported sample type".into()))?;
+        prepare(&mut values);
+        Ok((values, w, h))
+    };
+    // Chunks `range`, decoded in parallel; the first failure in file order is the error.
+    let decode = |range: std::ops::Range<usize>| -> Result<Vec<(Vec<f32>, usize, usize)>> {
+        range.into_par_iter().map(chunk).collect::<Vec<_>>().into_iter().collect()
+    };
+    match kind {
+        ChunkType::Strip => {
+            let strips = height.div_ceil(chunk_h);
+            let batch = chunks.batch();
+            let mut y = 0;
+            for first in (0..strips).step_by(batch) {
+                for (values, _, h) in decode(first..strips.min(first + batch))? {
+                    for r in values.chunks_exact(stride).take(h.min(height - y)) {
+                        row(r)?;
+                    }
+                    y += h;
+                }
+            }
+            if y < height {
+                return Err(bad(format!("strips hold {y} of {height} rows")));
+            }
+        }
+        ChunkType::Tile => {
+            let across = chunks.across();
+            let mut band = vec![0f32; stride * chunk_h];
+            for ty in 0..height.div_ceil(chunk_h) {
+                let mut rows_here = chunk_h.min(height - ty * chunk_h);
+                // A tile per thread at a time: the decoded tiles held are as many as threads.
+                let group = rayon::current_num_threads().max(1);
+                for first in (0..across).step_by(group) {
+                    let tiles = decode(ty * across + first..ty * across + across.min(first + group))?;
+                    for (tx, (values, w, h)) in (first..).zip(tiles) {
+                        rows_here = rows_here.min(h);
+                        let x0 = tx * chunk_w * channels;
+                        let w = w.min(width - tx * chunk_w) * channels;
+                        for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
+                            band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
+                        }
+                    }
+                }
+                for r in band.chunks_exact(stride).take(rows_here) {
+                    row(r)?;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+#[expect(
+    clippy::cast_precision_loss,
+    clippy::cast_possible_truncation,
+    reason = "samples are kept as f32: exact up to 24 bits, heights need no more"
+)]
+pub(super) fn samples_f32(data: tiff::decoder::DecodingResult) -> Option<Vec<f32>> {
+    use tiff::decoder::DecodingResult as D;
+    Some(match data {
+        D::U8(v) => v.into_iter().map(f32::from).collect(),
+        D::I8(v) => v.into_iter().map(f32::from).collect(),
+        D::U16(v) => v.into_iter().map(f32::from).collect(),
+        D::I16(v) => v.into_iter().map(f32::from).collect(),
+        D::U32(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::I32(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::U64(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::I64(v) => v.into_iter().map(|x| x as f32).collect(),
+        D::F32(v) => v,
+        D::F64(v) => v.into_iter().map(|x| x as f32).collect(),
+        _ => return None,
+    })
+}

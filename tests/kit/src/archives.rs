@@ -1,0 +1,66 @@
+//! Small archives written on the spot: the built-in sample, and a raw-u16 + zstd layer
+//! whose every sample is known.
+
+use std::path::{Path, PathBuf};
+
+use terrastream_format::{Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey};
+use terrastream_pack::import::{OriginalLayout, pack, scan_original};
+use terrastream_pack::progress::Silent;
+use terrastream_pack::sample::write_sample_pyramid;
+use terrastream_pack::{Writer, WriterOptions};
+
+/// The built-in sample terrain packed into an archive, in memory.
+pub fn tiny_archive() -> Vec<u8> {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("sample");
+    write_sample_pyramid(&input).unwrap();
+    let scanned = scan_original(&input, &OriginalLayout::default()).unwrap();
+    let out = dir.path().join("sample.tspack");
+    pack(scanned, &out, WriterOptions::default(), &Silent::default()).unwrap();
+    std::fs::read(&out).unwrap()
+}
+
+/// A folder holding `sample.tspack` (the built-in sample) and `elev.tspack` (a zstd layer).
+pub fn archives() -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sample.tspack");
+    std::fs::write(&path, tiny_archive()).unwrap();
+    write_zstd_archive(&dir.path().join("elev.tspack"), 1);
+    (dir, path)
+}
+
+/// A one-layer raw-u16 + zstd archive whose samples depend on `version`.
+pub fn write_zstd_archive(path: &Path, version: u16) {
+    let layer = Layer {
+        name: "elevation".into(),
+        kind: LayerKind::Elevation,
+        format: TileFormat::RawU16,
+        compression: PayloadCompression::Zstd,
+        tile_resolution: 16,
+        border: 0,
+        num_x_tiles: 2,
+        num_y_tiles: 2,
+        num_lods: 2,
+        tile_world_size: 100.0,
+        elevation: None,
+    };
+    let meta = Metadata::new("elev", vec![layer]);
+    let mut tiles: Vec<(u64, TileKey)> = [(1u8, 0u32, 0u32), (0, 0, 0), (0, 1, 0), (0, 1, 1)]
+        .iter()
+        .map(|&(lod, x, y)| {
+            let t = TileKey::new(0, lod, x, y).unwrap();
+            (Writer::order_key(&meta, t).unwrap(), t)
+        })
+        .collect();
+    tiles.sort();
+    let mut w = Writer::create(path, meta, WriterOptions::default()).unwrap();
+    for (_, t) in tiles {
+        w.add(t, raw_tile(t, version)).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+/// The raw samples of a tile of [`write_zstd_archive`].
+pub fn raw_tile(t: TileKey, version: u16) -> Vec<u8> {
+    (0..256u16).flat_map(|i| (i + u16::from(t.lod()) * 7 + version * 1000).to_le_bytes()).collect()
+}
