@@ -3,6 +3,7 @@
 //! turns a camera into a per-frame stream of decoded tiles.
 #![forbid(unsafe_code)]
 
+mod error;
 pub mod fly;
 pub mod input;
 #[cfg(feature = "render")]
@@ -10,6 +11,7 @@ pub mod render;
 mod source;
 pub mod stream;
 
+pub use error::{Error, Result};
 pub use fly::{FlyCamera, FlyInput};
 pub use input::{Action, Keys};
 #[cfg(not(target_arch = "wasm32"))]

@@ -272,9 +272,12 @@ fn health(url: &str, timeout: std::time::Duration) -> Result<ExitCode> {
 /// # Errors
 /// Names the file or URL when it cannot be read or is not a valid archive.
 pub fn open(location: &str) -> Result<Reader<AnySource>> {
-    // A file error names the file already; anything else gets the location said once.
-    let context = |e: &terrastream_format::Error| match e {
-        terrastream_format::Error::File { .. } => "cannot open archive".to_owned(),
+    // A file error names the file, a URL error the URL: anything else gets the location.
+    let context = |e: &terrastream_client::Error| match e {
+        terrastream_client::Error::Format(terrastream_format::Error::File { .. })
+        | terrastream_client::Error::BadUrl { .. }
+        | terrastream_client::Error::Status { .. }
+        | terrastream_client::Error::Request { .. } => "cannot open archive".to_owned(),
         _ => format!("cannot open archive {location}"),
     };
     let source = open_source(location).map_err(|e| {

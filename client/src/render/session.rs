@@ -36,10 +36,9 @@ impl Session {
         settings: RenderSettings,
         format: wgpu::TextureFormat,
         budget: UploadBudget,
-    ) -> Result<Self, terrastream_format::Error> {
-        let metadata = streamer.metadata().cloned().ok_or_else(|| terrastream_format::Error::InvalidTile {
-            what: "the archive is not open yet (no metadata)".into(),
-        })?;
+    ) -> crate::Result<Self> {
+        let why = streamer.last_error().map(str::to_owned);
+        let metadata = streamer.metadata().cloned().ok_or(crate::Error::NotOpen { why })?;
         let renderer = TerrainRenderer::new(device, &metadata, settings, format);
         let mut options = streamer.options().clone();
         options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());

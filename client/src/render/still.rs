@@ -1,6 +1,5 @@
 //! Headless stills: stream a view until it is complete, render it offscreen, read it back.
 
-use std::fmt;
 use std::time::Duration;
 
 use terrastream_format::Metadata;
@@ -14,49 +13,26 @@ use crate::stream::origin::Origin;
 use crate::stream::streamer::{StreamOptions, StreamStats, Streamer, UploadBudget};
 
 /// Why a still could not be made.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum StillError {
     /// No GPU.
-    Gpu(GpuError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
     /// The archive could not be opened or read.
-    Archive(terrastream_format::Error),
+    #[error(transparent)]
+    Archive(#[from] crate::Error),
     /// The view was not complete in time (`--no-wait` renders what is there).
+    #[error(
+        "the view was not fully streamed in time: {pending} tiles pending{}",
+        last_error.as_ref().map(|e| format!(" (last error: {e})")).unwrap_or_default()
+    )]
     Timeout {
         /// Tiles still pending.
         pending: usize,
         /// The streamer's last error, if any.
         last_error: Option<String>,
     },
-}
-
-impl fmt::Display for StillError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Self::Gpu(e) => write!(f, "{e}"),
-            Self::Archive(e) => write!(f, "{e}"),
-            Self::Timeout { pending, last_error } => {
-                write!(f, "the view was not fully streamed in time: {pending} tiles pending")?;
-                if let Some(e) = last_error {
-                    write!(f, " (last error: {e})")?;
-                }
-                Ok(())
-            }
-        }
-    }
-}
-
-impl std::error::Error for StillError {}
-
-impl From<GpuError> for StillError {
-    fn from(e: GpuError) -> Self {
-        Self::Gpu(e)
-    }
-}
-
-impl From<terrastream_format::Error> for StillError {
-    fn from(e: terrastream_format::Error) -> Self {
-        Self::Archive(e)
-    }
 }
 
 /// How to make a still.
@@ -128,9 +104,8 @@ pub fn render_still(
     options: &StillOptions,
 ) -> Result<Still, StillError> {
     let streamer = Streamer::open(origin, options.stream.clone())?;
-    let metadata = streamer
-        .metadata()
-        .ok_or_else(|| terrastream_format::Error::InvalidTile { what: "the archive opened without metadata".into() })?;
+    let metadata =
+        streamer.metadata().ok_or_else(|| crate::Error::NotOpen { why: streamer.last_error().map(str::to_owned) })?;
     let camera = camera(metadata).enclosing(&crate::fly::terrain_box(metadata));
     let mut session = Session::new(streamer, &gpu.device, options.settings, OFFSCREEN_FORMAT, options.budget)?;
     let wait = options.wait;

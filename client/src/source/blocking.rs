@@ -18,9 +18,10 @@ impl<S: AsyncRangeSource> BlockingSource<S> {
     /// Wraps `inner`, learning its length (one request for HTTP).
     ///
     /// # Errors
-    /// The source's error.
-    pub fn new(inner: S) -> Result<Self> {
-        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    /// The source's error; [`crate::Error::Threads`] if its runtime cannot start.
+    pub fn new(inner: S) -> crate::Result<Self> {
+        let runtime =
+            tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(crate::Error::Threads)?;
         let len = runtime.block_on(inner.size())?;
         Ok(Self { inner, runtime, len })
     }
@@ -69,11 +70,11 @@ impl RangeSource for AnySource {
 /// Opens a path or an `http(s)://` URL.
 ///
 /// # Errors
-/// `Error::File` for a path that cannot be mapped, `Error::Source` for a URL that cannot
-/// be read.
-pub fn open_source(location: &str) -> Result<AnySource> {
+/// A file error naming the path that cannot be mapped; a URL that is not http(s) or
+/// cannot be read.
+pub fn open_source(location: &str) -> crate::Result<AnySource> {
     if super::is_http_url(location) {
         return Ok(AnySource::Http(Box::new(BlockingSource::new(HttpSource::new(location)?)?)));
     }
-    MmapSource::open(location).map(AnySource::Mmap)
+    Ok(MmapSource::open(location).map(AnySource::Mmap)?)
 }

@@ -14,6 +14,8 @@ use reqwest::StatusCode;
 use reqwest::header::{CONTENT_RANGE, ETAG, IF_MATCH, RANGE};
 use terrastream_format::{AsyncRangeSource, BOOTSTRAP_READ, Error, Result};
 
+use crate::error::Error as ClientError;
+
 /// How often and how patiently to retry a failed request.
 #[derive(Clone, Copy, Debug)]
 pub struct RetryPolicy {
@@ -68,23 +70,25 @@ impl HttpSource {
     /// A source for `url` with a new connection pool.
     ///
     /// # Errors
-    /// [`Error::Source`] if the URL is not http(s) or the client cannot be built.
-    pub fn new(url: &str) -> Result<Self> {
+    /// [`ClientError::BadUrl`] if the URL is not http(s), [`ClientError::HttpClient`] if
+    /// the client cannot be built.
+    pub fn new(url: &str) -> crate::Result<Self> {
         let builder = reqwest::Client::builder();
         #[cfg(not(target_arch = "wasm32"))]
         let builder = builder.pool_max_idle_per_host(64).tcp_nodelay(true);
-        let client = builder.build().map_err(|e| source_error(0, 0, e.to_string()))?;
+        let client = builder.build().map_err(|e| ClientError::HttpClient { reason: e.to_string() })?;
         Self::with_client(client, url, RetryPolicy::default())
     }
 
     /// A source sharing an existing client (and its pool).
     ///
     /// # Errors
-    /// [`Error::Source`] if the URL is not http(s).
-    pub fn with_client(client: reqwest::Client, url: &str, retry: RetryPolicy) -> Result<Self> {
-        let url = reqwest::Url::parse(url).map_err(|e| source_error(0, 0, format!("{url}: {e}")))?;
+    /// [`ClientError::BadUrl`] if the URL is not http(s).
+    pub fn with_client(client: reqwest::Client, url: &str, retry: RetryPolicy) -> crate::Result<Self> {
+        let bad = |reason: String| ClientError::BadUrl { url: url.to_owned(), reason };
+        let url = reqwest::Url::parse(url).map_err(|e| bad(e.to_string()))?;
         if !matches!(url.scheme(), "http" | "https") {
-            return Err(source_error(0, 0, format!("{url}: only http and https URLs")));
+            return Err(bad("only http and https URLs".into()));
         }
         Ok(Self {
             client,
@@ -158,7 +162,24 @@ impl HttpSource {
             Ok(r) => r,
             Err(e) => return Ok(Attempt::Retry(e.to_string())),
         };
-        let status = response.status();
+        if let Some(retry) = self.check_status(response.status(), etag, offset, len)? {
+            return Ok(retry);
+        }
+        let (start, end) = self.check_range(response.headers(), offset, len)?;
+        let body = match response.bytes().await {
+            Ok(b) => b,
+            Err(e) => return Ok(Attempt::Retry(format!("body: {e}"))),
+        };
+        self.stats.bytes.fetch_add(body.len() as u64, Relaxed);
+        if body.len() as u64 != end - start + 1 {
+            return Ok(Attempt::Retry(format!("truncated body: {} of {} bytes", body.len(), end - start + 1)));
+        }
+        Ok(Attempt::Done(body))
+    }
+
+    /// What a response's status means: go on (206), retry (5xx, 429, 408), or an error
+    /// (the archive changed, the range is outside it, no Range support).
+    fn check_status(&self, status: StatusCode, etag: Option<String>, offset: u64, len: u64) -> Result<Option<Attempt>> {
         if status == StatusCode::PRECONDITION_FAILED {
             return Err(Error::Changed {
                 what: format!("{}: ETag {} no longer matches", self.url, etag.unwrap_or_default()),
@@ -166,7 +187,7 @@ impl HttpSource {
         }
         if status.is_server_error() || status == StatusCode::TOO_MANY_REQUESTS || status == StatusCode::REQUEST_TIMEOUT
         {
-            return Ok(Attempt::Retry(format!("HTTP {status}")));
+            return Ok(Some(Attempt::Retry(format!("HTTP {status}"))));
         }
         if status == StatusCode::RANGE_NOT_SATISFIABLE {
             return Err(Error::OutOfBounds {
@@ -185,9 +206,15 @@ impl HttpSource {
             };
             return Err(source_error(offset, len, format!("{}: {why}", self.url)));
         }
-        let header = |name| {
-            response.headers().get(name).and_then(|v: &reqwest::header::HeaderValue| v.to_str().ok()).map(str::to_owned)
-        };
+        Ok(None)
+    }
+
+    /// Checks a 206's Content-Range (the range asked for, clamped to the file) and ETag
+    /// against what is known of the archive, learning its length and ETag on the first
+    /// answer. Returns the first and last byte sent.
+    fn check_range(&self, headers: &reqwest::header::HeaderMap, offset: u64, len: u64) -> Result<(u64, u64)> {
+        let header =
+            |name| headers.get(name).and_then(|v: &reqwest::header::HeaderValue| v.to_str().ok()).map(str::to_owned);
         let new_etag = header(ETAG);
         let content_range = header(CONTENT_RANGE).unwrap_or_default();
         let (start, end, total) = parse_content_range(&content_range)
@@ -209,6 +236,7 @@ impl HttpSource {
                 known.etag = new_etag;
             }
         }
+        let last_byte = offset + (len - 1);
         let expected_end = last_byte.min(total.saturating_sub(1));
         if start != offset || end != expected_end {
             return Err(source_error(
@@ -217,15 +245,7 @@ impl HttpSource {
                 format!("{}: asked {offset}-{last_byte}, got {content_range}", self.url),
             ));
         }
-        let body = match response.bytes().await {
-            Ok(b) => b,
-            Err(e) => return Ok(Attempt::Retry(format!("body: {e}"))),
-        };
-        self.stats.bytes.fetch_add(body.len() as u64, Relaxed);
-        if body.len() as u64 != end - start + 1 {
-            return Ok(Attempt::Retry(format!("truncated body: {} of {} bytes", body.len(), end - start + 1)));
-        }
-        Ok(Attempt::Done(body))
+        Ok((start, end))
     }
 
     /// Opens the archive: fetches the first 16 KiB (header, metadata, root) and learns the

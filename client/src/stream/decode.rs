@@ -4,9 +4,10 @@
 
 use bytes::Bytes;
 use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Error, Layer, LayerKind, PayloadCompression, Result, TileFormat, TileKey,
-    zstd_decompress,
+    ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat, TileKey, zstd_decompress,
 };
+
+use crate::error::{Error, Result};
 
 /// A decoded tile.
 #[derive(Clone, Debug, PartialEq)]
@@ -69,9 +70,9 @@ impl DecodedTile {
 /// payload compression is still applied; the tile endpoint may already have removed it).
 ///
 /// # Errors
-/// [`Error::InvalidTile`] naming the tile when the payload is not what the layer says.
+/// [`Error::BadTile`] naming the tile when the payload is not what the layer says.
 pub fn decode(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> Result<DecodedTile> {
-    let bad = |why: String| Error::InvalidTile { what: format!("tile {key} of layer {:?}: {why}", layer.name) };
+    let bad = |reason: String| Error::BadTile { key, layer: layer.name.clone(), reason };
     let inflated;
     let bytes = if compressed && layer.compression == PayloadCompression::Zstd {
         inflated = zstd_decompress(payload, layer.max_payload_bytes(), &format!("tile {key}"))?;

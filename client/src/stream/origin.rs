@@ -10,9 +10,9 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use bytes::Bytes;
 use reqwest::StatusCode;
-use terrastream_format::{
-    AsyncRangeSource, AsyncReader, Error, MaybeSend, MaybeSync, Metadata, Result, TileKey, protocol,
-};
+use terrastream_format::{AsyncRangeSource, AsyncReader, MaybeSend, MaybeSync, Metadata, TileKey, protocol};
+
+use crate::error::{Error, Result};
 
 use crate::source::http::HttpSource;
 use crate::source::is_http_url;
@@ -27,18 +27,18 @@ pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + 'a>>;
 /// [`AsyncRangeSource`] made object-safe.
 pub trait ErasedSource: MaybeSend + MaybeSync {
     /// See [`AsyncRangeSource::size`].
-    fn size_boxed(&self) -> BoxFuture<'_, Result<u64>>;
+    fn size_boxed(&self) -> BoxFuture<'_, terrastream_format::Result<u64>>;
     /// See [`AsyncRangeSource::fetch`].
-    fn fetch_boxed(&self, offset: u64, len: u64) -> BoxFuture<'_, Result<Bytes>>;
+    fn fetch_boxed(&self, offset: u64, len: u64) -> BoxFuture<'_, terrastream_format::Result<Bytes>>;
     /// See [`AsyncRangeSource::forget`].
     fn forget_erased(&self);
 }
 
 impl<S: AsyncRangeSource> ErasedSource for S {
-    fn size_boxed(&self) -> BoxFuture<'_, Result<u64>> {
+    fn size_boxed(&self) -> BoxFuture<'_, terrastream_format::Result<u64>> {
         Box::pin(self.size())
     }
-    fn fetch_boxed(&self, offset: u64, len: u64) -> BoxFuture<'_, Result<Bytes>> {
+    fn fetch_boxed(&self, offset: u64, len: u64) -> BoxFuture<'_, terrastream_format::Result<Bytes>> {
         Box::pin(self.fetch(offset, len))
     }
     fn forget_erased(&self) {
@@ -64,10 +64,10 @@ impl DynSource {
 }
 
 impl AsyncRangeSource for DynSource {
-    fn size(&self) -> impl Future<Output = Result<u64>> + MaybeSend {
+    fn size(&self) -> impl Future<Output = terrastream_format::Result<u64>> + MaybeSend {
         self.0.size_boxed()
     }
-    fn fetch(&self, offset: u64, len: u64) -> impl Future<Output = Result<Bytes>> + MaybeSend {
+    fn fetch(&self, offset: u64, len: u64) -> impl Future<Output = terrastream_format::Result<Bytes>> + MaybeSend {
         self.0.fetch_boxed(offset, len)
     }
     fn forget(&self) {
@@ -90,16 +90,13 @@ impl EndpointSource {
     /// The archive served at `base` (e.g. `http://host:8080/alps`).
     ///
     /// # Errors
-    /// [`Error::Source`] for a URL that is not http(s).
+    /// [`Error::BadUrl`] for a URL that is not http(s), [`Error::HttpClient`] if the
+    /// client cannot be built.
     pub fn new(base: &str) -> Result<Self> {
         if !is_http_url(base) {
-            return Err(Error::Source { offset: 0, len: 0, reason: format!("{base}: only http and https URLs") });
+            return Err(Error::BadUrl { url: base.to_owned(), reason: "only http and https URLs".into() });
         }
-        let client = reqwest::Client::builder().build().map_err(|e| Error::Source {
-            offset: 0,
-            len: 0,
-            reason: e.to_string(),
-        })?;
+        let client = reqwest::Client::builder().build().map_err(|e| Error::HttpClient { reason: e.to_string() })?;
         Ok(Self {
             client,
             base: base.trim_end_matches('/').to_owned(),
@@ -115,7 +112,7 @@ impl EndpointSource {
 
     async fn get(&self, path: &str) -> Result<Option<Bytes>> {
         let url = format!("{}/{path}", self.base);
-        let fail = |reason: String| Error::Source { offset: 0, len: 0, reason: format!("{url}: {reason}") };
+        let fail = |reason: String| Error::Request { url: url.clone(), reason };
         self.requests.fetch_add(1, Relaxed);
         let response = self.client.get(&url).send().await.map_err(|e| fail(e.to_string()))?;
         let etag =
@@ -133,23 +130,23 @@ impl EndpointSource {
         match response.status() {
             StatusCode::OK => response.bytes().await.map(Some).map_err(|e| fail(format!("body: {e}"))),
             StatusCode::NOT_FOUND if path != protocol::METADATA_PATH => Ok(None),
-            status => Err(fail(format!("HTTP {status}"))),
+            status => Err(Error::Status { url, status: status.as_u16() }),
         }
     }
 
     /// The archive's metadata.
     ///
     /// # Errors
-    /// Source errors; [`Error::Metadata`] for a bad document.
+    /// Request errors; a metadata error for a bad document.
     pub async fn metadata(&self) -> Result<Metadata> {
         let bytes = self.get(protocol::METADATA_PATH).await?.unwrap_or_default();
-        Metadata::from_json(&bytes)
+        Ok(Metadata::from_json(&bytes)?)
     }
 
     /// One tile's payload (zstd already removed), `None` if the archive has no such tile.
     ///
     /// # Errors
-    /// Source errors; [`Error::Changed`] when the archive was replaced.
+    /// Request errors; [`Error::Changed`] when the archive was replaced.
     pub async fn tile(&self, key: TileKey) -> Result<Option<Bytes>> {
         self.get(&protocol::tile_path(key)).await
     }
@@ -173,7 +170,7 @@ impl HostTiles {
     /// An empty set of tiles for a terrain described by `metadata`.
     ///
     /// # Errors
-    /// [`Error::Metadata`] if the metadata is invalid.
+    /// A metadata error if the metadata is invalid.
     pub fn new(metadata: Metadata) -> Result<Self> {
         metadata.validate()?;
         Ok(Self { metadata, tiles: Mutex::default(), version: AtomicU64::new(0) })
@@ -187,7 +184,7 @@ impl HostTiles {
     /// Hands in a tile's payload, encoded as its layer says (format and compression).
     ///
     /// # Errors
-    /// [`Error::InvalidTile`] for a tile outside its layer's grid.
+    /// A tile error for a tile outside its layer's grid.
     pub fn insert(&self, key: TileKey, payload: Bytes) -> Result<()> {
         self.metadata.directory_key(key)?;
         self.tiles.lock().unwrap_or_else(PoisonError::into_inner).insert(key, payload);
@@ -234,7 +231,8 @@ impl Origin {
     /// `http(s)://…/name` URL of our server's tile endpoint.
     ///
     /// # Errors
-    /// [`Error::File`] for a file that cannot be mapped; [`Error::Source`] for a bad URL.
+    /// A file error naming a file that cannot be mapped; [`Error::BadUrl`] for a bad URL;
+    /// [`Error::NotAUrl`] for a path in the browser.
     pub fn parse(location: &str) -> Result<Self> {
         if is_http_url(location) {
             let path = location.split(['?', '#']).next().unwrap_or(location);
@@ -250,7 +248,7 @@ impl Origin {
         }
         #[cfg(target_arch = "wasm32")]
         {
-            Err(Error::Source { offset: 0, len: 0, reason: format!("{location}: only URLs in the browser") })
+            Err(Error::NotAUrl { location: location.to_owned() })
         }
     }
 

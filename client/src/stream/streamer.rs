@@ -14,7 +14,9 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::future::{AbortHandle, Abortable};
-use terrastream_format::{AsyncRangeSource, Error, Layer, LayerKind, Locate, Metadata, Result, TileKey, TileLocation};
+use terrastream_format::{AsyncRangeSource, Layer, LayerKind, Locate, Metadata, TileKey, TileLocation};
+
+use crate::error::{Error, Result};
 use web_time::Instant;
 
 use super::cache::TileCache;
@@ -219,7 +221,7 @@ impl Streamer {
     /// A streamer that starts opening `origin` at once (in the background).
     ///
     /// # Errors
-    /// [`Error::Io`] if the worker threads cannot be started.
+    /// [`Error::Threads`] if the worker threads cannot be started.
     pub fn new(origin: Origin, options: StreamOptions) -> Result<Self> {
         let mut streamer = Self::build(origin, options)?;
         streamer.start_open();
@@ -232,7 +234,8 @@ impl Streamer {
             .worker_threads(options.worker_threads.max(1))
             .thread_name("terrastream-stream")
             .enable_all()
-            .build()?;
+            .build()
+            .map_err(Error::Threads)?;
         Ok(Self {
             origin,
             cache: TileCache::new(options.cache_bytes),
@@ -676,7 +679,9 @@ impl Streamer {
             let work = async {
                 let (failure, bytes) = match reader.source().fetch(offset, len).await {
                     Ok(bytes) => (reader.archive().add_leaf(offset, &bytes).err().map(|e| e.to_string()), bytes.len()),
-                    Err(Error::Changed { what }) => return Completion::Changed { generation, what },
+                    Err(terrastream_format::Error::Changed { what }) => {
+                        return Completion::Changed { generation, what };
+                    }
                     Err(e) => (Some(e.to_string()), 0),
                 };
                 Completion::Leaf { request: id, generation, offset, failure, bytes: bytes as u64 }
@@ -729,18 +734,13 @@ impl Streamer {
     /// they are not loaded (blocks; not for a frame loop).
     ///
     /// # Errors
-    /// The origin's error, or [`Error::InvalidTile`] when there is no elevation layer or
-    /// the point is outside it.
+    /// The origin's error, [`Error::NotOpen`], [`Error::NoLayer`] when there is no elevation
+    /// layer, [`Error::Outside`] when the point is outside it, [`Error::TileLoad`].
     #[cfg(not(target_arch = "wasm32"))]
     pub fn height_at_exact(&mut self, x: f64, z: f64) -> Result<Option<f64>> {
-        let backend = self.backend.clone().ok_or_else(|| Error::Source {
-            offset: 0,
-            len: 0,
-            reason: self.last_error.clone().unwrap_or_else(|| "the archive is not open yet".into()),
-        })?;
+        let backend = self.backend.clone().ok_or_else(|| Error::NotOpen { why: self.last_error.clone() })?;
         let metadata = backend.metadata();
-        let no_layer = || Error::InvalidTile { what: "the archive has no elevation layer".into() };
-        let layer = elevation_layer(metadata).ok_or_else(no_layer)?;
+        let layer = elevation_layer(metadata).ok_or(Error::NoLayer { kind: "elevation" })?;
         let info = &metadata.layers[usize::from(layer)];
         let spacing = info.tile_world_size / f64::from(info.tile_resolution);
         // The (up to) four tiles holding the bilinear footprint.
@@ -753,7 +753,7 @@ impl Streamer {
             }
         }
         if tile_at(metadata, layer, 0, x, z).is_none() {
-            return Err(Error::InvalidTile { what: format!("({x}, {z}) is outside layer {:?}", info.name) });
+            return Err(Error::Outside { layer: info.name.clone(), x, z });
         }
         for key in keys {
             let location = match &backend {
@@ -767,12 +767,12 @@ impl Streamer {
             let completion = self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation));
             match completion {
                 Completion::Tiles { results, .. } => {
-                    for (_, outcome) in results {
+                    for (key, outcome) in results {
                         match outcome {
                             Outcome::Ready(tile) => self.cache.insert(tile),
                             Outcome::Missing => {}
                             Outcome::Failed(why) | Outcome::Undecodable(why) => {
-                                return Err(Error::Source { offset: 0, len: 0, reason: why });
+                                return Err(Error::TileLoad { key, reason: why });
                             }
                         }
                     }
@@ -917,7 +917,7 @@ async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generati
                         raw.push((*key, result));
                     }
                 }
-                Err(Error::Changed { what }) => return changed(what),
+                Err(terrastream_format::Error::Changed { what }) => return changed(what),
                 Err(e) => raw.extend(group.tiles.iter().map(|(k, _)| (*k, Err(e.to_string())))),
             }
         }
