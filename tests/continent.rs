@@ -15,9 +15,9 @@ mod cli;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
 
 use cli::{Killed, terrastream};
-use std::time::{Duration, Instant};
 
 const WIDTH: u32 = 480;
 const HEIGHT: u32 = 270;

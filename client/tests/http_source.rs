@@ -13,11 +13,9 @@ use axum::response::{IntoResponse, Response};
 use terrastream_client::{HttpSource, RetryPolicy};
 use terrastream_format::{AsyncReader, Error, MmapSource, Reader, TileKey};
 use terrastream_server::app;
-
 use terrastream_testkit::archives::{archives, write_zstd_archive};
 use terrastream_testkit::nginx::start_nginx;
-use terrastream_testkit::server::serve_router as serve;
-use terrastream_testkit::server::state;
+use terrastream_testkit::server::{serve_router as serve, state};
 
 /// Every tile of every layer and LOD, read through `reader`, equals the mmap reader's.
 async fn same_tiles(reader: &AsyncReader<HttpSource>, local: &Reader<MmapSource>) -> usize {

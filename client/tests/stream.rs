@@ -5,9 +5,6 @@
 //! timeouts, the archive replaced mid-stream).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-use terrastream_testkit::server::serve_router as serve;
-use terrastream_testkit::server::state;
-
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
@@ -26,6 +23,7 @@ use terrastream_client::{
 use terrastream_format::{AsyncRangeSource, MemorySource, Metadata, Reader, TileKey};
 use terrastream_server::app;
 use terrastream_testkit::labelled::{LabelledSpec, label_colour, label_height, write_labelled_archive};
+use terrastream_testkit::server::{serve_router as serve, state};
 
 const BUDGET: UploadBudget = UploadBudget { max_tiles: 6, max_bytes: 5 * 1024 };
 

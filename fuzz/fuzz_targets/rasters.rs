@@ -4,8 +4,8 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_tiler::{ElevationSource, ImageSource, open_elevation, open_image};
 use terrastream_format::{ElevationEncoding, ElevationScheme};
+use terrastream_tiler::{ElevationSource, ImageSource, open_elevation, open_image};
 
 /// Rows read per input at most: enough to cross strips and tile rows, quick per run.
 const ROWS: usize = 64;

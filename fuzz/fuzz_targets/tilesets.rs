@@ -4,10 +4,10 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
+use terrastream_format::LayerKind;
+use terrastream_pack::WriterOptions;
 use terrastream_pack::import::{TilesetInput, pack_pmtiles};
 use terrastream_pack::progress::Silent;
-use terrastream_format::{LayerKind};
-use terrastream_pack::{WriterOptions};
 
 fuzz_target!(|data: &[u8]| {
     let dir = std::env::temp_dir().join(format!("terrastream-fuzz-tilesets-{}", std::process::id()));

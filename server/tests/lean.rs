@@ -8,11 +8,10 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
-
 use terrastream_testkit::archives::archives;
 use terrastream_testkit::server::Running;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
 
 async fn start(dir: &Path, lean: bool) -> Running {
     terrastream_testkit::server::start(dir, |c| c.lean_http1 = lean).await

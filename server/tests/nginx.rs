@@ -3,7 +3,6 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
 use terrastream_server::{AppState, ServerConfig, serve};
-
 use terrastream_testkit::archives::archives;
 use terrastream_testkit::http::split_multipart;
 use terrastream_testkit::nginx::start_nginx;

@@ -6,11 +6,10 @@ use axum::http::{Request, StatusCode};
 use axum::response::Response;
 use terrastream_format::{MmapSource, Reader, TileKey};
 use terrastream_server::{FALLBACK_LOD, app};
-use tower::ServiceExt;
-
 use terrastream_testkit::archives::{archives, raw_tile};
 use terrastream_testkit::http::split_multipart;
 use terrastream_testkit::server::state;
+use tower::ServiceExt;
 
 async fn send(state: &terrastream_server::AppState, req: Request<Body>) -> (Response, Vec<u8>) {
     let response = app(state.clone()).oneshot(req).await.unwrap();

@@ -9,11 +9,10 @@ use std::time::Duration;
 
 use terrastream_format::TileKey;
 use terrastream_server::{AppState, ServerConfig};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::sync::oneshot;
-
 use terrastream_testkit::archives::{archives, raw_tile, write_zstd_archive};
 use terrastream_testkit::server::start;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::oneshot;
 
 #[tokio::test]
 async fn ranges_over_http1_and_h2c() {

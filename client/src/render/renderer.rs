@@ -273,6 +273,101 @@ impl std::fmt::Debug for TerrainRenderer {
     }
 }
 
+/// A view of a layer's tile array, or of a 1x1 dummy of `format` standing in for a missing
+/// layer, so that one pipeline serves all archives.
+fn array_view(device: &wgpu::Device, array: Option<&TileArray>, format: wgpu::TextureFormat) -> wgpu::TextureView {
+    let dummy;
+    let texture = match array {
+        Some(a) => &a.texture,
+        None => {
+            dummy = gpu::texture(device, "texture.tiles.none", (1, 1, 1), format, wgpu::TextureUsages::TEXTURE_BINDING);
+            &dummy
+        }
+    };
+    texture.create_view(&wgpu::TextureViewDescriptor {
+        label: Some("view.tiles"),
+        dimension: Some(wgpu::TextureViewDimension::D2Array),
+        ..Default::default()
+    })
+}
+
+/// Bilinear, clamped: the colour tiles' sampler.
+fn colour_sampler(device: &wgpu::Device) -> wgpu::Sampler {
+    device.create_sampler(&wgpu::SamplerDescriptor {
+        label: Some("sampler.tiles.colour"),
+        address_mode_u: wgpu::AddressMode::ClampToEdge,
+        address_mode_v: wgpu::AddressMode::ClampToEdge,
+        mag_filter: wgpu::FilterMode::Linear,
+        min_filter: wgpu::FilterMode::Linear,
+        ..Default::default()
+    })
+}
+
+/// Globals, page table, elevation tiles, colour tiles, colour sampler.
+fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("layout.terrain"),
+        entries: &[
+            uniform_entry(0),
+            texture_entry(1, wgpu::TextureSampleType::Uint, wgpu::TextureViewDimension::D2),
+            texture_entry(2, wgpu::TextureSampleType::Float { filterable: false }, wgpu::TextureViewDimension::D2Array),
+            texture_entry(3, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2Array),
+            wgpu::BindGroupLayoutEntry {
+                binding: 4,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                count: None,
+            },
+        ],
+    })
+}
+
+/// The terrain pipeline: patch vertices and per-instance patch placement, reversed depth.
+fn terrain_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    colour_format: wgpu::TextureFormat,
+) -> wgpu::RenderPipeline {
+    gpu::pipeline(
+        device,
+        &gpu::PipelineDesc {
+            name: "terrain",
+            wgsl: TERRAIN_WGSL,
+            layout,
+            buffers: &[
+                Some(wgpu::VertexBufferLayout {
+                    array_stride: 8,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &wgpu::vertex_attr_array![0 => Float32x2],
+                }),
+                Some(wgpu::VertexBufferLayout {
+                    array_stride: 16,
+                    step_mode: wgpu::VertexStepMode::Instance,
+                    attributes: &wgpu::vertex_attr_array![1 => Float32x4],
+                }),
+            ],
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            depth: (true, wgpu::CompareFunction::Greater),
+            target: (colour_format, None),
+        },
+    )
+}
+
+/// The patch mesh's vertex and index buffers.
+fn patch_buffers(device: &wgpu::Device, mesh: &PatchMesh) -> (wgpu::Buffer, wgpu::Buffer) {
+    let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("buffer.terrain.patch_vertices"),
+        contents: bytemuck::cast_slice(&mesh.vertices),
+        usage: wgpu::BufferUsages::VERTEX,
+    });
+    let indices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("buffer.terrain.patch_indices"),
+        contents: bytemuck::cast_slice(&mesh.indices),
+        usage: wgpu::BufferUsages::INDEX,
+    });
+    (vertices, indices)
+}
+
 fn first_layer(metadata: &Metadata, kind: LayerKind) -> Option<(u8, &Layer)> {
     metadata.layers.iter().enumerate().find(|(_, l)| l.kind == kind).and_then(|(i, l)| Some((u8::try_from(i).ok()?, l)))
 }
@@ -291,24 +386,8 @@ impl TerrainRenderer {
             .and_then(|(i, l)| TileArray::new(device, i, l, KIND_ELEVATION, settings.elevation_slots, bc));
         let texture = first_layer(metadata, LayerKind::Texture)
             .and_then(|(i, l)| TileArray::new(device, i, l, KIND_TEXTURE, settings.texture_slots, bc));
-        // Dummy 1x1 arrays stand in for a missing layer so that one pipeline serves all.
-        let dummy =
-            |label, format| gpu::texture(device, label, (1, 1, 1), format, wgpu::TextureUsages::TEXTURE_BINDING);
-        let array_view = |t: &wgpu::Texture| {
-            t.create_view(&wgpu::TextureViewDescriptor {
-                label: Some("view.tiles"),
-                dimension: Some(wgpu::TextureViewDimension::D2Array),
-                ..Default::default()
-            })
-        };
-        let elevation_view = match &elevation {
-            Some(a) => array_view(&a.texture),
-            None => array_view(&dummy("texture.tiles.elevation.none", wgpu::TextureFormat::R32Float)),
-        };
-        let colour_view = match &texture {
-            Some(a) => array_view(&a.texture),
-            None => array_view(&dummy("texture.tiles.colour.none", wgpu::TextureFormat::Rgba8UnormSrgb)),
-        };
+        let elevation_view = array_view(device, elevation.as_ref(), wgpu::TextureFormat::R32Float);
+        let colour_view = array_view(device, texture.as_ref(), wgpu::TextureFormat::Rgba8UnormSrgb);
         let page_table = PageTable::new(settings.elevation_slots + settings.texture_slots);
         let page_texture = gpu::texture(
             device,
@@ -318,37 +397,8 @@ impl TerrainRenderer {
             wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
         );
         let globals = gpu::uniform_buffer(device, "buffer.terrain.globals", size_of::<Globals>());
-        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
-            label: Some("sampler.tiles.colour"),
-            address_mode_u: wgpu::AddressMode::ClampToEdge,
-            address_mode_v: wgpu::AddressMode::ClampToEdge,
-            mag_filter: wgpu::FilterMode::Linear,
-            min_filter: wgpu::FilterMode::Linear,
-            ..Default::default()
-        });
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("layout.terrain"),
-            entries: &[
-                uniform_entry(0),
-                texture_entry(1, wgpu::TextureSampleType::Uint, wgpu::TextureViewDimension::D2),
-                texture_entry(
-                    2,
-                    wgpu::TextureSampleType::Float { filterable: false },
-                    wgpu::TextureViewDimension::D2Array,
-                ),
-                texture_entry(
-                    3,
-                    wgpu::TextureSampleType::Float { filterable: true },
-                    wgpu::TextureViewDimension::D2Array,
-                ),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 4,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                    count: None,
-                },
-            ],
-        });
+        let sampler = colour_sampler(device);
+        let layout = bind_group_layout(device);
         let page_view = page_texture.create_view(&wgpu::TextureViewDescriptor::default());
         let bind_group = gpu::bind_group(
             device,
@@ -362,40 +412,9 @@ impl TerrainRenderer {
                 wgpu::BindingResource::Sampler(&sampler),
             ],
         );
-        let pipeline = gpu::pipeline(
-            device,
-            &gpu::PipelineDesc {
-                name: "terrain",
-                wgsl: TERRAIN_WGSL,
-                layout: &layout,
-                buffers: &[
-                    Some(wgpu::VertexBufferLayout {
-                        array_stride: 8,
-                        step_mode: wgpu::VertexStepMode::Vertex,
-                        attributes: &wgpu::vertex_attr_array![0 => Float32x2],
-                    }),
-                    Some(wgpu::VertexBufferLayout {
-                        array_stride: 16,
-                        step_mode: wgpu::VertexStepMode::Instance,
-                        attributes: &wgpu::vertex_attr_array![1 => Float32x4],
-                    }),
-                ],
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                depth: (true, wgpu::CompareFunction::Greater),
-                target: (colour_format, None),
-            },
-        );
+        let pipeline = terrain_pipeline(device, &layout, colour_format);
         let mesh = PatchMesh::new(settings.patch);
-        let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("buffer.terrain.patch_vertices"),
-            contents: bytemuck::cast_slice(&mesh.vertices),
-            usage: wgpu::BufferUsages::VERTEX,
-        });
-        let indices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("buffer.terrain.patch_indices"),
-            contents: bytemuck::cast_slice(&mesh.indices),
-            usage: wgpu::BufferUsages::INDEX,
-        });
+        let (vertices, indices) = patch_buffers(device, &mesh);
         let instance_capacity = 1024;
         let instances = instance_buffer(device, instance_capacity);
         let terrain = &metadata.terrain;
@@ -593,12 +612,29 @@ impl TerrainRenderer {
         nodes: &[Node],
         params: &MeshParams,
     ) {
+        // Positions go to the GPU relative to an anchor on the base grid near the eye, so
+        // that f32 keeps centimetres on a continent.
         let base = params.base;
         let eye = camera.position;
         #[allow(clippy::cast_possible_truncation)]
         let anchor_units = ((eye.x / base).floor() as i64, (eye.z / base).floor() as i64);
         #[allow(clippy::cast_precision_loss)]
         let anchor = (anchor_units.0 as f64 * base, anchor_units.1 as f64 * base);
+        self.write_instances(device, queue, nodes, anchor_units);
+        let globals = self.globals(camera, params, anchor);
+        queue.write_buffer(&self.globals, 0, bytemuck::bytes_of(&globals));
+        self.stats = self.frame_stats(nodes);
+    }
+
+    /// One instance per patch, full patches first: (x, z) on the base grid from the
+    /// anchor, level.
+    fn write_instances(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        nodes: &[Node],
+        anchor_units: (i64, i64),
+    ) {
         #[allow(clippy::cast_precision_loss)]
         let instances: Vec<[f32; 4]> = nodes
             .iter()
@@ -612,7 +648,12 @@ impl TerrainRenderer {
         queue.write_buffer(&self.instances, 0, bytemuck::cast_slice(&instances));
         self.full = u32::try_from(nodes.iter().filter(|n| !n.quarter).count()).unwrap_or(u32::MAX);
         self.quarter = u32::try_from(nodes.len()).unwrap_or(u32::MAX) - self.full;
+    }
 
+    /// The shader's globals for one frame.
+    fn globals(&self, camera: &Camera, params: &MeshParams, anchor: (f64, f64)) -> Globals {
+        let base = params.base;
+        let eye = camera.position;
         let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
         let projection = DMat4::perspective_infinite_reverse_rh(camera.fov_y, camera.aspect, camera.near);
         let view_proj: Mat4 = (projection * rotation).as_mat4();
@@ -634,7 +675,7 @@ impl TerrainRenderer {
             }
         }
         #[allow(clippy::cast_possible_truncation)]
-        let globals = Globals {
+        Globals {
             view_proj: view_proj.to_cols_array_2d(),
             camera: [(eye.x - anchor.0) as f32, eye.y as f32, (eye.z - anchor.1) as f32, base as f32],
             sun: [sun.x as f32, sun.y as f32, sun.z as f32, 0.35],
@@ -659,14 +700,16 @@ impl TerrainRenderer {
             ranges,
             elev_lods: self.elevation.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
             tex_lods: self.texture.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
-        };
-        queue.write_buffer(&self.globals, 0, bytemuck::bytes_of(&globals));
+        }
+    }
 
+    /// What the frame draws.
+    fn frame_stats(&self, nodes: &[Node]) -> FrameStats {
         let full_vertices = u64::from((self.settings.patch + 1).pow(2));
         let quarter_vertices = u64::from((self.settings.patch / 2 + 1).pow(2));
         let full_triangles = u64::from(self.settings.patch.pow(2) * 2);
         let resident = |a: &Option<TileArray>| a.as_ref().map_or(0, |a| u32::try_from(a.residency.len()).unwrap_or(0));
-        self.stats = FrameStats {
+        FrameStats {
             patches: self.full + self.quarter,
             vertices: u64::from(self.full) * full_vertices + u64::from(self.quarter) * quarter_vertices,
             triangles: u64::from(self.full) * full_triangles + u64::from(self.quarter) * full_triangles / 4,
@@ -678,7 +721,7 @@ impl TerrainRenderer {
             resident: (resident(&self.elevation), resident(&self.texture)),
             gpu_bytes: self.arrays().map(|a| a.bytes).sum::<u64>() + self.page_table.entries.len() as u64 * 16,
             in_view_resident: 0,
-        };
+        }
     }
 
     /// The GPU format of the texture tiles (`None` without a drawable texture layer):

@@ -13,7 +13,6 @@ use reqwest::StatusCode;
 use terrastream_format::{AsyncRangeSource, AsyncReader, MaybeSend, MaybeSync, Metadata, TileKey, protocol};
 
 use crate::error::{Error, Result};
-
 use crate::source::http::HttpSource;
 use crate::source::is_http_url;
 

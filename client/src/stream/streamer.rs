@@ -14,9 +14,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::future::{AbortHandle, Abortable};
-use terrastream_format::{AsyncRangeSource, Layer, LayerKind, Locate, Metadata, TileKey, TileLocation};
-
-use crate::error::{Error, Result};
+use terrastream_format::{AsyncRangeSource, Layer, Locate, Metadata, TileKey, TileLocation};
 use web_time::Instant;
 
 use super::cache::TileCache;
@@ -24,6 +22,7 @@ use super::camera::Camera;
 use super::decode::{DecodedTile, decode};
 use super::origin::{Backend, Origin};
 use super::select::{SelectOptions, Want, select};
+use crate::error::{Error, Result};
 
 /// Settings of a [`Streamer`].
 #[derive(Clone, Debug, PartialEq)]
@@ -151,7 +150,7 @@ impl TileState {
     }
 }
 
-enum Outcome {
+pub(super) enum Outcome {
     Ready(Arc<DecodedTile>),
     Missing,
     /// The fetch failed (worth a retry).
@@ -160,7 +159,7 @@ enum Outcome {
     Undecodable(String),
 }
 
-enum Completion {
+pub(super) enum Completion {
     Tiles { request: u64, generation: u64, results: Vec<(TileKey, Outcome)>, bytes: u64, needed: u64 },
     Leaf { request: u64, generation: u64, offset: u64, failure: Option<String>, bytes: u64 },
     Opened { generation: u64, result: Result<Backend> },
@@ -189,26 +188,33 @@ impl Queue {
 pub struct Streamer {
     origin: Origin,
     options: StreamOptions,
-    backend: Option<Backend>,
-    opening: bool,
-    open_failures: u32,
-    open_retry_at: Option<Instant>,
-    generation: u64,
+    link: Link,
+    pub(super) generation: u64,
     queue: Arc<Queue>,
     #[cfg(not(target_arch = "wasm32"))]
-    runtime: tokio::runtime::Runtime,
+    pub(super) runtime: tokio::runtime::Runtime,
     states: HashMap<TileKey, TileState>,
     requests: HashMap<u64, InFlight>,
     leaf_failures: HashMap<u64, (u32, Instant)>,
     next_request: u64,
-    cache: TileCache,
+    pub(super) cache: TileCache,
     delivered: HashSet<TileKey>,
     wanted: Vec<Want>,
     /// The keys of `wanted`: what the cache keeps and what requests are still for.
     wanted_keys: HashSet<TileKey>,
     host_version: u64,
-    stats: StreamStats,
-    last_error: Option<String>,
+    pub(super) stats: StreamStats,
+    pub(super) last_error: Option<String>,
+}
+
+/// Where a streamer stands with its origin.
+enum Link {
+    /// Opening, in the background, after `failures` failed attempts.
+    Opening { failures: u32 },
+    /// Not open: `failures` attempts failed; the next one at `retry_at`.
+    Closed { failures: u32, retry_at: Instant },
+    /// Open: tiles are read through it.
+    Open(Backend),
 }
 
 impl std::fmt::Debug for Streamer {
@@ -224,7 +230,7 @@ impl Streamer {
     /// [`Error::Threads`] if the worker threads cannot be started.
     pub fn new(origin: Origin, options: StreamOptions) -> Result<Self> {
         let mut streamer = Self::build(origin, options)?;
-        streamer.start_open();
+        streamer.start_open(0);
         Ok(streamer)
     }
 
@@ -240,10 +246,7 @@ impl Streamer {
             origin,
             cache: TileCache::new(options.cache_bytes),
             options,
-            backend: None,
-            opening: false,
-            open_failures: 0,
-            open_retry_at: None,
+            link: Link::Opening { failures: 0 },
             generation: 0,
             queue: Arc::default(),
             #[cfg(not(target_arch = "wasm32"))]
@@ -269,14 +272,14 @@ impl Streamer {
     pub fn open(origin: Origin, options: StreamOptions) -> Result<Self> {
         let mut streamer = Self::build(origin, options)?;
         let backend = streamer.runtime.block_on(streamer.origin.open())?;
-        streamer.backend = Some(backend);
+        streamer.link = Link::Open(backend);
         streamer.generation += 1;
         Ok(streamer)
     }
 
     /// The metadata, once the origin is open.
     pub fn metadata(&self) -> Option<&Metadata> {
-        self.backend.as_ref().map(Backend::metadata)
+        self.backend().map(Backend::metadata)
     }
 
     /// Changes whenever the archive was found replaced: everything uploaded before
@@ -362,13 +365,17 @@ impl Streamer {
     pub fn update(&mut self, camera: &Camera) {
         let now = Instant::now();
         self.take_completions(now);
-        if self.backend.is_none() {
-            if !self.opening && self.open_retry_at.is_none_or(|t| now >= t) {
-                self.start_open();
+        match self.link {
+            Link::Open(_) => {}
+            Link::Opening { .. } => return,
+            Link::Closed { failures, retry_at } => {
+                if now >= retry_at {
+                    self.start_open(failures);
+                }
+                return;
             }
-            return;
         }
-        if let Some(Backend::Host(host)) = &self.backend {
+        if let Some(Backend::Host(host)) = self.backend() {
             let version = host.version();
             if version != self.host_version {
                 self.host_version = version;
@@ -395,7 +402,8 @@ impl Streamer {
     pub fn drain_uploads(&mut self, budget: UploadBudget) -> Vec<Upload> {
         let mut out = Vec::new();
         let mut bytes = 0;
-        let Some(metadata) = self.backend.as_ref().map(Backend::metadata) else { return out };
+        let Link::Open(backend) = &self.link else { return out };
+        let metadata = backend.metadata();
         for (rank, w) in self.wanted.iter().enumerate() {
             if out.len() >= budget.max_tiles {
                 break;
@@ -422,8 +430,9 @@ impl Streamer {
         out
     }
 
-    fn start_open(&mut self) {
-        self.opening = true;
+    /// Starts opening the origin (in the background), after `failures` failed attempts.
+    fn start_open(&mut self, failures: u32) {
+        self.link = Link::Opening { failures };
         let origin = self.origin.clone();
         let queue = self.queue.clone();
         let generation = self.generation + 1;
@@ -447,23 +456,8 @@ impl Streamer {
         for completion in self.queue.take() {
             match completion {
                 Completion::Opened { generation, result } => {
-                    if generation != self.generation + 1 {
-                        continue;
-                    }
-                    self.opening = false;
-                    match result {
-                        Ok(backend) => {
-                            self.generation = generation;
-                            self.backend = Some(backend);
-                            self.open_failures = 0;
-                            self.open_retry_at = None;
-                        }
-                        Err(e) => {
-                            tracing::warn!("cannot open the archive: {e}");
-                            self.last_error = Some(e.to_string());
-                            self.open_failures += 1;
-                            self.open_retry_at = Some(now + self.backoff(self.open_failures));
-                        }
+                    if generation == self.generation + 1 {
+                        self.opened(generation, result, now);
                     }
                 }
                 Completion::Changed { generation, what } => {
@@ -472,60 +466,100 @@ impl Streamer {
                     }
                 }
                 Completion::Tiles { request, generation, results, bytes, needed } => {
-                    if generation != self.generation {
-                        continue;
-                    }
-                    self.requests.remove(&request);
-                    self.stats.bytes_fetched += bytes;
-                    self.stats.bytes_needed += needed;
-                    for (key, outcome) in results {
-                        match outcome {
-                            Outcome::Ready(tile) => {
-                                self.stats.tiles_fetched += 1;
-                                self.states.remove(&key);
-                                self.cache.insert(tile);
-                            }
-                            Outcome::Missing => {
-                                self.stats.missing += 1;
-                                self.states.insert(key, TileState::Missing);
-                            }
-                            Outcome::Undecodable(why) => {
-                                self.stats.failures += 1;
-                                self.stats.undecodable += 1;
-                                tracing::warn!("{why}: drawn from a coarser tile");
-                                self.last_error = Some(why);
-                                self.states.insert(key, TileState::Undecodable);
-                            }
-                            Outcome::Failed(why) => {
-                                self.stats.failures += 1;
-                                tracing::debug!("tile {key}: {why}");
-                                self.last_error = Some(why);
-                                let failures = match self.states.get(&key) {
-                                    Some(TileState::Failed { failures, .. }) => failures + 1,
-                                    _ => 1,
-                                };
-                                let retry_at = now + self.backoff(failures);
-                                self.states.insert(key, TileState::Failed { failures, retry_at });
-                            }
-                        }
+                    if generation == self.generation {
+                        self.requests.remove(&request);
+                        self.stats.bytes_fetched += bytes;
+                        self.stats.bytes_needed += needed;
+                        self.absorb(results, now);
                     }
                 }
                 Completion::Leaf { request, generation, offset, failure, bytes } => {
-                    if generation != self.generation {
-                        continue;
-                    }
-                    self.requests.remove(&request);
-                    self.stats.bytes_fetched += bytes;
-                    if let Some(why) = failure {
-                        self.stats.failures += 1;
-                        self.last_error = Some(why);
-                        let failures = self.leaf_failures.get(&offset).map_or(1, |f| f.0 + 1);
-                        self.leaf_failures.insert(offset, (failures, now + self.backoff(failures)));
-                    } else {
-                        self.leaf_failures.remove(&offset);
+                    if generation == self.generation {
+                        self.requests.remove(&request);
+                        self.stats.bytes_fetched += bytes;
+                        self.leaf_done(offset, failure, now);
                     }
                 }
             }
+        }
+    }
+
+    /// The origin opened, or failed to (retried with a growing backoff).
+    fn opened(&mut self, generation: u64, result: Result<Backend>, now: Instant) {
+        match result {
+            Ok(backend) => {
+                self.generation = generation;
+                self.link = Link::Open(backend);
+            }
+            Err(e) => {
+                tracing::warn!("cannot open the archive: {e}");
+                self.last_error = Some(e.to_string());
+                let failures = match self.link {
+                    Link::Opening { failures } | Link::Closed { failures, .. } => failures + 1,
+                    Link::Open(_) => 1,
+                };
+                self.link = Link::Closed { failures, retry_at: now + self.backoff(failures) };
+            }
+        }
+    }
+
+    /// Takes in fetched tiles: ready ones into the cache, missing and undecodable ones
+    /// settled, failed ones retried later. Returns the first failure, if any.
+    pub(super) fn absorb(&mut self, results: Vec<(TileKey, Outcome)>, now: Instant) -> Option<(TileKey, String)> {
+        let mut first_failure = None;
+        for (key, outcome) in results {
+            match outcome {
+                Outcome::Ready(tile) => {
+                    self.stats.tiles_fetched += 1;
+                    self.states.remove(&key);
+                    self.cache.insert(tile);
+                }
+                Outcome::Missing => {
+                    self.stats.missing += 1;
+                    self.states.insert(key, TileState::Missing);
+                }
+                Outcome::Undecodable(why) => {
+                    self.stats.failures += 1;
+                    self.stats.undecodable += 1;
+                    tracing::warn!("{why}: drawn from a coarser tile");
+                    first_failure.get_or_insert((key, why.clone()));
+                    self.last_error = Some(why);
+                    self.states.insert(key, TileState::Undecodable);
+                }
+                Outcome::Failed(why) => {
+                    self.stats.failures += 1;
+                    tracing::debug!("tile {key}: {why}");
+                    first_failure.get_or_insert((key, why.clone()));
+                    self.last_error = Some(why);
+                    let failures = match self.states.get(&key) {
+                        Some(TileState::Failed { failures, .. }) => failures + 1,
+                        _ => 1,
+                    };
+                    let retry_at = now + self.backoff(failures);
+                    self.states.insert(key, TileState::Failed { failures, retry_at });
+                }
+            }
+        }
+        first_failure
+    }
+
+    /// A leaf directory arrived (or failed: retried later with a growing backoff).
+    fn leaf_done(&mut self, offset: u64, failure: Option<String>, now: Instant) {
+        if let Some(why) = failure {
+            self.stats.failures += 1;
+            self.last_error = Some(why);
+            let failures = self.leaf_failures.get(&offset).map_or(1, |f| f.0 + 1);
+            self.leaf_failures.insert(offset, (failures, now + self.backoff(failures)));
+        } else {
+            self.leaf_failures.remove(&offset);
+        }
+    }
+
+    /// The origin's reader, once open.
+    pub(super) fn backend(&self) -> Option<&Backend> {
+        match &self.link {
+            Link::Open(backend) => Some(backend),
+            Link::Opening { .. } | Link::Closed { .. } => None,
         }
     }
 
@@ -547,12 +581,11 @@ impl Streamer {
         self.delivered.clear();
         self.wanted.clear();
         self.wanted_keys.clear();
-        self.backend = None;
         self.stats.reloads += 1;
         self.last_error = Some(format!("archive replaced: {what}"));
         self.generation += 1;
         self.origin.forget();
-        self.start_open();
+        self.start_open(0);
     }
 
     fn cancel_unwanted(&mut self) {
@@ -577,7 +610,7 @@ impl Streamer {
     }
 
     fn issue(&mut self, now: Instant) {
-        let Some(backend) = self.backend.clone() else { return };
+        let Some(backend) = self.backend().cloned() else { return };
         let mut free = self.options.max_in_flight.saturating_sub(self.requests.len());
         if free == 0 {
             return;
@@ -710,131 +743,6 @@ impl Streamer {
             }
         });
     }
-
-    /// Height in world units at ground position `(x, z)`, bilinear over the finest
-    /// elevation LOD in the cache (sample `i` of a LOD at `(i + 0.5)` spacings, as the
-    /// renderer samples); `None` where nothing is loaded or the data has no value.
-    pub fn height_at(&self, x: f64, z: f64) -> Option<f64> {
-        let (layer, lod) = self.best_elevation(x, z)?;
-        self.sample_height(layer, lod, x, z)
-    }
-
-    /// Unit surface normal at `(x, z)` from the same data as [`Self::height_at`].
-    pub fn normal_at(&self, x: f64, z: f64) -> Option<[f64; 3]> {
-        let (layer, lod) = self.best_elevation(x, z)?;
-        let info = &self.metadata()?.layers[usize::from(layer)];
-        let h = info.world_size_at(lod) / f64::from(info.tile_resolution);
-        let at = |dx: f64, dz: f64| self.sample_height(layer, lod, x + dx, z + dz);
-        let (l, r, u, d) = (at(-h, 0.0)?, at(h, 0.0)?, at(0.0, -h)?, at(0.0, h)?);
-        let n = glam::DVec3::new(-(r - l) / (2.0 * h), 1.0, -(d - u) / (2.0 * h)).normalize();
-        Some(n.to_array())
-    }
-
-    /// Like [`Self::height_at`] but from LOD 0, fetching the tiles around `(x, z)` now if
-    /// they are not loaded (blocks; not for a frame loop).
-    ///
-    /// # Errors
-    /// The origin's error, [`Error::NotOpen`], [`Error::NoLayer`] when there is no elevation
-    /// layer, [`Error::Outside`] when the point is outside it, [`Error::TileLoad`].
-    #[cfg(not(target_arch = "wasm32"))]
-    pub fn height_at_exact(&mut self, x: f64, z: f64) -> Result<Option<f64>> {
-        let backend = self.backend.clone().ok_or_else(|| Error::NotOpen { why: self.last_error.clone() })?;
-        let metadata = backend.metadata();
-        let layer = elevation_layer(metadata).ok_or(Error::NoLayer { kind: "elevation" })?;
-        let info = &metadata.layers[usize::from(layer)];
-        let spacing = info.tile_world_size / f64::from(info.tile_resolution);
-        // The (up to) four tiles holding the bilinear footprint.
-        let mut keys = Vec::new();
-        for (dx, dz) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
-            if let Some(key) = tile_at(metadata, layer, 0, x + dx * spacing, z + dz * spacing) {
-                if !keys.contains(&key) && !self.cache.contains(key) {
-                    keys.push(key);
-                }
-            }
-        }
-        if tile_at(metadata, layer, 0, x, z).is_none() {
-            return Err(Error::Outside { layer: info.name.clone(), x, z });
-        }
-        for key in keys {
-            let location = match &backend {
-                Backend::Archive(reader) => match self.runtime.block_on(reader.locate(key))? {
-                    Some(location) => Some(location),
-                    None => continue,
-                },
-                Backend::Endpoint(..) | Backend::Host(_) => None,
-            };
-            let group = Group { rank: 0, tiles: vec![(key, location)] };
-            let completion = self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation));
-            match completion {
-                Completion::Tiles { results, .. } => {
-                    for (key, outcome) in results {
-                        match outcome {
-                            Outcome::Ready(tile) => self.cache.insert(tile),
-                            Outcome::Missing => {}
-                            Outcome::Failed(why) | Outcome::Undecodable(why) => {
-                                return Err(Error::TileLoad { key, reason: why });
-                            }
-                        }
-                    }
-                }
-                Completion::Changed { what, .. } => return Err(Error::Changed { what }),
-                _ => {}
-            }
-        }
-        Ok(self.sample_height(layer, 0, x, z))
-    }
-
-    fn best_elevation(&self, x: f64, z: f64) -> Option<(u8, u8)> {
-        let metadata = self.metadata()?;
-        let layer = elevation_layer(metadata)?;
-        let num_lods = metadata.layers[usize::from(layer)].num_lods;
-        (0..num_lods).find_map(|lod| {
-            let key = tile_at(metadata, layer, lod, x, z)?;
-            self.cache.contains(key).then_some((layer, lod))
-        })
-    }
-
-    fn sample_height(&self, layer: u8, lod: u8, x: f64, z: f64) -> Option<f64> {
-        let metadata = self.metadata()?;
-        let info = &metadata.layers[usize::from(layer)];
-        let res = info.tile_resolution;
-        let spacing = info.world_size_at(lod) / f64::from(res);
-        let (nx, ny) = info.grid_at(lod);
-        let home = tile_at(metadata, layer, lod, x, z)?;
-        let (gx, gz) = (x / spacing - 0.5, z / spacing - 0.5);
-        let (i0, j0) = (gx.floor(), gz.floor());
-        let (fx, fz) = (gx - i0, gz - j0);
-        let max_i = f64::from(nx) * f64::from(res) - 1.0;
-        let max_j = f64::from(ny) * f64::from(res) - 1.0;
-        let sample = |i: f64, j: f64| -> Option<f64> {
-            #[expect(clippy::cast_possible_truncation, reason = "clamped into the grid's u32 range")]
-            let (i, j) = (i.clamp(0.0, max_i) as u32, j.clamp(0.0, max_j) as u32);
-            let key = TileKey::new(layer, lod, i / res, j / res).ok()?;
-            let (tile, li, lj) = match self.cache.peek(key) {
-                Some(t) => (t, i % res, j % res),
-                // Neighbour not loaded: clamp to the home tile's edge.
-                None => {
-                    let t = self.cache.peek(home)?;
-                    let clamp = |g: u32, t0: u32| g.clamp(t0 * res, t0 * res + res - 1) - t0 * res;
-                    (t, clamp(i, home.x()), clamp(j, home.y()))
-                }
-            };
-            let v = tile.height(li + tile.border, lj + tile.border)?;
-            v.is_finite().then_some(f64::from(v))
-        };
-        let corners = [
-            (sample(i0, j0), (1.0 - fx) * (1.0 - fz)),
-            (sample(i0 + 1.0, j0), fx * (1.0 - fz)),
-            (sample(i0, j0 + 1.0), (1.0 - fx) * fz),
-            (sample(i0 + 1.0, j0 + 1.0), fx * fz),
-        ];
-        // Nodata corners drop out and the others are re-weighted.
-        let (sum, weight) = corners
-            .iter()
-            .filter_map(|(v, w)| v.map(|v| (v * w, *w)))
-            .fold((0.0, 0.0), |(s, ws), (v, w)| (s + v, ws + w));
-        (weight > 1e-12).then(|| sum / weight)
-    }
 }
 
 impl Drop for Streamer {
@@ -845,9 +753,9 @@ impl Drop for Streamer {
     }
 }
 
-struct Group {
-    rank: usize,
-    tiles: Vec<(TileKey, Option<TileLocation>)>,
+pub(super) struct Group {
+    pub(super) rank: usize,
+    pub(super) tiles: Vec<(TileKey, Option<TileLocation>)>,
 }
 
 impl Group {
@@ -857,24 +765,6 @@ impl Group {
         let end = locations.map(|l| l.offset + l.blob_len()).max().unwrap_or(0);
         (start, end)
     }
-}
-
-fn elevation_layer(metadata: &Metadata) -> Option<u8> {
-    let i = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation)?;
-    u8::try_from(i).ok()
-}
-
-/// The tile of `layer` at `lod` holding ground point `(x, z)`.
-fn tile_at(metadata: &Metadata, layer: u8, lod: u8, x: f64, z: f64) -> Option<TileKey> {
-    let info = metadata.layers.get(usize::from(layer))?;
-    let size = info.world_size_at(lod);
-    let (tx, tz) = ((x / size).floor(), (z / size).floor());
-    let (nx, ny) = info.grid_at(lod);
-    if !(tx >= 0.0 && tz >= 0.0 && tx < f64::from(nx) && tz < f64::from(ny)) {
-        return None;
-    }
-    #[expect(clippy::cast_possible_truncation, reason = "checked against the grid above")]
-    TileKey::new(layer, lod, tx as u32, tz as u32).ok()
 }
 
 /// Decodes one payload. A decoder that panics on some input (a bug: the decoders are
@@ -889,7 +779,7 @@ fn decode_guarded(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool)
 }
 
 /// Fetches a group of tiles (one request) and decodes them off the calling thread.
-async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generation: u64) -> Completion {
+pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generation: u64) -> Completion {
     let changed = |what| Completion::Changed { generation, what };
     let mut raw: Vec<(TileKey, std::result::Result<Option<Bytes>, String>)> = Vec::new();
     let (mut bytes, mut needed) = (0, 0);

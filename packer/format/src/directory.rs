@@ -148,12 +148,51 @@ impl Directory {
     /// # Errors
     /// [`Error::Corrupt`] / [`Error::OutOfBounds`] naming `section`.
     pub fn decode_raw(raw: &[u8], section: &str, data_len: u64, leaf_dirs_len: u64) -> Result<Self> {
-        let corrupt = |reason: String| Error::corrupt(section, reason);
         let mut c = Cursor::new(raw, section);
+        let columns = Columns::read(&mut c, raw.len(), section, data_len, leaf_dirs_len)?;
+        let trailing = |c: &Cursor<'_>| match c.remaining() {
+            0 => Ok(()),
+            n => Err(Error::corrupt(section, format!("{n} trailing bytes"))),
+        };
+        if columns.is_leaves() {
+            let leaves = columns.leaf_pointers(&mut c, section)?;
+            trailing(&c)?;
+            return Ok(Self::Leaves(leaves));
+        }
+        trailing(&c)?;
+        Ok(Self::Tiles(columns.tile_entries(section)?))
+    }
+
+    /// The entry addressing `key`, if this is a tile directory holding it.
+    pub fn find_tile(entries: &[Entry], key: u64) -> Option<Entry> {
+        let i = entries.partition_point(|e| e.key <= key).checked_sub(1)?;
+        let e = entries[i];
+        e.covers(key).then_some(e)
+    }
+
+    /// The leaf that may hold `key`.
+    pub fn find_leaf(leaves: &[LeafPointer], key: u64) -> Option<LeafPointer> {
+        let i = leaves.partition_point(|l| l.first_key <= key).checked_sub(1)?;
+        Some(leaves[i])
+    }
+}
+
+/// A directory's columns as stored (keys delta-coded, run lengths, lengths, offsets with
+/// "follows the previous" coded as 0), each checked on its own as it is read.
+struct Columns {
+    keys: Vec<u64>,
+    runs: Vec<u64>,
+    lengths: Vec<u32>,
+    offsets: Vec<u64>,
+}
+
+impl Columns {
+    fn read(c: &mut Cursor<'_>, total: usize, section: &str, data_len: u64, leaf_dirs_len: u64) -> Result<Self> {
+        let corrupt = |reason: String| Error::corrupt(section, reason);
         let n = c.varint()?;
         // Each entry takes at least 4 bytes (one per column): bound n before allocating.
         if n > (c.remaining() / 4) as u64 {
-            return Err(corrupt(format!("{n} entries cannot fit in {} bytes", raw.len())));
+            return Err(corrupt(format!("{n} entries cannot fit in {total} bytes")));
         }
         let n = usize::try_from(n).map_err(|_| corrupt("entry count overflows".into()))?;
         let mut keys = Vec::with_capacity(n);
@@ -201,35 +240,42 @@ impl Directory {
             offsets.push(offset);
             furthest_end = furthest_end.max(end);
         }
-        if is_leaves {
-            let mut leaves = Vec::with_capacity(n);
-            for i in 0..n {
-                if runs[i] != 0 {
-                    return Err(corrupt(format!("entry {i}: tile entry in a directory of leaf pointers")));
-                }
-                leaves.push(LeafPointer {
-                    first_key: keys[i],
-                    offset: offsets[i],
-                    length: lengths[i],
-                    crc: c.u32_le()?,
-                });
+        Ok(Self { keys, runs, lengths, offsets })
+    }
+
+    /// A directory of leaf pointers has a run length of 0 first (tile runs are at least 1).
+    fn is_leaves(&self) -> bool {
+        self.runs.first() == Some(&0)
+    }
+
+    /// The leaf pointers, each followed in the stream by its leaf's CRC32C.
+    fn leaf_pointers(&self, c: &mut Cursor<'_>, section: &str) -> Result<Vec<LeafPointer>> {
+        let mut leaves = Vec::with_capacity(self.keys.len());
+        for i in 0..self.keys.len() {
+            if self.runs[i] != 0 {
+                return Err(Error::corrupt(section, format!("entry {i}: tile entry in a directory of leaf pointers")));
             }
-            if c.remaining() != 0 {
-                return Err(corrupt(format!("{} trailing bytes", c.remaining())));
-            }
-            return Ok(Self::Leaves(leaves));
+            leaves.push(LeafPointer {
+                first_key: self.keys[i],
+                offset: self.offsets[i],
+                length: self.lengths[i],
+                crc: c.u32_le()?,
+            });
         }
-        if c.remaining() != 0 {
-            return Err(corrupt(format!("{} trailing bytes", c.remaining())));
-        }
-        let mut entries = Vec::with_capacity(n);
+        Ok(leaves)
+    }
+
+    /// The tile entries: runs within the key space, not overlapping.
+    fn tile_entries(&self, section: &str) -> Result<Vec<Entry>> {
+        let corrupt = |reason: String| Error::corrupt(section, reason);
+        let mut entries = Vec::with_capacity(self.keys.len());
         let mut previous_last: Option<u64> = None;
-        for i in 0..n {
-            let run_length = u32::try_from(runs[i])
+        for i in 0..self.keys.len() {
+            let run_length = u32::try_from(self.runs[i])
                 .ok()
                 .filter(|&r| r > 0)
-                .ok_or_else(|| corrupt(format!("entry {i}: run length {} out of range", runs[i])))?;
-            let entry = Entry { key: keys[i], run_length, offset: offsets[i], length: lengths[i] };
+                .ok_or_else(|| corrupt(format!("entry {i}: run length {} out of range", self.runs[i])))?;
+            let entry = Entry { key: self.keys[i], run_length, offset: self.offsets[i], length: self.lengths[i] };
             let span = (u64::from(run_length) - 1).checked_mul(MAX_LAYERS as u64);
             if span.and_then(|s| entry.key.checked_add(s)).is_none() {
                 return Err(corrupt(format!("entry {i}: run overflows the key space")));
@@ -240,20 +286,7 @@ impl Directory {
             previous_last = Some(entry.last_key());
             entries.push(entry);
         }
-        Ok(Self::Tiles(entries))
-    }
-
-    /// The entry addressing `key`, if this is a tile directory holding it.
-    pub fn find_tile(entries: &[Entry], key: u64) -> Option<Entry> {
-        let i = entries.partition_point(|e| e.key <= key).checked_sub(1)?;
-        let e = entries[i];
-        e.covers(key).then_some(e)
-    }
-
-    /// The leaf that may hold `key`.
-    pub fn find_leaf(leaves: &[LeafPointer], key: u64) -> Option<LeafPointer> {
-        let i = leaves.partition_point(|l| l.first_key <= key).checked_sub(1)?;
-        Some(leaves[i])
+        Ok(entries)
     }
 }
 

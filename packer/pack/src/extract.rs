@@ -4,15 +4,12 @@
 
 use std::path::{Path, PathBuf};
 
+use terrastream_format::{MAX_LAYERS, Metadata, PayloadCompression, RangeSource, Reader, TileKey, zstd_decompress};
+
 use crate::error::{Error, Result};
 use crate::import::original::metadata;
 use crate::import::{LayerNaming, LayoutRecord, XyzRecord};
 use crate::progress::Progress;
-use terrastream_format::RangeSource;
-use terrastream_format::Reader;
-use terrastream_format::zstd_decompress;
-use terrastream_format::{MAX_LAYERS, TileKey};
-use terrastream_format::{Metadata, PayloadCompression};
 
 /// Folder layout written by [`extract`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -6,8 +6,9 @@ use std::f64::consts::PI;
 use std::io::BufWriter;
 use std::path::Path;
 
-use crate::error::{Error, Result};
 use terrastream_format::levels_to_one;
+
+use crate::error::{Error, Result};
 
 /// Texture tiles across and down at LOD 0.
 pub const TEXTURE_GRID: (u32, u32) = (8, 6);

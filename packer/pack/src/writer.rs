@@ -14,14 +14,13 @@ use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
+use terrastream_format::{
+    BOOTSTRAP_READ, Compression, Directory, Entry, HEADER_LEN, Header, LeafPointer, MAX_LAYERS, Metadata,
+    PayloadCompression, Section, TILE_TRAILER_LEN, TileKey, VERSION_MINOR, crc32c,
+};
 
 use crate::compress::zstd_compress;
 use crate::error::{Error, Result};
-use terrastream_format::crc32c;
-use terrastream_format::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, Section, VERSION_MINOR};
-use terrastream_format::{Directory, Entry, LeafPointer, TILE_TRAILER_LEN};
-use terrastream_format::{MAX_LAYERS, TileKey};
-use terrastream_format::{Metadata, PayloadCompression};
 
 /// Tunables of the writer. The defaults suit archives from kilobytes to terabytes.
 #[derive(Clone, Debug)]

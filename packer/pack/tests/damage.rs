@@ -5,14 +5,13 @@ mod common;
 
 use std::io::Write;
 
+use common::{layer, metadata};
 use terrastream_format::{
     Compression, Directory, Entry, Error, FileSource, HEADER_LEN, Header, LeafPointer, MemorySource, MmapSource,
     Reader, Section, TileKey, crc32c, verify,
 };
 use terrastream_pack::zstd_compress;
 use terrastream_testkit::archives::tiny_archive;
-
-use common::{layer, metadata};
 
 /// Opens and fully verifies; Ok(()) only if the archive is sound.
 fn open_and_verify(bytes: Vec<u8>) -> Result<(), String> {

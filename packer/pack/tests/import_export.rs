@@ -5,14 +5,13 @@ mod common;
 
 use std::path::Path;
 
+use common::tree;
 use terrastream_format::{LayerKind, MmapSource, Reader, TileKey, verify};
 use terrastream_pack::extract::{Layout, extract};
 use terrastream_pack::import::{OriginalLayout, Scheme, XyzOptions, pack, scan_original, scan_xyz};
 use terrastream_pack::progress::{Progress, Silent};
 use terrastream_pack::sample::write_sample_pyramid;
 use terrastream_pack::{Error, WriterOptions};
-
-use common::tree;
 
 fn pack_dir(input: &Path, out: &Path) -> Reader<MmapSource> {
     let scanned = scan_original(input, &OriginalLayout::default()).unwrap();

@@ -5,14 +5,13 @@ mod common;
 
 use std::collections::BTreeMap;
 
+use common::{block_on, layer, metadata};
 use proptest::prelude::*;
 use terrastream_format::{
     ArchiveStats, AsyncReader, FileSource, MemorySource, MmapSource, PayloadCompression, RangeSource, Reader, TileKey,
     verify,
 };
 use terrastream_pack::{Writer, WriterOptions};
-
-use common::{block_on, layer, metadata};
 
 /// A random sparse pyramid: per layer a grid, per tile present / duplicate / unique payload.
 #[derive(Debug, Clone)]

@@ -17,12 +17,43 @@ use std::path::Path;
 use std::sync::{Arc, mpsc};
 
 use rayon::prelude::*;
-
-use crate::error::{Error, Result};
-use terrastream_format::Metadata;
-use terrastream_format::TileKey;
+use terrastream_format::{Metadata, TileKey};
 use terrastream_pack::Writer;
 use terrastream_pack::progress::Progress;
+
+use crate::error::{Error, Result};
+
+/// The samples of tile column `tx` of a band of `res + 2 * border` rows (`None`: above or
+/// below the raster): columns `tx * res - border .. tx * res + res + border`, clipped to the
+/// level's `width` and padded with no data outside it. `None` when the tile proper (the
+/// border aside) holds no data.
+fn tile_samples<S: Pixel>(
+    band: &[Option<Arc<Vec<S>>>],
+    tx: usize,
+    res: usize,
+    border: usize,
+    width: usize,
+) -> Option<Vec<S>> {
+    let edge = res + 2 * border;
+    let mut any = false;
+    let mut samples = Vec::with_capacity(edge * edge);
+    let (from, to) = ((tx * res).saturating_sub(border), (tx * res + res + border).min(width));
+    let pad_left = border.saturating_sub(tx * res);
+    let pad_right = edge - pad_left - (to - from);
+    for (j, row) in band.iter().enumerate() {
+        let Some(row) = row else {
+            samples.resize(samples.len() + edge, S::NONE);
+            continue;
+        };
+        if (border..border + res).contains(&j) {
+            any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
+        }
+        samples.resize(samples.len() + pad_left, S::NONE);
+        samples.extend_from_slice(&row[from..to]);
+        samples.resize(samples.len() + pad_right, S::NONE);
+    }
+    any.then_some(samples)
+}
 
 /// A sample of a pyramid: a height (NaN = nodata) or an RGBA8 pixel (alpha 0 = none).
 pub trait Pixel: Copy + Send + Sync + 'static {
@@ -401,29 +432,9 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
                 let tiles = (0..cols)
                     .into_par_iter()
                     .map(|tx| {
-                        let mut any = false;
-                        let mut samples = Vec::with_capacity(edge * edge);
-                        // Columns x0 - border .. x0 + res + border, clipped to the raster
-                        // and padded with no data outside it.
-                        let (from, to) = ((tx * res).saturating_sub(border), (tx * res + res + border).min(width));
-                        let pad_left = border.saturating_sub(tx * res);
-                        let pad_right = edge - pad_left - (to - from);
-                        for (j, row) in band.iter().enumerate() {
-                            let Some(row) = row else {
-                                samples.resize(samples.len() + edge, S::NONE);
-                                continue;
-                            };
-                            if (border..border + res).contains(&j) {
-                                any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
-                            }
-                            samples.resize(samples.len() + pad_left, S::NONE);
-                            samples.extend_from_slice(&row[from..to]);
-                            samples.resize(samples.len() + pad_right, S::NONE);
-                        }
+                        let samples = tile_samples(&band, tx, res, border, width);
                         progress.advance(1);
-                        if !any {
-                            return Ok(Vec::new());
-                        }
+                        let Some(samples) = samples else { return Ok(Vec::new()) };
                         let coordinate = |n: usize| {
                             u32::try_from(n).map_err(|_| Error::Pyramid {
                                 layer,

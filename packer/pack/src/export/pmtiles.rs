@@ -6,13 +6,12 @@ use std::collections::HashMap;
 use std::io::Write;
 use std::path::Path;
 
+use terrastream_format::{
+    Entry, Layer, MAX_LAYERS, Metadata, PayloadCompression, RangeSource, Reader, TileFormat, layer_of, tile_id_to_zxy,
+};
+
 use crate::error::{Error, Result};
 use crate::progress::Progress;
-use terrastream_format::Entry;
-use terrastream_format::RangeSource;
-use terrastream_format::Reader;
-use terrastream_format::{MAX_LAYERS, layer_of, tile_id_to_zxy};
-use terrastream_format::{PayloadCompression, TileFormat};
 
 const HEADER_LEN: u64 = 127;
 /// The root directory must end within the first 16 KiB.
@@ -126,26 +125,81 @@ pub fn export_pmtiles<S: RangeSource>(
         }
         Ok(())
     })?;
-    // New layout: blobs without our checksum trailer, back to back, first use first.
-    let mut new_offset: HashMap<u64, u64> = HashMap::new();
-    let mut data_len = 0u64;
-    let mut rows: Vec<Row> = Vec::with_capacity(entries.len());
-    let mut first_use = Vec::with_capacity(entries.len());
-    for e in &entries {
-        let fresh = !new_offset.contains_key(&e.offset);
-        let offset = *new_offset.entry(e.offset).or_insert_with(|| {
-            let o = data_len;
-            data_len += u64::from(e.length);
-            o
-        });
-        first_use.push(fresh);
-        rows.push((e.key / MAX_LAYERS as u64, e.run_length, offset, e.length));
+    let layout = Layout::of(&entries);
+    let (root, leaves) = directories(&layout.rows)?;
+    let metadata = metadata_json(meta, info)?;
+    let sections = [root.len(), metadata.len(), leaves.len()].map(|n| n as u64);
+    let header = header(&layout, sections, info, meta.georeference.as_ref().and_then(|g| g.lat_lon_bounds));
+
+    let folder = crate::writer::output_folder(out);
+    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
+        .tempfile_in(&folder)
+        .map_err(|e| Error::file(&folder, e))?;
+    let io = |e: std::io::Error| Error::file(out, e);
+    {
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, file.as_file_mut());
+        for part in [&header, &root, &metadata, &leaves] {
+            w.write_all(part).map_err(io)?;
+        }
+        progress.start("export", entries.len() as u64);
+        for (e, fresh) in entries.iter().zip(&layout.first_use) {
+            progress.check()?;
+            if *fresh {
+                w.write_all(&reader.entry_payload(e)?).map_err(io)?;
+            }
+            progress.advance(1);
+        }
+        w.flush().map_err(io)?;
     }
-    let (root, leaves) = directories(&rows)?;
-    let zooms: Vec<u8> = rows.iter().map(|r| tile_id_to_zxy(r.0).0).collect();
-    let (min_zoom, max_zoom) = (zooms.iter().copied().min().unwrap_or(0), zooms.iter().copied().max().unwrap_or(0));
-    let bounds =
-        meta.georeference.as_ref().and_then(|g| g.lat_lon_bounds).unwrap_or([-180.0, -85.051_13, 180.0, 85.051_13]);
+    file.as_file().sync_all().map_err(io)?;
+    file.persist(out).map_err(|e| Error::file(out, e.error))?;
+    Ok(PmtilesSummary {
+        addressed_tiles: layout.addressed(),
+        tile_entries: layout.rows.len() as u64,
+        tile_contents: layout.contents,
+        file_len: HEADER_LEN + sections.iter().sum::<u64>() + layout.data_len,
+    })
+}
+
+/// Where the layer's blobs go in the PMTiles file: without our checksum trailer, back to
+/// back, each at its first use.
+struct Layout {
+    /// One directory row per entry.
+    rows: Vec<Row>,
+    /// Per entry: is its blob written here (else it repeats an earlier one)?
+    first_use: Vec<bool>,
+    /// Bytes of tile data.
+    data_len: u64,
+    /// Distinct blobs.
+    contents: u64,
+}
+
+impl Layout {
+    fn of(entries: &[Entry]) -> Self {
+        let mut new_offset: HashMap<u64, u64> = HashMap::new();
+        let mut data_len = 0u64;
+        let mut rows: Vec<Row> = Vec::with_capacity(entries.len());
+        let mut first_use = Vec::with_capacity(entries.len());
+        for e in entries {
+            let fresh = !new_offset.contains_key(&e.offset);
+            let offset = *new_offset.entry(e.offset).or_insert_with(|| {
+                let o = data_len;
+                data_len += u64::from(e.length);
+                o
+            });
+            first_use.push(fresh);
+            rows.push((e.key / MAX_LAYERS as u64, e.run_length, offset, e.length));
+        }
+        Self { rows, first_use, data_len, contents: new_offset.len() as u64 }
+    }
+
+    fn addressed(&self) -> u64 {
+        self.rows.iter().map(|r| u64::from(r.1)).sum()
+    }
+}
+
+/// The PMTiles metadata: the usual fields plus ours (layer, terrain, georeference), gzipped.
+fn metadata_json(meta: &Metadata, info: &Layer) -> Result<Vec<u8>> {
     let json = serde_json::json!({
         "name": meta.name,
         "description": meta.description,
@@ -153,27 +207,34 @@ pub fn export_pmtiles<S: RangeSource>(
         "format": info.format.extension().replace("jpg", "jpeg"),
         "terrastream": { "layer": info, "terrain": meta.terrain, "georeference": meta.georeference },
     });
-    let metadata = gzip(&serde_json::to_vec(&json).map_err(|e| Error::metadata(&e))?)?;
+    gzip(&serde_json::to_vec(&json).map_err(|e| Error::metadata(&e))?)
+}
 
+/// The 127-byte PMTiles v3 header: sections (root, metadata, leaves) in that order after
+/// it, then the data; zooms, bounds (the world's Web Mercator range without them), centre.
+fn header(layout: &Layout, [root, metadata, leaves]: [u64; 3], info: &Layer, bounds: Option<[f64; 4]>) -> Vec<u8> {
+    let bounds = bounds.unwrap_or([-180.0, -85.051_13, 180.0, 85.051_13]);
+    let zooms = layout.rows.iter().map(|r| tile_id_to_zxy(r.0).0);
+    let (min_zoom, max_zoom) = (zooms.clone().min().unwrap_or(0), zooms.max().unwrap_or(0));
     let root_offset = HEADER_LEN;
-    let metadata_offset = root_offset + root.len() as u64;
-    let leaves_offset = metadata_offset + metadata.len() as u64;
-    let data_offset = leaves_offset + leaves.len() as u64;
+    let metadata_offset = root_offset + root;
+    let leaves_offset = metadata_offset + metadata;
+    let data_offset = leaves_offset + leaves;
     let mut h = Vec::with_capacity(127);
     h.extend_from_slice(b"PMTiles");
     h.push(3);
     for v in [
         root_offset,
-        root.len() as u64,
+        root,
         metadata_offset,
-        metadata.len() as u64,
+        metadata,
         leaves_offset,
-        leaves.len() as u64,
+        leaves,
         data_offset,
-        data_len,
-        rows.iter().map(|r| u64::from(r.1)).sum(),
-        rows.len() as u64,
-        new_offset.len() as u64,
+        layout.data_len,
+        layout.addressed(),
+        layout.rows.len() as u64,
+        layout.contents,
     ] {
         h.extend_from_slice(&v.to_le_bytes());
     }
@@ -192,34 +253,5 @@ pub fn export_pmtiles<S: RangeSource>(
     h.extend_from_slice(&e7((bounds[0] + bounds[2]) / 2.0).to_le_bytes());
     h.extend_from_slice(&e7((bounds[1] + bounds[3]) / 2.0).to_le_bytes());
     debug_assert_eq!(h.len(), 127);
-
-    let folder = crate::writer::output_folder(out);
-    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
-        .tempfile_in(&folder)
-        .map_err(|e| Error::file(&folder, e))?;
-    let io = |e: std::io::Error| Error::file(out, e);
-    {
-        let mut w = std::io::BufWriter::with_capacity(1 << 20, file.as_file_mut());
-        w.write_all(&h).map_err(io)?;
-        w.write_all(&root).map_err(io)?;
-        w.write_all(&metadata).map_err(io)?;
-        w.write_all(&leaves).map_err(io)?;
-        progress.start("export", entries.len() as u64);
-        for (e, fresh) in entries.iter().zip(first_use) {
-            progress.check()?;
-            if fresh {
-                w.write_all(&reader.entry_payload(e)?).map_err(io)?;
-            }
-            progress.advance(1);
-        }
-        w.flush().map_err(io)?;
-    }
-    file.as_file().sync_all().map_err(io)?;
-    file.persist(out).map_err(|e| Error::file(out, e.error))?;
-    Ok(PmtilesSummary {
-        addressed_tiles: rows.iter().map(|r| u64::from(r.1)).sum(),
-        tile_entries: rows.len() as u64,
-        tile_contents: new_offset.len() as u64,
-        file_len: data_offset + data_len,
-    })
+    h
 }

@@ -9,13 +9,12 @@
 use std::path::Path;
 
 use rusqlite::{Connection, OpenFlags, OptionalExtension};
+use terrastream_format::{MAX_LODS, TileFormat};
 
 use super::xyz::{TilesetInput, WebTile, pack_web_tiles};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, WriterOptions};
-use terrastream_format::MAX_LODS;
-use terrastream_format::TileFormat;
 
 /// Packs an MBTiles raster tileset at `input` into a one-layer archive at `out`.
 ///

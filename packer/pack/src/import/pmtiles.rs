@@ -9,14 +9,12 @@
 use std::io::Read;
 use std::path::Path;
 
+use terrastream_format::{Cursor, FileSource, MAX_LODS, RangeSource, TileFormat, tile_id_to_zxy};
+
 use super::xyz::{TilesetInput, WebTile, pack_web_tiles};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, WriterOptions};
-use terrastream_format::Cursor;
-use terrastream_format::TileFormat;
-use terrastream_format::{FileSource, RangeSource};
-use terrastream_format::{MAX_LODS, tile_id_to_zxy};
 
 /// Leaf directories nest at most this deep (the reference writer uses one level).
 pub const MAX_DEPTH: usize = 4;

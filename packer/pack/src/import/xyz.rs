@@ -4,15 +4,15 @@
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use terrastream_format::{
+    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, MAX_LODS, Metadata, PayloadCompression,
+    TileFormat, TileKey,
+};
 
 use super::{ScannedPyramid, image_size, walk_files};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, Writer, WriterOptions};
-use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
-};
-use terrastream_format::{MAX_LODS, TileKey};
 
 /// Row order of the tree.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

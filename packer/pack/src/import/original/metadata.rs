@@ -4,8 +4,9 @@
 
 use std::path::Path;
 
-use crate::error::{Error, Result};
 use terrastream_format::{Metadata, OriginalField};
+
+use crate::error::{Error, Result};
 
 const MODIFIERS: [&str; 8] = ["public", "private", "protected", "internal", "static", "readonly", "const", "volatile"];
 

@@ -6,15 +6,14 @@ pub(crate) mod metadata;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use metadata::number;
 use serde::{Deserialize, Serialize};
+use terrastream_format::{
+    ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey,
+};
 
 use super::{ScannedPyramid, image_size, split_stem, walk_files};
 use crate::error::{Error, Result};
-use metadata::number;
-use terrastream_format::TileKey;
-use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
-};
 
 /// Options of the original-layout importer.
 #[derive(Clone, Debug)]
@@ -189,7 +188,9 @@ pub fn scan_original(root: &Path, options: &OriginalLayout) -> Result<ScannedPyr
     ScannedPyramid::new(metadata, tiles)
 }
 
-type LayerScan = (Layer, LayerNaming, Vec<(u8, u32, u32, PathBuf)>);
+/// Tile files found: `(lod, x, y, path)`.
+type FoundTiles = Vec<(u8, u32, u32, PathBuf)>;
+type LayerScan = (Layer, LayerNaming, FoundTiles);
 
 fn scan_layer(
     kind: LayerKind,
@@ -198,8 +199,6 @@ fn scan_layer(
     fields: &[terrastream_format::OriginalField],
     options: &OriginalLayout,
 ) -> Result<LayerScan> {
-    let mut tiles = Vec::new();
-    let mut naming: Option<LayerNaming> = None;
     let layer_name = match kind {
         LayerKind::Elevation => "elevation",
         LayerKind::Normals => "normals",
@@ -207,55 +206,19 @@ fn scan_layer(
         LayerKind::HeightRange => "elevation-range",
         LayerKind::Texture => "texture",
     };
-    for (lod, lod_dir) in lod_folders(dir)? {
-        for path in walk_files(&lod_dir)? {
-            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-            if name.starts_with('.') || name.eq_ignore_ascii_case("thumbs.db") {
-                continue;
-            }
-            let (stem, ext) = name.rsplit_once('.').unwrap_or((name, ""));
-            let Some((prefix, a, separator, b, suffix)) = split_stem(stem) else {
-                return Err(Error::input(&path, "file name has no x and y numbers"));
-            };
-            let (x, y) = if options.swap_xy { (b, a) } else { (a, b) };
-            if naming.is_none() {
-                naming = Some(LayerNaming {
-                    layer: layer_name.into(),
-                    folder: folder.into(),
-                    prefix,
-                    separator,
-                    suffix,
-                    extension: ext.into(),
-                    swap_xy: options.swap_xy,
-                });
-            }
-            tiles.push((lod, x, y, path));
-        }
-    }
-    let Some(naming) = naming else {
-        return Err(Error::input(dir, "LOD folders hold no tile files"));
-    };
+    let (tiles, naming) = find_tiles(dir, layer_name, folder, options.swap_xy)?;
     let first = &tiles[0].3;
     let head = read_head(first)?;
     let format = TileFormat::sniff(&head).ok_or_else(|| Error::input(first, "not a PNG, JPEG or WebP image"))?;
     let (width, _) = image_size(&head).ok_or_else(|| Error::input(first, "cannot read the image size"))?;
-    let prefix = if kind == LayerKind::Elevation { "ELEVATIONS_" } else { "TEXTURES_" };
     let field =
         |texture: &str, elevation: &str| number(fields, if kind == LayerKind::Elevation { elevation } else { texture });
     let as_u32 = |v: Option<f64>| v.and_then(metadata::to_u32).filter(|&v| v >= 1);
 
     // Grid: the metadata's, else what the finest tiles found imply.
-    let mut implied = BTreeMap::<u8, (u32, u32)>::new();
-    for (lod, x, y, _) in &tiles {
-        let e = implied.entry(*lod).or_insert((0, 0));
-        let scale = 1u32.checked_shl(u32::from(*lod)).unwrap_or(u32::MAX);
-        e.0 = e.0.max(x.saturating_add(1).saturating_mul(scale));
-        e.1 = e.1.max(y.saturating_add(1).saturating_mul(scale));
-    }
-    let (found_x, found_y) = implied.values().fold((1, 1), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+    let (found_x, found_y, found_lods) = implied_grid(&tiles);
     let num_x_tiles = as_u32(field("TEXTURES_texturesNumXTiles", "ELEVATIONS_elevationsNumXTiles")).unwrap_or(found_x);
     let num_y_tiles = as_u32(field("TEXTURES_texturesNumYTiles", "ELEVATIONS_elevationsNumYTiles")).unwrap_or(found_y);
-    let found_lods = implied.keys().max().map_or(1, |m| m + 1);
     let meta_lods =
         as_u32(field("TEXTURES_numTextureLODS", "ELEVATIONS_numElevationLODS")).map_or(0, |n| n.min(255) as u8);
     let tile_resolution =
@@ -279,8 +242,8 @@ fn scan_layer(
     layer.num_lods = layer.num_lods.min(layer.depth());
     if kind == LayerKind::Elevation {
         let gray = format == TileFormat::Png && head.get(25).is_some_and(|&t| t == 0 || t == 4);
-        let min = number(fields, &format!("{prefix}minElevation")).unwrap_or(0.0);
-        let displacement = number(fields, &format!("{prefix}displacement")).unwrap_or(255.0);
+        let min = number(fields, "ELEVATIONS_minElevation").unwrap_or(0.0);
+        let displacement = number(fields, "ELEVATIONS_displacement").unwrap_or(255.0);
         layer.elevation = Some(ElevationEncoding {
             scheme: if gray { ElevationScheme::Gray8 } else { ElevationScheme::RgbThirds },
             scale: displacement,
@@ -289,6 +252,53 @@ fn scan_layer(
         });
     }
     Ok((layer, naming, tiles))
+}
+
+/// The tile files under a layer's LOD folders, `(lod, x, y, path)`, and how they are named
+/// (from the first one).
+fn find_tiles(dir: &Path, layer_name: &str, folder: &str, swap_xy: bool) -> Result<(FoundTiles, LayerNaming)> {
+    let mut tiles = Vec::new();
+    let mut naming: Option<LayerNaming> = None;
+    for (lod, lod_dir) in lod_folders(dir)? {
+        for path in walk_files(&lod_dir)? {
+            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+            if name.starts_with('.') || name.eq_ignore_ascii_case("thumbs.db") {
+                continue;
+            }
+            let (stem, ext) = name.rsplit_once('.').unwrap_or((name, ""));
+            let Some((prefix, a, separator, b, suffix)) = split_stem(stem) else {
+                return Err(Error::input(&path, "file name has no x and y numbers"));
+            };
+            let (x, y) = if swap_xy { (b, a) } else { (a, b) };
+            if naming.is_none() {
+                naming = Some(LayerNaming {
+                    layer: layer_name.into(),
+                    folder: folder.into(),
+                    prefix,
+                    separator,
+                    suffix,
+                    extension: ext.into(),
+                    swap_xy,
+                });
+            }
+            tiles.push((lod, x, y, path));
+        }
+    }
+    let naming = naming.ok_or_else(|| Error::input(dir, "LOD folders hold no tile files"))?;
+    Ok((tiles, naming))
+}
+
+/// The LOD-0 grid (tiles across and down) and LOD count that the tiles found imply.
+fn implied_grid(tiles: &FoundTiles) -> (u32, u32, u8) {
+    let mut implied = BTreeMap::<u8, (u32, u32)>::new();
+    for (lod, x, y, _) in tiles {
+        let e = implied.entry(*lod).or_insert((0, 0));
+        let scale = 1u32.checked_shl(u32::from(*lod)).unwrap_or(u32::MAX);
+        e.0 = e.0.max(x.saturating_add(1).saturating_mul(scale));
+        e.1 = e.1.max(y.saturating_add(1).saturating_mul(scale));
+    }
+    let (found_x, found_y) = implied.values().fold((1, 1), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+    (found_x, found_y, implied.keys().max().map_or(1, |m| m + 1))
 }
 
 /// The first bytes of a file: enough for format and size sniffing.

@@ -1,0 +1,153 @@
+//! Height queries on what a [`Streamer`] has loaded: bilinear heights and normals from the
+//! finest elevation in the cache, and exact LOD-0 heights fetched on demand.
+
+use terrastream_format::{LayerKind, Metadata, TileKey};
+#[cfg(not(target_arch = "wasm32"))]
+use web_time::Instant;
+
+#[cfg(not(target_arch = "wasm32"))]
+use super::origin::Backend;
+use super::streamer::Streamer;
+#[cfg(not(target_arch = "wasm32"))]
+use super::streamer::{Completion, Group, fetch_and_decode};
+#[cfg(not(target_arch = "wasm32"))]
+use crate::error::{Error, Result};
+
+impl Streamer {
+    /// Height in world units at ground position `(x, z)`, bilinear over the finest
+    /// elevation LOD in the cache (sample `i` of a LOD at `(i + 0.5)` spacings, as the
+    /// renderer samples); `None` where nothing is loaded or the data has no value.
+    pub fn height_at(&self, x: f64, z: f64) -> Option<f64> {
+        let (layer, lod) = self.best_elevation(x, z)?;
+        self.sample_height(layer, lod, x, z)
+    }
+
+    /// Unit surface normal at `(x, z)` from the same data as [`Self::height_at`].
+    pub fn normal_at(&self, x: f64, z: f64) -> Option<[f64; 3]> {
+        let (layer, lod) = self.best_elevation(x, z)?;
+        let info = &self.metadata()?.layers[usize::from(layer)];
+        let h = info.world_size_at(lod) / f64::from(info.tile_resolution);
+        let at = |dx: f64, dz: f64| self.sample_height(layer, lod, x + dx, z + dz);
+        let (l, r, u, d) = (at(-h, 0.0)?, at(h, 0.0)?, at(0.0, -h)?, at(0.0, h)?);
+        let n = glam::DVec3::new(-(r - l) / (2.0 * h), 1.0, -(d - u) / (2.0 * h)).normalize();
+        Some(n.to_array())
+    }
+
+    /// Like [`Self::height_at`] but from LOD 0, fetching the tiles around `(x, z)` now if
+    /// they are not loaded (blocks; not for a frame loop).
+    ///
+    /// # Errors
+    /// The origin's error, [`Error::NotOpen`], [`Error::NoLayer`] when there is no elevation
+    /// layer, [`Error::Outside`] when the point is outside it, [`Error::TileLoad`].
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn height_at_exact(&mut self, x: f64, z: f64) -> Result<Option<f64>> {
+        let backend = self.backend().cloned().ok_or_else(|| Error::NotOpen { why: self.last_error.clone() })?;
+        let metadata = backend.metadata();
+        let layer = elevation_layer(metadata).ok_or(Error::NoLayer { kind: "elevation" })?;
+        let info = &metadata.layers[usize::from(layer)];
+        let spacing = info.tile_world_size / f64::from(info.tile_resolution);
+        // The (up to) four tiles holding the bilinear footprint.
+        let mut keys = Vec::new();
+        for (dx, dz) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
+            if let Some(key) = tile_at(metadata, layer, 0, x + dx * spacing, z + dz * spacing) {
+                if !keys.contains(&key) && !self.cache.contains(key) {
+                    keys.push(key);
+                }
+            }
+        }
+        if tile_at(metadata, layer, 0, x, z).is_none() {
+            return Err(Error::Outside { layer: info.name.clone(), x, z });
+        }
+        for key in keys {
+            let location = match &backend {
+                Backend::Archive(reader) => match self.runtime.block_on(reader.locate(key))? {
+                    Some(location) => Some(location),
+                    None => continue,
+                },
+                Backend::Endpoint(..) | Backend::Host(_) => None,
+            };
+            let group = Group { rank: 0, tiles: vec![(key, location)] };
+            // Fetched and taken in as the frame loop's requests are.
+            match self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation)) {
+                Completion::Tiles { results, .. } => {
+                    if let Some((key, reason)) = self.absorb(results, Instant::now()) {
+                        return Err(Error::TileLoad { key, reason });
+                    }
+                }
+                Completion::Changed { what, .. } => return Err(Error::Changed { what }),
+                Completion::Opened { .. } | Completion::Leaf { .. } => {}
+            }
+        }
+        Ok(self.sample_height(layer, 0, x, z))
+    }
+
+    fn best_elevation(&self, x: f64, z: f64) -> Option<(u8, u8)> {
+        let metadata = self.metadata()?;
+        let layer = elevation_layer(metadata)?;
+        let num_lods = metadata.layers[usize::from(layer)].num_lods;
+        (0..num_lods).find_map(|lod| {
+            let key = tile_at(metadata, layer, lod, x, z)?;
+            self.cache.contains(key).then_some((layer, lod))
+        })
+    }
+
+    fn sample_height(&self, layer: u8, lod: u8, x: f64, z: f64) -> Option<f64> {
+        let metadata = self.metadata()?;
+        let info = &metadata.layers[usize::from(layer)];
+        let res = info.tile_resolution;
+        let spacing = info.world_size_at(lod) / f64::from(res);
+        let (nx, ny) = info.grid_at(lod);
+        let home = tile_at(metadata, layer, lod, x, z)?;
+        let (gx, gz) = (x / spacing - 0.5, z / spacing - 0.5);
+        let (i0, j0) = (gx.floor(), gz.floor());
+        let (fx, fz) = (gx - i0, gz - j0);
+        let max_i = f64::from(nx) * f64::from(res) - 1.0;
+        let max_j = f64::from(ny) * f64::from(res) - 1.0;
+        let sample = |i: f64, j: f64| -> Option<f64> {
+            #[expect(clippy::cast_possible_truncation, reason = "clamped into the grid's u32 range")]
+            let (i, j) = (i.clamp(0.0, max_i) as u32, j.clamp(0.0, max_j) as u32);
+            let key = TileKey::new(layer, lod, i / res, j / res).ok()?;
+            let (tile, li, lj) = match self.cache.peek(key) {
+                Some(t) => (t, i % res, j % res),
+                // Neighbour not loaded: clamp to the home tile's edge.
+                None => {
+                    let t = self.cache.peek(home)?;
+                    let clamp = |g: u32, t0: u32| g.clamp(t0 * res, t0 * res + res - 1) - t0 * res;
+                    (t, clamp(i, home.x()), clamp(j, home.y()))
+                }
+            };
+            let v = tile.height(li + tile.border, lj + tile.border)?;
+            v.is_finite().then_some(f64::from(v))
+        };
+        let corners = [
+            (sample(i0, j0), (1.0 - fx) * (1.0 - fz)),
+            (sample(i0 + 1.0, j0), fx * (1.0 - fz)),
+            (sample(i0, j0 + 1.0), (1.0 - fx) * fz),
+            (sample(i0 + 1.0, j0 + 1.0), fx * fz),
+        ];
+        // Nodata corners drop out and the others are re-weighted.
+        let (sum, weight) = corners
+            .iter()
+            .filter_map(|(v, w)| v.map(|v| (v * w, *w)))
+            .fold((0.0, 0.0), |(s, ws), (v, w)| (s + v, ws + w));
+        (weight > 1e-12).then(|| sum / weight)
+    }
+}
+
+fn elevation_layer(metadata: &Metadata) -> Option<u8> {
+    let i = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation)?;
+    u8::try_from(i).ok()
+}
+
+/// The tile of `layer` at `lod` holding ground point `(x, z)`.
+fn tile_at(metadata: &Metadata, layer: u8, lod: u8, x: f64, z: f64) -> Option<TileKey> {
+    let info = metadata.layers.get(usize::from(layer))?;
+    let size = info.world_size_at(lod);
+    let (tx, tz) = ((x / size).floor(), (z / size).floor());
+    let (nx, ny) = info.grid_at(lod);
+    if !(tx >= 0.0 && tz >= 0.0 && tx < f64::from(nx) && tz < f64::from(ny)) {
+        return None;
+    }
+    #[expect(clippy::cast_possible_truncation, reason = "checked against the grid above")]
+    TileKey::new(layer, lod, tx as u32, tz as u32).ok()
+}
