@@ -9,9 +9,10 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
 # System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS),
 # Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests, Chromium +
-# chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's.
+# chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's, and
+# GDAL + PROJ command-line tools as independent oracles for georeferencing and reprojection.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then

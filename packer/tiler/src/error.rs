@@ -23,6 +23,14 @@ pub enum Error {
         /// What is allowed.
         allowed: &'static str,
     },
+    /// A coordinate reference system the tiler cannot use.
+    #[error("unknown CRS {crs}: {reason}")]
+    UnknownCrs {
+        /// The CRS as given.
+        crs: String,
+        /// Why it cannot be used.
+        reason: String,
+    },
     /// Neither an elevation raster nor a texture image was given.
     #[error("nothing to tile: give an elevation raster, a texture image or both")]
     NothingToTile,

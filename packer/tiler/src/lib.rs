@@ -18,6 +18,7 @@
 //! PNG, JPEG, lossless WebP, or GPU-ready BC1/BC7 blocks (zstd).
 
 mod bc;
+pub mod crs;
 mod encode;
 mod error;
 mod options;
@@ -26,6 +27,7 @@ pub mod pyramid;
 pub mod raster;
 mod tile;
 
+pub use crs::{Crs, Transform};
 pub use error::{Error, Result};
 pub use options::{ElevationStorage, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};

@@ -1,0 +1,146 @@
+//! Coordinate reference systems: EPSG codes to definitions, and transforms between them.
+//!
+//! Pure Rust ([`proj4rs`] with the EPSG table of `crs-definitions`), so it builds for every
+//! target the tiler does and needs no system library; PROJ's command-line tools are the
+//! tests' oracle. Where the EPSG table's definition leaves out the datum shift to WGS 84 of
+//! a national grid, the shift PROJ itself applies without transformation grids is added
+//! ([`DATUM_SHIFTS`]).
+
+use std::fmt;
+
+use proj4rs::Proj;
+
+use crate::error::{Error, Result};
+
+/// Datum shifts (`+towgs84`, metres and arc-seconds) for definitions of the EPSG table
+/// that omit them: the Helmert transformations PROJ uses for these grids when no grid
+/// files are installed.
+pub const DATUM_SHIFTS: &[(u16, &str)] = &[
+    // CH1903+ / LV95: "CH1903+ to WGS 84 (1)", EPSG:1676.
+    (2056, "+towgs84=674.374,15.056,405.346,0,0,0,0"),
+    // CH1903 / LV03: "CH1903 to WGS 84 (1)", EPSG:1753.
+    (21781, "+towgs84=674.4,15.1,405.3,0,0,0,0"),
+    // OSGB36 / British National Grid: "OSGB36 to WGS 84 (6)", EPSG:1314.
+    (27700, "+towgs84=446.448,-125.157,542.06,0.15,0.247,0.842,-20.489"),
+];
+
+/// A coordinate reference system.
+#[derive(Clone)]
+pub struct Crs {
+    code: Option<u16>,
+    definition: String,
+    proj: Proj,
+}
+
+impl fmt::Debug for Crs {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Crs").field("code", &self.code).field("definition", &self.definition).finish()
+    }
+}
+
+impl PartialEq for Crs {
+    fn eq(&self, other: &Self) -> bool {
+        self.definition == other.definition
+    }
+}
+
+impl Crs {
+    /// The CRS of an EPSG code.
+    ///
+    /// # Errors
+    /// [`Error::UnknownCrs`] for a code the table does not hold or a projection the
+    /// library does not implement.
+    pub fn epsg(code: u16) -> Result<Self> {
+        let def = crs_definitions::from_code(code)
+            .ok_or_else(|| Error::UnknownCrs { crs: format!("EPSG:{code}"), reason: "not in the EPSG table".into() })?;
+        let mut definition = def.proj4.replace(" +type=crs", "");
+        if let Some((_, shift)) = DATUM_SHIFTS.iter().find(|(c, _)| *c == code) {
+            definition = format!("{definition} {shift}");
+        }
+        let proj = Proj::from_proj_string(&definition)
+            .map_err(|e| Error::UnknownCrs { crs: format!("EPSG:{code}"), reason: e.to_string() })?;
+        Ok(Self { code: Some(code), definition, proj })
+    }
+
+    /// A CRS as a user or a file names it: `EPSG:32610` (or a bare code) or a PROJ string.
+    ///
+    /// # Errors
+    /// [`Error::UnknownCrs`] naming the text.
+    pub fn parse(text: &str) -> Result<Self> {
+        let t = text.trim();
+        let code = t.strip_prefix("EPSG:").or_else(|| t.strip_prefix("epsg:")).unwrap_or(t);
+        if let Ok(code) = code.parse::<u16>() {
+            return Self::epsg(code);
+        }
+        if t.starts_with('+') {
+            let proj = Proj::from_proj_string(t)
+                .map_err(|e| Error::UnknownCrs { crs: t.to_owned(), reason: e.to_string() })?;
+            return Ok(Self { code: None, definition: t.to_owned(), proj });
+        }
+        Err(Error::UnknownCrs { crs: t.to_owned(), reason: "neither EPSG:<code> nor a PROJ string".into() })
+    }
+
+    /// WGS 84 longitude and latitude (EPSG:4326).
+    pub fn wgs84() -> Self {
+        let definition = "+proj=longlat +datum=WGS84 +no_defs".to_owned();
+        #[expect(clippy::expect_used, reason = "a constant definition the library parses")]
+        let proj = Proj::from_proj_string(&definition).expect("the WGS 84 definition parses");
+        Self { code: Some(4326), definition, proj }
+    }
+
+    /// A transverse Mercator on WGS 84 centred on `(lon, lat)` (scale 1, no false origin):
+    /// metres that are metres across a region, for data given in degrees.
+    pub fn local_transverse_mercator(lon: f64, lat: f64) -> Self {
+        let definition =
+            format!("+proj=tmerc +lat_0={lat:.9} +lon_0={lon:.9} +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs");
+        #[expect(clippy::expect_used, reason = "a transverse Mercator with finite parameters parses")]
+        let proj = Proj::from_proj_string(&definition).expect("a transverse Mercator definition parses");
+        Self { code: None, definition, proj }
+    }
+
+    /// The EPSG code, when the CRS has one.
+    pub fn code(&self) -> Option<u16> {
+        self.code
+    }
+
+    /// The PROJ definition.
+    pub fn definition(&self) -> &str {
+        &self.definition
+    }
+
+    /// Longitude and latitude (degrees), not metres?
+    pub fn is_geographic(&self) -> bool {
+        self.proj.is_latlong()
+    }
+
+    /// `EPSG:code`, or the definition.
+    pub fn name(&self) -> String {
+        self.code.map_or_else(|| self.definition.clone(), |c| format!("EPSG:{c}"))
+    }
+}
+
+/// A transform from one CRS to another; geographic coordinates in degrees (x = longitude).
+#[derive(Clone, Debug)]
+pub struct Transform {
+    from: Crs,
+    to: Crs,
+    identity: bool,
+}
+
+impl Transform {
+    /// From `from` to `to`.
+    pub fn new(from: &Crs, to: &Crs) -> Self {
+        Self { identity: from == to, from: from.clone(), to: to.clone() }
+    }
+
+    /// `(x, y)` in `to`; `None` where the point has no image (outside a projection's domain).
+    pub fn apply(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        if self.identity {
+            return Some((x, y));
+        }
+        let mut p = if self.from.is_geographic() { (x.to_radians(), y.to_radians(), 0.0) } else { (x, y, 0.0) };
+        proj4rs::transform::transform(&self.from.proj, &self.to.proj, &mut p).ok()?;
+        let out = if self.to.is_geographic() { (p.0.to_degrees(), p.1.to_degrees()) } else { (p.0, p.1) };
+        (out.0.is_finite() && out.1.is_finite()).then_some(out)
+    }
+}
