@@ -7,7 +7,7 @@ use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme};
 use terrastream_tiler::{
-    ElevationSource, ElevationStorage, ImageSource, ImageWindow, TextureFormat, TextureInput, TileOptions,
+    ElevationSource, ElevationStorage, ImageSource, ImageWindow, TextureFormat, TextureInput, TileOptions, Warped,
     open_elevation, open_image, plan, tile_terrain,
 };
 
@@ -164,8 +164,21 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         let (x, y, width, height) = w.bounds();
         tracing::info!("texture: pixels {x}..{}, {y}..{} of the image lie over the elevation", x + width, y + height);
     }
+    // Georeferenced in another CRS: resampled onto the elevation by both georeferences.
+    let warped = match (elevation, &image) {
+        (Some(e), Some(i)) => Warped::over(e, i)?,
+        _ => None,
+    };
+    if let Some(w) = &warped {
+        let (width, height) = w.size();
+        tracing::info!("texture: reprojected onto the elevation's extent, {width}x{height} texels");
+    }
     let texture = image.as_ref().map(|image| TextureInput {
-        source: window.as_ref().map_or(image as &dyn ImageSource, |w| w as &dyn ImageSource),
+        source: match (&warped, &window) {
+            (Some(w), _) => w as &dyn ImageSource,
+            (None, Some(w)) => w as &dyn ImageSource,
+            (None, None) => image as &dyn ImageSource,
+        },
         tile_size: args.texture_tile_size,
         format,
         pixel_size: args.pixel_size,

@@ -175,6 +175,18 @@ fn plan_texture(
             return Err(Error::option("--jpeg-quality", q, "1..=100"));
         }
     }
+    // An image that says where it lies is placed by it, never by a guess: in another CRS
+    // than the elevation it must come warped onto the elevation's extent (`Warped`).
+    if let (Some(e), Some(image_crs)) = (elevation, t.source.georeference().and_then(|g| g.crs.as_deref())) {
+        if let Some(dem_crs) = e.georeference().and_then(|g| g.crs.as_deref()).filter(|c| *c != image_crs) {
+            return Err(Error::input(
+                path,
+                format!(
+                    "the image lies in {image_crs}, the elevation in {dem_crs}: warp it onto the elevation (Warped::over)"
+                ),
+            ));
+        }
+    }
     let (fw, fh) = (f64::from(w), f64::from(h));
     let (width, world_width) = match extent {
         Some((ex, ez, grid_aspect)) => {

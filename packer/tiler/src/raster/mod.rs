@@ -14,6 +14,7 @@ mod jpeg;
 mod memory;
 mod png;
 mod tiff;
+mod warp;
 
 use std::path::Path;
 
@@ -30,6 +31,7 @@ pub use jpeg::JPEG_MAX_DECODED_BYTES;
 #[cfg(test)]
 pub(crate) use jpeg::jpeg_fits;
 pub use memory::{Image, ImageWindow, Raster};
+pub use warp::Warped;
 
 /// Rows of heights: the elevation input of the tiler.
 pub trait ElevationSource: Sync {

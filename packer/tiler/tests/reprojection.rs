@@ -1,0 +1,167 @@
+//! Elevation and imagery in different CRSs line up: a DEM in EPSG:4326 and an image of the
+//! same place in UTM zone 33N, made from a geographic image by GDAL's `gdalwarp` (Debian
+//! `gdal-bin`, the independent oracle), with a red mark painted at a known longitude and
+//! latitude. After tiling, the mark lies on the texel where that longitude and latitude
+//! lie, within one texel; the unwarped image is refused, never stretched.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::cast_possible_truncation,
+    clippy::cast_sign_loss,
+    missing_docs
+)]
+
+use std::path::Path;
+use std::process::Command;
+
+use terrastream_format::{LayerKind, Reader, TileKey};
+use terrastream_pack::progress::Silent;
+use terrastream_tiler::{
+    ElevationSource, ImageSource, TextureFormat, TextureInput, TileOptions, Warped, open_elevation, open_image,
+    tile_terrain,
+};
+use tiff::encoder::{TiffEncoder, colortype};
+use tiff::tags::Tag;
+
+/// The DEM: west, north, degrees per sample, samples across and down.
+const DEM: (f64, f64, f64, u32, u32) = (12.40, 45.48, 0.0005, 240, 160);
+/// The source image (wider than the DEM; pixels of about 4 x 5.5 m, so that GDAL's own
+/// resampling to 15 m moves the mark by well under a texel): west, north, degrees per
+/// pixel, size.
+const IMAGE: (f64, f64, f64, u32, u32) = (12.39, 45.49, 0.00005, 2800, 1900);
+/// The mark's longitude and latitude.
+const MARK: (f64, f64) = (12.4637, 45.4419);
+
+fn geotiff_tags(
+    image: &mut tiff::encoder::DirectoryEncoder<'_, std::fs::File, tiff::encoder::TiffKindStandard>,
+    west: f64,
+    north: f64,
+    step: f64,
+) {
+    image.write_tag(Tag::Unknown(33550), &[step, step, 0.0][..]).unwrap();
+    image.write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, west, north, 0.0][..]).unwrap();
+    image.write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326][..]).unwrap();
+}
+
+fn write_dem(path: &Path) {
+    let (west, north, step, w, h) = DEM;
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<colortype::Gray32Float>(w, h).unwrap();
+    geotiff_tags(image.encoder(), west, north, step);
+    let data: Vec<f32> =
+        (0..h).flat_map(|j| (0..w).map(move |i| 10.0 + (i as f32 * 0.05).sin() * 20.0 + j as f32 * 0.3)).collect();
+    image.write_data(&data).unwrap();
+}
+
+fn write_marked_image(path: &Path) {
+    let (west, north, step, w, h) = IMAGE;
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<colortype::RGB8>(w, h).unwrap();
+    geotiff_tags(image.encoder(), west, north, step);
+    let (mi, mj) = ((MARK.0 - west) / step, (north - MARK.1) / step);
+    let data: Vec<u8> = (0..h)
+        .flat_map(|j| (0..w).map(move |i| (i, j)))
+        .flat_map(|(i, j)| {
+            let near = (f64::from(i) + 0.5 - mi).abs() <= 12.0 && (f64::from(j) + 0.5 - mj).abs() <= 12.0;
+            if near { [255, 0, 0] } else { [60, 90 + (i % 50) as u8, 60 + (j % 50) as u8] }
+        })
+        .collect();
+    image.write_data(&data).unwrap();
+}
+
+fn gdalwarp() -> bool {
+    if Command::new("gdalwarp").arg("--version").output().is_ok() {
+        return true;
+    }
+    assert!(std::env::var_os("CI").is_none(), "gdalwarp is not installed (apt-get install gdal-bin)");
+    eprintln!("\n*** SKIPPING: gdalwarp is not installed (apt-get install gdal-bin) ***\n");
+    false
+}
+
+#[test]
+fn an_image_in_another_crs_is_placed_by_its_georeference() {
+    if !gdalwarp() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, geographic, utm, out) = (
+        dir.path().join("dem.tif"),
+        dir.path().join("image-4326.tif"),
+        dir.path().join("image-32633.tif"),
+        dir.path().join("t.tspack"),
+    );
+    write_dem(&dem);
+    write_marked_image(&geographic);
+    let status = Command::new("gdalwarp")
+        .args(["-q", "-t_srs", "EPSG:32633", "-r", "bilinear", "-tr", "15", "15"])
+        .arg(&geographic)
+        .arg(&utm)
+        .status()
+        .unwrap();
+    assert!(status.success(), "gdalwarp failed");
+
+    let elevation = open_elevation(&dem, None).unwrap();
+    let image = open_image(&utm).unwrap();
+    assert_eq!(image.georeference().and_then(|g| g.crs.as_deref()), Some("EPSG:32633"));
+    // Not warped: refused, naming the image, instead of stretched over the DEM.
+    let raw = TextureInput { source: &image, tile_size: 128, format: TextureFormat::Png, pixel_size: 1.0 };
+    let err =
+        tile_terrain(Some(&elevation), Some(raw), "t", &out, TileOptions::default(), &Silent::default()).unwrap_err();
+    assert!(err.to_string().contains("image-32633.tif") && err.to_string().contains("EPSG:32633"), "{err}");
+    assert!(!out.exists());
+
+    let warped = Warped::over(&elevation, &image).unwrap().expect("different CRSs: warped");
+    let texture = TextureInput { source: &warped, tile_size: 128, format: TextureFormat::Png, pixel_size: 1.0 };
+    tile_terrain(Some(&elevation), Some(texture), "t", &out, TileOptions::default(), &Silent::default()).unwrap();
+
+    // Where the red texels are, in texels of LOD 0 of the texture layer.
+    let reader = Reader::open_mmap(&out).unwrap();
+    let meta = reader.metadata();
+    let index = meta.layers.iter().position(|l| l.kind == LayerKind::Texture).unwrap();
+    let layer = &meta.layers[index];
+    let res = layer.tile_resolution;
+    let (mut sum, mut n) = ((0.0, 0.0), 0.0);
+    for ty in 0..layer.num_y_tiles {
+        for tx in 0..layer.num_x_tiles {
+            let Some(png) = reader.tile(TileKey::new(index as u8, 0, tx, ty).unwrap()).unwrap() else { continue };
+            let mut decoder = png::Decoder::new(std::io::Cursor::new(png.to_vec()));
+            decoder.set_transformations(png::Transformations::EXPAND);
+            let mut r = decoder.read_info().unwrap();
+            let mut buf = vec![0; r.output_buffer_size().unwrap()];
+            let info = r.next_frame(&mut buf).unwrap();
+            let channels = info.color_type.samples();
+            // Tiles carry a border of `layer.border` texels on each side.
+            let (edge, border) = (info.width, u32::from(layer.border));
+            for j in 0..res {
+                for i in 0..res {
+                    let p = &buf[(((j + border) * edge + i + border) as usize) * channels..][..3];
+                    if p[0] > 200 && p[1] < 60 && p[2] < 60 {
+                        sum.0 += f64::from(tx * res + i) + 0.5;
+                        sum.1 += f64::from(ty * res + j) + 0.5;
+                        n += 1.0;
+                    }
+                }
+            }
+        }
+    }
+    assert!(n > 0.0, "the mark is not in the texture");
+    let found = (sum.0 / n, sum.1 / n);
+    // The texture spans the DEM's extent, linear in longitude and latitude.
+    let (west, north, step, w, h) = DEM;
+    // The tiler squares samples and texels in metres: the elevation is resampled along x
+    // to `w * sx / sy` samples, the texture to the same aspect.
+    let (sx, sy) = elevation.spacing();
+    let squared = (f64::from(w) * sx / sy).round();
+    let th = warped.size().1;
+    let tw = (f64::from(th) * squared / f64::from(h)).round() as u32;
+    let expected = (
+        (MARK.0 - west) / (step * f64::from(w)) * f64::from(tw),
+        (north - MARK.1) / (step * f64::from(h)) * f64::from(th),
+    );
+    let off = ((found.0 - expected.0).powi(2) + (found.1 - expected.1).powi(2)).sqrt();
+    eprintln!("the mark lies {off:.2} texels from its longitude and latitude");
+    assert!(
+        off <= 1.0,
+        "the mark lies at texel {found:?}, its longitude and latitude at {expected:?}: {off:.2} texels apart"
+    );
+}
