@@ -7,19 +7,28 @@ use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme};
 use terrastream_tiler::{
-    ElevationSource, ElevationStorage, ImageSource, ImageWindow, TextureFormat, TextureInput, TileOptions, Warped,
-    open_elevation, open_image, plan, tile_terrain,
+    Crs, ElevationSource, ElevationStorage, ImageSource, ImageWindow, Mosaic, MosaicOptions, TextureFormat,
+    TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image, plan, tile_terrain,
 };
 
 use super::progress::CliProgress;
 
 #[derive(Debug, Args)]
 pub struct TileArgs {
-    /// Elevation raster: a single-band GeoTIFF (int/uint 8-32, float32/64; strips or tiles;
-    /// none, LZW or Deflate; GDAL nodata) or a PNG (16-bit gray heights, or 8-bit pixels in an
-    /// `--elevation-encoding`; transparent = nodata).
-    #[arg(long, required_unless_present = "texture")]
-    elevation: Option<PathBuf>,
+    /// Elevation rasters: single-band GeoTIFFs (int/uint 8-32, float32/64; strips or tiles;
+    /// none, LZW or Deflate; GDAL nodata), folders of them (recursive), or patterns
+    /// (`tiles/*.tif`); or one PNG (16-bit gray heights, or 8-bit pixels in an
+    /// `--elevation-encoding`; transparent = nodata). Several inputs, in any CRS, are
+    /// mosaicked onto one grid: a later input wins where it has data; gaps are nodata.
+    #[arg(long, num_args = 1.., required_unless_present = "texture")]
+    elevation: Vec<PathBuf>,
+    /// Output CRS of a mosaic (`EPSG:32633`, or a PROJ string). Default: the first
+    /// input's if projected, else a transverse Mercator centred on the data.
+    #[arg(long)]
+    crs: Option<String>,
+    /// Output sample spacing of a mosaic, in metres. Default: the finest input's.
+    #[arg(long)]
+    resolution: Option<f64>,
     /// How the elevation's pixels map to heights. `auto`: GeoTIFF samples and 16-bit PNG
     /// values are heights (times `--height-step`, plus `--min-elevation`).
     #[arg(long, value_enum, default_value_t = EncodingArg::Auto)]
@@ -130,7 +139,18 @@ impl TileArgs {
 }
 
 pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let elevation = match &args.elevation {
+    let inputs = expand_inputs(&args.elevation)?;
+    // Several inputs, or a CRS or spacing asked for: one mosaic on one output grid.
+    let mosaic = if inputs.len() > 1 || args.crs.is_some() || args.resolution.is_some() {
+        let crs = args.crs.as_deref().map(Crs::parse).transpose()?;
+        let mosaic = Mosaic::open(&inputs, &MosaicOptions { crs, resolution: args.resolution, cache_bytes: None })?;
+        let (w, h) = mosaic.size();
+        tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
+        Some(mosaic)
+    } else {
+        None
+    };
+    let file = match inputs.first().filter(|_| mosaic.is_none()) {
         Some(path) => {
             let mut file = open_elevation(path, args.encoding()?)?;
             match args.sample_spacing {
@@ -154,7 +174,11 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         TextureFormatArg::Bc1 => TextureFormat::Bc1,
         TextureFormatArg::Bc7 => TextureFormat::Bc7,
     };
-    let elevation: Option<&dyn ElevationSource> = elevation.as_ref().map(|e| e as &dyn ElevationSource);
+    let elevation: Option<&dyn ElevationSource> = match (&mosaic, &file) {
+        (Some(m), _) => Some(m),
+        (None, Some(f)) => Some(f),
+        (None, None) => None,
+    };
     // Both georeferenced in one CRS: only the part of the image over the elevation is used.
     let window = match (elevation, &image) {
         (Some(e), Some(i)) => ImageWindow::over(e, i)?,
@@ -184,7 +208,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         pixel_size: args.pixel_size,
     });
     let name = args.name.clone().unwrap_or_else(|| {
-        let input = args.elevation.as_ref().or(args.texture.as_ref());
+        let input = args.elevation.first().or(args.texture.as_ref());
         input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()
     });
     let storage = match args.storage {

@@ -245,8 +245,13 @@ impl ElevationSource for ElevationFile {
 }
 
 impl ElevationFile {
+    /// A GeoTIFF of heights as stored (no PNG, no encoding): what a mosaic reads by chunks.
+    pub(super) fn is_plain_tiff(&self) -> bool {
+        !self.png && self.encoding.is_none()
+    }
+
     /// Stored samples -> heights in place (NaN for nodata and non-finite values).
-    fn heights(&self, samples: &mut [f32]) {
+    pub(super) fn heights(&self, samples: &mut [f32]) {
         #[expect(clippy::cast_possible_truncation, reason = "nodata and heights are kept as f32")]
         let nodata = self.nodata.map(|n| n as f32);
         if self.encoding.is_none() {

@@ -10,8 +10,10 @@
 mod elevation;
 mod geotiff;
 mod image;
+mod inputs;
 mod jpeg;
 mod memory;
+mod mosaic;
 mod png;
 mod tiff;
 mod warp;
@@ -27,10 +29,12 @@ pub(crate) use elevation::integer_range;
 pub use elevation::{ElevationFile, open_elevation, read_geotiff};
 pub(crate) use geotiff::crs_placement;
 pub use image::{ImageFile, open_image, read_image};
+pub use inputs::expand_inputs;
 pub use jpeg::JPEG_MAX_DECODED_BYTES;
 #[cfg(test)]
 pub(crate) use jpeg::jpeg_fits;
 pub use memory::{Image, ImageWindow, Raster};
+pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
 pub use warp::Warped;
 
 /// Rows of heights: the elevation input of the tiler.

@@ -29,14 +29,14 @@ pub(super) struct TiffChunks<'p> {
     path: &'p Path,
     /// Decoders not in use.
     spare: std::sync::Mutex<Vec<TiffDecoder>>,
-    kind: tiff::decoder::ChunkType,
+    pub(super) kind: tiff::decoder::ChunkType,
     count: usize,
     /// Samples per pixel.
     channels: usize,
-    width: usize,
-    height: usize,
-    chunk_w: usize,
-    chunk_h: usize,
+    pub(super) width: usize,
+    pub(super) height: usize,
+    pub(super) chunk_w: usize,
+    pub(super) chunk_h: usize,
 }
 
 impl<'p> TiffChunks<'p> {
@@ -80,7 +80,7 @@ impl<'p> TiffChunks<'p> {
     }
 
     /// Chunks across the raster: one strip, or a row of tiles.
-    fn across(&self) -> usize {
+    pub(super) fn across(&self) -> usize {
         if self.kind == tiff::decoder::ChunkType::Strip { 1 } else { self.width.div_ceil(self.chunk_w) }
     }
 

@@ -1,0 +1,103 @@
+//! Input lists as users give them: files, folders (every GeoTIFF under them), and
+//! patterns with `*` and `?` in the file name.
+
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+
+/// The raster files that `inputs` name, in order: a file as given, a folder's GeoTIFFs
+/// (`.tif`, `.tiff`, recursively, sorted by path), a pattern's matches (sorted).
+///
+/// # Errors
+/// [`Error::Input`] naming an input that does not exist, a folder without GeoTIFFs, or a
+/// pattern that matches nothing.
+pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for input in inputs {
+        let name = input.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        if name.contains(['*', '?']) {
+            let folder = input.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            let entries = std::fs::read_dir(folder).map_err(|e| Error::file(folder, e))?;
+            let mut found: Vec<PathBuf> = entries
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_file() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| matches(name, n)))
+                .collect();
+            if found.is_empty() {
+                return Err(Error::input(input, "the pattern matches no file"));
+            }
+            found.sort();
+            out.extend(found);
+        } else if input.is_dir() {
+            let mut found = Vec::new();
+            walk(input, &mut found)?;
+            if found.is_empty() {
+                return Err(Error::input(input, "the folder holds no GeoTIFF (.tif, .tiff)"));
+            }
+            found.sort();
+            out.extend(found);
+        } else if input.is_file() {
+            out.push(input.clone());
+        } else {
+            return Err(Error::input(input, "no such file or folder"));
+        }
+    }
+    Ok(out)
+}
+
+fn walk(folder: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+    for entry in std::fs::read_dir(folder).map_err(|e| Error::file(folder, e))? {
+        let path = entry.map_err(|e| Error::file(folder, e))?.path();
+        if path.is_dir() {
+            walk(&path, out)?;
+        } else if path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff"))
+        {
+            out.push(path);
+        }
+    }
+    Ok(())
+}
+
+/// Does `name` match `pattern` (`*`: any run of characters, `?`: any one)?
+fn matches(pattern: &str, name: &str) -> bool {
+    let (p, n): (Vec<char>, Vec<char>) = (pattern.chars().collect(), name.chars().collect());
+    // Classic wildcard matching with backtracking to the last `*`.
+    let (mut i, mut j, mut star, mut mark) = (0, 0, None, 0);
+    while j < n.len() {
+        if i < p.len() && (p[i] == '?' || p[i] == n[j]) {
+            i += 1;
+            j += 1;
+        } else if i < p.len() && p[i] == '*' {
+            star = Some(i);
+            mark = j;
+            i += 1;
+        } else if let Some(s) = star {
+            i = s + 1;
+            mark += 1;
+            j = mark;
+        } else {
+            return false;
+        }
+    }
+    while i < p.len() && p[i] == '*' {
+        i += 1;
+    }
+    i == p.len()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::matches;
+
+    #[test]
+    fn patterns_match_as_shells_do() {
+        assert!(matches("*.tif", "a.tif"));
+        assert!(matches("dem_??.tif", "dem_01.tif"));
+        assert!(!matches("dem_??.tif", "dem_1.tif"));
+        assert!(matches("*_*.tif", "n45_e012.tif"));
+        assert!(!matches("*.tif", "a.tiff"));
+        assert!(matches("*", ""));
+    }
+}

@@ -1,0 +1,398 @@
+//! Many elevation rasters, in any CRS the tiler knows, as one raster on one output grid.
+//!
+//! Each output sample's centre goes from the output CRS into each input that covers it
+//! (later inputs first: a later input wins where it has data, nodata never overwrites
+//! data) and is sampled there, bilinear over the corners that have data. Inputs are read
+//! by strips or tiles on demand, never whole: the chunks a band of output rows needs are
+//! decoded once into a cache bounded in bytes, and at most [`OPEN_FILES`] files are open
+//! at once (the least recently used is closed, and reopened if needed again). Rows are
+//! made in order, so the chunks in use are those under a band of output rows: memory
+//! follows the output's width and the cache, not the number or size of the inputs.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, PoisonError};
+
+use rayon::prelude::*;
+use terrastream_format::Georeference;
+
+use super::elevation::{ElevationFile, open_elevation};
+use super::tiff::{TiffChunks, samples_f32};
+use super::{ElevationSource, crs_placement};
+use crate::crs::{Crs, Transform};
+use crate::error::{Error, Result};
+
+/// Most input files open at once.
+pub const OPEN_FILES: usize = 64;
+
+/// Output texels between exact transforms along a row; linear in between.
+const LATTICE: usize = 16;
+
+/// Output rows made at once (in parallel).
+const ROWS_AT_ONCE: u32 = 32;
+
+/// How to build a mosaic.
+#[derive(Clone, Debug, Default)]
+pub struct MosaicOptions {
+    /// Output CRS; default: the first input's if projected, else a transverse Mercator
+    /// centred on the data.
+    pub crs: Option<Crs>,
+    /// Output sample spacing in metres (output CRS units); default: the finest input's.
+    pub resolution: Option<f64>,
+    /// Bytes of decoded input chunks kept (default 512 MiB).
+    pub cache_bytes: Option<usize>,
+}
+
+/// An input as opened: the file, its CRS, north-west corner and pixel size there.
+type Opened = (ElevationFile, Crs, [f64; 2], (f64, f64));
+
+/// One input raster.
+#[derive(Debug)]
+struct Input {
+    file: ElevationFile,
+    /// North-west corner and pixel size in the input's CRS.
+    origin: [f64; 2],
+    pixel: (f64, f64),
+    /// Output CRS -> the input's.
+    to_input: Transform,
+    /// Footprint in output pixels: first and last column and row (inclusive).
+    columns: (i64, i64),
+    rows: (i64, i64),
+}
+
+/// Several elevation rasters on one output grid (see the module's documentation).
+#[derive(Debug)]
+pub struct Mosaic {
+    path: PathBuf,
+    inputs: Vec<Input>,
+    crs: Crs,
+    origin: [f64; 2],
+    pixel: f64,
+    size: (u32, u32),
+    georeference: Georeference,
+    cache_bytes: usize,
+}
+
+impl Mosaic {
+    /// The mosaic of `paths` (GeoTIFFs of heights, each georeferenced in a CRS the tiler
+    /// knows), in the order given: a later input wins where inputs overlap.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming a file that cannot be read, is not a georeferenced GeoTIFF
+    /// of heights, or lies where the output CRS cannot reach; [`Error::UnknownCrs`].
+    pub fn open(paths: &[PathBuf], options: &MosaicOptions) -> Result<Self> {
+        let first = paths.first().ok_or(Error::NothingToTile)?;
+        let mut files = Vec::with_capacity(paths.len());
+        for path in paths {
+            let file = open_elevation(path, None)?;
+            if !file.is_plain_tiff() {
+                return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+            }
+            let Some((crs, origin, pixel)) = crs_placement(file.georeference(), file.crs_pixel_size()) else {
+                return Err(Error::input(path, "it does not say where it lies (no GeoTIFF georeference with a CRS)"));
+            };
+            let crs =
+                Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
+            files.push((file, crs, origin, pixel));
+        }
+        let crs = match &options.crs {
+            Some(crs) => crs.clone(),
+            None if !files[0].1.is_geographic() => files[0].1.clone(),
+            None => {
+                let (w, s, e, n) = lon_lat_bounds(&files);
+                Crs::local_transverse_mercator((w + e) / 2.0, (s + n) / 2.0)
+            }
+        };
+        // Footprints in the output CRS, and the finest spacing in metres.
+        let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
+        let mut finest = f64::INFINITY;
+        let mut footprints = Vec::with_capacity(files.len());
+        for (file, input_crs, origin, pixel) in &files {
+            let to_output = Transform::new(input_crs, &crs);
+            let fp = footprint(&to_output, *origin, *pixel, file.size())
+                .ok_or_else(|| Error::input(file.path(), format!("it lies outside what {} can hold", crs.name())))?;
+            bounds = [bounds[0].min(fp[0]), bounds[1].min(fp[1]), bounds[2].max(fp[2]), bounds[3].max(fp[3])];
+            let (w, h) = file.size();
+            let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
+            finest = finest.min(metres);
+            footprints.push(fp);
+        }
+        let pixel = options.resolution.unwrap_or(finest);
+        if !(pixel.is_finite() && pixel > 0.0) {
+            return Err(Error::option("--resolution", pixel, "a positive number of metres"));
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked below")]
+        let side = |span: f64| (span / pixel).ceil().max(1.0) as u64;
+        let (w, h) = (side(bounds[2] - bounds[0]), side(bounds[3] - bounds[1]));
+        let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
+            return Err(Error::input(
+                first,
+                format!("the mosaic would be {w} x {h} samples: set a coarser --resolution"),
+            ));
+        };
+        let origin = [bounds[0], bounds[3]];
+        let inputs = files
+            .into_iter()
+            .zip(footprints)
+            .map(|((file, input_crs, input_origin, input_pixel), fp)| {
+                #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
+                let cell = |v: f64| v.floor() as i64;
+                Input {
+                    columns: (cell((fp[0] - origin[0]) / pixel) - 1, cell((fp[2] - origin[0]) / pixel) + 1),
+                    rows: (cell((origin[1] - fp[3]) / pixel) - 1, cell((origin[1] - fp[1]) / pixel) + 1),
+                    to_input: Transform::new(&crs, &input_crs),
+                    origin: input_origin,
+                    pixel: input_pixel,
+                    file,
+                }
+            })
+            .collect();
+        let georeference = Georeference { crs: Some(crs.name()), origin: Some(origin), lat_lon_bounds: None };
+        Ok(Self {
+            path: first.clone(),
+            inputs,
+            crs,
+            origin,
+            pixel,
+            size: (w, h),
+            georeference,
+            cache_bytes: options.cache_bytes.unwrap_or(512 << 20),
+        })
+    }
+
+    /// The output CRS.
+    pub fn crs(&self) -> &Crs {
+        &self.crs
+    }
+
+    /// Inputs, in order.
+    pub fn inputs(&self) -> impl Iterator<Item = &Path> {
+        self.inputs.iter().map(|i| i.file.path())
+    }
+
+    /// Makes output row `j`, reading chunks through `reader`.
+    fn row(&self, j: u32, reader: &Reader<'_>) -> Result<Vec<f32>> {
+        let width = self.size.0 as usize;
+        let mut out = vec![f32::NAN; width];
+        let y = self.origin[1] - (f64::from(j) + 0.5) * self.pixel;
+        // Later inputs first: the first value found wins.
+        for (index, input) in self.inputs.iter().enumerate().rev() {
+            if i64::from(j) < input.rows.0 || i64::from(j) > input.rows.1 {
+                continue;
+            }
+            #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "clamped to the row")]
+            let (c0, c1) = (input.columns.0.max(0) as usize, (input.columns.1.min(width as i64 - 1)).max(0) as usize);
+            if c1 < c0 || out[c0..=c1].iter().all(|v| !v.is_nan()) {
+                continue;
+            }
+            let at = |i: usize| {
+                #[expect(clippy::cast_precision_loss, reason = "sample indices are far below 2^52")]
+                let x = self.origin[0] + (i as f64 + 0.5) * self.pixel;
+                input.to_input.apply(x, y).map_or((f64::NAN, f64::NAN), |(sx, sy)| {
+                    ((sx - input.origin[0]) / input.pixel.0 - 0.5, (input.origin[1] - sy) / input.pixel.1 - 0.5)
+                })
+            };
+            let mut i = c0;
+            while i <= c1 {
+                let end = (i + LATTICE).min(c1);
+                let (a, b) = (at(i), at(end));
+                let n = (end - i).max(1);
+                for k in 0..=(end - i) {
+                    if !out[i + k].is_nan() {
+                        continue;
+                    }
+                    #[expect(clippy::cast_precision_loss, reason = "k and n are at most LATTICE")]
+                    let t = k as f64 / n as f64;
+                    let p = (a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t);
+                    out[i + k] = reader.bilinear(index, input, p)?;
+                }
+                i = end + 1;
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// West, south, east and north of geographic inputs' corners (degrees).
+fn lon_lat_bounds(files: &[Opened]) -> (f64, f64, f64, f64) {
+    let mut b = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+    let wgs84 = Crs::wgs84();
+    for (file, crs, origin, pixel) in files {
+        let (w, h) = file.size();
+        let t = Transform::new(crs, &wgs84);
+        for (fx, fy) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)] {
+            let (x, y) = (origin[0] + fx * f64::from(w) * pixel.0, origin[1] - fy * f64::from(h) * pixel.1);
+            if let Some((lon, lat)) = t.apply(x, y) {
+                b = (b.0.min(lon), b.1.min(lat), b.2.max(lon), b.3.max(lat));
+            }
+        }
+    }
+    b
+}
+
+/// The bounding box (min x, min y, max x, max y) in the output CRS of a raster's edges,
+/// 16 points an edge; `None` if a point has no image there.
+fn footprint(to_output: &Transform, origin: [f64; 2], pixel: (f64, f64), (w, h): (u32, u32)) -> Option<[f64; 4]> {
+    let mut b = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
+    let steps = 16;
+    for k in 0..=steps {
+        let t = f64::from(k) / f64::from(steps);
+        for (fx, fy) in [(t, 0.0), (t, 1.0), (0.0, t), (1.0, t)] {
+            let (x, y) = (origin[0] + fx * f64::from(w) * pixel.0, origin[1] - fy * f64::from(h) * pixel.1);
+            let (ox, oy) = to_output.apply(x, y)?;
+            b = [b[0].min(ox), b[1].min(oy), b[2].max(ox), b[3].max(oy)];
+        }
+    }
+    Some(b)
+}
+
+/// Decoded chunks of the inputs (heights, NaN for nodata), least recently used dropped
+/// past a byte budget; open files, least recently used closed past [`OPEN_FILES`].
+struct Reader<'m> {
+    mosaic: &'m Mosaic,
+    state: Mutex<ReaderState<'m>>,
+}
+
+#[derive(Default)]
+struct ReaderState<'m> {
+    files: HashMap<usize, (Arc<TiffChunks<'m>>, u64)>,
+    chunks: HashMap<(usize, usize), (Arc<Chunk>, u64)>,
+    bytes: usize,
+    clock: u64,
+}
+
+/// One decoded strip or tile: heights, `w` across.
+struct Chunk {
+    heights: Vec<f32>,
+    w: usize,
+}
+
+impl<'m> Reader<'m> {
+    fn new(mosaic: &'m Mosaic) -> Self {
+        Self { mosaic, state: Mutex::default() }
+    }
+
+    /// Bilinear height at input pixel coordinates `p` (centres at integers) over the
+    /// corners with data; NaN where none has.
+    fn bilinear(&self, index: usize, input: &Input, p: (f64, f64)) -> Result<f32> {
+        let (w, h) = input.file.size();
+        if !(p.0 > -1.0 && p.1 > -1.0 && p.0 < f64::from(w) && p.1 < f64::from(h)) {
+            return Ok(f32::NAN);
+        }
+        let (x0, y0) = (p.0.floor(), p.1.floor());
+        let (fx, fy) = (p.0 - x0, p.1 - y0);
+        #[expect(clippy::cast_possible_truncation, reason = "inside the raster, checked above")]
+        let (x0, y0) = (x0 as i64, y0 as i64);
+        let (mut sum, mut weight) = (0.0, 0.0);
+        for (dx, dy, wt) in
+            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+        {
+            let v = self.sample(index, x0 + dx, y0 + dy)?;
+            if wt > 0.0 && !v.is_nan() {
+                sum += wt * f64::from(v);
+                weight += wt;
+            }
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+        Ok(if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN })
+    }
+
+    /// The height of input pixel `(x, y)`; NaN outside the raster or for nodata.
+    fn sample(&self, index: usize, x: i64, y: i64) -> Result<f32> {
+        let (w, h) = self.mosaic.inputs[index].file.size();
+        if x < 0 || y < 0 || x >= i64::from(w) || y >= i64::from(h) {
+            return Ok(f32::NAN);
+        }
+        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
+        let (x, y) = (x as usize, y as usize);
+        let chunks = self.file(index)?;
+        let (cx, cy) = (x / chunks.chunk_w, y / chunks.chunk_h);
+        let id = if chunks.kind == tiff::decoder::ChunkType::Strip { cy } else { cy * chunks.across() + cx };
+        let chunk = self.chunk(index, &chunks, id)?;
+        let (lx, ly) = if chunks.kind == tiff::decoder::ChunkType::Strip {
+            (x, y - cy * chunks.chunk_h)
+        } else {
+            (x - cx * chunks.chunk_w, y - cy * chunks.chunk_h)
+        };
+        Ok(chunk.heights.get(ly * chunk.w + lx).copied().unwrap_or(f32::NAN))
+    }
+
+    fn file(&self, index: usize) -> Result<Arc<TiffChunks<'m>>> {
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        state.clock += 1;
+        let clock = state.clock;
+        if let Some((chunks, used)) = state.files.get_mut(&index) {
+            *used = clock;
+            return Ok(chunks.clone());
+        }
+        if state.files.len() >= OPEN_FILES {
+            if let Some(oldest) = state.files.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) {
+                state.files.remove(&oldest);
+            }
+        }
+        let chunks = Arc::new(TiffChunks::open(self.mosaic.inputs[index].file.path(), 1)?);
+        state.files.insert(index, (chunks.clone(), clock));
+        Ok(chunks)
+    }
+
+    fn chunk(&self, index: usize, chunks: &TiffChunks<'m>, id: usize) -> Result<Arc<Chunk>> {
+        {
+            let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+            state.clock += 1;
+            let clock = state.clock;
+            if let Some((chunk, used)) = state.chunks.get_mut(&(index, id)) {
+                *used = clock;
+                return Ok(chunk.clone());
+            }
+        }
+        // Decoded outside the lock, so that threads decode in parallel.
+        let (data, w, _) = chunks.read(id)?;
+        let input = &self.mosaic.inputs[index];
+        let mut heights =
+            samples_f32(data).ok_or_else(|| Error::input(input.file.path(), "unsupported sample type"))?;
+        input.file.heights(&mut heights);
+        let chunk = Arc::new(Chunk { heights, w });
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        state.bytes += chunk.heights.len() * 4;
+        let clock = state.clock;
+        state.chunks.insert((index, id), (chunk.clone(), clock));
+        while state.bytes > self.mosaic.cache_bytes && state.chunks.len() > 1 {
+            let Some(oldest) = state.chunks.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) else { break };
+            if let Some((gone, _)) = state.chunks.remove(&oldest) {
+                state.bytes -= gone.heights.len() * 4;
+            }
+        }
+        Ok(chunk)
+    }
+}
+
+impl ElevationSource for Mosaic {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn size(&self) -> (u32, u32) {
+        self.size
+    }
+    fn spacing(&self) -> (f64, f64) {
+        (self.pixel, self.pixel)
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        Some(&self.georeference)
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        Some((self.pixel, self.pixel))
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        let reader = Reader::new(self);
+        let mut j = 0;
+        while j < self.size.1 {
+            let end = (j + ROWS_AT_ONCE).min(self.size.1);
+            let band: Vec<Result<Vec<f32>>> = (j..end).into_par_iter().map(|r| self.row(r, &reader)).collect();
+            for r in band {
+                row(&r?)?;
+            }
+            j = end;
+        }
+        Ok(())
+    }
+}

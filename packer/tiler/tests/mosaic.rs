@@ -1,0 +1,168 @@
+//! A mosaic of rasters in two UTM zones, with overlaps and a gap, against GDAL's
+//! `gdalwarp` of the same files onto the same grid (the independent oracle), and against
+//! the analytic surface the rasters sample.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::cast_possible_truncation,
+    clippy::cast_precision_loss,
+    missing_docs
+)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use terrastream_tiler::{Crs, ElevationSource, Mosaic, MosaicOptions, Transform, read_geotiff};
+use tiff::encoder::{TiffEncoder, colortype};
+use tiff::tags::Tag;
+
+/// Heights of the surface at a longitude and latitude: smooth, a few hundred metres.
+fn surface(lon: f64, lat: f64) -> f64 {
+    500.0 + 300.0 * ((lon - 11.5) * 3.0).sin() * ((lat - 46.0) * 4.0).cos() + 40.0 * (lon * 25.0).sin()
+}
+
+/// A geographic GeoTIFF of the surface: west, north, degrees per sample, size.
+fn geographic_tile(path: &Path, west: f64, north: f64, step: f64, (w, h): (u32, u32)) {
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<colortype::Gray32Float>(w, h).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33550), &[step, step, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, west, north, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326][..]).unwrap();
+    let data: Vec<f32> = (0..h)
+        .flat_map(|j| (0..w).map(move |i| (i, j)))
+        .map(|(i, j)| surface(west + (f64::from(i) + 0.5) * step, north - (f64::from(j) + 0.5) * step) as f32)
+        .collect();
+    image.write_data(&data).unwrap();
+}
+
+fn gdal() -> bool {
+    if Command::new("gdalwarp").arg("--version").output().is_ok() {
+        return true;
+    }
+    assert!(std::env::var_os("CI").is_none(), "gdalwarp is not installed (apt-get install gdal-bin)");
+    eprintln!("\n*** SKIPPING: gdalwarp is not installed (apt-get install gdal-bin) ***\n");
+    false
+}
+
+fn warp(args: &[&str], inputs: &[PathBuf], out: &Path) {
+    let status = Command::new("gdalwarp").args(["-q", "-overwrite"]).args(args).args(inputs).arg(out).status().unwrap();
+    assert!(status.success(), "gdalwarp {args:?} failed");
+}
+
+#[test]
+fn a_mosaic_across_two_utm_zones_matches_gdalwarp() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // 2 x 2 tiles of 0.25 x 0.2 degrees astride 12 E (the UTM 32/33 boundary), overlapping
+    // by 16 samples; the west column warped to UTM 32N, the east one to UTM 33N. The
+    // north-east tile leaves a gap at its east edge that nothing fills.
+    let step = 0.0005;
+    let overlap = 16.0 * step;
+    let mut tiles = Vec::new();
+    for (k, (west, north, zone)) in [
+        (11.75, 46.4, 32632),
+        (12.0 - overlap, 46.4, 32633),
+        (11.75, 46.2 + overlap, 32632),
+        (12.0 - overlap, 46.2 + overlap, 32633),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (w, h) = (((0.25 + overlap) / step) as u32, ((0.2 + overlap) / step) as u32);
+        let w = if k == 1 { w - 60 } else { w };
+        let geo = dir.path().join(format!("geo-{k}.tif"));
+        geographic_tile(&geo, west, north, step, (w, h));
+        let utm = dir.path().join(format!("tile-{k}.tif"));
+        warp(
+            &["-t_srs", &format!("EPSG:{zone}"), "-r", "bilinear", "-tr", "40", "40", "-dstnodata", "-9999"],
+            &[geo],
+            &utm,
+        );
+        tiles.push(utm);
+    }
+
+    let options =
+        MosaicOptions { crs: Some(Crs::epsg(32632).unwrap()), resolution: Some(60.0), cache_bytes: Some(1 << 20) };
+    let mosaic = Mosaic::open(&tiles, &options).unwrap();
+    let (w, h) = mosaic.size();
+    let origin = mosaic.georeference().unwrap().origin.unwrap();
+    let mut ours = Vec::with_capacity(w as usize * h as usize);
+    mosaic
+        .rows(&mut |r| {
+            ours.extend_from_slice(r);
+            Ok(())
+        })
+        .unwrap();
+
+    // GDAL onto the same grid: same CRS, extent and spacing, bilinear, later file wins.
+    let te = [origin[0], origin[1] - f64::from(h) * 60.0, origin[0] + f64::from(w) * 60.0, origin[1]]
+        .map(|v| format!("{v:.6}"));
+    let oracle = dir.path().join("oracle.tif");
+    let mut args = vec![
+        "-t_srs",
+        "EPSG:32632",
+        "-tr",
+        "60",
+        "60",
+        "-r",
+        "bilinear",
+        "-ot",
+        "Float32",
+        "-dstnodata",
+        "-9999",
+        "-te",
+    ];
+    args.extend(te.iter().map(String::as_str));
+    warp(&args, &tiles, &oracle);
+    let gdal = read_geotiff(&oracle).unwrap();
+    assert_eq!(gdal.size(), (w, h), "GDAL made a grid of another size");
+    let gdal = &gdal.data;
+
+    let (mut both, mut only_ours, mut only_gdal, mut sum, mut worst) = (0usize, 0usize, 0usize, 0.0, 0.0f64);
+    for (a, b) in ours.iter().zip(gdal) {
+        match (a.is_nan(), b.is_nan()) {
+            (false, false) => {
+                both += 1;
+                let d = f64::from((a - b).abs());
+                sum += d;
+                worst = worst.max(d);
+            }
+            (false, true) => only_ours += 1,
+            (true, false) => only_gdal += 1,
+            (true, true) => {}
+        }
+    }
+    let mean = sum / both as f64;
+    eprintln!(
+        "{both} samples with data in both: mean |difference| {mean:.3} m, worst {worst:.2} m; data only here {only_ours}, only in GDAL's {only_gdal}"
+    );
+    assert!(both as f64 > 0.8 * f64::from(w * h), "too few samples with data: {both} of {}", w * h);
+    assert!(mean < 0.5, "mean difference from gdalwarp {mean} m");
+    // Along the edges of nodata, bilinear over the corners with data differs from GDAL's
+    // rule; those samples are few.
+    assert!(((only_ours + only_gdal) as f64) < 0.01 * f64::from(w * h), "coverage differs: {only_ours} / {only_gdal}");
+
+    // Against the surface itself, at the samples' centres.
+    let to_lon_lat = Transform::new(&Crs::epsg(32632).unwrap(), &Crs::wgs84());
+    let mut errors = Vec::new();
+    for j in (0..h).step_by(3) {
+        for i in (0..w).step_by(3) {
+            let v = ours[(j * w + i) as usize];
+            if v.is_nan() {
+                continue;
+            }
+            let (x, y) = (origin[0] + (f64::from(i) + 0.5) * 60.0, origin[1] - (f64::from(j) + 0.5) * 60.0);
+            let (lon, lat) = to_lon_lat.apply(x, y).unwrap();
+            errors.push((f64::from(v) - surface(lon, lat)).abs());
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let median = errors[errors.len() / 2];
+    eprintln!("against the surface: median error {median:.3} m over {} samples", errors.len());
+    assert!(median < 1.0, "median error against the surface {median} m");
+    // The gap east of the north-east tile stays nodata.
+    let gap = ours[(h / 4 * w + w - 2) as usize];
+    assert!(gap.is_nan(), "the gap holds {gap}");
+}
