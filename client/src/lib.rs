@@ -5,6 +5,7 @@
 
 mod error;
 pub mod fly;
+pub mod geo;
 pub mod input;
 #[cfg(feature = "render")]
 pub mod render;
@@ -13,6 +14,7 @@ pub mod stream;
 
 pub use error::{Error, Result};
 pub use fly::{FlyCamera, FlyInput};
+pub use geo::Geo;
 pub use input::{Action, Keys};
 #[cfg(not(target_arch = "wasm32"))]
 pub use source::blocking::{AnySource, BlockingSource, open_source};

@@ -14,6 +14,13 @@ use super::streamer::{Completion, Group, fetch_and_decode};
 use crate::error::{Error, Result};
 
 impl Streamer {
+    /// [`Self::height_at`] at a longitude and latitude (degrees, WGS 84), for archives
+    /// that record where they lie (see [`crate::Geo`]).
+    pub fn height_at_lon_lat(&self, lon: f64, lat: f64) -> Option<f64> {
+        let (x, z) = crate::Geo::new(self.metadata()?)?.lon_lat_to_world(lon, lat)?;
+        self.height_at(x, z)
+    }
+
     /// Height in world units at ground position `(x, z)`, bilinear over the finest
     /// elevation LOD in the cache (sample `i` of a LOD at `(i + 0.5)` spacings, as the
     /// renderer samples); `None` where nothing is loaded or the data has no value.

@@ -364,6 +364,28 @@ pub struct Georeference {
     /// West, south, east, north in degrees.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lat_lon_bounds: Option<[f64; 4]>,
+    /// The CRS as a PROJ definition, so that a reader needs no EPSG table to use it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub definition: Option<String>,
+    /// CRS units per world unit, along x (east) and y (north). World point `(x, z)` (x east,
+    /// z south, from the north-west corner of tile (0, 0)) lies at CRS
+    /// `(origin[0] + x * scale[0], origin[1] - z * scale[1])`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale: Option<[f64; 2]>,
+}
+
+impl Georeference {
+    /// The CRS coordinates of world point `(x, z)`, when the origin and scale are known.
+    pub fn world_to_crs(&self, x: f64, z: f64) -> Option<(f64, f64)> {
+        let (o, s) = (self.origin?, self.scale?);
+        Some((o[0] + x * s[0], o[1] - z * s[1]))
+    }
+
+    /// The world point at CRS coordinates `(cx, cy)`, when the origin and scale are known.
+    pub fn crs_to_world(&self, cx: f64, cy: f64) -> Option<(f64, f64)> {
+        let (o, s) = (self.origin?, self.scale?);
+        (s[0] != 0.0 && s[1] != 0.0).then(|| ((cx - o[0]) / s[0], (o[1] - cy) / s[1]))
+    }
 }
 
 /// One field of an original-engine metadata text, as written there.

@@ -1,10 +1,12 @@
 //! Planning a tiling run: grids, LOD counts and encodings, decided before any tile.
 
 use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, levels_to_one,
+    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
+    levels_to_one,
 };
 use terrastream_pack::progress::Progress;
 
+use crate::crs::Crs;
 use crate::error::{Error, Result};
 use crate::options::{ElevationStorage, TextureFormat, TextureInput, TileOptions};
 use crate::raster::{ElevationSource, ImageSource, crs_placement};
@@ -37,14 +39,16 @@ pub fn plan(
         let planned = plan_elevation(e, options, progress)?;
         extent = Some(planned.extent);
         metadata.terrain = planned.terrain;
-        metadata.georeference = e.georeference().cloned();
+        metadata.georeference = placed(e.georeference(), e.crs_pixel_size(), e.size(), planned.extent);
         layers.push(planned.layer);
         plans.push(planned.plan);
     }
     if let Some(t) = texture {
         let (layer, plan) = plan_texture(t, elevation, extent, options.border)?;
         if elevation.is_none() {
-            metadata.georeference = t.source.georeference().cloned();
+            let texel = layer.tile_world_size / f64::from(t.tile_size);
+            let extent = (f64::from(plan.size.0) * texel, f64::from(plan.size.1) * texel, 0.0);
+            metadata.georeference = placed(t.source.georeference(), t.source.crs_pixel_size(), t.source.size(), extent);
             metadata.terrain.base_tile_size = layer.tile_world_size / f64::from(t.tile_size);
         }
         layers.push(layer);
@@ -70,6 +74,26 @@ pub fn plan(
     metadata.layers = layers;
     metadata.validate()?;
     Ok(Plan { metadata, layers: plans })
+}
+
+/// A source's georeference as the archive records it: with its CRS's PROJ definition
+/// (when the tiler knows the CRS) and the scale from world metres to CRS units, for a
+/// source of `size` pixels of `crs_pixel` CRS units drawn over `extent` (world width and
+/// height in metres).
+fn placed(
+    georeference: Option<&Georeference>,
+    crs_pixel: Option<(f64, f64)>,
+    (w, h): (u32, u32),
+    extent: (f64, f64, f64),
+) -> Option<Georeference> {
+    let mut g = georeference?.clone();
+    if g.definition.is_none() {
+        g.definition = g.crs.as_deref().and_then(|c| Crs::parse(c).ok()).map(|c| c.definition().to_owned());
+    }
+    if let Some((px, py)) = crs_pixel.filter(|_| extent.0 > 0.0 && extent.1 > 0.0) {
+        g.scale = Some([f64::from(w) * px / extent.0, f64::from(h) * py / extent.1]);
+    }
+    Some(g)
 }
 
 /// The elevation's part of a plan.

@@ -355,11 +355,13 @@ pub(crate) fn grid_metadata(
             crs: Some("EPSG:3857".into()),
             origin: Some([-EQUATOR / 2.0, EQUATOR / 2.0]),
             lat_lon_bounds: Some([-180.0, -85.051_128_779_806_59, 180.0, 85.051_128_779_806_59]),
+            ..Georeference::default()
         }),
         (2, 1) => Some(Georeference {
             crs: Some("EPSG:4326".into()),
             origin: Some([-180.0, 90.0]),
             lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
+            ..Georeference::default()
         }),
         _ => None,
     };

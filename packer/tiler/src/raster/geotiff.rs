@@ -69,7 +69,7 @@ impl GeoTags {
                 let mut g = Georeference {
                     crs: epsg.map(|c| format!("EPSG:{c}")),
                     origin: Some([west, north]),
-                    lat_lon_bounds: None,
+                    ..Georeference::default()
                 };
                 if geographic {
                     let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));

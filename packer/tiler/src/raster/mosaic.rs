@@ -147,7 +147,12 @@ impl Mosaic {
                 }
             })
             .collect();
-        let georeference = Georeference { crs: Some(crs.name()), origin: Some(origin), lat_lon_bounds: None };
+        let georeference = Georeference {
+            crs: Some(crs.name()),
+            origin: Some(origin),
+            lat_lon_bounds: None,
+            ..Georeference::default()
+        };
         Ok(Self {
             path: first.clone(),
             inputs,
