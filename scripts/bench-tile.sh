@@ -8,6 +8,13 @@
 # shaded relief from the shared data folder beside the repository. Needs gdal-bin and
 # python3-gdal (apt-get install gdal-bin python3-gdal); GNU time (apt-get install time).
 #
+# MOSAIC=1 (the default) adds the mosaic case: the DEM cut into GRID x GRID windows of
+# SIDE samples (default 8 x 8 of 448, the most a 3601-sample tile holds; 16-sample
+# overlaps), the western half warped to UTM 10N and the eastern half to UTM 11N, tiled
+# end to end by `terrastream tile --elevation dir/` against gdalwarp (the inputs onto one
+# grid) + gdal_translate -ot Byte + gdal2tiles.py; then our peak memory for the 4 x 4
+# mosaic against the 8 x 8 one (4x the area). MOSAIC=only runs that case alone.
+#
 # gdal2tiles only tiles 8-bit rasters: its DEM job is `gdal_translate -ot Byte -scale`
 # (timed with it) then gdal2tiles, so its tiles hold 256 levels where ours are lossless u16.
 # Both use the raster profile (no reprojection) and area averaging for coarser levels.
@@ -57,6 +64,43 @@ gdal_dem() {
 export -f gdal_dem; export DEM work CORES
 
 echo "inputs: $DEM ($(gdalinfo "$DEM" | awk '/^Size is/ { print $3 $4 }')), $IMAGE ($(gdalinfo "$IMAGE" | awk '/^Size is/ { print $3 $4 }')); $CORES cores"
+MOSAIC=${MOSAIC:-1}
+mosaic_case() {
+  local grid=${GRID:-8} side=${SIDE:-448} dir="$work/mosaic" x y k zone
+  mkdir -p "$dir/all" "$dir/quarter"
+  for ((y = 0; y < grid; y++)); do
+    for ((x = 0; x < grid; x++)); do
+      k=$(printf '%02d_%02d' "$y" "$x")
+      gdal_translate -q -srcwin $((x * side)) $((y * side)) $((side + 16)) $((side + 16)) "$DEM" "$dir/w$k.tif"
+      zone=$((x < grid / 2 ? 32610 : 32611))
+      gdalwarp -q -t_srs "EPSG:$zone" -r bilinear -tr 30 30 -dstnodata -32768 -co TILED=YES "$dir/w$k.tif" "$dir/all/$k.tif"
+      rm "$dir/w$k.tif"
+      if ((x >= grid / 4 && x < grid * 3 / 4 && y >= grid / 4 && y < grid * 3 / 4)); then cp "$dir/all/$k.tif" "$dir/quarter/"; fi
+    done
+  done
+  echo "mosaic: $(ls "$dir/all" | wc -l) GeoTIFFs of $((side + 16))^2 samples in two UTM zones, $(du -sh "$dir/all" | cut -f1)"
+  measure ours-mosaic "$work/m.tspack" "$bin" -q tile --elevation "$dir/all" -o "$work/m.tspack"
+  measure ours-mosaic-quarter "$work/mq.tspack" "$bin" -q tile --elevation "$dir/quarter" -o "$work/mq.tspack"
+  measure gdal-mosaic "$work/m-g2t" bash -c 'gdal_mosaic "$0" "$1"' "$dir/all" "$work/m-g2t"
+}
+gdal_mosaic() {
+  gdalwarp -q -t_srs EPSG:32610 -tr 30 30 -r bilinear -dstnodata -32768 -multi -wo NUM_THREADS=ALL_CPUS "$1"/*.tif "$work/mosaic.tif"
+  gdal_translate -q -ot Byte -scale "$work/mosaic.tif" "$work/mosaic8.tif"
+  gdal2tiles.py -q -p raster -r average --processes="$CORES" "$work/mosaic8.tif" "$2"
+  rm -f "$work/mosaic.tif" "$work/mosaic8.tif"
+}
+export -f gdal_mosaic
+if [ "$MOSAIC" = only ]; then
+  mosaic_case
+  echo
+  printf '%-40s %11s %13s %14s\n' job "wall" "peak RSS" "output"
+  printf '%-40s %9s s %9s MiB\n' "mosaic: terrastream tile" "${secs[ours-mosaic]}" "$((peak[ours-mosaic] / 1024))"
+  printf '%-40s %9s s %9s MiB\n' "mosaic: gdalwarp + translate + gdal2tiles" "${secs[gdal-mosaic]}" "$((peak[gdal-mosaic] / 1024))"
+  printf '%-40s %9s s %9s MiB\n' "mosaic, the middle quarter: terrastream" "${secs[ours-mosaic-quarter]}" "$((peak[ours-mosaic-quarter] / 1024))"
+  echo "mosaic speed-up over GDAL: $(awk -v a="${secs[gdal-mosaic]}" -v b="${secs[ours-mosaic]}" 'BEGIN { printf "%.1fx", a / b }')"
+  echo "mosaic peak memory, 4x the area: $(awk -v a="${peak[ours-mosaic]}" -v b="${peak[ours-mosaic-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
+  exit 0
+fi
 measure ours-dem "$work/dem.tspack" "$bin" -q tile --elevation "$DEM" -o "$work/dem.tspack"
 measure gdal-dem "$work/dem-g2t" bash -c 'gdal_dem "$0"' "$work/dem-g2t"
 measure ours-img-png "$work/img.tspack" "$bin" -q tile --texture "$IMAGE" --texture-format png -o "$work/img.tspack"
@@ -86,4 +130,11 @@ row "image as a tiled GeoTIFF (streamed)" ours-img-tiff
 echo
 echo "speed-up over gdal2tiles: DEM $(ratio gdal-dem ours-dem), image (PNG) $(ratio gdal-img-png ours-img-png)"
 echo "peak memory, DEM double / quarter height (8x the samples): $(awk -v a="${peak[ours-dem-double]}" -v b="${peak[ours-dem-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
+if [ "$MOSAIC" != 0 ]; then
+  mosaic_case
+  row "mosaic: terrastream tile" ours-mosaic
+  row "mosaic: gdalwarp + translate + gdal2tiles" gdal-mosaic
+  row "mosaic, the middle quarter: terrastream" ours-mosaic-quarter
+  echo "mosaic speed-up over GDAL: $(ratio gdal-mosaic ours-mosaic); peak memory for 4x the area: $(awk -v a="${peak[ours-mosaic]}" -v b="${peak[ours-mosaic-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
+fi
 echo "peak memory, image streamed from TIFF / decoded JPEG: $(awk -v a="${peak[ours-img-tiff]}" -v b="${peak[ours-img-png]}" 'BEGIN { printf "%.2fx", a / b }')"

@@ -197,21 +197,27 @@ impl Mosaic {
                     ((sx - input.origin[0]) / input.pixel.0 - 0.5, (input.origin[1] - sy) / input.pixel.1 - 0.5)
                 })
             };
+            // The input pixel coordinates of every sample of the row in this input's
+            // footprint (exact every LATTICE samples, linear between).
+            let mut points = Vec::with_capacity(c1 - c0 + 1);
             let mut i = c0;
             while i <= c1 {
                 let end = (i + LATTICE).min(c1);
                 let (a, b) = (at(i), at(end));
                 let n = (end - i).max(1);
                 for k in 0..=(end - i) {
-                    if !out[i + k].is_nan() {
-                        continue;
-                    }
                     #[expect(clippy::cast_precision_loss, reason = "k and n are at most LATTICE")]
                     let t = k as f64 / n as f64;
-                    let p = (a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t);
-                    out[i + k] = reader.bilinear(index, input, p)?;
+                    points.push((a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t));
                 }
                 i = end + 1;
+            }
+            // The chunks under those points, fetched once; then sampled with no lock.
+            let Some(window) = reader.window(index, &points)? else { continue };
+            for (k, p) in points.iter().enumerate() {
+                if out[c0 + k].is_nan() {
+                    out[c0 + k] = window.bilinear(*p);
+                }
             }
         }
         Ok(out)
@@ -256,6 +262,8 @@ fn footprint(to_output: &Transform, origin: [f64; 2], pixel: (f64, f64), (w, h):
 struct Reader<'m> {
     mosaic: &'m Mosaic,
     state: Mutex<ReaderState<'m>>,
+    /// The band of output rows being made: what "recently used" counts in.
+    band: std::sync::atomic::AtomicU64,
 }
 
 #[derive(Default)]
@@ -263,7 +271,6 @@ struct ReaderState<'m> {
     files: HashMap<usize, (Arc<TiffChunks<'m>>, u64)>,
     chunks: HashMap<(usize, usize), (Arc<Chunk>, u64)>,
     bytes: usize,
-    clock: u64,
 }
 
 /// One decoded strip or tile: heights, `w` across.
@@ -272,60 +279,116 @@ struct Chunk {
     w: usize,
 }
 
-impl<'m> Reader<'m> {
-    fn new(mosaic: &'m Mosaic) -> Self {
-        Self { mosaic, state: Mutex::default() }
+/// The chunks under a row's sample points, held for lock-free sampling.
+struct Window {
+    /// The raster's size.
+    size: (u32, u32),
+    /// A chunk's nominal width and height (a strip: the raster's width).
+    chunk: (usize, usize),
+    /// First chunk column and row held, and chunk columns held.
+    first: (usize, usize),
+    across: usize,
+    held: Vec<Arc<Chunk>>,
+}
+
+impl Window {
+    /// The height of pixel `(x, y)`; NaN outside the raster, for nodata, or outside the
+    /// chunks held.
+    fn get(&self, x: i64, y: i64) -> f32 {
+        if x < 0 || y < 0 || x >= i64::from(self.size.0) || y >= i64::from(self.size.1) {
+            return f32::NAN;
+        }
+        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
+        let (x, y) = (x as usize, y as usize);
+        let (cx, cy) = (x / self.chunk.0, y / self.chunk.1);
+        let (Some(dx), Some(dy)) = (cx.checked_sub(self.first.0), cy.checked_sub(self.first.1)) else {
+            return f32::NAN;
+        };
+        if dx >= self.across {
+            return f32::NAN;
+        }
+        let Some(chunk) = self.held.get(dy * self.across + dx) else { return f32::NAN };
+        let (lx, ly) = (x - cx * self.chunk.0, y - cy * self.chunk.1);
+        chunk.heights.get(ly * chunk.w + lx).copied().unwrap_or(f32::NAN)
     }
 
-    /// Bilinear height at input pixel coordinates `p` (centres at integers) over the
-    /// corners with data; NaN where none has.
-    fn bilinear(&self, index: usize, input: &Input, p: (f64, f64)) -> Result<f32> {
-        let (w, h) = input.file.size();
-        if !(p.0 > -1.0 && p.1 > -1.0 && p.0 < f64::from(w) && p.1 < f64::from(h)) {
-            return Ok(f32::NAN);
+    /// Bilinear height at pixel coordinates `p` (centres at integers) over the corners
+    /// with data; NaN where none has.
+    fn bilinear(&self, p: (f64, f64)) -> f32 {
+        if !(p.0.is_finite() && p.1.is_finite()) {
+            return f32::NAN;
         }
         let (x0, y0) = (p.0.floor(), p.1.floor());
         let (fx, fy) = (p.0 - x0, p.1 - y0);
-        #[expect(clippy::cast_possible_truncation, reason = "inside the raster, checked above")]
+        #[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
         let (x0, y0) = (x0 as i64, y0 as i64);
         let (mut sum, mut weight) = (0.0, 0.0);
-        for (dx, dy, wt) in
-            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+        for (dx, dy, wt) in [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
         {
-            let v = self.sample(index, x0 + dx, y0 + dy)?;
+            let v = self.get(x0 + dx, y0 + dy);
             if wt > 0.0 && !v.is_nan() {
                 sum += wt * f64::from(v);
                 weight += wt;
             }
         }
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
-        Ok(if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN })
+        if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN }
+    }
+}
+
+impl<'m> Reader<'m> {
+    fn new(mosaic: &'m Mosaic) -> Self {
+        Self { mosaic, state: Mutex::default(), band: std::sync::atomic::AtomicU64::new(0) }
     }
 
-    /// The height of input pixel `(x, y)`; NaN outside the raster or for nodata.
-    fn sample(&self, index: usize, x: i64, y: i64) -> Result<f32> {
+    /// The decoded chunks under `points` (input pixel coordinates) of input `index`;
+    /// `None` when no point falls inside the raster.
+    fn window(&self, index: usize, points: &[(f64, f64)]) -> Result<Option<Window>> {
         let (w, h) = self.mosaic.inputs[index].file.size();
-        if x < 0 || y < 0 || x >= i64::from(w) || y >= i64::from(h) {
-            return Ok(f32::NAN);
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for &(x, y) in points.iter().filter(|p| p.0.is_finite() && p.1.is_finite()) {
+            (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
         }
-        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
-        let (x, y) = (x as usize, y as usize);
+        #[expect(clippy::cast_possible_truncation, reason = "clamped to the raster")]
+        let clamp = |v: f64, max: u32| v.clamp(0.0, f64::from(max - 1)) as usize;
+        if !(x1 > -1.0 && y1 > -1.0 && x0 < f64::from(w) && y0 < f64::from(h)) {
+            return Ok(None);
+        }
+        let (px0, px1) = (clamp(x0.floor(), w), clamp(x1.floor() + 1.0, w));
+        let (py0, py1) = (clamp(y0.floor(), h), clamp(y1.floor() + 1.0, h));
         let chunks = self.file(index)?;
-        let (cx, cy) = (x / chunks.chunk_w, y / chunks.chunk_h);
-        let id = if chunks.kind == tiff::decoder::ChunkType::Strip { cy } else { cy * chunks.across() + cx };
-        let chunk = self.chunk(index, &chunks, id)?;
-        let (lx, ly) = if chunks.kind == tiff::decoder::ChunkType::Strip {
-            (x, y - cy * chunks.chunk_h)
-        } else {
-            (x - cx * chunks.chunk_w, y - cy * chunks.chunk_h)
-        };
-        Ok(chunk.heights.get(ly * chunk.w + lx).copied().unwrap_or(f32::NAN))
+        let strip = chunks.kind == tiff::decoder::ChunkType::Strip;
+        let (cw, ch) = (if strip { chunks.width } else { chunks.chunk_w }, chunks.chunk_h);
+        let (cx0, cx1, cy0, cy1) = (px0 / cw, px1 / cw, py0 / ch, py1 / ch);
+        let mut held = Vec::with_capacity((cx1 - cx0 + 1) * (cy1 - cy0 + 1));
+        for cy in cy0..=cy1 {
+            for cx in cx0..=cx1 {
+                let id = if strip { cy } else { cy * chunks.across() + cx };
+                held.push(self.chunk(index, &chunks, id)?);
+            }
+        }
+        Ok(Some(Window { size: (w, h), chunk: (cw, ch), first: (cx0, cy0), across: cx1 - cx0 + 1, held }))
+    }
+
+    /// The next band of output rows starts: chunks unused in this band and the last one
+    /// lie above the rows still to come and are dropped.
+    fn next_band(&self) {
+        let band = self.band.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut freed = 0;
+        state.chunks.retain(|_, (chunk, used)| {
+            let keep = *used + 1 >= band;
+            if !keep {
+                freed += chunk.heights.len() * 4;
+            }
+            keep
+        });
+        state.bytes -= freed;
     }
 
     fn file(&self, index: usize) -> Result<Arc<TiffChunks<'m>>> {
+        let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-        state.clock += 1;
-        let clock = state.clock;
         if let Some((chunks, used)) = state.files.get_mut(&index) {
             *used = clock;
             return Ok(chunks.clone());
@@ -342,9 +405,8 @@ impl<'m> Reader<'m> {
 
     fn chunk(&self, index: usize, chunks: &TiffChunks<'m>, id: usize) -> Result<Arc<Chunk>> {
         {
+            let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
             let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-            state.clock += 1;
-            let clock = state.clock;
             if let Some((chunk, used)) = state.chunks.get_mut(&(index, id)) {
                 *used = clock;
                 return Ok(chunk.clone());
@@ -359,7 +421,7 @@ impl<'m> Reader<'m> {
         let chunk = Arc::new(Chunk { heights, w });
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         state.bytes += chunk.heights.len() * 4;
-        let clock = state.clock;
+        let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
         state.chunks.insert((index, id), (chunk.clone(), clock));
         while state.bytes > self.mosaic.cache_bytes && state.chunks.len() > 1 {
             let Some(oldest) = state.chunks.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) else { break };
@@ -387,6 +449,20 @@ impl ElevationSource for Mosaic {
     fn crs_pixel_size(&self) -> Option<(f64, f64)> {
         Some((self.pixel, self.pixel))
     }
+    /// The union of the inputs' height ranges, each found where its chunks are decoded
+    /// (a bilinear sample never leaves the range of its corners), without making a row.
+    fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        let count = self.inputs.len().max(1);
+        for (k, input) in self.inputs.iter().enumerate() {
+            let (l, h) = input.file.height_range(&mut |_| Ok(()))?;
+            (lo, hi) = (lo.min(l), hi.max(h));
+            let done = u64::from(self.size.1) * (k as u64 + 1) / count as u64;
+            progress(u32::try_from(done).unwrap_or(u32::MAX))?;
+        }
+        Ok((lo, hi))
+    }
+
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         let reader = Reader::new(self);
         let mut j = 0;
@@ -396,6 +472,7 @@ impl ElevationSource for Mosaic {
             for r in band {
                 row(&r?)?;
             }
+            reader.next_band();
             j = end;
         }
         Ok(())
