@@ -28,6 +28,9 @@ pub const OPEN_FILES: usize = 64;
 /// Output texels between exact transforms along a row; linear in between.
 const LATTICE: usize = 16;
 
+/// [`LATTICE`], for row numbers.
+const LATTICE_ROWS: u32 = 16;
+
 /// Output rows made at once (in parallel).
 const ROWS_AT_ONCE: u32 = 32;
 
@@ -192,10 +195,9 @@ impl Mosaic {
             // The input pixel coordinates of every sample of the row in this input's
             // footprint: exact on a lattice every LATTICE samples and rows, bilinear
             // between (well under a millimetre off for these projections at that spacing).
-            let l = j / LATTICE as u32;
+            let l = j / LATTICE_ROWS;
             let (top, bottom) = (reader.lattice(index, l, (c0, c1))?, reader.lattice(index, l + 1, (c0, c1))?);
-            #[expect(clippy::cast_precision_loss, reason = "a fraction of LATTICE")]
-            let fy = f64::from(j % LATTICE as u32) / LATTICE as f64;
+            let fy = f64::from(j % LATTICE_ROWS) / f64::from(LATTICE_ROWS);
             let mut points = Vec::with_capacity(c1 - c0 + 1);
             for k in 0..top.len().saturating_sub(1) {
                 let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
@@ -269,10 +271,13 @@ struct Reader<'m> {
 struct ReaderState<'m> {
     files: HashMap<usize, (Arc<TiffChunks<'m>>, u64)>,
     /// Per input and lattice row: input pixel coordinates of the lattice's samples.
-    lattice: HashMap<(usize, u32), (Arc<Vec<(f64, f64)>>, u64)>,
+    lattice: HashMap<(usize, u32), (LatticeRow, u64)>,
     chunks: HashMap<(usize, usize), (Arc<Chunk>, u64)>,
     bytes: usize,
 }
+
+/// Input pixel coordinates along one lattice row.
+type LatticeRow = Arc<Vec<(f64, f64)>>;
 
 /// One decoded strip or tile: heights, `w` across.
 struct Chunk {
@@ -374,7 +379,7 @@ impl<'m> Reader<'m> {
 
     /// The input pixel coordinates (NaN where the transform fails) of input `index` at
     /// output row `l * LATTICE` and columns `c0, c0 + LATTICE, …` and `c1`.
-    fn lattice(&self, index: usize, l: u32, (c0, c1): (usize, usize)) -> Result<Arc<Vec<(f64, f64)>>> {
+    fn lattice(&self, index: usize, l: u32, (c0, c1): (usize, usize)) -> Result<LatticeRow> {
         let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
         if let Some((row, used)) =
             self.state.lock().unwrap_or_else(PoisonError::into_inner).lattice.get_mut(&(index, l))
@@ -386,7 +391,7 @@ impl<'m> Reader<'m> {
         #[expect(clippy::cast_precision_loss, reason = "sample indices are far below 2^52")]
         let at = |i: usize| {
             let x = m.origin[0] + (i as f64 + 0.5) * m.pixel;
-            let y = m.origin[1] - (f64::from(l) * LATTICE as f64 + 0.5) * m.pixel;
+            let y = m.origin[1] - (f64::from(l) * f64::from(LATTICE_ROWS) + 0.5) * m.pixel;
             input.to_input.apply(x, y).map_or((f64::NAN, f64::NAN), |(sx, sy)| {
                 ((sx - input.origin[0]) / input.pixel.0 - 0.5, (input.origin[1] - sy) / input.pixel.1 - 0.5)
             })
