@@ -29,6 +29,9 @@ pub struct TileArgs {
     /// Output sample spacing of a mosaic, in metres. Default: the finest input's.
     #[arg(long)]
     resolution: Option<f64>,
+    /// Leave out mosaic inputs that cannot be used (listed at the end) instead of stopping.
+    #[arg(long)]
+    skip_bad_inputs: bool,
     /// How the elevation's pixels map to heights. `auto`: GeoTIFF samples and 16-bit PNG
     /// values are heights (times `--height-step`, plus `--min-elevation`).
     #[arg(long, value_enum, default_value_t = EncodingArg::Auto)]
@@ -143,7 +146,13 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     // Several inputs, or a CRS or spacing asked for: one mosaic on one output grid.
     let mosaic = if inputs.len() > 1 || args.crs.is_some() || args.resolution.is_some() {
         let crs = args.crs.as_deref().map(Crs::parse).transpose()?;
-        let mosaic = Mosaic::open(&inputs, &MosaicOptions { crs, resolution: args.resolution, cache_bytes: None })?;
+        let options = MosaicOptions {
+            crs,
+            resolution: args.resolution,
+            cache_bytes: None,
+            skip_bad_inputs: args.skip_bad_inputs,
+        };
+        let mosaic = Mosaic::open(&inputs, &options)?;
         let (w, h) = mosaic.size();
         tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
         Some(mosaic)
@@ -254,6 +263,12 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let Some(output) = &args.output else { bail!("--output is required") };
     let summary = tile_terrain(elevation, texture, &name, output, options, progress)?;
     progress.finish();
+    if let Some(skipped) = mosaic.as_ref().map(Mosaic::skipped).filter(|s| !s.is_empty()) {
+        println!("skipped {} inputs that cannot be used:", skipped.len());
+        for (_, why) in skipped {
+            println!("  {why}");
+        }
+    }
     println!(
         "{}: {} tiles, {} bytes in {:.2} s",
         output.display(),

@@ -83,8 +83,12 @@ fn a_mosaic_across_two_utm_zones_matches_gdalwarp() {
         tiles.push(utm);
     }
 
-    let options =
-        MosaicOptions { crs: Some(Crs::epsg(32632).unwrap()), resolution: Some(60.0), cache_bytes: Some(1 << 20) };
+    let options = MosaicOptions {
+        crs: Some(Crs::epsg(32632).unwrap()),
+        resolution: Some(60.0),
+        cache_bytes: Some(1 << 20),
+        ..MosaicOptions::default()
+    };
     let mosaic = Mosaic::open(&tiles, &options).unwrap();
     let (w, h) = mosaic.size();
     let origin = mosaic.georeference().unwrap().origin.unwrap();
@@ -165,4 +169,30 @@ fn a_mosaic_across_two_utm_zones_matches_gdalwarp() {
     // The gap east of the north-east tile stays nodata.
     let gap = ours[(h / 4 * w + w - 2) as usize];
     assert!(gap.is_nan(), "the gap holds {gap}");
+}
+
+#[test]
+fn a_bad_input_is_named_or_skipped_and_listed() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a.tif"), dir.path().join("b.tif"));
+    geographic_tile(&a, 11.0, 46.0, 0.001, (100, 100));
+    geographic_tile(&b, 11.1, 46.0, 0.001, (100, 100));
+    let broken = dir.path().join("broken.tif");
+    std::fs::write(&broken, b"II*\0 not really a TIFF").unwrap();
+    let inputs = vec![a, broken.clone(), b];
+    let err = Mosaic::open(&inputs, &MosaicOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("broken.tif"), "{err}");
+    let options = MosaicOptions { skip_bad_inputs: true, ..MosaicOptions::default() };
+    let mosaic = Mosaic::open(&inputs, &options).unwrap();
+    assert_eq!(mosaic.skipped().len(), 1);
+    assert_eq!(mosaic.skipped()[0].0, broken);
+    assert_eq!(mosaic.inputs().count(), 2);
+    // Geographic inputs: a transverse Mercator centred on them, about 15.5 km x 11 km.
+    assert!(mosaic.crs().definition().starts_with("+proj=tmerc"), "{:?}", mosaic.crs());
+    let (w, h) = mosaic.size();
+    let spacing = mosaic.spacing().0;
+    assert!(
+        (f64::from(w) * spacing - 15_480.0).abs() < 300.0 && (f64::from(h) * spacing - 11_120.0).abs() < 300.0,
+        "{w}x{h} at {spacing} m"
+    );
 }

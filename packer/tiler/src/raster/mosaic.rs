@@ -44,6 +44,9 @@ pub struct MosaicOptions {
     pub resolution: Option<f64>,
     /// Bytes of decoded input chunks kept (default 512 MiB).
     pub cache_bytes: Option<usize>,
+    /// Leave out inputs that cannot be used (listed by [`Mosaic::skipped`]) instead of
+    /// stopping at the first.
+    pub skip_bad_inputs: bool,
 }
 
 /// An input as opened: the file, its CRS, north-west corner and pixel size there.
@@ -67,6 +70,7 @@ struct Input {
 #[derive(Debug)]
 pub struct Mosaic {
     path: PathBuf,
+    skipped: Vec<(PathBuf, String)>,
     inputs: Vec<Input>,
     crs: Crs,
     origin: [f64; 2],
@@ -86,17 +90,19 @@ impl Mosaic {
     pub fn open(paths: &[PathBuf], options: &MosaicOptions) -> Result<Self> {
         let first = paths.first().ok_or(Error::NothingToTile)?;
         let mut files = Vec::with_capacity(paths.len());
+        let mut skipped = Vec::new();
         for path in paths {
-            let file = open_elevation(path, None)?;
-            if !file.is_plain_tiff() {
-                return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+            match open_input(path) {
+                Ok(opened) => files.push(opened),
+                Err(e) if options.skip_bad_inputs => {
+                    tracing::warn!("skipping {e}");
+                    skipped.push((path.clone(), e.to_string()));
+                }
+                Err(e) => return Err(e),
             }
-            let Some((crs, origin, pixel)) = crs_placement(file.georeference(), file.crs_pixel_size()) else {
-                return Err(Error::input(path, "it does not say where it lies (no GeoTIFF georeference with a CRS)"));
-            };
-            let crs =
-                Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
-            files.push((file, crs, origin, pixel));
+        }
+        if files.is_empty() {
+            return Err(Error::input(first, "no input can be used (every one was skipped)"));
         }
         let crs = match &options.crs {
             Some(crs) => crs.clone(),
@@ -158,6 +164,7 @@ impl Mosaic {
         };
         Ok(Self {
             path: first.clone(),
+            skipped,
             inputs,
             crs,
             origin,
@@ -166,6 +173,11 @@ impl Mosaic {
             georeference,
             cache_bytes: options.cache_bytes.unwrap_or(512 << 20),
         })
+    }
+
+    /// Inputs left out with `skip_bad_inputs`, and why.
+    pub fn skipped(&self) -> &[(PathBuf, String)] {
+        &self.skipped
     }
 
     /// The output CRS.
@@ -223,6 +235,19 @@ impl Mosaic {
         }
         Ok(out)
     }
+}
+
+/// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows.
+fn open_input(path: &Path) -> Result<Opened> {
+    let file = open_elevation(path, None)?;
+    if !file.is_plain_tiff() {
+        return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+    }
+    let Some((crs, origin, pixel)) = crs_placement(file.georeference(), file.crs_pixel_size()) else {
+        return Err(Error::input(path, "it does not say where it lies (no GeoTIFF georeference with a CRS)"));
+    };
+    let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
+    Ok((file, crs, origin, pixel))
 }
 
 /// West, south, east and north of geographic inputs' corners (degrees).
