@@ -196,3 +196,76 @@ fn a_bad_input_is_named_or_skipped_and_listed() {
         "{w}x{h} at {spacing} m"
     );
 }
+
+/// Our mosaic of `inputs` and gdalwarp's onto the same grid: (samples with data in both,
+/// mean |difference|, samples with data in only one).
+fn against_gdal(dir: &Path, inputs: &[PathBuf], crs: u16, spacing: f64) -> (usize, f64, usize) {
+    let options =
+        MosaicOptions { crs: Some(Crs::epsg(crs).unwrap()), resolution: Some(spacing), ..MosaicOptions::default() };
+    let mosaic = Mosaic::open(inputs, &options).unwrap();
+    let (w, h) = mosaic.size();
+    let origin = mosaic.georeference().unwrap().origin.unwrap();
+    let mut ours = Vec::new();
+    mosaic
+        .rows(&mut |r| {
+            ours.extend_from_slice(r);
+            Ok(())
+        })
+        .unwrap();
+    let te = [origin[0], origin[1] - f64::from(h) * spacing, origin[0] + f64::from(w) * spacing, origin[1]]
+        .map(|v| format!("{v:.6}"));
+    let oracle = dir.join("oracle-vrt.tif");
+    let (srs, tr) = (format!("EPSG:{crs}"), format!("{spacing}"));
+    let mut args =
+        vec!["-t_srs", &srs, "-tr", &tr, &tr, "-r", "bilinear", "-ot", "Float32", "-dstnodata", "-9999", "-te"];
+    args.extend(te.iter().map(String::as_str));
+    warp(&args, inputs, &oracle);
+    let gdal = read_geotiff(&oracle).unwrap();
+    assert_eq!(gdal.size(), (w, h));
+    let (mut both, mut one, mut sum) = (0, 0, 0.0);
+    for (a, b) in ours.iter().zip(&gdal.data) {
+        match (a.is_nan(), b.is_nan()) {
+            (false, false) => {
+                both += 1;
+                sum += f64::from((a - b).abs());
+            }
+            (true, true) => {}
+            _ => one += 1,
+        }
+    }
+    (both, sum / both.max(1) as f64, one)
+}
+
+#[test]
+fn gdal_virtual_rasters_are_read_as_gdal_reads_them() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let dem = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/srtm-tamalpais-320-public-domain.tif");
+    let run = |args: &[&str]| {
+        let status = Command::new(args[0]).args(&args[1..]).current_dir(dir.path()).status().unwrap();
+        assert!(status.success(), "{args:?}");
+    };
+    let dem = dem.to_str().unwrap();
+    // Two overlapping windows of the SRTM crop, then a VRT of both (ComplexSources with
+    // NODATA, file names relative to the VRT) and a VRT of a window of one (a SrcRect).
+    run(&["gdal_translate", "-q", "-srcwin", "0", "0", "216", "216", "-a_nodata", "-32768", dem, "t0.tif"]);
+    run(&["gdal_translate", "-q", "-srcwin", "200", "40", "120", "216", "-a_nodata", "-32768", dem, "t1.tif"]);
+    run(&["gdalbuildvrt", "-q", "both.vrt", "t0.tif", "t1.tif"]);
+    run(&["gdal_translate", "-q", "-of", "VRT", "-srcwin", "30", "50", "120", "90", "t0.tif", "crop.vrt"]);
+    let vrt = std::fs::read_to_string(dir.path().join("both.vrt")).unwrap();
+    assert!(vrt.contains("<DstRect xOff=\"200\" yOff=\"40\""), "{vrt}");
+
+    for name in ["both.vrt", "crop.vrt"] {
+        let (both, mean, one) = against_gdal(dir.path(), &[dir.path().join(name)], 32610, 30.0);
+        eprintln!("{name}: {both} samples in both, mean |difference| {mean:.3} m, {one} in only one");
+        assert!(both > 1000 && mean < 0.5 && (one as f64) < 0.02 * both as f64, "{name}: {both} / {mean} / {one}");
+    }
+
+    // A VRT naming a file that is not there: an error naming the file.
+    let broken = vrt.replace("t1.tif", "gone.tif");
+    std::fs::write(dir.path().join("broken.vrt"), broken).unwrap();
+    let err = Mosaic::open(&[dir.path().join("broken.vrt")], &MosaicOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("gone.tif") && err.contains("broken.vrt"), "{err}");
+}

@@ -16,6 +16,7 @@ mod memory;
 mod mosaic;
 mod png;
 mod tiff;
+mod vrt;
 mod warp;
 
 use std::path::Path;
@@ -35,6 +36,7 @@ pub use jpeg::JPEG_MAX_DECODED_BYTES;
 pub(crate) use jpeg::jpeg_fits;
 pub use memory::{Image, ImageWindow, Raster};
 pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
+pub use vrt::{Vrt, VrtSource, read_vrt};
 pub use warp::Warped;
 
 /// Rows of heights: the elevation input of the tiler.

@@ -18,6 +18,7 @@ use terrastream_format::Georeference;
 
 use super::elevation::{ElevationFile, open_elevation};
 use super::tiff::{TiffChunks, samples_f32};
+use super::vrt::read_vrt;
 use super::{ElevationSource, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
@@ -49,8 +50,16 @@ pub struct MosaicOptions {
     pub skip_bad_inputs: bool,
 }
 
-/// An input as opened: the file, its CRS, north-west corner and pixel size there.
-type Opened = (ElevationFile, Crs, [f64; 2], (f64, f64));
+/// An input as opened: a window of a file (the whole file, or a VRT source's), its CRS,
+/// the window's north-west corner and pixel size there, and a nodata value of the VRT.
+struct Opened {
+    file: ElevationFile,
+    crs: Crs,
+    origin: [f64; 2],
+    pixel: (f64, f64),
+    window: [u32; 4],
+    nodata: Option<f32>,
+}
 
 /// One input raster.
 #[derive(Debug)]
@@ -59,6 +68,10 @@ struct Input {
     /// North-west corner and pixel size in the input's CRS.
     origin: [f64; 2],
     pixel: (f64, f64),
+    /// The window of the file read: first column and row, width and height.
+    window: [u32; 4],
+    /// Samples equal to this are nodata too (a VRT source's NODATA).
+    nodata: Option<f32>,
     /// Output CRS -> the input's.
     to_input: Transform,
     /// Footprint in output pixels: first and last column and row (inclusive).
@@ -92,8 +105,8 @@ impl Mosaic {
         let mut files = Vec::with_capacity(paths.len());
         let mut skipped = Vec::new();
         for path in paths {
-            match open_input(path) {
-                Ok(opened) => files.push(opened),
+            match open_inputs(path) {
+                Ok(opened) => files.extend(opened),
                 Err(e) if options.skip_bad_inputs => {
                     tracing::warn!("skipping {e}");
                     skipped.push((path.clone(), e.to_string()));
@@ -106,7 +119,7 @@ impl Mosaic {
         }
         let crs = match &options.crs {
             Some(crs) => crs.clone(),
-            None if !files[0].1.is_geographic() => files[0].1.clone(),
+            None if !files[0].crs.is_geographic() => files[0].crs.clone(),
             None => {
                 let (w, s, e, n) = lon_lat_bounds(&files);
                 Crs::local_transverse_mercator((w + e) / 2.0, (s + n) / 2.0)
@@ -116,12 +129,12 @@ impl Mosaic {
         let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
         let mut finest = f64::INFINITY;
         let mut footprints = Vec::with_capacity(files.len());
-        for (file, input_crs, origin, pixel) in &files {
-            let to_output = Transform::new(input_crs, &crs);
-            let fp = footprint(&to_output, *origin, *pixel, file.size())
-                .ok_or_else(|| Error::input(file.path(), format!("it lies outside what {} can hold", crs.name())))?;
+        for o in &files {
+            let to_output = Transform::new(&o.crs, &crs);
+            let (w, h) = (o.window[2], o.window[3]);
+            let fp = footprint(&to_output, o.origin, o.pixel, (w, h))
+                .ok_or_else(|| Error::input(o.file.path(), format!("it lies outside what {} can hold", crs.name())))?;
             bounds = [bounds[0].min(fp[0]), bounds[1].min(fp[1]), bounds[2].max(fp[2]), bounds[3].max(fp[3])];
-            let (w, h) = file.size();
             let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
             finest = finest.min(metres);
             footprints.push(fp);
@@ -143,16 +156,18 @@ impl Mosaic {
         let inputs = files
             .into_iter()
             .zip(footprints)
-            .map(|((file, input_crs, input_origin, input_pixel), fp)| {
+            .map(|(o, fp)| {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
                 Input {
                     columns: (cell((fp[0] - origin[0]) / pixel) - 1, cell((fp[2] - origin[0]) / pixel) + 1),
                     rows: (cell((origin[1] - fp[3]) / pixel) - 1, cell((origin[1] - fp[1]) / pixel) + 1),
-                    to_input: Transform::new(&crs, &input_crs),
-                    origin: input_origin,
-                    pixel: input_pixel,
-                    file,
+                    to_input: Transform::new(&crs, &o.crs),
+                    origin: o.origin,
+                    pixel: o.pixel,
+                    window: o.window,
+                    nodata: o.nodata,
+                    file: o.file,
                 }
             })
             .collect();
@@ -237,25 +252,60 @@ impl Mosaic {
     }
 }
 
-/// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows.
-fn open_input(path: &Path) -> Result<Opened> {
-    let file = open_elevation(path, None)?;
-    if !file.is_plain_tiff() {
-        return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+/// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows, or a
+/// VRT's sources (each a window of a GeoTIFF, placed by the VRT).
+fn open_inputs(path: &Path) -> Result<Vec<Opened>> {
+    let plain = |path: &Path| -> Result<ElevationFile> {
+        let file = open_elevation(path, None)?;
+        if !file.is_plain_tiff() {
+            return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+        }
+        Ok(file)
+    };
+    if path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("vrt")) {
+        let vrt = read_vrt(path)?;
+        let crs = Crs::parse(&vrt.crs).map_err(|e| Error::input(path, format!("its SRS cannot be used: {e}")))?;
+        return vrt
+            .sources
+            .into_iter()
+            .map(|source| {
+                let file = plain(&source.path)?;
+                let (w, h) = file.size();
+                let [x, y, sw, sh] = source.window;
+                if x.saturating_add(sw) > w || y.saturating_add(sh) > h {
+                    return Err(Error::input(
+                        &source.path,
+                        format!("{} reads pixels {x}+{sw} x {y}+{sh} of this {w}x{h} raster", path.display()),
+                    ));
+                }
+                #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]
+                let nodata = source.nodata.map(|n| n as f32);
+                Ok(Opened {
+                    file,
+                    crs: crs.clone(),
+                    origin: source.origin,
+                    pixel: source.pixel,
+                    window: source.window,
+                    nodata,
+                })
+            })
+            .collect();
     }
+    let file = plain(path)?;
     let Some((crs, origin, pixel)) = crs_placement(file.georeference(), file.crs_pixel_size()) else {
         return Err(Error::input(path, "it does not say where it lies (no GeoTIFF georeference with a CRS)"));
     };
     let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
-    Ok((file, crs, origin, pixel))
+    let (w, h) = file.size();
+    Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None }])
 }
 
 /// West, south, east and north of geographic inputs' corners (degrees).
 fn lon_lat_bounds(files: &[Opened]) -> (f64, f64, f64, f64) {
     let mut b = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
     let wgs84 = Crs::wgs84();
-    for (file, crs, origin, pixel) in files {
-        let (w, h) = file.size();
+    for Opened { crs, origin, pixel, window, .. } in files {
+        let (w, h) = (window[2], window[3]);
         let t = Transform::new(crs, &wgs84);
         for (fx, fy) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)] {
             let (x, y) = (origin[0] + fx * f64::from(w) * pixel.0, origin[1] - fy * f64::from(h) * pixel.1);
@@ -312,8 +362,8 @@ struct Chunk {
 
 /// The chunks under a row's sample points, held for lock-free sampling.
 struct Window {
-    /// The raster's size.
-    size: (u32, u32),
+    /// The pixels that may be read: first column and row, end column and row (exclusive).
+    bounds: (i64, i64, i64, i64),
     /// A chunk's nominal width and height (a strip: the raster's width).
     chunk: (usize, usize),
     /// First chunk column and row held, and chunk columns held.
@@ -326,7 +376,7 @@ impl Window {
     /// The height of pixel `(x, y)`; NaN outside the raster, for nodata, or outside the
     /// chunks held.
     fn get(&self, x: i64, y: i64) -> f32 {
-        if x < 0 || y < 0 || x >= i64::from(self.size.0) || y >= i64::from(self.size.1) {
+        if x < self.bounds.0 || y < self.bounds.1 || x >= self.bounds.2 || y >= self.bounds.3 {
             return f32::NAN;
         }
         #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
@@ -376,18 +426,22 @@ impl<'m> Reader<'m> {
     /// The decoded chunks under `points` (input pixel coordinates) of input `index`;
     /// `None` when no point falls inside the raster.
     fn window(&self, index: usize, points: &[(f64, f64)]) -> Result<Option<Window>> {
-        let (w, h) = self.mosaic.inputs[index].file.size();
+        // The file's pixels this input reads: its window (the whole file, or a VRT's).
+        let [wx, wy, ww, wh] = self.mosaic.inputs[index].window;
+        let bounds = (i64::from(wx), i64::from(wy), i64::from(wx) + i64::from(ww), i64::from(wy) + i64::from(wh));
         let (mut x0, mut y0, mut x1, mut y1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
         for &(x, y) in points.iter().filter(|p| p.0.is_finite() && p.1.is_finite()) {
             (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
         }
-        #[expect(clippy::cast_possible_truncation, reason = "clamped to the raster")]
-        let clamp = |v: f64, max: u32| v.clamp(0.0, f64::from(max - 1)) as usize;
-        if !(x1 > -1.0 && y1 > -1.0 && x0 < f64::from(w) && y0 < f64::from(h)) {
+        #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+        let (fx0, fy0, fx1, fy1) = (bounds.0 as f64, bounds.1 as f64, bounds.2 as f64, bounds.3 as f64);
+        if !(x1 > fx0 - 1.0 && y1 > fy0 - 1.0 && x0 < fx1 && y0 < fy1) || ww == 0 || wh == 0 {
             return Ok(None);
         }
-        let (px0, px1) = (clamp(x0.floor(), w), clamp(x1.floor() + 1.0, w));
-        let (py0, py1) = (clamp(y0.floor(), h), clamp(y1.floor() + 1.0, h));
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped into the window")]
+        let clamp = |v: f64, lo: f64, hi: f64| v.clamp(lo, hi - 1.0) as usize;
+        let (px0, px1) = (clamp(x0.floor(), fx0, fx1), clamp(x1.floor() + 1.0, fx0, fx1));
+        let (py0, py1) = (clamp(y0.floor(), fy0, fy1), clamp(y1.floor() + 1.0, fy0, fy1));
         let chunks = self.file(index)?;
         let strip = chunks.kind == tiff::decoder::ChunkType::Strip;
         let (cw, ch) = (if strip { chunks.width } else { chunks.chunk_w }, chunks.chunk_h);
@@ -399,7 +453,7 @@ impl<'m> Reader<'m> {
                 held.push(self.chunk(index, &chunks, id)?);
             }
         }
-        Ok(Some(Window { size: (w, h), chunk: (cw, ch), first: (cx0, cy0), across: cx1 - cx0 + 1, held }))
+        Ok(Some(Window { bounds, chunk: (cw, ch), first: (cx0, cy0), across: cx1 - cx0 + 1, held }))
     }
 
     /// The input pixel coordinates (NaN where the transform fails) of input `index` at
@@ -417,8 +471,9 @@ impl<'m> Reader<'m> {
         let at = |i: usize| {
             let x = m.origin[0] + (i as f64 + 0.5) * m.pixel;
             let y = m.origin[1] - (f64::from(l) * f64::from(LATTICE_ROWS) + 0.5) * m.pixel;
+            let (wx, wy) = (f64::from(input.window[0]), f64::from(input.window[1]));
             input.to_input.apply(x, y).map_or((f64::NAN, f64::NAN), |(sx, sy)| {
-                ((sx - input.origin[0]) / input.pixel.0 - 0.5, (input.origin[1] - sy) / input.pixel.1 - 0.5)
+                ((sx - input.origin[0]) / input.pixel.0 - 0.5 + wx, (input.origin[1] - sy) / input.pixel.1 - 0.5 + wy)
             })
         };
         let mut columns: Vec<usize> = (c0..=c1).step_by(LATTICE).collect();
@@ -482,6 +537,11 @@ impl<'m> Reader<'m> {
         let mut heights =
             samples_f32(data).ok_or_else(|| Error::input(input.file.path(), "unsupported sample type"))?;
         input.file.heights(&mut heights);
+        if let Some(nodata) = input.nodata {
+            for v in heights.iter_mut().filter(|v| **v == nodata) {
+                *v = f32::NAN;
+            }
+        }
         let chunk = Arc::new(Chunk { heights, w });
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         state.bytes += chunk.heights.len() * 4;

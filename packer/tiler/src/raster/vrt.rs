@@ -1,0 +1,153 @@
+//! GDAL virtual rasters (`.vrt`), the common subset: one `VRTRasterBand` of
+//! `SimpleSource` / `ComplexSource` elements, each a window (`SrcRect`) of a file placed at
+//! `DstRect` on the VRT's grid (`GeoTransform`, `SRS`), with `SourceFilename` relative to
+//! the VRT or absolute and an optional `NODATA`. A mosaic reads each source as an input.
+
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+
+/// One source of a VRT, placed on the VRT's grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VrtSource {
+    /// The file.
+    pub path: PathBuf,
+    /// The window of the file used: first column and row, width and height.
+    pub window: [u32; 4],
+    /// Where the window lies: CRS coordinates of its north-west corner.
+    pub origin: [f64; 2],
+    /// CRS units per window pixel (x, y).
+    pub pixel: (f64, f64),
+    /// Samples equal to this are nodata (on top of the file's own nodata).
+    pub nodata: Option<f64>,
+}
+
+/// A VRT's CRS (`EPSG:xxxx` or a PROJ string) and its sources, in order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Vrt {
+    /// The CRS as the tiler names it.
+    pub crs: String,
+    /// The sources.
+    pub sources: Vec<VrtSource>,
+}
+
+/// Reads the VRT at `path`.
+///
+/// # Errors
+/// [`Error::Input`] naming the VRT for anything it cannot use: not XML, no
+/// `GeoTransform` or `SRS`, a rotated grid, several bands, a source without a file or
+/// with a broken rectangle, a source file that does not exist (named).
+pub fn read_vrt(path: &Path) -> Result<Vrt> {
+    let bad = |why: String| Error::input(path, why);
+    let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+    let doc = roxmltree::Document::parse(&text).map_err(|e| bad(format!("not a VRT: {e}")))?;
+    let root = doc.root_element();
+    if !root.has_tag_name("VRTDataset") {
+        return Err(bad(format!("not a VRT: the root is <{}>", root.tag_name().name())));
+    }
+    let transform: Vec<f64> = child(root, "GeoTransform")
+        .and_then(|n| n.text())
+        .ok_or_else(|| bad("no <GeoTransform>: the VRT does not say where it lies".into()))?
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| bad(format!("<GeoTransform>: {e}")))?;
+    let [ox, px, rx, oy, ry, py] = transform[..] else {
+        return Err(bad(format!("<GeoTransform> has {} numbers, 6 expected", transform.len())));
+    };
+    if rx != 0.0 || ry != 0.0 || px <= 0.0 || py >= 0.0 {
+        return Err(bad("a rotated or flipped <GeoTransform>: only north-up grids are read".into()));
+    }
+    let srs = child(root, "SRS").and_then(|n| n.text()).ok_or_else(|| bad("no <SRS>".into()))?;
+    let crs = crs_of_srs(srs).ok_or_else(|| bad(format!("<SRS> names no EPSG code the tiler can use: {srs:.80}")))?;
+    let bands: Vec<_> = root.children().filter(|c| c.has_tag_name("VRTRasterBand")).collect();
+    let [band] = bands[..] else {
+        return Err(bad(format!("{} bands: an elevation VRT has one", bands.len())));
+    };
+    let folder = path.parent().unwrap_or(Path::new("."));
+    let mut sources = Vec::new();
+    for source in band.children().filter(|c| c.has_tag_name("SimpleSource") || c.has_tag_name("ComplexSource")) {
+        let file = child(source, "SourceFilename").ok_or_else(|| bad("a source without <SourceFilename>".into()))?;
+        let name = file.text().unwrap_or_default().trim();
+        let relative = file.attribute("relativeToVRT").is_some_and(|v| v.trim() == "1");
+        let source_path = if relative { folder.join(name) } else { PathBuf::from(name) };
+        if !source_path.is_file() {
+            return Err(Error::input(&source_path, format!("named by {} but missing", path.display())));
+        }
+        let rect = |name: &str| -> Result<Option<[f64; 4]>> {
+            let Some(r) = child(source, name) else { return Ok(None) };
+            let get = |a: &str| {
+                r.attribute(a)
+                    .and_then(|v| v.trim().parse::<f64>().ok())
+                    .ok_or_else(|| bad(format!("<{name}> of {} has no number {a}", source_path.display())))
+            };
+            Ok(Some([get("xOff")?, get("yOff")?, get("xSize")?, get("ySize")?]))
+        };
+        let (src, dst) = (rect("SrcRect")?, rect("DstRect")?);
+        let (Some(src), Some(dst)) = (src, dst) else {
+            return Err(bad(format!("the source {} has no <SrcRect> and <DstRect>", source_path.display())));
+        };
+        if src.iter().chain(&dst).any(|v| !v.is_finite())
+            || src[2] <= 0.0
+            || src[3] <= 0.0
+            || dst[2] <= 0.0
+            || dst[3] <= 0.0
+        {
+            return Err(bad(format!("the source {} has an empty or broken rectangle", source_path.display())));
+        }
+        #[expect(
+            clippy::cast_possible_truncation,
+            clippy::cast_sign_loss,
+            reason = "pixel rectangles, checked positive"
+        )]
+        let window = src.map(|v| v.max(0.0).round() as u32);
+        let nodata = child(source, "NODATA").and_then(|n| n.text()).and_then(|t| t.trim().parse::<f64>().ok());
+        sources.push(VrtSource {
+            path: source_path,
+            window,
+            origin: [ox + dst[0] * px, oy + dst[1] * py],
+            pixel: (px * dst[2] / src[2], -py * dst[3] / src[3]),
+            nodata,
+        });
+    }
+    if sources.is_empty() {
+        return Err(bad("no <SimpleSource> or <ComplexSource>".into()));
+    }
+    Ok(Vrt { crs, sources })
+}
+
+/// The first child of `node` named `name`.
+fn child<'a, 'input>(node: roxmltree::Node<'a, 'input>, name: &str) -> Option<roxmltree::Node<'a, 'input>> {
+    node.children().find(|c| c.has_tag_name(name))
+}
+
+/// The CRS of a VRT's `<SRS>`: `EPSG:xxxx`, a PROJ string, or WKT (its last `AUTHORITY`
+/// or `ID` with an EPSG code: the CRS's own, after those of its parts).
+fn crs_of_srs(srs: &str) -> Option<String> {
+    let t = srs.trim();
+    if t.starts_with('+') || t.to_ascii_uppercase().starts_with("EPSG:") {
+        return Some(t.to_owned());
+    }
+    let last = ["AUTHORITY[\"EPSG\",\"", "ID[\"EPSG\","]
+        .iter()
+        .filter_map(|key| t.rfind(key).map(|at| (at, &t[at + key.len()..])))
+        .max_by_key(|(at, _)| *at)?;
+    let code: String = last.1.chars().skip_while(|c| !c.is_ascii_digit()).take_while(char::is_ascii_digit).collect();
+    (!code.is_empty()).then(|| format!("EPSG:{code}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::crs_of_srs;
+
+    #[test]
+    fn the_crs_is_the_last_epsg_authority() {
+        let wkt1 =
+            r#"PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","32633"]]"#;
+        assert_eq!(crs_of_srs(wkt1).as_deref(), Some("EPSG:32633"));
+        let wkt2 = r#"PROJCRS["x",BASEGEOGCRS["y",ID["EPSG",4326]],ID["EPSG",25832]]"#;
+        assert_eq!(crs_of_srs(wkt2).as_deref(), Some("EPSG:25832"));
+        assert_eq!(crs_of_srs(" EPSG:2056 ").as_deref(), Some("EPSG:2056"));
+        assert_eq!(crs_of_srs(r#"LOCAL_CS["somewhere"]"#), None);
+    }
+}
