@@ -7,8 +7,8 @@ use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme};
 use terrastream_tiler::{
-    Crs, ElevationSource, ElevationStorage, ImageSource, ImageWindow, Mosaic, MosaicOptions, TextureFormat,
-    TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image, plan, tile_terrain,
+    Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, Mosaic, MosaicOptions, Pixels,
+    TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image, plan, tile_terrain,
 };
 
 use super::progress::CliProgress;
@@ -48,10 +48,12 @@ pub struct TileArgs {
     /// Metres between elevation samples, for inputs that do not say (PNG).
     #[arg(long)]
     sample_spacing: Option<f64>,
-    /// Texture image: GeoTIFF (8-bit gray/RGB/RGBA), PNG or JPEG, at its own resolution;
-    /// stretched over the elevation's extent, or alone.
-    #[arg(long)]
-    texture: Option<PathBuf>,
+    /// Texture image: GeoTIFF (8-bit gray/RGB/RGBA), PNG or JPEG, at its own resolution,
+    /// placed by its georeference (an image without one must cover the elevation's
+    /// area), or alone. Several GeoTIFFs (files, folders, patterns), in any CRS, are
+    /// mosaicked over the elevation's extent: a later one wins where it has pixels.
+    #[arg(long, num_args = 1..)]
+    texture: Vec<PathBuf>,
     /// Texture tile storage: png and webp are lossless; jpeg is smallest (no alpha); bc1 and
     /// bc7 are GPU blocks (+ zstd) a renderer uploads with no decode.
     #[arg(long, value_enum, default_value_t = TextureFormatArg::Png)]
@@ -150,9 +152,10 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             crs,
             resolution: args.resolution,
             cache_bytes: None,
+            extent: None,
             skip_bad_inputs: args.skip_bad_inputs,
         };
-        let mosaic = Mosaic::open(&inputs, &options)?;
+        let mosaic = Mosaic::<Heights>::open(&inputs, &options)?;
         let (w, h) = mosaic.size();
         tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
         Some(mosaic)
@@ -175,7 +178,6 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
         None => None,
     };
-    let image = args.texture.as_deref().map(open_image).transpose()?;
     let format = match args.texture_format {
         TextureFormatArg::Png => TextureFormat::Png,
         TextureFormatArg::Jpeg => TextureFormat::Jpeg(args.jpeg_quality),
@@ -187,6 +189,25 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         (Some(m), _) => Some(m),
         (None, Some(f)) => Some(f),
         (None, None) => None,
+    };
+    let textures = expand_inputs(&args.texture)?;
+    // Several images: one mosaic over the elevation's extent, in its CRS.
+    let image_mosaic = if textures.len() > 1 {
+        let (crs, extent) = match elevation {
+            Some(e) => elevation_extent(e)?,
+            None => (None, None),
+        };
+        let options = MosaicOptions { crs, extent, skip_bad_inputs: args.skip_bad_inputs, ..MosaicOptions::default() };
+        let mosaic = Mosaic::<Pixels>::open(&textures, &options)?;
+        let (w, h) = ImageSource::size(&mosaic);
+        tracing::info!("texture: a mosaic of {} images in {}, {w} x {h} pixels", textures.len(), mosaic.crs().name());
+        Some(mosaic)
+    } else {
+        None
+    };
+    let image = match textures.first() {
+        Some(path) if image_mosaic.is_none() => Some(open_image(path)?),
+        _ => None,
     };
     // Both georeferenced in one CRS: only the part of the image over the elevation is used.
     let window = match (elevation, &image) {
@@ -206,18 +227,21 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         let (width, height) = w.size();
         tracing::info!("texture: reprojected onto the elevation's extent, {width}x{height} texels");
     }
-    let texture = image.as_ref().map(|image| TextureInput {
-        source: match (&warped, &window) {
-            (Some(w), _) => w as &dyn ImageSource,
-            (None, Some(w)) => w as &dyn ImageSource,
-            (None, None) => image as &dyn ImageSource,
-        },
+    let source: Option<&dyn ImageSource> = match (&image_mosaic, &warped, &window, &image) {
+        (Some(m), ..) => Some(m),
+        (None, Some(w), ..) => Some(w),
+        (None, None, Some(w), _) => Some(w),
+        (None, None, None, Some(i)) => Some(i),
+        (None, None, None, None) => None,
+    };
+    let texture = source.map(|source| TextureInput {
+        source,
         tile_size: args.texture_tile_size,
         format,
         pixel_size: args.pixel_size,
     });
     let name = args.name.clone().unwrap_or_else(|| {
-        let input = args.elevation.first().or(args.texture.as_ref());
+        let input = args.elevation.first().or(args.texture.first());
         input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()
     });
     let storage = match args.storage {
@@ -277,4 +301,18 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// The elevation's CRS and extent (min x, min y, max x, max y there), for imagery that
+/// must cover it; `None`s when the elevation does not say where it lies.
+fn elevation_extent(e: &dyn ElevationSource) -> Result<(Option<Crs>, Option<[f64; 4]>)> {
+    let g = e.georeference();
+    let (Some(crs), Some(origin), Some((px, py))) =
+        (g.and_then(|g| g.crs.as_deref()), g.and_then(|g| g.origin), e.crs_pixel_size())
+    else {
+        return Ok((None, None));
+    };
+    let (w, h) = e.size();
+    let extent = [origin[0], origin[1] - f64::from(h) * py, origin[0] + f64::from(w) * px, origin[1]];
+    Ok((Some(Crs::parse(crs)?), Some(extent)))
 }

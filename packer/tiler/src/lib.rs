@@ -32,8 +32,8 @@ pub use error::{Error, Result};
 pub use options::{ElevationStorage, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
-    ElevationFile, ElevationSource, Image, ImageFile, ImageSource, ImageWindow, Mosaic, MosaicOptions, Raster, Warped,
-    expand_inputs, open_elevation, open_image, read_geotiff, read_image,
+    ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, Mosaic, MosaicKind,
+    MosaicOptions, Pixels, Raster, Warped, expand_inputs, open_elevation, open_image, read_geotiff, read_image,
 };
 pub use tile::{tile_elevation, tile_terrain};
 

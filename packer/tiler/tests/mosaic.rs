@@ -12,7 +12,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use terrastream_tiler::{Crs, ElevationSource, Mosaic, MosaicOptions, Transform, read_geotiff};
+use terrastream_tiler::{Crs, ElevationSource, Heights, Mosaic, MosaicOptions, Transform, read_geotiff};
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
 
@@ -180,7 +180,7 @@ fn a_bad_input_is_named_or_skipped_and_listed() {
     let broken = dir.path().join("broken.tif");
     std::fs::write(&broken, b"II*\0 not really a TIFF").unwrap();
     let inputs = vec![a, broken.clone(), b];
-    let err = Mosaic::open(&inputs, &MosaicOptions::default()).unwrap_err().to_string();
+    let err = Mosaic::<Heights>::open(&inputs, &MosaicOptions::default()).unwrap_err().to_string();
     assert!(err.contains("broken.tif"), "{err}");
     let options = MosaicOptions { skip_bad_inputs: true, ..MosaicOptions::default() };
     let mosaic = Mosaic::open(&inputs, &options).unwrap();
@@ -266,6 +266,7 @@ fn gdal_virtual_rasters_are_read_as_gdal_reads_them() {
     // A VRT naming a file that is not there: an error naming the file.
     let broken = vrt.replace("t1.tif", "gone.tif");
     std::fs::write(dir.path().join("broken.vrt"), broken).unwrap();
-    let err = Mosaic::open(&[dir.path().join("broken.vrt")], &MosaicOptions::default()).unwrap_err().to_string();
+    let err =
+        Mosaic::<Heights>::open(&[dir.path().join("broken.vrt")], &MosaicOptions::default()).unwrap_err().to_string();
     assert!(err.contains("gone.tif") && err.contains("broken.vrt"), "{err}");
 }

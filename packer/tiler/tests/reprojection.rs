@@ -17,8 +17,8 @@ use std::process::Command;
 use terrastream_format::{LayerKind, Reader, TileKey};
 use terrastream_pack::progress::Silent;
 use terrastream_tiler::{
-    ElevationSource, ImageSource, TextureFormat, TextureInput, TileOptions, Warped, open_elevation, open_image,
-    tile_terrain,
+    Crs, ElevationSource, ImageSource, Mosaic, MosaicOptions, Pixels, TextureFormat, TextureInput, TileOptions, Warped,
+    open_elevation, open_image, tile_terrain,
 };
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
@@ -114,8 +114,18 @@ fn an_image_in_another_crs_is_placed_by_its_georeference() {
     let texture = TextureInput { source: &warped, tile_size: 128, format: TextureFormat::Png, pixel_size: 1.0 };
     tile_terrain(Some(&elevation), Some(texture), "t", &out, TileOptions::default(), &Silent::default()).unwrap();
 
+    let th = warped.size().1;
+    let off = mark_offset(&out, &elevation, th);
+    eprintln!("the mark lies {off:.2} texels from its longitude and latitude");
+    assert!(off <= 1.0, "the mark lies {off:.2} texels from its longitude and latitude");
+}
+
+/// How far (in texels) the red mark's centroid in the texture of the archive at `out`
+/// lies from the texel of its longitude and latitude, for a texture `th` texels tall over
+/// `elevation`.
+fn mark_offset(out: &Path, elevation: &dyn ElevationSource, th: u32) -> f64 {
     // Where the red texels are, in texels of LOD 0 of the texture layer.
-    let reader = Reader::open_mmap(&out).unwrap();
+    let reader = Reader::open_mmap(out).unwrap();
     let meta = reader.metadata();
     let index = meta.layers.iter().position(|l| l.kind == LayerKind::Texture).unwrap();
     let layer = &meta.layers[index];
@@ -152,16 +162,72 @@ fn an_image_in_another_crs_is_placed_by_its_georeference() {
     // to `w * sx / sy` samples, the texture to the same aspect.
     let (sx, sy) = elevation.spacing();
     let squared = (f64::from(w) * sx / sy).round();
-    let th = warped.size().1;
     let tw = (f64::from(th) * squared / f64::from(h)).round() as u32;
     let expected = (
         (MARK.0 - west) / (step * f64::from(w)) * f64::from(tw),
         (north - MARK.1) / (step * f64::from(h)) * f64::from(th),
     );
-    let off = ((found.0 - expected.0).powi(2) + (found.1 - expected.1).powi(2)).sqrt();
+    eprintln!("the mark lies at texel {found:?}, its longitude and latitude at {expected:?}");
+    ((found.0 - expected.0).powi(2) + (found.1 - expected.1).powi(2)).sqrt()
+}
+
+#[test]
+fn a_mosaic_of_images_in_two_crss_lines_up() {
+    if !gdalwarp() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, geographic, out) =
+        (dir.path().join("dem.tif"), dir.path().join("image-4326.tif"), dir.path().join("m.tspack"));
+    write_dem(&dem);
+    write_marked_image(&geographic);
+    // The image cut in two overlapping halves, the mark on the seam; the west half warped
+    // to UTM 32N, the east half to UTM 33N.
+    let (west, east) = (dir.path().join("west-32632.tif"), dir.path().join("east-32633.tif"));
+    for (path, window, zone) in
+        [(&west, ["0", "0", "1480", "1900"], "EPSG:32632"), (&east, ["1460", "0", "1340", "1900"], "EPSG:32633")]
+    {
+        let cut = dir.path().join("cut.tif");
+        let ok = Command::new("gdal_translate")
+            .arg("-q")
+            .arg("-srcwin")
+            .args(window)
+            .arg(&geographic)
+            .arg(&cut)
+            .status()
+            .unwrap();
+        assert!(ok.success());
+        let ok = Command::new("gdalwarp")
+            .args([
+                "-q",
+                "-overwrite",
+                "-t_srs",
+                zone,
+                "-r",
+                "bilinear",
+                "-tr",
+                "15",
+                "15",
+                "-dstalpha",
+                "-co",
+                "TILED=YES",
+            ])
+            .arg(&cut)
+            .arg(path)
+            .status()
+            .unwrap();
+        assert!(ok.success());
+    }
+    let elevation = open_elevation(&dem, None).unwrap();
+    let g = elevation.georeference().unwrap();
+    let (origin, (px, py), (w, h)) = (g.origin.unwrap(), elevation.crs_pixel_size().unwrap(), elevation.size());
+    let extent = [origin[0], origin[1] - f64::from(h) * py, origin[0] + f64::from(w) * px, origin[1]];
+    let options =
+        MosaicOptions { crs: Some(Crs::epsg(4326).unwrap()), extent: Some(extent), ..MosaicOptions::default() };
+    let mosaic = Mosaic::<Pixels>::open(&[west, east], &options).unwrap();
+    let texture = TextureInput { source: &mosaic, tile_size: 128, format: TextureFormat::Png, pixel_size: 1.0 };
+    tile_terrain(Some(&elevation), Some(texture), "m", &out, TileOptions::default(), &Silent::default()).unwrap();
+    let off = mark_offset(&out, &elevation, ImageSource::size(&mosaic).1);
     eprintln!("the mark lies {off:.2} texels from its longitude and latitude");
-    assert!(
-        off <= 1.0,
-        "the mark lies at texel {found:?}, its longitude and latitude at {expected:?}: {off:.2} texels apart"
-    );
+    assert!(off <= 1.0, "the mark lies {off:.2} texels from its longitude and latitude");
 }

@@ -96,6 +96,16 @@ pub fn read_image(path: &Path) -> Result<Image> {
     Ok(Image { width: file.width, height: file.height, rgba, georeference: file.georeference })
 }
 
+impl ImageFile {
+    /// Samples per pixel of a GeoTIFF, read by strips or tiles; `None` for PNG and JPEG.
+    pub(super) fn tiff_channels(&self) -> Option<usize> {
+        match self.kind {
+            ImageKind::Tiff { channels } => Some(channels),
+            ImageKind::Png | ImageKind::Decoded(_) => None,
+        }
+    }
+}
+
 impl ImageSource for ImageFile {
     fn path(&self) -> &Path {
         &self.path

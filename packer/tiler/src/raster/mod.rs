@@ -12,6 +12,7 @@ mod geotiff;
 mod image;
 mod inputs;
 mod jpeg;
+mod kind;
 mod memory;
 mod mosaic;
 mod png;
@@ -34,6 +35,7 @@ pub use inputs::expand_inputs;
 pub use jpeg::JPEG_MAX_DECODED_BYTES;
 #[cfg(test)]
 pub(crate) use jpeg::jpeg_fits;
+pub use kind::{Heights, MosaicKind, Pixels};
 pub use memory::{Image, ImageWindow, Raster};
 pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
 pub use vrt::{Vrt, VrtSource, read_vrt};

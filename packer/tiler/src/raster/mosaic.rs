@@ -16,10 +16,10 @@ use std::sync::{Arc, Mutex, PoisonError};
 use rayon::prelude::*;
 use terrastream_format::Georeference;
 
-use super::elevation::{ElevationFile, open_elevation};
-use super::tiff::{TiffChunks, samples_f32};
+use super::kind::{Heights, MosaicKind, Pixels};
+use super::tiff::TiffChunks;
 use super::vrt::read_vrt;
-use super::{ElevationSource, crs_placement};
+use super::{ElevationSource, ImageSource, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
 
@@ -45,6 +45,9 @@ pub struct MosaicOptions {
     pub resolution: Option<f64>,
     /// Bytes of decoded input chunks kept (default 512 MiB).
     pub cache_bytes: Option<usize>,
+    /// The area to cover, in the output CRS (min x, min y, max x, max y); default: every
+    /// input's footprint. Imagery over an elevation covers the elevation's extent.
+    pub extent: Option<[f64; 4]>,
     /// Leave out inputs that cannot be used (listed by [`Mosaic::skipped`]) instead of
     /// stopping at the first.
     pub skip_bad_inputs: bool,
@@ -52,8 +55,8 @@ pub struct MosaicOptions {
 
 /// An input as opened: a window of a file (the whole file, or a VRT source's), its CRS,
 /// the window's north-west corner and pixel size there, and a nodata value of the VRT.
-struct Opened {
-    file: ElevationFile,
+struct Opened<K: MosaicKind> {
+    file: K::File,
     crs: Crs,
     origin: [f64; 2],
     pixel: (f64, f64),
@@ -63,8 +66,8 @@ struct Opened {
 
 /// One input raster.
 #[derive(Debug)]
-struct Input {
-    file: ElevationFile,
+struct Input<K: MosaicKind> {
+    file: K::File,
     /// North-west corner and pixel size in the input's CRS.
     origin: [f64; 2],
     pixel: (f64, f64),
@@ -81,10 +84,10 @@ struct Input {
 
 /// Several elevation rasters on one output grid (see the module's documentation).
 #[derive(Debug)]
-pub struct Mosaic {
+pub struct Mosaic<K: MosaicKind = Heights> {
     path: PathBuf,
     skipped: Vec<(PathBuf, String)>,
-    inputs: Vec<Input>,
+    inputs: Vec<Input<K>>,
     crs: Crs,
     origin: [f64; 2],
     pixel: f64,
@@ -93,7 +96,7 @@ pub struct Mosaic {
     cache_bytes: usize,
 }
 
-impl Mosaic {
+impl<K: MosaicKind> Mosaic<K> {
     /// The mosaic of `paths` (GeoTIFFs of heights, each georeferenced in a CRS the tiler
     /// knows), in the order given: a later input wins where inputs overlap.
     ///
@@ -105,7 +108,7 @@ impl Mosaic {
         let mut files = Vec::with_capacity(paths.len());
         let mut skipped = Vec::new();
         for path in paths {
-            match open_inputs(path) {
+            match open_inputs::<K>(path) {
                 Ok(opened) => files.extend(opened),
                 Err(e) if options.skip_bad_inputs => {
                     tracing::warn!("skipping {e}");
@@ -132,12 +135,16 @@ impl Mosaic {
         for o in &files {
             let to_output = Transform::new(&o.crs, &crs);
             let (w, h) = (o.window[2], o.window[3]);
-            let fp = footprint(&to_output, o.origin, o.pixel, (w, h))
-                .ok_or_else(|| Error::input(o.file.path(), format!("it lies outside what {} can hold", crs.name())))?;
+            let fp = footprint(&to_output, o.origin, o.pixel, (w, h)).ok_or_else(|| {
+                Error::input(K::path(&o.file), format!("it lies outside what {} can hold", crs.name()))
+            })?;
             bounds = [bounds[0].min(fp[0]), bounds[1].min(fp[1]), bounds[2].max(fp[2]), bounds[3].max(fp[3])];
             let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
             finest = finest.min(metres);
             footprints.push(fp);
+        }
+        if let Some(extent) = options.extent {
+            bounds = extent;
         }
         let pixel = options.resolution.unwrap_or(finest);
         if !(pixel.is_finite() && pixel > 0.0) {
@@ -200,15 +207,31 @@ impl Mosaic {
         &self.crs
     }
 
+    /// Makes every row, in order, 32 at a time in parallel.
+    fn make_rows(&self, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
+        let reader = Reader::new(self);
+        let mut j = 0;
+        while j < self.size.1 {
+            let end = (j + ROWS_AT_ONCE).min(self.size.1);
+            let band: Vec<Result<Vec<K::Value>>> = (j..end).into_par_iter().map(|r| self.row(r, &reader)).collect();
+            for r in band {
+                row(&r?)?;
+            }
+            reader.next_band();
+            j = end;
+        }
+        Ok(())
+    }
+
     /// Inputs, in order.
     pub fn inputs(&self) -> impl Iterator<Item = &Path> {
-        self.inputs.iter().map(|i| i.file.path())
+        self.inputs.iter().map(|i| K::path(&i.file))
     }
 
     /// Makes output row `j`, reading chunks through `reader`.
-    fn row(&self, j: u32, reader: &Reader<'_>) -> Result<Vec<f32>> {
+    fn row(&self, j: u32, reader: &Reader<'_, K>) -> Result<Vec<K::Value>> {
         let width = self.size.0 as usize;
-        let mut out = vec![f32::NAN; width];
+        let mut out = vec![K::NONE; width];
         // Later inputs first: the first value found wins.
         for (index, input) in self.inputs.iter().enumerate().rev() {
             if i64::from(j) < input.rows.0 || i64::from(j) > input.rows.1 {
@@ -216,7 +239,7 @@ impl Mosaic {
             }
             #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "clamped to the row")]
             let (c0, c1) = (input.columns.0.max(0) as usize, (input.columns.1.min(width as i64 - 1)).max(0) as usize);
-            if c1 < c0 || out[c0..=c1].iter().all(|v| !v.is_nan()) {
+            if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
             // The input pixel coordinates of every sample of the row in this input's
@@ -243,7 +266,7 @@ impl Mosaic {
             // The chunks under those points, fetched once; then sampled with no lock.
             let Some(window) = reader.window(index, &points)? else { continue };
             for (k, p) in points.iter().enumerate() {
-                if out[c0 + k].is_nan() {
+                if K::is_none(&out[c0 + k]) {
                     out[c0 + k] = window.bilinear(*p);
                 }
             }
@@ -254,14 +277,8 @@ impl Mosaic {
 
 /// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows, or a
 /// VRT's sources (each a window of a GeoTIFF, placed by the VRT).
-fn open_inputs(path: &Path) -> Result<Vec<Opened>> {
-    let plain = |path: &Path| -> Result<ElevationFile> {
-        let file = open_elevation(path, None)?;
-        if !file.is_plain_tiff() {
-            return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
-        }
-        Ok(file)
-    };
+fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
+    let plain = K::open;
     if path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("vrt")) {
         let vrt = read_vrt(path)?;
         let crs = Crs::parse(&vrt.crs).map_err(|e| Error::input(path, format!("its SRS cannot be used: {e}")))?;
@@ -270,7 +287,7 @@ fn open_inputs(path: &Path) -> Result<Vec<Opened>> {
             .into_iter()
             .map(|source| {
                 let file = plain(&source.path)?;
-                let (w, h) = file.size();
+                let (w, h) = K::size(&file);
                 let [x, y, sw, sh] = source.window;
                 if x.saturating_add(sw) > w || y.saturating_add(sh) > h {
                     return Err(Error::input(
@@ -292,16 +309,16 @@ fn open_inputs(path: &Path) -> Result<Vec<Opened>> {
             .collect();
     }
     let file = plain(path)?;
-    let Some((crs, origin, pixel)) = crs_placement(file.georeference(), file.crs_pixel_size()) else {
+    let Some((crs, origin, pixel)) = crs_placement(K::georeference(&file), K::crs_pixel(&file)) else {
         return Err(Error::input(path, "it does not say where it lies (no GeoTIFF georeference with a CRS)"));
     };
     let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
-    let (w, h) = file.size();
+    let (w, h) = K::size(&file);
     Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None }])
 }
 
 /// West, south, east and north of geographic inputs' corners (degrees).
-fn lon_lat_bounds(files: &[Opened]) -> (f64, f64, f64, f64) {
+fn lon_lat_bounds<K: MosaicKind>(files: &[Opened<K>]) -> (f64, f64, f64, f64) {
     let mut b = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
     let wgs84 = Crs::wgs84();
     for Opened { crs, origin, pixel, window, .. } in files {
@@ -335,33 +352,41 @@ fn footprint(to_output: &Transform, origin: [f64; 2], pixel: (f64, f64), (w, h):
 
 /// Decoded chunks of the inputs (heights, NaN for nodata), least recently used dropped
 /// past a byte budget; open files, least recently used closed past [`OPEN_FILES`].
-struct Reader<'m> {
-    mosaic: &'m Mosaic,
-    state: Mutex<ReaderState<'m>>,
+struct Reader<'m, K: MosaicKind> {
+    mosaic: &'m Mosaic<K>,
+    state: Mutex<ReaderState<'m, K::Value>>,
     /// The band of output rows being made: what "recently used" counts in.
     band: std::sync::atomic::AtomicU64,
 }
 
-#[derive(Default)]
-struct ReaderState<'m> {
+struct ReaderState<'m, V> {
     files: HashMap<usize, (Arc<TiffChunks<'m>>, u64)>,
     /// Per input and lattice row: input pixel coordinates of the lattice's samples.
     lattice: HashMap<(usize, u32), (LatticeRow, u64)>,
-    chunks: HashMap<(usize, usize), (Arc<Chunk>, u64)>,
+    chunks: HashMap<ChunkId, (Arc<Chunk<V>>, u64)>,
     bytes: usize,
 }
+
+/// An input and one of its strips or tiles.
+type ChunkId = (usize, usize);
 
 /// Input pixel coordinates along one lattice row.
 type LatticeRow = Arc<Vec<(f64, f64)>>;
 
-/// One decoded strip or tile: heights, `w` across.
-struct Chunk {
-    heights: Vec<f32>,
+/// One decoded strip or tile: values, `w` across.
+struct Chunk<V> {
+    values: Vec<V>,
     w: usize,
 }
 
+impl<V> Chunk<V> {
+    fn bytes(&self) -> usize {
+        self.values.len() * size_of::<V>()
+    }
+}
+
 /// The chunks under a row's sample points, held for lock-free sampling.
-struct Window {
+struct Window<K: MosaicKind> {
     /// The pixels that may be read: first column and row, end column and row (exclusive).
     bounds: (i64, i64, i64, i64),
     /// A chunk's nominal width and height (a strip: the raster's width).
@@ -369,63 +394,58 @@ struct Window {
     /// First chunk column and row held, and chunk columns held.
     first: (usize, usize),
     across: usize,
-    held: Vec<Arc<Chunk>>,
+    held: Vec<Arc<Chunk<K::Value>>>,
 }
 
-impl Window {
-    /// The height of pixel `(x, y)`; NaN outside the raster, for nodata, or outside the
-    /// chunks held.
-    fn get(&self, x: i64, y: i64) -> f32 {
+impl<K: MosaicKind> Window<K> {
+    /// The value of pixel `(x, y)`; no data outside the window, for nodata, or outside
+    /// the chunks held.
+    fn get(&self, x: i64, y: i64) -> K::Value {
         if x < self.bounds.0 || y < self.bounds.1 || x >= self.bounds.2 || y >= self.bounds.3 {
-            return f32::NAN;
+            return K::NONE;
         }
         #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
         let (x, y) = (x as usize, y as usize);
         let (cx, cy) = (x / self.chunk.0, y / self.chunk.1);
         let (Some(dx), Some(dy)) = (cx.checked_sub(self.first.0), cy.checked_sub(self.first.1)) else {
-            return f32::NAN;
+            return K::NONE;
         };
         if dx >= self.across {
-            return f32::NAN;
+            return K::NONE;
         }
-        let Some(chunk) = self.held.get(dy * self.across + dx) else { return f32::NAN };
+        let Some(chunk) = self.held.get(dy * self.across + dx) else { return K::NONE };
         let (lx, ly) = (x - cx * self.chunk.0, y - cy * self.chunk.1);
-        chunk.heights.get(ly * chunk.w + lx).copied().unwrap_or(f32::NAN)
+        chunk.values.get(ly * chunk.w + lx).copied().unwrap_or(K::NONE)
     }
 
-    /// Bilinear height at pixel coordinates `p` (centres at integers) over the corners
-    /// with data; NaN where none has.
-    fn bilinear(&self, p: (f64, f64)) -> f32 {
+    /// Bilinear value at pixel coordinates `p` (centres at integers) over the corners with
+    /// data; no data where none has.
+    fn bilinear(&self, p: (f64, f64)) -> K::Value {
         if !(p.0.is_finite() && p.1.is_finite()) {
-            return f32::NAN;
+            return K::NONE;
         }
         let (x0, y0) = (p.0.floor(), p.1.floor());
         let (fx, fy) = (p.0 - x0, p.1 - y0);
         #[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
         let (x0, y0) = (x0 as i64, y0 as i64);
-        let (mut sum, mut weight) = (0.0, 0.0);
-        for (dx, dy, wt) in
-            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
-        {
-            let v = self.get(x0 + dx, y0 + dy);
-            if wt > 0.0 && !v.is_nan() {
-                sum += wt * f64::from(v);
-                weight += wt;
-            }
-        }
-        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
-        if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN }
+        K::blend(&[
+            (self.get(x0, y0), (1.0 - fx) * (1.0 - fy)),
+            (self.get(x0 + 1, y0), fx * (1.0 - fy)),
+            (self.get(x0, y0 + 1), (1.0 - fx) * fy),
+            (self.get(x0 + 1, y0 + 1), fx * fy),
+        ])
     }
 }
 
-impl<'m> Reader<'m> {
-    fn new(mosaic: &'m Mosaic) -> Self {
-        Self { mosaic, state: Mutex::default(), band: std::sync::atomic::AtomicU64::new(0) }
+impl<'m, K: MosaicKind> Reader<'m, K> {
+    fn new(mosaic: &'m Mosaic<K>) -> Self {
+        let state = ReaderState { files: HashMap::new(), lattice: HashMap::new(), chunks: HashMap::new(), bytes: 0 };
+        Self { mosaic, state: Mutex::new(state), band: std::sync::atomic::AtomicU64::new(0) }
     }
 
     /// The decoded chunks under `points` (input pixel coordinates) of input `index`;
     /// `None` when no point falls inside the raster.
-    fn window(&self, index: usize, points: &[(f64, f64)]) -> Result<Option<Window>> {
+    fn window(&self, index: usize, points: &[(f64, f64)]) -> Result<Option<Window<K>>> {
         // The file's pixels this input reads: its window (the whole file, or a VRT's).
         let [wx, wy, ww, wh] = self.mosaic.inputs[index].window;
         let bounds = (i64::from(wx), i64::from(wy), i64::from(wx) + i64::from(ww), i64::from(wy) + i64::from(wh));
@@ -497,7 +517,7 @@ impl<'m> Reader<'m> {
         state.chunks.retain(|_, (chunk, used)| {
             let keep = *used + 1 >= band;
             if !keep {
-                freed += chunk.heights.len() * 4;
+                freed += chunk.bytes();
             }
             keep
         });
@@ -517,12 +537,13 @@ impl<'m> Reader<'m> {
                 state.files.remove(&oldest);
             }
         }
-        let chunks = Arc::new(TiffChunks::open(self.mosaic.inputs[index].file.path(), 1)?);
+        let input = &self.mosaic.inputs[index];
+        let chunks = Arc::new(TiffChunks::open(K::path(&input.file), K::channels(&input.file))?);
         state.files.insert(index, (chunks.clone(), clock));
         Ok(chunks)
     }
 
-    fn chunk(&self, index: usize, chunks: &TiffChunks<'m>, id: usize) -> Result<Arc<Chunk>> {
+    fn chunk(&self, index: usize, chunks: &TiffChunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
         {
             let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
             let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
@@ -534,30 +555,23 @@ impl<'m> Reader<'m> {
         // Decoded outside the lock, so that threads decode in parallel.
         let (data, w, _) = chunks.read(id)?;
         let input = &self.mosaic.inputs[index];
-        let mut heights =
-            samples_f32(data).ok_or_else(|| Error::input(input.file.path(), "unsupported sample type"))?;
-        input.file.heights(&mut heights);
-        if let Some(nodata) = input.nodata {
-            for v in heights.iter_mut().filter(|v| **v == nodata) {
-                *v = f32::NAN;
-            }
-        }
-        let chunk = Arc::new(Chunk { heights, w });
+        let values = K::values(&input.file, data, input.nodata)?;
+        let chunk = Arc::new(Chunk { values, w });
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-        state.bytes += chunk.heights.len() * 4;
+        state.bytes += chunk.bytes();
         let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
         state.chunks.insert((index, id), (chunk.clone(), clock));
         while state.bytes > self.mosaic.cache_bytes && state.chunks.len() > 1 {
             let Some(oldest) = state.chunks.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) else { break };
             if let Some((gone, _)) = state.chunks.remove(&oldest) {
-                state.bytes -= gone.heights.len() * 4;
+                state.bytes -= gone.bytes();
             }
         }
         Ok(chunk)
     }
 }
 
-impl ElevationSource for Mosaic {
+impl ElevationSource for Mosaic<Heights> {
     fn path(&self) -> &Path {
         &self.path
     }
@@ -588,17 +602,24 @@ impl ElevationSource for Mosaic {
     }
 
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        let reader = Reader::new(self);
-        let mut j = 0;
-        while j < self.size.1 {
-            let end = (j + ROWS_AT_ONCE).min(self.size.1);
-            let band: Vec<Result<Vec<f32>>> = (j..end).into_par_iter().map(|r| self.row(r, &reader)).collect();
-            for r in band {
-                row(&r?)?;
-            }
-            reader.next_band();
-            j = end;
-        }
-        Ok(())
+        self.make_rows(row)
+    }
+}
+
+impl ImageSource for Mosaic<Pixels> {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn size(&self) -> (u32, u32) {
+        self.size
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        Some(&self.georeference)
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        Some((self.pixel, self.pixel))
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        self.make_rows(row)
     }
 }

@@ -1,0 +1,176 @@
+//! What a mosaic is made of: heights (elevation) or RGBA pixels (imagery). The mosaic
+//! reads, caches and samples either the same way; a kind says how its files open, how a
+//! decoded strip or tile becomes values, and how four neighbours blend.
+
+use std::path::Path;
+
+use terrastream_format::Georeference;
+
+use super::elevation::{ElevationFile, open_elevation};
+use super::image::{ImageFile, open_image};
+use super::tiff::samples_f32;
+use super::{ElevationSource, ImageSource};
+use crate::error::{Error, Result};
+
+/// The samples of a mosaic and the files they come from.
+pub trait MosaicKind: Send + Sync + 'static {
+    /// One sample.
+    type Value: Copy + Send + Sync + 'static;
+    /// An input file, opened.
+    type File: Send + Sync + std::fmt::Debug;
+    /// No data.
+    const NONE: Self::Value;
+    /// Whether `v` is no data.
+    fn is_none(v: &Self::Value) -> bool;
+    /// Opens an input: a GeoTIFF this kind reads by strips or tiles.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming a file of another kind.
+    fn open(path: &Path) -> Result<Self::File>;
+    /// The file's path.
+    fn path(file: &Self::File) -> &Path;
+    /// Pixels across and down.
+    fn size(file: &Self::File) -> (u32, u32);
+    /// Where the file lies, when it says.
+    fn georeference(file: &Self::File) -> Option<&Georeference>;
+    /// A pixel's size in CRS units, when the file says.
+    fn crs_pixel(file: &Self::File) -> Option<(f64, f64)>;
+    /// Samples per pixel.
+    fn channels(file: &Self::File) -> usize;
+    /// A decoded strip or tile as values; samples equal to `nodata` are no data.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for a sample type this kind does not read.
+    fn values(file: &Self::File, data: tiff::decoder::DecodingResult, nodata: Option<f32>) -> Result<Vec<Self::Value>>;
+    /// The blend of up to four neighbours with bilinear weights, over those with data.
+    fn blend(corners: &[(Self::Value, f64); 4]) -> Self::Value;
+}
+
+/// Heights: f32, NaN for no data.
+#[derive(Debug)]
+pub struct Heights;
+
+/// RGBA8 pixels, alpha 0 for no data.
+#[derive(Debug)]
+pub struct Pixels;
+
+impl MosaicKind for Heights {
+    type Value = f32;
+    type File = ElevationFile;
+    const NONE: f32 = f32::NAN;
+    fn is_none(v: &f32) -> bool {
+        v.is_nan()
+    }
+    fn open(path: &Path) -> Result<ElevationFile> {
+        let file = open_elevation(path, None)?;
+        if !file.is_plain_tiff() {
+            return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+        }
+        Ok(file)
+    }
+    fn path(file: &ElevationFile) -> &Path {
+        file.path()
+    }
+    fn size(file: &ElevationFile) -> (u32, u32) {
+        file.size()
+    }
+    fn georeference(file: &ElevationFile) -> Option<&Georeference> {
+        file.georeference()
+    }
+    fn crs_pixel(file: &ElevationFile) -> Option<(f64, f64)> {
+        file.crs_pixel_size()
+    }
+    fn channels(_: &ElevationFile) -> usize {
+        1
+    }
+    fn values(file: &ElevationFile, data: tiff::decoder::DecodingResult, nodata: Option<f32>) -> Result<Vec<f32>> {
+        let mut heights = samples_f32(data).ok_or_else(|| Error::input(file.path(), "unsupported sample type"))?;
+        file.heights(&mut heights);
+        if let Some(nodata) = nodata {
+            for v in heights.iter_mut().filter(|v| **v == nodata) {
+                *v = f32::NAN;
+            }
+        }
+        Ok(heights)
+    }
+    fn blend(corners: &[(f32, f64); 4]) -> f32 {
+        let (mut sum, mut weight) = (0.0, 0.0);
+        for &(v, w) in corners {
+            if w > 0.0 && !v.is_nan() {
+                sum += w * f64::from(v);
+                weight += w;
+            }
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+        if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN }
+    }
+}
+
+impl MosaicKind for Pixels {
+    type Value = [u8; 4];
+    type File = ImageFile;
+    const NONE: [u8; 4] = [0; 4];
+    fn is_none(v: &[u8; 4]) -> bool {
+        v[3] == 0
+    }
+    fn open(path: &Path) -> Result<ImageFile> {
+        let file = open_image(path)?;
+        if file.tiff_channels().is_none() {
+            return Err(Error::input(path, "a mosaic reads GeoTIFF images (not PNG or JPEG)"));
+        }
+        Ok(file)
+    }
+    fn path(file: &ImageFile) -> &Path {
+        file.path()
+    }
+    fn size(file: &ImageFile) -> (u32, u32) {
+        file.size()
+    }
+    fn georeference(file: &ImageFile) -> Option<&Georeference> {
+        file.georeference()
+    }
+    fn crs_pixel(file: &ImageFile) -> Option<(f64, f64)> {
+        file.crs_pixel_size()
+    }
+    fn channels(file: &ImageFile) -> usize {
+        file.tiff_channels().unwrap_or(1)
+    }
+    fn values(file: &ImageFile, data: tiff::decoder::DecodingResult, nodata: Option<f32>) -> Result<Vec<[u8; 4]>> {
+        let tiff::decoder::DecodingResult::U8(bytes) = data else {
+            return Err(Error::input(file.path(), "only 8-bit images are read"));
+        };
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "an 8-bit nodata value")]
+        let nodata = nodata.filter(|n| (0.0..=255.0).contains(n)).map(|n| n as u8);
+        let channels = Self::channels(file);
+        Ok(bytes
+            .chunks_exact(channels)
+            .map(|p| {
+                let px = match channels {
+                    4 => [p[0], p[1], p[2], p[3]],
+                    3 => [p[0], p[1], p[2], 255],
+                    2 => [p[0], p[0], p[0], p[1]],
+                    _ => [p[0], p[0], p[0], 255],
+                };
+                // A NODATA value of a VRT source: every band at it is no data.
+                if nodata.is_some_and(|n| p.iter().take(channels.min(3)).all(|&c| c == n)) { [0; 4] } else { px }
+            })
+            .collect())
+    }
+    fn blend(corners: &[([u8; 4], f64); 4]) -> [u8; 4] {
+        // Weighted by alpha: colours of transparent pixels do not bleed in.
+        let mut acc = [0f64; 4];
+        for &(p, w) in corners {
+            let a = w * f64::from(p[3]);
+            for c in 0..3 {
+                acc[c] += a * f64::from(p[c]);
+            }
+            acc[3] += a;
+        }
+        if acc[3] <= 0.0 {
+            return [0; 4];
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded into 0..=255")]
+        let c = |v: f64| v.round().clamp(0.0, 255.0) as u8;
+        [c(acc[0] / acc[3]), c(acc[1] / acc[3]), c(acc[2] / acc[3]), c(acc[3])]
+    }
+}
