@@ -90,7 +90,8 @@ pub struct Mosaic<K: MosaicKind = Heights> {
     inputs: Vec<Input<K>>,
     crs: Crs,
     origin: [f64; 2],
-    pixel: f64,
+    /// Output pixel size in CRS units (x, y).
+    pixel: (f64, f64),
     size: (u32, u32),
     georeference: Georeference,
     cache_bytes: usize,
@@ -146,18 +147,28 @@ impl<K: MosaicKind> Mosaic<K> {
         if let Some(extent) = options.extent {
             bounds = extent;
         }
-        let pixel = options.resolution.unwrap_or(finest);
-        if !(pixel.is_finite() && pixel > 0.0) {
-            return Err(Error::option("--resolution", pixel, "a positive number of metres"));
+        let spacing = options.resolution.unwrap_or(finest);
+        if !(spacing.is_finite() && spacing > 0.0) {
+            return Err(Error::option("--resolution", spacing, "a positive number of metres"));
         }
+        // A given extent is covered exactly (pixels a little off square); otherwise the
+        // footprints' union, rounded out to whole pixels.
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked below")]
-        let side = |span: f64| (span / pixel).ceil().max(1.0) as u64;
+        let side = |span: f64| {
+            let n = if options.extent.is_some() { (span / spacing).round() } else { (span / spacing).ceil() };
+            n.max(1.0) as u64
+        };
         let (w, h) = (side(bounds[2] - bounds[0]), side(bounds[3] - bounds[1]));
         let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
             return Err(Error::input(
                 first,
                 format!("the mosaic would be {w} x {h} samples: set a coarser --resolution"),
             ));
+        };
+        let pixel = if options.extent.is_some() {
+            ((bounds[2] - bounds[0]) / f64::from(w), (bounds[3] - bounds[1]) / f64::from(h))
+        } else {
+            (spacing, spacing)
         };
         let origin = [bounds[0], bounds[3]];
         let inputs = files
@@ -167,8 +178,8 @@ impl<K: MosaicKind> Mosaic<K> {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
                 Input {
-                    columns: (cell((fp[0] - origin[0]) / pixel) - 1, cell((fp[2] - origin[0]) / pixel) + 1),
-                    rows: (cell((origin[1] - fp[3]) / pixel) - 1, cell((origin[1] - fp[1]) / pixel) + 1),
+                    columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
+                    rows: (cell((origin[1] - fp[3]) / pixel.1) - 1, cell((origin[1] - fp[1]) / pixel.1) + 1),
                     to_input: Transform::new(&crs, &o.crs),
                     origin: o.origin,
                     pixel: o.pixel,
@@ -489,8 +500,8 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         let (m, input) = (self.mosaic, &self.mosaic.inputs[index]);
         #[expect(clippy::cast_precision_loss, reason = "sample indices are far below 2^52")]
         let at = |i: usize| {
-            let x = m.origin[0] + (i as f64 + 0.5) * m.pixel;
-            let y = m.origin[1] - (f64::from(l) * f64::from(LATTICE_ROWS) + 0.5) * m.pixel;
+            let x = m.origin[0] + (i as f64 + 0.5) * m.pixel.0;
+            let y = m.origin[1] - (f64::from(l) * f64::from(LATTICE_ROWS) + 0.5) * m.pixel.1;
             let (wx, wy) = (f64::from(input.window[0]), f64::from(input.window[1]));
             input.to_input.apply(x, y).map_or((f64::NAN, f64::NAN), |(sx, sy)| {
                 ((sx - input.origin[0]) / input.pixel.0 - 0.5 + wx, (input.origin[1] - sy) / input.pixel.1 - 0.5 + wy)
@@ -579,13 +590,19 @@ impl ElevationSource for Mosaic<Heights> {
         self.size
     }
     fn spacing(&self) -> (f64, f64) {
-        (self.pixel, self.pixel)
+        if self.crs.is_geographic() {
+            // Degrees: metres at the centre latitude, as for a geographic GeoTIFF.
+            let lat = (self.origin[1] - f64::from(self.size.1) * self.pixel.1 / 2.0).to_radians();
+            (self.pixel.0 * 111_320.0 * lat.cos(), self.pixel.1 * 110_574.0)
+        } else {
+            self.pixel
+        }
     }
     fn georeference(&self) -> Option<&Georeference> {
         Some(&self.georeference)
     }
     fn crs_pixel_size(&self) -> Option<(f64, f64)> {
-        Some((self.pixel, self.pixel))
+        Some(self.pixel)
     }
     /// The union of the inputs' height ranges, each found where its chunks are decoded
     /// (a bilinear sample never leaves the range of its corners), without making a row.
@@ -617,7 +634,7 @@ impl ImageSource for Mosaic<Pixels> {
         Some(&self.georeference)
     }
     fn crs_pixel_size(&self) -> Option<(f64, f64)> {
-        Some((self.pixel, self.pixel))
+        Some(self.pixel)
     }
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         self.make_rows(row)
