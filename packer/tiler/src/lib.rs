@@ -33,7 +33,8 @@ pub use options::{ElevationStorage, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
     ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, Mosaic, MosaicKind,
-    MosaicOptions, Pixels, Raster, Warped, expand_inputs, open_elevation, open_image, read_geotiff, read_image,
+    MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, open_elevation, open_image, read_geotiff,
+    read_image, read_vrt,
 };
 pub use tile::{tile_elevation, tile_terrain};
 
