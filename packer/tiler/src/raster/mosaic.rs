@@ -429,6 +429,33 @@ impl<K: MosaicKind> Window<K> {
         chunk.values.get(ly * chunk.w + lx).copied().unwrap_or(K::NONE)
     }
 
+    /// Pixels `(x, y)`, `(x + 1, y)`, `(x, y + 1)` and `(x + 1, y + 1)` when all four lie
+    /// inside the window and in one chunk held.
+    fn quad(&self, x: i64, y: i64) -> Option<[K::Value; 4]> {
+        if x < self.bounds.0 || y < self.bounds.1 || x + 1 >= self.bounds.2 || y + 1 >= self.bounds.3 {
+            return None;
+        }
+        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
+        let (x, y) = (x as usize, y as usize);
+        let (cx, cy) = (x / self.chunk.0, y / self.chunk.1);
+        let (lx, ly) = (x - cx * self.chunk.0, y - cy * self.chunk.1);
+        if lx + 1 >= self.chunk.0 || ly + 1 >= self.chunk.1 {
+            return None;
+        }
+        let (dx, dy) = (cx.checked_sub(self.first.0)?, cy.checked_sub(self.first.1)?);
+        if dx >= self.across {
+            return None;
+        }
+        let chunk = self.held.get(dy * self.across + dx)?;
+        if lx + 1 >= chunk.w {
+            return None;
+        }
+        let at = ly * chunk.w + lx;
+        let row = chunk.values.get(at..at + 2)?;
+        let next = chunk.values.get(at + chunk.w..at + chunk.w + 2)?;
+        Some([row[0], row[1], next[0], next[1]])
+    }
+
     /// Bilinear value at pixel coordinates `p` (centres at integers) over the corners with
     /// data; no data where none has.
     fn bilinear(&self, p: (f64, f64)) -> K::Value {
@@ -439,6 +466,11 @@ impl<K: MosaicKind> Window<K> {
         let (fx, fy) = (p.0 - x0, p.1 - y0);
         #[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
         let (x0, y0) = (x0 as i64, y0 as i64);
+        let weights = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
+        // Usually all four corners lie in one chunk: read them with one lookup.
+        if let Some([a, b, c, d]) = self.quad(x0, y0) {
+            return K::blend(&[(a, weights[0]), (b, weights[1]), (c, weights[2]), (d, weights[3])]);
+        }
         K::blend(&[
             (self.get(x0, y0), (1.0 - fx) * (1.0 - fy)),
             (self.get(x0 + 1, y0), fx * (1.0 - fy)),
