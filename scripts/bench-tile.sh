@@ -14,7 +14,8 @@
 # end to end by `terrastream tile --elevation dir/` against gdalwarp (the inputs onto one
 # grid) + gdal_translate -ot Byte + gdal2tiles.py; then our peak memory for the first
 # quarter of the rows against the whole (4x the area, the same width: memory follows the
-# output's width by design, so that a mosaic may grow south without bound). MOSAIC=only runs that case alone.
+# output's width by design, so that a mosaic may grow south without bound). SCALE=441
+# upsamples each window 4.41x (464 -> 2048 samples, at 6.8 m) for 64 files of 2048^2. MOSAIC=only runs that case alone.
 #
 # gdal2tiles only tiles 8-bit rasters: its DEM job is `gdal_translate -ot Byte -scale`
 # (timed with it) then gdal2tiles, so its tiles hold 256 levels where ours are lossless u16.
@@ -68,24 +69,29 @@ echo "inputs: $DEM ($(gdalinfo "$DEM" | awk '/^Size is/ { print $3 $4 }')), $IMA
 MOSAIC=${MOSAIC:-1}
 mosaic_case() {
   local grid=${GRID:-8} side=${SIDE:-448} dir="$work/mosaic" x y k zone
+  local spacing; spacing=$(awk -v s="${SCALE:-100}" 'BEGIN { printf "%.4f", 30 * 100 / s }')
   mkdir -p "$dir/all" "$dir/quarter"
   for ((y = 0; y < grid; y++)); do
     for ((x = 0; x < grid; x++)); do
       k=$(printf '%02d_%02d' "$y" "$x")
-      gdal_translate -q -srcwin $((x * side)) $((y * side)) $((side + 16)) $((side + 16)) "$DEM" "$dir/w$k.tif"
+      gdal_translate -q -srcwin $((x * side)) $((y * side)) $((side + 16)) $((side + 16)) \
+        -outsize "${SCALE:-100}%" "${SCALE:-100}%" -r bilinear "$DEM" "$dir/w$k.tif"
       zone=$((x < grid / 2 ? 32610 : 32611))
-      gdalwarp -q -t_srs "EPSG:$zone" -r bilinear -tr 30 30 -dstnodata -32768 -co TILED=YES "$dir/w$k.tif" "$dir/all/$k.tif"
+      gdalwarp -q -t_srs "EPSG:$zone" -r bilinear -tr "$spacing" "$spacing" -dstnodata -32768 -co TILED=YES \
+        "$dir/w$k.tif" "$dir/all/$k.tif"
       rm "$dir/w$k.tif"
       if ((y < grid / 4)); then cp "$dir/all/$k.tif" "$dir/quarter/"; fi
     done
   done
-  echo "mosaic: $(ls "$dir/all" | wc -l) GeoTIFFs of $((side + 16))^2 samples in two UTM zones, $(du -sh "$dir/all" | cut -f1)"
+  echo "mosaic: $(ls "$dir/all" | wc -l) GeoTIFFs in two UTM zones at $spacing m, $(du -sh "$dir/all" | cut -f1)"
   measure ours-mosaic "$work/m.tspack" "$bin" -q tile --elevation "$dir/all" -o "$work/m.tspack"
   measure ours-mosaic-quarter "$work/mq.tspack" "$bin" -q tile --elevation "$dir/quarter" -o "$work/mq.tspack"
+  export MOSAIC_SPACING=$spacing
   measure gdal-mosaic "$work/m-g2t" bash -c 'gdal_mosaic "$0" "$1"' "$dir/all" "$work/m-g2t"
 }
 gdal_mosaic() {
-  gdalwarp -q -t_srs EPSG:32610 -tr 30 30 -r bilinear -dstnodata -32768 -multi -wo NUM_THREADS=ALL_CPUS "$1"/*.tif "$work/mosaic.tif"
+  gdalwarp -q -t_srs EPSG:32610 -tr "$MOSAIC_SPACING" "$MOSAIC_SPACING" -r bilinear -dstnodata -32768 -multi \
+    -wo NUM_THREADS=ALL_CPUS "$1"/*.tif "$work/mosaic.tif"
   gdal_translate -q -ot Byte -scale "$work/mosaic.tif" "$work/mosaic8.tif"
   gdal2tiles.py -q -p raster -r average --processes="$CORES" "$work/mosaic8.tif" "$2"
   rm -f "$work/mosaic.tif" "$work/mosaic8.tif"
