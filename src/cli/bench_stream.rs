@@ -12,6 +12,7 @@ use terrastream_client::{Camera, Origin, SelectOptions, StreamOptions, StreamSta
 use terrastream_format::Metadata;
 use terrastream_server::{AppState, ServerConfig};
 use terrastream_testkit::labelled::{LabelledSpec, write_labelled_archive};
+use terrastream_testkit::shaper::{Link, Shaper};
 
 #[derive(Debug, Args)]
 pub struct StreamBench {
@@ -39,6 +40,28 @@ pub struct StreamBench {
     /// Viewport height in pixels (the selection's screen-space error depends on it).
     #[arg(long, default_value_t = 720)]
     viewport_height: u32,
+    /// Links to fly HTTP over besides loopback, emulated by a shaping proxy in front of the
+    /// server: `a` (20 ms RTT, 100 Mbit/s), `b` (80 ms, 20 Mbit/s), `c` (150 ms, 5 Mbit/s,
+    /// 1 % loss). Comma-separated, e.g. `--links a,b,c`.
+    #[arg(long, value_delimiter = ',')]
+    links: Vec<LinkArg>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum LinkArg {
+    A,
+    B,
+    C,
+}
+
+impl LinkArg {
+    fn link(self) -> Link {
+        match self {
+            Self::A => Link::NEAR,
+            Self::B => Link::FAR,
+            Self::C => Link::POOR,
+        }
+    }
 }
 
 struct Run {
@@ -89,8 +112,18 @@ pub fn run(args: StreamBench) -> Result<()> {
     let url = format!("http://{addr}/{name}.tspack");
 
     let budget = UploadBudget { max_tiles: args.max_tiles_per_frame, max_bytes: args.max_upload_bytes_per_frame };
+    // A shaping proxy in front of the server for each emulated link.
+    let mut shapers = Vec::new();
+    let mut locations = vec![("mmap".to_owned(), path.display().to_string()), ("HTTP".to_owned(), url.clone())];
+    for link in &args.links {
+        let shaper = server.block_on(Shaper::start(addr, link.link()))?;
+        let l = link.link();
+        let label = format!("HTTP {:?} {}ms/{}M", link, l.rtt.as_millis(), l.rate / 1_000_000);
+        locations.push((label, format!("http://{}/{name}.tspack", shaper.addr)));
+        shapers.push(shaper);
+    }
     let mut runs = Vec::new();
-    for (label, location) in [("mmap", path.display().to_string()), ("HTTP", url.clone())] {
+    for (label, location) in locations {
         for coalesce in [true, false] {
             let options = StreamOptions {
                 coalesce,
@@ -112,7 +145,7 @@ pub fn run(args: StreamBench) -> Result<()> {
         budget.max_tiles, budget.max_bytes, args.max_in_flight
     );
     println!(
-        "{:<24} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
+        "{:<40} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
         "run", "ttd med", "ttd max", "req/tile", "tiles", "fetched B", "needed B", "up max", "up p99", "B/frm max"
     );
     for r in &runs {
@@ -120,7 +153,7 @@ pub fn run(args: StreamBench) -> Result<()> {
         ups.sort_unstable();
         let p99 = ups.get(ups.len() * 99 / 100).copied().unwrap_or(0);
         println!(
-            "{:<24} {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
+            "{:<40} {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
             r.name,
             r.median_ttd().as_secs_f64() * 1e3,
             r.time_to_detail.iter().max().copied().unwrap_or_default().as_secs_f64() * 1e3,
@@ -153,6 +186,18 @@ pub fn run(args: StreamBench) -> Result<()> {
             || r.bytes_per_frame.iter().any(|&b| b > budget.max_bytes)
     });
     println!("upload budget exceeded in any frame: {}", if over { "YES" } else { "no" });
+    for pair in runs[4..].chunks(2) {
+        if let [linked, raw] = pair {
+            println!(
+                "{}: time to full detail {:.2}x mmap's, {:.2}x without coalescing; {:.2} requests per tile",
+                linked.name,
+                linked.median_ttd().as_secs_f64() / mmap.median_ttd().as_secs_f64().max(1e-9),
+                linked.median_ttd().as_secs_f64() / raw.median_ttd().as_secs_f64().max(1e-9),
+                linked.requests_per_tile()
+            );
+        }
+    }
+    drop(shapers);
     drop(server);
     Ok(())
 }

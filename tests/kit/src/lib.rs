@@ -18,3 +18,4 @@ pub mod http;
 pub mod labelled;
 pub mod nginx;
 pub mod server;
+pub mod shaper;
