@@ -16,6 +16,7 @@ mod kind;
 mod memory;
 mod mosaic;
 mod png;
+mod rawchunk;
 mod tiff;
 mod vrt;
 mod warp;

@@ -2,6 +2,7 @@
 
 use std::path::Path;
 
+use super::rawchunk::RawLayout;
 use crate::error::{Error, Result};
 
 pub(super) const PLANAR_CONFIGURATION: u16 = 284;
@@ -37,6 +38,8 @@ pub(super) struct TiffChunks<'p> {
     pub(super) height: usize,
     pub(super) chunk_w: usize,
     pub(super) chunk_h: usize,
+    /// Set where [`RawLayout`] decodes the chunks instead of the `tiff` crate.
+    pub(super) raw: Option<RawLayout>,
 }
 
 impl<'p> TiffChunks<'p> {
@@ -55,7 +58,9 @@ impl<'p> TiffChunks<'p> {
             ChunkType::Tile => decoder.tile_count(),
         }
         .map_err(|e| bad(format!("{}s: {e}", Self::name(kind))))? as usize;
+        let raw = RawLayout::of(path, &mut decoder, channels, kind == ChunkType::Tile, chunk_w as usize);
         Ok(Self {
+            raw,
             path,
             spare: std::sync::Mutex::new(vec![decoder]),
             kind,
@@ -94,6 +99,32 @@ impl<'p> TiffChunks<'p> {
         u32::try_from((end / self.across().max(1) * self.chunk_h).min(self.height)).unwrap_or(u32::MAX)
     }
 
+    /// Chunk `index` as f32 samples, and the pixels across and down it holds.
+    pub(super) fn read_f32(&self, index: usize) -> Result<(Vec<f32>, usize, usize)> {
+        if let Some(raw) = self.raw.as_ref().filter(|_| index < self.count) {
+            let (w, h) = self.data_size(index);
+            let what = Self::name(self.kind);
+            let values = raw
+                .read_f32(index, w, h)
+                .map_err(|e| Error::input(self.path, format!("reading {what} {index}: {e}")))?;
+            return Ok((values, w, h));
+        }
+        let (data, w, h) = self.read(index)?;
+        let values = samples_f32(data).ok_or_else(|| Error::input(self.path, "unsupported sample type"))?;
+        Ok((values, w, h))
+    }
+
+    /// The pixels across and down chunk `index` holds (the raster's, where it is cut off).
+    fn data_size(&self, index: usize) -> (usize, usize) {
+        let across = self.across().max(1);
+        let (cx, cy) = (index % across, index / across);
+        let w = self.chunk_w.min(self.width.saturating_sub(cx * self.chunk_w));
+        (
+            if self.kind == tiff::decoder::ChunkType::Strip { self.width } else { w },
+            self.chunk_h.min(self.height.saturating_sub(cy * self.chunk_h)),
+        )
+    }
+
     /// Chunk `index` decoded, and the pixels across and down it holds.
     pub(super) fn read(&self, index: usize) -> Result<(tiff::decoder::DecodingResult, usize, usize)> {
         let what = Self::name(self.kind);
@@ -101,6 +132,11 @@ impl<'p> TiffChunks<'p> {
         let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
         if index >= self.count {
             return Err(bad(format!("{what} {index} is missing (the file lists {})", self.count)));
+        }
+        if let Some(raw) = &self.raw {
+            let (w, h) = self.data_size(index);
+            let data = raw.read(index, w, h).map_err(|e| bad(format!("reading {what} {index}: {e}")))?;
+            return Ok((data, w, h));
         }
         let spare = self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop();
         let mut decoder = match spare {
@@ -159,8 +195,7 @@ pub(super) fn tiff_rows(
     let stride = width * channels;
     let (chunk_w, chunk_h) = (chunks.chunk_w, chunks.chunk_h);
     let chunk = |index: usize| -> Result<(Vec<f32>, usize, usize)> {
-        let (data, w, h) = chunks.read(index)?;
-        let mut values = samples_f32(data).ok_or_else(|| bad("unsupported sample type".into()))?;
+        let (mut values, w, h) = chunks.read_f32(index)?;
         prepare(&mut values);
         Ok((values, w, h))
     };

@@ -1,0 +1,370 @@
+//! The common DEM layout decoded without the `tiff` crate's per-row machinery: strips or
+//! tiles of one 8- or 16-bit integer sample (or 8-bit pixels of up to four), uncompressed
+//! or Deflate, with or without the horizontal predictor. That is what GDAL writes for
+//! `COMPRESS=DEFLATE PREDICTOR=2`, the usual way DEMs are published.
+//!
+//! Why: undoing the predictor is a running sum. The `tiff` crate adds each sample to the
+//! one before it in memory (a load, add and store per sample, each waiting for the last
+//! store), about 2 ns a sample: more than inflating them. Here the sum runs in a register
+//! as the samples are converted, and the chunk is inflated by one call into its buffer.
+//! Anything else (LZW, floats, 32-bit, planar, big-endian 16-bit with a predictor ...)
+//! goes through the `tiff` crate as before; the two are compared in tests.
+
+use std::path::Path;
+
+use tiff::decoder::DecodingResult;
+use tiff::tags::Tag;
+
+use super::tiff::TiffDecoder;
+
+/// Where a chunk's bytes are and how they are coded, read once from the TIFF's tags.
+pub(super) struct RawLayout {
+    file: std::fs::File,
+    offsets: Vec<u64>,
+    counts: Vec<u64>,
+    deflate: bool,
+    predictor: bool,
+    big_endian: bool,
+    /// 8 or 16.
+    bits: u8,
+    signed: bool,
+    /// Samples a pixel.
+    channels: usize,
+    /// Samples a row of the chunk as stored (tiles: the padded width).
+    stored_width: usize,
+}
+
+/// Chunks larger than this (compressed or not) are left to the `tiff` crate's limits.
+const MAX_CHUNK_BYTES: u64 = 1 << 30;
+
+impl RawLayout {
+    /// The layout of the decoder's image if this module decodes it, else None.
+    pub(super) fn of(
+        path: &Path,
+        decoder: &mut TiffDecoder,
+        channels: usize,
+        tiled: bool,
+        chunk_w: usize,
+    ) -> Option<Self> {
+        if !cfg!(unix) {
+            return None;
+        }
+        let one = |d: &mut TiffDecoder, tag: Tag| d.find_tag_unsigned_vec::<u64>(tag).ok().flatten();
+        let all_equal = |v: &[u64]| v.first().filter(|&&f| v.iter().all(|&x| x == f)).copied();
+        let scalar = |d: &mut TiffDecoder, tag: Tag, default: u64| match one(d, tag) {
+            None => Some(default),
+            Some(v) => all_equal(&v),
+        };
+        let compression = scalar(decoder, Tag::Compression, 1)?;
+        let predictor = scalar(decoder, Tag::Predictor, 1)?;
+        let bits = scalar(decoder, Tag::BitsPerSample, 1)?;
+        let format = scalar(decoder, Tag::SampleFormat, 1)?;
+        let spp = scalar(decoder, Tag::SamplesPerPixel, 1)?;
+        let planar = scalar(decoder, Tag::PlanarConfiguration, 1)?;
+        let photometric = scalar(decoder, Tag::PhotometricInterpretation, 1)?;
+        let (offsets, counts) = if tiled {
+            (one(decoder, Tag::TileOffsets)?, one(decoder, Tag::TileByteCounts)?)
+        } else {
+            (one(decoder, Tag::StripOffsets)?, one(decoder, Tag::StripByteCounts)?)
+        };
+        let deflate = match compression {
+            1 => false,
+            8 | 32946 => true,
+            _ => return None,
+        };
+        let big_endian = decoder.byte_order() == tiff::tags::ByteOrder::BigEndian;
+        let ok = matches!(predictor, 1 | 2)
+            && matches!(format, 1 | 2)
+            && usize::try_from(spp).ok() == Some(channels)
+            && (planar == 1 || channels == 1)
+            // Gray or RGB(A): no palette, no inverted gray, no YCbCr or CMYK.
+            && matches!(photometric, 1 | 2)
+            && match bits {
+                8 => channels <= 4,
+                16 => channels == 1,
+                _ => false,
+            }
+            && offsets.len() == counts.len();
+        if !ok {
+            return None;
+        }
+        let file = std::fs::File::open(path).ok()?;
+        // Every chunk inside the file: no buffer is sized by a claim the file cannot back.
+        let len = file.metadata().ok()?.len();
+        let inside = |(&o, &c): (&u64, &u64)| c <= MAX_CHUNK_BYTES && o.checked_add(c).is_some_and(|end| end <= len);
+        if !offsets.iter().zip(&counts).all(inside) {
+            return None;
+        }
+        Some(Self {
+            file,
+            offsets,
+            counts,
+            deflate,
+            predictor: predictor == 2,
+            big_endian,
+            bits: u8::try_from(bits).ok()?,
+            signed: format == 2,
+            channels,
+            stored_width: chunk_w,
+        })
+    }
+
+    /// Chunk `index` of `w` x `h` pixels of data (rows of `stored_width` in the file:
+    /// tiles are padded, strips not), decoded as the `tiff` crate decodes it.
+    pub(super) fn read(&self, index: usize, w: usize, h: usize) -> Result<DecodingResult, String> {
+        let (coded, row_bytes) = self.bytes(index, w, h)?;
+        let samples = w * self.channels;
+        let rows = coded.chunks(row_bytes).take(h);
+        Ok(match (self.bits, self.signed) {
+            (8, false) => DecodingResult::U8(self.rows8(rows, samples, h)),
+            #[expect(clippy::cast_possible_wrap, reason = "two's complement, as stored")]
+            (8, true) => DecodingResult::I8(self.rows8(rows, samples, h).into_iter().map(|v| v as i8).collect()),
+            (_, false) => DecodingResult::U16(self.rows16(rows, samples, h, |v| v)),
+            #[expect(clippy::cast_possible_wrap, reason = "two's complement, as stored")]
+            (_, true) => DecodingResult::I16(self.rows16(rows, samples, h, |v| v as i16)),
+        })
+    }
+
+    /// The same chunk as f32 samples, converted in the predictor's loop (no second pass).
+    pub(super) fn read_f32(&self, index: usize, w: usize, h: usize) -> Result<Vec<f32>, String> {
+        let (coded, row_bytes) = self.bytes(index, w, h)?;
+        let samples = w * self.channels;
+        let rows = coded.chunks(row_bytes).take(h);
+        Ok(match (self.bits, self.signed) {
+            (8, false) => self.rows8(rows, samples, h).into_iter().map(f32::from).collect(),
+            #[expect(clippy::cast_possible_wrap, reason = "two's complement, as stored")]
+            (8, true) => self.rows8(rows, samples, h).into_iter().map(|v| f32::from(v as i8)).collect(),
+            (_, false) => self.rows16(rows, samples, h, f32::from),
+            #[expect(clippy::cast_possible_wrap, reason = "two's complement, as stored")]
+            (_, true) => self.rows16(rows, samples, h, |v| f32::from(v as i16)),
+        })
+    }
+
+    /// The chunk's bytes, inflated: `h` rows of `row_bytes` (the second value).
+    fn bytes(&self, index: usize, w: usize, h: usize) -> Result<(Vec<u8>, usize), String> {
+        let (offset, count) = match (self.offsets.get(index), self.counts.get(index)) {
+            (Some(&o), Some(&c)) => (o, c),
+            _ => return Err("missing from the offset table".into()),
+        };
+        if w > self.stored_width {
+            return Err(format!("{w} pixels wide, in rows of {}", self.stored_width));
+        }
+        let row_bytes = self.stored_width * self.channels * usize::from(self.bits / 8);
+        let needed = row_bytes.checked_mul(h).filter(|&n| n as u64 <= MAX_CHUNK_BYTES).ok_or("too large")?;
+        let mut raw = vec![0u8; usize::try_from(count).map_err(|_| "too large")?];
+        read_at(&self.file, &mut raw, offset).map_err(|e| format!("reading {count} bytes at {offset}: {e}"))?;
+        if !self.deflate {
+            if raw.len() < needed {
+                return Err(format!("{} bytes, {needed} expected", raw.len()));
+            }
+            return Ok((raw, row_bytes));
+        }
+        let mut out = vec![0u8; needed];
+        let mut inflate = flate2::Decompress::new(true);
+        inflate.decompress(&raw, &mut out, flate2::FlushDecompress::Finish).map_err(|e| format!("Deflate: {e}"))?;
+        let got = usize::try_from(inflate.total_out()).unwrap_or(usize::MAX);
+        if got < needed {
+            return Err(format!("inflates to {got} bytes, {needed} expected"));
+        }
+        Ok((out, row_bytes))
+    }
+
+    fn rows8<'a>(&self, rows: impl Iterator<Item = &'a [u8]>, samples: usize, h: usize) -> Vec<u8> {
+        let mut out = Vec::with_capacity(samples * h);
+        for row in rows {
+            let row = &row[..samples.min(row.len())];
+            if !self.predictor {
+                out.extend_from_slice(row);
+                continue;
+            }
+            // One running sum a channel, in registers.
+            let mut sum = [0u8; 4];
+            let n = self.channels;
+            for pixel in row.chunks_exact(n) {
+                for (s, &v) in sum.iter_mut().zip(pixel) {
+                    *s = s.wrapping_add(v);
+                }
+                out.extend_from_slice(&sum[..n]);
+            }
+        }
+        out
+    }
+
+    /// 16-bit samples as `T` (u16 or i16, from the same bits), the predictor's running sum
+    /// in a register: into a buffer sized once, so the loop has no capacity checks.
+    fn rows16<'a, T: Copy + Default>(
+        &self,
+        rows: impl Iterator<Item = &'a [u8]>,
+        samples: usize,
+        h: usize,
+        from_bits: impl Fn(u16) -> T,
+    ) -> Vec<T> {
+        let mut out = vec![T::default(); samples * h];
+        for (row, dst) in rows.zip(out.chunks_exact_mut(samples.max(1))) {
+            match (self.big_endian, self.predictor) {
+                (false, true) => row16::<false, true, T>(row, dst, &from_bits),
+                (false, false) => row16::<false, false, T>(row, dst, &from_bits),
+                (true, true) => row16::<true, true, T>(row, dst, &from_bits),
+                (true, false) => row16::<true, false, T>(row, dst, &from_bits),
+            }
+        }
+        out
+    }
+}
+
+/// One row of 16-bit samples: a loop per byte order and predictor, so that each compiles
+/// to straight-line code.
+#[inline(always)]
+fn row16<const BIG: bool, const PREDICT: bool, T>(row: &[u8], dst: &mut [T], from_bits: &impl Fn(u16) -> T) {
+    let mut sum = 0u16;
+    for (d, b) in dst.iter_mut().zip(row.chunks_exact(2)) {
+        let v = if BIG { u16::from_be_bytes([b[0], b[1]]) } else { u16::from_le_bytes([b[0], b[1]]) };
+        sum = if PREDICT { sum.wrapping_add(v) } else { v };
+        *d = from_bits(sum);
+    }
+}
+
+#[cfg(unix)]
+fn read_at(file: &std::fs::File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+    std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+}
+
+#[cfg(not(unix))]
+fn read_at(_: &std::fs::File, _: &mut [u8], _: u64) -> std::io::Result<()> {
+    Err(std::io::Error::other("positioned reads need a unix system"))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::cast_possible_truncation)]
+    use std::path::Path;
+    use std::process::Command;
+
+    use tiff::encoder::{TiffEncoder, colortype};
+
+    use super::super::tiff::{TiffChunks, open_tiff, samples_f32};
+
+    fn gdal_translate(args: &[&str], from: &Path, to: &Path) -> bool {
+        match Command::new("gdal_translate").arg("-q").args(args).arg(from).arg(to).status() {
+            Ok(s) => {
+                assert!(s.success(), "gdal_translate {args:?} failed");
+                true
+            }
+            Err(_) => {
+                assert!(std::env::var_os("CI").is_none(), "gdal_translate is not installed (apt-get install gdal-bin)");
+                eprintln!("\n*** SKIPPING: gdal_translate is not installed (apt-get install gdal-bin) ***\n");
+                false
+            }
+        }
+    }
+
+    /// Every chunk of `path`, decoded here and by the `tiff` crate: the same samples.
+    fn same_as_tiff_crate(path: &Path, channels: usize) {
+        let chunks = TiffChunks::open(path, channels).unwrap();
+        assert!(chunks.raw.is_some(), "{} is not decoded here", path.display());
+        let mut decoder = open_tiff(path).unwrap();
+        for i in 0..chunks.needed() {
+            let (ours, w, h) = chunks.read(i).unwrap();
+            let theirs = decoder.read_chunk(i as u32).unwrap();
+            assert_eq!((w as u32, h as u32), decoder.chunk_data_dimensions(i as u32), "chunk {i}");
+            let theirs = samples_f32(theirs).unwrap();
+            assert_eq!(samples_f32(ours).unwrap(), theirs, "{} chunk {i}", path.display());
+            assert_eq!(chunks.read_f32(i).unwrap().0, theirs, "{} chunk {i} as f32", path.display());
+        }
+    }
+
+    #[test]
+    fn deflate_and_predictor_chunks_decode_as_the_tiff_crate_decodes_them() {
+        let dir = tempfile::tempdir().unwrap();
+        // 101 x 77: tiles of 32 x 16 leave cut-off tiles at the right and the bottom.
+        let (w, h) = (101u32, 77u32);
+        let base = dir.path().join("base.tif");
+        let mut encoder = TiffEncoder::new(std::fs::File::create(&base).unwrap()).unwrap();
+        let heights: Vec<i16> =
+            (0..w * h).map(|i| ((i % w) as i16 * 37 - (i / w) as i16 * 91) ^ (i as i16).wrapping_mul(7)).collect();
+        encoder.write_image::<colortype::GrayI16>(w, h, &heights).unwrap();
+        let rgb_base = dir.path().join("rgb.tif");
+        let mut encoder = TiffEncoder::new(std::fs::File::create(&rgb_base).unwrap()).unwrap();
+        let pixels: Vec<u8> = (0..w * h * 3).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+        encoder.write_image::<colortype::RGB8>(w, h, &pixels).unwrap();
+        let cases: [(&Path, &[&str], usize); 8] = [
+            (
+                &base,
+                &[
+                    "-co",
+                    "TILED=YES",
+                    "-co",
+                    "BLOCKXSIZE=32",
+                    "-co",
+                    "BLOCKYSIZE=16",
+                    "-co",
+                    "COMPRESS=DEFLATE",
+                    "-co",
+                    "PREDICTOR=2",
+                ],
+                1,
+            ),
+            (&base, &["-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=16"], 1),
+            (&base, &["-co", "BLOCKYSIZE=7", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2"], 1),
+            (
+                &base,
+                &["-co", "BLOCKYSIZE=7", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2", "-co", "ENDIANNESS=BIG"],
+                1,
+            ),
+            (&base, &["-ot", "UInt16", "-co", "COMPRESS=DEFLATE", "-co", "ZLEVEL=1"], 1),
+            (&base, &["-ot", "Byte", "-scale", "-co", "TILED=YES", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2"], 1),
+            (
+                &rgb_base,
+                &[
+                    "-co",
+                    "TILED=YES",
+                    "-co",
+                    "BLOCKXSIZE=32",
+                    "-co",
+                    "BLOCKYSIZE=16",
+                    "-co",
+                    "COMPRESS=DEFLATE",
+                    "-co",
+                    "PREDICTOR=2",
+                ],
+                3,
+            ),
+            (&rgb_base, &["-co", "BLOCKYSIZE=5", "-co", "PREDICTOR=2", "-co", "COMPRESS=DEFLATE"], 3),
+        ];
+        for (k, (from, args, channels)) in cases.into_iter().enumerate() {
+            let to = dir.path().join(format!("case{k}.tif"));
+            if !gdal_translate(args, from, &to) {
+                return;
+            }
+            same_as_tiff_crate(&to, channels);
+        }
+    }
+
+    #[test]
+    fn a_damaged_chunk_is_an_error_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dem.tif");
+        let mut encoder = TiffEncoder::new(std::fs::File::create(&path).unwrap())
+            .unwrap()
+            .with_compression(tiff::encoder::Compression::Deflate(tiff::encoder::DeflateLevel::Balanced))
+            .with_predictor(tiff::tags::Predictor::Horizontal);
+        let mut image = encoder.new_image::<colortype::GrayI16>(64, 64).unwrap();
+        image.rows_per_strip(16).unwrap();
+        image.write_data(&(0..64 * 64).map(|i| (i % 300) as i16).collect::<Vec<_>>()).unwrap();
+        let good = TiffChunks::open(&path, 1).unwrap();
+        assert!(good.raw.is_some());
+        assert_eq!(good.read_f32(1).unwrap().0.len(), 64 * 16);
+        // Overwrite the middle of the file (the strips' compressed bytes) with junk.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let n = bytes.len();
+        for b in &mut bytes[n / 4..n / 2] {
+            *b = 0x5a;
+        }
+        std::fs::write(&path, &bytes).unwrap();
+        let chunks = TiffChunks::open(&path, 1).unwrap();
+        let failed =
+            (0..chunks.needed()).filter_map(|i| chunks.read_f32(i).err()).map(|e| e.to_string()).collect::<Vec<_>>();
+        assert!(!failed.is_empty(), "junk decoded without an error");
+        assert!(failed.iter().all(|e| e.contains("dem.tif") && e.contains("reading strip")), "{failed:?}");
+    }
+}
