@@ -118,6 +118,13 @@ measure gdal-img-png "$work/img-g2t" gdal2tiles.py -q -p raster -r average --pro
 gdal_translate -q -srcwin 0 0 3601 900 "$DEM" "$work/quarter.tif"
 gdal_translate -q -outsize 100% 200% -r near "$DEM" "$work/double.tif"
 gdal_translate -q -co TILED=YES -co COMPRESS=DEFLATE "$IMAGE" "$work/image-tiled.tif"
+# One large DEM: the DEM upsampled to LARGE^2 (default 8100^2 = 65.6 M samples), written as
+# DEMs are published (tiled, Deflate + horizontal predictor, int16).
+LARGE=${LARGE:-8100}
+gdal_translate -q -outsize "$LARGE" "$LARGE" -r bilinear -co TILED=YES -co COMPRESS=DEFLATE -co PREDICTOR=2 \
+  "$DEM" "$work/large.tif"
+measure ours-dem-large "$work/l.tspack" "$bin" -q tile --elevation "$work/large.tif" -o "$work/l.tspack"
+measure gdal-dem-large "$work/l-g2t" bash -c 'DEM=$1 gdal_dem "$0"' "$work/l-g2t" "$work/large.tif"
 measure ours-dem-quarter "$work/q.tspack" "$bin" -q tile --elevation "$work/quarter.tif" -o "$work/q.tspack"
 measure ours-dem-double "$work/d.tspack" "$bin" -q tile --elevation "$work/double.tif" -o "$work/d.tspack"
 measure ours-img-tiff "$work/it.tspack" "$bin" -q tile --texture "$work/image-tiled.tif" -o "$work/it.tspack"
@@ -134,8 +141,12 @@ row "image: gdal2tiles (PNG)" gdal-img-png
 row "DEM 3601x900 (quarter height)" ours-dem-quarter
 row "DEM 3601x7202 (double height)" ours-dem-double
 row "image as a tiled GeoTIFF (streamed)" ours-img-tiff
+row "DEM ${LARGE}^2 Deflate+predictor: ours" ours-dem-large
+row "DEM ${LARGE}^2: translate + gdal2tiles" gdal-dem-large
 echo
-echo "speed-up over gdal2tiles: DEM $(ratio gdal-dem ours-dem), image (PNG) $(ratio gdal-img-png ours-img-png)"
+echo "speed-up over gdal2tiles: DEM $(ratio gdal-dem ours-dem), large DEM $(ratio gdal-dem-large ours-dem-large), image (PNG) $(ratio gdal-img-png ours-img-png)"
+dem_samples=$(gdalinfo "$DEM" | awk '/^Size is/ { gsub(",", ""); print $3 * $4 }')
+echo "samples/s: DEM $(awk -v n="$dem_samples" -v s="${secs[ours-dem]}" 'BEGIN { printf "%.0f M", n / s / 1e6 }'), large DEM $(awk -v n="$LARGE" -v s="${secs[ours-dem-large]}" 'BEGIN { printf "%.0f M", n * n / s / 1e6 }'); DEM / large DEM: $(awk -v n="$dem_samples" -v m="$LARGE" -v a="${secs[ours-dem]}" -v b="${secs[ours-dem-large]}" 'BEGIN { printf "%.2fx", (n / a) / (m * m / b) }')"
 echo "peak memory, DEM double / quarter height (8x the samples): $(awk -v a="${peak[ours-dem-double]}" -v b="${peak[ours-dem-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
 if [ "$MOSAIC" != 0 ]; then
   mosaic_case

@@ -109,6 +109,16 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Merge archives of one grid into one: the shards of a sharded `tile` run (making
+    /// the levels above their split LOD), or archives where a later one's tiles win.
+    Merge {
+        /// Archives, in order: a later one's tile replaces an earlier one's.
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+        /// Output archive (written to a temporary name, then renamed).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
     /// Benchmarks that print numbers.
@@ -226,6 +236,20 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
                 summary.addressed_tiles,
                 summary.tile_contents,
                 summary.file_len
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Merge { inputs, output } => {
+            let summary = terrastream_tiler::merge(&inputs, &output, &progress)?;
+            progress.finish();
+            println!(
+                "{}: {} tiles copied from {} archives ({} replaced by a later one), {} made, {} bytes",
+                output.display(),
+                summary.copied,
+                inputs.len(),
+                summary.replaced,
+                summary.made,
+                summary.write.file_len
             );
             Ok(ExitCode::SUCCESS)
         }

@@ -8,7 +8,8 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme};
 use terrastream_tiler::{
     Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, Mosaic, MosaicOptions, Pixels,
-    TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image, plan, tile_terrain,
+    ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image, plan,
+    tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -85,6 +86,20 @@ pub struct TileArgs {
     /// Print the plan (grids, LODs, tile counts, estimated size) and write nothing.
     #[arg(long)]
     dry_run: bool,
+    /// Make shard I of N (`3/8`, 0-based): every tile up to the split LOD in a band of the
+    /// grid; `terrastream merge` of all N makes the levels above and the whole archive.
+    #[arg(long, value_parser = parse_shard)]
+    shard: Option<(u32, u32)>,
+    /// The last LOD shards make (default: the coarsest with two rows of tiles a shard).
+    #[arg(long, requires = "shard")]
+    split_lod: Option<u8>,
+}
+
+fn parse_shard(s: &str) -> std::result::Result<(u32, u32), String> {
+    let bad = || format!("{s:?}: expected I/N, 0 <= I < N (shard 3 of 8: 3/8)");
+    let (i, n) = s.split_once('/').ok_or_else(bad)?;
+    let (i, n) = (i.trim().parse::<u32>().map_err(|_| bad())?, n.trim().parse::<u32>().map_err(|_| bad())?);
+    if i >= n { Err(bad()) } else { Ok((i, n)) }
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -285,7 +300,8 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let Some(output) = &args.output else { bail!("--output is required") };
-    let summary = tile_terrain(elevation, texture, &name, output, options, progress)?;
+    let shard = args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod });
+    let summary = tile_shard(elevation, texture, &name, output, options, shard, progress)?;
     progress.finish();
     if let Some(skipped) = mosaic.as_ref().map(Mosaic::skipped).filter(|s| !s.is_empty()) {
         println!("skipped {} inputs that cannot be used:", skipped.len());

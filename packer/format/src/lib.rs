@@ -46,7 +46,7 @@ pub use header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section
 pub use key::{MAX_LAYERS, MAX_LODS, TileKey, layer_of, tile_id_to_zxy, zxy_to_tile_id};
 pub use metadata::{
     ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, OriginalField, PayloadCompression,
-    Terrain, TileFormat, levels_to_one,
+    Shard, Terrain, TileFormat, levels_to_one,
 };
 pub use ranges::{AsyncRangeSource, MaybeSend, MaybeSync, MemorySource, RangeSource};
 #[cfg(not(target_arch = "wasm32"))]

@@ -28,9 +28,29 @@ pub struct Metadata {
     /// including the ones this format has no field for.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub original_fields: Vec<OriginalField>,
+    /// Set on one shard of a sharded tile run (`tile --shard I/N`): which part of the
+    /// grid it holds. A merge of all N shards makes the levels above the split LODs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<Shard>,
     /// Members this version does not know, kept on rewrite.
     #[serde(flatten)]
     pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// One shard of a sharded tile run: tiles of every layer from LOD 0 up to that layer's
+/// split LOD, in a band of the grid's tile rows; the levels above are made from the
+/// shards' split-LOD tiles when they are merged (FORMAT.md §3.5).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shard {
+    /// This shard, 0-based.
+    pub index: u32,
+    /// Shards in the run.
+    pub count: u32,
+    /// Per layer (in layer order): the last LOD this shard holds tiles of.
+    pub split_lods: Vec<u8>,
+    /// Per layer: the LOD-0 tile rows `[start, end)` whose tiles (and those above them
+    /// up to the split LOD) this shard holds.
+    pub tile_rows: Vec<[u32; 2]>,
 }
 
 /// What a layer holds.
@@ -410,6 +430,7 @@ impl Metadata {
             terrain: Terrain::default(),
             georeference: None,
             original_fields: Vec::new(),
+            shard: None,
             extra: serde_json::Map::new(),
         }
     }

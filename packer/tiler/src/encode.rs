@@ -50,6 +50,90 @@ pub(crate) fn encode_heights(samples: &[f32], encoding: &ElevationEncoding) -> (
     (raw, height(lo), height(hi))
 }
 
+/// Heights as a reader decodes them once stored: each sample through the encoding and
+/// back (the same arithmetic as [`encode_heights`]), NaN kept. What a pyramid level is made
+/// of, so that the levels above a split LOD come out the same from decoded tiles.
+pub(crate) fn quantize_heights(samples: &mut [f32], encoding: &ElevationEncoding) {
+    if encoding.scheme == ElevationScheme::Float32 {
+        return;
+    }
+    const TO_INTEGER: f32 = 8_388_608.0;
+    #[expect(clippy::cast_possible_truncation, reason = "as in encode_heights")]
+    let (offset, inverse) = (encoding.offset as f32, (1.0 / encoding.scale) as f32);
+    for v in samples {
+        let x = ((*v - offset) * inverse).clamp(1.0, 65_535.0);
+        if !x.is_nan() {
+            #[expect(clippy::cast_possible_truncation, reason = "the low 16 bits hold the integer")]
+            let q = (x + TO_INTEGER).to_bits() as u16;
+            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+            let h = encoding.height(f64::from(q)) as f32;
+            *v = h;
+        }
+    }
+}
+
+/// A stored elevation tile's raw samples (zstd already undone) -> heights, NaN for
+/// nodata: the inverse of [`encode_heights`] after [`quantize_heights`].
+pub(crate) fn decode_heights(raw: &[u8], encoding: &ElevationEncoding) -> Vec<f32> {
+    if encoding.scheme == ElevationScheme::Float32 {
+        return raw.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    }
+    raw.chunks_exact(2)
+        .map(|b| match u16::from_le_bytes([b[0], b[1]]) {
+            0 => f32::NAN,
+            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+            q => encoding.height(f64::from(q)) as f32,
+        })
+        .collect()
+}
+
+/// A stored PNG or WebP texture tile -> its RGBA pixels (`edge` x `edge`); None for
+/// another format (lossy ones are not decoded back: the levels above them would differ).
+pub(crate) fn decode_texture(key: TileKey, bytes: &[u8], edge: usize, format: TextureFormat) -> Result<Vec<[u8; 4]>> {
+    let err = |e: &dyn std::fmt::Display| Error::Encode { tile: key, reason: format!("decoding: {e}") };
+    let (data, channels) = match format {
+        TextureFormat::Png => {
+            let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+            decoder.set_transformations(png::Transformations::EXPAND);
+            let mut reader = decoder.read_info().map_err(|e| err(&e))?;
+            let mut data = vec![0; reader.output_buffer_size().ok_or_else(|| err(&"too large"))?];
+            let info = reader.next_frame(&mut data).map_err(|e| err(&e))?;
+            data.truncate(info.buffer_size());
+            let channels = info.color_type.samples();
+            if info.bit_depth != png::BitDepth::Eight || info.width as usize != edge || info.height as usize != edge {
+                return Err(err(&format!(
+                    "{}x{} {:?}, {edge}x{edge} 8-bit expected",
+                    info.width, info.height, info.bit_depth
+                )));
+            }
+            (data, channels)
+        }
+        TextureFormat::Webp => {
+            let mut decoder = image_webp::WebPDecoder::new(std::io::Cursor::new(bytes)).map_err(|e| err(&e))?;
+            let (w, h) = decoder.dimensions();
+            if w as usize != edge || h as usize != edge {
+                return Err(err(&format!("{w}x{h}, {edge}x{edge} expected")));
+            }
+            let mut data = vec![0; decoder.output_buffer_size().ok_or_else(|| err(&"too large"))?];
+            decoder.read_image(&mut data).map_err(|e| err(&e))?;
+            let channels = if decoder.has_alpha() { 4 } else { 3 };
+            (data, channels)
+        }
+        _ => return Err(err(&format!("{} tiles are lossy: not decoded to make coarser levels", format.name()))),
+    };
+    Ok(data
+        .chunks_exact(channels)
+        .map(|p| match *p {
+            [r, g, b, a] => [r, g, b, a],
+            [r, g, b] => [r, g, b, 255],
+            [g, a] => [g, g, g, a],
+            [g] => [g, g, g, 255],
+            _ => [0; 4],
+        })
+        .take(edge * edge)
+        .collect())
+}
+
 /// One texture tile's stored bytes.
 pub(crate) fn encode_texture(
     key: TileKey,

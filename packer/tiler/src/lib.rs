@@ -21,22 +21,25 @@ mod bc;
 pub mod crs;
 mod encode;
 mod error;
+mod merge;
 mod options;
 mod plan;
 pub mod pyramid;
 pub mod raster;
+mod shard;
 mod tile;
 
 pub use crs::{Crs, Transform};
 pub use error::{Error, Result};
-pub use options::{ElevationStorage, TextureFormat, TextureInput, TileOptions};
+pub use merge::{MergeSummary, merge};
+pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
     ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, Mosaic, MosaicKind,
     MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, open_elevation, open_image, read_geotiff,
     read_image, read_vrt,
 };
-pub use tile::{tile_elevation, tile_terrain};
+pub use tile::{tile_elevation, tile_shard, tile_terrain};
 
 #[cfg(test)]
 mod tests;

@@ -33,6 +33,18 @@ impl Default for TileOptions {
     }
 }
 
+/// One shard of a sharded tile run (`tile --shard I/N --split-lod K`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ShardSpec {
+    /// This shard, 0-based.
+    pub index: u32,
+    /// Shards in the run.
+    pub count: u32,
+    /// The last LOD shards make (each layer's at most its coarsest); None: the coarsest
+    /// LOD with at least two rows of tiles per shard.
+    pub split_lod: Option<u8>,
+}
+
 /// How texture tiles are stored.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum TextureFormat {
@@ -51,6 +63,12 @@ pub enum TextureFormat {
 
 impl TextureFormat {
     /// The format's name in messages.
+    /// Decoded exactly as encoded (PNG, WebP): what the levels above a shard's split LOD
+    /// are made from.
+    pub(crate) fn lossless(self) -> bool {
+        matches!(self, Self::Png | Self::Webp)
+    }
+
     pub(crate) fn name(self) -> &'static str {
         match self {
             Self::Png => "PNG",

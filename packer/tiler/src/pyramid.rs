@@ -217,10 +217,18 @@ pub fn halve_rows<S: Pixel>(a: &[S], b: &[S]) -> Vec<S> {
 /// height range), or none when it should be left missing.
 pub type Encode<'a, S> = dyn Fn(TileKey, &[S], usize) -> Result<Vec<(TileKey, Vec<u8>)>> + Sync + 'a;
 
+/// Rounds a row to the precision its tiles store, in place (see [`Pyramid::with_quantize`]).
+pub type Quantize<'a, S> = dyn Fn(&mut [S]) + Sync + 'a;
+
 struct Level<S> {
     lod: u8,
     width: usize,
     height: usize,
+    /// Rows this level will receive, counted from its top (its `height` unless a
+    /// [`Window`] ends above the bottom).
+    end: usize,
+    /// Rows of tiles cut from it: `cut..cut_end` (none below [`Window::encode_from`]).
+    cut_end: usize,
     /// Absolute index of `rows[0]`.
     first: usize,
     /// Shared with the cuts in flight that need them.
@@ -235,9 +243,40 @@ struct Level<S> {
 /// The entries of one cut row of tiles.
 type Cut = Result<Vec<(TileKey, Vec<u8>)>>;
 
+/// The part of a layer's pyramid one run builds: all of it ([`Window::full`]), a shard's
+/// band of rows up to a split LOD, or the levels above a split LOD made from its rows
+/// (the reduce step). Row and tile-row indices are absolute, so a band cut here holds
+/// exactly the tiles, bytes and all, that a full run cuts there.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Window {
+    /// The LOD of the rows pushed in (0; the split LOD for a reduce).
+    pub input_lod: u8,
+    /// The last LOD built (inclusive).
+    pub last_lod: u8,
+    /// Tiles are cut from this LOD up; below it levels only pass rows on.
+    pub encode_from: u8,
+    /// Rows of the input level that will be pushed: from `rows.start` (a multiple of
+    /// 2^(last_lod - input_lod)) to `rows.end` (the same, or the level's height).
+    pub rows: std::ops::Range<usize>,
+    /// Input-level rows whose tiles are cut (tile rows of every level built, aligned as
+    /// `rows` is, times the tile size).
+    pub band: std::ops::Range<usize>,
+}
+
+impl Window {
+    /// Every level of a layer of `num_lods` levels over `height` rows of LOD 0.
+    pub fn full(num_lods: u8, height: usize) -> Self {
+        Self { input_lod: 0, last_lod: num_lods.saturating_sub(1), encode_from: 0, rows: 0..height, band: 0..height }
+    }
+}
+
 /// Cuts one layer's tiles out of a stream of LOD-0 rows.
 pub struct Pyramid<'a, S: Pixel> {
     layer: u8,
+    /// Applied to each row as it enters a level: the precision tiles store (heights
+    /// quantized as the layer encodes them), so that each level is the 2x2 mean of the
+    /// level below *as stored*, and a reduce from decoded tiles gives the same bytes.
+    quantize: Option<&'a Quantize<'a, S>>,
     res: usize,
     border: usize,
     levels: Vec<Level<S>>,
@@ -265,29 +304,71 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
         spool: &'a mut Spool,
         progress: &'a dyn Progress,
     ) -> Result<Self> {
-        let l = metadata.layers.get(usize::from(layer)).ok_or_else(|| Error::Pyramid {
-            layer,
-            lod: 0,
-            reason: "no such layer in the metadata".into(),
-        })?;
-        let levels = (0..l.num_lods)
+        let lods = metadata.layers.get(usize::from(layer)).map_or(1, |l| l.num_lods);
+        Self::window(metadata, layer, (width, height), &Window::full(lods, height as usize), encode, spool, progress)
+    }
+
+    /// The part `window` of the pyramid over a `width` x `height` LOD 0; rows pushed in
+    /// are those of `window.rows` at `window.input_lod`.
+    ///
+    /// # Errors
+    /// [`Error::Pyramid`] for a layer not in the metadata or a window that does not fit it.
+    pub fn window(
+        metadata: &'a Metadata,
+        layer: u8,
+        (width, height): (u32, u32),
+        window: &Window,
+        encode: &'a Encode<'a, S>,
+        spool: &'a mut Spool,
+        progress: &'a dyn Progress,
+    ) -> Result<Self> {
+        let bad = |reason: String| Error::Pyramid { layer, lod: window.input_lod, reason };
+        let l = metadata.layers.get(usize::from(layer)).ok_or_else(|| bad("no such layer in the metadata".into()))?;
+        let res = l.tile_resolution as usize;
+        let Window { input_lod, last_lod, encode_from, rows, band } = window.clone();
+        let input_height = (height as usize).div_ceil(1 << input_lod).max(1);
+        let step = 1usize << last_lod.saturating_sub(input_lod);
+        let aligned = |n: usize, unit: usize| n.is_multiple_of(unit) || n == input_height;
+        if last_lod >= l.num_lods
+            || input_lod > last_lod
+            || rows.end > input_height
+            || !aligned(rows.start, step)
+            || !aligned(rows.end, step)
+            || !aligned(band.start, step * res)
+            || !aligned(band.end, step * res)
+            || band.start < rows.start
+            || band.end > rows.end
+        {
+            return Err(bad(format!("window {window:?} does not fit {} LODs of {input_height} rows", l.num_lods)));
+        }
+        let levels = (input_lod..=last_lod)
             .map(|lod| {
                 let shrink = |n: u32| (n.div_ceil(1 << lod)).max(1) as usize;
+                let down = 1usize << (lod - input_lod);
+                let level_height = shrink(height);
+                let end = if rows.end == input_height { level_height } else { rows.end / down };
+                let cuts = lod >= encode_from;
+                let tile_rows = level_height.div_ceil(res);
+                let cut = if cuts { band.start / down / res } else { tile_rows };
+                let cut_end = if !cuts || band.end == input_height { tile_rows } else { band.end / down / res };
                 Level {
                     lod,
                     width: shrink(width),
-                    height: shrink(height),
-                    first: 0,
+                    height: level_height,
+                    end,
+                    cut_end,
+                    first: rows.start / down,
                     rows: VecDeque::new(),
-                    received: 0,
-                    cut: 0,
+                    received: rows.start / down,
+                    cut,
                     pending: None,
                 }
             })
             .collect();
         Ok(Self {
             layer,
-            res: l.tile_resolution as usize,
+            quantize: None,
+            res,
             border: usize::from(l.border),
             levels,
             encode,
@@ -297,6 +378,13 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
             in_flight: 0,
             done: mpsc::channel(),
         })
+    }
+
+    /// Rows entering each level go through `quantize` first (see the field).
+    #[must_use]
+    pub fn with_quantize(mut self, quantize: &'a Quantize<'a, S>) -> Self {
+        self.quantize = Some(quantize);
+        self
     }
 
     /// Rows of LOD 0 that one row of tiles is cut from, borders included.
@@ -315,10 +403,13 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
     ///
     /// # Errors
     /// Encoding and spool errors, an interrupted error (Ctrl-C).
-    pub fn push<'s>(&mut self, row: Vec<S>, scope: &rayon::Scope<'s>) -> Result<()>
+    pub fn push<'s>(&mut self, mut row: Vec<S>, scope: &rayon::Scope<'s>) -> Result<()>
     where
         'a: 's,
     {
+        if let Some(quantize) = self.quantize {
+            quantize(&mut row);
+        }
         self.push_at(0, Arc::new(row), scope)
     }
 
@@ -328,11 +419,11 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
     {
         let has_next = l + 1 < self.levels.len();
         let level = &mut self.levels[l];
-        if level.received >= level.height {
+        if level.received >= level.end {
             return Err(Error::Pyramid {
                 layer: self.layer,
                 lod: level.lod,
-                reason: format!("more than {} rows", level.height),
+                reason: format!("more than {} rows", level.end),
             });
         }
         let half = match (has_next, level.pending.take()) {
@@ -343,10 +434,18 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
             }
             (true, Some(even)) => Some(halve_rows(&even, &row)),
         };
-        level.rows.push_back(row);
+        // A level no tiles are cut from keeps no rows (only the one waiting for its pair).
+        if level.cut < level.cut_end {
+            level.rows.push_back(row);
+        } else {
+            level.first += 1;
+        }
         level.received += 1;
         self.cut_ready(l, scope)?;
-        if let Some(half) = half {
+        if let Some(mut half) = half {
+            if let Some(quantize) = self.quantize {
+                quantize(&mut half);
+            }
             self.push_at(l + 1, Arc::new(half), scope)?;
         }
         Ok(())
@@ -362,16 +461,20 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
     {
         for l in 0..self.levels.len() {
             let level = &self.levels[l];
-            if level.received != level.height {
+            if level.received != level.end {
                 return Err(Error::Pyramid {
                     layer: self.layer,
                     lod: level.lod,
-                    reason: format!("{} of {} rows arrived", level.received, level.height),
+                    reason: format!("{} of {} rows arrived", level.received, level.end),
                 });
             }
             if let Some(even) = self.levels[l].pending.take() {
                 let none = vec![S::NONE; even.len()];
-                self.push_at(l + 1, Arc::new(halve_rows(&even, &none)), scope)?;
+                let mut half = halve_rows(&even, &none);
+                if let Some(quantize) = self.quantize {
+                    quantize(&mut half);
+                }
+                self.push_at(l + 1, Arc::new(half), scope)?;
             }
         }
         while self.in_flight > 0 {
@@ -400,7 +503,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
         let (res, border) = (self.res, self.border);
         loop {
             let level = &self.levels[l];
-            if level.cut >= level.height.div_ceil(res) {
+            if level.cut >= level.cut_end {
                 return Ok(());
             }
             let need = ((level.cut + 1) * res + border).min(level.height);
@@ -520,21 +623,64 @@ impl Spool {
     /// # Errors
     /// I/O and writer errors, an interrupted error (Ctrl-C).
     pub fn drain_into(self, writer: &mut Writer, progress: &dyn Progress) -> Result<()> {
-        let Self { file, mut index, .. } = self;
-        let mut file = file.into_inner().map_err(|e| Error::Spool(e.into_error()))?;
-        index.sort_unstable_by_key(|t| t.0);
-        progress.start("write", index.len() as u64);
-        for (n, (_, key, offset, len)) in index.into_iter().enumerate() {
+        let mut sorted = self.into_sorted()?;
+        progress.start("write", sorted.len() as u64);
+        let mut n = 0u64;
+        while let Some((_, key, bytes)) = sorted.next_tile()? {
             if n.is_multiple_of(1024) {
                 progress.check()?;
             }
-            let mut bytes = vec![0; len as usize];
-            file.seek(SeekFrom::Start(offset)).map_err(Error::Spool)?;
-            file.read_exact(&mut bytes).map_err(Error::Spool)?;
+            n += 1;
             writer.add_stored(key, bytes)?;
             progress.advance(1);
         }
         Ok(())
+    }
+
+    /// The spooled tiles in archive order, read back one at a time.
+    ///
+    /// # Errors
+    /// [`Error::Spool`] if the spool cannot be flushed.
+    pub fn into_sorted(self) -> Result<SortedSpool> {
+        let Self { file, mut index, .. } = self;
+        let file = file.into_inner().map_err(|e| Error::Spool(e.into_error()))?;
+        index.sort_unstable_by_key(|t| t.0);
+        Ok(SortedSpool { file, index: index.into_iter() })
+    }
+}
+
+/// A [`Spool`]'s tiles in archive order.
+pub struct SortedSpool {
+    file: File,
+    index: std::vec::IntoIter<(u64, TileKey, u64, u32)>,
+}
+
+impl SortedSpool {
+    /// Tiles left.
+    pub fn len(&self) -> usize {
+        self.index.len()
+    }
+
+    /// True when every tile has been read.
+    pub fn is_empty(&self) -> bool {
+        self.index.len() == 0
+    }
+
+    /// The next tile's archive order key, key and stored bytes.
+    ///
+    /// # Errors
+    /// [`Error::Spool`] on a read error.
+    pub fn next_tile(&mut self) -> Result<Option<(u64, TileKey, Vec<u8>)>> {
+        let Some((order, key, offset, len)) = self.index.next() else { return Ok(None) };
+        let mut bytes = vec![0; len as usize];
+        self.file.seek(SeekFrom::Start(offset)).map_err(Error::Spool)?;
+        self.file.read_exact(&mut bytes).map_err(Error::Spool)?;
+        Ok(Some((order, key, bytes)))
+    }
+
+    /// The next tile's archive order key, without reading it.
+    pub fn peek_order(&self) -> Option<u64> {
+        self.index.as_slice().first().map(|t| t.0)
     }
 }
 

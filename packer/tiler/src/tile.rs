@@ -2,16 +2,17 @@
 
 use std::path::Path;
 
-use terrastream_format::{LayerKind, Metadata, TileKey};
+use terrastream_format::{ElevationEncoding, LayerKind, Metadata, TileKey};
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress};
 
-use crate::encode::{encode_heights, encode_texture};
+use crate::encode::{encode_heights, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
-use crate::options::{TextureInput, TileOptions};
+use crate::options::{ShardSpec, TextureInput, TileOptions};
 use crate::plan::plan;
-use crate::pyramid::{self, Encode, Pixel, Pyramid, Resample, Spool};
+use crate::pyramid::{self, Encode, Pixel, Pyramid, Quantize, Resample, Spool, Window};
 use crate::raster::ElevationSource;
+use crate::shard;
 
 /// Packs an elevation raster into a pyramid archive at `out` (no texture: see
 /// [`tile_terrain`]).
@@ -46,55 +47,72 @@ pub fn tile_terrain(
     options: TileOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
+    tile_shard(elevation, texture, name, out, options, None, progress)
+}
+
+/// As [`tile_terrain`], or with `shard`, one shard of a sharded run: every layer's tiles
+/// from LOD 0 up to its split LOD in the shard's band of tile rows, exactly the bytes a
+/// whole run makes there ([`crate::merge`] makes the levels above from all shards).
+///
+/// # Errors
+/// As [`tile_terrain`]; [`Error::Option`] for a shard out of range or a lossy texture
+/// format with shards.
+pub fn tile_shard(
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<TextureInput<'_>>,
+    name: &str,
+    out: &Path,
+    options: TileOptions,
+    shard: Option<ShardSpec>,
+    progress: &dyn Progress,
+) -> Result<WriteSummary> {
     let started = std::time::Instant::now();
-    let plan = plan(elevation, texture.as_ref(), name, options, progress)?;
+    let mut plan = plan(elevation, texture.as_ref(), name, options, progress)?;
     tracing::debug!(elapsed = ?started.elapsed(), "planned (height range scanned)");
+    let windows = match shard {
+        Some(spec) => {
+            if let Some(t) = texture.as_ref().filter(|t| !t.format.lossless()) {
+                return Err(Error::option("--texture-format", t.format.name(), "png or webp with --shard"));
+            }
+            let (info, windows) = shard::windows(&plan, spec)?;
+            plan.metadata.shard = Some(info);
+            windows
+        }
+        None => plan
+            .metadata
+            .layers
+            .iter()
+            .zip(&plan.layers)
+            .map(|(l, p)| Window::full(l.num_lods, p.size.1 as usize))
+            .collect(),
+    };
     let metadata = &plan.metadata;
     let folder = terrastream_pack::output_folder(out);
     let mut spool = Spool::new(&folder)?;
     progress.start("tile", plan.tiles());
-    let level = WriterOptions::default().zstd_level;
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
 
     if let (Some(source), Some(index)) = (elevation, find(LayerKind::Elevation)) {
-        let encoding = metadata.layers[usize::from(index)].elevation.ok_or(Error::Pyramid {
-            layer: index,
-            lod: 0,
-            reason: "the elevation layer has no encoding".into(),
-        })?;
-        let range = find(LayerKind::HeightRange);
-        // Each tile's own stored range, gathered as tiles are encoded (8 bytes + key each).
-        let ranges = std::sync::Mutex::new(Vec::<(TileKey, f32, f32)>::new());
-        let encode = |key: TileKey, samples: &[f32], _edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
-            let (raw, lo, hi) = encode_heights(samples, &encoding);
-            if range.is_some() && lo <= hi {
-                ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));
-            }
-            let stored = zstd_compress(&raw, level).map_err(|e| Error::Encode { tile: key, reason: e.to_string() })?;
-            Ok(vec![(key, stored)])
-        };
+        let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
+        let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+        let window = &windows[usize::from(index)];
         let size = plan.layers[usize::from(index)].size;
         let resample = Resample::new(source.size().0 as usize, size.0 as usize);
-        run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
+        let quantize = |row: &mut [f32]| quantize_heights(row, &heights.encoding);
+        run_pyramid(metadata, index, size, window, &encode, Some(&quantize), &mut spool, progress, |push| {
             source.rows(&mut |row| push(resample.row(row)))
         })?;
-        if let Some(r) = range {
-            let ranges = ranges.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
-            for (key, lo, hi) in conservative_ranges(ranges) {
-                let bounds = [lo.to_le_bytes(), hi.to_le_bytes()].concat();
-                spool.add(metadata, TileKey::new(r, key.lod(), key.x(), key.y())?, &bounds)?;
-            }
-        }
+        heights.finish(metadata, Vec::new(), &mut spool)?;
     }
     if let (Some(t), Some(index)) = (texture, find(LayerKind::Texture)) {
         let format = t.format;
         let encode = move |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
-            let bytes = encode_texture(key, pixels, edge, format, level)?;
-            Ok(vec![(key, bytes)])
+            Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
         };
         let size = plan.layers[usize::from(index)].size;
         let resample = Resample::new(t.source.size().0 as usize, size.0 as usize);
-        run_pyramid(metadata, index, size, &encode, &mut spool, progress, |push| {
+        let window = &windows[usize::from(index)];
+        run_pyramid(metadata, index, size, window, &encode, None, &mut spool, progress, |push| {
             t.source.rows(&mut |row| push(resample.row(row)))
         })?;
     }
@@ -107,6 +125,54 @@ pub fn tile_terrain(
     let summary = writer.finish()?;
     tracing::debug!(elapsed = ?started.elapsed(), "archive written");
     Ok(summary)
+}
+
+/// The tiles' zstd level (elevation, BC blocks): the writer's default.
+pub(crate) const ZSTD_LEVEL: i32 = 3;
+
+/// Encodes elevation tiles, gathering each one's stored height range for the height-range
+/// layer (8 bytes + key a tile) until [`HeightEncoder::finish`] spools that layer.
+pub(crate) struct HeightEncoder {
+    pub(crate) encoding: ElevationEncoding,
+    range: Option<u8>,
+    ranges: std::sync::Mutex<Vec<(TileKey, f32, f32)>>,
+}
+
+impl HeightEncoder {
+    /// For elevation layer `index` of `metadata`, and its height-range layer `range`.
+    pub(crate) fn new(metadata: &Metadata, index: u8, range: Option<u8>) -> Result<Self> {
+        let encoding = metadata.layers[usize::from(index)].elevation.ok_or(Error::Pyramid {
+            layer: index,
+            lod: 0,
+            reason: "the elevation layer has no encoding".into(),
+        })?;
+        Ok(Self { encoding, range, ranges: std::sync::Mutex::new(Vec::new()) })
+    }
+
+    /// One cut tile -> its stored bytes (u16 or f32, zstd).
+    pub(crate) fn encode(&self, key: TileKey, samples: &[f32]) -> Result<Vec<(TileKey, Vec<u8>)>> {
+        let (raw, lo, hi) = encode_heights(samples, &self.encoding);
+        if self.range.is_some() && lo <= hi {
+            self.ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));
+        }
+        let stored = zstd_compress(&raw, ZSTD_LEVEL).map_err(|e| Error::Encode { tile: key, reason: e.to_string() })?;
+        Ok(vec![(key, stored)])
+    }
+
+    /// Spools the height-range tiles of the tiles encoded: each widened by its children's
+    /// (theirs, and `below`: ranges of tiles made elsewhere, such as a shard's split LOD,
+    /// which are not spooled again).
+    pub(crate) fn finish(self, metadata: &Metadata, below: Vec<(TileKey, f32, f32)>, spool: &mut Spool) -> Result<()> {
+        let Some(r) = self.range else { return Ok(()) };
+        let mut ranges = self.ranges.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let ours: std::collections::HashSet<TileKey> = ranges.iter().map(|(k, ..)| *k).collect();
+        ranges.extend(below);
+        for (key, lo, hi) in conservative_ranges(ranges).into_iter().filter(|(k, ..)| ours.contains(k)) {
+            let bounds = [lo.to_le_bytes(), hi.to_le_bytes()].concat();
+            spool.add(metadata, TileKey::new(r, key.lod(), key.x(), key.y())?, &bounds)?;
+        }
+        Ok(())
+    }
 }
 
 /// Height ranges for culling: a tile's range must hold every height drawn anywhere under
@@ -132,21 +198,44 @@ fn conservative_ranges(mut ranges: Vec<(TileKey, f32, f32)>) -> Vec<(TileKey, f3
 /// with at most one band of LOD-0 rows (a row of tiles and its borders) between them: the
 /// reader fills the next band while the pyramid cuts and encodes this one. (With fewer,
 /// the reader stalls during each cut, and the encoders while it catches up.)
-fn run_pyramid<S: Pixel>(
+#[expect(clippy::too_many_arguments, reason = "one layer's pyramid run, all of it")]
+pub(crate) fn run_pyramid<S: Pixel>(
     metadata: &Metadata,
     index: u8,
     size: (u32, u32),
+    window: &Window,
     encode: &Encode<'_, S>,
+    quantize: Option<&Quantize<'_, S>>,
     spool: &mut Spool,
     progress: &dyn Progress,
     read: impl FnOnce(&mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> + Send,
 ) -> Result<()> {
-    let mut pyramid = Pyramid::new(metadata, index, size, encode, spool, progress)?;
+    if window.band.is_empty() {
+        return Ok(());
+    }
+    let mut pyramid = Pyramid::window(metadata, index, size, window, encode, spool, progress)?;
+    if let Some(q) = quantize {
+        pyramid = pyramid.with_quantize(q);
+    }
     let (rows, received) = std::sync::mpsc::sync_channel::<Vec<S>>(pyramid.band_rows());
+    let wanted = window.rows.clone();
     std::thread::scope(|scope| {
         let reader = scope.spawn(move || {
-            // A send fails only once the pyramid has stopped, with its own error.
-            read(&mut |row| rows.send(row).map_err(|_| crate::error::interrupted()))
+            // Rows above the window are read and dropped; the read stops after its last.
+            let (mut n, mut ended) = (0usize, false);
+            let read = read(&mut |row| {
+                n += 1;
+                if n <= wanted.start {
+                    return Ok(());
+                }
+                if n > wanted.end {
+                    ended = true;
+                    return Err(crate::error::interrupted());
+                }
+                // A send fails only once the pyramid has stopped, with its own error.
+                rows.send(row).map_err(|_| crate::error::interrupted())
+            });
+            if ended { Ok(()) } else { read }
         });
         // Rows of tiles are cut on the pool while this thread halves the next rows.
         rayon::in_place_scope(|cuts| {

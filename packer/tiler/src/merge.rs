@@ -1,0 +1,363 @@
+//! Merging archives (`terrastream merge`): the shards of a sharded run, or archives of
+//! the same grid.
+//!
+//! Inputs must agree on their layers (grid, tile size, border, format, compression, height
+//! encoding) and CRS; the first difference is the error, naming both files. Tiles are
+//! copied as stored (no decoding), a later input's tile replacing an earlier one's with
+//! the same key (`prefer last`), and written through the writer, which deduplicates
+//! payloads and rebuilds the directories; the output appears only once complete.
+//!
+//! Shards (`tile --shard I/N`) hold every layer up to its split LOD K. When all N shards
+//! of a run are given, the levels above K are made here: the shards' LOD-K tiles are
+//! decoded into rows of LOD K (heights exactly as stored; PNG and WebP pixels exactly),
+//! which go through the same pyramid as a whole run's, from LOD K up. Because a whole run
+//! builds each level from the level below *as stored*, the result is, byte for byte, the
+//! archive one run makes.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use terrastream_format::{
+    LayerKind, Metadata, MmapSource, PayloadCompression, Reader, TileFormat, TileKey, TileLocation, zstd_decompress,
+};
+use terrastream_pack::progress::Progress;
+use terrastream_pack::{WriteSummary, Writer, WriterOptions};
+
+use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
+use crate::error::{Error, Result};
+use crate::options::TextureFormat;
+use crate::pyramid::{Pixel, SortedSpool, Spool, Window};
+use crate::tile::{HeightEncoder, ZSTD_LEVEL, run_pyramid};
+
+/// What [`merge`] did.
+#[derive(Clone, Debug)]
+pub struct MergeSummary {
+    /// The archive written.
+    pub write: WriteSummary,
+    /// Tiles copied from the inputs.
+    pub copied: u64,
+    /// Tiles of an earlier input replaced by a later one's.
+    pub replaced: u64,
+    /// Tiles made from the shards' split-LOD tiles (the levels above it).
+    pub made: u64,
+}
+
+/// Where a winning tile's bytes are: the input, the blob's absolute offset and length.
+type Found = (usize, u64, u32);
+
+/// Merges `inputs` into `out` (see the module's documentation).
+///
+/// # Errors
+/// [`Error::Input`] naming an archive that cannot be read or that differs from the first
+/// (what differs), or an incomplete set of shards; writer and I/O errors; an interrupted
+/// error (Ctrl-C), with nothing written.
+pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<MergeSummary> {
+    let Some(first) = inputs.first() else {
+        return Err(Error::NothingToTile);
+    };
+    let readers = inputs
+        .iter()
+        .map(|p| Reader::open_mmap(p).map_err(|e| Error::input(p, format!("cannot open archive: {e}"))))
+        .collect::<Result<Vec<_>>>()?;
+    let base = readers[0].metadata();
+    for (path, reader) in inputs.iter().zip(&readers).skip(1) {
+        if let Some(why) = difference(base, reader.metadata()) {
+            return Err(Error::input(path, format!("cannot merge with {}: {why}", first.display())));
+        }
+    }
+    let shards = shard_set(inputs, &readers)?;
+    let mut metadata = base.clone();
+    metadata.shard = None;
+    // Heights of all inputs (archives of one grid may come from runs over other areas).
+    let terrain = readers.iter().map(|r| &r.metadata().terrain);
+    metadata.terrain.min_elevation = terrain.clone().map(|t| t.min_elevation).fold(f64::INFINITY, f64::min);
+    metadata.terrain.max_elevation = terrain.map(|t| t.max_elevation).fold(f64::NEG_INFINITY, f64::max);
+
+    let (winners, replaced) = winners(&readers, progress)?;
+    let folder = terrastream_pack::output_folder(out);
+    let mut spool = Spool::new(&folder)?;
+    if let Some(split_lods) = &shards {
+        reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
+    }
+    let made = spool.tiles() as u64;
+    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
+    let mut writer = Writer::create(out, metadata.clone(), options)?;
+    let copied = write(&mut writer, &readers, &winners, spool.into_sorted()?, progress)?;
+    Ok(MergeSummary { write: writer.finish()?, copied, replaced, made })
+}
+
+/// The first way `other` cannot be merged with `base`, or None.
+fn difference(base: &Metadata, other: &Metadata) -> Option<String> {
+    if base.layers.len() != other.layers.len() {
+        return Some(format!("{} layers, not {}", other.layers.len(), base.layers.len()));
+    }
+    for (a, b) in base.layers.iter().zip(&other.layers) {
+        let (ja, jb) = (serde_json::to_value(a).ok()?, serde_json::to_value(b).ok()?);
+        if let (Some(ja), Some(jb)) = (ja.as_object(), jb.as_object()) {
+            let keys = ja.keys().chain(jb.keys().filter(|k| !ja.contains_key(*k)));
+            for key in keys {
+                let (va, vb) = (ja.get(key), jb.get(key));
+                if va != vb {
+                    let show = |v: Option<&serde_json::Value>| v.map_or("none".to_owned(), ToString::to_string);
+                    return Some(format!("layer {:?}: {key} {} here, {} there", a.name, show(vb), show(va)));
+                }
+            }
+        }
+    }
+    let crs = |m: &Metadata| m.georeference.as_ref().map(|g| (g.crs.clone(), g.origin));
+    if crs(base) != crs(other) {
+        let show = |m: &Metadata| {
+            m.georeference.as_ref().map_or("no georeference".to_owned(), |g| {
+                format!("{} at origin {:?}", g.crs.as_deref().unwrap_or("no CRS"), g.origin)
+            })
+        };
+        return Some(format!("CRS {} here, {} there", show(other), show(base)));
+    }
+    None
+}
+
+/// With shards: every input is one, all of one run, each once; their split LODs. Without
+/// any shard: None.
+fn shard_set(inputs: &[PathBuf], readers: &[Reader<MmapSource>]) -> Result<Option<Vec<u8>>> {
+    let shards: Vec<_> = readers.iter().map(|r| r.metadata().shard.clone()).collect();
+    let Some(first) = shards.iter().flatten().next().cloned() else { return Ok(None) };
+    let mut seen = vec![false; first.count as usize];
+    for (path, shard) in inputs.iter().zip(&shards) {
+        let Some(s) = shard else {
+            return Err(Error::input(path, "not a shard, merged with shards (merge those first)"));
+        };
+        if s.count != first.count || s.split_lods != first.split_lods {
+            return Err(Error::input(path, format!("shard {}/{} of another run", s.index, s.count)));
+        }
+        let slot = seen.get_mut(s.index as usize).ok_or_else(|| Error::input(path, "shard index out of range"))?;
+        if std::mem::replace(slot, true) {
+            return Err(Error::input(path, format!("shard {}/{} given twice", s.index, s.count)));
+        }
+    }
+    let missing: Vec<String> = (0..first.count).filter(|&i| !seen[i as usize]).map(|i| i.to_string()).collect();
+    if !missing.is_empty() {
+        return Err(Error::input(
+            &inputs[0],
+            format!(
+                "shards {} of {} are missing: a merge of shards needs all of them",
+                missing.join(", "),
+                first.count
+            ),
+        ));
+    }
+    Ok(Some(first.split_lods))
+}
+
+/// Every tile of every input, by archive key; a later input's replaces an earlier one's.
+/// Also how many were replaced.
+fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(BTreeMap<u64, Found>, u64)> {
+    let step = terrastream_format::MAX_LAYERS as u64;
+    let mut winners = BTreeMap::new();
+    let mut replaced = 0u64;
+    progress.start("index", readers.iter().map(|r| r.header().addressed_tiles).sum());
+    for (i, reader) in readers.iter().enumerate() {
+        let data = reader.header().data.offset;
+        reader.for_each_entry(|e| -> Result<()> {
+            progress.check()?;
+            for k in 0..u64::from(e.run_length) {
+                if winners.insert(e.key + k * step, (i, data + e.offset, e.length)).is_some() {
+                    replaced += 1;
+                }
+            }
+            progress.advance(u64::from(e.run_length));
+            Ok(())
+        })?;
+    }
+    Ok((winners, replaced))
+}
+
+/// Writes the inputs' winning tiles and the spooled (made) tiles in archive order; a made
+/// tile replaces an input's with the same key. Returns the tiles copied.
+fn write(
+    writer: &mut Writer,
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    mut made: SortedSpool,
+    progress: &dyn Progress,
+) -> Result<u64> {
+    progress.start("write", (winners.len() + made.len()) as u64);
+    let mut copied = 0u64;
+    for (&order, &(input, offset, length)) in winners {
+        while made.peek_order().is_some_and(|o| o < order) {
+            if let Some((_, key, bytes)) = made.next_tile()? {
+                writer.add_stored(key, bytes)?;
+                progress.advance(1);
+            }
+        }
+        if made.peek_order() == Some(order) {
+            continue;
+        }
+        if copied.is_multiple_of(1024) {
+            progress.check()?;
+        }
+        let reader = &readers[input];
+        let key = reader.archive().tile_of(order)?;
+        let bytes = reader.read(&TileLocation { key, offset, length })?;
+        writer.add_stored(key, bytes.to_vec())?;
+        copied += 1;
+        progress.advance(1);
+    }
+    while let Some((_, key, bytes)) = made.next_tile()? {
+        writer.add_stored(key, bytes)?;
+        progress.advance(1);
+    }
+    Ok(copied)
+}
+
+/// The stored bytes of a tile if any input has it, its layer's compression undone.
+fn payload(
+    metadata: &Metadata,
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    key: TileKey,
+) -> Result<Option<Vec<u8>>> {
+    let order = Writer::order_key(metadata, key)?;
+    let Some(&(input, offset, length)) = winners.get(&order) else { return Ok(None) };
+    let stored = readers[input].read(&TileLocation { key, offset, length })?;
+    let layer = &metadata.layers[usize::from(key.layer())];
+    Ok(Some(match layer.compression {
+        PayloadCompression::None => stored.to_vec(),
+        PayloadCompression::Zstd => zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {key}"))?,
+    }))
+}
+
+/// Makes every layer's levels above its split LOD from the LOD-K tiles (see the module).
+fn reduce(
+    metadata: &Metadata,
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    split_lods: &[u8],
+    spool: &mut Spool,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    for (index, layer) in metadata.layers.iter().enumerate() {
+        let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
+        let k = split_lods.get(usize::from(index)).copied().unwrap_or(0);
+        if k + 1 >= layer.num_lods {
+            continue;
+        }
+        let res = layer.tile_resolution as usize;
+        let border = usize::from(layer.border);
+        let edge = res + 2 * border;
+        // The grid's samples at LOD 0: the raster's, padded to whole tiles with no data,
+        // which the levels above treat as the raster's own padding.
+        let size = (layer.num_x_tiles * layer.tile_resolution, layer.num_y_tiles * layer.tile_resolution);
+        let height_k = (size.1 as usize).div_ceil(1 << k);
+        let window = Window {
+            input_lod: k,
+            last_lod: layer.num_lods - 1,
+            encode_from: k + 1,
+            rows: 0..height_k,
+            band: 0..height_k,
+        };
+        let (cols, rows_k) = (layer.num_x_tiles.div_ceil(1 << k), layer.num_y_tiles.div_ceil(1 << k));
+        match layer.kind {
+            LayerKind::Elevation => {
+                let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
+                let encoding = heights.encoding;
+                let decode = |key: TileKey| -> Result<Option<Vec<f32>>> {
+                    Ok(payload(metadata, readers, winners, key)?.map(|raw| decode_heights(&raw, &encoding)))
+                };
+                let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+                let quantize = |row: &mut [f32]| quantize_heights(row, &encoding);
+                run_pyramid(metadata, index, size, &window, &encode, Some(&quantize), spool, progress, |push| {
+                    level_rows(index, k, (cols, rows_k), (size, res, border, edge), &decode, push)
+                })?;
+                // The split LOD's ranges (the shards' own) widen the ranges above them.
+                let below = match find(LayerKind::HeightRange) {
+                    Some(r) => split_ranges(metadata, readers, winners, (index, r), k, (cols, rows_k))?,
+                    None => Vec::new(),
+                };
+                heights.finish(metadata, below, spool)?;
+            }
+            LayerKind::Texture => {
+                let format = match layer.format {
+                    TileFormat::Png => TextureFormat::Png,
+                    TileFormat::Webp => TextureFormat::Webp,
+                    other => {
+                        return Err(Error::Pyramid {
+                            layer: index,
+                            lod: k,
+                            reason: format!("{other:?} tiles are lossy: shards need png or webp"),
+                        });
+                    }
+                };
+                let decode = |key: TileKey| -> Result<Option<Vec<[u8; 4]>>> {
+                    payload(metadata, readers, winners, key)?
+                        .map(|bytes| decode_texture(key, &bytes, edge, format))
+                        .transpose()
+                };
+                let encode = move |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+                    Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
+                };
+                run_pyramid(metadata, index, size, &window, &encode, None, spool, progress, |push| {
+                    level_rows(index, k, (cols, rows_k), (size, res, border, edge), &decode, push)
+                })?;
+            }
+            // Made with their elevation layer.
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Pushes LOD `k`'s rows, assembled from its tiles' interiors (decoded a row of tiles at
+/// a time, in parallel); a missing tile is no data.
+fn level_rows<S: Pixel>(
+    layer: u8,
+    k: u8,
+    (cols, rows): (u32, u32),
+    (size, res, border, edge): ((u32, u32), usize, usize, usize),
+    decode: &(dyn Fn(TileKey) -> Result<Option<Vec<S>>> + Sync),
+    push: &mut dyn FnMut(Vec<S>) -> Result<()>,
+) -> Result<()> {
+    // The level's size, as the pyramid has it.
+    let (width, height) = ((size.0 as usize).div_ceil(1 << k), (size.1 as usize).div_ceil(1 << k));
+    for ty in 0..rows {
+        let tiles: Vec<Option<Vec<S>>> =
+            (0..cols).into_par_iter().map(|tx| decode(TileKey::new(layer, k, tx, ty)?)).collect::<Result<_>>()?;
+        for j in 0..res.min(height.saturating_sub(ty as usize * res)) {
+            let mut row = vec![S::NONE; width];
+            for (tx, tile) in tiles.iter().enumerate() {
+                let (x0, x1) = (tx * res, ((tx + 1) * res).min(width));
+                let from = (border + j) * edge + border;
+                if let Some(src) = tile.as_ref().and_then(|t| t.get(from..from + (x1 - x0))) {
+                    row[x0..x1].copy_from_slice(src);
+                }
+            }
+            push(row)?;
+        }
+    }
+    Ok(())
+}
+
+/// The height-range tiles of LOD `k` (as the shards stored them).
+fn split_ranges(
+    metadata: &Metadata,
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    (elevation, range_layer): (u8, u8),
+    k: u8,
+    (cols, rows): (u32, u32),
+) -> Result<Vec<(TileKey, f32, f32)>> {
+    let mut out = Vec::new();
+    for ty in 0..rows {
+        for tx in 0..cols {
+            if let Some(b) = payload(metadata, readers, winners, TileKey::new(range_layer, k, tx, ty)?)? {
+                if let [a, b, c, d, e, f, g, h] = b[..] {
+                    // Keyed by the elevation tile, as the encoder gathers them.
+                    let key = TileKey::new(elevation, k, tx, ty)?;
+                    out.push((key, f32::from_le_bytes([a, b, c, d]), f32::from_le_bytes([e, f, g, h])));
+                }
+            }
+        }
+    }
+    Ok(out)
+}

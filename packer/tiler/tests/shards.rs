@@ -1,0 +1,150 @@
+//! Sharded runs: N shards (`tile_shard`) merged (`merge`) give, tile for tile, the same
+//! payload bytes and metadata as one whole run over the same inputs, for N = 1, 3 and 4,
+//! elevation (with nodata, its height-range layer) and PNG imagery, odd sizes included.
+//! And the merge's refusals: a missing shard, a shard twice, a different grid.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::cast_possible_truncation,
+    clippy::cast_precision_loss,
+    missing_docs
+)]
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use terrastream_format::{Reader, TileKey};
+use terrastream_pack::progress::Silent;
+use terrastream_tiler::{
+    ElevationStorage, Image, Raster, ShardSpec, TextureFormat, TextureInput, TileOptions, merge, tile_shard,
+    tile_terrain,
+};
+
+/// 203 x 157 heights (odd sizes: padded tiles at every level), with a hole of nodata and
+/// a bumpy surface whose coarser means are not on the quantization grid.
+fn dem() -> Raster {
+    let (w, h) = (203u32, 157u32);
+    let data = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            if (40..70).contains(&x) && (100..130).contains(&y) {
+                f32::NAN
+            } else {
+                let (fx, fy) = (f64::from(x), f64::from(y));
+                (300.0 + 80.0 * (fx / 17.0).sin() * (fy / 23.0).cos() + 0.37 * fx - 0.11 * fy) as f32
+            }
+        })
+        .collect();
+    Raster { width: w, height: h, data, spacing: (10.0, 10.0), georeference: None }
+}
+
+/// 406 x 314 pixels over the same area, with a transparent corner.
+fn image() -> Image {
+    let (w, h) = (406u32, 314u32);
+    let rgba = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .flat_map(|(x, y)| {
+            let a = if x + y < 60 { 0 } else { 255 };
+            [(x * 7 % 256) as u8, (y * 5 % 256) as u8, ((x ^ y) % 256) as u8, a]
+        })
+        .collect();
+    Image { width: w, height: h, rgba, georeference: None }
+}
+
+const OPTIONS: TileOptions = TileOptions { tile_size: 16, border: 1, storage: ElevationStorage::Auto };
+
+fn texture(image: &Image) -> TextureInput<'_> {
+    TextureInput { source: image, tile_size: 16, format: TextureFormat::Png, pixel_size: 1.0 }
+}
+
+/// Every tile's stored payload, by key.
+fn tiles(path: &Path) -> BTreeMap<TileKey, Vec<u8>> {
+    let reader = Reader::open_mmap(path).unwrap();
+    let mut out = BTreeMap::new();
+    reader
+        .for_each_entry(|e| -> terrastream_format::Result<()> {
+            let payload = reader.entry_payload(e)?.to_vec();
+            for k in 0..u64::from(e.run_length) {
+                let key = reader.archive().tile_of(e.key + k * terrastream_format::MAX_LAYERS as u64)?;
+                out.insert(key, payload.clone());
+            }
+            Ok(())
+        })
+        .unwrap();
+    out
+}
+
+fn shards(dir: &Path, n: u32, split_lod: Option<u8>, dem: &Raster, image: &Image) -> Vec<PathBuf> {
+    (0..n)
+        .map(|i| {
+            let out = dir.join(format!("shard-{n}-{i}.tspack"));
+            let spec = ShardSpec { index: i, count: n, split_lod };
+            tile_shard(Some(dem), Some(texture(image)), "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
+            out
+        })
+        .collect()
+}
+
+#[test]
+fn shards_merged_are_the_whole_run_byte_for_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, image) = (dem(), image());
+    let whole = dir.path().join("whole.tspack");
+    tile_terrain(Some(&dem), Some(texture(&image)), "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let expected = tiles(&whole);
+    let expected_meta = Reader::open_mmap(&whole).unwrap().metadata().clone();
+    // 13 x 10 elevation tiles (4 LODs above LOD 0), 26 x 20 texture tiles.
+    assert!(expected.keys().any(|k| k.lod() == 4), "a pyramid several levels deep");
+    for (n, split) in [(1, None), (3, None), (4, None), (3, Some(1)), (4, Some(0))] {
+        let parts = shards(dir.path(), n, split, &dem, &image);
+        // Each shard holds part of the tiles, none above its split LOD.
+        let held: usize = parts.iter().map(|p| tiles(p).len()).sum();
+        let meta = Reader::open_mmap(&parts[0]).unwrap().metadata().clone();
+        let shard = meta.shard.clone().unwrap();
+        assert_eq!(shard.count, n);
+        if n > 1 {
+            assert!(held < expected.len(), "N = {n}: the shards hold {held} of {} tiles", expected.len());
+        }
+        let merged = dir.path().join(format!("merged-{n}-{split:?}.tspack"));
+        let summary = merge(&parts, &merged, &Silent::default()).unwrap();
+        assert_eq!(summary.copied + summary.made, expected.len() as u64);
+        assert!(summary.made > 0, "N = {n}: the levels above the split LOD are made by the merge");
+        let got = tiles(&merged);
+        let missing: Vec<_> = expected.keys().filter(|k| !got.contains_key(k)).take(5).collect();
+        let extra: Vec<_> = got.keys().filter(|k| !expected.contains_key(k)).take(5).collect();
+        assert!(
+            missing.is_empty() && extra.is_empty(),
+            "N = {n}, split {split:?}: missing {missing:?}, extra {extra:?}"
+        );
+        let differ: Vec<_> = expected.iter().filter(|(k, v)| got[k] != **v).map(|(k, _)| *k).take(5).collect();
+        assert!(differ.is_empty(), "N = {n}, split {split:?} ({shard:?}): tiles differ: {differ:?}");
+        assert_eq!(Reader::open_mmap(&merged).unwrap().metadata(), &expected_meta, "N = {n}");
+    }
+}
+
+#[test]
+fn a_merge_refuses_missing_or_repeated_shards_and_other_grids() {
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, image) = (dem(), image());
+    let parts = shards(dir.path(), 3, None, &dem, &image);
+    let out = dir.path().join("out.tspack");
+    let err = merge(&parts[..2], &out, &Silent::default()).unwrap_err().to_string();
+    assert!(err.contains("shards 2 of 3 are missing"), "{err}");
+    let err = merge(&[parts[0].clone(), parts[1].clone(), parts[1].clone()], &out, &Silent::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("given twice") && err.contains("shard-3-1.tspack"), "{err}");
+    // Another tile size: a different grid, named.
+    let other = dir.path().join("other.tspack");
+    let options = TileOptions { tile_size: 32, ..OPTIONS };
+    tile_terrain(Some(&dem), None, "t", &other, options, &Silent::default()).unwrap();
+    let whole = dir.path().join("whole.tspack");
+    tile_terrain(Some(&dem), None, "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let err = merge(&[whole.clone(), other], &out, &Silent::default()).unwrap_err().to_string();
+    assert!(err.contains("other.tspack") && err.contains("layer \"elevation\"") && err.contains("5 there"), "{err}");
+    assert!(!out.exists(), "nothing written");
+    // The same archive twice: every tile replaced by the same bytes.
+    let summary = merge(&[whole.clone(), whole.clone()], &out, &Silent::default()).unwrap();
+    assert_eq!(summary.replaced, summary.copied);
+    assert_eq!(tiles(&out), tiles(&whole));
+}
