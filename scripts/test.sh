@@ -10,15 +10,24 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 # System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS),
 # Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests, Chromium +
 # chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's, and
-# GDAL + PROJ command-line tools as independent oracles for georeferencing and reprojection.
+# GDAL + PROJ command-line tools as independent oracles for georeferencing and reprojection,
+# and python3-venv for the Kubernetes schema validator.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin python3-venv}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
   as_root apt-get update -qq
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_apt[@]}"
 fi
+
+# The Kubernetes API schema validator (PyPI), in a virtual environment of its own.
+tools=${TERRASTREAM_TOOLS_VENV:-$HOME/.cache/terrastream-tools}
+if ! [ -x "$tools/bin/kubernetes-validate" ]; then
+  python3 -m venv "$tools"
+  "$tools/bin/pip" install -q kubernetes-validate
+fi
+export PATH="$tools/bin:$PATH"
 
 # One clean build: incremental caches would only add gigabytes of disk for nothing.
 export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"

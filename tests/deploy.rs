@@ -329,3 +329,157 @@ fn compose_dockerfile_and_systemd_unit_hold_together() {
         eprintln!("\n*** systemd-analyze not installed: the unit file was checked for its options only ***\n");
     }
 }
+
+/// `kubernetes-validate` (PyPI; the test command installs it) on every manifest in
+/// `deploy/k8s`, against the Kubernetes API schemas, strictly (no unknown fields); and on a
+/// broken copy, which must fail, so that a validator that checks nothing is noticed.
+#[test]
+fn kubernetes_manifests_pass_the_api_schemas() {
+    let validate = |files: &[PathBuf]| {
+        Command::new("kubernetes-validate").args(["-k", "1.30.0", "--strict", "--quiet"]).args(files).output()
+    };
+    let files: Vec<PathBuf> = std::fs::read_dir(deploy("k8s"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "yaml") && !p.ends_with("kustomization.yaml"))
+        .collect();
+    assert!(files.iter().any(|p| p.ends_with("tile-job.yaml")));
+    let out = match validate(&files) {
+        Ok(out) => out,
+        Err(e) => {
+            assert!(std::env::var_os("CI").is_none(), "kubernetes-validate: {e} (pip install kubernetes-validate)");
+            eprintln!("\n*** SKIPPING: kubernetes-validate is not installed (pip install kubernetes-validate) ***\n");
+            return;
+        }
+    };
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success() && !text.contains("ERROR"), "{text}");
+    let dir = tempfile::tempdir().unwrap();
+    let broken = dir.path().join("broken.yaml");
+    let job = std::fs::read_to_string(deploy("k8s/tile-job.yaml")).unwrap();
+    std::fs::write(&broken, job.replacen("completionMode: Indexed", "completionMode: Indexed\n  completionz: 3", 1))
+        .unwrap();
+    let out = validate(&[broken]).unwrap();
+    assert!(!out.status.success(), "an unknown field passed: {}", String::from_utf8_lossy(&out.stdout));
+}
+
+/// A projected (UTM 33N) GeoTIFF: `(w, h)` samples of `spacing` metres, the north-west
+/// corner at (east, north); `sample(x, y)` in metres gives the values (8-bit RGB if
+/// `rgb`, else f32 heights).
+fn utm_geotiff(path: &Path, (w, h): (u32, u32), (east, north): (f64, f64), spacing: f64, rgb: bool) {
+    use tiff::encoder::{TiffEncoder, colortype};
+    use tiff::tags::Tag;
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let at = |i: u32, j: u32| (east + (f64::from(i) + 0.5) * spacing, north - (f64::from(j) + 0.5) * spacing);
+    let tags = |e: &mut tiff::encoder::DirectoryEncoder<'_, std::fs::File, tiff::encoder::TiffKindStandard>| {
+        e.write_tag(Tag::Unknown(33550), &[spacing, spacing, 0.0][..]).unwrap();
+        e.write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, north, 0.0][..]).unwrap();
+        e.write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32633][..]).unwrap();
+    };
+    if rgb {
+        let mut image = encoder.new_image::<colortype::RGB8>(w, h).unwrap();
+        tags(image.encoder());
+        let data: Vec<u8> = (0..h)
+            .flat_map(|j| (0..w).map(move |i| (i, j)))
+            .flat_map(|(i, j)| {
+                let (x, y) = at(i, j);
+                [(x / 7.0 % 256.0) as u8, (y / 5.0 % 256.0) as u8, ((x + y) / 3.0 % 256.0) as u8]
+            })
+            .collect();
+        image.write_data(&data).unwrap();
+    } else {
+        let mut image = encoder.new_image::<colortype::Gray32Float>(w, h).unwrap();
+        tags(image.encoder());
+        let data: Vec<f32> = (0..h)
+            .flat_map(|j| (0..w).map(move |i| (i, j)))
+            .map(|(i, j)| {
+                let (x, y) = at(i, j);
+                (400.0 + 90.0 * (x / 900.0).sin() * (y / 700.0).cos() + (x - east) * 0.01) as f32
+            })
+            .collect();
+        image.write_data(&data).unwrap();
+    }
+}
+
+/// The Jobs of `deploy/k8s/tile-job.yaml`, their exact command lines run here: the tile
+/// Job's N indexed pods as N processes at once (`$(JOB_COMPLETION_INDEX)` set as
+/// Kubernetes sets it, `/work` a local folder; the object-storage copies are the rclone
+/// containers' and are done with a file copy), then the merge Job's. The archive it
+/// publishes is the one a single `tile` run over the same inputs writes, byte for byte.
+#[test]
+fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
+    let docs = yaml_docs(&deploy("k8s/tile-job.yaml"));
+    let job =
+        |name: &str| docs.iter().find(|d| d["metadata"]["name"] == name).unwrap_or_else(|| panic!("no Job {name}"));
+    let (tile_job, merge_job) = (job("terrastream-tile"), job("terrastream-merge"));
+    assert_eq!(tile_job["spec"]["completionMode"], "Indexed");
+    let n = tile_job["spec"]["completions"].as_u64().unwrap();
+    assert_eq!(tile_job["spec"]["parallelism"].as_u64(), Some(n), "all shards at once");
+    let args = |job: &serde_json::Value, container: &str| -> Vec<String> {
+        let spec = &job["spec"]["template"]["spec"];
+        let all = spec["initContainers"].as_array().into_iter().flatten().chain(spec["containers"].as_array().unwrap());
+        let c = all.into_iter().find(|c| c["name"] == container).unwrap_or_else(|| panic!("no container {container}"));
+        c["args"].as_array().unwrap().iter().map(|a| a.as_str().unwrap().to_owned()).collect()
+    };
+    let tile_args = args(tile_job, "tile");
+    assert!(tile_args.iter().any(|a| a == &format!("$(JOB_COMPLETION_INDEX)/{n}")), "--shard I/{n}: {tile_args:?}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    for d in ["in/elevation", "in/texture", "out", "shards"] {
+        std::fs::create_dir_all(work.join(d)).unwrap();
+    }
+    // Two overlapping DEM strips and an image over them, in UTM 33N: tall enough for five
+    // rows of 256-sample tiles, so that most of the N shards hold a band.
+    utm_geotiff(&work.join("in/elevation/a.tif"), (150, 1100), (500_000.0, 5_100_000.0), 20.0, false);
+    utm_geotiff(&work.join("in/elevation/b.tif"), (140, 1100), (502_800.0, 5_100_000.0), 20.0, false);
+    utm_geotiff(&work.join("in/texture/ortho.tif"), (290, 1100), (500_000.0, 5_100_000.0), 20.0, true);
+    let local = |a: &str, index: u64| {
+        a.replace("$(JOB_COMPLETION_INDEX)", &index.to_string()).replace("/work", work.to_str().unwrap())
+    };
+    let pods: Vec<Child> = (0..n)
+        .map(|i| {
+            Command::new(env!("CARGO_BIN_EXE_terrastream"))
+                .arg("-q")
+                .args(tile_args.iter().map(|a| local(a, i)))
+                .stdout(Stdio::null())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    for (i, mut pod) in pods.into_iter().enumerate() {
+        assert!(pod.wait().unwrap().success(), "shard {i} failed");
+    }
+    let sizes: Vec<u64> =
+        (0..n).map(|i| std::fs::metadata(work.join(format!("out/shard-{i}.tspack"))).unwrap().len()).collect();
+    let holding = sizes.iter().filter(|&&b| b > 4096).count();
+    assert!(holding >= 4, "shards with tiles: {holding} of {n} ({sizes:?})");
+    // The upload and fetch containers: out/ -> the bucket -> shards/.
+    for entry in std::fs::read_dir(work.join("out")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::rename(&path, work.join("shards").join(path.file_name().unwrap())).unwrap();
+    }
+    let merge_args = args(merge_job, "merge");
+    let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .arg("-q")
+        .args(merge_args.iter().map(|a| local(a, 0)))
+        .stdout(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success(), "merge {merge_args:?}");
+    let published = args(merge_job, "publish");
+    let merged = work.join(published[1].strip_prefix("/work/").unwrap());
+
+    // One run over the same inputs, the shard option left out.
+    let shard = tile_args.iter().position(|a| a == "--shard").unwrap();
+    let mut single: Vec<String> = tile_args.iter().map(|a| local(a, 0)).collect();
+    single.drain(shard..shard + 2);
+    let out = single.iter().position(|a| a == "-o").unwrap();
+    single[out + 1] = work.join("single.tspack").to_str().unwrap().to_owned();
+    let status =
+        Command::new(env!("CARGO_BIN_EXE_terrastream")).arg("-q").args(&single).stdout(Stdio::null()).status().unwrap();
+    assert!(status.success(), "single run {single:?}");
+    let (a, b) = (std::fs::read(work.join("single.tspack")).unwrap(), std::fs::read(&merged).unwrap());
+    assert!(a.len() > 10_000, "a real archive");
+    assert!(a == b, "the merged shards ({} bytes) differ from the single run ({} bytes)", b.len(), a.len());
+}

@@ -112,7 +112,8 @@ enum Command {
     /// Merge archives of one grid into one: the shards of a sharded `tile` run (making
     /// the levels above their split LOD), or archives where a later one's tiles win.
     Merge {
-        /// Archives, in order: a later one's tile replaces an earlier one's.
+        /// Archives, in order: a later one's tile replaces an earlier one's. A folder stands
+        /// for the `*.tspack` files in it, by name.
         #[arg(required = true)]
         inputs: Vec<PathBuf>,
         /// Output archive (written to a temporary name, then renamed).
@@ -124,6 +125,26 @@ enum Command {
     /// Benchmarks that print numbers.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+}
+
+/// Paths with each folder replaced by the `*.tspack` files in it, sorted by name.
+fn archives_in(paths: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for path in paths {
+        if !path.is_dir() {
+            out.push(path.clone());
+            continue;
+        }
+        let mut found: Vec<PathBuf> = std::fs::read_dir(path)
+            .with_context(|| format!("cannot list {}", path.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "tspack") && p.is_file())
+            .collect();
+        anyhow::ensure!(!found.is_empty(), "{}: no .tspack archives in this folder", path.display());
+        found.sort();
+        out.extend(found);
+    }
+    Ok(out)
 }
 
 /// `terrastream player -o DIR`.
@@ -240,6 +261,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Merge { inputs, output } => {
+            let inputs = archives_in(&inputs)?;
             let summary = terrastream_tiler::merge(&inputs, &output, &progress)?;
             progress.finish();
             println!(

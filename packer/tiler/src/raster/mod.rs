@@ -61,6 +61,11 @@ pub trait ElevationSource: Sync {
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>;
+    /// How many samples of rows `rows` hold data, as far as the source knows without
+    /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
+    fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
+        f64::from(rows.end.saturating_sub(rows.start)) * f64::from(self.size().0)
+    }
     /// The lowest and highest height (NaN skipped; infinities when there is no data),
     /// telling `progress` how many rows have been read so far, now and then. A source may
     /// find them without making rows of heights.
@@ -104,6 +109,11 @@ pub trait ImageSource: Sync {
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()>;
+    /// How many samples of rows `rows` hold data, as far as the source knows without
+    /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
+    fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
+        f64::from(rows.end.saturating_sub(rows.start)) * f64::from(self.size().0)
+    }
 }
 
 impl std::fmt::Debug for dyn ImageSource + '_ {

@@ -614,6 +614,22 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
     }
 }
 
+impl<K: MosaicKind> Mosaic<K> {
+    /// Samples of rows `rows` inside an input's footprint (overlaps counted once per input).
+    #[expect(clippy::cast_precision_loss, reason = "a weight")]
+    fn footprint_samples(&self, rows: std::ops::Range<u32>) -> f64 {
+        let (width, start, end) = (i64::from(self.size.0), i64::from(rows.start), i64::from(rows.end));
+        self.inputs
+            .iter()
+            .map(|i| {
+                let down = (i.rows.1 + 1).min(end) - i.rows.0.max(start);
+                let across = (i.columns.1 + 1).min(width) - i.columns.0.max(0);
+                (down.max(0) * across.max(0)) as f64
+            })
+            .sum()
+    }
+}
+
 impl ElevationSource for Mosaic<Heights> {
     fn path(&self) -> &Path {
         &self.path
@@ -650,6 +666,9 @@ impl ElevationSource for Mosaic<Heights> {
         Ok((lo, hi))
     }
 
+    fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
+        self.footprint_samples(rows)
+    }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         self.make_rows(row)
     }
@@ -667,6 +686,9 @@ impl ImageSource for Mosaic<Pixels> {
     }
     fn crs_pixel_size(&self) -> Option<(f64, f64)> {
         Some(self.pixel)
+    }
+    fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
+        self.footprint_samples(rows)
     }
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         self.make_rows(row)
