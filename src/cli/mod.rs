@@ -110,7 +110,8 @@ enum Command {
         output: PathBuf,
     },
     /// Merge archives of one grid into one: the shards of a sharded `tile` run (making
-    /// the levels above their split LOD), or archives where a later one's tiles win.
+    /// the levels above their split LOD), or archives where a later one's tiles win (the
+    /// tiles around and above them are made again).
     Merge {
         /// Archives, in order: a later one's tile replaces an earlier one's. A folder stands
         /// for the `*.tspack` files in it, by name.

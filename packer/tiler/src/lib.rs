@@ -26,6 +26,7 @@ mod options;
 mod plan;
 pub mod pyramid;
 pub mod raster;
+mod rederive;
 mod shard;
 mod tile;
 

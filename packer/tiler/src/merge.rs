@@ -5,7 +5,8 @@
 //! encoding) and CRS; the first difference is the error, naming both files. Tiles are
 //! copied as stored (no decoding), a later input's tile replacing an earlier one's with
 //! the same key (`prefer last`), and written through the writer, which deduplicates
-//! payloads and rebuilds the directories; the output appears only once complete.
+//! payloads and rebuilds the directories; the output appears only once complete. The tiles
+//! a replacement leaves stale (borders, coarser levels) are made again ([`crate::rederive`]).
 //!
 //! Shards (`tile --shard I/N`) hold every layer up to its split LOD K. When all N shards
 //! of a run are given, the levels above K are made here: the shards' LOD-K tiles are
@@ -14,7 +15,7 @@
 //! builds each level from the level below *as stored*, the result is, byte for byte, the
 //! archive one run makes.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
@@ -28,6 +29,7 @@ use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_hei
 use crate::error::{Error, Result};
 use crate::options::TextureFormat;
 use crate::pyramid::{Pixel, SortedSpool, Spool, Window};
+use crate::rederive::{Grid, Remade, Tiles, rederive};
 use crate::tile::{HeightEncoder, ZSTD_LEVEL, run_pyramid};
 
 /// What [`merge`] did.
@@ -74,17 +76,21 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
     metadata.terrain.min_elevation = terrain.clone().map(|t| t.min_elevation).fold(f64::INFINITY, f64::min);
     metadata.terrain.max_elevation = terrain.map(|t| t.max_elevation).fold(f64::NEG_INFINITY, f64::max);
 
-    let (winners, replaced) = winners(&readers, progress)?;
+    let (mut winners, conflicts) = winners(&readers, progress)?;
     let folder = terrastream_pack::output_folder(out);
     let mut spool = Spool::new(&folder)?;
     if let Some(split_lods) = &shards {
         reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
+    } else {
+        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, &mut spool)? {
+            winners.remove(&order);
+        }
     }
     let made = spool.tiles() as u64;
     let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
     let mut writer = Writer::create(out, metadata.clone(), options)?;
     let copied = write(&mut writer, &readers, &winners, spool.into_sorted()?, progress)?;
-    Ok(MergeSummary { write: writer.finish()?, copied, replaced, made })
+    Ok(MergeSummary { write: writer.finish()?, copied, replaced: conflicts.len() as u64, made })
 }
 
 /// The first way `other` cannot be merged with `base`, or None.
@@ -150,19 +156,24 @@ fn shard_set(inputs: &[PathBuf], readers: &[Reader<MmapSource>]) -> Result<Optio
 }
 
 /// Every tile of every input, by archive key; a later input's replaces an earlier one's.
-/// Also how many were replaced.
-fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(BTreeMap<u64, Found>, u64)> {
+/// Also the keys of the tiles more than one input holds.
+fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(BTreeMap<u64, Found>, HashSet<u64>)> {
     let step = terrastream_format::MAX_LAYERS as u64;
     let mut winners = BTreeMap::new();
-    let mut replaced = 0u64;
+    let mut replaced = HashSet::new();
     progress.start("index", readers.iter().map(|r| r.header().addressed_tiles).sum());
     for (i, reader) in readers.iter().enumerate() {
         let data = reader.header().data.offset;
         reader.for_each_entry(|e| -> Result<()> {
             progress.check()?;
             for k in 0..u64::from(e.run_length) {
-                if winners.insert(e.key + k * step, (i, data + e.offset, e.length)).is_some() {
-                    replaced += 1;
+                let order = e.key + k * step;
+                if let Some(before) = winners.insert(order, (i, data + e.offset, e.length)) {
+                    // The same bytes again (an archive merged with itself, a shared tile)
+                    // replace nothing.
+                    if !same_bytes(readers, order, before, (i, data + e.offset, e.length))? {
+                        replaced.insert(order);
+                    }
                 }
             }
             progress.advance(u64::from(e.run_length));
@@ -170,6 +181,19 @@ fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(B
         })?;
     }
     Ok((winners, replaced))
+}
+
+/// Do two inputs' tiles hold the same stored bytes?
+fn same_bytes(readers: &[Reader<MmapSource>], order: u64, a: Found, b: Found) -> Result<bool> {
+    if a.2 != b.2 {
+        return Ok(false);
+    }
+    let read = |(input, offset, length): Found| -> Result<Vec<u8>> {
+        let reader = &readers[input];
+        let key = reader.archive().tile_of(order)?;
+        Ok(reader.read(&TileLocation { key, offset, length })?.to_vec())
+    };
+    Ok(read(a)? == read(b)?)
 }
 
 /// Writes the inputs' winning tiles and the spooled (made) tiles in archive order; a made
@@ -225,6 +249,128 @@ fn payload(
         PayloadCompression::None => stored.to_vec(),
         PayloadCompression::Zstd => zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {key}"))?,
     }))
+}
+
+/// Remakes, in every layer, the tiles the merge left stale ([`crate::rederive`]) into
+/// `spool`; returns the archive keys of stored tiles that hold no data once remade.
+fn rederive_layers(
+    metadata: &Metadata,
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    conflicts: &HashSet<u64>,
+    spool: &mut Spool,
+) -> Result<Vec<u64>> {
+    let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    let archive = readers[0].archive();
+    let keys: Vec<TileKey> =
+        conflicts.iter().map(|&k| archive.tile_of(k)).collect::<terrastream_format::Result<_>>()?;
+    let mut emptied = Vec::new();
+    for (index, layer) in metadata.layers.iter().enumerate() {
+        let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
+        let grid = Grid {
+            layer: index,
+            lods: layer.num_lods,
+            res: layer.tile_resolution as usize,
+            border: usize::from(layer.border),
+            tiles: (layer.num_x_tiles, layer.num_y_tiles),
+        };
+        let edge = grid.res + 2 * grid.border;
+        let conflicts: HashSet<(u8, u32, u32)> =
+            keys.iter().filter(|k| k.layer() == index).map(|k| (k.lod(), k.x(), k.y())).collect();
+        let source = |lod: u8, x: u32, y: u32| -> Option<usize> {
+            let key = TileKey::new(index, lod, x, y).ok()?;
+            winners.get(&Writer::order_key(metadata, key).ok()?).map(|f| f.0)
+        };
+        let mut remade = Remade::default();
+        match layer.kind {
+            LayerKind::Elevation => {
+                let range = find(LayerKind::HeightRange);
+                let heights = HeightEncoder::new(metadata, index, range)?;
+                let encoding = heights.encoding;
+                let decode = |lod: u8, x: u32, y: u32| -> Result<Option<Vec<f32>>> {
+                    let key = TileKey::new(index, lod, x, y)?;
+                    Ok(payload(metadata, readers, winners, key)?.map(|raw| decode_heights(&raw, &encoding)))
+                };
+                let encode = |key: TileKey, samples: &[f32]| heights.encode(key, samples);
+                let quantize = |row: &mut [f32]| quantize_heights(row, &encoding);
+                let tiles = Tiles {
+                    source: &source,
+                    conflicts: &conflicts,
+                    decode: &decode,
+                    encode: &encode,
+                    quantize: Some(&quantize),
+                };
+                rederive(&grid, &tiles, &mut remade)?;
+                // Ranges of the remade tiles' children that were not remade widen theirs.
+                let made: HashSet<TileKey> =
+                    remade.entries.iter().map(|(k, _)| *k).chain(remade.emptied.iter().copied()).collect();
+                let mut below = Vec::new();
+                if let Some(r) = range {
+                    for key in made.iter().filter(|k| k.lod() > 0) {
+                        for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                            let (lod, x, y) = (key.lod() - 1, 2 * key.x() + cx, 2 * key.y() + cy);
+                            if x >= layer.num_x_tiles.div_ceil(1 << lod) || y >= layer.num_y_tiles.div_ceil(1 << lod) {
+                                continue;
+                            }
+                            let child = TileKey::new(index, lod, x, y)?;
+                            if made.contains(&child) {
+                                continue;
+                            }
+                            let range_key = TileKey::new(r, child.lod(), child.x(), child.y())?;
+                            if let Some(b) = payload(metadata, readers, winners, range_key)? {
+                                if let [a, b, c, d, e, f, g, h] = b[..] {
+                                    below.push((
+                                        child,
+                                        f32::from_le_bytes([a, b, c, d]),
+                                        f32::from_le_bytes([e, f, g, h]),
+                                    ));
+                                }
+                            }
+                        }
+                    }
+                    for key in &remade.emptied {
+                        emptied.push(Writer::order_key(metadata, TileKey::new(r, key.lod(), key.x(), key.y())?)?);
+                    }
+                }
+                heights.finish(metadata, below, spool)?;
+            }
+            LayerKind::Texture => {
+                let format = match layer.format {
+                    TileFormat::Png => TextureFormat::Png,
+                    TileFormat::Webp => TextureFormat::Webp,
+                    // Lossy tiles are not decoded back: stale tiles stay as they are.
+                    _ if conflicts.is_empty() => continue,
+                    other => {
+                        tracing::warn!(
+                            "layer {:?}: {other:?} tiles are lossy; the tiles around and above replaced ones are kept, not remade",
+                            layer.name
+                        );
+                        continue;
+                    }
+                };
+                let decode = |lod: u8, x: u32, y: u32| -> Result<Option<Vec<[u8; 4]>>> {
+                    let key = TileKey::new(index, lod, x, y)?;
+                    payload(metadata, readers, winners, key)?
+                        .map(|bytes| decode_texture(key, &bytes, edge, format))
+                        .transpose()
+                };
+                let encode = move |key: TileKey, pixels: &[[u8; 4]]| -> Result<Vec<(TileKey, Vec<u8>)>> {
+                    Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
+                };
+                let tiles =
+                    Tiles { source: &source, conflicts: &conflicts, decode: &decode, encode: &encode, quantize: None };
+                rederive(&grid, &tiles, &mut remade)?;
+            }
+            _ => continue,
+        }
+        for (key, bytes) in remade.entries {
+            spool.add(metadata, key, &bytes)?;
+        }
+        for key in remade.emptied {
+            emptied.push(Writer::order_key(metadata, key)?);
+        }
+    }
+    Ok(emptied)
 }
 
 /// Makes every layer's levels above its split LOD from the LOD-K tiles (see the module).

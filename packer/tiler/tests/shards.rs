@@ -143,8 +143,116 @@ fn a_merge_refuses_missing_or_repeated_shards_and_other_grids() {
     let err = merge(&[whole.clone(), other], &out, &Silent::default()).unwrap_err().to_string();
     assert!(err.contains("other.tspack") && err.contains("layer \"elevation\"") && err.contains("5 there"), "{err}");
     assert!(!out.exists(), "nothing written");
-    // The same archive twice: every tile replaced by the same bytes.
+    // The same archive twice: the same bytes replace nothing, nothing is remade.
     let summary = merge(&[whole.clone(), whole.clone()], &out, &Silent::default()).unwrap();
-    assert_eq!(summary.replaced, summary.copied);
+    assert_eq!((summary.replaced, summary.made), (0, 0));
     assert_eq!(tiles(&out), tiles(&whole));
+}
+
+/// Elevation tiles (x 4..8, y 3..6 of 16-sample tiles) and texture tiles (x 8..16, y 6..12)
+/// where the second terrain differs: the same surface, shifted.
+const DEM_RECT: (std::ops::Range<u32>, std::ops::Range<u32>) = (4..8, 3..6);
+const IMAGE_RECT: (std::ops::Range<u32>, std::ops::Range<u32>) = (8..16, 6..12);
+
+fn inside(rect: &(std::ops::Range<u32>, std::ops::Range<u32>), x: u32, y: u32) -> bool {
+    rect.0.contains(&(x / 16)) && rect.1.contains(&(y / 16))
+}
+
+/// `dem()` with the samples in `DEM_RECT` taken 7 right and 3 down (values found elsewhere
+/// in it: the height range, so the height encoding, stays the same).
+fn changed_dem() -> Raster {
+    let mut d = dem();
+    let w = d.width as usize;
+    let original = d.data.clone();
+    for y in 0..d.height {
+        for x in 0..d.width {
+            if inside(&DEM_RECT, x, y) {
+                d.data[y as usize * w + x as usize] = original[(y as usize + 3) * w + x as usize + 7];
+            }
+        }
+    }
+    d
+}
+
+fn changed_image() -> Image {
+    let mut i = image();
+    let w = i.width as usize;
+    let original = i.rgba.clone();
+    for y in 0..i.height {
+        for x in 0..i.width {
+            if inside(&IMAGE_RECT, x, y) {
+                let (to, from) = ((y as usize * w + x as usize) * 4, ((y as usize + 5) * w + x as usize + 11) * 4);
+                i.rgba[to..to + 4].copy_from_slice(&original[from..from + 4]);
+            }
+        }
+    }
+    i
+}
+
+#[test]
+fn merging_a_region_remakes_the_tiles_around_and_above_it_as_one_run_would() {
+    let dir = tempfile::tempdir().unwrap();
+    let silent = Silent::default();
+    let base = dir.path().join("base.tspack");
+    tile_terrain(Some(&dem()), Some(texture(&image())), "t", &base, OPTIONS, &silent).unwrap();
+    // The region: the tiles of a run over the changed terrain that lie inside the changed
+    // rectangles, every LOD (a region's own pyramid), written as an archive of the grid.
+    let (changed_dem, changed_image) = (changed_dem(), changed_image());
+    let full = dir.path().join("changed.tspack");
+    tile_terrain(Some(&changed_dem), Some(texture(&changed_image)), "t", &full, OPTIONS, &silent).unwrap();
+    let reader = Reader::open_mmap(&full).unwrap();
+    let metadata = reader.metadata().clone();
+    let region = dir.path().join("region.tspack");
+    let mut writer =
+        terrastream_pack::Writer::create(&region, metadata.clone(), terrastream_pack::WriterOptions::default())
+            .unwrap();
+    let mut kept = 0;
+    let mut in_order: Vec<_> = tiles(&full).into_iter().collect();
+    in_order.sort_by_key(|(k, _)| terrastream_pack::Writer::order_key(&metadata, *k).unwrap());
+    for (key, bytes) in in_order {
+        let kind = metadata.layers[usize::from(key.layer())].kind;
+        let rect = if kind == terrastream_format::LayerKind::Texture { &IMAGE_RECT } else { &DEM_RECT };
+        let span = 1u32 << key.lod();
+        let (x0, y0) = (key.x() * span, key.y() * span);
+        if rect.0.contains(&x0)
+            && rect.0.contains(&(x0 + span - 1))
+            && rect.1.contains(&y0)
+            && rect.1.contains(&(y0 + span - 1))
+        {
+            writer.add_stored(key, bytes).unwrap();
+            kept += 1;
+        }
+    }
+    writer.finish().unwrap();
+    assert!(kept > 20, "{kept} tiles in the region");
+
+    let merged = dir.path().join("merged.tspack");
+    let summary = merge(&[base.clone(), region], &merged, &silent).unwrap();
+    // Every region tile replaces the base's, but for those with the same bytes.
+    assert!(summary.replaced <= kept && summary.replaced > kept * 9 / 10, "{} of {kept} replaced", summary.replaced);
+    assert!(summary.made > summary.replaced, "the ring around the region and the levels above are remade");
+
+    // One run over the combined terrain: the changed rectangles from the second.
+    let (mut combined_dem, mut combined_image) = (dem(), image());
+    for (i, v) in changed_dem.data.iter().enumerate() {
+        let (x, y) = ((i % changed_dem.width as usize) as u32, (i / changed_dem.width as usize) as u32);
+        if inside(&DEM_RECT, x, y) {
+            combined_dem.data[i] = *v;
+        }
+    }
+    for (i, p) in changed_image.rgba.chunks_exact(4).enumerate() {
+        let (x, y) = ((i % changed_image.width as usize) as u32, (i / changed_image.width as usize) as u32);
+        if inside(&IMAGE_RECT, x, y) {
+            combined_image.rgba[i * 4..i * 4 + 4].copy_from_slice(p);
+        }
+    }
+    let expected_path = dir.path().join("combined.tspack");
+    tile_terrain(Some(&combined_dem), Some(texture(&combined_image)), "t", &expected_path, OPTIONS, &silent).unwrap();
+    let (expected, got) = (tiles(&expected_path), tiles(&merged));
+    assert_ne!(expected, tiles(&base), "the change shows");
+    let missing: Vec<_> = expected.keys().filter(|k| !got.contains_key(k)).take(5).collect();
+    let extra: Vec<_> = got.keys().filter(|k| !expected.contains_key(k)).take(5).collect();
+    assert!(missing.is_empty() && extra.is_empty(), "missing {missing:?}, extra {extra:?}");
+    let differ: Vec<_> = expected.iter().filter(|(k, v)| got[k] != **v).map(|(k, _)| *k).take(8).collect();
+    assert!(differ.is_empty(), "tiles differ from one run over the combined terrain: {differ:?}");
 }
