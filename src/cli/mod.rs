@@ -120,6 +120,26 @@ enum Command {
         /// Output archive (written to a temporary name, then renamed).
         #[arg(short, long)]
         output: PathBuf,
+        /// Tiles several archives hold: `last` (a later archive's tile replaces the
+        /// tile), or `pixels` (a later archive's samples with data replace, its nodata
+        /// and transparent samples keep the earlier ones).
+        #[arg(long, value_enum, default_value_t = PreferArg::Last)]
+        prefer: PreferArg,
+    },
+    /// Tile new rasters over the part of an archive they cover, keeping the rest: the
+    /// archive's grid, CRS and height encoding; tiles around and above are made again.
+    Update {
+        /// The archive to update (a projected CRS: tiled from a mosaic or with --crs).
+        base: PathBuf,
+        /// New elevation rasters (files, folders, patterns; any CRS).
+        #[arg(long, num_args = 1..)]
+        elevation: Vec<PathBuf>,
+        /// New imagery (GeoTIFFs; any CRS).
+        #[arg(long, num_args = 1..)]
+        texture: Vec<PathBuf>,
+        /// Output archive (may not be the base).
+        #[arg(short, long)]
+        output: PathBuf,
     },
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
@@ -166,6 +186,14 @@ fn write_player(output: &std::path::Path) -> Result<ExitCode> {
     }
     println!("open <host>/player.html?archive=<URL of a .tspack> (CORS needed when the archive is on another host)");
     Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum PreferArg {
+    /// A later archive's tile replaces the tile.
+    Last,
+    /// A later archive's samples with data replace, per sample (LOD 0).
+    Pixels,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -261,9 +289,37 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Command::Merge { inputs, output } => {
+        Command::Update { base, elevation, texture, output } => {
+            anyhow::ensure!(
+                !elevation.is_empty() || !texture.is_empty(),
+                "nothing to update: give --elevation or --texture"
+            );
+            anyhow::ensure!(
+                std::fs::canonicalize(&base).ok() != std::fs::canonicalize(&output).ok(),
+                "{}: the output may not be the base (write a new archive, then replace)",
+                output.display()
+            );
+            let elevation = terrastream_tiler::expand_inputs(&elevation)?;
+            let texture = terrastream_tiler::expand_inputs(&texture)?;
+            let summary = terrastream_tiler::update(&base, &elevation, &texture, &output, &progress)?;
+            progress.finish();
+            println!(
+                "{}: {} tiles from the new rasters, {} base tiles replaced, {} made again around and above them, {} bytes",
+                output.display(),
+                summary.tiled,
+                summary.merge.replaced,
+                summary.merge.made,
+                summary.merge.write.file_len
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Merge { inputs, output, prefer } => {
             let inputs = archives_in(&inputs)?;
-            let summary = terrastream_tiler::merge(&inputs, &output, &progress)?;
+            let prefer = match prefer {
+                PreferArg::Last => terrastream_tiler::Prefer::Last,
+                PreferArg::Pixels => terrastream_tiler::Prefer::Pixels,
+            };
+            let summary = terrastream_tiler::merge_with(&inputs, &output, prefer, &progress)?;
             progress.finish();
             println!(
                 "{}: {} tiles copied from {} archives ({} replaced by a later one), {} made, {} bytes",

@@ -29,10 +29,11 @@ pub mod raster;
 mod rederive;
 mod shard;
 mod tile;
+mod update;
 
 pub use crs::{Crs, Transform};
 pub use error::{Error, Result};
-pub use merge::{MergeSummary, merge};
+pub use merge::{MergeSummary, Prefer, merge, merge_with};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
@@ -41,6 +42,7 @@ pub use raster::{
     read_image, read_vrt,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
+pub use update::{UpdateSummary, update};
 
 #[cfg(test)]
 mod tests;

@@ -15,7 +15,7 @@
 //! builds each level from the level below *as stored*, the result is, byte for byte, the
 //! archive one run makes.
 
-use std::collections::{BTreeMap, HashSet};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
@@ -29,7 +29,7 @@ use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_hei
 use crate::error::{Error, Result};
 use crate::options::TextureFormat;
 use crate::pyramid::{Pixel, SortedSpool, Spool, Window};
-use crate::rederive::{Grid, Remade, Tiles, rederive};
+use crate::rederive::{Grid, Remade, Tiles, Versions, rederive};
 use crate::tile::{HeightEncoder, ZSTD_LEVEL, run_pyramid};
 
 /// What [`merge`] did.
@@ -48,6 +48,21 @@ pub struct MergeSummary {
 /// Where a winning tile's bytes are: the input, the blob's absolute offset and length.
 type Found = (usize, u64, u32);
 
+/// Tiles several inputs hold with different bytes: every version, in input order.
+type Conflicts = HashMap<u64, Vec<Found>>;
+
+/// How tiles that several inputs hold are merged.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Prefer {
+    /// A later input's tile replaces an earlier one's.
+    #[default]
+    Last,
+    /// Per sample, at LOD 0: a later input's samples with data replace an earlier one's;
+    /// its nodata (transparent) samples keep them. What an update of a region with rasters
+    /// that do not fill their tiles needs.
+    Pixels,
+}
+
 /// Merges `inputs` into `out` (see the module's documentation).
 ///
 /// # Errors
@@ -55,6 +70,14 @@ type Found = (usize, u64, u32);
 /// (what differs), or an incomplete set of shards; writer and I/O errors; an interrupted
 /// error (Ctrl-C), with nothing written.
 pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<MergeSummary> {
+    merge_with(inputs, out, Prefer::Last, progress)
+}
+
+/// [`merge`], tiles several inputs hold merged as `prefer` says.
+///
+/// # Errors
+/// As [`merge`].
+pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn Progress) -> Result<MergeSummary> {
     let Some(first) = inputs.first() else {
         return Err(Error::NothingToTile);
     };
@@ -82,7 +105,7 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
     if let Some(split_lods) = &shards {
         reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
     } else {
-        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, &mut spool)? {
+        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
             winners.remove(&order);
         }
     }
@@ -157,10 +180,10 @@ fn shard_set(inputs: &[PathBuf], readers: &[Reader<MmapSource>]) -> Result<Optio
 
 /// Every tile of every input, by archive key; a later input's replaces an earlier one's.
 /// Also the keys of the tiles more than one input holds.
-fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(BTreeMap<u64, Found>, HashSet<u64>)> {
+fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(BTreeMap<u64, Found>, Conflicts)> {
     let step = terrastream_format::MAX_LAYERS as u64;
     let mut winners = BTreeMap::new();
-    let mut replaced = HashSet::new();
+    let mut replaced: Conflicts = HashMap::new();
     progress.start("index", readers.iter().map(|r| r.header().addressed_tiles).sum());
     for (i, reader) in readers.iter().enumerate() {
         let data = reader.header().data.offset;
@@ -168,11 +191,12 @@ fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(B
             progress.check()?;
             for k in 0..u64::from(e.run_length) {
                 let order = e.key + k * step;
-                if let Some(before) = winners.insert(order, (i, data + e.offset, e.length)) {
+                let found = (i, data + e.offset, e.length);
+                if let Some(before) = winners.insert(order, found) {
                     // The same bytes again (an archive merged with itself, a shared tile)
                     // replace nothing.
-                    if !same_bytes(readers, order, before, (i, data + e.offset, e.length))? {
-                        replaced.insert(order);
+                    if !same_bytes(readers, order, before, found)? {
+                        replaced.entry(order).or_insert_with(|| vec![before]).push(found);
                     }
                 }
             }
@@ -257,13 +281,29 @@ fn rederive_layers(
     metadata: &Metadata,
     readers: &[Reader<MmapSource>],
     winners: &BTreeMap<u64, Found>,
-    conflicts: &HashSet<u64>,
+    conflicts: &Conflicts,
+    prefer: Prefer,
     spool: &mut Spool,
 ) -> Result<Vec<u64>> {
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
     let archive = readers[0].archive();
     let keys: Vec<TileKey> =
-        conflicts.iter().map(|&k| archive.tile_of(k)).collect::<terrastream_format::Result<_>>()?;
+        conflicts.keys().map(|&k| archive.tile_of(k)).collect::<terrastream_format::Result<_>>()?;
+    // Every version of an LOD-0 tile several inputs hold, as stored (compression undone).
+    let versions_of = |key: TileKey| -> Result<Vec<Vec<u8>>> {
+        let layer = &metadata.layers[usize::from(key.layer())];
+        let mut out = Vec::new();
+        for &(input, offset, length) in conflicts.get(&Writer::order_key(metadata, key)?).into_iter().flatten() {
+            let stored = readers[input].read(&TileLocation { key, offset, length })?;
+            out.push(match layer.compression {
+                PayloadCompression::None => stored.to_vec(),
+                PayloadCompression::Zstd => {
+                    zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {key}"))?
+                }
+            });
+        }
+        Ok(out)
+    };
     let mut emptied = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {
         let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
@@ -293,12 +333,19 @@ fn rederive_layers(
                 };
                 let encode = |key: TileKey, samples: &[f32]| heights.encode(key, samples);
                 let quantize = |row: &mut [f32]| quantize_heights(row, &encoding);
+                let versions = |x: u32, y: u32| -> Result<Vec<Vec<f32>>> {
+                    Ok(versions_of(TileKey::new(index, 0, x, y)?)?
+                        .iter()
+                        .map(|raw| decode_heights(raw, &encoding))
+                        .collect())
+                };
                 let tiles = Tiles {
                     source: &source,
                     conflicts: &conflicts,
                     decode: &decode,
                     encode: &encode,
                     quantize: Some(&quantize),
+                    versions: (prefer == Prefer::Pixels).then_some(&versions as &Versions<'_, f32>),
                 };
                 rederive(&grid, &tiles, &mut remade)?;
                 // Ranges of the remade tiles' children that were not remade widen theirs.
@@ -357,8 +404,18 @@ fn rederive_layers(
                 let encode = move |key: TileKey, pixels: &[[u8; 4]]| -> Result<Vec<(TileKey, Vec<u8>)>> {
                     Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
                 };
-                let tiles =
-                    Tiles { source: &source, conflicts: &conflicts, decode: &decode, encode: &encode, quantize: None };
+                let versions = |x: u32, y: u32| -> Result<Vec<Vec<[u8; 4]>>> {
+                    let key = TileKey::new(index, 0, x, y)?;
+                    versions_of(key)?.iter().map(|bytes| decode_texture(key, bytes, edge, format)).collect()
+                };
+                let tiles = Tiles {
+                    source: &source,
+                    conflicts: &conflicts,
+                    decode: &decode,
+                    encode: &encode,
+                    quantize: None,
+                    versions: (prefer == Prefer::Pixels).then_some(&versions as &Versions<'_, [u8; 4]>),
+                };
                 rederive(&grid, &tiles, &mut remade)?;
             }
             _ => continue,

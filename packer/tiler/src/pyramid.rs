@@ -264,6 +264,11 @@ pub struct Window {
 }
 
 impl Window {
+    /// Nothing: no rows read, no tiles cut.
+    pub fn empty() -> Self {
+        Self { input_lod: 0, last_lod: 0, encode_from: 0, rows: 0..0, band: 0..0 }
+    }
+
     /// Every level of a layer of `num_lods` levels over `height` rows of LOD 0.
     pub fn full(num_lods: u8, height: usize) -> Self {
         Self { input_lod: 0, last_lod: num_lods.saturating_sub(1), encode_from: 0, rows: 0..height, band: 0..height }

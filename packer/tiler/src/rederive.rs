@@ -60,7 +60,13 @@ pub(crate) struct Tiles<'a, S> {
     /// Encodes a remade tile into its entries.
     pub(crate) encode: &'a EncodeTile<'a, S>,
     pub(crate) quantize: Option<&'a Quantize<'a, S>>,
+    /// `--prefer pixels`: every input's version of an LOD-0 tile two inputs hold, in input
+    /// order; the tile becomes their composite (a later one's samples with data win).
+    pub(crate) versions: Option<&'a Versions<'a, S>>,
 }
+
+/// Every input's version of LOD-0 tile (x, y), decoded, in input order.
+pub(crate) type Versions<'a, S> = dyn Fn(u32, u32) -> Result<Vec<Vec<S>>> + Sync + 'a;
 
 /// What was remade: the entries of remade tiles, and the keys of tiles that hold no data
 /// once remade (to be left out).
@@ -77,6 +83,26 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
     // or stored ones (decoded on demand, cached while a level is made).
     let mut made_below: HashMap<(u32, u32), Option<Vec<S>>> = HashMap::new();
     let mut dirty_below: HashSet<(u32, u32)> = HashSet::new();
+    // Composites of the LOD-0 tiles several inputs hold, when pixels are preferred.
+    let mut composite: HashMap<(u32, u32), Option<Vec<S>>> = HashMap::new();
+    if let Some(versions) = tiles.versions {
+        for &(_, x, y) in tiles.conflicts.iter().filter(|(l, ..)| *l == 0) {
+            let mut out: Option<Vec<S>> = None;
+            for version in versions(x, y)? {
+                match &mut out {
+                    None => out = Some(version),
+                    Some(o) => {
+                        for (a, b) in o.iter_mut().zip(&version) {
+                            if b.has_data() {
+                                *a = *b;
+                            }
+                        }
+                    }
+                }
+            }
+            composite.insert((x, y), out);
+        }
+    }
     for lod in 0..grid.lods {
         let (cols, rows) = grid.tiles_at(lod);
         let mut dirty: HashSet<(u32, u32)> =
@@ -101,7 +127,10 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
         for &(x, y) in &order {
             let samples = if lod == 0 {
                 // The interior as stored, the borders from the neighbours' interiors.
-                window(grid, 0, (x, y), 1, &mut |tx, ty| stored(tiles, &mut cache, 0, tx, ty))?
+                window(grid, 0, (x, y), 1, &mut |tx, ty| match composite.get(&(tx, ty)) {
+                    Some(c) => Ok(c.clone()),
+                    None => stored(tiles, &mut cache, 0, tx, ty),
+                })?
             } else {
                 let below = lod - 1;
                 let wide = window(grid, below, (x, y), 2, &mut |tx, ty| match made_below.get(&(tx, ty)) {

@@ -9,7 +9,7 @@ use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress};
 use crate::encode::{encode_heights, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
 use crate::options::{ShardSpec, TextureInput, TileOptions};
-use crate::plan::plan;
+use crate::plan::{Plan, plan};
 use crate::pyramid::{self, Encode, Pixel, Pyramid, Quantize, Resample, Spool, Window};
 use crate::raster::ElevationSource;
 use crate::shard;
@@ -91,6 +91,20 @@ pub fn tile_shard(
             .map(|(l, p)| Window::full(l.num_lods, p.size.1 as usize))
             .collect(),
     };
+    tile_planned(elevation, texture, &plan, &windows, out, progress, started)
+}
+
+/// Runs `plan` over the sources, each layer's pyramid limited to its window (in layer
+/// order), into the archive at `out`.
+pub(crate) fn tile_planned(
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<TextureInput<'_>>,
+    plan: &Plan,
+    windows: &[Window],
+    out: &Path,
+    progress: &dyn Progress,
+    started: std::time::Instant,
+) -> Result<WriteSummary> {
     let metadata = &plan.metadata;
     let folder = terrastream_pack::output_folder(out);
     let mut spool = Spool::new(&folder)?;
