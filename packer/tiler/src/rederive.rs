@@ -14,6 +14,9 @@
 //! raster; and the work follows the changed area, not the archive.
 
 use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+
+use rayon::prelude::*;
 
 use terrastream_format::TileKey;
 
@@ -52,7 +55,7 @@ pub(crate) type EncodeTile<'a, S> = dyn Fn(TileKey, &[S]) -> Result<Vec<(TileKey
 /// What the merge knows of one layer's tiles.
 pub(crate) struct Tiles<'a, S> {
     /// The input each tile comes from (after `prefer last`), by (lod, x, y).
-    pub(crate) source: &'a dyn Fn(u8, u32, u32) -> Option<usize>,
+    pub(crate) source: &'a (dyn Fn(u8, u32, u32) -> Option<usize> + Sync),
     /// Tiles two or more inputs hold.
     pub(crate) conflicts: &'a HashSet<(u8, u32, u32)>,
     /// The stored tile (lod, x, y), decoded (`edge` x `edge` samples).
@@ -76,32 +79,44 @@ pub(crate) struct Remade {
     pub(crate) emptied: Vec<TileKey>,
 }
 
-/// Remakes the stale tiles of one layer (see the module's documentation).
+/// A level's tile samples by position: None where the tile holds no data.
+type Level<S> = HashMap<(u32, u32), Option<Arc<Vec<S>>>>;
+
+/// One entry of a [`Level`].
+type Placed<S> = ((u32, u32), Option<Arc<Vec<S>>>);
+
+/// Remakes the stale tiles of one layer (see the module's documentation). Each level's
+/// tiles are made in parallel, from the level below decoded in parallel first.
 pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut Remade) -> Result<()> {
     let (res, border, edge) = (grid.res, grid.border, grid.edge());
-    // Samples of the level below as they end up: remade tiles (kept for the next level)
-    // or stored ones (decoded on demand, cached while a level is made).
-    let mut made_below: HashMap<(u32, u32), Option<Vec<S>>> = HashMap::new();
+    // The level below as it ends up: its remade tiles (the stored ones are decoded as
+    // each level needs them).
+    let mut made_below: Level<S> = HashMap::new();
     let mut dirty_below: HashSet<(u32, u32)> = HashSet::new();
     // Composites of the LOD-0 tiles several inputs hold, when pixels are preferred.
-    let mut composite: HashMap<(u32, u32), Option<Vec<S>>> = HashMap::new();
     if let Some(versions) = tiles.versions {
-        for &(_, x, y) in tiles.conflicts.iter().filter(|(l, ..)| *l == 0) {
-            let mut out: Option<Vec<S>> = None;
-            for version in versions(x, y)? {
-                match &mut out {
-                    None => out = Some(version),
-                    Some(o) => {
-                        for (a, b) in o.iter_mut().zip(&version) {
-                            if b.has_data() {
-                                *a = *b;
+        let conflicts: Vec<(u32, u32)> =
+            tiles.conflicts.iter().filter(|(l, ..)| *l == 0).map(|&(_, x, y)| (x, y)).collect();
+        let composites = conflicts
+            .par_iter()
+            .map(|&(x, y)| -> Result<Placed<S>> {
+                let mut out: Option<Vec<S>> = None;
+                for version in versions(x, y)? {
+                    match &mut out {
+                        None => out = Some(version),
+                        Some(o) => {
+                            for (a, b) in o.iter_mut().zip(&version) {
+                                if b.has_data() {
+                                    *a = *b;
+                                }
                             }
                         }
                     }
                 }
-            }
-            composite.insert((x, y), out);
-        }
+                Ok(((x, y), out.map(Arc::new)))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        made_below = composites.into_iter().collect();
     }
     for lod in 0..grid.lods {
         let (cols, rows) = grid.tiles_at(lod);
@@ -120,51 +135,82 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
                 }
             }
         }
-        let mut cache: HashMap<(u32, u32), Option<Vec<S>>> = HashMap::new();
-        let mut made_here: HashMap<(u32, u32), Option<Vec<S>>> = HashMap::new();
+        // LOD 0 is cut from its own tiles (the composites standing in for theirs); the
+        // others are averaged from the level below.
+        let (from, scale) = if lod == 0 { (0, 1) } else { (lod - 1, 2) };
+        let needed: HashSet<(u32, u32)> = dirty
+            .iter()
+            .flat_map(|&t| window_tiles(grid, from, t, scale))
+            .filter(|t| !made_below.contains_key(t))
+            .collect();
+        let stored = needed
+            .into_par_iter()
+            .map(|(x, y)| -> Result<Placed<S>> {
+                let samples = match (tiles.source)(from, x, y) {
+                    Some(_) => (tiles.decode)(from, x, y)?.map(Arc::new),
+                    None => None,
+                };
+                Ok(((x, y), samples))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let mut below = std::mem::take(&mut made_below);
+        below.extend(stored);
+        let lookup = |x: u32, y: u32| below.get(&(x, y)).and_then(|t| t.as_ref()).map(|t| t.as_slice());
         let mut order: Vec<(u32, u32)> = dirty.iter().copied().collect();
         order.sort_unstable_by_key(|&(x, y)| (y, x));
-        for &(x, y) in &order {
-            let samples = if lod == 0 {
-                // The interior as stored, the borders from the neighbours' interiors.
-                window(grid, 0, (x, y), 1, &mut |tx, ty| match composite.get(&(tx, ty)) {
-                    Some(c) => Ok(c.clone()),
-                    None => stored(tiles, &mut cache, 0, tx, ty),
-                })?
-            } else {
-                let below = lod - 1;
-                let wide = window(grid, below, (x, y), 2, &mut |tx, ty| match made_below.get(&(tx, ty)) {
-                    Some(made) => Ok(made.clone()),
-                    None => stored(tiles, &mut cache, below, tx, ty),
-                })?;
-                let side = 2 * edge;
-                let mut out = Vec::with_capacity(edge * edge);
-                for pair in wide.chunks_exact(2 * side) {
-                    let mut row = halve_rows(&pair[..side], &pair[side..]);
-                    if let Some(q) = tiles.quantize {
-                        q(&mut row);
+        type Made<S> = ((u32, u32), Option<Arc<Vec<S>>>, Vec<(TileKey, Vec<u8>)>);
+        let made = order
+            .par_iter()
+            .map(|&(x, y)| -> Result<Made<S>> {
+                let samples = if lod == 0 {
+                    // The interior as stored, the borders from the neighbours' interiors.
+                    window(grid, 0, (x, y), 1, &lookup)
+                } else {
+                    let wide = window(grid, from, (x, y), 2, &lookup);
+                    let side = 2 * edge;
+                    let mut out = Vec::with_capacity(edge * edge);
+                    for pair in wide.chunks_exact(2 * side) {
+                        let mut row = halve_rows(&pair[..side], &pair[side..]);
+                        if let Some(q) = tiles.quantize {
+                            q(&mut row);
+                        }
+                        out.extend_from_slice(&row);
                     }
-                    out.extend_from_slice(&row);
+                    out
+                };
+                let key = TileKey::new(grid.layer, lod, x, y)?;
+                let has_data = (border..border + res)
+                    .any(|j| samples[j * edge + border..j * edge + border + res].iter().any(S::has_data));
+                if has_data {
+                    let entries = (tiles.encode)(key, &samples)?;
+                    Ok(((x, y), Some(Arc::new(samples)), entries))
+                } else {
+                    Ok(((x, y), None, Vec::new()))
                 }
-                out
-            };
-            let key = TileKey::new(grid.layer, lod, x, y)?;
-            let has_data = (border..border + res)
-                .any(|j| samples[j * edge + border..j * edge + border + res].iter().any(S::has_data));
-            if has_data {
-                remade.entries.extend((tiles.encode)(key, &samples)?);
-                made_here.insert((x, y), Some(samples));
-            } else {
-                if (tiles.source)(lod, x, y).is_some() {
-                    remade.emptied.push(key);
-                }
-                made_here.insert((x, y), None);
+            })
+            .collect::<Result<Vec<_>>>()?;
+        for ((x, y), samples, entries) in made {
+            if samples.is_none() && (tiles.source)(lod, x, y).is_some() {
+                remade.emptied.push(TileKey::new(grid.layer, lod, x, y)?);
             }
+            remade.entries.extend(entries);
+            made_below.insert((x, y), samples);
         }
-        made_below = made_here;
         dirty_below = dirty;
     }
     Ok(())
+}
+
+/// The tiles of level `lod` that [`window`] reads for tile `(x, y)` of the level `scale`
+/// times coarser.
+#[expect(clippy::cast_possible_wrap, clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "tile indices")]
+fn window_tiles(grid: &Grid, lod: u8, (x, y): (u32, u32), scale: i64) -> Vec<(u32, u32)> {
+    let (res, b) = (grid.res as i64, grid.border as i64);
+    let side = scale * grid.edge() as i64;
+    let (w, h) = grid.samples_at(lod);
+    let (x0, y0) = (scale * (i64::from(x) * res - b), scale * (i64::from(y) * res - b));
+    let range = |from: i64, limit: i64| (from.max(0) / res)..=((from + side - 1).min(limit - 1).max(0) / res);
+    range(y0, h).flat_map(|ty| range(x0, w).map(move |tx| (tx as u32, ty as u32))).collect()
 }
 
 /// Does tile `x`'s window (its samples and borders, at the level below: `2 * (x * res -
@@ -194,25 +240,6 @@ fn mixed_neighbourhoods<S>(tiles: &Tiles<'_, S>, cols: u32, rows: u32) -> Vec<(u
     out
 }
 
-/// A stored tile's samples, decoded once per level.
-fn stored<S: Pixel>(
-    tiles: &Tiles<'_, S>,
-    cache: &mut HashMap<(u32, u32), Option<Vec<S>>>,
-    lod: u8,
-    x: u32,
-    y: u32,
-) -> Result<Option<Vec<S>>> {
-    if let Some(hit) = cache.get(&(x, y)) {
-        return Ok(hit.clone());
-    }
-    let samples = match (tiles.source)(lod, x, y) {
-        Some(_) => (tiles.decode)(lod, x, y)?,
-        None => None,
-    };
-    cache.insert((x, y), samples.clone());
-    Ok(samples)
-}
-
 /// The samples of level `lod` under tile (x, y) of the level `scale` times coarser, with
 /// borders: `scale * edge` x `scale * edge`, starting at `scale * (x * res - border)`;
 /// no data outside the level. `tile(tx, ty)` gives a level tile's stored samples (with
@@ -223,13 +250,13 @@ fn stored<S: Pixel>(
     clippy::cast_sign_loss,
     reason = "sample indices of one tile's window: small, and >= 0 where cast to usize"
 )]
-fn window<S: Pixel>(
+fn window<'t, S: Pixel>(
     grid: &Grid,
     lod: u8,
     (x, y): (u32, u32),
     scale: i64,
-    tile: &mut dyn FnMut(u32, u32) -> Result<Option<Vec<S>>>,
-) -> Result<Vec<S>> {
+    tile: &(dyn Fn(u32, u32) -> Option<&'t [S]> + Sync),
+) -> Vec<S> {
     let (res, b, edge) = (grid.res as i64, grid.border as i64, grid.edge());
     let side = scale as usize * edge;
     let (w, h) = grid.samples_at(lod);
@@ -243,7 +270,7 @@ fn window<S: Pixel>(
     for ty in tile_range(y0, side as i64, h) {
         for tx in tile_range(x0, side as i64, w) {
             let (Ok(ux), Ok(uy)) = (u32::try_from(tx), u32::try_from(ty)) else { continue };
-            let Some(samples) = tile(ux, uy)? else { continue };
+            let Some(samples) = tile(ux, uy) else { continue };
             // The tile's interior, clipped to the window and the level.
             for j in 0..res {
                 let gy = ty * res + j;
@@ -263,5 +290,5 @@ fn window<S: Pixel>(
             }
         }
     }
-    Ok(out)
+    out
 }
