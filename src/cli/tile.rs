@@ -7,9 +7,9 @@ use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme};
 use terrastream_tiler::{
-    Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, Mosaic, MosaicOptions, Pixels,
-    ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image, plan,
-    tile_shard,
+    Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
+    Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image,
+    plan, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -93,6 +93,18 @@ pub struct TileArgs {
     /// The last LOD shards make (default: the coarsest with two rows of tiles a shard).
     #[arg(long, requires = "shard")]
     split_lod: Option<u8>,
+    /// The elevation's lowest and highest height (`-12.5,4810`), instead of a pass over
+    /// it: what lets the shards of one run skip that pass (`--dry-run` prints the range).
+    /// A height outside it stops the run, naming the file.
+    #[arg(long, value_parser = parse_range, allow_hyphen_values = true)]
+    height_range: Option<(f32, f32)>,
+}
+
+fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
+    let bad = || format!("{s:?}: expected MIN,MAX in metres (-12.5,4810)");
+    let (a, b) = s.split_once(',').ok_or_else(bad)?;
+    let (a, b) = (a.trim().parse::<f32>().map_err(|_| bad())?, b.trim().parse::<f32>().map_err(|_| bad())?);
+    if a.is_finite() && b.is_finite() && a <= b { Ok((a, b)) } else { Err(bad()) }
 }
 
 fn parse_shard(s: &str) -> std::result::Result<(u32, u32), String> {
@@ -205,6 +217,14 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         (None, Some(f)) => Some(f),
         (None, None) => None,
     };
+    let known = match (elevation, args.height_range) {
+        (Some(e), Some(range)) => Some(KnownRange::new(e, range)),
+        _ => None,
+    };
+    let elevation: Option<&dyn ElevationSource> = match &known {
+        Some(k) => Some(k),
+        None => elevation,
+    };
     let textures = expand_inputs(&args.texture)?;
     // Several images: one mosaic over the elevation's extent, in its CRS.
     let image_mosaic = if textures.len() > 1 {
@@ -290,7 +310,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
         let t = &plan.metadata.terrain;
         println!(
-            "heights {:.2} .. {:.2}, spacing {:.3} m; at most {} tiles, about {:.1} MiB (typical compression)",
+            "heights {} .. {}, spacing {:.3} m; at most {} tiles, about {:.1} MiB (typical compression)",
             t.min_elevation,
             t.max_elevation,
             t.base_tile_size,

@@ -37,9 +37,9 @@ pub use merge::{MergeSummary, Prefer, merge, merge_with};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
-    ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, Mosaic, MosaicKind,
-    MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, open_elevation, open_image, read_geotiff,
-    read_image, read_vrt,
+    ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic,
+    MosaicKind, MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, open_elevation, open_image,
+    read_geotiff, read_image, read_vrt,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
 pub use update::{UpdateSummary, update};

@@ -118,8 +118,9 @@ pub(crate) fn tile_planned(
         let size = plan.layers[usize::from(index)].size;
         let resample = Resample::new(source.size().0 as usize, size.0 as usize);
         let quantize = |row: &mut [f32]| quantize_heights(row, &heights.encoding);
+        let rows = window_rows(window);
         run_pyramid(metadata, index, size, window, &encode, Some(&quantize), &mut spool, progress, |push| {
-            source.rows(&mut |row| push(resample.row(row)))
+            source.rows_in(rows, &mut |row| push(resample.row(row)))
         })?;
         heights.finish(metadata, Vec::new(), &mut spool)?;
     }
@@ -131,8 +132,9 @@ pub(crate) fn tile_planned(
         let size = plan.layers[usize::from(index)].size;
         let resample = Resample::new(t.source.size().0 as usize, size.0 as usize);
         let window = &windows[usize::from(index)];
+        let rows = window_rows(window);
         run_pyramid(metadata, index, size, window, &encode, None, &mut spool, progress, |push| {
-            t.source.rows(&mut |row| push(resample.row(row)))
+            t.source.rows_in(rows, &mut |row| push(resample.row(row)))
         })?;
     }
     tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "tiles cut and encoded");
@@ -144,6 +146,12 @@ pub(crate) fn tile_planned(
     let summary = writer.finish()?;
     tracing::debug!(elapsed = ?started.elapsed(), "archive written");
     Ok(summary)
+}
+
+/// A window's LOD-0 rows as a source's row range.
+fn window_rows(window: &Window) -> std::ops::Range<u32> {
+    let at = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+    at(window.rows.start)..at(window.rows.end)
 }
 
 /// The tiles' zstd level (elevation, BC blocks): the writer's default.
@@ -237,24 +245,10 @@ pub(crate) fn run_pyramid<S: Pixel>(
         pyramid = pyramid.with_quantize(q);
     }
     let (rows, received) = std::sync::mpsc::sync_channel::<Vec<S>>(pyramid.band_rows());
-    let wanted = window.rows.clone();
     std::thread::scope(|scope| {
         let reader = scope.spawn(move || {
-            // Rows above the window are read and dropped; the read stops after its last.
-            let (mut n, mut ended) = (0usize, false);
-            let read = read(&mut |row| {
-                n += 1;
-                if n <= wanted.start {
-                    return Ok(());
-                }
-                if n > wanted.end {
-                    ended = true;
-                    return Err(crate::error::interrupted());
-                }
-                // A send fails only once the pyramid has stopped, with its own error.
-                rows.send(row).map_err(|_| crate::error::interrupted())
-            });
-            if ended { Ok(()) } else { read }
+            // A send fails only once the pyramid has stopped, with its own error.
+            read(&mut |row| rows.send(row).map_err(|_| crate::error::interrupted()))
         });
         // Rows of tiles are cut on the pool while this thread halves the next rows.
         rayon::in_place_scope(|cuts| {

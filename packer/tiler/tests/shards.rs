@@ -256,3 +256,34 @@ fn merging_a_region_remakes_the_tiles_around_and_above_it_as_one_run_would() {
     let differ: Vec<_> = expected.iter().filter(|(k, v)| got[k] != **v).map(|(k, _)| *k).take(8).collect();
     assert!(differ.is_empty(), "tiles differ from one run over the combined terrain: {differ:?}");
 }
+
+#[test]
+fn shards_given_the_height_range_skip_its_pass_and_check_it() {
+    use terrastream_tiler::{ElevationSource, KnownRange};
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, image) = (dem(), image());
+    let whole = dir.path().join("whole.tspack");
+    tile_terrain(Some(&dem), Some(texture(&image)), "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let range = dem.height_range(&mut |_| Ok(())).unwrap();
+    let known = KnownRange::new(&dem, range);
+    let parts: Vec<PathBuf> = (0..3)
+        .map(|i| {
+            let out = dir.path().join(format!("known-{i}.tspack"));
+            let spec = ShardSpec { index: i, count: 3, split_lod: None };
+            tile_shard(Some(&known), Some(texture(&image)), "t", &out, OPTIONS, Some(spec), &Silent::default())
+                .unwrap();
+            out
+        })
+        .collect();
+    let merged = dir.path().join("merged.tspack");
+    merge(&parts, &merged, &Silent::default()).unwrap();
+    assert_eq!(tiles(&merged), tiles(&whole));
+    // A range that leaves heights out: the shard that meets them stops, naming why.
+    let narrow = KnownRange::new(&dem, (range.0 + 10.0, range.1));
+    let spec = ShardSpec { index: 0, count: 1, split_lod: None };
+    let out = dir.path().join("narrow.tspack");
+    let err =
+        tile_shard(Some(&narrow), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap_err().to_string();
+    assert!(err.contains("outside the given height range"), "{err}");
+    assert!(!out.exists());
+}

@@ -7,7 +7,7 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, Georeference};
 use super::geotiff::{GeoTags, gdal_nodata};
 use super::memory::Raster;
 use super::png::{png_header, png_rows};
-use super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows};
+use super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in};
 use super::{ElevationSource, Sniffed, range_of_rows, sniff};
 use crate::error::{Error, Result};
 
@@ -209,6 +209,14 @@ impl ElevationSource for ElevationFile {
             return self.png_heights(row);
         }
         tiff_rows(&self.path, 1, &|samples: &mut [f32]| self.heights(samples), row)
+    }
+
+    fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        if self.png {
+            return super::rows_window(rows, |r| self.png_heights(r), row);
+        }
+        let wanted = rows.start as usize..rows.end as usize;
+        tiff_rows_in(&self.path, 1, wanted, &|samples: &mut [f32]| self.heights(samples), row)
     }
 
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {

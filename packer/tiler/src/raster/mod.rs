@@ -61,6 +61,14 @@ pub trait ElevationSource: Sync {
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()>;
+    /// Calls `row` with rows `rows` only (a shard's, an update's). Sources that can start
+    /// reading at a row do; by default the rows above are read and dropped.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`].
+    fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        rows_window(rows, |r| self.rows(r), row)
+    }
     /// How many samples of rows `rows` hold data, as far as the source knows without
     /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
@@ -74,6 +82,89 @@ pub trait ElevationSource: Sync {
     /// As [`ElevationSource::rows`]; `progress`'s errors.
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         range_of_rows(progress, |row| self.rows(row))
+    }
+}
+
+/// Rows `rows` of what `read` passes on: those above dropped, the read stopped after the
+/// last.
+pub(crate) fn rows_window<T>(
+    rows: std::ops::Range<u32>,
+    read: impl FnOnce(&mut dyn FnMut(&[T]) -> Result<()>) -> Result<()>,
+    row: &mut dyn FnMut(&[T]) -> Result<()>,
+) -> Result<()> {
+    let (mut n, mut ended) = (0u32, false);
+    let result = read(&mut |r| {
+        n += 1;
+        if n <= rows.start {
+            return Ok(());
+        }
+        if n > rows.end {
+            ended = true;
+            return Err(crate::error::interrupted());
+        }
+        row(r)
+    });
+    if ended { Ok(()) } else { result }
+}
+
+/// Heights `source` reads, its height range given rather than scanned (shards of one run
+/// share it: `tile --shard --height-range`). A row with a height outside it is an error
+/// naming the file, not a silently clamped tile.
+pub struct KnownRange<'a> {
+    source: &'a dyn ElevationSource,
+    range: (f32, f32),
+}
+
+impl<'a> KnownRange<'a> {
+    /// `source` with heights `min..=max`.
+    pub fn new(source: &'a dyn ElevationSource, (min, max): (f32, f32)) -> Self {
+        Self { source, range: (min, max) }
+    }
+
+    fn checked<'r>(&'r self, row: &'r mut dyn FnMut(&[f32]) -> Result<()>) -> impl FnMut(&[f32]) -> Result<()> + 'r {
+        move |r: &[f32]| {
+            let (lo, hi) = crate::plan::min_max(r);
+            if lo < self.range.0 || hi > self.range.1 {
+                return Err(Error::input(
+                    self.source.path(),
+                    format!(
+                        "heights {lo} .. {hi} lie outside the given height range {} .. {}",
+                        self.range.0, self.range.1
+                    ),
+                ));
+            }
+            row(r)
+        }
+    }
+}
+
+impl ElevationSource for KnownRange<'_> {
+    fn path(&self) -> &Path {
+        self.source.path()
+    }
+    fn size(&self) -> (u32, u32) {
+        self.source.size()
+    }
+    fn spacing(&self) -> (f64, f64) {
+        self.source.spacing()
+    }
+    fn georeference(&self) -> Option<&Georeference> {
+        self.source.georeference()
+    }
+    fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+        self.source.crs_pixel_size()
+    }
+    fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        self.source.rows(&mut self.checked(row))
+    }
+    fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        self.source.rows_in(rows, &mut self.checked(row))
+    }
+    fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
+        self.source.data_in_rows(rows)
+    }
+    fn height_range(&self, _: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+        Ok(self.range)
     }
 }
 
@@ -109,6 +200,13 @@ pub trait ImageSource: Sync {
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data; `row`'s errors.
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()>;
+    /// Calls `row` with rows `rows` only; by default the rows above are read and dropped.
+    ///
+    /// # Errors
+    /// As [`ImageSource::rows`].
+    fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        rows_window(rows, |r| self.rows(r), row)
+    }
     /// How many samples of rows `rows` hold data, as far as the source knows without
     /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {

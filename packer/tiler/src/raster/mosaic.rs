@@ -219,11 +219,12 @@ impl<K: MosaicKind> Mosaic<K> {
     }
 
     /// Makes every row, in order, 32 at a time in parallel.
-    fn make_rows(&self, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
+    fn make_rows(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
         let reader = Reader::new(self);
-        let mut j = 0;
-        while j < self.size.1 {
-            let end = (j + ROWS_AT_ONCE).min(self.size.1);
+        let last = rows.end.min(self.size.1);
+        let mut j = rows.start.min(last);
+        while j < last {
+            let end = (j + ROWS_AT_ONCE).min(last);
             let band: Vec<Result<Vec<K::Value>>> = (j..end).into_par_iter().map(|r| self.row(r, &reader)).collect();
             for r in band {
                 row(&r?)?;
@@ -670,7 +671,10 @@ impl ElevationSource for Mosaic<Heights> {
         self.footprint_samples(rows)
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        self.make_rows(row)
+        self.make_rows(0..self.size.1, row)
+    }
+    fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+        self.make_rows(rows, row)
     }
 }
 
@@ -691,6 +695,9 @@ impl ImageSource for Mosaic<Pixels> {
         self.footprint_samples(rows)
     }
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
-        self.make_rows(row)
+        self.make_rows(0..self.size.1, row)
+    }
+    fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        self.make_rows(rows, row)
     }
 }

@@ -187,6 +187,17 @@ pub(super) fn tiff_rows(
     prepare: &(dyn Fn(&mut [f32]) + Sync),
     row: &mut dyn FnMut(&[f32]) -> Result<()>,
 ) -> Result<()> {
+    tiff_rows_in(path, channels, 0..usize::MAX, prepare, row)
+}
+
+/// [`tiff_rows`] for rows `wanted` only: the strips or tiles above are not read.
+pub(super) fn tiff_rows_in(
+    path: &Path,
+    channels: usize,
+    wanted: std::ops::Range<usize>,
+    prepare: &(dyn Fn(&mut [f32]) + Sync),
+    row: &mut dyn FnMut(&[f32]) -> Result<()>,
+) -> Result<()> {
     use rayon::prelude::*;
     use tiff::decoder::ChunkType;
     let bad = |why: String| Error::input(path, why);
@@ -205,25 +216,29 @@ pub(super) fn tiff_rows(
     };
     match kind {
         ChunkType::Strip => {
-            let strips = height.div_ceil(chunk_h);
+            let strips = height.div_ceil(chunk_h).min(wanted.end.div_ceil(chunk_h));
             let batch = chunks.batch();
-            let mut y = 0;
-            for first in (0..strips).step_by(batch) {
+            let start = (wanted.start / chunk_h).min(strips);
+            let mut y = start * chunk_h;
+            for first in (start..strips).step_by(batch) {
                 for (values, _, h) in decode(first..strips.min(first + batch))? {
-                    for r in values.chunks_exact(stride).take(h.min(height - y)) {
-                        row(r)?;
+                    for (k, r) in values.chunks_exact(stride).take(h.min(height - y)).enumerate() {
+                        if wanted.contains(&(y + k)) {
+                            row(r)?;
+                        }
                     }
                     y += h;
                 }
             }
-            if y < height {
+            if y < height.min(wanted.end) {
                 return Err(bad(format!("strips hold {y} of {height} rows")));
             }
         }
         ChunkType::Tile => {
             let across = chunks.across();
             let mut band = vec![0f32; stride * chunk_h];
-            for ty in 0..height.div_ceil(chunk_h) {
+            let tile_rows = height.div_ceil(chunk_h).min(wanted.end.div_ceil(chunk_h));
+            for ty in (wanted.start / chunk_h).min(tile_rows)..tile_rows {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
                 // A tile per thread at a time: the decoded tiles held are as many as threads.
                 let group = rayon::current_num_threads().max(1);
@@ -238,8 +253,10 @@ pub(super) fn tiff_rows(
                         }
                     }
                 }
-                for r in band.chunks_exact(stride).take(rows_here) {
-                    row(r)?;
+                for (k, r) in band.chunks_exact(stride).take(rows_here).enumerate() {
+                    if wanted.contains(&(ty * chunk_h + k)) {
+                        row(r)?;
+                    }
                 }
             }
         }
