@@ -25,9 +25,12 @@ pub struct StreamBench {
     /// Most bytes uploaded per frame.
     #[arg(long, default_value_t = 1 << 20)]
     max_upload_bytes_per_frame: usize,
-    /// Most requests in flight.
-    #[arg(long, default_value_t = 8)]
+    /// Most requests in flight (the adaptive limit stays under it).
+    #[arg(long, default_value_t = StreamOptions::default().max_in_flight)]
     max_in_flight: usize,
+    /// Keep `--max-in-flight` requests in flight instead of adapting the limit to the link.
+    #[arg(long)]
+    fixed_in_flight: bool,
     /// Frames of continuous flight between jumps.
     #[arg(long, default_value_t = 60)]
     flight_frames: usize,
@@ -66,6 +69,8 @@ impl LinkArg {
 
 struct Run {
     name: String,
+    /// From opening the archive to the first view complete (every wanted tile shown).
+    first_frame: Duration,
     time_to_detail: Vec<Duration>,
     uploads_per_frame: Vec<usize>,
     bytes_per_frame: Vec<usize>,
@@ -130,6 +135,7 @@ pub fn run(args: StreamBench) -> Result<()> {
                 coalesce_gap: args.coalesce_gap,
                 max_request_bytes: args.max_request_bytes,
                 max_in_flight: args.max_in_flight,
+                adaptive_in_flight: !args.fixed_in_flight,
                 select: SelectOptions::default(),
                 ..StreamOptions::default()
             };
@@ -141,20 +147,35 @@ pub fn run(args: StreamBench) -> Result<()> {
     }
     println!("archive: {} ({url} on loopback)", path.display());
     println!(
-        "budget: {} tiles / {} bytes per frame; {} requests in flight at most\n",
-        budget.max_tiles, budget.max_bytes, args.max_in_flight
+        "budget: {} tiles / {} bytes per frame; {} requests in flight at most ({})\n",
+        budget.max_tiles,
+        budget.max_bytes,
+        args.max_in_flight,
+        if args.fixed_in_flight { "fixed" } else { "adaptive limit under it" }
     );
     println!(
-        "{:<40} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
-        "run", "ttd med", "ttd max", "req/tile", "tiles", "fetched B", "needed B", "up max", "up p99", "B/frm max"
+        "{:<40} {:>10} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6}",
+        "run",
+        "1st frame",
+        "ttd med",
+        "ttd max",
+        "req/tile",
+        "tiles",
+        "fetched B",
+        "needed B",
+        "up max",
+        "up p99",
+        "B/frm max",
+        "limit"
     );
     for r in &runs {
         let mut ups = r.uploads_per_frame.clone();
         ups.sort_unstable();
         let p99 = ups.get(ups.len() * 99 / 100).copied().unwrap_or(0);
         println!(
-            "{:<40} {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10}",
+            "{:<40} {:>8.1}ms {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6}",
             r.name,
+            r.first_frame.as_secs_f64() * 1e3,
             r.median_ttd().as_secs_f64() * 1e3,
             r.time_to_detail.iter().max().copied().unwrap_or_default().as_secs_f64() * 1e3,
             r.requests_per_tile(),
@@ -164,6 +185,7 @@ pub fn run(args: StreamBench) -> Result<()> {
             ups.last().copied().unwrap_or(0),
             p99,
             r.bytes_per_frame.iter().max().copied().unwrap_or(0),
+            r.stats.in_flight_limit,
         );
     }
     let (mmap, mmap_raw, http, http_raw) = (&runs[0], &runs[1], &runs[2], &runs[3]);
@@ -189,8 +211,9 @@ pub fn run(args: StreamBench) -> Result<()> {
     for pair in runs[4..].chunks(2) {
         if let [linked, raw] = pair {
             println!(
-                "{}: time to full detail {:.2}x mmap's, {:.2}x without coalescing; {:.2} requests per tile",
+                "{}: first complete frame {:.0} ms; time to full detail {:.2}x mmap's, {:.2}x without coalescing; {:.2} requests per tile",
                 linked.name,
+                linked.first_frame.as_secs_f64() * 1e3,
                 linked.median_ttd().as_secs_f64() / mmap.median_ttd().as_secs_f64().max(1e-9),
                 linked.median_ttd().as_secs_f64() / raw.median_ttd().as_secs_f64().max(1e-9),
                 linked.requests_per_tile()
@@ -222,10 +245,12 @@ fn camera_at(meta: &Metadata, (fx, fz, dx, dz): (f64, f64, f64, f64), viewport_h
 }
 
 fn fly(name: String, origin: Origin, options: StreamOptions, budget: UploadBudget, args: &StreamBench) -> Result<Run> {
+    let opened = Instant::now();
     let mut streamer = Streamer::open(origin, options)?;
     let meta = streamer.metadata().context("metadata")?.clone();
     let mut run = Run {
         name,
+        first_frame: Duration::ZERO,
         time_to_detail: Vec::new(),
         uploads_per_frame: Vec::new(),
         bytes_per_frame: Vec::new(),
@@ -250,6 +275,9 @@ fn fly(name: String, origin: Origin, options: StreamOptions, budget: UploadBudge
             std::thread::sleep(Duration::from_millis(1));
         }
         run.time_to_detail.push(start.elapsed());
+        if i == 0 {
+            run.first_frame = opened.elapsed();
+        }
         // Then fly towards the next stop at 60 frames per second, streaming as we go.
         let next = camera_at(&meta, STOPS[(i + 1) % STOPS.len()], args.viewport_height);
         for f in 0..args.flight_frames {

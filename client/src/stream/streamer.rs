@@ -31,6 +31,9 @@ pub struct StreamOptions {
     pub select: SelectOptions,
     /// Most requests in flight at once.
     pub max_in_flight: usize,
+    /// Adapt the in-flight limit to the link (see [`Flow`]), between 2 and
+    /// `max_in_flight`, starting at 8; else `max_in_flight` is the limit.
+    pub adaptive_in_flight: bool,
     /// Merge neighbouring tiles of an archive into one range request.
     pub coalesce: bool,
     /// Largest gap between two tiles' bytes that still merges them.
@@ -51,7 +54,8 @@ impl Default for StreamOptions {
     fn default() -> Self {
         Self {
             select: SelectOptions::default(),
-            max_in_flight: 8,
+            max_in_flight: 32,
+            adaptive_in_flight: true,
             coalesce: true,
             coalesce_gap: 4 * 1024,
             max_request_bytes: 512 * 1024,
@@ -103,6 +107,8 @@ pub struct StreamStats {
     pub bytes_needed: u64,
     /// Requests in flight now.
     pub in_flight: u64,
+    /// The in-flight limit now (adaptive: follows the link).
+    pub in_flight_limit: u64,
     /// Bytes in the decoded-tile cache now.
     pub cache_bytes: u64,
     /// Tiles in the decoded-tile cache now.
@@ -160,16 +166,85 @@ pub(super) enum Outcome {
 }
 
 pub(super) enum Completion {
-    Tiles { request: u64, generation: u64, results: Vec<(TileKey, Outcome)>, bytes: u64, needed: u64 },
-    Leaf { request: u64, generation: u64, offset: u64, failure: Option<String>, bytes: u64 },
-    Opened { generation: u64, result: Result<Backend> },
-    Changed { generation: u64, what: String },
+    /// `took`: the fetch's round trip (the request until its bytes are in, decoding aside).
+    Tiles {
+        request: u64,
+        generation: u64,
+        results: Vec<(TileKey, Outcome)>,
+        bytes: u64,
+        needed: u64,
+        took: Duration,
+    },
+    Leaf {
+        request: u64,
+        generation: u64,
+        offset: u64,
+        failure: Option<String>,
+        bytes: u64,
+        took: Duration,
+    },
+    Opened {
+        generation: u64,
+        result: Result<Backend>,
+    },
+    Changed {
+        generation: u64,
+        what: String,
+    },
 }
 
 struct InFlight {
     tiles: Vec<TileKey>,
     leaf: Option<u64>,
     abort: AbortHandle,
+}
+
+/// The in-flight limit, adapted to the link as a delay-based congestion control does: a
+/// request that comes back about as fast as the fastest so far, while the limit was all
+/// used, means the link has room (one more request in flight); one that takes three times
+/// as long means requests queue at the bottleneck (15 % fewer). Over a long, fast link this
+/// fills the bandwidth-delay product with requests; over a slow one it keeps few enough in
+/// flight that the most urgent tiles are not stuck behind less urgent ones.
+#[derive(Clone, Debug)]
+struct Flow {
+    limit: f64,
+    /// The fastest round trip seen, slowly forgotten (a route may change).
+    base: Option<Duration>,
+}
+
+impl Flow {
+    const START: f64 = 8.0;
+    const LOWEST: f64 = 2.0;
+
+    fn new(max: usize) -> Self {
+        Self { limit: Self::START.min(max as f64), base: None }
+    }
+
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "between 2 and a usize cap")]
+    fn limit(&self, options: &StreamOptions) -> usize {
+        if options.adaptive_in_flight {
+            (self.limit as usize).clamp(1, options.max_in_flight)
+        } else {
+            options.max_in_flight
+        }
+    }
+
+    /// A request came back after `rtt`; `full`: the limit was all in use when it did.
+    fn sample(&mut self, rtt: Duration, full: bool, max: usize) {
+        let base = match self.base {
+            Some(b) if rtt >= b => b + (rtt - b) / 128,
+            _ => rtt,
+        };
+        self.base = Some(base);
+        let slack = Duration::from_millis(2);
+        if rtt <= base.mul_f64(1.5) + slack {
+            if full {
+                self.limit = (self.limit + 1.0).min(max as f64);
+            }
+        } else if rtt > base * 3 + slack {
+            self.limit = (self.limit * 0.85).max(Self::LOWEST.min(max as f64));
+        }
+    }
 }
 
 #[derive(Default)]
@@ -196,6 +271,7 @@ pub struct Streamer {
     states: HashMap<TileKey, TileState>,
     requests: HashMap<u64, InFlight>,
     leaf_failures: HashMap<u64, (u32, Instant)>,
+    flow: Flow,
     next_request: u64,
     pub(super) cache: TileCache,
     delivered: HashSet<TileKey>,
@@ -242,6 +318,7 @@ impl Streamer {
             .enable_all()
             .build()
             .map_err(Error::Threads)?;
+        let flow = Flow::new(options.max_in_flight);
         Ok(Self {
             origin,
             cache: TileCache::new(options.cache_bytes),
@@ -254,6 +331,7 @@ impl Streamer {
             states: HashMap::new(),
             requests: HashMap::new(),
             leaf_failures: HashMap::new(),
+            flow,
             next_request: 0,
             delivered: HashSet::new(),
             wanted: Vec::new(),
@@ -292,6 +370,7 @@ impl Streamer {
     pub fn stats(&self) -> StreamStats {
         StreamStats {
             in_flight: self.requests.len() as u64,
+            in_flight_limit: self.flow.limit(&self.options) as u64,
             cache_bytes: self.cache.bytes() as u64,
             cache_tiles: self.cache.len() as u64,
             wanted: self.wanted.len() as u64,
@@ -465,22 +544,31 @@ impl Streamer {
                         self.reload(&what);
                     }
                 }
-                Completion::Tiles { request, generation, results, bytes, needed } => {
+                Completion::Tiles { request, generation, results, bytes, needed, took } => {
                     if generation == self.generation {
-                        self.requests.remove(&request);
+                        self.finished(request, took);
                         self.stats.bytes_fetched += bytes;
                         self.stats.bytes_needed += needed;
                         self.absorb(results, now);
                     }
                 }
-                Completion::Leaf { request, generation, offset, failure, bytes } => {
+                Completion::Leaf { request, generation, offset, failure, bytes, took } => {
                     if generation == self.generation {
-                        self.requests.remove(&request);
+                        self.finished(request, took);
                         self.stats.bytes_fetched += bytes;
                         self.leaf_done(offset, failure, now);
                     }
                 }
             }
+        }
+    }
+
+    /// Request `id` came back after `took`: no longer in flight; its round trip tells the
+    /// flow control.
+    fn finished(&mut self, id: u64, took: Duration) {
+        let full = self.requests.len() >= self.flow.limit(&self.options);
+        if self.requests.remove(&id).is_some() {
+            self.flow.sample(took, full, self.options.max_in_flight);
         }
     }
 
@@ -611,7 +699,7 @@ impl Streamer {
 
     fn issue(&mut self, now: Instant) {
         let Some(backend) = self.backend().cloned() else { return };
-        let mut free = self.options.max_in_flight.saturating_sub(self.requests.len());
+        let mut free = self.flow.limit(&self.options).saturating_sub(self.requests.len());
         if free == 0 {
             return;
         }
@@ -710,6 +798,7 @@ impl Streamer {
         let (queue, generation) = (self.queue.clone(), self.generation);
         self.spawn(async move {
             let work = async {
+                let started = Instant::now();
                 let (failure, bytes) = match reader.source().fetch(offset, len).await {
                     Ok(bytes) => (reader.archive().add_leaf(offset, &bytes).err().map(|e| e.to_string()), bytes.len()),
                     Err(terrastream_format::Error::Changed { what }) => {
@@ -717,7 +806,8 @@ impl Streamer {
                     }
                     Err(e) => (Some(e.to_string()), 0),
                 };
-                Completion::Leaf { request: id, generation, offset, failure, bytes: bytes as u64 }
+                let took = started.elapsed();
+                Completion::Leaf { request: id, generation, offset, failure, bytes: bytes as u64, took }
             };
             if let Ok(c) = Abortable::new(work, registration).await {
                 queue.push(c);
@@ -781,6 +871,7 @@ fn decode_guarded(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool)
 /// Fetches a group of tiles (one request) and decodes them off the calling thread.
 pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generation: u64) -> Completion {
     let changed = |what| Completion::Changed { generation, what };
+    let started = Instant::now();
     let mut raw: Vec<(TileKey, std::result::Result<Option<Bytes>, String>)> = Vec::new();
     let (mut bytes, mut needed) = (0, 0);
     let compressed;
@@ -833,6 +924,7 @@ pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u6
             }
         }
     }
+    let took = started.elapsed();
     let metadata = backend.metadata().clone();
     let decode_all = move || -> Vec<(TileKey, Outcome)> {
         raw.into_iter()
@@ -856,5 +948,47 @@ pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u6
     };
     #[cfg(target_arch = "wasm32")]
     let results = decode_all();
-    Completion::Tiles { request, generation, results, bytes, needed }
+    Completion::Tiles { request, generation, results, bytes, needed, took }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use super::Flow;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a small positive limit")]
+    fn limit(flow: &Flow) -> usize {
+        flow.limit as usize
+    }
+
+    #[test]
+    fn the_in_flight_limit_grows_on_a_free_link_and_backs_off_when_requests_queue() {
+        let mut flow = Flow::new(32);
+        assert_eq!(limit(&flow), 8);
+        // Round trips at the base while the limit is all used: one more each.
+        for _ in 0..10 {
+            flow.sample(80 * MS, true, 32);
+        }
+        assert_eq!(limit(&flow), 18);
+        // Not all used: no evidence the link has room.
+        flow.sample(80 * MS, false, 32);
+        assert_eq!(limit(&flow), 18);
+        // Never above the cap.
+        for _ in 0..40 {
+            flow.sample(80 * MS, true, 32);
+        }
+        assert_eq!(limit(&flow), 32);
+        // Requests now queue (25 times the base): 15 % fewer each, down to 2.
+        flow.sample(2000 * MS, true, 32);
+        assert_eq!(limit(&flow), 27);
+        for _ in 0..40 {
+            flow.sample(2000 * MS, true, 32);
+        }
+        assert_eq!(limit(&flow), 2);
+        // The cap below the start.
+        assert_eq!(limit(&Flow::new(4)), 4);
+    }
 }
