@@ -172,3 +172,18 @@ async fn a_stopped_server_is_an_error_then_recovery_when_it_is_back() {
     let _task = tokio::spawn(axum::serve(listener, app(s)).into_future());
     assert_eq!(reader.tile(other).await.unwrap(), local.tile(other).unwrap());
 }
+
+/// `HttpSource::new_http2`: HTTP/2 without TLS (prior knowledge) against our server, which
+/// answers it on the same port as HTTP/1.1: the same tiles, over one multiplexed connection.
+#[tokio::test]
+async fn http2_without_tls_reads_the_same_tiles() {
+    let (dir, path) = archives();
+    let local = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
+    let (addr, _task) = serve(app(state(dir.path())), "127.0.0.1:0").await;
+    let url = format!("http://{addr}/sample.tspack");
+    let h2 = reqwest::Client::builder().http2_prior_knowledge().build().unwrap();
+    let r = h2.get(&url).header("range", "bytes=0-9").send().await.unwrap();
+    assert_eq!((r.status().as_u16(), r.version()), (206, reqwest::Version::HTTP_2));
+    let reader = AsyncReader::new(HttpSource::new_http2(&url).unwrap()).await.unwrap();
+    assert!(same_tiles(&reader, &local).await > 10);
+}

@@ -31,6 +31,9 @@ pub struct StreamBench {
     /// Keep `--max-in-flight` requests in flight instead of adapting the limit to the link.
     #[arg(long)]
     fixed_in_flight: bool,
+    /// Also fly every HTTP location over HTTP/2 (h2c: one multiplexed connection).
+    #[arg(long)]
+    http2: bool,
     /// Frames of continuous flight between jumps.
     #[arg(long, default_value_t = 60)]
     flight_frames: usize,
@@ -128,6 +131,14 @@ pub fn run(args: StreamBench) -> Result<()> {
         shapers.push(shaper);
     }
     let mut runs = Vec::new();
+    if args.http2 {
+        let h2: Vec<(String, String)> = locations
+            .iter()
+            .filter(|(_, l)| l.starts_with("http://"))
+            .map(|(label, l)| (format!("{label}, HTTP/2"), format!("h2c:{l}")))
+            .collect();
+        locations.extend(h2);
+    }
     for (label, location) in locations {
         for coalesce in [true, false] {
             let options = StreamOptions {
@@ -139,7 +150,10 @@ pub fn run(args: StreamBench) -> Result<()> {
                 select: SelectOptions::default(),
                 ..StreamOptions::default()
             };
-            let origin = Origin::parse(&location)?;
+            let origin = match location.strip_prefix("h2c:") {
+                Some(url) => Origin::archive(terrastream_client::HttpSource::new_http2(url)?),
+                None => Origin::parse(&location)?,
+            };
             let name = format!("{label}{}", if coalesce { "" } else { ", no coalescing" });
             eprintln!("flying: {name}");
             runs.push(fly(name, origin, options, budget, &args)?);

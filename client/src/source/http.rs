@@ -80,6 +80,23 @@ impl HttpSource {
         Self::with_client(client, url, RetryPolicy::default())
     }
 
+    /// A source for `url` over HTTP/2 without TLS (h2c, prior knowledge): one multiplexed
+    /// connection instead of several, for a server known to speak it (`terrastream serve`
+    /// does; HTTP/1-only servers refuse it). Over `https://`, [`HttpSource::new`]
+    /// negotiates HTTP/2 by itself where the server offers it.
+    ///
+    /// # Errors
+    /// As [`HttpSource::new`].
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn new_http2(url: &str) -> crate::Result<Self> {
+        let client = reqwest::Client::builder()
+            .http2_prior_knowledge()
+            .tcp_nodelay(true)
+            .build()
+            .map_err(|e| ClientError::HttpClient { reason: e.to_string() })?;
+        Self::with_client(client, url, RetryPolicy::default())
+    }
+
     /// A source sharing an existing client (and its pool).
     ///
     /// # Errors
