@@ -423,3 +423,34 @@ fn faults_never_show_a_wrong_tile_and_streaming_recovers() {
     assert!(!gpu.tiles.is_empty());
     drop(task);
 }
+
+/// Prefetch along the camera's motion: flying at a steady speed, the tiles coming into
+/// view were fetched before they were wanted, so more of each new view is found in the
+/// cache than without prefetch; a stationary camera prefetches nothing.
+#[test]
+fn a_moving_camera_finds_the_tiles_ahead_already_fetched() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = labelled(dir.path(), &LabelledSpec::default());
+    let fly = |prefetch: Duration| {
+        let opts = StreamOptions { prefetch_ahead: prefetch, ..options() };
+        let mut s = Streamer::open(Origin::parse(path.to_str().unwrap()).unwrap(), opts).unwrap();
+        let mut gpu = Gpu::default();
+        gpu.settle(&mut s, &camera(200.0, 200.0, 30.0, 200.0));
+        let settled = s.stats().hits;
+        // 20 steps of 40 m, 50 ms apart (800 m/s), each given time to fetch.
+        for i in 1..=20 {
+            std::thread::sleep(Duration::from_millis(50));
+            gpu.frame(&mut s, &camera(200.0 + 40.0 * f64::from(i), 200.0, 30.0, 200.0));
+        }
+        // Then stationary: nothing ahead to fetch.
+        std::thread::sleep(Duration::from_millis(50));
+        let here = camera(1000.0, 200.0, 30.0, 200.0);
+        gpu.frame(&mut s, &here);
+        gpu.frame(&mut s, &here);
+        (s.stats().hits - settled, s.stats())
+    };
+    let (with, stats) = fly(Duration::from_millis(500));
+    let (without, _) = fly(Duration::ZERO);
+    assert!(with > without, "wanted tiles found in the cache while flying: {with} with prefetch, {without} without");
+    assert_eq!(stats.prefetch, 0, "a stationary camera prefetches nothing: {stats:?}");
+}

@@ -34,6 +34,9 @@ pub struct StreamBench {
     /// Also fly every HTTP location over HTTP/2 (h2c: one multiplexed connection).
     #[arg(long)]
     http2: bool,
+    /// Fetch only what the current view wants (no prefetch along the camera's motion).
+    #[arg(long)]
+    no_prefetch: bool,
     /// Frames of continuous flight between jumps.
     #[arg(long, default_value_t = 60)]
     flight_frames: usize,
@@ -147,6 +150,7 @@ pub fn run(args: StreamBench) -> Result<()> {
                 max_request_bytes: args.max_request_bytes,
                 max_in_flight: args.max_in_flight,
                 adaptive_in_flight: !args.fixed_in_flight,
+                prefetch_ahead: if args.no_prefetch { Duration::ZERO } else { StreamOptions::default().prefetch_ahead },
                 select: SelectOptions::default(),
                 ..StreamOptions::default()
             };

@@ -48,6 +48,9 @@ pub struct StreamOptions {
     pub max_retry_backoff: Duration,
     /// Worker threads for fetching and decoding (native only).
     pub worker_threads: usize,
+    /// Prefetch what the camera will see this far ahead, at its current speed and turn,
+    /// with the requests the current view leaves free (zero: no prefetch).
+    pub prefetch_ahead: Duration,
 }
 
 impl Default for StreamOptions {
@@ -63,6 +66,7 @@ impl Default for StreamOptions {
             retry_backoff: Duration::from_millis(250),
             max_retry_backoff: Duration::from_secs(10),
             worker_threads: 2,
+            prefetch_ahead: Duration::from_millis(500),
         }
     }
 }
@@ -109,6 +113,9 @@ pub struct StreamStats {
     pub in_flight: u64,
     /// The in-flight limit now (adaptive: follows the link).
     pub in_flight_limit: u64,
+    /// Tiles the camera's motion predicts it will want, not wanted yet (fetched with the
+    /// requests the view leaves free).
+    pub prefetch: u64,
     /// Bytes in the decoded-tile cache now.
     pub cache_bytes: u64,
     /// Tiles in the decoded-tile cache now.
@@ -210,6 +217,9 @@ struct Flow {
     limit: f64,
     /// The fastest round trip seen, slowly forgotten (a route may change).
     base: Option<Duration>,
+    /// The last fetch took well over the base: requests queue at the bottleneck, and
+    /// bandwidth spent on prefetch is taken from the view.
+    queueing: bool,
 }
 
 impl Flow {
@@ -217,7 +227,7 @@ impl Flow {
     const LOWEST: f64 = 2.0;
 
     fn new(max: usize) -> Self {
-        Self { limit: Self::START.min(max as f64), base: None }
+        Self { limit: Self::START.min(max as f64), base: None, queueing: false }
     }
 
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "between 2 and a usize cap")]
@@ -237,6 +247,7 @@ impl Flow {
         };
         self.base = Some(base);
         let slack = Duration::from_millis(2);
+        self.queueing = rtt > base.mul_f64(1.5) + slack;
         if rtt <= base.mul_f64(1.5) + slack {
             if full {
                 self.limit = (self.limit + 1.0).min(max as f64);
@@ -278,6 +289,11 @@ pub struct Streamer {
     wanted: Vec<Want>,
     /// The keys of `wanted`: what the cache keeps and what requests are still for.
     wanted_keys: HashSet<TileKey>,
+    /// Tiles the camera will want soon (not in `wanted`), most urgent first.
+    prefetch: Vec<TileKey>,
+    prefetch_keys: HashSet<TileKey>,
+    /// The camera of the last update, and when: its motion predicts the next views.
+    last_camera: Option<(Camera, Instant)>,
     host_version: u64,
     pub(super) stats: StreamStats,
     pub(super) last_error: Option<String>,
@@ -336,6 +352,9 @@ impl Streamer {
             delivered: HashSet::new(),
             wanted: Vec::new(),
             wanted_keys: HashSet::new(),
+            prefetch: Vec::new(),
+            prefetch_keys: HashSet::new(),
+            last_camera: None,
             host_version: 0,
             stats: StreamStats::default(),
             last_error: None,
@@ -371,6 +390,7 @@ impl Streamer {
         StreamStats {
             in_flight: self.requests.len() as u64,
             in_flight_limit: self.flow.limit(&self.options) as u64,
+            prefetch: self.prefetch.len() as u64,
             cache_bytes: self.cache.bytes() as u64,
             cache_tiles: self.cache.len() as u64,
             wanted: self.wanted.len() as u64,
@@ -471,9 +491,43 @@ impl Streamer {
                 self.stats.hits += 1;
             }
         }
+        self.predict(camera, now);
         self.cancel_unwanted();
         self.issue(now);
         self.cache.trim(&self.wanted_keys);
+    }
+
+    /// The tiles of the view `prefetch_ahead` from now, at the camera's speed and turn
+    /// since the last update, that the current view does not want: fetched with the
+    /// requests it leaves free, cancelled when the camera stops wanting them.
+    fn predict(&mut self, camera: &Camera, now: Instant) {
+        self.prefetch.clear();
+        self.prefetch_keys.clear();
+        let last = self.last_camera.replace((*camera, now));
+        let ahead = self.options.prefetch_ahead.as_secs_f64();
+        let (Some((before, at)), Some(metadata)) = (last, self.metadata()) else { return };
+        let dt = now.saturating_duration_since(at).as_secs_f64();
+        if ahead <= 0.0 || dt <= 0.0 || dt > 1.0 {
+            return;
+        }
+        let velocity = (camera.position - before.position) / dt;
+        let turn = (camera.forward.normalize_or_zero() - before.forward.normalize_or_zero()) / dt;
+        if velocity.length_squared() == 0.0 && turn.length_squared() == 0.0 {
+            return;
+        }
+        let predicted = Camera {
+            position: camera.position + velocity * ahead,
+            forward: camera.forward.normalize_or_zero() + turn * ahead,
+            ..*camera
+        };
+        let states = &self.states;
+        let soon =
+            select(metadata, &predicted, &self.options.select, |k| !matches!(states.get(&k), Some(TileState::Missing)));
+        for w in soon {
+            if !self.wanted_keys.contains(&w.key) && self.prefetch_keys.insert(w.key) {
+                self.prefetch.push(w.key);
+            }
+        }
     }
 
     /// Ready tiles for this frame, most urgent first, within `budget`; a tile is never
@@ -669,6 +723,8 @@ impl Streamer {
         self.delivered.clear();
         self.wanted.clear();
         self.wanted_keys.clear();
+        self.prefetch.clear();
+        self.prefetch_keys.clear();
         self.stats.reloads += 1;
         self.last_error = Some(format!("archive replaced: {what}"));
         self.generation += 1;
@@ -677,11 +733,11 @@ impl Streamer {
     }
 
     fn cancel_unwanted(&mut self) {
-        let wanted = &self.wanted_keys;
+        let (wanted, soon) = (&self.wanted_keys, &self.prefetch_keys);
         let stale: Vec<u64> = self
             .requests
             .iter()
-            .filter(|(_, r)| r.leaf.is_none() && !r.tiles.iter().any(|k| wanted.contains(k)))
+            .filter(|(_, r)| r.leaf.is_none() && !r.tiles.iter().any(|k| wanted.contains(k) || soon.contains(k)))
             .map(|(&id, _)| id)
             .collect();
         for id in stale {
@@ -706,8 +762,10 @@ impl Streamer {
         // Candidates, most urgent first; located (for archives) so they can be coalesced.
         let mut candidates: Vec<(usize, TileKey, Option<TileLocation>)> = Vec::new();
         let limit = free * 64;
-        for rank in 0..self.wanted.len() {
-            let key = self.wanted[rank].key;
+        // What the view wants, then what it will want soon, unless the link is queueing.
+        let soon = if self.flow.queueing { &[][..] } else { &self.prefetch[..] };
+        let keys: Vec<TileKey> = self.wanted.iter().map(|w| w.key).chain(soon.iter().copied()).collect();
+        for (rank, &key) in keys.iter().enumerate() {
             if self.cache.contains(key) {
                 continue;
             }
