@@ -25,7 +25,7 @@ fi
 tools=${TERRASTREAM_TOOLS_VENV:-$HOME/.cache/terrastream-tools}
 if ! [ -x "$tools/bin/kubernetes-validate" ]; then
   python3 -m venv "$tools"
-  "$tools/bin/pip" install -q kubernetes-validate
+  "$tools/bin/pip" install -q kubernetes-validate==1.37.0
 fi
 export PATH="$tools/bin:$PATH"
 
