@@ -254,10 +254,33 @@ fn gdal_virtual_rasters_are_read_as_gdal_reads_them() {
     run(&["gdal_translate", "-q", "-srcwin", "200", "40", "120", "216", "-a_nodata", "-32768", dem, "t1.tif"]);
     run(&["gdalbuildvrt", "-q", "both.vrt", "t0.tif", "t1.tif"]);
     run(&["gdal_translate", "-q", "-of", "VRT", "-srcwin", "30", "50", "120", "90", "t0.tif", "crop.vrt"]);
+    // A ComplexSource with ScaleRatio and ScaleOffset: heights 0..1000 -> 50..650.
+    run(&[
+        "gdal_translate",
+        "-q",
+        "-of",
+        "VRT",
+        "-ot",
+        "Float32",
+        "-scale",
+        "0",
+        "1000",
+        "50",
+        "650",
+        "-srcwin",
+        "10",
+        "20",
+        "150",
+        "120",
+        "t0.tif",
+        "scaled.vrt",
+    ]);
+    let scaled = std::fs::read_to_string(dir.path().join("scaled.vrt")).unwrap();
+    assert!(scaled.contains("<ScaleRatio>") && scaled.contains("<ScaleOffset>"), "{scaled}");
     let vrt = std::fs::read_to_string(dir.path().join("both.vrt")).unwrap();
     assert!(vrt.contains("<DstRect xOff=\"200\" yOff=\"40\""), "{vrt}");
 
-    for name in ["both.vrt", "crop.vrt"] {
+    for name in ["both.vrt", "crop.vrt", "scaled.vrt"] {
         let (both, mean, one) = against_gdal(dir.path(), &[dir.path().join(name)], 32610, 30.0);
         eprintln!("{name}: {both} samples in both, mean |difference| {mean:.3} m, {one} in only one");
         assert!(both > 1000 && mean < 0.5 && (one as f64) < 0.02 * both as f64, "{name}: {both} / {mean} / {one}");

@@ -41,7 +41,14 @@ pub trait MosaicKind: Send + Sync + 'static {
     ///
     /// # Errors
     /// [`Error::Input`] naming the file for a sample type this kind does not read.
-    fn values(file: &Self::File, data: tiff::decoder::DecodingResult, nodata: Option<f32>) -> Result<Vec<Self::Value>>;
+    /// `nodata`: raw samples equal to it are no data; `scale`: (ratio, offset) applied to
+    /// the others (a VRT source's).
+    fn values(
+        file: &Self::File,
+        data: tiff::decoder::DecodingResult,
+        nodata: Option<f32>,
+        scale: Option<(f32, f32)>,
+    ) -> Result<Vec<Self::Value>>;
     /// The blend of up to four neighbours with bilinear weights, over those with data.
     fn blend(corners: &[(Self::Value, f64); 4]) -> Self::Value;
 }
@@ -83,12 +90,23 @@ impl MosaicKind for Heights {
     fn channels(_: &ElevationFile) -> usize {
         1
     }
-    fn values(file: &ElevationFile, data: tiff::decoder::DecodingResult, nodata: Option<f32>) -> Result<Vec<f32>> {
+    fn values(
+        file: &ElevationFile,
+        data: tiff::decoder::DecodingResult,
+        nodata: Option<f32>,
+        scale: Option<(f32, f32)>,
+    ) -> Result<Vec<f32>> {
         let mut heights = samples_f32(data).ok_or_else(|| Error::input(file.path(), "unsupported sample type"))?;
         file.heights(&mut heights);
         if let Some(nodata) = nodata {
             for v in heights.iter_mut().filter(|v| **v == nodata) {
                 *v = f32::NAN;
+            }
+        }
+        if let Some((ratio, offset)) = scale {
+            // NaN (nodata) stays NaN.
+            for v in &mut heights {
+                *v = *v * ratio + offset;
             }
         }
         Ok(heights)
@@ -135,9 +153,20 @@ impl MosaicKind for Pixels {
     fn channels(file: &ImageFile) -> usize {
         file.tiff_channels().unwrap_or(1)
     }
-    fn values(file: &ImageFile, data: tiff::decoder::DecodingResult, nodata: Option<f32>) -> Result<Vec<[u8; 4]>> {
+    fn values(
+        file: &ImageFile,
+        data: tiff::decoder::DecodingResult,
+        nodata: Option<f32>,
+        scale: Option<(f32, f32)>,
+    ) -> Result<Vec<[u8; 4]>> {
         let tiff::decoder::DecodingResult::U8(bytes) = data else {
             return Err(Error::input(file.path(), "only 8-bit images are read"));
+        };
+        // Colour bands scaled as GDAL does (rounded, clamped to 0..=255); alpha is not.
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]
+        let scaled = |c: u8| match scale {
+            Some((ratio, offset)) => (f32::from(c) * ratio + offset).round().clamp(0.0, 255.0) as u8,
+            None => c,
         };
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "an 8-bit nodata value")]
         let nodata = nodata.filter(|n| (0.0..=255.0).contains(n)).map(|n| n as u8);
@@ -146,10 +175,10 @@ impl MosaicKind for Pixels {
             .chunks_exact(channels)
             .map(|p| {
                 let px = match channels {
-                    4 => [p[0], p[1], p[2], p[3]],
-                    3 => [p[0], p[1], p[2], 255],
-                    2 => [p[0], p[0], p[0], p[1]],
-                    _ => [p[0], p[0], p[0], 255],
+                    4 => [scaled(p[0]), scaled(p[1]), scaled(p[2]), p[3]],
+                    3 => [scaled(p[0]), scaled(p[1]), scaled(p[2]), 255],
+                    2 => [scaled(p[0]), scaled(p[0]), scaled(p[0]), p[1]],
+                    _ => [scaled(p[0]), scaled(p[0]), scaled(p[0]), 255],
                 };
                 // A NODATA value of a VRT source: every band at it is no data.
                 if nodata.is_some_and(|n| p.iter().take(channels.min(3)).all(|&c| c == n)) { [0; 4] } else { px }

@@ -62,6 +62,7 @@ struct Opened<K: MosaicKind> {
     pixel: (f64, f64),
     window: [u32; 4],
     nodata: Option<f32>,
+    scale: Option<(f32, f32)>,
 }
 
 /// One input raster.
@@ -75,6 +76,8 @@ struct Input<K: MosaicKind> {
     window: [u32; 4],
     /// Samples equal to this are nodata too (a VRT source's NODATA).
     nodata: Option<f32>,
+    /// A VRT source's ScaleRatio and ScaleOffset.
+    scale: Option<(f32, f32)>,
     /// Output CRS -> the input's.
     to_input: Transform,
     /// Footprint in output pixels: first and last column and row (inclusive).
@@ -185,6 +188,7 @@ impl<K: MosaicKind> Mosaic<K> {
                     pixel: o.pixel,
                     window: o.window,
                     nodata: o.nodata,
+                    scale: o.scale,
                     file: o.file,
                 }
             })
@@ -307,8 +311,12 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
                         format!("{} reads pixels {x}+{sw} x {y}+{sh} of this {w}x{h} raster", path.display()),
                     ));
                 }
-                #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]
-                let nodata = source.nodata.map(|n| n as f32);
+                #[expect(
+                    clippy::cast_possible_truncation,
+                    reason = "nodata and scales are applied as f32, as samples are kept"
+                )]
+                let (nodata, scale) =
+                    (source.nodata.map(|n| n as f32), source.scale.map(|(r, o)| (r as f32, o as f32)));
                 Ok(Opened {
                     file,
                     crs: crs.clone(),
@@ -316,6 +324,7 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
                     pixel: source.pixel,
                     window: source.window,
                     nodata,
+                    scale,
                 })
             })
             .collect();
@@ -326,7 +335,7 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     };
     let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
     let (w, h) = K::size(&file);
-    Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None }])
+    Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None, scale: None }])
 }
 
 /// West, south, east and north of geographic inputs' corners (degrees).
@@ -599,7 +608,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         // Decoded outside the lock, so that threads decode in parallel.
         let (data, w, _) = chunks.read(id)?;
         let input = &self.mosaic.inputs[index];
-        let values = K::values(&input.file, data, input.nodata)?;
+        let values = K::values(&input.file, data, input.nodata, input.scale)?;
         let chunk = Arc::new(Chunk { values, w });
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         state.bytes += chunk.bytes();

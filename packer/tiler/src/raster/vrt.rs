@@ -1,7 +1,9 @@
 //! GDAL virtual rasters (`.vrt`), the common subset: one `VRTRasterBand` of
 //! `SimpleSource` / `ComplexSource` elements, each a window (`SrcRect`) of a file placed at
 //! `DstRect` on the VRT's grid (`GeoTransform`, `SRS`), with `SourceFilename` relative to
-//! the VRT or absolute and an optional `NODATA`. A mosaic reads each source as an input.
+//! the VRT or absolute, an optional `NODATA` and, for a `ComplexSource`, `ScaleOffset` and
+//! `ScaleRatio` (value = sample x ratio + offset, after the NODATA test, as GDAL applies
+//! them). A mosaic reads each source as an input.
 
 use std::path::{Path, PathBuf};
 
@@ -20,6 +22,8 @@ pub struct VrtSource {
     pub pixel: (f64, f64),
     /// Samples equal to this are nodata (on top of the file's own nodata).
     pub nodata: Option<f64>,
+    /// `ScaleRatio` and `ScaleOffset`: a sample's value is `sample * ratio + offset`.
+    pub scale: Option<(f64, f64)>,
 }
 
 /// A VRT's CRS (`EPSG:xxxx` or a PROJ string) and its sources, in order.
@@ -102,12 +106,23 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
         )]
         let window = src.map(|v| v.max(0.0).round() as u32);
         let nodata = child(source, "NODATA").and_then(|n| n.text()).and_then(|t| t.trim().parse::<f64>().ok());
+        let number = |name: &str| -> Result<Option<f64>> {
+            let Some(n) = child(source, name) else { return Ok(None) };
+            let text = n.text().unwrap_or_default().trim();
+            match text.parse::<f64>() {
+                Ok(v) if v.is_finite() => Ok(Some(v)),
+                _ => Err(bad(format!("<{name}> of {} is not a number: {text:?}", source_path.display()))),
+            }
+        };
+        let (ratio, offset) = (number("ScaleRatio")?, number("ScaleOffset")?);
+        let scale = (ratio.is_some() || offset.is_some()).then(|| (ratio.unwrap_or(1.0), offset.unwrap_or(0.0)));
         sources.push(VrtSource {
             path: source_path,
             window,
             origin: [ox + dst[0] * px, oy + dst[1] * py],
             pixel: (px * dst[2] / src[2], -py * dst[3] / src[3]),
             nodata,
+            scale,
         });
     }
     if sources.is_empty() {
