@@ -154,6 +154,22 @@ impl<S: RangeSource> Reader<S> {
         }
     }
 
+    /// Calls `f` with every addressed tile and its checked payload (stored bytes), runs of
+    /// tiles sharing one blob expanded, in archive order; each blob is read once.
+    ///
+    /// # Errors
+    /// As [`Reader::for_each_entry`] and [`Reader::entry_payload`]; `f`'s errors.
+    pub fn for_each_tile<E: From<Error>>(&self, mut f: impl FnMut(TileKey, &Bytes) -> Result<(), E>) -> Result<(), E> {
+        let step = crate::MAX_LAYERS as u64;
+        self.for_each_entry(|entry| -> Result<(), E> {
+            let payload = self.entry_payload(entry)?;
+            for i in 0..u64::from(entry.run_length) {
+                f(self.archive.tile_of(entry.key + i * step)?, &payload)?;
+            }
+            Ok(())
+        })
+    }
+
     /// Reads and decodes one leaf directory.
     ///
     /// # Errors

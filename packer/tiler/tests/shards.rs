@@ -59,15 +59,11 @@ fn texture(image: &Image) -> TextureInput<'_> {
 
 /// Every tile's stored payload, by key.
 fn tiles(path: &Path) -> BTreeMap<TileKey, Vec<u8>> {
-    let reader = Reader::open_mmap(path).unwrap();
     let mut out = BTreeMap::new();
-    reader
-        .for_each_entry(|e| -> terrastream_format::Result<()> {
-            let payload = reader.entry_payload(e)?.to_vec();
-            for k in 0..u64::from(e.run_length) {
-                let key = reader.archive().tile_of(e.key + k * terrastream_format::MAX_LAYERS as u64)?;
-                out.insert(key, payload.clone());
-            }
+    Reader::open_mmap(path)
+        .unwrap()
+        .for_each_tile(|key, payload| -> terrastream_format::Result<()> {
+            out.insert(key, payload.to_vec());
             Ok(())
         })
         .unwrap();
