@@ -266,13 +266,25 @@ fn payload(
     key: TileKey,
 ) -> Result<Option<Vec<u8>>> {
     let order = Writer::order_key(metadata, key)?;
-    let Some(&(input, offset, length)) = winners.get(&order) else { return Ok(None) };
+    let Some(&found) = winners.get(&order) else { return Ok(None) };
+    unpacked(metadata, readers, key, found).map(Some)
+}
+
+/// A tile's bytes where `found` says they are, its layer's compression undone.
+fn unpacked(metadata: &Metadata, readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
+    let (input, offset, length) = found;
     let stored = readers[input].read(&TileLocation { key, offset, length })?;
     let layer = &metadata.layers[usize::from(key.layer())];
-    Ok(Some(match layer.compression {
+    Ok(match layer.compression {
         PayloadCompression::None => stored.to_vec(),
         PayloadCompression::Zstd => zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {key}"))?,
-    }))
+    })
+}
+
+/// A height-range tile's lowest and highest height.
+fn range_of(bytes: &[u8]) -> Option<(f32, f32)> {
+    let [a, b, c, d, e, f, g, h] = bytes[..] else { return None };
+    Some((f32::from_le_bytes([a, b, c, d]), f32::from_le_bytes([e, f, g, h])))
 }
 
 /// Remakes, in every layer, the tiles the merge left stale ([`crate::rederive`]) into
@@ -291,18 +303,8 @@ fn rederive_layers(
         conflicts.keys().map(|&k| archive.tile_of(k)).collect::<terrastream_format::Result<_>>()?;
     // Every version of an LOD-0 tile several inputs hold, as stored (compression undone).
     let versions_of = |key: TileKey| -> Result<Vec<Vec<u8>>> {
-        let layer = &metadata.layers[usize::from(key.layer())];
-        let mut out = Vec::new();
-        for &(input, offset, length) in conflicts.get(&Writer::order_key(metadata, key)?).into_iter().flatten() {
-            let stored = readers[input].read(&TileLocation { key, offset, length })?;
-            out.push(match layer.compression {
-                PayloadCompression::None => stored.to_vec(),
-                PayloadCompression::Zstd => {
-                    zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {key}"))?
-                }
-            });
-        }
-        Ok(out)
+        let versions = conflicts.get(&Writer::order_key(metadata, key)?).into_iter().flatten();
+        versions.map(|&found| unpacked(metadata, readers, key, found)).collect()
     };
     let mut emptied = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {
@@ -364,14 +366,9 @@ fn rederive_layers(
                                 continue;
                             }
                             let range_key = TileKey::new(r, child.lod(), child.x(), child.y())?;
-                            if let Some(b) = payload(metadata, readers, winners, range_key)? {
-                                if let [a, b, c, d, e, f, g, h] = b[..] {
-                                    below.push((
-                                        child,
-                                        f32::from_le_bytes([a, b, c, d]),
-                                        f32::from_le_bytes([e, f, g, h]),
-                                    ));
-                                }
+                            let bytes = payload(metadata, readers, winners, range_key)?;
+                            if let Some((lo, hi)) = bytes.as_deref().and_then(range_of) {
+                                below.push((child, lo, hi));
                             }
                         }
                     }
@@ -553,12 +550,10 @@ fn split_ranges(
     let mut out = Vec::new();
     for ty in 0..rows {
         for tx in 0..cols {
-            if let Some(b) = payload(metadata, readers, winners, TileKey::new(range_layer, k, tx, ty)?)? {
-                if let [a, b, c, d, e, f, g, h] = b[..] {
-                    // Keyed by the elevation tile, as the encoder gathers them.
-                    let key = TileKey::new(elevation, k, tx, ty)?;
-                    out.push((key, f32::from_le_bytes([a, b, c, d]), f32::from_le_bytes([e, f, g, h])));
-                }
+            let bytes = payload(metadata, readers, winners, TileKey::new(range_layer, k, tx, ty)?)?;
+            if let Some((lo, hi)) = bytes.as_deref().and_then(range_of) {
+                // Keyed by the elevation tile, as the encoder gathers them.
+                out.push((TileKey::new(elevation, k, tx, ty)?, lo, hi));
             }
         }
     }

@@ -18,7 +18,7 @@ use crate::merge::{MergeSummary, Prefer, merge_with};
 use crate::options::{TextureFormat, TextureInput};
 use crate::plan::{LayerPlan, Plan};
 use crate::pyramid::Window;
-use crate::raster::{ElevationSource, Heights, ImageSource, Mosaic, MosaicOptions, Pixels};
+use crate::raster::{ElevationSource, Heights, ImageSource, Mosaic, MosaicKind, MosaicOptions, Pixels};
 use crate::tile::tile_planned;
 
 /// What [`update`] did.
@@ -169,13 +169,13 @@ fn check_size(input: &Path, got: (u32, u32), grid: (u32, u32)) -> Result<()> {
 
 /// The window of LOD-0 tile rows where `source` has data (its inputs' footprints), or an
 /// empty one.
-fn touched<S: RowsWithData + ?Sized>(source: &S, height: u32, layer: &terrastream_format::Layer) -> Window {
+fn touched<K: MosaicKind>(source: &Mosaic<K>, height: u32, layer: &terrastream_format::Layer) -> Window {
     let res = layer.tile_resolution as usize;
     let step = 64u32;
     let mut first = None;
     let mut last = 0;
     for start in (0..height).step_by(step as usize) {
-        if source.rows_with_data(start..(start + step).min(height)) > 0.0 {
+        if source.footprint_samples(start..(start + step).min(height)) > 0.0 {
             first.get_or_insert(start);
             last = (start + step).min(height);
         }
@@ -186,21 +186,4 @@ fn touched<S: RowsWithData + ?Sized>(source: &S, height: u32, layer: &terrastrea
     let border = usize::from(layer.border);
     let rows = band.start.saturating_sub(border)..(band.end + border).min(height);
     Window { input_lod: 0, last_lod: 0, encode_from: 0, rows, band }
-}
-
-/// Sources that know where their data lies.
-trait RowsWithData {
-    fn rows_with_data(&self, rows: std::ops::Range<u32>) -> f64;
-}
-
-impl RowsWithData for Mosaic<Heights> {
-    fn rows_with_data(&self, rows: std::ops::Range<u32>) -> f64 {
-        ElevationSource::data_in_rows(self, rows)
-    }
-}
-
-impl RowsWithData for Mosaic<Pixels> {
-    fn rows_with_data(&self, rows: std::ops::Range<u32>) -> f64 {
-        ImageSource::data_in_rows(self, rows)
-    }
 }

@@ -10,10 +10,13 @@
     missing_docs
 )]
 
-use std::collections::BTreeMap;
+mod common;
+
+use common::tiles;
+
 use std::path::{Path, PathBuf};
 
-use terrastream_format::{Reader, TileKey};
+use terrastream_format::Reader;
 use terrastream_pack::progress::Silent;
 use terrastream_tiler::{
     ElevationStorage, Image, Raster, ShardSpec, TextureFormat, TextureInput, TileOptions, merge, tile_shard,
@@ -55,19 +58,6 @@ const OPTIONS: TileOptions = TileOptions { tile_size: 16, border: 1, storage: El
 
 fn texture(image: &Image) -> TextureInput<'_> {
     TextureInput { source: image, tile_size: 16, format: TextureFormat::Png, pixel_size: 1.0 }
-}
-
-/// Every tile's stored payload, by key.
-fn tiles(path: &Path) -> BTreeMap<TileKey, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    Reader::open_mmap(path)
-        .unwrap()
-        .for_each_tile(|key, payload| -> terrastream_format::Result<()> {
-            out.insert(key, payload.to_vec());
-            Ok(())
-        })
-        .unwrap();
-    out
 }
 
 fn shards(dir: &Path, n: u32, split_lod: Option<u8>, dem: &Raster, image: &Image) -> Vec<PathBuf> {

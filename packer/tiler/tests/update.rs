@@ -4,10 +4,13 @@
 //! refused naming what is wrong, with nothing written.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
-use std::collections::BTreeMap;
+mod common;
+
+use common::tiles;
+
 use std::path::{Path, PathBuf};
 
-use terrastream_format::{Reader, TileKey};
+use terrastream_format::Reader;
 use terrastream_pack::progress::Silent;
 use terrastream_tiler::{ElevationStorage, Mosaic, MosaicOptions, TileOptions, tile_elevation, update};
 use tiff::encoder::{TiffEncoder, colortype};
@@ -39,18 +42,6 @@ fn base_height(x: f64, y: f64) -> f32 {
 fn tile(inputs: &[PathBuf], out: &Path) {
     let mosaic = Mosaic::open(inputs, &MosaicOptions::default()).unwrap();
     tile_elevation(&mosaic, "t", out, OPTIONS, &Silent::default()).unwrap();
-}
-
-fn tiles(path: &Path) -> BTreeMap<TileKey, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    Reader::open_mmap(path)
-        .unwrap()
-        .for_each_tile(|key, payload| -> terrastream_format::Result<()> {
-            out.insert(key, payload.to_vec());
-            Ok(())
-        })
-        .unwrap();
-    out
 }
 
 #[test]

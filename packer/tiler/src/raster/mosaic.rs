@@ -627,7 +627,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
 impl<K: MosaicKind> Mosaic<K> {
     /// Samples of rows `rows` inside an input's footprint (overlaps counted once per input).
     #[expect(clippy::cast_precision_loss, reason = "a weight")]
-    fn footprint_samples(&self, rows: std::ops::Range<u32>) -> f64 {
+    pub(crate) fn footprint_samples(&self, rows: std::ops::Range<u32>) -> f64 {
         let (width, start, end) = (i64::from(self.size.0), i64::from(rows.start), i64::from(rows.end));
         self.inputs
             .iter()

@@ -9,7 +9,7 @@ use std::sync::mpsc;
 
 use terrastream_format::Georeference;
 
-use super::{ElevationSource, ImageSource, crs_placement};
+use super::{ElevationSource, ImageSource, MosaicKind, Pixels, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
 
@@ -252,26 +252,20 @@ fn sample(band: &VecDeque<Vec<[u8; 4]>>, first: i64, width: u32, (x, y): (f64, f
     let (fx, fy) = (x - x0, y - y0);
     #[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
     let (x0, y0) = (x0 as i64, y0 as i64);
-    let mut acc = [0f64; 4];
-    for (dx, dy, w) in
-        [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
-    {
+    // The four neighbours with their weights; outside the image or the band, no data.
+    let corner = |dx: i64, dy: i64, w: f64| {
         let (px, py) = (x0 + dx, y0 + dy);
         if w <= 0.0 || px < 0 || px >= i64::from(width) || py < first {
-            continue;
+            return ([0; 4], 0.0);
         }
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked non-negative above")]
-        let Some(p) = band.get((py - first) as usize).and_then(|r| r.get(px as usize)) else { continue };
-        let a = w * f64::from(p[3]);
-        for c in 0..3 {
-            acc[c] += a * f64::from(p[c]);
-        }
-        acc[3] += a;
-    }
-    if acc[3] <= 0.0 {
-        return [0; 4];
-    }
-    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded into 0..=255")]
-    let c = |v: f64| v.round().clamp(0.0, 255.0) as u8;
-    [c(acc[0] / acc[3]), c(acc[1] / acc[3]), c(acc[2] / acc[3]), c(acc[3])]
+        let p = band.get((py - first) as usize).and_then(|r| r.get(px as usize)).copied();
+        p.map_or(([0; 4], 0.0), |p| (p, w))
+    };
+    Pixels::blend(&[
+        corner(0, 0, (1.0 - fx) * (1.0 - fy)),
+        corner(1, 0, fx * (1.0 - fy)),
+        corner(0, 1, (1.0 - fx) * fy),
+        corner(1, 1, fx * fy),
+    ])
 }
