@@ -125,6 +125,11 @@ enum Command {
         /// and transparent samples keep the earlier ones).
         #[arg(long, value_enum, default_value_t = PreferArg::Last)]
         prefer: PreferArg,
+        /// Publish the shards of a run as they are instead of one archive: the output
+        /// gets only the levels above their split LOD, and this manifest names it and
+        /// every shard (URLs relative to the manifest; FORMAT.md §9).
+        #[arg(long, conflicts_with = "prefer")]
+        manifest: Option<PathBuf>,
     },
     /// Tile new rasters over the part of an archive they cover, keeping the rest: the
     /// archive's grid, CRS and height encoding; tiles around and above are made again.
@@ -313,7 +318,21 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Command::Merge { inputs, output, prefer } => {
+        Command::Merge { inputs, output, manifest: Some(manifest), .. } => {
+            let inputs = archives_in(&inputs)?;
+            let summary = terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, &progress)?;
+            progress.finish();
+            println!(
+                "{}: {} archives ({} tiles above the split LOD made into {}, {} bytes)",
+                manifest.display(),
+                summary.manifest.archives.len(),
+                summary.coarse.addressed_tiles,
+                output.display(),
+                summary.coarse.file_len
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Merge { inputs, output, prefer, manifest: None } => {
             let inputs = archives_in(&inputs)?;
             let prefer = match prefer {
                 PreferArg::Last => terrastream_tiler::Prefer::Last,

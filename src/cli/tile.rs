@@ -98,6 +98,11 @@ pub struct TileArgs {
     /// A height outside it stops the run, naming the file.
     #[arg(long, value_parser = parse_range, allow_hyphen_values = true)]
     height_range: Option<(f32, f32)>,
+    /// Also write a manifest (FORMAT.md §9) naming the archive: what readers open when a
+    /// terrain is published as several archives (`merge --manifest` makes the one of a
+    /// sharded run).
+    #[arg(long)]
+    manifest_out: Option<PathBuf>,
 }
 
 fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
@@ -323,6 +328,10 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let shard = args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod });
     let summary = tile_shard(elevation, texture, &name, output, options, shard, progress)?;
     progress.finish();
+    if let Some(manifest) = &args.manifest_out {
+        terrastream_tiler::single_manifest(output, manifest)?;
+        println!("{}: manifest of {}", manifest.display(), output.display());
+    }
     if let Some(skipped) = mosaic.as_ref().map(Mosaic::skipped).filter(|s| !s.is_empty()) {
         println!("skipped {} inputs that cannot be used:", skipped.len());
         for (_, why) in skipped {

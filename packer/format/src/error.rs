@@ -84,6 +84,9 @@ pub enum Error {
     /// The metadata JSON is invalid.
     #[error("invalid metadata: {0}")]
     Metadata(String),
+    /// A manifest (FORMAT.md §9) is invalid, or an archive it names is not the one found.
+    #[error("manifest: {0}")]
+    Manifest(String),
     /// An I/O error on a named file. The message carries the OS error itself (it is not
     /// also the error's `source`, which would print it twice in a chain of causes).
     #[error("{path}: {error}")]

@@ -28,6 +28,7 @@ mod directory;
 mod error;
 mod header;
 mod key;
+mod manifest;
 mod metadata;
 pub mod protocol;
 mod ranges;
@@ -44,6 +45,9 @@ pub use directory::{Directory, Entry, LeafPointer, MAX_DIRECTORY_BYTES, TILE_TRA
 pub use error::{Error, Result};
 pub use header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section, VERSION_MAJOR, VERSION_MINOR};
 pub use key::{MAX_LAYERS, MAX_LODS, TileKey, layer_of, tile_id_to_zxy, zxy_to_tile_id};
+pub use manifest::{
+    Coverage, MANIFEST_FORMAT, MAX_MANIFEST_BYTES, Manifest, Part, PartLayer, Route, content_tag, is_manifest_location,
+};
 pub use metadata::{
     ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, OriginalField, PayloadCompression,
     Shard, Terrain, TileFormat, levels_to_one,

@@ -21,6 +21,7 @@ mod bc;
 pub mod crs;
 mod encode;
 mod error;
+mod manifest;
 mod merge;
 mod options;
 mod plan;
@@ -33,6 +34,7 @@ mod update;
 
 pub use crs::{Crs, Transform};
 pub use error::{Error, Result};
+pub use manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
 pub use merge::{MergeSummary, Prefer, merge, merge_with};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};

@@ -78,6 +78,43 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
 /// # Errors
 /// As [`merge`].
 pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn Progress) -> Result<MergeSummary> {
+    let Prepared { readers, metadata, shards, mut winners, conflicts } = prepare(inputs, progress)?;
+    let folder = terrastream_pack::output_folder(out);
+    let mut spool = Spool::new(&folder)?;
+    if let Some(split_lods) = &shards {
+        reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
+    } else {
+        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
+            winners.remove(&order);
+        }
+    }
+    let made = spool.tiles() as u64;
+    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
+    let mut writer = Writer::create(out, metadata.clone(), options)?;
+    let copied = write(&mut writer, &readers, &winners, spool.into_sorted()?, progress)?;
+    Ok(MergeSummary { write: writer.finish()?, copied, replaced: conflicts.len() as u64, made })
+}
+
+/// Merge inputs, opened and checked, and their tiles indexed.
+pub(crate) struct Prepared {
+    pub(crate) readers: Vec<Reader<MmapSource>>,
+    /// The merged archive's metadata.
+    pub(crate) metadata: Metadata,
+    /// With a complete set of shards: their split LODs.
+    pub(crate) shards: Option<Vec<u8>>,
+    winners: BTreeMap<u64, Found>,
+    conflicts: Conflicts,
+}
+
+impl Prepared {
+    /// Makes the levels above the split LODs into `spool` (see [`reduce`]).
+    pub(crate) fn reduce(&self, split_lods: &[u8], spool: &mut Spool, progress: &dyn Progress) -> Result<()> {
+        reduce(&self.metadata, &self.readers, &self.winners, split_lods, spool, progress)
+    }
+}
+
+/// Opens and checks the inputs, and indexes their tiles.
+pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Prepared> {
     let Some(first) = inputs.first() else {
         return Err(Error::NothingToTile);
     };
@@ -98,22 +135,8 @@ pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn
     let terrain = readers.iter().map(|r| &r.metadata().terrain);
     metadata.terrain.min_elevation = terrain.clone().map(|t| t.min_elevation).fold(f64::INFINITY, f64::min);
     metadata.terrain.max_elevation = terrain.map(|t| t.max_elevation).fold(f64::NEG_INFINITY, f64::max);
-
-    let (mut winners, conflicts) = winners(&readers, progress)?;
-    let folder = terrastream_pack::output_folder(out);
-    let mut spool = Spool::new(&folder)?;
-    if let Some(split_lods) = &shards {
-        reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
-    } else {
-        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
-            winners.remove(&order);
-        }
-    }
-    let made = spool.tiles() as u64;
-    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
-    let mut writer = Writer::create(out, metadata.clone(), options)?;
-    let copied = write(&mut writer, &readers, &winners, spool.into_sorted()?, progress)?;
-    Ok(MergeSummary { write: writer.finish()?, copied, replaced: conflicts.len() as u64, made })
+    let (winners, conflicts) = winners(&readers, progress)?;
+    Ok(Prepared { readers, metadata, shards, winners, conflicts })
 }
 
 /// The first way `other` cannot be merged with `base`, or None.
@@ -222,7 +245,7 @@ fn same_bytes(readers: &[Reader<MmapSource>], order: u64, a: Found, b: Found) ->
 
 /// Writes the inputs' winning tiles and the spooled (made) tiles in archive order; a made
 /// tile replaces an input's with the same key. Returns the tiles copied.
-fn write(
+pub(crate) fn write(
     writer: &mut Writer,
     readers: &[Reader<MmapSource>],
     winners: &BTreeMap<u64, Found>,

@@ -14,6 +14,7 @@ mod common;
 
 use common::tiles;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use terrastream_format::Reader;
@@ -272,4 +273,53 @@ fn shards_given_the_height_range_skip_its_pass_and_check_it() {
         tile_shard(Some(&narrow), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap_err().to_string();
     assert!(err.contains("outside the given height range"), "{err}");
     assert!(!out.exists());
+}
+
+/// `merge --manifest`: the shards stay, a coarse archive gets the levels above the split
+/// LOD, and the manifest routes every tile of the whole run to the one archive that holds
+/// it, with the whole run's bytes; every tile of every archive is reachable.
+#[test]
+fn a_manifest_of_shards_routes_every_tile_of_the_whole_run() {
+    use terrastream_format::Manifest;
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, image) = (dem(), image());
+    let whole = dir.path().join("whole.tspack");
+    tile_terrain(Some(&dem), Some(texture(&image)), "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let expected = tiles(&whole);
+    let expected_meta = Reader::open_mmap(&whole).unwrap().metadata().clone();
+    let shard_dir = dir.path().join("shards");
+    std::fs::create_dir(&shard_dir).unwrap();
+    let parts = shards(&shard_dir, 3, None, &dem, &image);
+    let published = dir.path().join("pub");
+    std::fs::create_dir(&published).unwrap();
+    let (coarse, manifest_path) = (published.join("coarse.tspack"), published.join("t.json"));
+    let summary = terrastream_tiler::merge_to_manifest(&parts, &coarse, &manifest_path, &Silent::default()).unwrap();
+    let manifest = Manifest::from_json(&std::fs::read(&manifest_path).unwrap()).unwrap();
+    assert_eq!(manifest, summary.manifest);
+    assert_eq!(manifest.metadata, expected_meta);
+    assert_eq!(manifest.archives.len(), 4, "the coarse archive and three shards");
+    assert_eq!(manifest.archives[0].url, "coarse.tspack");
+    assert_eq!(manifest.archives[1].url, "../shards/shard-3-0.tspack");
+    let held: Vec<_> = manifest
+        .archives
+        .iter()
+        .enumerate()
+        .map(|(i, _)| {
+            let path = manifest.resolve(manifest_path.to_str().unwrap(), i).unwrap();
+            let reader = Reader::open_mmap(&path).unwrap();
+            manifest.check_part(i, &reader.source().bytes()[..128], reader.metadata()).unwrap();
+            tiles(Path::new(&path))
+        })
+        .collect();
+    for (key, bytes) in &expected {
+        let route = manifest.route(*key).unwrap_or_else(|| panic!("{key}: no archive"));
+        assert_eq!(held[route.part].get(&route.key), Some(bytes), "{key} from archive {}", route.part);
+    }
+    let reachable: usize = held.iter().map(BTreeMap::len).sum();
+    assert_eq!(reachable, expected.len(), "every archive's tiles, each once");
+    // Not a complete shard set: refused, nothing written.
+    let e = terrastream_tiler::merge_to_manifest(&[whole], &coarse, &dir.path().join("x.json"), &Silent::default())
+        .unwrap_err();
+    assert!(e.to_string().contains("complete set of shards"), "{e}");
+    assert!(!dir.path().join("x.json").exists());
 }
