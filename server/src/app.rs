@@ -168,6 +168,9 @@ pub(crate) fn archive_answer(state: &AppState, file: &str, method: &Method, head
 }
 
 fn archive_range(state: &AppState, file: &str, method: &Method, headers: &HeaderMap) -> Result<Answer, AppError> {
+    if let Some(name) = file.strip_suffix(".json") {
+        return manifest_answer(state, name, headers);
+    }
     let name = file.strip_suffix(".tspack").ok_or_else(|| AppError::NotFound("not found\n".into()))?;
     let served = archive(state, name)?;
     let bytes = served.bytes();
@@ -228,6 +231,23 @@ fn archive_range(state: &AppState, file: &str, method: &Method, headers: &Header
     };
     h.insert(CONTENT_LENGTH, HeaderValue::from(body.len()));
     Ok(answer(status, h, body))
+}
+
+/// `GET|HEAD /{name}.json`: a manifest, as found on disk (its archives are served beside
+/// it by name; clients read them with Range requests).
+fn manifest_answer(state: &AppState, name: &str, headers: &HeaderMap) -> Result<Answer, AppError> {
+    let served =
+        state.catalog.manifest(name).ok_or_else(|| AppError::NotFound(format!("no manifest named {name:?}\n")))?;
+    let mut h = HeaderMap::with_capacity(6);
+    h.insert(ETAG, header(&served.etag));
+    // Revalidated on every use: a republished manifest must be seen at once.
+    h.insert(CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    if if_none_match(headers, &served.etag) {
+        return Ok(answer(StatusCode::NOT_MODIFIED, h, Payload::empty()));
+    }
+    h.insert(CONTENT_TYPE, HeaderValue::from_static("application/json"));
+    h.insert(CONTENT_LENGTH, HeaderValue::from(served.bytes.len()));
+    Ok(answer(StatusCode::OK, h, Payload::from(served.bytes.clone())))
 }
 
 /// An answer of these parts.
@@ -392,8 +412,20 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
         })
         .collect();
     let wants_json = headers.get(ACCEPT).and_then(|v| v.to_str().ok()).is_some_and(|v| v.contains("application/json"));
+    let manifests: Vec<serde_json::Value> = state
+        .catalog
+        .manifests()
+        .iter()
+        .map(|m| {
+            serde_json::json!({
+                "name": m.name,
+                "url": format!("/{}.json", m.name),
+                "archives": m.manifest.archives.iter().map(|p| p.url.as_str()).collect::<Vec<_>>(),
+            })
+        })
+        .collect();
     if wants_json {
-        return axum::Json(serde_json::json!({ "archives": archives })).into_response();
+        return axum::Json(serde_json::json!({ "archives": archives, "manifests": manifests })).into_response();
     }
     let mut html = String::from(
         "<!doctype html><meta charset=utf-8><title>terrastream</title><h1>terrastream archives</h1><table>\

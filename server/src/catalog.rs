@@ -122,18 +122,40 @@ fn identity(meta: &std::fs::Metadata) -> FileIdentity {
     FileIdentity { len: meta.len(), modified_ns, inode }
 }
 
-/// The served archives by name.
+/// A manifest as served (FORMAT.md §9): its bytes as found, once they validated.
+#[derive(Debug)]
+pub struct ServedManifest {
+    /// URL name: the file name without `.json`.
+    pub name: String,
+    /// File it was read from.
+    pub path: PathBuf,
+    /// The document as found.
+    pub bytes: Bytes,
+    /// It, parsed.
+    pub manifest: terrastream_format::Manifest,
+    /// Strong entity tag of the bytes, quoted.
+    pub etag: String,
+    identity: FileIdentity,
+}
+
+/// The served archives and manifests by name.
 #[derive(Debug)]
 pub struct Catalog {
     roots: Vec<PathBuf>,
     archives: RwLock<BTreeMap<String, Arc<Served>>>,
+    manifests: RwLock<BTreeMap<String, Arc<ServedManifest>>>,
     leaf_cache: usize,
 }
 
 impl Catalog {
     /// A catalog of the given files and folders (scanned by [`Catalog::reload`]).
     pub fn new(roots: Vec<PathBuf>) -> Self {
-        Self { roots, archives: RwLock::new(BTreeMap::new()), leaf_cache: terrastream_format::DEFAULT_LEAF_CACHE }
+        Self {
+            roots,
+            archives: RwLock::new(BTreeMap::new()),
+            manifests: RwLock::new(BTreeMap::new()),
+            leaf_cache: terrastream_format::DEFAULT_LEAF_CACHE,
+        }
     }
 
     /// Keeps up to `leaves` decoded leaf directories per archive opened from now on.
@@ -148,12 +170,22 @@ impl Catalog {
         self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).get(name).cloned()
     }
 
+    /// The current version of a manifest.
+    pub fn manifest(&self, name: &str) -> Option<Arc<ServedManifest>> {
+        self.manifests.read().unwrap_or_else(std::sync::PoisonError::into_inner).get(name).cloned()
+    }
+
+    /// All manifests, by name.
+    pub fn manifests(&self) -> Vec<Arc<ServedManifest>> {
+        self.manifests.read().unwrap_or_else(std::sync::PoisonError::into_inner).values().cloned().collect()
+    }
+
     /// All archives, by name.
     pub fn list(&self) -> Vec<Arc<Served>> {
         self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).values().cloned().collect()
     }
 
-    fn candidates(&self) -> Vec<PathBuf> {
+    fn candidates(&self, extension: &str) -> Vec<PathBuf> {
         let mut out = Vec::new();
         for root in &self.roots {
             if root.is_dir() {
@@ -162,25 +194,64 @@ impl Catalog {
                         entries
                             .filter_map(Result::ok)
                             .map(|e| e.path())
-                            .filter(|p| p.extension().is_some_and(|e| e == "tspack")),
+                            .filter(|p| p.extension().is_some_and(|e| e == extension)),
                     ),
                     Err(err) => tracing::warn!("cannot list {}: {err}", root.display()),
                 }
-            } else {
+            } else if root.extension().is_some_and(|e| e == extension) {
                 out.push(root.clone());
             }
         }
         out
     }
 
-    /// Rescans: maps new and replaced archives, forgets removed ones. A file that fails to
-    /// open is logged and skipped (its previous version, if any, stays served).
-    /// Returns how many archives changed.
+    /// Rescans: maps new and replaced archives, reads new and replaced manifests, forgets
+    /// removed ones. A file that fails to open (or a manifest that does not validate) is
+    /// logged and skipped (its previous version, if any, stays served). Returns how many
+    /// archives and manifests changed.
     pub fn reload(&self) -> usize {
+        self.reload_archives() + self.reload_manifests()
+    }
+
+    fn reload_manifests(&self) -> usize {
+        let current = self.manifests.read().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
+        let mut next = BTreeMap::new();
+        let mut changed = 0;
+        for path in self.candidates("json") {
+            let Some(name) = file_name(&path, ".json") else { continue };
+            let meta = match std::fs::symlink_metadata(&path) {
+                Ok(m) if m.file_type().is_file() => m,
+                _ => continue,
+            };
+            let id = identity(&meta);
+            if let Some(old) = current.get(&name).filter(|o| o.identity == id && o.path == path) {
+                next.insert(name, Arc::clone(old));
+                continue;
+            }
+            match read_manifest(&name, &path, id) {
+                Ok(served) => {
+                    tracing::info!(manifest = %name, archives = served.manifest.archives.len(), "serving {}", path.display());
+                    next.insert(name, Arc::new(served));
+                    changed += 1;
+                }
+                Err(err) => {
+                    tracing::error!("{}: {err}", path.display());
+                    if let Some(old) = current.get(&name) {
+                        next.insert(name, Arc::clone(old));
+                    }
+                }
+            }
+        }
+        changed += current.keys().filter(|k| !next.contains_key(*k)).count();
+        *self.manifests.write().unwrap_or_else(std::sync::PoisonError::into_inner) = next;
+        changed
+    }
+
+    fn reload_archives(&self) -> usize {
         let current = self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
         let mut next = BTreeMap::new();
         let mut changed = 0;
-        for path in self.candidates() {
+        for path in self.candidates("tspack") {
             let Some(name) = archive_name(&path) else { continue };
             // Only regular files: a symlink could point anywhere on the machine.
             let meta = match std::fs::symlink_metadata(&path) {
@@ -221,7 +292,33 @@ impl Catalog {
 
 /// The URL name of an archive file: its stem, restricted to a safe alphabet.
 pub fn archive_name(path: &Path) -> Option<String> {
-    let stem = path.file_name()?.to_str()?.strip_suffix(".tspack")?;
+    file_name(path, ".tspack")
+}
+
+fn read_manifest(name: &str, path: &Path, id: FileIdentity) -> Result<ServedManifest, terrastream_format::Error> {
+    let file = |error| terrastream_format::Error::File { path: path.to_path_buf(), error };
+    let mut bytes = Vec::new();
+    let reader = std::fs::File::open(path).map_err(file)?;
+    std::io::Read::read_to_end(
+        &mut std::io::Read::take(reader, terrastream_format::MAX_MANIFEST_BYTES + 1),
+        &mut bytes,
+    )
+    .map_err(file)?;
+    let manifest = terrastream_format::Manifest::from_json(&bytes)?;
+    let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(&bytes));
+    Ok(ServedManifest {
+        name: name.to_owned(),
+        path: path.to_path_buf(),
+        bytes: bytes.into(),
+        manifest,
+        etag,
+        identity: id,
+    })
+}
+
+/// A file's URL name: its name without `suffix`, restricted to a safe alphabet.
+fn file_name(path: &Path, suffix: &str) -> Option<String> {
+    let stem = path.file_name()?.to_str()?.strip_suffix(suffix)?;
     let ok = !stem.is_empty()
         && stem.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
         && !stem.starts_with('.');

@@ -68,9 +68,17 @@ impl Streamer {
         for key in keys {
             let location = match &backend {
                 Backend::Archive(reader) => match self.runtime.block_on(reader.locate(key))? {
-                    Some(location) => Some(location),
+                    Some(location) => Some((0, location)),
                     None => continue,
                 },
+                Backend::Manifest(parts) => {
+                    let Some(route) = parts.manifest.route(key) else { continue };
+                    let reader = self.runtime.block_on(parts.open(route.part))?;
+                    match self.runtime.block_on(reader.locate(route.key))? {
+                        Some(location) => Some((route.part, location)),
+                        None => continue,
+                    }
+                }
                 Backend::Endpoint(..) | Backend::Host(_) => None,
             };
             let group = Group { rank: 0, tiles: vec![(key, location)] };

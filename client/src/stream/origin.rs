@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use bytes::Bytes;
 use reqwest::StatusCode;
-use terrastream_format::{AsyncRangeSource, AsyncReader, MaybeSend, MaybeSync, Metadata, TileKey, protocol};
+use terrastream_format::{AsyncRangeSource, AsyncReader, Manifest, MaybeSend, MaybeSync, Metadata, TileKey, protocol};
 
 use crate::error::{Error, Result};
 use crate::source::http::HttpSource;
@@ -208,6 +208,129 @@ impl HostTiles {
     }
 }
 
+/// A terrain published as several archives: a manifest (FORMAT.md §9) at a path or URL.
+/// Its archives are opened when a tile of theirs is first wanted, over one shared HTTP
+/// client (one pool, one HTTP/2 connection per host).
+#[derive(Debug)]
+pub struct ManifestSource {
+    location: String,
+    client: Option<reqwest::Client>,
+}
+
+impl ManifestSource {
+    /// The manifest at `location`: a path (native) or an `http(s)://` URL.
+    ///
+    /// # Errors
+    /// [`Error::HttpClient`] if the HTTP client cannot be built.
+    pub fn new(location: &str) -> Result<Self> {
+        let client = if is_http_url(location) {
+            let builder = reqwest::Client::builder();
+            #[cfg(not(target_arch = "wasm32"))]
+            let builder = builder.pool_max_idle_per_host(64).tcp_nodelay(true);
+            Some(builder.build().map_err(|e| Error::HttpClient { reason: e.to_string() })?)
+        } else {
+            None
+        };
+        Ok(Self { location: location.to_owned(), client })
+    }
+
+    /// Where the manifest is.
+    pub fn location(&self) -> &str {
+        &self.location
+    }
+
+    /// Reads and validates the manifest.
+    ///
+    /// # Errors
+    /// A request or file error naming the manifest; a manifest error.
+    pub async fn manifest(&self) -> Result<Manifest> {
+        let bytes = match &self.client {
+            Some(client) => {
+                let fail = |reason: String| Error::Request { url: self.location.clone(), reason };
+                let response = client.get(&self.location).send().await.map_err(|e| fail(e.to_string()))?;
+                if response.status() != StatusCode::OK {
+                    return Err(Error::Status { url: self.location.clone(), status: response.status().as_u16() });
+                }
+                response.bytes().await.map_err(|e| fail(format!("body: {e}")))?
+            }
+            None => read_file(&self.location)?,
+        };
+        Manifest::from_json(&bytes).map_err(|e| Error::Request { url: self.location.clone(), reason: e.to_string() })
+    }
+
+    /// Opens archive `part` of `manifest` and checks it is the one named.
+    pub(crate) async fn open_part(&self, manifest: &Manifest, part: usize) -> Result<Arc<AsyncReader<DynSource>>> {
+        let location = manifest.resolve(&self.location, part).ok_or(Error::NotOpen { why: None })?;
+        let source = match &self.client {
+            Some(client) => {
+                DynSource::new(HttpSource::with_client(client.clone(), &location, crate::RetryPolicy::default())?)
+            }
+            None => open_file(&location)?,
+        };
+        let reader = AsyncReader::new(source).await?;
+        let header = reader.archive().header().encode();
+        manifest.check_part(part, &header, reader.metadata())?;
+        Ok(Arc::new(reader))
+    }
+}
+
+#[cfg(not(target_arch = "wasm32"))]
+fn read_file(path: &str) -> Result<Bytes> {
+    let file =
+        std::fs::File::open(path).map_err(|e| terrastream_format::Error::File { path: path.into(), error: e })?;
+    let mut bytes = Vec::new();
+    std::io::Read::read_to_end(&mut std::io::Read::take(file, terrastream_format::MAX_MANIFEST_BYTES + 1), &mut bytes)
+        .map_err(|e| terrastream_format::Error::File { path: path.into(), error: e })?;
+    Ok(bytes.into())
+}
+
+#[cfg(target_arch = "wasm32")]
+fn read_file(path: &str) -> Result<Bytes> {
+    Err(Error::NotAUrl { location: path.to_owned() })
+}
+
+#[cfg(not(target_arch = "wasm32"))]
+fn open_file(path: &str) -> Result<DynSource> {
+    Ok(DynSource::new(terrastream_format::MmapSource::open(path)?))
+}
+
+#[cfg(target_arch = "wasm32")]
+fn open_file(path: &str) -> Result<DynSource> {
+    Err(Error::NotAUrl { location: path.to_owned() })
+}
+
+/// An opened manifest: its archives, each opened once, when first needed.
+#[derive(Debug)]
+pub(crate) struct Parts {
+    pub(crate) source: Arc<ManifestSource>,
+    pub(crate) manifest: Manifest,
+    readers: Vec<std::sync::OnceLock<Arc<AsyncReader<DynSource>>>>,
+}
+
+impl Parts {
+    /// Archive `part`, if opened.
+    pub(crate) fn reader(&self, part: usize) -> Option<&Arc<AsyncReader<DynSource>>> {
+        self.readers.get(part)?.get()
+    }
+
+    /// Keeps an opened archive (the first one opened wins).
+    pub(crate) fn set(&self, part: usize, reader: Arc<AsyncReader<DynSource>>) {
+        if let Some(slot) = self.readers.get(part) {
+            let _ = slot.set(reader);
+        }
+    }
+
+    /// Archive `part`, opened now if it is not yet.
+    pub(crate) async fn open(&self, part: usize) -> Result<Arc<AsyncReader<DynSource>>> {
+        if let Some(reader) = self.reader(part) {
+            return Ok(reader.clone());
+        }
+        let reader = self.source.open_part(&self.manifest, part).await?;
+        self.set(part, reader.clone());
+        Ok(reader)
+    }
+}
+
 /// What a streamer streams from.
 #[derive(Clone, Debug)]
 pub enum Origin {
@@ -217,6 +340,8 @@ pub enum Origin {
     Endpoint(Arc<EndpointSource>),
     /// Tiles handed in by the host application.
     Host(Arc<HostTiles>),
+    /// Several archives named by a manifest, streamed as one.
+    Manifest(Arc<ManifestSource>),
 }
 
 impl Origin {
@@ -226,13 +351,17 @@ impl Origin {
     }
 
     /// A location as the command line takes it: a file path (memory-mapped), an
-    /// `http(s)://…/name.tspack` URL (Range requests against any server or CDN), or an
-    /// `http(s)://…/name` URL of our server's tile endpoint.
+    /// `http(s)://…/name.tspack` URL (Range requests against any server or CDN), an
+    /// `http(s)://…/name` URL of our server's tile endpoint, or a manifest's path or URL
+    /// (`….json`).
     ///
     /// # Errors
     /// A file error naming a file that cannot be mapped; [`Error::BadUrl`] for a bad URL;
     /// [`Error::NotAUrl`] for a path in the browser.
     pub fn parse(location: &str) -> Result<Self> {
+        if terrastream_format::is_manifest_location(location) {
+            return Ok(Self::Manifest(Arc::new(ManifestSource::new(location)?)));
+        }
         if is_http_url(location) {
             let path = location.split(['?', '#']).next().unwrap_or(location);
             return if path.ends_with(".tspack") {
@@ -261,6 +390,11 @@ impl Origin {
                 Ok(Backend::Endpoint(endpoint.clone(), Arc::new(metadata)))
             }
             Self::Host(host) => Ok(Backend::Host(host.clone())),
+            Self::Manifest(source) => {
+                let manifest = source.manifest().await?;
+                let readers = manifest.archives.iter().map(|_| std::sync::OnceLock::new()).collect();
+                Ok(Backend::Manifest(Arc::new(Parts { source: source.clone(), manifest, readers })))
+            }
         }
     }
 
@@ -268,7 +402,7 @@ impl Origin {
         match self {
             Self::Archive(source) => source.forget(),
             Self::Endpoint(endpoint) => endpoint.forget(),
-            Self::Host(_) => {}
+            Self::Host(_) | Self::Manifest(_) => {}
         }
     }
 }
@@ -279,6 +413,7 @@ pub(crate) enum Backend {
     Archive(Arc<AsyncReader<DynSource>>),
     Endpoint(Arc<EndpointSource>, Arc<Metadata>),
     Host(Arc<HostTiles>),
+    Manifest(Arc<Parts>),
 }
 
 impl Backend {
@@ -287,6 +422,16 @@ impl Backend {
             Self::Archive(reader) => reader.metadata(),
             Self::Endpoint(_, metadata) => metadata,
             Self::Host(host) => host.metadata(),
+            Self::Manifest(parts) => &parts.manifest.metadata,
+        }
+    }
+
+    /// The archive reader of part `part` (0 for a single archive), if open.
+    pub(crate) fn part_reader(&self, part: usize) -> Option<&Arc<AsyncReader<DynSource>>> {
+        match self {
+            Self::Archive(reader) => (part == 0).then_some(reader),
+            Self::Manifest(parts) => parts.reader(part),
+            Self::Endpoint(..) | Self::Host(_) => None,
         }
     }
 }

@@ -182,9 +182,12 @@ pub(super) enum Completion {
         needed: u64,
         took: Duration,
     },
+    /// A leaf directory of archive `part` (0 unless a manifest's), or (offset
+    /// [`OPEN_PART`]) the archive itself, opened.
     Leaf {
         request: u64,
         generation: u64,
+        part: usize,
         offset: u64,
         failure: Option<String>,
         bytes: u64,
@@ -200,9 +203,15 @@ pub(super) enum Completion {
     },
 }
 
+/// The "leaf offset" of a manifest's archive being opened: its header and root directory.
+const OPEN_PART: u64 = u64::MAX;
+
+/// A tile's bytes: in which archive (0 unless a manifest's), where.
+pub(super) type Located = (usize, TileLocation);
+
 struct InFlight {
     tiles: Vec<TileKey>,
-    leaf: Option<u64>,
+    leaf: Option<(usize, u64)>,
     abort: AbortHandle,
 }
 
@@ -281,7 +290,7 @@ pub struct Streamer {
     pub(super) runtime: tokio::runtime::Runtime,
     states: HashMap<TileKey, TileState>,
     requests: HashMap<u64, InFlight>,
-    leaf_failures: HashMap<u64, (u32, Instant)>,
+    leaf_failures: HashMap<(usize, u64), (u32, Instant)>,
     flow: Flow,
     next_request: u64,
     pub(super) cache: TileCache,
@@ -395,6 +404,18 @@ impl Streamer {
             cache_tiles: self.cache.len() as u64,
             wanted: self.wanted.len() as u64,
             ..self.stats.clone()
+        }
+    }
+
+    /// For a manifest, which of its archives are open (opened when a tile of theirs is
+    /// first wanted); for a single archive, `[true]` once open; empty before.
+    pub fn opened_parts(&self) -> Vec<bool> {
+        match self.backend() {
+            Some(Backend::Manifest(parts)) => {
+                (0..parts.manifest.archives.len()).map(|i| parts.reader(i).is_some()).collect()
+            }
+            Some(_) => vec![true],
+            None => Vec::new(),
         }
     }
 
@@ -606,11 +627,11 @@ impl Streamer {
                         self.absorb(results, now);
                     }
                 }
-                Completion::Leaf { request, generation, offset, failure, bytes, took } => {
+                Completion::Leaf { request, generation, part, offset, failure, bytes, took } => {
                     if generation == self.generation {
                         self.finished(request, took);
                         self.stats.bytes_fetched += bytes;
-                        self.leaf_done(offset, failure, now);
+                        self.leaf_done((part, offset), failure, now);
                     }
                 }
             }
@@ -686,7 +707,7 @@ impl Streamer {
     }
 
     /// A leaf directory arrived (or failed: retried later with a growing backoff).
-    fn leaf_done(&mut self, offset: u64, failure: Option<String>, now: Instant) {
+    fn leaf_done(&mut self, offset: (usize, u64), failure: Option<String>, now: Instant) {
         if let Some(why) = failure {
             self.stats.failures += 1;
             self.last_error = Some(why);
@@ -760,7 +781,7 @@ impl Streamer {
             return;
         }
         // Candidates, most urgent first; located (for archives) so they can be coalesced.
-        let mut candidates: Vec<(usize, TileKey, Option<TileLocation>)> = Vec::new();
+        let mut candidates: Vec<(usize, TileKey, Option<Located>)> = Vec::new();
         let limit = free * 64;
         // What the view wants, then what it will want soon, unless the link is queueing.
         let soon = if self.flow.queueing { &[][..] } else { &self.prefetch[..] };
@@ -775,29 +796,52 @@ impl Streamer {
                 Some(TileState::Failed { retry_at, .. }) if *retry_at > now => continue,
                 _ => {}
             }
-            match &backend {
-                Backend::Archive(reader) => match reader.archive().locate(key) {
-                    Ok(Locate::Found(location)) => candidates.push((rank, key, Some(location))),
-                    Ok(Locate::Missing) => {
+            let (part, part_key) = match &backend {
+                Backend::Archive(_) => (0, key),
+                Backend::Manifest(parts) => match parts.manifest.route(key) {
+                    Some(route) => (route.part, route.key),
+                    None => {
                         self.stats.missing += 1;
                         self.states.insert(key, TileState::Missing);
-                    }
-                    Ok(Locate::NeedLeaf { offset, len }) => {
-                        let waiting = self.leaf_failures.get(&offset).is_some_and(|f| f.1 > now);
-                        let fetching = self.requests.values().any(|r| r.leaf == Some(offset));
-                        if free > 0 && !waiting && !fetching {
-                            free -= 1;
-                            self.fetch_leaf(reader.clone(), offset, len);
-                        }
-                    }
-                    Err(e) => {
-                        self.stats.failures += 1;
-                        self.last_error = Some(e.to_string());
-                        let retry_at = now + self.options.max_retry_backoff;
-                        self.states.insert(key, TileState::Failed { failures: 16, retry_at });
+                        continue;
                     }
                 },
-                Backend::Endpoint(..) | Backend::Host(_) => candidates.push((rank, key, None)),
+                Backend::Endpoint(..) | Backend::Host(_) => {
+                    candidates.push((rank, key, None));
+                    if candidates.len() >= limit {
+                        break;
+                    }
+                    continue;
+                }
+            };
+            let Some(reader) = backend.part_reader(part) else {
+                // A manifest's archive not opened yet: open it (one request, like a leaf).
+                if let Backend::Manifest(parts) = &backend {
+                    if free > 0 && self.may_fetch_leaf((part, OPEN_PART), now) {
+                        free -= 1;
+                        self.open_part(parts.clone(), part);
+                    }
+                }
+                continue;
+            };
+            match reader.archive().locate(part_key) {
+                Ok(Locate::Found(location)) => candidates.push((rank, key, Some((part, location)))),
+                Ok(Locate::Missing) => {
+                    self.stats.missing += 1;
+                    self.states.insert(key, TileState::Missing);
+                }
+                Ok(Locate::NeedLeaf { offset, len }) => {
+                    if free > 0 && self.may_fetch_leaf((part, offset), now) {
+                        free -= 1;
+                        self.fetch_leaf(reader.clone(), part, offset, len);
+                    }
+                }
+                Err(e) => {
+                    self.stats.failures += 1;
+                    self.last_error = Some(e.to_string());
+                    let retry_at = now + self.options.max_retry_backoff;
+                    self.states.insert(key, TileState::Failed { failures: 16, retry_at });
+                }
             }
             if candidates.len() >= limit {
                 break;
@@ -809,30 +853,37 @@ impl Streamer {
         }
     }
 
-    /// Splits candidates into requests: runs of tiles whose bytes are at most
-    /// `coalesce_gap` apart (archives only), ordered by their most urgent tile.
-    fn group(&self, mut candidates: Vec<(usize, TileKey, Option<TileLocation>)>) -> Vec<Group> {
+    /// Is a leaf (or a manifest's archive) neither being fetched nor waiting to be
+    /// retried?
+    fn may_fetch_leaf(&self, leaf: (usize, u64), now: Instant) -> bool {
+        let waiting = self.leaf_failures.get(&leaf).is_some_and(|f| f.1 > now);
+        !waiting && !self.requests.values().any(|r| r.leaf == Some(leaf))
+    }
+
+    /// Splits candidates into requests: runs of tiles of one archive whose bytes are at
+    /// most `coalesce_gap` apart, ordered by their most urgent tile.
+    fn group(&self, mut candidates: Vec<(usize, TileKey, Option<Located>)>) -> Vec<Group> {
         let mut groups: Vec<Group> = Vec::new();
         let located = candidates.iter().all(|c| c.2.is_some());
         if !located {
             return candidates.into_iter().map(|(rank, key, loc)| Group { rank, tiles: vec![(key, loc)] }).collect();
         }
-        candidates.sort_by_key(|c| c.2.map(|l| l.offset));
+        candidates.sort_by_key(|c| c.2.map(|(part, l)| (part, l.offset)));
         for (rank, key, location) in candidates {
-            let Some(loc) = location else { continue };
+            let Some((part, loc)) = location else { continue };
             let end = loc.offset + loc.blob_len();
-            if let Some(g) = groups.last_mut() {
+            if let Some(g) = groups.last_mut().filter(|g| g.part() == Some(part)) {
                 let (start, g_end) = g.span();
-                let same_blob = g.tiles.iter().any(|t| t.1.is_some_and(|l| l.offset == loc.offset));
+                let same_blob = g.tiles.iter().any(|t| t.1.is_some_and(|l| l.1.offset == loc.offset));
                 let close = loc.offset <= g_end + self.options.coalesce_gap
                     && end.max(g_end) - start <= self.options.max_request_bytes;
                 if same_blob || (self.options.coalesce && close) {
                     g.rank = g.rank.min(rank);
-                    g.tiles.push((key, Some(loc)));
+                    g.tiles.push((key, Some((part, loc))));
                     continue;
                 }
             }
-            groups.push(Group { rank, tiles: vec![(key, Some(loc))] });
+            groups.push(Group { rank, tiles: vec![(key, Some((part, loc)))] });
         }
         groups.sort_by_key(|g| g.rank);
         groups
@@ -846,12 +897,13 @@ impl Streamer {
     fn fetch_leaf(
         &mut self,
         reader: Arc<terrastream_format::AsyncReader<super::origin::DynSource>>,
+        part: usize,
         offset: u64,
         len: u64,
     ) {
         let id = self.next_id();
         let (abort, registration) = AbortHandle::new_pair();
-        self.requests.insert(id, InFlight { tiles: Vec::new(), leaf: Some(offset), abort });
+        self.requests.insert(id, InFlight { tiles: Vec::new(), leaf: Some((part, offset)), abort });
         self.stats.requests += 1;
         let (queue, generation) = (self.queue.clone(), self.generation);
         self.spawn(async move {
@@ -865,7 +917,33 @@ impl Streamer {
                     Err(e) => (Some(e.to_string()), 0),
                 };
                 let took = started.elapsed();
-                Completion::Leaf { request: id, generation, offset, failure, bytes: bytes as u64, took }
+                Completion::Leaf { request: id, generation, part, offset, failure, bytes: bytes as u64, took }
+            };
+            if let Ok(c) = Abortable::new(work, registration).await {
+                queue.push(c);
+            }
+        });
+    }
+
+    /// Opens archive `part` of a manifest (its header, metadata and root directory).
+    fn open_part(&mut self, parts: Arc<super::origin::Parts>, part: usize) {
+        let id = self.next_id();
+        let (abort, registration) = AbortHandle::new_pair();
+        self.requests.insert(id, InFlight { tiles: Vec::new(), leaf: Some((part, OPEN_PART)), abort });
+        self.stats.requests += 1;
+        let (queue, generation) = (self.queue.clone(), self.generation);
+        self.spawn(async move {
+            let work = async {
+                let started = Instant::now();
+                let (failure, bytes) = match parts.open(part).await {
+                    Ok(reader) => (None, reader.archive().header().bootstrap_len()),
+                    Err(Error::Changed { what } | Error::Format(terrastream_format::Error::Changed { what })) => {
+                        return Completion::Changed { generation, what };
+                    }
+                    Err(e) => (Some(e.to_string()), 0),
+                };
+                let took = started.elapsed();
+                Completion::Leaf { request: id, generation, part, offset: OPEN_PART, failure, bytes, took }
             };
             if let Ok(c) = Abortable::new(work, registration).await {
                 queue.push(c);
@@ -903,12 +981,18 @@ impl Drop for Streamer {
 
 pub(super) struct Group {
     pub(super) rank: usize,
-    pub(super) tiles: Vec<(TileKey, Option<TileLocation>)>,
+    /// Tiles of one archive (located) or of an endpoint or host (not located).
+    pub(super) tiles: Vec<(TileKey, Option<Located>)>,
 }
 
 impl Group {
+    /// The archive the tiles are in (0 unless a manifest's).
+    pub(super) fn part(&self) -> Option<usize> {
+        self.tiles.first().and_then(|t| t.1).map(|l| l.0)
+    }
+
     fn span(&self) -> (u64, u64) {
-        let locations = self.tiles.iter().filter_map(|t| t.1);
+        let locations = self.tiles.iter().filter_map(|t| t.1.map(|l| l.1));
         let start = locations.clone().map(|l| l.offset).min().unwrap_or(0);
         let end = locations.map(|l| l.offset + l.blob_len()).max().unwrap_or(0);
         (start, end)
@@ -926,38 +1010,64 @@ fn decode_guarded(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool)
     }
 }
 
+type Fetched = Vec<(TileKey, std::result::Result<Option<Bytes>, String>)>;
+
+/// Fetches a group of located tiles of one archive in one range request: each tile's
+/// payload (or why not), bytes received, bytes of the tiles themselves. Err: the archive
+/// was replaced (what changed).
+async fn fetch_located(
+    reader: &terrastream_format::AsyncReader<super::origin::DynSource>,
+    group: &Group,
+) -> std::result::Result<(Fetched, u64, u64), String> {
+    let mut raw = Vec::new();
+    let (start, end) = group.span();
+    match reader.source().fetch(start, end - start).await {
+        Ok(body) => {
+            let mut blobs = HashSet::new();
+            let mut needed = 0;
+            for (key, location) in &group.tiles {
+                let Some((_, loc)) = location else { continue };
+                if blobs.insert(loc.offset) {
+                    needed += loc.blob_len();
+                }
+                let from = usize::try_from(loc.offset - start).unwrap_or(usize::MAX);
+                let to = from.saturating_add(usize::try_from(loc.blob_len()).unwrap_or(usize::MAX));
+                let result = if to <= body.len() {
+                    reader.archive().payload(loc, body.slice(from..to)).map(Some).map_err(|e| e.to_string())
+                } else {
+                    Err(format!("tile {key}: short read"))
+                };
+                raw.push((*key, result));
+            }
+            Ok((raw, body.len() as u64, needed))
+        }
+        Err(terrastream_format::Error::Changed { what }) => Err(what),
+        Err(e) => {
+            raw.extend(group.tiles.iter().map(|(k, _)| (*k, Err(e.to_string()))));
+            Ok((raw, 0, 0))
+        }
+    }
+}
+
 /// Fetches a group of tiles (one request) and decodes them off the calling thread.
 pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generation: u64) -> Completion {
     let changed = |what| Completion::Changed { generation, what };
     let started = Instant::now();
-    let mut raw: Vec<(TileKey, std::result::Result<Option<Bytes>, String>)> = Vec::new();
+    let mut raw: Fetched = Vec::new();
     let (mut bytes, mut needed) = (0, 0);
     let compressed;
     match &backend {
-        Backend::Archive(reader) => {
+        Backend::Archive(_) | Backend::Manifest(_) => {
             compressed = true;
-            let (start, end) = group.span();
-            match reader.source().fetch(start, end - start).await {
-                Ok(body) => {
-                    bytes = body.len() as u64;
-                    let mut blobs = HashSet::new();
-                    for (key, location) in &group.tiles {
-                        let Some(loc) = location else { continue };
-                        if blobs.insert(loc.offset) {
-                            needed += loc.blob_len();
-                        }
-                        let from = usize::try_from(loc.offset - start).unwrap_or(usize::MAX);
-                        let to = from.saturating_add(usize::try_from(loc.blob_len()).unwrap_or(usize::MAX));
-                        let result = if to <= body.len() {
-                            reader.archive().payload(loc, body.slice(from..to)).map(Some).map_err(|e| e.to_string())
-                        } else {
-                            Err(format!("tile {key}: short read"))
-                        };
-                        raw.push((*key, result));
-                    }
+            match group.part().and_then(|part| backend.part_reader(part)) {
+                Some(reader) => match fetch_located(reader, &group).await {
+                    Ok(fetched) => (raw, bytes, needed) = fetched,
+                    Err(what) => return changed(what),
+                },
+                None => {
+                    let why = || Err("the archive holding it is not open".to_owned());
+                    raw.extend(group.tiles.iter().map(|(k, _)| (*k, why())));
                 }
-                Err(terrastream_format::Error::Changed { what }) => return changed(what),
-                Err(e) => raw.extend(group.tiles.iter().map(|(k, _)| (*k, Err(e.to_string())))),
             }
         }
         Backend::Endpoint(endpoint, _) => {

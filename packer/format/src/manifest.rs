@@ -74,8 +74,9 @@ pub struct Route {
     pub key: TileKey,
 }
 
-/// The content tag of an archive: 16 hex digits of the XXH3 hash of its 128-byte header,
-/// which holds the sections' offsets, lengths and checksums. Unlike an HTTP ETag it does
+/// The content tag of an archive: 16 hex digits of the XXH3 hash of its 128-byte header
+/// (as [`crate::Header::encode`] writes it), which holds the sections' offsets, lengths
+/// and checksums. Unlike an HTTP ETag it does
 /// not depend on the host (a CDN or nginx derives ETags from file times), so a manifest
 /// can name it before the archives are published.
 pub fn content_tag(header: &[u8]) -> String {

@@ -54,7 +54,7 @@ pub fn merge_to_manifest(
         Reader::open_mmap(coarse).map_err(|e| Error::input(coarse, format!("cannot read back: {e}")))?;
     let mut archives = vec![Part {
         url: relative_url(&folder, coarse)?,
-        etag: content_tag(&coarse_reader.source().bytes()[..terrastream_format::HEADER_LEN]),
+        etag: content_tag(&coarse_reader.header().encode()),
         layers: coarse_layers(&metadata, &split_lods),
     }];
     for (path, reader) in inputs.iter().zip(&prepared.readers) {
@@ -66,11 +66,7 @@ pub fn merge_to_manifest(
         if layers.is_empty() {
             continue;
         }
-        archives.push(Part {
-            url: relative_url(&folder, path)?,
-            etag: content_tag(&reader.source().bytes()[..terrastream_format::HEADER_LEN]),
-            layers,
-        });
+        archives.push(Part { url: relative_url(&folder, path)?, etag: content_tag(&reader.header().encode()), layers });
     }
     let manifest = Manifest { archives, ..Manifest::single(metadata, String::new(), String::new()) };
     manifest.validate()?;
@@ -158,11 +154,8 @@ pub fn single_manifest(archive: &Path, manifest_path: &Path) -> Result<Manifest>
     let folder = terrastream_pack::output_folder(manifest_path);
     let mut metadata = reader.metadata().clone();
     metadata.shard = None;
-    let mut manifest = Manifest::single(
-        metadata,
-        relative_url(&folder, archive)?,
-        content_tag(&reader.source().bytes()[..terrastream_format::HEADER_LEN]),
-    );
+    let mut manifest =
+        Manifest::single(metadata, relative_url(&folder, archive)?, content_tag(&reader.header().encode()));
     // A shard holds only its band up to its split LOD.
     if let Some(shard) = &reader.metadata().shard {
         manifest.archives[0].layers = shard_layers(&manifest.metadata, &shard.split_lods, &shard.tile_rows);
