@@ -228,3 +228,43 @@ fn a_missing_archive_is_named_once() {
     assert_eq!(said.matches("missing.tspack").count(), 1, "{said}");
     assert_eq!(said.matches("No such file or directory").count(), 1, "{said}");
 }
+
+/// `merge --manifest` over a sharded run, then `info` and `verify` of the manifest; a
+/// shard replaced by another is named; `tile --manifest-out` names one archive.
+#[test]
+fn a_sharded_run_is_published_by_a_manifest_that_info_and_verify_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = dem.to_str().unwrap();
+    for i in 0..3 {
+        let shard = format!("{i}/3");
+        let out = terrastream(
+            &["tile", "--elevation", dem, "--tile-size", "32", "--shard", &shard, "-o", &format!("s{i}.tspack")],
+            cwd,
+        );
+        assert!(out.status.success(), "{}", text(&out));
+    }
+    let out = terrastream(
+        &["merge", "s0.tspack", "s1.tspack", "s2.tspack", "-o", "coarse.tspack", "--manifest", "t.json"],
+        cwd,
+    );
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("t.json: 4 archives"), "{}", text(&out));
+    let out = terrastream(&["info", "t.json"], cwd);
+    let info = text(&out);
+    assert!(out.status.success() && info.contains("4 archives") && info.contains("s2.tspack"), "{info}");
+    let out = terrastream(&["verify", "t.json"], cwd);
+    assert!(out.status.success() && text(&out).contains("OK — 4 archives"), "{}", text(&out));
+    // Shard 1 replaced by shard 0: its content tag and its tiles' places are named.
+    std::fs::copy(cwd.join("s0.tspack"), cwd.join("s1.tspack")).unwrap();
+    let out = terrastream(&["verify", "t.json"], cwd);
+    let why = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{why}");
+    assert!(why.contains("archive \"s1.tspack\": content tag") && why.contains("not routed here"), "{why}");
+    // One archive, one manifest.
+    let out = terrastream(&["tile", "--elevation", dem, "-o", "whole.tspack", "--manifest-out", "whole.json"], cwd);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["verify", "whole.json"], cwd);
+    assert!(out.status.success() && text(&out).contains("OK — 1 archives"), "{}", text(&out));
+}

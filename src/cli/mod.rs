@@ -5,6 +5,7 @@ mod bench_render;
 mod bench_stream;
 mod demo;
 mod info;
+mod manifest;
 mod pack;
 mod progress;
 mod render;
@@ -41,9 +42,10 @@ pub struct Cli {
 enum Command {
     /// Pack an existing tile pyramid (original LOD folders or an XYZ/TMS tree) into one archive.
     Pack(pack::PackArgs),
-    /// Describe an archive: layers, grids, tiles per LOD, sizes, dedup.
+    /// Describe an archive: layers, grids, tiles per LOD, sizes, dedup (a manifest: its
+    /// archives and what each holds).
     Info {
-        /// The archive: a path or an http(s):// URL.
+        /// The archive or manifest (`.json`): a path or an http(s):// URL.
         archive: String,
         /// Print JSON instead of text.
         #[arg(long)]
@@ -53,9 +55,10 @@ enum Command {
         #[arg(long, conflicts_with = "json")]
         tiles: bool,
     },
-    /// Check an archive's structure and every checksum; non-zero exit if damaged.
+    /// Check an archive's structure and every checksum; non-zero exit if damaged (a
+    /// manifest: every archive, each the one named, each tile where it routes).
     Verify {
-        /// The archive: a path or an http(s):// URL.
+        /// The archive or manifest (`.json`): a path or an http(s):// URL.
         archive: String,
     },
     /// Write an archive's tiles back as files.
@@ -244,7 +247,13 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
     let progress = CliProgress::install(quiet);
     match command {
         Command::Pack(args) => pack::run(args, &progress),
+        Command::Info { archive, json, tiles: false } if terrastream_format::is_manifest_location(&archive) => {
+            manifest::info(&archive, json)
+        }
         Command::Info { archive, json, tiles } => info::run(&archive, json, tiles),
+        Command::Verify { archive } if terrastream_format::is_manifest_location(&archive) => {
+            manifest::verify_all(&archive, &progress)
+        }
         Command::Verify { archive } => {
             let reader = open(&archive)?;
             progress.start_bytes("verify", reader.header().data.len);
