@@ -520,3 +520,53 @@ fn webplayer_explains_what_is_wrong() {
     let text = browser.wait_error();
     assert!(text.contains("needs WebGPU or WebGL2"), "{text}");
 }
+
+/// A terrain published as a manifest (three shards and the coarse archive) and served
+/// by `terrastream serve`: `/view/{manifest}` streams across the four archives and
+/// draws the same picture as the single archive.
+#[test]
+fn webplayer_streams_a_manifest_of_four_archives() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let shards: Vec<String> = (0..3).map(|i| dir.path().join(format!("s{i}.tspack")).display().to_string()).collect();
+    for (i, shard) in shards.iter().enumerate() {
+        let spec = format!("{i}/3");
+        terrastream(&[
+            "tile",
+            "--elevation",
+            dem.to_str().unwrap(),
+            "-o",
+            shard,
+            "--tile-size",
+            "64",
+            "--shard",
+            &spec,
+        ]);
+    }
+    let coarse = dir.path().join("coarse.tspack").display().to_string();
+    let manifest = dir.path().join("tamalpais.json").display().to_string();
+    let mut args = vec!["merge"];
+    args.extend(shards.iter().map(String::as_str));
+    args.extend(["-o", &coarse, "--manifest", &manifest]);
+    terrastream(&args);
+    let (port, _server) = serve(dir.path());
+
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGPU_FLAGS);
+    browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0"));
+    let stats = browser.wait_settled();
+    eprintln!("manifest: {stats}");
+    assert_eq!(stats["missing"], json!(0), "{stats}");
+    assert_eq!(stats["failures"], json!(0), "{stats}");
+    let wanted = stats["wanted"].as_u64().unwrap();
+    assert!(wanted >= 5, "{stats}");
+    assert_eq!(stats["resident"][0].as_u64().unwrap(), wanted, "{stats}");
+    std::thread::sleep(Duration::from_millis(500));
+    let (w, h, rgba) = browser.screenshot("#terrain");
+    terrastream_testkit::golden::assert_golden("webplayer-webgpu", w, h, &rgba, TOLERANCE);
+    let errors: Vec<_> = browser.console().into_iter().filter(|(level, _)| level == "SEVERE").collect();
+    assert!(errors.is_empty(), "console errors: {errors:?}");
+}

@@ -25,3 +25,4 @@ pub use stream::decode::{DecodedTile, TileData, decode};
 pub use stream::origin::{DynSource, EndpointSource, HostTiles, ManifestSource, Origin};
 pub use stream::select::{SelectOptions, Want, select};
 pub use stream::streamer::{StreamOptions, StreamStats, Streamer, Upload, UploadBudget};
+pub use terrastream_format::is_manifest_location;

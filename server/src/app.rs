@@ -476,8 +476,13 @@ async fn view(
         };
         return response.map_err(|e| AppError::Internal(e.to_string()));
     }
-    let served = archive(&state, &name)?;
-    let Some(page) = crate::player::page(&format!("../{}.tspack", served.name)) else {
+    // An archive, or else a manifest of that name.
+    let target = match (state.catalog.get(&name), state.catalog.manifest(&name)) {
+        (Some(served), _) => format!("../{}.tspack", served.name),
+        (None, Some(manifest)) => format!("../{}.json", manifest.name),
+        (None, None) => return Err(AppError::NotFound(format!("no archive or manifest named {name:?}\n"))),
+    };
+    let Some(page) = crate::player::page(&target) else {
         return Ok((
             StatusCode::NOT_IMPLEMENTED,
             "This terrastream binary was built without the webplayer: run scripts/build-player.sh, \

@@ -131,6 +131,13 @@ impl HttpSource {
         self.stats.clone()
     }
 
+    /// Counts into `stats` (shared by several sources, e.g. a manifest's archives).
+    #[must_use]
+    pub fn with_stats(mut self, stats: Arc<HttpStats>) -> Self {
+        self.stats = stats;
+        self
+    }
+
     /// The ETag the archive had when first read.
     pub fn etag(&self) -> Option<String> {
         self.known().etag.clone()

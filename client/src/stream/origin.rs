@@ -215,6 +215,7 @@ impl HostTiles {
 pub struct ManifestSource {
     location: String,
     client: Option<reqwest::Client>,
+    stats: Arc<crate::HttpStats>,
 }
 
 impl ManifestSource {
@@ -231,7 +232,12 @@ impl ManifestSource {
         } else {
             None
         };
-        Ok(Self { location: location.to_owned(), client })
+        Ok(Self { location: location.to_owned(), client, stats: Arc::default() })
+    }
+
+    /// Request and byte counters of all its archives (HTTP only).
+    pub fn shared_stats(&self) -> Arc<crate::HttpStats> {
+        self.stats.clone()
     }
 
     /// Where the manifest is.
@@ -259,11 +265,14 @@ impl ManifestSource {
     }
 
     /// Opens archive `part` of `manifest` and checks it is the one named.
+    // In the browser nothing is Send (one thread); the Arc is shared, not sent.
+    #[cfg_attr(target_arch = "wasm32", allow(clippy::arc_with_non_send_sync))]
     pub(crate) async fn open_part(&self, manifest: &Manifest, part: usize) -> Result<Arc<AsyncReader<DynSource>>> {
         let location = manifest.resolve(&self.location, part).ok_or(Error::NotOpen { why: None })?;
         let source = match &self.client {
             Some(client) => {
-                DynSource::new(HttpSource::with_client(client.clone(), &location, crate::RetryPolicy::default())?)
+                let source = HttpSource::with_client(client.clone(), &location, crate::RetryPolicy::default())?;
+                DynSource::new(source.with_stats(self.stats.clone()))
             }
             None => open_file(&location)?,
         };

@@ -3,7 +3,7 @@
 //!
 //! The page (`static/player.html`) has a `<canvas id="terrain">`, a `<pre id="hud">` and
 //! a `<div id="status">`, and calls [`run`]. URL parameters:
-//! - `archive`: URL of a `.tspack` (relative to the page); without it, the page's
+//! - `archive`: URL of a `.tspack` or of a manifest `.json` (relative to the page); without it, the page's
 //!   `<meta name="terrastream-archive">` (what `terrastream serve` fills in at `/view/{name}`);
 //! - `camera=ex,ey,ez,tx,ty,tz`: start there (default: the whole dataset from the south);
 //! - `backend=webgpu|webgl2`: only that one (default: WebGPU if the browser has it, else WebGL2);
@@ -24,8 +24,8 @@ use terrastream_client::render::renderer::{FrameStats, RenderSettings};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
 use terrastream_client::{
-    Camera, FlyCamera, FlyInput, HttpSource, HttpStats, Keys, Origin, StreamOptions, StreamStats, Streamer,
-    UploadBudget,
+    Camera, FlyCamera, FlyInput, HttpSource, HttpStats, Keys, ManifestSource, Origin, StreamOptions, StreamStats,
+    Streamer, UploadBudget,
 };
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -549,13 +549,18 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         Err(e) => return Err((Some(page), e)),
     };
     tracing::info!(adapter = %gpu.describe(), "webplayer");
-    let source = match HttpSource::new(&params.archive) {
-        Ok(s) => s,
+    // A manifest (`….json`) streams its archives as one terrain.
+    let opened = if terrastream_client::is_manifest_location(&params.archive) {
+        ManifestSource::new(&params.archive).map(|s| (s.shared_stats(), Origin::Manifest(Arc::new(s))))
+    } else {
+        HttpSource::new(&params.archive).map(|s| (s.shared_stats(), Origin::archive(s)))
+    };
+    let (http, origin) = match opened {
+        Ok(v) => v,
         Err(e) => return Err((Some(page), format!("Cannot read {}: {e}", params.archive))),
     };
-    let http = source.shared_stats();
     let options = StreamOptions { cache_bytes: 256 * 1024 * 1024, ..StreamOptions::default() };
-    let streamer = match Streamer::new(Origin::archive(source), options) {
+    let streamer = match Streamer::new(origin, options) {
         Ok(s) => s,
         Err(e) => return Err((Some(page), format!("Cannot stream {}: {e}", params.archive))),
     };
