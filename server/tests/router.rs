@@ -293,3 +293,54 @@ async fn damaged_tiles_are_refused_every_time_and_good_ones_checked_once() {
         assert!(!served.is_verified(bad.offset));
     }
 }
+
+/// A manifest in a served folder is served at `/{name}.json` as found (validated first),
+/// revalidated by its ETag, replaced when the file is (hot reload), and kept when the
+/// new file does not validate; `/view/{name}` points the player at it.
+#[tokio::test]
+async fn manifests_are_served_beside_the_archives_and_hot_reloaded() {
+    let (dir, path) = archives();
+    let reader = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
+    let tag = terrastream_format::content_tag(&reader.header().encode());
+    let manifest = terrastream_format::Manifest::single(reader.metadata().clone(), "sample.tspack", tag);
+    let file = dir.path().join("planet.json");
+    std::fs::write(&file, manifest.to_json()).unwrap();
+    let s = state(dir.path());
+    let (r, body) = send(&s, get("/planet.json", &[])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(body, manifest.to_json());
+    assert_eq!(h(&r, "content-type"), "application/json");
+    assert_eq!(h(&r, "cache-control"), "no-cache");
+    let etag = h(&r, "etag");
+    let (r, _) = send(&s, get("/planet.json", &[("if-none-match", &etag)])).await;
+    assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+    let (r, _) = send(&s, get("/other.json", &[])).await;
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    // Listed in the index.
+    let (_, body) = send(&s, get("/", &[("accept", "application/json")])).await;
+    let index: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(index["manifests"][0]["url"], "/planet.json", "{index}");
+
+    // Replaced (written beside, renamed): the new one after a reload.
+    let mut second = manifest.clone();
+    second.metadata.name = "second".into();
+    let partial = dir.path().join(".planet.json.partial");
+    std::fs::write(&partial, second.to_json()).unwrap();
+    std::fs::rename(&partial, &file).unwrap();
+    assert!(s.catalog.reload() >= 1);
+    let (r, body) = send(&s, get("/planet.json", &[])).await;
+    assert_eq!(body, second.to_json());
+    assert_ne!(h(&r, "etag"), etag);
+    // A broken one is refused; the last good one stays served.
+    std::fs::write(dir.path().join(".broken"), b"{\"format\": \"terrastream-manifest\"").unwrap();
+    std::fs::rename(dir.path().join(".broken"), &file).unwrap();
+    s.catalog.reload();
+    let (r, body) = send(&s, get("/planet.json", &[])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(body, second.to_json());
+    // Removed: gone.
+    std::fs::remove_file(&file).unwrap();
+    s.catalog.reload();
+    let (r, _) = send(&s, get("/planet.json", &[])).await;
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+}
