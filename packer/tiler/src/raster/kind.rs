@@ -112,12 +112,12 @@ impl MosaicKind for Heights {
         Ok(heights)
     }
     fn blend(corners: &[(f32, f64); 4]) -> f32 {
+        // Branch-free (corners with and without data mix unpredictably at a coast).
         let (mut sum, mut weight) = (0.0, 0.0);
         for &(v, w) in corners {
-            if w > 0.0 && !v.is_nan() {
-                sum += w * f64::from(v);
-                weight += w;
-            }
+            let w = if v.is_nan() { 0.0 } else { w };
+            sum += w * f64::from(if v.is_nan() { 0.0 } else { v });
+            weight += w;
         }
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
         if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN }

@@ -270,11 +270,11 @@ impl<K: MosaicKind> Mosaic<K> {
                 let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
                 let (a, b) = (mix(top[k], bottom[k], fy), mix(top[k + 1], bottom[k + 1], fy));
                 let last = if to == c1 { to } else { to - 1 };
-                for i in from..=last {
-                    #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
-                    let t = (i - from) as f64 / (to - from).max(1) as f64;
-                    points.push(mix(a, b, t));
-                }
+                #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
+                let step = 1.0 / (to - from).max(1) as f64;
+                let d = ((b.0 - a.0) * step, (b.1 - a.1) * step);
+                #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
+                points.extend((0..=last - from).map(|k| (a.0 + d.0 * k as f64, a.1 + d.1 * k as f64)));
             }
             if points.len() != c1 - c0 + 1 {
                 points.resize(c1 - c0 + 1, (f64::NAN, f64::NAN));
@@ -440,7 +440,8 @@ impl<K: MosaicKind> Window<K> {
     }
 
     /// Pixels `(x, y)`, `(x + 1, y)`, `(x, y + 1)` and `(x + 1, y + 1)` when all four lie
-    /// inside the window and in one chunk held.
+    /// inside the window, in one column of chunks held: in one chunk, or the lower two in
+    /// the chunk below (strips one row high, GDAL's default, always are).
     fn quad(&self, x: i64, y: i64) -> Option<[K::Value; 4]> {
         if x < self.bounds.0 || y < self.bounds.1 || x + 1 >= self.bounds.2 || y + 1 >= self.bounds.3 {
             return None;
@@ -449,7 +450,7 @@ impl<K: MosaicKind> Window<K> {
         let (x, y) = (x as usize, y as usize);
         let (cx, cy) = (x / self.chunk.0, y / self.chunk.1);
         let (lx, ly) = (x - cx * self.chunk.0, y - cy * self.chunk.1);
-        if lx + 1 >= self.chunk.0 || ly + 1 >= self.chunk.1 {
+        if lx + 1 >= self.chunk.0 {
             return None;
         }
         let (dx, dy) = (cx.checked_sub(self.first.0)?, cy.checked_sub(self.first.1)?);
@@ -462,7 +463,12 @@ impl<K: MosaicKind> Window<K> {
         }
         let at = ly * chunk.w + lx;
         let row = chunk.values.get(at..at + 2)?;
-        let next = chunk.values.get(at + chunk.w..at + chunk.w + 2)?;
+        let next = if ly + 1 < self.chunk.1 {
+            chunk.values.get(at + chunk.w..at + chunk.w + 2)?
+        } else {
+            let below = self.held.get((dy + 1) * self.across + dx)?;
+            below.values.get(lx..lx + 2)?
+        };
         Some([row[0], row[1], next[0], next[1]])
     }
 
@@ -472,10 +478,16 @@ impl<K: MosaicKind> Window<K> {
         if !(p.0.is_finite() && p.1.is_finite()) {
             return K::NONE;
         }
-        let (x0, y0) = (p.0.floor(), p.1.floor());
-        let (fx, fy) = (p.0 - x0, p.1 - y0);
+        // floor() without a libm call (no SSE4.1 round instruction on the baseline target).
         #[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
-        let (x0, y0) = (x0 as i64, y0 as i64);
+        let floor = |v: f64| {
+            let i = v as i64;
+            #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
+            if (i as f64) > v { i - 1 } else { i }
+        };
+        let (x0, y0) = (floor(p.0), floor(p.1));
+        #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
+        let (fx, fy) = (p.0 - x0 as f64, p.1 - y0 as f64);
         let weights = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
         // Usually all four corners lie in one chunk: read them with one lookup.
         if let Some([a, b, c, d]) = self.quad(x0, y0) {
