@@ -190,9 +190,16 @@ fn tile_plans_writes_and_refuses_bad_input() {
     assert_eq!(layers[0]["kind"], "elevation");
     assert_eq!((layers[1]["kind"].as_str(), layers[1]["format"].as_str()), (Some("texture"), Some("bc7")));
     assert_eq!((layers[2]["kind"].as_str(), layers[2]["format"].as_str()), (Some("height_range"), Some("min_max_f32")));
-    assert_eq!(doc["metadata"]["georeference"]["crs"], "EPSG:4326");
+    // A geographic DEM goes onto a transverse Mercator centred on it (unless kept).
+    let crs = doc["metadata"]["georeference"]["crs"].as_str().unwrap();
+    assert!(crs.starts_with("+proj=tmerc +lat_0=37.95") && crs.contains("+lon_0=-122.62"), "{crs}");
     let out = terrastream(&["verify", "t.tspack"], work);
     assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["tile", "--elevation", dem, "--keep-geographic", "-o", "kept.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["info", "kept.tspack", "--json"], work);
+    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(doc["metadata"]["georeference"]["crs"], "EPSG:4326");
 
     let out = terrastream(&["tile", "--texture", "ortho.png", "--pixel-size", "2", "-o", "img.tspack"], work);
     assert!(out.status.success(), "{}", text(&out));

@@ -25,8 +25,9 @@ const WIDTH: u32 = 640;
 const HEIGHT: u32 = 400;
 const CHROMIUM: &str = "/usr/bin/chromium";
 const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
-/// Tiles in the archive `tile --tile-size 64` makes of the 320² crop.
-const TILES: u64 = 29;
+/// Elevation tiles in the archive `tile --tile-size 64` makes of the 320² crop (on its
+/// transverse Mercator: 5 x 7 at LOD 0, 12, 4, 1).
+const TILES: u64 = 52;
 
 /// Chromium's software rasterizers (SwiftShader) are deterministic for a given build; the
 /// allowance covers another Chromium release (anti-aliasing of the silhouette, dithering):
@@ -317,9 +318,10 @@ fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &
     let requests = stats["requests"].as_u64().unwrap();
     let http_requests = stats["http_requests"].as_u64().unwrap();
     // Tile requests: coalesced, so fewer than the tiles; the rest opened the archive
-    // (one bootstrap read, at most one more for the index).
+    // (one bootstrap read, at most one more for the index). Tiles within the bootstrap's
+    // first 16 KiB cost no request of their own (one such request at most).
     assert!((1..=TILES).contains(&requests), "{stats}");
-    assert!((requests + 1..=requests + 2).contains(&http_requests), "{stats}");
+    assert!((requests..=requests + 2).contains(&http_requests), "{stats}");
     assert!(stats["max_uploads_per_frame"].as_u64().unwrap() <= stats["upload_budget"].as_u64().unwrap(), "{stats}");
     assert!(stats["first_frame_ms"].as_f64().is_some(), "{stats}");
     // Frames go on while streaming: the page stayed responsive.
@@ -377,7 +379,7 @@ fn a_continent_draws_on_webgpu_and_on_webgl2() {
         let sky = &rgba[..3];
         let terrain = rgba.chunks_exact(4).filter(|p| p[..3].iter().zip(sky).any(|(a, b)| a.abs_diff(*b) > 12));
         let share = terrain.count() as f64 / f64::from(w * h);
-        assert!(share > 0.4, "{backend}: only {:.0} % of the picture is terrain", share * 100.0);
+        assert!(share > 0.2, "{backend}: only {:.0} % of the picture is terrain", share * 100.0);
         let console = browser.console();
         assert!(console.iter().all(|(level, _)| level != "SEVERE"), "{console:?}");
     }

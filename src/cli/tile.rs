@@ -30,6 +30,11 @@ pub struct TileArgs {
     /// Output sample spacing of a mosaic, in metres. Default: the finest input's.
     #[arg(long)]
     resolution: Option<f64>,
+    /// Keep one geographic (degrees) input on its own grid, scaled at its centre latitude,
+    /// instead of reprojecting it onto a transverse Mercator centred on it. Faster; but
+    /// east-west distances are off by 1 - cos(lat)/cos(centre lat) away from the centre.
+    #[arg(long, conflicts_with_all = ["crs", "resolution"])]
+    keep_geographic: bool,
     /// Leave out mosaic inputs that cannot be used (listed at the end) instead of stopping.
     #[arg(long)]
     skip_bad_inputs: bool,
@@ -177,8 +182,17 @@ impl TileArgs {
 
 pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let inputs = expand_inputs(&args.elevation)?;
-    // Several inputs, or a CRS or spacing asked for: one mosaic on one output grid.
-    let mosaic = if inputs.len() > 1 || args.crs.is_some() || args.resolution.is_some() {
+    // One geographic GeoTIFF goes onto a transverse Mercator centred on it, as a mosaic's
+    // geographic inputs do: a metre is a metre everywhere, not only at the centre latitude.
+    let geographic = match inputs.as_slice() {
+        [one] if !args.keep_geographic && args.sample_spacing.is_none() => {
+            open_elevation(one, args.encoding()?)?.is_geographic_tiff()
+        }
+        _ => false,
+    };
+    // Several inputs, a geographic one, or a CRS or spacing asked for: one mosaic on one
+    // output grid.
+    let mosaic = if inputs.len() > 1 || geographic || args.crs.is_some() || args.resolution.is_some() {
         let crs = args.crs.as_deref().map(Crs::parse).transpose()?;
         let options = MosaicOptions {
             crs,

@@ -118,6 +118,31 @@ fn an_image_in_another_crs_is_placed_by_its_georeference() {
     let off = mark_offset(&out, &elevation, th);
     eprintln!("the mark lies {off:.2} texels from its longitude and latitude");
     assert!(off <= 1.0, "the mark lies {off:.2} texels from its longitude and latitude");
+
+    // The same image moved 50 km east lies nowhere over the DEM: refused, naming it.
+    let far = dir.path().join("image-far.tif");
+    let status = Command::new("gdal_translate")
+        .args(["-q", "-a_ullr"])
+        .args(utm_bounds_shifted(&utm, 50_000.0))
+        .arg(&utm)
+        .arg(&far)
+        .status()
+        .unwrap();
+    assert!(status.success(), "gdal_translate failed");
+    let image = open_image(&far).unwrap();
+    let err = Warped::over(&elevation, &image).err().expect("no overlap: refused");
+    assert!(err.to_string().contains("image-far.tif") && err.to_string().contains("nowhere over"), "{err}");
+}
+
+/// `ulx uly lrx lry` of a GeoTIFF (from `gdalinfo -json`), moved `east` metres.
+fn utm_bounds_shifted(path: &Path, east: f64) -> Vec<String> {
+    let out = Command::new("gdalinfo").arg("-json").arg(path).output().unwrap();
+    let info: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let corner = |name: &str, i: usize| info["cornerCoordinates"][name][i].as_f64().unwrap();
+    [corner("upperLeft", 0) + east, corner("upperLeft", 1), corner("lowerRight", 0) + east, corner("lowerRight", 1)]
+        .iter()
+        .map(ToString::to_string)
+        .collect()
 }
 
 /// How far (in texels) the red mark's centroid in the texture of the archive at `out`

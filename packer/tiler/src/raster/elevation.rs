@@ -253,6 +253,13 @@ impl ElevationSource for ElevationFile {
 }
 
 impl ElevationFile {
+    /// A GeoTIFF of heights in a geographic CRS (degrees): what `tile` reprojects onto a
+    /// local transverse Mercator by default, through a mosaic.
+    pub fn is_geographic_tiff(&self) -> bool {
+        let crs = self.georeference.as_ref().and_then(|g| g.crs.as_deref());
+        self.is_plain_tiff() && crs.and_then(|c| crate::crs::Crs::parse(c).ok()).is_some_and(|c| c.is_geographic())
+    }
+
     /// A GeoTIFF of heights as stored (no PNG, no encoding): what a mosaic reads by chunks.
     pub(super) fn is_plain_tiff(&self) -> bool {
         !self.png && self.encoding.is_none()

@@ -125,31 +125,28 @@ impl<'a> Warped<'a> {
         out
     }
 
-    /// The elevation's corners and edge midpoints must lie inside the image.
+    /// The image must reach the elevation: some of a 9 x 9 lattice of its texels lie
+    /// inside the image. Where it does not reach, the texture is transparent: an
+    /// elevation reprojected from degrees has corners with no data, which an image of
+    /// the same area leaves out, as it should.
     fn check_cover(&self) -> Result<()> {
         let (w, h) = (f64::from(self.size.0), f64::from(self.size.1));
         let (iw, ih) = self.image.size();
         let (fw, fh) = (f64::from(iw), f64::from(ih));
-        for (i, j) in [
-            (0.0, 0.0),
-            (w / 2.0, 0.0),
-            (w - 1.0, 0.0),
-            (0.0, h / 2.0),
-            (w - 1.0, h / 2.0),
-            (0.0, h - 1.0),
-            (w / 2.0, h - 1.0),
-            (w - 1.0, h - 1.0),
-        ] {
-            let inside = self.source_of(i, j).is_some_and(|(x, y)| x >= -1.0 && y >= -1.0 && x <= fw && y <= fh);
-            if !inside {
-                return Err(Error::input(
-                    self.image.path(),
-                    format!(
-                        "mismatched extents: the elevation's texel ({i:.0}, {j:.0}) lies outside this {iw}x{ih} image \
-                         (placed by its georeference); the texture must cover the whole elevation"
-                    ),
-                ));
-            }
+        let steps = (0..9).map(|k| f64::from(k) / 8.0);
+        let inside = steps
+            .clone()
+            .flat_map(|u| steps.clone().map(move |v| (u * (w - 1.0), v * (h - 1.0))))
+            .filter(|&(i, j)| self.source_of(i, j).is_some_and(|(x, y)| x >= -1.0 && y >= -1.0 && x <= fw && y <= fh))
+            .count();
+        if inside == 0 {
+            return Err(Error::input(
+                self.image.path(),
+                format!(
+                    "mismatched extents: this {iw}x{ih} image, placed by its georeference, lies nowhere over \
+                     the elevation"
+                ),
+            ));
         }
         Ok(())
     }
