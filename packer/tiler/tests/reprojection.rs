@@ -130,7 +130,7 @@ fn an_image_in_another_crs_is_placed_by_its_georeference() {
         .unwrap();
     assert!(status.success(), "gdal_translate failed");
     let image = open_image(&far).unwrap();
-    let err = Warped::over(&elevation, &image).err().expect("no overlap: refused");
+    let Err(err) = Warped::over(&elevation, &image) else { panic!("no overlap: refused") };
     assert!(err.to_string().contains("image-far.tif") && err.to_string().contains("nowhere over"), "{err}");
 }
 
