@@ -572,3 +572,82 @@ fn webplayer_streams_a_manifest_of_four_archives() {
     let errors: Vec<_> = browser.console().into_iter().filter(|(level, _)| level == "SEVERE").collect();
     assert!(errors.is_empty(), "console errors: {errors:?}");
 }
+
+/// A benchmark, not a test (`scripts/bench-webplayer.sh` runs it): the player over the
+/// emulated links of `bench stream` (a user-space shaper in front of the server, for the
+/// archive's requests only; the page itself loads directly). Per link it prints the first
+/// frame with terrain and the first complete one (since the player started), and the
+/// time between frames, p50 and p99, while tiles were coming and once all were resident,
+/// from the same browser run.
+#[test]
+#[ignore = "a benchmark that prints numbers: scripts/bench-webplayer.sh"]
+fn bench_webplayer_over_emulated_links() {
+    use terrastream_testkit::shaper::{Link, Shaper};
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let (port, _server) = serve(&archive);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let upstream: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    let driver = Driver::start();
+    let flags: Vec<&str> = match std::env::var("BACKEND").as_deref() {
+        Ok("webgl2") => WEBGL_FLAGS.to_vec(),
+        _ => WEBGPU_FLAGS.to_vec(),
+    };
+    let links = [
+        ("loopback", None),
+        ("(a) 20 ms, 100 Mbit/s", Some(Link::NEAR)),
+        ("(b) 80 ms, 20 Mbit/s", Some(Link::FAR)),
+        ("(c) 150 ms, 5 Mbit/s, 1 % loss", Some(Link::POOR)),
+    ];
+    println!(
+        "{:<32} {:>9} {:>9} {:>9} {:>7} {:>8} {:>8} {:>7} {:>8} {:>8} {:>6} {:>5}",
+        "link",
+        "first ms",
+        "full ms",
+        "setup ms",
+        "frames",
+        "p50 ms",
+        "p99 ms",
+        "frames",
+        "p50 ms",
+        "p99 ms",
+        "p99 x",
+        "reqs"
+    );
+    println!("{:<32} {:>19} {:>9} {:>24} {:>24}", "", "(since start)", "", "(streaming)", "(resident)");
+    for (name, link) in links {
+        let shaper = link.map(|l| runtime.block_on(Shaper::start(upstream, l)).unwrap());
+        let archive_port = shaper.as_ref().map_or(port, |s| s.addr.port());
+        let browser = Browser::open(&driver, &flags);
+        browser.goto(&format!(
+            "http://127.0.0.1:{port}/view/tamalpais?hud=0&archive=http://127.0.0.1:{archive_port}/tamalpais.tspack"
+        ));
+        browser.wait_settled();
+        // Resident frames: the same view, every tile on the GPU.
+        std::thread::sleep(Duration::from_secs(4));
+        let s = browser.stats().unwrap();
+        let ms = |key: &str| s[key].as_f64().map_or("-".to_owned(), |v| format!("{v:.0}"));
+        let ratio = match (s["frame_p99_streaming_ms"].as_f64(), s["frame_p99_resident_ms"].as_f64()) {
+            (Some(a), Some(b)) if b > 0.0 => format!("{:.2}", a / b),
+            _ => "-".into(),
+        };
+        println!(
+            "{name:<32} {:>9} {:>9} {:>9} {:>7} {:>8} {:>8} {:>7} {:>8} {:>8} {ratio:>6} {:>5}",
+            ms("first_frame_ms"),
+            ms("settled_ms"),
+            ms("session_ms"),
+            s["frames_streaming"].as_u64().unwrap_or(0),
+            ms("frame_p50_streaming_ms"),
+            ms("frame_p99_streaming_ms"),
+            s["frames_resident"].as_u64().unwrap_or(0),
+            ms("frame_p50_resident_ms"),
+            ms("frame_p99_resident_ms"),
+            s["http_requests"].as_u64().unwrap_or(0),
+        );
+        assert_eq!(s["missing"], json!(0), "{name}: {s}");
+        drop(browser);
+    }
+}

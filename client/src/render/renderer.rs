@@ -303,6 +303,31 @@ fn colour_sampler(device: &wgpu::Device) -> wgpu::Sampler {
     })
 }
 
+/// The terrain's bind group layout and pipeline for one colour format: its shaders are
+/// compiled when it is made. Renderers of that format share one; a front end may make it
+/// before any archive is open, so that the first frame with terrain does not wait for
+/// the shaders (wgpu handles are reference-counted: clones share the pipeline).
+#[derive(Clone, Debug)]
+pub struct TerrainPipeline {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::RenderPipeline,
+    format: wgpu::TextureFormat,
+}
+
+impl TerrainPipeline {
+    /// Makes (compiles) the pipeline for `colour_format`.
+    pub fn new(device: &wgpu::Device, colour_format: wgpu::TextureFormat) -> Self {
+        let layout = bind_group_layout(device);
+        let pipeline = terrain_pipeline(device, &layout, colour_format);
+        Self { layout, pipeline, format: colour_format }
+    }
+
+    /// The colour format it draws into.
+    pub fn format(&self) -> wgpu::TextureFormat {
+        self.format
+    }
+}
+
 /// Globals, page table, elevation tiles, colour tiles, colour sampler.
 fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -381,6 +406,16 @@ impl TerrainRenderer {
         settings: RenderSettings,
         colour_format: wgpu::TextureFormat,
     ) -> Self {
+        Self::with_pipeline(device, metadata, settings, &TerrainPipeline::new(device, colour_format))
+    }
+
+    /// A renderer drawing with an existing pipeline (of the target's colour format).
+    pub fn with_pipeline(
+        device: &wgpu::Device,
+        metadata: &Metadata,
+        settings: RenderSettings,
+        shared: &TerrainPipeline,
+    ) -> Self {
         let bc = device.features().contains(wgpu::Features::TEXTURE_COMPRESSION_BC);
         let elevation = first_layer(metadata, LayerKind::Elevation)
             .and_then(|(i, l)| TileArray::new(device, i, l, KIND_ELEVATION, settings.elevation_slots, bc));
@@ -398,12 +433,12 @@ impl TerrainRenderer {
         );
         let globals = gpu::uniform_buffer(device, "buffer.terrain.globals", size_of::<Globals>());
         let sampler = colour_sampler(device);
-        let layout = bind_group_layout(device);
+        let layout = &shared.layout;
         let page_view = page_texture.create_view(&wgpu::TextureViewDescriptor::default());
         let bind_group = gpu::bind_group(
             device,
             "bind_group.terrain",
-            &layout,
+            layout,
             &[
                 globals.as_entire_binding(),
                 wgpu::BindingResource::TextureView(&page_view),
@@ -412,7 +447,7 @@ impl TerrainRenderer {
                 wgpu::BindingResource::Sampler(&sampler),
             ],
         );
-        let pipeline = terrain_pipeline(device, &layout, colour_format);
+        let pipeline = shared.pipeline.clone();
         let mesh = PatchMesh::new(settings.patch);
         let (vertices, indices) = patch_buffers(device, &mesh);
         let instance_capacity = 1024;

@@ -2,7 +2,7 @@
 
 use terrastream_format::Metadata;
 
-use super::renderer::{FrameStats, RenderSettings, TerrainRenderer};
+use super::renderer::{FrameStats, RenderSettings, TerrainPipeline, TerrainRenderer};
 use crate::fly::terrain_box;
 use crate::stream::camera::Camera;
 use crate::stream::streamer::{StreamStats, Streamer, UploadBudget};
@@ -18,7 +18,7 @@ pub struct Session {
     pub budget: UploadBudget,
     generation: u64,
     metadata: Metadata,
-    format: wgpu::TextureFormat,
+    pipeline: TerrainPipeline,
     /// The last frame drew no terrain although tiles in view were resident (warned once
     /// per such spell, not once per frame).
     blank: bool,
@@ -31,20 +31,35 @@ impl Session {
     /// # Errors
     /// When the streamer has no metadata yet.
     pub fn new(
-        mut streamer: Streamer,
+        streamer: Streamer,
         device: &wgpu::Device,
         settings: RenderSettings,
         format: wgpu::TextureFormat,
         budget: UploadBudget,
     ) -> crate::Result<Self> {
+        Self::with_pipeline(streamer, device, settings, &TerrainPipeline::new(device, format), budget)
+    }
+
+    /// [`Session::new`] drawing with a pipeline made before (e.g. while the archive
+    /// opened, so that its shaders are compiled by the first frame with terrain).
+    ///
+    /// # Errors
+    /// When the streamer has no metadata yet.
+    pub fn with_pipeline(
+        mut streamer: Streamer,
+        device: &wgpu::Device,
+        settings: RenderSettings,
+        pipeline: &TerrainPipeline,
+        budget: UploadBudget,
+    ) -> crate::Result<Self> {
         let why = streamer.last_error().map(str::to_owned);
         let metadata = streamer.metadata().cloned().ok_or(crate::Error::NotOpen { why })?;
-        let renderer = TerrainRenderer::new(device, &metadata, settings, format);
+        let renderer = TerrainRenderer::with_pipeline(device, &metadata, settings, pipeline);
         let mut options = streamer.options().clone();
         options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());
         streamer.set_options(options);
         let generation = streamer.generation();
-        Ok(Self { streamer, renderer, budget, generation, metadata, format, blank: false })
+        Ok(Self { streamer, renderer, budget, generation, metadata, pipeline: pipeline.clone(), blank: false })
     }
 
     /// One frame: stream for `camera`, upload within the budget, prepare the draw. The
@@ -59,7 +74,7 @@ impl Session {
                 Some(m) if *m != self.metadata => {
                     self.metadata = m.clone();
                     let settings = *self.renderer.settings();
-                    self.renderer = TerrainRenderer::new(device, &self.metadata, settings, self.format);
+                    self.renderer = TerrainRenderer::with_pipeline(device, &self.metadata, settings, &self.pipeline);
                 }
                 _ => self.renderer.clear(),
             }

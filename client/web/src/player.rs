@@ -20,7 +20,7 @@ use terrastream_client::fly::start_camera;
 use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame, render_pass};
 use terrastream_client::render::hud::{FrameTimes, Status, status_lines};
-use terrastream_client::render::renderer::{FrameStats, RenderSettings};
+use terrastream_client::render::renderer::{FrameStats, RenderSettings, TerrainPipeline};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
 use terrastream_client::{
@@ -192,6 +192,29 @@ struct Timings {
     /// Longest time between two frames while tiles were still coming: how responsive the
     /// page stayed while streaming.
     max_frame_ms_streaming: f64,
+    /// Times between frames while tiles were coming (the first [`MAX_FRAME_SAMPLES`]).
+    streaming_ms: Vec<f64>,
+    /// ... and while everything the view wants was resident.
+    resident_ms: Vec<f64>,
+    /// Making the session (renderer, pipelines, GPU arrays) once the metadata was in.
+    session_ms: Option<f64>,
+}
+
+/// Frame intervals kept per kind, for the percentiles of [`Player::stats`].
+const MAX_FRAME_SAMPLES: usize = 20_000;
+
+/// The `p` quantile (0..=1) of `samples`, None if there are none.
+fn quantile(samples: &[f64], p: f64) -> Option<f64> {
+    let mut sorted = samples.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    #[expect(
+        clippy::cast_possible_truncation,
+        clippy::cast_sign_loss,
+        clippy::cast_precision_loss,
+        reason = "an index"
+    )]
+    let at = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len().max(1)) - 1;
+    sorted.get(at).copied()
 }
 
 /// Where the player is: opening the archive, showing it, or stopped with the reason on
@@ -210,6 +233,8 @@ struct State {
     params: Params,
     gpu: Gpu,
     surface: Surface,
+    /// The terrain pipeline, made at start.
+    pipeline: TerrainPipeline,
     phase: Phase,
     http: Arc<HttpStats>,
     input: Input,
@@ -263,8 +288,13 @@ impl State {
         }
         let Phase::Running { session, .. } = &self.phase else { return };
         let pending = session.streamer.pending();
-        if pending > 0 || stream.in_flight > 0 {
+        let streaming = pending > 0 || stream.in_flight > 0;
+        if streaming {
             self.timings.max_frame_ms_streaming = self.timings.max_frame_ms_streaming.max(interval_ms);
+        }
+        let kept = if streaming { &mut self.timings.streaming_ms } else { &mut self.timings.resident_ms };
+        if kept.len() < MAX_FRAME_SAMPLES {
+            kept.push(interval_ms);
         }
         if session.settled() && self.timings.settled_at.is_none() {
             self.timings.settled_at = Some(now);
@@ -301,7 +331,11 @@ impl State {
         let Phase::Opening(streamer) = std::mem::replace(&mut self.phase, Phase::Failed) else { return false };
         let settings =
             RenderSettings { elevation_slots: GPU_SLOTS, texture_slots: GPU_SLOTS, ..RenderSettings::default() };
-        match Session::new(*streamer, &self.gpu.device, settings, self.surface.view_format, UploadBudget::default()) {
+        let started = self.page.now_ms();
+        let made =
+            Session::with_pipeline(*streamer, &self.gpu.device, settings, &self.pipeline, UploadBudget::default());
+        self.timings.session_ms = Some(self.page.now_ms() - started);
+        match made {
             Ok(session) => {
                 let camera = start_camera(&metadata, self.params.camera, width, height);
                 self.phase = Phase::Running { session: Box::new(session), fly: FlyCamera::from_camera(&camera) };
@@ -474,6 +508,13 @@ impl State {
                 Phase::Opening(_) | Phase::Failed => 0,
             },
             "max_frame_ms_streaming": self.timings.max_frame_ms_streaming,
+            "session_ms": self.timings.session_ms,
+            "frames_streaming": self.timings.streaming_ms.len(),
+            "frames_resident": self.timings.resident_ms.len(),
+            "frame_p50_streaming_ms": quantile(&self.timings.streaming_ms, 0.5),
+            "frame_p99_streaming_ms": quantile(&self.timings.streaming_ms, 0.99),
+            "frame_p50_resident_ms": quantile(&self.timings.resident_ms, 0.5),
+            "frame_p99_resident_ms": quantile(&self.timings.resident_ms, 0.99),
             "resident": [frame.resident.0, frame.resident.1],
             "triangles": frame.triangles,
             "patches": frame.patches,
@@ -565,11 +606,15 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         Err(e) => return Err((Some(page), format!("Cannot stream {}: {e}", params.archive))),
     };
     let show_hud = params.hud;
+    // Made now, while the archive opens: the shaders are compiled by the time the first
+    // tiles arrive, not in the first frame that draws them.
+    let pipeline = TerrainPipeline::new(&gpu.device, surface.view_format);
     let state = Rc::new(RefCell::new(State {
         page,
         params,
         gpu,
         surface,
+        pipeline,
         phase: Phase::Opening(Box::new(streamer)),
         http,
         input: Input::default(),
