@@ -6,6 +6,7 @@
 #
 #   bash scripts/bench-webplayer.sh            # WebGPU (SwiftShader's Vulkan)
 #   BACKEND=webgl2 bash scripts/bench-webplayer.sh
+#   WORKERS=0 bash scripts/bench-webplayer.sh   # decode on the page's thread
 #
 # Needs chromium and chromium-driver (apt-get install chromium chromium-driver).
 set -euo pipefail

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::{env, fs};
 
 /// The player's files, all needed.
-const FILES: [&str; 3] = ["player.html", "terrastream_web.js", "terrastream_web_bg.wasm"];
+const FILES: [&str; 4] = ["player.html", "terrastream_web.js", "terrastream_web_bg.wasm", "decoder.js"];
 
 fn main() {
     println!("cargo:rerun-if-env-changed=TERRASTREAM_PLAYER_DIR");

@@ -324,6 +324,9 @@ fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &
     assert!((requests..=requests + 2).contains(&http_requests), "{stats}");
     assert!(stats["max_uploads_per_frame"].as_u64().unwrap() <= stats["upload_budget"].as_u64().unwrap(), "{stats}");
     assert!(stats["first_frame_ms"].as_f64().is_some(), "{stats}");
+    // Decoded in Web Workers, off the page's thread: every tile fetched.
+    assert!(stats["workers"].as_u64().unwrap() >= 1, "{stats}");
+    assert_eq!(stats["decoded_in_workers"], stats["tiles_fetched"], "{stats}");
     // Frames go on while streaming: the page stayed responsive.
     assert!(stats["frames"].as_u64().unwrap() > 3, "{stats}");
     // A few frames more, then the picture.
@@ -578,7 +581,7 @@ fn webplayer_streams_a_manifest_of_four_archives() {
 /// archive's requests only; the page itself loads directly). Per link it prints the first
 /// frame with terrain and the first complete one (since the player started), and the
 /// time between frames, p50 and p99, while tiles were coming and once all were resident,
-/// from the same browser run.
+/// from the same browser run. `WORKERS=0` decodes on the page's thread.
 #[test]
 #[ignore = "a benchmark that prints numbers: scripts/bench-webplayer.sh"]
 fn bench_webplayer_over_emulated_links() {
@@ -622,8 +625,10 @@ fn bench_webplayer_over_emulated_links() {
         let shaper = link.map(|l| runtime.block_on(Shaper::start(upstream, l)).unwrap());
         let archive_port = shaper.as_ref().map_or(port, |s| s.addr.port());
         let browser = Browser::open(&driver, &flags);
+        // WORKERS=0 decodes on the page's thread (the default: Web Workers).
+        let workers = std::env::var("WORKERS").map(|w| format!("&workers={w}")).unwrap_or_default();
         browser.goto(&format!(
-            "http://127.0.0.1:{port}/view/tamalpais?hud=0&archive=http://127.0.0.1:{archive_port}/tamalpais.tspack"
+            "http://127.0.0.1:{port}/view/tamalpais?hud=0{workers}&archive=http://127.0.0.1:{archive_port}/tamalpais.tspack"
         ));
         browser.wait_settled();
         // Resident frames: the same view, every tile on the GPU.
@@ -650,4 +655,28 @@ fn bench_webplayer_over_emulated_links() {
         assert_eq!(s["missing"], json!(0), "{name}: {s}");
         drop(browser);
     }
+}
+
+/// A host without `decoder.js` (an older copy of the player's files): the workers fail to
+/// start and every tile is decoded on the page's thread instead; the view completes.
+#[test]
+fn without_its_worker_script_the_player_decodes_on_the_page() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let site = dir.path().join("site");
+    terrastream(&["player", "-o", site.to_str().unwrap()]);
+    archive(&site);
+    std::fs::remove_file(site.join("decoder.js")).unwrap();
+    let Some(host) = static_host(&site, None) else { return };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS);
+    browser.goto(&format!("http://127.0.0.1:{}/player.html?archive=tamalpais.tspack&hud=0", host.port));
+    let stats = browser.wait_settled();
+    assert_eq!(stats["missing"], json!(0), "{stats}");
+    assert_eq!(stats["failures"], json!(0), "{stats}");
+    assert_eq!(stats["resident"][0], stats["wanted"], "{stats}");
+    assert_eq!(stats["decoded_in_workers"], json!(0), "{stats}");
+    assert!(stats["tiles_fetched"].as_u64().unwrap() > 0, "{stats}");
 }

@@ -87,6 +87,12 @@ pub enum Error {
         /// What is wrong.
         reason: String,
     },
+    /// What a decoding thread (a browser's Web Worker) handed back is not a decoded tile.
+    #[error("a decoded tile from a worker: {reason}")]
+    Wire {
+        /// What is wrong with it.
+        reason: String,
+    },
     /// A tile could not be fetched or decoded for a blocking query.
     #[error("tile {key} could not be loaded: {reason}")]
     TileLoad {

@@ -24,5 +24,7 @@ pub use stream::camera::{Aabb, Camera, Frustum};
 pub use stream::decode::{DecodedTile, TileData, decode};
 pub use stream::origin::{DynSource, EndpointSource, HostTiles, ManifestSource, Origin};
 pub use stream::select::{SelectOptions, Want, select};
-pub use stream::streamer::{StreamOptions, StreamStats, Streamer, Upload, UploadBudget};
+pub use stream::streamer::{
+    DecodeFailure, DecodeResult, Decoder, StreamOptions, StreamStats, Streamer, Upload, UploadBudget,
+};
 pub use terrastream_format::is_manifest_location;

@@ -55,6 +55,62 @@ impl DecodedTile {
         }
     }
 
+    /// The tile as flat bytes, for a thread that shares no memory with this one (a
+    /// browser's Web Worker decodes, the page's thread uploads): key, size, border, then
+    /// the pixels (little-endian). [`DecodedTile::from_wire`] reads it back.
+    pub fn to_wire(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(32 + self.byte_len());
+        out.extend_from_slice(&[self.key.layer(), self.key.lod()]);
+        for v in [self.key.x(), self.key.y(), self.size, self.border] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        match &self.data {
+            TileData::Rgba8(p) => {
+                out.push(0);
+                out.extend_from_slice(p);
+            }
+            TileData::Heights { heights, min, max } => {
+                out.push(1);
+                out.extend_from_slice(&min.to_le_bytes());
+                out.extend_from_slice(&max.to_le_bytes());
+                out.extend(heights.iter().flat_map(|h| h.to_le_bytes()));
+            }
+            TileData::Compressed { format, blocks } => {
+                out.push(if *format == TileFormat::Bc7 { 3 } else { 2 });
+                out.extend_from_slice(blocks);
+            }
+        }
+        out
+    }
+
+    /// A tile from [`DecodedTile::to_wire`]'s bytes.
+    ///
+    /// # Errors
+    /// [`Error::BadTile`] when the bytes are not such a tile.
+    pub fn from_wire(bytes: &[u8]) -> Result<Self> {
+        let bad = |reason: &str| Error::Wire { reason: reason.to_owned() };
+        let (head, rest) = bytes.split_at_checked(19).ok_or_else(|| bad("too short"))?;
+        let word = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
+        let key = TileKey::new(head[0], head[1], word(2), word(6)).map_err(|_| bad("bad key"))?;
+        let (size, border) = (word(10), word(14));
+        let pixels = usize::try_from(u64::from(size) * u64::from(size)).map_err(|_| bad("size"))?;
+        let data = match head[18] {
+            0 if rest.len() == pixels * 4 => TileData::Rgba8(rest.to_vec()),
+            1 if rest.len() == 8 + pixels * 4 => {
+                let f = |c: &[u8]| f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+                TileData::Heights {
+                    min: f(&rest[0..4]),
+                    max: f(&rest[4..8]),
+                    heights: rest[8..].chunks_exact(4).map(f).collect(),
+                }
+            }
+            2 => TileData::Compressed { format: TileFormat::Bc1, blocks: Bytes::copy_from_slice(rest) },
+            3 => TileData::Compressed { format: TileFormat::Bc7, blocks: Bytes::copy_from_slice(rest) },
+            _ => return Err(bad("unknown kind or length")),
+        };
+        Ok(Self { key, size, border, data })
+    }
+
     /// Height sample at pixel `(i, j)` of the stored grid (borders included).
     pub fn height(&self, i: u32, j: u32) -> Option<f32> {
         match &self.data {
@@ -471,5 +527,30 @@ mod tests {
         let l = layer(LayerKind::Texture, TileFormat::Png, None);
         let t = decode(&l, key, &png(2, png::ColorType::Rgb, png::BitDepth::Eight, &[10, 20, 30].repeat(4)), false);
         assert_eq!(t.unwrap().data, TileData::Rgba8([10, 20, 30, 255].repeat(4)));
+    }
+
+    #[test]
+    fn decoded_tiles_cross_to_another_thread_as_flat_bytes() {
+        let key = TileKey::new(2, 3, 5, 7).unwrap();
+        let tiles = [
+            TileData::Rgba8((0..16u8).collect()),
+            TileData::Heights { heights: vec![1.5, f32::NAN, -2.0, 9.25], min: -2.0, max: 9.25 },
+            TileData::Compressed { format: TileFormat::Bc7, blocks: Bytes::from_static(&[9; 16]) },
+            TileData::Compressed { format: TileFormat::Bc1, blocks: Bytes::from_static(&[3; 8]) },
+        ];
+        for data in tiles {
+            let tile = DecodedTile { key, size: 2, border: 1, data };
+            let back = DecodedTile::from_wire(&tile.to_wire()).unwrap();
+            assert_eq!((back.key, back.size, back.border), (key, 2, 1));
+            match (&back.data, &tile.data) {
+                (TileData::Heights { heights: a, .. }, TileData::Heights { heights: b, .. }) => {
+                    assert!(a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()));
+                }
+                (a, b) => assert_eq!(a, b),
+            }
+        }
+        let wire = DecodedTile { key, size: 2, border: 0, data: TileData::Rgba8(vec![0; 16]) }.to_wire();
+        assert!(DecodedTile::from_wire(&wire[..wire.len() - 1]).is_err(), "a short tile");
+        assert!(DecodedTile::from_wire(&wire[..10]).is_err(), "a short head");
     }
 }

@@ -83,7 +83,7 @@ impl Streamer {
             };
             let group = Group { rank: 0, tiles: vec![(key, location)] };
             // Fetched and taken in as the frame loop's requests are.
-            match self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation)) {
+            match self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation, None)) {
                 Completion::Tiles { results, .. } => {
                     if let Some((key, reason)) = self.absorb(results, Instant::now()) {
                         return Err(Error::TileLoad { key, reason });

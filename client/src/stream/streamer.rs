@@ -20,7 +20,7 @@ use web_time::Instant;
 use super::cache::TileCache;
 use super::camera::Camera;
 use super::decode::{DecodedTile, decode};
-use super::origin::{Backend, Origin};
+use super::origin::{Backend, BoxFuture, Origin};
 use super::select::{SelectOptions, Want, select};
 use crate::error::{Error, Result};
 
@@ -70,6 +70,28 @@ impl Default for StreamOptions {
         }
     }
 }
+
+/// Why a [`Decoder`] handed back no tile.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DecodeFailure {
+    /// The payload is not a tile of its layer (what [`decode`] says of it).
+    Undecodable(String),
+    /// The decoder could not run (a worker that did not start): the tile is decoded
+    /// where it was fetched instead.
+    Unavailable,
+}
+
+/// What a [`Decoder`] returns.
+pub type DecodeResult = BoxFuture<'static, std::result::Result<DecodedTile, DecodeFailure>>;
+
+/// Decodes payloads somewhere else than the fetching task: in a browser, Web Workers,
+/// so that decoding does not take the page's thread. Given the layer, the tile, its
+/// payload and whether the layer's compression is still on it.
+#[cfg(target_arch = "wasm32")]
+pub type Decoder = std::rc::Rc<dyn Fn(&Layer, TileKey, Bytes, bool) -> DecodeResult>;
+/// Decodes payloads somewhere else than the fetching task (see the wasm32 definition).
+#[cfg(not(target_arch = "wasm32"))]
+pub type Decoder = Arc<dyn Fn(&Layer, TileKey, Bytes, bool) -> DecodeResult + Send + Sync>;
 
 /// How much one frame may upload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -304,6 +326,7 @@ pub struct Streamer {
     /// The camera of the last update, and when: its motion predicts the next views.
     last_camera: Option<(Camera, Instant)>,
     host_version: u64,
+    decoder: Option<Decoder>,
     pub(super) stats: StreamStats,
     pub(super) last_error: Option<String>,
 }
@@ -365,6 +388,7 @@ impl Streamer {
             prefetch_keys: HashSet::new(),
             last_camera: None,
             host_version: 0,
+            decoder: None,
             stats: StreamStats::default(),
             last_error: None,
         })
@@ -417,6 +441,11 @@ impl Streamer {
             Some(_) => vec![true],
             None => Vec::new(),
         }
+    }
+
+    /// Decodes fetched tiles with `decoder` from now on (None: where they are fetched).
+    pub fn set_decoder(&mut self, decoder: Option<Decoder>) {
+        self.decoder = decoder;
     }
 
     /// The settings.
@@ -962,8 +991,9 @@ impl Streamer {
         self.stats.coalesced += keys.len() as u64 - 1;
         self.requests.insert(id, InFlight { tiles: keys, leaf: None, abort });
         let (queue, generation, backend) = (self.queue.clone(), self.generation, backend.clone());
+        let decoder = self.decoder.clone();
         self.spawn(async move {
-            let work = fetch_and_decode(backend, group, id, generation);
+            let work = fetch_and_decode(backend, group, id, generation, decoder);
             if let Ok(c) = Abortable::new(work, registration).await {
                 queue.push(c);
             }
@@ -1049,8 +1079,41 @@ async fn fetch_located(
     }
 }
 
+/// Decodes fetched payloads with `decoder`, all at once; where it cannot run, here.
+async fn decode_with(
+    decoder: &Decoder,
+    metadata: &Metadata,
+    raw: Fetched,
+    compressed: bool,
+) -> Vec<(TileKey, Outcome)> {
+    let jobs = raw.into_iter().map(|(key, fetched)| {
+        let layer = metadata.layers.get(usize::from(key.layer())).cloned();
+        let decoder = decoder.clone();
+        async move {
+            let outcome = match (fetched, layer) {
+                (Ok(None), _) => Outcome::Missing,
+                (Ok(Some(payload)), Some(layer)) => match decoder(&layer, key, payload.clone(), compressed).await {
+                    Ok(tile) => Outcome::Ready(Arc::new(tile)),
+                    Err(DecodeFailure::Undecodable(why)) => Outcome::Undecodable(why),
+                    Err(DecodeFailure::Unavailable) => decode_guarded(&layer, key, &payload, compressed),
+                },
+                (Ok(Some(_)), None) => Outcome::Failed(format!("tile {key}: no such layer")),
+                (Err(why), _) => Outcome::Failed(why),
+            };
+            (key, outcome)
+        }
+    });
+    futures_util::future::join_all(jobs).await
+}
+
 /// Fetches a group of tiles (one request) and decodes them off the calling thread.
-pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u64, generation: u64) -> Completion {
+pub(super) async fn fetch_and_decode(
+    backend: Backend,
+    group: Group,
+    request: u64,
+    generation: u64,
+    decoder: Option<Decoder>,
+) -> Completion {
     let changed = |what| Completion::Changed { generation, what };
     let started = Instant::now();
     let mut raw: Fetched = Vec::new();
@@ -1094,6 +1157,10 @@ pub(super) async fn fetch_and_decode(backend: Backend, group: Group, request: u6
     }
     let took = started.elapsed();
     let metadata = backend.metadata().clone();
+    if let Some(decoder) = decoder {
+        let results = decode_with(&decoder, &metadata, raw, compressed).await;
+        return Completion::Tiles { request, generation, results, bytes, needed, took };
+    }
     let decode_all = move || -> Vec<(TileKey, Outcome)> {
         raw.into_iter()
             .map(|(key, r)| {

@@ -42,6 +42,9 @@ struct Params {
     camera: Option<(DVec3, DVec3)>,
     backends: wgpu::Backends,
     hud: bool,
+    /// Web Workers that decode tiles (`workers=N`; 0: on the page's thread). Default:
+    /// one fewer than the machine's cores, 1 to 4.
+    workers: Option<usize>,
 }
 
 /// The page's elements.
@@ -124,7 +127,8 @@ fn params(window: &Window) -> Result<Params, String> {
         Some("webgl2" | "webgl" | "gl") => wgpu::Backends::GL,
         Some(other) => return Err(format!("Unknown backend {other:?}: use webgpu, webgl2 or auto.")),
     };
-    Ok(Params { archive, camera, backends, hud: query.get("hud").as_deref() != Some("0") })
+    let workers = query.get("workers").and_then(|w| w.parse().ok());
+    Ok(Params { archive, camera, backends, hud: query.get("hud").as_deref() != Some("0"), workers })
 }
 
 fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {
@@ -235,6 +239,8 @@ struct State {
     surface: Surface,
     /// The terrain pipeline, made at start.
     pipeline: TerrainPipeline,
+    /// The Web Workers decoding tiles, if they started.
+    workers: Option<Rc<crate::workers::Pool>>,
     phase: Phase,
     http: Arc<HttpStats>,
     input: Input,
@@ -509,6 +515,8 @@ impl State {
             },
             "max_frame_ms_streaming": self.timings.max_frame_ms_streaming,
             "session_ms": self.timings.session_ms,
+            "workers": self.workers.as_ref().map_or(0, |w| w.len()),
+            "decoded_in_workers": self.workers.as_ref().map_or(0, |w| w.decoded()),
             "frames_streaming": self.timings.streaming_ms.len(),
             "frames_resident": self.timings.resident_ms.len(),
             "frame_p50_streaming_ms": quantile(&self.timings.streaming_ms, 0.5),
@@ -601,9 +609,27 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         Err(e) => return Err((Some(page), format!("Cannot read {}: {e}", params.archive))),
     };
     let options = StreamOptions { cache_bytes: 256 * 1024 * 1024, ..StreamOptions::default() };
-    let streamer = match Streamer::new(origin, options) {
+    let mut streamer = match Streamer::new(origin, options) {
         Ok(s) => s,
         Err(e) => return Err((Some(page), format!("Cannot stream {}: {e}", params.archive))),
+    };
+    // Decoding in Web Workers, off the page's thread.
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a small core count")]
+    let cores = page.window.navigator().hardware_concurrency() as usize;
+    let count = params.workers.unwrap_or_else(|| cores.saturating_sub(1).clamp(1, 4));
+    let workers = if count == 0 {
+        None
+    } else {
+        match crate::workers::Pool::start(count) {
+            Ok(pool) => {
+                streamer.set_decoder(Some(pool.decoder()));
+                Some(pool)
+            }
+            Err(e) => {
+                tracing::warn!("no decoding workers ({e:?}): decoding on the page's thread");
+                None
+            }
+        }
     };
     let show_hud = params.hud;
     // Made now, while the archive opens: the shaders are compiled by the time the first
@@ -615,6 +641,7 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         gpu,
         surface,
         pipeline,
+        workers,
         phase: Phase::Opening(Box::new(streamer)),
         http,
         input: Input::default(),
