@@ -214,80 +214,83 @@ impl Catalog {
     }
 
     fn reload_manifests(&self) -> usize {
-        let current = self.manifests.read().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
-        let mut next = BTreeMap::new();
-        let mut changed = 0;
-        for path in self.candidates("json") {
-            let Some(name) = file_name(&path, ".json") else { continue };
-            let meta = match std::fs::symlink_metadata(&path) {
-                Ok(m) if m.file_type().is_file() => m,
-                _ => continue,
-            };
-            let id = identity(&meta);
-            if let Some(old) = current.get(&name).filter(|o| o.identity == id && o.path == path) {
-                next.insert(name, Arc::clone(old));
-                continue;
-            }
-            match read_manifest(&name, &path, id) {
-                Ok(served) => {
-                    tracing::info!(manifest = %name, archives = served.manifest.archives.len(), "serving {}", path.display());
-                    next.insert(name, Arc::new(served));
-                    changed += 1;
-                }
-                Err(err) => {
-                    tracing::error!("{}: {err}", path.display());
-                    if let Some(old) = current.get(&name) {
-                        next.insert(name, Arc::clone(old));
-                    }
-                }
-            }
-        }
-        changed += current.keys().filter(|k| !next.contains_key(*k)).count();
-        *self.manifests.write().unwrap_or_else(std::sync::PoisonError::into_inner) = next;
-        changed
+        rescan(
+            &self.manifests,
+            self.candidates("json"),
+            ".json",
+            |m| (m.identity, &m.path),
+            |name, path, _, id| {
+                let served = read_manifest(name, path, id)?;
+                tracing::info!(manifest = %name, archives = served.manifest.archives.len(), "serving {}", path.display());
+                Ok(served)
+            },
+        )
     }
 
     fn reload_archives(&self) -> usize {
-        let current = self.archives.read().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
-        let mut next = BTreeMap::new();
-        let mut changed = 0;
-        for path in self.candidates("tspack") {
-            let Some(name) = archive_name(&path) else { continue };
-            // Only regular files: a symlink could point anywhere on the machine.
-            let meta = match std::fs::symlink_metadata(&path) {
-                Ok(m) if m.file_type().is_file() => m,
-                Ok(_) => {
-                    tracing::warn!("{}: not a regular file, not served", path.display());
-                    continue;
-                }
-                Err(err) => {
-                    tracing::warn!("{}: {err}", path.display());
-                    continue;
-                }
-            };
-            let id = identity(&meta);
-            if let Some(old) = current.get(&name).filter(|o| o.identity == id && o.path == path) {
-                next.insert(name, Arc::clone(old));
+        let leaf_cache = self.leaf_cache;
+        rescan(
+            &self.archives,
+            self.candidates("tspack"),
+            ".tspack",
+            |a| (a.identity, &a.path),
+            |name, path, meta, id| {
+                let served = open(name, path, meta, id, leaf_cache)?;
+                tracing::info!(archive = %name, etag = %served.etag, "serving {}", path.display());
+                Ok(served)
+            },
+        )
+    }
+}
+
+/// Rescans one kind of served file: `open`s new and replaced ones (regular files only:
+/// a symlink could point anywhere on the machine), keeps unchanged ones, forgets removed
+/// ones; a file that fails to open is logged and its previous version kept. Returns how
+/// many changed.
+fn rescan<T>(
+    served: &RwLock<BTreeMap<String, Arc<T>>>,
+    paths: Vec<PathBuf>,
+    suffix: &str,
+    version: impl Fn(&T) -> (FileIdentity, &PathBuf),
+    open: impl Fn(&str, &Path, &std::fs::Metadata, FileIdentity) -> Result<T, terrastream_format::Error>,
+) -> usize {
+    let current = served.read().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
+    let mut next = BTreeMap::new();
+    let mut changed = 0;
+    for path in paths {
+        let Some(name) = file_name(&path, suffix) else { continue };
+        let meta = match std::fs::symlink_metadata(&path) {
+            Ok(m) if m.file_type().is_file() => m,
+            Ok(_) => {
+                tracing::warn!("{}: not a regular file, not served", path.display());
                 continue;
             }
-            match open(&name, &path, &meta, id, self.leaf_cache) {
-                Ok(served) => {
-                    tracing::info!(archive = %name, etag = %served.etag, "serving {}", path.display());
-                    next.insert(name, Arc::new(served));
-                    changed += 1;
-                }
-                Err(err) => {
-                    tracing::error!("{}: {err}", path.display());
-                    if let Some(old) = current.get(&name) {
-                        next.insert(name, Arc::clone(old));
-                    }
+            Err(err) => {
+                tracing::warn!("{}: {err}", path.display());
+                continue;
+            }
+        };
+        let id = identity(&meta);
+        if let Some(old) = current.get(&name).filter(|o| version(o) == (id, &path)) {
+            next.insert(name, Arc::clone(old));
+            continue;
+        }
+        match open(&name, &path, &meta, id) {
+            Ok(fresh) => {
+                next.insert(name, Arc::new(fresh));
+                changed += 1;
+            }
+            Err(err) => {
+                tracing::error!("{}: {err}", path.display());
+                if let Some(old) = current.get(&name) {
+                    next.insert(name, Arc::clone(old));
                 }
             }
         }
-        changed += current.keys().filter(|k| !next.contains_key(*k)).count();
-        *self.archives.write().unwrap_or_else(std::sync::PoisonError::into_inner) = next;
-        changed
     }
+    changed += current.keys().filter(|k| !next.contains_key(*k)).count();
+    *served.write().unwrap_or_else(std::sync::PoisonError::into_inner) = next;
+    changed
 }
 
 /// The URL name of an archive file: its stem, restricted to a safe alphabet.

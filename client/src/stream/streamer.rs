@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::future::{AbortHandle, Abortable};
-use terrastream_format::{AsyncRangeSource, Layer, Locate, Metadata, TileKey, TileLocation};
+use terrastream_format::{AsyncRangeSource, Layer, Locate, MaybeSend, Metadata, TileKey, TileLocation};
 use web_time::Instant;
 
 use super::cache::TileCache;
@@ -930,54 +930,66 @@ impl Streamer {
         offset: u64,
         len: u64,
     ) {
-        let id = self.next_id();
-        let (abort, registration) = AbortHandle::new_pair();
-        self.requests.insert(id, InFlight { tiles: Vec::new(), leaf: Some((part, offset)), abort });
-        self.stats.requests += 1;
-        let (queue, generation) = (self.queue.clone(), self.generation);
-        self.spawn(async move {
-            let work = async {
-                let started = Instant::now();
-                let (failure, bytes) = match reader.source().fetch(offset, len).await {
-                    Ok(bytes) => (reader.archive().add_leaf(offset, &bytes).err().map(|e| e.to_string()), bytes.len()),
-                    Err(terrastream_format::Error::Changed { what }) => {
-                        return Completion::Changed { generation, what };
-                    }
-                    Err(e) => (Some(e.to_string()), 0),
-                };
-                let took = started.elapsed();
-                Completion::Leaf { request: id, generation, part, offset, failure, bytes: bytes as u64, took }
-            };
-            if let Ok(c) = Abortable::new(work, registration).await {
-                queue.push(c);
+        self.spawn_leaf(part, offset, async move {
+            match reader.source().fetch(offset, len).await {
+                Ok(bytes) => {
+                    Ok((reader.archive().add_leaf(offset, &bytes).err().map(|e| e.to_string()), bytes.len() as u64))
+                }
+                Err(terrastream_format::Error::Changed { what }) => Err(what),
+                Err(e) => Ok((Some(e.to_string()), 0)),
             }
         });
     }
 
     /// Opens archive `part` of a manifest (its header, metadata and root directory).
     fn open_part(&mut self, parts: Arc<super::origin::Parts>, part: usize) {
-        let id = self.next_id();
-        let (abort, registration) = AbortHandle::new_pair();
-        self.requests.insert(id, InFlight { tiles: Vec::new(), leaf: Some((part, OPEN_PART)), abort });
-        self.stats.requests += 1;
-        let (queue, generation) = (self.queue.clone(), self.generation);
-        self.spawn(async move {
-            let work = async {
-                let started = Instant::now();
-                let (failure, bytes) = match parts.open(part).await {
-                    Ok(reader) => (None, reader.archive().header().bootstrap_len()),
-                    Err(Error::Changed { what } | Error::Format(terrastream_format::Error::Changed { what })) => {
-                        return Completion::Changed { generation, what };
-                    }
-                    Err(e) => (Some(e.to_string()), 0),
-                };
-                let took = started.elapsed();
-                Completion::Leaf { request: id, generation, part, offset: OPEN_PART, failure, bytes, took }
-            };
-            if let Ok(c) = Abortable::new(work, registration).await {
-                queue.push(c);
+        self.spawn_leaf(part, OPEN_PART, async move {
+            match parts.open(part).await {
+                Ok(reader) => Ok((None, reader.archive().header().bootstrap_len())),
+                Err(Error::Changed { what } | Error::Format(terrastream_format::Error::Changed { what })) => Err(what),
+                Err(e) => Ok((Some(e.to_string()), 0)),
             }
         });
+    }
+
+    /// Starts a request for a leaf directory of archive `part` (or, at [`OPEN_PART`], the
+    /// archive itself): `work` gives why it failed (if it did) and the bytes received, or
+    /// `Err` with what changed when the archive was found replaced.
+    fn spawn_leaf(
+        &mut self,
+        part: usize,
+        offset: u64,
+        work: impl Future<Output = std::result::Result<(Option<String>, u64), String>> + MaybeSend + 'static,
+    ) {
+        let task = self.leaf_task(part, offset, work);
+        self.spawn(task);
+    }
+
+    /// Registers a leaf request and wraps `work` into the task that reports it.
+    fn leaf_task<W>(&mut self, part: usize, offset: u64, work: W) -> impl Future<Output = ()> + use<W>
+    where
+        W: Future<Output = std::result::Result<(Option<String>, u64), String>>,
+    {
+        let id = self.next_id();
+        let (abort, registration) = AbortHandle::new_pair();
+        self.requests.insert(id, InFlight { tiles: Vec::new(), leaf: Some((part, offset)), abort });
+        self.stats.requests += 1;
+        let (queue, generation) = (self.queue.clone(), self.generation);
+        async move {
+            let timed = async {
+                let started = Instant::now();
+                match work.await {
+                    Ok((failure, bytes)) => {
+                        let took = started.elapsed();
+                        Completion::Leaf { request: id, generation, part, offset, failure, bytes, took }
+                    }
+                    Err(what) => Completion::Changed { generation, what },
+                }
+            };
+            if let Ok(c) = Abortable::new(timed, registration).await {
+                queue.push(c);
+            }
+        }
     }
 
     fn fetch_group(&mut self, backend: &Backend, group: Group) {

@@ -17,7 +17,7 @@ use common::tiles;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use terrastream_format::Reader;
+use terrastream_format::{Metadata, Reader, TileKey};
 use terrastream_pack::progress::Silent;
 use terrastream_tiler::{
     ElevationStorage, Image, Raster, ShardSpec, TextureFormat, TextureInput, TileOptions, merge, tile_shard,
@@ -72,14 +72,19 @@ fn shards(dir: &Path, n: u32, split_lod: Option<u8>, dem: &Raster, image: &Image
         .collect()
 }
 
+/// One whole run over `dem` and `image` into `dir`: the archive, its tiles, its metadata.
+fn whole_run(dir: &Path, dem: &Raster, image: &Image) -> (PathBuf, BTreeMap<TileKey, Vec<u8>>, Metadata) {
+    let whole = dir.join("whole.tspack");
+    tile_terrain(Some(dem), Some(texture(image)), "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let metadata = Reader::open_mmap(&whole).unwrap().metadata().clone();
+    (whole.clone(), tiles(&whole), metadata)
+}
+
 #[test]
 fn shards_merged_are_the_whole_run_byte_for_byte() {
     let dir = tempfile::tempdir().unwrap();
     let (dem, image) = (dem(), image());
-    let whole = dir.path().join("whole.tspack");
-    tile_terrain(Some(&dem), Some(texture(&image)), "t", &whole, OPTIONS, &Silent::default()).unwrap();
-    let expected = tiles(&whole);
-    let expected_meta = Reader::open_mmap(&whole).unwrap().metadata().clone();
+    let (_, expected, expected_meta) = whole_run(dir.path(), &dem, &image);
     // 13 x 10 elevation tiles (4 LODs above LOD 0), 26 x 20 texture tiles.
     assert!(expected.keys().any(|k| k.lod() == 4), "a pyramid several levels deep");
     for (n, split) in [(1, None), (3, None), (4, None), (3, Some(1)), (4, Some(0))] {
@@ -283,10 +288,7 @@ fn a_manifest_of_shards_routes_every_tile_of_the_whole_run() {
     use terrastream_format::Manifest;
     let dir = tempfile::tempdir().unwrap();
     let (dem, image) = (dem(), image());
-    let whole = dir.path().join("whole.tspack");
-    tile_terrain(Some(&dem), Some(texture(&image)), "t", &whole, OPTIONS, &Silent::default()).unwrap();
-    let expected = tiles(&whole);
-    let expected_meta = Reader::open_mmap(&whole).unwrap().metadata().clone();
+    let (whole, expected, expected_meta) = whole_run(dir.path(), &dem, &image);
     let shard_dir = dir.path().join("shards");
     std::fs::create_dir(&shard_dir).unwrap();
     let parts = shards(&shard_dir, 3, None, &dem, &image);
