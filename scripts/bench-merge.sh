@@ -62,13 +62,16 @@ shards() {
   for p in "${pids[@]}"; do wait "$p"; done
 }
 merge() { rm -f "$work/merged.tspack"; "$bin" -q merge "$work/shards" -o "$work/merged.tspack"; }
+# Published as they are: the levels above the split LOD into a coarse archive + a manifest.
+publish() { rm -rf "$work/pub"; mkdir -p "$work/pub"; "$bin" -q merge "$work/shards" -o "$work/pub/coarse.tspack" --manifest "$work/pub/t.json"; }
 copy() { rm -f "$work/copy.bin"; cat "$work"/shards/*.tspack > "$work/copy.bin"; sync -f "$work/copy.bin"; }
 update() { rm -f "$work/updated.tspack"; "$bin" -q update "$work/single.tspack" --elevation "$work/patch.tif" -o "$work/updated.tspack"; }
-export -f single shards merge copy update; export bin work N
+export -f single shards merge publish copy update; export bin work N
 
 best single single
 best shards shards
 best merge merge
+best publish publish
 best copy copy
 best update update
 cmp -s "$work/single.tspack" "$work/merged.tspack" && same="byte-identical" || same="DIFFERENT"
@@ -76,7 +79,8 @@ bytes=$(cat "$work"/shards/*.tspack | wc -c)
 tiles=$("$bin" info "$work/merged.tspack" --json | awk -F: '/"tile_entries"/ { gsub(/[ ,]/, "", $2); print $2; exit }')
 printf '\n%-44s %9s\n' job wall
 printf '%-44s %7s s\n' "one tile run" "${secs[single]}" "plan + $N shards at once" "${secs[shards]}" \
-  "merge of the $N shards" "${secs[merge]}" "cp of the shards' bytes" "${secs[copy]}" \
+  "merge of the $N shards" "${secs[merge]}" "merge --manifest (coarse archive + manifest)" "${secs[publish]}" \
+  "cp of the shards' bytes" "${secs[copy]}" \
   "update of $UPDATE_PERCENT % of the area" "${secs[update]}"
 echo
 echo "merged archive: $same to the single run's; $tiles tiles, $((bytes / 1048576)) MiB of shards"
@@ -84,5 +88,7 @@ awk -v m="${secs[merge]}" -v c="${secs[copy]}" -v t="$tiles" -v b="$bytes" 'BEGI
   printf "merge throughput: %.0f tiles/s, %.0f MB/s; against cp: %.2fx\n", t / m, b / m / 1e6, c / m }'
 awk -v s="${secs[shards]}" -v m="${secs[merge]}" -v o="${secs[single]}" 'BEGIN {
   printf "shards + merge against one run: %.2fx the time (the merge alone: %.0f %% of one run)\n", (s + m) / o, 100 * m / o }'
+awk -v p="${secs[publish]}" -v m="${secs[merge]}" -v s="${secs[shards]}" -v o="${secs[single]}" 'BEGIN {
+  printf "merge --manifest: %.2fx the merge; shards + merge --manifest against one run: %.2fx\n", p / m, (s + p) / o }'
 awk -v u="${secs[update]}" -v o="${secs[single]}" -v p="$UPDATE_PERCENT" 'BEGIN {
   printf "update of %s %% of the area: %.1f %% of a full tile run\n", p, 100 * u / o }'
