@@ -186,3 +186,25 @@ fn only_the_archives_a_view_needs_are_opened() {
     needed[3] = true;
     assert_eq!(streamer.opened_parts(), needed);
 }
+
+/// An archive the manifest names is missing: the tiles it holds stay wanted (retried with
+/// a backoff), the error names the archive, and the other archives stream on.
+#[test]
+fn a_missing_archive_is_named_and_the_rest_streams() {
+    let p = publish(0);
+    std::fs::remove_file(p.folder.join("shard-2.tspack")).unwrap();
+    let origin = Origin::parse(p.folder.join("tamalpais.json").to_str().unwrap()).unwrap();
+    let mut streamer = Streamer::open(origin, StreamOptions::default()).unwrap();
+    let metadata = streamer.metadata().unwrap().clone();
+    let cam = default_camera(&metadata, WIDTH, HEIGHT);
+    for _ in 0..200 {
+        streamer.update(&cam);
+        streamer.drain_uploads(terrastream_client::UploadBudget { max_tiles: 64, max_bytes: 64 << 20 });
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let error = streamer.last_error().unwrap_or_default().to_owned();
+    assert!(error.contains("shard-2.tspack"), "{error}");
+    assert!(!streamer.opened_parts()[3], "the missing archive is not open");
+    assert!(streamer.pending() > 0, "the missing archive's tiles are still wanted");
+    assert!(streamer.stats().uploads > 8, "the others stream: {:?}", streamer.stats());
+}
