@@ -208,3 +208,50 @@ fn a_missing_archive_is_named_and_the_rest_streams() {
     assert!(streamer.pending() > 0, "the missing archive's tiles are still wanted");
     assert!(streamer.stats().uploads > 8, "the others stream: {:?}", streamer.stats());
 }
+
+/// A manifest republished on the server (a region's archive under a new name, the old one
+/// removed): a streaming client asks again every `manifest_recheck` (a conditional
+/// request), finds it changed, and re-reads everything from the new one.
+#[test]
+fn a_republished_manifest_is_picked_up_while_streaming() {
+    let p = publish(0);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let state = terrastream_testkit::server::state(&p.folder);
+    let catalog = state.catalog.clone();
+    let (addr, server) =
+        runtime.block_on(terrastream_testkit::server::serve_router(terrastream_server::app(state), "127.0.0.1:0"));
+    let options = StreamOptions { manifest_recheck: std::time::Duration::from_millis(50), ..StreamOptions::default() };
+    let origin = Origin::parse(&format!("http://{addr}/tamalpais.json")).unwrap();
+    let mut streamer = Streamer::open(origin, options).unwrap();
+    let cam = default_camera(streamer.metadata().unwrap(), WIDTH, HEIGHT);
+    let mut stream_until = |s: &mut Streamer, done: &dyn Fn(&Streamer) -> bool| {
+        for _ in 0..1000 {
+            s.update(&cam);
+            s.drain_uploads(terrastream_client::UploadBudget { max_tiles: 64, max_bytes: 64 << 20 });
+            if done(s) {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        panic!("not done: {:?}, last error {:?}", s.stats(), s.last_error());
+    };
+    stream_until(&mut streamer, &|s| s.pending() == 0 && !s.wanted().is_empty());
+    assert_eq!(streamer.stats().reloads, 0, "asked again, unchanged: nothing re-read");
+
+    // The view streams from shard 1, among others.
+    assert!(streamer.opened_parts()[2], "{:?}", streamer.opened_parts());
+    // Republished: shard 1 under a new name, the manifest last, the old file removed.
+    let mut manifest = p.manifest.clone();
+    assert_eq!(manifest.archives[2].url, "shard-1.tspack");
+    manifest.archives[2].url = "shard-1b.tspack".into();
+    std::fs::copy(p.folder.join("shard-1.tspack"), p.folder.join("shard-1b.tspack")).unwrap();
+    terrastream_tiler::write_manifest(&manifest, &p.folder.join("tamalpais.json")).unwrap();
+    std::fs::remove_file(p.folder.join("shard-1.tspack")).unwrap();
+    catalog.reload();
+    // Re-read from the new manifest: the view completes again, shard 1 from its new name
+    // (the old one is gone: reading it would fail).
+    stream_until(&mut streamer, &|s| s.stats().reloads == 1 && s.pending() == 0 && !s.wanted().is_empty());
+    assert!(streamer.opened_parts()[2], "the new shard-1b opened");
+    assert_eq!(streamer.stats().failures, 0, "{:?}", streamer.last_error());
+    server.abort();
+}

@@ -90,7 +90,7 @@ impl Streamer {
                     }
                 }
                 Completion::Changed { what, .. } => return Err(Error::Changed { what }),
-                Completion::Opened { .. } | Completion::Leaf { .. } => {}
+                Completion::Opened { .. } | Completion::Leaf { .. } | Completion::Rechecked => {}
             }
         }
         Ok(self.sample_height(layer, 0, x, z))

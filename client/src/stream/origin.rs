@@ -216,6 +216,8 @@ pub struct ManifestSource {
     location: String,
     client: Option<reqwest::Client>,
     stats: Arc<crate::HttpStats>,
+    /// The version last read: its HTTP ETag (if any) and a hash of its bytes.
+    seen: Mutex<Option<(Option<String>, String)>>,
 }
 
 impl ManifestSource {
@@ -232,7 +234,7 @@ impl ManifestSource {
         } else {
             None
         };
-        Ok(Self { location: location.to_owned(), client, stats: Arc::default() })
+        Ok(Self { location: location.to_owned(), client, stats: Arc::default(), seen: Mutex::default() })
     }
 
     /// Request and byte counters of all its archives (HTTP only).
@@ -250,18 +252,47 @@ impl ManifestSource {
     /// # Errors
     /// A request or file error naming the manifest; a manifest error.
     pub async fn manifest(&self) -> Result<Manifest> {
-        let bytes = match &self.client {
-            Some(client) => {
-                let fail = |reason: String| Error::Request { url: self.location.clone(), reason };
-                let response = client.get(&self.location).send().await.map_err(|e| fail(e.to_string()))?;
-                if response.status() != StatusCode::OK {
-                    return Err(Error::Status { url: self.location.clone(), status: response.status().as_u16() });
-                }
-                response.bytes().await.map_err(|e| fail(format!("body: {e}")))?
+        let (bytes, etag) = self.fetch(None).await?.unwrap_or_default();
+        let manifest = Manifest::from_json(&bytes)
+            .map_err(|e| Error::Request { url: self.location.clone(), reason: e.to_string() })?;
+        *self.seen.lock().unwrap_or_else(PoisonError::into_inner) =
+            Some((etag, terrastream_format::content_tag(&bytes)));
+        Ok(manifest)
+    }
+
+    /// Was the manifest republished since it was last read? One conditional request
+    /// (`If-None-Match`) over HTTP; a read of the file otherwise.
+    ///
+    /// # Errors
+    /// A request or file error naming the manifest.
+    pub async fn republished(&self) -> Result<bool> {
+        let seen = self.seen.lock().unwrap_or_else(PoisonError::into_inner).clone();
+        let Some((etag, hash)) = seen else { return Ok(false) };
+        Ok(match self.fetch(etag.as_deref()).await? {
+            None => false,
+            Some((bytes, _)) => terrastream_format::content_tag(&bytes) != hash,
+        })
+    }
+
+    /// The manifest's bytes and HTTP ETag; None when `if_none_match` still matches.
+    async fn fetch(&self, if_none_match: Option<&str>) -> Result<Option<(Bytes, Option<String>)>> {
+        let Some(client) = &self.client else { return Ok(Some((read_file(&self.location)?, None))) };
+        let fail = |reason: String| Error::Request { url: self.location.clone(), reason };
+        let mut request = client.get(&self.location);
+        if let Some(etag) = if_none_match {
+            request = request.header(reqwest::header::IF_NONE_MATCH, etag);
+        }
+        let response = request.send().await.map_err(|e| fail(e.to_string()))?;
+        match response.status() {
+            StatusCode::NOT_MODIFIED if if_none_match.is_some() => Ok(None),
+            StatusCode::OK => {
+                let etag =
+                    response.headers().get(reqwest::header::ETAG).and_then(|v| v.to_str().ok()).map(str::to_owned);
+                let bytes = response.bytes().await.map_err(|e| fail(format!("body: {e}")))?;
+                Ok(Some((bytes, etag)))
             }
-            None => read_file(&self.location)?,
-        };
-        Manifest::from_json(&bytes).map_err(|e| Error::Request { url: self.location.clone(), reason: e.to_string() })
+            status => Err(Error::Status { url: self.location.clone(), status: status.as_u16() }),
+        }
     }
 
     /// Opens archive `part` of `manifest` and checks it is the one named.

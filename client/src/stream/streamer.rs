@@ -51,6 +51,9 @@ pub struct StreamOptions {
     /// Prefetch what the camera will see this far ahead, at its current speed and turn,
     /// with the requests the current view leaves free (zero: no prefetch).
     pub prefetch_ahead: Duration,
+    /// How often a manifest is asked whether it was republished (one conditional
+    /// request); when it was, everything is re-read from the new one (zero: never).
+    pub manifest_recheck: Duration,
 }
 
 impl Default for StreamOptions {
@@ -67,6 +70,7 @@ impl Default for StreamOptions {
             max_retry_backoff: Duration::from_secs(10),
             worker_threads: 2,
             prefetch_ahead: Duration::from_millis(500),
+            manifest_recheck: Duration::from_secs(30),
         }
     }
 }
@@ -223,6 +227,9 @@ pub(super) enum Completion {
         generation: u64,
         what: String,
     },
+    /// A manifest was asked whether it was republished, and was not (or the question
+    /// failed: asked again later).
+    Rechecked,
 }
 
 /// The "leaf offset" of a manifest's archive being opened: its header and root directory.
@@ -326,6 +333,10 @@ pub struct Streamer {
     /// The camera of the last update, and when: its motion predicts the next views.
     last_camera: Option<(Camera, Instant)>,
     host_version: u64,
+    /// When to ask a manifest again whether it was republished (None: not set since it
+    /// opened), and whether a question is out.
+    recheck_at: Option<Instant>,
+    rechecking: bool,
     decoder: Option<Decoder>,
     pub(super) stats: StreamStats,
     pub(super) last_error: Option<String>,
@@ -388,6 +399,8 @@ impl Streamer {
             prefetch_keys: HashSet::new(),
             last_camera: None,
             host_version: 0,
+            recheck_at: None,
+            rechecking: false,
             decoder: None,
             stats: StreamStats::default(),
             last_error: None,
@@ -524,6 +537,7 @@ impl Streamer {
                 return;
             }
         }
+        self.recheck_manifest(now);
         if let Some(Backend::Host(host)) = self.backend() {
             let version = host.version();
             if version != self.host_version {
@@ -545,6 +559,41 @@ impl Streamer {
         self.cancel_unwanted();
         self.issue(now);
         self.cache.trim(&self.wanted_keys);
+    }
+
+    /// Asks a manifest, every `manifest_recheck`, whether it was republished; a new one
+    /// makes the streamer re-read everything from it ([`Completion::Changed`]).
+    fn recheck_manifest(&mut self, now: Instant) {
+        let source = match self.backend() {
+            Some(Backend::Manifest(parts)) => parts.source.clone(),
+            _ => return,
+        };
+        let interval = self.options.manifest_recheck;
+        if interval.is_zero() || self.rechecking {
+            return;
+        }
+        match self.recheck_at {
+            // The first question is an interval after it opened.
+            None => {
+                self.recheck_at = Some(now + interval);
+                return;
+            }
+            Some(at) if now < at => return,
+            Some(_) => {}
+        }
+        self.rechecking = true;
+        let (queue, generation) = (self.queue.clone(), self.generation);
+        self.spawn(async move {
+            let answer = match source.republished().await {
+                Ok(true) => Completion::Changed { generation, what: format!("{}: republished", source.location()) },
+                Ok(false) => Completion::Rechecked,
+                Err(e) => {
+                    tracing::debug!("asking whether the manifest changed: {e}");
+                    Completion::Rechecked
+                }
+            };
+            queue.push(answer);
+        });
     }
 
     /// The tiles of the view `prefetch_ahead` from now, at the camera's speed and turn
@@ -647,6 +696,10 @@ impl Streamer {
                     if generation == self.generation {
                         self.reload(&what);
                     }
+                }
+                Completion::Rechecked => {
+                    self.rechecking = false;
+                    self.recheck_at = Some(now + self.options.manifest_recheck);
                 }
                 Completion::Tiles { request, generation, results, bytes, needed, took } => {
                     if generation == self.generation {
@@ -776,6 +829,7 @@ impl Streamer {
         self.prefetch.clear();
         self.prefetch_keys.clear();
         self.stats.reloads += 1;
+        (self.recheck_at, self.rechecking) = (None, false);
         self.last_error = Some(format!("archive replaced: {what}"));
         self.generation += 1;
         self.origin.forget();
