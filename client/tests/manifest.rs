@@ -224,7 +224,7 @@ fn a_republished_manifest_is_picked_up_while_streaming() {
     let origin = Origin::parse(&format!("http://{addr}/tamalpais.json")).unwrap();
     let mut streamer = Streamer::open(origin, options).unwrap();
     let cam = default_camera(streamer.metadata().unwrap(), WIDTH, HEIGHT);
-    let mut stream_until = |s: &mut Streamer, done: &dyn Fn(&Streamer) -> bool| {
+    let stream_until = |s: &mut Streamer, done: &dyn Fn(&Streamer) -> bool| {
         for _ in 0..1000 {
             s.update(&cam);
             s.drain_uploads(terrastream_client::UploadBudget { max_tiles: 64, max_bytes: 64 << 20 });
