@@ -258,6 +258,9 @@ fn a_sharded_run_is_published_by_a_manifest_that_info_and_verify_read() {
     );
     assert!(out.status.success(), "{}", text(&out));
     assert!(text(&out).contains("t.json: 4 archives"), "{}", text(&out));
+    // Again, into the shards' folder given as the input: its own coarse archive is not one.
+    let out = terrastream(&["merge", ".", "-o", "coarse.tspack", "--manifest", "t.json"], cwd);
+    assert!(out.status.success() && text(&out).contains("t.json: 4 archives"), "{}", text(&out));
     let out = terrastream(&["info", "t.json"], cwd);
     let info = text(&out);
     assert!(out.status.success() && info.contains("4 archives") && info.contains("s2.tspack"), "{info}");

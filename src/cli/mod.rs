@@ -328,7 +328,10 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Merge { inputs, output, manifest: Some(manifest), .. } => {
-            let inputs = archives_in(&inputs)?;
+            // The coarse archive of an earlier run in the shards' folder is not an input.
+            let earlier = std::fs::canonicalize(&output).ok();
+            let mut inputs = archives_in(&inputs)?;
+            inputs.retain(|p| earlier.is_none() || std::fs::canonicalize(p).ok() != earlier);
             let summary = terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, &progress)?;
             progress.finish();
             println!(
