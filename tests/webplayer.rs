@@ -652,6 +652,12 @@ fn bench_webplayer_over_emulated_links() {
             ms("frame_p99_resident_ms"),
             s["http_requests"].as_u64().unwrap_or(0),
         );
+        println!(
+            "{:<32} first frame with terrain: {} ms preparing (streaming, uploads), {} ms encoding and submitting",
+            "",
+            ms("first_draw_prepare_ms"),
+            ms("first_draw_submit_ms")
+        );
         assert_eq!(s["missing"], json!(0), "{name}: {s}");
         drop(browser);
     }

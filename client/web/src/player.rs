@@ -202,6 +202,9 @@ struct Timings {
     resident_ms: Vec<f64>,
     /// Making the session (renderer, pipelines, GPU arrays) once the metadata was in.
     session_ms: Option<f64>,
+    /// The first frame that drew terrain: streaming and preparing it (uploads included),
+    /// then encoding and submitting its draw (ms on the page's thread).
+    first_draw: Option<(f64, f64)>,
 }
 
 /// Frame intervals kept per kind, for the percentiles of [`Player::stats`].
@@ -282,12 +285,18 @@ impl State {
         }
         fly.step(dt, input, |x, z| session.streamer.height_at(x, z));
         let camera = fly.camera(size.0, size.1);
+        let cpu_started = self.page.now_ms();
         let (stream, frame) = session.frame(&self.gpu.device, &self.gpu.queue, &camera);
+        let present_started = self.page.now_ms();
         self.uploads_last_frame = stream.uploads - self.uploads_seen;
         self.uploads_seen = stream.uploads;
         self.timings.max_uploads_per_frame = self.timings.max_uploads_per_frame.max(self.uploads_last_frame);
         self.timings.frames += 1;
         self.present();
+        if self.timings.first_draw.is_none() && frame.resident.0 + frame.resident.1 > 0 {
+            let now = self.page.now_ms();
+            self.timings.first_draw = Some((present_started - cpu_started, now - present_started));
+        }
         if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_at.is_none() {
             self.timings.first_frame_at = Some(now);
             tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
@@ -515,6 +524,8 @@ impl State {
             },
             "max_frame_ms_streaming": self.timings.max_frame_ms_streaming,
             "session_ms": self.timings.session_ms,
+            "first_draw_prepare_ms": self.timings.first_draw.map(|t| t.0),
+            "first_draw_submit_ms": self.timings.first_draw.map(|t| t.1),
             "workers": self.workers.as_ref().map_or(0, |w| w.len()),
             "decoded_in_workers": self.workers.as_ref().map_or(0, |w| w.decoded()),
             "frames_streaming": self.timings.streaming_ms.len(),
