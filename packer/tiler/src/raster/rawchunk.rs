@@ -287,23 +287,21 @@ mod tests {
         let mut encoder = TiffEncoder::new(std::fs::File::create(&rgb_base).unwrap()).unwrap();
         let pixels: Vec<u8> = (0..w * h * 3).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
         encoder.write_image::<colortype::RGB8>(w, h, &pixels).unwrap();
+        // 32 x 16 tiles, Deflate with the horizontal predictor: what DEMs are published as.
+        const TILED_DEFLATE: &[&str] = &[
+            "-co",
+            "TILED=YES",
+            "-co",
+            "BLOCKXSIZE=32",
+            "-co",
+            "BLOCKYSIZE=16",
+            "-co",
+            "COMPRESS=DEFLATE",
+            "-co",
+            "PREDICTOR=2",
+        ];
         let cases: [(&Path, &[&str], usize); 8] = [
-            (
-                &base,
-                &[
-                    "-co",
-                    "TILED=YES",
-                    "-co",
-                    "BLOCKXSIZE=32",
-                    "-co",
-                    "BLOCKYSIZE=16",
-                    "-co",
-                    "COMPRESS=DEFLATE",
-                    "-co",
-                    "PREDICTOR=2",
-                ],
-                1,
-            ),
+            (&base, TILED_DEFLATE, 1),
             (&base, &["-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=16"], 1),
             (&base, &["-co", "BLOCKYSIZE=7", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2"], 1),
             (
@@ -313,22 +311,7 @@ mod tests {
             ),
             (&base, &["-ot", "UInt16", "-co", "COMPRESS=DEFLATE", "-co", "ZLEVEL=1"], 1),
             (&base, &["-ot", "Byte", "-scale", "-co", "TILED=YES", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2"], 1),
-            (
-                &rgb_base,
-                &[
-                    "-co",
-                    "TILED=YES",
-                    "-co",
-                    "BLOCKXSIZE=32",
-                    "-co",
-                    "BLOCKYSIZE=16",
-                    "-co",
-                    "COMPRESS=DEFLATE",
-                    "-co",
-                    "PREDICTOR=2",
-                ],
-                3,
-            ),
+            (&rgb_base, TILED_DEFLATE, 3),
             (&rgb_base, &["-co", "BLOCKYSIZE=5", "-co", "PREDICTOR=2", "-co", "COMPRESS=DEFLATE"], 3),
         ];
         for (k, (from, args, channels)) in cases.into_iter().enumerate() {
