@@ -1,7 +1,8 @@
 //! Decoding off the page's thread: a pool of Web Workers (`decoder.js`, a module worker
 //! that loads this same wasm module) decodes tile payloads and hands back flat decoded
-//! tiles ([`DecodedTile::to_wire`]). A worker that fails to start or dies makes its tiles
-//! decode on the page's thread instead ([`DecodeFailure::Unavailable`]).
+//! tiles ([`DecodedTile::to_wire`]). A worker that fails to start, dies, or whose module
+//! trapped makes its tiles decode on the page's thread instead
+//! ([`DecodeFailure::Unavailable`]).
 
 use std::cell::{Cell, RefCell};
 use std::collections::HashMap;
@@ -52,9 +53,11 @@ impl Pool {
                 let id = Reflect::get(&data, &"id".into()).ok().and_then(|v| v.as_f64());
                 #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "ids are u32")]
                 let Some(sender) = id.and_then(|id| pending.borrow_mut().remove(&(id as u32))) else { return };
-                let answer = match Reflect::get(&data, &"tile".into()) {
-                    Ok(tile) if !tile.is_undefined() => Ok(Uint8Array::new(&tile).to_vec()),
-                    _ => Err(DecodeFailure::Undecodable(
+                let field = |name: &str| Reflect::get(&data, &name.into()).ok().filter(|v| !v.is_undefined());
+                let answer = match (field("tile"), field("unavailable")) {
+                    (Some(tile), _) => Ok(Uint8Array::new(&tile).to_vec()),
+                    (None, Some(_)) => Err(DecodeFailure::Unavailable),
+                    (None, None) => Err(DecodeFailure::Undecodable(
                         Reflect::get(&data, &"error".into()).ok().and_then(|e| e.as_string()).unwrap_or_default(),
                     )),
                 };
