@@ -91,6 +91,15 @@ pub enum Error {
         /// The underlying error.
         error: std::io::Error,
     },
+    /// An in-place update does not fit the room the archive has for one (FORMAT.md §7.1);
+    /// the archive is as it was. Rewriting it (a merge into a new file) always works.
+    #[error("{path}: no room for an update in place: {why}")]
+    NoRoom {
+        /// The archive.
+        path: PathBuf,
+        /// What does not fit.
+        why: String,
+    },
     /// The operation was interrupted (Ctrl-C); nothing was written under the final name.
     #[error("interrupted")]
     Interrupted,

@@ -3,6 +3,7 @@
 //! [`extract`](extract::extract) back to folders, exporters to other formats, and the
 //! built-in [`sample`] terrain. Reading is `terrastream-format`'s.
 
+mod append;
 mod compress;
 mod error;
 pub mod export;
@@ -12,6 +13,7 @@ pub mod progress;
 pub mod sample;
 mod writer;
 
+pub use append::Appender;
 pub use compress::zstd_compress;
 pub use error::{Error, Result};
-pub use writer::{WriteSummary, Writer, WriterOptions, output_folder};
+pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, output_folder};

@@ -40,6 +40,10 @@ pub struct WriterOptions {
     pub leaf_entries: usize,
     /// Bytes the header, metadata and root directory should fit in.
     pub bootstrap_target: u64,
+    /// Leave room for in-place updates (FORMAT.md §7.1): a second bootstrap slot in the
+    /// first 16 KiB (so the root's budget is half of it) and a second leaf-directory slot.
+    /// Costs at most 16 KiB plus 1.5x the leaves, and makes `Appender` possible.
+    pub reserve: bool,
 }
 
 impl Default for WriterOptions {
@@ -52,6 +56,7 @@ impl Default for WriterOptions {
             batch_tiles: 2048,
             leaf_entries: 4096,
             bootstrap_target: BOOTSTRAP_READ,
+            reserve: true,
         }
     }
 }
@@ -79,7 +84,7 @@ pub struct WriteSummary {
     pub leaf_count: u64,
 }
 
-const SPILL_RECORD: usize = 24;
+pub(crate) const SPILL_RECORD: usize = 24;
 
 type Prepared = (u64, TileKey, Vec<u8>, u128);
 
@@ -302,15 +307,22 @@ impl Writer {
         let level = self.options.directory_zstd_level;
         let metadata_bytes = zstd_compress(&self.metadata.to_json(), level)
             .map_err(|error| Error::Compress { what: "the metadata", error })?;
-        let budget = self.options.bootstrap_target.saturating_sub(HEADER_LEN as u64 + metadata_bytes.len() as u64);
+        let target = if self.options.reserve {
+            self.options.bootstrap_target.min(HEADER_LEN as u64 + BOOTSTRAP_SLOT)
+        } else {
+            self.options.bootstrap_target
+        };
+        let budget = target.saturating_sub(HEADER_LEN as u64 + metadata_bytes.len() as u64);
         let mut spill = self.spill.into_inner().map_err(|e| temp(e.into_error()))?;
         let mut directories =
             build_directories(&mut spill, self.spilled, &self.options, budget, &self.folder).map_err(temp)?;
-
-        let metadata = Section { offset: HEADER_LEN as u64, len: metadata_bytes.len() as u64 };
-        let root_dir = Section { offset: metadata.offset + metadata.len, len: directories.root.len() as u64 };
-        let leaf_dirs = Section { offset: root_dir.offset + root_dir.len, len: directories.leaves_len };
-        let data = Section { offset: leaf_dirs.offset + leaf_dirs.len, len: self.data_len };
+        let [metadata, root_dir, leaf_dirs, data] = layout(
+            metadata_bytes.len() as u64,
+            directories.root.len() as u64,
+            directories.leaves_len,
+            self.data_len,
+            self.options.reserve,
+        );
         let header = Header {
             version_minor: VERSION_MINOR,
             metadata,
@@ -330,10 +342,12 @@ impl Writer {
             Part::Bytes(&header.encode()),
             Part::Bytes(&metadata_bytes),
             Part::Bytes(&directories.root),
+            Part::Gap(leaf_dirs.offset - root_dir.offset - root_dir.len),
             Part::File(&mut directories.leaves, directories.leaves_len),
+            Part::Gap(data.offset - leaf_dirs.offset - leaf_dirs.len),
             Part::File(&mut data_file, self.data_len),
         ];
-        publish(&self.path, &self.folder, parts)?;
+        publish(&self.path, &self.folder, parts, data.end().unwrap_or(u64::MAX))?;
         Ok(WriteSummary {
             path: self.path,
             file_len: data.end().unwrap_or(u64::MAX),
@@ -348,20 +362,51 @@ impl Writer {
     }
 }
 
+/// Bytes of one bootstrap slot (metadata and root) in an archive with room for updates:
+/// two fit in the first [`BOOTSTRAP_READ`] bytes after the header.
+pub const BOOTSTRAP_SLOT: u64 = (BOOTSTRAP_READ - HEADER_LEN as u64) / 2;
+
+/// Alignment of the data section in an archive with room for updates (a filesystem
+/// block: copies of the archive can share the data's blocks).
+const DATA_ALIGN: u64 = 4096;
+
+/// The leaf-directory area of an archive with room for updates whose leaves take `len`
+/// bytes: theirs, and the next version's with half as much again to grow.
+pub(crate) fn leaf_area(len: u64) -> u64 {
+    len.saturating_mul(5) / 2 + 4096
+}
+
+/// Where the sections go: back to back, or with `reserve` (and a bootstrap that fits its
+/// slot) the layout of FORMAT.md §7.1: metadata and root in the first slot, the leaves at
+/// [`BOOTSTRAP_READ`] in an area of [`leaf_area`], the data after it, block-aligned.
+fn layout(metadata: u64, root: u64, leaves: u64, data: u64, reserve: bool) -> [Section; 4] {
+    let metadata = Section { offset: HEADER_LEN as u64, len: metadata };
+    let root = Section { offset: metadata.offset + metadata.len, len: root };
+    let fits = root.offset + root.len <= HEADER_LEN as u64 + BOOTSTRAP_SLOT;
+    let (leaves, data_offset) = if reserve && fits {
+        let leaves = Section { offset: BOOTSTRAP_READ, len: leaves };
+        (leaves, (BOOTSTRAP_READ + leaf_area(leaves.len)).div_ceil(DATA_ALIGN) * DATA_ALIGN)
+    } else {
+        let leaves = Section { offset: root.offset + root.len, len: leaves };
+        (leaves, leaves.offset + leaves.len)
+    };
+    [metadata, root, leaves, Section { offset: data_offset, len: data }]
+}
+
 /// The root directory and the leaves of an archive being finished.
-struct Directories {
+pub(crate) struct Directories {
     /// The root, compressed.
-    root: Vec<u8>,
+    pub(crate) root: Vec<u8>,
     /// The leaves, compressed and concatenated, at the start of a temporary file.
-    leaves: File,
-    leaves_len: u64,
-    leaf_count: u64,
+    pub(crate) leaves: File,
+    pub(crate) leaves_len: u64,
+    pub(crate) leaf_count: u64,
 }
 
 /// Reads the `count` spilled entries back and builds the directories: every entry in the
 /// root when it fits the bootstrap `budget` (a cold tile then costs 2 reads), else leaves
 /// of `leaf_entries` entries, doubled until the root of leaf pointers fits.
-fn build_directories(
+pub(crate) fn build_directories(
     spill: &mut File,
     count: u64,
     options: &WriterOptions,
@@ -394,15 +439,17 @@ fn build_directories(
     }
 }
 
-/// A piece of a file being published: bytes, or the first `len` bytes of a temporary file.
+/// A piece of a file being published: bytes, the first `len` bytes of a temporary file,
+/// or a gap of unwritten bytes (a hole; zeros when read).
 enum Part<'a> {
     Bytes(&'a [u8]),
     File(&'a mut File, u64),
+    Gap(u64),
 }
 
-/// Writes `parts` to a temporary file in `folder`, syncs it and renames it to `path`:
-/// nothing is left under the final name on error.
-fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<'a>>) -> Result<()> {
+/// Writes `parts` to a temporary file in `folder`, makes it `len` bytes long, syncs it
+/// and renames it to `path`: nothing is left under the final name on error.
+fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<'a>>, len: u64) -> Result<()> {
     let file_name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let mut out = published(tempfile::Builder::new().prefix(&format!(".{file_name}.")).suffix(".partial"))
         .tempfile_in(folder)
@@ -412,6 +459,11 @@ fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<
     for part in parts {
         match part {
             Part::Bytes(bytes) => file.write_all(bytes).map_err(io)?,
+            Part::Gap(0) => {}
+            Part::Gap(n) => {
+                let gap = i64::try_from(n).map_err(|_| io(std::io::Error::other("a gap over 2^63 bytes")))?;
+                file.seek(SeekFrom::Current(gap)).map_err(io)?;
+            }
             Part::File(source, len) => {
                 source.seek(SeekFrom::Start(0)).map_err(|e| temporary(folder, e))?;
                 let copied = std::io::copy(&mut Read::take(source, len), file).map_err(io)?;
@@ -422,6 +474,7 @@ fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<
             }
         }
     }
+    file.set_len(len).map_err(io)?;
     file.sync_all().map_err(io)?;
     out.persist(path).map_err(|e| Error::file(path, e.error))?;
     sync_folder(folder);
