@@ -182,10 +182,11 @@ impl<'a> Browser<'a> {
     fn wait_settled(&self) -> Value {
         let start = Instant::now();
         loop {
-            if let Some(stats) = self.stats() {
-                if stats["settled"] == json!(true) && stats["frames"].as_u64().unwrap_or(0) > 3 {
-                    return stats;
-                }
+            if let Some(stats) = self.stats()
+                && stats["settled"] == json!(true)
+                && stats["frames"].as_u64().unwrap_or(0) > 3
+            {
+                return stats;
             }
             assert!(
                 start.elapsed() < Duration::from_secs(120),

@@ -153,19 +153,20 @@ pub fn preconditions(headers: &HeaderMap, etag: &str, modified: SystemTime, safe
         if !v.to_str().is_ok_and(|l| etag_list_matches(l, etag, false)) {
             return Precondition::Failed;
         }
-    } else if let Some(since) = date(headers, IF_UNMODIFIED_SINCE) {
-        if seconds(modified) > seconds(since) {
-            return Precondition::Failed;
-        }
+    } else if let Some(since) = date(headers, IF_UNMODIFIED_SINCE)
+        && seconds(modified) > seconds(since)
+    {
+        return Precondition::Failed;
     }
     if headers.contains_key(IF_NONE_MATCH) {
         if if_none_match(headers, etag) {
             return if safe_method { Precondition::NotModified } else { Precondition::Failed };
         }
-    } else if let Some(since) = date(headers, IF_MODIFIED_SINCE) {
-        if safe_method && seconds(modified) <= seconds(since) {
-            return Precondition::NotModified;
-        }
+    } else if let Some(since) = date(headers, IF_MODIFIED_SINCE)
+        && safe_method
+        && seconds(modified) <= seconds(since)
+    {
+        return Precondition::NotModified;
     }
     Precondition::Proceed
 }

@@ -145,9 +145,13 @@ enum Command {
         /// New imagery (GeoTIFFs; any CRS).
         #[arg(long, num_args = 1..)]
         texture: Vec<PathBuf>,
-        /// Output archive (may not be the base).
-        #[arg(short, long)]
-        output: PathBuf,
+        /// Output archive: a copy of the base, updated.
+        #[arg(short, long, required_unless_present = "in_place", conflicts_with = "in_place")]
+        output: Option<PathBuf>,
+        /// Update the base itself: only the changed tiles and the new directories are
+        /// written (FORMAT.md §7.1); readers of the old version keep reading it.
+        #[arg(long)]
+        in_place: bool,
     },
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
@@ -303,16 +307,12 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Command::Update { base, elevation, texture, output } => {
+        Command::Update { base, elevation, texture, output, .. } => {
             anyhow::ensure!(
                 !elevation.is_empty() || !texture.is_empty(),
                 "nothing to update: give --elevation or --texture"
             );
-            anyhow::ensure!(
-                std::fs::canonicalize(&base).ok() != std::fs::canonicalize(&output).ok(),
-                "{}: the output may not be the base (write a new archive, then replace)",
-                output.display()
-            );
+            let output = output.unwrap_or_else(|| base.clone());
             let elevation = terrastream_tiler::expand_inputs(&elevation)?;
             let texture = terrastream_tiler::expand_inputs(&texture)?;
             let summary = terrastream_tiler::update(&base, &elevation, &texture, &output, &progress)?;

@@ -245,10 +245,10 @@ impl HttpSource {
             .ok_or_else(|| source_error(offset, len, format!("{}: bad Content-Range {content_range:?}", self.url)))?;
         {
             let mut known = self.known();
-            if let (Some(old), Some(new)) = (&known.etag, &new_etag) {
-                if old != new {
-                    return Err(Error::Changed { what: format!("{}: ETag {old} -> {new}", self.url) });
-                }
+            if let (Some(old), Some(new)) = (&known.etag, &new_etag)
+                && old != new
+            {
+                return Err(Error::Changed { what: format!("{}: ETag {old} -> {new}", self.url) });
             }
             if known.len.is_some_and(|l| l != total) {
                 return Err(Error::Changed {
@@ -296,11 +296,11 @@ impl AsyncRangeSource for HttpSource {
 
     async fn fetch(&self, offset: u64, len: u64) -> Result<Bytes> {
         let cached = self.known().head.clone();
-        if let Some(head) = cached {
-            if let Some(end) = offset.checked_add(len).filter(|&e| e <= head.len() as u64) {
-                // Inside the bootstrap bytes: no request.
-                return Ok(head.slice(usize::try_from(offset).unwrap_or(0)..usize::try_from(end).unwrap_or(0)));
-            }
+        if let Some(head) = cached
+            && let Some(end) = offset.checked_add(len).filter(|&e| e <= head.len() as u64)
+        {
+            // Inside the bootstrap bytes: no request.
+            return Ok(head.slice(usize::try_from(offset).unwrap_or(0)..usize::try_from(end).unwrap_or(0)));
         }
         self.get(offset, len).await
     }

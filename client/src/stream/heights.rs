@@ -56,10 +56,11 @@ impl Streamer {
         // The (up to) four tiles holding the bilinear footprint.
         let mut keys = Vec::new();
         for (dx, dz) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
-            if let Some(key) = tile_at(metadata, layer, 0, x + dx * spacing, z + dz * spacing) {
-                if !keys.contains(&key) && !self.cache.contains(key) {
-                    keys.push(key);
-                }
+            if let Some(key) = tile_at(metadata, layer, 0, x + dx * spacing, z + dz * spacing)
+                && !keys.contains(&key)
+                && !self.cache.contains(key)
+            {
+                keys.push(key);
             }
         }
         if tile_at(metadata, layer, 0, x, z).is_none() {

@@ -126,11 +126,12 @@ pub fn select(
                 let (nx, ny) = layer.grid_at(lod);
                 for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                     let (x, y) = (key.x() * 2 + dx, key.y() * 2 + dy);
-                    if x < nx && y < ny {
-                        if let Ok(child) = TileKey::new(key.layer(), lod, x, y) {
-                            accounted += 1;
-                            next.push(child);
-                        }
+                    if x < nx
+                        && y < ny
+                        && let Ok(child) = TileKey::new(key.layer(), lod, x, y)
+                    {
+                        accounted += 1;
+                        next.push(child);
                     }
                 }
             }

@@ -645,10 +645,11 @@ impl Streamer {
             }
             let Some(tile) = self.cache.peek(w.key) else { continue };
             let num_lods = metadata.layers[usize::from(w.key.layer())].num_lods;
-            if let Some(parent) = w.key.parent().filter(|p| p.lod() < num_lods) {
-                if !self.delivered.contains(&parent) && !self.is_unavailable(parent) {
-                    continue;
-                }
+            if let Some(parent) = w.key.parent().filter(|p| p.lod() < num_lods)
+                && !self.delivered.contains(&parent)
+                && !self.is_unavailable(parent)
+            {
+                continue;
             }
             if bytes + tile.byte_len() > budget.max_bytes {
                 break;
@@ -899,11 +900,12 @@ impl Streamer {
             };
             let Some(reader) = backend.part_reader(part) else {
                 // A manifest's archive not opened yet: open it (one request, like a leaf).
-                if let Backend::Manifest(parts) = &backend {
-                    if free > 0 && self.may_fetch_leaf((part, OPEN_PART), now) {
-                        free -= 1;
-                        self.open_part(parts.clone(), part);
-                    }
+                if let Backend::Manifest(parts) = &backend
+                    && free > 0
+                    && self.may_fetch_leaf((part, OPEN_PART), now)
+                {
+                    free -= 1;
+                    self.open_part(parts.clone(), part);
                 }
                 continue;
             };

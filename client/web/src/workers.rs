@@ -146,10 +146,10 @@ impl Pool {
         self.next.set(self.next.get().wrapping_add(1));
         self.waiting.borrow_mut().insert(id, sender);
         let transfer = Array::of1(&bytes.buffer());
-        if !built || worker.post_message_with_transfer(&message, &transfer).is_err() {
-            if let Some(sender) = self.waiting.borrow_mut().remove(&id) {
-                let _ = sender.send(Err(DecodeFailure::Unavailable));
-            }
+        if (!built || worker.post_message_with_transfer(&message, &transfer).is_err())
+            && let Some(sender) = self.waiting.borrow_mut().remove(&id)
+        {
+            let _ = sender.send(Err(DecodeFailure::Unavailable));
         }
         receiver
     }

@@ -285,10 +285,10 @@ impl Archive {
                 if first.is_none_or(|e| e.key != leaf.first_key) {
                     return Err(Error::corrupt(&section, "first key differs from its root entry"));
                 }
-                if let (Some(next), Some(last)) = (self.next_leaf_key(leaf), last) {
-                    if last.last_key() >= next {
-                        return Err(Error::corrupt(&section, "entries run into the next leaf"));
-                    }
+                if let (Some(next), Some(last)) = (self.next_leaf_key(leaf), last)
+                    && last.last_key() >= next
+                {
+                    return Err(Error::corrupt(&section, "entries run into the next leaf"));
                 }
                 Ok(Arc::new(entries))
             }

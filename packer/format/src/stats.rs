@@ -152,10 +152,10 @@ fn count_run(stats: &mut LayerStats, e: &Entry, depth: u8) {
     while id <= last {
         let (z, ..) = tile_id_to_zxy(id);
         let n = last.min(level_base(z + 1) - 1) - id + 1;
-        if let Some(lod) = depth.checked_sub(1 + z) {
-            if let Some(count) = stats.tiles_per_lod.get_mut(usize::from(lod)) {
-                *count += n;
-            }
+        if let Some(lod) = depth.checked_sub(1 + z)
+            && let Some(count) = stats.tiles_per_lod.get_mut(usize::from(lod))
+        {
+            *count += n;
         }
         id += n;
     }

@@ -164,15 +164,14 @@ impl Appender {
         }
         self.last_key = Some(key);
         self.addressed += 1;
-        if let Some(open) = &mut self.open {
-            if open.offset == offset
-                && open.length == length
-                && open.last_key().checked_add(MAX_LAYERS as u64) == Some(key)
-                && open.run_length < u32::MAX
-            {
-                open.run_length += 1;
-                return Ok(());
-            }
+        if let Some(open) = &mut self.open
+            && open.offset == offset
+            && open.length == length
+            && open.last_key().checked_add(MAX_LAYERS as u64) == Some(key)
+            && open.run_length < u32::MAX
+        {
+            open.run_length += 1;
+            return Ok(());
         }
         self.close_run()?;
         self.open = Some(Entry { key, run_length: 1, offset, length });

@@ -137,11 +137,11 @@ pub fn extract<S: RangeSource>(
         for i in 0..u64::from(entry.run_length) {
             let tile = reader.archive().tile_of(entry.key + i * MAX_LAYERS as u64)?;
             let path = out.join(namer.path(metadata, tile));
-            if let Some(parent) = path.parent() {
-                if made_dirs.as_deref() != Some(parent) {
-                    std::fs::create_dir_all(parent).map_err(|e| Error::file(parent, e))?;
-                    made_dirs = Some(parent.to_path_buf());
-                }
+            if let Some(parent) = path.parent()
+                && made_dirs.as_deref() != Some(parent)
+            {
+                std::fs::create_dir_all(parent).map_err(|e| Error::file(parent, e))?;
+                made_dirs = Some(parent.to_path_buf());
             }
             std::fs::write(&path, &payload).map_err(|e| Error::file(&path, e))?;
             summary.files += 1;

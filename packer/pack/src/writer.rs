@@ -42,8 +42,11 @@ pub struct WriterOptions {
     pub bootstrap_target: u64,
     /// Leave room for in-place updates (FORMAT.md §7.1): a second bootstrap slot in the
     /// first 16 KiB (so the root's budget is half of it) and a second leaf-directory slot.
-    /// Costs at most 16 KiB plus 1.5x the leaves, and makes `Appender` possible.
+    /// Costs at most 20 KiB plus 2.5x the directories, and makes `Appender` possible.
     pub reserve: bool,
+    /// Sync the archive to disk before renaming it into place. Off only for scratch
+    /// archives that a crash may lose (an update's tiles before they are merged).
+    pub durable: bool,
 }
 
 impl Default for WriterOptions {
@@ -57,6 +60,7 @@ impl Default for WriterOptions {
             leaf_entries: 4096,
             bootstrap_target: BOOTSTRAP_READ,
             reserve: true,
+            durable: true,
         }
     }
 }
@@ -254,14 +258,13 @@ impl Writer {
         let length = u32::try_from(bytes.len()).map_err(|_| Error::too_large(format!("tile {tile}"), bytes.len()))?;
         self.addressed += 1;
         // Extend the open run: next tile of the same layer, same content.
-        if let Some((open, open_hash)) = &mut self.open {
-            if *open_hash == hash
-                && open.last_key().checked_add(MAX_LAYERS as u64) == Some(key)
-                && open.run_length < u32::MAX
-            {
-                open.run_length += 1;
-                return Ok(());
-            }
+        if let Some((open, open_hash)) = &mut self.open
+            && *open_hash == hash
+            && open.last_key().checked_add(MAX_LAYERS as u64) == Some(key)
+            && open.run_length < u32::MAX
+        {
+            open.run_length += 1;
+            return Ok(());
         }
         let offset = match self.dedup.get(&hash) {
             Some(&(offset, _)) => offset,
@@ -347,7 +350,7 @@ impl Writer {
             Part::Gap(data.offset - leaf_dirs.offset - leaf_dirs.len),
             Part::File(&mut data_file, self.data_len),
         ];
-        publish(&self.path, &self.folder, parts, data.end().unwrap_or(u64::MAX))?;
+        publish(&self.path, &self.folder, parts, data.end().unwrap_or(u64::MAX), self.options.durable)?;
         Ok(WriteSummary {
             path: self.path,
             file_len: data.end().unwrap_or(u64::MAX),
@@ -370,22 +373,25 @@ pub const BOOTSTRAP_SLOT: u64 = (BOOTSTRAP_READ - HEADER_LEN as u64) / 2;
 /// block: copies of the archive can share the data's blocks).
 const DATA_ALIGN: u64 = 4096;
 
-/// The leaf-directory area of an archive with room for updates whose leaves take `len`
-/// bytes: theirs, and the next version's with half as much again to grow.
+/// The leaf-directory area of an archive with room for updates whose directories (root
+/// and leaves) take `len` bytes: room for its leaves, and for the next version's with
+/// half as much again to grow (an update's blobs, appended out of key order, cost more
+/// bytes of offset, and may move a root-only directory into leaves).
 pub(crate) fn leaf_area(len: u64) -> u64 {
     len.saturating_mul(5) / 2 + 4096
 }
 
 /// Where the sections go: back to back, or with `reserve` (and a bootstrap that fits its
 /// slot) the layout of FORMAT.md §7.1: metadata and root in the first slot, the leaves at
-/// [`BOOTSTRAP_READ`] in an area of [`leaf_area`], the data after it, block-aligned.
+/// [`BOOTSTRAP_READ`] in an area of [`leaf_area`] of the directories, the data after it,
+/// block-aligned.
 fn layout(metadata: u64, root: u64, leaves: u64, data: u64, reserve: bool) -> [Section; 4] {
     let metadata = Section { offset: HEADER_LEN as u64, len: metadata };
     let root = Section { offset: metadata.offset + metadata.len, len: root };
     let fits = root.offset + root.len <= HEADER_LEN as u64 + BOOTSTRAP_SLOT;
     let (leaves, data_offset) = if reserve && fits {
         let leaves = Section { offset: BOOTSTRAP_READ, len: leaves };
-        (leaves, (BOOTSTRAP_READ + leaf_area(leaves.len)).div_ceil(DATA_ALIGN) * DATA_ALIGN)
+        (leaves, (BOOTSTRAP_READ + leaf_area(root.len + leaves.len)).div_ceil(DATA_ALIGN) * DATA_ALIGN)
     } else {
         let leaves = Section { offset: root.offset + root.len, len: leaves };
         (leaves, leaves.offset + leaves.len)
@@ -448,8 +454,14 @@ enum Part<'a> {
 }
 
 /// Writes `parts` to a temporary file in `folder`, makes it `len` bytes long, syncs it
-/// and renames it to `path`: nothing is left under the final name on error.
-fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<'a>>, len: u64) -> Result<()> {
+/// (if `durable`) and renames it to `path`: nothing is left under the final name on error.
+fn publish<'a>(
+    path: &Path,
+    folder: &Path,
+    parts: impl IntoIterator<Item = Part<'a>>,
+    len: u64,
+    durable: bool,
+) -> Result<()> {
     let file_name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let mut out = published(tempfile::Builder::new().prefix(&format!(".{file_name}.")).suffix(".partial"))
         .tempfile_in(folder)
@@ -475,9 +487,13 @@ fn publish<'a>(path: &Path, folder: &Path, parts: impl IntoIterator<Item = Part<
         }
     }
     file.set_len(len).map_err(io)?;
-    file.sync_all().map_err(io)?;
+    if durable {
+        file.sync_all().map_err(io)?;
+    }
     out.persist(path).map_err(|e| Error::file(path, e.error))?;
-    sync_folder(folder);
+    if durable {
+        sync_folder(folder);
+    }
     Ok(())
 }
 

@@ -73,8 +73,9 @@ fn update(
     options: WriterOptions,
 ) -> Result<(), Error> {
     let old = entries(path);
-    let mut new: BTreeMap<u64, (TileKey, Result<(u64, u32), &Vec<u8>>)> =
-        old.iter().map(|(&k, &(t, o, l))| (k, (t, Ok((o, l))))).collect();
+    // Each tile of the new version: kept where it is (offset, length), or new bytes.
+    type Version<'a> = BTreeMap<u64, (TileKey, Result<(u64, u32), &'a Vec<u8>>)>;
+    let mut new: Version<'_> = old.iter().map(|(&k, &(t, o, l))| (k, (t, Ok((o, l))))).collect();
     for (&(l, lod, x, y), change) in changes {
         let t = TileKey::new(l, lod, x, y).unwrap();
         let key = Writer::order_key(meta, t).unwrap();
@@ -146,7 +147,11 @@ fn random_tiles(grids: &[(u32, u32)], seed: u64, fill: u8) -> Tiles {
                         continue;
                     }
                     // A third are the same "ocean" tile (runs, dedup).
-                    let p = if rng % 3 == 0 { b"ocean".to_vec() } else { payload(rng, &format!("{li}/{lod}/{x}/{y}")) };
+                    let p = if rng.is_multiple_of(3) {
+                        b"ocean".to_vec()
+                    } else {
+                        payload(rng, &format!("{li}/{lod}/{x}/{y}"))
+                    };
                     tiles.insert((li as u8, lod, x, y), p);
                 }
             }
@@ -245,8 +250,8 @@ fn an_archive_without_room_is_refused_untouched() {
 
 #[test]
 fn directories_that_outgrow_their_room_are_refused_untouched() {
-    // A few tiles: every entry in the root, 4 KiB of leaf area. Then 60 000 distinct new
-    // tiles: their leaves need far more.
+    // A few tiles: every entry in the root, about 4 KiB of leaf area. Then 60 000 new
+    // tiles of random lengths: their leaves need far more.
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("small.tspack");
     let grids = [(256, 256)];
@@ -255,7 +260,9 @@ fn directories_that_outgrow_their_room_are_refused_untouched() {
     write(&path, &meta, &tiles, WriterOptions::default());
     let bytes = std::fs::read(&path).unwrap();
     let changes = (0..60_000u32)
-        .map(|i| ((0, 0, i % 256, i / 256 + 4), Some(format!("{i}").repeat(1 + (i % 7) as usize).into_bytes())))
+        .map(|i| {
+            ((0, 0, i % 256, i / 256 + 4), Some(payload(u64::from(i).wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 40, "b")))
+        })
         .collect();
     let err = update(&path, &meta, &changes, WriterOptions::default()).unwrap_err();
     assert!(matches!(err, Error::NoRoom { .. }), "{err}");

@@ -23,7 +23,7 @@ use terrastream_format::{
     LayerKind, Metadata, MmapSource, PayloadCompression, Reader, TileFormat, TileKey, TileLocation, zstd_decompress,
 };
 use terrastream_pack::progress::Progress;
-use terrastream_pack::{WriteSummary, Writer, WriterOptions};
+use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions};
 
 use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
@@ -93,6 +93,91 @@ pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn
     let mut writer = Writer::create(out, metadata.clone(), options)?;
     let copied = write(&mut writer, &readers, &winners, spool.into_sorted()?, progress)?;
     Ok(MergeSummary { write: writer.finish()?, copied, replaced: conflicts.len() as u64, made })
+}
+
+/// [`merge_with`] of `inputs` = `[base, changes]` written into `target` in place
+/// (FORMAT.md §7.1): `target` is `base` itself or a byte copy of it. The base's tiles stay
+/// where they are; only the changes' tiles and the remade ones are appended.
+///
+/// # Errors
+/// `terrastream_pack::Error::NoRoom` (in [`Error::Pack`]) when `target` was written
+/// without room for updates or the new directories outgrow it: `target` is then as it
+/// was. Otherwise as [`merge_with`].
+pub(crate) fn merge_in_place(
+    inputs: &[PathBuf; 2],
+    target: &Path,
+    prefer: Prefer,
+    progress: &dyn Progress,
+) -> Result<MergeSummary> {
+    let Prepared { readers, metadata, mut winners, conflicts, .. } = prepare(inputs, progress)?;
+    tracing::debug!(tiles = winners.len(), replaced = conflicts.len(), "archives indexed");
+    let mut appender = Appender::open(target, WriterOptions::default())?;
+    if appender.header() != readers[0].header() {
+        return Err(Error::input(target, format!("is not {} (it changed while updating?)", inputs[0].display())));
+    }
+    let mut spool = Spool::new(&terrastream_pack::output_folder(target))?;
+    for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
+        winners.remove(&order);
+    }
+    let made = spool.tiles() as u64;
+    tracing::debug!(made, "tiles around and above the changes made again");
+    let copied = append(&mut appender, &readers, &winners, spool.into_sorted()?, progress)?;
+    tracing::debug!("tiles appended");
+    let write = appender.finish(&metadata)?;
+    tracing::debug!(file_len = write.file_len, "new version published in place");
+    Ok(MergeSummary { write, copied, replaced: conflicts.len() as u64, made })
+}
+
+/// [`write`] into an [`Appender`] over `readers[0]`'s bytes: its tiles are kept where
+/// they are, as is a made tile whose bytes it already holds; the rest is appended.
+fn append(
+    appender: &mut Appender,
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    mut made: SortedSpool,
+    progress: &dyn Progress,
+) -> Result<u64> {
+    let base = &readers[0];
+    let data = base.header().data.offset;
+    progress.start("write", (winners.len() + made.len()) as u64);
+    let add_made = |appender: &mut Appender, (order, key, bytes): (u64, TileKey, Vec<u8>)| -> Result<()> {
+        match base.locate(key)? {
+            Some(at) if at.length as usize == bytes.len() && base.read(&at)?[..] == bytes[..] => {
+                appender.keep(key, order, at.offset - data, at.length)?;
+            }
+            _ => appender.add(key, order, &bytes)?,
+        }
+        progress.advance(1);
+        Ok(())
+    };
+    let mut copied = 0u64;
+    for (&order, &(input, offset, length)) in winners {
+        while made.peek_order().is_some_and(|o| o < order) {
+            if let Some(tile) = made.next_tile()? {
+                add_made(appender, tile)?;
+            }
+        }
+        if made.peek_order() == Some(order) {
+            continue;
+        }
+        if copied.is_multiple_of(1024) {
+            progress.check()?;
+        }
+        let reader = &readers[input];
+        let key = reader.archive().tile_of(order)?;
+        if input == 0 {
+            appender.keep(key, order, offset - data, length)?;
+        } else {
+            appender.add(key, order, &reader.read(&TileLocation { key, offset, length })?)?;
+        }
+        copied += 1;
+        progress.advance(1);
+    }
+    while let Some(tile) = made.next_tile()? {
+        add_made(appender, tile)?;
+    }
+    progress.check()?;
+    Ok(copied)
 }
 
 /// Merge inputs, opened and checked, and their tiles indexed.

@@ -68,7 +68,7 @@ pub fn plan(
             ..e.clone()
         };
         let tiles = plans[0].tiles;
-        plans.push(LayerPlan { size: plans[0].size, tiles, estimated_bytes: tiles * 8 });
+        plans.push(LayerPlan { size: plans[0].size, offset: plans[0].offset, tiles, estimated_bytes: tiles * 8 });
         layers.push(range);
     }
     metadata.layers = layers;
@@ -145,6 +145,7 @@ fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn 
     let tiles = tiles_over((width, h), res, layer.num_lods);
     let plan = LayerPlan {
         size: (width, h),
+        offset: (0, 0),
         tiles,
         estimated_bytes: estimate(tiles, res, options.border, if float { 2.4 } else { 1.0 }),
     };
@@ -194,22 +195,22 @@ fn plan_texture(
     if !(16..=4096).contains(&t.tile_size) {
         return Err(Error::option("--texture-tile-size", t.tile_size, "16..=4096"));
     }
-    if let TextureFormat::Jpeg(q) = t.format {
-        if !(1..=100).contains(&q) {
-            return Err(Error::option("--jpeg-quality", q, "1..=100"));
-        }
+    if let TextureFormat::Jpeg(q) = t.format
+        && !(1..=100).contains(&q)
+    {
+        return Err(Error::option("--jpeg-quality", q, "1..=100"));
     }
     // An image that says where it lies is placed by it, never by a guess: in another CRS
     // than the elevation it must come warped onto the elevation's extent (`Warped`).
-    if let (Some(e), Some(image_crs)) = (elevation, t.source.georeference().and_then(|g| g.crs.as_deref())) {
-        if let Some(dem_crs) = e.georeference().and_then(|g| g.crs.as_deref()).filter(|c| *c != image_crs) {
-            return Err(Error::input(
-                path,
-                format!(
-                    "the image lies in {image_crs}, the elevation in {dem_crs}: warp it onto the elevation (Warped::over)"
-                ),
-            ));
-        }
+    if let (Some(e), Some(image_crs)) = (elevation, t.source.georeference().and_then(|g| g.crs.as_deref()))
+        && let Some(dem_crs) = e.georeference().and_then(|g| g.crs.as_deref()).filter(|c| *c != image_crs)
+    {
+        return Err(Error::input(
+            path,
+            format!(
+                "the image lies in {image_crs}, the elevation in {dem_crs}: warp it onto the elevation (Warped::over)"
+            ),
+        ));
     }
     let (fw, fh) = (f64::from(w), f64::from(h));
     let (width, world_width) = match extent {
@@ -259,7 +260,7 @@ fn plan_texture(
     };
     let tiles = tiles_over((width, h), t.tile_size, layer.num_lods);
     let estimated_bytes = estimate(tiles, t.tile_size, border, t.format.typical_bytes_per_texel());
-    Ok((layer, LayerPlan { size: (width, h), tiles, estimated_bytes }))
+    Ok((layer, LayerPlan { size: (width, h), offset: (0, 0), tiles, estimated_bytes }))
 }
 
 /// Typical stored bytes of `tiles` tiles of `res` texels plus `border`.
@@ -306,6 +307,9 @@ pub struct Plan {
 pub struct LayerPlan {
     /// Samples across and down at LOD 0.
     pub size: (u32, u32),
+    /// The layer's LOD-0 tile where these samples start: (0, 0), or for the crop of an
+    /// update, where the crop lies (its tiles' keys are shifted by it; LOD 0 only).
+    pub offset: (u32, u32),
     /// Tiles with data or not, every LOD.
     pub tiles: u64,
     /// A rough size of the stored tiles (typical compression ratios; within about 2x).

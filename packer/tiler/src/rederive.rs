@@ -5,9 +5,11 @@
 //! neighbour that now comes from another input; a coarser tile averaged from children
 //! that were replaced; a coarse tile that two inputs both hold, each with only its own
 //! region's data. All of them are made again here, and only they: level by level, a tile
-//! is remade when its 3 x 3 neighbourhood mixes inputs, when two inputs hold it, or when
-//! the samples it is averaged from (its children, and theirs under its borders) were
-//! remade. LOD 0 keeps every interior as stored and takes its borders from the
+//! is remade when its 3 x 3 neighbourhood mixes inputs (LOD 0), when two inputs hold it,
+//! or when the samples it is averaged from (its children's interiors, and their
+//! neighbours' under its borders) changed: remade with a new interior, or from another
+//! input than the tile's own. A tile remade only for its borders keeps its interior, so
+//! the work around a changed region stays one ring of tiles per level. LOD 0 keeps every interior as stored and takes its borders from the
 //! neighbours; coarser tiles are 2 x 2 means of the level below as stored, quantized as the
 //! layer stores them, exactly as the tiler makes them. So the merge of an archive and a
 //! region of another is, byte for byte, the archive the tiler makes of the combined
@@ -92,7 +94,7 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
     // The level below as it ends up: its remade tiles (the stored ones are decoded as
     // each level needs them).
     let mut made_below: Level<S> = HashMap::new();
-    let mut dirty_below: HashSet<(u32, u32)> = HashSet::new();
+    let mut changed_below: HashSet<(u32, u32)> = HashSet::new();
     // Composites of the LOD-0 tiles several inputs hold, when pixels are preferred.
     if let Some(versions) = tiles.versions {
         let conflicts: Vec<(u32, u32)> =
@@ -122,15 +124,39 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
         let (cols, rows) = grid.tiles_at(lod);
         let mut dirty: HashSet<(u32, u32)> =
             tiles.conflicts.iter().filter(|(l, ..)| *l == lod).map(|&(_, x, y)| (x, y)).collect();
+        // Tiles whose interior (not only their borders) is made from changed samples.
+        let mut changed = dirty.clone();
         if lod == 0 {
             dirty.extend(mixed_neighbourhoods(tiles, cols, rows));
         } else {
-            for &(cx, cy) in &dirty_below {
+            // A tile of the level below changes its parents' samples when its interior was
+            // remade, or when it comes from another input than a parent (which was averaged
+            // from its own input's version, or is missing).
+            let (below_cols, below_rows) = grid.tiles_at(lod - 1);
+            let mut mark = |(cx, cy): (u32, u32), only_if: Option<usize>| {
                 for x in (cx / 2).saturating_sub(1)..=(cx / 2 + 1).min(cols - 1) {
                     for y in (cy / 2).saturating_sub(1)..=(cy / 2 + 1).min(rows - 1) {
-                        if covers(grid, x, cx) && covers(grid, y, cy) {
+                        if covers(grid, x, cx)
+                            && covers(grid, y, cy)
+                            && only_if.is_none_or(|input| (tiles.source)(lod, x, y) != Some(input))
+                        {
                             dirty.insert((x, y));
+                            if (x, y) == (cx / 2, cy / 2) {
+                                changed.insert((x, y));
+                            }
                         }
+                    }
+                }
+            };
+            for &tile in &changed_below {
+                mark(tile, None);
+            }
+            for cy in 0..below_rows {
+                for cx in 0..below_cols {
+                    if let Some(input) = (tiles.source)(lod - 1, cx, cy)
+                        && !changed_below.contains(&(cx, cy))
+                    {
+                        mark((cx, cy), Some(input));
                     }
                 }
             }
@@ -196,7 +222,7 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
             remade.entries.extend(entries);
             made_below.insert((x, y), samples);
         }
-        dirty_below = dirty;
+        changed_below = changed;
     }
     Ok(())
 }
@@ -271,21 +297,19 @@ fn window<'t, S: Pixel>(
         for tx in tile_range(x0, side as i64, w) {
             let (Ok(ux), Ok(uy)) = (u32::try_from(tx), u32::try_from(ty)) else { continue };
             let Some(samples) = tile(ux, uy) else { continue };
-            // The tile's interior, clipped to the window and the level.
-            for j in 0..res {
-                let gy = ty * res + j;
-                if gy < y0 || gy >= y0 + side as i64 || gy >= h {
-                    continue;
-                }
-                for i in 0..res {
-                    let gx = tx * res + i;
-                    if gx < x0 || gx >= x0 + side as i64 || gx >= w {
-                        continue;
-                    }
-                    let at = (grid.border + j as usize) * edge + grid.border + i as usize;
-                    if let Some(&v) = samples.get(at) {
-                        out[(gy - y0) as usize * side + (gx - x0) as usize] = v;
-                    }
+            // The tile's interior, clipped to the window and the level, a row at a time.
+            let (gx, gy) = (tx * res, ty * res);
+            let (i0, i1) = ((x0 - gx).max(0), (x0 + side as i64 - gx).min(res).min(w - gx));
+            let (j0, j1) = ((y0 - gy).max(0), (y0 + side as i64 - gy).min(res).min(h - gy));
+            if i0 >= i1 {
+                continue;
+            }
+            let len = (i1 - i0) as usize;
+            for j in j0..j1 {
+                let from = (grid.border + j as usize) * edge + grid.border + i0 as usize;
+                let to = (gy + j - y0) as usize * side + (gx + i0 - x0) as usize;
+                if let (Some(src), Some(dst)) = (samples.get(from..from + len), out.get_mut(to..to + len)) {
+                    dst.copy_from_slice(src);
                 }
             }
         }

@@ -91,17 +91,28 @@ pub fn tile_shard(
             .map(|(l, p)| Window::full(l.num_lods, p.size.1 as usize))
             .collect(),
     };
-    tile_planned(elevation, texture, &plan, &windows, out, progress, started)
+    tile_planned(elevation, texture, &plan, &windows, out, true, progress, started)
 }
 
 /// Runs `plan` over the sources, each layer's pyramid limited to its window (in layer
 /// order), into the archive at `out`.
+/// `key` moved by a plan's LOD-0 tile offset (see [`crate::plan::LayerPlan::offset`]).
+fn shifted(key: TileKey, (dx, dy): (u32, u32)) -> Result<TileKey> {
+    if (dx, dy) == (0, 0) {
+        return Ok(key);
+    }
+    let moved = |v: u32, d: u32| v.saturating_add(d >> key.lod());
+    Ok(TileKey::new(key.layer(), key.lod(), moved(key.x(), dx), moved(key.y(), dy))?)
+}
+
+#[expect(clippy::too_many_arguments, reason = "the inputs, the plan, and where and how to write")]
 pub(crate) fn tile_planned(
     elevation: Option<&dyn ElevationSource>,
     texture: Option<TextureInput<'_>>,
     plan: &Plan,
     windows: &[Window],
     out: &Path,
+    durable: bool,
     progress: &dyn Progress,
     started: std::time::Instant,
 ) -> Result<WriteSummary> {
@@ -113,7 +124,8 @@ pub(crate) fn tile_planned(
 
     if let (Some(source), Some(index)) = (elevation, find(LayerKind::Elevation)) {
         let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
-        let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+        let offset = plan.layers[usize::from(index)].offset;
+        let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(shifted(key, offset)?, samples);
         let window = &windows[usize::from(index)];
         let size = plan.layers[usize::from(index)].size;
         let resample = Resample::new(source.size().0 as usize, size.0 as usize);
@@ -126,7 +138,9 @@ pub(crate) fn tile_planned(
     }
     if let (Some(t), Some(index)) = (texture, find(LayerKind::Texture)) {
         let format = t.format;
+        let offset = plan.layers[usize::from(index)].offset;
         let encode = move |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+            let key = shifted(key, offset)?;
             Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
         };
         let size = plan.layers[usize::from(index)].size;
@@ -139,7 +153,7 @@ pub(crate) fn tile_planned(
     }
     tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "tiles cut and encoded");
     // Tiles come already compressed: small batches are enough for the writer's hashing.
-    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
+    let options = WriterOptions { batch_bytes: 4 << 20, durable, ..WriterOptions::default() };
     let mut writer = Writer::create(out, plan.metadata.clone(), options)?;
     spool.drain_into(&mut writer, progress)?;
     tracing::debug!(elapsed = ?started.elapsed(), "tiles handed to the writer in archive order");

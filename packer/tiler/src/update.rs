@@ -1,11 +1,12 @@
 //! `terrastream update`: new rasters over part of an archive, without tiling the rest.
 //!
 //! The new rasters are mosaicked onto the archive's own grid (its CRS, origin, sample
-//! spacing and tile size, read from its metadata) and only the rows of LOD-0 tiles they
-//! touch are tiled, with the archive's height encoding, into a temporary archive. That is
-//! merged over the base with `prefer pixels` (where a new raster has no data the base's
+//! spacing and tile size, read from its metadata) and only the rectangle of LOD-0 tiles
+//! they touch is tiled, with the archive's height encoding, into a temporary archive. That
+//! is merged over the base with `prefer pixels` (where a new raster has no data the base's
 //! samples stay), and the merge remakes the tiles around and above the changed ones. The
-//! cost follows the updated rows, not the archive (plus one copy of the archive's bytes).
+//! result is appended to the base in place (or to a copy of it): the cost follows the
+//! updated area, not the archive.
 
 use std::path::{Path, PathBuf};
 
@@ -14,7 +15,7 @@ use terrastream_pack::progress::Progress;
 
 use crate::crs::Crs;
 use crate::error::{Error, Result};
-use crate::merge::{MergeSummary, Prefer, merge_with};
+use crate::merge::{MergeSummary, Prefer, merge_in_place, merge_with};
 use crate::options::{TextureFormat, TextureInput};
 use crate::plan::{LayerPlan, Plan};
 use crate::pyramid::Window;
@@ -32,6 +33,12 @@ pub struct UpdateSummary {
 
 /// Tiles `elevation` and `texture` rasters (files, folders, patterns: see
 /// `expand_inputs`) onto `base`'s grid where they lie and writes `base` with them to `out`.
+///
+/// With `out` the base itself, the archive is updated in place (FORMAT.md §7.1): the
+/// changed tiles and new directories are appended, nothing is copied, and readers of the
+/// old version keep reading it. Otherwise `out` is a copy of the base updated the same
+/// way. An archive without room for that (or whose directories outgrow it) is written
+/// anew, as a merge would.
 ///
 /// # Errors
 /// [`Error::Input`] naming the base when it has no projected georeference or lacks the
@@ -85,7 +92,8 @@ pub fn update(
         extent: Some(extent),
         ..MosaicOptions::default()
     };
-    let mut sizes: Vec<(u32, u32)> = vec![(0, 0); metadata.layers.len()];
+    let mut layers: Vec<LayerPlan> =
+        vec![LayerPlan { size: (0, 0), offset: (0, 0), tiles: 0, estimated_bytes: 0 }; metadata.layers.len()];
     let mut windows: Vec<Window> = vec![Window::empty(); metadata.layers.len()];
 
     let heights = match (elevation.is_empty(), find(LayerKind::Elevation)) {
@@ -113,12 +121,19 @@ pub fn update(
                 metadata.terrain.min_elevation = metadata.terrain.min_elevation.min(f64::from(lo));
                 metadata.terrain.max_elevation = metadata.terrain.max_elevation.max(f64::from(hi));
             }
-            sizes[e] = size;
-            windows[e] = touched(&mosaic, size.1, &metadata.layers[e]);
-            if let Some(r) = find(LayerKind::HeightRange) {
-                sizes[r] = size;
+            match crop(&mosaic, &metadata.layers[e], spacing, extent) {
+                None => None,
+                Some(Crop { offset, size, extent }) => {
+                    let mosaic = Mosaic::<Heights>::open(elevation, &mosaic_options(spacing, extent))?;
+                    check_size(&elevation[0], mosaic.size(), size)?;
+                    layers[e] = LayerPlan { size, offset, tiles: 0, estimated_bytes: 0 };
+                    windows[e] = Window::full(1, size.1 as usize);
+                    if let Some(r) = find(LayerKind::HeightRange) {
+                        layers[r] = layers[e].clone();
+                    }
+                    Some(mosaic)
+                }
             }
-            Some(mosaic)
         }
     };
     let (image, format, tile_size) = match (texture.is_empty(), find(LayerKind::Texture)) {
@@ -138,12 +153,18 @@ pub fn update(
             let (size, spacing, extent) = grid(t)?;
             let mosaic = Mosaic::<Pixels>::open(texture, &mosaic_options(spacing, extent))?;
             check_size(&texture[0], ImageSource::size(&mosaic), size)?;
-            sizes[t] = size;
-            windows[t] = touched(&mosaic, size.1, layer);
-            (Some(mosaic), format, layer.tile_resolution)
+            match crop(&mosaic, layer, spacing, extent) {
+                None => (None, format, 0),
+                Some(Crop { offset, size, extent }) => {
+                    let mosaic = Mosaic::<Pixels>::open(texture, &mosaic_options(spacing, extent))?;
+                    check_size(&texture[0], ImageSource::size(&mosaic), size)?;
+                    layers[t] = LayerPlan { size, offset, tiles: 0, estimated_bytes: 0 };
+                    windows[t] = Window::full(1, size.1 as usize);
+                    (Some(mosaic), format, layer.tile_resolution)
+                }
+            }
         }
     };
-    let layers = sizes.iter().map(|&size| LayerPlan { size, tiles: 0, estimated_bytes: 0 }).collect();
     metadata.shard = None;
     let plan = Plan { metadata, layers };
     let folder = terrastream_pack::output_folder(out);
@@ -155,8 +176,41 @@ pub fn update(
     let changes = scratch.path().join("changes.tspack");
     let texture_input = image.as_ref().map(|m| TextureInput { source: m, tile_size, format, pixel_size: 1.0 });
     let elevation_source = heights.as_ref().map(|m| m as &dyn ElevationSource);
-    let tiled = tile_planned(elevation_source, texture_input, &plan, &windows, &changes, progress, started)?;
-    let merge = merge_with(&[base.to_path_buf(), changes], out, Prefer::Pixels, progress)?;
+    tracing::debug!(?windows, "new rasters opened");
+    let tiled = tile_planned(elevation_source, texture_input, &plan, &windows, &changes, false, progress, started)?;
+    let inputs = [base.to_path_buf(), changes];
+    let rewrite = |why: &str| {
+        tracing::info!("{}: {why}: writing the archive anew", base.display());
+        merge_with(&inputs, out, Prefer::Pixels, progress)
+    };
+    let same = |a: &Path, b: &Path| {
+        std::fs::canonicalize(a).ok().zip(std::fs::canonicalize(b).ok()).is_some_and(|(a, b)| a == b)
+    };
+    let merge = if same(base, out) {
+        match merge_in_place(&inputs, base, Prefer::Pixels, progress) {
+            Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why)?,
+            other => other?,
+        }
+    } else {
+        // A copy of the base (its blocks shared where the filesystem can), updated in place
+        // and renamed to `out` once complete.
+        let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let copy = tempfile::Builder::new()
+            .prefix(&format!(".{name}."))
+            .suffix(".partial")
+            .tempfile_in(&folder)
+            .map_err(|e| Error::file(&folder, e))?;
+        std::fs::copy(base, copy.path()).map_err(|e| Error::file(copy.path(), e))?;
+        match merge_in_place(&inputs, copy.path(), Prefer::Pixels, progress) {
+            Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why)?,
+            Err(e) => return Err(e),
+            Ok(mut merge) => {
+                copy.persist(out).map_err(|e| Error::file(out, e.error))?;
+                merge.write.path = out.to_path_buf();
+                merge
+            }
+        }
+    };
     Ok(UpdateSummary { merge, tiled: tiled.tile_entries })
 }
 
@@ -167,23 +221,32 @@ fn check_size(input: &Path, got: (u32, u32), grid: (u32, u32)) -> Result<()> {
     Err(Error::input(input, format!("mosaicked onto the archive's grid it is {got:?} samples, not {grid:?}")))
 }
 
-/// The window of LOD-0 tile rows where `source` has data (its inputs' footprints), or an
-/// empty one.
-fn touched<K: MosaicKind>(source: &Mosaic<K>, height: u32, layer: &terrastream_format::Layer) -> Window {
-    let res = layer.tile_resolution as usize;
-    let step = 64u32;
-    let mut first = None;
-    let mut last = 0;
-    for start in (0..height).step_by(step as usize) {
-        if source.footprint_samples(start..(start + step).min(height)) > 0.0 {
-            first.get_or_insert(start);
-            last = (start + step).min(height);
-        }
-    }
-    let Some(first) = first else { return Window::empty() };
-    let height = height as usize;
-    let band = (first as usize / res * res)..(last as usize).div_ceil(res).saturating_mul(res).min(height);
-    let border = usize::from(layer.border);
-    let rows = band.start.saturating_sub(border)..(band.end + border).min(height);
-    Window { input_lod: 0, last_lod: 0, encode_from: 0, rows, band }
+/// The part of a layer's grid an update tiles.
+struct Crop {
+    /// Its first LOD-0 tile.
+    offset: (u32, u32),
+    /// Its samples across and down.
+    size: (u32, u32),
+    /// Its extent in the CRS.
+    extent: [f64; 4],
+}
+
+/// The LOD-0 tiles of `layer` (a grid of `spacing` over `extent`) that `source`'s inputs
+/// touch, as the rectangle of them; None when they touch none. The tiles around it whose
+/// borders reach into it are made again by the merge.
+fn crop<K: MosaicKind>(
+    source: &Mosaic<K>,
+    layer: &terrastream_format::Layer,
+    spacing: f64,
+    extent: [f64; 4],
+) -> Option<Crop> {
+    let (columns, rows) = source.footprint_bounds()?;
+    let res = layer.tile_resolution;
+    let (w, h) = (layer.num_x_tiles * res, layer.num_y_tiles * res);
+    let (tx0, ty0) = (columns.start / res, rows.start / res);
+    let (x0, y0) = (tx0 * res, ty0 * res);
+    let (x1, y1) = ((columns.end.div_ceil(res) * res).min(w), (rows.end.div_ceil(res) * res).min(h));
+    let at = |x: u32, y: u32| (extent[0] + f64::from(x) * spacing, extent[3] - f64::from(y) * spacing);
+    let ((left, top), (right, bottom)) = (at(x0, y0), at(x1, y1));
+    Some(Crop { offset: (tx0, ty0), size: (x1 - x0, y1 - y0), extent: [left, bottom, right, top] })
 }

@@ -108,10 +108,10 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
                     return Err(bad(format!("{other:?} samples: an elevation GeoTIFF has a single band of numbers")));
                 }
             }
-            if let Some(e) = encoding {
-                if e.scheme.needs_rgb() || (e.scheme == ElevationScheme::Gray8 && !eight) {
-                    return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
-                }
+            if let Some(e) = encoding
+                && (e.scheme.needs_rgb() || (e.scheme == ElevationScheme::Gray8 && !eight))
+            {
+                return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
             }
             let nodata = gdal_nodata(&mut decoder);
             let tags = GeoTags::read(&mut decoder);

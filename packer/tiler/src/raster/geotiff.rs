@@ -58,27 +58,30 @@ impl GeoTags {
         let geographic = key(1024.0) == Some(2.0);
         let epsg = key(2048.0).or_else(|| key(3072.0)).filter(|&c| c > 0.0 && c < 32767.0);
         let (mut spacing, mut georeference) = ((1.0, 1.0), None);
-        if let (Some(s), Some(t)) = (&scale, &tiepoint) {
-            if s.len() >= 2 && t.len() >= 6 && s[0] > 0.0 && s[1] > 0.0 {
-                // GTRasterTypeGeoKey 2 = PixelIsPoint (SRTM, most DEMs): the tiepoint is a
-                // sample's centre, so the raster's corner is half a sample further out (as
-                // GDAL reads it).
-                let half = if key(1025.0) == Some(2.0) { 0.5 } else { 0.0 };
-                let (west, north) = (t[3] - (t[0] + half) * s[0], t[4] + (t[1] + half) * s[1]);
-                spacing = (s[0], s[1]);
-                let mut g = Georeference {
-                    crs: epsg.map(|c| format!("EPSG:{c}")),
-                    origin: Some([west, north]),
-                    ..Georeference::default()
-                };
-                if geographic {
-                    let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
-                    g.lat_lon_bounds = Some([west, south, east, north]);
-                    let lat = ((north + south) / 2.0).to_radians();
-                    spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
-                }
-                georeference = Some(g);
+        if let (Some(s), Some(t)) = (&scale, &tiepoint)
+            && s.len() >= 2
+            && t.len() >= 6
+            && s[0] > 0.0
+            && s[1] > 0.0
+        {
+            // GTRasterTypeGeoKey 2 = PixelIsPoint (SRTM, most DEMs): the tiepoint is a
+            // sample's centre, so the raster's corner is half a sample further out (as
+            // GDAL reads it).
+            let half = if key(1025.0) == Some(2.0) { 0.5 } else { 0.0 };
+            let (west, north) = (t[3] - (t[0] + half) * s[0], t[4] + (t[1] + half) * s[1]);
+            spacing = (s[0], s[1]);
+            let mut g = Georeference {
+                crs: epsg.map(|c| format!("EPSG:{c}")),
+                origin: Some([west, north]),
+                ..Georeference::default()
+            };
+            if geographic {
+                let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
+                g.lat_lon_bounds = Some([west, south, east, north]);
+                let lat = ((north + south) / 2.0).to_radians();
+                spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
             }
+            georeference = Some(g);
         }
         if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
             return Err(format!("bad pixel scale {spacing:?}"));

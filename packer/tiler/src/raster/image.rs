@@ -74,10 +74,10 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
     if width == 0 || height == 0 {
         return Err(bad(format!("the image is empty ({width}x{height} pixels)")));
     }
-    if let ImageKind::Decoded(rgb) = &kind {
-        if rgb.len() != width as usize * height as usize * 3 {
-            return Err(bad(format!("{} bytes of pixels for {width}x{height}", rgb.len())));
-        }
+    if let ImageKind::Decoded(rgb) = &kind
+        && rgb.len() != width as usize * height as usize * 3
+    {
+        return Err(bad(format!("{} bytes of pixels for {width}x{height}", rgb.len())));
     }
     Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, crs_pixel, kind })
 }

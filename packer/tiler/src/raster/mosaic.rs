@@ -597,10 +597,10 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             *used = clock;
             return Ok(chunks.clone());
         }
-        if state.files.len() >= OPEN_FILES {
-            if let Some(oldest) = state.files.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) {
-                state.files.remove(&oldest);
-            }
+        if state.files.len() >= OPEN_FILES
+            && let Some(oldest) = state.files.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k)
+        {
+            state.files.remove(&oldest);
         }
         let input = &self.mosaic.inputs[index];
         let chunks = Arc::new(TiffChunks::open(K::path(&input.file), K::channels(&input.file))?);
@@ -637,6 +637,26 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
 }
 
 impl<K: MosaicKind> Mosaic<K> {
+    /// The smallest rectangle of samples (columns, rows) holding every input's footprint,
+    /// clipped to the mosaic; None when no input lies on it.
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clipped to the u32 grid")]
+    pub(crate) fn footprint_bounds(&self) -> Option<(std::ops::Range<u32>, std::ops::Range<u32>)> {
+        let (w, h) = (i64::from(self.size.0), i64::from(self.size.1));
+        let mut bounds: Option<[i64; 4]> = None;
+        for i in &self.inputs {
+            let (c0, c1) = (i.columns.0.max(0), (i.columns.1 + 1).min(w));
+            let (r0, r1) = (i.rows.0.max(0), (i.rows.1 + 1).min(h));
+            if c0 >= c1 || r0 >= r1 {
+                continue;
+            }
+            bounds = Some(match bounds {
+                None => [c0, r0, c1, r1],
+                Some(b) => [b[0].min(c0), b[1].min(r0), b[2].max(c1), b[3].max(r1)],
+            });
+        }
+        bounds.map(|[c0, r0, c1, r1]| (c0 as u32..c1 as u32, r0 as u32..r1 as u32))
+    }
+
     /// Samples of rows `rows` inside an input's footprint (overlaps counted once per input).
     #[expect(clippy::cast_precision_loss, reason = "a weight")]
     pub(crate) fn footprint_samples(&self, rows: std::ops::Range<u32>) -> f64 {

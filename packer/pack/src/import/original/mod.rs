@@ -76,10 +76,10 @@ fn lod_folders(dir: &Path) -> Result<Vec<(u8, PathBuf)>> {
     let mut out = Vec::new();
     for entry in std::fs::read_dir(dir).map_err(|e| Error::file(dir, e))? {
         let path = entry.map_err(|e| Error::file(dir, e))?.path();
-        if path.is_dir() {
-            if let Some(lod) = lod_folder(&path) {
-                out.push((lod, path));
-            }
+        if path.is_dir()
+            && let Some(lod) = lod_folder(&path)
+        {
+            out.push((lod, path));
         }
     }
     out.sort();
