@@ -42,7 +42,8 @@ pub struct WriterOptions {
     pub bootstrap_target: u64,
     /// Leave room for in-place updates (FORMAT.md §7.1): a second bootstrap slot in the
     /// first 16 KiB (so the root's budget is half of it) and a second leaf-directory slot.
-    /// Costs at most 20 KiB plus 2.5x the directories, and makes `Appender` possible.
+    /// Costs at most 20 KiB plus 2.5x the directories, and makes `Appender` possible;
+    /// an archive that fits one bootstrap read whole is written without it.
     pub reserve: bool,
     /// Sync the archive to disk before renaming it into place. Off only for scratch
     /// archives that a crash may lose (an update's tiles before they are merged).
@@ -381,15 +382,18 @@ pub(crate) fn leaf_area(len: u64) -> u64 {
     len.saturating_mul(5) / 2 + 4096
 }
 
-/// Where the sections go: back to back, or with `reserve` (and a bootstrap that fits its
-/// slot) the layout of FORMAT.md §7.1: metadata and root in the first slot, the leaves at
+/// Where the sections go: back to back, or with `reserve` (a bootstrap that fits its slot,
+/// and an archive larger than one bootstrap read) the layout of FORMAT.md §7.1: metadata and root in the first slot, the leaves at
 /// [`BOOTSTRAP_READ`] in an area of [`leaf_area`] of the directories, the data after it,
 /// block-aligned.
 fn layout(metadata: u64, root: u64, leaves: u64, data: u64, reserve: bool) -> [Section; 4] {
     let metadata = Section { offset: HEADER_LEN as u64, len: metadata };
     let root = Section { offset: metadata.offset + metadata.len, len: root };
     let fits = root.offset + root.len <= HEADER_LEN as u64 + BOOTSTRAP_SLOT;
-    let (leaves, data_offset) = if reserve && fits {
+    // An archive that one bootstrap read holds whole stays so: cheaper to rewrite than to
+    // read twice.
+    let whole = root.offset + root.len + leaves + data <= BOOTSTRAP_READ;
+    let (leaves, data_offset) = if reserve && fits && !whole {
         let leaves = Section { offset: BOOTSTRAP_READ, len: leaves };
         (leaves, (BOOTSTRAP_READ + leaf_area(root.len + leaves.len)).div_ceil(DATA_ALIGN) * DATA_ALIGN)
     } else {
