@@ -133,6 +133,11 @@ impl Transform {
         Self { identity: from == to, from: from.clone(), to: to.clone() }
     }
 
+    /// True when both CRSs are the same (points pass unchanged).
+    pub fn is_identity(&self) -> bool {
+        self.identity
+    }
+
     /// `(x, y)` in `to`; `None` where the point has no image (outside a projection's domain).
     pub fn apply(&self, x: f64, y: f64) -> Option<(f64, f64)> {
         if self.identity {

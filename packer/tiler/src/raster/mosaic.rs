@@ -83,6 +83,10 @@ struct Input<K: MosaicKind> {
     /// Footprint in output pixels: first and last column and row (inclusive).
     columns: (i64, i64),
     rows: (i64, i64),
+    /// When the input's pixels are the output's (same CRS and spacing, a whole number of
+    /// pixels apart): the file pixel of output sample (0, 0). Its rows are then copied,
+    /// not resampled.
+    aligned: Option<(i64, i64)>,
 }
 
 /// Several elevation rasters on one output grid (see the module's documentation).
@@ -180,10 +184,13 @@ impl<K: MosaicKind> Mosaic<K> {
             .map(|(o, fp)| {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
+                let to_input = Transform::new(&crs, &o.crs);
+                let aligned = aligned(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
                 Input {
+                    aligned,
                     columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
                     rows: (cell((origin[1] - fp[3]) / pixel.1) - 1, cell((origin[1] - fp[1]) / pixel.1) + 1),
-                    to_input: Transform::new(&crs, &o.crs),
+                    to_input,
                     origin: o.origin,
                     pixel: o.pixel,
                     window: o.window,
@@ -258,6 +265,17 @@ impl<K: MosaicKind> Mosaic<K> {
             if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
+            if let Some((ox, oy)) = input.aligned {
+                // The input's own pixels: a copy of its row.
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                let (x0, y) = ((c0 as i64 + ox) as f64, (i64::from(j) + oy) as f64);
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                let ends = [(x0, y), (x0 + (c1 - c0) as f64, y)];
+                if let Some(window) = reader.window(index, &ends)? {
+                    window.fill_row(c0 as i64 + ox, i64::from(j) + oy, &mut out[c0..=c1]);
+                }
+                continue;
+            }
             // The input pixel coordinates of every sample of the row in this input's
             // footprint: exact on a lattice every LATTICE samples and rows, bilinear
             // between (well under a millimetre off for these projections at that spacing).
@@ -289,6 +307,27 @@ impl<K: MosaicKind> Mosaic<K> {
         }
         Ok(out)
     }
+}
+
+/// The file pixel of output sample (0, 0) when an input's pixels are the output grid's:
+/// the same CRS and spacing (to 1e-9), its origin a whole number of pixels away (to 1e-6
+/// of a pixel). Output grid and input as (origin, pixel size); `window` the file's pixels
+/// read (a VRT source's).
+#[expect(clippy::cast_possible_truncation, reason = "checked to be near a whole number of pixels")]
+fn aligned(
+    to_input: &Transform,
+    (origin, pixel): ([f64; 2], (f64, f64)),
+    (input_origin, input_pixel): ([f64; 2], (f64, f64)),
+    window: [u32; 4],
+) -> Option<(i64, i64)> {
+    let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
+    if !to_input.is_identity() || !same(pixel.0, input_pixel.0) || !same(pixel.1, input_pixel.1) {
+        return None;
+    }
+    let whole = |v: f64| (v.is_finite() && (v - v.round()).abs() <= 1e-6 && v.abs() < 1e12).then(|| v.round() as i64);
+    let dx = whole((origin[0] - input_origin[0]) / pixel.0)?;
+    let dy = whole((input_origin[1] - origin[1]) / pixel.1)?;
+    Some((dx + i64::from(window[0]), dy + i64::from(window[1])))
 }
 
 /// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows, or a
@@ -437,6 +476,41 @@ impl<K: MosaicKind> Window<K> {
         let Some(chunk) = self.held.get(dy * self.across + dx) else { return K::NONE };
         let (lx, ly) = (x - cx * self.chunk.0, y - cy * self.chunk.1);
         chunk.values.get(ly * chunk.w + lx).copied().unwrap_or(K::NONE)
+    }
+
+    /// Fills the no-data samples of `out` with pixels `x0 ..` of row `y`; those outside the
+    /// window or the chunks held stay as they are.
+    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "clamped into the window")]
+    fn fill_row(&self, x0: i64, y: i64, out: &mut [K::Value]) {
+        if y < self.bounds.1 || y >= self.bounds.3 {
+            return;
+        }
+        let y = y as usize;
+        let cy = y / self.chunk.1;
+        let Some(dy) = cy.checked_sub(self.first.1) else { return };
+        let ly = y - cy * self.chunk.1;
+        let (from, to) = (x0.max(self.bounds.0), (x0 + out.len() as i64).min(self.bounds.2));
+        let mut x = from;
+        while x < to {
+            let cx = x as usize / self.chunk.0;
+            let lx = x as usize - cx * self.chunk.0;
+            let n = (self.chunk.0 - lx).min((to - x) as usize);
+            let chunk = cx
+                .checked_sub(self.first.0)
+                .filter(|&d| d < self.across)
+                .and_then(|dx| self.held.get(dy * self.across + dx));
+            if let Some(chunk) = chunk {
+                let at = ly * chunk.w + lx;
+                let src = chunk.values.get(at..at + n.min(chunk.w.saturating_sub(lx))).unwrap_or_default();
+                let dst = &mut out[(x - x0) as usize..];
+                for (d, s) in dst.iter_mut().zip(src) {
+                    if K::is_none(d) {
+                        *d = *s;
+                    }
+                }
+            }
+            x += n as i64;
+        }
     }
 
     /// Pixels `(x, y)`, `(x + 1, y)`, `(x, y + 1)` and `(x + 1, y + 1)` when all four lie
