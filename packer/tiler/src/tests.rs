@@ -876,3 +876,17 @@ fn integer_samples_give_their_range_without_nodata() {
     assert_eq!(integer_range(&[3u16, 65_535, 7], Some(65_535.0)), (3.0, 7.0));
     assert_eq!(integer_range(&[-128i8, 127, 0], Some(-128.0)), (0.0, 127.0));
 }
+
+#[test]
+fn quantized_heights_decode_as_the_encoding_says_for_every_value() {
+    let encoding =
+        ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 0.0731, offset: -432.17, nodata: None };
+    let raw: Vec<u8> = (0..=u16::MAX).flat_map(u16::to_le_bytes).collect();
+    let decoded = crate::encode::decode_heights(&raw, &encoding);
+    assert!(decoded[0].is_nan(), "0 is no data");
+    for (q, &h) in decoded.iter().enumerate().skip(1) {
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+        let expected = encoding.height(q as f64) as f32;
+        assert_eq!(h.to_bits(), expected.to_bits(), "raw {q}");
+    }
+}
