@@ -882,7 +882,7 @@ fn quantized_heights_decode_as_the_encoding_says_for_every_value() {
     let encoding =
         ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 0.0731, offset: -432.17, nodata: None };
     let raw: Vec<u8> = (0..=u16::MAX).flat_map(u16::to_le_bytes).collect();
-    let decoded = crate::encode::decode_heights(&raw, &encoding);
+    let decoded = encode::decode_heights(&raw, &encoding);
     assert!(decoded[0].is_nan(), "0 is no data");
     for (q, &h) in decoded.iter().enumerate().skip(1) {
         #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
