@@ -401,8 +401,8 @@ fn utm_geotiff(path: &Path, (w, h): (u32, u32), (east, north): (f64, f64), spaci
     }
 }
 
-/// The Jobs of `deploy/k8s/tile-job.yaml`, their exact command lines run here: the tile
-/// Job's N indexed pods as N processes at once (`$(JOB_COMPLETION_INDEX)` set as
+/// The Jobs of `deploy/k8s/tile-job.yaml`, their exact command lines run here: the plan
+/// Job's height range, then the tile Job's N indexed pods as N processes at once (`$(JOB_COMPLETION_INDEX)` set as
 /// Kubernetes sets it, `/work` a local folder; the object-storage copies are the rclone
 /// containers' and are done with a file copy), then the merge Job's. The archive it
 /// publishes is the one a single `tile` run over the same inputs writes, byte for byte.
@@ -411,7 +411,7 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let docs = yaml_docs(&deploy("k8s/tile-job.yaml"));
     let job =
         |name: &str| docs.iter().find(|d| d["metadata"]["name"] == name).unwrap_or_else(|| panic!("no Job {name}"));
-    let (tile_job, merge_job) = (job("terrastream-tile"), job("terrastream-merge"));
+    let (plan_job, tile_job, merge_job) = (job("terrastream-plan"), job("terrastream-tile"), job("terrastream-merge"));
     assert_eq!(tile_job["spec"]["completionMode"], "Indexed");
     let n = tile_job["spec"]["completions"].as_u64().unwrap();
     assert_eq!(tile_job["spec"]["parallelism"].as_u64(), Some(n), "all shards at once");
@@ -423,6 +423,8 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     };
     let tile_args = args(tile_job, "tile");
     assert!(tile_args.iter().any(|a| a == &format!("$(JOB_COMPLETION_INDEX)/{n}")), "--shard I/{n}: {tile_args:?}");
+    let range = tile_args.iter().position(|a| a == "--height-range").expect("the shards take the plan's range");
+    let plan_args = args(plan_job, "plan");
 
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
@@ -437,6 +439,21 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let local = |a: &str, index: u64| {
         a.replace("$(JOB_COMPLETION_INDEX)", &index.to_string()).replace("/work", work.to_str().unwrap())
     };
+    // The plan Job, then its upload and the shards' fetch-plan: out/ -> the bucket -> plan/.
+    let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .arg("-q")
+        .args(plan_args.iter().map(|a| local(a, 0)))
+        .stdout(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success(), "plan {plan_args:?}");
+    std::fs::create_dir_all(work.join("plan")).unwrap();
+    for entry in std::fs::read_dir(work.join("out")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::rename(&path, work.join("plan").join(path.file_name().unwrap())).unwrap();
+    }
+    let plan = std::fs::read_to_string(work.join("plan/height-range")).unwrap();
+    assert_eq!(format!("@{}", work.join("plan/height-range").display()), local(&tile_args[range + 1], 0), "{plan}");
     let pods: Vec<Child> = (0..n)
         .map(|i| {
             Command::new(env!("CARGO_BIN_EXE_terrastream"))
@@ -470,10 +487,13 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let published = args(merge_job, "publish");
     let merged = work.join(published[1].strip_prefix("/work/").unwrap());
 
-    // One run over the same inputs, the shard option left out.
+    // One run over the same inputs, the shard and height-range options left out (it finds
+    // the range itself).
     let shard = tile_args.iter().position(|a| a == "--shard").unwrap();
     let mut single: Vec<String> = tile_args.iter().map(|a| local(a, 0)).collect();
-    single.drain(shard..shard + 2);
+    for at in [shard.max(range), shard.min(range)] {
+        single.drain(at..at + 2);
+    }
     let out = single.iter().position(|a| a == "-o").unwrap();
     single[out + 1] = work.join("single.tspack").to_str().unwrap().to_owned();
     let status =

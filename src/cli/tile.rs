@@ -3,9 +3,9 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_format::{ElevationEncoding, ElevationScheme};
+use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::{
     Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
     Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image,
@@ -98,16 +98,28 @@ pub struct TileArgs {
     /// The last LOD shards make (default: the coarsest with two rows of tiles a shard).
     #[arg(long, requires = "shard")]
     split_lod: Option<u8>,
-    /// The elevation's lowest and highest height (`-12.5,4810`), instead of a pass over
-    /// it: what lets the shards of one run skip that pass (`--dry-run` prints the range).
-    /// A height outside it stops the run, naming the file.
-    #[arg(long, value_parser = parse_range, allow_hyphen_values = true)]
+    /// The elevation's lowest and highest height (`-12.5,4810`, or `@FILE` holding that),
+    /// instead of a pass over it: what lets the shards of one run skip that pass
+    /// (`--dry-run` prints the range; `--height-range-out` writes it to a file). A height
+    /// outside it stops the run, naming the file.
+    #[arg(long, value_parser = parse_range_arg, allow_hyphen_values = true)]
     height_range: Option<(f32, f32)>,
+    /// With `--dry-run`: write the elevation's height range to this file, as
+    /// `--height-range @FILE` reads it (a sharded run's plan step).
+    #[arg(long, requires = "dry_run")]
+    height_range_out: Option<PathBuf>,
     /// Also write a manifest (FORMAT.md §9) naming the archive: what readers open when a
     /// terrain is published as several archives (`merge --manifest` makes the one of a
     /// sharded run).
     #[arg(long)]
     manifest_out: Option<PathBuf>,
+}
+
+/// `MIN,MAX`, or `@FILE` holding that.
+fn parse_range_arg(s: &str) -> std::result::Result<(f32, f32), String> {
+    let Some(path) = s.strip_prefix('@') else { return parse_range(s) };
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{path}: {e}"))?;
+    parse_range(text.trim()).map_err(|e| format!("{path}: {e}"))
 }
 
 fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
@@ -328,6 +340,14 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             );
         }
         let t = &plan.metadata.terrain;
+        if let Some(out) = &args.height_range_out {
+            anyhow::ensure!(
+                plan.metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation),
+                "--height-range-out: no elevation to take the range of"
+            );
+            let range = format!("{},{}\n", t.min_elevation, t.max_elevation);
+            std::fs::write(out, range).with_context(|| format!("{}: cannot write the height range", out.display()))?;
+        }
         println!(
             "heights {} .. {}, spacing {:.3} m; at most {} tiles, about {:.1} MiB (typical compression)",
             t.min_elevation,
