@@ -278,3 +278,45 @@ fn a_sharded_run_is_published_by_a_manifest_that_info_and_verify_read() {
     let out = terrastream(&["verify", "whole.json"], cwd);
     assert!(out.status.success() && text(&out).contains("OK — 1 archives"), "{}", text(&out));
 }
+
+#[test]
+fn an_update_in_place_is_verified_and_a_merge_compacts_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = dem.to_str().unwrap();
+    let out =
+        terrastream(&["tile", "--elevation", dem, "--crs", "EPSG:32610", "--tile-size", "32", "-o", "t.tspack"], cwd);
+    assert!(out.status.success(), "{}", text(&out));
+    // A re-survey of part of it: heights 10 % higher (GDAL makes it).
+    let ok = Command::new("gdal_translate")
+        .args([
+            "-q", "-srcwin", "100", "100", "80", "60", "-scale", "0", "1000", "0", "1100", "-ot", "Float32", dem,
+            "new.tif",
+        ])
+        .current_dir(cwd)
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let out = terrastream(&["update", "t.tspack", "--elevation", "new.tif"], cwd);
+    assert!(!out.status.success() && text(&out).contains("--in-place"), "-o or --in-place: {}", text(&out));
+    let before = std::fs::metadata(cwd.join("t.tspack")).unwrap().len();
+    let out = terrastream(&["update", "t.tspack", "--elevation", "new.tif", "--in-place"], cwd);
+    assert!(out.status.success() && text(&out).contains("base tiles replaced"), "{}", text(&out));
+    assert!(std::fs::metadata(cwd.join("t.tspack")).unwrap().len() > before, "appended");
+    let out = terrastream(&["verify", "t.tspack"], cwd);
+    let report = text(&out);
+    assert!(out.status.success() && report.contains("OK") && report.contains("bytes of replaced tiles"), "{report}");
+    let out = terrastream(&["merge", "t.tspack", "-o", "compact.tspack"], cwd);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["verify", "compact.tspack"], cwd);
+    let report = text(&out);
+    assert!(out.status.success() && report.contains("OK") && !report.contains("replaced"), "{report}");
+    let tiles = |name: &str| {
+        let out = terrastream(&["info", name, "--json"], cwd);
+        let info: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        info["stats"]["addressed_tiles"].as_u64()
+    };
+    assert_eq!(tiles("t.tspack"), tiles("compact.tspack"));
+    assert!(tiles("t.tspack").is_some_and(|n| n > 10));
+}

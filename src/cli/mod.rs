@@ -136,6 +136,7 @@ enum Command {
     },
     /// Tile new rasters over the part of an archive they cover, keeping the rest: the
     /// archive's grid, CRS and height encoding; tiles around and above are made again.
+    #[command(group = clap::ArgGroup::new("target").required(true))]
     Update {
         /// The archive to update (a projected CRS: tiled from a mosaic or with --crs).
         base: PathBuf,
@@ -146,11 +147,11 @@ enum Command {
         #[arg(long, num_args = 1..)]
         texture: Vec<PathBuf>,
         /// Output archive: a copy of the base, updated.
-        #[arg(short, long, required_unless_present = "in_place", conflicts_with = "in_place")]
+        #[arg(short, long, group = "target")]
         output: Option<PathBuf>,
         /// Update the base itself: only the changed tiles and the new directories are
         /// written (FORMAT.md §7.1); readers of the old version keep reading it.
-        #[arg(long)]
+        #[arg(long, group = "target")]
         in_place: bool,
     },
     /// Pack the built-in sample terrain and show what is in it.
@@ -268,6 +269,12 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
                     "{archive}: OK — {} tiles, {} blobs, {} leaves, {} payload bytes checked",
                     report.addressed_tiles, report.blobs_checked, report.leaves_checked, report.bytes_checked
                 );
+                if report.unreferenced_bytes > 0 {
+                    println!(
+                        "{archive}: {} bytes of replaced tiles left by updates in place (`terrastream merge {archive} -o …` writes a compact copy)",
+                        report.unreferenced_bytes
+                    );
+                }
                 Ok(ExitCode::SUCCESS)
             } else {
                 for p in &report.problems {

@@ -26,6 +26,9 @@ pub struct VerifyReport {
     pub bytes_checked: u64,
     /// Leaf directories checked.
     pub leaves_checked: u64,
+    /// Bytes of the data section no entry points at: blobs that updates in place replaced
+    /// (FORMAT.md §7.1). A merge of the archive writes a copy without them.
+    pub unreferenced_bytes: u64,
     /// One line per problem, naming the section or tile; empty when the archive is sound.
     pub problems: Vec<String>,
 }
@@ -53,6 +56,7 @@ pub fn verify<S: RangeSource>(reader: &Reader<S>, mut progress: impl FnMut(u64))
     let mut report = VerifyReport::default();
     let archive = reader.archive();
     let mut seen_blobs = HashSet::new();
+    let mut stored = 0u64;
     let mut check_entries = |entries: &[Entry], report: &mut VerifyReport| {
         for e in entries {
             report.entries += 1;
@@ -66,6 +70,7 @@ pub fn verify<S: RangeSource>(reader: &Reader<S>, mut progress: impl FnMut(u64))
                     Ok(_) => {
                         report.blobs_checked += 1;
                         report.bytes_checked += u64::from(e.length);
+                        stored += u64::from(e.length) + crate::directory::TILE_TRAILER_LEN;
                         progress(report.bytes_checked);
                     }
                     Err(err) => report.problem(err.to_string()),
@@ -88,6 +93,7 @@ pub fn verify<S: RangeSource>(reader: &Reader<S>, mut progress: impl FnMut(u64))
         }
     }
     let h = reader.header();
+    report.unreferenced_bytes = h.data.len.saturating_sub(stored);
     if report.problems.is_empty() {
         let counts = [
             ("addressed tiles", h.addressed_tiles, report.addressed_tiles),
