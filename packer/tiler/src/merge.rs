@@ -409,6 +409,12 @@ fn rederive_layers(
     let archive = readers[0].archive();
     let keys: Vec<TileKey> =
         conflicts.keys().map(|&k| archive.tile_of(k)).collect::<terrastream_format::Result<_>>()?;
+    // The tiles not from the first input: where the merge can have made others stale.
+    let later: Vec<TileKey> = winners
+        .iter()
+        .filter(|(_, found)| found.0 != 0)
+        .map(|(&k, _)| archive.tile_of(k))
+        .collect::<terrastream_format::Result<_>>()?;
     // Every version of an LOD-0 tile several inputs hold, as stored (compression undone).
     let versions_of = |key: TileKey| -> Result<Vec<Vec<u8>>> {
         let versions = conflicts.get(&Writer::order_key(metadata, key)?).into_iter().flatten();
@@ -427,6 +433,8 @@ fn rederive_layers(
         let edge = grid.res + 2 * grid.border;
         let conflicts: HashSet<(u8, u32, u32)> =
             keys.iter().filter(|k| k.layer() == index).map(|k| (k.lod(), k.x(), k.y())).collect();
+        let later: HashSet<(u8, u32, u32)> =
+            later.iter().filter(|k| k.layer() == index).map(|k| (k.lod(), k.x(), k.y())).collect();
         let source = |lod: u8, x: u32, y: u32| -> Option<usize> {
             let key = TileKey::new(index, lod, x, y).ok()?;
             winners.get(&Writer::order_key(metadata, key).ok()?).map(|f| f.0)
@@ -452,6 +460,7 @@ fn rederive_layers(
                 let tiles = Tiles {
                     source: &source,
                     conflicts: &conflicts,
+                    later: &later,
                     decode: &decode,
                     encode: &encode,
                     quantize: Some(&quantize),
@@ -516,6 +525,7 @@ fn rederive_layers(
                 let tiles = Tiles {
                     source: &source,
                     conflicts: &conflicts,
+                    later: &later,
                     decode: &decode,
                     encode: &encode,
                     quantize: None,

@@ -60,6 +60,10 @@ pub(crate) struct Tiles<'a, S> {
     pub(crate) source: &'a (dyn Fn(u8, u32, u32) -> Option<usize> + Sync),
     /// Tiles two or more inputs hold.
     pub(crate) conflicts: &'a HashSet<(u8, u32, u32)>,
+    /// Tiles (lod, x, y) that come from another input than the first. Inputs are whole
+    /// pyramids, so a tile of the first input has a parent there: only these tiles, and
+    /// their neighbours, can sit beside or under a tile of another input.
+    pub(crate) later: &'a HashSet<(u8, u32, u32)>,
     /// The stored tile (lod, x, y), decoded (`edge` x `edge` samples).
     pub(crate) decode: &'a (dyn Fn(u8, u32, u32) -> Result<Option<Vec<S>>> + Sync),
     /// Encodes a remade tile into its entries.
@@ -132,7 +136,6 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
             // A tile of the level below changes its parents' samples when its interior was
             // remade, or when it comes from another input than a parent (which was averaged
             // from its own input's version, or is missing).
-            let (below_cols, below_rows) = grid.tiles_at(lod - 1);
             let mut mark = |(cx, cy): (u32, u32), only_if: Option<usize>| {
                 for x in (cx / 2).saturating_sub(1)..=(cx / 2 + 1).min(cols - 1) {
                     for y in (cy / 2).saturating_sub(1)..=(cy / 2 + 1).min(rows - 1) {
@@ -151,48 +154,67 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
             for &tile in &changed_below {
                 mark(tile, None);
             }
-            for cy in 0..below_rows {
-                for cx in 0..below_cols {
-                    if let Some(input) = (tiles.source)(lod - 1, cx, cy)
-                        && !changed_below.contains(&(cx, cy))
-                    {
-                        mark((cx, cy), Some(input));
-                    }
+            // (A tile of the first input under a parent of another: that parent is in
+            // the first input too, so two inputs hold it, and it is remade anyway.)
+            for &(_, cx, cy) in tiles.later.iter().filter(|t| t.0 == lod - 1) {
+                if let Some(input) = (tiles.source)(lod - 1, cx, cy)
+                    && !changed_below.contains(&(cx, cy))
+                {
+                    mark((cx, cy), Some(input));
                 }
             }
         }
         // LOD 0 is cut from its own tiles (the composites standing in for theirs); the
-        // others are averaged from the level below.
+        // others are averaged from the level below. A tile's samples come from the tiles
+        // under it that changed (remade, or from another input than its own); the rest
+        // are its stored version's, which the same samples made: so only those tiles and
+        // the tile itself are decoded, not every tile under it.
         let (from, scale) = if lod == 0 { (0, 1) } else { (lod - 1, 2) };
+        let own = |&(x, y): &(u32, u32)| (tiles.source)(lod, x, y);
         let needed: HashSet<(u32, u32)> = dirty
             .iter()
-            .flat_map(|&t| window_tiles(grid, from, t, scale))
+            .flat_map(|t| {
+                let own = own(t);
+                window_tiles(grid, from, *t, scale).into_iter().filter(move |&(cx, cy)| {
+                    let source = (tiles.source)(from, cx, cy);
+                    source.is_some() && (own.is_none() || source != own)
+                })
+            })
             .filter(|t| !made_below.contains_key(t))
             .collect();
-        let stored = needed
-            .into_par_iter()
-            .map(|(x, y)| -> Result<Placed<S>> {
-                let samples = match (tiles.source)(from, x, y) {
-                    Some(_) => (tiles.decode)(from, x, y)?.map(Arc::new),
-                    None => None,
-                };
-                Ok(((x, y), samples))
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let mut below = std::mem::take(&mut made_below);
-        below.extend(stored);
-        let lookup = |x: u32, y: u32| below.get(&(x, y)).and_then(|t| t.as_ref()).map(|t| t.as_slice());
+        let decode_all = |level: u8, set: Vec<(u32, u32)>| -> Result<Level<S>> {
+            let decoded = set
+                .into_par_iter()
+                .map(|(x, y)| -> Result<Placed<S>> { Ok(((x, y), (tiles.decode)(level, x, y)?.map(Arc::new))) })
+                .collect::<Result<Vec<_>>>()?;
+            Ok(decoded.into_iter().collect())
+        };
+        // A tile's stored version is read only when some tile under it is not taken.
+        let partly_stored = |t: &(u32, u32)| {
+            own(t).is_some()
+                && window_tiles(grid, from, *t, scale).into_iter().any(|c| {
+                    (tiles.source)(from, c.0, c.1).is_some() && !made_below.contains_key(&c) && !needed.contains(&c)
+                })
+        };
+        let stored = decode_all(lod, dirty.iter().copied().filter(partly_stored).collect())?;
+        let fresh = decode_all(from, needed.into_iter().collect())?;
+        tracing::debug!(layer = grid.layer, lod, remade = dirty.len(), decoded = fresh.len() + stored.len(), "level");
+        let below = std::mem::take(&mut made_below);
+        let lookup = |x: u32, y: u32| -> Option<Option<&[S]>> {
+            below.get(&(x, y)).or_else(|| fresh.get(&(x, y))).map(|t| t.as_ref().map(|t| t.as_slice()))
+        };
         let mut order: Vec<(u32, u32)> = dirty.iter().copied().collect();
         order.sort_unstable_by_key(|&(x, y)| (y, x));
         type Made<S> = ((u32, u32), Option<Arc<Vec<S>>>, Vec<(TileKey, Vec<u8>)>);
         let made = order
             .par_iter()
             .map(|&(x, y)| -> Result<Made<S>> {
-                let samples = if lod == 0 {
-                    // The interior as stored, the borders from the neighbours' interiors.
+                let (mut samples, taken) = if lod == 0 {
+                    // The interior as stored (or composited), the borders from the
+                    // neighbours' interiors.
                     window(grid, 0, (x, y), 1, &lookup)
                 } else {
-                    let wide = window(grid, from, (x, y), 2, &lookup);
+                    let (wide, taken_wide) = window(grid, from, (x, y), 2, &lookup);
                     let side = 2 * edge;
                     let mut out = Vec::with_capacity(edge * edge);
                     for pair in wide.chunks_exact(2 * side) {
@@ -202,8 +224,18 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
                         }
                         out.extend_from_slice(&row);
                     }
-                    out
+                    // A 2 x 2 block never straddles two tiles below (it starts on an even
+                    // sample, tiles on multiples of an even size): its first sample says.
+                    let taken = (0..edge * edge).map(|i| taken_wide[(i / edge) * 2 * side + (i % edge) * 2]).collect();
+                    (out, taken)
                 };
+                if let Some(stored) = stored.get(&(x, y)).and_then(Option::as_ref) {
+                    for ((v, &taken), &s) in samples.iter_mut().zip(&taken).zip(stored.iter()) {
+                        if !taken {
+                            *v = s;
+                        }
+                    }
+                }
                 let key = TileKey::new(grid.layer, lod, x, y)?;
                 let has_data = (border..border + res)
                     .any(|j| samples[j * edge + border..j * edge + border + res].iter().any(S::has_data));
@@ -249,18 +281,20 @@ fn covers(grid: &Grid, x: u32, child: u32) -> bool {
     from < c1 && c0 < to
 }
 
-/// LOD-0 tiles whose 3 x 3 neighbourhood holds tiles of more than one input.
+/// LOD-0 tiles whose 3 x 3 neighbourhood holds tiles of more than one input: some of the
+/// tiles not from the first input and their neighbours.
 fn mixed_neighbourhoods<S>(tiles: &Tiles<'_, S>, cols: u32, rows: u32) -> Vec<(u32, u32)> {
+    let near = |x: u32, y: u32| {
+        (y.saturating_sub(1)..=(y + 1).min(rows - 1))
+            .flat_map(move |ny| (x.saturating_sub(1)..=(x + 1).min(cols - 1)).map(move |nx| (nx, ny)))
+    };
+    let candidates: HashSet<(u32, u32)> =
+        tiles.later.iter().filter(|t| t.0 == 0).flat_map(|&(_, x, y)| near(x, y)).collect();
     let mut out = Vec::new();
-    for y in 0..rows {
-        for x in 0..cols {
-            let Some(own) = (tiles.source)(0, x, y) else { continue };
-            let mixed = (y.saturating_sub(1)..=(y + 1).min(rows - 1))
-                .flat_map(|ny| (x.saturating_sub(1)..=(x + 1).min(cols - 1)).map(move |nx| (nx, ny)))
-                .any(|(nx, ny)| (tiles.source)(0, nx, ny).is_some_and(|s| s != own));
-            if mixed {
-                out.push((x, y));
-            }
+    for (x, y) in candidates {
+        let Some(own) = (tiles.source)(0, x, y) else { continue };
+        if near(x, y).any(|(nx, ny)| (tiles.source)(0, nx, ny).is_some_and(|s| s != own)) {
+            out.push((x, y));
         }
     }
     out
@@ -268,8 +302,9 @@ fn mixed_neighbourhoods<S>(tiles: &Tiles<'_, S>, cols: u32, rows: u32) -> Vec<(u
 
 /// The samples of level `lod` under tile (x, y) of the level `scale` times coarser, with
 /// borders: `scale * edge` x `scale * edge`, starting at `scale * (x * res - border)`;
-/// no data outside the level. `tile(tx, ty)` gives a level tile's stored samples (with
-/// borders), or None.
+/// no data outside the level. `tile(tx, ty)` gives a level tile's samples (with borders)
+/// when the window takes them: `Some(None)` for a tile that holds no data, `None` for one
+/// it does not take. Also says which samples were taken (lie in a tile taken).
 #[expect(
     clippy::cast_possible_truncation,
     clippy::cast_possible_wrap,
@@ -281,13 +316,14 @@ fn window<'t, S: Pixel>(
     lod: u8,
     (x, y): (u32, u32),
     scale: i64,
-    tile: &(dyn Fn(u32, u32) -> Option<&'t [S]> + Sync),
-) -> Vec<S> {
+    tile: &(dyn Fn(u32, u32) -> Option<Option<&'t [S]>> + Sync),
+) -> (Vec<S>, Vec<bool>) {
     let (res, b, edge) = (grid.res as i64, grid.border as i64, grid.edge());
     let side = scale as usize * edge;
     let (w, h) = grid.samples_at(lod);
     let (x0, y0) = (scale * (i64::from(x) * res - b), scale * (i64::from(y) * res - b));
     let mut out = vec![S::NONE; side * side];
+    let mut taken = vec![false; side * side];
     let tile_range = |from: i64, len: i64, limit: i64| {
         let first = from.max(0) / res;
         let last = (from + len - 1).min(limit - 1).max(0) / res;
@@ -306,13 +342,17 @@ fn window<'t, S: Pixel>(
             }
             let len = (i1 - i0) as usize;
             for j in j0..j1 {
-                let from = (grid.border + j as usize) * edge + grid.border + i0 as usize;
                 let to = (gy + j - y0) as usize * side + (gx + i0 - x0) as usize;
-                if let (Some(src), Some(dst)) = (samples.get(from..from + len), out.get_mut(to..to + len)) {
+                if let Some(mark) = taken.get_mut(to..to + len) {
+                    mark.fill(true);
+                }
+                let from = (grid.border + j as usize) * edge + grid.border + i0 as usize;
+                let src = samples.and_then(|s| s.get(from..from + len));
+                if let (Some(src), Some(dst)) = (src, out.get_mut(to..to + len)) {
                     dst.copy_from_slice(src);
                 }
             }
         }
     }
-    out
+    (out, taken)
 }
