@@ -134,27 +134,50 @@ fn append(
     appender: &mut Appender,
     readers: &[Reader<MmapSource>],
     winners: &BTreeMap<u64, Found>,
-    mut made: SortedSpool,
+    made: SortedSpool,
     progress: &dyn Progress,
 ) -> Result<u64> {
     let base = &readers[0];
     let data = base.header().data.offset;
-    progress.start("write", (winners.len() + made.len()) as u64);
-    let add_made = |appender: &mut Appender, (order, key, bytes): (u64, TileKey, Vec<u8>)| -> Result<()> {
-        match base.locate(key)? {
-            Some(at) if at.length as usize == bytes.len() && base.read(&at)?[..] == bytes[..] => {
-                appender.keep(key, order, at.offset - data, at.length)?;
-            }
-            _ => appender.add(key, order, &bytes)?,
+    in_order(readers, winners, made, progress, |next| match next {
+        Next::Input(key, order, (0, offset, length)) => Ok(appender.keep(key, order, offset - data, length)?),
+        Next::Input(key, order, (input, offset, length)) => {
+            Ok(appender.add(key, order, &readers[input].read(&TileLocation { key, offset, length })?)?)
         }
-        progress.advance(1);
-        Ok(())
-    };
+        Next::Made(order, key, bytes) => match base.locate(key)? {
+            Some(at) if at.length as usize == bytes.len() && base.read(&at)?[..] == bytes[..] => {
+                Ok(appender.keep(key, order, at.offset - data, at.length)?)
+            }
+            _ => Ok(appender.add(key, order, &bytes)?),
+        },
+    })
+}
+
+/// The next tile of a merge, in archive order.
+enum Next {
+    /// An input's tile: its key, archive key, and where it is.
+    Input(TileKey, u64, Found),
+    /// A made tile (archive key, key, stored bytes), replacing any input's.
+    Made(u64, TileKey, Vec<u8>),
+}
+
+/// Hands the inputs' winning tiles and the spooled (made) tiles to `sink` in archive
+/// order; a made tile replaces an input's with the same key. Returns the inputs' tiles
+/// handed.
+fn in_order(
+    readers: &[Reader<MmapSource>],
+    winners: &BTreeMap<u64, Found>,
+    mut made: SortedSpool,
+    progress: &dyn Progress,
+    mut sink: impl FnMut(Next) -> Result<()>,
+) -> Result<u64> {
+    progress.start("write", (winners.len() + made.len()) as u64);
     let mut copied = 0u64;
-    for (&order, &(input, offset, length)) in winners {
+    for (&order, &found) in winners {
         while made.peek_order().is_some_and(|o| o < order) {
-            if let Some(tile) = made.next_tile()? {
-                add_made(appender, tile)?;
+            if let Some((order, key, bytes)) = made.next_tile()? {
+                sink(Next::Made(order, key, bytes))?;
+                progress.advance(1);
             }
         }
         if made.peek_order() == Some(order) {
@@ -163,18 +186,14 @@ fn append(
         if copied.is_multiple_of(1024) {
             progress.check()?;
         }
-        let reader = &readers[input];
-        let key = reader.archive().tile_of(order)?;
-        if input == 0 {
-            appender.keep(key, order, offset - data, length)?;
-        } else {
-            appender.add(key, order, &reader.read(&TileLocation { key, offset, length })?)?;
-        }
+        let key = readers[found.0].archive().tile_of(order)?;
+        sink(Next::Input(key, order, found))?;
         copied += 1;
         progress.advance(1);
     }
-    while let Some(tile) = made.next_tile()? {
-        add_made(appender, tile)?;
+    while let Some((order, key, bytes)) = made.next_tile()? {
+        sink(Next::Made(order, key, bytes))?;
+        progress.advance(1);
     }
     progress.check()?;
     Ok(copied)
@@ -334,36 +353,16 @@ pub(crate) fn write(
     writer: &mut Writer,
     readers: &[Reader<MmapSource>],
     winners: &BTreeMap<u64, Found>,
-    mut made: SortedSpool,
+    made: SortedSpool,
     progress: &dyn Progress,
 ) -> Result<u64> {
-    progress.start("write", (winners.len() + made.len()) as u64);
-    let mut copied = 0u64;
-    for (&order, &(input, offset, length)) in winners {
-        while made.peek_order().is_some_and(|o| o < order) {
-            if let Some((_, key, bytes)) = made.next_tile()? {
-                writer.add_stored(key, bytes)?;
-                progress.advance(1);
-            }
+    in_order(readers, winners, made, progress, |next| match next {
+        Next::Input(key, _, (input, offset, length)) => {
+            let bytes = readers[input].read(&TileLocation { key, offset, length })?;
+            Ok(writer.add_stored(key, bytes.to_vec())?)
         }
-        if made.peek_order() == Some(order) {
-            continue;
-        }
-        if copied.is_multiple_of(1024) {
-            progress.check()?;
-        }
-        let reader = &readers[input];
-        let key = reader.archive().tile_of(order)?;
-        let bytes = reader.read(&TileLocation { key, offset, length })?;
-        writer.add_stored(key, bytes.to_vec())?;
-        copied += 1;
-        progress.advance(1);
-    }
-    while let Some((_, key, bytes)) = made.next_tile()? {
-        writer.add_stored(key, bytes)?;
-        progress.advance(1);
-    }
-    Ok(copied)
+        Next::Made(_, key, bytes) => Ok(writer.add_stored(key, bytes)?),
+    })
 }
 
 /// The stored bytes of a tile if any input has it, its layer's compression undone.
