@@ -78,7 +78,20 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
 /// # Errors
 /// As [`merge`].
 pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn Progress) -> Result<MergeSummary> {
-    let Prepared { readers, metadata, shards, mut winners, conflicts } = prepare(inputs, progress)?;
+    merge_widened(inputs, out, prefer, None, progress)
+}
+
+/// [`merge_with`], the terrain's height range widened to hold `heights` (an update's new
+/// heights, seen while tiling them).
+pub(crate) fn merge_widened(
+    inputs: &[PathBuf],
+    out: &Path,
+    prefer: Prefer,
+    heights: Option<(f32, f32)>,
+    progress: &dyn Progress,
+) -> Result<MergeSummary> {
+    let Prepared { readers, mut metadata, shards, mut winners, conflicts } = prepare(inputs, progress)?;
+    widen(&mut metadata, heights);
     let folder = terrastream_pack::output_folder(out);
     let mut spool = Spool::new(&folder)?;
     if let Some(split_lods) = &shards {
@@ -95,7 +108,7 @@ pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn
     Ok(MergeSummary { write: writer.finish()?, copied, replaced: conflicts.len() as u64, made })
 }
 
-/// [`merge_with`] of `inputs` = `[base, changes]` written into `target` in place
+/// [`merge_widened`] of `inputs` = `[base, changes]` written into `target` in place
 /// (FORMAT.md §7.1): `target` is `base` itself or a byte copy of it. The base's tiles stay
 /// where they are; only the changes' tiles and the remade ones are appended.
 ///
@@ -107,9 +120,11 @@ pub(crate) fn merge_in_place(
     inputs: &[PathBuf; 2],
     target: &Path,
     prefer: Prefer,
+    heights: Option<(f32, f32)>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
-    let Prepared { readers, metadata, mut winners, conflicts, .. } = prepare(inputs, progress)?;
+    let Prepared { readers, mut metadata, mut winners, conflicts, .. } = prepare(inputs, progress)?;
+    widen(&mut metadata, heights);
     tracing::debug!(tiles = winners.len(), replaced = conflicts.len(), "archives indexed");
     let mut appender = Appender::open(target, WriterOptions::default())?;
     if appender.header() != readers[0].header() {
@@ -197,6 +212,17 @@ fn in_order(
     }
     progress.check()?;
     Ok(copied)
+}
+
+/// Widens the terrain's height range to hold `heights`, its span as a run over all the
+/// heights sets it (`plan`).
+fn widen(metadata: &mut Metadata, heights: Option<(f32, f32)>) {
+    if let Some((lo, hi)) = heights.filter(|(lo, hi)| lo <= hi) {
+        let t = &mut metadata.terrain;
+        (t.min_elevation, t.max_elevation) = (t.min_elevation.min(f64::from(lo)), t.max_elevation.max(f64::from(hi)));
+        let span = t.max_elevation - t.min_elevation;
+        (t.displacement, t.elevation_range) = (span, span);
+    }
 }
 
 /// Merge inputs, opened and checked, and their tiles indexed.

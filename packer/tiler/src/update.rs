@@ -15,11 +15,11 @@ use terrastream_pack::progress::Progress;
 
 use crate::crs::Crs;
 use crate::error::{Error, Result};
-use crate::merge::{MergeSummary, Prefer, merge_in_place, merge_with};
+use crate::merge::{MergeSummary, Prefer, merge_in_place, merge_widened};
 use crate::options::{TextureFormat, TextureInput};
 use crate::plan::{LayerPlan, Plan};
 use crate::pyramid::Window;
-use crate::raster::{ElevationSource, Heights, ImageSource, Mosaic, MosaicKind, MosaicOptions, Pixels};
+use crate::raster::{ElevationSource, Heights, ImageSource, KnownRange, Mosaic, MosaicKind, MosaicOptions, Pixels};
 use crate::tile::tile_planned;
 
 /// What [`update`] did.
@@ -96,6 +96,7 @@ pub fn update(
         vec![LayerPlan { size: (0, 0), offset: (0, 0), tiles: 0, estimated_bytes: 0 }; metadata.layers.len()];
     let mut windows: Vec<Window> = vec![Window::empty(); metadata.layers.len()];
 
+    let mut limits = (f32::NEG_INFINITY, f32::INFINITY);
     let heights = match (elevation.is_empty(), find(LayerKind::Elevation)) {
         (true, _) => None,
         (false, None) => return Err(bad("it has no elevation layer to update".into())),
@@ -103,23 +104,19 @@ pub fn update(
             let (size, spacing, extent) = grid(e)?;
             let mosaic = Mosaic::<Heights>::open(elevation, &mosaic_options(spacing, extent))?;
             check_size(&elevation[0], mosaic.size(), size)?;
-            let (lo, hi) = mosaic.height_range(&mut |_| Ok(()))?;
+            // Heights the archive's encoding holds: checked as the rows are read (no pass
+            // of its own over the new rasters).
             if let Some(enc) =
                 metadata.layers[e].elevation.filter(|e| e.scheme == terrastream_format::ElevationScheme::QuantizedU16)
             {
                 let (min, max) = (enc.offset + enc.scale, enc.offset + 65_535.0 * enc.scale);
-                if f64::from(lo) < min || f64::from(hi) > max {
-                    return Err(Error::input(
-                        &elevation[0],
-                        format!(
-                            "heights {lo} .. {hi} do not fit the archive's height encoding ({min} .. {max}): tile it again"
-                        ),
-                    ));
-                }
-            }
-            if lo <= hi {
-                metadata.terrain.min_elevation = metadata.terrain.min_elevation.min(f64::from(lo));
-                metadata.terrain.max_elevation = metadata.terrain.max_elevation.max(f64::from(hi));
+                // As f32, rounded outwards.
+                #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+                let (lo, hi) = (min as f32, max as f32);
+                limits = (
+                    if f64::from(lo) > min { lo.next_down() } else { lo },
+                    if f64::from(hi) < max { hi.next_up() } else { hi },
+                );
             }
             match crop(&mosaic, &metadata.layers[e], spacing, extent) {
                 None => None,
@@ -175,19 +172,22 @@ pub fn update(
         .map_err(|e| Error::file(&folder, e))?;
     let changes = scratch.path().join("changes.tspack");
     let texture_input = image.as_ref().map(|m| TextureInput { source: m, tile_size, format, pixel_size: 1.0 });
-    let elevation_source = heights.as_ref().map(|m| m as &dyn ElevationSource);
+    let known =
+        heights.as_ref().map(|m| KnownRange::limited(m, limits, "the archive's height encoding (tile it again)"));
+    let elevation_source = known.as_ref().map(|k| k as &dyn ElevationSource);
     tracing::debug!(?windows, "new rasters opened");
     let tiled = tile_planned(elevation_source, texture_input, &plan, &windows, &changes, false, progress, started)?;
+    let seen = known.as_ref().and_then(KnownRange::seen);
     let inputs = [base.to_path_buf(), changes];
     let rewrite = |why: &str| {
         tracing::info!("{}: {why}: writing the archive anew", base.display());
-        merge_with(&inputs, out, Prefer::Pixels, progress)
+        merge_widened(&inputs, out, Prefer::Pixels, seen, progress)
     };
     let same = |a: &Path, b: &Path| {
         std::fs::canonicalize(a).ok().zip(std::fs::canonicalize(b).ok()).is_some_and(|(a, b)| a == b)
     };
     let merge = if same(base, out) {
-        match merge_in_place(&inputs, base, Prefer::Pixels, progress) {
+        match merge_in_place(&inputs, base, Prefer::Pixels, seen, progress) {
             Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why)?,
             other => other?,
         }
@@ -201,7 +201,7 @@ pub fn update(
             .tempfile_in(&folder)
             .map_err(|e| Error::file(&folder, e))?;
         std::fs::copy(base, copy.path()).map_err(|e| Error::file(copy.path(), e))?;
-        match merge_in_place(&inputs, copy.path(), Prefer::Pixels, progress) {
+        match merge_in_place(&inputs, copy.path(), Prefer::Pixels, seen, progress) {
             Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why)?,
             Err(e) => return Err(e),
             Ok(mut merge) => {

@@ -196,6 +196,15 @@ fn an_update_that_fills_a_hole_makes_every_level_above_it() {
     assert!(missing.is_empty(), "missing {missing:?}");
     let differ: Vec<_> = expected.iter().filter(|(k, v)| got.get(k) != Some(v)).map(|(k, _)| *k).take(8).collect();
     assert!(differ.is_empty() && expected.len() == got.len(), "tiles differ from one run: {differ:?}");
+    // The new heights reach above the base's: the terrain's range says so, as one run's.
+    let terrain = |p: &Path| Reader::open_mmap(p).unwrap().metadata().terrain.clone();
+    assert!(terrain(&base).max_elevation > base_height_max(), "{:?}", terrain(&base));
+    assert_eq!(terrain(&base), terrain(&expected_path));
+}
+
+/// The highest height of [`base_height`].
+fn base_height_max() -> f64 {
+    620.0
 }
 
 /// A UTM 33N RGB GeoTIFF, `(w, h)` pixels of 10 m from (east, north), colour by pixel.
@@ -260,7 +269,7 @@ fn updates_that_cannot_fit_are_refused_and_write_nothing() {
     let high = dir.path().join("high.tif");
     geotiff(&high, (20, 20), (500_500.0, 5_001_000.0), |_, _| 9_000.0);
     let err = update(&base, std::slice::from_ref(&high), &[], &out, &Silent::default()).unwrap_err().to_string();
-    assert!(err.contains("high.tif") && err.contains("do not fit the archive's height encoding"), "{err}");
+    assert!(err.contains("high.tif") && err.contains("outside the archive's height encoding"), "{err}");
     // A texture update on an archive without imagery.
     let err = update(&base, &[], std::slice::from_ref(&base_tif), &out, &Silent::default()).unwrap_err().to_string();
     assert!(err.contains("base.tspack") && err.contains("no texture layer"), "{err}");

@@ -113,12 +113,28 @@ pub(crate) fn rows_window<T>(
 pub struct KnownRange<'a> {
     source: &'a dyn ElevationSource,
     range: (f32, f32),
+    /// What the range is, for the error: "the given height range", "the archive's height
+    /// encoding".
+    what: &'static str,
+    /// The lowest and highest heights read so far.
+    seen: std::sync::Mutex<(f32, f32)>,
 }
 
 impl<'a> KnownRange<'a> {
     /// `source` with heights `min..=max`.
-    pub fn new(source: &'a dyn ElevationSource, (min, max): (f32, f32)) -> Self {
-        Self { source, range: (min, max) }
+    pub fn new(source: &'a dyn ElevationSource, range: (f32, f32)) -> Self {
+        Self::limited(source, range, "the given height range")
+    }
+
+    /// `source` whose heights must fit `min..=max`, which is `what` (named in the error).
+    pub(crate) fn limited(source: &'a dyn ElevationSource, range: (f32, f32), what: &'static str) -> Self {
+        Self { source, range, what, seen: std::sync::Mutex::new((f32::INFINITY, f32::NEG_INFINITY)) }
+    }
+
+    /// The lowest and highest heights read so far, if any.
+    pub fn seen(&self) -> Option<(f32, f32)> {
+        let (lo, hi) = *self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        (lo <= hi).then_some((lo, hi))
     }
 
     fn checked<'r>(&'r self, row: &'r mut dyn FnMut(&[f32]) -> Result<()>) -> impl FnMut(&[f32]) -> Result<()> + 'r {
@@ -127,12 +143,12 @@ impl<'a> KnownRange<'a> {
             if lo < self.range.0 || hi > self.range.1 {
                 return Err(Error::input(
                     self.source.path(),
-                    format!(
-                        "heights {lo} .. {hi} lie outside the given height range {} .. {}",
-                        self.range.0, self.range.1
-                    ),
+                    format!("heights {lo} .. {hi} lie outside {} {} .. {}", self.what, self.range.0, self.range.1),
                 ));
             }
+            let mut seen = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            *seen = (seen.0.min(lo), seen.1.max(hi));
+            drop(seen);
             row(r)
         }
     }
