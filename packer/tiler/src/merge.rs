@@ -440,10 +440,11 @@ fn rederive_layers(
         .filter(|(_, found)| found.0 != 0)
         .map(|(&k, _)| archive.tile_of(k))
         .collect::<terrastream_format::Result<_>>()?;
-    // Every version of an LOD-0 tile several inputs hold, as stored (compression undone).
-    let versions_of = |key: TileKey| -> Result<Vec<Vec<u8>>> {
-        let versions = conflicts.get(&Writer::order_key(metadata, key)?).into_iter().flatten();
-        versions.map(|&found| unpacked(metadata, readers, key, found)).collect()
+    // Version `i` of an LOD-0 tile several inputs hold, newest first, as stored
+    // (compression undone).
+    let version_of = |key: TileKey, i: usize| -> Result<Option<Vec<u8>>> {
+        let versions = conflicts.get(&Writer::order_key(metadata, key)?).map_or(&[][..], Vec::as_slice);
+        versions.iter().rev().nth(i).map(|&found| unpacked(metadata, readers, key, found)).transpose()
     };
     let mut emptied = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {
@@ -476,11 +477,8 @@ fn rederive_layers(
                 };
                 let encode = |key: TileKey, samples: &[f32]| heights.encode(key, samples);
                 let quantize = |row: &mut [f32]| quantize_heights(row, &encoding);
-                let versions = |x: u32, y: u32| -> Result<Vec<Vec<f32>>> {
-                    Ok(versions_of(TileKey::new(index, 0, x, y)?)?
-                        .iter()
-                        .map(|raw| decode_heights(raw, &encoding))
-                        .collect())
+                let versions = |x: u32, y: u32, i: usize| -> Result<Option<Vec<f32>>> {
+                    Ok(version_of(TileKey::new(index, 0, x, y)?, i)?.map(|raw| decode_heights(&raw, &encoding)))
                 };
                 let tiles = Tiles {
                     source: &source,
@@ -543,9 +541,9 @@ fn rederive_layers(
                 let encode = move |key: TileKey, pixels: &[[u8; 4]]| -> Result<Vec<(TileKey, Vec<u8>)>> {
                     Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
                 };
-                let versions = |x: u32, y: u32| -> Result<Vec<Vec<[u8; 4]>>> {
+                let versions = |x: u32, y: u32, i: usize| -> Result<Option<Vec<[u8; 4]>>> {
                     let key = TileKey::new(index, 0, x, y)?;
-                    versions_of(key)?.iter().map(|bytes| decode_texture(key, bytes, edge, format)).collect()
+                    version_of(key, i)?.map(|bytes| decode_texture(key, &bytes, edge, format)).transpose()
                 };
                 let tiles = Tiles {
                     source: &source,

@@ -69,13 +69,14 @@ pub(crate) struct Tiles<'a, S> {
     /// Encodes a remade tile into its entries.
     pub(crate) encode: &'a EncodeTile<'a, S>,
     pub(crate) quantize: Option<&'a Quantize<'a, S>>,
-    /// `--prefer pixels`: every input's version of an LOD-0 tile two inputs hold, in input
-    /// order; the tile becomes their composite (a later one's samples with data win).
+    /// `--prefer pixels`: the versions of an LOD-0 tile two inputs hold, newest first; the
+    /// tile becomes their composite (a later one's samples with data win).
     pub(crate) versions: Option<&'a Versions<'a, S>>,
 }
 
-/// Every input's version of LOD-0 tile (x, y), decoded, in input order.
-pub(crate) type Versions<'a, S> = dyn Fn(u32, u32) -> Result<Vec<Vec<S>>> + Sync + 'a;
+/// Version `i` of LOD-0 tile (x, y) counting from the newest (0: the last input's that
+/// holds it), decoded; None past the oldest.
+pub(crate) type Versions<'a, S> = dyn Fn(u32, u32, usize) -> Result<Option<Vec<S>>> + Sync + 'a;
 
 /// What was remade: the entries of remade tiles, and the keys of tiles that hold no data
 /// once remade (to be left out).
@@ -106,17 +107,28 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
         let composites = conflicts
             .par_iter()
             .map(|&(x, y)| -> Result<Placed<S>> {
+                // Newest first, each older one filling the samples still without data:
+                // the same as laying them over each other oldest first, and an older one
+                // is not read once the interior is whole (what the merge takes of it).
                 let mut out: Option<Vec<S>> = None;
-                for version in versions(x, y)? {
+                for i in 0.. {
+                    let Some(version) = versions(x, y, i)? else { break };
                     match &mut out {
                         None => out = Some(version),
                         Some(o) => {
                             for (a, b) in o.iter_mut().zip(&version) {
-                                if b.has_data() {
+                                if !a.has_data() {
                                     *a = *b;
                                 }
                             }
                         }
+                    }
+                    let whole = |o: &Vec<S>| {
+                        (border..border + res)
+                            .all(|j| o[j * edge + border..j * edge + border + res].iter().all(S::has_data))
+                    };
+                    if out.as_ref().is_some_and(whole) {
+                        break;
                     }
                 }
                 Ok(((x, y), out.map(Arc::new)))
