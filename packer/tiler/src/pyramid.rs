@@ -66,9 +66,14 @@ pub trait Pixel: Copy + Send + Sync + 'static {
     fn mean4(s: [Self; 4]) -> Self;
     /// Linear interpolation between `a` and `b` at `f` in 0..1 (resampling along x).
     fn lerp(a: Self, b: Self, f: f32) -> Self;
+    /// The same sample, bit for bit (no data equals no data).
+    fn same(&self, other: &Self) -> bool;
 }
 
 impl Pixel for f32 {
+    fn same(&self, other: &Self) -> bool {
+        self.to_bits() == other.to_bits()
+    }
     const NONE: Self = f32::NAN;
     fn has_data(&self) -> bool {
         !self.is_nan()
@@ -97,6 +102,9 @@ impl Pixel for f32 {
 }
 
 impl Pixel for [u8; 4] {
+    fn same(&self, other: &Self) -> bool {
+        self == other
+    }
     const NONE: Self = [0; 4];
     fn has_data(&self) -> bool {
         self[3] > 0

@@ -100,19 +100,23 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
     // each level needs them).
     let mut made_below: Level<S> = HashMap::new();
     let mut changed_below: HashSet<(u32, u32)> = HashSet::new();
+    // LOD-0 tiles known as their winning input stores them, without decoding them again.
+    let mut as_stored: HashMap<(u32, u32), Arc<Vec<S>>> = HashMap::new();
     // Composites of the LOD-0 tiles several inputs hold, when pixels are preferred.
     if let Some(versions) = tiles.versions {
         let conflicts: Vec<(u32, u32)> =
             tiles.conflicts.iter().filter(|(l, ..)| *l == 0).map(|&(_, x, y)| (x, y)).collect();
         let composites = conflicts
             .par_iter()
-            .map(|&(x, y)| -> Result<Placed<S>> {
+            .map(|&(x, y)| -> Result<(Placed<S>, bool)> {
                 // Newest first, each older one filling the samples still without data:
                 // the same as laying them over each other oldest first, and an older one
                 // is not read once the interior is whole (what the merge takes of it).
                 let mut out: Option<Vec<S>> = None;
+                let mut read = 0;
                 for i in 0.. {
                     let Some(version) = versions(x, y, i)? else { break };
+                    read += 1;
                     match &mut out {
                         None => out = Some(version),
                         Some(o) => {
@@ -131,10 +135,16 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
                         break;
                     }
                 }
-                Ok(((x, y), out.map(Arc::new)))
+                Ok((((x, y), out.map(Arc::new)), read == 1))
             })
             .collect::<Result<Vec<_>>>()?;
-        made_below = composites.into_iter().collect();
+        for ((at, samples), newest_alone) in composites {
+            // The newest version alone: it is also the tile as its winning input stores it.
+            if newest_alone && let Some(samples) = &samples {
+                as_stored.insert(at, Arc::clone(samples));
+            }
+            made_below.insert(at, samples);
+        }
     }
     for lod in 0..grid.lods {
         let (cols, rows) = grid.tiles_at(lod);
@@ -204,11 +214,19 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
         // A tile's stored version is read only when some tile under it is not taken.
         let partly_stored = |t: &(u32, u32)| {
             own(t).is_some()
+                && !(lod == 0 && as_stored.contains_key(t))
                 && window_tiles(grid, from, *t, scale).into_iter().any(|c| {
                     (tiles.source)(from, c.0, c.1).is_some() && !made_below.contains_key(&c) && !needed.contains(&c)
                 })
         };
-        let stored = decode_all(lod, dirty.iter().copied().filter(partly_stored).collect())?;
+        let mut stored = decode_all(lod, dirty.iter().copied().filter(partly_stored).collect())?;
+        if lod == 0 {
+            for t in &dirty {
+                if let Some(samples) = as_stored.get(t) {
+                    stored.insert(*t, Some(Arc::clone(samples)));
+                }
+            }
+        }
         let fresh = decode_all(from, needed.into_iter().collect())?;
         tracing::debug!(layer = grid.layer, lod, remade = dirty.len(), decoded = fresh.len() + stored.len(), "level");
         let below = std::mem::take(&mut made_below);
@@ -241,11 +259,16 @@ pub(crate) fn rederive<S: Pixel>(grid: &Grid, tiles: &Tiles<'_, S>, remade: &mut
                     let taken = (0..edge * edge).map(|i| taken_wide[(i / edge) * 2 * side + (i % edge) * 2]).collect();
                     (out, taken)
                 };
-                if let Some(stored) = stored.get(&(x, y)).and_then(Option::as_ref) {
+                let stored = stored.get(&(x, y)).and_then(Option::as_ref);
+                if let Some(stored) = stored {
                     for ((v, &taken), &s) in samples.iter_mut().zip(&taken).zip(stored.iter()) {
                         if !taken {
                             *v = s;
                         }
+                    }
+                    // Remade as it is stored: the stored tile stays, nothing to encode.
+                    if samples.len() == stored.len() && samples.iter().zip(stored.iter()).all(|(a, b)| a.same(b)) {
+                        return Ok(((x, y), Some(Arc::new(samples)), Vec::new()));
                     }
                 }
                 let key = TileKey::new(grid.layer, lod, x, y)?;
