@@ -42,7 +42,7 @@ pub struct WriterOptions {
     pub bootstrap_target: u64,
     /// Leave room for in-place updates (FORMAT.md §7.1): a second bootstrap slot in the
     /// first 16 KiB (so the root's budget is half of it) and a second leaf-directory slot.
-    /// Costs at most 20 KiB plus 2.5x the directories, and makes `Appender` possible;
+    /// Costs at most 32 KiB plus 4x the directories, and makes `Appender` possible;
     /// an archive that fits one bootstrap read whole is written without it.
     pub reserve: bool,
     /// Sync the archive to disk before renaming it into place. Off only for scratch
@@ -375,11 +375,13 @@ pub const BOOTSTRAP_SLOT: u64 = (BOOTSTRAP_READ - HEADER_LEN as u64) / 2;
 const DATA_ALIGN: u64 = 4096;
 
 /// The leaf-directory area of an archive with room for updates whose directories (root
-/// and leaves) take `len` bytes: room for its leaves, and for the next version's with
-/// half as much again to grow (an update's blobs, appended out of key order, cost more
-/// bytes of offset, and may move a root-only directory into leaves).
+/// and leaves) take `len` bytes: room for its leaves, and for the next version's three
+/// times as large, plus 16 KiB (an update's blobs, appended out of key order, cost bytes
+/// of offset: a 1 % update of a 5 m DEM took its leaves from 13.7 to 22.3 KiB; and a
+/// root-only directory may move into leaves). Directories are a few bytes per tile, so
+/// this is a small part of any archive worth updating.
 pub(crate) fn leaf_area(len: u64) -> u64 {
-    len.saturating_mul(5) / 2 + 4096
+    len.saturating_mul(4) + 16 * 1024
 }
 
 /// Where the sections go: back to back, or with `reserve` (a bootstrap that fits its slot,
