@@ -154,17 +154,21 @@ fn append(
 ) -> Result<u64> {
     let base = &readers[0];
     let data = base.header().data.offset;
-    in_order(readers, winners, made, progress, |next| match next {
-        Next::Input(key, order, (0, offset, length)) => Ok(appender.keep(key, order, offset - data, length)?),
-        Next::Input(key, order, (input, offset, length)) => {
-            Ok(appender.add(key, order, &readers[input].read(&TileLocation { key, offset, length })?)?)
-        }
-        Next::Made(order, key, bytes) => match base.locate(key)? {
+    // New bytes are appended unless the base holds the same for the tile already.
+    let add = |appender: &mut Appender, key: TileKey, order: u64, bytes: &[u8]| -> Result<()> {
+        match base.locate(key)? {
             Some(at) if at.length as usize == bytes.len() && base.read(&at)?[..] == bytes[..] => {
                 Ok(appender.keep(key, order, at.offset - data, at.length)?)
             }
-            _ => Ok(appender.add(key, order, &bytes)?),
-        },
+            _ => Ok(appender.add(key, order, bytes)?),
+        }
+    };
+    in_order(readers, winners, made, progress, |next| match next {
+        Next::Input(key, order, (0, offset, length)) => Ok(appender.keep(key, order, offset - data, length)?),
+        Next::Input(key, order, (input, offset, length)) => {
+            add(appender, key, order, &readers[input].read(&TileLocation { key, offset, length })?)
+        }
+        Next::Made(order, key, bytes) => add(appender, key, order, &bytes),
     })
 }
 
