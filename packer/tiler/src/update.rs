@@ -56,6 +56,13 @@ pub fn update(
     let mut metadata = reader.metadata().clone();
     drop(reader);
     let bad = |why: String| Error::input(base, why);
+    if let Some(shard) = &metadata.shard {
+        return Err(bad(format!(
+            "it is shard {}/{} of a sharded run: update the merged archive, or tile the shard again and \
+             publish the set again (merge --manifest)",
+            shard.index, shard.count
+        )));
+    }
     let g = metadata
         .georeference
         .clone()

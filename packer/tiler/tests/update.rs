@@ -288,6 +288,21 @@ fn updates_that_cannot_fit_are_refused_and_write_nothing() {
     tile_elevation(&raster, "g", &geo, OPTIONS, &Silent::default()).unwrap();
     let err = update(&geo, std::slice::from_ref(&high), &[], &out, &Silent::default()).unwrap_err().to_string();
     assert!(err.contains("geo.tspack") && err.contains("geographic"), "{err}");
+    // A shard of a sharded run: its set would no longer hold together.
+    let shard = dir.path().join("shard.tspack");
+    let mosaic = Mosaic::open(std::slice::from_ref(&base_tif), &MosaicOptions::default()).unwrap();
+    terrastream_tiler::tile_shard(
+        Some(&mosaic),
+        None,
+        "s",
+        &shard,
+        OPTIONS,
+        Some(terrastream_tiler::ShardSpec { index: 0, count: 2, split_lod: None }),
+        &Silent::default(),
+    )
+    .unwrap();
+    let err = update(&shard, std::slice::from_ref(&high), &[], &shard, &Silent::default()).unwrap_err().to_string();
+    assert!(err.contains("shard.tspack") && err.contains("shard 0/2 of a sharded run"), "{err}");
     assert!(!out.exists(), "nothing written");
     let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert!(leftovers.iter().all(|n| !n.to_string_lossy().starts_with(".update-")), "{leftovers:?}");
