@@ -5,9 +5,11 @@
 //! section; the new leaf directories into the free part of the leaf area, the new metadata
 //! and root into the free bootstrap slot; each of those is synced before the 128-byte
 //! header is rewritten, the one write that switches readers to the new version. A crash
-//! or an error before it leaves the archive as it was (the appended bytes are cut off
-//! again); a reader that opened the archive before keeps reading the old version's bytes,
-//! which stay in place until the update after next reuses its slots.
+//! or an error before it leaves the archive as it was, the bytes appended lying unused
+//! after the data section (never cut off: a reader that mapped the longer file would
+//! fault; the next update writes over them). A reader that opened the archive before
+//! keeps reading the old version's bytes, which stay in place until the update after
+//! next reuses its slots.
 
 use std::collections::{HashMap, HashSet};
 use std::fs::File;
@@ -29,12 +31,11 @@ use crate::writer::{SPILL_RECORD, WriteSummary, WriterOptions, build_directories
 /// Give every tile of the new version in archive order ([`crate::Writer::order_key`]):
 /// [`Appender::keep`] for one whose blob the archive already holds, [`Appender::add`]
 /// for new bytes; tiles not given are gone from the new version. [`Appender::finish`]
-/// publishes it; dropping the appender before leaves the archive as it was.
+/// publishes it; dropping the appender before leaves the archive's version as it was.
 pub struct Appender {
     path: PathBuf,
     file: File,
     header: Header,
-    original_len: u64,
     options: WriterOptions,
     /// New blobs, buffered; `None` once dropped.
     blobs: Option<BufWriter<File>>,
@@ -48,7 +49,6 @@ pub struct Appender {
     added: u64,
     addressed: u64,
     last_key: Option<u64>,
-    committed: bool,
 }
 
 impl std::fmt::Debug for Appender {
@@ -74,10 +74,10 @@ impl Appender {
             }
             std::fs::TryLockError::Error(e) => Error::file(&path, e),
         })?;
-        let original_len = file.metadata().map_err(io)?.len();
+        let len = file.metadata().map_err(io)?.len();
         let mut bytes = [0u8; HEADER_LEN];
         file.read_exact_at(&mut bytes, 0).map_err(io)?;
-        let header = Header::decode(&bytes, original_len)?;
+        let header = Header::decode(&bytes, len)?;
         let no_room = |why: &str| Error::NoRoom { path: path.clone(), why: why.to_owned() };
         if header.bootstrap_len() > BOOTSTRAP_READ
             || header.data.offset < BOOTSTRAP_READ
@@ -96,7 +96,6 @@ impl Appender {
             path,
             file,
             header,
-            original_len,
             options,
             blobs: Some(blobs),
             spill: BufWriter::with_capacity(1 << 16, spill),
@@ -107,7 +106,6 @@ impl Appender {
             added: 0,
             addressed: 0,
             last_key: None,
-            committed: false,
         })
     }
 
@@ -284,12 +282,9 @@ impl Appender {
         self.file.write_all_at(&metadata_bytes, new_metadata.offset).map_err(io)?;
         self.file.write_all_at(&directories.root, root_dir.offset).map_err(io)?;
         let end = data.end().unwrap_or(u64::MAX);
-        // Cuts off what an update that never finished may have left after the data.
-        self.file.set_len(end).map_err(io)?;
         self.file.sync_data().map_err(io)?;
         self.file.write_all_at(&header.encode(), 0).map_err(io)?;
         self.file.sync_data().map_err(io)?;
-        self.committed = true;
         Ok(WriteSummary {
             path: self.path.clone(),
             file_len: end,
@@ -305,15 +300,11 @@ impl Appender {
 }
 
 impl Drop for Appender {
-    /// Not finished: the appended blobs are cut off again (the free slots may hold
-    /// unused bytes, which nothing points at).
+    /// Not finished: blobs still buffered are dropped; those written and the free slots
+    /// hold bytes nothing points at.
     fn drop(&mut self) {
-        // Buffered blobs are discarded, not written after the cut.
         if let Some(blobs) = self.blobs.take() {
             let _ = blobs.into_parts();
-        }
-        if !self.committed {
-            let _ = self.file.set_len(self.original_len);
         }
     }
 }
