@@ -285,9 +285,11 @@ impl Appender {
         self.file.sync_data().map_err(io)?;
         self.file.write_all_at(&header.encode(), 0).map_err(io)?;
         self.file.sync_data().map_err(io)?;
+        // Bytes an unfinished update left after a longer data section stay.
+        let file_len = self.file.metadata().map_or(end, |m| m.len().max(end));
         Ok(WriteSummary {
             path: self.path.clone(),
-            file_len: end,
+            file_len,
             addressed_tiles: self.addressed,
             tile_entries: self.spilled,
             tile_contents: header.tile_contents,
