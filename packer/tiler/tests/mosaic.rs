@@ -293,3 +293,45 @@ fn gdal_virtual_rasters_are_read_as_gdal_reads_them() {
         Mosaic::<Heights>::open(&[dir.path().join("broken.vrt")], &MosaicOptions::default()).unwrap_err().to_string();
     assert!(err.contains("gone.tif") && err.contains("broken.vrt"), "{err}");
 }
+
+/// A UTM 33N GeoTIFF of f32 heights `height(i, j)`, 10 m samples from (east, north).
+fn utm_tile(path: &Path, (east, north): (f64, f64), (w, h): (u32, u32), height: impl Fn(u32, u32) -> f32) {
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<colortype::Gray32Float>(w, h).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33550), &[10.0, 10.0, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, north, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32633][..]).unwrap();
+    let data: Vec<f32> = (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| height(i, j)).collect();
+    image.write_data(&data).unwrap();
+}
+
+#[test]
+fn an_input_on_the_output_crs_and_spacing_is_copied_sample_for_sample() {
+    // The first input in UTM 33N on a 10 m lattice; a geographic one north-west of it
+    // moves the mosaic's corner off that lattice, which the grid snaps back onto.
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a.tif");
+    let height = |i: u32, j: u32| 300.0 + (i as f32 * 0.37).sin() * 40.0 + j as f32 * 0.61;
+    utm_tile(&a, (500_000.0, 5_100_000.0), (200, 200), height);
+    let b = dir.path().join("b.tif");
+    geographic_tile(&b, 14.95, 46.06, 0.0002, (100, 50));
+    let mosaic = Mosaic::<Heights>::open(&[a, b], &MosaicOptions::default()).unwrap();
+    let origin = mosaic.georeference().unwrap().origin.unwrap();
+    let (dx, dy) = ((500_000.0 - origin[0]) / 10.0, (origin[1] - 5_100_000.0) / 10.0);
+    assert!(dx > 1.0 && dy > 1.0, "the geographic input lies north-west: {origin:?}");
+    assert!((dx - dx.round()).abs() < 1e-6 && (dy - dy.round()).abs() < 1e-6, "off the lattice: {dx}, {dy}");
+    let (dx, dy) = (dx.round() as usize, dy.round() as usize);
+    let mut rows = Vec::new();
+    mosaic
+        .rows(&mut |r| {
+            rows.push(r.to_vec());
+            Ok(())
+        })
+        .unwrap();
+    for j in 0..200u32 {
+        for i in 0..200u32 {
+            let got = rows[dy + j as usize][dx + i as usize];
+            assert_eq!(got.to_bits(), height(i, j).to_bits(), "sample ({i}, {j}): {got}");
+        }
+    }
+}

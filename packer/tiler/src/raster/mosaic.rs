@@ -158,6 +158,19 @@ impl<K: MosaicKind> Mosaic<K> {
         if !(spacing.is_finite() && spacing > 0.0) {
             return Err(Error::option("--resolution", spacing, "a positive number of metres"));
         }
+        // No extent given, and the first input already in the output CRS at this spacing:
+        // the grid continues its pixels (its north-west corner moved out onto them), so
+        // that inputs on one lattice are copied, not resampled.
+        if options.extent.is_none()
+            && let Some(o) = files.first().filter(|o| o.crs == crs)
+        {
+            let same = |a: f64| (a - spacing).abs() <= 1e-9 * spacing;
+            if same(o.pixel.0) && same(o.pixel.1) {
+                let steps = |d: f64| (d / spacing + 1e-9).floor();
+                bounds[0] = o.origin[0] + steps(bounds[0] - o.origin[0]) * spacing;
+                bounds[3] = o.origin[1] - steps(o.origin[1] - bounds[3]) * spacing;
+            }
+        }
         // A given extent is covered exactly (pixels a little off square); otherwise the
         // footprints' union, rounded out to whole pixels.
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked below")]
