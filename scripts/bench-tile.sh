@@ -16,6 +16,8 @@
 # quarter of the rows against the whole (4x the area, the same width: memory follows the
 # output's width by design, so that a mosaic may grow south without bound). SCALE=441
 # upsamples each window 4.41x (464 -> 2048 samples, at 6.8 m) for 64 files of 2048^2. MOSAIC=only runs that case alone.
+# TAP=1 warps the windows onto one lattice per zone (gdalwarp -tap), as tiles cut from one
+# source usually are: inputs on the output's lattice are then copied, not resampled.
 #
 # gdal2tiles only tiles 8-bit rasters: its DEM job is `gdal_translate -ot Byte -scale`
 # (timed with it) then gdal2tiles, so its tiles hold 256 levels where ours are lossless u16.
@@ -79,7 +81,7 @@ mosaic_case() {
       gdal_translate -q -srcwin $((x * side)) $((y * side)) $((side + 16)) $((side + 16)) \
         -outsize "${SCALE:-100}%" "${SCALE:-100}%" -r bilinear "$DEM" "$dir/w$k.tif"
       zone=$((x < grid / 2 ? 32610 : 32611))
-      gdalwarp -q -t_srs "EPSG:$zone" -r bilinear -tr "$spacing" "$spacing" -dstnodata -32768 -co TILED=YES \
+      gdalwarp -q -t_srs "EPSG:$zone" -r bilinear -tr "$spacing" "$spacing" ${TAP:+-tap} -dstnodata -32768 -co TILED=YES \
         "$dir/w$k.tif" "$dir/all/$k.tif"
       rm "$dir/w$k.tif"
       if ((y < grid / 4)); then cp "$dir/all/$k.tif" "$dir/quarter/"; fi
