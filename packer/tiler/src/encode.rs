@@ -60,13 +60,28 @@ pub(crate) fn quantize_heights(samples: &mut [f32], encoding: &ElevationEncoding
     const TO_INTEGER: f32 = 8_388_608.0;
     #[expect(clippy::cast_possible_truncation, reason = "as in encode_heights")]
     let (offset, inverse) = (encoding.offset as f32, (1.0 / encoding.scale) as f32);
+    let quantized = |x: f32| {
+        #[expect(clippy::cast_possible_truncation, reason = "the low 16 bits hold the integer")]
+        let q = (x + TO_INTEGER).to_bits() as u16;
+        f64::from(q)
+    };
+    if encoding.scheme == ElevationScheme::QuantizedU16 {
+        // `encoding.height` hoisted, and no branch (a NaN is kept by the select): it
+        // vectorizes. Every LOD-0 row goes through this on the pyramid's thread.
+        let (offset64, scale) = (encoding.offset, encoding.scale);
+        for v in samples {
+            let x = ((*v - offset) * inverse).clamp(1.0, 65_535.0);
+            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+            let h = (offset64 + quantized(x) * scale) as f32;
+            *v = if v.is_nan() { *v } else { h };
+        }
+        return;
+    }
     for v in samples {
         let x = ((*v - offset) * inverse).clamp(1.0, 65_535.0);
         if !x.is_nan() {
-            #[expect(clippy::cast_possible_truncation, reason = "the low 16 bits hold the integer")]
-            let q = (x + TO_INTEGER).to_bits() as u16;
             #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
-            let h = encoding.height(f64::from(q)) as f32;
+            let h = encoding.height(quantized(x)) as f32;
             *v = h;
         }
     }

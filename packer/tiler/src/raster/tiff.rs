@@ -241,7 +241,7 @@ pub(super) fn tiff_rows_in(
             for ty in (wanted.start / chunk_h).min(tile_rows)..tile_rows {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
                 // A tile per thread at a time: the decoded tiles held are as many as threads.
-                let group = rayon::current_num_threads().max(1);
+                let group = 4 * rayon::current_num_threads().max(1);
                 for first in (0..across).step_by(group) {
                     let tiles = decode(ty * across + first..ty * across + across.min(first + group))?;
                     for (tx, (values, w, h)) in (first..).zip(tiles) {
