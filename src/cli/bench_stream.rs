@@ -84,6 +84,10 @@ struct Run {
     time_to_detail: Vec<Duration>,
     uploads_per_frame: Vec<usize>,
     bytes_per_frame: Vec<usize>,
+    /// Frames from the first complete one on, and those of them with a hole (an area in
+    /// view that no delivered tile covers at any LOD).
+    frames_shown: usize,
+    frames_with_hole: usize,
     stats: StreamStats,
 }
 
@@ -183,7 +187,7 @@ pub fn run(args: StreamBench) -> Result<()> {
         if args.fixed_in_flight { "fixed" } else { "adaptive limit under it" }
     );
     println!(
-        "{:<40} {:>10} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6}",
+        "{:<40} {:>10} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6} {:>11}",
         "run",
         "1st frame",
         "ttd med",
@@ -195,14 +199,15 @@ pub fn run(args: StreamBench) -> Result<()> {
         "up max",
         "up p99",
         "B/frm max",
-        "limit"
+        "limit",
+        "hole frames"
     );
     for r in &runs {
         let mut ups = r.uploads_per_frame.clone();
         ups.sort_unstable();
         let p99 = ups.get(ups.len() * 99 / 100).copied().unwrap_or(0);
         println!(
-            "{:<40} {:>8.1}ms {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6}",
+            "{:<40} {:>8.1}ms {:>8.1}ms {:>8.1}ms {:>9.3} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6} {:>11}",
             r.name,
             r.first_frame.as_secs_f64() * 1e3,
             r.median_ttd().as_secs_f64() * 1e3,
@@ -215,6 +220,7 @@ pub fn run(args: StreamBench) -> Result<()> {
             p99,
             r.bytes_per_frame.iter().max().copied().unwrap_or(0),
             r.stats.in_flight_limit,
+            format!("{}/{}", r.frames_with_hole, r.frames_shown),
         );
     }
     let (mmap, mmap_raw, http, http_raw) = (&runs[0], &runs[1], &runs[2], &runs[3]);
@@ -240,18 +246,32 @@ pub fn run(args: StreamBench) -> Result<()> {
     for pair in runs[4..].chunks(2) {
         if let [linked, raw] = pair {
             println!(
-                "{}: first complete frame {:.0} ms; time to full detail {:.2}x mmap's, {:.2}x the baseline's; {:.2} requests per tile",
+                "{}: first complete frame {:.0} ms; time to full detail {:.2}x mmap's, {:.2}x the baseline's; {:.2} requests per tile; \
+                 frames with a hole after the first complete one: {} of {}",
                 linked.name,
                 linked.first_frame.as_secs_f64() * 1e3,
                 linked.median_ttd().as_secs_f64() / mmap.median_ttd().as_secs_f64().max(1e-9),
                 linked.median_ttd().as_secs_f64() / raw.median_ttd().as_secs_f64().max(1e-9),
-                linked.requests_per_tile()
+                linked.requests_per_tile(),
+                linked.frames_with_hole,
+                linked.frames_shown,
             );
         }
     }
     drop(shapers);
     drop(server);
     Ok(())
+}
+
+/// Does the view have a hole: a wanted tile in view that neither it nor any coarser tile
+/// over it covers (the renderer draws a tile's nearest delivered ancestor), where the
+/// origin has data?
+fn has_hole(s: &Streamer) -> bool {
+    s.wanted().iter().filter(|w| w.leaf && w.in_view).any(|w| {
+        let covered = std::iter::successors(Some(w.key), |k| k.parent()).any(|k| s.is_delivered(k));
+        let sparse = s.is_missing(w.key) || w.key.parent().is_some_and(|p| s.is_missing(p));
+        !covered && !sparse
+    })
 }
 
 /// Camera stops across the terrain's extent: (x, z) fractions and a look direction.
@@ -283,6 +303,8 @@ fn fly(name: String, origin: Origin, options: StreamOptions, budget: UploadBudge
         time_to_detail: Vec::new(),
         uploads_per_frame: Vec::new(),
         bytes_per_frame: Vec::new(),
+        frames_shown: 0,
+        frames_with_hole: 0,
         stats: StreamStats::default(),
     };
     let frame = |s: &mut Streamer, cam: &Camera, run: &mut Run| {
@@ -290,6 +312,10 @@ fn fly(name: String, origin: Origin, options: StreamOptions, budget: UploadBudge
         let uploads = s.drain_uploads(budget);
         run.uploads_per_frame.push(uploads.len());
         run.bytes_per_frame.push(uploads.iter().map(|u| u.tile.byte_len()).sum());
+        if !run.time_to_detail.is_empty() {
+            run.frames_shown += 1;
+            run.frames_with_hole += usize::from(has_hole(s));
+        }
     };
     for (i, stop) in STOPS.iter().enumerate() {
         let cam = camera_at(&meta, *stop, args.viewport_height);
