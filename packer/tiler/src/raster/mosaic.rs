@@ -312,11 +312,7 @@ impl<K: MosaicKind> Mosaic<K> {
             }
             // The chunks under those points, fetched once; then sampled with no lock.
             let Some(window) = reader.window(index, &points)? else { continue };
-            for (k, p) in points.iter().enumerate() {
-                if K::is_none(&out[c0 + k]) {
-                    out[c0 + k] = window.bilinear(*p);
-                }
-            }
+            window.bilinear_into(&points, &mut out[c0..c0 + points.len()]);
         }
         Ok(out)
     }
@@ -565,28 +561,119 @@ impl<K: MosaicKind> Window<K> {
         if !(p.0.is_finite() && p.1.is_finite()) {
             return K::NONE;
         }
-        // floor() without a libm call (no SSE4.1 round instruction on the baseline target).
-        #[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
-        let floor = |v: f64| {
-            let i = v as i64;
-            #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
-            if (i as f64) > v { i - 1 } else { i }
-        };
         let (x0, y0) = (floor(p.0), floor(p.1));
-        #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
-        let (fx, fy) = (p.0 - x0 as f64, p.1 - y0 as f64);
-        let weights = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
+        let weights = weights(p, x0, y0);
         // Usually all four corners lie in one chunk: read them with one lookup.
         if let Some([a, b, c, d]) = self.quad(x0, y0) {
             return K::blend(&[(a, weights[0]), (b, weights[1]), (c, weights[2]), (d, weights[3])]);
         }
         K::blend(&[
-            (self.get(x0, y0), (1.0 - fx) * (1.0 - fy)),
-            (self.get(x0 + 1, y0), fx * (1.0 - fy)),
-            (self.get(x0, y0 + 1), (1.0 - fx) * fy),
-            (self.get(x0 + 1, y0 + 1), fx * fy),
+            (self.get(x0, y0), weights[0]),
+            (self.get(x0 + 1, y0), weights[1]),
+            (self.get(x0, y0 + 1), weights[2]),
+            (self.get(x0 + 1, y0 + 1), weights[3]),
         ])
     }
+
+    /// [`Self::bilinear`] at each of `points` whose sample in `out` has no data yet (the
+    /// same values). Consecutive points of a row mostly fall between the same two rows of
+    /// one chunk column: those are found once, not with two divisions and a lookup a point.
+    fn bilinear_into(&self, points: &[(f64, f64)], out: &mut [K::Value]) {
+        let mut pair: Option<RowPair<'_, K::Value>> = None;
+        for (o, &p) in out.iter_mut().zip(points) {
+            if !K::is_none(o) || !(p.0.is_finite() && p.1.is_finite()) {
+                continue;
+            }
+            let (x0, y0) = (floor(p.0), floor(p.1));
+            if !pair.as_ref().is_some_and(|r| r.holds(x0, y0)) {
+                pair = self.row_pair(x0, y0);
+            }
+            *o = match &pair {
+                Some(r) => {
+                    let ([a, b], [c, d], w) = (r.top(x0), r.bottom(x0), weights(p, x0, y0));
+                    K::blend(&[(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])])
+                }
+                None => self.bilinear(p),
+            };
+        }
+    }
+
+    /// The two chunk rows [`Self::quad`] reads for `(x, y)`, and every `x` it reads them
+    /// for at this `y`.
+    fn row_pair(&self, x: i64, y: i64) -> Option<RowPair<'_, K::Value>> {
+        if x < self.bounds.0 || y < self.bounds.1 || x + 1 >= self.bounds.2 || y + 1 >= self.bounds.3 {
+            return None;
+        }
+        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked in range above")]
+        let (xu, yu) = (x as usize, y as usize);
+        let (cx, cy) = (xu / self.chunk.0, yu / self.chunk.1);
+        let ly = yu - cy * self.chunk.1;
+        let (dx, dy) = (cx.checked_sub(self.first.0)?, cy.checked_sub(self.first.1)?);
+        if dx >= self.across {
+            return None;
+        }
+        let chunk = self.held.get(dy * self.across + dx)?;
+        let top = chunk.values.get(ly * chunk.w..(ly + 1) * chunk.w)?;
+        let bottom = if ly + 1 < self.chunk.1 {
+            chunk.values.get((ly + 1) * chunk.w..(ly + 2) * chunk.w)?
+        } else {
+            let below = self.held.get((dy + 1) * self.across + dx)?;
+            below.values.get(..chunk.w.min(below.w))?
+        };
+        #[expect(clippy::cast_possible_wrap, reason = "pixel indices are far below 2^63")]
+        let base = (cx * self.chunk.0) as i64;
+        #[expect(clippy::cast_possible_wrap, reason = "chunk widths are far below 2^63")]
+        let width = self.chunk.0.min(top.len()).min(bottom.len()) as i64;
+        let pair =
+            RowPair { y, from: base.max(self.bounds.0), end: (base + width).min(self.bounds.2) - 1, base, top, bottom };
+        pair.holds(x, y).then_some(pair)
+    }
+}
+
+/// Two rows of pixels of one chunk column (the second may come from the chunk below): the
+/// corners of every bilinear sample between rows `y` and `y + 1` and columns `from ..
+/// end + 1`.
+struct RowPair<'w, V> {
+    y: i64,
+    /// First and end (exclusive) of the left corners' columns.
+    from: i64,
+    end: i64,
+    /// The column of `top[0]`.
+    base: i64,
+    top: &'w [V],
+    bottom: &'w [V],
+}
+
+impl<V: Copy> RowPair<'_, V> {
+    fn holds(&self, x: i64, y: i64) -> bool {
+        y == self.y && x >= self.from && x < self.end
+    }
+    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "held: at or after base")]
+    fn top(&self, x: i64) -> [V; 2] {
+        let i = (x - self.base) as usize;
+        [self.top[i], self.top[i + 1]]
+    }
+    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "held: at or after base")]
+    fn bottom(&self, x: i64) -> [V; 2] {
+        let i = (x - self.base) as usize;
+        [self.bottom[i], self.bottom[i + 1]]
+    }
+}
+
+/// floor() without a libm call (no SSE4.1 round instruction on the baseline target).
+#[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
+fn floor(v: f64) -> i64 {
+    let i = v as i64;
+    #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
+    if (i as f64) > v { i - 1 } else { i }
+}
+
+/// Bilinear weights of the corners `(x0, y0)`, `(x0 + 1, y0)`, `(x0, y0 + 1)` and `(x0 +
+/// 1, y0 + 1)` for point `p`.
+fn weights(p: (f64, f64), x0: i64, y0: i64) -> [f64; 4] {
+    #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
+    let (fx, fy) = (p.0 - x0 as f64, p.1 - y0 as f64);
+    [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy]
 }
 
 impl<'m, K: MosaicKind> Reader<'m, K> {
