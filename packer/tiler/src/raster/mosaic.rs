@@ -581,7 +581,7 @@ impl<K: MosaicKind> Window<K> {
     fn bilinear_into(&self, points: &[(f64, f64)], out: &mut [K::Value]) {
         let mut pair: Option<RowPair<'_, K::Value>> = None;
         for (o, &p) in out.iter_mut().zip(points) {
-            if !K::is_none(o) || !(p.0.is_finite() && p.1.is_finite()) {
+            if !(K::is_none(o) && p.0.is_finite() && p.1.is_finite()) {
                 continue;
             }
             let (x0, y0) = (floor(p.0), floor(p.1));
