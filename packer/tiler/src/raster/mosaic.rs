@@ -5,7 +5,8 @@
 //! data) and is sampled there, bilinear over the corners that have data. Inputs are read
 //! by strips or tiles on demand, never whole: the chunks a band of output rows needs are
 //! decoded once into a cache bounded in bytes, and at most [`OPEN_FILES`] files are open
-//! at once (the least recently used is closed, and reopened if needed again). Rows are
+//! at once (the least recently used is closed, and reopened if needed again; files the
+//! last two bands did not read are closed too). Rows are
 //! made in order, so the chunks in use are those under a band of output rows: memory
 //! follows the output's width and the cache, not the number or size of the inputs.
 
@@ -748,7 +749,9 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
     }
 
     /// The next band of output rows starts: chunks unused in this band and the last one
-    /// lie above the rows still to come and are dropped.
+    /// lie above the rows still to come and are dropped, and files unused as long are
+    /// closed (their decoders hold buffers: open, they would make memory follow the
+    /// number of inputs read so far, not the output's width).
     fn next_band(&self) {
         let band = self.band.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
@@ -762,6 +765,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         });
         state.bytes -= freed;
         state.lattice.retain(|_, (_, used)| *used + 1 >= band);
+        state.files.retain(|_, (_, used)| *used + 1 >= band);
     }
 
     fn file(&self, index: usize) -> Result<Arc<TiffChunks<'m>>> {
