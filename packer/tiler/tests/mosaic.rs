@@ -335,3 +335,63 @@ fn an_input_on_the_output_crs_and_spacing_is_copied_sample_for_sample() {
         }
     }
 }
+
+#[test]
+fn an_input_a_fraction_of_a_pixel_off_the_grid_is_sampled_bilinearly() {
+    // The first input sets the lattice; the second, in the same CRS and spacing, lies
+    // 200.37 pixels east and 100.62 pixels south of it, with a hole of nodata. Every
+    // output sample over it is the nodata-aware bilinear blend of its four pixels.
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a.tif");
+    utm_tile(&a, (500_000.0, 5_100_000.0), (200, 200), |i, j| 300.0 + i as f32 + j as f32);
+    let c = dir.path().join("c.tif");
+    let (east, north) = (502_003.7, 5_098_993.8);
+    let height = |i: u32, j: u32| {
+        if (40..47).contains(&i) && (30..34).contains(&j) {
+            f32::NAN
+        } else {
+            100.0 + (i as f32 * 0.21).sin() * 30.0 + (j * j) as f32 * 0.013
+        }
+    };
+    utm_tile(&c, (east, north), (120, 90), height);
+    let mosaic = Mosaic::<Heights>::open(&[a, c], &MosaicOptions::default()).unwrap();
+    let origin = mosaic.georeference().unwrap().origin.unwrap();
+    let mut rows = Vec::new();
+    mosaic
+        .rows(&mut |r| {
+            rows.push(r.to_vec());
+            Ok(())
+        })
+        .unwrap();
+    let (mut checked, mut blended_over_holes) = (0, 0);
+    for (y, row) in rows.iter().enumerate() {
+        for (x, got) in row.iter().enumerate() {
+            // The sample's centre in the second input's pixels (centres at integers).
+            let px = (origin[0] + (x as f64 + 0.5) * 10.0 - east) / 10.0 - 0.5;
+            let py = (north - (origin[1] - (y as f64 + 0.5) * 10.0)) / 10.0 - 0.5;
+            if !(px >= 0.0 && py >= 0.0 && px < 119.0 && py < 89.0) {
+                continue;
+            }
+            let (i, j) = (px.floor() as u32, py.floor() as u32);
+            let (fx, fy) = (px - f64::from(i), py - f64::from(j));
+            let corners = [
+                (height(i, j), (1.0 - fx) * (1.0 - fy)),
+                (height(i + 1, j), fx * (1.0 - fy)),
+                (height(i, j + 1), (1.0 - fx) * fy),
+                (height(i + 1, j + 1), fx * fy),
+            ];
+            let with_data = corners.iter().filter(|(v, _)| !v.is_nan());
+            let weight: f64 = with_data.clone().map(|(_, w)| w).sum();
+            let want = with_data.map(|(v, w)| f64::from(*v) * w).sum::<f64>() / weight;
+            if weight < 1e-9 {
+                assert!(got.is_nan(), "({x}, {y}): {got}, no data expected");
+                continue;
+            }
+            blended_over_holes += usize::from(corners.iter().any(|(v, _)| v.is_nan()));
+            assert!((f64::from(*got) - want).abs() < 1e-3, "({x}, {y}): {got}, expected {want}");
+            checked += 1;
+        }
+    }
+    assert!(checked > 119 * 89 - 40, "only {checked} samples checked");
+    assert!(blended_over_holes > 10, "the hole's rim: {blended_over_holes}");
+}

@@ -84,10 +84,22 @@ struct Input<K: MosaicKind> {
     /// Footprint in output pixels: first and last column and row (inclusive).
     columns: (i64, i64),
     rows: (i64, i64),
-    /// When the input's pixels are the output's (same CRS and spacing, a whole number of
-    /// pixels apart): the file pixel of output sample (0, 0). Its rows are then copied,
-    /// not resampled.
-    aligned: Option<(i64, i64)>,
+    /// How the input's pixels lie on the output grid.
+    grid: Grid,
+}
+
+/// How an input's pixels lie on the output grid.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Grid {
+    /// Its pixels are the output's (same CRS and spacing, a whole number of pixels apart):
+    /// the file pixel of output sample (0, 0). Its rows are copied, not resampled.
+    Aligned(i64, i64),
+    /// The same CRS and spacing, a fraction of a pixel apart: the file pixel coordinates
+    /// (centres at integers) of output sample (0, 0). Every sample has the same bilinear
+    /// weights, and the points need no transform.
+    Shifted(f64, f64),
+    /// Anything else: each sample's point comes through the transform (on a lattice).
+    Warped,
 }
 
 /// Several elevation rasters on one output grid (see the module's documentation).
@@ -199,9 +211,9 @@ impl<K: MosaicKind> Mosaic<K> {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
                 let to_input = Transform::new(&crs, &o.crs);
-                let aligned = aligned(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
+                let grid = grid_of(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
                 Input {
-                    aligned,
+                    grid,
                     columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
                     rows: (cell((origin[1] - fp[3]) / pixel.1) - 1, cell((origin[1] - fp[1]) / pixel.1) + 1),
                     to_input,
@@ -279,7 +291,17 @@ impl<K: MosaicKind> Mosaic<K> {
             if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
-            if let Some((ox, oy)) = input.aligned {
+            if let Grid::Shifted(sx, sy) = input.grid {
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                let (x0, y) = (c0 as f64 + sx, f64::from(j) + sy);
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                let ends = [(x0, y), (x0 + (c1 - c0) as f64, y)];
+                if let Some(window) = reader.window(index, &ends)? {
+                    window.shifted_into(x0, y, &mut out[c0..=c1]);
+                }
+                continue;
+            }
+            if let Grid::Aligned(ox, oy) = input.grid {
                 // The input's own pixels: a copy of its row.
                 #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
                 let (x0, y) = ((c0 as i64 + ox) as f64, (i64::from(j) + oy) as f64);
@@ -319,25 +341,31 @@ impl<K: MosaicKind> Mosaic<K> {
     }
 }
 
-/// The file pixel of output sample (0, 0) when an input's pixels are the output grid's:
-/// the same CRS and spacing (to 1e-9), its origin a whole number of pixels away (to 1e-6
-/// of a pixel). Output grid and input as (origin, pixel size); `window` the file's pixels
-/// read (a VRT source's).
+/// How an input's pixels lie on the output grid: [`Grid::Aligned`] when they are the
+/// output's (the same CRS and spacing, to 1e-9; its origin a whole number of pixels away,
+/// to 1e-6 of a pixel), [`Grid::Shifted`] when only the offset has a fraction. Output grid
+/// and input as (origin, pixel size); `window` the file's pixels read (a VRT source's).
 #[expect(clippy::cast_possible_truncation, reason = "checked to be near a whole number of pixels")]
-fn aligned(
+fn grid_of(
     to_input: &Transform,
     (origin, pixel): ([f64; 2], (f64, f64)),
     (input_origin, input_pixel): ([f64; 2], (f64, f64)),
     window: [u32; 4],
-) -> Option<(i64, i64)> {
+) -> Grid {
     let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
     if !to_input.is_identity() || !same(pixel.0, input_pixel.0) || !same(pixel.1, input_pixel.1) {
-        return None;
+        return Grid::Warped;
     }
-    let whole = |v: f64| (v.is_finite() && (v - v.round()).abs() <= 1e-6 && v.abs() < 1e12).then(|| v.round() as i64);
-    let dx = whole((origin[0] - input_origin[0]) / pixel.0)?;
-    let dy = whole((input_origin[1] - origin[1]) / pixel.1)?;
-    Some((dx + i64::from(window[0]), dy + i64::from(window[1])))
+    let dx = (origin[0] - input_origin[0]) / pixel.0;
+    let dy = (input_origin[1] - origin[1]) / pixel.1;
+    if !(dx.is_finite() && dy.is_finite() && dx.abs() < 1e12 && dy.abs() < 1e12) {
+        return Grid::Warped;
+    }
+    let whole = |v: f64| ((v - v.round()).abs() <= 1e-6).then(|| v.round() as i64);
+    match (whole(dx), whole(dy)) {
+        (Some(x), Some(y)) => Grid::Aligned(x + i64::from(window[0]), y + i64::from(window[1])),
+        _ => Grid::Shifted(dx + f64::from(window[0]), dy + f64::from(window[1])),
+    }
 }
 
 /// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows, or a
@@ -563,17 +591,43 @@ impl<K: MosaicKind> Window<K> {
             return K::NONE;
         }
         let (x0, y0) = (floor(p.0), floor(p.1));
-        let weights = weights(p, x0, y0);
+        self.blend_at(x0, y0, weights(p, x0, y0))
+    }
+
+    /// The blend of pixels `(x0, y0)`, `(x0 + 1, y0)`, `(x0, y0 + 1)` and `(x0 + 1, y0 + 1)`
+    /// with weights `w`.
+    fn blend_at(&self, x0: i64, y0: i64, w: [f64; 4]) -> K::Value {
         // Usually all four corners lie in one chunk: read them with one lookup.
-        if let Some([a, b, c, d]) = self.quad(x0, y0) {
-            return K::blend(&[(a, weights[0]), (b, weights[1]), (c, weights[2]), (d, weights[3])]);
+        let [a, b, c, d] = self.quad(x0, y0).unwrap_or_else(|| {
+            [self.get(x0, y0), self.get(x0 + 1, y0), self.get(x0, y0 + 1), self.get(x0 + 1, y0 + 1)]
+        });
+        K::blend(&[(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])])
+    }
+
+    /// [`Self::bilinear_into`] for the points `(x0 + k, y)`, `k` = 0, 1, …: an input a
+    /// fraction of a pixel off the output grid. The weights are the same for all.
+    fn shifted_into(&self, x0: f64, y: f64, out: &mut [K::Value]) {
+        let (ix, iy) = (floor(x0), floor(y));
+        let w = weights((x0, y), ix, iy);
+        // Summed as the blend sums them: exactly 1 for most fractions.
+        let unit = w.iter().fold(0.0, |s, w| s + w) == 1.0;
+        let mut pair: Option<RowPair<'_, K::Value>> = None;
+        for (x, o) in (ix..).zip(out.iter_mut()) {
+            if !K::is_none(o) {
+                continue;
+            }
+            if !pair.as_ref().is_some_and(|r| r.holds(x, iy)) {
+                pair = self.row_pair(x, iy);
+            }
+            *o = match &pair {
+                Some(r) => {
+                    let ([a, b], [c, d]) = (r.top(x), r.bottom(x));
+                    let corners = [(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])];
+                    if unit { K::blend_unit(&corners) } else { K::blend(&corners) }
+                }
+                None => self.blend_at(x, iy, w),
+            };
         }
-        K::blend(&[
-            (self.get(x0, y0), weights[0]),
-            (self.get(x0 + 1, y0), weights[1]),
-            (self.get(x0, y0 + 1), weights[2]),
-            (self.get(x0 + 1, y0 + 1), weights[3]),
-        ])
     }
 
     /// [`Self::bilinear`] at each of `points` whose sample in `out` has no data yet (the
@@ -592,7 +646,8 @@ impl<K: MosaicKind> Window<K> {
             *o = match &pair {
                 Some(r) => {
                     let ([a, b], [c, d], w) = (r.top(x0), r.bottom(x0), weights(p, x0, y0));
-                    K::blend(&[(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])])
+                    let corners = [(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])];
+                    if w.iter().fold(0.0, |s, w| s + w) == 1.0 { K::blend_unit(&corners) } else { K::blend(&corners) }
                 }
                 None => self.bilinear(p),
             };
