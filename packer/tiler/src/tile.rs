@@ -4,7 +4,7 @@ use std::path::Path;
 
 use terrastream_format::{ElevationEncoding, LayerKind, Metadata, TileKey};
 use terrastream_pack::progress::Progress;
-use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress};
+use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress_samples};
 
 use crate::encode::{encode_heights, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
@@ -168,7 +168,8 @@ fn window_rows(window: &Window) -> std::ops::Range<u32> {
     at(window.rows.start)..at(window.rows.end)
 }
 
-/// The tiles' zstd level (elevation, BC blocks): the writer's default.
+/// The zstd level of BC texture tiles (the writer's default); elevation tiles: see
+/// [`zstd_compress_samples`].
 pub(crate) const ZSTD_LEVEL: i32 = 3;
 
 /// Encodes elevation tiles, gathering each one's stored height range for the height-range
@@ -196,7 +197,7 @@ impl HeightEncoder {
         if self.range.is_some() && lo <= hi {
             self.ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));
         }
-        let stored = zstd_compress(&raw, ZSTD_LEVEL).map_err(|e| Error::Encode { tile: key, reason: e.to_string() })?;
+        let stored = zstd_compress_samples(&raw).map_err(|e| Error::Encode { tile: key, reason: e.to_string() })?;
         Ok(vec![(key, stored)])
     }
 
