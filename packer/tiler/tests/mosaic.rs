@@ -92,13 +92,7 @@ fn a_mosaic_across_two_utm_zones_matches_gdalwarp() {
     let mosaic = Mosaic::open(&tiles, &options).unwrap();
     let (w, h) = mosaic.size();
     let origin = mosaic.georeference().unwrap().origin.unwrap();
-    let mut ours = Vec::with_capacity(w as usize * h as usize);
-    mosaic
-        .rows(&mut |r| {
-            ours.extend_from_slice(r);
-            Ok(())
-        })
-        .unwrap();
+    let ours = rows_of(&mosaic).concat();
 
     // GDAL onto the same grid: same CRS, extent and spacing, bilinear, later file wins.
     let te = [origin[0], origin[1] - f64::from(h) * 60.0, origin[0] + f64::from(w) * 60.0, origin[1]]
@@ -205,13 +199,7 @@ fn against_gdal(dir: &Path, inputs: &[PathBuf], crs: u16, spacing: f64) -> (usiz
     let mosaic = Mosaic::open(inputs, &options).unwrap();
     let (w, h) = mosaic.size();
     let origin = mosaic.georeference().unwrap().origin.unwrap();
-    let mut ours = Vec::new();
-    mosaic
-        .rows(&mut |r| {
-            ours.extend_from_slice(r);
-            Ok(())
-        })
-        .unwrap();
+    let ours = rows_of(&mosaic).concat();
     let te = [origin[0], origin[1] - f64::from(h) * spacing, origin[0] + f64::from(w) * spacing, origin[1]]
         .map(|v| format!("{v:.6}"));
     let oracle = dir.join("oracle-vrt.tif");
@@ -295,6 +283,18 @@ fn gdal_virtual_rasters_are_read_as_gdal_reads_them() {
 }
 
 /// A UTM 33N GeoTIFF of f32 heights `height(i, j)`, 10 m samples from (east, north).
+/// Every row of `mosaic`, in order.
+fn rows_of(mosaic: &Mosaic<Heights>) -> Vec<Vec<f32>> {
+    let mut rows = Vec::new();
+    mosaic
+        .rows(&mut |r| {
+            rows.push(r.to_vec());
+            Ok(())
+        })
+        .unwrap();
+    rows
+}
+
 fn utm_tile(path: &Path, (east, north): (f64, f64), (w, h): (u32, u32), height: impl Fn(u32, u32) -> f32) {
     let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
     let mut image = encoder.new_image::<colortype::Gray32Float>(w, h).unwrap();
@@ -321,13 +321,7 @@ fn an_input_on_the_output_crs_and_spacing_is_copied_sample_for_sample() {
     assert!(dx > 1.0 && dy > 1.0, "the geographic input lies north-west: {origin:?}");
     assert!((dx - dx.round()).abs() < 1e-6 && (dy - dy.round()).abs() < 1e-6, "off the lattice: {dx}, {dy}");
     let (dx, dy) = (dx.round() as usize, dy.round() as usize);
-    let mut rows = Vec::new();
-    mosaic
-        .rows(&mut |r| {
-            rows.push(r.to_vec());
-            Ok(())
-        })
-        .unwrap();
+    let rows = rows_of(&mosaic);
     for j in 0..200u32 {
         for i in 0..200u32 {
             let got = rows[dy + j as usize][dx + i as usize];
@@ -356,13 +350,7 @@ fn an_input_a_fraction_of_a_pixel_off_the_grid_is_sampled_bilinearly() {
     utm_tile(&c, (east, north), (120, 90), height);
     let mosaic = Mosaic::<Heights>::open(&[a, c], &MosaicOptions::default()).unwrap();
     let origin = mosaic.georeference().unwrap().origin.unwrap();
-    let mut rows = Vec::new();
-    mosaic
-        .rows(&mut |r| {
-            rows.push(r.to_vec());
-            Ok(())
-        })
-        .unwrap();
+    let rows = rows_of(&mosaic);
     let (mut checked, mut blended_over_holes) = (0, 0);
     for (y, row) in rows.iter().enumerate() {
         for (x, got) in row.iter().enumerate() {
