@@ -56,6 +56,16 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn blend_unit(corners: &[(Self::Value, f64); 4]) -> Self::Value {
         Self::blend(corners)
     }
+    /// [`Self::blend`] of `top[k]`, `top[k + 1]`, `bottom[k]`, `bottom[k + 1]` with weights
+    /// `w` into each `out[k]` that has no data yet (`top` and `bottom` hold one more value
+    /// than `out`): a run of samples with the same weights.
+    fn blend_run(top: &[Self::Value], bottom: &[Self::Value], w: [f64; 4], out: &mut [Self::Value]) {
+        for (k, o) in out.iter_mut().enumerate() {
+            if Self::is_none(o) {
+                *o = Self::blend(&[(top[k], w[0]), (top[k + 1], w[1]), (bottom[k], w[2]), (bottom[k + 1], w[3])]);
+            }
+        }
+    }
 }
 
 /// Heights: f32, NaN for no data.
@@ -126,6 +136,15 @@ impl MosaicKind for Heights {
         }
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
         if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN }
+    }
+    fn blend_run(top: &[f32], bottom: &[f32], w: [f64; 4], out: &mut [f32]) {
+        // `blend`'s arithmetic with no branch: the compiler vectorizes it.
+        let n = out.len();
+        let (a, b, c, d) = (&top[..n], &top[1..=n], &bottom[..n], &bottom[1..=n]);
+        for k in 0..n {
+            let blended = Self::blend(&[(a[k], w[0]), (b[k], w[1]), (c[k], w[2]), (d[k], w[3])]);
+            out[k] = if out[k].is_nan() { blended } else { out[k] };
+        }
     }
     fn blend_unit(corners: &[(f32, f64); 4]) -> f32 {
         // With every corner's data the sum is `blend`'s, and its weight exactly 1: the

@@ -609,24 +609,25 @@ impl<K: MosaicKind> Window<K> {
     fn shifted_into(&self, x0: f64, y: f64, out: &mut [K::Value]) {
         let (ix, iy) = (floor(x0), floor(y));
         let w = weights((x0, y), ix, iy);
-        // Summed as the blend sums them: exactly 1 for most fractions.
-        let unit = w.iter().fold(0.0, |s, w| s + w) == 1.0;
-        let mut pair: Option<RowPair<'_, K::Value>> = None;
-        for (x, o) in (ix..).zip(out.iter_mut()) {
-            if !K::is_none(o) {
-                continue;
-            }
-            if !pair.as_ref().is_some_and(|r| r.holds(x, iy)) {
-                pair = self.row_pair(x, iy);
-            }
-            *o = match &pair {
+        let mut k = 0;
+        while k < out.len() {
+            #[expect(clippy::cast_possible_wrap, reason = "row lengths are far below 2^63")]
+            let x = ix + k as i64;
+            match self.row_pair(x, iy) {
+                // The run of samples whose corners these two rows hold, blended at once.
                 Some(r) => {
-                    let ([a, b], [c, d]) = (r.top(x), r.bottom(x));
-                    let corners = [(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])];
-                    if unit { K::blend_unit(&corners) } else { K::blend(&corners) }
+                    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "x is held")]
+                    let (i, n) = ((x - r.base) as usize, ((r.end - x) as usize).min(out.len() - k));
+                    K::blend_run(&r.top[i..=i + n], &r.bottom[i..=i + n], w, &mut out[k..k + n]);
+                    k += n;
                 }
-                None => self.blend_at(x, iy, w),
-            };
+                None => {
+                    if K::is_none(&out[k]) {
+                        out[k] = self.blend_at(x, iy, w);
+                    }
+                    k += 1;
+                }
+            }
         }
     }
 
