@@ -54,7 +54,8 @@ pub struct TileArgs {
     /// Metres between elevation samples, for inputs that do not say (PNG).
     #[arg(long)]
     sample_spacing: Option<f64>,
-    /// Texture image: GeoTIFF (8-bit gray/RGB/RGBA), PNG or JPEG, at its own resolution,
+    /// Texture image: GeoTIFF (8-bit gray/RGB/RGBA, or YCbCr as in JPEG-compressed
+    /// orthophotos), PNG or JPEG, at its own resolution,
     /// placed by its georeference (an image without one must cover the elevation's
     /// area), or alone. Several GeoTIFFs (files, folders, patterns), in any CRS, are
     /// mosaicked over the elevation's extent: a later one wins where it has pixels.

@@ -27,14 +27,16 @@ pub struct ImageFile {
 enum ImageKind {
     Tiff {
         channels: usize,
+        /// Y, Cb, Cr samples (JPEG-compressed orthophotos): converted to RGB as read.
+        ycbcr: bool,
     },
     Png,
     /// RGB pixels of a JPEG, decoded when opened.
     Decoded(Vec<u8>),
 }
 
-/// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB or RGBA; strips
-/// or tiles; none, LZW or Deflate) or PNG (any colour type; 16-bit is reduced to 8), or
+/// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB, RGBA or YCbCr;
+/// strips or tiles; none, LZW, Deflate or JPEG) or PNG (any colour type; 16-bit is reduced to 8), or
 /// JPEG (decoded here, whole); told apart by content.
 ///
 /// # Errors
@@ -54,13 +56,17 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
         Sniffed::Tiff => {
             let mut decoder = open_tiff(path)?;
             let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
-            let channels = match decoder.colortype().map_err(|e| bad(e.to_string()))? {
+            let colour = decoder.colortype().map_err(|e| bad(e.to_string()))?;
+            let channels = match colour {
                 tiff::ColorType::Gray(8) => 1,
                 tiff::ColorType::GrayA(8) => 2,
-                tiff::ColorType::RGB(8) => 3,
+                tiff::ColorType::RGB(8) | tiff::ColorType::YCbCr(8) => 3,
                 tiff::ColorType::RGBA(8) => 4,
-                other => return Err(bad(format!("{other:?} pixels: textures must be 8-bit gray, RGB or RGBA"))),
+                other => {
+                    return Err(bad(format!("{other:?} pixels: textures must be 8-bit gray, RGB, RGBA or YCbCr")));
+                }
             };
+            let ycbcr = matches!(colour, tiff::ColorType::YCbCr(_));
             let planar = decoder.find_tag_unsigned::<u16>(tiff::tags::Tag::Unknown(PLANAR_CONFIGURATION));
             if channels > 1 && matches!(planar, Ok(Some(2))) {
                 return Err(bad("planar (band-separate) pixels: store the bands interleaved".into()));
@@ -68,7 +74,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
             let tags = GeoTags::read(&mut decoder);
             let georeference = tags.placement(width, height).ok().and_then(|(_, g)| g);
             crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
-            (width, height, georeference, ImageKind::Tiff { channels })
+            (width, height, georeference, ImageKind::Tiff { channels, ycbcr })
         }
     };
     if width == 0 || height == 0 {
@@ -100,10 +106,36 @@ impl ImageFile {
     /// Samples per pixel of a GeoTIFF, read by strips or tiles; `None` for PNG and JPEG.
     pub(super) fn tiff_channels(&self) -> Option<usize> {
         match self.kind {
-            ImageKind::Tiff { channels } => Some(channels),
+            ImageKind::Tiff { channels, .. } => Some(channels),
             ImageKind::Png | ImageKind::Decoded(_) => None,
         }
     }
+}
+
+impl ImageFile {
+    /// Are its samples Y, Cb, Cr (converted to RGB as they are read)?
+    pub(super) fn ycbcr(&self) -> bool {
+        matches!(self.kind, ImageKind::Tiff { ycbcr: true, .. })
+    }
+}
+
+/// One pixel's Y, Cb, Cr -> R, G, B, as libjpeg converts them (JFIF, full range, 16-bit
+/// fixed point, rounded, clamped): what GDAL shows of a JPEG-compressed YCbCr GeoTIFF.
+pub(super) fn ycbcr_to_rgb([y, cb, cr]: [u8; 3]) -> [u8; 3] {
+    const HALF: i32 = 1 << 15;
+    // libjpeg's FIX(): the coefficient in 16.16 fixed point, rounded.
+    const fn fix(x: f64) -> i32 {
+        #[expect(clippy::cast_possible_truncation, reason = "coefficients under 2")]
+        let v = (x * 65_536.0 + 0.5) as i32;
+        v
+    }
+    let (y, cb, cr) = (i32::from(y), i32::from(cb) - 128, i32::from(cr) - 128);
+    let r = y + ((fix(1.402) * cr + HALF) >> 16);
+    let g = y + ((-fix(0.344_14) * cb - fix(0.714_14) * cr + HALF) >> 16);
+    let b = y + ((fix(1.772) * cb + HALF) >> 16);
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]
+    let clamp = |v: i32| v.clamp(0, 255) as u8;
+    [clamp(r), clamp(g), clamp(b)]
 }
 
 impl ImageSource for ImageFile {
@@ -143,12 +175,17 @@ impl ImageSource for ImageFile {
                     emit(values, channels)
                 }
             }),
-            ImageKind::Tiff { channels } => {
+            ImageKind::Tiff { channels, ycbcr } => {
                 let mut bytes = vec![0u8; width * channels];
                 #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "8-bit samples")]
                 let mut eight = |r: &[f32]| -> Result<()> {
                     for (b, &v) in bytes.iter_mut().zip(r) {
                         *b = v as u8;
+                    }
+                    if *ycbcr {
+                        for px in bytes.chunks_exact_mut(3) {
+                            px.copy_from_slice(&ycbcr_to_rgb([px[0], px[1], px[2]]));
+                        }
                     }
                     emit(&bytes, *channels)
                 };

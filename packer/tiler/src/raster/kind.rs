@@ -202,9 +202,17 @@ impl MosaicKind for Pixels {
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "an 8-bit nodata value")]
         let nodata = nodata.filter(|n| (0.0..=255.0).contains(n)).map(|n| n as u8);
         let channels = Self::channels(file);
+        let ycbcr = file.ycbcr();
         Ok(bytes
             .chunks_exact(channels)
             .map(|p| {
+                let rgb;
+                let p = if ycbcr && channels == 3 {
+                    rgb = super::image::ycbcr_to_rgb([p[0], p[1], p[2]]);
+                    &rgb[..]
+                } else {
+                    p
+                };
                 let px = match channels {
                     4 => [scaled(p[0]), scaled(p[1]), scaled(p[2]), p[3]],
                     3 => [scaled(p[0]), scaled(p[1]), scaled(p[2]), 255],
