@@ -133,8 +133,7 @@ pub(super) fn ycbcr_to_rgb([y, cb, cr]: [u8; 3]) -> [u8; 3] {
     let r = y + ((fix(1.402) * cr + HALF) >> 16);
     let g = y + ((-fix(0.344_14) * cb - fix(0.714_14) * cr + HALF) >> 16);
     let b = y + ((fix(1.772) * cb + HALF) >> 16);
-    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]
-    let clamp = |v: i32| v.clamp(0, 255) as u8;
+    let clamp = |v: i32| u8::try_from(v.clamp(0, 255)).unwrap_or(u8::MAX);
     [clamp(r), clamp(g), clamp(b)]
 }
 
