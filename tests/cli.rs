@@ -285,9 +285,11 @@ fn an_update_in_place_is_verified_and_a_merge_compacts_it() {
     let cwd = dir.path();
     let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
     let dem = dem.to_str().unwrap();
-    let out =
-        terrastream(&["tile", "--elevation", dem, "--crs", "EPSG:32610", "--tile-size", "32", "-o", "t.tspack"], cwd);
+    // Published by a manifest, which names the archive by its content tag.
+    let tile = ["tile", "--elevation", dem, "--crs", "EPSG:32610", "--tile-size", "32", "-o", "t.tspack"];
+    let out = terrastream(&[&tile[..], &["--manifest-out", "t.json"]].concat(), cwd);
     assert!(out.status.success(), "{}", text(&out));
+    std::fs::copy(cwd.join("t.json"), cwd.join("stale.json")).unwrap();
     // A re-survey of part of it: heights 10 % higher (GDAL makes it).
     let ok = Command::new("gdal_translate")
         .args([
@@ -301,9 +303,16 @@ fn an_update_in_place_is_verified_and_a_merge_compacts_it() {
     let out = terrastream(&["update", "t.tspack", "--elevation", "new.tif"], cwd);
     assert!(!out.status.success() && text(&out).contains("--in-place"), "-o or --in-place: {}", text(&out));
     let before = std::fs::metadata(cwd.join("t.tspack")).unwrap().len();
-    let out = terrastream(&["update", "t.tspack", "--elevation", "new.tif", "--in-place"], cwd);
+    let update = ["update", "t.tspack", "--elevation", "new.tif", "--in-place", "--manifest-out", "t.json"];
+    let out = terrastream(&update, cwd);
     assert!(out.status.success() && text(&out).contains("base tiles replaced"), "{}", text(&out));
     assert!(std::fs::metadata(cwd.join("t.tspack")).unwrap().len() > before, "appended");
+    // The manifest from before the update no longer matches the archive; the one written
+    // with the update does.
+    let out = terrastream(&["verify", "stale.json"], cwd);
+    assert!(!out.status.success() && text(&out).contains("content tag"), "{}", text(&out));
+    let out = terrastream(&["verify", "t.json"], cwd);
+    assert!(out.status.success(), "{}", text(&out));
     let out = terrastream(&["verify", "t.tspack"], cwd);
     let report = text(&out);
     assert!(out.status.success() && report.contains("OK") && report.contains("bytes of replaced tiles"), "{report}");

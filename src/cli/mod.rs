@@ -153,6 +153,10 @@ enum Command {
         /// written (FORMAT.md §7.1); readers of the old version keep reading it.
         #[arg(long, group = "target")]
         in_place: bool,
+        /// Also write a manifest (FORMAT.md §9) naming the updated archive: a manifest names
+        /// an archive by its content tag, which every update changes, so publish it again.
+        #[arg(long)]
+        manifest_out: Option<PathBuf>,
     },
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
@@ -314,7 +318,7 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Command::Update { base, elevation, texture, output, .. } => {
+        Command::Update { base, elevation, texture, output, manifest_out, .. } => {
             anyhow::ensure!(
                 !elevation.is_empty() || !texture.is_empty(),
                 "nothing to update: give --elevation or --texture"
@@ -332,6 +336,10 @@ fn run_with_progress(command: Command, quiet: bool) -> Result<ExitCode> {
                 summary.merge.made,
                 summary.merge.write.file_len
             );
+            if let Some(manifest) = &manifest_out {
+                terrastream_tiler::single_manifest(&output, manifest)?;
+                println!("{}: manifest of {}", manifest.display(), output.display());
+            }
             Ok(ExitCode::SUCCESS)
         }
         Command::Merge { inputs, output, manifest: Some(manifest), .. } => {
