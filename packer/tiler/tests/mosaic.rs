@@ -9,6 +9,8 @@
     missing_docs
 )]
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -36,12 +38,7 @@ fn geographic_tile(path: &Path, west: f64, north: f64, step: f64, (w, h): (u32, 
 }
 
 fn gdal() -> bool {
-    if Command::new("gdalwarp").arg("--version").output().is_ok() {
-        return true;
-    }
-    assert!(std::env::var_os("CI").is_none(), "gdalwarp is not installed (apt-get install gdal-bin)");
-    eprintln!("\n*** SKIPPING: gdalwarp is not installed (apt-get install gdal-bin) ***\n");
-    false
+    common::tool("gdalwarp", "gdal-bin")
 }
 
 fn warp(args: &[&str], inputs: &[PathBuf], out: &Path) {

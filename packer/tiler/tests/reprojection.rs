@@ -11,6 +11,8 @@
     missing_docs
 )]
 
+mod common;
+
 use std::path::Path;
 use std::process::Command;
 
@@ -70,12 +72,7 @@ fn write_marked_image(path: &Path) {
 }
 
 fn gdalwarp() -> bool {
-    if Command::new("gdalwarp").arg("--version").output().is_ok() {
-        return true;
-    }
-    assert!(std::env::var_os("CI").is_none(), "gdalwarp is not installed (apt-get install gdal-bin)");
-    eprintln!("\n*** SKIPPING: gdalwarp is not installed (apt-get install gdal-bin) ***\n");
-    false
+    common::tool("gdalwarp", "gdal-bin")
 }
 
 #[test]

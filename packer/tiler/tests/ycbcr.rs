@@ -3,6 +3,8 @@
 //! colours GDAL itself shows of them (the independent oracle), alone and in a mosaic.
 #![allow(clippy::unwrap_used, clippy::cast_possible_truncation, clippy::cast_precision_loss, missing_docs)]
 
+mod common;
+
 use std::path::Path;
 use std::process::Command;
 
@@ -11,12 +13,7 @@ use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
 
 fn gdal() -> bool {
-    if Command::new("gdal_translate").arg("--version").output().is_ok() {
-        return true;
-    }
-    assert!(std::env::var_os("CI").is_none(), "gdal_translate is not installed (apt-get install gdal-bin)");
-    eprintln!("\n*** SKIPPING: gdal_translate is not installed (apt-get install gdal-bin) ***\n");
-    false
+    common::tool("gdal_translate", "gdal-bin")
 }
 
 fn translate(args: &[&str], from: &Path, to: &Path) {

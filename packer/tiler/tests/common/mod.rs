@@ -3,6 +3,7 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::process::Command;
 
 use terrastream_format::{Reader, TileKey};
 
@@ -17,4 +18,15 @@ pub fn tiles(path: &Path) -> BTreeMap<TileKey, Vec<u8>> {
         })
         .unwrap();
     out
+}
+
+/// Is the command-line tool `name` (an independent oracle) installed? Where it is not, the
+/// test is skipped, saying so; in CI it fails.
+pub fn tool(name: &str, package: &str) -> bool {
+    if Command::new(name).arg("--version").output().is_ok() {
+        return true;
+    }
+    assert!(std::env::var_os("CI").is_none(), "{name} is not installed (apt-get install {package})");
+    eprintln!("\n*** SKIPPING: {name} is not installed (apt-get install {package}) ***\n");
+    false
 }
