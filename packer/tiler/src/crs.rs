@@ -149,3 +149,89 @@ impl Transform {
         (out.0.is_finite() && out.1.is_finite()).then_some(out)
     }
 }
+
+/// The CRS that an `SRS` text names, as [`Crs::parse`] takes it: `EPSG:xxxx` or a PROJ
+/// string as they are; WKT by its last `AUTHORITY` or `ID` with an EPSG code (the CRS's
+/// own, after those of its parts), or, for the ESRI WKT of `.prj` files, which carries no
+/// code, by the name of a CRS of the families the tiler knows (WGS 84, NAD83 and ETRS89
+/// UTM zones, Web Mercator, WGS 84 and NAD83 geographic, the Swiss and British grids).
+/// `None` when it names none of these.
+pub(crate) fn crs_of_srs(srs: &str) -> Option<String> {
+    let t = srs.trim();
+    if t.starts_with('+') || t.to_ascii_uppercase().starts_with("EPSG:") {
+        return Some(t.to_owned());
+    }
+    let last = ["AUTHORITY[\"EPSG\",\"", "ID[\"EPSG\","]
+        .iter()
+        .filter_map(|key| t.rfind(key).map(|at| (at, &t[at + key.len()..])))
+        .max_by_key(|(at, _)| *at);
+    if let Some((_, rest)) = last {
+        let code: String = rest.chars().skip_while(|c| !c.is_ascii_digit()).take_while(char::is_ascii_digit).collect();
+        return (!code.is_empty()).then(|| format!("EPSG:{code}"));
+    }
+    esri_name(t).map(|code| format!("EPSG:{code}"))
+}
+
+/// The EPSG code of an ESRI WKT by the name of its outermost CRS (`PROJCS["…"` or
+/// `GEOGCS["…"`).
+fn esri_name(wkt: &str) -> Option<u16> {
+    let name = ["PROJCS[\"", "GEOGCS[\""]
+        .iter()
+        .find_map(|key| wkt.strip_prefix(key))
+        .and_then(|rest| rest.split('"').next())?
+        .to_ascii_uppercase();
+    let fixed = [
+        ("GCS_WGS_1984", 4326),
+        ("GCS_NORTH_AMERICAN_1983", 4269),
+        ("WGS_1984_WEB_MERCATOR_AUXILIARY_SPHERE", 3857),
+        ("WGS_1984_WEB_MERCATOR", 3857),
+        ("CH1903+_LV95", 2056),
+        ("CH1903_LV03", 21781),
+        ("BRITISH_NATIONAL_GRID", 27700),
+    ];
+    if let Some((_, code)) = fixed.iter().find(|(n, _)| *n == name) {
+        return Some(*code);
+    }
+    // UTM zones: "<datum>_UTM_ZONE_<n><N|S>".
+    let (datum, zone) = name.split_once("_UTM_ZONE_")?;
+    let (n, hemisphere) = zone.split_at(zone.len().checked_sub(1)?);
+    let n: u16 = n.parse().ok().filter(|n| (1..=60).contains(n))?;
+    match (datum, hemisphere) {
+        ("WGS_1984", "N") => Some(32600 + n),
+        ("WGS_1984", "S") => Some(32700 + n),
+        ("NAD_1983", "N") if (1..=23).contains(&n) => Some(26900 + n),
+        ("ETRS_1989", "N") if (28..=38).contains(&n) => Some(25800 + n),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::crs_of_srs;
+
+    #[test]
+    fn the_crs_is_the_last_epsg_authority() {
+        let wkt1 =
+            r#"PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","32633"]]"#;
+        assert_eq!(crs_of_srs(wkt1).as_deref(), Some("EPSG:32633"));
+        let wkt2 = r#"PROJCRS["x",BASEGEOGCRS["y",ID["EPSG",4326]],ID["EPSG",25832]]"#;
+        assert_eq!(crs_of_srs(wkt2).as_deref(), Some("EPSG:25832"));
+        assert_eq!(crs_of_srs(" EPSG:2056 ").as_deref(), Some("EPSG:2056"));
+        assert_eq!(crs_of_srs(r#"LOCAL_CS["somewhere"]"#), None);
+    }
+
+    #[test]
+    fn esri_wkt_is_known_by_its_name() {
+        let utm = r#"PROJCS["WGS_1984_UTM_Zone_10N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984"]],UNIT["Meter",1.0]]"#;
+        assert_eq!(crs_of_srs(utm).as_deref(), Some("EPSG:32610"));
+        assert_eq!(crs_of_srs(r#"PROJCS["WGS_1984_UTM_Zone_23S",x]"#).as_deref(), Some("EPSG:32723"));
+        assert_eq!(crs_of_srs(r#"PROJCS["NAD_1983_UTM_Zone_11N",x]"#).as_deref(), Some("EPSG:26911"));
+        assert_eq!(crs_of_srs(r#"PROJCS["ETRS_1989_UTM_Zone_32N",x]"#).as_deref(), Some("EPSG:25832"));
+        assert_eq!(crs_of_srs(r#"GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984"]]"#).as_deref(), Some("EPSG:4326"));
+        assert_eq!(crs_of_srs(r#"PROJCS["CH1903+_LV95",x]"#).as_deref(), Some("EPSG:2056"));
+        // Names the table does not hold, or zones out of a datum's range.
+        assert_eq!(crs_of_srs(r#"PROJCS["NAD_1983_UTM_Zone_40N",x]"#), None);
+        assert_eq!(crs_of_srs(r#"PROJCS["WGS_1984_UTM_Zone_61N",x]"#), None);
+        assert_eq!(crs_of_srs(r#"PROJCS["Lambert_Somewhere",x]"#), None);
+    }
+}

@@ -253,3 +253,92 @@ fn a_mosaic_of_images_in_two_crss_lines_up() {
     eprintln!("the mark lies {off:.2} texels from its longitude and latitude");
     assert!(off <= 1.0, "the mark lies {off:.2} texels from its longitude and latitude");
 }
+
+/// Runs a GDAL tool, which must succeed.
+fn gdal(tool: &str, args: &[&str], paths: &[&Path]) {
+    let ok = Command::new(tool).args(args).args(paths).status().unwrap();
+    assert!(ok.success(), "{tool} {args:?} failed");
+}
+
+/// Rows of an image source, as RGBA.
+fn pixels_of(source: &dyn ImageSource) -> Vec<[u8; 4]> {
+    let mut out = Vec::new();
+    source
+        .rows(&mut |row| {
+            out.extend_from_slice(row);
+            Ok(())
+        })
+        .unwrap();
+    out
+}
+
+#[test]
+fn png_and_jpeg_are_placed_by_their_world_files() {
+    if !gdalwarp() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name);
+    write_dem(&p("dem.tif"));
+    write_marked_image(&p("image-4326.tif"));
+    // The west half warped to UTM 32N, the east half to UTM 33N (the mark on the seam),
+    // each as a GeoTIFF and as a PNG with a world file and GDAL's .aux.xml (its CRS).
+    for (name, window, zone) in
+        [("west", ["0", "0", "1480", "1900"], "EPSG:32632"), ("east", ["1460", "0", "1340", "1900"], "EPSG:32633")]
+    {
+        let mut args = vec!["-q", "-srcwin"];
+        args.extend(window);
+        gdal("gdal_translate", &args, &[&p("image-4326.tif"), &p("cut.tif")]);
+        let warp = ["-q", "-overwrite", "-t_srs", zone, "-r", "bilinear", "-tr", "15", "15", "-dstalpha"];
+        gdal("gdalwarp", &warp, &[&p("cut.tif"), &p(&format!("{name}.tif"))]);
+        let png = ["-q", "-of", "PNG", "-co", "WORLDFILE=YES"];
+        gdal("gdal_translate", &png, &[&p(&format!("{name}.tif")), &p(&format!("{name}.png"))]);
+        assert!(p(&format!("{name}.wld")).is_file() && p(&format!("{name}.png.aux.xml")).is_file());
+    }
+    let elevation = open_elevation(&p("dem.tif"), None).unwrap();
+    let g = elevation.georeference().unwrap();
+    let (origin, (px, py), (w, h)) = (g.origin.unwrap(), elevation.crs_pixel_size().unwrap(), elevation.size());
+    let extent = [origin[0], origin[1] - f64::from(h) * py, origin[0] + f64::from(w) * px, origin[1]];
+    let options =
+        MosaicOptions { crs: Some(Crs::epsg(4326).unwrap()), extent: Some(extent), ..MosaicOptions::default() };
+
+    // PNGs placed by their world files make the very pixels the GeoTIFFs make: the world
+    // file's pixel centre is half a pixel inside the GeoTIFF's corner.
+    let tiffs = Mosaic::<Pixels>::open(&[p("west.tif"), p("east.tif")], &options).unwrap();
+    let pngs = Mosaic::<Pixels>::open(&[p("west.png"), p("east.png")], &options).unwrap();
+    let (a, b) = (pixels_of(&tiffs), pixels_of(&pngs));
+    assert!(a.iter().filter(|px| px[3] > 0).count() > a.len() / 2, "the mosaic has data");
+    assert!(a == b, "the PNG mosaic differs from the GeoTIFF mosaic");
+
+    // The west half as a JPEG (no alpha: it comes first, the PNG with alpha wins over it),
+    // its world file a .jgw and its CRS an ESRI .prj instead of GDAL's .aux.xml.
+    let jpeg = ["-q", "-of", "JPEG", "-b", "1", "-b", "2", "-b", "3", "-co", "WORLDFILE=YES", "-co", "QUALITY=95"];
+    gdal("gdal_translate", &jpeg, &[&p("west.tif"), &p("west.jpg")]);
+    std::fs::rename(p("west.wld"), p("west.jgw")).unwrap();
+    std::fs::remove_file(p("west.jpg.aux.xml")).unwrap();
+    // Without a CRS beside it, the world file alone is refused, naming it.
+    let err = open_image(&p("west.jpg")).unwrap_err().to_string();
+    assert!(err.contains("west.jgw") && err.contains("west.prj"), "{err}");
+    let esri = Command::new("gdalsrsinfo").args(["-o", "wkt_esri", "EPSG:32632"]).output().unwrap();
+    assert!(esri.status.success());
+    std::fs::write(p("west.prj"), &esri.stdout).unwrap();
+    let image = open_image(&p("west.jpg")).unwrap();
+    assert_eq!(image.georeference().and_then(|g| g.crs.as_deref()), Some("EPSG:32632"));
+
+    let mosaic = Mosaic::<Pixels>::open(&[p("west.jpg"), p("east.png")], &options).unwrap();
+    let out = p("m.tspack");
+    let texture = TextureInput { source: &mosaic, tile_size: 128, format: TextureFormat::Png, pixel_size: 1.0 };
+    tile_terrain(Some(&elevation), Some(texture), "m", &out, TileOptions::default(), &Silent::default()).unwrap();
+    let off = mark_offset(&out, &elevation, ImageSource::size(&mosaic).1);
+    eprintln!("the mark lies {off:.2} texels from its longitude and latitude");
+    assert!(off <= 1.0, "the mark lies {off:.2} texels from its longitude and latitude");
+
+    // One PNG in another CRS than the DEM: refused unwarped, placed when warped.
+    let image = open_image(&p("east.png")).unwrap();
+    let raw = TextureInput { source: &image, tile_size: 128, format: TextureFormat::Png, pixel_size: 1.0 };
+    let one = p("one.tspack");
+    let err =
+        tile_terrain(Some(&elevation), Some(raw), "t", &one, TileOptions::default(), &Silent::default()).unwrap_err();
+    assert!(err.to_string().contains("east.png") && err.to_string().contains("EPSG:32633"), "{err}");
+    assert!(Warped::over(&elevation, &image).unwrap().is_some(), "different CRSs: warped");
+}

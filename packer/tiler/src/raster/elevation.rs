@@ -8,6 +8,7 @@ use super::geotiff::{GeoTags, gdal_nodata};
 use super::memory::Raster;
 use super::png::{png_header, png_rows};
 use super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in};
+use super::worldfile::read_sidecar;
 use super::{ElevationSource, Sniffed, range_of_rows, sniff};
 use crate::error::{Error, Result};
 
@@ -82,13 +83,15 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
                     )));
                 }
             };
+            // A world file beside it says where it lies (and the spacing).
+            let sidecar = read_sidecar(path, (width, height))?;
             Ok(ElevationFile {
                 path: path.to_path_buf(),
                 width,
                 height,
-                spacing: (1.0, 1.0),
-                georeference: None,
-                crs_pixel: None,
+                spacing: sidecar.as_ref().map_or((1.0, 1.0), |s| s.spacing),
+                crs_pixel: sidecar.as_ref().map(|s| s.crs_pixel),
+                georeference: sidecar.map(|s| s.georeference),
                 nodata: encoding.nodata,
                 encoding: Some(encoding),
                 png: true,

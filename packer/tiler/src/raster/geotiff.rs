@@ -69,18 +69,14 @@ impl GeoTags {
             // GDAL reads it).
             let half = if key(1025.0) == Some(2.0) { 0.5 } else { 0.0 };
             let (west, north) = (t[3] - (t[0] + half) * s[0], t[4] + (t[1] + half) * s[1]);
-            spacing = (s[0], s[1]);
-            let mut g = Georeference {
-                crs: epsg.map(|c| format!("EPSG:{c}")),
-                origin: Some([west, north]),
-                ..Georeference::default()
-            };
-            if geographic {
-                let (east, south) = (west + s[0] * f64::from(width), north - s[1] * f64::from(height));
-                g.lat_lon_bounds = Some([west, south, east, north]);
-                let lat = ((north + south) / 2.0).to_radians();
-                spacing = (s[0] * 111_320.0 * lat.cos(), s[1] * 110_574.0);
-            }
+            let g;
+            (spacing, g) = georeferenced(
+                epsg.map(|c| format!("EPSG:{c}")),
+                geographic,
+                [west, north],
+                (s[0], s[1]),
+                (width, height),
+            );
             georeference = Some(g);
         }
         if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
@@ -88,6 +84,27 @@ impl GeoTags {
         }
         Ok((spacing, georeference))
     }
+}
+
+/// The georeference of a raster of `size` pixels whose north-west corner lies at `origin`
+/// in `crs`, pixels `pixel` CRS units apart, and its sample spacing in metres (degrees
+/// measured at the centre latitude where the CRS is geographic).
+pub(super) fn georeferenced(
+    crs: Option<String>,
+    geographic: bool,
+    [west, north]: [f64; 2],
+    pixel: (f64, f64),
+    (width, height): (u32, u32),
+) -> ((f64, f64), Georeference) {
+    let mut g = Georeference { crs, origin: Some([west, north]), ..Georeference::default() };
+    let mut spacing = pixel;
+    if geographic {
+        let (east, south) = (west + pixel.0 * f64::from(width), north - pixel.1 * f64::from(height));
+        g.lat_lon_bounds = Some([west, south, east, north]);
+        let lat = ((north + south) / 2.0).to_radians();
+        spacing = (pixel.0 * 111_320.0 * lat.cos(), pixel.1 * 110_574.0);
+    }
+    (spacing, g)
 }
 
 /// The GDAL nodata tag's value, when there is one and it is a number.

@@ -5,10 +5,11 @@ use std::path::{Path, PathBuf};
 use terrastream_format::Georeference;
 
 use super::geotiff::GeoTags;
-use super::jpeg::decode_jpeg;
+use super::jpeg::{decode_jpeg, jpeg_header};
 use super::memory::Image;
 use super::png::{png_header, png_rows};
 use super::tiff::{PLANAR_CONFIGURATION, open_tiff, tiff_rows};
+use super::worldfile::read_sidecar;
 use super::{ImageSource, Sniffed, sniff};
 use crate::error::{Error, Result};
 
@@ -31,13 +32,14 @@ enum ImageKind {
         ycbcr: bool,
     },
     Png,
-    /// RGB pixels of a JPEG, decoded when opened.
-    Decoded(Vec<u8>),
+    /// A JPEG: decoded whole when read (it cannot be read by rows).
+    Jpeg,
 }
 
 /// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB, RGBA or YCbCr;
 /// strips or tiles; none, LZW, Deflate or JPEG) or PNG (any colour type; 16-bit is reduced to 8), or
-/// JPEG (decoded here, whole); told apart by content.
+/// JPEG (decoded whole when read); told apart by content. A PNG or JPEG is placed by a
+/// world file or GDAL `.aux.xml` beside it, with its CRS from a `.prj` or the `.aux.xml`.
 ///
 /// # Errors
 /// [`Error::Input`] naming the file for anything unreadable or unsupported.
@@ -50,8 +52,8 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
             (w, h, None, ImageKind::Png)
         }
         Sniffed::Jpeg => {
-            let (w, h, pixels) = decode_jpeg(path)?;
-            (w, h, None, ImageKind::Decoded(pixels))
+            let (w, h) = jpeg_header(path)?;
+            (w, h, None, ImageKind::Jpeg)
         }
         Sniffed::Tiff => {
             let mut decoder = open_tiff(path)?;
@@ -80,10 +82,12 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
     if width == 0 || height == 0 {
         return Err(bad(format!("the image is empty ({width}x{height} pixels)")));
     }
-    if let ImageKind::Decoded(rgb) = &kind
-        && rgb.len() != width as usize * height as usize * 3
+    let mut georeference = georeference;
+    if matches!(kind, ImageKind::Png | ImageKind::Jpeg)
+        && let Some(sidecar) = read_sidecar(path, (width, height))?
     {
-        return Err(bad(format!("{} bytes of pixels for {width}x{height}", rgb.len())));
+        georeference = Some(sidecar.georeference);
+        crs_pixel = Some(sidecar.crs_pixel);
     }
     Ok(ImageFile { path: path.to_path_buf(), width, height, georeference, crs_pixel, kind })
 }
@@ -107,12 +111,39 @@ impl ImageFile {
     pub(super) fn tiff_channels(&self) -> Option<usize> {
         match self.kind {
             ImageKind::Tiff { channels, .. } => Some(channels),
-            ImageKind::Png | ImageKind::Decoded(_) => None,
+            ImageKind::Png | ImageKind::Jpeg => None,
         }
     }
 }
 
 impl ImageFile {
+    /// The pixels of a PNG or JPEG, whole, as RGBA8 (what a mosaic reads of one, as a
+    /// single chunk); `None` for a GeoTIFF, read by strips or tiles.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for unreadable data.
+    pub(super) fn whole_rgba(&self) -> Option<Result<Vec<u8>>> {
+        if self.tiff_channels().is_some() {
+            return None;
+        }
+        let mut rgba = Vec::with_capacity(self.width as usize * self.height as usize * 4);
+        let read = self.rows(&mut |row| {
+            rgba.extend_from_slice(row.as_flattened());
+            Ok(())
+        });
+        Some(read.map(|()| rgba))
+    }
+
+    /// A JPEG's RGB pixels, checked to be as many as its header says.
+    fn decode_jpeg(&self) -> Result<Vec<u8>> {
+        let (w, h, rgb) = decode_jpeg(&self.path)?;
+        if (w, h) != (self.width, self.height) || rgb.len() != w as usize * h as usize * 3 {
+            let (width, height) = (self.width, self.height);
+            return Err(Error::input(&self.path, format!("{} bytes of pixels for {width}x{height}", rgb.len())));
+        }
+        Ok(rgb)
+    }
+
     /// Are its samples Y, Cb, Cr (converted to RGB as they are read)?
     pub(super) fn ycbcr(&self) -> bool {
         matches!(self.kind, ImageKind::Tiff { ycbcr: true, .. })
@@ -165,7 +196,7 @@ impl ImageSource for ImageFile {
             row(&out)
         };
         match &self.kind {
-            ImageKind::Decoded(rgb) => rgb.chunks_exact(width * 3).try_for_each(|r| emit(r, 3)),
+            ImageKind::Jpeg => self.decode_jpeg()?.chunks_exact(width * 3).try_for_each(|r| emit(r, 3)),
             ImageKind::Png => png_rows(&self.path, self.width, |values, channels, sixteen| {
                 if sixteen {
                     let eight: Vec<u8> = values.chunks_exact(2).map(|v| v[0]).collect();

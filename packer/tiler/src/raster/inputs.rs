@@ -1,12 +1,13 @@
-//! Input lists as users give them: files, folders (every GeoTIFF under them), and
-//! patterns with `*` and `?` in the file name.
+//! Input lists as users give them: files, folders (every GeoTIFF under them, and every
+//! PNG or JPEG with a world file), and patterns with `*` and `?` in the file name.
 
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 
 /// The raster files that `inputs` name, in order: a file as given, a folder's GeoTIFFs
-/// (`.tif`, `.tiff`, recursively, sorted by path), a pattern's matches (sorted).
+/// (`.tif`, `.tiff`) and PNGs and JPEGs with a world file (recursively, sorted by path),
+/// a pattern's matches (sorted).
 ///
 /// # Errors
 /// [`Error::Input`] naming an input that does not exist, a folder without GeoTIFFs, or a
@@ -31,7 +32,10 @@ pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
             let mut found = Vec::new();
             walk(input, &mut found)?;
             if found.is_empty() {
-                return Err(Error::input(input, "the folder holds no GeoTIFF (.tif, .tiff)"));
+                return Err(Error::input(
+                    input,
+                    "the folder holds no GeoTIFF (.tif, .tiff), nor a PNG or JPEG with a world file",
+                ));
             }
             found.sort();
             out.extend(found);
@@ -49,15 +53,22 @@ fn walk(folder: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
         let path = entry.map_err(|e| Error::file(folder, e))?.path();
         if path.is_dir() {
             walk(&path, out)?;
-        } else if path
-            .extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff"))
-        {
+        } else if is_raster(&path) {
             out.push(path);
         }
     }
     Ok(())
+}
+
+/// A GeoTIFF (`.tif`, `.tiff`), or a PNG or JPEG with a world file beside it (the
+/// others in a folder of orthophotos are previews, legends and the like).
+fn is_raster(path: &Path) -> bool {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or_default().to_ascii_lowercase();
+    match ext.as_str() {
+        "tif" | "tiff" => true,
+        "png" | "jpg" | "jpeg" => super::worldfile::world_file(path).is_some(),
+        _ => false,
+    }
 }
 
 /// Does `name` match `pattern` (`*`: any run of characters, `?`: any one)?

@@ -22,7 +22,8 @@ pub trait MosaicKind: Send + Sync + 'static {
     const NONE: Self::Value;
     /// Whether `v` is no data.
     fn is_none(v: &Self::Value) -> bool;
-    /// Opens an input: a GeoTIFF this kind reads by strips or tiles.
+    /// Opens an input: a GeoTIFF this kind reads by strips or tiles, or (imagery) a PNG or
+    /// JPEG read whole.
     ///
     /// # Errors
     /// [`Error::Input`] naming a file of another kind.
@@ -37,6 +38,18 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn crs_pixel(file: &Self::File) -> Option<(f64, f64)>;
     /// Samples per pixel.
     fn channels(file: &Self::File) -> usize;
+    /// Is the file read whole, as one chunk (a PNG or JPEG), not by strips or tiles?
+    fn is_whole(_file: &Self::File) -> bool {
+        false
+    }
+    /// A file read whole: its samples, [`Self::channels`] per pixel.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming the file for unreadable data, or for a file that
+    /// [`Self::is_whole`] does not say is read whole.
+    fn read_whole(file: &Self::File) -> Result<tiff::decoder::DecodingResult> {
+        Err(Error::input(Self::path(file), "read by strips or tiles, not whole"))
+    }
     /// A decoded strip or tile as values; samples equal to `nodata` are no data.
     ///
     /// # Errors
@@ -163,11 +176,7 @@ impl MosaicKind for Pixels {
         v[3] == 0
     }
     fn open(path: &Path) -> Result<ImageFile> {
-        let file = open_image(path)?;
-        if file.tiff_channels().is_none() {
-            return Err(Error::input(path, "a mosaic reads GeoTIFF images (not PNG or JPEG)"));
-        }
-        Ok(file)
+        open_image(path)
     }
     fn path(file: &ImageFile) -> &Path {
         file.path()
@@ -182,7 +191,17 @@ impl MosaicKind for Pixels {
         file.crs_pixel_size()
     }
     fn channels(file: &ImageFile) -> usize {
-        file.tiff_channels().unwrap_or(1)
+        // PNG and JPEG are read whole, as RGBA.
+        file.tiff_channels().unwrap_or(4)
+    }
+    fn is_whole(file: &ImageFile) -> bool {
+        file.tiff_channels().is_none()
+    }
+    fn read_whole(file: &ImageFile) -> Result<tiff::decoder::DecodingResult> {
+        match file.whole_rgba() {
+            Some(rgba) => Ok(tiff::decoder::DecodingResult::U8(rgba?)),
+            None => Err(Error::input(file.path(), "read by strips or tiles, not whole")),
+        }
     }
     fn values(
         file: &ImageFile,

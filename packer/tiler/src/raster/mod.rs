@@ -20,6 +20,7 @@ mod rawchunk;
 mod tiff;
 mod vrt;
 mod warp;
+mod worldfile;
 
 use std::path::Path;
 

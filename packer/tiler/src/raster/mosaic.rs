@@ -408,7 +408,10 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     }
     let file = plain(path)?;
     let Some((crs, origin, pixel)) = crs_placement(K::georeference(&file), K::crs_pixel(&file)) else {
-        return Err(Error::input(path, "it does not say where it lies (no GeoTIFF georeference with a CRS)"));
+        return Err(Error::input(
+            path,
+            "it does not say where it lies (no GeoTIFF georeference, world file or .aux.xml with a CRS)",
+        ));
     };
     let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
     let (w, h) = K::size(&file);
@@ -458,11 +461,30 @@ struct Reader<'m, K: MosaicKind> {
 }
 
 struct ReaderState<'m, V> {
-    files: HashMap<usize, (Arc<TiffChunks<'m>>, u64)>,
+    files: HashMap<usize, (Arc<Chunks<'m>>, u64)>,
     /// Per input and lattice row: input pixel coordinates of the lattice's samples.
     lattice: HashMap<(usize, u32), (LatticeRow, u64)>,
     chunks: HashMap<ChunkId, (Arc<Chunk<V>>, u64)>,
     bytes: usize,
+}
+
+/// How an input file is read: by a TIFF's strips or tiles, or whole as one chunk (a PNG
+/// or JPEG, which cannot be read by parts; width and height).
+enum Chunks<'m> {
+    Tiff(TiffChunks<'m>),
+    Whole(usize, usize),
+}
+
+impl Chunks<'_> {
+    /// Whether chunks are strips (numbered by row only), a chunk's nominal width and height,
+    /// and chunks across.
+    fn layout(&self) -> (bool, (usize, usize), usize) {
+        match self {
+            Self::Tiff(c) if c.kind == tiff::decoder::ChunkType::Strip => (true, (c.width, c.chunk_h), 1),
+            Self::Tiff(c) => (false, (c.chunk_w, c.chunk_h), c.across()),
+            Self::Whole(w, h) => (true, (*w, *h), 1),
+        }
+    }
 }
 
 /// An input and one of its strips or tiles.
@@ -759,13 +781,12 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         let (px0, px1) = (clamp(x0.floor(), fx0, fx1), clamp(x1.floor() + 1.0, fx0, fx1));
         let (py0, py1) = (clamp(y0.floor(), fy0, fy1), clamp(y1.floor() + 1.0, fy0, fy1));
         let chunks = self.file(index)?;
-        let strip = chunks.kind == tiff::decoder::ChunkType::Strip;
-        let (cw, ch) = (if strip { chunks.width } else { chunks.chunk_w }, chunks.chunk_h);
+        let (strip, (cw, ch), across) = chunks.layout();
         let (cx0, cx1, cy0, cy1) = (px0 / cw, px1 / cw, py0 / ch, py1 / ch);
         let mut held = Vec::with_capacity((cx1 - cx0 + 1) * (cy1 - cy0 + 1));
         for cy in cy0..=cy1 {
             for cx in cx0..=cx1 {
-                let id = if strip { cy } else { cy * chunks.across() + cx };
+                let id = if strip { cy } else { cy * across + cx };
                 held.push(self.chunk(index, &chunks, id)?);
             }
         }
@@ -824,7 +845,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         state.files.retain(|_, (_, used)| *used + 1 >= band);
     }
 
-    fn file(&self, index: usize) -> Result<Arc<TiffChunks<'m>>> {
+    fn file(&self, index: usize) -> Result<Arc<Chunks<'m>>> {
         let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((chunks, used)) = state.files.get_mut(&index) {
@@ -837,12 +858,17 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             state.files.remove(&oldest);
         }
         let input = &self.mosaic.inputs[index];
-        let chunks = Arc::new(TiffChunks::open(K::path(&input.file), K::channels(&input.file))?);
+        let chunks = Arc::new(if K::is_whole(&input.file) {
+            let (w, h) = K::size(&input.file);
+            Chunks::Whole(w as usize, h as usize)
+        } else {
+            Chunks::Tiff(TiffChunks::open(K::path(&input.file), K::channels(&input.file))?)
+        });
         state.files.insert(index, (chunks.clone(), clock));
         Ok(chunks)
     }
 
-    fn chunk(&self, index: usize, chunks: &TiffChunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
+    fn chunk(&self, index: usize, chunks: &Chunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
         {
             let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
             let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
@@ -852,8 +878,14 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             }
         }
         // Decoded outside the lock, so that threads decode in parallel.
-        let (data, w, _) = chunks.read(id)?;
         let input = &self.mosaic.inputs[index];
+        let (data, w) = match chunks {
+            Chunks::Tiff(tiff) => {
+                let (data, w, _) = tiff.read(id)?;
+                (data, w)
+            }
+            Chunks::Whole(w, _) => (K::read_whole(&input.file)?, *w),
+        };
         let values = K::values(&input.file, data, input.nodata, input.scale)?;
         let chunk = Arc::new(Chunk { values, w });
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);

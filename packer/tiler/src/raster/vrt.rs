@@ -7,6 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::crs::crs_of_srs;
 use crate::error::{Error, Result};
 
 /// One source of a VRT, placed on the VRT's grid.
@@ -134,35 +135,4 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
 /// The first child of `node` named `name`.
 fn child<'a, 'input>(node: roxmltree::Node<'a, 'input>, name: &str) -> Option<roxmltree::Node<'a, 'input>> {
     node.children().find(|c| c.has_tag_name(name))
-}
-
-/// The CRS of a VRT's `<SRS>`: `EPSG:xxxx`, a PROJ string, or WKT (its last `AUTHORITY`
-/// or `ID` with an EPSG code: the CRS's own, after those of its parts).
-fn crs_of_srs(srs: &str) -> Option<String> {
-    let t = srs.trim();
-    if t.starts_with('+') || t.to_ascii_uppercase().starts_with("EPSG:") {
-        return Some(t.to_owned());
-    }
-    let last = ["AUTHORITY[\"EPSG\",\"", "ID[\"EPSG\","]
-        .iter()
-        .filter_map(|key| t.rfind(key).map(|at| (at, &t[at + key.len()..])))
-        .max_by_key(|(at, _)| *at)?;
-    let code: String = last.1.chars().skip_while(|c| !c.is_ascii_digit()).take_while(char::is_ascii_digit).collect();
-    (!code.is_empty()).then(|| format!("EPSG:{code}"))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::crs_of_srs;
-
-    #[test]
-    fn the_crs_is_the_last_epsg_authority() {
-        let wkt1 =
-            r#"PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","32633"]]"#;
-        assert_eq!(crs_of_srs(wkt1).as_deref(), Some("EPSG:32633"));
-        let wkt2 = r#"PROJCRS["x",BASEGEOGCRS["y",ID["EPSG",4326]],ID["EPSG",25832]]"#;
-        assert_eq!(crs_of_srs(wkt2).as_deref(), Some("EPSG:25832"));
-        assert_eq!(crs_of_srs(" EPSG:2056 ").as_deref(), Some("EPSG:2056"));
-        assert_eq!(crs_of_srs(r#"LOCAL_CS["somewhere"]"#), None);
-    }
 }
