@@ -7,6 +7,12 @@
 //! directories, writes the final file under a temporary name in the destination folder,
 //! fsyncs it and renames it into place: a crash or Ctrl-C never leaves a partial archive
 //! under the final name.
+//!
+//! The data file is that temporary file: where the filesystem can insert a range at the
+//! start of a file (Linux ext4 and XFS: `FALLOC_FL_INSERT_RANGE`, which shifts extents and
+//! copies no byte), `finish` makes room for the header, metadata and directories before
+//! the data and writes them there; elsewhere it copies the data after them into a new
+//! file. Both give the same bytes.
 
 use std::collections::HashMap;
 use std::fs::File;
@@ -108,7 +114,13 @@ pub struct Writer {
     metadata: Metadata,
     options: WriterOptions,
     data: BufWriter<File>,
+    /// The data file's name (deleted if the writer is dropped unfinished).
+    data_path: tempfile::TempPath,
     data_len: u64,
+    /// Bytes of data whose write to disk has been started.
+    written_back: u64,
+    /// Try to move the data into place without copying it (off: always copy; tests).
+    insert_range: bool,
     spill: BufWriter<File>,
     spilled: u64,
     open: Option<(Entry, u128)>,
@@ -137,8 +149,12 @@ impl Writer {
         let path = path.as_ref().to_path_buf();
         let folder = output_folder(&path);
         let temp = || tempfile::tempfile_in(&folder).map_err(|e| Error::file(&folder, e));
+        let (data, data_path) = partial_file(&path, &folder)?.into_parts();
         Ok(Self {
-            data: BufWriter::with_capacity(1 << 20, temp()?),
+            data: BufWriter::with_capacity(1 << 20, data),
+            data_path,
+            insert_range: true,
+            written_back: 0,
             spill: BufWriter::with_capacity(1 << 16, temp()?),
             path,
             folder,
@@ -275,6 +291,9 @@ impl Writer {
                 self.data.write_all(bytes).map_err(temp)?;
                 self.data.write_all(&crc32c(bytes).to_le_bytes()).map_err(temp)?;
                 self.data_len += u64::from(length) + TILE_TRAILER_LEN;
+                if self.options.durable && self.data_len >= self.written_back + WRITE_BACK_BYTES {
+                    self.write_back().map_err(|e| temporary(&self.folder, e))?;
+                }
                 self.contents += 1;
                 if self.dedup.len() < self.options.dedup_capacity {
                     self.dedup.insert(hash, (offset, length));
@@ -284,6 +303,15 @@ impl Writer {
         };
         self.close_run()?;
         self.open = Some((Entry { key, run_length: 1, offset, length }, hash));
+        Ok(())
+    }
+
+    /// Starts writing the data written so far to disk, without waiting: the sync at the
+    /// end then finds little left to write, and the disk works while tiles are added.
+    fn write_back(&mut self) -> std::io::Result<()> {
+        self.data.flush()?;
+        start_write_back(self.data.get_ref(), self.written_back, self.data_len - self.written_back);
+        self.written_back = self.data_len;
         Ok(())
     }
 
@@ -342,16 +370,37 @@ impl Writer {
             directory_compression: Compression::Zstd,
         };
         let mut data_file = self.data.into_inner().map_err(|e| temporary(&self.folder, e.into_error()))?;
-        let parts = [
-            Part::Bytes(&header.encode()),
+        let header = header.encode();
+        let front = [
+            Part::Bytes(&header),
             Part::Bytes(&metadata_bytes),
             Part::Bytes(&directories.root),
             Part::Gap(leaf_dirs.offset - root_dir.offset - root_dir.len),
             Part::File(&mut directories.leaves, directories.leaves_len),
-            Part::Gap(data.offset - leaf_dirs.offset - leaf_dirs.len),
-            Part::File(&mut data_file, self.data_len),
         ];
-        publish(&self.path, &self.folder, parts, data.end().unwrap_or(u64::MAX), self.options.durable)?;
+        let len = data.end().unwrap_or(u64::MAX);
+        if self.insert_range && self.data_len > 0 && insert_range(&data_file, data.offset) {
+            // The data now starts at its offset; the front goes before it.
+            data_file.seek(SeekFrom::Start(0)).map_err(|e| Error::file(&self.path, e))?;
+            write_parts(&self.path, &self.folder, &mut data_file, front)?;
+            finish_file(&self.path, &data_file, len, self.options.durable)?;
+            self.data_path.persist(&self.path).map_err(|e| Error::file(&self.path, e.error))?;
+            if self.options.durable {
+                sync_folder(&self.folder);
+            }
+        } else {
+            let [a, b, c, d, e] = front;
+            let parts = [
+                a,
+                b,
+                c,
+                d,
+                e,
+                Part::Gap(data.offset - leaf_dirs.offset - leaf_dirs.len),
+                Part::File(&mut data_file, self.data_len),
+            ];
+            publish(&self.path, &self.folder, parts, len, self.options.durable)?;
+        }
         Ok(WriteSummary {
             path: self.path,
             file_len: data.end().unwrap_or(u64::MAX),
@@ -468,12 +517,33 @@ fn publish<'a>(
     len: u64,
     durable: bool,
 ) -> Result<()> {
+    let mut out = partial_file(path, folder)?;
+    write_parts(path, folder, out.as_file_mut(), parts)?;
+    finish_file(path, out.as_file(), len, durable)?;
+    out.persist(path).map_err(|e| Error::file(path, e.error))?;
+    if durable {
+        sync_folder(folder);
+    }
+    Ok(())
+}
+
+/// A new temporary file beside `path` (in `folder`), named after it, that becomes the
+/// archive when renamed.
+fn partial_file(path: &Path, folder: &Path) -> Result<tempfile::NamedTempFile> {
     let file_name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let mut out = published(tempfile::Builder::new().prefix(&format!(".{file_name}.")).suffix(".partial"))
+    published(tempfile::Builder::new().prefix(&format!(".{file_name}.")).suffix(".partial"))
         .tempfile_in(folder)
-        .map_err(|e| Error::file(folder, e))?;
+        .map_err(|e| Error::file(folder, e))
+}
+
+/// Writes `parts` to `file` from where it stands.
+fn write_parts<'a>(
+    path: &Path,
+    folder: &Path,
+    file: &mut File,
+    parts: impl IntoIterator<Item = Part<'a>>,
+) -> Result<()> {
     let io = |e: std::io::Error| Error::file(path, e);
-    let file = out.as_file_mut();
     for part in parts {
         match part {
             Part::Bytes(bytes) => file.write_all(bytes).map_err(io)?,
@@ -492,15 +562,45 @@ fn publish<'a>(
             }
         }
     }
+    Ok(())
+}
+
+/// Makes `file` `len` bytes long and, if `durable`, syncs it.
+fn finish_file(path: &Path, file: &File, len: u64, durable: bool) -> Result<()> {
+    let io = |e: std::io::Error| Error::file(path, e);
     file.set_len(len).map_err(io)?;
     if durable {
         file.sync_all().map_err(io)?;
     }
-    out.persist(path).map_err(|e| Error::file(path, e.error))?;
-    if durable {
-        sync_folder(folder);
-    }
     Ok(())
+}
+
+/// Inserts `len` bytes (a hole) at the start of `file`, shifting its contents, without
+/// copying them; false where the filesystem cannot (or `len` is not a multiple of its
+/// block size), and the file is then unchanged.
+#[cfg(target_os = "linux")]
+fn insert_range(file: &File, len: u64) -> bool {
+    use rustix::fs::{FallocateFlags, fallocate};
+    len > 0 && fallocate(file, FallocateFlags::INSERT_RANGE, 0, len).is_ok()
+}
+
+/// Data written between hints that start its write to disk.
+const WRITE_BACK_BYTES: u64 = 8 << 20;
+
+/// Starts writing bytes `offset .. offset + len` of `file` to disk, without waiting (a
+/// hint: `POSIX_FADV_DONTNEED` starts the write-back of dirty pages; errors are ignored).
+#[cfg(target_os = "linux")]
+fn start_write_back(file: &File, offset: u64, len: u64) {
+    use rustix::fs::{Advice, fadvise};
+    let _ = fadvise(file, offset, std::num::NonZeroU64::new(len), Advice::DontNeed);
+}
+
+#[cfg(not(target_os = "linux"))]
+fn start_write_back(_file: &File, _offset: u64, _len: u64) {}
+
+#[cfg(not(target_os = "linux"))]
+fn insert_range(_file: &File, _len: u64) -> bool {
+    false
 }
 
 /// An I/O error on one of the writer's temporary files in `folder`.
@@ -580,5 +680,63 @@ pub(crate) fn published<'s, 'a, 'b>(builder: &'s mut tempfile::Builder<'a, 'b>) 
     #[cfg(not(unix))]
     {
         builder
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::cast_possible_truncation)]
+
+    use terrastream_format::{Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey};
+
+    use super::{Writer, WriterOptions};
+
+    /// A 40 x 40 pyramid of tiles of varied lengths (leaves, several batches, 8 MiB of data
+    /// so that write-back hints are given), written with the data moved into place and
+    /// with it copied.
+    fn archive(dir: &std::path::Path, name: &str, insert_range: bool) -> Vec<u8> {
+        let layer = Layer {
+            name: "texture".into(),
+            kind: LayerKind::Texture,
+            format: TileFormat::Png,
+            compression: PayloadCompression::None,
+            tile_resolution: 256,
+            border: 0,
+            num_x_tiles: 40,
+            num_y_tiles: 40,
+            num_lods: 6,
+            tile_world_size: 100.0,
+            elevation: None,
+        };
+        let metadata = Metadata::new("t", vec![layer.clone()]);
+        let mut tiles: Vec<(u64, TileKey)> = (0..6u8)
+            .flat_map(|lod| layer.tiles_at(0, lod).collect::<Vec<_>>())
+            .map(|t| (Writer::order_key(&metadata, t).unwrap(), t))
+            .collect();
+        tiles.sort_unstable();
+        let path = dir.join(name);
+        let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
+        writer.insert_range = insert_range;
+        for (k, (_, tile)) in tiles.into_iter().enumerate() {
+            let len = (k * 7919) % 9000 + 10;
+            let payload: Vec<u8> = (0..len).map(|i| (i * 31 + k) as u8).collect();
+            writer.add(tile, payload).unwrap();
+        }
+        writer.finish().unwrap();
+        std::fs::read(path).unwrap()
+    }
+
+    #[test]
+    fn moving_the_data_into_place_writes_the_bytes_a_copy_does() {
+        let dir = tempfile::tempdir().unwrap();
+        let (moved, copied) = (archive(dir.path(), "a.tspack", true), archive(dir.path(), "b.tspack", false));
+        assert!(moved.len() > 8 << 20, "{} bytes", moved.len());
+        assert!(moved == copied, "the archives differ");
+        // Nothing but the two archives is left in the folder.
+        let mut names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        names.sort();
+        assert_eq!(names, ["a.tspack", "b.tspack"]);
+        let reader = terrastream_format::Reader::open_mmap(dir.path().join("a.tspack")).unwrap();
+        terrastream_format::verify(&reader, |_| {}).unwrap();
     }
 }
