@@ -178,6 +178,20 @@ impl<'a> Browser<'a> {
         (v[0].as_str().unwrap_or_default().to_owned(), v[1].as_bool().unwrap_or(false))
     }
 
+    /// Waits until the benchmark flight (`flight=N`) is flown; the player's counters then.
+    fn wait_flight(&self, limit: Duration) -> Value {
+        let start = Instant::now();
+        loop {
+            if let Some(stats) = self.stats()
+                && stats["flight_done"] == json!(true)
+            {
+                return stats;
+            }
+            assert!(start.elapsed() < limit, "the flight did not end: stats {:?}", self.stats());
+            std::thread::sleep(Duration::from_millis(250));
+        }
+    }
+
     /// Waits until the view is fully streamed; the player's counters then.
     fn wait_settled(&self) -> Value {
         let start = Instant::now();
@@ -595,6 +609,23 @@ fn bench_webplayer_over_emulated_links() {
     let (port, _server) = serve(&archive);
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let upstream: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    // The flight's terrain: the crop at 4x its resolution (7.5 m, 1280² samples), tiles of
+    // 128: 142 elevation tiles, all of which fit the player's GPU slots.
+    let flight_archive = dir.path().join("flight.tspack");
+    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&[
+        "tile",
+        "--elevation",
+        dem.to_str().unwrap(),
+        "--resolution",
+        "7.5",
+        "--tile-size",
+        "128",
+        "-o",
+        flight_archive.to_str().unwrap(),
+    ]);
+    let flight_server = serve(&flight_archive);
+    let flight_upstream: std::net::SocketAddr = format!("127.0.0.1:{}", flight_server.0).parse().unwrap();
     let driver = Driver::start();
     let flags: Vec<&str> = match std::env::var("BACKEND").as_deref() {
         Ok("webgl2") => WEBGL_FLAGS.to_vec(),
@@ -660,8 +691,68 @@ fn bench_webplayer_over_emulated_links() {
             ms("first_draw_submit_ms")
         );
         assert_eq!(s["missing"], json!(0), "{name}: {s}");
+        // The flight: over a terrain whose finer tiles the first view does not want, so
+        // they stream in during the first pass and are resident during the second.
+        let flight_shaper = link.map(|l| runtime.block_on(Shaper::start(flight_upstream, l)).unwrap());
+        let flight_port = flight_shaper.as_ref().map_or(flight_server.0, |s| s.addr.port());
+        browser.goto(&format!(
+            "http://127.0.0.1:{port}/view/tamalpais?hud=0{workers}&flight={BENCH_FLIGHT}\
+             &archive=http://127.0.0.1:{flight_port}/flight.tspack"
+        ));
+        browser.wait_settled();
+        let s = browser.wait_flight(Duration::from_secs(600));
+        let flight = |key: &str| s[key].as_f64().map_or("-".to_owned(), |v| format!("{v:.0}"));
+        let flight_ratio = match (s["flight_p99_streaming_ms"].as_f64(), s["flight_p99_resident_ms"].as_f64()) {
+            (Some(a), Some(b)) if b > 0.0 => format!("{:.2}", a / b),
+            _ => "-".into(),
+        };
+        println!(
+            "{:<32} flight of {BENCH_FLIGHT} frames: streaming {} frames p50 {} p99 {} max {} ms; resident {} frames \
+             p50 {} p99 {} ms; p99 x {flight_ratio}",
+            "",
+            s["flight_frames_streaming"].as_u64().unwrap_or(0),
+            flight("flight_p50_streaming_ms"),
+            flight("flight_p99_streaming_ms"),
+            flight("flight_max_streaming_ms"),
+            s["flight_frames_resident"].as_u64().unwrap_or(0),
+            flight("flight_p50_resident_ms"),
+            flight("flight_p99_resident_ms"),
+        );
+        // One LOD-0 tile of this terrain holds no data (a corner of the reprojection).
+        assert_eq!(s["failures"], json!(0), "{name}: {s}");
         drop(browser);
     }
+}
+
+/// Frames of the benchmark flight (each flown twice).
+const BENCH_FLIGHT: usize = 240;
+
+/// `flight=N` flies the benchmarks' path twice once the view is complete, steering the
+/// camera, and counts every frame of both passes, streaming or resident.
+#[test]
+fn the_benchmark_flight_steers_the_camera_and_counts_its_frames() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let (port, _server) = serve(&archive);
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGPU_FLAGS);
+    let frames = 12;
+    browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0&flight={frames}"));
+    browser.wait_settled();
+    let s = browser.wait_flight(Duration::from_secs(120));
+    let counted = s["flight_frames_streaming"].as_u64().unwrap() + s["flight_frames_resident"].as_u64().unwrap();
+    assert_eq!(counted, 2 * frames as u64, "{s}");
+    assert!(s["flight_p99_resident_ms"].as_f64().is_some(), "the second pass has resident frames: {s}");
+    // The camera stays where the flight ended: the path's last eye.
+    let reader = terrastream_format::Reader::open_mmap(&archive).unwrap();
+    let (last, _) = *terrastream_client::fly::bench_flight(reader.metadata(), frames).last().unwrap();
+    let (eye, ..) = browser.flyer();
+    let off = (glam::DVec3::from(eye) - last).length();
+    assert!(off < 1e-6 * last.length(), "the flight ends at {last:?}, the eye is at {eye:?}");
+    assert_eq!(s["missing"], json!(0), "{s}");
 }
 
 /// A host without `decoder.js` (an older copy of the player's files): the workers fail to

@@ -89,6 +89,23 @@ pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
     if fits(&camera) { camera } else { at(size * 4.0, 0.0) }
 }
 
+/// The benchmarks' flight, `frames` eye and target positions: from the south-west corner
+/// to the north-east one, low over the terrain, looking ahead and down. `bench render`
+/// flies it natively, the webplayer with `flight=<frames>`.
+pub fn bench_flight(metadata: &Metadata, frames: usize) -> Vec<(DVec3, DVec3)> {
+    let ((ex, ez), (_, hi)) = terrain_bounds(metadata);
+    let altitude = hi + 0.04 * ex.max(ez);
+    #[expect(clippy::cast_precision_loss, reason = "frame numbers")]
+    let at = |i: usize| i as f64 / (frames.max(2) - 1) as f64;
+    (0..frames)
+        .map(|i| {
+            let t = at(i);
+            let eye = DVec3::new(ex * (0.1 + 0.8 * t), altitude, ez * (0.9 - 0.8 * t));
+            (eye, eye + DVec3::new(ex * 0.1, -altitude * 0.6, -ez * 0.1))
+        })
+        .collect()
+}
+
 /// Where every front end starts: the eye and target asked for, else [`default_camera`].
 pub fn start_camera(metadata: &Metadata, start: Option<(DVec3, DVec3)>, width: u32, height: u32) -> Camera {
     match start {

@@ -6,11 +6,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use glam::DVec3;
+use terrastream_client::fly::bench_flight;
 use terrastream_client::render::gpu::{Gpu, OFFSCREEN_FORMAT, Offscreen, render_pass};
 use terrastream_client::render::renderer::RenderSettings;
 use terrastream_client::render::session::Session;
-use terrastream_client::render::still::terrain_bounds;
 use terrastream_client::render::wgpu;
 use terrastream_client::{Camera, Origin, StreamOptions, Streamer, UploadBudget};
 
@@ -35,19 +34,9 @@ pub struct RenderBench {
     dir: Option<PathBuf>,
 }
 
-/// The flight: from the south-west corner to the north-east one, low over the terrain,
-/// looking ahead and down.
+/// [`bench_flight`] as cameras of `w` x `h`.
 fn flight(metadata: &terrastream_format::Metadata, frames: usize, w: u32, h: u32) -> Vec<Camera> {
-    let ((ex, ez), (_, hi)) = terrain_bounds(metadata);
-    let altitude = hi + 0.04 * ex.max(ez);
-    (0..frames)
-        .map(|i| {
-            let t = i as f64 / (frames.max(2) - 1) as f64;
-            let eye = DVec3::new(ex * (0.1 + 0.8 * t), altitude, ez * (0.9 - 0.8 * t));
-            let ahead = DVec3::new(ex * 0.1, -altitude * 0.6, -ez * 0.1);
-            Camera::look_at(eye, eye + ahead, w, h)
-        })
-        .collect()
+    bench_flight(metadata, frames).into_iter().map(|(eye, target)| Camera::look_at(eye, target, w, h)).collect()
 }
 
 struct Run {

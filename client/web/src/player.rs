@@ -7,7 +7,10 @@
 //!   `<meta name="terrastream-archive">` (what `terrastream serve` fills in at `/view/{name}`);
 //! - `camera=ex,ey,ez,tx,ty,tz`: start there (default: the whole dataset from the south);
 //! - `backend=webgpu|webgl2`: only that one (default: WebGPU if the browser has it, else WebGL2);
-//! - `hud=0`: start with the HUD hidden (H toggles it).
+//! - `hud=0`: start with the HUD hidden (H toggles it);
+//! - `flight=N`: 4 s after the first view is complete, fly the benchmarks' path of N frames
+//!   twice (tiles stream in during the first pass, are resident during the second) and
+//!   report the frame times of each (`flight_*` in the stats); then fly on as usual.
 
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -16,7 +19,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 
 use glam::DVec3;
-use terrastream_client::fly::start_camera;
+use terrastream_client::fly::{bench_flight, start_camera};
 use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame, render_pass};
 use terrastream_client::render::hud::{FrameTimes, Status, status_lines};
@@ -45,6 +48,8 @@ struct Params {
     /// Web Workers that decode tiles (`workers=N`; 0: on the page's thread). Default:
     /// one fewer than the machine's cores, 1 to 4.
     workers: Option<usize>,
+    /// Frames of the benchmark flight (`flight=N`).
+    flight: Option<usize>,
 }
 
 /// The page's elements.
@@ -128,7 +133,13 @@ fn params(window: &Window) -> Result<Params, String> {
         Some(other) => return Err(format!("Unknown backend {other:?}: use webgpu, webgl2 or auto.")),
     };
     let workers = query.get("workers").and_then(|w| w.parse().ok());
-    Ok(Params { archive, camera, backends, hud: query.get("hud").as_deref() != Some("0"), workers })
+    let flight = match query.get("flight") {
+        None => None,
+        Some(n) => {
+            Some(n.parse().ok().filter(|&n| n >= 2).ok_or(format!("flight={n:?}: a number of frames, 2 or more"))?)
+        }
+    };
+    Ok(Params { archive, camera, backends, hud: query.get("hud").as_deref() != Some("0"), workers, flight })
 }
 
 fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {
@@ -207,6 +218,42 @@ struct Timings {
     first_draw: Option<(f64, f64)>,
 }
 
+/// The benchmark flight (`flight=N`): its path, where it is, and the frame times of its
+/// frames while tiles were coming and while everything was resident.
+struct Flight {
+    path: Vec<(DVec3, DVec3)>,
+    /// Pass (0, 1) and frame along the path.
+    pass: usize,
+    at: usize,
+    streaming_ms: Vec<f64>,
+    resident_ms: Vec<f64>,
+}
+
+impl Flight {
+    const PASSES: usize = 2;
+
+    fn done(&self) -> bool {
+        self.pass >= Self::PASSES
+    }
+
+    /// The next camera along the path, None once both passes are flown.
+    fn next(&mut self) -> Option<(DVec3, DVec3)> {
+        if self.done() {
+            return None;
+        }
+        let camera = self.path[self.at];
+        self.at += 1;
+        if self.at == self.path.len() {
+            (self.pass, self.at) = (self.pass + 1, 0);
+        }
+        Some(camera)
+    }
+}
+
+/// Time between the first complete view and the start of the benchmark flight (its
+/// resident frames are measured meanwhile).
+const FLIGHT_AFTER_MS: f64 = 4000.0;
+
 /// Frame intervals kept per kind, for the percentiles of [`Player::stats`].
 const MAX_FRAME_SAMPLES: usize = 20_000;
 
@@ -256,6 +303,8 @@ struct State {
     uploads_last_frame: u64,
     timings: Timings,
     last: Option<(StreamStats, FrameStats)>,
+    /// The benchmark flight, once started.
+    flight: Option<Flight>,
 }
 
 impl State {
@@ -284,6 +333,25 @@ impl State {
             input = FlyInput::default();
         }
         fly.step(dt, input, |x, z| session.streamer.height_at(x, z));
+        // The benchmark flight, from the first complete view on: it steers the camera.
+        let flying = match &mut self.flight {
+            Some(flight) => flight.next(),
+            None if self.timings.settled_at.is_some_and(|at| now - at >= FLIGHT_AFTER_MS) => {
+                self.params.flight.and_then(|frames| {
+                    let metadata = session.streamer.metadata()?;
+                    let path = bench_flight(metadata, frames);
+                    let mut flight = Flight { path, pass: 0, at: 0, streaming_ms: Vec::new(), resident_ms: Vec::new() };
+                    let first = flight.next();
+                    self.flight = Some(flight);
+                    first
+                })
+            }
+            None => None,
+        };
+        if let Some((eye, target)) = flying {
+            *fly =
+                FlyCamera { speed: fly.speed, ..FlyCamera::from_camera(&Camera::look_at(eye, target, size.0, size.1)) };
+        }
         let camera = fly.camera(size.0, size.1);
         let cpu_started = self.page.now_ms();
         let (stream, frame) = session.frame(&self.gpu.device, &self.gpu.queue, &camera);
@@ -307,8 +375,13 @@ impl State {
         if streaming {
             self.timings.max_frame_ms_streaming = self.timings.max_frame_ms_streaming.max(interval_ms);
         }
+        // The first view's frames, until a benchmark flight starts.
         let kept = if streaming { &mut self.timings.streaming_ms } else { &mut self.timings.resident_ms };
-        if kept.len() < MAX_FRAME_SAMPLES {
+        if kept.len() < MAX_FRAME_SAMPLES && self.flight.is_none() {
+            kept.push(interval_ms);
+        }
+        if let (Some(flight), true) = (&mut self.flight, flying.is_some()) {
+            let kept = if streaming { &mut flight.streaming_ms } else { &mut flight.resident_ms };
             kept.push(interval_ms);
         }
         if session.settled() && self.timings.settled_at.is_none() {
@@ -534,6 +607,14 @@ impl State {
             "frame_p99_streaming_ms": quantile(&self.timings.streaming_ms, 0.99),
             "frame_p50_resident_ms": quantile(&self.timings.resident_ms, 0.5),
             "frame_p99_resident_ms": quantile(&self.timings.resident_ms, 0.99),
+            "flight_done": self.flight.as_ref().is_some_and(Flight::done),
+            "flight_frames_streaming": self.flight.as_ref().map_or(0, |f| f.streaming_ms.len()),
+            "flight_frames_resident": self.flight.as_ref().map_or(0, |f| f.resident_ms.len()),
+            "flight_p50_streaming_ms": self.flight.as_ref().and_then(|f| quantile(&f.streaming_ms, 0.5)),
+            "flight_p99_streaming_ms": self.flight.as_ref().and_then(|f| quantile(&f.streaming_ms, 0.99)),
+            "flight_max_streaming_ms": self.flight.as_ref().and_then(|f| quantile(&f.streaming_ms, 1.0)),
+            "flight_p50_resident_ms": self.flight.as_ref().and_then(|f| quantile(&f.resident_ms, 0.5)),
+            "flight_p99_resident_ms": self.flight.as_ref().and_then(|f| quantile(&f.resident_ms, 0.99)),
             "resident": [frame.resident.0, frame.resident.1],
             "triangles": frame.triangles,
             "patches": frame.patches,
@@ -665,6 +746,7 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         uploads_last_frame: 0,
         timings: Timings::default(),
         last: None,
+        flight: None,
     }));
     listen(&state);
     animate(state.clone());
