@@ -100,7 +100,23 @@ fn matches(pattern: &str, name: &str) -> bool {
 
 #[cfg(test)]
 mod tests {
-    use super::matches;
+    #![allow(clippy::unwrap_used)]
+
+    use super::{expand_inputs, matches};
+
+    #[test]
+    fn a_folder_gives_its_geotiffs_and_the_images_a_world_file_places() {
+        let dir = tempfile::tempdir().unwrap();
+        let sub = dir.path().join("z");
+        std::fs::create_dir(&sub).unwrap();
+        for name in ["a.tif", "b.JPG", "b.JGW", "c.png", "d.txt", "z/e.png", "z/e.wld", "z/f.TIFF"] {
+            std::fs::write(dir.path().join(name), b"").unwrap();
+        }
+        let found = expand_inputs(&[dir.path().to_path_buf()]).unwrap();
+        let names: Vec<_> = found.iter().map(|p| p.strip_prefix(dir.path()).unwrap().to_str().unwrap()).collect();
+        // c.png has no world file: a preview or a legend, left out.
+        assert_eq!(names, ["a.tif", "b.JPG", "z/e.png", "z/f.TIFF"]);
+    }
 
     #[test]
     fn patterns_match_as_shells_do() {
