@@ -309,6 +309,16 @@ fn png_and_jpeg_are_placed_by_their_world_files() {
     let (a, b) = (pixels_of(&tiffs), pixels_of(&pngs));
     assert!(a.iter().filter(|px| px[3] > 0).count() > a.len() / 2, "the mosaic has data");
     assert!(a == b, "the PNG mosaic differs from the GeoTIFF mosaic");
+    // A TIFF without GeoTIFF tags, placed by a .tfw and GDAL's .aux.xml, lies where the
+    // GeoTIFF does.
+    let baseline = ["-q", "-co", "PROFILE=BASELINE", "-co", "TFW=YES"];
+    gdal("gdal_translate", &baseline, &[&p("east.tif"), &p("plain.tif")]);
+    assert!(p("plain.tfw").is_file());
+    let (geo, plain) = (open_image(&p("east.tif")).unwrap(), open_image(&p("plain.tif")).unwrap());
+    assert_eq!(plain.georeference().and_then(|g| g.crs.as_deref()), Some("EPSG:32633"));
+    let (o, q) = (geo.georeference().unwrap().origin.unwrap(), plain.georeference().unwrap().origin.unwrap());
+    assert!((o[0] - q[0]).abs() < 1e-6 && (o[1] - q[1]).abs() < 1e-6, "{o:?} against {q:?}");
+    assert_eq!(geo.crs_pixel_size(), plain.crs_pixel_size());
 
     // The west half as a JPEG (no alpha: it comes first, the PNG with alpha wins over it),
     // its world file a .jgw and its CRS an ESRI .prj instead of GDAL's .aux.xml.

@@ -118,13 +118,21 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
             }
             let nodata = gdal_nodata(&mut decoder);
             let tags = GeoTags::read(&mut decoder);
-            let (spacing, georeference) = tags.placement(width, height).map_err(bad)?;
+            let (mut spacing, mut georeference) = tags.placement(width, height).map_err(bad)?;
+            let mut crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
+            // No GeoTIFF tags: a world file beside it may say where it lies.
+            if georeference.is_none()
+                && let Some(sidecar) = read_sidecar(path, (width, height))?
+            {
+                (spacing, georeference, crs_pixel) =
+                    (sidecar.spacing, Some(sidecar.georeference), Some(sidecar.crs_pixel));
+            }
             Ok(ElevationFile {
                 path: path.to_path_buf(),
                 width,
                 height,
                 spacing,
-                crs_pixel: georeference.as_ref().and_then(|_| tags.crs_pixel()),
+                crs_pixel,
                 georeference,
                 nodata,
                 encoding,

@@ -38,8 +38,9 @@ enum ImageKind {
 
 /// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB, RGBA or YCbCr;
 /// strips or tiles; none, LZW, Deflate or JPEG) or PNG (any colour type; 16-bit is reduced to 8), or
-/// JPEG (decoded whole when read); told apart by content. A PNG or JPEG is placed by a
-/// world file or GDAL `.aux.xml` beside it, with its CRS from a `.prj` or the `.aux.xml`.
+/// JPEG (decoded whole when read); told apart by content. A PNG, a JPEG or a TIFF without
+/// GeoTIFF tags is placed by a world file or GDAL `.aux.xml` beside it, with its CRS from a
+/// `.prj` or the `.aux.xml`.
 ///
 /// # Errors
 /// [`Error::Input`] naming the file for anything unreadable or unsupported.
@@ -83,7 +84,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
         return Err(bad(format!("the image is empty ({width}x{height} pixels)")));
     }
     let mut georeference = georeference;
-    if matches!(kind, ImageKind::Png | ImageKind::Jpeg)
+    if georeference.is_none()
         && let Some(sidecar) = read_sidecar(path, (width, height))?
     {
         georeference = Some(sidecar.georeference);
