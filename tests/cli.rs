@@ -206,6 +206,18 @@ fn tile_plans_writes_and_refuses_bad_input() {
     let out = terrastream(&["info", "img.tspack", "--json"], work);
     let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(doc["metadata"]["layers"].as_array().unwrap().len(), 1);
+    assert_eq!(doc["metadata"]["layers"][0]["tile_world_size"], 512.0, "256 pixels of 2 m");
+    // Placed by a world file (0.5 m pixels in UTM 10N), it keeps its own pixel size.
+    std::fs::write(work.join("ortho.pgw"), "0.5\n0\n0\n-0.5\n500000.25\n4200000.75\n").unwrap();
+    std::fs::write(work.join("ortho.prj"), r#"PROJCS["WGS_1984_UTM_Zone_10N",GEOGCS["GCS_WGS_1984"]]"#).unwrap();
+    let out = terrastream(&["tile", "--texture", "ortho.png", "-o", "placed.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["info", "placed.tspack", "--json"], work);
+    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(doc["metadata"]["layers"][0]["tile_world_size"], 128.0, "256 pixels of 0.5 m");
+    assert_eq!(doc["metadata"]["georeference"]["crs"], "EPSG:32610");
+    assert_eq!(doc["metadata"]["georeference"]["origin"], serde_json::json!([500_000.0, 4_200_001.0]));
+    std::fs::remove_file(work.join("ortho.pgw")).unwrap();
     // PMTiles round trip: exported, then packed back from the .pmtiles file.
     let out =
         terrastream(&["export", "img.tspack", "--layer", "texture", "--to", "pmtiles", "-o", "img.pmtiles"], work);

@@ -71,9 +71,10 @@ pub struct TileArgs {
     /// Texture pixels per tile edge.
     #[arg(long, default_value_t = 256)]
     texture_tile_size: u32,
-    /// Metres per texture pixel, for a texture without elevation.
-    #[arg(long, default_value_t = 1.0)]
-    pixel_size: f64,
+    /// Metres per texture pixel, for a texture without elevation (default: the pixel
+    /// size its georeference gives, else 1).
+    #[arg(long)]
+    pixel_size: Option<f64>,
     /// Output archive (written to a temporary name, then renamed).
     #[arg(short, long, required_unless_present = "dry_run")]
     output: Option<PathBuf>,
@@ -305,7 +306,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         source,
         tile_size: args.texture_tile_size,
         format,
-        pixel_size: args.pixel_size,
+        pixel_size: texture_pixel_size(args.pixel_size, source),
     });
     let name = args.name.clone().unwrap_or_else(|| {
         let input = args.elevation.first().or(args.texture.first());
@@ -395,4 +396,25 @@ fn elevation_extent(e: &dyn ElevationSource) -> Result<(Option<Crs>, Option<[f64
     let (w, h) = e.size();
     let extent = [origin[0], origin[1] - f64::from(h) * py, origin[0] + f64::from(w) * px, origin[1]];
     Ok((Some(Crs::parse(crs)?), Some(extent)))
+}
+
+/// Metres per pixel of a texture tiled without elevation: `--pixel-size`, else the pixel
+/// its georeference gives (metres in a projected CRS; degrees measured at the image's
+/// centre latitude, across and down, their geometric mean), else 1.
+fn texture_pixel_size(given: Option<f64>, source: &dyn ImageSource) -> f64 {
+    if let Some(metres) = given {
+        return metres;
+    }
+    let placed = source.georeference().zip(source.crs_pixel_size());
+    let crs = placed.and_then(|(g, _)| g.crs.as_deref()).and_then(|c| Crs::parse(c).ok());
+    let (Some((g, (px, py))), Some(crs)) = (placed, crs) else { return 1.0 };
+    let metres = if crs.is_geographic() {
+        let north = g.origin.map_or(0.0, |o| o[1]);
+        let lat = (north - py * f64::from(source.size().1) / 2.0).to_radians();
+        (px * 111_320.0 * lat.cos() * py * 110_574.0).sqrt()
+    } else {
+        (px * py).sqrt()
+    };
+    tracing::info!("texture: {metres:.3} m per pixel, from {}'s georeference", source.path().display());
+    metres
 }
