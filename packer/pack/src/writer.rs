@@ -383,23 +383,11 @@ impl Writer {
             // The data now starts at its offset; the front goes before it.
             data_file.seek(SeekFrom::Start(0)).map_err(|e| Error::file(&self.path, e))?;
             write_parts(&self.path, &self.folder, &mut data_file, front)?;
-            finish_file(&self.path, &data_file, len, self.options.durable)?;
-            self.data_path.persist(&self.path).map_err(|e| Error::file(&self.path, e.error))?;
-            if self.options.durable {
-                sync_folder(&self.folder);
-            }
+            put_in_place(&self.path, &self.folder, (&data_file, self.data_path), len, self.options.durable)?;
         } else {
-            let [a, b, c, d, e] = front;
-            let parts = [
-                a,
-                b,
-                c,
-                d,
-                e,
-                Part::Gap(data.offset - leaf_dirs.offset - leaf_dirs.len),
-                Part::File(&mut data_file, self.data_len),
-            ];
-            publish(&self.path, &self.folder, parts, len, self.options.durable)?;
+            let data_part =
+                [Part::Gap(data.offset - leaf_dirs.offset - leaf_dirs.len), Part::File(&mut data_file, self.data_len)];
+            publish(&self.path, &self.folder, front.into_iter().chain(data_part), len, self.options.durable)?;
         }
         Ok(WriteSummary {
             path: self.path,
@@ -519,12 +507,8 @@ fn publish<'a>(
 ) -> Result<()> {
     let mut out = partial_file(path, folder)?;
     write_parts(path, folder, out.as_file_mut(), parts)?;
-    finish_file(path, out.as_file(), len, durable)?;
-    out.persist(path).map_err(|e| Error::file(path, e.error))?;
-    if durable {
-        sync_folder(folder);
-    }
-    Ok(())
+    let (file, temp) = out.into_parts();
+    put_in_place(path, folder, (&file, temp), len, durable)
 }
 
 /// A new temporary file beside `path` (in `folder`), named after it, that becomes the
@@ -565,12 +549,23 @@ fn write_parts<'a>(
     Ok(())
 }
 
-/// Makes `file` `len` bytes long and, if `durable`, syncs it.
-fn finish_file(path: &Path, file: &File, len: u64, durable: bool) -> Result<()> {
+/// Makes the temporary `file` `len` bytes long, syncs it (if `durable`) and renames it to
+/// `path`; then syncs the folder, so that the rename lasts too.
+fn put_in_place(
+    path: &Path,
+    folder: &Path,
+    (file, temp): (&File, tempfile::TempPath),
+    len: u64,
+    durable: bool,
+) -> Result<()> {
     let io = |e: std::io::Error| Error::file(path, e);
     file.set_len(len).map_err(io)?;
     if durable {
         file.sync_all().map_err(io)?;
+    }
+    temp.persist(path).map_err(|e| Error::file(path, e.error))?;
+    if durable {
+        sync_folder(folder);
     }
     Ok(())
 }
