@@ -8,8 +8,8 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::{
     Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
-    Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, open_elevation, open_image,
-    plan, tile_shard,
+    Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, image_pixel_metres,
+    open_elevation, open_image, plan, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -399,22 +399,12 @@ fn elevation_extent(e: &dyn ElevationSource) -> Result<(Option<Crs>, Option<[f64
 }
 
 /// Metres per pixel of a texture tiled without elevation: `--pixel-size`, else the pixel
-/// its georeference gives (metres in a projected CRS; degrees measured at the image's
-/// centre latitude, across and down, their geometric mean), else 1.
+/// its georeference gives, else 1.
 fn texture_pixel_size(given: Option<f64>, source: &dyn ImageSource) -> f64 {
     if let Some(metres) = given {
         return metres;
     }
-    let placed = source.georeference().zip(source.crs_pixel_size());
-    let crs = placed.and_then(|(g, _)| g.crs.as_deref()).and_then(|c| Crs::parse(c).ok());
-    let (Some((g, (px, py))), Some(crs)) = (placed, crs) else { return 1.0 };
-    let metres = if crs.is_geographic() {
-        let north = g.origin.map_or(0.0, |o| o[1]);
-        let lat = (north - py * f64::from(source.size().1) / 2.0).to_radians();
-        (px * 111_320.0 * lat.cos() * py * 110_574.0).sqrt()
-    } else {
-        (px * py).sqrt()
-    };
+    let Some(metres) = image_pixel_metres(source) else { return 1.0 };
     tracing::info!("texture: {metres:.3} m per pixel, from {}'s georeference", source.path().display());
     metres
 }

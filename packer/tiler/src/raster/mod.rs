@@ -41,7 +41,7 @@ pub use kind::{Heights, MosaicKind, Pixels};
 pub use memory::{Image, ImageWindow, Raster};
 pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
 pub use vrt::{Vrt, VrtSource, read_vrt};
-pub use warp::Warped;
+pub use warp::{Warped, image_pixel_metres};
 
 /// Rows of heights: the elevation input of the tiler.
 pub trait ElevationSource: Sync {

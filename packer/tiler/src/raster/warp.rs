@@ -68,7 +68,7 @@ impl<'a> Warped<'a> {
         let transform = Transform::new(&from, &to);
         // Texels of about the image's pixel size, square in metres, over the elevation.
         let (ex, ez) = (f64::from(dw) * elevation.spacing().0, f64::from(dh) * elevation.spacing().1);
-        let texel = pixel_metres(&to, image_at, image.size())
+        let texel = pixel_metres(&to, image_at, image.size().1)
             .ok_or_else(|| Error::input(image.path(), format!("its pixels cannot be measured in {}", to.name())))?;
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 1..=MAX_SIDE")]
         let side = |metres: f64| (metres / texel).round().clamp(1.0, MAX_SIDE) as u32;
@@ -152,15 +152,23 @@ impl<'a> Warped<'a> {
     }
 }
 
-/// A pixel's size in metres near the image's centre.
-fn pixel_metres(crs: &Crs, at: Placement, (w, h): (u32, u32)) -> Option<f64> {
+/// A pixel's size in metres near the centre of an image `height` pixels tall: in a
+/// projected CRS its units; in degrees, measured at the centre latitude (the geometric mean
+/// of across and down).
+fn pixel_metres(crs: &Crs, at: Placement, height: u32) -> Option<f64> {
     if !crs.is_geographic() {
         return Some((at.pixel.0 * at.pixel.1).sqrt()).filter(|m| m.is_finite() && *m > 0.0);
     }
-    let lat = (at.origin[1] - f64::from(h) / 2.0 * at.pixel.1).to_radians();
-    let _ = w;
+    let lat = (at.origin[1] - f64::from(height) / 2.0 * at.pixel.1).to_radians();
     let m = (at.pixel.0 * 111_320.0 * lat.cos() * at.pixel.1 * 110_574.0).sqrt();
     (m.is_finite() && m > 0.0).then_some(m)
+}
+
+/// The pixel size in metres of an image that says where it lies (see [`pixel_metres`]);
+/// `None` without a georeference in a CRS the tiler knows.
+pub fn image_pixel_metres(image: &dyn ImageSource) -> Option<f64> {
+    let (crs, origin, pixel) = crs_placement(image.georeference(), image.crs_pixel_size())?;
+    pixel_metres(&Crs::parse(crs).ok()?, Placement { origin, pixel }, image.size().1)
 }
 
 impl ImageSource for Warped<'_> {
