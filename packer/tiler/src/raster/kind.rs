@@ -64,8 +64,9 @@ pub trait MosaicKind: Send + Sync + 'static {
     ) -> Result<Vec<Self::Value>>;
     /// The blend of up to four neighbours with bilinear weights, over those with data.
     fn blend(corners: &[(Self::Value, f64); 4]) -> Self::Value;
-    /// [`Self::blend`] where the weights, summed in order from 0, are exactly 1: the same
-    /// value, cheaper where a kind can tell (no division when all four have data).
+    /// [`Self::blend`] for bilinear weights, which sum to 1 up to rounding: cheaper where
+    /// a kind can tell (heights: no division when all four corners have data; the value
+    /// may differ from [`Self::blend`]'s in the last bit).
     fn blend_unit(corners: &[(Self::Value, f64); 4]) -> Self::Value {
         Self::blend(corners)
     }
@@ -139,6 +140,7 @@ impl MosaicKind for Heights {
         }
         Ok(heights)
     }
+    #[inline]
     fn blend(corners: &[(f32, f64); 4]) -> f32 {
         // Branch-free (corners with and without data mix unpredictably at a coast).
         let (mut sum, mut weight) = (0.0, 0.0);
@@ -159,9 +161,10 @@ impl MosaicKind for Heights {
             out[k] = if out[k].is_nan() { blended } else { out[k] };
         }
     }
+    #[inline]
     fn blend_unit(corners: &[(f32, f64); 4]) -> f32 {
-        // With every corner's data the sum is `blend`'s, and its weight exactly 1: the
-        // division would change nothing. A NaN corner makes the sum NaN: blend then.
+        // With every corner's data the weights sum to 1: the division would change the
+        // last bit at most. A NaN corner makes the sum NaN: blend then.
         let sum = corners.iter().fold(0.0, |s, &(v, w)| s + w * f64::from(v));
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
         if sum.is_nan() { Self::blend(corners) } else { sum as f32 }
