@@ -48,6 +48,10 @@ measure() {
   local name=$1 out=$2 best="" most=0; shift 2
   for _ in $(seq "$REPEAT"); do
     rm -rf "$out"
+    # Every run starts with nothing left to write: the inputs just made, or the last
+    # run's output, would otherwise be written back to disk during it (and wait in
+    # front of a tool that syncs its output).
+    sync
     # GNU time for the peak memory; the wall time from the clock in ms (time's %e has
     # 10 ms steps, 6% of the DEM job).
     local t0 t1
