@@ -153,12 +153,21 @@ impl MosaicKind for Heights {
         if weight > 1e-9 { (sum / weight) as f32 } else { f32::NAN }
     }
     fn blend_run(top: &[f32], bottom: &[f32], w: [f64; 4], out: &mut [f32]) {
-        // `blend`'s arithmetic with no branch: the compiler vectorizes it.
+        // First `blend_unit`'s weighted sum where all four corners have data, with no
+        // branch (the compiler vectorizes it); then `blend` for the samples left with
+        // none, where a corner has none (the edges of an input's data).
         let n = out.len();
         let (a, b, c, d) = (&top[..n], &top[1..=n], &bottom[..n], &bottom[1..=n]);
         for k in 0..n {
-            let blended = Self::blend(&[(a[k], w[0]), (b[k], w[1]), (c[k], w[2]), (d[k], w[3])]);
-            out[k] = if out[k].is_nan() { blended } else { out[k] };
+            let sum = w[0] * f64::from(a[k]) + w[1] * f64::from(b[k]) + w[2] * f64::from(c[k]) + w[3] * f64::from(d[k]);
+            #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+            let sum = sum as f32;
+            out[k] = if out[k].is_nan() { sum } else { out[k] };
+        }
+        for k in 0..n {
+            if out[k].is_nan() {
+                out[k] = Self::blend(&[(a[k], w[0]), (b[k], w[1]), (c[k], w[2]), (d[k], w[3])]);
+            }
         }
     }
     #[inline]
