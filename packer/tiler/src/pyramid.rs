@@ -97,7 +97,8 @@ impl Pixel for f32 {
         // NaN exactly when either is: then the other (or NaN). Selects, not branches, in
         // the usual case.
         let v = a + (b - a) * f;
-        if v.is_nan() { if a.is_nan() { b } else { a } } else { v }
+        let other = if a.is_nan() { b } else { a };
+        if v.is_nan() { other } else { v }
     }
 }
 
@@ -159,8 +160,9 @@ impl Pixel for [u8; 4] {
 /// Linear resampling of rows along x (edges clamped), from one width to another: each
 /// output sample's source index and weight, computed once for every row of a raster.
 pub struct Resample {
-    /// (left source sample, weight of the right one) per output sample.
-    taps: Vec<(u32, f32)>,
+    /// (left source sample, right source sample, weight of the right one) per output
+    /// sample.
+    taps: Vec<(u32, u32, f32)>,
     from: usize,
 }
 
@@ -185,7 +187,7 @@ impl Resample {
                 #[expect(clippy::cast_precision_loss, reason = "a pixel index")]
                 let frac = sx - x0 as f64;
                 #[expect(clippy::cast_possible_truncation, reason = "below `from`, a u32; a weight")]
-                (x0.min(last) as u32, frac as f32)
+                (x0.min(last) as u32, (x0 + 1).min(last) as u32, frac as f32)
             })
             .collect();
         Self { taps, from }
@@ -197,14 +199,7 @@ impl Resample {
         if self.taps.is_empty() || row.len() != self.from {
             return row.to_vec();
         }
-        let last = self.from - 1;
-        self.taps
-            .iter()
-            .map(|&(i, frac)| {
-                let i = i as usize;
-                S::lerp(row[i], row[(i + 1).min(last)], frac)
-            })
-            .collect()
+        self.taps.iter().map(|&(i, j, frac)| S::lerp(row[i as usize], row[j as usize], frac)).collect()
     }
 }
 
