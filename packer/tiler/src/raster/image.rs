@@ -99,11 +99,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
 /// As [`open_image`].
 pub fn read_image(path: &Path) -> Result<Image> {
     let file = open_image(path)?;
-    let mut rgba = Vec::with_capacity(file.width as usize * file.height as usize * 4);
-    file.rows(&mut |row| {
-        rgba.extend_from_slice(row.as_flattened());
-        Ok(())
-    })?;
+    let rgba = file.rgba()?;
     Ok(Image { width: file.width, height: file.height, rgba, georeference: file.georeference })
 }
 
@@ -127,12 +123,17 @@ impl ImageFile {
         if self.tiff_channels().is_some() {
             return None;
         }
+        Some(self.rgba())
+    }
+
+    /// Every pixel, row after row, as RGBA8.
+    fn rgba(&self) -> Result<Vec<u8>> {
         let mut rgba = Vec::with_capacity(self.width as usize * self.height as usize * 4);
-        let read = self.rows(&mut |row| {
+        self.rows(&mut |row| {
             rgba.extend_from_slice(row.as_flattened());
             Ok(())
-        });
-        Some(read.map(|()| rgba))
+        })?;
+        Ok(rgba)
     }
 
     /// A JPEG's RGB pixels, checked to be as many as its header says.

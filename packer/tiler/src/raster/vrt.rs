@@ -50,16 +50,10 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
     if !root.has_tag_name("VRTDataset") {
         return Err(bad(format!("not a VRT: the root is <{}>", root.tag_name().name())));
     }
-    let transform: Vec<f64> = child(root, "GeoTransform")
+    let text = child(root, "GeoTransform")
         .and_then(|n| n.text())
-        .ok_or_else(|| bad("no <GeoTransform>: the VRT does not say where it lies".into()))?
-        .split(',')
-        .map(|v| v.trim().parse::<f64>())
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| bad(format!("<GeoTransform>: {e}")))?;
-    let [ox, px, rx, oy, ry, py] = transform[..] else {
-        return Err(bad(format!("<GeoTransform> has {} numbers, 6 expected", transform.len())));
-    };
+        .ok_or_else(|| bad("no <GeoTransform>: the VRT does not say where it lies".into()))?;
+    let [ox, px, rx, oy, ry, py] = super::worldfile::parse_geotransform(text).map_err(bad)?;
     if rx != 0.0 || ry != 0.0 || px <= 0.0 || py >= 0.0 {
         return Err(bad("a rotated or flipped <GeoTransform>: only north-up grids are read".into()));
     }

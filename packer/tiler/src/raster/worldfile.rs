@@ -130,21 +130,19 @@ fn aux_xml(image: &Path) -> Result<Option<AuxXml>> {
     let root = doc.root_element();
     let child = |name: &str| root.children().find(|c| c.has_tag_name(name)).and_then(|n| n.text());
     let srs = child("SRS").map(str::to_owned).filter(|s| !s.trim().is_empty());
-    let transform = match child("GeoTransform") {
-        None => None,
-        Some(t) => {
-            let v: Vec<f64> = t
-                .split(',')
-                .map(|v| v.trim().parse::<f64>())
-                .collect::<std::result::Result<_, _>>()
-                .map_err(|e| bad(format!("<GeoTransform>: {e}")))?;
-            let v: [f64; 6] = v
-                .try_into()
-                .map_err(|v: Vec<f64>| bad(format!("<GeoTransform> has {} numbers, 6 expected", v.len())))?;
-            Some(v)
-        }
-    };
+    let transform = child("GeoTransform").map(parse_geotransform).transpose().map_err(bad)?;
     Ok(Some(AuxXml { path, srs, transform }))
+}
+
+/// The six numbers of a GDAL `<GeoTransform>` (in a VRT or an `.aux.xml`), in GDAL's
+/// order; the reason as text when they are not six numbers.
+pub(super) fn parse_geotransform(text: &str) -> std::result::Result<[f64; 6], String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| format!("<GeoTransform>: {e}"))?;
+    v.try_into().map_err(|v: Vec<f64>| format!("<GeoTransform> has {} numbers, 6 expected", v.len()))
 }
 
 #[cfg(test)]
