@@ -662,8 +662,10 @@ impl<K: MosaicKind> Window<K> {
     }
 
     /// [`Self::bilinear`] at each of `points` whose sample in `out` has no data yet (the
-    /// same values). Consecutive points of a row mostly fall between the same two rows of
-    /// one chunk column: those are found once, not with two divisions and a lookup a point.
+    /// same values, up to the last bit where [`MosaicKind::blend_unit`] sums four corners
+    /// with data). Consecutive points of a row mostly fall between the same two rows of
+    /// one chunk column: those are found once, not with two divisions and a lookup a point,
+    /// and sampled in a loop of their own.
     fn bilinear_into(&self, points: &[(f64, f64)], out: &mut [K::Value]) {
         let n = out.len().min(points.len());
         let mut pair: Option<RowPair<'_, K::Value>> = None;
