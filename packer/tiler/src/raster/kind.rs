@@ -159,9 +159,8 @@ impl MosaicKind for Heights {
         let n = out.len();
         let (a, b, c, d) = (&top[..n], &top[1..=n], &bottom[..n], &bottom[1..=n]);
         for k in 0..n {
-            let sum = w[0] * f64::from(a[k]) + w[1] * f64::from(b[k]) + w[2] * f64::from(c[k]) + w[3] * f64::from(d[k]);
             #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
-            let sum = sum as f32;
+            let sum = weighted_sum([a[k], b[k], c[k], d[k]], w) as f32;
             out[k] = if out[k].is_nan() { sum } else { out[k] };
         }
         for k in 0..n {
@@ -174,10 +173,18 @@ impl MosaicKind for Heights {
     fn blend_unit(corners: &[(f32, f64); 4]) -> f32 {
         // With every corner's data the weights sum to 1: the division would change the
         // last bit at most. A NaN corner makes the sum NaN: blend then.
-        let sum = corners.iter().fold(0.0, |s, &(v, w)| s + w * f64::from(v));
+        let [(a, wa), (b, wb), (c, wc), (d, wd)] = *corners;
+        let sum = weighted_sum([a, b, c, d], [wa, wb, wc, wd]);
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
         if sum.is_nan() { Self::blend(corners) } else { sum as f32 }
     }
+}
+
+/// The bilinear sum of four heights: NaN if one is. What [`Heights::blend_unit`] and
+/// [`Heights::blend_run`] keep where all four corners have data, the same bits in both.
+#[inline]
+fn weighted_sum(v: [f32; 4], w: [f64; 4]) -> f64 {
+    w[0] * f64::from(v[0]) + w[1] * f64::from(v[1]) + w[2] * f64::from(v[2]) + w[3] * f64::from(v[3])
 }
 
 impl MosaicKind for Pixels {
