@@ -280,6 +280,19 @@ impl Browser<'_> {
         let eye = [0, 1, 2].map(|i| s["eye"][i].as_f64().unwrap());
         (eye, s["yaw"].as_f64().unwrap(), s["pitch"].as_f64().unwrap(), s["speed"].as_f64().unwrap())
     }
+
+    /// The camera once `done` holds for it, or after 10 s: input that flies is applied by
+    /// the next frame, and on a loaded machine a frame can take longer than the input.
+    fn flyer_once(&self, done: impl Fn(&[f64; 3]) -> bool) -> ([f64; 3], f64, f64, f64) {
+        let started = Instant::now();
+        loop {
+            let flyer = self.flyer();
+            if done(&flyer.0) || started.elapsed() > Duration::from_secs(10) {
+                return flyer;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
 }
 
 impl Drop for Browser<'_> {
@@ -446,7 +459,7 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     }
     let (eye, ..) = browser.flyer();
     browser.hold_key("w", 600);
-    let (after, ..) = browser.flyer();
+    let (after, ..) = browser.flyer_once(|after| after[2] < eye[2] - 1.0);
     assert!(after[2] < eye[2] - 1.0, "W flies forward: {eye:?} -> {after:?}");
     // A mouse drag to the right turns right (yaw grows), upwards pitches up.
     let (_, yaw, pitch, speed) = browser.flyer();
@@ -465,9 +478,9 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
         Browser::drag("finger1", "touch", (280, 120), (200, 120), 300),
         Browser::drag("finger2", "touch", (340, 120), (420, 120), 300),
     ]));
-    std::thread::sleep(Duration::from_millis(300));
-    let (after, yaw2, ..) = browser.flyer();
-    let moved = ((after[0] - eye[0]).powi(2) + (after[2] - eye[2]).powi(2)).sqrt();
+    let moved = |after: &[f64; 3]| ((after[0] - eye[0]).powi(2) + (after[2] - eye[2]).powi(2)).sqrt();
+    let (after, yaw2, ..) = browser.flyer_once(|after| moved(after) > 1.0);
+    let moved = moved(&after);
     assert!(moved > 1.0, "pinch: {eye:?} -> {after:?}");
     assert!((yaw2 - yaw).abs() < 0.05, "a pinch does not turn: {yaw} -> {yaw2}");
     browser.act(json!([Browser::drag("finger3", "touch", (300, 150), (240, 150), 200)]));

@@ -44,16 +44,20 @@ const LEFT: &[&str] = &["KeyA", "ArrowLeft"];
 const UP: &[&str] = &["KeyE", "PageUp"];
 const DOWN: &[&str] = &["KeyQ", "PageDown"];
 
-/// The keys held down.
+/// The keys held down, and those pressed since the last frame.
 #[derive(Clone, Debug, Default)]
 pub struct Keys {
     held: HashSet<String>,
+    /// Pressed since the last [`Keys::fly`]: a key pressed and released between two frames
+    /// (a quick tap, or any press while a frame stalls) still flies for one frame.
+    pressed: HashSet<String>,
 }
 
 impl Keys {
     /// A key went down; the action it asks for, once per press (not on auto-repeat).
     pub fn press(&mut self, code: &str, repeat: bool) -> Option<Action> {
         self.held.insert(code.to_owned());
+        self.pressed.insert(code.to_owned());
         if repeat {
             return None;
         }
@@ -74,15 +78,19 @@ impl Keys {
     /// Every key up: the window lost the keyboard, so releases will not arrive.
     pub fn release_all(&mut self) {
         self.held.clear();
+        self.pressed.clear();
     }
 
-    /// Which way the held keys ask to fly.
-    pub fn fly(&self) -> FlyInput {
+    /// Which way the keys ask to fly this frame: those held, and those pressed since the
+    /// last frame even if already released. Called once a frame.
+    pub fn fly(&mut self) -> FlyInput {
         let axis = |plus: &[&str], minus: &[&str]| {
-            let held = |codes: &[&str]| codes.iter().any(|c| self.held.contains(*c));
+            let held = |codes: &[&str]| codes.iter().any(|c| self.held.contains(*c) || self.pressed.contains(*c));
             f64::from(u8::from(held(plus))) - f64::from(u8::from(held(minus)))
         };
-        FlyInput { forward: axis(FORWARD, BACK), right: axis(RIGHT, LEFT), up: axis(UP, DOWN) }
+        let input = FlyInput { forward: axis(FORWARD, BACK), right: axis(RIGHT, LEFT), up: axis(UP, DOWN) };
+        self.pressed.clear();
+        input
     }
 
     /// Keys a page would otherwise scroll with: the player keeps them for flying.
@@ -115,5 +123,25 @@ mod tests {
         assert_eq!(keys.press("KeyH", false), Some(Action::ToggleHud));
         assert_eq!(keys.press("Escape", false), Some(Action::Quit));
         assert!(Keys::is_navigation("PageUp") && Keys::is_navigation("ArrowLeft") && !Keys::is_navigation("KeyW"));
+    }
+
+    #[test]
+    fn a_tap_between_two_frames_flies_for_one_frame() {
+        let mut keys = Keys::default();
+        keys.press("KeyW", false);
+        keys.release("KeyW");
+        assert_eq!(keys.fly().forward, 1.0, "pressed and released before the frame");
+        assert_eq!(keys.fly().forward, 0.0, "only once");
+        // A tap of the opposite key while one is held cancels for that frame only.
+        keys.press("KeyD", false);
+        keys.press("KeyA", false);
+        keys.release("KeyA");
+        assert_eq!(keys.fly().right, 0.0);
+        assert_eq!(keys.fly().right, 1.0);
+        // Losing the keyboard forgets taps too.
+        keys.press("KeyS", false);
+        keys.release("KeyS");
+        keys.release_all();
+        assert_eq!(keys.fly(), FlyInput::default());
     }
 }
