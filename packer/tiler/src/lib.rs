@@ -40,7 +40,7 @@ pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, Tile
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
     ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic,
-    MosaicKind, MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres,
+    MosaicKind, MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres, jpeg_rows,
     open_elevation, open_image, read_geotiff, read_image, read_vrt,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};

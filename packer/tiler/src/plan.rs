@@ -125,8 +125,8 @@ fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn 
     };
     let extent = (f64::from(width) * spacing, f64::from(h) * spacing, f64::from(w) / f64::from(h));
     let (min, max) = height_range(e, progress)?;
-    let span = max - min;
-    let encoding = height_encoding(options.storage, min, span);
+    let estimated = e.height_range_estimate()?.map(|(lo, hi)| (f64::from(lo), f64::from(hi)));
+    let encoding = chosen_encoding(options.storage, (min, max), estimated);
     let (nx, ny) = (width.div_ceil(res), h.div_ceil(res));
     let float = encoding.scheme == ElevationScheme::Float32;
     let layer = Layer {
@@ -149,17 +149,72 @@ fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn 
         tiles,
         estimated_bytes: estimate(tiles, res, options.border, if float { 2.4 } else { 1.0 }),
     };
-    let terrain = terrastream_format::Terrain {
-        min_elevation: min,
-        max_elevation: max,
-        displacement: span,
-        elevation_range: span,
+    let mut terrain = terrastream_format::Terrain {
         base_tile_size: spacing,
         high_detail_range: spacing * 64.0,
         num_detail_levels: u32::from(layer.num_lods) + 6,
         ..terrastream_format::Terrain::default()
     };
+    set_height_range(&mut terrain, (min, max));
     Ok(ElevationPlan { layer, plan, terrain, extent })
+}
+
+/// Records the heights' range `min..=max` in `terrain`.
+pub(crate) fn set_height_range(terrain: &mut terrastream_format::Terrain, (min, max): (f64, f64)) {
+    let span = max - min;
+    (terrain.min_elevation, terrain.max_elevation) = (min, max);
+    (terrain.displacement, terrain.elevation_range) = (span, span);
+}
+
+/// How heights are stored, given their range `exact` and, where the source has one, an
+/// estimate of it from part of the heights: the estimate's encoding if it holds the whole
+/// range, else the range's own. A whole run finds this without the range: it tiles with
+/// the estimate's encoding, tracking the range, and only if a height falls outside what
+/// that encoding holds does it scan the range and tile again. Shards given the range
+/// (`--height-range`) make the same choice from it, so they encode as a whole run does.
+pub(crate) fn chosen_encoding(
+    storage: ElevationStorage,
+    exact: (f64, f64),
+    estimate: Option<(f64, f64)>,
+) -> ElevationEncoding {
+    if let Some(estimate) = estimate {
+        let speculative = estimated_encoding(storage, estimate);
+        let (lo, hi) = holds(&speculative);
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32, compared as rows compare them")]
+        if lo <= exact.0 as f32 && exact.1 as f32 <= hi {
+            return speculative;
+        }
+    }
+    height_encoding(storage, exact.0, exact.1 - exact.0)
+}
+
+/// The encoding for heights estimated to lie in `min..=max`: the step for twice the
+/// estimated span (the powers of two a step is made of leave it the same as the span's
+/// own below 2 km of span, at most twice as coarse above), and the estimate in the
+/// middle of the codes, with at least half its span to spare on each side.
+pub(crate) fn estimated_encoding(storage: ElevationStorage, (min, max): (f64, f64)) -> ElevationEncoding {
+    let span = max - min;
+    let encoding = height_encoding(storage, min, 2.0 * span);
+    if encoding.scheme != ElevationScheme::QuantizedU16 {
+        return encoding;
+    }
+    let step = encoding.scale;
+    let spare = ((65_534.0 - (span / step).ceil()) / 2.0).floor().max(0.0);
+    ElevationEncoding { offset: ((min / step).floor() - 1.0 - spare) * step, ..encoding }
+}
+
+/// The heights `encoding` holds: those whose code lands in 1..=65534 (a step inside the
+/// u16 codes, whatever the rounding), all for f32.
+pub(crate) fn holds(encoding: &ElevationEncoding) -> (f32, f32) {
+    if encoding.scheme != ElevationScheme::QuantizedU16 {
+        return (f32::NEG_INFINITY, f32::INFINITY);
+    }
+    let height = |code: f64| {
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+        let h = encoding.height(code) as f32;
+        h
+    };
+    (height(1.0), height(65_534.0))
 }
 
 /// How heights are stored: quantized u16 with a power-of-two step of at most 1/16 that

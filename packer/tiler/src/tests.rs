@@ -794,12 +794,14 @@ fn the_range_found_while_decoding_is_that_of_the_rows() {
 }
 
 #[test]
-fn a_jpeg_too_large_to_decode_whole_is_refused_by_name() {
+fn a_jpeg_too_large_to_decode_whole_is_read_by_rows_or_refused_by_name() {
     let path = Path::new("ortho.jpg");
-    assert!(raster::jpeg_fits(path, 10_800, 5_400).is_ok(), "the shaded relief (175 MB decoded) fits");
-    let e = raster::jpeg_fits(path, 40_000, 30_000).unwrap_err().to_string();
+    let never = || -> Result<bool> { panic!("a JPEG that fits is decoded whole") };
+    assert!(raster::jpeg_fits(path, 10_800, 5_400, never).is_ok(), "the shaded relief (175 MB decoded) fits");
+    assert!(raster::jpeg_fits(path, 40_000, 30_000, || Ok(true)).is_ok(), "a sequential one is read by rows");
+    let e = raster::jpeg_fits(path, 40_000, 30_000, || Ok(false)).unwrap_err().to_string();
     assert!(e.contains("ortho.jpg") && e.contains("40000x30000") && e.contains("tiled GeoTIFF"), "{e}");
-    assert!(raster::jpeg_fits(path, usize::MAX, 3).is_err(), "no overflow");
+    assert!(raster::jpeg_fits(path, usize::MAX, 3, || Ok(false)).is_err(), "no overflow");
 }
 
 #[test]
@@ -889,4 +891,73 @@ fn quantized_heights_decode_as_the_encoding_says_for_every_value() {
         let expected = encoding.height(q as f64) as f32;
         assert_eq!(h.to_bits(), expected.to_bits(), "raw {q}");
     }
+}
+
+#[test]
+fn quantized_heights_are_what_a_reader_decodes_bit_for_bit() {
+    // Steps and offsets as `plan` makes them (powers of two, whole steps: the f32 path),
+    // an offset near that path's limit, and encodings from elsewhere (the f64 path).
+    let encodings = [
+        (1.0 / 16.0, -26.0 / 16.0),
+        (1.0 / 16.0, 4_000.0),
+        (0.25, -11_000.25),
+        (16.0, -16.0 * 16_000_000.0),
+        (0.0731, -432.17),
+        (1.0 / 16.0, 3.03),
+    ];
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    for (scale, offset) in encodings {
+        let encoding = ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale, offset, nodata: Some(0.0) };
+        let span = scale * 65_535.0;
+        let mut heights: Vec<f32> = (0..20_000)
+            .map(|_| (offset + (next() % 1_000_000) as f64 / 1e6 * span * 1.1 - span * 0.05) as f32)
+            .collect();
+        heights.extend([f32::NAN, offset as f32, (offset + span) as f32, (offset + span / 2.0) as f32]);
+        let mut quantized = heights.clone();
+        encode::quantize_heights(&mut quantized, &encoding);
+        let mut raw = Vec::new();
+        encode::encode_heights(&heights, &encoding, &mut raw);
+        let decoded = encode::decode_heights(&raw, &encoding);
+        for ((h, q), d) in heights.iter().zip(&quantized).zip(&decoded) {
+            assert_eq!(q.to_bits(), d.to_bits(), "height {h} with step {scale}, offset {offset}");
+        }
+    }
+}
+
+#[test]
+fn an_estimated_encoding_spares_half_the_span_each_side_at_most_twice_as_coarse() {
+    use crate::options::ElevationStorage;
+    use crate::plan::{chosen_encoding, estimated_encoding, holds};
+    for span in [0.0, 1.0, 900.0, 2_000.0, 2_100.0, 4_000.0, 4_100.0, 9_000.0, 19_900.0, 500_000.0] {
+        for min in [-11_000.0, -66.0, 0.0, 3_217.3] {
+            let estimate = (min, min + span);
+            let e = estimated_encoding(ElevationStorage::Auto, estimate);
+            let own = chosen_encoding(ElevationStorage::Auto, estimate, None);
+            assert_eq!(e.scheme, ElevationScheme::QuantizedU16);
+            assert!(e.scale == own.scale || e.scale == 2.0 * own.scale, "{estimate:?}: {e:?} against {own:?}");
+            if span < 2_000.0 {
+                assert_eq!(e.scale, own.scale, "{estimate:?}");
+            }
+            let (lo, hi) = holds(&e);
+            let spare = (span / 2.0).max(e.scale);
+            assert!(f64::from(lo) <= min - spare && f64::from(hi) >= min + span + spare, "{estimate:?}: {lo} .. {hi}");
+            // The choice: the estimate's encoding while the range fits it, else the range's.
+            let inside = (min - spare, min + span + spare);
+            assert_eq!(chosen_encoding(ElevationStorage::Auto, inside, Some(estimate)), e);
+            let outside = (f64::from(lo) - 1.0, min + span);
+            assert_eq!(
+                chosen_encoding(ElevationStorage::Auto, outside, Some(estimate)),
+                chosen_encoding(ElevationStorage::Auto, outside, None)
+            );
+        }
+    }
+    let f32_only = estimated_encoding(ElevationStorage::F32, (0.0, 10.0));
+    assert_eq!(f32_only.scheme, ElevationScheme::Float32);
+    assert_eq!(holds(&f32_only), (f32::NEG_INFINITY, f32::INFINITY));
 }

@@ -9,9 +9,9 @@ use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress_sample
 use crate::encode::{encode_heights, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
 use crate::options::{ShardSpec, TextureInput, TileOptions};
-use crate::plan::{Plan, plan};
+use crate::plan::{Plan, estimated_encoding, holds, plan, set_height_range};
 use crate::pyramid::{self, Encode, Pixel, Pyramid, Quantize, Resample, Spool, Window};
-use crate::raster::ElevationSource;
+use crate::raster::{ElevationSource, KnownRange};
 use crate::shard;
 
 /// Packs an elevation raster into a pyramid archive at `out` (no texture: see
@@ -67,6 +67,19 @@ pub fn tile_shard(
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
     let started = std::time::Instant::now();
+    if shard.is_none()
+        && let Some(source) = elevation
+        && source.given_height_range().is_none()
+        && let Some(estimate) = source.height_range_estimate()?
+    {
+        if let Some(summary) = tile_on_estimate(source, estimate, texture, name, out, options, progress, started)? {
+            return Ok(summary);
+        }
+        tracing::info!(
+            "{}: heights outside what the estimated range's encoding holds: scanning the range, tiling again",
+            source.path().display()
+        );
+    }
     let mut plan = plan(elevation, texture.as_ref(), name, options, progress)?;
     tracing::debug!(elapsed = ?started.elapsed(), "planned (height range scanned)");
     let windows = match shard {
@@ -83,19 +96,47 @@ pub fn tile_shard(
             plan.metadata.shard = Some(info);
             windows
         }
-        None => plan
-            .metadata
-            .layers
-            .iter()
-            .zip(&plan.layers)
-            .map(|(l, p)| Window::full(l.num_lods, p.size.1 as usize))
-            .collect(),
+        None => full_windows(&plan),
     };
     tile_planned(elevation, texture, &plan, &windows, out, true, progress, started)
 }
 
-/// Runs `plan` over the sources, each layer's pyramid limited to its window (in layer
-/// order), into the archive at `out`.
+/// A whole run on the encoding of the elevation's estimated height range (see
+/// [`crate::plan::chosen_encoding`]), its range tracked as rows are read instead of
+/// scanned first: the archive, or None (nothing written) as soon as a height falls
+/// outside what that encoding holds.
+#[expect(clippy::too_many_arguments, reason = "tile_shard's inputs, and the estimate")]
+fn tile_on_estimate(
+    source: &dyn ElevationSource,
+    estimate: (f32, f32),
+    texture: Option<TextureInput<'_>>,
+    name: &str,
+    out: &Path,
+    options: TileOptions,
+    progress: &dyn Progress,
+    started: std::time::Instant,
+) -> Result<Option<WriteSummary>> {
+    let widened = (f64::from(estimate.0), f64::from(estimate.1));
+    let tracked = KnownRange::estimated(source, estimate, holds(&estimated_encoding(options.storage, widened)));
+    let mut plan = plan(Some(&tracked), texture.as_ref(), name, options, progress)?;
+    tracing::debug!(elapsed = ?started.elapsed(), ?estimate, "planned (height range estimated)");
+    let windows = full_windows(&plan);
+    let folder = terrastream_pack::output_folder(out);
+    let spool = match cut_planned(&folder, Some(&tracked), texture, &plan, &windows, progress) {
+        Err(_) if tracked.went_outside() => return Ok(None),
+        cut => cut?,
+    };
+    let seen = tracked.seen().ok_or_else(|| Error::input(source.path(), "the raster holds no data"))?;
+    set_height_range(&mut plan.metadata.terrain, (f64::from(seen.0), f64::from(seen.1)));
+    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "tiles cut and encoded");
+    write_spool(spool, &plan.metadata, out, true, progress, started).map(Some)
+}
+
+/// Every level of every layer of `plan`.
+fn full_windows(plan: &Plan) -> Vec<Window> {
+    plan.metadata.layers.iter().zip(&plan.layers).map(|(l, p)| Window::full(l.num_lods, p.size.1 as usize)).collect()
+}
+
 /// `key` moved by a plan's LOD-0 tile offset (see [`crate::plan::LayerPlan::offset`]).
 fn shifted(key: TileKey, (dx, dy): (u32, u32)) -> Result<TileKey> {
     if (dx, dy) == (0, 0) {
@@ -105,6 +146,8 @@ fn shifted(key: TileKey, (dx, dy): (u32, u32)) -> Result<TileKey> {
     Ok(TileKey::new(key.layer(), key.lod(), moved(key.x(), dx), moved(key.y(), dy))?)
 }
 
+/// Runs `plan` over the sources, each layer's pyramid limited to its window (in layer
+/// order), into the archive at `out`.
 #[expect(clippy::too_many_arguments, reason = "the inputs, the plan, and where and how to write")]
 pub(crate) fn tile_planned(
     elevation: Option<&dyn ElevationSource>,
@@ -116,9 +159,22 @@ pub(crate) fn tile_planned(
     progress: &dyn Progress,
     started: std::time::Instant,
 ) -> Result<WriteSummary> {
+    let spool = cut_planned(&terrastream_pack::output_folder(out), elevation, texture, plan, windows, progress)?;
+    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "tiles cut and encoded");
+    write_spool(spool, &plan.metadata, out, durable, progress, started)
+}
+
+/// Cuts and encodes `plan`'s tiles (as [`tile_planned`]) into a spool in `folder`.
+fn cut_planned(
+    folder: &Path,
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<TextureInput<'_>>,
+    plan: &Plan,
+    windows: &[Window],
+    progress: &dyn Progress,
+) -> Result<Spool> {
     let metadata = &plan.metadata;
-    let folder = terrastream_pack::output_folder(out);
-    let mut spool = Spool::new(&folder)?;
+    let mut spool = Spool::new(folder)?;
     progress.start("tile", plan.tiles());
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
 
@@ -151,10 +207,21 @@ pub(crate) fn tile_planned(
             t.source.rows_in(rows, &mut |row| push(resample.row(row)))
         })?;
     }
-    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "tiles cut and encoded");
+    Ok(spool)
+}
+
+/// Writes the spooled tiles into the archive at `out`, with `metadata`.
+fn write_spool(
+    spool: Spool,
+    metadata: &Metadata,
+    out: &Path,
+    durable: bool,
+    progress: &dyn Progress,
+    started: std::time::Instant,
+) -> Result<WriteSummary> {
     // Tiles come already compressed: small batches are enough for the writer's hashing.
     let options = WriterOptions { batch_bytes: 4 << 20, durable, ..WriterOptions::default() };
-    let mut writer = Writer::create(out, plan.metadata.clone(), options)?;
+    let mut writer = Writer::create(out, metadata.clone(), options)?;
     spool.drain_into(&mut writer, progress)?;
     tracing::debug!(elapsed = ?started.elapsed(), "tiles handed to the writer in archive order");
     let summary = writer.finish()?;
@@ -193,11 +260,18 @@ impl HeightEncoder {
 
     /// One cut tile -> its stored bytes (u16 or f32, zstd).
     pub(crate) fn encode(&self, key: TileKey, samples: &[f32]) -> Result<Vec<(TileKey, Vec<u8>)>> {
-        let (raw, lo, hi) = encode_heights(samples, &self.encoding);
+        thread_local! {
+            /// The raw samples of this thread's last tile: reused, not zeroed anew a tile.
+            static RAW: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        let (stored, lo, hi) = RAW.with_borrow_mut(|raw| {
+            let (lo, hi) = encode_heights(samples, &self.encoding, raw);
+            (zstd_compress_samples(raw), lo, hi)
+        });
         if self.range.is_some() && lo <= hi {
             self.ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));
         }
-        let stored = zstd_compress_samples(&raw).map_err(|e| Error::Encode { tile: key, reason: e.to_string() })?;
+        let stored = stored.map_err(|e| Error::Encode { tile: key, reason: e.to_string() })?;
         Ok(vec![(key, stored)])
     }
 

@@ -325,3 +325,66 @@ fn a_manifest_of_shards_routes_every_tile_of_the_whole_run() {
     assert!(e.to_string().contains("complete set of shards"), "{e}");
     assert!(!dir.path().join("x.json").exists());
 }
+
+/// The shards' DEM as an int16 GeoTIFF of 4-row strips (nodata -32767), with `pit` metres
+/// at one sample of row 6: a strip the estimated range does not read.
+fn dem_file(path: &Path, pit: i16) {
+    use tiff::encoder::{TiffEncoder, colortype::GrayI16};
+    let raster = dem();
+    let mut data: Vec<i16> = raster.data.iter().map(|h| if h.is_nan() { -32_767 } else { h.round() as i16 }).collect();
+    data[6 * raster.width as usize + 150] = pit;
+    let mut tiff = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = tiff.new_image::<GrayI16>(raster.width, raster.height).unwrap();
+    image.rows_per_strip(4).unwrap();
+    image.encoder().write_tag(tiff::tags::Tag::Unknown(42113), "-32767").unwrap();
+    image.write_data(&data).unwrap();
+}
+
+/// A whole run over a GeoTIFF encodes heights by the range estimated from some of its
+/// strips (it does not scan the range first) and records the exact range; shards given
+/// the exact range (the plan step's) choose the same encoding, so their merge is the
+/// whole run byte for byte. With a height the estimate's encoding cannot hold, the whole
+/// run scans the range and tiles again: still the shards' bytes, and exact heights.
+#[test]
+fn a_whole_run_on_an_estimated_range_encodes_as_shards_given_the_range() {
+    use terrastream_tiler::{ElevationSource, KnownRange, open_elevation};
+    let dir = tempfile::tempdir().unwrap();
+    for (name, pit) in [("plain", 250i16), ("pit", -3000)] {
+        let tif = dir.path().join(format!("{name}.tif"));
+        dem_file(&tif, pit);
+        let file = open_elevation(&tif, None).unwrap();
+        let exact = file.height_range(&mut |_| Ok(())).unwrap();
+        let estimate = file.height_range_estimate().unwrap().expect("a GeoTIFF estimates its range");
+        assert!(estimate.0 > exact.0 && estimate.1 < exact.1, "{name}: the strips read miss both extremes");
+
+        let whole = dir.path().join(format!("{name}-whole.tspack"));
+        tile_terrain(Some(&file), None, "t", &whole, OPTIONS, &Silent::default()).unwrap();
+        let known = KnownRange::new(&file, exact);
+        let parts: Vec<PathBuf> = (0..3)
+            .map(|i| {
+                let out = dir.path().join(format!("{name}-{i}.tspack"));
+                let spec = ShardSpec { index: i, count: 3, split_lod: None };
+                tile_shard(Some(&known), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
+                out
+            })
+            .collect();
+        let merged = dir.path().join(format!("{name}-merged.tspack"));
+        merge(&parts, &merged, &Silent::default()).unwrap();
+        assert_eq!(tiles(&merged), tiles(&whole), "{name}");
+
+        let metadata = Reader::open_mmap(&whole).unwrap().metadata().clone();
+        let t = &metadata.terrain;
+        assert_eq!((t.min_elevation, t.max_elevation), (f64::from(exact.0), f64::from(exact.1)), "{name}");
+        let encoding = metadata.layers[0].elevation.unwrap();
+        assert_eq!(encoding, Reader::open_mmap(&merged).unwrap().metadata().layers[0].elevation.unwrap());
+        assert_eq!(encoding.scale, 1.0 / 16.0, "{name}");
+        let below = f64::from(exact.0) - encoding.height(1.0);
+        if pit < 0 {
+            // The pit's own encoding: its lowest height at the first code.
+            assert!((0.0..=encoding.scale).contains(&below), "{name}: {encoding:?}");
+        } else {
+            // The estimate's: half its span and more to spare below.
+            assert!(below > f64::from(estimate.1 - estimate.0) / 2.0, "{name}: {encoding:?}");
+        }
+    }
+}

@@ -242,26 +242,26 @@ impl ElevationSource for ElevationFile {
         let needed = chunks.needed();
         for first in (0..needed).step_by(batch) {
             let end = needed.min(first + batch);
-            let ranges: Vec<Result<(f32, f32)>> = {
-                use rayon::prelude::*;
-                (first..end)
-                    .into_par_iter()
-                    .map(|i| {
-                        let (data, w, h) = chunks.read(i)?;
-                        self.chunk_range(data, w * h)
-                            .ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
-                    })
-                    .collect()
-            };
-            for range in ranges {
-                let (l, h) = range?;
-                (lo, hi) = (lo.min(l), hi.max(h));
-            }
+            let (l, h) = self.chunks_range(&chunks, first..end, 1)?;
+            (lo, hi) = (lo.min(l), hi.max(h));
             progress(chunks.rows_before(end))?;
         }
         Ok((lo, hi))
     }
+
+    fn height_range_estimate(&self) -> Result<Option<(f32, f32)>> {
+        if self.png {
+            return Ok(None);
+        }
+        // Every eighth strip or tile in file order: a lattice over the raster.
+        let chunks = TiffChunks::open(&self.path, 1)?;
+        let (lo, hi) = self.chunks_range(&chunks, 0..chunks.needed(), ESTIMATE_STRIDE)?;
+        Ok((lo <= hi).then_some((lo, hi)))
+    }
 }
+
+/// An estimated height range reads every this many strips or tiles.
+const ESTIMATE_STRIDE: usize = 8;
 
 impl ElevationFile {
     /// A GeoTIFF of heights in a geographic CRS (degrees): what `tile` reprojects onto a
@@ -300,6 +300,27 @@ impl ElevationFile {
     /// least `n`, see [`TiffChunks::read`]); None for a sample type heights are not read
     /// from. 8- and 16-bit samples stored as heights are compared as integers, as they are
     /// (no conversion, 8 or 16 lanes a vector).
+    /// The height range of every `step`th chunk of `range`, read in parallel.
+    fn chunks_range(&self, chunks: &TiffChunks<'_>, range: std::ops::Range<usize>, step: usize) -> Result<(f32, f32)> {
+        use rayon::prelude::*;
+        let ranges: Vec<Result<(f32, f32)>> = range
+            .step_by(step)
+            .collect::<Vec<_>>()
+            .into_par_iter()
+            .map(|i| {
+                let (data, w, h) = chunks.read(i)?;
+                self.chunk_range(data, w * h)
+                    .ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
+            })
+            .collect();
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for range in ranges {
+            let (l, h) = range?;
+            (lo, hi) = (lo.min(l), hi.max(h));
+        }
+        Ok((lo, hi))
+    }
+
     fn chunk_range(&self, data: tiff::decoder::DecodingResult, n: usize) -> Option<(f32, f32)> {
         use tiff::decoder::DecodingResult as D;
         #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]

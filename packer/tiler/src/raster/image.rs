@@ -5,7 +5,8 @@ use std::path::{Path, PathBuf};
 use terrastream_format::Georeference;
 
 use super::geotiff::GeoTags;
-use super::jpeg::{decode_jpeg, jpeg_header};
+use super::jpeg::{decode_jpeg, decoded_whole, jpeg_header};
+use super::jpegrows::jpeg_rows;
 use super::memory::Image;
 use super::png::{png_header, png_rows};
 use super::tiff::{PLANAR_CONFIGURATION, open_tiff, tiff_rows};
@@ -32,13 +33,13 @@ enum ImageKind {
         ycbcr: bool,
     },
     Png,
-    /// A JPEG: decoded whole when read (it cannot be read by rows).
+    /// A JPEG: decoded whole when read, or by rows if too large for that.
     Jpeg,
 }
 
 /// Opens an image for reading by rows: GeoTIFF (8-bit gray, gray+alpha, RGB, RGBA or YCbCr;
 /// strips or tiles; none, LZW, Deflate or JPEG) or PNG (any colour type; 16-bit is reduced to 8), or
-/// JPEG (decoded whole when read); told apart by content. A PNG, a JPEG or a TIFF without
+/// JPEG (decoded whole when read; by rows past 1 GiB of pixels); told apart by content. A PNG, a JPEG or a TIFF without
 /// GeoTIFF tags is placed by a world file or GDAL `.aux.xml` beside it, with its CRS from a
 /// `.prj` or the `.aux.xml`.
 ///
@@ -123,6 +124,18 @@ impl ImageFile {
         if self.tiff_channels().is_some() {
             return None;
         }
+        let (w, h) = (self.width as usize, self.height as usize);
+        if matches!(self.kind, ImageKind::Jpeg) && !decoded_whole(w, h) {
+            // Read by rows alone, but a mosaic's images are read whole.
+            return Some(Err(Error::input(
+                &self.path,
+                format!(
+                    "a {w}x{h} JPEG is too large for a mosaic or an update, which read their JPEGs whole (one \
+                     given alone to `tile` is read by rows): convert it to a tiled GeoTIFF (gdal_translate -co \
+                     TILED=YES -co COMPRESS=JPEG in.jpg out.tif)"
+                ),
+            )));
+        }
         Some(self.rgba())
     }
 
@@ -198,7 +211,10 @@ impl ImageSource for ImageFile {
             row(&out)
         };
         match &self.kind {
-            ImageKind::Jpeg => self.decode_jpeg()?.chunks_exact(width * 3).try_for_each(|r| emit(r, 3)),
+            ImageKind::Jpeg if decoded_whole(width, self.height as usize) => {
+                self.decode_jpeg()?.chunks_exact(width * 3).try_for_each(|r| emit(r, 3))
+            }
+            ImageKind::Jpeg => jpeg_rows(&self.path, &mut |r| emit(r, 3)),
             ImageKind::Png => png_rows(&self.path, self.width, |values, channels, sixteen| {
                 if sixteen {
                     let eight: Vec<u8> = values.chunks_exact(2).map(|v| v[0]).collect();

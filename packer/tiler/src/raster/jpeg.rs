@@ -1,33 +1,45 @@
-//! JPEG images: headers read when opened, pixels decoded whole when read (a JPEG cannot
-//! be read by rows here).
+//! JPEG images: headers read when opened; pixels decoded whole when read, or, for a JPEG
+//! too large for that, a row of MCUs at a time ([`super::jpegrows`]).
 
 use std::path::Path;
 
 use crate::error::{Error, Result};
 
-/// Most bytes a JPEG may take decoded. A JPEG is decoded whole (it cannot be read by rows,
-/// unlike every other input), so this bounds the tiler's memory for one.
+/// Most bytes a JPEG may take decoded to be decoded whole (the fast way, with interpolated
+/// chroma). A larger one is read a row of MCUs at a time, if it is sequential; a larger
+/// progressive one is refused.
 pub const JPEG_MAX_DECODED_BYTES: usize = 1 << 30;
 
-/// Refuses a JPEG too large to decode whole, naming the way out.
-pub(crate) fn jpeg_fits(path: &Path, width: usize, height: usize) -> Result<()> {
-    let bytes = width.saturating_mul(height).saturating_mul(3);
-    if bytes > JPEG_MAX_DECODED_BYTES {
-        return Err(Error::input(
-            path,
-            format!(
-                "a {width}x{height} JPEG takes {} MiB decoded, over the {} MiB a JPEG may take (it cannot be \
-                 read by rows): convert it to a tiled GeoTIFF, which is streamed (gdal_translate -co TILED=YES \
-                 -co COMPRESS=JPEG in.jpg out.tif)",
-                bytes >> 20,
-                JPEG_MAX_DECODED_BYTES >> 20
-            ),
-        ));
-    }
-    Ok(())
+/// Is a `width` x `height` JPEG decoded whole (else by rows)?
+pub(crate) fn decoded_whole(width: usize, height: usize) -> bool {
+    width.saturating_mul(height).saturating_mul(3) <= JPEG_MAX_DECODED_BYTES
 }
 
-/// A JPEG's width and height, from its headers, checked to fit [`JPEG_MAX_DECODED_BYTES`].
+/// Refuses a JPEG too large to decode whole that cannot be read by rows either, naming the
+/// way out.
+pub(crate) fn jpeg_fits(
+    path: &Path,
+    width: usize,
+    height: usize,
+    by_rows: impl FnOnce() -> Result<bool>,
+) -> Result<()> {
+    if decoded_whole(width, height) || by_rows()? {
+        return Ok(());
+    }
+    let bytes = width.saturating_mul(height).saturating_mul(3);
+    Err(Error::input(
+        path,
+        format!(
+            "a {width}x{height} JPEG takes {} MiB decoded, over the {} MiB a JPEG may take whole, and it cannot \
+             be read by rows (progressive, lossless, arithmetic-coded, 12-bit or CMYK): convert it to a tiled \
+             GeoTIFF, which is streamed (gdal_translate -co TILED=YES -co COMPRESS=JPEG in.jpg out.tif)",
+            bytes >> 20,
+            JPEG_MAX_DECODED_BYTES >> 20
+        ),
+    ))
+}
+
+/// A JPEG's width and height, from its headers, checked to be readable (see [`jpeg_fits`]).
 pub(super) fn jpeg_header(path: &Path) -> Result<(u32, u32)> {
     use std::io::Read;
     let bad = |why: String| Error::input(path, why);
@@ -44,7 +56,7 @@ pub(super) fn jpeg_header(path: &Path) -> Result<(u32, u32)> {
         Ok(size) => size,
         Err(_) => headers(&std::fs::read(path).map_err(|e| Error::file(path, e))?)?,
     };
-    jpeg_fits(path, w, h)?;
+    jpeg_fits(path, w, h, || super::jpegrows::reads_by_rows(path))?;
     let dim = |n: usize| u32::try_from(n).map_err(|_| bad("JPEG: too large".into()));
     Ok((dim(w)?, dim(h)?))
 }
@@ -63,8 +75,14 @@ pub(super) fn decode_jpeg(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&bytes, options());
     decoder.decode_headers().map_err(|e| bad(format!("JPEG: {e:?}")))?;
     let (w, h) = decoder.dimensions().ok_or_else(|| bad("JPEG: no dimensions".into()))?;
-    jpeg_fits(path, w, h)?;
-    let pixels = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
+    if !decoded_whole(w, h) {
+        return Err(bad(format!("a {w}x{h} JPEG is read by rows, not whole")));
+    }
+    let mut pixels = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
+    // A gray JPEG comes out gray whatever colour space is asked for.
+    if pixels.len() == w * h {
+        pixels = pixels.iter().flat_map(|&v| [v; 3]).collect();
+    }
     let dim = |n: usize| u32::try_from(n).map_err(|_| bad("JPEG: too large".into()));
     Ok((dim(w)?, dim(h)?, pixels))
 }

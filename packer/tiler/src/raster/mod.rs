@@ -12,6 +12,7 @@ mod geotiff;
 mod image;
 mod inputs;
 mod jpeg;
+mod jpegrows;
 mod kind;
 mod memory;
 mod mosaic;
@@ -37,6 +38,7 @@ pub use inputs::expand_inputs;
 pub use jpeg::JPEG_MAX_DECODED_BYTES;
 #[cfg(test)]
 pub(crate) use jpeg::jpeg_fits;
+pub use jpegrows::jpeg_rows;
 pub use kind::{Heights, MosaicKind, Pixels};
 pub use memory::{Image, ImageWindow, Raster};
 pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
@@ -84,6 +86,21 @@ pub trait ElevationSource: Sync {
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         range_of_rows(progress, |row| self.rows(row))
     }
+    /// The range of part of the heights, found at a small part of the cost of
+    /// [`ElevationSource::height_range`] (inside it, and the same on every call for the
+    /// same input: the shards of a run and a whole run find the same), or None where the
+    /// source has no cheaper way, or the part holds no data. See [`crate::plan`] for how
+    /// a run uses it.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`].
+    fn height_range_estimate(&self) -> Result<Option<(f32, f32)>> {
+        Ok(None)
+    }
+    /// The height range given for this source instead of a pass over it, if one was.
+    fn given_height_range(&self) -> Option<(f32, f32)> {
+        None
+    }
 }
 
 /// Rows `rows` of what `read` passes on: those above dropped, the read stopped after the
@@ -113,10 +130,15 @@ pub(crate) fn rows_window<T>(
 /// naming the file, not a silently clamped tile.
 pub struct KnownRange<'a> {
     source: &'a dyn ElevationSource,
+    /// The range the source reports.
     range: (f32, f32),
-    /// What the range is, for the error: "the given height range", "the archive's height
-    /// encoding".
-    what: &'static str,
+    /// The heights every row must lie in (the range, unless estimated).
+    limits: (f32, f32),
+    /// What the limits are, for the error: "the given height range", "the archive's height
+    /// encoding"; None for an estimate, whose run stops quietly (see [`Self::estimated`]).
+    what: Option<&'static str>,
+    /// Set when a row went outside an estimate's limits.
+    outside: std::sync::atomic::AtomicBool,
     /// The lowest and highest heights read so far.
     seen: std::sync::Mutex<(f32, f32)>,
 }
@@ -129,7 +151,30 @@ impl<'a> KnownRange<'a> {
 
     /// `source` whose heights must fit `min..=max`, which is `what` (named in the error).
     pub(crate) fn limited(source: &'a dyn ElevationSource, range: (f32, f32), what: &'static str) -> Self {
-        Self { source, range, what, seen: std::sync::Mutex::new((f32::INFINITY, f32::NEG_INFINITY)) }
+        Self::with(source, range, range, Some(what))
+    }
+
+    /// `source` reporting its estimated range `estimate` as its range, and the rows as
+    /// they are read, up to the first row outside `limits`: that stops the read (an
+    /// interruption) and sets [`Self::went_outside`].
+    pub(crate) fn estimated(source: &'a dyn ElevationSource, estimate: (f32, f32), limits: (f32, f32)) -> Self {
+        Self::with(source, estimate, limits, None)
+    }
+
+    fn with(
+        source: &'a dyn ElevationSource,
+        range: (f32, f32),
+        limits: (f32, f32),
+        what: Option<&'static str>,
+    ) -> Self {
+        Self {
+            source,
+            range,
+            limits,
+            what,
+            outside: std::sync::atomic::AtomicBool::new(false),
+            seen: std::sync::Mutex::new((f32::INFINITY, f32::NEG_INFINITY)),
+        }
     }
 
     /// The lowest and highest heights read so far, if any.
@@ -138,13 +183,22 @@ impl<'a> KnownRange<'a> {
         (lo <= hi).then_some((lo, hi))
     }
 
+    /// True once a row went outside an estimate's limits.
+    pub(crate) fn went_outside(&self) -> bool {
+        self.outside.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
     fn checked<'r>(&'r self, row: &'r mut dyn FnMut(&[f32]) -> Result<()>) -> impl FnMut(&[f32]) -> Result<()> + 'r {
         move |r: &[f32]| {
             let (lo, hi) = crate::plan::min_max(r);
-            if lo < self.range.0 || hi > self.range.1 {
+            if lo < self.limits.0 || hi > self.limits.1 {
+                let Some(what) = self.what else {
+                    self.outside.store(true, std::sync::atomic::Ordering::Relaxed);
+                    return Err(crate::error::interrupted());
+                };
                 return Err(Error::input(
                     self.source.path(),
-                    format!("heights {lo} .. {hi} lie outside {} {} .. {}", self.what, self.range.0, self.range.1),
+                    format!("heights {lo} .. {hi} lie outside {what} {} .. {}", self.limits.0, self.limits.1),
                 ));
             }
             let mut seen = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -182,6 +236,15 @@ impl ElevationSource for KnownRange<'_> {
     }
     fn height_range(&self, _: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         Ok(self.range)
+    }
+    fn height_range_estimate(&self) -> Result<Option<(f32, f32)>> {
+        match self.what {
+            Some(_) => self.source.height_range_estimate(),
+            None => Ok(Some(self.range)),
+        }
+    }
+    fn given_height_range(&self) -> Option<(f32, f32)> {
+        self.what.map(|_| self.range)
     }
 }
 

@@ -114,6 +114,24 @@ impl<'p> TiffChunks<'p> {
         Ok((values, w, h))
     }
 
+    /// Chunk `index` converted into `rows` (each at least the chunk's width in samples, as
+    /// the raster cuts it off), as many rows as there are; the rows the chunk holds.
+    pub(super) fn read_f32_into(&self, index: usize, rows: &mut [&mut [f32]]) -> Result<usize> {
+        if let Some(raw) = self.raw.as_ref().filter(|_| index < self.count) {
+            let (w, h) = self.data_size(index);
+            let what = Self::name(self.kind);
+            raw.read_f32_into(index, w, h, rows)
+                .map_err(|e| Error::input(self.path, format!("reading {what} {index}: {e}")))?;
+            return Ok(h);
+        }
+        let (values, w, h) = self.read_f32(index)?;
+        for (dst, src) in rows.iter_mut().zip(values.chunks_exact((w * self.channels).max(1))).take(h) {
+            let n = dst.len().min(src.len());
+            dst[..n].copy_from_slice(&src[..n]);
+        }
+        Ok(h)
+    }
+
     /// The pixels across and down chunk `index` holds (the raster's, where it is cut off).
     fn data_size(&self, index: usize) -> (usize, usize) {
         let across = self.across().max(1);
@@ -176,10 +194,11 @@ fn samples_in(data: &tiff::decoder::DecodingResult) -> usize {
 
 /// Calls `row` with each row of a TIFF's samples (`channels` per pixel), in order, after
 /// `prepare` has seen them (in the decoding threads: a conversion in place). Strips
-/// (a batch of about [`STRIP_BATCH_BYTES`]) or tiles (one per thread) are read and decoded
-/// in parallel, each thread with a decoder of its own, so decompression (LZW, Deflate) and
-/// conversion use every core; memory is one batch of strips, or a row of tiles and one
-/// tile per thread. Samples are f32: exact for 8- and 16-bit values, and heights are kept
+/// (a batch of about [`STRIP_BATCH_BYTES`]) or tiles (a row of them, each straight into
+/// its columns of the rows) are read and decoded in parallel, each thread with a decoder
+/// of its own, so decompression (LZW, Deflate) and conversion use every core; memory is
+/// one batch of strips, or a row of tiles (and a tile per thread where the `tiff` crate
+/// decodes them). Samples are f32: exact for 8- and 16-bit values, and heights are kept
 /// as f32 anyway.
 pub(super) fn tiff_rows(
     path: &Path,
@@ -240,18 +259,26 @@ pub(super) fn tiff_rows_in(
             let tile_rows = height.div_ceil(chunk_h).min(wanted.end.div_ceil(chunk_h));
             for ty in (wanted.start / chunk_h).min(tile_rows)..tile_rows {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
-                // A tile per thread at a time: the decoded tiles held are as many as threads.
-                let group = 4 * rayon::current_num_threads().max(1);
-                for first in (0..across).step_by(group) {
-                    let tiles = decode(ty * across + first..ty * across + across.min(first + group))?;
-                    for (tx, (values, w, h)) in (first..).zip(tiles) {
-                        rows_here = rows_here.min(h);
-                        let x0 = tx * chunk_w * channels;
-                        let w = w.min(width - tx * chunk_w) * channels;
-                        for (j, src) in values.chunks_exact(w.max(1)).take(h).enumerate() {
-                            band[j * stride + x0..j * stride + x0 + w].copy_from_slice(&src[..w]);
-                        }
+                // Every tile of the row decoded in parallel straight into its columns of
+                // the band's rows: no tile is held apart and copied.
+                let mut columns: Vec<Vec<&mut [f32]>> = (0..across).map(|_| Vec::with_capacity(rows_here)).collect();
+                for band_row in band.chunks_exact_mut(stride).take(rows_here) {
+                    for (column, part) in columns.iter_mut().zip(band_row.chunks_mut(chunk_w * channels)) {
+                        column.push(part);
                     }
+                }
+                let held: Vec<Result<usize>> = columns
+                    .into_par_iter()
+                    .enumerate()
+                    .map(|(tx, mut rows)| {
+                        let h = chunks.read_f32_into(ty * across + tx, &mut rows)?;
+                        rows.iter_mut().take(h).for_each(|r| prepare(r));
+                        Ok(h)
+                    })
+                    .collect();
+                // The first failure in file order is the error.
+                for h in held {
+                    rows_here = rows_here.min(h?);
                 }
                 for (k, r) in band.chunks_exact(stride).take(rows_here).enumerate() {
                     if wanted.contains(&(ty * chunk_h + k)) {
