@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Tiler benchmark: `terrastream tile` against gdal2tiles.py on the same inputs, same cores,
 # in one run; wall time, peak memory (max RSS) and output size side by side, with ratios.
+# Compared jobs run in turn, round after round (REPEAT rounds, default 3): the table has
+# each job's fastest run, and the ratios are also given round by round, with their median.
 #
 #   bash scripts/bench-tile.sh [DEM.tif] [IMAGE.jpg]
 #
@@ -43,28 +45,54 @@ trap 'rm -rf "$work"' EXIT INT TERM
 # the fastest run's seconds and the largest peak KiB (this machine is shared and noisy: one
 # run can take twice as long as the next), and the output's bytes.
 REPEAT=${REPEAT:-3}
-declare -A secs peak size
-measure() {
-  local name=$1 out=$2 best="" most=0; shift 2
-  for _ in $(seq "$REPEAT"); do
-    rm -rf "$out"
-    # Every run starts with nothing left to write: the inputs just made, or the last
-    # run's output, would otherwise be written back to disk during it (and wait in
-    # front of a tool that syncs its output).
-    sync
-    # GNU time for the peak memory; the wall time from the clock in ms (time's %e has
-    # 10 ms steps, 6% of the DEM job).
-    local t0 t1
-    t0=$(date +%s%N)
-    /usr/bin/time -f '%M' -o "$work/time" "$@" >"$work/log" 2>&1 || { cat "$work/log"; exit 1; }
-    t1=$(date +%s%N)
-    read -r m <"$work/time"
-    s=$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.3f", (b - a) / 1e9 }')
-    if [ -z "$best" ] || awk -v a="$s" -v b="$best" 'BEGIN { exit !(a < b) }'; then best=$s; fi
-    [ "$m" -gt "$most" ] && most=$m
-  done
-  secs[$name]=$best; peak[$name]=$most
+declare -A secs peak size runs
+measure_once() {
+  local name=$1 out=$2; shift 2
+  rm -rf "$out"
+  # Every run starts with nothing left to write: the inputs just made, or the last
+  # run's output, would otherwise be written back to disk during it (and wait in
+  # front of a tool that syncs its output).
+  sync
+  # GNU time for the peak memory; the wall time from the clock in ms (time's %e has
+  # 10 ms steps, 6% of the DEM job).
+  local t0 t1 m s
+  t0=$(date +%s%N)
+  /usr/bin/time -f '%M' -o "$work/time" "$@" >"$work/log" 2>&1 || { cat "$work/log"; exit 1; }
+  t1=$(date +%s%N)
+  read -r m <"$work/time"
+  s=$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.3f", (b - a) / 1e9 }')
+  runs[$name]="${runs[$name]:-} $s"
+  if [ -z "${secs[$name]:-}" ] || awk -v a="$s" -v b="${secs[$name]}" 'BEGIN { exit !(a < b) }'; then
+    secs[$name]=$s
+  fi
+  [ "$m" -gt "${peak[$name]:-0}" ] && peak[$name]=$m
   size[$name]=$(du -sb "$out" | cut -f1)
+}
+measure() {
+  for _ in $(seq "$REPEAT"); do measure_once "$@"; done
+}
+# rounds SLOW FAST: the ratio of two jobs measured together, round by round (each pair of
+# runs minutes apart at most), and their median: steadier than the fastest runs' ratio.
+rounds() {
+  awk -v a="${runs[$1]}" -v b="${runs[$2]}" 'BEGIN {
+    n = split(a, x, " "); split(b, y, " ")
+    for (i = 1; i <= n; i++) { r[i] = x[i] / y[i]; out = out sprintf("%s%.1f", i > 1 ? ", " : "", r[i]) }
+    for (i = 1; i <= n; i++) for (j = i + 1; j <= n; j++) if (r[j] < r[i]) { t = r[i]; r[i] = r[j]; r[j] = t }
+    m = n % 2 ? r[(n + 1) / 2] : (r[n / 2] + r[n / 2 + 1]) / 2
+    printf "%s (median %.1fx)", out, m
+  }'
+}
+# measure_together NAME OUTPUT ARRAY [NAME OUTPUT ARRAY ...]: the jobs (each command in the
+# array named) run in turn, round after round, so that a slow minute on this shared
+# machine falls on all of them: their ratios are what this bench reports.
+measure_together() {
+  local args=("$@") i
+  for _ in $(seq "$REPEAT"); do
+    for ((i = 0; i < ${#args[@]}; i += 3)); do
+      local -n job=${args[i + 2]}
+      measure_once "${args[i]}" "${args[i + 1]}" "${job[@]}"
+    done
+  done
 }
 # Two-step jobs (translate + tile) are timed as one shell.
 gdal_dem() {
@@ -92,10 +120,12 @@ mosaic_case() {
     done
   done
   echo "mosaic: $(ls "$dir/all" | wc -l) GeoTIFFs in two UTM zones at $spacing m, $(du -sh "$dir/all" | cut -f1)"
-  measure ours-mosaic "$work/m.tspack" "$bin" -q tile --elevation "$dir/all" -o "$work/m.tspack"
-  measure ours-mosaic-quarter "$work/mq.tspack" "$bin" -q tile --elevation "$dir/quarter" -o "$work/mq.tspack"
   export MOSAIC_SPACING=$spacing
-  measure gdal-mosaic "$work/m-g2t" bash -c 'gdal_mosaic "$0" "$1"' "$dir/all" "$work/m-g2t"
+  local ours=("$bin" -q tile --elevation "$dir/all" -o "$work/m.tspack")
+  local quarter=("$bin" -q tile --elevation "$dir/quarter" -o "$work/mq.tspack")
+  local theirs=(bash -c 'gdal_mosaic "$0" "$1"' "$dir/all" "$work/m-g2t")
+  measure_together ours-mosaic "$work/m.tspack" ours ours-mosaic-quarter "$work/mq.tspack" quarter \
+    gdal-mosaic "$work/m-g2t" theirs
 }
 gdal_mosaic() {
   gdalwarp -q -t_srs EPSG:32610 -tr "$MOSAIC_SPACING" "$MOSAIC_SPACING" -r bilinear -dstnodata -32768 -multi \
@@ -112,28 +142,32 @@ if [ "$MOSAIC" = only ]; then
   printf '%-40s %9s s %9s MiB\n' "mosaic: terrastream tile" "${secs[ours-mosaic]}" "$((peak[ours-mosaic] / 1024))"
   printf '%-40s %9s s %9s MiB\n' "mosaic: gdalwarp + translate + gdal2tiles" "${secs[gdal-mosaic]}" "$((peak[gdal-mosaic] / 1024))"
   printf '%-40s %9s s %9s MiB\n' "mosaic, its first quarter of rows: ours" "${secs[ours-mosaic-quarter]}" "$((peak[ours-mosaic-quarter] / 1024))"
-  echo "mosaic speed-up over GDAL: $(awk -v a="${secs[gdal-mosaic]}" -v b="${secs[ours-mosaic]}" 'BEGIN { printf "%.1fx", a / b }')"
+  echo "mosaic speed-up over GDAL: $(awk -v a="${secs[gdal-mosaic]}" -v b="${secs[ours-mosaic]}" 'BEGIN { printf "%.1fx", a / b }'); by round: $(rounds gdal-mosaic ours-mosaic)"
   echo "mosaic peak memory, 4x the area: $(awk -v a="${peak[ours-mosaic]}" -v b="${peak[ours-mosaic-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
   exit 0
 fi
-measure ours-dem "$work/dem.tspack" "$bin" -q tile --elevation "$DEM" --keep-geographic -o "$work/dem.tspack"
-measure ours-dem-tm "$work/dem-tm.tspack" "$bin" -q tile --elevation "$DEM" -o "$work/dem-tm.tspack"
-measure gdal-dem "$work/dem-g2t" bash -c 'gdal_dem "$0"' "$work/dem-g2t"
-measure ours-img-png "$work/img.tspack" "$bin" -q tile --texture "$IMAGE" --texture-format png -o "$work/img.tspack"
-measure ours-img-jpeg "$work/imgj.tspack" "$bin" -q tile --texture "$IMAGE" --texture-format jpeg -o "$work/imgj.tspack"
-measure gdal-img-png "$work/img-g2t" gdal2tiles.py -q -p raster -r average --processes="$CORES" "$IMAGE" "$work/img-g2t"
-
-# Memory against input size: the same DEM a quarter as tall, and twice as tall (mirrored).
-gdal_translate -q -srcwin 0 0 3601 900 "$DEM" "$work/quarter.tif"
-gdal_translate -q -outsize 100% 200% -r near "$DEM" "$work/double.tif"
-gdal_translate -q -co TILED=YES -co COMPRESS=DEFLATE "$IMAGE" "$work/image-tiled.tif"
 # One large DEM: the DEM upsampled to LARGE^2 (default 8100^2 = 65.6 M samples), written as
 # DEMs are published (tiled, Deflate + horizontal predictor, int16).
 LARGE=${LARGE:-8100}
 gdal_translate -q -outsize "$LARGE" "$LARGE" -r bilinear -co TILED=YES -co COMPRESS=DEFLATE -co PREDICTOR=2 \
   "$DEM" "$work/large.tif"
-measure ours-dem-large "$work/l.tspack" "$bin" -q tile --elevation "$work/large.tif" --keep-geographic -o "$work/l.tspack"
-measure gdal-dem-large "$work/l-g2t" bash -c 'DEM=$1 gdal_dem "$0"' "$work/l-g2t" "$work/large.tif"
+# The DEMs, ours and GDAL's, in turn (their ratios, and the samples/s across the sizes).
+ours_dem=("$bin" -q tile --elevation "$DEM" --keep-geographic -o "$work/dem.tspack")
+gdal_dem=(bash -c 'gdal_dem "$0"' "$work/dem-g2t")
+ours_large=("$bin" -q tile --elevation "$work/large.tif" --keep-geographic -o "$work/l.tspack")
+gdal_large=(bash -c 'DEM=$1 gdal_dem "$0"' "$work/l-g2t" "$work/large.tif")
+measure_together ours-dem "$work/dem.tspack" ours_dem gdal-dem "$work/dem-g2t" gdal_dem \
+  ours-dem-large "$work/l.tspack" ours_large gdal-dem-large "$work/l-g2t" gdal_large
+measure ours-dem-tm "$work/dem-tm.tspack" "$bin" -q tile --elevation "$DEM" -o "$work/dem-tm.tspack"
+ours_png=("$bin" -q tile --texture "$IMAGE" --texture-format png -o "$work/img.tspack")
+gdal_png=(gdal2tiles.py -q -p raster -r average --processes="$CORES" "$IMAGE" "$work/img-g2t")
+measure_together ours-img-png "$work/img.tspack" ours_png gdal-img-png "$work/img-g2t" gdal_png
+measure ours-img-jpeg "$work/imgj.tspack" "$bin" -q tile --texture "$IMAGE" --texture-format jpeg -o "$work/imgj.tspack"
+
+# Memory against input size: the same DEM a quarter as tall, and twice as tall (mirrored).
+gdal_translate -q -srcwin 0 0 3601 900 "$DEM" "$work/quarter.tif"
+gdal_translate -q -outsize 100% 200% -r near "$DEM" "$work/double.tif"
+gdal_translate -q -co TILED=YES -co COMPRESS=DEFLATE "$IMAGE" "$work/image-tiled.tif"
 measure ours-dem-quarter "$work/q.tspack" "$bin" -q tile --elevation "$work/quarter.tif" --keep-geographic -o "$work/q.tspack"
 measure ours-dem-double "$work/d.tspack" "$bin" -q tile --elevation "$work/double.tif" --keep-geographic -o "$work/d.tspack"
 measure ours-img-tiff "$work/it.tspack" "$bin" -q tile --texture "$work/image-tiled.tif" -o "$work/it.tspack"
@@ -155,6 +189,7 @@ row "DEM ${LARGE}^2 Deflate+predictor: ours" ours-dem-large
 row "DEM ${LARGE}^2: translate + gdal2tiles" gdal-dem-large
 echo
 echo "speed-up over gdal2tiles: DEM $(ratio gdal-dem ours-dem), large DEM $(ratio gdal-dem-large ours-dem-large), image (PNG) $(ratio gdal-img-png ours-img-png)"
+echo "  by round: DEM $(rounds gdal-dem ours-dem); large DEM $(rounds gdal-dem-large ours-dem-large); image $(rounds gdal-img-png ours-img-png)"
 echo "DEM reprojected onto its transverse Mercator (the default; gdal2tiles does not reproject here): $(ratio ours-dem-tm ours-dem) the time kept geographic, $(ratio gdal-dem ours-dem-tm) faster than gdal2tiles"
 dem_samples=$(gdalinfo "$DEM" | awk '/^Size is/ { gsub(",", ""); print $3 * $4 }')
 echo "samples/s: DEM $(awk -v n="$dem_samples" -v s="${secs[ours-dem]}" 'BEGIN { printf "%.0f M", n / s / 1e6 }'), large DEM $(awk -v n="$LARGE" -v s="${secs[ours-dem-large]}" 'BEGIN { printf "%.0f M", n * n / s / 1e6 }'); DEM / large DEM: $(awk -v n="$dem_samples" -v m="$LARGE" -v a="${secs[ours-dem]}" -v b="${secs[ours-dem-large]}" 'BEGIN { printf "%.2fx", (n / a) / (m * m / b) }')"
@@ -164,6 +199,6 @@ if [ "$MOSAIC" != 0 ]; then
   row "mosaic: terrastream tile" ours-mosaic
   row "mosaic: gdalwarp + translate + gdal2tiles" gdal-mosaic
   row "mosaic, its first quarter of rows: ours" ours-mosaic-quarter
-  echo "mosaic speed-up over GDAL: $(ratio gdal-mosaic ours-mosaic); peak memory for 4x the area: $(awk -v a="${peak[ours-mosaic]}" -v b="${peak[ours-mosaic-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
+  echo "mosaic speed-up over GDAL: $(ratio gdal-mosaic ours-mosaic), by round $(rounds gdal-mosaic ours-mosaic); peak memory for 4x the area: $(awk -v a="${peak[ours-mosaic]}" -v b="${peak[ours-mosaic-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
 fi
 echo "peak memory, image streamed from TIFF / decoded JPEG: $(awk -v a="${peak[ours-img-tiff]}" -v b="${peak[ours-img-png]}" 'BEGIN { printf "%.2fx", a / b }')"
