@@ -961,3 +961,68 @@ fn an_estimated_encoding_spares_half_the_span_each_side_at_most_twice_as_coarse(
     assert_eq!(f32_only.scheme, ElevationScheme::Float32);
     assert_eq!(holds(&f32_only), (f32::NEG_INFINITY, f32::INFINITY));
 }
+
+/// A PNG and a JPEG in a mosaic are read a strip of rows at a time from the top, on a
+/// decoder thread each: the rows come out as the images hold them, also when every strip
+/// must be decoded again (a cache of one chunk), and a damaged image is named.
+#[test]
+fn png_and_jpeg_in_a_mosaic_are_read_by_strips_of_rows() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name);
+    // 150 x 330: five strips of 64 rows and one of 10.
+    let (w, h) = (150u32, 330u32);
+    let rgb: Vec<u8> =
+        (0..h).flat_map(|y| (0..w).flat_map(move |x| [(x * 7) as u8, (y * 3) as u8, (x ^ y) as u8])).collect();
+    let place = |name: &str, world: &str| {
+        // Pixel centres 10 m apart from (500 005, 5 000 995) in UTM 32N.
+        std::fs::write(p(world), "10\n0\n0\n-10\n500005\n5000995\n").unwrap();
+        std::fs::write(p(name).with_extension("prj"), "EPSG:32632").unwrap();
+    };
+    png_with(&p("a.png"), w, h, png::ColorType::Rgb, png::BitDepth::Eight, &rgb);
+    place("a.png", "a.pgw");
+    let mut jpeg = Vec::new();
+    let mut encoder = jpeg_encoder::Encoder::new(&mut jpeg, 90);
+    encoder.set_sampling_factor(jpeg_encoder::SamplingFactor::R_4_2_0);
+    encoder.encode(&rgb, w as u16, h as u16, jpeg_encoder::ColorType::Rgb).unwrap();
+    std::fs::write(p("b.jpg"), &jpeg).unwrap();
+    place("b.jpg", "b.jgw");
+    let rgba = |rows: &[u8]| rows.chunks_exact(3).map(|c| [c[0], c[1], c[2], 255]).collect::<Vec<_>>();
+    let mut jpeg_rgb = Vec::new();
+    jpeg_rows(&p("b.jpg"), &mut |r| {
+        jpeg_rgb.extend_from_slice(r);
+        Ok(())
+    })
+    .unwrap();
+    for cache_bytes in [None, Some(1)] {
+        let options = MosaicOptions { crs: Some(Crs::epsg(32632).unwrap()), cache_bytes, ..MosaicOptions::default() };
+        for (image, expected) in [("a.png", rgba(&rgb)), ("b.jpg", rgba(&jpeg_rgb))] {
+            let mosaic = Mosaic::<Pixels>::open(&[p(image)], &options).unwrap();
+            assert_eq!(ImageSource::size(&mosaic), (w, h), "{image}: on the image's own grid");
+            let mut made = Vec::new();
+            ImageSource::rows(&mosaic, &mut |r| {
+                made.extend_from_slice(r);
+                Ok(())
+            })
+            .unwrap();
+            assert!(made == expected, "{image}, cache {cache_bytes:?}: the mosaic's rows are not the image's");
+            // A band further down alone, then one above it.
+            for rows in [200..330, 10..140] {
+                let mut band = Vec::new();
+                ImageSource::rows_in(&mosaic, rows.clone(), &mut |r| {
+                    band.extend_from_slice(r);
+                    Ok(())
+                })
+                .unwrap();
+                let (a, b) = (rows.start as usize * w as usize, rows.end as usize * w as usize);
+                assert!(band == expected[a..b], "{image}, cache {cache_bytes:?}, rows {rows:?}");
+            }
+        }
+    }
+    // The JPEG cut short: its rows stop with an error naming it.
+    std::fs::write(p("b.jpg"), &jpeg[..jpeg.len() / 2]).unwrap();
+    let options = MosaicOptions { crs: Some(Crs::epsg(32632).unwrap()), ..MosaicOptions::default() };
+    let mosaic = Mosaic::<Pixels>::open(&[p("b.jpg")], &options).unwrap();
+    let err = ImageSource::rows(&mosaic, &mut |_| Ok(())).unwrap_err().to_string();
+    eprintln!("{err}");
+    assert!(err.contains("b.jpg"), "{err}");
+}

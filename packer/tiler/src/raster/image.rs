@@ -115,28 +115,20 @@ impl ImageFile {
 }
 
 impl ImageFile {
-    /// The pixels of a PNG or JPEG, whole, as RGBA8 (what a mosaic reads of one, as a
-    /// single chunk); `None` for a GeoTIFF, read by strips or tiles.
+    /// The pixels of a PNG or JPEG row after row, as RGBA8, decoding as little at a time as
+    /// the file allows: a PNG or a sequential JPEG by rows, a progressive JPEG whole (it
+    /// cannot be read by rows; one too large for that is refused when opened). What a
+    /// mosaic reads of one, a band of rows at a time.
     ///
     /// # Errors
-    /// [`Error::Input`] naming the file for unreadable data.
-    pub(super) fn whole_rgba(&self) -> Option<Result<Vec<u8>>> {
-        if self.tiff_channels().is_some() {
-            return None;
+    /// [`Error::Input`] naming the file for unreadable data, or for a GeoTIFF (read by
+    /// strips or tiles).
+    pub(super) fn streamed_rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        match self.kind {
+            ImageKind::Tiff { .. } => Err(Error::input(&self.path, "read by strips or tiles, not by rows")),
+            ImageKind::Jpeg => self.rows_by(super::jpegrows::reads_by_rows(&self.path)?, row),
+            ImageKind::Png => self.rows_by(false, row),
         }
-        let (w, h) = (self.width as usize, self.height as usize);
-        if matches!(self.kind, ImageKind::Jpeg) && !decoded_whole(w, h) {
-            // Read by rows alone, but a mosaic's images are read whole.
-            return Some(Err(Error::input(
-                &self.path,
-                format!(
-                    "a {w}x{h} JPEG is too large for a mosaic or an update, which read their JPEGs whole (one \
-                     given alone to `tile` is read by rows): convert it to a tiled GeoTIFF (gdal_translate -co \
-                     TILED=YES -co COMPRESS=JPEG in.jpg out.tif)"
-                ),
-            )));
-        }
-        Some(self.rgba())
     }
 
     /// Every pixel, row after row, as RGBA8.
@@ -167,6 +159,7 @@ impl ImageFile {
 
 /// One pixel's Y, Cb, Cr -> R, G, B, as libjpeg converts them (JFIF, full range, 16-bit
 /// fixed point, rounded, clamped): what GDAL shows of a JPEG-compressed YCbCr GeoTIFF.
+#[inline]
 pub(super) fn ycbcr_to_rgb([y, cb, cr]: [u8; 3]) -> [u8; 3] {
     const HALF: i32 = 1 << 15;
     // libjpeg's FIX(): the coefficient in 16.16 fixed point, rounded.
@@ -197,6 +190,14 @@ impl ImageSource for ImageFile {
         self.crs_pixel
     }
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+        self.rows_by(false, row)
+    }
+}
+
+impl ImageFile {
+    /// [`ImageSource::rows`]; a JPEG by rows if `jpeg_by_rows`, else only when too large
+    /// to decode whole.
+    fn rows_by(&self, jpeg_by_rows: bool, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         let width = self.width as usize;
         let mut out = vec![[0u8; 4]; width];
         let mut emit = |values: &[u8], channels: usize| {
@@ -211,7 +212,7 @@ impl ImageSource for ImageFile {
             row(&out)
         };
         match &self.kind {
-            ImageKind::Jpeg if decoded_whole(width, self.height as usize) => {
+            ImageKind::Jpeg if !jpeg_by_rows && decoded_whole(width, self.height as usize) => {
                 self.decode_jpeg()?.chunks_exact(width * 3).try_for_each(|r| emit(r, 3))
             }
             ImageKind::Jpeg => jpeg_rows(&self.path, &mut |r| emit(r, 3)),

@@ -414,6 +414,8 @@ fn decode(file: impl Read, row: &mut dyn FnMut(&[u8]) -> Decoded) -> Decoded {
         c.plane = vec![0; c.stride * c.v * 8];
     }
     let mut out = vec![0u8; width * 3];
+    // Per component, the column of its plane under each pixel (replicated chroma).
+    let columns: Vec<Vec<usize>> = components.iter().map(|c| (0..width).map(|x| x * c.h / hmax).collect()).collect();
     let mut done = 0usize;
     for my in 0..mcus_y {
         for mx in 0..mcus_x {
@@ -463,15 +465,27 @@ fn decode(file: impl Read, row: &mut dyn FnMut(&[u8]) -> Decoded) -> Decoded {
         }
         // The MCU row's pixels: each component's sample under each pixel (replicated).
         for ly in 0..mcu_h.min(height - my * mcu_h) {
-            for (x, px) in out.chunks_exact_mut(3).enumerate() {
-                let sample = |c: &Component| c.plane[(ly * c.v / vmax) * c.stride + x * c.h / hmax];
-                let rgb_px = match components.as_slice() {
-                    [gray] => [sample(gray); 3],
-                    [y, cb, cr] if !rgb => ycbcr_to_rgb([sample(y), sample(cb), sample(cr)]),
-                    [r, g, b] => [sample(r), sample(g), sample(b)],
-                    _ => [0; 3],
-                };
-                px.copy_from_slice(&rgb_px);
+            // Each component's line under this row of pixels.
+            let line = |k: usize| {
+                let c = &components[k];
+                let at = (ly * c.v / vmax) * c.stride;
+                (&c.plane[at..at + c.stride], &columns[k][..])
+            };
+            match components.len() {
+                1 => {
+                    let (plane, cols) = line(0);
+                    for (px, &col) in out.chunks_exact_mut(3).zip(cols) {
+                        px.fill(plane[col]);
+                    }
+                }
+                3 => {
+                    let [(p0, c0), (p1, c1), (p2, c2)] = [line(0), line(1), line(2)];
+                    for (x, px) in out.chunks_exact_mut(3).enumerate() {
+                        let samples = [p0[c0[x]], p1[c1[x]], p2[c2[x]]];
+                        px.copy_from_slice(&if rgb { samples } else { ycbcr_to_rgb(samples) });
+                    }
+                }
+                _ => out.fill(0),
             }
             row(&out)?;
         }
@@ -480,7 +494,8 @@ fn decode(file: impl Read, row: &mut dyn FnMut(&[u8]) -> Decoded) -> Decoded {
 }
 
 /// The 8x8 inverse DCT of `f` (row-major, dequantized) into `out` (rows `stride` apart),
-/// level-shifted, rounded and clamped to 0..=255.
+/// level-shifted, rounded (half up: truncating a value clamped to be positive, where
+/// `round` would call the C library for every sample) and clamped to 0..=255.
 fn idct(f: &[f32; 64], out: &mut [u8], stride: usize) {
     use std::sync::OnceLock;
     static TABLE: OnceLock<[[f32; 8]; 8]> = OnceLock::new();
@@ -514,7 +529,7 @@ fn idct(f: &[f32; 64], out: &mut [u8], stride: usize) {
         for (x, o) in line.iter_mut().enumerate() {
             let s: f32 = (0..8).map(|v| cos_y[v] * tmp[v * 8 + x]).sum();
             #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]
-            let value = (s + 128.0).round().clamp(0.0, 255.0) as u8;
+            let value = (s + 128.5).clamp(0.0, 255.0) as u8;
             *o = value;
         }
     }

@@ -23,7 +23,7 @@ pub trait MosaicKind: Send + Sync + 'static {
     /// Whether `v` is no data.
     fn is_none(v: &Self::Value) -> bool;
     /// Opens an input: a GeoTIFF this kind reads by strips or tiles, or (imagery) a PNG or
-    /// JPEG read whole.
+    /// JPEG read by rows.
     ///
     /// # Errors
     /// [`Error::Input`] naming a file of another kind.
@@ -38,17 +38,18 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn crs_pixel(file: &Self::File) -> Option<(f64, f64)>;
     /// Samples per pixel.
     fn channels(file: &Self::File) -> usize;
-    /// Is the file read whole, as one chunk (a PNG or JPEG), not by strips or tiles?
-    fn is_whole(_file: &Self::File) -> bool {
+    /// Is the file read by rows from its top (a PNG or JPEG), not by strips or tiles?
+    fn read_by_rows(_file: &Self::File) -> bool {
         false
     }
-    /// A file read whole: its samples, [`Self::channels`] per pixel.
+    /// A file read by rows ([`Self::read_by_rows`]): each row's samples, [`Self::channels`]
+    /// bytes per pixel, from the top.
     ///
     /// # Errors
     /// [`Error::Input`] naming the file for unreadable data, or for a file that
-    /// [`Self::is_whole`] does not say is read whole.
-    fn read_whole(file: &Self::File) -> Result<tiff::decoder::DecodingResult> {
-        Err(Error::input(Self::path(file), "read by strips or tiles, not whole"))
+    /// [`Self::read_by_rows`] does not say is read by rows; the error `row` returns.
+    fn file_rows(file: &Self::File, _row: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<()> {
+        Err(Error::input(Self::path(file), "read by strips or tiles, not by rows"))
     }
     /// A decoded strip or tile as values; samples equal to `nodata` are no data.
     ///
@@ -210,17 +211,14 @@ impl MosaicKind for Pixels {
         file.crs_pixel_size()
     }
     fn channels(file: &ImageFile) -> usize {
-        // PNG and JPEG are read whole, as RGBA.
+        // PNG and JPEG are read by rows, as RGBA.
         file.tiff_channels().unwrap_or(4)
     }
-    fn is_whole(file: &ImageFile) -> bool {
+    fn read_by_rows(file: &ImageFile) -> bool {
         file.tiff_channels().is_none()
     }
-    fn read_whole(file: &ImageFile) -> Result<tiff::decoder::DecodingResult> {
-        match file.whole_rgba() {
-            Some(rgba) => Ok(tiff::decoder::DecodingResult::U8(rgba?)),
-            None => Err(Error::input(file.path(), "read by strips or tiles, not whole")),
-        }
+    fn file_rows(file: &ImageFile, row: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<()> {
+        file.streamed_rows(&mut |r| row(r.as_flattened()))
     }
     fn values(
         file: &ImageFile,

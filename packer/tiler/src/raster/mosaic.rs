@@ -3,7 +3,8 @@
 //! Each output sample's centre goes from the output CRS into each input that covers it
 //! (later inputs first: a later input wins where it has data, nodata never overwrites
 //! data) and is sampled there, bilinear over the corners that have data. Inputs are read
-//! by strips or tiles on demand, never whole: the chunks a band of output rows needs are
+//! by strips or tiles on demand (a PNG or JPEG by strips of rows from its top, on a thread
+//! of its own), never whole: the chunks a band of output rows needs are
 //! decoded once into a cache bounded in bytes, and at most [`OPEN_FILES`] files are open
 //! at once (the least recently used is closed, and reopened if needed again; files the
 //! last two bands did not read are closed too). Rows are
@@ -12,7 +13,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError, mpsc};
 
 use rayon::prelude::*;
 use terrastream_format::Georeference;
@@ -476,11 +477,11 @@ struct ReaderState<'m, V> {
     bytes: usize,
 }
 
-/// How an input file is read: by a TIFF's strips or tiles, or whole as one chunk (a PNG
-/// or JPEG, which cannot be read by parts; width and height).
+/// How an input file is read: by a TIFF's strips or tiles, or (a PNG or JPEG, which
+/// cannot be read by parts) by strips of rows from the top.
 enum Chunks<'m> {
     Tiff(TiffChunks<'m>),
-    Whole(usize, usize),
+    Rows(RowStrips),
 }
 
 impl Chunks<'_> {
@@ -490,7 +491,105 @@ impl Chunks<'_> {
         match self {
             Self::Tiff(c) if c.kind == tiff::decoder::ChunkType::Strip => (true, (c.width, c.chunk_h), 1),
             Self::Tiff(c) => (false, (c.chunk_w, c.chunk_h), c.across()),
-            Self::Whole(w, h) => (true, (*w, *h), 1),
+            Self::Rows(r) => (true, (r.width, STRIP_ROWS), 1),
+        }
+    }
+}
+
+/// Rows of a PNG or JPEG input a strip holds.
+const STRIP_ROWS: usize = 64;
+
+/// Strips skipped to reach a later one that are still kept: other threads may be about to
+/// ask for them (the strips of one window are asked for at once).
+const KEPT_BEHIND: usize = 8;
+
+/// A PNG or JPEG input decoded from the top, [`STRIP_ROWS`] rows at a time, on a thread of
+/// its own that runs a strip ahead: memory follows the image's width, not its size. A
+/// strip above the next one, asked for again once dropped from the cache, starts the
+/// decoding over.
+struct RowStrips {
+    path: PathBuf,
+    width: usize,
+    /// The next strip the decoder hands over, and the decoder.
+    decoder: Mutex<(usize, Option<Strips>)>,
+}
+
+/// The strips a decoder thread hands over, top down.
+type Strips = mpsc::Receiver<Result<Vec<u8>>>;
+
+impl RowStrips {
+    /// Starts decoding `path`, opened as kind `K`, from its first row.
+    fn start<K: MosaicKind>(path: &Path) -> Strips {
+        let (sender, receiver) = mpsc::sync_channel(1);
+        let spawned = std::thread::Builder::new().name("mosaic rows".into()).spawn({
+            let (sender, path) = (sender.clone(), path.to_path_buf());
+            move || {
+                let mut strip = Vec::new();
+                let mut rows = 0;
+                let decoded = K::open(&path).and_then(|file| {
+                    K::file_rows(&file, &mut |row| {
+                        strip.extend_from_slice(row);
+                        rows += 1;
+                        if rows == STRIP_ROWS {
+                            rows = 0;
+                            // Nobody waits for it any more: stop decoding.
+                            sender.send(Ok(std::mem::take(&mut strip))).map_err(|_| crate::error::interrupted())?;
+                        }
+                        Ok(())
+                    })
+                });
+                let last = match decoded {
+                    Ok(()) if strip.is_empty() => return,
+                    Ok(()) => Ok(strip),
+                    Err(e) => Err(e),
+                };
+                let _ = sender.send(last);
+            }
+        });
+        if let Err(e) = spawned {
+            let _ = sender.send(Err(Error::file(path, e)));
+        }
+        receiver
+    }
+
+    /// Strip `id`, made by `keep` from its bytes, as are the strips decoded on the way to
+    /// it [`KEPT_BEHIND`] or fewer above it (`keep` takes a strip's number); or what
+    /// `cached` finds once the decoder is this thread's (another thread that held it may
+    /// have made the strip meanwhile). Strips are kept while the decoder is held, so a
+    /// thread waiting for it finds them.
+    fn strip<K: MosaicKind, C>(
+        &self,
+        id: usize,
+        cached: impl FnOnce() -> Option<C>,
+        mut keep: impl FnMut(usize, Vec<u8>) -> Result<C>,
+    ) -> Result<C> {
+        let mut decoder = self.decoder.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(chunk) = cached() {
+            return Ok(chunk);
+        }
+        let (next, receiver) = &mut *decoder;
+        if *next > id || receiver.is_none() {
+            if *next > 0 {
+                tracing::debug!(path = %self.path.display(), strip = id, "decoding again from the top");
+            }
+            (*next, *receiver) = (0, Some(Self::start::<K>(&self.path)));
+        }
+        loop {
+            let received = receiver.as_ref().and_then(|r| r.recv().ok());
+            let Some(strip) = received else {
+                *receiver = None;
+                let why = format!("strip {id} of {STRIP_ROWS} rows: the image ended (or its decoder stopped) first");
+                return Err(Error::input(&self.path, why));
+            };
+            let strip = strip.inspect_err(|_| *receiver = None)?;
+            let n = *next;
+            *next += 1;
+            if n == id {
+                return keep(n, strip);
+            }
+            if n + KEPT_BEHIND >= id {
+                keep(n, strip)?;
+            }
         }
     }
 }
@@ -937,9 +1036,9 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             state.files.remove(&oldest);
         }
         let input = &self.mosaic.inputs[index];
-        let chunks = Arc::new(if K::is_whole(&input.file) {
-            let (w, h) = K::size(&input.file);
-            Chunks::Whole(w as usize, h as usize)
+        let chunks = Arc::new(if K::read_by_rows(&input.file) {
+            let path = K::path(&input.file).to_path_buf();
+            Chunks::Rows(RowStrips { path, width: K::size(&input.file).0 as usize, decoder: Mutex::new((0, None)) })
         } else {
             Chunks::Tiff(TiffChunks::open(K::path(&input.file), K::channels(&input.file))?)
         });
@@ -948,36 +1047,55 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
     }
 
     fn chunk(&self, index: usize, chunks: &Chunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
-        {
-            let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
-            let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-            if let Some((chunk, used)) = state.chunks.get_mut(&(index, id)) {
-                *used = clock;
-                return Ok(chunk.clone());
-            }
+        if let Some(chunk) = self.cached((index, id)) {
+            return Ok(chunk);
         }
-        // Decoded outside the lock, so that threads decode in parallel.
         let input = &self.mosaic.inputs[index];
-        let (data, w) = match chunks {
+        match chunks {
             Chunks::Tiff(tiff) => {
+                // Decoded outside the lock, so that threads decode in parallel.
                 let (data, w, _) = tiff.read(id)?;
-                (data, w)
+                let values = K::values(&input.file, data, input.nodata, input.scale)?;
+                Ok(self.keep((index, id), Chunk { values, w }))
             }
-            Chunks::Whole(w, _) => (K::read_whole(&input.file)?, *w),
-        };
-        let values = K::values(&input.file, data, input.nodata, input.scale)?;
-        let chunk = Arc::new(Chunk { values, w });
+            Chunks::Rows(rows) => rows.strip::<K, _>(
+                id,
+                || self.cached((index, id)),
+                |n, data| {
+                    let data = tiff::decoder::DecodingResult::U8(data);
+                    let values = K::values(&input.file, data, input.nodata, input.scale)?;
+                    Ok(self.keep((index, n), Chunk { values, w: rows.width }))
+                },
+            ),
+        }
+    }
+
+    /// Chunk `id` if the cache holds it, marked used.
+    fn cached(&self, id: ChunkId) -> Option<Arc<Chunk<K::Value>>> {
+        let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        state.chunks.get_mut(&id).map(|(chunk, used)| {
+            *used = clock;
+            chunk.clone()
+        })
+    }
+
+    /// Adds a decoded chunk to the cache (dropping the least recently used past its budget).
+    fn keep(&self, id: ChunkId, chunk: Chunk<K::Value>) -> Arc<Chunk<K::Value>> {
+        let chunk = Arc::new(chunk);
         let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         state.bytes += chunk.bytes();
         let clock = self.band.load(std::sync::atomic::Ordering::Relaxed);
-        state.chunks.insert((index, id), (chunk.clone(), clock));
+        if let Some((old, _)) = state.chunks.insert(id, (chunk.clone(), clock)) {
+            state.bytes -= old.bytes();
+        }
         while state.bytes > self.mosaic.cache_bytes && state.chunks.len() > 1 {
             let Some(oldest) = state.chunks.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) else { break };
             if let Some((gone, _)) = state.chunks.remove(&oldest) {
                 state.bytes -= gone.bytes();
             }
         }
-        Ok(chunk)
+        chunk
     }
 }
 
