@@ -4,6 +4,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+use terrastream_tiler::ElevationSource as _;
+
 fn terrastream(args: &[&str], cwd: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).current_dir(cwd).output().expect("run terrastream")
 }
@@ -226,6 +228,27 @@ fn tile_plans_writes_and_refuses_bad_input() {
     assert!(out.status.success() && text(&out).contains("from PMTiles"), "{}", text(&out));
     let out = terrastream(&["verify", "back.tspack"], work);
     assert!(out.status.success(), "{}", text(&out));
+
+    // A VRT alone is a mosaic of its sources, with their scale: here 1 000 m up.
+    let file = terrastream_tiler::open_elevation(Path::new(dem), None).unwrap();
+    let (origin, (px, py)) = (file.georeference().unwrap().origin.unwrap(), file.crs_pixel_size().unwrap());
+    let vrt = format!(
+        r#"<VRTDataset rasterXSize="150" rasterYSize="100"><SRS>EPSG:4326</SRS>
+  <GeoTransform>{}, {px}, 0, {}, 0, -{py}</GeoTransform>
+  <VRTRasterBand dataType="Float32" band="1"><ComplexSource>
+    <SourceFilename relativeToVRT="0">{dem}</SourceFilename><SourceBand>1</SourceBand>
+    <SrcRect xOff="0" yOff="0" xSize="150" ySize="100"/><DstRect xOff="0" yOff="0" xSize="150" ySize="100"/>
+    <ScaleOffset>1000</ScaleOffset><ScaleRatio>1</ScaleRatio>
+  </ComplexSource></VRTRasterBand></VRTDataset>"#,
+        origin[0], origin[1]
+    );
+    std::fs::write(work.join("up.vrt"), vrt).unwrap();
+    let out = terrastream(&["tile", "--elevation", "up.vrt", "-o", "up.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["info", "up.tspack", "--json"], work);
+    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let terrain = &doc["metadata"]["terrain"];
+    assert_eq!((terrain["min_elevation"].as_f64(), terrain["max_elevation"].as_f64()), (Some(1148.0), Some(1464.0)));
 
     std::fs::write(work.join("bad.tif"), b"II*\0garbage").unwrap();
     let out = terrastream(&["tile", "--elevation", "bad.tif", "-o", "bad.tspack"], work);

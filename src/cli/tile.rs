@@ -8,7 +8,7 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::{
     Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
-    Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, image_pixel_metres,
+    Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, image_pixel_metres, is_vrt,
     open_elevation, open_image, plan, tile_shard,
 };
 
@@ -198,15 +198,17 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let inputs = expand_inputs(&args.elevation)?;
     // One geographic GeoTIFF goes onto a transverse Mercator centred on it, as a mosaic's
     // geographic inputs do: a metre is a metre everywhere, not only at the centre latitude.
+    // A VRT is a mosaic of its sources, even alone.
+    let vrt = inputs.iter().any(|p| is_vrt(p));
     let geographic = match inputs.as_slice() {
-        [one] if !args.keep_geographic && args.sample_spacing.is_none() => {
+        [one] if !vrt && !args.keep_geographic && args.sample_spacing.is_none() => {
             open_elevation(one, args.encoding()?)?.is_geographic_tiff()
         }
         _ => false,
     };
     // Several inputs, a geographic one, or a CRS or spacing asked for: one mosaic on one
     // output grid.
-    let mosaic = if inputs.len() > 1 || geographic || args.crs.is_some() || args.resolution.is_some() {
+    let mosaic = if inputs.len() > 1 || vrt || geographic || args.crs.is_some() || args.resolution.is_some() {
         let crs = args.crs.as_deref().map(Crs::parse).transpose()?;
         let options = MosaicOptions {
             crs,
@@ -259,8 +261,8 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         None => elevation,
     };
     let textures = expand_inputs(&args.texture)?;
-    // Several images: one mosaic over the elevation's extent, in its CRS.
-    let image_mosaic = if textures.len() > 1 {
+    // Several images (or a VRT of them): one mosaic over the elevation's extent, in its CRS.
+    let image_mosaic = if textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) {
         let (crs, extent) = match elevation {
             Some(e) => elevation_extent(e)?,
             None => (None, None),

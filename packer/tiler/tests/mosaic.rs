@@ -14,7 +14,12 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use terrastream_tiler::{Crs, ElevationSource, Heights, Mosaic, MosaicOptions, Transform, read_geotiff};
+use terrastream_format::{Reader, TileKey};
+use terrastream_pack::progress::Silent;
+use terrastream_tiler::{
+    Crs, ElevationSource, ElevationStorage, Heights, Mosaic, MosaicOptions, TileOptions, Transform, read_geotiff,
+    tile_elevation,
+};
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
 
@@ -379,4 +384,62 @@ fn an_input_a_fraction_of_a_pixel_off_the_grid_is_sampled_bilinearly() {
     }
     assert!(checked > 119 * 89 - 40, "only {checked} samples checked");
     assert!(blended_over_holes > 10, "the hole's rim: {blended_over_holes}");
+}
+
+/// A VRT source's NODATA, ScaleRatio and ScaleOffset hold for the height range as for the
+/// rows: the archive's encoding follows that range, so a range of the file's own samples
+/// would clamp every height (here all 3 000 m above it).
+#[test]
+fn a_vrt_sources_scale_and_nodata_give_the_range_and_the_tiles() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a.tif");
+    let raw = |i: u32, j: u32| if (i, j) == (3, 4) { -9999.0 } else { (i + 2 * j) as f32 };
+    utm_tile(&a, (500_000.0, 5_100_000.0), (40, 30), raw);
+    let vrt = dir.path().join("scaled.vrt");
+    let text = r#"<VRTDataset rasterXSize="40" rasterYSize="30">
+  <SRS>EPSG:32633</SRS>
+  <GeoTransform>500000, 10, 0, 5100000, 0, -10</GeoTransform>
+  <VRTRasterBand dataType="Float32" band="1">
+    <ComplexSource>
+      <SourceFilename relativeToVRT="1">a.tif</SourceFilename>
+      <SourceBand>1</SourceBand>
+      <SrcRect xOff="0" yOff="0" xSize="40" ySize="30"/>
+      <DstRect xOff="0" yOff="0" xSize="40" ySize="30"/>
+      <NODATA>-9999</NODATA>
+      <ScaleOffset>3000</ScaleOffset>
+      <ScaleRatio>0.5</ScaleRatio>
+    </ComplexSource>
+  </VRTRasterBand>
+</VRTDataset>"#;
+    std::fs::write(&vrt, text).unwrap();
+    let mosaic = Mosaic::<Heights>::open(&[vrt], &MosaicOptions::default()).unwrap();
+    let height = |i: u32, j: u32| if (i, j) == (3, 4) { f64::NAN } else { 3000.0 + f64::from(raw(i, j)) * 0.5 };
+    let (lo, hi) = mosaic.height_range(&mut |_| Ok(())).unwrap();
+    assert_eq!((lo, hi), (3000.0, 3000.0 + (39.0 + 2.0 * 29.0) * 0.5), "the range of the scaled heights");
+
+    let out = dir.path().join("scaled.tspack");
+    let options = TileOptions { tile_size: 16, border: 1, storage: ElevationStorage::Auto };
+    tile_elevation(&mosaic, "scaled", &out, options, &Silent::default()).unwrap();
+    let reader = Reader::open_mmap(&out).unwrap();
+    let meta = reader.metadata();
+    assert_eq!((meta.terrain.min_elevation, meta.terrain.max_elevation), (f64::from(lo), f64::from(hi)));
+    let enc = meta.layers[0].elevation.unwrap();
+    let edge = 16 + 2;
+    for (tx, ty) in [(0u32, 0u32), (2, 1)] {
+        let stored = reader.tile(TileKey::new(0, 0, tx, ty).unwrap()).unwrap().unwrap();
+        let bytes = terrastream_format::zstd_decompress(&stored, 1 << 20, "tile").unwrap();
+        for j in 0..16u32 {
+            for i in 0..16u32 {
+                let (x, y) = (tx * 16 + i, ty * 16 + j);
+                let at = (((j + 1) * edge + i + 1) * 2) as usize;
+                let q = u16::from_le_bytes([bytes[at], bytes[at + 1]]);
+                let got = if q == 0 { f64::NAN } else { enc.height(f64::from(q)) };
+                if x >= 40 || y >= 30 || height(x, y).is_nan() {
+                    assert!(got.is_nan(), "({x}, {y}): nodata, not {got}");
+                } else {
+                    assert!((got - height(x, y)).abs() <= enc.scale / 2.0, "({x}, {y}): {got}, not {}", height(x, y));
+                }
+            }
+        }
+    }
 }

@@ -42,7 +42,7 @@ pub use jpegrows::jpeg_rows;
 pub use kind::{Heights, MosaicKind, Pixels};
 pub use memory::{Image, ImageWindow, Raster};
 pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
-pub use vrt::{Vrt, VrtSource, read_vrt};
+pub use vrt::{Vrt, VrtSource, is_vrt, read_vrt};
 pub use warp::{Warped, image_pixel_metres};
 
 /// Rows of heights: the elevation input of the tiler.

@@ -20,7 +20,7 @@ use terrastream_format::Georeference;
 
 use super::kind::{Heights, MosaicKind, Pixels};
 use super::tiff::TiffChunks;
-use super::vrt::read_vrt;
+use super::vrt::{is_vrt, read_vrt};
 use super::{ElevationSource, ImageSource, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
@@ -381,7 +381,7 @@ fn grid_of(
 /// VRT's sources (each a window of a GeoTIFF, placed by the VRT).
 fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     let plain = K::open;
-    if path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("vrt")) {
+    if is_vrt(path) {
         let vrt = read_vrt(path)?;
         let crs = Crs::parse(&vrt.crs).map_err(|e| Error::input(path, format!("its SRS cannot be used: {e}")))?;
         return vrt
@@ -1135,6 +1135,28 @@ impl<K: MosaicKind> Mosaic<K> {
     }
 }
 
+/// The range of `input`'s heights as a mosaic reads them, its VRT source's NODATA and
+/// scale applied (which the file's own range knows nothing of): every chunk decoded, in
+/// parallel.
+fn values_range(input: &Input<Heights>) -> Result<(f32, f32)> {
+    let chunks = TiffChunks::open(Heights::path(&input.file), 1)?;
+    let ranges: Vec<Result<(f32, f32)>> = (0..chunks.needed())
+        .into_par_iter()
+        .map(|i| {
+            let (data, w, h) = chunks.read(i)?;
+            let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
+            heights.truncate(w * h);
+            Ok(crate::plan::min_max(&heights))
+        })
+        .collect();
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for range in ranges {
+        let (l, h) = range?;
+        (lo, hi) = (lo.min(l), hi.max(h));
+    }
+    Ok((lo, hi))
+}
+
 impl ElevationSource for Mosaic<Heights> {
     fn path(&self) -> &Path {
         &self.path
@@ -1163,7 +1185,11 @@ impl ElevationSource for Mosaic<Heights> {
         let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
         let count = self.inputs.len().max(1);
         for (k, input) in self.inputs.iter().enumerate() {
-            let (l, h) = input.file.height_range(&mut |_| Ok(()))?;
+            let (l, h) = if input.nodata.is_none() && input.scale.is_none() {
+                input.file.height_range(&mut |_| Ok(()))?
+            } else {
+                values_range(input)?
+            };
             (lo, hi) = (lo.min(l), hi.max(h));
             let done = u64::from(self.size.1) * (k as u64 + 1) / count as u64;
             progress(u32::try_from(done).unwrap_or(u32::MAX))?;

@@ -36,6 +36,12 @@ pub struct Vrt {
     pub sources: Vec<VrtSource>,
 }
 
+/// Whether `path` names a GDAL virtual raster (by its `.vrt` extension): read as a
+/// mosaic of its sources, never as an image.
+pub fn is_vrt(path: &Path) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("vrt"))
+}
+
 /// Reads the VRT at `path`.
 ///
 /// # Errors
