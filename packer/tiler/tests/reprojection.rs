@@ -309,6 +309,21 @@ fn png_and_jpeg_are_placed_by_their_world_files() {
     let (a, b) = (pixels_of(&tiffs), pixels_of(&pngs));
     assert!(a.iter().filter(|px| px[3] > 0).count() > a.len() / 2, "the mosaic has data");
     assert!(a == b, "the PNG mosaic differs from the GeoTIFF mosaic");
+    // A VRT of imagery has a band per colour (RGBA here), each reading that band of the
+    // same sources: it is the mosaic of its sources (one here: gdalbuildvrt takes one CRS).
+    // One that mixes bands is refused.
+    let mut build = Command::new("gdalbuildvrt");
+    build.args(["-q", "-srcnodata", "None"]).arg(p("both.vrt")).arg(p("west.tif"));
+    assert!(build.status().unwrap().success());
+    let (vrt, west) =
+        (Mosaic::<Pixels>::open(&[p("both.vrt")], &options), Mosaic::<Pixels>::open(&[p("west.tif")], &options));
+    assert!(pixels_of(&vrt.unwrap()) == pixels_of(&west.unwrap()), "the VRT's mosaic differs from its source's");
+    let text = std::fs::read_to_string(p("both.vrt")).unwrap();
+    let swapped = text.replacen("<SourceBand>2</SourceBand>", "<SourceBand>3</SourceBand>", 1);
+    assert_ne!(swapped, text);
+    std::fs::write(p("swapped.vrt"), swapped).unwrap();
+    let err = Mosaic::<Pixels>::open(&[p("swapped.vrt")], &options).unwrap_err().to_string();
+    assert!(err.contains("swapped.vrt") && err.contains("band 2"), "{err}");
     // A TIFF without GeoTIFF tags, placed by a .tfw and GDAL's .aux.xml, lies where the
     // GeoTIFF does.
     let baseline = ["-q", "-co", "PROFILE=BASELINE", "-co", "TFW=YES"];

@@ -38,6 +38,11 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn crs_pixel(file: &Self::File) -> Option<(f64, f64)>;
     /// Samples per pixel.
     fn channels(file: &Self::File) -> usize;
+    /// Why a VRT of `bands` bands cannot read `file` band for band, if it cannot.
+    fn check_bands(file: &Self::File, bands: usize) -> std::result::Result<(), String> {
+        let channels = Self::channels(file);
+        if bands == channels { Ok(()) } else { Err(format!("a {bands}-band VRT over a file of {channels} band(s)")) }
+    }
     /// Is the file read by rows from its top (a PNG or JPEG), not by strips or tiles?
     fn read_by_rows(_file: &Self::File) -> bool {
         false
@@ -213,6 +218,15 @@ impl MosaicKind for Pixels {
     fn channels(file: &ImageFile) -> usize {
         // PNG and JPEG are read by rows, as RGBA.
         file.tiff_channels().unwrap_or(4)
+    }
+    fn check_bands(file: &ImageFile, bands: usize) -> std::result::Result<(), String> {
+        match file.tiff_channels() {
+            Some(channels) if channels != bands => Err(format!(
+                "a {bands}-band VRT over an image of {channels} band(s): each band must be the image's own"
+            )),
+            // A PNG or JPEG is read as RGBA whatever it holds.
+            _ => Ok(()),
+        }
     }
     fn read_by_rows(file: &ImageFile) -> bool {
         file.tiff_channels().is_none()

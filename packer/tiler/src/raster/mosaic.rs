@@ -389,6 +389,8 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
             .into_iter()
             .map(|source| {
                 let file = plain(&source.path)?;
+                K::check_bands(&file, vrt.bands)
+                    .map_err(|why| Error::input(path, format!("{why} ({})", source.path.display())))?;
                 let (w, h) = K::size(&file);
                 let [x, y, sw, sh] = source.window;
                 if x.saturating_add(sw) > w || y.saturating_add(sh) > h {

@@ -1,4 +1,5 @@
-//! GDAL virtual rasters (`.vrt`), the common subset: one `VRTRasterBand` of
+//! GDAL virtual rasters (`.vrt`), the common subset: a `VRTRasterBand` (or, for imagery,
+//! one a band, each reading that band of the same sources) of
 //! `SimpleSource` / `ComplexSource` elements, each a window (`SrcRect`) of a file placed at
 //! `DstRect` on the VRT's grid (`GeoTransform`, `SRS`), with `SourceFilename` relative to
 //! the VRT or absolute, an optional `NODATA` and, for a `ComplexSource`, `ScaleOffset` and
@@ -27,11 +28,14 @@ pub struct VrtSource {
     pub scale: Option<(f64, f64)>,
 }
 
-/// A VRT's CRS (`EPSG:xxxx` or a PROJ string) and its sources, in order.
+/// A VRT's CRS (`EPSG:xxxx` or a PROJ string), its bands and its sources, in order.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Vrt {
     /// The CRS as the tiler names it.
     pub crs: String,
+    /// Bands: 1 for heights; imagery may have 3 or 4 (RGB, RGBA), band k reading band k of
+    /// the same sources.
+    pub bands: usize,
     /// The sources.
     pub sources: Vec<VrtSource>,
 }
@@ -46,8 +50,9 @@ pub fn is_vrt(path: &Path) -> bool {
 ///
 /// # Errors
 /// [`Error::Input`] naming the VRT for anything it cannot use: not XML, no
-/// `GeoTransform` or `SRS`, a rotated grid, several bands, a source without a file or
-/// with a broken rectangle, a source file that does not exist (named).
+/// `GeoTransform` or `SRS`, a rotated grid, bands that do not read the same sources
+/// band for band, a source without a file or with a broken rectangle, a source file that
+/// does not exist (named).
 pub fn read_vrt(path: &Path) -> Result<Vrt> {
     let bad = |why: String| Error::input(path, why);
     let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
@@ -66,9 +71,28 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
     let srs = child(root, "SRS").and_then(|n| n.text()).ok_or_else(|| bad("no <SRS>".into()))?;
     let crs = crs_of_srs(srs).ok_or_else(|| bad(format!("<SRS> names no EPSG code the tiler can use: {srs:.80}")))?;
     let bands: Vec<_> = root.children().filter(|c| c.has_tag_name("VRTRasterBand")).collect();
-    let [band] = bands[..] else {
-        return Err(bad(format!("{} bands: an elevation VRT has one", bands.len())));
-    };
+    let Some(&first) = bands.first() else { return Err(bad("no <VRTRasterBand>".into())) };
+    let sources = band_sources(path, first, 1, [ox, px, oy, py])?;
+    // Several bands (imagery): band k must read band k of band 1's sources, source for
+    // source, as gdalbuildvrt writes them.
+    for (k, &band) in bands.iter().enumerate().skip(1) {
+        if band_sources(path, band, k + 1, [ox, px, oy, py])? != sources {
+            return Err(bad(format!(
+                "band {} does not read band {} of band 1's sources, source for source: only such VRTs of \
+                 several bands are read",
+                k + 1,
+                k + 1
+            )));
+        }
+    }
+    Ok(Vrt { crs, bands: bands.len(), sources })
+}
+
+/// The sources of `band` (band number `number`), each checked to read band `number` of
+/// its file; `grid`: the VRT's west, x pixel size, north and y pixel size.
+fn band_sources(path: &Path, band: roxmltree::Node<'_, '_>, number: usize, grid: [f64; 4]) -> Result<Vec<VrtSource>> {
+    let bad = |why: String| Error::input(path, why);
+    let [ox, px, oy, py] = grid;
     let folder = path.parent().unwrap_or(Path::new("."));
     let mut sources = Vec::new();
     for source in band.children().filter(|c| c.has_tag_name("SimpleSource") || c.has_tag_name("ComplexSource")) {
@@ -78,6 +102,13 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
         let source_path = if relative { folder.join(name) } else { PathBuf::from(name) };
         if !source_path.is_file() {
             return Err(Error::input(&source_path, format!("named by {} but missing", path.display())));
+        }
+        let read = child(source, "SourceBand").and_then(|n| n.text()).map_or("1", str::trim);
+        if read.parse::<usize>().ok() != Some(number) {
+            return Err(bad(format!(
+                "band {number} reads band {read:?} of {}: each band must read the same band of its sources",
+                source_path.display()
+            )));
         }
         let rect = |name: &str| -> Result<Option<[f64; 4]>> {
             let Some(r) = child(source, name) else { return Ok(None) };
@@ -127,9 +158,9 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
         });
     }
     if sources.is_empty() {
-        return Err(bad("no <SimpleSource> or <ComplexSource>".into()));
+        return Err(bad(format!("band {number} has no <SimpleSource> or <ComplexSource>")));
     }
-    Ok(Vrt { crs, sources })
+    Ok(sources)
 }
 
 /// The first child of `node` named `name`.
