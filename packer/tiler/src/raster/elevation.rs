@@ -260,6 +260,22 @@ impl ElevationSource for ElevationFile {
     }
 }
 
+/// The union of the height ranges `range` gives chunks `chunks`, found in parallel
+/// (infinities reversed for none).
+pub(super) fn union_of_chunks(
+    chunks: impl Iterator<Item = usize>,
+    range: impl Fn(usize) -> Result<(f32, f32)> + Sync,
+) -> Result<(f32, f32)> {
+    use rayon::prelude::*;
+    let ranges: Vec<Result<(f32, f32)>> = chunks.collect::<Vec<_>>().into_par_iter().map(&range).collect();
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for range in ranges {
+        let (l, h) = range?;
+        (lo, hi) = (lo.min(l), hi.max(h));
+    }
+    Ok((lo, hi))
+}
+
 /// An estimated height range reads every this many strips or tiles.
 const ESTIMATE_STRIDE: usize = 8;
 
@@ -296,31 +312,18 @@ impl ElevationFile {
         }
     }
 
+    /// The height range of every `step`th chunk of `range`, read in parallel.
+    fn chunks_range(&self, chunks: &TiffChunks<'_>, range: std::ops::Range<usize>, step: usize) -> Result<(f32, f32)> {
+        union_of_chunks(range.step_by(step), |i| {
+            let (data, w, h) = chunks.read(i)?;
+            self.chunk_range(data, w * h).ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
+        })
+    }
+
     /// The range of heights in the first `n` samples of a decoded chunk (which holds at
     /// least `n`, see [`TiffChunks::read`]); None for a sample type heights are not read
     /// from. 8- and 16-bit samples stored as heights are compared as integers, as they are
     /// (no conversion, 8 or 16 lanes a vector).
-    /// The height range of every `step`th chunk of `range`, read in parallel.
-    fn chunks_range(&self, chunks: &TiffChunks<'_>, range: std::ops::Range<usize>, step: usize) -> Result<(f32, f32)> {
-        use rayon::prelude::*;
-        let ranges: Vec<Result<(f32, f32)>> = range
-            .step_by(step)
-            .collect::<Vec<_>>()
-            .into_par_iter()
-            .map(|i| {
-                let (data, w, h) = chunks.read(i)?;
-                self.chunk_range(data, w * h)
-                    .ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
-            })
-            .collect();
-        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        for range in ranges {
-            let (l, h) = range?;
-            (lo, hi) = (lo.min(l), hi.max(h));
-        }
-        Ok((lo, hi))
-    }
-
     fn chunk_range(&self, data: tiff::decoder::DecodingResult, n: usize) -> Option<(f32, f32)> {
         use tiff::decoder::DecodingResult as D;
         #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]

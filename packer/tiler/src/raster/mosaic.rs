@@ -1142,21 +1142,12 @@ impl<K: MosaicKind> Mosaic<K> {
 /// parallel.
 fn values_range(input: &Input<Heights>) -> Result<(f32, f32)> {
     let chunks = TiffChunks::open(Heights::path(&input.file), 1)?;
-    let ranges: Vec<Result<(f32, f32)>> = (0..chunks.needed())
-        .into_par_iter()
-        .map(|i| {
-            let (data, w, h) = chunks.read(i)?;
-            let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
-            heights.truncate(w * h);
-            Ok(crate::plan::min_max(&heights))
-        })
-        .collect();
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    for range in ranges {
-        let (l, h) = range?;
-        (lo, hi) = (lo.min(l), hi.max(h));
-    }
-    Ok((lo, hi))
+    super::elevation::union_of_chunks(0..chunks.needed(), |i| {
+        let (data, w, h) = chunks.read(i)?;
+        let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
+        heights.truncate(w * h);
+        Ok(crate::plan::min_max(&heights))
+    })
 }
 
 impl ElevationSource for Mosaic<Heights> {
