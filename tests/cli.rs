@@ -107,23 +107,9 @@ fn pack_then_serve_then_stop_on_sigterm() {
     let work = dir.path();
     assert!(terrastream(&["demo", "--dir", "d", "--no-window"], work).status.success());
     let archive = std::fs::read(work.join("d/sample.tspack")).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(["serve", "d", "--addr", &format!("127.0.0.1:{port}")])
-        .current_dir(work)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut up = false;
-    for _ in 0..100 {
-        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-            up = true;
-            break;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
-    assert!(up, "server did not start");
+    let mut server =
+        terrastream_testkit::server::spawn_serve(Path::new(env!("CARGO_BIN_EXE_terrastream")), &["d"], work);
+    let port = server.port;
     let answer =
         http(port, "GET /sample.tspack HTTP/1.1\r\nHost: x\r\nRange: bytes=0-127\r\nConnection: close\r\n\r\n");
     let head_end = answer.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
@@ -151,9 +137,9 @@ fn pack_then_serve_then_stop_on_sigterm() {
     assert_eq!(std::fs::read_dir(work.join("from-http/sample/textures/LOD0")).unwrap().count(), 47);
     let missing = terrastream(&["info", &format!("http://127.0.0.1:{port}/nope.tspack")], work);
     assert!(!missing.status.success() && text(&missing).contains("nope.tspack"), "{}", text(&missing));
-    let killed = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    let killed = Command::new("kill").args(["-TERM", &server.child.id().to_string()]).status().unwrap();
     assert!(killed.success());
-    let status = child.wait().unwrap();
+    let status = server.child.wait().unwrap();
     assert!(status.success(), "graceful exit on SIGTERM: {status}");
 }
 

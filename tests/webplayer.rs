@@ -309,16 +309,11 @@ fn terrastream(args: &[&str]) {
 
 /// `terrastream serve` of `archive` on a free loopback port, answering: the port and the
 /// server (stopped when dropped).
-fn serve(archive: &Path) -> (u16, Process) {
-    let port = terrastream_testkit::nginx::free_port();
-    let server = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(["-q", "serve", archive.to_str().unwrap(), "--addr", &format!("127.0.0.1:{port}")])
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let server = Process(server);
-    wait_for_port(port, "terrastream serve");
-    (port, server)
+fn serve(archive: &Path) -> (u16, terrastream_testkit::server::Spawned) {
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let folder = archive.parent().unwrap();
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], folder);
+    (server.port, server)
 }
 
 /// The committed DEM crop as an archive, as `terrastream tile --tile-size 64` makes it.
