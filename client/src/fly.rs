@@ -12,7 +12,8 @@ use terrastream_format::{Layer, LayerKind, Metadata};
 use crate::stream::camera::{Aabb, Camera};
 pub use crate::stream::select::drawn_heights;
 
-/// The terrain's extent (x, z) in world units and the heights it is drawn between.
+/// The extent (x, z) in world units of the data (the grid's, unless the archive says where
+/// its data ends) and the heights it is drawn between.
 pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
     let layer = metadata
         .layers
@@ -20,7 +21,13 @@ pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
         .find(|l| l.kind == LayerKind::Elevation)
         .or_else(|| metadata.layers.iter().find(|l| l.kind == LayerKind::Texture))
         .or(metadata.layers.first());
-    (layer.map_or((1.0, 1.0), Layer::world_extent), drawn_heights(metadata))
+    let (ex, ez) = layer.map_or((1.0, 1.0), Layer::world_extent);
+    // The grid is rounded up to whole tiles: where the data ends, when the archive says.
+    let (ex, ez) = match metadata.terrain.data_extent {
+        Some([dx, dz]) if dx > 0.0 && dz > 0.0 => (ex.min(dx), ez.min(dz)),
+        _ => (ex, ez),
+    };
+    ((ex, ez), drawn_heights(metadata))
 }
 
 /// The box the terrain is drawn in.
@@ -285,6 +292,26 @@ mod tests {
             assert!(lo.x >= -FRAME_FILL - 1e-6 && hi.x <= FRAME_FILL + 1e-6, "{lo} {hi}");
             assert!(filled > 0.85, "{width}x{height}: the terrain spans {filled:.2} of the frame");
         }
+    }
+
+    #[test]
+    fn the_default_view_frames_the_data_not_the_grid_around_it() {
+        // 4 x 3 tiles of 2 500 km; the data ends 8 000 km east and 5 000 km south.
+        let mut m = continent();
+        m.layers[0].num_x_tiles = 4;
+        m.layers[0].num_y_tiles = 3;
+        m.layers[0].tile_world_size = 2.5e6;
+        m.terrain.data_extent = Some([8.0e6, 5.0e6]);
+        assert_eq!(terrain_bounds(&m).0, (8.0e6, 5.0e6));
+        let camera = default_camera(&m, 1280, 720);
+        // Looking at the data's middle: the ray from the eye meets its ground there.
+        let (eye, dir) = (camera.position, camera.direction());
+        let t = (drawn_heights(&m).0 - eye.y) / dir.y;
+        let ground = eye + dir * t;
+        assert!((ground.x - 4.0e6).abs() < 2.0e5, "{ground}");
+        // A grid without the field is framed whole.
+        m.terrain.data_extent = None;
+        assert_eq!(terrain_bounds(&m).0, (1.0e7, 7.5e6));
     }
 
     #[test]

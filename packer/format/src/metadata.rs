@@ -345,6 +345,11 @@ pub struct Terrain {
     pub num_detail_levels: u32,
     /// Original engine's texture consolidation size.
     pub max_consolidated_texture_resolution: u32,
+    /// World extent (x east, z south, from the north-west corner of tile (0, 0)) of the
+    /// source's samples; the layers' grids beyond it, rounded up to whole tiles, hold no
+    /// data. None: the whole grid (archives made from tile pyramids).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub data_extent: Option<[f64; 2]>,
 }
 
 impl Terrain {
@@ -368,6 +373,7 @@ impl Default for Terrain {
             high_detail_range: 100.0,
             num_detail_levels: 12,
             max_consolidated_texture_resolution: 1024,
+            data_extent: None,
         }
     }
 }

@@ -39,6 +39,7 @@ pub fn plan(
         let planned = plan_elevation(e, options, progress)?;
         extent = Some(planned.extent);
         metadata.terrain = planned.terrain;
+        metadata.terrain.data_extent = Some([planned.extent.0, planned.extent.1]);
         metadata.georeference = placed(e.georeference(), e.crs_pixel_size(), e.size(), planned.extent);
         layers.push(planned.layer);
         plans.push(planned.plan);
@@ -50,6 +51,7 @@ pub fn plan(
             let extent = (f64::from(plan.size.0) * texel, f64::from(plan.size.1) * texel, 0.0);
             metadata.georeference = placed(t.source.georeference(), t.source.crs_pixel_size(), t.source.size(), extent);
             metadata.terrain.base_tile_size = layer.tile_world_size / f64::from(t.tile_size);
+            metadata.terrain.data_extent = Some([extent.0, extent.1]);
         }
         layers.push(layer);
         plans.push(plan);
