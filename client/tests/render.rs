@@ -478,10 +478,54 @@ fn seventeen_texture_lods_are_each_drawn() {
 /// left a sky-only picture. It is drawn flat at its minimum elevation, textured, framed.
 #[test]
 fn a_texture_only_archive_draws_flat_at_its_minimum_elevation() {
-    use terrastream_format::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
     let Some(gpu) = gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("texture-only.tspack");
+    let path = texture_only_archive(dir.path(), None);
+
+    let still = render(gpu, path.to_str().unwrap(), None, RenderSettings::default());
+    assert!(still.frame.patches > 0 && !still.frame.drew_nothing_in_view(), "{:?}", still.frame);
+    assert_eq!(still.stream.tiles_fetched, 5, "{:?}", still.stream);
+    // Every LOD-0 colour shows: the finest texture is drawn over the whole terrain.
+    for colour in TILE_COLOURS {
+        assert!(pixels_of(&still, colour) > 300, "colour {colour:?} not drawn");
+    }
+    assert_golden("texture-only-flat", &still);
+}
+
+/// The colours of the LOD-0 tiles of [`texture_only_archive`], by x + 2 y.
+const TILE_COLOURS: [[u8; 3]; 4] = [[230, 60, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]];
+
+/// Pixels of `still` near `colour`.
+fn pixels_of(still: &Still, colour: [u8; 3]) -> usize {
+    still.rgba.chunks_exact(4).filter(|p| p[..3].iter().zip(colour).all(|(a, b)| a.abs_diff(b) < 60)).count()
+}
+
+/// Nothing is drawn past where the archive says its data ends, though its tiles hold
+/// pixels there (the grid is rounded up to whole tiles).
+#[test]
+fn nothing_is_drawn_past_the_data_extent() {
+    let Some(gpu) = gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let whole = texture_only_archive(dir.path(), None);
+    let cut = texture_only_archive(dir.path(), Some([1500.0, 1500.0]));
+    // Both seen as the default view frames the whole grid.
+    let cam = default_camera(Reader::open_mmap(&whole).unwrap().metadata(), WIDTH, HEIGHT);
+    // No haze: it follows the extent.
+    let settings = RenderSettings { fog_density: Some(0.0), ..RenderSettings::default() };
+    let (a, b) = [whole, cut].map(|p| render(gpu, p.to_str().unwrap(), Some(cam), settings)).into();
+    // Tile (0, 0) lies inside the data; tile (1, 1) has only its north-west quarter there.
+    let share = |k: usize| pixels_of(&b, TILE_COLOURS[k]) as f64 / pixels_of(&a, TILE_COLOURS[k]).max(1) as f64;
+    assert!(pixels_of(&a, TILE_COLOURS[3]) > 1000, "tile (1, 1) is drawn whole without the extent");
+    assert!((share(0) - 1.0).abs() < 0.02, "tile (0, 0): {:.3} of it drawn", share(0));
+    // Its nearer three quarters cut, seen from the south: under a quarter of it on screen.
+    assert!((0.08..0.3).contains(&share(3)), "tile (1, 1): {:.3} of it drawn", share(3));
+}
+
+/// A texture-only archive of 2 x 2 tiles of 1 km, a colour each at LOD 0 (checkered with
+/// dark squares), at 3 000 m; `data_extent` as given.
+fn texture_only_archive(dir: &Path, data_extent: Option<[f64; 2]>) -> PathBuf {
+    use terrastream_format::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    let path = dir.join(format!("texture-only-{}.tspack", data_extent.is_some()));
     let layer = Layer {
         name: "texture".into(),
         kind: LayerKind::Texture,
@@ -498,6 +542,7 @@ fn a_texture_only_archive_draws_flat_at_its_minimum_elevation() {
     let mut metadata = Metadata::new("texture-only", vec![layer]);
     metadata.terrain.min_elevation = 3000.0;
     metadata.terrain.max_elevation = 3000.0;
+    metadata.terrain.data_extent = data_extent;
     let tile = |rgb: [u8; 3]| {
         let mut out = Vec::new();
         let mut encoder = png::Encoder::new(&mut out, 64, 64);
@@ -512,18 +557,9 @@ fn a_texture_only_archive_draws_flat_at_its_minimum_elevation() {
     keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
     let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
     for key in keys {
-        let colour = [[230, 60, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]][(key.x() + 2 * key.y()) as usize];
+        let colour = TILE_COLOURS[(key.x() + 2 * key.y()) as usize];
         writer.add(key, tile(if key.lod() == 1 { [128; 3] } else { colour })).unwrap();
     }
     writer.finish().unwrap();
-
-    let still = render(gpu, path.to_str().unwrap(), None, RenderSettings::default());
-    assert!(still.frame.patches > 0 && !still.frame.drew_nothing_in_view(), "{:?}", still.frame);
-    assert_eq!(still.stream.tiles_fetched, 5, "{:?}", still.stream);
-    // Every LOD-0 colour shows: the finest texture is drawn over the whole terrain.
-    for colour in [[230, 60, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]] {
-        let seen = still.rgba.chunks_exact(4).filter(|p| p[..3].iter().zip(colour).all(|(a, b)| a.abs_diff(b) < 60));
-        assert!(seen.count() > 300, "colour {colour:?} not drawn");
-    }
-    assert_golden("texture-only-flat", &still);
+    path
 }

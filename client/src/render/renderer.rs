@@ -461,7 +461,11 @@ impl TerrainRenderer {
         let params = MeshParams::new(base, settings.patch, terrain.high_detail_range, terrain.num_detail_levels);
         Self {
             settings,
-            extent: elevation.as_ref().or(texture.as_ref()).map_or((0.0, 0.0), |a| a.layer.world_extent()),
+            // Where the data ends (the grid rounds up to whole tiles): nothing is drawn beyond.
+            extent: match elevation.as_ref().or(texture.as_ref()) {
+                Some(_) => crate::fly::terrain_bounds(metadata).0,
+                None => (0.0, 0.0),
+            },
             column: crate::stream::select::drawn_heights(metadata),
             elevation,
             texture,
