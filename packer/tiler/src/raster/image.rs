@@ -159,7 +159,9 @@ impl ImageFile {
 
 /// One pixel's Y, Cb, Cr -> R, G, B, as libjpeg converts them (JFIF, full range, 16-bit
 /// fixed point, rounded, clamped): what GDAL shows of a JPEG-compressed YCbCr GeoTIFF.
-#[inline]
+/// Always inlined: a call a pixel, left out of line even with a hint, took 12 % of a JPEG
+/// mosaic's CPU.
+#[inline(always)]
 pub(super) fn ycbcr_to_rgb([y, cb, cr]: [u8; 3]) -> [u8; 3] {
     const HALF: i32 = 1 << 15;
     // libjpeg's FIX(): the coefficient in 16.16 fixed point, rounded.
