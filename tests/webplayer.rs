@@ -307,13 +307,11 @@ fn terrastream(args: &[&str]) {
     assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
 }
 
-/// `terrastream serve` of `archive` on a free loopback port, answering: the port and the
-/// server (stopped when dropped).
-fn serve(archive: &Path) -> (u16, terrastream_testkit::server::Spawned) {
+/// `terrastream serve` of `archive` on a free loopback port, answering (stopped when
+/// dropped).
+fn serve(archive: &Path) -> terrastream_testkit::server::Spawned {
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
-    let folder = archive.parent().unwrap();
-    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], folder);
-    (server.port, server)
+    terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], archive.parent().unwrap())
 }
 
 /// The committed DEM crop as an archive, as `terrastream tile --tile-size 64` makes it.
@@ -387,7 +385,8 @@ fn a_continent_draws_on_webgpu_and_on_webgl2() {
     let dir = tempfile::tempdir().unwrap();
     let archive =
         terrastream_testkit::continent::continent_archive(Path::new(env!("CARGO_BIN_EXE_terrastream")), dir.path());
-    let (port, _server) = serve(&archive);
+    let server = serve(&archive);
+    let port = server.port;
     let driver = Driver::start();
     for (flags, backend) in [(WEBGPU_FLAGS, "webgpu"), (WEBGL_FLAGS, "webgl2")] {
         let browser = Browser::open(&driver, flags);
@@ -418,7 +417,8 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     }
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
-    let (port, _server) = serve(&archive);
+    let server = serve(&archive);
+    let port = server.port;
     let before = terrastream_testkit::http::archive_requests(port);
 
     let driver = Driver::start();
@@ -580,7 +580,8 @@ fn webplayer_streams_a_manifest_of_four_archives() {
     args.extend(shards.iter().map(String::as_str));
     args.extend(["-o", &coarse, "--manifest", &manifest]);
     terrastream(&args);
-    let (port, _server) = serve(dir.path());
+    let server = serve(dir.path());
+    let port = server.port;
 
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGPU_FLAGS);
@@ -614,7 +615,8 @@ fn bench_webplayer_over_emulated_links() {
     }
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
-    let (port, _server) = serve(&archive);
+    let server = serve(&archive);
+    let port = server.port;
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let upstream: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
     // The flight's terrain: the crop at 4x its resolution (7.5 m, 1280² samples), tiles of
@@ -633,7 +635,7 @@ fn bench_webplayer_over_emulated_links() {
         flight_archive.to_str().unwrap(),
     ]);
     let flight_server = serve(&flight_archive);
-    let flight_upstream: std::net::SocketAddr = format!("127.0.0.1:{}", flight_server.0).parse().unwrap();
+    let flight_upstream: std::net::SocketAddr = format!("127.0.0.1:{}", flight_server.port).parse().unwrap();
     let driver = Driver::start();
     let flags: Vec<&str> = match std::env::var("BACKEND").as_deref() {
         Ok("webgl2") => WEBGL_FLAGS.to_vec(),
@@ -702,7 +704,7 @@ fn bench_webplayer_over_emulated_links() {
         // The flight: over a terrain whose finer tiles the first view does not want, so
         // they stream in during the first pass and are resident during the second.
         let flight_shaper = link.map(|l| runtime.block_on(Shaper::start(flight_upstream, l)).unwrap());
-        let flight_port = flight_shaper.as_ref().map_or(flight_server.0, |s| s.addr.port());
+        let flight_port = flight_shaper.as_ref().map_or(flight_server.port, |s| s.addr.port());
         browser.goto(&format!(
             "http://127.0.0.1:{port}/view/tamalpais?hud=0{workers}&flight={BENCH_FLIGHT}\
              &archive=http://127.0.0.1:{flight_port}/flight.tspack"
@@ -744,7 +746,8 @@ fn the_benchmark_flight_steers_the_camera_and_counts_its_frames() {
     }
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
-    let (port, _server) = serve(&archive);
+    let server = serve(&archive);
+    let port = server.port;
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGPU_FLAGS);
     let frames = 12;
