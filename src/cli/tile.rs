@@ -17,10 +17,12 @@ use super::progress::CliProgress;
 #[derive(Debug, Args)]
 pub struct TileArgs {
     /// Elevation rasters: single-band GeoTIFFs (int/uint 8-32, float32/64; strips or tiles;
-    /// none, LZW or Deflate; GDAL nodata), folders of them (recursive), or patterns
-    /// (`tiles/*.tif`); or one PNG (16-bit gray heights, or 8-bit pixels in an
-    /// `--elevation-encoding`; transparent = nodata). Several inputs, in any CRS, are
-    /// mosaicked onto one grid: a later input wins where it has data; gaps are nodata.
+    /// none, LZW or Deflate; GDAL nodata), folders of them (recursive), patterns
+    /// (`tiles/*.tif`) or GDAL VRTs (`gdalbuildvrt`: Simple/ComplexSource, SrcRect,
+    /// DstRect, NODATA, scale and offset); or one PNG (16-bit gray heights, or 8-bit pixels
+    /// in an `--elevation-encoding`; transparent = nodata). Several inputs, or a VRT, in
+    /// any CRS, are mosaicked onto one grid: a later input wins where it has data; gaps
+    /// are nodata.
     #[arg(long, num_args = 1.., required_unless_present = "texture")]
     elevation: Vec<PathBuf>,
     /// Output CRS of a mosaic (`EPSG:32633`, or a PROJ string). Default: the first
@@ -55,10 +57,11 @@ pub struct TileArgs {
     #[arg(long)]
     sample_spacing: Option<f64>,
     /// Texture image: GeoTIFF (8-bit gray/RGB/RGBA, or YCbCr as in JPEG-compressed
-    /// orthophotos), PNG or JPEG, at its own resolution,
-    /// placed by its georeference (an image without one must cover the elevation's
-    /// area), or alone. Several GeoTIFFs (files, folders, patterns), in any CRS, are
-    /// mosaicked over the elevation's extent: a later one wins where it has pixels.
+    /// orthophotos), PNG or JPEG, at its own resolution, placed by its georeference (a
+    /// PNG's or JPEG's: a world file and `.prj`, or `.aux.xml`; an image without one must
+    /// cover the elevation's area), or alone. Several images (files, folders, patterns,
+    /// or a VRT of RGB/RGBA GeoTIFFs), in any CRS, are mosaicked over the elevation's
+    /// extent: a later one wins where it has pixels.
     #[arg(long, num_args = 1..)]
     texture: Vec<PathBuf>,
     /// Texture tile storage: png and webp are lossless; jpeg is smallest (no alpha); bc1 and
