@@ -11,8 +11,8 @@ use crate::plan::min_max;
 /// Heights -> the layer's raw little-endian samples, into `raw` (replacing what it held),
 /// and the lowest and highest height as stored (after quantization).
 pub(crate) fn encode_heights(samples: &[f32], encoding: &ElevationEncoding, raw: &mut Vec<u8>) -> (f32, f32) {
-    raw.clear();
     if encoding.scheme == ElevationScheme::Float32 {
+        raw.clear();
         for v in samples {
             raw.extend_from_slice(&v.to_le_bytes());
         }
@@ -31,7 +31,9 @@ pub(crate) fn encode_heights(samples: &[f32], encoding: &ElevationEncoding, raw:
     #[expect(clippy::cast_possible_truncation, reason = "see above: f32 arithmetic on heights kept as f32")]
     let (offset, inverse) = (encoding.offset as f32, (1.0 / encoding.scale) as f32);
     let (mut lo, mut hi) = (u16::MAX, 0u16);
-    // Grown (zeroed) only when longer than any tile before it.
+    // Every byte is written below: zeroed only where it grows past any tile before it
+    // (clearing it first zeroed all of it for every tile).
+    raw.truncate(samples.len() * 2);
     raw.resize(samples.len() * 2, 0);
     for (out, &v) in raw.chunks_exact_mut(2).zip(samples) {
         let x = ((v - offset) * inverse).clamp(1.0, 65_535.0);
