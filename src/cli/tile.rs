@@ -373,7 +373,16 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         terrastream_tiler::single_manifest(output, manifest)?;
         println!("{}: manifest of {}", manifest.display(), output.display());
     }
-    if let Some(skipped) = mosaic.as_ref().map(Mosaic::skipped).filter(|s| !s.is_empty()) {
+    // Elevation and imagery inputs left out with --skip-bad-inputs, when opened or when
+    // their heights were scanned.
+    let skipped: Vec<(PathBuf, String)> = mosaic
+        .as_ref()
+        .map(Mosaic::skipped)
+        .into_iter()
+        .chain(image_mosaic.as_ref().map(Mosaic::skipped))
+        .flatten()
+        .collect();
+    if !skipped.is_empty() {
         println!("skipped {} inputs that cannot be used:", skipped.len());
         for (_, why) in skipped {
             println!("  {why}");

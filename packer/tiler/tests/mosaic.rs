@@ -193,6 +193,86 @@ fn a_bad_input_is_named_or_skipped_and_listed() {
     );
 }
 
+/// `utm_tile`'s heights (`height` and up to 49 m more) as DEMs are published: int16,
+/// 32 x 32 tiles, Deflate (by
+/// `gdal_translate`, which writes the tiles after the directory).
+fn deflate_tile(dir: &Path, name: &str, east: f64, height: f32) -> PathBuf {
+    let plain = dir.join(format!("{name}-plain.tif"));
+    // Varied, so that each tile's stream holds Huffman tables to garble.
+    utm_tile(&plain, (east, 5_100_000.0), (64, 64), |i, j| height + ((i * 7 + j * 13) % 50) as f32);
+    let path = dir.join(name);
+    let status = Command::new("gdal_translate")
+        .args(["-q", "-ot", "Int16", "-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=32"])
+        .args(["-co", "COMPRESS=DEFLATE"])
+        .arg(&plain)
+        .arg(&path)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    std::fs::remove_file(plain).unwrap();
+    path
+}
+
+#[test]
+fn a_truncated_or_undecodable_input_is_named_or_skipped_and_listed() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("good.tif");
+    utm_tile(&good, (500_000.0, 5_100_000.0), (64, 64), |_, _| 100.0);
+    let skip = MosaicOptions { skip_bad_inputs: true, ..MosaicOptions::default() };
+
+    // Cut short, as a download or copy can be: found when it is opened (its last tile
+    // lies past the end), before any work.
+    let cut = deflate_tile(dir.path(), "cut.tif", 500_640.0, 200.0);
+    let bytes = std::fs::read(&cut).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() - 20]).unwrap();
+    let err = Mosaic::<Heights>::open(&[good.clone(), cut.clone()], &MosaicOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("cut.tif") && err.contains("truncated"), "{err}");
+    let mosaic = Mosaic::<Heights>::open(&[good.clone(), cut.clone()], &skip).unwrap();
+    assert_eq!(mosaic.skipped().len(), 1);
+    assert_eq!(mosaic.skipped()[0].0, cut);
+
+    // Whole, but a tile's Deflate stream garbled: found when its heights are scanned
+    // (every tile decoded once, before any row is made).
+    let garbled = deflate_tile(dir.path(), "garbled.tif", 500_640.0, 200.0);
+    let (offsets, counts) = {
+        let mut decoder = tiff::decoder::Decoder::new(std::fs::File::open(&garbled).unwrap()).unwrap();
+        (decoder.get_tag_u64_vec(Tag::TileOffsets).unwrap(), decoder.get_tag_u64_vec(Tag::TileByteCounts).unwrap())
+    };
+    let mut bytes = std::fs::read(&garbled).unwrap();
+    for (&at, &count) in offsets.iter().zip(&counts) {
+        // Past the zlib header: the first block's code lengths.
+        for k in 2..40.min(count as usize) {
+            bytes[at as usize + k] = (k * 37 + 11) as u8;
+        }
+    }
+    std::fs::write(&garbled, bytes).unwrap();
+    let inputs = [good.clone(), garbled.clone()];
+    let mosaic = Mosaic::<Heights>::open(&inputs, &MosaicOptions::default()).unwrap();
+    let err = mosaic.height_range(&mut |_| Ok(())).unwrap_err().to_string();
+    assert!(err.contains("garbled.tif") && err.contains("Deflate"), "{err}");
+    let mosaic = Mosaic::<Heights>::open(&inputs, &skip).unwrap();
+    assert!(mosaic.skipped().is_empty(), "nothing is decoded when opened");
+    assert_eq!(mosaic.height_range(&mut |_| Ok(())).unwrap(), (100.0, 100.0), "the good input's heights alone");
+    let skipped = mosaic.skipped();
+    assert_eq!(skipped.len(), 1);
+    assert_eq!(skipped[0].0, garbled);
+    assert!(skipped[0].1.contains("Deflate"), "{}", skipped[0].1);
+    // Its place is a gap: the grid still spans both, the good input's samples are kept.
+    let (w, _) = mosaic.size();
+    assert_eq!(w, 128, "the grid made from both footprints");
+    let rows = rows_of(&mosaic);
+    assert!(rows.iter().all(|r| r[..64].iter().all(|&v| v == 100.0)), "the good input's samples");
+    assert!(rows.iter().all(|r| r[64..].iter().all(|v| v.is_nan())), "nodata where the garbled input lay");
+
+    // Nothing usable at all: an error, not an empty archive.
+    let alone = Mosaic::<Heights>::open(std::slice::from_ref(&garbled), &skip).unwrap();
+    let err = alone.height_range(&mut |_| Ok(())).unwrap_err().to_string();
+    assert!(err.contains("no input can be used"), "{err}");
+}
+
 /// Our mosaic of `inputs` and gdalwarp's onto the same grid: (samples with data in both,
 /// mean |difference|, samples with data in only one).
 fn against_gdal(dir: &Path, inputs: &[PathBuf], crs: u16, spacing: f64) -> (usize, f64, usize) {

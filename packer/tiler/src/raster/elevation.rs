@@ -7,7 +7,7 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, Georeference};
 use super::geotiff::{GeoTags, gdal_nodata};
 use super::memory::Raster;
 use super::png::{png_header, png_rows};
-use super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in};
+use super::tiff::{TiffChunks, open_input_tiff, samples_f32, tiff_rows, tiff_rows_in};
 use super::worldfile::read_sidecar;
 use super::{ElevationSource, Sniffed, range_of_rows, sniff};
 use crate::error::{Error, Result};
@@ -98,7 +98,7 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
             })
         }
         Sniffed::Tiff => {
-            let mut decoder = open_tiff(path)?;
+            let mut decoder = open_input_tiff(path)?;
             let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
             if width == 0 || height == 0 {
                 return Err(bad(format!("the raster is empty ({width}x{height})")));

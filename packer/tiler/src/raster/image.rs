@@ -9,7 +9,7 @@ use super::jpeg::{decode_jpeg, decoded_whole, jpeg_header};
 use super::jpegrows::jpeg_rows;
 use super::memory::Image;
 use super::png::{png_header, png_rows};
-use super::tiff::{PLANAR_CONFIGURATION, open_tiff, tiff_rows};
+use super::tiff::{PLANAR_CONFIGURATION, open_input_tiff, tiff_rows};
 use super::worldfile::read_sidecar;
 use super::{ImageSource, Sniffed, sniff};
 use crate::error::{Error, Result};
@@ -58,7 +58,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
             (w, h, None, ImageKind::Jpeg)
         }
         Sniffed::Tiff => {
-            let mut decoder = open_tiff(path)?;
+            let mut decoder = open_input_tiff(path)?;
             let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
             let colour = decoder.colortype().map_err(|e| bad(e.to_string()))?;
             let channels = match colour {

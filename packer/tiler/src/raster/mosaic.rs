@@ -91,6 +91,15 @@ struct Input<K: MosaicKind> {
     rows: (i64, i64),
     /// How the input's pixels lie on the output grid.
     grid: Grid,
+    /// Left out once open: its data could not be decoded when its height range was
+    /// scanned (with `skip_bad_inputs`).
+    dropped: std::sync::atomic::AtomicBool,
+}
+
+impl<K: MosaicKind> Input<K> {
+    fn is_dropped(&self) -> bool {
+        self.dropped.load(std::sync::atomic::Ordering::Relaxed)
+    }
 }
 
 /// How an input's pixels lie on the output grid.
@@ -112,6 +121,9 @@ enum Grid {
 pub struct Mosaic<K: MosaicKind = Heights> {
     path: PathBuf,
     skipped: Vec<(PathBuf, String)>,
+    skip_bad_inputs: bool,
+    /// Inputs left out after the grid was made (see [`Input::dropped`]), and why.
+    dropped: Mutex<Vec<(PathBuf, String)>>,
     inputs: Vec<Input<K>>,
     crs: Crs,
     origin: [f64; 2],
@@ -219,6 +231,7 @@ impl<K: MosaicKind> Mosaic<K> {
                 let grid = grid_of(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
                 Input {
                     grid,
+                    dropped: std::sync::atomic::AtomicBool::new(false),
                     columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
                     rows: (cell((origin[1] - fp[3]) / pixel.1) - 1, cell((origin[1] - fp[1]) / pixel.1) + 1),
                     to_input,
@@ -240,6 +253,8 @@ impl<K: MosaicKind> Mosaic<K> {
         Ok(Self {
             path: first.clone(),
             skipped,
+            skip_bad_inputs: options.skip_bad_inputs,
+            dropped: Mutex::new(Vec::new()),
             inputs,
             crs,
             origin,
@@ -251,8 +266,9 @@ impl<K: MosaicKind> Mosaic<K> {
     }
 
     /// Inputs left out with `skip_bad_inputs`, and why.
-    pub fn skipped(&self) -> &[(PathBuf, String)] {
-        &self.skipped
+    pub fn skipped(&self) -> Vec<(PathBuf, String)> {
+        let dropped = self.dropped.lock().unwrap_or_else(PoisonError::into_inner);
+        self.skipped.iter().chain(dropped.iter()).cloned().collect()
     }
 
     /// The output CRS.
@@ -288,7 +304,7 @@ impl<K: MosaicKind> Mosaic<K> {
         let mut out = vec![K::NONE; width];
         // Later inputs first: the first value found wins.
         for (index, input) in self.inputs.iter().enumerate().rev() {
-            if i64::from(j) < input.rows.0 || i64::from(j) > input.rows.1 {
+            if i64::from(j) < input.rows.0 || i64::from(j) > input.rows.1 || input.is_dropped() {
                 continue;
             }
             #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "clamped to the row")]
@@ -1108,7 +1124,7 @@ impl<K: MosaicKind> Mosaic<K> {
     pub(crate) fn footprint_bounds(&self) -> Option<(std::ops::Range<u32>, std::ops::Range<u32>)> {
         let (w, h) = (i64::from(self.size.0), i64::from(self.size.1));
         let mut bounds: Option<[i64; 4]> = None;
-        for i in &self.inputs {
+        for i in self.inputs.iter().filter(|i| !i.is_dropped()) {
             let (c0, c1) = (i.columns.0.max(0), (i.columns.1 + 1).min(w));
             let (r0, r1) = (i.rows.0.max(0), (i.rows.1 + 1).min(h));
             if c0 >= c1 || r0 >= r1 {
@@ -1128,6 +1144,7 @@ impl<K: MosaicKind> Mosaic<K> {
         let (width, start, end) = (i64::from(self.size.0), i64::from(rows.start), i64::from(rows.end));
         self.inputs
             .iter()
+            .filter(|i| !i.is_dropped())
             .map(|i| {
                 let down = (i.rows.1 + 1).min(end) - i.rows.0.max(start);
                 let across = (i.columns.1 + 1).min(width) - i.columns.0.max(0);
@@ -1174,18 +1191,34 @@ impl ElevationSource for Mosaic<Heights> {
     }
     /// The union of the inputs' height ranges, each found where its chunks are decoded
     /// (a bilinear sample never leaves the range of its corners), without making a row.
+    /// With `skip_bad_inputs`, an input whose data cannot be decoded is left out here
+    /// (every chunk is decoded once, before any row is made): the grid stays the one its
+    /// footprint helped make, and its place is a gap.
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
         let count = self.inputs.len().max(1);
         for (k, input) in self.inputs.iter().enumerate() {
-            let (l, h) = if input.nodata.is_none() && input.scale.is_none() {
-                input.file.height_range(&mut |_| Ok(()))?
+            let range = if input.nodata.is_none() && input.scale.is_none() {
+                input.file.height_range(&mut |_| Ok(()))
             } else {
-                values_range(input)?
+                values_range(input)
+            };
+            let (l, h) = match range {
+                Err(e @ (Error::Input { .. } | Error::File { .. })) if self.skip_bad_inputs => {
+                    tracing::warn!("skipping {e}");
+                    input.dropped.store(true, std::sync::atomic::Ordering::Relaxed);
+                    let mut dropped = self.dropped.lock().unwrap_or_else(PoisonError::into_inner);
+                    dropped.push((Heights::path(&input.file).to_path_buf(), e.to_string()));
+                    continue;
+                }
+                other => other?,
             };
             (lo, hi) = (lo.min(l), hi.max(h));
             let done = u64::from(self.size.1) * (k as u64 + 1) / count as u64;
             progress(u32::try_from(done).unwrap_or(u32::MAX))?;
+        }
+        if self.inputs.iter().all(Input::is_dropped) {
+            return Err(Error::input(&self.path, "no input can be used (every one was skipped)"));
         }
         Ok((lo, hi))
     }

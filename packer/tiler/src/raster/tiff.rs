@@ -21,6 +21,34 @@ pub(super) fn open_tiff(path: &Path) -> Result<TiffDecoder> {
         .with_limits(limits))
 }
 
+/// [`open_tiff`] of a raster given as input, once its strips or tiles are checked to lie
+/// inside the file: a truncated file (a download or copy cut short) is then an error
+/// naming it when it is opened, which `--skip-bad-inputs` can leave out, not a failed
+/// read when the run reaches its end, perhaps an hour in.
+pub(super) fn open_input_tiff(path: &Path) -> Result<TiffDecoder> {
+    use tiff::decoder::ChunkType;
+    use tiff::tags::Tag;
+    let mut decoder = open_tiff(path)?;
+    let len = std::fs::metadata(path).map_err(|e| Error::file(path, e))?.len();
+    let (what, offsets, counts) = match decoder.get_chunk_type() {
+        ChunkType::Tile => ("tile", Tag::TileOffsets, Tag::TileByteCounts),
+        ChunkType::Strip => ("strip", Tag::StripOffsets, Tag::StripByteCounts),
+    };
+    let mut table = |tag: Tag| decoder.find_tag_unsigned_vec::<u64>(tag).ok().flatten().unwrap_or_default();
+    let (offsets, counts) = (table(offsets), table(counts));
+    let outside = offsets.iter().zip(&counts).position(|(&o, &c)| o.checked_add(c).is_none_or(|end| end > len));
+    if let Some(i) = outside {
+        return Err(Error::input(
+            path,
+            format!(
+                "{what} {i} lies past the end of the file ({} bytes at {}, the file has {len}): is it truncated?",
+                counts[i], offsets[i]
+            ),
+        ));
+    }
+    Ok(decoder)
+}
+
 /// Bytes of samples decoded per batch of strips (at least two strips a thread).
 const STRIP_BATCH_BYTES: usize = 1 << 20;
 
