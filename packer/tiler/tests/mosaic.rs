@@ -194,8 +194,8 @@ fn a_bad_input_is_named_or_skipped_and_listed() {
 }
 
 /// `utm_tile`'s heights (`height` and up to 49 m more) as DEMs are published: int16,
-/// 32 x 32 tiles, Deflate (by
-/// `gdal_translate`, which writes the tiles after the directory).
+/// 32 x 32 tiles, Deflate (by `gdal_translate`, which writes the tiles after the
+/// directory, so that cutting the file short cuts a tile).
 fn deflate_tile(dir: &Path, name: &str, east: f64, height: f32) -> PathBuf {
     let plain = dir.join(format!("{name}-plain.tif"));
     // Varied, so that each tile's stream holds Huffman tables to garble.
