@@ -12,6 +12,7 @@ use terrastream_pack::progress::Progress;
 pub struct CliProgress {
     bar: ProgressBar,
     stop: Arc<AtomicBool>,
+    quiet: bool,
 }
 
 impl CliProgress {
@@ -28,16 +29,20 @@ impl CliProgress {
         if let Err(err) = installed {
             tracing::warn!("cannot install the Ctrl-C handler: {err}");
         }
-        let bar = ProgressBar::hidden();
-        if !quiet {
-            bar.set_draw_target(ProgressDrawTarget::stderr());
-        }
-        Self { bar, stop }
+        // Drawn once a phase starts: before that, its default style is an empty bar.
+        Self { bar: ProgressBar::hidden(), stop, quiet }
     }
 
     fn style(&self, template: &str) {
         if let Ok(style) = ProgressStyle::with_template(template) {
-            self.bar.set_style(style.progress_chars("=> "));
+            // A whole number of tiles a second: `{per_sec}` prints four decimals.
+            let rate = |state: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = write!(w, "{:.0}/s", state.per_sec());
+            };
+            self.bar.set_style(style.progress_chars("=> ").with_key("rate", rate));
+        }
+        if !self.quiet && self.bar.is_hidden() {
+            self.bar.set_draw_target(ProgressDrawTarget::stderr());
         }
         self.bar.enable_steady_tick(Duration::from_millis(200));
     }
@@ -66,7 +71,9 @@ impl Progress for CliProgress {
         self.bar.reset();
         self.bar.set_length(total);
         self.bar.set_message(phase.to_owned());
-        self.style("{msg:>8} [{bar:40}] {pos}/{len} tiles {per_sec} ETA {eta}");
+        // The height scan counts the output's rows; every other phase, tiles.
+        let unit = if phase == "scan" { "rows" } else { "tiles" };
+        self.style(&format!("{{msg:>8}} [{{bar:40}}] {{pos}}/{{len}} {unit} {{rate}} ETA {{eta}}"));
     }
 
     fn advance(&self, n: u64) {
