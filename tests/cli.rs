@@ -249,6 +249,8 @@ fn tile_plans_writes_and_refuses_bad_input() {
     let out = terrastream(&["tile", "--elevation", dem, "bad.tif", "--skip-bad-inputs", "-o", "some.tspack"], work);
     assert!(out.status.success(), "{}", text(&out));
     assert!(text(&out).contains("skipped 1 inputs") && text(&out).contains("bad.tif"), "{}", text(&out));
+    let out = terrastream(&["tile", "--elevation", dem, "bad.tif", "--skip-bad-inputs", "--dry-run"], work);
+    assert!(out.status.success() && text(&out).contains("skipped 1 inputs"), "a plan lists them too: {}", text(&out));
     std::fs::write(work.join("ortho.pgw"), "0.5\n0\n0\n-0.5\n500000.25\n4200000.75\n").unwrap();
     std::fs::write(work.join("bad.png"), b"\x89PNG\r\n\x1a\ngarbage").unwrap();
     let args = ["tile", "--texture", "ortho.png", "bad.png", "--skip-bad-inputs", "-o", "some-img.tspack"];

@@ -363,6 +363,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             plan.tiles(),
             plan.estimated_bytes() as f64 / f64::from(1 << 20)
         );
+        print_skipped(mosaic.as_ref(), image_mosaic.as_ref());
         return Ok(ExitCode::SUCCESS);
     }
     let Some(output) = &args.output else { bail!("--output is required") };
@@ -373,21 +374,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         terrastream_tiler::single_manifest(output, manifest)?;
         println!("{}: manifest of {}", manifest.display(), output.display());
     }
-    // Elevation and imagery inputs left out with --skip-bad-inputs, when opened or when
-    // their heights were scanned.
-    let skipped: Vec<(PathBuf, String)> = mosaic
-        .as_ref()
-        .map(Mosaic::skipped)
-        .into_iter()
-        .chain(image_mosaic.as_ref().map(Mosaic::skipped))
-        .flatten()
-        .collect();
-    if !skipped.is_empty() {
-        println!("skipped {} inputs that cannot be used:", skipped.len());
-        for (_, why) in skipped {
-            println!("  {why}");
-        }
-    }
+    print_skipped(mosaic.as_ref(), image_mosaic.as_ref());
     println!(
         "{}: {} tiles, {} bytes in {:.2} s",
         output.display(),
@@ -396,6 +383,19 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, when opened
+/// or when their heights were scanned.
+fn print_skipped(heights: Option<&Mosaic<Heights>>, imagery: Option<&Mosaic<Pixels>>) {
+    let skipped: Vec<(PathBuf, String)> =
+        heights.map(Mosaic::skipped).into_iter().chain(imagery.map(Mosaic::skipped)).flatten().collect();
+    if !skipped.is_empty() {
+        println!("skipped {} inputs that cannot be used:", skipped.len());
+        for (_, why) in skipped {
+            println!("  {why}");
+        }
+    }
 }
 
 /// The elevation's CRS and extent (min x, min y, max x, max y there), for imagery that
