@@ -273,6 +273,49 @@ fn a_truncated_or_undecodable_input_is_named_or_skipped_and_listed() {
     assert!(err.contains("no input can be used"), "{err}");
 }
 
+#[test]
+fn a_mosaics_height_scan_shows_progress_within_an_input_and_stops_on_request() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // One input of 1024 one-row strips: the scan reads it in several batches.
+    let plain = dir.path().join("plain.tif");
+    utm_tile(&plain, (500_000.0, 5_100_000.0), (1024, 1024), |i, j| ((i + j) % 300) as f32);
+    let strips = dir.path().join("strips.tif");
+    let status = Command::new("gdal_translate")
+        .args(["-q", "-ot", "Int16", "-co", "BLOCKYSIZE=1"])
+        .arg(&plain)
+        .arg(&strips)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let small = dir.path().join("small.tif");
+    utm_tile(&small, (510_240.0, 5_100_000.0), (64, 64), |_, _| 1000.0);
+    let mosaic = Mosaic::<Heights>::open(&[strips, small], &MosaicOptions::default()).unwrap();
+    let rows = mosaic.size().1;
+    let mut told = Vec::new();
+    let range = mosaic
+        .height_range(&mut |done| {
+            told.push(done);
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!(range, (0.0, 1000.0));
+    assert!(told.windows(2).all(|w| w[0] <= w[1]), "{told:?}");
+    assert_eq!(told.last(), Some(&rows), "{told:?}");
+    let within_first = told.iter().filter(|&&d| d < rows / 2).count();
+    assert!(within_first >= 2, "the bar moves within the first input: {told:?}");
+    // Stopped (Ctrl-C) at the first report: nothing more is read.
+    let mut calls = 0;
+    let stopped = mosaic.height_range(&mut |_| {
+        calls += 1;
+        Err(terrastream_pack::Error::Interrupted.into())
+    });
+    assert!(stopped.is_err());
+    assert_eq!(calls, 1);
+}
+
 /// Our mosaic of `inputs` and gdalwarp's onto the same grid: (samples with data in both,
 /// mean |difference|, samples with data in only one).
 fn against_gdal(dir: &Path, inputs: &[PathBuf], crs: u16, spacing: f64) -> (usize, f64, usize) {

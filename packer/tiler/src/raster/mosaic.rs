@@ -1156,15 +1156,23 @@ impl<K: MosaicKind> Mosaic<K> {
 
 /// The range of `input`'s heights as a mosaic reads them, its VRT source's NODATA and
 /// scale applied (which the file's own range knows nothing of): every chunk decoded, in
-/// parallel.
-fn values_range(input: &Input<Heights>) -> Result<(f32, f32)> {
+/// parallel, a batch at a time, `progress` told the file's rows read after each.
+fn values_range(input: &Input<Heights>, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
     let chunks = TiffChunks::open(Heights::path(&input.file), 1)?;
-    super::elevation::union_of_chunks(0..chunks.needed(), |i| {
-        let (data, w, h) = chunks.read(i)?;
-        let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
-        heights.truncate(w * h);
-        Ok(crate::plan::min_max(&heights))
-    })
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    let needed = chunks.needed();
+    for first in (0..needed).step_by(chunks.batch().max(1)) {
+        let end = needed.min(first + chunks.batch().max(1));
+        let (l, h) = super::elevation::union_of_chunks(first..end, |i| {
+            let (data, w, h) = chunks.read(i)?;
+            let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
+            heights.truncate(w * h);
+            Ok(crate::plan::min_max(&heights))
+        })?;
+        (lo, hi) = (lo.min(l), hi.max(h));
+        progress(chunks.rows_before(end))?;
+    }
+    Ok((lo, hi))
 }
 
 impl ElevationSource for Mosaic<Heights> {
@@ -1196,12 +1204,20 @@ impl ElevationSource for Mosaic<Heights> {
     /// footprint helped make, and its place is a gap.
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        let count = self.inputs.len().max(1);
+        let count = u64::try_from(self.inputs.len().max(1)).unwrap_or(u64::MAX);
         for (k, input) in self.inputs.iter().enumerate() {
+            // Told as the input's rows are read (a batch of chunks at a time): the bar
+            // moves and Ctrl-C is heard within one large input too. The scan's progress
+            // is in output rows, a share for each input.
+            let rows = u64::from(input.window[3].max(1));
+            let mut within = |read: u32| {
+                let done = (k as u64 * rows + u64::from(read).min(rows)) * u64::from(self.size.1) / (count * rows);
+                progress(u32::try_from(done).unwrap_or(u32::MAX))
+            };
             let range = if input.nodata.is_none() && input.scale.is_none() {
-                input.file.height_range(&mut |_| Ok(()))
+                input.file.height_range(&mut within)
             } else {
-                values_range(input)
+                values_range(input, &mut within)
             };
             let (l, h) = match range {
                 Err(e @ (Error::Input { .. } | Error::File { .. })) if self.skip_bad_inputs => {
@@ -1214,8 +1230,6 @@ impl ElevationSource for Mosaic<Heights> {
                 other => other?,
             };
             (lo, hi) = (lo.min(l), hi.max(h));
-            let done = u64::from(self.size.1) * (k as u64 + 1) / count as u64;
-            progress(u32::try_from(done).unwrap_or(u32::MAX))?;
         }
         if self.inputs.iter().all(Input::is_dropped) {
             return Err(Error::input(&self.path, "no input can be used (every one was skipped)"));
