@@ -201,16 +201,17 @@ fn deflate_tile(dir: &Path, name: &str, east: f64, height: f32) -> PathBuf {
     // Varied, so that each tile's stream holds Huffman tables to garble.
     utm_tile(&plain, (east, 5_100_000.0), (64, 64), |i, j| height + ((i * 7 + j * 13) % 50) as f32);
     let path = dir.join(name);
-    let status = Command::new("gdal_translate")
-        .args(["-q", "-ot", "Int16", "-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=32"])
-        .args(["-co", "COMPRESS=DEFLATE"])
-        .arg(&plain)
-        .arg(&path)
-        .status()
-        .unwrap();
-    assert!(status.success());
+    let tiling = ["-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=32", "-co", "COMPRESS=DEFLATE"];
+    int16_copy(&plain, &path, &tiling);
     std::fs::remove_file(plain).unwrap();
     path
+}
+
+/// `gdal_translate -ot Int16` of `from` to `to`, with `options`.
+fn int16_copy(from: &Path, to: &Path, options: &[&str]) {
+    let status =
+        Command::new("gdal_translate").args(["-q", "-ot", "Int16"]).args(options).arg(from).arg(to).status().unwrap();
+    assert!(status.success(), "gdal_translate {options:?} failed");
 }
 
 #[test]
@@ -283,13 +284,7 @@ fn a_mosaics_height_scan_shows_progress_within_an_input_and_stops_on_request() {
     let plain = dir.path().join("plain.tif");
     utm_tile(&plain, (500_000.0, 5_100_000.0), (1024, 1024), |i, j| ((i + j) % 300) as f32);
     let strips = dir.path().join("strips.tif");
-    let status = Command::new("gdal_translate")
-        .args(["-q", "-ot", "Int16", "-co", "BLOCKYSIZE=1"])
-        .arg(&plain)
-        .arg(&strips)
-        .status()
-        .unwrap();
-    assert!(status.success());
+    int16_copy(&plain, &strips, &["-co", "BLOCKYSIZE=1"]);
     let small = dir.path().join("small.tif");
     utm_tile(&small, (510_240.0, 5_100_000.0), (64, 64), |_, _| 1000.0);
     let mosaic = Mosaic::<Heights>::open(&[strips, small], &MosaicOptions::default()).unwrap();

@@ -237,16 +237,7 @@ impl ElevationSource for ElevationFile {
         // Every strip or tile, in parallel and in any order, reduced to its range where
         // it is decoded; no rows are made.
         let chunks = TiffChunks::open(&self.path, 1)?;
-        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        let batch = chunks.batch();
-        let needed = chunks.needed();
-        for first in (0..needed).step_by(batch) {
-            let end = needed.min(first + batch);
-            let (l, h) = self.chunks_range(&chunks, first..end, 1)?;
-            (lo, hi) = (lo.min(l), hi.max(h));
-            progress(chunks.rows_before(end))?;
-        }
-        Ok((lo, hi))
+        range_by_batches(&chunks, progress, |i| self.range_of_chunk(&chunks, i))
     }
 
     fn height_range_estimate(&self) -> Result<Option<(f32, f32)>> {
@@ -272,6 +263,24 @@ pub(super) fn union_of_chunks(
     for range in ranges {
         let (l, h) = range?;
         (lo, hi) = (lo.min(l), hi.max(h));
+    }
+    Ok((lo, hi))
+}
+
+/// The union of the ranges `range` gives every chunk of `chunks`, a batch at a time (in
+/// parallel within it), `progress` told the raster's rows read after each batch.
+pub(super) fn range_by_batches(
+    chunks: &TiffChunks<'_>,
+    progress: &mut dyn FnMut(u32) -> Result<()>,
+    range: impl Fn(usize) -> Result<(f32, f32)> + Sync,
+) -> Result<(f32, f32)> {
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    let (batch, needed) = (chunks.batch().max(1), chunks.needed());
+    for first in (0..needed).step_by(batch) {
+        let end = needed.min(first + batch);
+        let (l, h) = union_of_chunks(first..end, &range)?;
+        (lo, hi) = (lo.min(l), hi.max(h));
+        progress(chunks.rows_before(end))?;
     }
     Ok((lo, hi))
 }
@@ -314,10 +323,13 @@ impl ElevationFile {
 
     /// The height range of every `step`th chunk of `range`, read in parallel.
     fn chunks_range(&self, chunks: &TiffChunks<'_>, range: std::ops::Range<usize>, step: usize) -> Result<(f32, f32)> {
-        union_of_chunks(range.step_by(step), |i| {
-            let (data, w, h) = chunks.read(i)?;
-            self.chunk_range(data, w * h).ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
-        })
+        union_of_chunks(range.step_by(step), |i| self.range_of_chunk(chunks, i))
+    }
+
+    /// The height range of chunk `i`, read and decoded.
+    fn range_of_chunk(&self, chunks: &TiffChunks<'_>, i: usize) -> Result<(f32, f32)> {
+        let (data, w, h) = chunks.read(i)?;
+        self.chunk_range(data, w * h).ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
     }
 
     /// The range of heights in the first `n` samples of a decoded chunk (which holds at

@@ -1159,20 +1159,12 @@ impl<K: MosaicKind> Mosaic<K> {
 /// parallel, a batch at a time, `progress` told the file's rows read after each.
 fn values_range(input: &Input<Heights>, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
     let chunks = TiffChunks::open(Heights::path(&input.file), 1)?;
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    let needed = chunks.needed();
-    for first in (0..needed).step_by(chunks.batch().max(1)) {
-        let end = needed.min(first + chunks.batch().max(1));
-        let (l, h) = super::elevation::union_of_chunks(first..end, |i| {
-            let (data, w, h) = chunks.read(i)?;
-            let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
-            heights.truncate(w * h);
-            Ok(crate::plan::min_max(&heights))
-        })?;
-        (lo, hi) = (lo.min(l), hi.max(h));
-        progress(chunks.rows_before(end))?;
-    }
-    Ok((lo, hi))
+    super::elevation::range_by_batches(&chunks, progress, |i| {
+        let (data, w, h) = chunks.read(i)?;
+        let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
+        heights.truncate(w * h);
+        Ok(crate::plan::min_max(&heights))
+    })
 }
 
 impl ElevationSource for Mosaic<Heights> {
