@@ -259,6 +259,20 @@ fn tile_plans_writes_and_refuses_bad_input() {
     assert!(text(&out).contains("skipped 1 inputs") && text(&out).contains("bad.png"), "{}", text(&out));
     let out = terrastream(&["verify", "some-img.tspack"], work);
     assert!(out.status.success(), "{}", text(&out));
+    // An image cut short beside it: found only as its rows are decoded. The run stops
+    // naming it, nothing written; with --skip-bad-inputs the rows it holds are used, the
+    // rest left empty, and it is listed.
+    let bytes = std::fs::read(&image).unwrap();
+    std::fs::write(work.join("cut.png"), &bytes[..bytes.len() / 2]).unwrap();
+    std::fs::write(work.join("cut.pgw"), "0.5\n0\n0\n-0.5\n500060.25\n4200000.75\n").unwrap();
+    std::fs::copy(work.join("ortho.prj"), work.join("cut.prj")).unwrap();
+    let out = terrastream(&["tile", "--texture", "ortho.png", "cut.png", "-o", "cut.tspack"], work);
+    assert!(!out.status.success() && text(&out).contains("cut.png"), "{}", text(&out));
+    assert!(!work.join("cut.tspack").exists());
+    let out =
+        terrastream(&["tile", "--texture", "ortho.png", "cut.png", "--skip-bad-inputs", "-o", "cut.tspack"], work);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("cut.png") && text(&out).contains("strips of it left empty"), "{}", text(&out));
 }
 
 /// A missing archive: the message names the file once and the OS error once.

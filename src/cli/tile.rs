@@ -37,7 +37,8 @@ pub struct TileArgs {
     /// east-west distances are off by 1 - cos(lat)/cos(centre lat) away from the centre.
     #[arg(long, conflicts_with_all = ["crs", "resolution"])]
     keep_geographic: bool,
-    /// Leave out mosaic inputs that cannot be used (listed at the end) instead of stopping.
+    /// Leave out mosaic inputs that cannot be used, or the strips and tiles of them that
+    /// cannot be decoded (their places left empty), instead of stopping; listed at the end.
     #[arg(long)]
     skip_bad_inputs: bool,
     /// How the elevation's pixels map to heights. `auto`: GeoTIFF samples and 16-bit PNG
@@ -385,13 +386,14 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, when opened
-/// or when their heights were scanned.
+/// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, wholly (when
+/// opened, or when their heights were scanned) or in part (strips or tiles that could not
+/// be decoded when rows were made).
 fn print_skipped(heights: Option<&Mosaic<Heights>>, imagery: Option<&Mosaic<Pixels>>) {
     let skipped: Vec<(PathBuf, String)> =
         heights.map(Mosaic::skipped).into_iter().chain(imagery.map(Mosaic::skipped)).flatten().collect();
     if !skipped.is_empty() {
-        println!("skipped {} inputs that cannot be used:", skipped.len());
+        println!("skipped {} inputs, wholly or in part, that cannot be used:", skipped.len());
         for (_, why) in skipped {
             println!("  {why}");
         }

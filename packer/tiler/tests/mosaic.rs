@@ -17,8 +17,8 @@ use std::process::Command;
 use terrastream_format::{Reader, TileKey};
 use terrastream_pack::progress::Silent;
 use terrastream_tiler::{
-    Crs, ElevationSource, ElevationStorage, Heights, Mosaic, MosaicOptions, TileOptions, Transform, read_geotiff,
-    tile_elevation,
+    Crs, ElevationSource, ElevationStorage, Heights, Mosaic, MosaicOptions, Pixels, TileOptions, Transform,
+    read_geotiff, tile_elevation,
 };
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
@@ -238,17 +238,8 @@ fn a_truncated_or_undecodable_input_is_named_or_skipped_and_listed() {
     // Whole, but a tile's Deflate stream garbled: found when its heights are scanned
     // (every tile decoded once, before any row is made).
     let garbled = deflate_tile(dir.path(), "garbled.tif", 500_640.0, 200.0);
-    let (offsets, counts) = {
-        let mut decoder = tiff::decoder::Decoder::new(std::fs::File::open(&garbled).unwrap()).unwrap();
-        (decoder.get_tag_u64_vec(Tag::TileOffsets).unwrap(), decoder.get_tag_u64_vec(Tag::TileByteCounts).unwrap())
-    };
     let mut bytes = std::fs::read(&garbled).unwrap();
-    for (&at, &count) in offsets.iter().zip(&counts) {
-        // Past the zlib header: the first block's code lengths.
-        for k in 2..40.min(count as usize) {
-            bytes[at as usize + k] = (k * 37 + 11) as u8;
-        }
-    }
+    garble(&mut bytes, &tile_places(&garbled));
     std::fs::write(&garbled, bytes).unwrap();
     let inputs = [good.clone(), garbled.clone()];
     let mosaic = Mosaic::<Heights>::open(&inputs, &MosaicOptions::default()).unwrap();
@@ -272,6 +263,104 @@ fn a_truncated_or_undecodable_input_is_named_or_skipped_and_listed() {
     let alone = Mosaic::<Heights>::open(std::slice::from_ref(&garbled), &skip).unwrap();
     let err = alone.height_range(&mut |_| Ok(())).unwrap_err().to_string();
     assert!(err.contains("no input can be used"), "{err}");
+}
+
+/// The offsets and byte counts of `path`'s tiles.
+fn tile_places(path: &Path) -> Vec<(usize, usize)> {
+    let mut decoder = tiff::decoder::Decoder::new(std::fs::File::open(path).unwrap()).unwrap();
+    let offsets = decoder.get_tag_u64_vec(Tag::TileOffsets).unwrap();
+    let counts = decoder.get_tag_u64_vec(Tag::TileByteCounts).unwrap();
+    offsets.into_iter().zip(counts).map(|(a, n)| (a as usize, n as usize)).collect()
+}
+
+/// Garbles the code lengths of the Deflate streams at `places` in `bytes`.
+fn garble(bytes: &mut [u8], places: &[(usize, usize)]) {
+    for &(at, count) in places {
+        // Past the zlib header: the first block's code lengths.
+        for k in 2..40.min(count) {
+            bytes[at + k] = (k * 37 + 11) as u8;
+        }
+    }
+}
+
+/// An RGB GeoTIFF in UTM 33N at 10 m, its north-west corner at `east`, 5 100 000 m.
+fn utm_rgb(path: &Path, east: f64, (w, h): (u32, u32), rgb: impl Fn(u32, u32) -> [u8; 3]) {
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<colortype::RGB8>(w, h).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33550), &[10.0, 10.0, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, 5_100_000.0, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32633][..]).unwrap();
+    let rgb = &rgb;
+    let data: Vec<u8> = (0..h).flat_map(|j| (0..w).flat_map(move |i| rgb(i, j))).collect();
+    image.write_data(&data).unwrap();
+}
+
+/// Imagery is not decoded before rows are made (no height scan): with `skip_bad_inputs`,
+/// a tile or strip found damaged then is left empty (a gap, as where no input lies), the
+/// rest of its input used, and the input listed with how much of it was left out;
+/// without it, the first such tile stops the run naming the file.
+#[test]
+fn imagery_damaged_within_is_named_or_left_empty_where_damaged_and_listed() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name);
+    // Three images side by side: red, green (32 x 32 Deflate tiles, the second garbled),
+    // blue (a PNG cut short: its lower rows cannot be decoded). Varied, so that each
+    // stream holds Huffman tables to garble.
+    let vary = |i: u32, j: u32| 100 + ((i * 7 + j * 13) % 50) as u8;
+    utm_rgb(&p("red.tif"), 500_000.0, (64, 256), |i, j| [vary(i, j), 0, 0]);
+    utm_rgb(&p("green-plain.tif"), 500_640.0, (64, 256), |i, j| [0, vary(i, j), 0]);
+    utm_rgb(&p("blue.tif"), 501_280.0, (64, 256), |i, j| [0, 0, vary(i, j)]);
+    let green = p("green.tif");
+    let tiling = ["-q", "-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=32", "-co", "COMPRESS=DEFLATE"];
+    let status = Command::new("gdal_translate").args(tiling).arg(p("green-plain.tif")).arg(&green).status().unwrap();
+    assert!(status.success());
+    let mut bytes = std::fs::read(&green).unwrap();
+    garble(&mut bytes, &tile_places(&green)[1..2]);
+    std::fs::write(&green, bytes).unwrap();
+    let blue = p("blue.png");
+    let png = ["-q", "-of", "PNG", "-co", "WORLDFILE=YES"];
+    let status = Command::new("gdal_translate").args(png).arg(p("blue.tif")).arg(&blue).status().unwrap();
+    assert!(status.success());
+    let bytes = std::fs::read(&blue).unwrap();
+    std::fs::write(&blue, &bytes[..bytes.len() / 2]).unwrap();
+    let inputs = [p("red.tif"), green.clone(), blue.clone()];
+    let rows = |mosaic: &Mosaic<Pixels>| {
+        let mut rows = Vec::new();
+        terrastream_tiler::ImageSource::rows(mosaic, &mut |row| {
+            rows.push(row.to_vec());
+            Ok(())
+        })
+        .map(|()| rows)
+    };
+
+    let mosaic = Mosaic::<Pixels>::open(&inputs, &MosaicOptions::default()).unwrap();
+    let err = rows(&mosaic).unwrap_err().to_string();
+    assert!(err.contains("green.tif"), "{err}");
+
+    let skip = MosaicOptions { skip_bad_inputs: true, ..MosaicOptions::default() };
+    let mosaic = Mosaic::<Pixels>::open(&inputs, &skip).unwrap();
+    assert!(mosaic.skipped().is_empty(), "nothing is decoded when opened");
+    let rows = rows(&mosaic).unwrap();
+    assert_eq!((rows.len(), rows[0].len()), (256, 192));
+    let lit = |px: [u8; 4], channel: usize| px[3] == 255 && px[channel] >= 100;
+    for (j, row) in rows.iter().enumerate() {
+        assert!(row[..64].iter().all(|&px| lit(px, 0)), "red, row {j}");
+        for (i, &px) in row[64..128].iter().enumerate() {
+            let gap = j < 32 && i >= 32;
+            assert!(if gap { px == [0; 4] } else { lit(px, 1) }, "green at {i}, {j}: {px:?}");
+        }
+    }
+    // The PNG's rows up to where it was cut, then nothing.
+    let decoded = rows.iter().take_while(|r| r[128..].iter().all(|&px| lit(px, 2))).count();
+    assert!((64..256).contains(&decoded), "{decoded} rows of the cut PNG");
+    assert!(rows[decoded..].iter().all(|r| r[128..].iter().all(|&px| px == [0; 4])), "after row {decoded}");
+    let skipped = mosaic.skipped();
+    assert_eq!(skipped.iter().map(|(path, _)| path.clone()).collect::<Vec<_>>(), [green, blue], "{skipped:?}");
+    assert!(skipped[0].1.contains("Deflate") && skipped[0].1.contains("(1 tile of it left empty)"), "{skipped:?}");
+    assert!(skipped[1].1.contains("strips of it left empty"), "{skipped:?}");
 }
 
 #[test]

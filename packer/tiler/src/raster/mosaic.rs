@@ -124,6 +124,9 @@ pub struct Mosaic<K: MosaicKind = Heights> {
     skip_bad_inputs: bool,
     /// Inputs left out after the grid was made (see [`Input::dropped`]), and why.
     dropped: Mutex<Vec<(PathBuf, String)>>,
+    /// Per input, strips or tiles that could not be decoded while rows were made and were
+    /// left empty instead (with `skip_bad_inputs`).
+    damaged: Mutex<std::collections::BTreeMap<usize, Damage>>,
     inputs: Vec<Input<K>>,
     crs: Crs,
     origin: [f64; 2],
@@ -255,6 +258,7 @@ impl<K: MosaicKind> Mosaic<K> {
             skipped,
             skip_bad_inputs: options.skip_bad_inputs,
             dropped: Mutex::new(Vec::new()),
+            damaged: Mutex::new(std::collections::BTreeMap::new()),
             inputs,
             crs,
             origin,
@@ -265,10 +269,21 @@ impl<K: MosaicKind> Mosaic<K> {
         })
     }
 
-    /// Inputs left out with `skip_bad_inputs`, and why.
+    /// Inputs left out with `skip_bad_inputs`, wholly or in part, and why: those that
+    /// could not be opened, those whose heights could not be decoded when their range was
+    /// scanned, and those with strips or tiles that could not be decoded when rows were
+    /// made (where no scan decodes them first: imagery, heights with a given range),
+    /// whose places were left empty.
     pub fn skipped(&self) -> Vec<(PathBuf, String)> {
         let dropped = self.dropped.lock().unwrap_or_else(PoisonError::into_inner);
-        self.skipped.iter().chain(dropped.iter()).cloned().collect()
+        let damaged = self.damaged.lock().unwrap_or_else(PoisonError::into_inner);
+        let damaged = damaged.iter().map(|(&index, damage)| {
+            let n = damage.chunks.len();
+            let what = if damage.strips { "strip" } else { "tile" };
+            let why = format!("{} ({n} {what}{} of it left empty)", damage.first, if n == 1 { "" } else { "s" });
+            (K::path(&self.inputs[index].file).to_path_buf(), why)
+        });
+        self.skipped.iter().chain(dropped.iter()).cloned().chain(damaged).collect()
     }
 
     /// The output CRS.
@@ -528,8 +543,18 @@ const KEPT_BEHIND: usize = 8;
 struct RowStrips {
     path: PathBuf,
     width: usize,
+    decoder: Mutex<Decoding>,
+}
+
+/// Where a [`RowStrips`]' decoding stands.
+#[derive(Default)]
+struct Decoding {
     /// The next strip the decoder hands over, and the decoder.
-    decoder: Mutex<(usize, Option<Strips>)>,
+    next: usize,
+    strips: Option<Strips>,
+    /// The strip at which decoding failed: it and those below are not asked of a new
+    /// decoder (which would decode from the top again only to fail there).
+    failed: Option<usize>,
 }
 
 /// The strips a decoder thread hands over, top down.
@@ -585,7 +610,13 @@ impl RowStrips {
         if let Some(chunk) = cached() {
             return Ok(chunk);
         }
-        let (next, receiver) = &mut *decoder;
+        let Decoding { next, strips: receiver, failed } = &mut *decoder;
+        if let Some(at) = failed.filter(|&at| at <= id) {
+            return Err(Error::input(
+                &self.path,
+                format!("strip {id}: the image could not be decoded past strip {at}"),
+            ));
+        }
         if *next > id || receiver.is_none() {
             if *next > 0 {
                 tracing::debug!(path = %self.path.display(), strip = id, "decoding again from the top");
@@ -596,10 +627,16 @@ impl RowStrips {
             let received = receiver.as_ref().and_then(|r| r.recv().ok());
             let Some(strip) = received else {
                 *receiver = None;
+                *failed = Some(*next);
                 let why = format!("strip {id} of {STRIP_ROWS} rows: the image ended (or its decoder stopped) first");
                 return Err(Error::input(&self.path, why));
             };
-            let strip = strip.inspect_err(|_| *receiver = None)?;
+            let strip = strip.inspect_err(|e| {
+                *receiver = None;
+                if matches!(e, Error::Input { .. } | Error::File { .. }) {
+                    *failed = Some(*next);
+                }
+            })?;
             let n = *next;
             *next += 1;
             if n == id {
@@ -614,6 +651,16 @@ impl RowStrips {
 
 /// An input and one of its strips or tiles.
 type ChunkId = (usize, usize);
+
+/// The strips or tiles of an input that could not be decoded, left empty.
+#[derive(Debug)]
+struct Damage {
+    /// The first one's error.
+    first: String,
+    /// Whether the chunks are strips (else tiles), and which.
+    strips: bool,
+    chunks: std::collections::BTreeSet<usize>,
+}
 
 /// Input pixel coordinates along one lattice row.
 type LatticeRow = Arc<Vec<(f64, f64)>>;
@@ -1056,7 +1103,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         let input = &self.mosaic.inputs[index];
         let chunks = Arc::new(if K::read_by_rows(&input.file) {
             let path = K::path(&input.file).to_path_buf();
-            Chunks::Rows(RowStrips { path, width: K::size(&input.file).0 as usize, decoder: Mutex::new((0, None)) })
+            Chunks::Rows(RowStrips { path, width: K::size(&input.file).0 as usize, decoder: Mutex::default() })
         } else {
             Chunks::Tiff(TiffChunks::open(K::path(&input.file), K::channels(&input.file))?)
         });
@@ -1064,7 +1111,29 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         Ok(chunks)
     }
 
+    /// Chunk `id` of input `index`, from the cache or decoded. With `skip_bad_inputs`, a
+    /// chunk that cannot be decoded (its file unreadable, its data damaged) is an empty
+    /// one, its place a gap as where no input lies, and the input is listed (see
+    /// [`Mosaic::skipped`]): rows already made used the rest of it, so the rest of it is
+    /// used.
     fn chunk(&self, index: usize, chunks: &Chunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
+        match self.decoded(index, chunks, id) {
+            Err(e @ (Error::Input { .. } | Error::File { .. })) if self.mosaic.skip_bad_inputs => {
+                let (strips, (w, h), _) = chunks.layout();
+                let mut damaged = self.mosaic.damaged.lock().unwrap_or_else(PoisonError::into_inner);
+                let damage = damaged.entry(index).or_insert_with(|| {
+                    tracing::warn!("{e}: its {} {id} is left empty", if strips { "strip" } else { "tile" });
+                    Damage { first: e.to_string(), strips, chunks: std::collections::BTreeSet::new() }
+                });
+                damage.chunks.insert(id);
+                drop(damaged);
+                Ok(self.keep((index, id), Chunk { values: vec![K::NONE; w * h], w }))
+            }
+            decoded => decoded,
+        }
+    }
+
+    fn decoded(&self, index: usize, chunks: &Chunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
         if let Some(chunk) = self.cached((index, id)) {
             return Ok(chunk);
         }
