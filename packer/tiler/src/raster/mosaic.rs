@@ -4,11 +4,13 @@
 //! (later inputs first: a later input wins where it has data, nodata never overwrites
 //! data) and is sampled there, bilinear over the corners that have data. Inputs are read
 //! by strips or tiles on demand (a PNG or JPEG by strips of rows from its top, on a thread
-//! of its own), never whole: the chunks a band of output rows needs are
-//! decoded once into a cache bounded in bytes, and at most [`OPEN_FILES`] files are open
-//! at once (the least recently used is closed, and reopened if needed again; files the
-//! last two bands did not read are closed too). Rows are
-//! made in order, so the chunks in use are those under a band of output rows: memory
+//! of its own), never whole. Rows are made in bands, in order: each band finds the inputs
+//! whose footprints it crosses, decodes the chunks under its rows of each once (in
+//! parallel, into a cache bounded in bytes), and its rows sample them with no lock.
+//! Files stay open while bands read them: at least [`OPEN_FILES`], twice as many as a
+//! band reads within a quarter of the limit on open files (the least recently used is
+//! closed, and reopened if needed again; files the last two bands did not read are
+//! closed too). The chunks in use are those under a band of output rows: memory
 //! follows the output's width and the cache, not the number or size of the inputs.
 
 use std::collections::HashMap;
@@ -25,8 +27,24 @@ use super::{ElevationSource, ImageSource, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
 
-/// Most input files open at once.
+/// Input files kept open at least (more while a band of rows reads more, as the limit on
+/// open files allows; see [`open_files_limit`]).
 pub const OPEN_FILES: usize = 64;
+
+/// Files the mosaic may keep open: a quarter of the process's limit on open files (each
+/// open file holds a decoder for each thread reading it at once; the rest are the
+/// archive's, the spool's and other inputs'), 256 where the limit is not known.
+fn open_files_limit() -> usize {
+    #[cfg(unix)]
+    {
+        let limit = rustix::process::getrlimit(rustix::process::Resource::Nofile).current;
+        limit.map_or(usize::MAX, |n| usize::try_from(n / 4).unwrap_or(usize::MAX))
+    }
+    #[cfg(not(unix))]
+    {
+        256
+    }
+}
 
 /// Output texels between exact transforms along a row; linear in between. The error of
 /// that grows with the square of the lattice's cell: on the 64-file mosaic of two UTM
@@ -298,9 +316,11 @@ impl<K: MosaicKind> Mosaic<K> {
         let mut j = rows.start.min(last);
         while j < last {
             let end = (j + ROWS_AT_ONCE).min(last);
-            let band: Vec<Result<Vec<K::Value>>> = (j..end).into_par_iter().map(|r| self.row(r, &reader)).collect();
+            let inputs = reader.band(j..end)?;
+            let band: Vec<Vec<K::Value>> = (j..end).into_par_iter().map(|r| self.row(r, &inputs)).collect();
+            drop(inputs);
             for r in band {
-                row(&r?)?;
+                row(&r)?;
             }
             reader.next_band();
             j = end;
@@ -313,71 +333,65 @@ impl<K: MosaicKind> Mosaic<K> {
         self.inputs.iter().map(|i| K::path(&i.file))
     }
 
-    /// Makes output row `j`, reading chunks through `reader`.
-    fn row(&self, j: u32, reader: &Reader<'_, K>) -> Result<Vec<K::Value>> {
+    /// The output columns of `input`'s footprint (first, last; last < first for none).
+    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "clamped to the row")]
+    fn columns_of(&self, input: &Input<K>) -> (usize, usize) {
+        let width = i64::from(self.size.0);
+        (input.columns.0.clamp(0, width) as usize, input.columns.1.min(width - 1).max(0) as usize)
+    }
+
+    /// Makes output row `j` of `band`, whose inputs' chunks it holds.
+    fn row(&self, j: u32, band: &Band<K>) -> Vec<K::Value> {
         let width = self.size.0 as usize;
         let mut out = vec![K::NONE; width];
         // Later inputs first: the first value found wins.
-        for (index, input) in self.inputs.iter().enumerate().rev() {
-            if i64::from(j) < input.rows.0 || i64::from(j) > input.rows.1 || input.is_dropped() {
+        for (&index, window) in band.inputs.iter().zip(&band.windows).rev() {
+            let input = &self.inputs[index];
+            let Some(window) = window.as_ref().filter(|_| i64::from(j) >= input.rows.0 && i64::from(j) <= input.rows.1)
+            else {
                 continue;
-            }
-            #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "clamped to the row")]
-            let (c0, c1) = (input.columns.0.max(0) as usize, (input.columns.1.min(width as i64 - 1)).max(0) as usize);
+            };
+            let (c0, c1) = self.columns_of(input);
             if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
-            if let Grid::Shifted(sx, sy) = input.grid {
-                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
-                let (x0, y) = (c0 as f64 + sx, f64::from(j) + sy);
-                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
-                let ends = [(x0, y), (x0 + (c1 - c0) as f64, y)];
-                if let Some(window) = reader.window(index, &ends)? {
-                    window.shifted_into(x0, y, &mut out[c0..=c1]);
+            match input.grid {
+                Grid::Shifted(sx, sy) => {
+                    #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                    window.shifted_into(c0 as f64 + sx, f64::from(j) + sy, &mut out[c0..=c1]);
                 }
-                continue;
-            }
-            if let Grid::Aligned(ox, oy) = input.grid {
                 // The input's own pixels: a copy of its row.
-                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
-                let (x0, y) = ((c0 as i64 + ox) as f64, (i64::from(j) + oy) as f64);
-                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
-                let ends = [(x0, y), (x0 + (c1 - c0) as f64, y)];
-                if let Some(window) = reader.window(index, &ends)? {
-                    window.fill_row(c0 as i64 + ox, i64::from(j) + oy, &mut out[c0..=c1]);
+                Grid::Aligned(ox, oy) => window.fill_row(c0 as i64 + ox, i64::from(j) + oy, &mut out[c0..=c1]),
+                Grid::Warped => {
+                    // The input pixel coordinates of every sample of the row in this
+                    // input's footprint: exact on a lattice every LATTICE samples and
+                    // rows, bilinear between (see LATTICE for how far off that is).
+                    let l = j / LATTICE_ROWS;
+                    let (Some(top), Some(bottom)) = (band.lattice.get(&(index, l)), band.lattice.get(&(index, l + 1)))
+                    else {
+                        continue;
+                    };
+                    let fy = f64::from(j % LATTICE_ROWS) / f64::from(LATTICE_ROWS);
+                    let mut points = Vec::with_capacity(c1 - c0 + 1);
+                    for k in 0..top.len().saturating_sub(1) {
+                        let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
+                        let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
+                        let (a, b) = (mix(top[k], bottom[k], fy), mix(top[k + 1], bottom[k + 1], fy));
+                        let last = if to == c1 { to } else { to - 1 };
+                        #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
+                        let step = 1.0 / (to - from).max(1) as f64;
+                        let d = ((b.0 - a.0) * step, (b.1 - a.1) * step);
+                        #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
+                        points.extend((0..=last - from).map(|k| (a.0 + d.0 * k as f64, a.1 + d.1 * k as f64)));
+                    }
+                    if points.len() != c1 - c0 + 1 {
+                        points.resize(c1 - c0 + 1, (f64::NAN, f64::NAN));
+                    }
+                    window.bilinear_into(&points, &mut out[c0..c0 + points.len()]);
                 }
-                continue;
             }
-            // The input pixel coordinates of every sample of the row in this input's
-            // footprint: exact on a lattice every LATTICE samples and rows, bilinear
-            // between (see LATTICE for how far off that is).
-            let l = j / LATTICE_ROWS;
-            let (top, bottom) = (reader.lattice(index, l, (c0, c1))?, reader.lattice(index, l + 1, (c0, c1))?);
-            let fy = f64::from(j % LATTICE_ROWS) / f64::from(LATTICE_ROWS);
-            let mut points = Vec::with_capacity(c1 - c0 + 1);
-            // The extreme points of a segment are its ends (a + d k is monotonic in k).
-            let mut ends = Vec::with_capacity(2 * top.len());
-            for k in 0..top.len().saturating_sub(1) {
-                let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
-                let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
-                let (a, b) = (mix(top[k], bottom[k], fy), mix(top[k + 1], bottom[k + 1], fy));
-                let last = if to == c1 { to } else { to - 1 };
-                #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
-                let step = 1.0 / (to - from).max(1) as f64;
-                let d = ((b.0 - a.0) * step, (b.1 - a.1) * step);
-                #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
-                let at = |k: usize| (a.0 + d.0 * k as f64, a.1 + d.1 * k as f64);
-                ends.extend([at(0), at(last - from)]);
-                points.extend((0..=last - from).map(at));
-            }
-            if points.len() != c1 - c0 + 1 {
-                points.resize(c1 - c0 + 1, (f64::NAN, f64::NAN));
-            }
-            // The chunks under those points, fetched once; then sampled with no lock.
-            let Some(window) = reader.window(index, &ends)? else { continue };
-            window.bilinear_into(&points, &mut out[c0..c0 + points.len()]);
         }
-        Ok(out)
+        out
     }
 }
 
@@ -494,7 +508,7 @@ fn footprint(to_output: &Transform, origin: [f64; 2], pixel: (f64, f64), (w, h):
 }
 
 /// Decoded chunks of the inputs (heights, NaN for nodata), least recently used dropped
-/// past a byte budget; open files, least recently used closed past [`OPEN_FILES`].
+/// past a byte budget; open files, least recently used closed past the bound [`Reader::band`] sets.
 struct Reader<'m, K: MosaicKind> {
     mosaic: &'m Mosaic<K>,
     state: Mutex<ReaderState<'m, K::Value>>,
@@ -504,6 +518,8 @@ struct Reader<'m, K: MosaicKind> {
 
 struct ReaderState<'m, V> {
     files: HashMap<usize, (Arc<Chunks<'m>>, u64)>,
+    /// Most files kept open now.
+    open_files: usize,
     /// Per input and lattice row: input pixel coordinates of the lattice's samples.
     lattice: HashMap<(usize, u32), (LatticeRow, u64)>,
     chunks: HashMap<ChunkId, (Arc<Chunk<V>>, u64)>,
@@ -651,6 +667,15 @@ impl RowStrips {
 
 /// An input and one of its strips or tiles.
 type ChunkId = (usize, usize);
+
+/// What a band of output rows reads: the inputs whose footprints meet it, in order, the
+/// decoded chunks under the band's rows of each (None where none are), and the lattice
+/// rows the band's rows of inputs not on the output grid interpolate between.
+struct Band<K: MosaicKind> {
+    inputs: Vec<usize>,
+    windows: Vec<Option<Window<K>>>,
+    lattice: HashMap<(usize, u32), LatticeRow>,
+}
 
 /// The strips or tiles of an input that could not be decoded, left empty.
 #[derive(Debug)]
@@ -1000,8 +1025,66 @@ fn weights(p: (f64, f64), x0: i64, y0: i64) -> [f64; 4] {
 
 impl<'m, K: MosaicKind> Reader<'m, K> {
     fn new(mosaic: &'m Mosaic<K>) -> Self {
-        let state = ReaderState { files: HashMap::new(), lattice: HashMap::new(), chunks: HashMap::new(), bytes: 0 };
+        let state = ReaderState {
+            files: HashMap::new(),
+            open_files: OPEN_FILES,
+            lattice: HashMap::new(),
+            chunks: HashMap::new(),
+            bytes: 0,
+        };
         Self { mosaic, state: Mutex::new(state), band: std::sync::atomic::AtomicU64::new(0) }
+    }
+
+    /// The inputs whose footprints meet output rows `rows` (found from each input's rows:
+    /// a band's rows meet a few of thousands), their lattice rows and the chunks under
+    /// the band, made and decoded in parallel, once for all the band's rows. Files stay
+    /// open for all of them and as many more, as the limit on open files allows: fewer,
+    /// and each band would close and open again the files it reads.
+    fn band(&self, rows: std::ops::Range<u32>) -> Result<Band<K>> {
+        let m = self.mosaic;
+        let (first, last) = (i64::from(rows.start), i64::from(rows.end) - 1);
+        let inputs: Vec<usize> = (m.inputs.iter().enumerate())
+            .filter(|(_, i)| i.rows.0 <= last && i.rows.1 >= first && !i.is_dropped())
+            .map(|(index, _)| index)
+            .collect();
+        let open_files = (2 * inputs.len()).clamp(OPEN_FILES, open_files_limit().max(OPEN_FILES));
+        self.state.lock().unwrap_or_else(PoisonError::into_inner).open_files = open_files;
+        let lattice_rows = rows.start / LATTICE_ROWS..=(rows.end - 1) / LATTICE_ROWS + 1;
+        let wanted: Vec<(usize, u32, (usize, usize))> = (inputs.iter())
+            .filter(|&&index| m.inputs[index].grid == Grid::Warped)
+            .map(|&index| (index, m.columns_of(&m.inputs[index])))
+            .filter(|(_, (c0, c1))| c0 <= c1)
+            .flat_map(|(index, columns)| lattice_rows.clone().map(move |l| (index, l, columns)))
+            .collect();
+        let lattice: HashMap<(usize, u32), LatticeRow> = (wanted.into_par_iter())
+            .map(|(index, l, columns)| Ok(((index, l), self.lattice(index, l, columns)?)))
+            .collect::<Result<_>>()?;
+        let windows = (inputs.par_iter())
+            .map(|&index| {
+                let input = &m.inputs[index];
+                let (c0, c1) = m.columns_of(input);
+                if c1 < c0 {
+                    return Ok(None);
+                }
+                // The band's rows of the footprint, in input pixels: the corners for
+                // inputs on the grid; for others every lattice point the rows lie
+                // between (a row's points are linear between them).
+                let (j0, j1) = (first.max(input.rows.0), last.min(input.rows.1));
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                let corners = |(x, y): (f64, f64)| vec![(c0 as f64 + x, j0 as f64 + y), (c1 as f64 + x, j1 as f64 + y)];
+                #[expect(clippy::cast_precision_loss, reason = "pixel offsets are far below 2^52")]
+                let points = match input.grid {
+                    Grid::Aligned(ox, oy) => corners((ox as f64, oy as f64)),
+                    Grid::Shifted(sx, sy) => corners((sx, sy)),
+                    Grid::Warped => {
+                        let rows = lattice_rows.clone().filter_map(|l| lattice.get(&(index, l)));
+                        rows.flat_map(|row| row.iter().copied()).collect()
+                    }
+                };
+                self.window(index, &points)
+            })
+            .collect::<Result<_>>()?;
+        Ok(Band { inputs, windows, lattice })
     }
 
     /// The decoded chunks under `points` (input pixel coordinates) of input `index`;
@@ -1026,13 +1109,10 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         let chunks = self.file(index)?;
         let (strip, (cw, ch), across) = chunks.layout();
         let (cx0, cx1, cy0, cy1) = (px0 / cw, px1 / cw, py0 / ch, py1 / ch);
-        let mut held = Vec::with_capacity((cx1 - cx0 + 1) * (cy1 - cy0 + 1));
-        for cy in cy0..=cy1 {
-            for cx in cx0..=cx1 {
-                let id = if strip { cy } else { cy * across + cx };
-                held.push(self.chunk(index, &chunks, id)?);
-            }
-        }
+        // Decoded in parallel (one input may be all a band reads).
+        let ids: Vec<usize> =
+            (cy0..=cy1).flat_map(|cy| (cx0..=cx1).map(move |cx| if strip { cy } else { cy * across + cx })).collect();
+        let held = ids.into_par_iter().map(|id| self.chunk(index, &chunks, id)).collect::<Result<Vec<_>>>()?;
         Ok(Some(Window { bounds, chunk: (cw, ch), first: (cx0, cy0), across: cx1 - cx0 + 1, held }))
     }
 
@@ -1095,7 +1175,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             *used = clock;
             return Ok(chunks.clone());
         }
-        if state.files.len() >= OPEN_FILES
+        if state.files.len() >= state.open_files
             && let Some(oldest) = state.files.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k)
         {
             state.files.remove(&oldest);
