@@ -166,8 +166,11 @@ impl<K: MosaicKind> Mosaic<K> {
         let first = paths.first().ok_or(Error::NothingToTile)?;
         let mut files = Vec::with_capacity(paths.len());
         let mut skipped = Vec::new();
-        for path in paths {
-            match open_inputs::<K>(path) {
+        // Headers read on every core (thousands of files: most of the time before the
+        // first row), then taken in order: the first bad one is the one named.
+        let opened: Vec<Result<Vec<Opened<K>>>> = paths.par_iter().map(|path| open_inputs::<K>(path)).collect();
+        for (path, opened) in paths.iter().zip(opened) {
+            match opened {
                 Ok(opened) => files.extend(opened),
                 Err(e) if options.skip_bad_inputs => {
                     tracing::warn!("skipping {e}");
@@ -191,10 +194,12 @@ impl<K: MosaicKind> Mosaic<K> {
         let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
         let mut finest = f64::INFINITY;
         let mut footprints = Vec::with_capacity(files.len());
-        for o in &files {
-            let to_output = Transform::new(&o.crs, &crs);
+        let found: Vec<Option<[f64; 4]>> = (files.par_iter())
+            .map(|o| footprint(&Transform::new(&o.crs, &crs), o.origin, o.pixel, (o.window[2], o.window[3])))
+            .collect();
+        for (o, fp) in files.iter().zip(found) {
             let (w, h) = (o.window[2], o.window[3]);
-            let fp = footprint(&to_output, o.origin, o.pixel, (w, h)).ok_or_else(|| {
+            let fp = fp.ok_or_else(|| {
                 Error::input(K::path(&o.file), format!("it lies outside what {} can hold", crs.name()))
             })?;
             bounds = [bounds[0].min(fp[0]), bounds[1].min(fp[1]), bounds[2].max(fp[2]), bounds[3].max(fp[3])];
@@ -242,8 +247,7 @@ impl<K: MosaicKind> Mosaic<K> {
             (spacing, spacing)
         };
         let origin = [bounds[0], bounds[3]];
-        let inputs = files
-            .into_iter()
+        let inputs = (files.into_par_iter())
             .zip(footprints)
             .map(|(o, fp)| {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
