@@ -18,6 +18,12 @@
 # quarter of the rows against the whole (4x the area, the same width: memory follows the
 # output's width by design, so that a mosaic may grow south without bound). SCALE=441
 # upsamples each window 4.41x (464 -> 2048 samples, at 6.8 m) for 64 files of 2048^2. MOSAIC=only runs that case alone.
+# MANY=1 (the default) adds the many-files case: the DEM's first 3584^2 samples cut into
+# 64 x 64 = 4096 GeoTIFFs of 56^2 (gdal_retile.py), as a state's DEM is published in
+# thousands of files, tiled from the folder against the same samples in one file (both
+# onto the default transverse Mercator): the cost of many files over one; and against
+# gdalwarp (onto UTM 10N at 25 m, about our spacing) + gdal_translate + gdal2tiles.
+# MANY=only runs that case alone.
 # TAP=1 warps the windows onto one lattice per zone (gdalwarp -tap), as tiles cut from one
 # source usually are: inputs on the output's lattice are then copied, not resampled.
 #
@@ -135,6 +141,30 @@ gdal_mosaic() {
   rm -f "$work/mosaic.tif" "$work/mosaic8.tif"
 }
 export -f gdal_mosaic
+MANY=${MANY:-1}
+many_case() {
+  local dir="$work/many"
+  mkdir -p "$dir/tiles"
+  gdal_translate -q -srcwin 0 0 3584 3584 "$DEM" "$dir/one.tif"
+  gdal_retile.py -q -ps 56 56 -targetDir "$dir/tiles" "$dir/one.tif"
+  echo "many files: $(ls "$dir/tiles" | wc -l) GeoTIFFs of 56^2 samples, $(du -sh "$dir/tiles" | cut -f1)"
+  local ours=("$bin" -q tile --elevation "$dir/tiles" -o "$work/many.tspack")
+  local one=("$bin" -q tile --elevation "$dir/one.tif" -o "$work/one.tspack")
+  local theirs=(bash -c 'MOSAIC_SPACING=25 gdal_mosaic "$0" "$1"' "$dir/tiles" "$work/many-g2t")
+  measure_together ours-many "$work/many.tspack" ours ours-one "$work/one.tspack" one gdal-many "$work/many-g2t" theirs
+}
+many_report() {
+  printf '%-40s %9s s %9s MiB\n' "4096 files: terrastream tile" "${secs[ours-many]}" "$((peak[ours-many] / 1024))"
+  printf '%-40s %9s s %9s MiB\n' "the same samples in one file: ours" "${secs[ours-one]}" "$((peak[ours-one] / 1024))"
+  printf '%-40s %9s s %9s MiB\n' "4096 files: gdalwarp + translate + g2t" "${secs[gdal-many]}" "$((peak[gdal-many] / 1024))"
+  echo "4096 files against one: $(awk -v a="${secs[ours-many]}" -v b="${secs[ours-one]}" 'BEGIN { printf "%.1fx", a / b }') the time, by round $(rounds ours-many ours-one); speed-up over GDAL: $(awk -v a="${secs[gdal-many]}" -v b="${secs[ours-many]}" 'BEGIN { printf "%.1fx", a / b }'), by round $(rounds gdal-many ours-many)"
+}
+if [ "$MANY" = only ]; then
+  many_case
+  echo
+  many_report
+  exit 0
+fi
 if [ "$MOSAIC" = only ]; then
   mosaic_case
   echo
@@ -200,5 +230,9 @@ if [ "$MOSAIC" != 0 ]; then
   row "mosaic: gdalwarp + translate + gdal2tiles" gdal-mosaic
   row "mosaic, its first quarter of rows: ours" ours-mosaic-quarter
   echo "mosaic speed-up over GDAL: $(ratio gdal-mosaic ours-mosaic), by round $(rounds gdal-mosaic ours-mosaic); peak memory for 4x the area: $(awk -v a="${peak[ours-mosaic]}" -v b="${peak[ours-mosaic-quarter]}" 'BEGIN { printf "%.2fx", a / b }')"
+fi
+if [ "$MANY" != 0 ]; then
+  many_case
+  many_report
 fi
 echo "peak memory, image streamed from TIFF / decoded JPEG: $(awk -v a="${peak[ours-img-tiff]}" -v b="${peak[ours-img-png]}" 'BEGIN { printf "%.2fx", a / b }')"

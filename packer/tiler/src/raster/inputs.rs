@@ -50,8 +50,12 @@ pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
 
 fn walk(folder: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
     for entry in std::fs::read_dir(folder).map_err(|e| Error::file(folder, e))? {
-        let path = entry.map_err(|e| Error::file(folder, e))?.path();
-        if path.is_dir() {
+        let entry = entry.map_err(|e| Error::file(folder, e))?;
+        let path = entry.path();
+        // The kind the listing gives, with no call per entry (thousands of files); a
+        // link is followed.
+        let kind = entry.file_type().map_err(|e| Error::file(&path, e))?;
+        if kind.is_dir() || (kind.is_symlink() && path.is_dir()) {
             walk(&path, out)?;
         } else if is_raster(&path) {
             out.push(path);

@@ -1320,6 +1320,23 @@ fn values_range(input: &Input<Heights>, progress: &mut dyn FnMut(u32) -> Result<
     })
 }
 
+/// Inputs of at most this many samples (what one batch of chunks reads at least) have
+/// their height range scanned many at once.
+const SMALL_INPUT: u64 = 1 << 18;
+
+/// Most small inputs scanned at once.
+const SCAN_AT_ONCE: usize = 256;
+
+/// The height range of `input` as a mosaic reads it (see [`values_range`]), `progress`
+/// told the file's rows read.
+fn input_range(input: &Input<Heights>, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
+    if input.nodata.is_none() && input.scale.is_none() {
+        input.file.height_range(progress)
+    } else {
+        values_range(input, progress)
+    }
+}
+
 impl ElevationSource for Mosaic<Heights> {
     fn path(&self) -> &Path {
         &self.path
@@ -1350,31 +1367,46 @@ impl ElevationSource for Mosaic<Heights> {
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
         let count = u64::try_from(self.inputs.len().max(1)).unwrap_or(u64::MAX);
-        for (k, input) in self.inputs.iter().enumerate() {
-            // Told as the input's rows are read (a batch of chunks at a time): the bar
-            // moves and Ctrl-C is heard within one large input too. The scan's progress
-            // is in output rows, a share for each input.
-            let rows = u64::from(input.window[3].max(1));
-            let mut within = |read: u32| {
-                let done = (k as u64 * rows + u64::from(read).min(rows)) * u64::from(self.size.1) / (count * rows);
-                progress(u32::try_from(done).unwrap_or(u32::MAX))
-            };
-            let range = if input.nodata.is_none() && input.scale.is_none() {
-                input.file.height_range(&mut within)
+        let small = |input: &Input<Heights>| {
+            let (w, h) = Heights::size(&input.file);
+            u64::from(w) * u64::from(h) <= SMALL_INPUT
+        };
+        let mut k = 0;
+        while k < self.inputs.len() {
+            // Small inputs, many at once on every core (thousands of small files are not
+            // read one after another), progress told after them. A larger one is told as
+            // its rows are read (a batch of chunks at a time): the bar moves and Ctrl-C
+            // is heard within it too. The scan's progress is in output rows, a share for
+            // each input.
+            let run = self.inputs[k..].iter().take(SCAN_AT_ONCE).take_while(|i| small(i)).count();
+            let ranges: Vec<Result<(f32, f32)>> = if run > 0 {
+                (k..k + run).into_par_iter().map(|i| input_range(&self.inputs[i], &mut |_| Ok(()))).collect()
             } else {
-                values_range(input, &mut within)
+                let rows = u64::from(self.inputs[k].window[3].max(1));
+                let mut within = |read: u32| {
+                    let done = (k as u64 * rows + u64::from(read).min(rows)) * u64::from(self.size.1) / (count * rows);
+                    progress(u32::try_from(done).unwrap_or(u32::MAX))
+                };
+                vec![input_range(&self.inputs[k], &mut within)]
             };
-            let (l, h) = match range {
-                Err(e @ (Error::Input { .. } | Error::File { .. })) if self.skip_bad_inputs => {
-                    tracing::warn!("skipping {e}");
-                    input.dropped.store(true, std::sync::atomic::Ordering::Relaxed);
-                    let mut dropped = self.dropped.lock().unwrap_or_else(PoisonError::into_inner);
-                    dropped.push((Heights::path(&input.file).to_path_buf(), e.to_string()));
-                    continue;
-                }
-                other => other?,
-            };
-            (lo, hi) = (lo.min(l), hi.max(h));
+            let next = k + ranges.len();
+            for (input, range) in self.inputs[k..next].iter().zip(ranges) {
+                let (l, h) = match range {
+                    Err(e @ (Error::Input { .. } | Error::File { .. })) if self.skip_bad_inputs => {
+                        tracing::warn!("skipping {e}");
+                        input.dropped.store(true, std::sync::atomic::Ordering::Relaxed);
+                        let mut dropped = self.dropped.lock().unwrap_or_else(PoisonError::into_inner);
+                        dropped.push((Heights::path(&input.file).to_path_buf(), e.to_string()));
+                        continue;
+                    }
+                    other => other?,
+                };
+                (lo, hi) = (lo.min(l), hi.max(h));
+            }
+            k = next;
+            if run > 0 {
+                progress(u32::try_from(k as u64 * u64::from(self.size.1) / count).unwrap_or(u32::MAX))?;
+            }
         }
         if self.inputs.iter().all(Input::is_dropped) {
             return Err(Error::input(&self.path, "no input can be used (every one was skipped)"));
