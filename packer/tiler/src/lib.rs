@@ -40,8 +40,8 @@ pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, Tile
 pub use plan::{LayerPlan, Plan, plan};
 pub use raster::{
     ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic,
-    MosaicKind, MosaicOptions, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres, is_vrt,
-    jpeg_rows, open_elevation, open_image, read_geotiff, read_image, read_vrt,
+    MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres,
+    is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff, read_image, read_vrt,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
 pub use update::{UpdateSummary, update};

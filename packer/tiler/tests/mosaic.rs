@@ -539,6 +539,60 @@ fn an_input_on_the_output_crs_and_spacing_is_copied_sample_for_sample() {
     }
 }
 
+/// A surface cut into 24 x 8 files of 8 x 8 samples: each band of 32 output rows crosses
+/// 96 files, more than the 64 always kept open. Copied sample for sample (the files are
+/// on the output's lattice), its height range scanned from all of them; and the same as
+/// one file when both are reprojected (a given CRS): the cut leaves no seam.
+#[test]
+fn a_band_across_more_files_than_are_kept_open_reads_them_all() {
+    let dir = tempfile::tempdir().unwrap();
+    let height = |i: u32, j: u32| 300.0 + (i as f32 * 0.37).sin() * 40.0 + j as f32 * 0.61;
+    let (across, down, side) = (24u32, 8u32, 8u32);
+    assert!(4 * across as usize > terrastream_tiler::OPEN_FILES);
+    let mut inputs = Vec::new();
+    for y in 0..down {
+        for x in 0..across {
+            let path = dir.path().join(format!("t{y:02}_{x:02}.tif"));
+            let corner = (500_000.0 + f64::from(x * side) * 10.0, 5_100_000.0 - f64::from(y * side) * 10.0);
+            utm_tile(&path, corner, (side, side), |i, j| height(x * side + i, y * side + j));
+            inputs.push(path);
+        }
+    }
+    let whole = dir.path().join("whole.tif");
+    utm_tile(&whole, (500_000.0, 5_100_000.0), (across * side, down * side), height);
+
+    let mosaic = Mosaic::<Heights>::open(&inputs, &MosaicOptions::default()).unwrap();
+    assert_eq!(mosaic.size(), (across * side, down * side));
+    let rows = rows_of(&mosaic);
+    for (j, row) in rows.iter().enumerate() {
+        for (i, &got) in row.iter().enumerate() {
+            assert_eq!(got.to_bits(), height(i as u32, j as u32).to_bits(), "sample ({i}, {j}): {got}");
+        }
+    }
+    let one = Mosaic::<Heights>::open(std::slice::from_ref(&whole), &MosaicOptions::default()).unwrap();
+    let range = mosaic.height_range(&mut |_| Ok(())).unwrap();
+    assert_eq!(range, one.height_range(&mut |_| Ok(())).unwrap());
+
+    let utm32 =
+        MosaicOptions { crs: Some(Crs::epsg(32632).unwrap()), resolution: Some(10.0), ..MosaicOptions::default() };
+    let (cut, one) =
+        (Mosaic::<Heights>::open(&inputs, &utm32).unwrap(), Mosaic::<Heights>::open(&[whole], &utm32).unwrap());
+    assert_eq!(cut.size(), one.size());
+    assert_eq!(cut.georeference().unwrap().origin, one.georeference().unwrap().origin);
+    let (a, b) = (rows_of(&cut), rows_of(&one));
+    let mut compared = 0;
+    for (ra, rb) in a.iter().zip(&b) {
+        for (&x, &y) in ra.iter().zip(rb) {
+            assert_eq!(x.is_nan(), y.is_nan());
+            if !x.is_nan() {
+                assert!((x - y).abs() < 1e-3, "{x} against {y}");
+                compared += 1;
+            }
+        }
+    }
+    assert!(compared > a.len() * a[0].len() / 2, "{compared} samples with data");
+}
+
 #[test]
 fn an_input_a_fraction_of_a_pixel_off_the_grid_is_sampled_bilinearly() {
     // The first input sets the lattice; the second, in the same CRS and spacing, lies

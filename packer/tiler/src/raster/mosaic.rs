@@ -109,6 +109,9 @@ struct Input<K: MosaicKind> {
     rows: (i64, i64),
     /// How the input's pixels lie on the output grid.
     grid: Grid,
+    /// The inputs on one lattice (the same CRS and pixel size, whole pixels apart: tiles
+    /// cut from one raster) share a number, and a pixel grid: file pixel + this offset.
+    lattice: Option<(usize, i64, i64)>,
     /// Left out once open: its data could not be decoded when its height range was
     /// scanned (with `skip_bad_inputs`).
     dropped: std::sync::atomic::AtomicBool,
@@ -247,15 +250,18 @@ impl<K: MosaicKind> Mosaic<K> {
             (spacing, spacing)
         };
         let origin = [bounds[0], bounds[3]];
+        let lattices = lattices(&files);
         let inputs = (files.into_par_iter())
             .zip(footprints)
-            .map(|(o, fp)| {
+            .zip(lattices)
+            .map(|((o, fp), lattice)| {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
                 let to_input = Transform::new(&crs, &o.crs);
                 let grid = grid_of(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
                 Input {
                     grid,
+                    lattice,
                     dropped: std::sync::atomic::AtomicBool::new(false),
                     columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
                     rows: (cell((origin[1] - fp[3]) / pixel.1) - 1, cell((origin[1] - fp[1]) / pixel.1) + 1),
@@ -349,7 +355,7 @@ impl<K: MosaicKind> Mosaic<K> {
         let width = self.size.0 as usize;
         let mut out = vec![K::NONE; width];
         // Later inputs first: the first value found wins.
-        for (&index, window) in band.inputs.iter().zip(&band.windows).rev() {
+        for (place, (&index, window)) in band.inputs.iter().zip(&band.windows).enumerate().rev() {
             let input = &self.inputs[index];
             let Some(window) = window.as_ref().filter(|_| i64::from(j) >= input.rows.0 && i64::from(j) <= input.rows.1)
             else {
@@ -359,10 +365,26 @@ impl<K: MosaicKind> Mosaic<K> {
             if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
+            // A corner beyond this input's pixels: the latest neighbour on its lattice
+            // with data there.
+            let edge = |x: i64, y: i64| {
+                let Some((_, ox, oy)) = input.lattice else { return K::NONE };
+                for &other in band.neighbours[place].iter().rev() {
+                    let (Some(w), Some((_, nx, ny))) = (&band.windows[other], self.inputs[band.inputs[other]].lattice)
+                    else {
+                        continue;
+                    };
+                    let v = w.get(x + ox - nx, y + oy - ny);
+                    if !K::is_none(&v) {
+                        return v;
+                    }
+                }
+                K::NONE
+            };
             match input.grid {
                 Grid::Shifted(sx, sy) => {
                     #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
-                    window.shifted_into(c0 as f64 + sx, f64::from(j) + sy, &mut out[c0..=c1]);
+                    window.shifted_into(c0 as f64 + sx, f64::from(j) + sy, &mut out[c0..=c1], &edge);
                 }
                 // The input's own pixels: a copy of its row.
                 Grid::Aligned(ox, oy) => window.fill_row(c0 as i64 + ox, i64::from(j) + oy, &mut out[c0..=c1]),
@@ -391,7 +413,7 @@ impl<K: MosaicKind> Mosaic<K> {
                     if points.len() != c1 - c0 + 1 {
                         points.resize(c1 - c0 + 1, (f64::NAN, f64::NAN));
                     }
-                    window.bilinear_into(&points, &mut out[c0..c0 + points.len()]);
+                    window.bilinear_into(&points, &mut out[c0..c0 + points.len()], &edge);
                 }
             }
         }
@@ -476,6 +498,40 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
     let (w, h) = K::size(&file);
     Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None, scale: None }])
+}
+
+/// Each input's lattice (see [`Input::lattice`]): its number, and the offset from its
+/// file's pixels to the lattice's (whose pixel 0 is the first such input's origin).
+#[expect(clippy::cast_possible_truncation, reason = "whole pixel offsets, checked to be near whole numbers")]
+fn lattices<K: MosaicKind>(files: &[Opened<K>]) -> Vec<Option<(usize, i64, i64)>> {
+    // Keyed by CRS, pixel size and where the pixel edges fall (in millionths of a pixel);
+    // the lattice's number and pixel 0's corner.
+    type Key = (String, u64, u64, i64, i64);
+    let mut found: HashMap<Key, (usize, [f64; 2])> = HashMap::new();
+    let edge = |origin: f64, pixel: f64| ((origin / pixel).rem_euclid(1.0) * 1e6).round() as i64 % 1_000_000;
+    files
+        .iter()
+        .map(|o| {
+            let (px, py) = o.pixel;
+            if !(px > 0.0 && py > 0.0 && o.origin[0].is_finite() && o.origin[1].is_finite()) {
+                return None;
+            }
+            let key = (
+                o.crs.definition().to_owned(),
+                px.to_bits(),
+                py.to_bits(),
+                edge(o.origin[0], px),
+                edge(o.origin[1], py),
+            );
+            let next = found.len();
+            let (id, reference) = *found.entry(key).or_insert((next, o.origin));
+            let (dx, dy) = ((o.origin[0] - reference[0]) / px, (reference[1] - o.origin[1]) / py);
+            if (dx - dx.round()).abs() > 1e-6 || (dy - dy.round()).abs() > 1e-6 || dx.abs().max(dy.abs()) > 1e15 {
+                return None;
+            }
+            Some((id, dx.round() as i64 - i64::from(o.window[0]), dy.round() as i64 - i64::from(o.window[1])))
+        })
+        .collect()
 }
 
 /// West, south, east and north of geographic inputs' corners (degrees).
@@ -679,6 +735,10 @@ struct Band<K: MosaicKind> {
     inputs: Vec<usize>,
     windows: Vec<Option<Window<K>>>,
     lattice: HashMap<(usize, u32), LatticeRow>,
+    /// For each input that is resampled, the others of the band on its lattice that meet
+    /// or touch it (places in `inputs`, in order): where its bilinear corners fall outside
+    /// its pixels they are theirs, as if the tiles were one raster.
+    neighbours: Vec<Vec<usize>>,
 }
 
 /// The strips or tiles of an input that could not be decoded, left empty.
@@ -690,6 +750,43 @@ struct Damage {
     strips: bool,
     chunks: std::collections::BTreeSet<usize>,
 }
+
+/// For each of `inputs` (of `m`) that is resampled, the places in `inputs` of the others
+/// on its lattice whose pixels meet or touch its own (see [`Band::neighbours`]).
+fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<Vec<usize>> {
+    // Pixels of each on its lattice: first column and row, end column and row.
+    let extent = |i: &Input<K>| {
+        i.lattice.map(|(id, ox, oy)| {
+            let [x, y, w, h] = i.window.map(i64::from);
+            (id, [x + ox, y + oy, x + ox + w, y + oy + h])
+        })
+    };
+    let extents: Vec<_> = inputs.iter().map(|&k| extent(&m.inputs[k])).collect();
+    let mut by_lattice: HashMap<usize, Vec<usize>> = HashMap::new();
+    for (place, e) in extents.iter().enumerate() {
+        if let Some((id, _)) = e {
+            by_lattice.entry(*id).or_default().push(place);
+        }
+    }
+    (inputs.iter().zip(&extents))
+        .enumerate()
+        .map(|(place, (&k, e))| {
+            // Copied inputs read no corners.
+            let Some((id, [x0, y0, x1, y1])) = e.filter(|_| !matches!(m.inputs[k].grid, Grid::Aligned(..))) else {
+                return Vec::new();
+            };
+            let touching = |&&other: &&usize| {
+                other != place
+                    && extents[other].is_some_and(|(_, [a0, b0, a1, b1])| a0 <= x1 && a1 >= x0 && b0 <= y1 && b1 >= y0)
+            };
+            by_lattice.get(&id).map_or_else(Vec::new, |same| same.iter().filter(touching).copied().collect())
+        })
+        .collect()
+}
+
+/// The value of a pixel beyond an input's own, by its pixel coordinates: its neighbours'
+/// on its lattice, or no data.
+type Edge<'a, V> = dyn Fn(i64, i64) -> V + 'a;
 
 /// Input pixel coordinates along one lattice row.
 type LatticeRow = Arc<Vec<(f64, f64)>>;
@@ -808,28 +905,29 @@ impl<K: MosaicKind> Window<K> {
     }
 
     /// Bilinear value at pixel coordinates `p` (centres at integers) over the corners with
-    /// data; no data where none has.
-    fn bilinear(&self, p: (f64, f64)) -> K::Value {
+    /// data (`edge`'s beyond the raster's pixels); no data where none has.
+    fn bilinear(&self, p: (f64, f64), edge: &Edge<'_, K::Value>) -> K::Value {
         if !(p.0.is_finite() && p.1.is_finite()) {
             return K::NONE;
         }
         let (x0, y0) = (floor(p.0), floor(p.1));
-        self.blend_at(x0, y0, weights(p, x0, y0))
+        self.blend_at(x0, y0, weights(p, x0, y0), edge)
     }
 
     /// The blend of pixels `(x0, y0)`, `(x0 + 1, y0)`, `(x0, y0 + 1)` and `(x0 + 1, y0 + 1)`
-    /// with weights `w`.
-    fn blend_at(&self, x0: i64, y0: i64, w: [f64; 4]) -> K::Value {
+    /// with weights `w`; those beyond the raster's pixels are `edge`'s.
+    fn blend_at(&self, x0: i64, y0: i64, w: [f64; 4], edge: &Edge<'_, K::Value>) -> K::Value {
+        let b = self.bounds;
+        let get = |x: i64, y: i64| if x < b.0 || y < b.1 || x >= b.2 || y >= b.3 { edge(x, y) } else { self.get(x, y) };
         // Usually all four corners lie in one chunk: read them with one lookup.
-        let [a, b, c, d] = self.quad(x0, y0).unwrap_or_else(|| {
-            [self.get(x0, y0), self.get(x0 + 1, y0), self.get(x0, y0 + 1), self.get(x0 + 1, y0 + 1)]
-        });
+        let [a, b, c, d] =
+            self.quad(x0, y0).unwrap_or_else(|| [get(x0, y0), get(x0 + 1, y0), get(x0, y0 + 1), get(x0 + 1, y0 + 1)]);
         K::blend(&[(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])])
     }
 
     /// [`Self::bilinear_into`] for the points `(x0 + k, y)`, `k` = 0, 1, …: an input a
     /// fraction of a pixel off the output grid. The weights are the same for all.
-    fn shifted_into(&self, x0: f64, y: f64, out: &mut [K::Value]) {
+    fn shifted_into(&self, x0: f64, y: f64, out: &mut [K::Value], edge: &Edge<'_, K::Value>) {
         let (ix, iy) = (floor(x0), floor(y));
         let w = weights((x0, y), ix, iy);
         let mut k = 0;
@@ -846,7 +944,7 @@ impl<K: MosaicKind> Window<K> {
                 }
                 None => {
                     if K::is_none(&out[k]) {
-                        out[k] = self.blend_at(x, iy, w);
+                        out[k] = self.blend_at(x, iy, w, edge);
                     }
                     k += 1;
                 }
@@ -859,7 +957,7 @@ impl<K: MosaicKind> Window<K> {
     /// with data). Consecutive points of a row mostly fall between the same two rows of
     /// one chunk column: those are found once, not with two divisions and a lookup a point,
     /// and sampled in a loop of their own.
-    fn bilinear_into(&self, points: &[(f64, f64)], out: &mut [K::Value]) {
+    fn bilinear_into(&self, points: &[(f64, f64)], out: &mut [K::Value], edge: &Edge<'_, K::Value>) {
         let n = out.len().min(points.len());
         let mut pair: Option<RowPair<'_, K::Value>> = None;
         let mut k = 0;
@@ -879,7 +977,7 @@ impl<K: MosaicKind> Window<K> {
             let Some(r) = &pair else {
                 // Outside the window by a pixel or more: no corner has data.
                 if x0 >= self.bounds.0 - 1 && y0 >= self.bounds.1 - 1 && x0 < self.bounds.2 && y0 < self.bounds.3 {
-                    out[k] = self.bilinear(p);
+                    out[k] = self.bilinear(p, edge);
                 }
                 k += 1;
                 continue;
@@ -1088,7 +1186,8 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
                 self.window(index, &points)
             })
             .collect::<Result<_>>()?;
-        Ok(Band { inputs, windows, lattice })
+        let neighbours = neighbours(m, &inputs);
+        Ok(Band { inputs, windows, lattice, neighbours })
     }
 
     /// The decoded chunks under `points` (input pixel coordinates) of input `index`;
