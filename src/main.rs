@@ -17,6 +17,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> ExitCode {
     let args = cli::Cli::parse();
     cli::init_logging(args.verbose, args.quiet);
+    raise_open_files_limit();
     match cli::run(args) {
         Ok(code) => code,
         Err(err) => {
@@ -34,4 +35,22 @@ fn main() -> ExitCode {
 fn interrupted(err: &anyhow::Error) -> bool {
     matches!(err.downcast_ref::<terrastream_pack::Error>(), Some(terrastream_pack::Error::Interrupted))
         || err.downcast_ref::<terrastream_tiler::Error>().is_some_and(terrastream_tiler::Error::is_interrupted)
+}
+
+/// Raises the soft limit on open files to the hard one, as tools that read thousands of
+/// files do: a mosaic keeps the files a band of rows reads open (within a share of this
+/// limit), and the server holds a socket per connection. Where it cannot, the limit
+/// stays as it was.
+fn raise_open_files_limit() {
+    #[cfg(unix)]
+    {
+        use rustix::process::{Resource, getrlimit, setrlimit};
+        let limit = getrlimit(Resource::Nofile);
+        if limit.current.is_some() && limit.current != limit.maximum {
+            let raised = rustix::process::Rlimit { current: limit.maximum, maximum: limit.maximum };
+            if let Err(e) = setrlimit(Resource::Nofile, raised) {
+                tracing::debug!("the limit on open files stays at {:?}: {e}", limit.current);
+            }
+        }
+    }
 }

@@ -275,6 +275,40 @@ fn tile_plans_writes_and_refuses_bad_input() {
     assert!(text(&out).contains("cut.png") && text(&out).contains("strips of it left empty"), "{}", text(&out));
 }
 
+/// A mosaic of more files than a low limit on open files allows: the binary raises the
+/// soft limit to the hard one (as `prlimit` sets them here) and tiles them all.
+#[test]
+fn a_mosaic_of_many_files_runs_under_a_low_soft_limit_on_open_files() {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    if Command::new("prlimit").arg("--version").output().is_err() {
+        eprintln!("skipped: prlimit not found (util-linux)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("tiles")).unwrap();
+    // 200 files of 8 x 8 in one row (UTM 33N, 10 m): every band of rows reads them all.
+    for k in 0..200u32 {
+        let path = dir.path().join(format!("tiles/{k:03}.tif"));
+        let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+        let mut image = encoder.new_image::<Gray32Float>(8, 8).unwrap();
+        let east = 500_000.0 + f64::from(k) * 80.0;
+        image.encoder().write_tag(Tag::Unknown(33550), &[10.0, 10.0, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, 5_100_000.0, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32633][..]).unwrap();
+        image.write_data(&[100.0 + k as f32; 64]).unwrap();
+    }
+    let bin = env!("CARGO_BIN_EXE_terrastream");
+    let out = Command::new("prlimit")
+        .args(["--nofile=48:4096", bin, "tile", "--elevation", "tiles", "--crs", "EPSG:32632", "-o", "m.tspack"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    let out = terrastream(&["verify", "m.tspack"], dir.path());
+    assert!(out.status.success(), "{}", text(&out));
+}
+
 /// A missing archive: the message names the file once and the OS error once.
 #[test]
 fn a_missing_archive_is_named_once() {

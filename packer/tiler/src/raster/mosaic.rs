@@ -8,7 +8,7 @@
 //! whose footprints it crosses, decodes the chunks under its rows of each once (in
 //! parallel, into a cache bounded in bytes), and its rows sample them with no lock.
 //! Files stay open while bands read them: at least [`OPEN_FILES`], twice as many as a
-//! band reads within a quarter of the limit on open files (the least recently used is
+//! band reads within a share of the limit on open files (the least recently used is
 //! closed, and reopened if needed again; files the last two bands did not read are
 //! closed too). The chunks in use are those under a band of output rows: memory
 //! follows the output's width and the cache, not the number or size of the inputs.
@@ -31,14 +31,16 @@ use crate::error::{Error, Result};
 /// open files allows; see [`open_files_limit`]).
 pub const OPEN_FILES: usize = 64;
 
-/// Files the mosaic may keep open: a quarter of the process's limit on open files (each
-/// open file holds a decoder for each thread reading it at once; the rest are the
-/// archive's, the spool's and other inputs'), 256 where the limit is not known.
+/// Files the mosaic may keep open: half the process's limit on open files shared among
+/// what one open file may hold (a reader, and a decoder for each thread reading it at
+/// once); the other half is the archive's, the spool's and the rest. 256 where the limit
+/// is not known.
 fn open_files_limit() -> usize {
     #[cfg(unix)]
     {
         let limit = rustix::process::getrlimit(rustix::process::Resource::Nofile).current;
-        limit.map_or(usize::MAX, |n| usize::try_from(n / 4).unwrap_or(usize::MAX))
+        let per_file = 2 * (rayon::current_num_threads() as u64 + 1);
+        limit.map_or(usize::MAX, |n| usize::try_from(n / per_file).unwrap_or(usize::MAX))
     }
     #[cfg(not(unix))]
     {
