@@ -10,8 +10,6 @@
 //! Anything else (LZW, floats, 32-bit, planar, big-endian 16-bit with a predictor ...)
 //! goes through the `tiff` crate as before; the two are compared in tests.
 
-use std::path::Path;
-
 use tiff::decoder::DecodingResult;
 use tiff::tags::Tag;
 
@@ -38,9 +36,10 @@ pub(super) struct RawLayout {
 const MAX_CHUNK_BYTES: u64 = 1 << 30;
 
 impl RawLayout {
-    /// The layout of the decoder's image if this module decodes it, else None.
+    /// The layout of the decoder's image if this module decodes it (read from `file`, a
+    /// duplicate of the decoder's file, by positional reads), else None.
     pub(super) fn of(
-        path: &Path,
+        file: std::fs::File,
         decoder: &mut TiffDecoder,
         channels: usize,
         tiled: bool,
@@ -88,7 +87,6 @@ impl RawLayout {
         if !ok {
             return None;
         }
-        let file = std::fs::File::open(path).ok()?;
         // Every chunk inside the file: no buffer is sized by a claim the file cannot back.
         let len = file.metadata().ok()?.len();
         let inside = |(&o, &c): (&u64, &u64)| c <= MAX_CHUNK_BYTES && o.checked_add(c).is_some_and(|end| end <= len);

@@ -10,8 +10,13 @@ pub(super) const PLANAR_CONFIGURATION: u16 = 284;
 pub(super) type TiffDecoder = tiff::decoder::Decoder<std::io::BufReader<std::fs::File>>;
 
 pub(super) fn open_tiff(path: &Path) -> Result<TiffDecoder> {
-    use tiff::decoder::{Decoder, Limits};
     let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    tiff_decoder(path, file)
+}
+
+/// A decoder of `file`, opened from `path`.
+fn tiff_decoder(path: &Path, file: std::fs::File) -> Result<TiffDecoder> {
+    use tiff::decoder::{Decoder, Limits};
     let mut limits = Limits::default();
     // One chunk (a strip or a tile) is decoded at a time: allow big ones, not the image.
     limits.decoding_buffer_size = 1 << 30;
@@ -74,7 +79,10 @@ impl<'p> TiffChunks<'p> {
     pub(super) fn open(path: &'p Path, channels: usize) -> Result<Self> {
         use tiff::decoder::ChunkType;
         let bad = |why: String| Error::input(path, why);
-        let mut decoder = open_tiff(path)?;
+        // One open file for the decoder and the raw reader (positional reads): thousands
+        // of inputs are opened again and again as bands read them.
+        let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+        let mut decoder = tiff_decoder(path, file.try_clone().map_err(|e| Error::file(path, e))?)?;
         let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
         let (chunk_w, chunk_h) = decoder.chunk_dimensions();
         if chunk_w == 0 || chunk_h == 0 {
@@ -86,7 +94,7 @@ impl<'p> TiffChunks<'p> {
             ChunkType::Tile => decoder.tile_count(),
         }
         .map_err(|e| bad(format!("{}s: {e}", Self::name(kind))))? as usize;
-        let raw = RawLayout::of(path, &mut decoder, channels, kind == ChunkType::Tile, chunk_w as usize);
+        let raw = RawLayout::of(file, &mut decoder, channels, kind == ChunkType::Tile, chunk_w as usize);
         Ok(Self {
             raw,
             path,
