@@ -764,11 +764,19 @@ fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<Vec<usize>>
         })
     };
     let extents: Vec<_> = inputs.iter().map(|&k| extent(&m.inputs[k])).collect();
-    let mut by_lattice: HashMap<usize, Vec<usize>> = HashMap::new();
+    // Each lattice's inputs by first column, and the widest: those that may touch an
+    // input start at most that far left of it (thousands of tiles a band, not each
+    // against each).
+    let mut by_lattice: HashMap<usize, (Vec<(i64, usize)>, i64)> = HashMap::new();
     for (place, e) in extents.iter().enumerate() {
-        if let Some((id, _)) = e {
-            by_lattice.entry(*id).or_default().push(place);
+        if let Some((id, [x0, _, x1, _])) = e {
+            let (members, widest) = by_lattice.entry(*id).or_default();
+            members.push((*x0, place));
+            *widest = (*widest).max(x1 - x0);
         }
+    }
+    for (members, _) in by_lattice.values_mut() {
+        members.sort_unstable();
     }
     (inputs.iter().zip(&extents))
         .enumerate()
@@ -777,11 +785,21 @@ fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<Vec<usize>>
             let Some((id, [x0, y0, x1, y1])) = e.filter(|_| !matches!(m.inputs[k].grid, Grid::Aligned(..))) else {
                 return Vec::new();
             };
-            let touching = |&&other: &&usize| {
-                other != place
-                    && extents[other].is_some_and(|(_, [a0, b0, a1, b1])| a0 <= x1 && a1 >= x0 && b0 <= y1 && b1 >= y0)
-            };
-            by_lattice.get(&id).map_or_else(Vec::new, |same| same.iter().filter(touching).copied().collect())
+            let Some((members, widest)) = by_lattice.get(&id) else { return Vec::new() };
+            let first = members.partition_point(|&(a0, _)| a0 < x0 - widest);
+            let mut touching: Vec<usize> = members[first..]
+                .iter()
+                .take_while(|&&(a0, _)| a0 <= x1)
+                .map(|&(_, other)| other)
+                .filter(|&other| {
+                    other != place
+                        && extents[other]
+                            .is_some_and(|(_, [a0, b0, a1, b1])| a0 <= x1 && a1 >= x0 && b0 <= y1 && b1 >= y0)
+                })
+                .collect();
+            // In input order: the latest with data wins.
+            touching.sort_unstable();
+            touching
         })
         .collect()
 }
