@@ -309,6 +309,39 @@ fn a_mosaic_of_many_files_runs_under_a_low_soft_limit_on_open_files() {
     assert!(out.status.success(), "{}", text(&out));
 }
 
+/// Imagery alone, asked for in another CRS: one image or several are reprojected into it
+/// (the CRS and resolution options are the imagery's when there are no heights).
+#[test]
+fn imagery_alone_is_tiled_in_the_crs_asked_for() {
+    use tiff::encoder::{TiffEncoder, colortype::RGB8};
+    use tiff::tags::Tag;
+    let dir = tempfile::tempdir().unwrap();
+    for (name, east) in [("a.tif", 500_000.0), ("b.tif", 500_640.0)] {
+        let mut encoder = TiffEncoder::new(std::fs::File::create(dir.path().join(name)).unwrap()).unwrap();
+        let mut image = encoder.new_image::<RGB8>(64, 64).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33550), &[10.0, 10.0, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, 5_100_000.0, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32633][..]).unwrap();
+        image.write_data(&[90u8; 64 * 64 * 3]).unwrap();
+    }
+    for (inputs, resolution) in [(&["a.tif", "b.tif"][..], "10"), (&["a.tif"][..], "20")] {
+        let mut args = vec!["tile", "--texture"];
+        args.extend(inputs);
+        args.extend(["--crs", "EPSG:32632", "--resolution", resolution, "-o", "t.tspack"]);
+        let out = terrastream(&args, dir.path());
+        assert!(out.status.success(), "{args:?}: {}", text(&out));
+        let reader = terrastream_format::Reader::open_mmap(&dir.path().join("t.tspack")).unwrap();
+        let metadata = reader.metadata();
+        let crs = metadata.georeference.as_ref().and_then(|g| g.crs.clone());
+        assert_eq!(crs.as_deref(), Some("EPSG:32632"), "{args:?}");
+        // Texels of the resolution asked for.
+        let layer = &metadata.layers[0];
+        let texel = layer.tile_world_size / f64::from(layer.tile_resolution);
+        let asked: f64 = resolution.parse().unwrap();
+        assert!((texel - asked).abs() < 0.01 * asked, "{args:?}: {texel} m texels");
+    }
+}
+
 /// A missing archive: the message names the file once and the OS error once.
 #[test]
 fn a_missing_archive_is_named_once() {

@@ -25,11 +25,13 @@ pub struct TileArgs {
     /// are nodata.
     #[arg(long, num_args = 1.., required_unless_present = "texture")]
     elevation: Vec<PathBuf>,
-    /// Output CRS of a mosaic (`EPSG:32633`, or a PROJ string). Default: the first
-    /// input's if projected, else a transverse Mercator centred on the data.
+    /// Output CRS of a mosaic (`EPSG:32633`, or a PROJ string): of the heights (the imagery
+    /// follows them), or of the imagery when there are none. Default: the first input's if
+    /// projected, else a transverse Mercator centred on the data.
     #[arg(long)]
     crs: Option<String>,
-    /// Output sample spacing of a mosaic, in metres. Default: the finest input's.
+    /// Output sample spacing of a mosaic, in metres (of the imagery when there are no
+    /// heights). Default: the finest input's.
     #[arg(long)]
     resolution: Option<f64>,
     /// Keep one geographic (degrees) input on its own grid, scaled at its centre latitude,
@@ -212,7 +214,8 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     };
     // Several inputs, a geographic one, or a CRS or spacing asked for: one mosaic on one
     // output grid.
-    let mosaic = if inputs.len() > 1 || vrt || geographic || args.crs.is_some() || args.resolution.is_some() {
+    let asked = args.crs.is_some() || args.resolution.is_some();
+    let mosaic = if !inputs.is_empty() && (inputs.len() > 1 || vrt || geographic || asked) {
         let crs = args.crs.as_deref().map(Crs::parse).transpose()?;
         let options = MosaicOptions {
             crs,
@@ -265,13 +268,20 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         None => elevation,
     };
     let textures = expand_inputs(&args.texture)?;
-    // Several images (or a VRT of them): one mosaic over the elevation's extent, in its CRS.
-    let image_mosaic = if textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) {
-        let (crs, extent) = match elevation {
-            Some(e) => elevation_extent(e)?,
-            None => (None, None),
+    // Several images (or a VRT of them): one mosaic over the elevation's extent, in its CRS;
+    // with no elevation, in the CRS and at the resolution asked for, if any (then even one
+    // image is reprojected).
+    let alone = elevation.is_none() && asked;
+    let image_mosaic = if textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone {
+        let (crs, extent, resolution) = match elevation {
+            Some(e) => {
+                let (crs, extent) = elevation_extent(e)?;
+                (crs, extent, None)
+            }
+            None => (args.crs.as_deref().map(Crs::parse).transpose()?, None, args.resolution),
         };
-        let options = MosaicOptions { crs, extent, skip_bad_inputs: args.skip_bad_inputs, ..MosaicOptions::default() };
+        let skip_bad_inputs = args.skip_bad_inputs;
+        let options = MosaicOptions { crs, extent, resolution, skip_bad_inputs, ..MosaicOptions::default() };
         let mosaic = Mosaic::<Pixels>::open(&textures, &options)?;
         let (w, h) = ImageSource::size(&mosaic);
         tracing::info!("texture: a mosaic of {} images in {}, {w} x {h} pixels", textures.len(), mosaic.crs().name());
