@@ -330,7 +330,7 @@ fn imagery_alone_is_tiled_in_the_crs_asked_for() {
         args.extend(["--crs", "EPSG:32632", "--resolution", resolution, "-o", "t.tspack"]);
         let out = terrastream(&args, dir.path());
         assert!(out.status.success(), "{args:?}: {}", text(&out));
-        let reader = terrastream_format::Reader::open_mmap(&dir.path().join("t.tspack")).unwrap();
+        let reader = terrastream_format::Reader::open_mmap(dir.path().join("t.tspack")).unwrap();
         let metadata = reader.metadata();
         let crs = metadata.georeference.as_ref().and_then(|g| g.crs.clone());
         assert_eq!(crs.as_deref(), Some("EPSG:32632"), "{args:?}");
