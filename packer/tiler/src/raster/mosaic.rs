@@ -111,9 +111,10 @@ struct Input<K: MosaicKind> {
     rows: (i64, i64),
     /// How the input's pixels lie on the output grid.
     grid: Grid,
-    /// The inputs on one lattice (the same CRS and pixel size, whole pixels apart: tiles
-    /// cut from one raster) share a number, and a pixel grid: file pixel + this offset.
-    lattice: Option<(usize, i64, i64)>,
+    /// Inputs of one CRS and pixel size share a number, and a pixel grid: file pixel +
+    /// this offset. Those whole pixels apart lie on one lattice (tiles cut from one
+    /// raster); others (tiles each warped onto its own origin) a fraction of a pixel off.
+    lattice: Option<(usize, f64, f64)>,
     /// Left out once open: its data could not be decoded when its height range was
     /// scanned (with `skip_bad_inputs`).
     dropped: std::sync::atomic::AtomicBool,
@@ -367,8 +368,8 @@ impl<K: MosaicKind> Mosaic<K> {
             if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
-            // A corner beyond this input's pixels: the latest neighbour on its lattice
-            // with data there.
+            // A corner beyond this input's pixels: the latest neighbour's of its CRS and
+            // pixel size with data there (its pixel, on one lattice; else bilinear there).
             let edge = |x: i64, y: i64| {
                 let Some((_, ox, oy)) = input.lattice else { return K::NONE };
                 for &other in band.neighbours[place].iter().rev() {
@@ -376,7 +377,15 @@ impl<K: MosaicKind> Mosaic<K> {
                     else {
                         continue;
                     };
-                    let v = w.get(x + ox - nx, y + oy - ny);
+                    #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
+                    let (px, py) = (x as f64 + ox - nx, y as f64 + oy - ny);
+                    let (rx, ry) = (px.round(), py.round());
+                    #[expect(clippy::cast_possible_truncation, reason = "whole, and within the grid")]
+                    let v = if (px - rx).abs() < 1e-6 && (py - ry).abs() < 1e-6 {
+                        w.get(rx as i64, ry as i64)
+                    } else {
+                        w.bilinear((px, py), &|_, _| K::NONE)
+                    };
                     if !K::is_none(&v) {
                         return v;
                     }
@@ -502,15 +511,12 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None, scale: None }])
 }
 
-/// Each input's lattice (see [`Input::lattice`]): its number, and the offset from its
-/// file's pixels to the lattice's (whose pixel 0 is the first such input's origin).
-#[expect(clippy::cast_possible_truncation, reason = "whole pixel offsets, checked to be near whole numbers")]
-fn lattices<K: MosaicKind>(files: &[Opened<K>]) -> Vec<Option<(usize, i64, i64)>> {
-    // Keyed by CRS, pixel size and where the pixel edges fall (in millionths of a pixel);
-    // the lattice's number and pixel 0's corner.
-    type Key = (String, u64, u64, i64, i64);
-    let mut found: HashMap<Key, (usize, [f64; 2])> = HashMap::new();
-    let edge = |origin: f64, pixel: f64| ((origin / pixel).rem_euclid(1.0) * 1e6).round() as i64 % 1_000_000;
+/// Each input's pixel grid (see [`Input::lattice`]): the number of its CRS and pixel
+/// size, and the offset from its file's pixels to the grid's (whose pixel 0 is the first
+/// such input's corner), whole where it is within a millionth of a pixel of whole.
+fn lattices<K: MosaicKind>(files: &[Opened<K>]) -> Vec<Option<(usize, f64, f64)>> {
+    let mut found: HashMap<(String, u64, u64), (usize, [f64; 2])> = HashMap::new();
+    let snap = |v: f64| if (v - v.round()).abs() <= 1e-6 { v.round() } else { v };
     files
         .iter()
         .map(|o| {
@@ -518,20 +524,14 @@ fn lattices<K: MosaicKind>(files: &[Opened<K>]) -> Vec<Option<(usize, i64, i64)>
             if !(px > 0.0 && py > 0.0 && o.origin[0].is_finite() && o.origin[1].is_finite()) {
                 return None;
             }
-            let key = (
-                o.crs.definition().to_owned(),
-                px.to_bits(),
-                py.to_bits(),
-                edge(o.origin[0], px),
-                edge(o.origin[1], py),
-            );
             let next = found.len();
+            let key = (o.crs.definition().to_owned(), px.to_bits(), py.to_bits());
             let (id, reference) = *found.entry(key).or_insert((next, o.origin));
             let (dx, dy) = ((o.origin[0] - reference[0]) / px, (reference[1] - o.origin[1]) / py);
-            if (dx - dx.round()).abs() > 1e-6 || (dy - dy.round()).abs() > 1e-6 || dx.abs().max(dy.abs()) > 1e15 {
+            if dx.abs().max(dy.abs()) > 1e15 {
                 return None;
             }
-            Some((id, dx.round() as i64 - i64::from(o.window[0]), dy.round() as i64 - i64::from(o.window[1])))
+            Some((id, snap(dx) - f64::from(o.window[0]), snap(dy) - f64::from(o.window[1])))
         })
         .collect()
 }
@@ -737,9 +737,9 @@ struct Band<K: MosaicKind> {
     inputs: Vec<usize>,
     windows: Vec<Option<Window<K>>>,
     lattice: HashMap<(usize, u32), LatticeRow>,
-    /// For each input that is resampled, the others of the band on its lattice that meet
-    /// or touch it (places in `inputs`, in order): where its bilinear corners fall outside
-    /// its pixels they are theirs, as if the tiles were one raster.
+    /// For each input that is resampled, the others of the band of its CRS and pixel size
+    /// that meet or touch it (places in `inputs`, in order): where its bilinear corners
+    /// fall outside its pixels they are theirs, as if the tiles were one raster.
     neighbours: Vec<Vec<usize>>,
 }
 
@@ -754,13 +754,15 @@ struct Damage {
 }
 
 /// For each of `inputs` (of `m`) that is resampled, the places in `inputs` of the others
-/// on its lattice whose pixels meet or touch its own (see [`Band::neighbours`]).
+/// of its CRS and pixel size whose pixels meet or touch its own (see [`Band::neighbours`]).
 fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<Vec<usize>> {
-    // Pixels of each on its lattice: first column and row, end column and row.
+    // Pixels of each on its grid: first column and row, end column and row (rounded out).
+    #[expect(clippy::cast_possible_truncation, reason = "pixel offsets within the grid")]
     let extent = |i: &Input<K>| {
         i.lattice.map(|(id, ox, oy)| {
-            let [x, y, w, h] = i.window.map(i64::from);
-            (id, [x + ox, y + oy, x + ox + w, y + oy + h])
+            let [x, y, w, h] = i.window.map(f64::from);
+            let (x0, y0) = ((x + ox).floor() as i64, (y + oy).floor() as i64);
+            (id, [x0, y0, (x + ox + w).ceil() as i64, (y + oy + h).ceil() as i64])
         })
     };
     let extents: Vec<_> = inputs.iter().map(|&k| extent(&m.inputs[k])).collect();
@@ -805,7 +807,7 @@ fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<Vec<usize>>
 }
 
 /// The value of a pixel beyond an input's own, by its pixel coordinates: its neighbours'
-/// on its lattice, or no data.
+/// of its CRS and pixel size, or no data.
 type Edge<'a, V> = dyn Fn(i64, i64) -> V + 'a;
 
 /// Input pixel coordinates along one lattice row.
