@@ -576,6 +576,8 @@ struct Reader<'m, K: MosaicKind> {
     state: Mutex<ReaderState<'m, K::Value>>,
     /// The band of output rows being made: what "recently used" counts in.
     band: std::sync::atomic::AtomicU64,
+    /// Most files kept open, however many a band reads ([`open_files_limit`], asked once).
+    open_files_limit: usize,
 }
 
 struct ReaderState<'m, V> {
@@ -1156,7 +1158,12 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             chunks: HashMap::new(),
             bytes: 0,
         };
-        Self { mosaic, state: Mutex::new(state), band: std::sync::atomic::AtomicU64::new(0) }
+        Self {
+            mosaic,
+            state: Mutex::new(state),
+            band: std::sync::atomic::AtomicU64::new(0),
+            open_files_limit: open_files_limit().max(OPEN_FILES),
+        }
     }
 
     /// The inputs whose footprints meet output rows `rows` (found from each input's rows:
@@ -1171,7 +1178,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
             .filter(|(_, i)| i.rows.0 <= last && i.rows.1 >= first && !i.is_dropped())
             .map(|(index, _)| index)
             .collect();
-        let open_files = (2 * inputs.len()).clamp(OPEN_FILES, open_files_limit().max(OPEN_FILES));
+        let open_files = (2 * inputs.len()).clamp(OPEN_FILES, self.open_files_limit);
         self.state.lock().unwrap_or_else(PoisonError::into_inner).open_files = open_files;
         let lattice_rows = rows.start / LATTICE_ROWS..=(rows.end - 1) / LATTICE_ROWS + 1;
         let wanted: Vec<(usize, u32, (usize, usize))> = (inputs.iter())
