@@ -1,6 +1,7 @@
 //! Any bytes as a tile payload of every format of every layer kind the client decodes
 //! (PNG, JPEG, WebP, raw u16/f32, BC1/BC7; texture and elevation in every encoding;
-//! zstd-wrapped or not). `decode` must return a tile or an error, never panic.
+//! as stored: plain, zstd-wrapped, gradient-coded in zstd). `decode` must return a tile or
+//! an error, never panic.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -26,12 +27,14 @@ const SCHEMES: [ElevationScheme; 6] = [
 ];
 
 fuzz_target!(|data: &[u8]| {
-    // The first byte picks the layer, the second the tile size; the rest is the payload.
-    let [pick, size, payload @ ..] = data else { return };
+    // The first byte picks the layer, the second the tile size, the third the payload
+    // compression; the rest is the payload.
+    let [pick, size, how, payload @ ..] = data else { return };
     let format = FORMATS[usize::from(pick % 7)];
     let kind = if pick & 8 == 0 { LayerKind::Texture } else { LayerKind::Elevation };
     let scheme = SCHEMES[usize::from((pick >> 4) % 6)];
-    let compression = if pick & 128 == 0 { PayloadCompression::None } else { PayloadCompression::Zstd };
+    let compression = [PayloadCompression::None, PayloadCompression::Zstd, PayloadCompression::ZstdGradient]
+        [usize::from(how % 3)];
     let layer = Layer {
         name: "fuzz".into(),
         kind,

@@ -349,11 +349,12 @@ fn tile_located(
                     h.insert(CONTENT_ENCODING, HeaderValue::from_static("zstd"));
                     stored
                 }
-                PayloadCompression::Zstd => {
-                    let raw =
-                        terrastream_format::zstd_decompress(&stored, info.max_payload_bytes(), &format!("tile {key}"))
-                            .map_err(|e| AppError::Internal(e.to_string()))?;
-                    Bytes::from(raw)
+                // Zstd not accepted, or gradient-coded samples (which only this project
+                // reads): the format's own bytes, as its media type says.
+                PayloadCompression::Zstd | PayloadCompression::ZstdGradient => {
+                    let raw = terrastream_format::payload_bytes(info, &stored, &format!("tile {key}"))
+                        .map_err(|e| AppError::Internal(e.to_string()))?;
+                    Bytes::from(raw.into_owned())
                 }
             };
             h.insert(CONTENT_TYPE, HeaderValue::from_static(info.format.media_type()));

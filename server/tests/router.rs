@@ -215,6 +215,28 @@ async fn zstd_tiles_pass_through_only_when_accepted() {
     }
 }
 
+/// Gradient-coded tiles are sent decoded, whatever the client accepts: the media type
+/// (raw u16) is what the body is, for any HTTP client.
+#[tokio::test]
+async fn gradient_coded_tiles_are_sent_as_their_samples() {
+    let dir = tempfile::tempdir().unwrap();
+    terrastream_testkit::archives::write_u16_archive(
+        &dir.path().join("g.tspack"),
+        2,
+        terrastream_format::PayloadCompression::ZstdGradient,
+    );
+    let s = state(dir.path());
+    let key = TileKey::new(0, 0, 1, 1).unwrap();
+    for accept in [None, Some("gzip, zstd")] {
+        let headers: Vec<(&str, &str)> = accept.map(|a| vec![("accept-encoding", a)]).unwrap_or_default();
+        let (r, body) = send(&s, get("/g/elevation/0/1/1", &headers)).await;
+        assert_eq!(r.status(), StatusCode::OK);
+        assert_eq!(h(&r, "content-encoding"), "", "{accept:?}");
+        assert_eq!(h(&r, "content-type"), "application/octet-stream");
+        assert_eq!(body, raw_tile(key, 2));
+    }
+}
+
 #[tokio::test]
 async fn listing_health_metrics_and_cors() {
     let (dir, _) = archives();

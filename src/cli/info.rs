@@ -87,7 +87,10 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
             l.name,
             l.kind,
             l.format,
-            if l.compression == terrastream_format::PayloadCompression::Zstd { "+zstd" } else { "" },
+            match l.compression {
+                terrastream_format::PayloadCompression::None => String::new(),
+                other => format!("+{}", other.name()),
+            },
             l.tile_resolution,
             l.border,
             l.grid[0],

@@ -3,9 +3,7 @@
 //! frame thread.
 
 use bytes::Bytes;
-use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat, TileKey, zstd_decompress,
-};
+use terrastream_format::{ElevationEncoding, ElevationScheme, Layer, LayerKind, TileFormat, TileKey, payload_bytes};
 
 use crate::error::{Error, Result};
 
@@ -130,8 +128,8 @@ impl DecodedTile {
 pub fn decode(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> Result<DecodedTile> {
     let bad = |reason: String| Error::BadTile { key, layer: layer.name.clone(), reason };
     let inflated;
-    let bytes = if compressed && layer.compression == PayloadCompression::Zstd {
-        inflated = zstd_decompress(payload, layer.max_payload_bytes(), &format!("tile {key}"))?;
+    let bytes = if compressed {
+        inflated = payload_bytes(layer, payload, &format!("tile {key}"))?;
         &inflated[..]
     } else {
         payload
@@ -345,6 +343,8 @@ fn decode_image(format: TileFormat, bytes: &[u8]) -> std::result::Result<Image, 
 
 #[cfg(test)]
 mod tests {
+    use terrastream_format::PayloadCompression;
+
     use super::*;
 
     fn png(width: u32, colour: png::ColorType, depth: png::BitDepth, data: &[u8]) -> Vec<u8> {
@@ -401,6 +401,18 @@ mod tests {
         assert!(t.height(1, 0).unwrap().is_nan());
         assert!(matches!(t.data, TileData::Heights { min: 1.5, max: 7.0, .. }), "{:?}", t.data);
         assert_eq!((t.height(0, 0), t.height(0, 1)), (Some(1.5), Some(7.0)));
+        // Raw u16, gradient-coded (the tiler's default): as stored, and as the tile endpoint
+        // sends it (decoded); a frame of the wrong size names the tile.
+        let mut l = layer(LayerKind::Elevation, TileFormat::RawU16, enc(ElevationScheme::QuantizedU16, 0.5, -20.0));
+        l.compression = PayloadCompression::ZstdGradient;
+        let raw: Vec<u8> = [1000u16, 1002, 999, 65_535].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let stored = terrastream_pack::zstd_compress_gradient(&raw, 2).unwrap();
+        for t in [decode(&l, key, &stored, true).unwrap(), decode(&l, key, &raw, false).unwrap()] {
+            assert_eq!((t.height(0, 0), t.height(1, 0), t.height(0, 1)), (Some(480.0), Some(481.0), Some(479.5)));
+            assert_eq!(t.height(1, 1), Some(32_747.5));
+        }
+        let e = decode(&l, key, &terrastream_pack::zstd_compress(&raw[..6], 3).unwrap(), true).unwrap_err();
+        assert!(e.to_string().contains("tile layer 0 lod 0 x 0 y 0") && e.to_string().contains("6 bytes"), "{e}");
     }
 
     #[test]

@@ -14,7 +14,7 @@ pub enum Error {
     #[error("not a tspack archive (bad magic bytes)")]
     BadMagic,
     /// The archive's major version is one this reader does not understand.
-    #[error("unsupported tspack version {major}.{minor} (this reader reads 1.x)")]
+    #[error("unsupported tspack version {major}.{minor} (this reader reads 1.x and 2.x)")]
     UnsupportedVersion {
         /// Major version found in the header.
         major: u16,

@@ -7,8 +7,10 @@ use crate::error::{Error, Result};
 pub const MAGIC: [u8; 8] = *b"TSPACK\r\n";
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 128;
-/// Major version written by this crate; readers reject other majors.
-pub const VERSION_MAJOR: u16 = 1;
+/// Newest major version this crate reads and writes; it reads every major from 1 up to
+/// this one and writes the lowest that holds an archive's metadata
+/// ([`crate::Metadata::format_major`]): 2 only where a layer is `zstd_gradient`.
+pub const VERSION_MAJOR: u16 = 2;
 /// Minor version written by this crate; readers accept any minor of their major.
 pub const VERSION_MINOR: u16 = 0;
 /// What a reader fetches first when it knows nothing of the archive.
@@ -59,6 +61,8 @@ impl Section {
 /// The decoded header.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Header {
+    /// Major version of the file (1..=[`VERSION_MAJOR`]).
+    pub version_major: u16,
     /// Minor version of the file.
     pub version_minor: u16,
     /// Metadata JSON.
@@ -95,7 +99,7 @@ impl Header {
     pub fn encode(&self) -> [u8; HEADER_LEN] {
         let mut b = [0u8; HEADER_LEN];
         b[0..8].copy_from_slice(&MAGIC);
-        b[8..10].copy_from_slice(&VERSION_MAJOR.to_le_bytes());
+        b[8..10].copy_from_slice(&self.version_major.to_le_bytes());
         b[10..12].copy_from_slice(&self.version_minor.to_le_bytes());
         b[12..16].copy_from_slice(&128u32.to_le_bytes());
         let u64s = [
@@ -137,7 +141,7 @@ impl Header {
         }
         let u16_at = |at: usize| u16::from_le_bytes([bytes[at], bytes[at + 1]]);
         let (major, minor) = (u16_at(8), u16_at(10));
-        if major != VERSION_MAJOR {
+        if !(1..=VERSION_MAJOR).contains(&major) {
             return Err(Error::UnsupportedVersion { major, minor });
         }
         if bytes.len() < HEADER_LEN {
@@ -161,6 +165,7 @@ impl Header {
         }
         let section = |at: usize| Section { offset: u64_at(at), len: u64_at(at + 8) };
         let header = Self {
+            version_major: major,
             version_minor: minor,
             metadata: section(24),
             root_dir: section(40),
@@ -229,6 +234,7 @@ mod tests {
 
     fn sample() -> Header {
         Header {
+            version_major: 1,
             version_minor: 0,
             metadata: Section { offset: 128, len: 300 },
             root_dir: Section { offset: 428, len: 50 },
@@ -249,6 +255,21 @@ mod tests {
         let h = sample();
         let file_len = h.data.end().unwrap();
         assert_eq!(Header::decode(&h.encode(), file_len).unwrap(), h);
+    }
+
+    /// Majors 1 and 2 are read (2 only adds a payload compression); 0 and 3 are refused
+    /// before anything else is looked at.
+    #[test]
+    fn reads_majors_one_and_two_only() {
+        let mut h = sample();
+        let file_len = h.data.end().unwrap();
+        h.version_major = 2;
+        assert_eq!(Header::decode(&h.encode(), file_len).unwrap(), h);
+        for major in [0, 3, 0x8001] {
+            h.version_major = major;
+            let err = Header::decode(&h.encode(), file_len).unwrap_err();
+            assert!(matches!(err, Error::UnsupportedVersion { major: m, minor: 0 } if m == major), "{err}");
+        }
     }
 
     #[test]

@@ -142,6 +142,21 @@ pub enum PayloadCompression {
     None,
     /// One zstd frame around the format's bytes.
     Zstd,
+    /// `raw_u16` only: the samples gradient-coded (each less the plane through its west,
+    /// north and north-west neighbours, zigzagged, low bytes then high bytes), in one zstd
+    /// frame; about half the bytes of `zstd` on terrain. Format major 2 (FORMAT.md §3.6).
+    ZstdGradient,
+}
+
+impl PayloadCompression {
+    /// The name FORMAT.md and the metadata give it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::Zstd => "zstd",
+            Self::ZstdGradient => "zstd_gradient",
+        }
+    }
 }
 
 /// How pixel values of an elevation layer map to heights in world units.
@@ -292,6 +307,11 @@ impl Layer {
     pub fn contains(&self, key: TileKey) -> bool {
         let (nx, ny) = self.grid_at(key.lod());
         key.lod() < self.num_lods && key.x() < nx && key.y() < ny
+    }
+
+    /// Samples across a stored tile: `tile_resolution + 2 * border`.
+    pub fn stored_edge(&self) -> usize {
+        self.tile_resolution as usize + 2 * usize::from(self.border)
     }
 
     /// Largest decoded payload a tile of this layer can have: 16 bytes per sample (raw f32
@@ -493,6 +513,12 @@ impl Metadata {
         self.layers.iter().map(Layer::depth).collect()
     }
 
+    /// The lowest format major version that can hold this metadata: 2 where a layer's
+    /// tiles are `zstd_gradient`, else 1 (FORMAT.md §8).
+    pub fn format_major(&self) -> u16 {
+        if self.layers.iter().any(|l| l.compression == PayloadCompression::ZstdGradient) { 2 } else { 1 }
+    }
+
     /// Checks the limits every reader relies on.
     ///
     /// # Errors
@@ -521,6 +547,9 @@ impl Metadata {
             }
             if !(l.tile_world_size.is_finite() && l.tile_world_size > 0.0) {
                 return bad(format!("{at}: tile_world_size must be a positive number"));
+            }
+            if l.compression == PayloadCompression::ZstdGradient && l.format != TileFormat::RawU16 {
+                return bad(format!("{at}: compression zstd_gradient is for raw_u16 tiles, not {:?}", l.format));
             }
         }
         Ok(())

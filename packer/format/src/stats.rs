@@ -122,7 +122,7 @@ impl ArchiveStats {
         };
         let directory_bytes = header.root_dir.len + header.leaf_dirs.len;
         Ok(Self {
-            version: format!("{}.{}", crate::header::VERSION_MAJOR, header.version_minor),
+            version: format!("{}.{}", header.version_major, header.version_minor),
             file_bytes: reader.archive().file_len(),
             metadata_bytes: header.metadata.len,
             root_directory_bytes: header.root_dir.len,

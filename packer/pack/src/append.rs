@@ -257,6 +257,7 @@ impl Appender {
         let leaf_dirs = Section { offset: leaves_offset, len: leaves_len };
         let data = Section { offset: old.data.offset, len: self.data_len };
         let header = Header {
+            version_major: metadata.format_major(),
             version_minor: VERSION_MINOR,
             metadata: new_metadata,
             root_dir,

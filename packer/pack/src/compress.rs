@@ -51,3 +51,48 @@ pub fn zstd_compress_samples(bytes: &[u8]) -> std::io::Result<Vec<u8>> {
         compressor.compress(bytes)
     })
 }
+
+/// Compresses an elevation tile's u16 samples (little-endian, `edge` x `edge`) as a
+/// `zstd_gradient` layer stores them: gradient-coded byte planes
+/// ([`terrastream_format::gradient_encode`]), zstd level 1. On the 8100² bench DEM's
+/// tiles: 2.1x fewer bytes than [`zstd_compress_samples`] (1.9x on SRTM) in 0.8x its time;
+/// see docs/BENCHMARKS.md.
+///
+/// # Errors
+/// I/O errors from the compressor (allocation failure); `InvalidInput` if `samples` is
+/// not `2 * edge^2` bytes.
+pub fn zstd_compress_gradient(samples: &[u8], edge: usize) -> std::io::Result<Vec<u8>> {
+    use std::cell::RefCell;
+    if samples.len() != 2 * edge * edge {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("{} bytes are not {edge}x{edge} u16 samples", samples.len()),
+        ));
+    }
+    thread_local! {
+        static CONTEXT: RefCell<Option<zstd::bulk::Compressor<'static>>> = const { RefCell::new(None) };
+    }
+    let planes = terrastream_format::gradient_encode(samples, edge);
+    CONTEXT.with(|context| {
+        let mut context = context.borrow_mut();
+        let compressor = match &mut *context {
+            Some(c) => c,
+            slot => slot.insert(zstd::bulk::Compressor::new(1)?),
+        };
+        compressor.compress(&planes)
+    })
+}
+
+/// A tile's payload (the bytes of its layer's format) -> what `layer` stores: compressed
+/// as its `compression` says, zstd at `level` for `zstd`.
+///
+/// # Errors
+/// As [`zstd_compress`] and [`zstd_compress_gradient`].
+pub fn compress_payload(layer: &terrastream_format::Layer, payload: Vec<u8>, level: i32) -> std::io::Result<Vec<u8>> {
+    use terrastream_format::PayloadCompression;
+    match layer.compression {
+        PayloadCompression::None => Ok(payload),
+        PayloadCompression::Zstd => zstd_compress(&payload, level),
+        PayloadCompression::ZstdGradient => zstd_compress_gradient(&payload, layer.stored_edge()),
+    }
+}

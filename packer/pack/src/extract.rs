@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use terrastream_format::{MAX_LAYERS, Metadata, PayloadCompression, RangeSource, Reader, TileKey, zstd_decompress};
+use terrastream_format::{MAX_LAYERS, Metadata, RangeSource, Reader, TileKey, payload_bytes};
 
 use crate::error::{Error, Result};
 use crate::import::original::metadata;
@@ -130,10 +130,7 @@ pub fn extract<S: RangeSource>(
         let first = reader.archive().tile_of(entry.key)?;
         let layer = &metadata.layers[usize::from(first.layer())];
         let stored = reader.entry_payload(entry)?;
-        let payload = match layer.compression {
-            PayloadCompression::None => stored.to_vec(),
-            PayloadCompression::Zstd => zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {first}"))?,
-        };
+        let payload = payload_bytes(layer, &stored, &format!("tile {first}"))?.into_owned();
         for i in 0..u64::from(entry.run_length) {
             let tile = reader.archive().tile_of(entry.key + i * MAX_LAYERS as u64)?;
             let path = out.join(namer.path(metadata, tile));

@@ -25,7 +25,7 @@ use terrastream_format::{
     PayloadCompression, Section, TILE_TRAILER_LEN, TileKey, VERSION_MINOR, crc32c,
 };
 
-use crate::compress::zstd_compress;
+use crate::compress::{zstd_compress, zstd_compress_gradient};
 use crate::error::{Error, Result};
 
 /// Tunables of the writer. The defaults suit archives from kilobytes to terabytes.
@@ -103,7 +103,8 @@ struct Pending {
     key: u64,
     tile: TileKey,
     bytes: Vec<u8>,
-    compress: bool,
+    /// The layer's compression still to apply (`None` for stored bytes).
+    compression: PayloadCompression,
 }
 
 /// Streams tiles into a new archive. Tiles must arrive in archive order
@@ -209,18 +210,16 @@ impl Writer {
     }
 
     /// Adds a tile's payload in its layer's format; the writer applies the layer's
-    /// compression (zstd for `compression: zstd`).
+    /// compression (`zstd`: zstd at the options' level; `zstd_gradient`: the payload must be
+    /// a tile's u16 samples).
     ///
     /// # Errors
     /// [`Error::Writer`] if the tile is out of order or empty, [`Error::InvalidTile`],
     /// I/O errors.
     pub fn add(&mut self, tile: TileKey, payload: Vec<u8>) -> Result<()> {
-        let compress = self
-            .metadata
-            .layers
-            .get(usize::from(tile.layer()))
-            .is_some_and(|l| l.compression == PayloadCompression::Zstd);
-        self.push(tile, payload, compress)
+        let compression =
+            self.metadata.layers.get(usize::from(tile.layer())).map_or_else(Default::default, |l| l.compression);
+        self.push(tile, payload, compression)
     }
 
     /// Adds a tile's stored bytes exactly as given (already compressed if the layer says so).
@@ -228,10 +227,10 @@ impl Writer {
     /// # Errors
     /// As [`Writer::add`].
     pub fn add_stored(&mut self, tile: TileKey, stored: Vec<u8>) -> Result<()> {
-        self.push(tile, stored, false)
+        self.push(tile, stored, PayloadCompression::None)
     }
 
-    fn push(&mut self, tile: TileKey, bytes: Vec<u8>, compress: bool) -> Result<()> {
+    fn push(&mut self, tile: TileKey, bytes: Vec<u8>, compression: PayloadCompression) -> Result<()> {
         let key = Self::order_key(&self.metadata, tile)?;
         if self.last_key.is_some_and(|last| key <= last) {
             return Err(Error::OutOfOrder { tile });
@@ -244,7 +243,7 @@ impl Writer {
         }
         self.last_key = Some(key);
         self.batch_bytes += bytes.len();
-        self.batch.push(Pending { key, tile, bytes, compress });
+        self.batch.push(Pending { key, tile, bytes, compression });
         if self.batch_bytes >= self.options.batch_bytes || self.batch.len() >= self.options.batch_tiles {
             self.flush_batch()?;
         }
@@ -258,10 +257,19 @@ impl Writer {
         let prepared: Vec<Result<Prepared>> = batch
             .into_par_iter()
             .map(|p| {
-                let bytes = if p.compress {
-                    zstd_compress(&p.bytes, level).map_err(|error| Error::Compress { what: "a tile", error })?
-                } else {
-                    p.bytes
+                let bytes = match p.compression {
+                    PayloadCompression::None => p.bytes,
+                    PayloadCompression::Zstd => {
+                        zstd_compress(&p.bytes, level).map_err(|error| Error::Compress { what: "a tile", error })?
+                    }
+                    PayloadCompression::ZstdGradient => {
+                        let edge = self.metadata.layers[usize::from(p.tile.layer())].stored_edge();
+                        zstd_compress_gradient(&p.bytes, edge).map_err(|e| {
+                            Error::Format(terrastream_format::Error::InvalidTile {
+                                what: format!("{}: zstd_gradient layer, payload {e}", p.tile),
+                            })
+                        })?
+                    }
                 };
                 let hash = xxhash_rust::xxh3::xxh3_128(&bytes);
                 Ok((p.key, p.tile, bytes, hash))
@@ -364,6 +372,7 @@ impl Writer {
             self.options.reserve,
         );
         let header = Header {
+            version_major: self.metadata.format_major(),
             version_minor: VERSION_MINOR,
             metadata,
             root_dir,

@@ -169,6 +169,7 @@ fn assemble(
     let leaf_dirs = Section { offset: root_dir.end().unwrap(), len: leaves.len() as u64 };
     let data = Section { offset: data_offset.max(leaf_dirs.end().unwrap()), len: data_len };
     let header = Header {
+        version_major: 1,
         version_minor: 0,
         metadata,
         root_dir,

@@ -213,3 +213,81 @@ fn runs_of_identical_neighbours_take_one_entry() {
     let r = Reader::new(MmapSource::open(&path).unwrap()).unwrap();
     assert_eq!(&r.tile(TileKey::new(0, 0, 63, 17).unwrap()).unwrap().unwrap()[..], b"ocean");
 }
+
+/// A `zstd_gradient` layer: the writer codes u16 samples, the archive says major 2, every
+/// reader's [`terrastream_format::payload_bytes`] gives them back bit for bit, and terrain
+/// takes far fewer bytes than under plain zstd. A payload that is not a tile's samples is
+/// refused naming the tile, and nothing is written.
+#[test]
+fn gradient_coded_elevation_comes_back_exactly_in_fewer_bytes() {
+    use terrastream_format::{Header, TileFormat};
+    let edge = 18usize;
+    let mut elevation = layer("elevation", 2, 2, 2);
+    (elevation.format, elevation.tile_resolution, elevation.border) = (TileFormat::RawU16, 16, 1);
+    // A smooth hill with a little noise, and a wrapping checkerboard of the extremes.
+    let mut noise = 7u32;
+    let tile = |t: u32, noise: &mut u32| -> Vec<u8> {
+        (0..edge * edge)
+            .flat_map(|i| {
+                *noise = noise.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                let (x, y) = ((i % edge) as f64, (i / edge) as f64);
+                let v = if t == 3 {
+                    if (i % edge + i / edge).is_multiple_of(2) { 0 } else { u16::MAX }
+                } else {
+                    (30_000.0 + 900.0 * ((x + 3.0 * f64::from(t)) / 5.0).sin() * (y / 7.0).cos()) as u16
+                        + (*noise >> 30) as u16
+                };
+                v.to_le_bytes()
+            })
+            .collect()
+    };
+    let tiles: Vec<(TileKey, Vec<u8>)> =
+        (0..4).map(|t| (TileKey::new(0, 0, t % 2, t / 2).unwrap(), tile(t, &mut noise))).collect();
+    let sizes = [PayloadCompression::Zstd, PayloadCompression::ZstdGradient].map(|compression| {
+        let mut l = elevation.clone();
+        l.compression = compression;
+        let meta = metadata(vec![l]);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("e.tspack");
+        let mut w = Writer::create(&path, meta.clone(), WriterOptions::default()).unwrap();
+        let mut ordered: Vec<_> = tiles.iter().collect();
+        ordered.sort_by_key(|(key, _)| Writer::order_key(&meta, *key).unwrap());
+        for (key, samples) in ordered {
+            w.add(*key, samples.clone()).unwrap();
+        }
+        w.finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let header = Header::decode(&bytes, bytes.len() as u64).unwrap();
+        let major = if compression == PayloadCompression::ZstdGradient { 2 } else { 1 };
+        assert_eq!(header.version_major, major, "{compression:?}");
+        let reader = Reader::open_mmap(&path).unwrap();
+        assert!(verify(&reader, |_| {}).unwrap().is_ok());
+        let mut stored = 0;
+        for (key, samples) in &tiles {
+            let got = reader.tile(*key).unwrap().unwrap();
+            stored += got.len();
+            let back = terrastream_format::payload_bytes(&meta.layers[0], &got, "t").unwrap();
+            assert_eq!(&back[..], &samples[..], "{key} {compression:?}");
+        }
+        stored
+    });
+    assert!(sizes[1] * 3 < sizes[0] * 2, "gradient {} bytes against zstd's {}", sizes[1], sizes[0]);
+
+    // Not a tile's samples: refused, naming the tile; no archive left behind.
+    let mut l = elevation.clone();
+    l.compression = PayloadCompression::ZstdGradient;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.tspack");
+    let mut w = Writer::create(&path, metadata(vec![l]), WriterOptions::default()).unwrap();
+    let key = TileKey::new(0, 0, 1, 0).unwrap();
+    let e = w.add(key, vec![1; 17]).and_then(|()| w.finish().map(|_| ())).unwrap_err().to_string();
+    assert!(e.contains(&key.to_string()) && e.contains("17 bytes"), "{e}");
+    assert!(!path.exists());
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "a partial file was left");
+
+    // A gradient layer must be raw u16.
+    let mut l = layer("elevation", 2, 2, 2);
+    l.compression = PayloadCompression::ZstdGradient;
+    let e = metadata(vec![l]).validate().unwrap_err().to_string();
+    assert!(e.contains("zstd_gradient") && e.contains("Png"), "{e}");
+}

@@ -19,9 +19,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use terrastream_format::{
-    LayerKind, Metadata, MmapSource, PayloadCompression, Reader, TileFormat, TileKey, TileLocation, zstd_decompress,
-};
+use terrastream_format::{LayerKind, Metadata, MmapSource, Reader, TileFormat, TileKey, TileLocation, payload_bytes};
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions};
 
@@ -412,10 +410,7 @@ fn unpacked(metadata: &Metadata, readers: &[Reader<MmapSource>], key: TileKey, f
     let (input, offset, length) = found;
     let stored = readers[input].read(&TileLocation { key, offset, length })?;
     let layer = &metadata.layers[usize::from(key.layer())];
-    Ok(match layer.compression {
-        PayloadCompression::None => stored.to_vec(),
-        PayloadCompression::Zstd => zstd_decompress(&stored, layer.max_payload_bytes(), &format!("tile {key}"))?,
-    })
+    Ok(payload_bytes(layer, &stored, &format!("tile {key}"))?.into_owned())
 }
 
 /// A height-range tile's lowest and highest height.

@@ -135,7 +135,7 @@ fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn 
         name: "elevation".into(),
         kind: LayerKind::Elevation,
         format: if float { TileFormat::RawF32 } else { TileFormat::RawU16 },
-        compression: PayloadCompression::Zstd,
+        compression: if float { PayloadCompression::Zstd } else { PayloadCompression::ZstdGradient },
         tile_resolution: res,
         border: options.border,
         num_x_tiles: nx,

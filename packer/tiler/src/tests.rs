@@ -57,7 +57,7 @@ fn heights(reader: &Reader<terrastream_format::MmapSource>, key: TileKey) -> Opt
     let layer = &reader.metadata().layers[usize::from(key.layer())];
     let enc = layer.elevation.unwrap();
     let stored = reader.tile(key).unwrap()?;
-    let raw = terrastream_format::zstd_decompress(&stored, layer.max_payload_bytes(), "tile").unwrap();
+    let raw = terrastream_format::payload_bytes(layer, &stored, "tile").unwrap();
     Some(if layer.format == TileFormat::RawF32 {
         raw.chunks_exact(4).map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]]))).collect()
     } else {

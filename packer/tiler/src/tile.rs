@@ -2,9 +2,9 @@
 
 use std::path::Path;
 
-use terrastream_format::{ElevationEncoding, LayerKind, Metadata, TileKey};
+use terrastream_format::{ElevationEncoding, LayerKind, Metadata, PayloadCompression, TileKey};
 use terrastream_pack::progress::Progress;
-use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress_samples};
+use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress_gradient, zstd_compress_samples};
 
 use crate::encode::{encode_heights, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
@@ -243,6 +243,9 @@ pub(crate) const ZSTD_LEVEL: i32 = 3;
 /// layer (8 bytes + key a tile) until [`HeightEncoder::finish`] spools that layer.
 pub(crate) struct HeightEncoder {
     pub(crate) encoding: ElevationEncoding,
+    /// The elevation layer's compression, and its stored tiles' edge.
+    compression: PayloadCompression,
+    edge: usize,
     range: Option<u8>,
     ranges: std::sync::Mutex<Vec<(TileKey, f32, f32)>>,
 }
@@ -250,15 +253,22 @@ pub(crate) struct HeightEncoder {
 impl HeightEncoder {
     /// For elevation layer `index` of `metadata`, and its height-range layer `range`.
     pub(crate) fn new(metadata: &Metadata, index: u8, range: Option<u8>) -> Result<Self> {
-        let encoding = metadata.layers[usize::from(index)].elevation.ok_or(Error::Pyramid {
+        let layer = &metadata.layers[usize::from(index)];
+        let encoding = layer.elevation.ok_or(Error::Pyramid {
             layer: index,
             lod: 0,
             reason: "the elevation layer has no encoding".into(),
         })?;
-        Ok(Self { encoding, range, ranges: std::sync::Mutex::new(Vec::new()) })
+        Ok(Self {
+            encoding,
+            compression: layer.compression,
+            edge: layer.stored_edge(),
+            range,
+            ranges: std::sync::Mutex::new(Vec::new()),
+        })
     }
 
-    /// One cut tile -> its stored bytes (u16 or f32, zstd).
+    /// One cut tile -> its stored bytes (u16 or f32, compressed as the layer says).
     pub(crate) fn encode(&self, key: TileKey, samples: &[f32]) -> Result<Vec<(TileKey, Vec<u8>)>> {
         thread_local! {
             /// The raw samples of this thread's last tile: reused, not zeroed anew a tile.
@@ -266,7 +276,12 @@ impl HeightEncoder {
         }
         let (stored, lo, hi) = RAW.with_borrow_mut(|raw| {
             let (lo, hi) = encode_heights(samples, &self.encoding, raw);
-            (zstd_compress_samples(raw), lo, hi)
+            let stored = match self.compression {
+                PayloadCompression::ZstdGradient => zstd_compress_gradient(raw, self.edge),
+                PayloadCompression::Zstd => zstd_compress_samples(raw),
+                PayloadCompression::None => Ok(raw.clone()),
+            };
+            (stored, lo, hi)
         });
         if self.range.is_some() && lo <= hi {
             self.ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));

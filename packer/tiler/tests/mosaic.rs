@@ -728,7 +728,7 @@ fn a_vrt_sources_scale_and_nodata_give_the_range_and_the_tiles() {
     let edge = 16 + 2;
     for (tx, ty) in [(0u32, 0u32), (2, 1)] {
         let stored = reader.tile(TileKey::new(0, 0, tx, ty).unwrap()).unwrap().unwrap();
-        let bytes = terrastream_format::zstd_decompress(&stored, 1 << 20, "tile").unwrap();
+        let bytes = terrastream_format::payload_bytes(&meta.layers[0], &stored, "tile").unwrap();
         for j in 0..16u32 {
             for i in 0..16u32 {
                 let (x, y) = (tx * 16 + i, ty * 16 + j);

@@ -58,7 +58,7 @@ fn a_geotiff_becomes_a_pyramid_with_borders_nodata_and_georeference() {
     let edge = 16 + 2 * 2;
     let sample = |key: TileKey, i: i64, j: i64| -> Option<f64> {
         let raw = reader.tile(key).unwrap()?;
-        let bytes = terrastream_format::zstd_decompress(&raw, 1 << 20, "t").unwrap();
+        let bytes = terrastream_format::payload_bytes(&meta.layers[0], &raw, "t").unwrap();
         let at = ((j + 2) * edge + i + 2) as usize * 2;
         let q = u16::from_le_bytes([bytes[at], bytes[at + 1]]);
         Some(if q == 0 { f64::NAN } else { enc.offset + f64::from(q) * enc.scale })

@@ -31,11 +31,16 @@ pub fn archives() -> (tempfile::TempDir, PathBuf) {
 
 /// A one-layer raw-u16 + zstd archive whose samples depend on `version`.
 pub fn write_zstd_archive(path: &Path, version: u16) {
+    write_u16_archive(path, version, PayloadCompression::Zstd);
+}
+
+/// [`write_zstd_archive`] with its tiles stored as `compression` says.
+pub fn write_u16_archive(path: &Path, version: u16, compression: PayloadCompression) {
     let layer = Layer {
         name: "elevation".into(),
         kind: LayerKind::Elevation,
         format: TileFormat::RawU16,
-        compression: PayloadCompression::Zstd,
+        compression,
         tile_resolution: 16,
         border: 0,
         num_x_tiles: 2,

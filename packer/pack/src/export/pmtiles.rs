@@ -244,7 +244,13 @@ fn header(layout: &Layout, [root, metadata, leaves]: [u64; 3], info: &Layer, bou
         TileFormat::Webp => 4,
         _ => 0,
     };
-    let tile_compression = if info.compression == PayloadCompression::Zstd { 4 } else { 1 };
+    // PMTiles has no name for gradient-coded samples: "unknown", and the layer in the
+    // metadata (`terrastream.layer.compression`) says what they are.
+    let tile_compression = match info.compression {
+        PayloadCompression::None => 1,
+        PayloadCompression::Zstd => 4,
+        PayloadCompression::ZstdGradient => 0,
+    };
     h.extend_from_slice(&[1, 2, tile_compression, tile_type, min_zoom, max_zoom]);
     for v in [bounds[0], bounds[1], bounds[2], bounds[3]] {
         h.extend_from_slice(&e7(v).to_le_bytes());
