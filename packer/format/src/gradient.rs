@@ -25,16 +25,10 @@ fn unzigzag(z: u16) -> u16 {
     (z >> 1) ^ 0u16.wrapping_sub(z & 1)
 }
 
-/// The guess for the sample at column `c` of a row below the first: west + north -
-/// north-west (wrapping); on the first column, north.
-fn plane(west: u16, north: u16, north_west: u16) -> u16 {
-    west.wrapping_add(north).wrapping_sub(north_west)
-}
-
 /// Codes `samples` (little-endian u16, `edge` x `edge`, row-major) into byte planes,
 /// ready for zstd: `2 * edge^2` bytes, the low bytes of the coded samples then the high.
 /// The first row is coded from its west neighbour (the first sample from zero), the first
-/// column from its north neighbour.
+/// column from its north neighbour, the rest from west + north - north-west.
 ///
 /// # Panics
 /// If `samples` is not `2 * edge^2` bytes.
@@ -42,31 +36,30 @@ pub fn gradient_encode(samples: &[u8], edge: usize) -> Vec<u8> {
     let n = edge * edge;
     assert_eq!(samples.len(), 2 * n, "gradient_encode: {} bytes for {edge}x{edge} samples", samples.len());
     let mut out = vec![0u8; 2 * n];
-    let (low, high) = out.split_at_mut(n);
-    let at = |i: usize| u16::from_le_bytes([samples[2 * i], samples[2 * i + 1]]);
-    let mut put = |i: usize, v: u16, guess: u16| {
-        let [l, h] = zigzag(v.wrapping_sub(guess)).to_le_bytes();
-        low[i] = l;
-        high[i] = h;
-    };
     if edge == 0 {
         return out;
     }
-    let mut north: Vec<u16> = (0..edge).map(at).collect();
-    let mut row = vec![0u16; edge];
-    let mut west = 0;
-    for (c, &v) in north.iter().enumerate() {
-        put(c, v, west);
-        west = v;
-    }
-    for r in 1..edge {
-        let base = r * edge;
-        for (c, v) in row.iter_mut().enumerate() {
-            *v = at(base + c);
+    let (low, high) = out.split_at_mut(n);
+    let (mut north, mut row) = (vec![0u16; edge], vec![0u16; edge]);
+    let mut guess = vec![0u16; edge];
+    for (r, bytes) in samples.chunks_exact(2 * edge).enumerate() {
+        load(&mut row, bytes);
+        if r == 0 {
+            // West neighbours: the row shifted by one, zero first.
+            guess[1..].copy_from_slice(&row[..edge - 1]);
+        } else {
+            guess[0] = north[0];
+            // Every guess from samples known before the row: a loop without carried state.
+            for (((g, &w), &nn), &nw) in
+                guess[1..].iter_mut().zip(&row[..edge - 1]).zip(&north[1..]).zip(&north[..edge - 1])
+            {
+                *g = w.wrapping_add(nn).wrapping_sub(nw);
+            }
         }
-        put(base, row[0], north[0]);
-        for c in 1..edge {
-            put(base + c, row[c], plane(row[c - 1], north[c], north[c - 1]));
+        let at = r * edge;
+        for (((l, h), &v), &g) in low[at..at + edge].iter_mut().zip(&mut high[at..at + edge]).zip(&row).zip(&guess) {
+            let [a, b] = zigzag(v.wrapping_sub(g)).to_le_bytes();
+            (*l, *h) = (a, b);
         }
         std::mem::swap(&mut north, &mut row);
     }
@@ -85,35 +78,41 @@ pub fn gradient_decode(planes: &[u8], edge: usize, what: &str) -> Result<Vec<u8>
             reason: format!("{} bytes of gradient-coded samples, {} expected for {edge}x{edge}", planes.len(), 2 * n),
         });
     }
-    let (low, high) = planes.split_at(n);
-    let diff = |i: usize| unzigzag(u16::from_le_bytes([low[i], high[i]]));
     let mut out = vec![0u8; 2 * n];
     if edge == 0 {
         return Ok(out);
     }
-    let mut north = vec![0u16; edge];
-    let mut row = vec![0u16; edge];
-    let mut west = 0u16;
-    for (c, v) in north.iter_mut().enumerate() {
-        *v = west.wrapping_add(diff(c));
-        west = *v;
-    }
-    store(&mut out[..2 * edge], &north);
-    for r in 1..edge {
-        let base = r * edge;
-        row[0] = north[0].wrapping_add(diff(base));
-        for c in 1..edge {
-            row[c] = plane(row[c - 1], north[c], north[c - 1]).wrapping_add(diff(base + c));
+    let (low, high) = planes.split_at(n);
+    let (mut north, mut row) = (vec![0u16; edge], vec![0u16; edge]);
+    for (r, bytes) in out.chunks_exact_mut(2 * edge).enumerate() {
+        let at = r * edge;
+        for ((v, &l), &h) in row.iter_mut().zip(&low[at..at + edge]).zip(&high[at..at + edge]) {
+            *v = unzigzag(u16::from_le_bytes([l, h]));
         }
-        store(&mut out[2 * base..2 * (base + edge)], &row);
+        // sample[c] = sample[c-1] + (north[c] - north[c-1]) + d[c]: the north steps added
+        // in a loop without carried state, then one running sum along the row.
+        if r > 0 {
+            row[0] = row[0].wrapping_add(north[0]);
+            for ((v, &nn), &nw) in row[1..].iter_mut().zip(&north[1..]).zip(&north[..edge - 1]) {
+                *v = v.wrapping_add(nn.wrapping_sub(nw));
+            }
+        }
+        let mut west = 0u16;
+        for v in &mut row {
+            west = west.wrapping_add(*v);
+            *v = west;
+        }
+        for (o, v) in bytes.chunks_exact_mut(2).zip(&row) {
+            o.copy_from_slice(&v.to_le_bytes());
+        }
         std::mem::swap(&mut north, &mut row);
     }
     Ok(out)
 }
 
-fn store(out: &mut [u8], row: &[u16]) {
-    for (o, v) in out.chunks_exact_mut(2).zip(row) {
-        o.copy_from_slice(&v.to_le_bytes());
+fn load(row: &mut [u16], bytes: &[u8]) {
+    for (v, b) in row.iter_mut().zip(bytes.chunks_exact(2)) {
+        *v = u16::from_le_bytes([b[0], b[1]]);
     }
 }
 
