@@ -33,11 +33,22 @@ fn unzigzag(z: u16) -> u16 {
 /// # Panics
 /// If `samples` is not `2 * edge^2` bytes.
 pub fn gradient_encode(samples: &[u8], edge: usize) -> Vec<u8> {
+    let mut out = Vec::new();
+    gradient_encode_into(samples, edge, &mut out);
+    out
+}
+
+/// [`gradient_encode`] into `out` (resized; a buffer kept from tile to tile is neither
+/// allocated nor cleared again).
+///
+/// # Panics
+/// If `samples` is not `2 * edge^2` bytes.
+pub fn gradient_encode_into(samples: &[u8], edge: usize, out: &mut Vec<u8>) {
     let n = edge * edge;
     assert_eq!(samples.len(), 2 * n, "gradient_encode: {} bytes for {edge}x{edge} samples", samples.len());
-    let mut out = vec![0u8; 2 * n];
+    out.resize(2 * n, 0);
     if edge == 0 {
-        return out;
+        return;
     }
     let (low, high) = out.split_at_mut(n);
     let (mut north, mut row) = (vec![0u16; edge], vec![0u16; edge]);
@@ -63,7 +74,6 @@ pub fn gradient_encode(samples: &[u8], edge: usize) -> Vec<u8> {
         }
         std::mem::swap(&mut north, &mut row);
     }
-    out
 }
 
 /// Undoes [`gradient_encode`]: `2 * edge^2` bytes of planes -> the samples, little-endian.

@@ -44,7 +44,7 @@ pub use checksum::crc32c;
 pub use compression::{decompress, zstd_decompress};
 pub use directory::{Directory, Entry, LeafPointer, MAX_DIRECTORY_BYTES, TILE_TRAILER_LEN};
 pub use error::{Error, Result};
-pub use gradient::{gradient_decode, gradient_encode, payload_bytes};
+pub use gradient::{gradient_decode, gradient_encode, gradient_encode_into, payload_bytes};
 pub use header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section, VERSION_MAJOR, VERSION_MINOR};
 pub use key::{MAX_LAYERS, MAX_LODS, TileKey, layer_of, tile_id_to_zxy, zxy_to_tile_id};
 pub use manifest::{

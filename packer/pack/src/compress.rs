@@ -71,15 +71,17 @@ pub fn zstd_compress_gradient(samples: &[u8], edge: usize) -> std::io::Result<Ve
     }
     thread_local! {
         static CONTEXT: RefCell<Option<zstd::bulk::Compressor<'static>>> = const { RefCell::new(None) };
+        static PLANES: RefCell<Vec<u8>> = const { RefCell::new(Vec::new()) };
     }
-    let planes = terrastream_format::gradient_encode(samples, edge);
-    CONTEXT.with(|context| {
-        let mut context = context.borrow_mut();
-        let compressor = match &mut *context {
-            Some(c) => c,
-            slot => slot.insert(zstd::bulk::Compressor::new(1)?),
-        };
-        compressor.compress(&planes)
+    PLANES.with_borrow_mut(|planes| {
+        terrastream_format::gradient_encode_into(samples, edge, planes);
+        CONTEXT.with_borrow_mut(|context| {
+            let compressor = match context {
+                Some(c) => c,
+                slot => slot.insert(zstd::bulk::Compressor::new(1)?),
+            };
+            compressor.compress(planes)
+        })
     })
 }
 
