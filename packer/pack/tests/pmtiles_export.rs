@@ -86,3 +86,26 @@ async fn large_layers_get_leaf_directories_that_the_reader_follows() {
     assert!(summary.tile_contents < summary.addressed_tiles, "duplicates stored once");
     assert_eq!(check_same(&reader, 0, &out).await, tiles.len() as u64);
 }
+
+/// Elevation tiles as they are stored: zstd ones say zstd, gradient-coded ones (which
+/// PMTiles has no name for) "unknown", with the layer in the metadata saying what they are.
+#[tokio::test]
+async fn stored_compression_is_named_or_unknown() {
+    use pmtiles::Compression;
+    use terrastream_format::PayloadCompression;
+    for (compression, named) in
+        [(PayloadCompression::Zstd, Compression::Zstd), (PayloadCompression::ZstdGradient, Compression::Unknown)]
+    {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("e.tspack");
+        terrastream_testkit::archives::write_u16_archive(&path, 1, compression);
+        let reader = Reader::open_mmap(&path).unwrap();
+        let out = dir.path().join("e.pmtiles");
+        export_pmtiles(&reader, 0, &out, &Silent::default()).unwrap();
+        let pm = AsyncPmTilesReader::new_with_path(&out).await.unwrap();
+        assert_eq!(pm.get_header().tile_compression, named, "{compression:?}");
+        let meta: serde_json::Value = serde_json::from_str(&pm.get_metadata().await.unwrap()).unwrap();
+        assert_eq!(meta["terrastream"]["layer"]["compression"], compression.name());
+        assert_eq!(check_same(&reader, 0, &out).await, 4);
+    }
+}
