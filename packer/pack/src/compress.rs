@@ -84,17 +84,3 @@ pub fn zstd_compress_gradient(samples: &[u8], edge: usize) -> std::io::Result<Ve
         })
     })
 }
-
-/// A tile's payload (the bytes of its layer's format) -> what `layer` stores: compressed
-/// as its `compression` says, zstd at `level` for `zstd`.
-///
-/// # Errors
-/// As [`zstd_compress`] and [`zstd_compress_gradient`].
-pub fn compress_payload(layer: &terrastream_format::Layer, payload: Vec<u8>, level: i32) -> std::io::Result<Vec<u8>> {
-    use terrastream_format::PayloadCompression;
-    match layer.compression {
-        PayloadCompression::None => Ok(payload),
-        PayloadCompression::Zstd => zstd_compress(&payload, level),
-        PayloadCompression::ZstdGradient => zstd_compress_gradient(&payload, layer.stored_edge()),
-    }
-}
