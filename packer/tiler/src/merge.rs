@@ -2,8 +2,10 @@
 //! the same grid.
 //!
 //! Inputs must agree on their layers (grid, tile size, border, format, compression, height
-//! encoding) and CRS; the first difference is the error, naming both files. Tiles are
-//! copied as stored (no decoding), a later input's tile replacing an earlier one's with
+//! encoding) and CRS; the first difference is the error, naming both files. One difference
+//! is allowed: u16 heights stored with plain zstd (archives made before gradient coding)
+//! and gradient-coded ones merge, each tile stored the first input's way. Tiles are
+//! copied as stored (no decoding, but for that), a later input's tile replacing an earlier one's with
 //! the same key (`prefer last`), and written through the writer, which deduplicates
 //! payloads and rebuilds the directories; the output appears only once complete. The tiles
 //! a replacement leaves stale (borders, coarser levels) are made again ([`crate::rederive`]).
@@ -19,9 +21,12 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use terrastream_format::{LayerKind, Metadata, MmapSource, Reader, TileFormat, TileKey, TileLocation, payload_bytes};
+use terrastream_format::{
+    Layer, LayerKind, Metadata, MmapSource, PayloadCompression, Reader, TileFormat, TileKey, TileLocation,
+    payload_bytes,
+};
 use terrastream_pack::progress::Progress;
-use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions};
+use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions, zstd_compress_gradient, zstd_compress_samples};
 
 use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
@@ -163,9 +168,7 @@ fn append(
     };
     in_order(readers, winners, made, progress, |next| match next {
         Next::Input(key, order, (0, offset, length)) => Ok(appender.keep(key, order, offset - data, length)?),
-        Next::Input(key, order, (input, offset, length)) => {
-            add(appender, key, order, &readers[input].read(&TileLocation { key, offset, length })?)
-        }
+        Next::Input(key, order, found) => add(appender, key, order, &stored_as_first(readers, key, found)?),
         Next::Made(order, key, bytes) => add(appender, key, order, &bytes),
     })
 }
@@ -282,7 +285,7 @@ fn difference(base: &Metadata, other: &Metadata) -> Option<String> {
             let keys = ja.keys().chain(jb.keys().filter(|k| !ja.contains_key(*k)));
             for key in keys {
                 let (va, vb) = (ja.get(key), jb.get(key));
-                if va != vb {
+                if va != vb && !(key == "compression" && transcodable(a, b)) {
                     let show = |v: Option<&serde_json::Value>| v.map_or("none".to_owned(), ToString::to_string);
                     return Some(format!("layer {:?}: {key} {} here, {} there", a.name, show(vb), show(va)));
                 }
@@ -362,15 +365,19 @@ fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(B
     Ok((winners, replaced))
 }
 
-/// Do two inputs' tiles hold the same stored bytes?
+/// Do two inputs' tiles hold the same bytes (the same stored bytes, or where the two
+/// inputs compress the layer differently, the same payload)?
 fn same_bytes(readers: &[Reader<MmapSource>], order: u64, a: Found, b: Found) -> Result<bool> {
+    let key = readers[a.0].archive().tile_of(order)?;
+    let compression = |input: usize| readers[input].metadata().layers[usize::from(key.layer())].compression;
+    if compression(a.0) != compression(b.0) {
+        return Ok(unpacked(readers, key, a)? == unpacked(readers, key, b)?);
+    }
     if a.2 != b.2 {
         return Ok(false);
     }
     let read = |(input, offset, length): Found| -> Result<Vec<u8>> {
-        let reader = &readers[input];
-        let key = reader.archive().tile_of(order)?;
-        Ok(reader.read(&TileLocation { key, offset, length })?.to_vec())
+        Ok(readers[input].read(&TileLocation { key, offset, length })?.to_vec())
     };
     Ok(read(a)? == read(b)?)
 }
@@ -385,10 +392,7 @@ pub(crate) fn write(
     progress: &dyn Progress,
 ) -> Result<u64> {
     in_order(readers, winners, made, progress, |next| match next {
-        Next::Input(key, _, (input, offset, length)) => {
-            let bytes = readers[input].read(&TileLocation { key, offset, length })?;
-            Ok(writer.add_stored(key, bytes.to_vec())?)
-        }
+        Next::Input(key, _, found) => Ok(writer.add_stored(key, stored_as_first(readers, key, found)?)?),
         Next::Made(_, key, bytes) => Ok(writer.add_stored(key, bytes)?),
     })
 }
@@ -402,15 +406,46 @@ fn payload(
 ) -> Result<Option<Vec<u8>>> {
     let order = Writer::order_key(metadata, key)?;
     let Some(&found) = winners.get(&order) else { return Ok(None) };
-    unpacked(metadata, readers, key, found).map(Some)
+    unpacked(readers, key, found).map(Some)
 }
 
-/// A tile's bytes where `found` says they are, its layer's compression undone.
-fn unpacked(metadata: &Metadata, readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
+/// A tile's bytes where `found` says they are, its input's compression undone.
+fn unpacked(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
     let (input, offset, length) = found;
     let stored = readers[input].read(&TileLocation { key, offset, length })?;
-    let layer = &metadata.layers[usize::from(key.layer())];
+    let layer = &readers[input].metadata().layers[usize::from(key.layer())];
     Ok(payload_bytes(layer, &stored, &format!("tile {key}"))?.into_owned())
+}
+
+/// A tile's stored bytes where `found` says they are, as the merged archive (the first
+/// input's layers) stores them: as they are, or, from an input whose u16 heights are
+/// compressed another way (`zstd` before gradient coding, see [`transcodable`]), decoded
+/// and compressed again the first input's way.
+fn stored_as_first(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
+    let (input, offset, length) = found;
+    let stored = readers[input].read(&TileLocation { key, offset, length })?;
+    let layer = |i: usize| &readers[i].metadata().layers[usize::from(key.layer())];
+    let (ours, theirs) = (layer(0), layer(input));
+    if ours.compression == theirs.compression {
+        return Ok(stored.to_vec());
+    }
+    let raw = payload_bytes(theirs, &stored, &format!("tile {key}"))?;
+    let again = match ours.compression {
+        PayloadCompression::None => Ok(raw.into_owned()),
+        PayloadCompression::Zstd => zstd_compress_samples(&raw),
+        PayloadCompression::ZstdGradient => zstd_compress_gradient(&raw, ours.stored_edge()),
+    };
+    again.map_err(|e| Error::Encode { tile: key, reason: e.to_string() })
+}
+
+/// May layers `a` and `b`, alike otherwise, differ in their compression? Yes for u16
+/// heights, plain zstd or gradient-coded: a merge stores them the first input's way.
+fn transcodable(a: &Layer, b: &Layer) -> bool {
+    let u16_heights = |l: &Layer| {
+        l.format == TileFormat::RawU16
+            && matches!(l.compression, PayloadCompression::Zstd | PayloadCompression::ZstdGradient)
+    };
+    u16_heights(a) && u16_heights(b)
 }
 
 /// A height-range tile's lowest and highest height.
@@ -443,7 +478,7 @@ fn rederive_layers(
     // (compression undone).
     let version_of = |key: TileKey, i: usize| -> Result<Option<Vec<u8>>> {
         let versions = conflicts.get(&Writer::order_key(metadata, key)?).map_or(&[][..], Vec::as_slice);
-        versions.iter().rev().nth(i).map(|&found| unpacked(metadata, readers, key, found)).transpose()
+        versions.iter().rev().nth(i).map(|&found| unpacked(readers, key, found)).transpose()
     };
     let mut emptied = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {

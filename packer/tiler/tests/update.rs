@@ -307,3 +307,75 @@ fn updates_that_cannot_fit_are_refused_and_write_nothing() {
     let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert!(leftovers.iter().all(|n| !n.to_string_lossy().starts_with(".update-")), "{leftovers:?}");
 }
+
+/// Every tile's payload with its layer's compression undone, by key.
+fn payloads(path: &Path) -> BTreeMap<terrastream_format::TileKey, Vec<u8>> {
+    let reader = Reader::open_mmap(path).unwrap();
+    let meta = reader.metadata().clone();
+    tiles(path)
+        .into_iter()
+        .map(|(key, stored)| {
+            let layer = &meta.layers[usize::from(key.layer())];
+            (key, terrastream_format::payload_bytes(layer, &stored, "t").unwrap().into_owned())
+        })
+        .collect()
+}
+
+/// `path` written again as archives were before gradient coding: u16 heights in plain
+/// zstd, format major 1.
+fn rewrite_as_zstd(path: &Path) {
+    use terrastream_format::PayloadCompression;
+    let payloads = payloads(path);
+    let mut meta = Reader::open_mmap(path).unwrap().metadata().clone();
+    for l in &mut meta.layers {
+        if l.compression == PayloadCompression::ZstdGradient {
+            l.compression = PayloadCompression::Zstd;
+        }
+    }
+    let mut ordered: Vec<_> = payloads.into_iter().collect();
+    ordered.sort_by_key(|(key, _)| Writer::order_key(&meta, *key).unwrap());
+    let mut writer = Writer::create(path, meta, WriterOptions::default()).unwrap();
+    for (key, payload) in ordered {
+        writer.add(key, payload).unwrap();
+    }
+    writer.finish().unwrap();
+    assert_eq!(Reader::open_mmap(path).unwrap().header().version_major, 1);
+}
+
+/// An archive made before gradient coding (zstd heights) and one made after merge either
+/// way round: each tile stored as the first input stores its kind, the payloads those of
+/// the merge of two archives made alike.
+#[test]
+fn archives_before_and_after_gradient_coding_merge_either_way() {
+    use terrastream_format::PayloadCompression;
+    let dir = tempfile::tempdir().unwrap();
+    let base_tif = dir.path().join("base.tif");
+    geotiff(&base_tif, (330, 270), (500_000.0, 5_002_700.0), base_height);
+    let new_tif = dir.path().join("resurvey.tif");
+    let (east, north) = (500_000.0 + 100.0 * 10.0, 5_002_700.0 - 90.0 * 10.0);
+    geotiff(&new_tif, (70, 50), (east, north), |x, y| 450.0 + ((x - east) * (north - y) / 100.0 % 97.0) as f32);
+    // Two archives of one grid: the base, and the base with the resurvey over it.
+    let (old, new) = (dir.path().join("old.tspack"), dir.path().join("new.tspack"));
+    tile(std::slice::from_ref(&base_tif), &old);
+    tile(&[base_tif, new_tif], &new);
+    let old_gradient = dir.path().join("old-gradient.tspack");
+    std::fs::copy(&old, &old_gradient).unwrap();
+    rewrite_as_zstd(&old);
+    for (inputs, first) in [([&old, &new], PayloadCompression::Zstd), ([&new, &old], PayloadCompression::ZstdGradient)]
+    {
+        let out = dir.path().join("merged.tspack");
+        terrastream_tiler::merge(&[inputs[0].clone(), inputs[1].clone()], &out, &Silent::default()).unwrap();
+        let alike = dir.path().join("alike.tspack");
+        let same_kind: Vec<PathBuf> =
+            inputs.iter().map(|p| if *p == &old { old_gradient.clone() } else { (*p).clone() }).collect();
+        terrastream_tiler::merge(&same_kind, &alike, &Silent::default()).unwrap();
+        let reader = Reader::open_mmap(&out).unwrap();
+        assert_eq!(reader.metadata().layers[0].compression, first);
+        assert_eq!(reader.header().version_major, reader.metadata().format_major());
+        assert!(terrastream_format::verify(&reader, |_| {}).unwrap().is_ok());
+        let (got, want) = (payloads(&out), payloads(&alike));
+        assert_eq!(got.len(), want.len());
+        let differ: Vec<_> = want.iter().filter(|(k, v)| got.get(k) != Some(v)).map(|(k, _)| *k).take(8).collect();
+        assert!(differ.is_empty(), "{first:?} first: tiles differ from a merge of alike archives: {differ:?}");
+    }
+}
