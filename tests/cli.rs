@@ -176,6 +176,13 @@ fn tile_plans_writes_and_refuses_bad_input() {
     let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let layers = &doc["metadata"]["layers"];
     assert_eq!(layers[0]["kind"], "elevation");
+    // u16 heights gradient-coded (format major 2), as `info` says in words too.
+    assert_eq!(
+        (layers[0]["format"].as_str(), layers[0]["compression"].as_str()),
+        (Some("raw_u16"), Some("zstd_gradient"))
+    );
+    let words = text(&terrastream(&["info", "t.tspack"], work));
+    assert!(words.contains("format 2.0") && words.contains("RawU16+zstd_gradient"), "{words}");
     assert_eq!((layers[1]["kind"].as_str(), layers[1]["format"].as_str()), (Some("texture"), Some("bc7")));
     assert_eq!((layers[2]["kind"].as_str(), layers[2]["format"].as_str()), (Some("height_range"), Some("min_max_f32")));
     // A geographic DEM goes onto a transverse Mercator centred on it (unless kept).
