@@ -84,3 +84,22 @@ pub fn zstd_compress_gradient(samples: &[u8], edge: usize) -> std::io::Result<Ve
         })
     })
 }
+
+/// An elevation tile's samples (u16 or f32, little-endian, `edge` x `edge`) -> what a
+/// layer compressed as `compression` stores: the samples, [`zstd_compress_samples`], or
+/// [`zstd_compress_gradient`] (u16 only).
+///
+/// # Errors
+/// As those two.
+pub fn compress_heights(
+    compression: terrastream_format::PayloadCompression,
+    samples: &[u8],
+    edge: usize,
+) -> std::io::Result<Vec<u8>> {
+    use terrastream_format::PayloadCompression;
+    match compression {
+        PayloadCompression::None => Ok(samples.to_vec()),
+        PayloadCompression::Zstd => zstd_compress_samples(samples),
+        PayloadCompression::ZstdGradient => zstd_compress_gradient(samples, edge),
+    }
+}

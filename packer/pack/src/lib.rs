@@ -14,6 +14,6 @@ pub mod sample;
 mod writer;
 
 pub use append::Appender;
-pub use compress::{zstd_compress, zstd_compress_gradient, zstd_compress_samples};
+pub use compress::{compress_heights, zstd_compress, zstd_compress_gradient, zstd_compress_samples};
 pub use error::{Error, Result};
 pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, output_folder};

@@ -26,7 +26,7 @@ use terrastream_format::{
     payload_bytes,
 };
 use terrastream_pack::progress::Progress;
-use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions, zstd_compress_gradient, zstd_compress_samples};
+use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions, compress_heights};
 
 use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
@@ -430,12 +430,8 @@ fn stored_as_first(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -
         return Ok(stored.to_vec());
     }
     let raw = payload_bytes(theirs, &stored, &format!("tile {key}"))?;
-    let again = match ours.compression {
-        PayloadCompression::None => Ok(raw.into_owned()),
-        PayloadCompression::Zstd => zstd_compress_samples(&raw),
-        PayloadCompression::ZstdGradient => zstd_compress_gradient(&raw, ours.stored_edge()),
-    };
-    again.map_err(|e| Error::Encode { tile: key, reason: e.to_string() })
+    compress_heights(ours.compression, &raw, ours.stored_edge())
+        .map_err(|e| Error::Encode { tile: key, reason: e.to_string() })
 }
 
 /// May layers `a` and `b`, alike otherwise, differ in their compression? Yes for u16

@@ -4,7 +4,7 @@ use std::path::Path;
 
 use terrastream_format::{ElevationEncoding, LayerKind, Metadata, PayloadCompression, TileKey};
 use terrastream_pack::progress::Progress;
-use terrastream_pack::{WriteSummary, Writer, WriterOptions, zstd_compress_gradient, zstd_compress_samples};
+use terrastream_pack::{WriteSummary, Writer, WriterOptions, compress_heights};
 
 use crate::encode::{encode_heights, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
@@ -236,7 +236,7 @@ fn window_rows(window: &Window) -> std::ops::Range<u32> {
 }
 
 /// The zstd level of BC texture tiles (the writer's default); elevation tiles: see
-/// [`zstd_compress_samples`].
+/// [`compress_heights`].
 pub(crate) const ZSTD_LEVEL: i32 = 3;
 
 /// Encodes elevation tiles, gathering each one's stored height range for the height-range
@@ -276,12 +276,7 @@ impl HeightEncoder {
         }
         let (stored, lo, hi) = RAW.with_borrow_mut(|raw| {
             let (lo, hi) = encode_heights(samples, &self.encoding, raw);
-            let stored = match self.compression {
-                PayloadCompression::ZstdGradient => zstd_compress_gradient(raw, self.edge),
-                PayloadCompression::Zstd => zstd_compress_samples(raw),
-                PayloadCompression::None => Ok(raw.clone()),
-            };
-            (stored, lo, hi)
+            (compress_heights(self.compression, raw, self.edge), lo, hi)
         });
         if self.range.is_some() && lo <= hi {
             self.ranges.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((key, lo, hi));
