@@ -144,28 +144,34 @@ fn column_distance(p: vec2<f32>) -> f32 {
 
 // The height drawn at p: a continuous mix of two elevation LODs chosen by distance (a
 // function of position only, so neighbouring patches agree on every shared vertex).
-fn terrain_height(p: vec2<f32>) -> f32 {
+fn terrain_height(p: vec2<f32>) -> vec2<f32> {
     // No elevation layer: flat, at the height the renderer chose (terrain.x = terrain.y).
     if G.counts.x == 0u {
-        return G.terrain.x;
+        return vec2<f32>(G.terrain.x, 0.0);
     }
     let d = column_distance(p);
     let top = f32(G.counts.x - 1u);
     let t = clamp(log2(max(d, 1.0e-3) / G.lod.y) + G.lod.x, 0.0, top);
     let l0 = floor(t);
     let f = t - l0;
-    let a = height_from(u32(l0), p).h;
+    let sa = height_from(u32(l0), p);
+    // y: 1 where an elevation tile covers p (at this LOD or a coarser one).
+    let covered = select(0.0, 1.0, sa.lod >= 0.0);
+    if sa.lod < 0.0 {
+        return vec2<f32>(G.terrain.x, 0.0);
+    }
+    let a = sa.h;
     if f <= 0.0 || l0 >= top {
-        return a;
+        return vec2<f32>(a, covered);
     }
     let b = height_from(u32(l0) + 1u, p).h;
     if a <= NODATA * 0.5 {
-        return b;
+        return vec2<f32>(b, covered);
     }
     if b <= NODATA * 0.5 {
-        return a;
+        return vec2<f32>(a, covered);
     }
-    return mix(a, b, f);
+    return vec2<f32>(mix(a, b, f), covered);
 }
 
 struct VertexOut {
@@ -177,6 +183,9 @@ struct VertexOut {
     @location(2) @interpolate(flat) level: u32,
     // 1 where a corner had no data.
     @location(3) nodata: f32,
+    // 1 where an elevation tile covers the vertex (0 beyond the elevation's tiles, and
+    // without an elevation layer): there, only imagery with texels is drawn.
+    @location(4) covered: f32,
 }
 
 @vertex
@@ -189,9 +198,14 @@ fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> V
     let morph = clamp((column_distance(g0 * base) - range.x) / (range.y - range.x), 0.0, 1.0);
     let odd = fract(local * 0.5) * 2.0;
     let g = instance.xy + (local - odd * morph) * quad;
-    let p = g * base;
-    var h = terrain_height(p);
+    // The mesh ends where the data does, at every level: vertices beyond the data's box
+    // move onto its edge (the triangles out there collapse to nothing), so a coarse
+    // patch's edge follows the data's instead of stepping by whole quads.
+    let p = clamp(g * base, G.bounds.xy, G.bounds.zw);
+    let found = terrain_height(p);
+    var h = found.x;
     var out: VertexOut;
+    out.covered = found.y;
     out.nodata = 0.0;
     if h <= NODATA * 0.5 {
         out.nodata = 1.0;
@@ -255,7 +269,9 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // Derivatives first, in uniform control flow.
     let footprint = max(length(dpdx(in.world.xz)), length(dpdy(in.world.xz)));
     let grid_width = fwidth(in.grid);
-    let outside = any(in.world.xz < G.bounds.xy) || any(in.world.xz > G.bounds.zw);
+    // Vertices lie on or inside the box; the slack keeps rounding from cutting its rim.
+    let slack = G.camera.w * 0.01;
+    let outside = any(in.world.xz < G.bounds.xy - slack) || any(in.world.xz > G.bounds.zw + slack);
     if in.nodata > 0.001 || outside {
         discard;
     }
@@ -287,6 +303,11 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         let c0 = texel_from(u32(l0), p);
         let c1 = texel_from(min(u32(l0) + 1u, G.counts.y - 1u), p);
         let c = mix(c0, c1, t - l0);
+        // Data edges (docs/rendering.md): the terrain is drawn where either layer has
+        // data; beyond the elevation's tiles, only where the imagery has texels.
+        if c.a < 0.5 && in.covered < 0.5 {
+            discard;
+        }
         albedo = mix(albedo, c.rgb, c.a);
     }
     if G.terrain.w > 0.0 {

@@ -7,33 +7,33 @@
 //! nothing to draw).
 
 use glam::{DMat4, DVec2, DVec3};
-use terrastream_format::{Layer, LayerKind, Metadata};
+use terrastream_format::{Layer, LayerKind, Metadata, intersect, union};
 
 use crate::stream::camera::{Aabb, Camera};
 pub use crate::stream::select::drawn_heights;
 
-/// The extent (x, z) in world units of the data (the grid's, unless the archive says where
-/// its data ends) and the heights it is drawn between.
-pub fn terrain_bounds(metadata: &Metadata) -> ((f64, f64), (f64, f64)) {
-    let layer = metadata
-        .layers
-        .iter()
-        .find(|l| l.kind == LayerKind::Elevation)
-        .or_else(|| metadata.layers.iter().find(|l| l.kind == LayerKind::Texture))
-        .or(metadata.layers.first());
-    let (ex, ez) = layer.map_or((1.0, 1.0), Layer::world_extent);
-    // The grid is rounded up to whole tiles: where the data ends, when the archive says.
-    let (ex, ez) = match metadata.terrain.data_extent {
-        Some([dx, dz]) if dx > 0.0 && dz > 0.0 => (ex.min(dx), ez.min(dz)),
-        _ => (ex, ez),
-    };
-    ((ex, ez), drawn_heights(metadata))
+/// The box `[min x, min z, max x, max z]` in world units where the terrain is drawn, and
+/// the heights it is drawn between.
+///
+/// The one rule of every front end (docs/rendering.md, "Data edges"): the terrain covers
+/// the union of the drawn layers' data boxes (elevation and texture, FORMAT.md §3.7),
+/// within the source's extent where the archive gives it (`terrain.data_extent`). Inside
+/// it, heights come from the elevation where it has data (elsewhere the ground lies flat
+/// at the lowest height) and colour from the imagery where it has texels (elsewhere the
+/// height tint).
+pub fn terrain_bounds(metadata: &Metadata) -> ([f64; 4], (f64, f64)) {
+    let drawn = metadata.layers.iter().filter(|l| matches!(l.kind, LayerKind::Elevation | LayerKind::Texture));
+    let mut area = drawn.map(Layer::data_world).reduce(union).unwrap_or([0.0, 0.0, 1.0, 1.0]);
+    if let Some([dx, dz]) = metadata.terrain.data_extent.filter(|[dx, dz]| *dx > 0.0 && *dz > 0.0) {
+        area = intersect(area, [0.0, 0.0, dx, dz]).unwrap_or(area);
+    }
+    (area, drawn_heights(metadata))
 }
 
 /// The box the terrain is drawn in.
 pub fn terrain_box(metadata: &Metadata) -> Aabb {
-    let ((ex, ez), (lo, hi)) = terrain_bounds(metadata);
-    Aabb { min: DVec3::new(0.0, lo, 0.0), max: DVec3::new(ex, hi, ez) }
+    let ([x0, z0, x1, z1], (lo, hi)) = terrain_bounds(metadata);
+    Aabb { min: DVec3::new(x0, lo, z0), max: DVec3::new(x1, hi, z1) }
 }
 
 /// Pitch of the default view, below the horizon.
@@ -100,14 +100,15 @@ pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
 /// to the north-east one, low over the terrain, looking ahead and down. `bench render`
 /// flies it natively, the webplayer with `flight=<frames>`.
 pub fn bench_flight(metadata: &Metadata, frames: usize) -> Vec<(DVec3, DVec3)> {
-    let ((ex, ez), (_, hi)) = terrain_bounds(metadata);
+    let ([x0, z0, x1, z1], (_, hi)) = terrain_bounds(metadata);
+    let (ex, ez) = (x1 - x0, z1 - z0);
     let altitude = hi + 0.04 * ex.max(ez);
     #[expect(clippy::cast_precision_loss, reason = "frame numbers")]
     let at = |i: usize| i as f64 / (frames.max(2) - 1) as f64;
     (0..frames)
         .map(|i| {
             let t = at(i);
-            let eye = DVec3::new(ex * (0.1 + 0.8 * t), altitude, ez * (0.9 - 0.8 * t));
+            let eye = DVec3::new(x0 + ex * (0.1 + 0.8 * t), altitude, z0 + ez * (0.9 - 0.8 * t));
             (eye, eye + DVec3::new(ex * 0.1, -altitude * 0.6, -ez * 0.1))
         })
         .collect()
@@ -248,6 +249,7 @@ mod tests {
             num_lods: 7,
             tile_world_size: 250_000.0, // 10 000 km x 6 000 km
             elevation: None,
+            extent: None,
         };
         let mut m = Metadata::new("continent", vec![layer]);
         m.terrain.min_elevation = -100.0;
@@ -302,7 +304,7 @@ mod tests {
         m.layers[0].num_y_tiles = 3;
         m.layers[0].tile_world_size = 2.5e6;
         m.terrain.data_extent = Some([8.0e6, 5.0e6]);
-        assert_eq!(terrain_bounds(&m).0, (8.0e6, 5.0e6));
+        assert_eq!(terrain_bounds(&m).0, [0.0, 0.0, 8.0e6, 5.0e6]);
         let camera = default_camera(&m, 1280, 720);
         // Looking at the data's middle: the ray from the eye meets its ground there.
         let (eye, dir) = (camera.position, camera.direction());
@@ -311,7 +313,7 @@ mod tests {
         assert!((ground.x - 4.0e6).abs() < 2.0e5, "{ground}");
         // A grid without the field is framed whole.
         m.terrain.data_extent = None;
-        assert_eq!(terrain_bounds(&m).0, (1.0e7, 7.5e6));
+        assert_eq!(terrain_bounds(&m).0, [0.0, 0.0, 1.0e7, 7.5e6]);
     }
 
     #[test]

@@ -271,6 +271,7 @@ fn bc1_and_bc7_tiles_are_drawn_from_blocks() {
             num_lods: 2,
             tile_world_size: 100.0,
             elevation: None,
+            extent: None,
         };
         let metadata = Metadata::new("bc", vec![layer]);
         let mut writer = Writer::create(&path, metadata.clone(), WriterOptions::default()).unwrap();
@@ -343,6 +344,7 @@ fn a_view_1000_km_out_matches_the_same_view_near_the_origin() {
         num_lods: terrastream_format::levels_to_one(GRID),
         tile_world_size: tile,
         elevation: Some(ElevationEncoding { scheme: ElevationScheme::Float32, scale: 1.0, offset: 0.0, nodata: None }),
+        extent: None,
     };
     let mut metadata = Metadata::new("huge", vec![layer]);
     metadata.terrain.min_elevation = 0.0;
@@ -436,6 +438,7 @@ fn seventeen_texture_lods_are_each_drawn() {
         num_lods: LODS,
         tile_world_size: 4.0, // texels of 1 m at LOD 0
         elevation: None,
+        extent: None,
     };
     let metadata = Metadata::new("lods", vec![layer]);
     let mut keys: Vec<TileKey> =
@@ -538,6 +541,7 @@ fn texture_only_archive(dir: &Path, data_extent: Option<[f64; 2]>) -> PathBuf {
         num_lods: 2,
         tile_world_size: 1000.0,
         elevation: None,
+        extent: None,
     };
     let mut metadata = Metadata::new("texture-only", vec![layer]);
     metadata.terrain.min_elevation = 3000.0;

@@ -107,6 +107,20 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
             .map(|(lod, (n, of))| format!("LOD{lod} {n}/{of}"))
             .collect();
         let _ = writeln!(out, "            {}", per_lod.join(" · "));
+        if let Some(e) = m.layers.get(i).and_then(|l| l.extent.as_ref()) {
+            let [x0, z0, x1, z1] = e.world;
+            let mut line = format!(
+                "            data LOD{}..=LOD{} · world {x0:.1},{z0:.1}..{x1:.1},{z1:.1}",
+                e.finest_lod, e.coarsest_lod
+            );
+            if let Some([a, b, c, d]) = e.crs {
+                line.push_str(&format!(" · crs {a:.3},{b:.3}..{c:.3},{d:.3}"));
+            }
+            if let Some([w, so, ea, n]) = e.lon_lat {
+                line.push_str(&format!(" · lon/lat {w:.5},{so:.5}..{ea:.5},{n:.5}"));
+            }
+            let _ = writeln!(out, "{line}");
+        }
     }
     out
 }

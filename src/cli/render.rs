@@ -198,5 +198,13 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         );
         return Ok(ExitCode::FAILURE);
     }
+    if let Some(layer) = &still.unreached_layer {
+        eprintln!(
+            "error: layer {layer:?} has data in view but none of its tiles in view could be fetched (the view cannot \
+             reach them): {} does not show it",
+            args.output.display()
+        );
+        return Ok(ExitCode::FAILURE);
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -261,7 +261,8 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let streamer = Streamer::open(origin, args.look.stream()).with_context(|| format!("opening {}", args.archive))?;
     let metadata = streamer.metadata().cloned().context("the archive has no metadata")?;
     let camera = start_camera(&metadata, start, width, height);
-    let ((ex, ez), _) = terrain_bounds(&metadata);
+    let ([x0, z0, x1, z1], _) = terrain_bounds(&metadata);
+    let (ex, ez) = (x1 - x0, z1 - z0);
     tracing::info!(extent_m = format!("{ex:.0} x {ez:.0}"), "viewing {}", args.archive);
     // Any thread: the demo opens the viewer beside the server's runtime.
     #[cfg(target_os = "linux")]

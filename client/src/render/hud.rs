@@ -97,6 +97,9 @@ pub fn status_lines(s: &Status<'_>) -> Vec<String> {
     if frame.drew_nothing_in_view() {
         lines.push(format!("WARNING: {} tiles in view are resident but no terrain is drawn", frame.in_view_resident));
     }
+    if let Some(layer) = frame.unreached_layer {
+        lines.push(format!("WARNING: layer {layer}'s data is in view but none of its tiles could be fetched"));
+    }
     lines
 }
 

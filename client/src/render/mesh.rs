@@ -92,7 +92,9 @@ impl Node {
 
 /// What the selection needs to know of the scene.
 pub struct Scene<'a> {
-    /// Terrain size in base units (x, z).
+    /// Where the terrain starts, in base units (x, z).
+    pub start: (i64, i64),
+    /// Where the terrain ends, in base units (x, z).
     pub extent: (i64, i64),
     /// Eye position in world units.
     pub eye: DVec3,
@@ -109,10 +111,12 @@ pub fn select_nodes(params: &MeshParams, scene: &Scene<'_>) -> Vec<Node> {
     let mut out = Vec::new();
     let top = params.levels - 1;
     let root = params.node_units(top);
+    // Root nodes on the root grid from the one holding the start to the one holding the end.
+    let (i0, j0) = (scene.start.0.div_euclid(root), scene.start.1.div_euclid(root));
     let nx = scene.extent.0.div_euclid(root) + i64::from(scene.extent.0.rem_euclid(root) != 0);
     let nz = scene.extent.1.div_euclid(root) + i64::from(scene.extent.1.rem_euclid(root) != 0);
-    for j in 0..nz {
-        for i in 0..nx {
+    for j in j0..nz {
+        for i in i0..nx {
             select(params, scene, (i * root, j * root), top, &mut out);
         }
     }
@@ -149,7 +153,11 @@ fn select(params: &MeshParams, scene: &Scene<'_>, origin: (i64, i64), level: u32
     let half = units / 2;
     for (dx, dz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
         let child = (origin.0 + dx * half, origin.1 + dz * half);
-        if child.0 >= scene.extent.0 || child.1 >= scene.extent.1 {
+        if child.0 >= scene.extent.0
+            || child.1 >= scene.extent.1
+            || child.0 + half <= scene.start.0
+            || child.1 + half <= scene.start.1
+        {
             continue;
         }
         if !select(params, scene, child, level - 1, out) {
@@ -212,7 +220,14 @@ mod tests {
         let extent = (4096, 2048);
         let cam = Camera::look_at(eye, target, 800, 600);
         let frustum = cam.frustum();
-        let scene = Scene { extent, eye, frustum: &frustum, column: (0.0, 500.0), heights: &|_, _, _, _| (0.0, 500.0) };
+        let scene = Scene {
+            start: (0, 0),
+            extent,
+            eye,
+            frustum: &frustum,
+            column: (0.0, 500.0),
+            heights: &|_, _, _, _| (0.0, 500.0),
+        };
         (params, select_nodes(&params, &scene), extent)
     }
 

@@ -111,6 +111,10 @@ pub struct FrameStats {
     pub gpu_bytes: u64,
     /// Tiles the streaming selection has in view that are on the GPU (set by the session).
     pub in_view_resident: u32,
+    /// A drawn layer whose data is in view but none of whose tiles in view is on the GPU
+    /// once streaming has settled (set by the session): the view cannot reach its tiles,
+    /// a defect reported as [`FrameStats::drew_nothing_in_view`] is.
+    pub unreached_layer: Option<u8>,
 }
 
 impl FrameStats {
@@ -243,8 +247,8 @@ impl TileArray {
 /// Draws a streamed terrain.
 pub struct TerrainRenderer {
     settings: RenderSettings,
-    /// World extent (x, z) of the drawn layers.
-    extent: (f64, f64),
+    /// The drawn box `[min x, min z, max x, max z]` in world units ([`crate::fly::terrain_bounds`]).
+    extent: [f64; 4],
     /// The terrain's height range (0, 0 without elevation).
     column: (f64, f64),
     elevation: Option<TileArray>,
@@ -464,7 +468,7 @@ impl TerrainRenderer {
             // Where the data ends (the grid rounds up to whole tiles): nothing is drawn beyond.
             extent: match elevation.as_ref().or(texture.as_ref()) {
                 Some(_) => crate::fly::terrain_bounds(metadata).0,
-                None => (0.0, 0.0),
+                None => [0.0; 4],
             },
             column: crate::stream::select::drawn_heights(metadata),
             elevation,
@@ -598,11 +602,11 @@ impl TerrainRenderer {
     }
 
     fn select(&self, camera: &Camera) -> (Vec<Node>, MeshParams) {
-        let (ex, ez) = self.extent;
+        let [x0, z0, x1, z1] = self.extent;
         let column = self.column;
         let eye = camera.position;
         // Enough levels that the coarsest ring reaches the far corner of the data.
-        let far = [(0.0, 0.0), (ex, 0.0), (0.0, ez), (ex, ez)]
+        let far = [(x0, z0), (x1, z0), (x0, z1), (x1, z1)]
             .iter()
             .map(|&(x, z)| DVec3::new(x, eye.y.clamp(column.0, column.1), z).distance(eye))
             .fold(0.0, f64::max);
@@ -635,8 +639,11 @@ impl TerrainRenderer {
         };
         let frustum = camera.frustum();
         #[allow(clippy::cast_possible_truncation)]
-        let extent = ((ex / params.base).ceil() as i64, (ez / params.base).ceil() as i64);
-        let scene = Scene { extent, eye, frustum: &frustum, column, heights: &heights };
+        let extent = (
+            ((x0 / params.base).floor() as i64, (z0 / params.base).floor() as i64),
+            ((x1 / params.base).ceil() as i64, (z1 / params.base).ceil() as i64),
+        );
+        let scene = Scene { start: extent.0, extent: extent.1, eye, frustum: &frustum, column, heights: &heights };
         let mut nodes = select_nodes(&params, &scene);
         // Full patches first, then quarters: two instanced draws.
         nodes.sort_by_key(|n| (n.quarter, n.level));
@@ -697,9 +704,10 @@ impl TerrainRenderer {
         let projection = DMat4::perspective_infinite_reverse_rh(camera.fov_y, camera.aspect, camera.near);
         let view_proj: Mat4 = (projection * rotation).as_mat4();
         let column = self.column;
-        let (ex, ez) = self.extent;
+        let [x0, z0, x1, z1] = self.extent;
         let flat = self.settings.shading == Shading::Flat;
-        let fog = if flat { 0.0 } else { self.settings.fog_density.unwrap_or(0.12 / ex.hypot(ez).max(1.0)) };
+        let fog =
+            if flat { 0.0 } else { self.settings.fog_density.unwrap_or(0.12 / (x1 - x0).hypot(z1 - z0).max(1.0)) };
         let sun = self.settings.sun.try_normalize().unwrap_or(DVec3::Y);
         let [r, g, b] = self.settings.sky.map(srgb_to_linear);
         let elev_info = self.elevation.as_ref().map_or([0.0, 0.0, 1.0, 1.0], TileArray::shader_info);
@@ -735,7 +743,7 @@ impl TerrainRenderer {
                 self.page_table.max_probes,
             ],
             lod: [(base / f64::from(elev_info[3])).log2() as f32, params.range(0) as f32, 0.0, 0.0],
-            bounds: [(-anchor.0) as f32, (-anchor.1) as f32, (ex - anchor.0) as f32, (ez - anchor.1) as f32],
+            bounds: [(x0 - anchor.0) as f32, (z0 - anchor.1) as f32, (x1 - anchor.0) as f32, (z1 - anchor.1) as f32],
             ranges,
             elev_lods: self.elevation.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
             tex_lods: self.texture.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
@@ -760,6 +768,7 @@ impl TerrainRenderer {
             resident: (resident(&self.elevation), resident(&self.texture)),
             gpu_bytes: self.arrays().map(|a| a.bytes).sum::<u64>() + self.page_table.entries.len() as u64 * 16,
             in_view_resident: 0,
+            unreached_layer: None,
         }
     }
 

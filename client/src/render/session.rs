@@ -1,10 +1,12 @@
 //! The streaming core and the renderer, stepped together once per frame.
 
-use terrastream_format::Metadata;
+use glam::DVec3;
+use terrastream_format::{LayerKind, Metadata};
 
 use super::renderer::{FrameStats, RenderSettings, TerrainPipeline, TerrainRenderer};
 use crate::fly::terrain_box;
-use crate::stream::camera::Camera;
+use crate::stream::camera::{Aabb, Camera};
+use crate::stream::select::drawn_heights;
 use crate::stream::streamer::{StreamStats, Streamer, UploadBudget};
 
 /// A streamer feeding a renderer.
@@ -22,6 +24,8 @@ pub struct Session {
     /// The last frame drew no terrain although tiles in view were resident (warned once
     /// per such spell, not once per frame).
     blank: bool,
+    /// The layer the last frame could not reach (warned once per such spell).
+    unreached: Option<u8>,
 }
 
 impl Session {
@@ -59,7 +63,16 @@ impl Session {
         options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());
         streamer.set_options(options);
         let generation = streamer.generation();
-        Ok(Self { streamer, renderer, budget, generation, metadata, pipeline: pipeline.clone(), blank: false })
+        Ok(Self {
+            streamer,
+            renderer,
+            budget,
+            generation,
+            metadata,
+            pipeline: pipeline.clone(),
+            blank: false,
+            unreached: None,
+        })
     }
 
     /// One frame: stream for `camera`, upload within the budget, prepare the draw. The
@@ -95,7 +108,44 @@ impl Session {
             );
         }
         self.blank = blank;
+        stats.unreached_layer = self.unreached_layer(camera);
+        if let Some(index) = stats.unreached_layer
+            && self.unreached != stats.unreached_layer
+        {
+            tracing::warn!(
+                layer = self.metadata.layers[usize::from(index)].name,
+                eye = ?camera.position,
+                "the layer's data is in view but none of its tiles in view could be fetched"
+            );
+        }
+        self.unreached = stats.unreached_layer;
         (self.streamer.stats(), stats)
+    }
+
+    /// The first drawn layer whose data box is in view while, with nothing left to fetch,
+    /// none of its tiles in view is on the GPU.
+    fn unreached_layer(&self, camera: &Camera) -> Option<u8> {
+        if !self.settled() {
+            return None;
+        }
+        let frustum = camera.frustum();
+        let (lo, hi) = drawn_heights(&self.metadata);
+        let wanted = self.streamer.wanted();
+        self.metadata.layers.iter().enumerate().find_map(|(index, layer)| {
+            let index = u8::try_from(index).ok()?;
+            let extent =
+                layer.extent.as_ref().filter(|_| matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture))?;
+            let [x0, z0, x1, z1] = extent.world;
+            let data = Aabb { min: DVec3::new(x0, lo, z0), max: DVec3::new(x1, hi, z1) };
+            let reached =
+                wanted.iter().any(|w| w.key.layer() == index && w.in_view && self.renderer.is_resident(w.key));
+            (frustum.intersects(&data) && !reached).then_some(index)
+        })
+    }
+
+    /// The name of the layer [`FrameStats::unreached_layer`] names.
+    pub fn layer_name(&self, index: u8) -> &str {
+        self.metadata.layers.get(usize::from(index)).map_or("?", |l| l.name.as_str())
     }
 
     /// Steps frames for a fixed `camera` until `done(self)` holds, flushing the GPU's

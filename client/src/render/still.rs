@@ -89,6 +89,9 @@ pub struct Still {
     pub texture_format: Option<wgpu::TextureFormat>,
     /// The streamer's last error (a tile that failed or could not be decoded), if any.
     pub last_error: Option<String>,
+    /// The name of a layer whose data is in view but none of whose tiles could be
+    /// fetched ([`FrameStats::unreached_layer`]): a view that fails.
+    pub unreached_layer: Option<String>,
 }
 
 /// Streams `origin` for the camera `camera` makes from the archive's metadata (e.g.
@@ -132,7 +135,8 @@ pub fn render_still(
     let texture_format = session.renderer.texture_format();
     let last_error = session.streamer.last_error().map(str::to_owned);
     let (width, height) = (options.width, options.height);
-    Ok(Still { rgba, width, height, frames, stream, frame, camera, texture_format, last_error })
+    let unreached_layer = frame.unreached_layer.map(|i| session.layer_name(i).to_owned());
+    Ok(Still { rgba, width, height, frames, stream, frame, camera, texture_format, last_error, unreached_layer })
 }
 
 /// Writes RGBA8 pixels as a PNG.

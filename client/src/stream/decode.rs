@@ -369,6 +369,7 @@ mod tests {
             num_lods: 1,
             tile_world_size: 1.0,
             elevation,
+            extent: None,
         }
     }
 

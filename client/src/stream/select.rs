@@ -101,7 +101,11 @@ pub fn select(
         if !matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture) {
             continue;
         }
-        level.extend(layer.tiles_at(index, layer.num_lods.saturating_sub(1)));
+        // From the coarsest LOD holding tiles, over the data: a regional pyramid has no
+        // ancestors up to one tile.
+        let start = layer.start_lod();
+        let (x0, y0, x1, y1) = layer.data_tiles_at(start);
+        level.extend((y0..=y1).flat_map(|y| (x0..=x1).filter_map(move |x| TileKey::new(index, start, x, y).ok())));
     }
     // Tiles already wanted or queued: refinement stops when four more would pass the cap.
     let mut accounted = level.len();
@@ -120,14 +124,14 @@ pub fn select(
                 && (in_view || distance < size)
                 && descend(key)
                 && accounted + 4 <= options.max_wanted;
-            let top = key.lod() + 1 == layer.num_lods;
+            let top = key.lod() == layer.start_lod();
             if refine {
                 let lod = key.lod() - 1;
-                let (nx, ny) = layer.grid_at(lod);
+                let (x0, y0, x1, y1) = layer.data_tiles_at(lod);
                 for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                     let (x, y) = (key.x() * 2 + dx, key.y() * 2 + dy);
-                    if x < nx
-                        && y < ny
+                    if (x0..=x1).contains(&x)
+                        && (y0..=y1).contains(&y)
                         && let Ok(child) = TileKey::new(key.layer(), lod, x, y)
                     {
                         accounted += 1;
@@ -162,6 +166,7 @@ mod tests {
             num_lods: 7,
             tile_world_size: 256.0,
             elevation: None,
+            extent: None,
         };
         Metadata::new("t", vec![layer])
     }

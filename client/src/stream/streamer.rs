@@ -644,8 +644,8 @@ impl Streamer {
                 continue;
             }
             let Some(tile) = self.cache.peek(w.key) else { continue };
-            let num_lods = metadata.layers[usize::from(w.key.layer())].num_lods;
-            if let Some(parent) = w.key.parent().filter(|p| p.lod() < num_lods)
+            let start = metadata.layers[usize::from(w.key.layer())].start_lod();
+            if let Some(parent) = w.key.parent().filter(|p| p.lod() <= start)
                 && !self.delivered.contains(&parent)
                 && !self.is_unavailable(parent)
             {

@@ -619,6 +619,7 @@ impl State {
             "triangles": frame.triangles,
             "patches": frame.patches,
             "drew_nothing_in_view": frame.drew_nothing_in_view(),
+            "unreached_layer": frame.unreached_layer,
             "hud": self.show_hud,
             "eye": [fly.eye.x, fly.eye.y, fly.eye.z],
             "yaw": fly.yaw,

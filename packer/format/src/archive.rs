@@ -12,12 +12,16 @@ use crate::checksum::crc32c;
 use crate::compression::decompress;
 use crate::directory::{Directory, Entry, LeafPointer, TILE_TRAILER_LEN};
 use crate::error::{Error, Result};
+use crate::extent::ExtentBuilder;
 use crate::header::{BOOTSTRAP_READ, Header};
 use crate::key::TileKey;
 use crate::metadata::Metadata;
 
 /// Metadata never inflates past this (16 MiB).
 pub const MAX_METADATA_BYTES: u64 = 16 << 20;
+/// Runs of identical tiles longer than this count their first and last tile only when a
+/// layer's extent is derived from the directory.
+pub const MAX_DERIVED_RUN: u32 = 4096;
 /// Leaf directories kept decoded by default.
 pub const DEFAULT_LEAF_CACHE: usize = 64;
 
@@ -162,7 +166,7 @@ impl Archive {
             Directory::Tiles(_) => Vec::new(),
         };
         leaf_offsets.sort_unstable();
-        Ok(Bootstrap::Ready(Box::new(Self {
+        let mut archive = Self {
             header,
             metadata,
             root,
@@ -171,7 +175,55 @@ impl Archive {
             leaves: RwLock::new(LeafCache::default()),
             leaf_cache_capacity: DEFAULT_LEAF_CACHE,
             leaf_offsets,
-        })))
+        };
+        if let Directory::Tiles(entries) = &archive.root
+            && archive.lacks_extents()
+        {
+            let entries = entries.clone();
+            archive.derive_extents(&entries);
+        }
+        Ok(Bootstrap::Ready(Box::new(archive)))
+    }
+
+    /// True when the metadata does not say where the layers' data is (archives written
+    /// before FORMAT.md §3.7): a reader with leaf directories calls
+    /// [`Archive::derive_extents`] with every entry (the root's are used on open).
+    pub fn lacks_extents(&self) -> bool {
+        // Writers record the extent of every layer that has a tile: an archive where no
+        // layer has one was written before, one where some layer has none has an empty layer.
+        self.metadata.layers.iter().all(|l| l.extent.is_none())
+    }
+
+    /// Fills the extent of every layer that has none from directory entries (all of the
+    /// archive's): coarsest populated LOD and the box of the finest tiles. Runs longer than
+    /// [`MAX_DERIVED_RUN`] tiles count their first and last tile only.
+    pub fn derive_extents(&mut self, entries: &[Entry]) {
+        let step = crate::key::MAX_LAYERS as u64;
+        let mut builders = vec![ExtentBuilder::default(); self.metadata.layers.len()];
+        let mut add = |key: u64| {
+            if let Ok(tile) = self.tile_of(key)
+                && let Some(b) = builders.get_mut(usize::from(tile.layer()))
+            {
+                b.add(tile);
+            }
+        };
+        for e in entries {
+            if e.run_length <= MAX_DERIVED_RUN {
+                (0..u64::from(e.run_length)).for_each(|i| add(e.key + i * step));
+            } else {
+                add(e.key);
+                add(e.last_key());
+            }
+        }
+        let georeference = self.metadata.georeference.clone();
+        for (layer, builder) in self.metadata.layers.iter_mut().zip(&builders) {
+            if layer.extent.is_none() {
+                layer.extent = builder.finish(layer).map(|mut e| {
+                    e.georeference(georeference.as_ref());
+                    e
+                });
+            }
+        }
     }
 
     /// The header.
@@ -383,4 +435,23 @@ mod tests {
             assert_eq!(cache.by_offset[offset], i);
         }
     }
+}
+
+/// Every entry of the given leaves, decoded from the whole leaf section's `bytes`.
+///
+/// # Errors
+/// [`Error::Corrupt`] or [`Error::SectionChecksum`] naming a leaf outside the section or
+/// damaged.
+pub(crate) fn entries_of_leaves(archive: &Archive, leaves: &[LeafPointer], bytes: &[u8]) -> Result<Vec<Entry>> {
+    let mut entries = Vec::new();
+    for leaf in leaves {
+        let range = usize::try_from(leaf.offset)
+            .ok()
+            .and_then(|start| Some(start..start.checked_add(usize::try_from(leaf.length).ok()?)?));
+        let slice = range.and_then(|r| bytes.get(r)).ok_or_else(|| {
+            Error::corrupt(format!("leaf directory at offset {}", leaf.offset), "outside the leaf section")
+        })?;
+        entries.extend(archive.decode_leaf(*leaf, slice)?.iter().copied());
+    }
+    Ok(entries)
 }

@@ -308,6 +308,7 @@ mod tests {
             num_lods: 4,
             tile_world_size: 100.0,
             elevation: None,
+            extent: None,
         }
     }
 

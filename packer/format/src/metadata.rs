@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::extent::LayerExtent;
 use crate::key::{MAX_LAYERS, MAX_LODS, TileKey};
 
 /// The metadata document.
@@ -270,6 +271,10 @@ pub struct Layer {
     /// Height decoding, for elevation layers.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub elevation: Option<ElevationEncoding>,
+    /// Where the layer's tiles are: coarsest populated LOD and data bounds (§3.7). Written
+    /// by every writer; archives without it get it derived from their directory on open.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub extent: Option<LayerExtent>,
 }
 
 impl Layer {
@@ -277,6 +282,37 @@ impl Layer {
     /// Directory keys are computed with it, whatever `num_lods` is.
     pub fn depth(&self) -> u8 {
         levels_to_one(self.num_x_tiles.max(self.num_y_tiles))
+    }
+
+    /// The coarsest LOD a reader starts the quadtree at: the coarsest populated one where
+    /// the layer says (§3.7), else the top of the layer.
+    pub fn start_lod(&self) -> u8 {
+        let top = self.num_lods.saturating_sub(1);
+        self.extent.as_ref().map_or(top, |e| e.coarsest_lod.min(top))
+    }
+
+    /// The tiles at `lod` where the layer's data is (the whole grid where it does not say),
+    /// as inclusive column and row ranges `(x0, y0, x1, y1)`.
+    pub fn data_tiles_at(&self, lod: u8) -> (u32, u32, u32, u32) {
+        match &self.extent {
+            Some(e) => e.tile_range(self, lod),
+            None => {
+                let (nx, ny) = self.grid_at(lod);
+                (0, 0, nx - 1, ny - 1)
+            }
+        }
+    }
+
+    /// The data's box in world units, `[min x, min z, max x, max z]`: the layer's extent,
+    /// else its whole grid.
+    pub fn data_world(&self) -> [f64; 4] {
+        self.extent.as_ref().map_or_else(
+            || {
+                let (ex, ez) = self.world_extent();
+                [0.0, 0.0, ex, ez]
+            },
+            |e| e.world,
+        )
     }
 
     /// Tiles across and down at `lod`: ceil(n / 2^lod).
@@ -573,6 +609,7 @@ mod tests {
             num_lods,
             tile_world_size: 76.96,
             elevation: None,
+            extent: None,
         }
     }
 

@@ -36,7 +36,24 @@ impl<S: RangeSource> Reader<S> {
                 }
             },
         };
-        Ok(Self { source, archive })
+        let mut reader = Self { source, archive };
+        reader.derive_extents_from_leaves()?;
+        Ok(reader)
+    }
+
+    /// Older archives with leaf directories: their extents from every leaf (one read of
+    /// the leaf section).
+    fn derive_extents_from_leaves(&mut self) -> Result<()> {
+        let Directory::Leaves(leaves) = self.archive.root() else { return Ok(()) };
+        if !self.archive.lacks_extents() {
+            return Ok(());
+        }
+        let leaves = leaves.clone();
+        let section = self.header().leaf_dirs;
+        let bytes = self.source.read_range(section.offset, section.len)?;
+        let entries = crate::archive::entries_of_leaves(&self.archive, &leaves, &bytes)?;
+        self.archive.derive_extents(&entries);
+        Ok(())
     }
 
     /// Sets how many decoded leaf directories are kept (at least 1; by default

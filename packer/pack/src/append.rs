@@ -18,13 +18,13 @@ use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 use terrastream_format::{
-    BOOTSTRAP_READ, Compression, Entry, HEADER_LEN, Header, MAX_LAYERS, Metadata, Section, TILE_TRAILER_LEN, TileKey,
-    VERSION_MINOR, crc32c,
+    BOOTSTRAP_READ, Compression, Entry, ExtentBuilder, HEADER_LEN, Header, MAX_LAYERS, Metadata, Section,
+    TILE_TRAILER_LEN, TileKey, VERSION_MINOR, crc32c,
 };
 
 use crate::compress::zstd_compress;
 use crate::error::{Error, Result};
-use crate::writer::{SPILL_RECORD, WriteSummary, WriterOptions, build_directories, output_folder};
+use crate::writer::{SPILL_RECORD, WriteSummary, WriterOptions, build_directories, output_folder, record_extents};
 
 /// Appends a new version of an archive's tiles to it, in place.
 ///
@@ -49,6 +49,8 @@ pub struct Appender {
     added: u64,
     addressed: u64,
     last_key: Option<u64>,
+    /// Where each layer's tiles are in the new version.
+    extents: Vec<ExtentBuilder>,
 }
 
 impl std::fmt::Debug for Appender {
@@ -106,6 +108,7 @@ impl Appender {
             added: 0,
             addressed: 0,
             last_key: None,
+            extents: Vec::new(),
         })
     }
 
@@ -161,6 +164,11 @@ impl Appender {
             return Err(Error::OutOfOrder { tile });
         }
         self.last_key = Some(key);
+        let layer = usize::from(tile.layer());
+        if self.extents.len() <= layer {
+            self.extents.resize_with(layer + 1, ExtentBuilder::default);
+        }
+        self.extents[layer].add(tile);
         self.addressed += 1;
         if let Some(open) = &mut self.open
             && open.offset == offset
@@ -198,6 +206,15 @@ impl Appender {
     /// is left as it was: rewrite it instead); I/O errors.
     pub fn finish(mut self, metadata: &Metadata) -> Result<WriteSummary> {
         metadata.validate()?;
+        // The new version's tiles say where its data is: an update may reach beyond the
+        // box the old version recorded.
+        let mut metadata = metadata.clone();
+        for layer in &mut metadata.layers {
+            layer.extent = None;
+        }
+        self.extents.resize_with(metadata.layers.len(), ExtentBuilder::default);
+        record_extents(&mut metadata, &self.extents);
+        let metadata = &metadata;
         self.close_run()?;
         let path = self.path.clone();
         let io = |e| Error::file(&path, e);

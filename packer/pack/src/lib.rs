@@ -16,4 +16,4 @@ mod writer;
 pub use append::Appender;
 pub use compress::{compress_heights, zstd_compress, zstd_compress_gradient, zstd_compress_samples};
 pub use error::{Error, Result};
-pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, output_folder};
+pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, output_folder, record_extents};

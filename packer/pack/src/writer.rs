@@ -21,8 +21,8 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use terrastream_format::{
-    BOOTSTRAP_READ, Compression, Directory, Entry, HEADER_LEN, Header, LeafPointer, MAX_LAYERS, Metadata,
-    PayloadCompression, Section, TILE_TRAILER_LEN, TileKey, VERSION_MINOR, crc32c,
+    BOOTSTRAP_READ, Compression, Directory, Entry, ExtentBuilder, HEADER_LEN, Header, LeafPointer, MAX_LAYERS,
+    Metadata, PayloadCompression, Section, TILE_TRAILER_LEN, TileKey, VERSION_MINOR, crc32c,
 };
 
 use crate::compress::{zstd_compress, zstd_compress_gradient};
@@ -133,6 +133,8 @@ pub struct Writer {
     last_key: Option<u64>,
     addressed: u64,
     contents: u64,
+    /// Where each layer's tiles are, recorded in the metadata at the end.
+    extents: Vec<ExtentBuilder>,
 }
 
 impl std::fmt::Debug for Writer {
@@ -150,6 +152,7 @@ impl Writer {
     pub fn create(path: impl AsRef<Path>, metadata: Metadata, options: WriterOptions) -> Result<Self> {
         metadata.validate()?;
         let path = path.as_ref().to_path_buf();
+        let extents = vec![ExtentBuilder::default(); metadata.layers.len()];
         let folder = output_folder(&path);
         let temp = || tempfile::tempfile_in(&folder).map_err(|e| Error::file(&folder, e));
         let (data, data_path) = partial_file(&path, &folder)?.into_parts();
@@ -173,6 +176,7 @@ impl Writer {
             last_key: None,
             addressed: 0,
             contents: 0,
+            extents,
         })
     }
 
@@ -242,6 +246,9 @@ impl Writer {
             return Err(Error::too_large(format!("tile {tile}"), bytes.len()));
         }
         self.last_key = Some(key);
+        if let Some(extent) = self.extents.get_mut(usize::from(tile.layer())) {
+            extent.add(tile);
+        }
         self.batch_bytes += bytes.len();
         self.batch.push(Pending { key, tile, bytes, compression });
         if self.batch_bytes >= self.options.batch_bytes || self.batch.len() >= self.options.batch_tiles {
@@ -353,6 +360,7 @@ impl Writer {
         let mut syncer = self.syncer.take();
         let temp = |e| temporary(&self.folder, e);
         let level = self.options.directory_zstd_level;
+        record_extents(&mut self.metadata, &self.extents);
         let metadata_bytes = zstd_compress(&self.metadata.to_json(), level)
             .map_err(|error| Error::Compress { what: "the metadata", error })?;
         let target = if self.options.reserve {
@@ -420,6 +428,15 @@ impl Writer {
             metadata_bytes: metadata.len,
             leaf_count: directories.leaf_count,
         })
+    }
+}
+
+/// Writes into every layer of `metadata` where its tiles are (FORMAT.md §3.7), from the
+/// tiles counted in `extents` (one per layer).
+pub fn record_extents(metadata: &mut Metadata, extents: &[ExtentBuilder]) {
+    let georeference = metadata.georeference.clone();
+    for (layer, builder) in metadata.layers.iter_mut().zip(extents) {
+        layer.extent = builder.record(layer, georeference.as_ref());
     }
 }
 
@@ -763,6 +780,7 @@ mod tests {
             num_lods: 6,
             tile_world_size: 100.0,
             elevation: None,
+            extent: None,
         };
         let metadata = Metadata::new("t", vec![layer.clone()]);
         let mut tiles: Vec<(u64, TileKey)> = (0..6u8)

@@ -270,6 +270,19 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
     let terrain = readers.iter().map(|r| &r.metadata().terrain);
     metadata.terrain.min_elevation = terrain.clone().map(|t| t.min_elevation).fold(f64::INFINITY, f64::min);
     metadata.terrain.max_elevation = terrain.map(|t| t.max_elevation).fold(f64::NEG_INFINITY, f64::max);
+    // Where the data is: all inputs' (a shard's extent is its band); the writer narrows it
+    // to the tiles it gets.
+    for (index, layer) in metadata.layers.iter_mut().enumerate() {
+        layer.extent = readers.iter().filter_map(|r| r.metadata().layers.get(index)?.extent.clone()).reduce(|a, b| {
+            terrastream_format::LayerExtent {
+                coarsest_lod: a.coarsest_lod.max(b.coarsest_lod),
+                finest_lod: a.finest_lod.min(b.finest_lod),
+                world: terrastream_format::union(a.world, b.world),
+                crs: a.crs.zip(b.crs).map(|(a, b)| terrastream_format::union(a, b)),
+                lon_lat: a.lon_lat.zip(b.lon_lat).map(|(a, b)| terrastream_format::union(a, b)),
+            }
+        });
+    }
     let (winners, conflicts) = winners(&readers, progress)?;
     Ok(Prepared { readers, metadata, shards, winners, conflicts })
 }

@@ -1,8 +1,8 @@
 //! Planning a tiling run: grids, LOD counts and encodings, decided before any tile.
 
 use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat,
-    levels_to_one,
+    ElevationEncoding, ElevationScheme, Georeference, Layer, LayerExtent, LayerKind, Metadata, PayloadCompression,
+    TileFormat, levels_to_one,
 };
 use terrastream_pack::progress::Progress;
 
@@ -72,6 +72,19 @@ pub fn plan(
         let tiles = plans[0].tiles;
         plans.push(LayerPlan { size: plans[0].size, offset: plans[0].offset, tiles, estimated_bytes: tiles * 8 });
         layers.push(range);
+    }
+    // Where each layer's samples end inside its grid (the writer adds the LODs).
+    for (layer, plan) in layers.iter_mut().zip(&plans) {
+        let texel = layer.tile_world_size / f64::from(layer.tile_resolution);
+        let (x0, z0) =
+            (f64::from(plan.offset.0) * layer.tile_world_size, f64::from(plan.offset.1) * layer.tile_world_size);
+        let (w, h) = match (layer.kind, metadata.terrain.data_extent) {
+            (LayerKind::Elevation | LayerKind::HeightRange, Some([w, h])) => (w, h),
+            _ => (f64::from(plan.size.0) * texel, f64::from(plan.size.1) * texel),
+        };
+        let world = [x0, z0, x0 + w, z0 + h];
+        let lon_lat = metadata.georeference.as_ref().and_then(|g| g.lat_lon_bounds);
+        layer.extent = Some(LayerExtent { coarsest_lod: 0, finest_lod: 0, world, crs: None, lon_lat });
     }
     metadata.layers = layers;
     metadata.validate()?;
@@ -143,6 +156,7 @@ fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn 
         num_lods: levels_to_one(nx.max(ny)),
         tile_world_size: f64::from(res) * spacing,
         elevation: Some(encoding),
+        extent: None,
     };
     let tiles = tiles_over((width, h), res, layer.num_lods);
     let plan = LayerPlan {
@@ -315,6 +329,7 @@ fn plan_texture(
         num_lods: levels_to_one(nx.max(ny)),
         tile_world_size: f64::from(t.tile_size) * world_width / f64::from(width),
         elevation: None,
+        extent: None,
     };
     let tiles = tiles_over((width, h), t.tile_size, layer.num_lods);
     let estimated_bytes = estimate(tiles, t.tile_size, border, t.format.typical_bytes_per_texel());

@@ -48,6 +48,7 @@ pub fn write_u16_archive(path: &Path, version: u16, compression: PayloadCompress
         num_lods: 2,
         tile_world_size: 100.0,
         elevation: None,
+        extent: None,
     };
     let meta = Metadata::new("elev", vec![layer]);
     let mut tiles: Vec<(u64, TileKey)> = [(1u8, 0u32, 0u32), (0, 0, 0), (0, 1, 0), (0, 1, 1)]

@@ -74,6 +74,7 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteS
         num_lods: levels_to_one(spec.texture_grid),
         tile_world_size: spec.texture_tile_size,
         elevation: None,
+        extent: None,
     };
     let elevation = Layer {
         name: "elevation".into(),
@@ -87,6 +88,7 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteS
         num_lods: levels_to_one(spec.elevation_grid),
         tile_world_size: world / f64::from(spec.elevation_grid),
         elevation: Some(ElevationEncoding { scheme: ElevationScheme::Float32, scale: 1.0, offset: 0.0, nodata: None }),
+        extent: None,
     };
     let mut metadata = Metadata::new(format!("labelled v{}", spec.version), vec![texture, elevation]);
     let (lo, hi) = (label_height(0.0, 0.0, spec.version), label_height(world, world, spec.version));

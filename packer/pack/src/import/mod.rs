@@ -8,6 +8,7 @@
 //! files in archive order into a [`Writer`]; tile bytes are stored unchanged so that
 //! `extract` gives back the same files.
 
+mod heights;
 mod mbtiles;
 pub(crate) mod original;
 mod pmtiles;
@@ -17,6 +18,7 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
+pub use heights::HeightRange;
 pub use mbtiles::pack_mbtiles;
 pub use original::{LAYOUT_KEY, LayerNaming, LayoutRecord, OriginalLayout, scan_original};
 pub use pmtiles::pack_pmtiles;
@@ -72,20 +74,48 @@ pub fn pack(
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
     let mut writer = Writer::create(out, scanned.metadata, options)?;
+    let mut heights = HeightRange::default();
     progress.start("pack", scanned.tiles.len() as u64);
     for chunk in scanned.tiles.chunks(READ_CHUNK) {
         progress.check()?;
         let formats: Vec<TileFormat> =
             chunk.iter().map(|(t, _)| writer.metadata().layers[usize::from(t.layer())].format).collect();
-        let read: Vec<Result<Vec<u8>>> =
-            chunk.par_iter().zip(formats.par_iter()).map(|((_, path), &format)| read_tile(path, format)).collect();
+        let read = chunk
+            .par_iter()
+            .zip(formats.par_iter())
+            .map(|((_, path), &format)| read_tile(path, format))
+            .collect::<Result<Vec<Vec<u8>>>>()?;
+        for (index, layer) in writer.metadata().layers.iter().enumerate() {
+            let of_layer = chunk
+                .iter()
+                .zip(&read)
+                .filter(|((t, _), _)| usize::from(t.layer()) == index)
+                .map(|((_, path), bytes)| (bytes.as_slice(), path))
+                .collect::<Vec<_>>();
+            let found = HeightRange::of_tiles(layer, of_layer).map_err(|(path, why)| Error::input(path, why))?;
+            heights = heights.merge(found);
+        }
         for ((tile, _), bytes) in chunk.iter().zip(read) {
-            writer.add_stored(*tile, bytes?)?;
+            writer.add_stored(*tile, bytes)?;
         }
         progress.advance(chunk.len() as u64);
     }
     progress.check()?;
+    record_heights(&mut writer, heights)?;
     writer.finish()
+}
+
+/// Writes the height range read from an elevation pyramid's tiles into the metadata.
+///
+/// # Errors
+/// A metadata error (none for a range of finite heights).
+pub(crate) fn record_heights(writer: &mut Writer, heights: HeightRange) -> Result<()> {
+    if heights.range.is_some() {
+        let mut metadata = writer.metadata().clone();
+        heights.record(&mut metadata);
+        writer.set_metadata(metadata)?;
+    }
+    Ok(())
 }
 
 fn read_tile(path: &Path, format: TileFormat) -> Result<Vec<u8>> {

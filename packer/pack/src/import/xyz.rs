@@ -9,7 +9,7 @@ use terrastream_format::{
     TileFormat, TileKey,
 };
 
-use super::{ScannedPyramid, image_size, walk_files};
+use super::{HeightRange, ScannedPyramid, image_size, record_heights, walk_files};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, Writer, WriterOptions};
@@ -309,21 +309,33 @@ pub(crate) fn pack_web_tiles<T>(
         return Err(Error::input(input, format!("{} appears twice", what(&pair[1].2))));
     }
     let mut writer = Writer::create(out, metadata, writer_options)?;
+    let mut heights = HeightRange::default();
     progress.start("pack", ordered.len() as u64);
-    for (n, (_, key, t)) in ordered.into_iter().enumerate() {
-        if n.is_multiple_of(256) {
-            progress.check()?;
-        }
-        let bytes = read(&t.at, &what(&t))?;
-        match TileFormat::sniff(&bytes) {
-            Some(found) if found == format => {}
-            found => {
-                return Err(Error::input(input, format!("{}: {found:?} bytes in a {format:?} tileset", what(&t))));
+    let mut ordered = ordered.into_iter().peekable();
+    while ordered.peek().is_some() {
+        progress.check()?;
+        let mut batch = Vec::with_capacity(256);
+        for (_, key, t) in ordered.by_ref().take(256) {
+            let bytes = read(&t.at, &what(&t))?;
+            match TileFormat::sniff(&bytes) {
+                Some(found) if found == format => {}
+                found => {
+                    return Err(Error::input(input, format!("{}: {found:?} bytes in a {format:?} tileset", what(&t))));
+                }
             }
+            batch.push((key, what(&t), bytes));
         }
-        writer.add_stored(key, bytes.into())?;
-        progress.advance(1);
+        let layer = &writer.metadata().layers[0];
+        let found = HeightRange::of_tiles(layer, batch.iter().map(|(_, w, b)| (&b[..], w)).collect::<Vec<_>>())
+            .map_err(|(w, why)| Error::input(input, format!("{w}: {why}")))?;
+        heights = heights.merge(found);
+        let count = batch.len() as u64;
+        for (key, _, bytes) in batch {
+            writer.add_stored(key, bytes.into())?;
+        }
+        progress.advance(count);
     }
+    record_heights(&mut writer, heights)?;
     writer.finish()
 }
 
@@ -354,12 +366,16 @@ pub(crate) fn grid_metadata(
         (1, 1) => Some(Georeference {
             crs: Some("EPSG:3857".into()),
             origin: Some([-EQUATOR / 2.0, EQUATOR / 2.0]),
+            // World units are Web Mercator metres.
+            scale: Some([1.0, 1.0]),
             lat_lon_bounds: Some([-180.0, -85.051_128_779_806_59, 180.0, 85.051_128_779_806_59]),
             ..Georeference::default()
         }),
         (2, 1) => Some(Georeference {
             crs: Some("EPSG:4326".into()),
             origin: Some([-180.0, 90.0]),
+            // The equator's length in world units spans 360 degrees.
+            scale: Some([360.0 / EQUATOR, 360.0 / EQUATOR]),
             lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
             ..Georeference::default()
         }),
@@ -388,6 +404,7 @@ fn web_layer(
         num_lods: max_zoom + 1,
         tile_world_size: EQUATOR / f64::from(nx),
         elevation: elevation.map(|scheme| ElevationEncoding { scheme, scale: 1.0, offset: 0.0, nodata: None }),
+        extent: None,
     }
 }
 

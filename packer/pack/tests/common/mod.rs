@@ -18,6 +18,7 @@ pub fn layer(name: &str, nx: u32, ny: u32, num_lods: u8) -> Layer {
         num_lods,
         tile_world_size: 100.0,
         elevation: None,
+        extent: None,
     }
 }
 

@@ -107,6 +107,13 @@ pub fn apply_terrain(fields: &[OriginalField], metadata: &mut Metadata) {
     }
 }
 
+/// Pixels duplicated from the neighbours around each texture tile (this format's field;
+/// the original engine's tiles had none): the files are `textureTileResolution` plus twice
+/// this wide.
+pub const TEXTURE_BORDER: &str = "TEXTURES_textureTileBorder";
+/// The same for elevation tiles.
+pub const ELEVATION_BORDER: &str = "ELEVATIONS_elevationTileBorder";
+
 /// The fields describing `metadata` in the original engine's names: the original fields in
 /// their order with values updated where the archive says otherwise, then the known fields
 /// the original did not have.
@@ -135,6 +142,13 @@ pub fn fields_for(metadata: &Metadata) -> Vec<OriginalField> {
         };
         if known.iter().any(|(_, n, _)| n.starts_with(prefix)) {
             continue; // the original format has one layer of each kind
+        }
+        // Tiles with borders are written as stored (resolution + 2 x border pixels): the
+        // border has a field of its own, so that packing them again gives the same layer.
+        if layer.border > 0 {
+            let border =
+                if layer.kind == terrastream_format::LayerKind::Texture { TEXTURE_BORDER } else { ELEVATION_BORDER };
+            known.push(("int", border, f64::from(layer.border)));
         }
         known.extend([
             ("int", res, f64::from(layer.tile_resolution)),

@@ -221,8 +221,25 @@ fn scan_layer(
     let num_y_tiles = as_u32(field("TEXTURES_texturesNumYTiles", "ELEVATIONS_elevationsNumYTiles")).unwrap_or(found_y);
     let meta_lods =
         as_u32(field("TEXTURES_numTextureLODS", "ELEVATIONS_numElevationLODS")).map_or(0, |n| n.min(255) as u8);
-    let tile_resolution =
-        as_u32(field("TEXTURES_textureTileResolution", "ELEVATIONS_elevationTileResolution")).unwrap_or(width);
+    let declared = as_u32(field("TEXTURES_textureTileResolution", "ELEVATIONS_elevationTileResolution"));
+    // Files wider than the declared resolution carry a border (written by `extract` from an
+    // archive with borders): its own field says how wide, else the difference does.
+    let border = match number(
+        fields,
+        if kind == LayerKind::Elevation { metadata::ELEVATION_BORDER } else { metadata::TEXTURE_BORDER },
+    )
+    .and_then(metadata::to_u32)
+    {
+        Some(b) => b,
+        None => declared
+            .filter(|&r| width > r && (width - r) % 2 == 0 && (width - r) / 2 <= 16)
+            .map_or(0, |r| (width - r) / 2),
+    };
+    let border = u8::try_from(border)
+        .ok()
+        .filter(|&b| b <= 16)
+        .ok_or_else(|| Error::input(first, format!("a tile border of {border} pixels (at most 16)")))?;
+    let tile_resolution = declared.unwrap_or(width.saturating_sub(2 * u32::from(border)).max(1));
     let tile_world_size = field("TEXTURES_textureTileSize", "ELEVATIONS_elevationTileSize")
         .filter(|v| v.is_finite() && *v > 0.0)
         .unwrap_or(f64::from(tile_resolution));
@@ -232,12 +249,13 @@ fn scan_layer(
         format,
         compression: PayloadCompression::None,
         tile_resolution,
-        border: 0,
+        border,
         num_x_tiles,
         num_y_tiles,
         num_lods: found_lods.max(meta_lods),
         tile_world_size,
         elevation: None,
+        extent: None,
     };
     layer.num_lods = layer.num_lods.min(layer.depth());
     if kind == LayerKind::Elevation {

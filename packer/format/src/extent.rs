@@ -1,0 +1,218 @@
+//! Where a layer's data is (FORMAT.md §3.7): its coarsest populated LOD and its bounds.
+//!
+//! A pyramid need not reach up to one tile: an XYZ tree cut for a city holds zooms 10 to
+//! 16 of a grid that is the whole Web Mercator world at zoom 0. Readers start the quadtree
+//! at [`LayerExtent::coarsest_lod`], inside [`LayerExtent::world`], and frame the data's
+//! bounds rather than the grid around it. Writers record the extent; for archives written
+//! before it existed, [`ExtentBuilder`] derives it from the directory on open.
+
+use serde::{Deserialize, Serialize};
+
+use crate::key::TileKey;
+use crate::metadata::{Georeference, Layer};
+
+/// A layer's coarsest populated LOD and its data bounds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LayerExtent {
+    /// The coarsest LOD holding at least one tile: readers start the quadtree here, never
+    /// asking for an ancestor above it.
+    pub coarsest_lod: u8,
+    /// The finest LOD holding at least one tile.
+    pub finest_lod: u8,
+    /// The data's box in world units: min x, min z, max x, max z (x east, z south, from
+    /// the north-west corner of tile (0, 0)).
+    pub world: [f64; 4],
+    /// The same box in the archive's CRS (min x, min y, max x, max y), where the archive
+    /// is georeferenced with an origin and scale.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crs: Option<[f64; 4]>,
+    /// West, south, east, north in degrees, where the CRS is one a reader can invert.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lon_lat: Option<[f64; 4]>,
+}
+
+impl LayerExtent {
+    /// The tiles at `lod` that overlap [`LayerExtent::world`], as inclusive column and row
+    /// ranges `(x0, y0, x1, y1)`, clamped to the layer's grid.
+    pub fn tile_range(&self, layer: &Layer, lod: u8) -> (u32, u32, u32, u32) {
+        let size = layer.world_size_at(lod);
+        let (nx, ny) = layer.grid_at(lod);
+        let cell = |v: f64, n: u32| -> u32 {
+            let t = (v / size).floor();
+            if t.is_nan() || t <= 0.0 {
+                0
+            } else if t >= f64::from(n - 1) {
+                n - 1
+            } else {
+                // In 0..n-1 (checked above).
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "range checked above")]
+                let t = t as u32;
+                t
+            }
+        };
+        // The far edges are exclusive: a box ending on a tile boundary does not reach the next.
+        let [x0, z0, x1, z1] = self.world;
+        let shrink = |v: f64| v - size * 1e-9;
+        (cell(x0, nx), cell(z0, ny), cell(shrink(x1).max(x0), nx), cell(shrink(z1).max(z0), ny))
+    }
+
+    /// Fills [`LayerExtent::crs`] and [`LayerExtent::lon_lat`] from the georeference:
+    /// the CRS box through its origin and scale; degrees for EPSG:4326 and EPSG:3857, which
+    /// need no projection library. Other CRSs keep what the writer gave.
+    pub fn georeference(&mut self, georeference: Option<&Georeference>) {
+        let Some(g) = georeference else { return };
+        let [x0, z0, x1, z1] = self.world;
+        let (Some((a, b)), Some((c, d))) = (g.world_to_crs(x0, z1), g.world_to_crs(x1, z0)) else { return };
+        let crs = [a.min(c), b.min(d), a.max(c), b.max(d)];
+        self.crs = Some(crs);
+        match g.crs.as_deref() {
+            Some("EPSG:4326" | "OGC:CRS84") => self.lon_lat = Some(crs),
+            Some("EPSG:3857" | "EPSG:900913") => {
+                let (w, s) = mercator_to_lon_lat(crs[0], crs[1]);
+                let (e, n) = mercator_to_lon_lat(crs[2], crs[3]);
+                self.lon_lat = Some([w, s, e, n]);
+            }
+            _ => {}
+        }
+    }
+}
+
+/// Web Mercator metres to degrees (the spherical formula EPSG:3857 defines).
+pub fn mercator_to_lon_lat(x: f64, y: f64) -> (f64, f64) {
+    const R: f64 = 6_378_137.0;
+    let lon = (x / R).to_degrees();
+    let lat = (2.0 * (y / R).exp().atan() - std::f64::consts::FRAC_PI_2).to_degrees();
+    (lon, lat)
+}
+
+/// The overlap of two boxes `[min x, min z, max x, max z]`, if they overlap.
+pub fn intersect(a: [f64; 4], b: [f64; 4]) -> Option<[f64; 4]> {
+    let r = [a[0].max(b[0]), a[1].max(b[1]), a[2].min(b[2]), a[3].min(b[3])];
+    (r[0] < r[2] && r[1] < r[3]).then_some(r)
+}
+
+/// The smallest box holding both boxes.
+pub fn union(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
+    [a[0].min(b[0]), a[1].min(b[1]), a[2].max(b[2]), a[3].max(b[3])]
+}
+
+/// Accumulates a layer's extent from the tiles it holds, in any order.
+///
+/// The bounds are those of the tiles at the finest populated LOD (the tightest the
+/// directory can tell), clipped to the layer's grid.
+#[derive(Clone, Debug, Default)]
+pub struct ExtentBuilder {
+    coarsest: Option<u8>,
+    finest: Option<u8>,
+    /// Tile columns and rows at `finest`: min x, min y, max x, max y (inclusive).
+    range: [u32; 4],
+}
+
+impl ExtentBuilder {
+    /// Counts one tile of the layer.
+    pub fn add(&mut self, tile: TileKey) {
+        let lod = tile.lod();
+        self.coarsest = Some(self.coarsest.map_or(lod, |c| c.max(lod)));
+        let (x, y) = (tile.x(), tile.y());
+        match self.finest {
+            Some(f) if f < lod => {}
+            Some(f) if f == lod => {
+                let r = &mut self.range;
+                *r = [r[0].min(x), r[1].min(y), r[2].max(x), r[3].max(y)];
+            }
+            _ => {
+                self.finest = Some(lod);
+                self.range = [x, y, x, y];
+            }
+        }
+    }
+
+    /// The layer's extent, `None` if no tile was counted.
+    pub fn finish(&self, layer: &Layer) -> Option<LayerExtent> {
+        let (coarsest_lod, finest_lod) = (self.coarsest?, self.finest?);
+        let size = layer.world_size_at(finest_lod);
+        let [x0, y0, x1, y1] = self.range;
+        let (ex, ez) = layer.world_extent();
+        let world = [
+            f64::from(x0) * size,
+            f64::from(y0) * size,
+            (f64::from(x1 + 1) * size).min(ex),
+            (f64::from(y1 + 1) * size).min(ez),
+        ];
+        Some(LayerExtent { coarsest_lod, finest_lod, world, crs: None, lon_lat: None })
+    }
+}
+
+impl ExtentBuilder {
+    /// The extent a writer records for `layer` after counting its tiles: the LODs and box
+    /// from the tiles, the box narrowed to the one the layer already gives (a tiler knows
+    /// where its samples end inside the last tiles), the CRS and degree boxes from the
+    /// georeference (degrees the layer gave are kept for other CRSs while its box stands).
+    pub fn record(&self, layer: &Layer, georeference: Option<&Georeference>) -> Option<LayerExtent> {
+        let mut extent = self.finish(layer)?;
+        if let Some(given) = &layer.extent {
+            if let Some(world) = intersect(extent.world, given.world) {
+                extent.world = world;
+            }
+            if extent.world == given.world {
+                extent.lon_lat = given.lon_lat;
+            }
+        }
+        extent.georeference(georeference);
+        Some(extent)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metadata::{LayerKind, PayloadCompression, TileFormat};
+
+    fn layer() -> Layer {
+        Layer {
+            name: "texture".into(),
+            kind: LayerKind::Texture,
+            format: TileFormat::Png,
+            compression: PayloadCompression::None,
+            tile_resolution: 256,
+            border: 0,
+            num_x_tiles: 4096,
+            num_y_tiles: 4096,
+            num_lods: 13,
+            tile_world_size: 10.0,
+            elevation: None,
+            extent: None,
+        }
+    }
+
+    #[test]
+    fn a_regional_pyramid_reports_its_finest_tiles_and_coarsest_level() {
+        let mut b = ExtentBuilder::default();
+        for (lod, x, y) in [(3, 20, 30), (2, 41, 60), (2, 40, 61), (1, 83, 121), (1, 82, 120), (1, 81, 122)] {
+            b.add(TileKey::new(0, lod, x, y).unwrap());
+        }
+        let e = b.finish(&layer()).unwrap();
+        assert_eq!((e.coarsest_lod, e.finest_lod), (3, 1));
+        assert_eq!(e.world, [1620.0, 2400.0, 1680.0, 2460.0]);
+        assert_eq!(e.tile_range(&layer(), 1), (81, 120, 83, 122));
+        assert_eq!(e.tile_range(&layer(), 3), (20, 30, 20, 30));
+        assert!(ExtentBuilder::default().finish(&layer()).is_none());
+    }
+
+    #[test]
+    fn web_mercator_bounds_come_back_in_degrees() {
+        let mut e =
+            LayerExtent { coarsest_lod: 0, finest_lod: 0, world: [0.0, 0.0, 1.0, 1.0], crs: None, lon_lat: None };
+        let half = 20_037_508.342_789_244;
+        let g = Georeference {
+            crs: Some("EPSG:3857".into()),
+            origin: Some([-half, half]),
+            scale: Some([2.0 * half, 2.0 * half]),
+            ..Georeference::default()
+        };
+        e.georeference(Some(&g));
+        let [w, s, east, n] = e.lon_lat.unwrap();
+        assert!((w + 180.0).abs() < 1e-9 && (east - 180.0).abs() < 1e-9, "{w} {east}");
+        assert!((n - 85.051_128_78).abs() < 1e-6 && (s + 85.051_128_78).abs() < 1e-6, "{s} {n}");
+    }
+}
