@@ -36,6 +36,17 @@ pub fn terrain_box(metadata: &Metadata) -> Aabb {
     Aabb { min: DVec3::new(x0, lo, z0), max: DVec3::new(x1, hi, z1) }
 }
 
+/// The box views frame: where the drawn layers' detail is (their finest LOD's tiles,
+/// FORMAT.md §3.7), inside [`terrain_bounds`]. A regional tree's coarse tiles reach far
+/// beyond its data; its finest tiles do not.
+pub fn framed_box(metadata: &Metadata) -> Aabb {
+    let (area, (lo, hi)) = terrain_bounds(metadata);
+    let drawn = metadata.layers.iter().filter(|l| matches!(l.kind, LayerKind::Elevation | LayerKind::Texture));
+    let detail = drawn.map(Layer::data_detail).reduce(union).and_then(|d| intersect(d, area)).unwrap_or(area);
+    let [x0, z0, x1, z1] = detail;
+    Aabb { min: DVec3::new(x0, lo, z0), max: DVec3::new(x1, hi, z1) }
+}
+
 /// Pitch of the default view, below the horizon.
 const DEFAULT_PITCH_DEGREES: f64 = 50.0;
 /// Share of the frame's half-width and half-height the default view may fill.
@@ -45,7 +56,8 @@ const FRAME_FILL: f64 = 0.92;
 /// [`DEFAULT_PITCH_DEGREES`], the terrain's box centred in the frame and as close as it
 /// can be while every corner stays inside [`FRAME_FILL`] of the frame.
 pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
-    let terrain = terrain_box(metadata);
+    let terrain = framed_box(metadata);
+    let drawn = terrain_box(metadata);
     let centre = (terrain.min + terrain.max) * 0.5;
     let pitch = DEFAULT_PITCH_DEGREES.to_radians();
     let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
@@ -53,7 +65,7 @@ pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
     let up = DVec3::new(0.0, pitch.cos(), -pitch.sin());
     let at = |distance: f64, lift: f64| {
         let eye = centre + back * distance + up * lift;
-        Camera::look_at(eye, eye - back, width, height).enclosing(&terrain)
+        Camera::look_at(eye, eye - back, width, height).enclosing(&drawn)
     };
     // The box's extent on screen (normalized device coordinates), None if behind the eye.
     let extent = |camera: &Camera| {

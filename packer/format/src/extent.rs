@@ -20,8 +20,12 @@ pub struct LayerExtent {
     /// The finest LOD holding at least one tile.
     pub finest_lod: u8,
     /// The data's box in world units: min x, min z, max x, max z (x east, z south, from
-    /// the north-west corner of tile (0, 0)).
+    /// the north-west corner of tile (0, 0)). Every tile of the layer lies in it (a
+    /// missing tile is drawn from the nearest coarser one, so a coarse tile's area is data).
     pub world: [f64; 4],
+    /// Where the detail is: the box of the finest populated LOD's tiles (inside `world`).
+    /// Views frame it: a regional tree's coarse tiles reach far beyond its data.
+    pub detail: [f64; 4],
     /// The same box in the archive's CRS (min x, min y, max x, max y), where the archive
     /// is georeferenced with an origin and scale.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -77,6 +81,23 @@ impl LayerExtent {
     }
 }
 
+impl LayerExtent {
+    /// Where the data of two parts of one layer is (shards, a coarse archive and its
+    /// shards): the coarser start, the finer end, the boxes' union.
+    #[must_use]
+    pub fn union(&self, other: &Self) -> Self {
+        let both = |a: Option<[f64; 4]>, b: Option<[f64; 4]>| a.zip(b).map(|(a, b)| union(a, b));
+        Self {
+            coarsest_lod: self.coarsest_lod.max(other.coarsest_lod),
+            finest_lod: self.finest_lod.min(other.finest_lod),
+            world: union(self.world, other.world),
+            detail: union(self.detail, other.detail),
+            crs: both(self.crs, other.crs),
+            lon_lat: both(self.lon_lat, other.lon_lat),
+        }
+    }
+}
+
 /// Web Mercator metres to degrees (the spherical formula EPSG:3857 defines).
 pub fn mercator_to_lon_lat(x: f64, y: f64) -> (f64, f64) {
     const R: f64 = 6_378_137.0;
@@ -96,50 +117,50 @@ pub fn union(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
     [a[0].min(b[0]), a[1].min(b[1]), a[2].max(b[2]), a[3].max(b[3])]
 }
 
-/// Accumulates a layer's extent from the tiles it holds, in any order.
-///
-/// The bounds are those of the tiles at the finest populated LOD (the tightest the
-/// directory can tell), clipped to the layer's grid.
+/// Accumulates a layer's extent from the tiles it holds, in any order: the box of all
+/// its tiles and that of the finest LOD's, clipped to the layer's grid.
 #[derive(Clone, Debug, Default)]
 pub struct ExtentBuilder {
-    coarsest: Option<u8>,
-    finest: Option<u8>,
-    /// Tile columns and rows at `finest`: min x, min y, max x, max y (inclusive).
-    range: [u32; 4],
+    /// Per LOD, tile columns and rows holding tiles: min x, min y, max x, max y (inclusive).
+    lods: Vec<Option<[u32; 4]>>,
 }
 
 impl ExtentBuilder {
     /// Counts one tile of the layer.
     pub fn add(&mut self, tile: TileKey) {
-        let lod = tile.lod();
-        self.coarsest = Some(self.coarsest.map_or(lod, |c| c.max(lod)));
-        let (x, y) = (tile.x(), tile.y());
-        match self.finest {
-            Some(f) if f < lod => {}
-            Some(f) if f == lod => {
-                let r = &mut self.range;
-                *r = [r[0].min(x), r[1].min(y), r[2].max(x), r[3].max(y)];
-            }
-            _ => {
-                self.finest = Some(lod);
-                self.range = [x, y, x, y];
-            }
+        let lod = usize::from(tile.lod());
+        if self.lods.len() <= lod {
+            self.lods.resize(lod + 1, None);
         }
+        let (x, y) = (tile.x(), tile.y());
+        self.lods[lod] = Some(match self.lods[lod] {
+            Some(r) => [r[0].min(x), r[1].min(y), r[2].max(x), r[3].max(y)],
+            None => [x, y, x, y],
+        });
     }
 
     /// The layer's extent, `None` if no tile was counted.
     pub fn finish(&self, layer: &Layer) -> Option<LayerExtent> {
-        let (coarsest_lod, finest_lod) = (self.coarsest?, self.finest?);
-        let size = layer.world_size_at(finest_lod);
-        let [x0, y0, x1, y1] = self.range;
         let (ex, ez) = layer.world_extent();
-        let world = [
-            f64::from(x0) * size,
-            f64::from(y0) * size,
-            (f64::from(x1 + 1) * size).min(ex),
-            (f64::from(y1 + 1) * size).min(ez),
-        ];
-        Some(LayerExtent { coarsest_lod, finest_lod, world, crs: None, lon_lat: None })
+        let boxes: Vec<(u8, [f64; 4])> = self
+            .lods
+            .iter()
+            .enumerate()
+            .filter_map(|(lod, r)| {
+                let (lod, r) = (u8::try_from(lod).ok()?, (*r)?);
+                let size = layer.world_size_at(lod);
+                let b = [
+                    f64::from(r[0]) * size,
+                    f64::from(r[1]) * size,
+                    ((f64::from(r[2]) + 1.0) * size).min(ex),
+                    ((f64::from(r[3]) + 1.0) * size).min(ez),
+                ];
+                Some((lod, b))
+            })
+            .collect();
+        let (&(finest_lod, detail), &(coarsest_lod, _)) = (boxes.first()?, boxes.last()?);
+        let world = boxes.iter().map(|b| b.1).reduce(union)?;
+        Some(LayerExtent { coarsest_lod, finest_lod, world, detail, crs: None, lon_lat: None })
     }
 }
 
@@ -153,6 +174,9 @@ impl ExtentBuilder {
         if let Some(given) = &layer.extent {
             if let Some(world) = intersect(extent.world, given.world) {
                 extent.world = world;
+            }
+            if let Some(detail) = intersect(extent.detail, given.detail) {
+                extent.detail = detail;
             }
             if extent.world == given.world {
                 extent.lon_lat = given.lon_lat;
@@ -193,16 +217,36 @@ mod tests {
         }
         let e = b.finish(&layer()).unwrap();
         assert_eq!((e.coarsest_lod, e.finest_lod), (3, 1));
-        assert_eq!(e.world, [1620.0, 2400.0, 1680.0, 2460.0]);
-        assert_eq!(e.tile_range(&layer(), 1), (81, 120, 83, 122));
+        assert_eq!(e.detail, [1620.0, 2400.0, 1680.0, 2460.0]);
+        assert_eq!(e.world, [1600.0, 2400.0, 1680.0, 2480.0], "the coarser tiles' area");
         assert_eq!(e.tile_range(&layer(), 3), (20, 30, 20, 30));
         assert!(ExtentBuilder::default().finish(&layer()).is_none());
     }
 
     #[test]
+    fn coarse_tiles_beyond_the_fine_ones_are_data_but_not_detail() {
+        // A world at LOD 10 (4 x 4 tiles) and a city at LOD 0.
+        let mut b = ExtentBuilder::default();
+        for i in 0..16 {
+            b.add(TileKey::new(0, 10, i % 4, i / 4).unwrap());
+        }
+        b.add(TileKey::new(0, 0, 100, 200).unwrap());
+        let e = b.finish(&layer()).unwrap();
+        assert_eq!((e.coarsest_lod, e.finest_lod), (10, 0));
+        assert_eq!(e.world, [0.0, 0.0, 40_960.0, 40_960.0]);
+        assert_eq!(e.detail, [1000.0, 2000.0, 1010.0, 2010.0]);
+    }
+
+    #[test]
     fn web_mercator_bounds_come_back_in_degrees() {
-        let mut e =
-            LayerExtent { coarsest_lod: 0, finest_lod: 0, world: [0.0, 0.0, 1.0, 1.0], crs: None, lon_lat: None };
+        let mut e = LayerExtent {
+            coarsest_lod: 0,
+            finest_lod: 0,
+            world: [0.0, 0.0, 1.0, 1.0],
+            detail: [0.0, 0.0, 1.0, 1.0],
+            crs: None,
+            lon_lat: None,
+        };
         let half = 20_037_508.342_789_244;
         let g = Georeference {
             crs: Some("EPSG:3857".into()),

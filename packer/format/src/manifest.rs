@@ -247,7 +247,7 @@ impl Manifest {
             if have.name != listed.name {
                 return bad(format!("layer {} is {:?}, the manifest lists {:?}", listed.index, have.name, listed.name));
             }
-            if self.layer(&have.name) != Some(have) {
+            if self.layer(&have.name).is_none_or(|l| !l.same_grid(have)) {
                 return bad(format!("layer {:?} is not defined as in the manifest", have.name));
             }
         }

@@ -284,6 +284,12 @@ impl Layer {
         levels_to_one(self.num_x_tiles.max(self.num_y_tiles))
     }
 
+    /// Is `other` the same layer (name, kind, encoding, grid), wherever its data is? Parts
+    /// of one terrain (shards, a coarse archive) hold its data in different places.
+    pub fn same_grid(&self, other: &Self) -> bool {
+        Self { extent: None, ..self.clone() } == Self { extent: None, ..other.clone() }
+    }
+
     /// The coarsest LOD a reader starts the quadtree at: the coarsest populated one where
     /// the layer says (§3.7), else the top of the layer.
     pub fn start_lod(&self) -> u8 {
@@ -313,6 +319,12 @@ impl Layer {
             },
             |e| e.world,
         )
+    }
+
+    /// Where the layer's detail is, `[min x, min z, max x, max z]`: the finest LOD's box
+    /// where the layer says (§3.7), else its whole grid.
+    pub fn data_detail(&self) -> [f64; 4] {
+        self.extent.as_ref().map_or_else(|| self.data_world(), |e| e.detail)
     }
 
     /// Tiles across and down at `lod`: ceil(n / 2^lod).

@@ -49,9 +49,16 @@ pub fn merge_to_manifest(
     write(&mut writer, &prepared.readers, &BTreeMap::new(), spool.into_sorted()?, progress)?;
     let summary = writer.finish()?;
 
-    let metadata = prepared.metadata.clone();
     let coarse_reader =
         Reader::open_mmap(coarse).map_err(|e| Error::input(coarse, format!("cannot read back: {e}")))?;
+    // The terrain's data: the shards' and the coarse levels' above them.
+    let mut metadata = prepared.metadata.clone();
+    for (layer, coarse_layer) in metadata.layers.iter_mut().zip(&coarse_reader.metadata().layers) {
+        layer.extent = match (&layer.extent, &coarse_layer.extent) {
+            (Some(a), Some(b)) => Some(a.union(b)),
+            (a, b) => a.clone().or_else(|| b.clone()),
+        };
+    }
     let mut archives = vec![Part {
         url: relative_url(&folder, coarse)?,
         etag: content_tag(&coarse_reader.header().encode()),

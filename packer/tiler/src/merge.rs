@@ -273,15 +273,8 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
     // Where the data is: all inputs' (a shard's extent is its band); the writer narrows it
     // to the tiles it gets.
     for (index, layer) in metadata.layers.iter_mut().enumerate() {
-        layer.extent = readers.iter().filter_map(|r| r.metadata().layers.get(index)?.extent.clone()).reduce(|a, b| {
-            terrastream_format::LayerExtent {
-                coarsest_lod: a.coarsest_lod.max(b.coarsest_lod),
-                finest_lod: a.finest_lod.min(b.finest_lod),
-                world: terrastream_format::union(a.world, b.world),
-                crs: a.crs.zip(b.crs).map(|(a, b)| terrastream_format::union(a, b)),
-                lon_lat: a.lon_lat.zip(b.lon_lat).map(|(a, b)| terrastream_format::union(a, b)),
-            }
-        });
+        layer.extent =
+            readers.iter().filter_map(|r| r.metadata().layers.get(index)?.extent.clone()).reduce(|a, b| a.union(&b));
     }
     let (winners, conflicts) = winners(&readers, progress)?;
     Ok(Prepared { readers, metadata, shards, winners, conflicts })
@@ -298,7 +291,8 @@ fn difference(base: &Metadata, other: &Metadata) -> Option<String> {
             let keys = ja.keys().chain(jb.keys().filter(|k| !ja.contains_key(*k)));
             for key in keys {
                 let (va, vb) = (ja.get(key), jb.get(key));
-                if va != vb && !(key == "compression" && transcodable(a, b)) {
+                // Where the data is may differ (a shard holds a band): the union is kept.
+                if va != vb && key != "extent" && !(key == "compression" && transcodable(a, b)) {
                     let show = |v: Option<&serde_json::Value>| v.map_or("none".to_owned(), ToString::to_string);
                     return Some(format!("layer {:?}: {key} {} here, {} there", a.name, show(vb), show(va)));
                 }

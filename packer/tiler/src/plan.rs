@@ -84,7 +84,7 @@ pub fn plan(
         };
         let world = [x0, z0, x0 + w, z0 + h];
         let lon_lat = metadata.georeference.as_ref().and_then(|g| g.lat_lon_bounds);
-        layer.extent = Some(LayerExtent { coarsest_lod: 0, finest_lod: 0, world, crs: None, lon_lat });
+        layer.extent = Some(LayerExtent { coarsest_lod: 0, finest_lod: 0, world, detail: world, crs: None, lon_lat });
     }
     metadata.layers = layers;
     metadata.validate()?;

@@ -27,7 +27,8 @@ pub struct LabelledSpec {
     /// Written into every tile, so two versions of the archive differ everywhere.
     pub version: u8,
     /// LOD-0 texture tiles at `x >= sparse_from` (and coarser tiles over only those) are
-    /// left missing.
+    /// left missing, but for the last column's LOD-0 tiles: the data's box spans the grid,
+    /// so readers look for the missing tiles inside it.
     pub sparse_from: Option<u32>,
 }
 
@@ -100,7 +101,11 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteS
     let mut tiles = Vec::new();
     for (index, layer) in (0u8..).zip(&metadata.layers) {
         for key in (0..layer.num_lods).flat_map(|lod| layer.tiles_at(index, lod)) {
-            if index == 0 && spec.sparse_from.is_some_and(|s| u64::from(key.x()) << key.lod() >= u64::from(s)) {
+            let last_column = key.lod() == 0 && key.x() + 1 == layer.num_x_tiles;
+            if index == 0
+                && !last_column
+                && spec.sparse_from.is_some_and(|s| u64::from(key.x()) << key.lod() >= u64::from(s))
+            {
                 continue;
             }
             tiles.push((Writer::order_key(&metadata, key)?, key));
