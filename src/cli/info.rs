@@ -109,8 +109,10 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
         let _ = writeln!(out, "            {}", per_lod.join(" · "));
         if let Some(e) = m.layers.get(i).and_then(|l| l.extent.as_ref()) {
             let [x0, z0, x1, z1] = e.world;
+            let [dx0, dz0, dx1, dz1] = e.detail;
             let mut line = format!(
-                "            data LOD{}..=LOD{} · world {x0:.1},{z0:.1}..{x1:.1},{z1:.1}",
+                "            data LOD{}..=LOD{} · world {x0:.1},{z0:.1}..{x1:.1},{z1:.1} · detail \
+                 {dx0:.1},{dz0:.1}..{dx1:.1},{dz1:.1}",
                 e.finest_lod, e.coarsest_lod
             );
             if let Some([a, b, c, d]) = e.crs {
