@@ -8,7 +8,8 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationScheme, LayerKind};
 use terrastream_pack::WriterOptions;
 use terrastream_pack::import::{
-    OriginalLayout, Scheme, TilesetInput, XyzOptions, pack, pack_mbtiles, pack_pmtiles, scan_original, scan_xyz,
+    LayerInput, OriginalLayout, PyramidSource, Scheme, TilesetInput, XyzOptions, pack, pack_layers, pack_mbtiles,
+    pack_pmtiles, scan_original, scan_xyz,
 };
 
 use super::CliProgress;
@@ -16,8 +17,24 @@ use super::CliProgress;
 #[derive(Debug, Args)]
 pub struct PackArgs {
     /// Input: a folder of original LOD folders (with their metadata text) or an XYZ/TMS
-    /// tree, or a PMTiles v3 or MBTiles raster tileset.
-    input: PathBuf,
+    /// tree, or a PMTiles v3 or MBTiles raster tileset. Or, instead, one source per layer
+    /// with --elevation and --texture.
+    #[arg(required_unless_present_any = ["elevation", "texture"], conflicts_with_all = ["elevation", "texture"])]
+    input: Option<PathBuf>,
+    /// The elevation layer's tiles: an XYZ/TMS tree, a PMTiles or an MBTiles file (heights
+    /// as --elevation-encoding says). With --texture: one archive with both layers, each
+    /// on its own grid of one CRS.
+    #[arg(long)]
+    elevation: Option<PathBuf>,
+    /// The texture layer's tiles: an XYZ/TMS tree, a PMTiles or an MBTiles file.
+    #[arg(long)]
+    texture: Option<PathBuf>,
+    /// Path template of the --elevation tree (as --template).
+    #[arg(long)]
+    elevation_template: Option<String>,
+    /// Path template of the --texture tree (as --template).
+    #[arg(long)]
+    texture_template: Option<String>,
     /// Output archive (written to a temporary name, then renamed).
     #[arg(short, long)]
     output: PathBuf,
@@ -99,6 +116,77 @@ fn tileset(path: &Path) -> Option<Tileset> {
     }
 }
 
+/// One layer's source for [`pack_layers`]: a tileset file or a tree (its template given,
+/// else `{z}/{x}/{y}` with the extension of the first image found).
+fn layer_source(path: &Path, template: Option<&str>, scheme: Scheme, tileset_kind: TilesetInput) -> Result<LayerInput> {
+    let source = match tileset(path).filter(|_| !path.is_dir()) {
+        Some(Tileset::Pmtiles) => PyramidSource::Pmtiles(path.to_path_buf()),
+        Some(Tileset::Mbtiles) => PyramidSource::Mbtiles(path.to_path_buf()),
+        None if path.is_dir() => {
+            let template = match template {
+                Some(t) => t.to_owned(),
+                None => {
+                    let ext = first_image_extension(path)
+                        .with_context(|| format!("{}: no PNG, JPEG or WebP tiles (see --template)", path.display()))?;
+                    format!("{{z}}/{{x}}/{{y}}.{ext}")
+                }
+            };
+            PyramidSource::Tree(
+                path.to_path_buf(),
+                XyzOptions { template, scheme, kind: tileset_kind.kind, elevation: tileset_kind.elevation },
+            )
+        }
+        None => bail!("{}: not a folder, a PMTiles or an MBTiles file", path.display()),
+    };
+    Ok(LayerInput { tileset: tileset_kind, source })
+}
+
+/// The extension of the first PNG, JPEG or WebP file under `dir` (depth-first, sorted).
+fn first_image_extension(dir: &Path) -> Option<String> {
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(dir).ok()?.filter_map(|e| e.ok().map(|e| e.path())).collect();
+    entries.sort();
+    entries.iter().find_map(|p| {
+        if p.is_dir() {
+            first_image_extension(p)
+        } else {
+            let ext = p.extension()?.to_str()?.to_ascii_lowercase();
+            ["png", "jpg", "jpeg", "webp"].contains(&ext.as_str()).then_some(ext)
+        }
+    })
+}
+
+fn run_layers(args: &PackArgs, elevation: Option<ElevationScheme>, progress: &CliProgress) -> Result<ExitCode> {
+    let scheme = match args.scheme {
+        SchemeArg::Xyz => Scheme::Xyz,
+        SchemeArg::Tms => Scheme::Tms,
+    };
+    let mut inputs = Vec::new();
+    if let Some(path) = &args.elevation {
+        let kind = TilesetInput {
+            kind: LayerKind::Elevation,
+            elevation: Some(elevation.unwrap_or(ElevationScheme::Terrarium)),
+        };
+        inputs.push(layer_source(path, args.elevation_template.as_deref(), scheme, kind)?);
+    }
+    if let Some(path) = &args.texture {
+        let kind = TilesetInput { kind: LayerKind::Texture, elevation: None };
+        inputs.push(layer_source(path, args.texture_template.as_deref(), scheme, kind)?);
+    }
+    let started = std::time::Instant::now();
+    let summary = pack_layers(&inputs, &args.output, WriterOptions::default(), progress)?;
+    progress.finish();
+    println!(
+        "{}: {} tiles ({} distinct) in {} layers, {} bytes in {:.2} s",
+        summary.path.display(),
+        summary.addressed_tiles,
+        summary.tile_contents,
+        inputs.len(),
+        summary.file_len,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
 pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
     let kind = match args.kind {
         KindArg::Texture => LayerKind::Texture,
@@ -109,15 +197,18 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         EncodingArg::Terrarium => ElevationScheme::Terrarium,
         EncodingArg::Gray8 => ElevationScheme::Gray8,
     });
-    if let Some(set) = tileset(&args.input).filter(|_| !args.input.is_dir()) {
+    let Some(input) = args.input.clone() else {
+        return run_layers(&args, elevation, progress);
+    };
+    if let Some(set) = tileset(&input).filter(|_| !input.is_dir()) {
         let started = std::time::Instant::now();
-        let input = TilesetInput { kind, elevation };
+        let tileset = TilesetInput { kind, elevation };
         let (summary, from) = match set {
             Tileset::Pmtiles => {
-                (pack_pmtiles(&args.input, input, &args.output, WriterOptions::default(), progress)?, "PMTiles")
+                (pack_pmtiles(&input, tileset, &args.output, WriterOptions::default(), progress)?, "PMTiles")
             }
             Tileset::Mbtiles => {
-                (pack_mbtiles(&args.input, input, &args.output, WriterOptions::default(), progress)?, "MBTiles")
+                (pack_mbtiles(&input, tileset, &args.output, WriterOptions::default(), progress)?, "MBTiles")
             }
         };
         progress.finish();
@@ -131,14 +222,14 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         );
         return Ok(ExitCode::SUCCESS);
     }
-    if !args.input.is_dir() {
+    if !input.is_dir() {
         bail!(
             "{}: not a folder, a PMTiles or an MBTiles file (pack takes tile pyramids; rasters are tiled by `terrastream tile`)",
-            args.input.display()
+            input.display()
         );
     }
-    let scanned = if args.template.is_none() && has_lod_folders(&args.input) {
-        scan_original(&args.input, &OriginalLayout { kind, swap_xy: args.swap_xy })?
+    let scanned = if args.template.is_none() && has_lod_folders(&input) {
+        scan_original(&input, &OriginalLayout { kind, swap_xy: args.swap_xy })?
     } else {
         let templates = match &args.template {
             Some(t) => vec![t.clone()],
@@ -156,7 +247,7 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         let mut last_err = None;
         let mut found = None;
         for t in templates {
-            match scan_xyz(&args.input, &options(t)) {
+            match scan_xyz(&input, &options(t)) {
                 Ok(s) => {
                     found = Some(s);
                     break;
@@ -169,11 +260,11 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
             (None, Some(e)) => {
                 return Err(e).context("no LOD folders, and not an XYZ tree either (see --template)");
             }
-            (None, None) => bail!("{}: nothing to pack", args.input.display()),
+            (None, None) => bail!("{}: nothing to pack", input.display()),
         }
     };
     let tiles = scanned.tiles.len();
-    tracing::info!(tiles, layers = scanned.metadata.layers.len(), "packing {}", args.input.display());
+    tracing::info!(tiles, layers = scanned.metadata.layers.len(), "packing {}", input.display());
     let started = std::time::Instant::now();
     let summary = pack(scanned, &args.output, WriterOptions::default(), progress)?;
     progress.finish();

@@ -11,7 +11,8 @@ use std::path::Path;
 use rusqlite::{Connection, OpenFlags, OptionalExtension};
 use terrastream_format::{MAX_LODS, TileFormat};
 
-use super::xyz::{TilesetInput, WebTile, pack_web_tiles};
+use super::layers::{Opened, write_layers};
+use super::xyz::{TilesetInput, WebTile, open_web_tiles};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, WriterOptions};
@@ -32,6 +33,14 @@ pub fn pack_mbtiles(
     writer_options: WriterOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
+    write_layers(vec![open_mbtiles(input, options, progress)?], out, writer_options, progress)
+}
+
+/// Opens an MBTiles raster tileset as one layer (see [`pack_mbtiles`]).
+///
+/// # Errors
+/// As [`pack_mbtiles`], before any tile is read.
+pub(crate) fn open_mbtiles(input: &Path, options: TilesetInput, progress: &dyn Progress) -> Result<Opened<'static>> {
     let sql = |e: rusqlite::Error| Error::input(input, format!("not a readable MBTiles file: {e}"));
     if !input.is_file() {
         return Err(Error::input(input, "no such file"));
@@ -77,10 +86,12 @@ pub fn pack_mbtiles(
             tiles.push(WebTile { z: z8, x, y, at: (z, i64::from(x), row_tms) });
         }
     }
-    let mut query = db
-        .prepare("SELECT tile_data FROM tiles WHERE zoom_level = ?1 AND tile_column = ?2 AND tile_row = ?3")
-        .map_err(sql)?;
-    let read = |&(z, x, row): &(i64, i64, i64), what: &str| -> Result<bytes::Bytes> {
+    let path = input.to_path_buf();
+    let read = move |&(z, x, row): &(i64, i64, i64), what: &str| -> Result<bytes::Bytes> {
+        let input = &path;
+        let mut query = db
+            .prepare_cached("SELECT tile_data FROM tiles WHERE zoom_level = ?1 AND tile_column = ?2 AND tile_row = ?3")
+            .map_err(|e| Error::input(input, format!("not a readable MBTiles file: {e}")))?;
         let blob: Option<Vec<u8>> = query
             .query_row([z, x, row], |r| r.get::<_, Option<Vec<u8>>>(0))
             .optional()
@@ -91,7 +102,7 @@ pub fn pack_mbtiles(
             _ => Err(Error::input(input, format!("{what}: empty tile_data"))),
         }
     };
-    pack_web_tiles(input, options, format, tiles, read, out, writer_options, progress)
+    open_web_tiles(input, options, format, tiles, read)
 }
 
 /// The `metadata` table's `format`, when the table and the row exist.

@@ -9,6 +9,7 @@
 //! `extract` gives back the same files.
 
 mod heights;
+mod layers;
 mod mbtiles;
 pub(crate) mod original;
 mod pmtiles;
@@ -19,6 +20,7 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 
 pub use heights::HeightRange;
+pub use layers::{LayerInput, PyramidSource, pack_layers};
 pub use mbtiles::pack_mbtiles;
 pub use original::{LAYOUT_KEY, LayerNaming, LayoutRecord, OriginalLayout, scan_original};
 pub use pmtiles::pack_pmtiles;
@@ -118,7 +120,7 @@ pub(crate) fn record_heights(writer: &mut Writer, heights: HeightRange) -> Resul
     Ok(())
 }
 
-fn read_tile(path: &Path, format: TileFormat) -> Result<Vec<u8>> {
+pub(crate) fn read_tile(path: &Path, format: TileFormat) -> Result<Vec<u8>> {
     let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
     match TileFormat::sniff(&bytes) {
         Some(found) if found == format => Ok(bytes),

@@ -11,7 +11,8 @@ use std::path::Path;
 
 use terrastream_format::{Cursor, FileSource, MAX_LODS, RangeSource, TileFormat, tile_id_to_zxy};
 
-use super::xyz::{TilesetInput, WebTile, pack_web_tiles};
+use super::layers::{Opened, write_layers};
+use super::xyz::{TilesetInput, WebTile, open_web_tiles};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, WriterOptions};
@@ -133,6 +134,14 @@ pub fn pack_pmtiles(
     writer_options: WriterOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
+    write_layers(vec![open_pmtiles(input, options, progress)?], out, writer_options, progress)
+}
+
+/// Opens a PMTiles v3 raster archive as one layer (see [`pack_pmtiles`]).
+///
+/// # Errors
+/// As [`pack_pmtiles`], before any tile is read.
+pub(crate) fn open_pmtiles(input: &Path, options: TilesetInput, progress: &dyn Progress) -> Result<Opened<'static>> {
     let file = FileSource::open(input)?;
     let h = header(&file, input)?;
     let format = match h.tile_type {
@@ -184,8 +193,9 @@ pub fn pack_pmtiles(
             keyed.push(WebTile { z, x, y, at: (h.data.0 + offset, len) });
         }
     }
-    let read = |&(offset, len): &(u64, u64), what: &str| read_at(&file, input, (offset, len), what);
-    pack_web_tiles(input, options, Some(format), keyed, read, out, writer_options, progress)
+    let path = input.to_path_buf();
+    let read = move |&(offset, len): &(u64, u64), what: &str| read_at(&file, &path, (offset, len), what);
+    open_web_tiles(input, options, Some(format), keyed, read)
 }
 
 #[cfg(test)]

@@ -9,10 +9,10 @@ use terrastream_format::{
     TileFormat, TileKey,
 };
 
-use super::{HeightRange, ScannedPyramid, image_size, record_heights, walk_files};
+use super::layers::Opened;
+use super::{ScannedPyramid, image_size, walk_files};
 use crate::error::{Error, Result};
-use crate::progress::Progress;
-use crate::writer::{WriteSummary, Writer, WriterOptions};
+use crate::writer::Writer;
 
 /// Row order of the tree.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -260,21 +260,20 @@ pub(crate) struct WebTile<T> {
     pub at: T,
 }
 
-/// Packs the tiles of a Web Mercator tileset into a one-layer archive at `out`: zoom `z`
-/// becomes LOD `max_zoom - z`, tile bytes are stored unchanged (identical tiles once), each
-/// checked to be an image of the tileset's `format` (`None`: the first tile's). `read`
-/// fetches a tile's bytes; its second argument names the tile for errors.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn pack_web_tiles<T>(
+/// Opens the tiles of a Web Mercator tileset as one layer: zoom `z` becomes LOD
+/// `max_zoom - z`, each tile checked, when read, to be an image of the tileset's `format`
+/// (`None`: the first tile's). `read` fetches a tile's bytes; its second argument names
+/// the tile for errors.
+///
+/// # Errors
+/// [`Error::Input`] naming the input and the tile at fault.
+pub(crate) fn open_web_tiles<'a, T: 'a>(
     input: &Path,
     options: TilesetInput,
     format: Option<TileFormat>,
     tiles: Vec<WebTile<T>>,
-    mut read: impl FnMut(&T, &str) -> Result<bytes::Bytes>,
-    out: &Path,
-    writer_options: WriterOptions,
-    progress: &dyn Progress,
-) -> Result<WriteSummary> {
+    mut read: impl FnMut(&T, &str) -> Result<bytes::Bytes> + 'a,
+) -> Result<Opened<'a>> {
     let Some(first) = tiles.first() else {
         return Err(Error::input(input, "no tiles"));
     };
@@ -308,35 +307,18 @@ pub(crate) fn pack_web_tiles<T>(
     if let Some(pair) = ordered.windows(2).find(|w| w[0].0 == w[1].0) {
         return Err(Error::input(input, format!("{} appears twice", what(&pair[1].2))));
     }
-    let mut writer = Writer::create(out, metadata, writer_options)?;
-    let mut heights = HeightRange::default();
-    progress.start("pack", ordered.len() as u64);
-    let mut ordered = ordered.into_iter().peekable();
-    while ordered.peek().is_some() {
-        progress.check()?;
-        let mut batch = Vec::with_capacity(256);
-        for (_, key, t) in ordered.by_ref().take(256) {
-            let bytes = read(&t.at, &what(&t))?;
-            match TileFormat::sniff(&bytes) {
-                Some(found) if found == format => {}
-                found => {
-                    return Err(Error::input(input, format!("{}: {found:?} bytes in a {format:?} tileset", what(&t))));
-                }
-            }
-            batch.push((key, what(&t), bytes));
+    let (keys, sources): (Vec<(TileKey, String)>, Vec<T>) =
+        ordered.into_iter().map(|(_, key, t)| ((key, what(&t)), t.at)).unzip();
+    let path = input.to_path_buf();
+    let read = move |index: usize, what: &str| -> Result<bytes::Bytes> {
+        let at = sources.get(index).ok_or_else(|| Error::input(&path, format!("{what}: no such tile")))?;
+        let bytes = read(at, what)?;
+        match TileFormat::sniff(&bytes) {
+            Some(found) if found == format => Ok(bytes),
+            found => Err(Error::input(&path, format!("{what}: {found:?} bytes in a {format:?} tileset"))),
         }
-        let layer = &writer.metadata().layers[0];
-        let found = HeightRange::of_tiles(layer, batch.iter().map(|(_, w, b)| (&b[..], w)).collect::<Vec<_>>())
-            .map_err(|(w, why)| Error::input(input, format!("{w}: {why}")))?;
-        heights = heights.merge(found);
-        let count = batch.len() as u64;
-        for (key, _, bytes) in batch {
-            writer.add_stored(key, bytes.into())?;
-        }
-        progress.advance(count);
-    }
-    record_heights(&mut writer, heights)?;
-    writer.finish()
+    };
+    Ok(Opened { input: input.to_path_buf(), metadata, tiles: keys, read: Box::new(read) })
 }
 
 /// The equator's length on the WGS 84 ellipsoid, metres: Web Mercator's world width.
