@@ -275,11 +275,16 @@ impl Image {
         out
     }
 
-    /// The raw value an elevation scheme reads from each pixel.
+    /// The raw value an elevation scheme reads from each pixel (NaN, no data, where the
+    /// pixel is transparent: tile trees cut from a DEM leave its surroundings so).
     fn values(&self, scheme: ElevationScheme) -> std::result::Result<Vec<f64>, String> {
         let colour = self.channels >= 3;
         let (r, g, b) = (0, if colour { 1 } else { 0 }, if colour { 2 } else { 0 });
+        let alpha = matches!(self.channels, 2 | 4).then_some(self.channels - 1);
         let value = |p: usize| -> f64 {
+            if alpha.is_some_and(|a| self.sample(p, a) == 0) {
+                return f64::NAN;
+            }
             let (rv, gv, bv) =
                 (f64::from(self.sample(p, r)), f64::from(self.sample(p, g)), f64::from(self.sample(p, b)));
             scheme.value(rv, gv, bv)

@@ -26,11 +26,12 @@ pub struct LayerExtent {
     /// Where the detail is: the box of the finest populated LOD's tiles (inside `world`).
     /// Views frame it: a regional tree's coarse tiles reach far beyond its data.
     pub detail: [f64; 4],
-    /// The same box in the archive's CRS (min x, min y, max x, max y), where the archive
-    /// is georeferenced with an origin and scale.
+    /// The detail box in the archive's CRS (min x, min y, max x, max y), where the
+    /// archive is georeferenced with an origin and scale.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub crs: Option<[f64; 4]>,
-    /// West, south, east, north in degrees, where the CRS is one a reader can invert.
+    /// The detail box's west, south, east, north in degrees, where the CRS is one a
+    /// reader can invert (or the writer knew them).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lon_lat: Option<[f64; 4]>,
 }
@@ -65,7 +66,7 @@ impl LayerExtent {
     /// need no projection library. Other CRSs keep what the writer gave.
     pub fn georeference(&mut self, georeference: Option<&Georeference>) {
         let Some(g) = georeference else { return };
-        let [x0, z0, x1, z1] = self.world;
+        let [x0, z0, x1, z1] = self.detail;
         let (Some((a, b)), Some((c, d))) = (g.world_to_crs(x0, z1), g.world_to_crs(x1, z0)) else { return };
         let crs = [a.min(c), b.min(d), a.max(c), b.max(d)];
         self.crs = Some(crs);
@@ -178,7 +179,7 @@ impl ExtentBuilder {
             if let Some(detail) = intersect(extent.detail, given.detail) {
                 extent.detail = detail;
             }
-            if extent.world == given.world {
+            if extent.detail == given.detail {
                 extent.lon_lat = given.lon_lat;
             }
         }

@@ -14,6 +14,7 @@ use terrastream_format::{LayerKind, Metadata, TileKey};
 
 use super::heights::HeightRange;
 use super::mbtiles::open_mbtiles;
+use super::opaque::OpaqueBox;
 use super::pmtiles::open_pmtiles;
 use super::xyz::{TilesetInput, XYZ_KEY, XyzOptions, scan_xyz};
 use crate::error::{Error, Result};
@@ -118,6 +119,10 @@ pub(crate) fn write_layers(
         }
     }
     order.sort_unstable_by_key(|t| t.0);
+    let mut opaque: Vec<OpaqueBox> = (0u8..)
+        .zip(&metadata.layers)
+        .filter_map(|(index, layer)| OpaqueBox::new(index, layer, order.iter().map(|t| t.1)))
+        .collect();
     let mut writer = Writer::create(out, metadata, options)?;
     let mut heights = HeightRange::default();
     progress.start("pack", order.len() as u64);
@@ -143,12 +148,14 @@ pub(crate) fn write_layers(
         }
         let count = read.len() as u64;
         for (key, _, _, bytes) in read {
+            opaque.iter_mut().for_each(|o| o.add(key, &bytes));
             writer.add_stored(key, bytes.into())?;
         }
         progress.advance(count);
     }
     progress.check()?;
     super::record_heights(&mut writer, heights)?;
+    super::record_opaque(&mut writer, &opaque)?;
     writer.finish()
 }
 

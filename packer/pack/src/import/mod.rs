@@ -11,6 +11,7 @@
 mod heights;
 mod layers;
 mod mbtiles;
+mod opaque;
 pub(crate) mod original;
 mod pmtiles;
 mod xyz;
@@ -22,6 +23,7 @@ use rayon::prelude::*;
 pub use heights::HeightRange;
 pub use layers::{LayerInput, PyramidSource, pack_layers};
 pub use mbtiles::pack_mbtiles;
+pub use opaque::OpaqueBox;
 pub use original::{LAYOUT_KEY, LayerNaming, LayoutRecord, OriginalLayout, scan_original};
 pub use pmtiles::pack_pmtiles;
 pub use xyz::{Scheme, TilesetInput, XYZ_KEY, XyzOptions, XyzRecord, fill_template, scan_xyz};
@@ -75,6 +77,10 @@ pub fn pack(
     options: WriterOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
+    let mut opaque: Vec<OpaqueBox> = (0u8..)
+        .zip(&scanned.metadata.layers)
+        .filter_map(|(index, layer)| OpaqueBox::new(index, layer, scanned.tiles.iter().map(|t| t.0)))
+        .collect();
     let mut writer = Writer::create(out, scanned.metadata, options)?;
     let mut heights = HeightRange::default();
     progress.start("pack", scanned.tiles.len() as u64);
@@ -98,13 +104,42 @@ pub fn pack(
             heights = heights.merge(found);
         }
         for ((tile, _), bytes) in chunk.iter().zip(read) {
+            opaque.iter_mut().for_each(|o| o.add(*tile, &bytes));
             writer.add_stored(*tile, bytes)?;
         }
         progress.advance(chunk.len() as u64);
     }
     progress.check()?;
     record_heights(&mut writer, heights)?;
+    record_opaque(&mut writer, &opaque)?;
     writer.finish()
+}
+
+/// Narrows the boxes of image layers to where their tiles have opaque pixels: every LOD's
+/// for the data's box, the finest LOD's for the detail box (the writer takes them as
+/// bounds on what the tiles say).
+///
+/// # Errors
+/// A metadata error (none for boxes inside the grid).
+pub(crate) fn record_opaque(writer: &mut Writer, boxes: &[OpaqueBox]) -> Result<()> {
+    let found: Vec<(u8, [f64; 4], [f64; 4])> = boxes.iter().filter_map(OpaqueBox::finish).collect();
+    if found.is_empty() {
+        return Ok(());
+    }
+    let mut metadata = writer.metadata().clone();
+    for (index, world, detail) in found {
+        if let Some(layer) = metadata.layers.get_mut(usize::from(index)) {
+            layer.extent = Some(terrastream_format::LayerExtent {
+                coarsest_lod: 0,
+                finest_lod: 0,
+                world,
+                detail,
+                crs: None,
+                lon_lat: None,
+            });
+        }
+    }
+    writer.set_metadata(metadata)
 }
 
 /// Writes the height range read from an elevation pyramid's tiles into the metadata.
