@@ -712,7 +712,9 @@ impl TerrainRenderer {
         let [r, g, b] = self.settings.sky.map(srgb_to_linear);
         let elev_info = self.elevation.as_ref().map_or([0.0, 0.0, 1.0, 1.0], TileArray::shader_info);
         let tex_info = self.texture.as_ref().map_or([0.0, 0.0, 1.0, 1.0], TileArray::shader_info);
-        let lods = |a: &Option<TileArray>| a.as_ref().map_or(0, |a| u32::from(a.layer.num_lods));
+        // LODs the shader looks through: up to the coarsest that holds tiles (a regional
+        // pyramid's levels above it are empty; a far pixel takes the coarsest there is).
+        let lods = |a: &Option<TileArray>| a.as_ref().map_or(0, |a| u32::from(a.layer.start_lod()) + 1);
         let mut ranges = [[0.0f32; 4]; 32];
         for (level, r) in (0..MAX_LEVELS).zip(ranges.iter_mut()) {
             let (start, end) = params.morph(level);
