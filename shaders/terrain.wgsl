@@ -135,6 +135,22 @@ fn height_from(start: u32, p: vec2<f32>) -> HeightSample {
     return HeightSample(0.0, -1.0);
 }
 
+// The first height with data at p from LOD `start` up: coarser samples are nodata-aware
+// averages, so they reach further out than a finer LOD's last ones. NODATA if none has.
+fn coarser_height(start: u32, p: vec2<f32>) -> f32 {
+    for (var lod = start; lod < G.counts.x; lod++) {
+        let tp = tile_pos(G.elev_lods[lod], p);
+        let slot = find_slot(KIND_ELEVATION, lod, tp.tile);
+        if slot >= 0 {
+            let h = sample_height(slot, tp.within);
+            if h > NODATA * 0.5 {
+                return h;
+            }
+        }
+    }
+    return NODATA;
+}
+
 // Distance from the camera to the vertical column at p over the terrain's height range:
 // a function of (x, z) only, the same the CPU selection measures node boxes with, which
 // is what makes the morph reach 1 exactly where a coarser neighbour begins.
@@ -160,11 +176,20 @@ fn terrain_height(p: vec2<f32>) -> vec2<f32> {
     if sa.lod < 0.0 {
         return vec2<f32>(G.terrain.x, 0.0);
     }
-    let a = sa.h;
+    // A vertex just past the data's edge (its samples all nodata) takes the height of the
+    // coarser LODs there, so that the triangles reaching into the data do not ramp down to
+    // the lowest height; the fragments past the edge are discarded at pixel resolution.
+    var a = sa.h;
+    if a <= NODATA * 0.5 {
+        a = coarser_height(u32(sa.lod) + 1u, p);
+    }
     if f <= 0.0 || l0 >= top {
         return vec2<f32>(a, covered);
     }
-    let b = height_from(u32(l0) + 1u, p).h;
+    var b = height_from(u32(l0) + 1u, p).h;
+    if b <= NODATA * 0.5 {
+        b = a;
+    }
     if a <= NODATA * 0.5 {
         return vec2<f32>(b, covered);
     }
@@ -272,18 +297,27 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // Vertices lie on or inside the box; the slack keeps rounding from cutting its rim.
     let slack = G.camera.w * 0.01;
     let outside = any(in.world.xz < G.bounds.xy - slack) || any(in.world.xz > G.bounds.zw + slack);
-    if in.nodata > 0.001 || outside {
+    if in.nodata > 0.999 || outside {
         discard;
+    }
+    let p = in.world.xz;
+    // The elevation at the pixel's own resolution: where it has no data the terrain ends,
+    // at every mesh level (a coarse triangle over the data's edge is cut at the pixel, not
+    // dropped whole, which drew the edge as stair steps).
+    var found = HeightSample(0.0, -1.0);
+    if G.counts.x > 0u {
+        let le = u32(clamp(floor(log2(max(footprint, 1.0e-6) / G.elev.w)), 0.0, f32(G.counts.x - 1u)));
+        found = height_from(le, p);
+        if found.lod >= 0.0 && found.h <= NODATA * 0.5 {
+            discard;
+        }
     }
     if G.mode.x == 1u {
         return vec4<f32>(1.0, 1.0, 1.0, 1.0);
     }
-    let p = in.world.xz;
     // Normal from the elevation data at the pixel's own resolution.
     var normal = vec3<f32>(0.0, 1.0, 0.0);
     if G.counts.x > 0u {
-        let le = u32(clamp(floor(log2(max(footprint, 1.0e-6) / G.elev.w)), 0.0, f32(G.counts.x - 1u)));
-        let found = height_from(le, p);
         if found.lod >= 0.0 {
             let lod = u32(found.lod);
             let s = G.elev.w * exp2(found.lod);

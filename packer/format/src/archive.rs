@@ -391,6 +391,25 @@ fn check_crc(bytes: &[u8], stored: u32, section: &str) -> Result<()> {
     Ok(())
 }
 
+/// Every entry of the given leaves, decoded from the whole leaf section's `bytes`.
+///
+/// # Errors
+/// [`Error::Corrupt`] or [`Error::SectionChecksum`] naming a leaf outside the section or
+/// damaged.
+pub(crate) fn entries_of_leaves(archive: &Archive, leaves: &[LeafPointer], bytes: &[u8]) -> Result<Vec<Entry>> {
+    let mut entries = Vec::new();
+    for leaf in leaves {
+        let range = usize::try_from(leaf.offset)
+            .ok()
+            .and_then(|start| Some(start..start.checked_add(usize::try_from(leaf.length).ok()?)?));
+        let slice = range.and_then(|r| bytes.get(r)).ok_or_else(|| {
+            Error::corrupt(format!("leaf directory at offset {}", leaf.offset), "outside the leaf section")
+        })?;
+        entries.extend(archive.decode_leaf(*leaf, slice)?.iter().copied());
+    }
+    Ok(entries)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -435,23 +454,4 @@ mod tests {
             assert_eq!(cache.by_offset[offset], i);
         }
     }
-}
-
-/// Every entry of the given leaves, decoded from the whole leaf section's `bytes`.
-///
-/// # Errors
-/// [`Error::Corrupt`] or [`Error::SectionChecksum`] naming a leaf outside the section or
-/// damaged.
-pub(crate) fn entries_of_leaves(archive: &Archive, leaves: &[LeafPointer], bytes: &[u8]) -> Result<Vec<Entry>> {
-    let mut entries = Vec::new();
-    for leaf in leaves {
-        let range = usize::try_from(leaf.offset)
-            .ok()
-            .and_then(|start| Some(start..start.checked_add(usize::try_from(leaf.length).ok()?)?));
-        let slice = range.and_then(|r| bytes.get(r)).ok_or_else(|| {
-            Error::corrupt(format!("leaf directory at offset {}", leaf.offset), "outside the leaf section")
-        })?;
-        entries.extend(archive.decode_leaf(*leaf, slice)?.iter().copied());
-    }
-    Ok(entries)
 }
