@@ -382,6 +382,14 @@ fn extract_of_a_bordered_archive_packs_back_to_the_same_tiles() {
         &["tile", "--texture", image.to_str().unwrap(), "--texture-tile-size", "64", "--border", "1", "-o", "b.tspack"],
         cwd,
     );
+    // The tiler records where the imagery lies, in degrees, whatever grid it made.
+    let tiled = Reader::open_mmap(cwd.join("b.tspack")).unwrap();
+    let [w, s, e, n] = tiled.metadata().layers[0].extent.clone().unwrap().lon_lat.expect("degrees");
+    let near = |a: f64, b: f64| (a - b).abs() < 2e-4;
+    assert!(
+        near(w, -122.641_805) && near(s, 37.878) && near(e, -122.552_916) && near(n, 37.966_805),
+        "{w} {s} {e} {n}"
+    );
     ok(&["extract", "b.tspack", "--layout", "original", "-o", "out"], cwd);
     ok(&["pack", "out", "-o", "back.tspack"], cwd);
     let (a, b) =

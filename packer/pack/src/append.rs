@@ -209,11 +209,19 @@ impl Appender {
         // The new version's tiles say where its data is: an update may reach beyond the
         // box the old version recorded.
         let mut metadata = metadata.clone();
-        for layer in &mut metadata.layers {
-            layer.extent = None;
-        }
+        let before: Vec<_> = metadata.layers.iter_mut().map(|l| l.extent.take()).collect();
         self.extents.resize_with(metadata.layers.len(), ExtentBuilder::default);
         record_extents(&mut metadata, &self.extents);
+        // Degrees the old version recorded (from a projection this crate does not know)
+        // still hold where the detail box did not move.
+        for (layer, old) in metadata.layers.iter_mut().zip(before) {
+            if let (Some(new), Some(old)) = (&mut layer.extent, old)
+                && new.lon_lat.is_none()
+                && new.detail == old.detail
+            {
+                new.lon_lat = old.lon_lat;
+            }
+        }
         let metadata = &metadata;
         self.close_run()?;
         let path = self.path.clone();

@@ -83,7 +83,7 @@ pub fn plan(
             _ => (f64::from(plan.size.0) * texel, f64::from(plan.size.1) * texel),
         };
         let world = [x0, z0, x0 + w, z0 + h];
-        let lon_lat = metadata.georeference.as_ref().and_then(|g| g.lat_lon_bounds);
+        let lon_lat = metadata.georeference.as_ref().and_then(|g| lon_lat_box(g, world));
         layer.extent = Some(LayerExtent { coarsest_lod: 0, finest_lod: 0, world, detail: world, crs: None, lon_lat });
     }
     metadata.layers = layers;
@@ -109,6 +109,27 @@ fn placed(
         g.scale = Some([f64::from(w) * px / extent.0, f64::from(h) * py / extent.1]);
     }
     Some(g)
+}
+
+/// West, south, east, north in degrees of a world box, through the georeference's CRS:
+/// its edges sampled, so that a projection's curved meridians and parallels are bounded.
+pub(crate) fn lon_lat_box(g: &Georeference, [x0, z0, x1, z1]: [f64; 4]) -> Option<[f64; 4]> {
+    let crs = Crs::parse(g.definition.as_deref().or(g.crs.as_deref())?).ok()?;
+    let to_degrees = crate::crs::Transform::new(&crs, &Crs::wgs84());
+    const STEPS: u32 = 16;
+    let mut out: Option<[f64; 4]> = None;
+    for i in 0..=STEPS {
+        let t = f64::from(i) / f64::from(STEPS);
+        let (x, z) = (x0 + (x1 - x0) * t, z0 + (z1 - z0) * t);
+        for (wx, wz) in [(x, z0), (x, z1), (x0, z), (x1, z)] {
+            let (cx, cy) = g.world_to_crs(wx, wz)?;
+            let (lon, lat) = to_degrees.apply(cx, cy)?;
+            out = Some(
+                out.map_or([lon, lat, lon, lat], |b| [b[0].min(lon), b[1].min(lat), b[2].max(lon), b[3].max(lat)]),
+            );
+        }
+    }
+    out
 }
 
 /// The elevation's part of a plan.
