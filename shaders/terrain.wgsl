@@ -98,6 +98,12 @@ fn tile_pos(info: LodInfo, p: vec2<f32>) -> TilePos {
 
 // Bilinear height inside one resident elevation tile; nodata samples are left out.
 fn sample_height(slot: i32, within: vec2<f32>) -> f32 {
+    return sample_height_cover(slot, within).x;
+}
+
+// The same, with the bilinear weight of the samples that have data (1 inside the data,
+// less along its rim).
+fn sample_height_cover(slot: i32, within: vec2<f32>) -> vec2<f32> {
     let s = G.elev.y + within * G.elev.x - 0.5;
     let i0 = floor(s);
     let t = s - i0;
@@ -113,14 +119,16 @@ fn sample_height(slot: i32, within: vec2<f32>) -> f32 {
     let valid = select(vec4<f32>(0.0), vec4<f32>(1.0), hs > vec4<f32>(NODATA * 0.5));
     let weight = dot(w, valid);
     if weight <= 1.0e-6 {
-        return NODATA;
+        return vec2<f32>(NODATA, 0.0);
     }
-    return dot(w * valid, hs) / weight;
+    return vec2<f32>(dot(w * valid, hs) / weight, weight);
 }
 
 struct HeightSample {
     h: f32,
     lod: f32,
+    // The bilinear weight of the samples with data.
+    cover: f32,
 }
 
 // Height at p from the finest resident elevation tile at `start` or coarser.
@@ -129,10 +137,11 @@ fn height_from(start: u32, p: vec2<f32>) -> HeightSample {
         let tp = tile_pos(G.elev_lods[lod], p);
         let slot = find_slot(KIND_ELEVATION, lod, tp.tile);
         if slot >= 0 {
-            return HeightSample(sample_height(slot, tp.within), f32(lod));
+            let hc = sample_height_cover(slot, tp.within);
+            return HeightSample(hc.x, f32(lod), hc.y);
         }
     }
-    return HeightSample(0.0, -1.0);
+    return HeightSample(0.0, -1.0, 0.0);
 }
 
 // The first height with data at p from LOD `start` up: coarser samples are nodata-aware
@@ -304,7 +313,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // The elevation at the pixel's own resolution: where it has no data the terrain ends,
     // at every mesh level (a coarse triangle over the data's edge is cut at the pixel, not
     // dropped whole, which drew the edge as stair steps).
-    var found = HeightSample(0.0, -1.0);
+    var found = HeightSample(0.0, -1.0, 0.0);
     if G.counts.x > 0u {
         let le = u32(clamp(floor(log2(max(footprint, 1.0e-6) / G.elev.w)), 0.0, f32(G.counts.x - 1u)));
         found = height_from(le, p);
@@ -336,13 +345,24 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         let l0 = floor(t);
         let c0 = texel_from(u32(l0), p);
         let c1 = texel_from(min(u32(l0) + 1u, G.counts.y - 1u), p);
-        let c = mix(c0, c1, t - l0);
-        // Data edges (docs/rendering.md): the terrain is drawn where either layer has
-        // data; beyond the elevation's tiles, only where the imagery has texels.
-        if c.a < 0.5 && in.covered < 0.5 {
+        // Alpha is coverage (LODs are alpha-weighted averages): the two LODs' colours are
+        // mixed by their coverage, so the partly covered texels along the data's edge at a
+        // coarse LOD do not let the height tint show through as a fringe.
+        let w0 = c0.a * (1.0 - (t - l0));
+        let w1 = c1.a * (t - l0);
+        let colour = (c0.rgb * w0 + c1.rgb * w1) / max(w0 + w1, 1.0e-6);
+        // Data edges (docs/rendering.md): imagery is there where a texel is at least half
+        // covered; the terrain is drawn where either layer has data, so beyond the
+        // elevation's tiles only where the imagery is, and along the elevation's rim
+        // (where some of its samples have no data) the imagery draws the edge.
+        let imagery = max(c0.a, c1.a) >= 0.5;
+        let elevation_inside = in.covered >= 0.5 && (G.counts.x == 0u || found.cover > 0.999);
+        if !imagery && !elevation_inside {
             discard;
         }
-        albedo = mix(albedo, c.rgb, c.a);
+        if imagery {
+            albedo = colour;
+        }
     }
     if G.terrain.w > 0.0 {
         // Detail texture: fine noise that fades out once its features get below a pixel.

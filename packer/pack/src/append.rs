@@ -206,22 +206,11 @@ impl Appender {
     /// is left as it was: rewrite it instead); I/O errors.
     pub fn finish(mut self, metadata: &Metadata) -> Result<WriteSummary> {
         metadata.validate()?;
-        // The new version's tiles say where its data is: an update may reach beyond the
-        // box the old version recorded.
+        // The new version's tiles say where its data is, within the box the metadata
+        // gives (an update tiles onto the archive's own grid and data extent).
         let mut metadata = metadata.clone();
-        let before: Vec<_> = metadata.layers.iter_mut().map(|l| l.extent.take()).collect();
         self.extents.resize_with(metadata.layers.len(), ExtentBuilder::default);
         record_extents(&mut metadata, &self.extents);
-        // Degrees the old version recorded (from a projection this crate does not know)
-        // still hold where the detail box did not move.
-        for (layer, old) in metadata.layers.iter_mut().zip(before) {
-            if let (Some(new), Some(old)) = (&mut layer.extent, old)
-                && new.lon_lat.is_none()
-                && new.detail == old.detail
-            {
-                new.lon_lat = old.lon_lat;
-            }
-        }
         let metadata = &metadata;
         self.close_run()?;
         let path = self.path.clone();

@@ -275,6 +275,13 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
     for (index, layer) in metadata.layers.iter_mut().enumerate() {
         layer.extent =
             readers.iter().filter_map(|r| r.metadata().layers.get(index)?.extent.clone()).reduce(|a, b| a.union(&b));
+        // Degrees of the whole box, as one run over all the inputs makes them (a union
+        // of the bands' degree boxes would differ by the curvature between samples).
+        if let (Some(extent), Some(g)) = (&mut layer.extent, &metadata.georeference)
+            && let Some(lon_lat) = crate::plan::lon_lat_box(g, extent.detail)
+        {
+            extent.lon_lat = Some(lon_lat);
+        }
     }
     let (winners, conflicts) = winners(&readers, progress)?;
     Ok(Prepared { readers, metadata, shards, winners, conflicts })
