@@ -205,6 +205,31 @@ mod tests {
     }
 
     #[test]
+    fn a_regional_pyramid_is_selected_from_its_coarsest_level_inside_its_box() {
+        let mut m = metadata();
+        // Tiles at LODs 0..=3 only, over LOD-0 tiles 16..24 (the grid is 64 x 64).
+        m.layers[0].extent = Some(terrastream_format::LayerExtent {
+            coarsest_lod: 3,
+            finest_lod: 0,
+            world: [4096.0, 4096.0, 6144.0, 6144.0],
+            detail: [4096.0, 4096.0, 6144.0, 6144.0],
+            crs: None,
+            lon_lat: None,
+        });
+        let cam = Camera::look_at(DVec3::new(5000.0, 600.0, 6500.0), DVec3::new(5100.0, 0.0, 5100.0), 1024, 768);
+        let wants = select(&m, &cam, &SelectOptions::default(), |_| true);
+        let tops: Vec<TileKey> = wants.iter().filter(|w| w.top).map(|w| w.key).collect();
+        assert_eq!(tops, [TileKey::new(0, 3, 2, 2).unwrap()], "the one LOD-3 tile over the box");
+        assert!(wants.iter().all(|w| w.key.lod() <= 3), "nothing above the coarsest populated LOD");
+        let inside = |k: TileKey| {
+            let s = 256u32 << k.lod();
+            (4096..6144).contains(&(k.x() * s)) && (4096..6144).contains(&(k.y() * s))
+        };
+        assert!(wants.iter().all(|w| inside(w.key)), "nothing outside the data's box");
+        assert_eq!(wants.iter().map(|w| w.key.lod()).min(), Some(0), "refined down to the finest LOD");
+    }
+
+    #[test]
     fn no_descent_below_a_missing_tile() {
         let m = metadata();
         let cam = Camera::look_at(DVec3::new(1000.0, 200.0, 1000.0), DVec3::new(4000.0, 0.0, 4000.0), 1024, 768);
