@@ -15,12 +15,15 @@ ts() { "$bin" -q "$@" >/dev/null; }
 
 ts demo --dir "$out/demo" --no-window >/dev/null 2>&1
 cp "$out/demo/sample.tspack" "$out/demo/tamalpais.tspack" "$out/"
-dem=tests/data/srtm-tamalpais-320-public-domain.tif
+dem=packer/pack/data/srtm-tamalpais-320-public-domain.tif
 texture=$out/demo/sample/textures/LOD0/0_0.png
 ts tile --elevation tests/data/srtm-tamalpais-150x100-strips-int16-public-domain.tif -o "$out/strips.tspack"
 ts tile --elevation tests/data/srtm-tamalpais-150x100-tiled-float32-public-domain.tif -o "$out/tiled.tspack"
+ts tile --elevation "$dem" -o "$out/tile-dem.tspack"
+# The sample's square tile cannot drape the DEM (its transverse Mercator grid is not
+# square): each texture format is written from it alone.
 for f in png jpeg webp bc1 bc7; do
-    ts tile --elevation "$dem" --texture "$texture" --texture-format "$f" --texture-tile-size 32 -o "$out/tile-$f.tspack"
+    ts tile --texture "$texture" --pixel-size 10 --texture-format "$f" --texture-tile-size 32 -o "$out/tile-$f.tspack"
 done
 ts extract "$out/sample.tspack" --layout original -o "$out/original"
 ts pack "$out/original" -o "$out/repack-original.tspack"

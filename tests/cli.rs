@@ -366,7 +366,7 @@ fn a_missing_archive_is_named_once() {
 fn a_sharded_run_is_published_by_a_manifest_that_info_and_verify_read() {
     let dir = tempfile::tempdir().unwrap();
     let cwd = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     let dem = dem.to_str().unwrap();
     for i in 0..3 {
         let shard = format!("{i}/3");
@@ -407,7 +407,7 @@ fn a_sharded_run_is_published_by_a_manifest_that_info_and_verify_read() {
 fn an_update_in_place_is_verified_and_a_merge_compacts_it() {
     let dir = tempfile::tempdir().unwrap();
     let cwd = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     let dem = dem.to_str().unwrap();
     // Published by a manifest, which names the archive by its content tag.
     let tile = ["tile", "--elevation", dem, "--crs", "EPSG:32610", "--tile-size", "32", "-o", "t.tspack"];

@@ -192,7 +192,7 @@ struct Dem {
 
 impl Dem {
     fn read() -> Self {
-        let path = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+        let path = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
         let mut decoder = tiff::decoder::Decoder::new(std::fs::File::open(path).unwrap()).unwrap();
         let (w, h) = decoder.dimensions().unwrap();
         let heights = match decoder.read_image().unwrap() {

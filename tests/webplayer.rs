@@ -317,7 +317,7 @@ fn serve(archive: &Path) -> terrastream_testkit::server::Spawned {
 /// The committed DEM crop as an archive, as `terrastream tile --tile-size 64` makes it.
 fn archive(dir: &Path) -> PathBuf {
     let path = dir.join("tamalpais.tspack");
-    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", path.to_str().unwrap(), "--tile-size", "64"]);
     path
 }
@@ -558,7 +558,7 @@ fn webplayer_streams_a_manifest_of_four_archives() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     let shards: Vec<String> = (0..3).map(|i| dir.path().join(format!("s{i}.tspack")).display().to_string()).collect();
     for (i, shard) in shards.iter().enumerate() {
         let spec = format!("{i}/3");
@@ -622,7 +622,7 @@ fn bench_webplayer_over_emulated_links() {
     // The flight's terrain: the crop at 4x its resolution (7.5 m, 1280² samples), tiles of
     // 128: 142 elevation tiles, all of which fit the player's GPU slots.
     let flight_archive = dir.path().join("flight.tspack");
-    let dem = terrastream_testkit::golden::repo().join("tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     terrastream(&[
         "tile",
         "--elevation",

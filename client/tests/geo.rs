@@ -11,7 +11,7 @@ use terrastream_tiler::{ElevationSource, TileOptions, open_elevation, read_geoti
 
 #[test]
 fn heights_are_found_at_longitudes_and_latitudes() {
-    let dem = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = Path::new(env!("CARGO_MANIFEST_DIR")).join("../packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("t.tspack");
     let file = open_elevation(&dem, None).unwrap();

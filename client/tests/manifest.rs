@@ -46,7 +46,7 @@ fn publish(split_lod: u8) -> Published {
     let dir = tempfile::tempdir().unwrap();
     let folder = dir.path().join("pub");
     std::fs::create_dir(&folder).unwrap();
-    let dem = read_geotiff(&repo().join("tests/data/srtm-tamalpais-320-public-domain.tif")).unwrap();
+    let dem = read_geotiff(&repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif")).unwrap();
     // Imagery with a grid every 40 pixels: a misplaced tile shows.
     let (w, h) = (dem.width, dem.height);
     let rgba = (0..h)

@@ -52,7 +52,7 @@ fn dem_archive() -> &'static Path {
         .get_or_init(|| {
             let dir = tempfile::tempdir().unwrap();
             let path = dir.path().join("tamalpais.tspack");
-            let raster = read_geotiff(&repo().join("tests/data/srtm-tamalpais-320-public-domain.tif")).unwrap();
+            let raster = read_geotiff(&repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif")).unwrap();
             let options = TileOptions { tile_size: 64, border: 1, ..TileOptions::default() };
             tile_elevation(&raster, "tamalpais", &path, options, &Silent::default()).unwrap();
             (dir, path)

@@ -16,6 +16,7 @@ mod range;
 mod route;
 mod sendfile;
 mod serve;
+pub mod shaper;
 
 pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app, service};
 pub use catalog::{Catalog, Served, archive_name};

@@ -11,9 +11,9 @@ use anyhow::{Context, Result};
 use clap::Args;
 use terrastream_client::{Camera, Origin, SelectOptions, StreamOptions, StreamStats, Streamer, UploadBudget};
 use terrastream_format::Metadata;
+use terrastream_pack::labelled::{LabelledSpec, write_labelled_archive};
+use terrastream_server::shaper::{Link, Shaper};
 use terrastream_server::{AppState, ServerConfig};
-use terrastream_testkit::labelled::{LabelledSpec, write_labelled_archive};
-use terrastream_testkit::shaper::{Link, Shaper};
 
 #[derive(Debug, Args)]
 pub struct StreamBench {

@@ -29,7 +29,7 @@ pub struct DemoArgs {
 }
 
 /// The built-in real terrain: SRTM 1" around Mt Tamalpais (public domain), 320 x 320 samples.
-const TAMALPAIS_TIF: &[u8] = include_bytes!("../../tests/data/srtm-tamalpais-320-public-domain.tif");
+use terrastream_pack::sample::TAMALPAIS_TIF;
 
 /// One HTTP/1.1 GET over a plain socket: (status line, headers, body).
 fn fetch(addr: std::net::SocketAddr, path: &str, extra: &str) -> Result<(String, String, Vec<u8>)> {

@@ -1,7 +1,8 @@
 //! Writing terrastream archives (`*.tspack`): the streaming [`Writer`], the importers
 //! behind `terrastream pack` (original LOD folders, XYZ/TMS trees, PMTiles, MBTiles),
-//! [`extract`](extract::extract) back to folders, exporters to other formats, and the
-//! built-in [`sample`] terrain. Reading is `terrastream-format`'s.
+//! [`extract`](extract::extract) back to folders, exporters to other formats, the
+//! built-in [`sample`] terrain (and [`sample::TAMALPAIS_TIF`], a real DEM crop), and the
+//! [`labelled`] archives that benchmarks stream. Reading is `terrastream-format`'s.
 
 mod append;
 mod compress;
@@ -9,6 +10,7 @@ mod error;
 pub mod export;
 pub mod extract;
 pub mod import;
+pub mod labelled;
 pub mod progress;
 pub mod sample;
 mod writer;

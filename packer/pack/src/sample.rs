@@ -10,6 +10,10 @@ use terrastream_format::levels_to_one;
 
 use crate::error::{Error, Result};
 
+/// The built-in real DEM: 320 x 320 samples of SRTM 1 arc-second around Mt Tamalpais
+/// (public domain; `data/README.md` beside this crate says how it was cut).
+pub const TAMALPAIS_TIF: &[u8] = include_bytes!("../data/srtm-tamalpais-320-public-domain.tif");
+
 /// Texture tiles across and down at LOD 0.
 pub const TEXTURE_GRID: (u32, u32) = (8, 6);
 /// Texture pixels per tile edge.

@@ -439,7 +439,7 @@ fn gdal_virtual_rasters_are_read_as_gdal_reads_them() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let dem = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     let run = |args: &[&str]| {
         let status = Command::new(args[0]).args(&args[1..]).current_dir(dir.path()).status().unwrap();
         assert!(status.success(), "{args:?}");

@@ -15,7 +15,9 @@ pub mod archives;
 pub mod continent;
 pub mod golden;
 pub mod http;
-pub mod labelled;
+/// Labelled archives (they live in `terrastream-pack`: `bench stream` streams them).
+pub use terrastream_pack::labelled;
 pub mod nginx;
 pub mod server;
-pub mod shaper;
+/// The emulated link (it lives in `terrastream-server`: `bench stream` runs over it).
+pub use terrastream_server::shaper;

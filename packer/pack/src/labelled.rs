@@ -1,12 +1,14 @@
 //! Labelled archives: every texture tile is one colour that says which tile it is, and
 //! every elevation sample lies on a known plane, so a client can check each tile it shows.
+//! `terrastream bench stream` streams them; the tests check what clients show against them.
 
 use std::path::Path;
 
+use crate::error::Error;
+use crate::writer::{WriteSummary, Writer, WriterOptions};
 use terrastream_format::{
     ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, levels_to_one,
 };
-use terrastream_pack::{WriteSummary, Writer, WriterOptions};
 
 /// A synthetic archive whose every tile says what it is: texture tiles are one solid
 /// colour encoding `(x, y, lod, version)` ([`label_colour`]) and elevation tiles sample a
@@ -61,7 +63,7 @@ pub fn label_height(x: f64, z: f64, version: u8) -> f64 {
 ///
 /// # Errors
 /// Writer and I/O errors.
-pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteSummary, terrastream_pack::Error> {
+pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteSummary, Error> {
     let world = f64::from(spec.texture_grid) * spec.texture_tile_size;
     let texture = Layer {
         name: "texture".into(),
@@ -122,8 +124,9 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteS
             let mut encoder = png::Encoder::new(&mut png_bytes, res, res);
             encoder.set_color(png::ColorType::Rgb);
             encoder.set_depth(png::BitDepth::Eight);
-            let mut png_writer = encoder.write_header().expect("a PNG header in memory");
-            png_writer.write_image_data(&pixels).expect("a PNG of the stated size in memory");
+            let fail = |e: png::EncodingError| Error::input(path, format!("{key}: {e}"));
+            let mut png_writer = encoder.write_header().map_err(fail)?;
+            png_writer.write_image_data(&pixels).map_err(fail)?;
             drop(png_writer);
             png_bytes
         } else {
