@@ -97,7 +97,16 @@ pub struct WriteSummary {
 
 pub(crate) const SPILL_RECORD: usize = 24;
 
-type Prepared = (u64, TileKey, Vec<u8>, u128);
+/// A tile compressed and hashed, ready to be appended.
+struct Prepared {
+    /// Its position in archive order.
+    key: u64,
+    tile: TileKey,
+    /// The stored bytes.
+    bytes: Vec<u8>,
+    /// Their 128-bit hash (for deduplication).
+    hash: u128,
+}
 
 struct Pending {
     key: u64,
@@ -279,11 +288,11 @@ impl Writer {
                     }
                 };
                 let hash = xxhash_rust::xxh3::xxh3_128(&bytes);
-                Ok((p.key, p.tile, bytes, hash))
+                Ok(Prepared { key: p.key, tile: p.tile, bytes, hash })
             })
             .collect();
         for item in prepared {
-            let (key, tile, bytes, hash) = item?;
+            let Prepared { key, tile, bytes, hash } = item?;
             self.append(key, tile, &bytes, hash)?;
         }
         Ok(())

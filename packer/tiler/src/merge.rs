@@ -48,8 +48,22 @@ pub struct MergeSummary {
     pub made: u64,
 }
 
-/// Where a winning tile's bytes are: the input, the blob's absolute offset and length.
-type Found = (usize, u64, u32);
+/// Where a winning tile's bytes are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Found {
+    /// The input (its index in the merge's inputs).
+    input: usize,
+    /// The blob's absolute offset in the input's file.
+    offset: u64,
+    /// The payload's length.
+    length: u32,
+}
+
+impl Found {
+    fn location(self, key: TileKey) -> TileLocation {
+        TileLocation { key, offset: self.offset, length: self.length }
+    }
+}
 
 /// Tiles several inputs hold with different bytes: every version, in input order.
 type Conflicts = HashMap<u64, Vec<Found>>;
@@ -167,18 +181,34 @@ fn append(
         }
     };
     in_order(readers, winners, made, progress, |next| match next {
-        Next::Input(key, order, (0, offset, length)) => Ok(appender.keep(key, order, offset - data, length)?),
-        Next::Input(key, order, found) => add(appender, key, order, &stored_as_first(readers, key, found)?),
-        Next::Made(order, key, bytes) => add(appender, key, order, &bytes),
+        Next::Input { key, order, found: Found { input: 0, offset, length } } => {
+            Ok(appender.keep(key, order, offset - data, length)?)
+        }
+        Next::Input { key, order, found } => add(appender, key, order, &stored_as_first(readers, key, found)?),
+        Next::Made { key, order, bytes } => add(appender, key, order, &bytes),
     })
 }
 
 /// The next tile of a merge, in archive order.
 enum Next {
-    /// An input's tile: its key, archive key, and where it is.
-    Input(TileKey, u64, Found),
-    /// A made tile (archive key, key, stored bytes), replacing any input's.
-    Made(u64, TileKey, Vec<u8>),
+    /// An input's tile.
+    Input {
+        /// The tile.
+        key: TileKey,
+        /// Its position in archive order.
+        order: u64,
+        /// Where its bytes are.
+        found: Found,
+    },
+    /// A made tile, replacing any input's.
+    Made {
+        /// The tile.
+        key: TileKey,
+        /// Its position in archive order.
+        order: u64,
+        /// Its stored bytes.
+        bytes: Vec<u8>,
+    },
 }
 
 /// Hands the inputs' winning tiles and the spooled (made) tiles to `sink` in archive
@@ -196,7 +226,7 @@ fn in_order(
     for (&order, &found) in winners {
         while made.peek_order().is_some_and(|o| o < order) {
             if let Some((order, key, bytes)) = made.next_tile()? {
-                sink(Next::Made(order, key, bytes))?;
+                sink(Next::Made { key, order, bytes })?;
                 progress.advance(1);
             }
         }
@@ -206,13 +236,13 @@ fn in_order(
         if copied.is_multiple_of(1024) {
             progress.check()?;
         }
-        let key = readers[found.0].archive().tile_of(order)?;
-        sink(Next::Input(key, order, found))?;
+        let key = readers[found.input].archive().tile_of(order)?;
+        sink(Next::Input { key, order, found })?;
         copied += 1;
         progress.advance(1);
     }
     while let Some((order, key, bytes)) = made.next_tile()? {
-        sink(Next::Made(order, key, bytes))?;
+        sink(Next::Made { key, order, bytes })?;
         progress.advance(1);
     }
     progress.check()?;
@@ -363,7 +393,7 @@ fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(B
             progress.check()?;
             for k in 0..u64::from(e.run_length) {
                 let order = e.key + k * step;
-                let found = (i, data + e.offset, e.length);
+                let found = Found { input: i, offset: data + e.offset, length: e.length };
                 if let Some(before) = winners.insert(order, found) {
                     // The same bytes again (an archive merged with itself, a shared tile)
                     // replace nothing.
@@ -382,17 +412,15 @@ fn winners(readers: &[Reader<MmapSource>], progress: &dyn Progress) -> Result<(B
 /// Do two inputs' tiles hold the same bytes (the same stored bytes, or where the two
 /// inputs compress the layer differently, the same payload)?
 fn same_bytes(readers: &[Reader<MmapSource>], order: u64, a: Found, b: Found) -> Result<bool> {
-    let key = readers[a.0].archive().tile_of(order)?;
+    let key = readers[a.input].archive().tile_of(order)?;
     let compression = |input: usize| readers[input].metadata().layers[usize::from(key.layer())].compression;
-    if compression(a.0) != compression(b.0) {
+    if compression(a.input) != compression(b.input) {
         return Ok(unpacked(readers, key, a)? == unpacked(readers, key, b)?);
     }
-    if a.2 != b.2 {
+    if a.length != b.length {
         return Ok(false);
     }
-    let read = |(input, offset, length): Found| -> Result<Vec<u8>> {
-        Ok(readers[input].read(&TileLocation { key, offset, length })?.to_vec())
-    };
+    let read = |found: Found| -> Result<Vec<u8>> { Ok(readers[found.input].read(&found.location(key))?.to_vec()) };
     Ok(read(a)? == read(b)?)
 }
 
@@ -406,8 +434,8 @@ pub(crate) fn write(
     progress: &dyn Progress,
 ) -> Result<u64> {
     in_order(readers, winners, made, progress, |next| match next {
-        Next::Input(key, _, found) => Ok(writer.add_stored(key, stored_as_first(readers, key, found)?)?),
-        Next::Made(_, key, bytes) => Ok(writer.add_stored(key, bytes)?),
+        Next::Input { key, found, .. } => Ok(writer.add_stored(key, stored_as_first(readers, key, found)?)?),
+        Next::Made { key, bytes, .. } => Ok(writer.add_stored(key, bytes)?),
     })
 }
 
@@ -425,9 +453,8 @@ fn payload(
 
 /// A tile's bytes where `found` says they are, its input's compression undone.
 fn unpacked(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
-    let (input, offset, length) = found;
-    let stored = readers[input].read(&TileLocation { key, offset, length })?;
-    let layer = &readers[input].metadata().layers[usize::from(key.layer())];
+    let stored = readers[found.input].read(&found.location(key))?;
+    let layer = &readers[found.input].metadata().layers[usize::from(key.layer())];
     Ok(payload_bytes(layer, &stored, &format!("tile {key}"))?.into_owned())
 }
 
@@ -436,8 +463,8 @@ fn unpacked(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Resul
 /// compressed another way (`zstd` before gradient coding, see [`transcodable`]), decoded
 /// and compressed again the first input's way.
 fn stored_as_first(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
-    let (input, offset, length) = found;
-    let stored = readers[input].read(&TileLocation { key, offset, length })?;
+    let input = found.input;
+    let stored = readers[input].read(&found.location(key))?;
     let layer = |i: usize| &readers[i].metadata().layers[usize::from(key.layer())];
     let (ours, theirs) = (layer(0), layer(input));
     if ours.compression == theirs.compression {
@@ -481,7 +508,7 @@ fn rederive_layers(
     // The tiles not from the first input: where the merge can have made others stale.
     let later: Vec<TileKey> = winners
         .iter()
-        .filter(|(_, found)| found.0 != 0)
+        .filter(|(_, found)| found.input != 0)
         .map(|(&k, _)| archive.tile_of(k))
         .collect::<terrastream_format::Result<_>>()?;
     // Version `i` of an LOD-0 tile several inputs hold, newest first, as stored
@@ -507,7 +534,7 @@ fn rederive_layers(
             later.iter().filter(|k| k.layer() == index).map(|k| (k.lod(), k.x(), k.y())).collect();
         let source = |lod: u8, x: u32, y: u32| -> Option<usize> {
             let key = TileKey::new(index, lod, x, y).ok()?;
-            winners.get(&Writer::order_key(metadata, key).ok()?).map(|f| f.0)
+            winners.get(&Writer::order_key(metadata, key).ok()?).map(|f| f.input)
         };
         let mut remade = Remade::default();
         match layer.kind {
