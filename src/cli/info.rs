@@ -3,9 +3,28 @@
 use std::process::ExitCode;
 
 use anyhow::Result;
+use clap::Args;
 use terrastream_format::ArchiveStats;
 
-pub fn run(path: &str, json: bool, tiles: bool) -> Result<ExitCode> {
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// The archive or manifest (`.json`): a path or an http(s):// URL.
+    archive: String,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    json: bool,
+    /// List every tile: layer, lod, x, y, absolute byte offset and length of its blob
+    /// (payload + 4-byte checksum), tab-separated.
+    #[arg(long, conflicts_with = "json")]
+    tiles: bool,
+}
+
+pub fn run(args: InfoArgs) -> Result<ExitCode> {
+    let InfoArgs { archive, json, tiles } = args;
+    if !tiles && terrastream_format::is_manifest_location(&archive) {
+        return super::manifest::info(&archive, json);
+    }
+    let path = archive.as_str();
     let reader = super::open(path)?;
     if tiles {
         use std::io::Write;

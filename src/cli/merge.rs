@@ -1,0 +1,96 @@
+//! `terrastream merge`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+
+use super::CliProgress;
+
+#[derive(Debug, Args)]
+pub struct MergeArgs {
+    /// Archives, in order: a later one's tile replaces an earlier one's. A folder stands
+    /// for the `*.tspack` files in it, by name.
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Output archive (written to a temporary name, then renamed).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Tiles several archives hold: `last` (a later archive's tile replaces the
+    /// tile), or `pixels` (a later archive's samples with data replace, its nodata
+    /// and transparent samples keep the earlier ones).
+    #[arg(long, value_enum, default_value_t = PreferArg::Last)]
+    prefer: PreferArg,
+    /// Publish the shards of a run as they are instead of one archive: the output
+    /// gets only the levels above their split LOD, and this manifest names it and
+    /// every shard (URLs relative to the manifest; FORMAT.md §9).
+    #[arg(long, conflicts_with = "prefer")]
+    manifest: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum PreferArg {
+    /// A later archive's tile replaces the tile.
+    Last,
+    /// A later archive's samples with data replace, per sample (LOD 0).
+    Pixels,
+}
+
+pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
+    let MergeArgs { inputs, output, prefer, manifest } = args;
+    if let Some(manifest) = manifest {
+        // The coarse archive of an earlier run in the shards' folder is not an input.
+        let earlier = std::fs::canonicalize(&output).ok();
+        let mut inputs = archives_in(&inputs)?;
+        inputs.retain(|p| earlier.is_none() || std::fs::canonicalize(p).ok() != earlier);
+        let summary = terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, progress)?;
+        progress.finish();
+        println!(
+            "{}: {} archives ({} tiles above the split LOD made into {}, {} bytes)",
+            manifest.display(),
+            summary.manifest.archives.len(),
+            summary.coarse.addressed_tiles,
+            output.display(),
+            summary.coarse.file_len
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let inputs = archives_in(&inputs)?;
+    let prefer = match prefer {
+        PreferArg::Last => terrastream_tiler::Prefer::Last,
+        PreferArg::Pixels => terrastream_tiler::Prefer::Pixels,
+    };
+    let summary = terrastream_tiler::merge_with(&inputs, &output, prefer, progress)?;
+    progress.finish();
+    println!(
+        "{}: {} tiles copied from {} archives ({} replaced by a later one), {} made, {} bytes",
+        output.display(),
+        summary.copied,
+        inputs.len(),
+        summary.replaced,
+        summary.made,
+        summary.write.file_len
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Paths with each folder replaced by the `*.tspack` files in it, sorted by name.
+fn archives_in(paths: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for path in paths {
+        if !path.is_dir() {
+            out.push(path.clone());
+            continue;
+        }
+        let mut found: Vec<PathBuf> = std::fs::read_dir(path)
+            .with_context(|| format!("cannot list {}", path.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "tspack") && p.is_file())
+            .collect();
+        anyhow::ensure!(!found.is_empty(), "{}: no .tspack archives in this folder", path.display());
+        found.sort();
+        out.extend(found);
+    }
+    Ok(out)
+}
