@@ -31,10 +31,10 @@ fn main() -> ExitCode {
     }
 }
 
-/// Did the command stop because it was asked to (Ctrl-C)?
+/// Did the command stop because it was asked to (Ctrl-C)? Every crate's error carries the
+/// one cancellation type as its source.
 fn interrupted(err: &anyhow::Error) -> bool {
-    matches!(err.downcast_ref::<terrastream_pack::Error>(), Some(terrastream_pack::Error::Interrupted))
-        || err.downcast_ref::<terrastream_tiler::Error>().is_some_and(terrastream_tiler::Error::is_interrupted)
+    err.chain().any(|cause| cause.is::<terrastream_format::Interrupted>())
 }
 
 /// Raises the soft limit on open files to the hard one, as tools that read thousands of
@@ -52,5 +52,22 @@ fn raise_open_files_limit() {
                 tracing::debug!("the limit on open files stays at {:?}: {e}", limit.current);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stop_is_found_whichever_crate_stopped() {
+        let stop = terrastream_format::Interrupted;
+        let from_pack = anyhow::Error::new(terrastream_pack::Error::from(stop));
+        let from_tiler = anyhow::Error::new(terrastream_tiler::Error::from(terrastream_pack::Error::from(stop)));
+        assert!(interrupted(&from_pack) && interrupted(&from_tiler.context("tiling x.tif")));
+        let other = anyhow::Error::new(terrastream_pack::Error::EmptyTile {
+            tile: terrastream_format::TileKey::new(0, 0, 0, 0).expect("a valid key"),
+        });
+        assert!(!interrupted(&other));
     }
 }

@@ -18,6 +18,6 @@ fuzz_target!(|data: &[u8]| {
         assert_eq!(row.len() % 3, 0);
         assert_eq!(*width.get_or_insert(row.len()), row.len());
         rows += 1;
-        if rows >= 4096 { Err(terrastream_tiler::Error::from(terrastream_pack::Error::Interrupted)) } else { Ok(()) }
+        if rows >= 4096 { Err(terrastream_tiler::Error::from(terrastream_pack::Error::from(terrastream_format::Interrupted))) } else { Ok(()) }
     });
 });

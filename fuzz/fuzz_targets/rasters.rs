@@ -17,7 +17,7 @@ fuzz_target!(|data: &[u8]| {
     if std::fs::write(&path, data).is_err() {
         return;
     }
-    let stop = || terrastream_tiler::Error::from(terrastream_pack::Error::Interrupted);
+    let stop = || terrastream_tiler::Error::from(terrastream_pack::Error::from(terrastream_format::Interrupted));
     let encodings = [None, Some(ElevationScheme::TerrainRgb), Some(ElevationScheme::Terrarium), Some(ElevationScheme::Gray8)];
     for scheme in encodings {
         let encoding = scheme.map(|scheme| ElevationEncoding { scheme, scale: 1.0, offset: 0.0, nodata: None });

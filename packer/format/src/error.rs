@@ -129,5 +129,12 @@ impl Error {
     }
 }
 
+/// A long operation stopped because it was asked to (Ctrl-C): the one cancellation type
+/// of every crate. Their errors carry it as their source, so a caller finds it in any
+/// error's chain of causes, whichever crate stopped.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, thiserror::Error)]
+#[error("interrupted")]
+pub struct Interrupted;
+
 /// Result alias of this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;

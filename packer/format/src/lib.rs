@@ -44,7 +44,7 @@ pub use async_reader::AsyncReader;
 pub use checksum::crc32c;
 pub use compression::{decompress, zstd_decompress};
 pub use directory::{Directory, Entry, LeafPointer, MAX_DIRECTORY_BYTES, TILE_TRAILER_LEN};
-pub use error::{Error, Result};
+pub use error::{Error, Interrupted, Result};
 pub use extent::{ExtentBuilder, LayerExtent, intersect, mercator_to_lon_lat, union};
 pub use gradient::{gradient_decode, gradient_encode, gradient_encode_into, payload_bytes};
 pub use header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section, VERSION_MAJOR, VERSION_MINOR};

@@ -102,7 +102,7 @@ pub enum Error {
     },
     /// The operation was interrupted (Ctrl-C); nothing was written under the final name.
     #[error("interrupted")]
-    Interrupted,
+    Interrupted(#[from] terrastream_format::Interrupted),
 }
 
 impl Error {

@@ -18,4 +18,5 @@ mod writer;
 pub use append::Appender;
 pub use compress::{compress_heights, zstd_compress, zstd_compress_gradient, zstd_compress_samples};
 pub use error::{Error, Result};
+pub use terrastream_format::Interrupted;
 pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, output_folder, record_extents};

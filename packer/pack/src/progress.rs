@@ -19,7 +19,7 @@ pub trait Progress: Sync {
     /// # Errors
     /// [`Error::Interrupted`].
     fn check(&self) -> Result<()> {
-        if self.cancelled() { Err(Error::Interrupted) } else { Ok(()) }
+        if self.cancelled() { Err(Error::Interrupted(terrastream_format::Interrupted)) } else { Ok(()) }
     }
 }
 

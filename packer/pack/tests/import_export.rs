@@ -202,7 +202,7 @@ fn an_interrupted_pack_leaves_no_file_behind() {
     let scanned = scan_xyz(&input, &options).unwrap();
     let stop = StopAfter { after: 256, done: 0.into() };
     let err = pack(scanned, &out, WriterOptions::default(), &stop).unwrap_err();
-    assert!(matches!(err, Error::Interrupted));
+    assert!(matches!(err, Error::Interrupted(_)));
     assert_eq!(std::fs::read_dir(&out_dir).unwrap().count(), 0, "no archive and no temporary file left");
 
     // Replacing an existing archive: the old one stays intact until the new one is complete.

@@ -10,7 +10,8 @@ use terrastream_format::TileKey;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {
-    /// Writing the archive failed (or was interrupted: `terrastream_pack::Error::Interrupted`).
+    /// Writing the archive failed (or was interrupted: `terrastream_pack::Error::Interrupted`,
+    /// whose source is the one [`terrastream_format::Interrupted`]).
     #[error(transparent)]
     Pack(#[from] terrastream_pack::Error),
     /// An option is out of its range.
@@ -103,7 +104,7 @@ impl Error {
 
     /// True when the run stopped because it was asked to (Ctrl-C).
     pub fn is_interrupted(&self) -> bool {
-        matches!(self, Self::Pack(terrastream_pack::Error::Interrupted))
+        matches!(self, Self::Pack(terrastream_pack::Error::Interrupted(_)))
     }
 }
 
@@ -118,5 +119,5 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 /// The error of a run stopped on request.
 pub(crate) fn interrupted() -> Error {
-    Error::Pack(terrastream_pack::Error::Interrupted)
+    Error::Pack(terrastream_format::Interrupted.into())
 }

@@ -43,6 +43,7 @@ pub use raster::{
     MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres,
     is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff, read_image, read_vrt,
 };
+pub use terrastream_format::Interrupted;
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
 pub use update::{UpdateSummary, update};
 
