@@ -7,9 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::{
-    Crs, ElevationSource, ElevationStorage, Heights, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
-    Pixels, ShardSpec, TextureFormat, TextureInput, TileOptions, Warped, expand_inputs, image_pixel_metres, is_vrt,
-    open_elevation, open_image, plan, tile_shard,
+    ElevationStorage, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs, plan, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -201,52 +199,6 @@ impl TileArgs {
 }
 
 pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let inputs = expand_inputs(&args.elevation)?;
-    // One geographic GeoTIFF goes onto a transverse Mercator centred on it, as a mosaic's
-    // geographic inputs do: a metre is a metre everywhere, not only at the centre latitude.
-    // A VRT is a mosaic of its sources, even alone.
-    let vrt = inputs.iter().any(|p| is_vrt(p));
-    let geographic = match inputs.as_slice() {
-        [one] if !vrt && !args.keep_geographic && args.sample_spacing.is_none() => {
-            open_elevation(one, args.encoding()?)?.is_geographic_tiff()
-        }
-        _ => false,
-    };
-    // Several inputs, a geographic one, or a CRS or spacing asked for: one mosaic on one
-    // output grid.
-    let asked = args.crs.is_some() || args.resolution.is_some();
-    let mosaic = if !inputs.is_empty() && (inputs.len() > 1 || vrt || geographic || asked) {
-        let crs = args.crs.as_deref().map(Crs::parse).transpose()?;
-        let options = MosaicOptions {
-            crs,
-            resolution: args.resolution,
-            cache_bytes: None,
-            extent: None,
-            skip_bad_inputs: args.skip_bad_inputs,
-        };
-        let mosaic = Mosaic::<Heights>::open(&inputs, &options)?;
-        let (w, h) = mosaic.size();
-        tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
-        Some(mosaic)
-    } else {
-        None
-    };
-    let file = match inputs.first().filter(|_| mosaic.is_none()) {
-        Some(path) => {
-            let mut file = open_elevation(path, args.encoding()?)?;
-            match args.sample_spacing {
-                Some(s) if s.is_finite() && s > 0.0 => file = file.with_spacing(s),
-                Some(s) => bail!("--sample-spacing {s}: must be positive metres"),
-                None if !file.is_georeferenced() => tracing::warn!(
-                    "{} does not say where it lies: 1 m between samples (set --sample-spacing)",
-                    path.display()
-                ),
-                None => {}
-            }
-            Some(file)
-        }
-        None => None,
-    };
     let format = match args.texture_format {
         TextureFormatArg::Png => TextureFormat::Png,
         TextureFormatArg::Jpeg => TextureFormat::Jpeg(args.jpeg_quality),
@@ -254,76 +206,24 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         TextureFormatArg::Bc1 => TextureFormat::Bc1,
         TextureFormatArg::Bc7 => TextureFormat::Bc7,
     };
-    let elevation: Option<&dyn ElevationSource> = match (&mosaic, &file) {
-        (Some(m), _) => Some(m),
-        (None, Some(f)) => Some(f),
-        (None, None) => None,
+    let request = TileRequest {
+        elevation: expand_inputs(&args.elevation)?,
+        texture: expand_inputs(&args.texture)?,
+        encoding: args.encoding()?,
+        crs: args.crs.clone(),
+        resolution: args.resolution,
+        keep_geographic: args.keep_geographic,
+        sample_spacing: args.sample_spacing,
+        height_range: args.height_range,
+        skip_bad_inputs: args.skip_bad_inputs,
+        texture_tile_size: args.texture_tile_size,
+        texture_format: format,
+        pixel_size: args.pixel_size,
     };
-    let known = match (elevation, args.height_range) {
-        (Some(e), Some(range)) => Some(KnownRange::new(e, range)),
-        _ => None,
-    };
-    let elevation: Option<&dyn ElevationSource> = match &known {
-        Some(k) => Some(k),
-        None => elevation,
-    };
-    let textures = expand_inputs(&args.texture)?;
-    // Several images (or a VRT of them): one mosaic over the elevation's extent, in its CRS;
-    // with no elevation, in the CRS and at the resolution asked for, if any (then even one
-    // image is reprojected).
-    let alone = elevation.is_none() && asked;
-    let image_mosaic = if textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone {
-        let (crs, extent, resolution) = match elevation {
-            Some(e) => {
-                let (crs, extent) = elevation_extent(e)?;
-                (crs, extent, None)
-            }
-            None => (args.crs.as_deref().map(Crs::parse).transpose()?, None, args.resolution),
-        };
-        let skip_bad_inputs = args.skip_bad_inputs;
-        let options = MosaicOptions { crs, extent, resolution, skip_bad_inputs, ..MosaicOptions::default() };
-        let mosaic = Mosaic::<Pixels>::open(&textures, &options)?;
-        let (w, h) = ImageSource::size(&mosaic);
-        tracing::info!("texture: a mosaic of {} images in {}, {w} x {h} pixels", textures.len(), mosaic.crs().name());
-        Some(mosaic)
-    } else {
-        None
-    };
-    let image = match textures.first() {
-        Some(path) if image_mosaic.is_none() => Some(open_image(path)?),
-        _ => None,
-    };
-    // Both georeferenced in one CRS: only the part of the image over the elevation is used.
-    let window = match (elevation, &image) {
-        (Some(e), Some(i)) => ImageWindow::over(e, i)?,
-        _ => None,
-    };
-    if let Some(w) = &window {
-        let (x, y, width, height) = w.bounds();
-        tracing::info!("texture: pixels {x}..{}, {y}..{} of the image lie over the elevation", x + width, y + height);
-    }
-    // Georeferenced in another CRS: resampled onto the elevation by both georeferences.
-    let warped = match (elevation, &image) {
-        (Some(e), Some(i)) => Warped::over(e, i)?,
-        _ => None,
-    };
-    if let Some(w) = &warped {
-        let (width, height) = w.size();
-        tracing::info!("texture: reprojected onto the elevation's extent, {width}x{height} texels");
-    }
-    let source: Option<&dyn ImageSource> = match (&image_mosaic, &warped, &window, &image) {
-        (Some(m), ..) => Some(m),
-        (None, Some(w), ..) => Some(w),
-        (None, None, Some(w), _) => Some(w),
-        (None, None, None, Some(i)) => Some(i),
-        (None, None, None, None) => None,
-    };
-    let texture = source.map(|source| TextureInput {
-        source,
-        tile_size: args.texture_tile_size,
-        format,
-        pixel_size: texture_pixel_size(args.pixel_size, source),
-    });
+    let sources = Sources::open(&request)?;
+    let inputs = sources.inputs()?;
+    let elevation = inputs.elevation();
+    let texture = inputs.texture();
     let name = args.name.clone().unwrap_or_else(|| {
         let input = args.elevation.first().or(args.texture.first());
         input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()
@@ -374,7 +274,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             plan.tiles(),
             plan.estimated_bytes() as f64 / f64::from(1 << 20)
         );
-        print_skipped(mosaic.as_ref(), image_mosaic.as_ref());
+        print_skipped(&sources);
         return Ok(ExitCode::SUCCESS);
     }
     let Some(output) = &args.output else { bail!("--output is required") };
@@ -385,7 +285,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         terrastream_tiler::single_manifest(output, manifest)?;
         println!("{}: manifest of {}", manifest.display(), output.display());
     }
-    print_skipped(mosaic.as_ref(), image_mosaic.as_ref());
+    print_skipped(&sources);
     println!(
         "{}: {} tiles, {} bytes in {:.2} s",
         output.display(),
@@ -399,38 +299,12 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
 /// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, wholly (when
 /// opened, or when their heights were scanned) or in part (strips or tiles that could not
 /// be decoded when rows were made).
-fn print_skipped(heights: Option<&Mosaic<Heights>>, imagery: Option<&Mosaic<Pixels>>) {
-    let skipped: Vec<(PathBuf, String)> =
-        heights.map(Mosaic::skipped).into_iter().chain(imagery.map(Mosaic::skipped)).flatten().collect();
+fn print_skipped(sources: &Sources) {
+    let skipped = sources.skipped();
     if !skipped.is_empty() {
         println!("skipped {} inputs, wholly or in part, that cannot be used:", skipped.len());
         for (_, why) in skipped {
             println!("  {why}");
         }
     }
-}
-
-/// The elevation's CRS and extent (min x, min y, max x, max y there), for imagery that
-/// must cover it; `None`s when the elevation does not say where it lies.
-fn elevation_extent(e: &dyn ElevationSource) -> Result<(Option<Crs>, Option<[f64; 4]>)> {
-    let g = e.georeference();
-    let (Some(crs), Some(origin), Some((px, py))) =
-        (g.and_then(|g| g.crs.as_deref()), g.and_then(|g| g.origin), e.crs_pixel_size())
-    else {
-        return Ok((None, None));
-    };
-    let (w, h) = e.size();
-    let extent = [origin[0], origin[1] - f64::from(h) * py, origin[0] + f64::from(w) * px, origin[1]];
-    Ok((Some(Crs::parse(crs)?), Some(extent)))
-}
-
-/// Metres per pixel of a texture tiled without elevation: `--pixel-size`, else the pixel
-/// its georeference gives, else 1.
-fn texture_pixel_size(given: Option<f64>, source: &dyn ImageSource) -> f64 {
-    if let Some(metres) = given {
-        return metres;
-    }
-    let Some(metres) = image_pixel_metres(source) else { return 1.0 };
-    tracing::info!("texture: {metres:.3} m per pixel, from {}'s georeference", source.path().display());
-    metres
 }

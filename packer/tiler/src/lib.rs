@@ -28,6 +28,7 @@ mod plan;
 pub mod pyramid;
 pub mod raster;
 mod rederive;
+mod request;
 mod shard;
 mod tile;
 mod update;
@@ -43,6 +44,7 @@ pub use raster::{
     MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres,
     is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff, read_image, read_vrt,
 };
+pub use request::{Inputs, Sources, TileRequest};
 pub use terrastream_format::Interrupted;
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
 pub use update::{UpdateSummary, update};

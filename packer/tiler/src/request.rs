@@ -1,0 +1,281 @@
+//! A tiling request as a user states it (inputs, CRS, resolution, encodings), and the
+//! decisions that turn it into sources: one elevation file or a mosaic of several (or of
+//! one geographic file, onto a transverse Mercator centred on it), imagery as one file,
+//! a window of it over the elevation, a warp of it onto the elevation, or a mosaic.
+//! `terrastream tile` and any library caller go through [`Sources::open`] and
+//! [`Sources::inputs`], then [`crate::plan`] or [`crate::tile_shard`].
+
+use std::path::{Path, PathBuf};
+
+use terrastream_format::ElevationEncoding;
+
+use crate::crs::Crs;
+use crate::error::{Error, Result};
+use crate::options::{TextureFormat, TextureInput};
+use crate::raster::{
+    ElevationFile, ElevationSource, Heights, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
+    Pixels, Warped, image_pixel_metres, is_vrt, open_elevation, open_image,
+};
+
+/// What to tile.
+#[derive(Clone, Debug)]
+pub struct TileRequest {
+    /// Elevation rasters (files, expanded: see [`crate::expand_inputs`]).
+    pub elevation: Vec<PathBuf>,
+    /// Imagery (files, expanded).
+    pub texture: Vec<PathBuf>,
+    /// How the elevation's pixels map to heights (`None`: samples are heights).
+    pub encoding: Option<ElevationEncoding>,
+    /// Output CRS of a mosaic (`EPSG:xxxx` or a PROJ string); asking for one makes a mosaic.
+    pub crs: Option<String>,
+    /// Output spacing of a mosaic in metres; asking for one makes a mosaic.
+    pub resolution: Option<f64>,
+    /// Keep one geographic input on its own grid instead of a transverse Mercator.
+    pub keep_geographic: bool,
+    /// Metres between samples of an input that does not say.
+    pub sample_spacing: Option<f64>,
+    /// The height range, known beforehand (a shard of a run): no range pass.
+    pub height_range: Option<(f32, f32)>,
+    /// Leave out mosaic inputs, or parts of them, that cannot be used.
+    pub skip_bad_inputs: bool,
+    /// Texture pixels per tile edge.
+    pub texture_tile_size: u32,
+    /// Texture tile encoding.
+    pub texture_format: TextureFormat,
+    /// Metres per texture pixel without elevation (default: the georeference's, else 1).
+    pub pixel_size: Option<f64>,
+}
+
+/// The opened inputs of a [`TileRequest`].
+pub struct Sources {
+    heights: Option<Mosaic<Heights>>,
+    file: Option<ElevationFile>,
+    images: Option<Mosaic<Pixels>>,
+    image: Option<ImageFile>,
+    height_range: Option<(f32, f32)>,
+    texture_tile_size: u32,
+    texture_format: TextureFormat,
+    pixel_size: Option<f64>,
+}
+
+impl std::fmt::Debug for Sources {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Sources")
+            .field("height_mosaic", &self.heights.is_some())
+            .field("image_mosaic", &self.images.is_some())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Sources {
+    /// Opens the request's inputs (headers; a mosaic's footprints), deciding how each is read.
+    ///
+    /// # Errors
+    /// [`Error::Input`] naming an input that cannot be used, [`Error::Option`] for a bad
+    /// spacing, CRS errors.
+    pub fn open(request: &TileRequest) -> Result<Self> {
+        let inputs = &request.elevation;
+        // One geographic GeoTIFF goes onto a transverse Mercator centred on it, as a mosaic's
+        // geographic inputs do: a metre is a metre everywhere, not only at the centre latitude.
+        // A VRT is a mosaic of its sources, even alone.
+        let vrt = inputs.iter().any(|p| is_vrt(p));
+        let geographic = match inputs.as_slice() {
+            [one] if !vrt && !request.keep_geographic && request.sample_spacing.is_none() => {
+                open_elevation(one, request.encoding)?.is_geographic_tiff()
+            }
+            _ => false,
+        };
+        let crs = request.crs.as_deref().map(Crs::parse).transpose()?;
+        // Several inputs, a geographic one, or a CRS or spacing asked for: one mosaic on one
+        // output grid.
+        let asked = request.crs.is_some() || request.resolution.is_some();
+        let heights = if !inputs.is_empty() && (inputs.len() > 1 || vrt || geographic || asked) {
+            let options = MosaicOptions {
+                crs: crs.clone(),
+                resolution: request.resolution,
+                cache_bytes: None,
+                extent: None,
+                skip_bad_inputs: request.skip_bad_inputs,
+            };
+            let mosaic = Mosaic::<Heights>::open(inputs, &options)?;
+            let (w, h) = mosaic.size();
+            tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
+            Some(mosaic)
+        } else {
+            None
+        };
+        let file = match inputs.first().filter(|_| heights.is_none()) {
+            Some(path) => Some(elevation_file(path, request)?),
+            None => None,
+        };
+        let elevation: Option<&dyn ElevationSource> = match (&heights, &file) {
+            (Some(m), _) => Some(m),
+            (None, Some(f)) => Some(f),
+            (None, None) => None,
+        };
+        let textures = &request.texture;
+        // Several images (or a VRT of them): one mosaic over the elevation's extent, in its
+        // CRS; with no elevation, in the CRS and at the resolution asked for, if any (then
+        // even one image is reprojected).
+        let alone = elevation.is_none() && asked;
+        let images = if textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone {
+            let (crs, extent, resolution) = match elevation {
+                Some(e) => {
+                    let (crs, extent) = elevation_extent(e)?;
+                    (crs, extent, None)
+                }
+                None => (crs, None, request.resolution),
+            };
+            let options = MosaicOptions {
+                crs,
+                extent,
+                resolution,
+                skip_bad_inputs: request.skip_bad_inputs,
+                ..MosaicOptions::default()
+            };
+            let mosaic = Mosaic::<Pixels>::open(textures, &options)?;
+            let (w, h) = ImageSource::size(&mosaic);
+            tracing::info!(
+                "texture: a mosaic of {} images in {}, {w} x {h} pixels",
+                textures.len(),
+                mosaic.crs().name()
+            );
+            Some(mosaic)
+        } else {
+            None
+        };
+        let image = match textures.first() {
+            Some(path) if images.is_none() => Some(open_image(path)?),
+            _ => None,
+        };
+        Ok(Self {
+            heights,
+            file,
+            images,
+            image,
+            height_range: request.height_range,
+            texture_tile_size: request.texture_tile_size,
+            texture_format: request.texture_format,
+            pixel_size: request.pixel_size,
+        })
+    }
+
+    /// The sources to plan and tile: the elevation (with its known range) and the imagery
+    /// placed over it (a window of it in the elevation's CRS, a warp of it from another).
+    ///
+    /// # Errors
+    /// [`Error::Input`] for imagery whose georeference cannot be placed over the elevation.
+    pub fn inputs(&self) -> Result<Inputs<'_>> {
+        let base: Option<&dyn ElevationSource> = match (&self.heights, &self.file) {
+            (Some(m), _) => Some(m),
+            (None, Some(f)) => Some(f),
+            (None, None) => None,
+        };
+        let known = base.zip(self.height_range).map(|(e, range)| KnownRange::new(e, range));
+        let image = self.image.as_ref().map(|i| i as &dyn ImageSource);
+        // Both georeferenced in one CRS: only the part of the image over the elevation is used.
+        let window = match (base, image) {
+            (Some(e), Some(i)) => ImageWindow::over(e, i)?,
+            _ => None,
+        };
+        if let Some(w) = &window {
+            let (x, y, width, height) = w.bounds();
+            tracing::info!(
+                "texture: pixels {x}..{}, {y}..{} of the image lie over the elevation",
+                x + width,
+                y + height
+            );
+        }
+        // Georeferenced in another CRS: resampled onto the elevation by both georeferences.
+        let warped = match (base, image) {
+            (Some(e), Some(i)) => Warped::over(e, i)?,
+            _ => None,
+        };
+        if let Some(w) = &warped {
+            let (width, height) = w.size();
+            tracing::info!("texture: reprojected onto the elevation's extent, {width}x{height} texels");
+        }
+        Ok(Inputs { sources: self, base, known, window, warped })
+    }
+
+    /// Inputs left out with `skip_bad_inputs`, wholly or in part, and why.
+    pub fn skipped(&self) -> Vec<(PathBuf, String)> {
+        self.heights.iter().flat_map(Mosaic::skipped).chain(self.images.iter().flat_map(Mosaic::skipped)).collect()
+    }
+}
+
+/// The sources of a request, placed: see [`Sources::inputs`].
+pub struct Inputs<'a> {
+    sources: &'a Sources,
+    base: Option<&'a dyn ElevationSource>,
+    known: Option<KnownRange<'a>>,
+    window: Option<ImageWindow<'a>>,
+    warped: Option<Warped<'a>>,
+}
+
+impl Inputs<'_> {
+    /// The elevation, if any.
+    pub fn elevation(&self) -> Option<&dyn ElevationSource> {
+        match &self.known {
+            Some(k) => Some(k),
+            None => self.base,
+        }
+    }
+
+    /// The imagery as the tiler takes it, if any.
+    pub fn texture(&self) -> Option<TextureInput<'_>> {
+        let s = self.sources;
+        let source: &dyn ImageSource = match (&s.images, &self.warped, &self.window, &s.image) {
+            (Some(m), ..) => m,
+            (None, Some(w), ..) => w,
+            (None, None, Some(w), _) => w,
+            (None, None, None, Some(i)) => i,
+            (None, None, None, None) => return None,
+        };
+        Some(TextureInput {
+            source,
+            tile_size: s.texture_tile_size,
+            format: s.texture_format,
+            pixel_size: texture_pixel_size(s.pixel_size, source),
+        })
+    }
+}
+
+/// One elevation file, with the spacing asked for where it says none.
+fn elevation_file(path: &Path, request: &TileRequest) -> Result<ElevationFile> {
+    let mut file = open_elevation(path, request.encoding)?;
+    match request.sample_spacing {
+        Some(s) if s.is_finite() && s > 0.0 => file = file.with_spacing(s),
+        Some(s) => return Err(Error::option("--sample-spacing", s, "positive metres")),
+        None if !file.is_georeferenced() => {
+            tracing::warn!("{} does not say where it lies: 1 m between samples (set --sample-spacing)", path.display())
+        }
+        None => {}
+    }
+    Ok(file)
+}
+
+/// The elevation's CRS and extent (min x, min y, max x, max y there), for imagery that
+/// must cover it; `None`s when the elevation does not say where it lies.
+fn elevation_extent(e: &dyn ElevationSource) -> Result<(Option<Crs>, Option<[f64; 4]>)> {
+    let g = e.georeference();
+    let (Some(crs), Some(origin), Some((px, py))) =
+        (g.and_then(|g| g.crs.as_deref()), g.and_then(|g| g.origin), e.crs_pixel_size())
+    else {
+        return Ok((None, None));
+    };
+    let (w, h) = e.size();
+    let extent = [origin[0], origin[1] - f64::from(h) * py, origin[0] + f64::from(w) * px, origin[1]];
+    Ok((Some(Crs::parse(crs)?), Some(extent)))
+}
+
+/// Metres per pixel of a texture tiled without elevation: the size given, else the pixel
+/// its georeference gives, else 1.
+fn texture_pixel_size(given: Option<f64>, source: &dyn ImageSource) -> f64 {
+    if let Some(metres) = given {
+        return metres;
+    }
+    let Some(metres) = image_pixel_metres(source) else { return 1.0 };
+    tracing::info!("texture: {metres:.3} m per pixel, from {}'s georeference", source.path().display());
+    metres
+}
