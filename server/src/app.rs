@@ -291,19 +291,25 @@ async fn tile(
     Path((name, layer, lod, x, y)): Path<(String, String, u8, u32, u32)>,
     req: Request,
 ) -> Response {
-    tile_answer(&state, &name, &layer, (lod, x, y), req.headers()).map(Body::new)
+    tile_answer(&state, &name, &layer, TileAt { lod, x, y }, req.headers()).map(Body::new)
+}
+
+/// A tile as a request's path names it, beside its layer's name: the layer is resolved
+/// against the archive's metadata before the tile becomes a [`TileKey`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct TileAt {
+    /// LOD, 0 the finest.
+    pub(crate) lod: u8,
+    /// Column.
+    pub(crate) x: u32,
+    /// Row.
+    pub(crate) y: u32,
 }
 
 /// The answer of `GET|HEAD /{name}/{layer}/{lod}/{x}/{y}`, for the router and for the lean
 /// HTTP/1.1 path. Reads no request header but those in `route::READ_HEADERS`.
-#[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod = at.0, x = at.1, y = at.2))]
-pub(crate) fn tile_answer(
-    state: &AppState,
-    name: &str,
-    layer: &str,
-    at: (u8, u32, u32),
-    headers: &HeaderMap,
-) -> Answer {
+#[tracing::instrument(level = "debug", skip_all, fields(name = %name, layer = %layer, lod = at.lod, x = at.x, y = at.y))]
+pub(crate) fn tile_answer(state: &AppState, name: &str, layer: &str, at: TileAt, headers: &HeaderMap) -> Answer {
     tile_located(state, name, layer, at, headers).unwrap_or_else(AppError::into_answer)
 }
 
@@ -311,7 +317,7 @@ fn tile_located(
     state: &AppState,
     name: &str,
     layer: &str,
-    (lod, x, y): (u8, u32, u32),
+    TileAt { lod, x, y }: TileAt,
     headers: &HeaderMap,
 ) -> Result<Answer, AppError> {
     let served = archive(state, name)?;

@@ -33,7 +33,7 @@ use bytes::{Buf, Bytes};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, ReadBuf};
 use tokio::sync::watch;
 
-use crate::app::{Answer, AppState, archive_answer, tile_answer};
+use crate::app::{Answer, AppState, TileAt, archive_answer, tile_answer};
 use crate::edge::finish;
 use crate::route::{READ_HEADERS, Route};
 use crate::sendfile::Stream;
@@ -75,7 +75,7 @@ struct Request<'a> {
 /// A request the lean path answers itself, its path's segments captured.
 enum Lean<'a> {
     Archive(&'a str),
-    Tile { name: &'a str, layer: &'a str, at: (u8, u32, u32) },
+    Tile { name: &'a str, layer: &'a str, at: TileAt },
 }
 
 impl Lean<'_> {
@@ -283,7 +283,11 @@ fn route(path: &str) -> Option<Lean<'_>> {
             Some(Lean::Archive(file))
         }
         [Some(name), Some(layer), Some(lod), Some(x), Some(y), None] if !name.is_empty() && !layer.is_empty() => {
-            Some(Lean::Tile { name, layer, at: (lod.parse().ok()?, x.parse().ok()?, y.parse().ok()?) })
+            Some(Lean::Tile {
+                name,
+                layer,
+                at: TileAt { lod: lod.parse().ok()?, x: x.parse().ok()?, y: y.parse().ok()? },
+            })
         }
         _ => None,
     }
