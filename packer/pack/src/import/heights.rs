@@ -1,8 +1,11 @@
 //! The height range of an elevation pyramid, read from its tiles (Terrain-RGB, Terrarium,
 //! gray): a pyramid's files say nothing of it, and readers frame and cull by it.
 
-use rayon::prelude::*;
-use terrastream_format::{ElevationEncoding, Layer, LayerKind, Metadata, TileFormat};
+#[cfg(test)]
+use terrastream_format::TileFormat;
+use terrastream_format::{ElevationEncoding, Metadata};
+
+use super::pixels::Pixels;
 
 /// The lowest and highest height seen, over any number of tiles.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -20,24 +23,6 @@ impl HeightRange {
         }
     }
 
-    /// The heights of a layer's tiles, decoded in parallel (none for other layers).
-    ///
-    /// # Errors
-    /// A tile (its `W`) that is not an image of the layer's encoding, and why.
-    pub fn of_tiles<'a, W: Send>(
-        layer: &Layer,
-        tiles: impl IntoParallelIterator<Item = (&'a [u8], W)>,
-    ) -> Result<Self, (W, String)> {
-        let Some(encoding) = layer.elevation.filter(|_| layer.kind == LayerKind::Elevation) else {
-            return Ok(Self::default());
-        };
-        let format = layer.format;
-        tiles
-            .into_par_iter()
-            .map(|(bytes, what)| tile_heights(format, bytes, &encoding).map_err(|e| (what, e)))
-            .try_reduce(Self::default, |a, b| Ok(a.merge(b)))
-    }
-
     /// Writes the range into the metadata's terrain (kept as it was when no sample was seen).
     pub fn record(self, metadata: &mut Metadata) {
         if let Some((lo, hi)) = self.range {
@@ -49,35 +34,20 @@ impl HeightRange {
 }
 
 /// The heights of one image tile of an elevation layer (pixels with alpha 0 are no data).
+#[cfg(test)]
 fn tile_heights(format: TileFormat, bytes: &[u8], encoding: &ElevationEncoding) -> Result<HeightRange, String> {
-    let (channels, data) = match format {
-        TileFormat::Png => {
-            let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
-            decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-            let mut reader = decoder.read_info().map_err(|e| format!("PNG: {e}"))?;
-            let mut data = vec![0; reader.output_buffer_size().ok_or("PNG: too large")?];
-            let info = reader.next_frame(&mut data).map_err(|e| format!("PNG: {e}"))?;
-            data.truncate(info.buffer_size());
-            (info.color_type.samples(), data)
-        }
-        TileFormat::Webp => {
-            let mut decoder =
-                image_webp::WebPDecoder::new(std::io::Cursor::new(bytes)).map_err(|e| format!("WebP: {e}"))?;
-            let channels = if decoder.has_alpha() { 4 } else { 3 };
-            let mut data = vec![0; decoder.output_buffer_size().ok_or("WebP: too large")?];
-            decoder.read_image(&mut data).map_err(|e| format!("WebP: {e}"))?;
-            (channels, data)
-        }
-        // Lossy JPEG heights are not read for their range; stored heights are not images.
-        _ => return Ok(HeightRange::default()),
-    };
-    let scheme = encoding.scheme;
+    Ok(Pixels::decode(format, bytes)?.map(|p| pixel_heights(&p, encoding)).transpose()?.unwrap_or_default())
+}
+
+/// The heights of a decoded elevation tile (pixels with alpha 0 are no data).
+pub(crate) fn pixel_heights(pixels: &Pixels, encoding: &ElevationEncoding) -> Result<HeightRange, String> {
+    let (channels, scheme) = (pixels.channels, encoding.scheme);
     if scheme.needs_rgb() && channels < 3 {
         return Err(format!("{scheme:?} needs an RGB image, this one has {channels} channel(s)"));
     }
-    let alpha = matches!(channels, 2 | 4).then_some(channels - 1);
+    let alpha = pixels.alpha();
     let mut range: Option<(f64, f64)> = None;
-    for px in data.chunks_exact(channels) {
+    for px in pixels.data.chunks_exact(channels) {
         if alpha.is_some_and(|a| px[a] == 0) {
             continue;
         }

@@ -12,10 +12,9 @@ use std::path::{Path, PathBuf};
 use bytes::Bytes;
 use terrastream_format::{LayerKind, Metadata, TileKey};
 
-use super::heights::HeightRange;
 use super::mbtiles::open_mbtiles;
-use super::opaque::OpaqueBox;
 use super::pmtiles::open_pmtiles;
+use super::scan::TileScan;
 use super::xyz::{TilesetInput, XYZ_KEY, XyzOptions, scan_xyz};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
@@ -95,7 +94,7 @@ fn open(input: &LayerInput, progress: &dyn Progress) -> Result<Opened<'static>> 
     }
 }
 
-/// Tiles read and decoded (for their heights) per step.
+/// Tiles read and scanned (heights, opaque rims) per step.
 const BATCH: usize = 256;
 
 /// Writes opened sources as the layers of one archive, in the order given.
@@ -119,12 +118,8 @@ pub(crate) fn write_layers(
         }
     }
     order.sort_unstable_by_key(|t| t.0);
-    let mut opaque: Vec<OpaqueBox> = (0u8..)
-        .zip(&metadata.layers)
-        .filter_map(|(index, layer)| OpaqueBox::new(index, layer, order.iter().map(|t| t.1)))
-        .collect();
+    let mut scan = TileScan::new(&metadata, order.iter().map(|t| t.1));
     let mut writer = Writer::create(out, metadata, options)?;
-    let mut heights = HeightRange::default();
     progress.start("pack", order.len() as u64);
     for batch in order.chunks(BATCH) {
         progress.check()?;
@@ -132,30 +127,21 @@ pub(crate) fn write_layers(
         for &(_, key, source, index) in batch {
             let opened = &mut sources[source];
             let what = &opened.tiles[index].1;
-            let bytes = (opened.read)(index, what)?;
-            read.push((key, source, index, bytes));
+            read.push((key, (opened.read)(index, what)?));
         }
-        for (layer_index, layer) in writer.metadata().layers.iter().enumerate() {
-            let of_layer: Vec<(&[u8], (usize, usize))> = read
-                .iter()
-                .filter(|(key, ..)| usize::from(key.layer()) == layer_index)
-                .map(|(_, source, index, bytes)| (&bytes[..], (*source, *index)))
-                .collect();
-            let found = HeightRange::of_tiles(layer, of_layer).map_err(|((source, index), why)| {
-                Error::input(&sources[source].input, format!("{}: {why}", sources[source].tiles[index].1))
-            })?;
-            heights = heights.merge(found);
-        }
+        let tiles: Vec<(TileKey, &[u8])> = read.iter().map(|(key, bytes)| (*key, &bytes[..])).collect();
+        scan.scan(writer.metadata(), &tiles).map_err(|(i, why)| {
+            let (_, _, source, index) = batch[i];
+            Error::input(&sources[source].input, format!("{}: {why}", sources[source].tiles[index].1))
+        })?;
         let count = read.len() as u64;
-        for (key, _, _, bytes) in read {
-            opaque.iter_mut().for_each(|o| o.add(key, &bytes));
+        for (key, bytes) in read {
             writer.add_stored(key, bytes.into())?;
         }
         progress.advance(count);
     }
     progress.check()?;
-    super::record_heights(&mut writer, heights)?;
-    super::record_opaque(&mut writer, &opaque)?;
+    scan.record(&mut writer)?;
     writer.finish()
 }
 

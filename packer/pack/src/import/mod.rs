@@ -13,17 +13,17 @@ mod layers;
 mod mbtiles;
 mod opaque;
 pub(crate) mod original;
+mod pixels;
 mod pmtiles;
+mod scan;
 mod xyz;
 
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
-pub use heights::HeightRange;
 pub use layers::{LayerInput, PyramidSource, pack_layers};
 pub use mbtiles::pack_mbtiles;
-pub use opaque::OpaqueBox;
 pub use original::{LAYOUT_KEY, LayerNaming, LayoutRecord, OriginalLayout, scan_original};
 pub use pmtiles::pack_pmtiles;
 pub use xyz::{Scheme, TilesetInput, XYZ_KEY, XyzOptions, XyzRecord, fill_template, scan_xyz};
@@ -31,6 +31,7 @@ pub use xyz::{Scheme, TilesetInput, XYZ_KEY, XyzOptions, XyzRecord, fill_templat
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use crate::writer::{WriteSummary, Writer, WriterOptions};
+use scan::TileScan;
 use terrastream_format::TileKey;
 use terrastream_format::{Metadata, TileFormat};
 
@@ -77,12 +78,8 @@ pub fn pack(
     options: WriterOptions,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
-    let mut opaque: Vec<OpaqueBox> = (0u8..)
-        .zip(&scanned.metadata.layers)
-        .filter_map(|(index, layer)| OpaqueBox::new(index, layer, scanned.tiles.iter().map(|t| t.0)))
-        .collect();
+    let mut scan = TileScan::new(&scanned.metadata, scanned.tiles.iter().map(|t| t.0));
     let mut writer = Writer::create(out, scanned.metadata, options)?;
-    let mut heights = HeightRange::default();
     progress.start("pack", scanned.tiles.len() as u64);
     for chunk in scanned.tiles.chunks(READ_CHUNK) {
         progress.check()?;
@@ -93,66 +90,16 @@ pub fn pack(
             .zip(formats.par_iter())
             .map(|((_, path), &format)| read_tile(path, format))
             .collect::<Result<Vec<Vec<u8>>>>()?;
-        for (index, layer) in writer.metadata().layers.iter().enumerate() {
-            let of_layer = chunk
-                .iter()
-                .zip(&read)
-                .filter(|((t, _), _)| usize::from(t.layer()) == index)
-                .map(|((_, path), bytes)| (bytes.as_slice(), path))
-                .collect::<Vec<_>>();
-            let found = HeightRange::of_tiles(layer, of_layer).map_err(|(path, why)| Error::input(path, why))?;
-            heights = heights.merge(found);
-        }
+        let batch: Vec<(TileKey, &[u8])> = chunk.iter().zip(&read).map(|((t, _), b)| (*t, b.as_slice())).collect();
+        scan.scan(writer.metadata(), &batch).map_err(|(i, why)| Error::input(&chunk[i].1, why))?;
         for ((tile, _), bytes) in chunk.iter().zip(read) {
-            opaque.iter_mut().for_each(|o| o.add(*tile, &bytes));
             writer.add_stored(*tile, bytes)?;
         }
         progress.advance(chunk.len() as u64);
     }
     progress.check()?;
-    record_heights(&mut writer, heights)?;
-    record_opaque(&mut writer, &opaque)?;
+    scan.record(&mut writer)?;
     writer.finish()
-}
-
-/// Narrows the boxes of image layers to where their tiles have opaque pixels: every LOD's
-/// for the data's box, the finest LOD's for the detail box (the writer takes them as
-/// bounds on what the tiles say).
-///
-/// # Errors
-/// A metadata error (none for boxes inside the grid).
-pub(crate) fn record_opaque(writer: &mut Writer, boxes: &[OpaqueBox]) -> Result<()> {
-    let found: Vec<(u8, [f64; 4], [f64; 4])> = boxes.iter().filter_map(OpaqueBox::finish).collect();
-    if found.is_empty() {
-        return Ok(());
-    }
-    let mut metadata = writer.metadata().clone();
-    for (index, world, detail) in found {
-        if let Some(layer) = metadata.layers.get_mut(usize::from(index)) {
-            layer.extent = Some(terrastream_format::LayerExtent {
-                coarsest_lod: 0,
-                finest_lod: 0,
-                world,
-                detail,
-                crs: None,
-                lon_lat: None,
-            });
-        }
-    }
-    writer.set_metadata(metadata)
-}
-
-/// Writes the height range read from an elevation pyramid's tiles into the metadata.
-///
-/// # Errors
-/// A metadata error (none for a range of finite heights).
-pub(crate) fn record_heights(writer: &mut Writer, heights: HeightRange) -> Result<()> {
-    if heights.range.is_some() {
-        let mut metadata = writer.metadata().clone();
-        heights.record(&mut metadata);
-        writer.set_metadata(metadata)?;
-    }
-    Ok(())
 }
 
 pub(crate) fn read_tile(path: &Path, format: TileFormat) -> Result<Vec<u8>> {

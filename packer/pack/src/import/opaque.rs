@@ -4,12 +4,13 @@
 
 use terrastream_format::{Layer, LayerKind, TileFormat, TileKey};
 
+use super::pixels::Pixels;
+
 /// Accumulates, per LOD, the box of the opaque pixels of the tiles on the rim of that
 /// LOD's tile box (tiles inside it are taken as opaque: they do not reach its edge).
 #[derive(Clone, Debug)]
 pub struct OpaqueBox {
     layer: u8,
-    format: TileFormat,
     /// Per LOD: its tile box (inclusive), its tile size in world units, and the opaque
     /// pixels' box in world units so far.
     lods: Vec<Option<LodBox>>,
@@ -55,22 +56,33 @@ impl OpaqueBox {
             };
             lods[lod] = Some(LodBox { tiles, size: layer.world_size_at(k.lod()), found: None });
         }
-        lods.iter().any(Option::is_some).then_some(Self { layer: index, format: layer.format, lods })
+        lods.iter().any(Option::is_some).then_some(Self { layer: index, lods })
+    }
+
+    /// Is `key` a tile of this layer on the rim of its LOD's box (whose pixels count)?
+    pub fn on_rim(&self, key: TileKey) -> bool {
+        let Some(Some(lod)) = self.lods.get(usize::from(key.lod())).filter(|_| key.layer() == self.layer) else {
+            return false;
+        };
+        let [x0, y0, x1, y1] = lod.tiles;
+        key.x() == x0 || key.x() == x1 || key.y() == y0 || key.y() == y1
     }
 
     /// Counts a tile's pixels, if it is on the rim of its LOD's box (else nothing).
+    #[cfg(test)]
     pub fn add(&mut self, key: TileKey, bytes: &[u8]) {
-        if key.layer() != self.layer {
+        let pixels = TileFormat::sniff(bytes).and_then(|f| Pixels::decode(f, bytes).ok().flatten());
+        self.add_pixels(key, pixels.as_ref());
+    }
+
+    /// Counts a rim tile's decoded pixels (`None`: it did not decode, and counts whole:
+    /// the pack stores it as it is).
+    pub(crate) fn add_pixels(&mut self, key: TileKey, pixels: Option<&Pixels>) {
+        if !self.on_rim(key) {
             return;
         }
-        let format = self.format;
         let Some(Some(lod)) = self.lods.get_mut(usize::from(key.lod())) else { return };
-        let [x0, y0, x1, y1] = lod.tiles;
-        if !(key.x() == x0 || key.x() == x1 || key.y() == y0 || key.y() == y1) {
-            return;
-        }
-        // An undecodable tile counts whole (the pack itself stores it as it is).
-        let (w, h, opaque) = opaque_pixels(format, bytes).unwrap_or((1, 1, Some([0, 0, 0, 0])));
+        let (w, h, opaque) = pixels.map_or((1, 1, Some([0, 0, 0, 0])), |p| (p.width, p.height, opaque_pixels(p)));
         let Some([px0, py0, px1, py1]) = opaque else { return };
         let size = lod.size;
         let (tx, ty) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
@@ -94,42 +106,21 @@ impl OpaqueBox {
     }
 }
 
-/// Width, height and the box (inclusive pixel columns and rows) of the pixels with alpha
-/// above zero; `None` inside when every pixel is transparent.
-fn opaque_pixels(format: TileFormat, bytes: &[u8]) -> Option<(u32, u32, Option<[u32; 4]>)> {
-    let (w, h, channels, data) = match format {
-        TileFormat::Png => {
-            let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
-            decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-            let mut reader = decoder.read_info().ok()?;
-            let mut data = vec![0; reader.output_buffer_size()?];
-            let info = reader.next_frame(&mut data).ok()?;
-            data.truncate(info.buffer_size());
-            (info.width, info.height, info.color_type.samples(), data)
-        }
-        TileFormat::Webp => {
-            let mut decoder = image_webp::WebPDecoder::new(std::io::Cursor::new(bytes)).ok()?;
-            let (w, h) = decoder.dimensions();
-            let channels = if decoder.has_alpha() { 4 } else { 3 };
-            let mut data = vec![0; decoder.output_buffer_size()?];
-            decoder.read_image(&mut data).ok()?;
-            (w, h, channels, data)
-        }
-        _ => return None,
-    };
-    if !matches!(channels, 2 | 4) {
-        return Some((w, h, Some([0, 0, w.saturating_sub(1), h.saturating_sub(1)])));
-    }
+/// The box (inclusive pixel columns and rows) of the pixels with alpha above zero; every
+/// pixel without an alpha channel; `None` when every pixel is transparent.
+fn opaque_pixels(p: &Pixels) -> Option<[u32; 4]> {
+    let (w, h) = (p.width, p.height);
+    let Some(alpha) = p.alpha() else { return Some([0, 0, w.saturating_sub(1), h.saturating_sub(1)]) };
     let mut found: Option<[u32; 4]> = None;
-    for (i, px) in data.chunks_exact(channels).enumerate() {
-        if px[channels - 1] == 0 {
+    for (i, px) in p.data.chunks_exact(p.channels).enumerate() {
+        if px[alpha] == 0 {
             continue;
         }
         let i = u32::try_from(i).ok()?;
         let (x, y) = (i % w.max(1), i / w.max(1));
         found = Some(found.map_or([x, y, x, y], |r| [r[0].min(x), r[1].min(y), r[2].max(x), r[3].max(y)]));
     }
-    Some((w, h, found))
+    found
 }
 
 #[cfg(test)]
