@@ -13,7 +13,7 @@ use crate::compression::decompress;
 use crate::directory::{Directory, Entry, LeafPointer, TILE_TRAILER_LEN};
 use crate::error::{Error, Result};
 use crate::extent::ExtentBuilder;
-use crate::header::{BOOTSTRAP_READ, Header};
+use crate::header::{BOOTSTRAP_READ, Header, Section};
 use crate::key::TileKey;
 use crate::metadata::Metadata;
 
@@ -22,6 +22,9 @@ pub const MAX_METADATA_BYTES: u64 = 16 << 20;
 /// Runs of identical tiles longer than this count their first and last tile only when a
 /// layer's extent is derived from the directory.
 pub const MAX_DERIVED_RUN: u32 = 4096;
+/// Largest leaf section read on open to derive the extents of an archive that does not
+/// record them (4 MiB, about 600 000 tiles).
+pub const MAX_LEAVES_READ_FOR_EXTENTS: u64 = 4 << 20;
 /// Leaf directories kept decoded by default.
 pub const DEFAULT_LEAF_CACHE: usize = 64;
 
@@ -141,7 +144,7 @@ impl Archive {
             return Ok(Bootstrap::NeedBytes(needed));
         }
         // Both sections end at or before bootstrap_len <= first_bytes.len() (checked above).
-        let slice = |s: crate::header::Section, name: &str| -> Result<&[u8]> {
+        let slice = |s: Section, name: &str| -> Result<&[u8]> {
             let range = usize::try_from(s.offset).ok().zip(s.end().and_then(|e| usize::try_from(e).ok()));
             range
                 .and_then(|(start, end)| first_bytes.get(start..end))
@@ -192,6 +195,30 @@ impl Archive {
         // Writers record the extent of every layer that has a tile: an archive where no
         // layer has one was written before, one where some layer has none has an empty layer.
         self.metadata.layers.iter().all(|l| l.extent.is_none())
+    }
+
+    /// The leaf section to read so that [`Archive::derive_extents_from_leaves`] can derive
+    /// the layers' extents: `Some` for an archive that records none, has leaf directories,
+    /// and whose leaf section is at most [`MAX_LEAVES_READ_FOR_EXTENTS`] (beyond it, its
+    /// layers are taken as their whole grids: opening a planet reads no gigabytes).
+    pub fn leaves_for_extents(&self) -> Option<Section> {
+        let section = self.header.leaf_dirs;
+        (matches!(self.root, Directory::Leaves(_))
+            && self.lacks_extents()
+            && section.len <= MAX_LEAVES_READ_FOR_EXTENTS)
+            .then_some(section)
+    }
+
+    /// Derives the layers' extents from the leaf section [`Archive::leaves_for_extents`]
+    /// named, read whole.
+    ///
+    /// # Errors
+    /// [`Error::Corrupt`] or [`Error::SectionChecksum`] naming a damaged leaf.
+    pub fn derive_extents_from_leaves(&mut self, section: &[u8]) -> Result<()> {
+        let Directory::Leaves(leaves) = &self.root else { return Ok(()) };
+        let entries = entries_of_leaves(self, leaves, section)?;
+        self.derive_extents(&entries);
+        Ok(())
     }
 
     /// Fills the extent of every layer that has none from directory entries (all of the
@@ -396,7 +423,7 @@ fn check_crc(bytes: &[u8], stored: u32, section: &str) -> Result<()> {
 /// # Errors
 /// [`Error::Corrupt`] or [`Error::SectionChecksum`] naming a leaf outside the section or
 /// damaged.
-pub(crate) fn entries_of_leaves(archive: &Archive, leaves: &[LeafPointer], bytes: &[u8]) -> Result<Vec<Entry>> {
+fn entries_of_leaves(archive: &Archive, leaves: &[LeafPointer], bytes: &[u8]) -> Result<Vec<Entry>> {
     let mut entries = Vec::new();
     for leaf in leaves {
         let range = usize::try_from(leaf.offset)

@@ -8,10 +8,6 @@ use crate::key::TileKey;
 use crate::metadata::Metadata;
 use crate::ranges::AsyncRangeSource;
 
-/// Largest leaf section read on open to derive the extents of an archive that does not
-/// record them (4 MiB, about 600 000 tiles); beyond it the layers are taken as whole.
-pub const MAX_LEAVES_READ_FOR_EXTENTS: u64 = 4 << 20;
-
 /// The async twin of [`crate::Reader`]: the same [`Archive`] core, awaited reads.
 #[derive(Debug)]
 pub struct AsyncReader<S> {
@@ -38,16 +34,9 @@ impl<S: AsyncRangeSource> AsyncReader<S> {
         };
         let mut archive = archive;
         // Older archives with leaf directories: their extents from every leaf, in one
-        // request for the leaf section when it is small enough to be worth it.
-        if let crate::Directory::Leaves(leaves) = archive.root()
-            && archive.lacks_extents()
-            && archive.header().leaf_dirs.len <= MAX_LEAVES_READ_FOR_EXTENTS
-        {
-            let leaves = leaves.clone();
-            let section = archive.header().leaf_dirs;
-            let bytes = source.fetch(section.offset, section.len).await?;
-            let entries = crate::archive::entries_of_leaves(&archive, &leaves, &bytes)?;
-            archive.derive_extents(&entries);
+        // request for the leaf section.
+        if let Some(section) = archive.leaves_for_extents() {
+            archive.derive_extents_from_leaves(&source.fetch(section.offset, section.len).await?)?;
         }
         Ok(Self { source, archive })
     }

@@ -39,7 +39,9 @@ mod stats;
 mod varint;
 mod verify;
 
-pub use archive::{Archive, Bootstrap, DEFAULT_LEAF_CACHE, Locate, MAX_METADATA_BYTES, TileLocation};
+pub use archive::{
+    Archive, Bootstrap, DEFAULT_LEAF_CACHE, Locate, MAX_LEAVES_READ_FOR_EXTENTS, MAX_METADATA_BYTES, TileLocation,
+};
 pub use async_reader::AsyncReader;
 pub use checksum::crc32c;
 pub use compression::{decompress, zstd_decompress};

@@ -44,15 +44,10 @@ impl<S: RangeSource> Reader<S> {
     /// Older archives with leaf directories: their extents from every leaf (one read of
     /// the leaf section).
     fn derive_extents_from_leaves(&mut self) -> Result<()> {
-        let Directory::Leaves(leaves) = self.archive.root() else { return Ok(()) };
-        if !self.archive.lacks_extents() {
-            return Ok(());
+        if let Some(section) = self.archive.leaves_for_extents() {
+            let bytes = self.source.read_range(section.offset, section.len)?;
+            self.archive.derive_extents_from_leaves(&bytes)?;
         }
-        let leaves = leaves.clone();
-        let section = self.header().leaf_dirs;
-        let bytes = self.source.read_range(section.offset, section.len)?;
-        let entries = crate::archive::entries_of_leaves(&self.archive, &leaves, &bytes)?;
-        self.archive.derive_extents(&entries);
         Ok(())
     }
 
