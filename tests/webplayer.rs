@@ -606,6 +606,9 @@ fn webplayer_streams_a_manifest_of_four_archives() {
 /// frame with terrain and the first complete one (since the player started), and the
 /// time between frames, p50 and p99, while tiles were coming and once all were resident,
 /// from the same browser run. `WORKERS=0` decodes on the page's thread.
+// Ignored in the test run on purpose: speed is measured by benchmarks that print numbers,
+// never asserted by pass/fail tests, and this one takes minutes of emulated links.
+// `scripts/bench-webplayer.sh` runs it (`cargo test --test webplayer -- --ignored`).
 #[test]
 #[ignore = "a benchmark that prints numbers: scripts/bench-webplayer.sh"]
 fn bench_webplayer_over_emulated_links() {
