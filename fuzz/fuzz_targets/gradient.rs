@@ -23,6 +23,7 @@ fuzz_target!(|data: &[u8]| {
         num_lods: 1,
         tile_world_size: 1.0,
         elevation: None,
+        extent: None,
     };
     let edge = layer.stored_edge();
     if let Ok(samples) = payload_bytes(&layer, payload, "fuzz") {

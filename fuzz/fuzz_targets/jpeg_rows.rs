@@ -14,10 +14,10 @@ fuzz_target!(|data: &[u8]| {
     }
     let mut width = None;
     let mut rows = 0usize;
-    let _ = terrastream_tiler::jpeg_rows(&path, &mut |row| {
+    let _ = terrastream_raster::jpeg_rows(&path, &mut |row| {
         assert_eq!(row.len() % 3, 0);
         assert_eq!(*width.get_or_insert(row.len()), row.len());
         rows += 1;
-        if rows >= 4096 { Err(terrastream_tiler::Error::from(terrastream_pack::Error::from(terrastream_format::Interrupted))) } else { Ok(()) }
+        if rows >= 4096 { Err(terrastream_raster::Error::Interrupted(terrastream_format::Interrupted)) } else { Ok(()) }
     });
 });

@@ -5,7 +5,7 @@
 
 use libfuzzer_sys::fuzz_target;
 use terrastream_format::{ElevationEncoding, ElevationScheme};
-use terrastream_tiler::{ElevationSource, ImageSource, open_elevation, open_image};
+use terrastream_raster::{ElevationSource, ImageSource, open_elevation, open_image};
 
 /// Rows read per input at most: enough to cross strips and tile rows, quick per run.
 const ROWS: usize = 64;
@@ -17,7 +17,7 @@ fuzz_target!(|data: &[u8]| {
     if std::fs::write(&path, data).is_err() {
         return;
     }
-    let stop = || terrastream_tiler::Error::from(terrastream_pack::Error::from(terrastream_format::Interrupted));
+    let stop = || terrastream_raster::Error::Interrupted(terrastream_format::Interrupted);
     let encodings = [None, Some(ElevationScheme::TerrainRgb), Some(ElevationScheme::Terrarium), Some(ElevationScheme::Gray8)];
     for scheme in encodings {
         let encoding = scheme.map(|scheme| ElevationEncoding { scheme, scale: 1.0, offset: 0.0, nodata: None });

@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_tiler::{ImageSource, open_image};
+use terrastream_raster::{ImageSource, open_image};
 
 /// A 1 x 1 RGBA PNG.
 const PNG: [u8; 70] = [

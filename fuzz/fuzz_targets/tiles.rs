@@ -52,6 +52,7 @@ fuzz_target!(|data: &[u8]| {
             offset: 0.0,
             nodata: Some(0.0),
         }),
+        extent: None,
     };
     let key = TileKey::new(0, 0, 0, 0).expect("tile (0, 0) of LOD 0 exists");
     let _ = decode(&layer, key, payload, true);

@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_tiler::read_vrt;
+use terrastream_raster::read_vrt;
 
 fuzz_target!(|data: &[u8]| {
     let dir = std::env::temp_dir().join(format!("terrastream-fuzz-vrt-{}", std::process::id()));

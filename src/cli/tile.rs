@@ -212,6 +212,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         encoding: args.encoding()?,
         crs: args.crs.clone(),
         resolution: args.resolution,
+        extent: None,
         keep_geographic: args.keep_geographic,
         sample_spacing: args.sample_spacing,
         height_range: args.height_range,

@@ -6,7 +6,7 @@ use terrastream_pack::zstd_compress;
 use crate::bc;
 use crate::error::{Error, Result};
 use crate::options::TextureFormat;
-use crate::plan::min_max;
+use terrastream_raster::min_max;
 
 /// Heights -> the layer's raw little-endian samples, into `raw` (replacing what it held),
 /// and the lowest and highest height as stored (after quantization).

@@ -14,9 +14,13 @@ pub enum Error {
     /// whose source is the one [`terrastream_format::Interrupted`]).
     #[error(transparent)]
     Pack(#[from] terrastream_pack::Error),
-    /// An option is out of its range.
+    /// Reading an input raster failed (or was interrupted: `terrastream_raster::Error::Interrupted`,
+    /// the same [`terrastream_format::Interrupted`]).
+    #[error(transparent)]
+    Raster(terrastream_raster::Error),
+    /// An option is outside the values it allows.
     #[error("{option} {value}: allowed {allowed}")]
-    Option {
+    InvalidOption {
         /// The option, as the CLI names it.
         option: &'static str,
         /// The value given.
@@ -24,18 +28,11 @@ pub enum Error {
         /// What is allowed.
         allowed: &'static str,
     },
-    /// A coordinate reference system the tiler cannot use.
-    #[error("unknown CRS {crs}: {reason}")]
-    UnknownCrs {
-        /// The CRS as given.
-        crs: String,
-        /// Why it cannot be used.
-        reason: String,
-    },
     /// Neither an elevation raster nor a texture image was given.
     #[error("nothing to tile: give an elevation raster, a texture image or both")]
     NothingToTile,
-    /// An input raster is unusable: unreadable, unsupported, or not where it should be.
+    /// An input that cannot be used as given: an archive to edit or merge that does not
+    /// fit the others, a manifest's target, inputs of a run that do not fit its options.
     #[error("{path}: {reason}")]
     Input {
         /// The file at fault.
@@ -99,18 +96,45 @@ impl Error {
     }
 
     pub(crate) fn option(option: &'static str, value: impl ToString, allowed: &'static str) -> Self {
-        Self::Option { option, value: value.to_string(), allowed }
+        Self::InvalidOption { option, value: value.to_string(), allowed }
     }
 
     /// True when the run stopped because it was asked to (Ctrl-C).
     pub fn is_interrupted(&self) -> bool {
-        matches!(self, Self::Pack(terrastream_pack::Error::Interrupted(_)))
+        matches!(
+            self,
+            Self::Pack(terrastream_pack::Error::Interrupted(_))
+                | Self::Raster(terrastream_raster::Error::Interrupted(_))
+        )
     }
 }
 
 impl From<terrastream_format::Error> for Error {
     fn from(error: terrastream_format::Error) -> Self {
         Self::Pack(error.into())
+    }
+}
+
+/// A raster read's error; the tiler's own error where a tiler step fed by the read failed.
+impl From<terrastream_raster::Error> for Error {
+    fn from(error: terrastream_raster::Error) -> Self {
+        match error {
+            terrastream_raster::Error::Consumer(inner) => match inner.downcast::<Self>() {
+                Ok(own) => *own,
+                Err(other) => Self::Raster(terrastream_raster::Error::Consumer(other)),
+            },
+            other => Self::Raster(other),
+        }
+    }
+}
+
+/// A tiler step that consumes a raster read's rows stops the read with its own error.
+impl From<Error> for terrastream_raster::Error {
+    fn from(error: Error) -> Self {
+        match error {
+            Error::Raster(raster) => raster,
+            own => Self::Consumer(Box::new(own)),
+        }
     }
 }
 

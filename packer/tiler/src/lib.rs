@@ -18,36 +18,32 @@
 //! PNG, JPEG, lossless WebP, or GPU-ready BC1/BC7 blocks (zstd).
 
 mod bc;
-pub mod crs;
+mod edit;
 mod encode;
 mod error;
-mod manifest;
-mod merge;
 mod options;
 mod plan;
 pub mod pyramid;
-pub mod raster;
-mod rederive;
 mod request;
 mod shard;
 mod tile;
-mod update;
 
-pub use crs::{Crs, Transform};
+pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
+pub use edit::merge::{MergeSummary, Prefer, merge, merge_with};
+pub use edit::update::{UpdateSummary, update};
 pub use error::{Error, Result};
-pub use manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
-pub use merge::{MergeSummary, Prefer, merge, merge_with};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
-pub use raster::{
-    ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic,
-    MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Vrt, VrtSource, Warped, expand_inputs, image_pixel_metres,
-    is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff, read_image, read_vrt,
-};
 pub use request::{Inputs, Sources, TileRequest};
 pub use terrastream_format::Interrupted;
+/// The raster reading this crate tiles from, re-exported so that a caller needs one crate.
+pub use terrastream_raster::{
+    self as raster, Crs, ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow,
+    KnownRange, Mosaic, MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Transform, Vrt, VrtSource, Warped, crs,
+    expand_inputs, image_pixel_metres, is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff, read_image,
+    read_vrt,
+};
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
-pub use update::{UpdateSummary, update};
 
 #[cfg(test)]
 mod tests;

@@ -438,7 +438,7 @@ fn height_range(elevation: &dyn ElevationSource, progress: &dyn Progress) -> Res
     let mut told = 0u32;
     let (min, max) = elevation.height_range(&mut |rows| {
         if rows / 64 != told / 64 {
-            progress.check()?;
+            progress.check().map_err(Error::from)?;
         }
         progress.advance(u64::from(rows.saturating_sub(told)));
         told = rows;
@@ -449,25 +449,4 @@ fn height_range(elevation: &dyn ElevationSource, progress: &dyn Progress) -> Res
         return Err(Error::input(elevation.path(), "the raster holds no data (every sample is nodata)"));
     }
     Ok((min, max))
-}
-
-/// The lowest and highest of `values`, NaN (nodata) skipped; (inf, -inf) if there are none.
-/// Eight independent lanes of `f32::min`/`max` (which skip a NaN): LLVM vectorizes these
-/// into min/max instructions, where one running minimum is a serial chain and a
-/// compare-and-select per lane compiles to shuffles (measured: 1.5x slower).
-pub(crate) fn min_max(values: &[f32]) -> (f32, f32) {
-    let (mut lo, mut hi) = ([f32::INFINITY; 8], [f32::NEG_INFINITY; 8]);
-    let chunks = values.chunks_exact(8);
-    let rest = chunks.remainder();
-    for chunk in chunks {
-        for i in 0..8 {
-            lo[i] = lo[i].min(chunk[i]);
-            hi[i] = hi[i].max(chunk[i]);
-        }
-    }
-    for (i, &v) in rest.iter().enumerate() {
-        lo[i] = lo[i].min(v);
-        hi[i] = hi[i].max(v);
-    }
-    (lo.into_iter().fold(f32::INFINITY, f32::min), hi.into_iter().fold(f32::NEG_INFINITY, f32::max))
 }

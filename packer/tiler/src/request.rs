@@ -18,7 +18,7 @@ use crate::raster::{
 };
 
 /// What to tile.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct TileRequest {
     /// Elevation rasters (files, expanded: see [`crate::expand_inputs`]).
     pub elevation: Vec<PathBuf>,
@@ -30,6 +30,9 @@ pub struct TileRequest {
     pub crs: Option<String>,
     /// Output spacing of a mosaic in metres; asking for one makes a mosaic.
     pub resolution: Option<f64>,
+    /// Output extent of a mosaic in its CRS (min x, min y, max x, max y): a grid given
+    /// whole, as an archive's own that `update` tiles onto (default: the inputs' union).
+    pub extent: Option<[f64; 4]>,
     /// Keep one geographic input on its own grid instead of a transverse Mercator.
     pub keep_geographic: bool,
     /// Metres between samples of an input that does not say.
@@ -71,40 +74,12 @@ impl Sources {
     /// Opens the request's inputs (headers; a mosaic's footprints), deciding how each is read.
     ///
     /// # Errors
-    /// [`Error::Input`] naming an input that cannot be used, [`Error::Option`] for a bad
-    /// spacing, CRS errors.
+    /// Raster errors naming an input that cannot be used, [`Error::InvalidOption`] for a
+    /// bad spacing, CRS errors.
     pub fn open(request: &TileRequest) -> Result<Self> {
-        let inputs = &request.elevation;
-        // One geographic GeoTIFF goes onto a transverse Mercator centred on it, as a mosaic's
-        // geographic inputs do: a metre is a metre everywhere, not only at the centre latitude.
-        // A VRT is a mosaic of its sources, even alone.
-        let vrt = inputs.iter().any(|p| is_vrt(p));
-        let geographic = match inputs.as_slice() {
-            [one] if !vrt && !request.keep_geographic && request.sample_spacing.is_none() => {
-                open_elevation(one, request.encoding)?.is_geographic_tiff()
-            }
-            _ => false,
-        };
         let crs = request.crs.as_deref().map(Crs::parse).transpose()?;
-        // Several inputs, a geographic one, or a CRS or spacing asked for: one mosaic on one
-        // output grid.
-        let asked = request.crs.is_some() || request.resolution.is_some();
-        let heights = if !inputs.is_empty() && (inputs.len() > 1 || vrt || geographic || asked) {
-            let options = MosaicOptions {
-                crs: crs.clone(),
-                resolution: request.resolution,
-                cache_bytes: None,
-                extent: None,
-                skip_bad_inputs: request.skip_bad_inputs,
-            };
-            let mosaic = Mosaic::<Heights>::open(inputs, &options)?;
-            let (w, h) = mosaic.size();
-            tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
-            Some(mosaic)
-        } else {
-            None
-        };
-        let file = match inputs.first().filter(|_| heights.is_none()) {
+        let heights = height_mosaic(request, crs.as_ref())?;
+        let file = match request.elevation.first().filter(|_| heights.is_none()) {
             Some(path) => Some(elevation_file(path, request)?),
             None => None,
         };
@@ -113,38 +88,8 @@ impl Sources {
             (None, Some(f)) => Some(f),
             (None, None) => None,
         };
-        let textures = &request.texture;
-        // Several images (or a VRT of them): one mosaic over the elevation's extent, in its
-        // CRS; with no elevation, in the CRS and at the resolution asked for, if any (then
-        // even one image is reprojected).
-        let alone = elevation.is_none() && asked;
-        let images = if textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone {
-            let (crs, extent, resolution) = match elevation {
-                Some(e) => {
-                    let (crs, extent) = elevation_extent(e)?;
-                    (crs, extent, None)
-                }
-                None => (crs, None, request.resolution),
-            };
-            let options = MosaicOptions {
-                crs,
-                extent,
-                resolution,
-                skip_bad_inputs: request.skip_bad_inputs,
-                ..MosaicOptions::default()
-            };
-            let mosaic = Mosaic::<Pixels>::open(textures, &options)?;
-            let (w, h) = ImageSource::size(&mosaic);
-            tracing::info!(
-                "texture: a mosaic of {} images in {}, {w} x {h} pixels",
-                textures.len(),
-                mosaic.crs().name()
-            );
-            Some(mosaic)
-        } else {
-            None
-        };
-        let image = match textures.first() {
+        let images = image_mosaic(request, elevation, crs)?;
+        let image = match request.texture.first() {
             Some(path) if images.is_none() => Some(open_image(path)?),
             _ => None,
         };
@@ -158,6 +103,12 @@ impl Sources {
             texture_format: request.texture_format,
             pixel_size: request.pixel_size,
         })
+    }
+
+    /// The mosaics opened, of heights and of imagery: what a caller that reads them itself
+    /// (`update`, which crops them to what they touch) takes.
+    pub fn into_mosaics(self) -> (Option<Mosaic<Heights>>, Option<Mosaic<Pixels>>) {
+        (self.heights, self.images)
     }
 
     /// The sources to plan and tile: the elevation (with its known range) and the imagery
@@ -239,6 +190,68 @@ impl Inputs<'_> {
             pixel_size: texture_pixel_size(s.pixel_size, source),
         })
     }
+}
+
+/// Whether a CRS, spacing or extent was asked for: the inputs go onto that grid.
+fn grid_asked(request: &TileRequest) -> bool {
+    request.crs.is_some() || request.resolution.is_some() || request.extent.is_some()
+}
+
+/// The elevation inputs as one mosaic on one output grid, when they need one: several
+/// inputs, a VRT (a mosaic of its sources, even alone), a grid asked for, or one
+/// geographic GeoTIFF (onto a transverse Mercator centred on it, as a mosaic's geographic
+/// inputs go: a metre is a metre everywhere, not only at the centre latitude).
+fn height_mosaic(request: &TileRequest, crs: Option<&Crs>) -> Result<Option<Mosaic<Heights>>> {
+    let inputs = &request.elevation;
+    let vrt = inputs.iter().any(|p| is_vrt(p));
+    let geographic = match inputs.as_slice() {
+        [one] if !vrt && !request.keep_geographic && request.sample_spacing.is_none() => {
+            open_elevation(one, request.encoding)?.is_geographic_tiff()
+        }
+        _ => false,
+    };
+    if inputs.is_empty() || !(inputs.len() > 1 || vrt || geographic || grid_asked(request)) {
+        return Ok(None);
+    }
+    let options = MosaicOptions {
+        crs: crs.cloned(),
+        resolution: request.resolution,
+        cache_bytes: None,
+        extent: request.extent,
+        skip_bad_inputs: request.skip_bad_inputs,
+    };
+    let mosaic = Mosaic::<Heights>::open(inputs, &options)?;
+    let (w, h) = mosaic.size();
+    tracing::info!("mosaic of {} inputs in {}: {w} x {h} samples", inputs.len(), mosaic.crs().name());
+    Ok(Some(mosaic))
+}
+
+/// The imagery as one mosaic, when it needs one: several images (or a VRT of them), over
+/// the elevation's extent in its CRS; with no elevation, on the grid asked for, if any
+/// (then even one image is reprojected).
+fn image_mosaic(
+    request: &TileRequest,
+    elevation: Option<&dyn ElevationSource>,
+    crs: Option<Crs>,
+) -> Result<Option<Mosaic<Pixels>>> {
+    let textures = &request.texture;
+    let alone = elevation.is_none() && grid_asked(request);
+    if !(textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone) {
+        return Ok(None);
+    }
+    let (crs, extent, resolution) = match elevation {
+        Some(e) => {
+            let (crs, extent) = elevation_extent(e)?;
+            (crs, extent, None)
+        }
+        None => (crs, request.extent, request.resolution),
+    };
+    let options =
+        MosaicOptions { crs, extent, resolution, skip_bad_inputs: request.skip_bad_inputs, ..MosaicOptions::default() };
+    let mosaic = Mosaic::<Pixels>::open(textures, &options)?;
+    let (w, h) = ImageSource::size(&mosaic);
+    tracing::info!("texture: a mosaic of {} images in {}, {w} x {h} pixels", textures.len(), mosaic.crs().name());
+    Ok(Some(mosaic))
 }
 
 /// One elevation file, with the spacing asked for where it says none.

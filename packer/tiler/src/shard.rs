@@ -5,7 +5,7 @@
 //! exactly one shard with all the tiles under it; rows of the raster are read with a margin
 //! of `border * 2^K` above and below, so a shard's tiles, borders included, are the bytes a
 //! whole run makes. The levels above K are made when the shards are merged, from their
-//! LOD-K tiles ([`crate::merge`]).
+//! LOD-K tiles ([`crate::edit::merge`]).
 
 use terrastream_format::{LayerKind, Shard};
 
@@ -22,7 +22,7 @@ pub(crate) type Weight<'a> = dyn Fn(usize, std::ops::Range<u32>) -> f64 + 'a;
 /// others: sparse regions cost little, so their bands are taller.
 ///
 /// # Errors
-/// [`Error::Option`] for a shard out of range.
+/// [`Error::InvalidOption`] for a shard out of range.
 pub(crate) fn windows(plan: &Plan, spec: ShardSpec, weight: &Weight<'_>) -> Result<(Shard, Vec<Window>)> {
     if spec.count == 0 || spec.index >= spec.count {
         return Err(Error::option("--shard", format!("{}/{}", spec.index, spec.count), "I/N with 0 <= I < N"));

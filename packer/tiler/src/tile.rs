@@ -52,10 +52,10 @@ pub fn tile_terrain(
 
 /// As [`tile_terrain`], or with `shard`, one shard of a sharded run: every layer's tiles
 /// from LOD 0 up to its split LOD in the shard's band of tile rows, exactly the bytes a
-/// whole run makes there ([`crate::merge`] makes the levels above from all shards).
+/// whole run makes there ([`crate::edit::merge`] makes the levels above from all shards).
 ///
 /// # Errors
-/// As [`tile_terrain`]; [`Error::Option`] for a shard out of range or a lossy texture
+/// As [`tile_terrain`]; [`Error::InvalidOption`] for a shard out of range or a lossy texture
 /// format with shards.
 pub fn tile_shard(
     elevation: Option<&dyn ElevationSource>,
@@ -188,7 +188,7 @@ fn cut_planned(
         let quantize = |row: &mut [f32]| quantize_heights(row, &heights.encoding);
         let rows = window_rows(window);
         run_pyramid(metadata, index, size, window, &encode, Some(&quantize), &mut spool, progress, |push| {
-            source.rows_in(rows, &mut |row| push(resample.row(row)))
+            Ok(source.rows_in(rows, &mut |row| Ok(push(resample.row(row))?))?)
         })?;
         heights.finish(metadata, Vec::new(), &mut spool)?;
     }
@@ -204,7 +204,7 @@ fn cut_planned(
         let window = &windows[usize::from(index)];
         let rows = window_rows(window);
         run_pyramid(metadata, index, size, window, &encode, None, &mut spool, progress, |push| {
-            t.source.rows_in(rows, &mut |row| push(resample.row(row)))
+            Ok(t.source.rows_in(rows, &mut |row| Ok(push(resample.row(row))?))?)
         })?;
     }
     Ok(spool)

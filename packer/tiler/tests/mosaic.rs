@@ -394,7 +394,7 @@ fn a_mosaics_height_scan_shows_progress_within_an_input_and_stops_on_request() {
     let mut calls = 0;
     let stopped = mosaic.height_range(&mut |_| {
         calls += 1;
-        Err(terrastream_pack::Error::from(terrastream_format::Interrupted).into())
+        Err(terrastream_format::Interrupted.into())
     });
     assert!(stopped.is_err());
     assert_eq!(calls, 1);

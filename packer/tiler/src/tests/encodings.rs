@@ -143,33 +143,6 @@ fn transparent_pixels_of_an_encoded_png_are_nodata() {
 }
 
 #[test]
-fn integer_samples_give_their_range_without_nodata() {
-    use raster::integer_range;
-    let none = (f32::INFINITY, f32::NEG_INFINITY);
-    // Nodata at either end, in every lane of a vector and the remainder.
-    for at in 0..37 {
-        let mut v: Vec<i16> = (0..37).map(|i| (i * 7 % 23) as i16 - 5).collect();
-        v[at] = -32767;
-        v[(at + 11) % 37] = -32767;
-        let real: Vec<f32> = v.iter().filter(|&&x| x != -32767).map(|&x| f32::from(x)).collect();
-        let want = (
-            real.iter().copied().fold(f32::INFINITY, f32::min),
-            real.iter().copied().fold(f32::NEG_INFINITY, f32::max),
-        );
-        assert_eq!(integer_range(&v, Some(-32767.0)), want, "nodata at {at}");
-        assert_eq!(integer_range(&v, None), (-32767.0, want.1), "no nodata: it is a height");
-    }
-    assert_eq!(integer_range::<i16>(&[], None), none);
-    assert_eq!(integer_range(&[-32767i16; 19], Some(-32767.0)), none, "all nodata: no range");
-    // A nodata no sample of the type can hold skips nothing.
-    assert_eq!(integer_range(&[0u8, 255, 7], Some(-1.0)), (0.0, 255.0));
-    assert_eq!(integer_range(&[0u8, 255, 7], Some(255.5)), (0.0, 255.0));
-    assert_eq!(integer_range(&[3u16, 65_535, 7], Some(1e30)), (3.0, 65_535.0));
-    assert_eq!(integer_range(&[3u16, 65_535, 7], Some(65_535.0)), (3.0, 7.0));
-    assert_eq!(integer_range(&[-128i8, 127, 0], Some(-128.0)), (0.0, 127.0));
-}
-
-#[test]
 fn quantized_heights_decode_as_the_encoding_says_for_every_value() {
     let encoding =
         ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 0.0731, offset: -432.17, nodata: None };

@@ -8,8 +8,8 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind, Reader, 
 use terrastream_pack::progress::Silent;
 
 use super::*;
-use crate::plan::min_max;
 use crate::pyramid::*;
+use terrastream_raster::min_max;
 
 mod encodings;
 mod inputs;

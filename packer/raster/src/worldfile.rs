@@ -42,7 +42,7 @@ pub(super) fn world_file(image: &Path) -> Option<PathBuf> {
 /// or `.aux.xml` places it.
 ///
 /// # Errors
-/// [`Error::Input`] naming the file at fault: a world file that is not six numbers, a
+/// [`Error::Georeference`] naming the file at fault: a world file that is not six numbers, a
 /// rotated, sheared or south-up grid, a placement with no CRS beside it, a CRS that
 /// names nothing the tiler knows.
 pub(super) fn read_sidecar(image: &Path, size: (u32, u32)) -> Result<Option<Sidecar>> {
@@ -54,9 +54,12 @@ pub(super) fn read_sidecar(image: &Path, size: (u32, u32)) -> Result<Option<Side
                 .split_whitespace()
                 .map(str::parse)
                 .collect::<std::result::Result<_, _>>()
-                .map_err(|e| Error::input(&world, format!("not a world file (six numbers): {e}")))?;
+                .map_err(|e| Error::georeference(&world, format!("not a world file (six numbers): {e}")))?;
             let [a, d, b, e, c, f] = numbers[..] else {
-                return Err(Error::input(&world, format!("not a world file: {} numbers, six expected", numbers.len())));
+                return Err(Error::georeference(
+                    &world,
+                    format!("not a world file: {} numbers, six expected", numbers.len()),
+                ));
             };
             // World files give the centre of the north-west pixel; GDAL's transform the corner.
             (world, [c - a / 2.0 - b / 2.0, a, b, f - d / 2.0 - e / 2.0, d, e])
@@ -67,7 +70,7 @@ pub(super) fn read_sidecar(image: &Path, size: (u32, u32)) -> Result<Option<Side
         },
     };
     let [west, a, b, north, d, e] = transform;
-    let bad = |why: String| Error::input(&placed_by, why);
+    let bad = |why: String| Error::georeference(&placed_by, why);
     if transform.iter().any(|v| !v.is_finite()) {
         return Err(bad("a placement that is not finite".into()));
     }
@@ -96,9 +99,9 @@ pub(super) fn read_sidecar(image: &Path, size: (u32, u32)) -> Result<Option<Side
         }
     };
     let name = crs_of_srs(&srs).ok_or_else(|| {
-        Error::input(&crs_file, format!("names no CRS the tiler knows (no EPSG code): {:.80}", srs.trim()))
+        Error::georeference(&crs_file, format!("names no CRS the tiler knows (no EPSG code): {:.80}", srs.trim()))
     })?;
-    let crs = Crs::parse(&name).map_err(|e| Error::input(&crs_file, e.to_string()))?;
+    let crs = Crs::parse(&name).map_err(|e| Error::georeference(&crs_file, e.to_string()))?;
     let pixel = (a, -e);
     let (spacing, georeference) = georeferenced(Some(crs.name()), crs.is_geographic(), [west, north], pixel, size);
     Ok(Some(Sidecar { spacing, georeference, crs_pixel: pixel }))
@@ -124,9 +127,13 @@ fn aux_xml(image: &Path) -> Result<Option<AuxXml>> {
     if !path.is_file() {
         return Ok(None);
     }
-    let bad = |why: String| Error::input(&path, why);
+    let bad = |why: String| Error::georeference(&path, why);
     let text = std::fs::read_to_string(&path).map_err(|e| Error::file(&path, e))?;
-    let doc = roxmltree::Document::parse(&text).map_err(|e| bad(format!("not GDAL's .aux.xml: {e}")))?;
+    let doc = roxmltree::Document::parse(&text).map_err(|error| Error::Xml {
+        path: path.clone(),
+        what: "not GDAL's .aux.xml",
+        error,
+    })?;
     let root = doc.root_element();
     let child = |name: &str| root.children().find(|c| c.has_tag_name(name)).and_then(|n| n.text());
     let srs = child("SRS").map(str::to_owned).filter(|s| !s.trim().is_empty());

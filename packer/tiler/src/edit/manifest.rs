@@ -10,8 +10,8 @@ use terrastream_format::{Coverage, Manifest, Metadata, Part, PartLayer, Reader, 
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{WriteSummary, Writer, WriterOptions};
 
+use crate::edit::merge::{prepare, write};
 use crate::error::{Error, Result};
-use crate::merge::{prepare, write};
 use crate::pyramid::Spool;
 
 /// What [`merge_to_manifest`] did.
@@ -30,7 +30,7 @@ pub struct ManifestSummary {
 /// # Errors
 /// [`Error::Input`] if the inputs are not all the shards of one run, or an archive's path
 /// cannot be written relative to the manifest's folder (another drive, characters a URL
-/// path may not hold); as [`crate::merge`] otherwise.
+/// path may not hold); as [`crate::edit::merge`] otherwise.
 pub fn merge_to_manifest(
     inputs: &[PathBuf],
     coarse: &Path,

@@ -50,7 +50,9 @@ impl RowStrips {
                         if rows == STRIP_ROWS {
                             rows = 0;
                             // Nobody waits for it any more: stop decoding.
-                            sender.send(Ok(std::mem::take(&mut strip))).map_err(|_| crate::error::interrupted())?;
+                            sender
+                                .send(Ok(std::mem::take(&mut strip)))
+                                .map_err(|_| Error::Interrupted(crate::Interrupted))?;
                         }
                         Ok(())
                     })
@@ -86,7 +88,7 @@ impl RowStrips {
         }
         let Decoding { next, strips: receiver, failed } = &mut *decoder;
         if let Some(at) = failed.filter(|&at| at <= id) {
-            return Err(Error::input(
+            return Err(Error::damaged(
                 &self.path,
                 format!("strip {id}: the image could not be decoded past strip {at}"),
             ));
@@ -103,11 +105,11 @@ impl RowStrips {
                 *receiver = None;
                 *failed = Some(*next);
                 let why = format!("strip {id} of {STRIP_ROWS} rows: the image ended (or its decoder stopped) first");
-                return Err(Error::input(&self.path, why));
+                return Err(Error::damaged(&self.path, why));
             };
             let strip = strip.inspect_err(|e| {
                 *receiver = None;
-                if matches!(e, Error::Input { .. } | Error::File { .. }) {
+                if e.is_bad_input() {
                     *failed = Some(*next);
                 }
             })?;

@@ -49,14 +49,18 @@ pub fn is_vrt(path: &Path) -> bool {
 /// Reads the VRT at `path`.
 ///
 /// # Errors
-/// [`Error::Input`] naming the VRT for anything it cannot use: not XML, no
+/// [`Error::Damaged`] (or [`Error::Xml`]) naming the VRT for anything it cannot use: not XML, no
 /// `GeoTransform` or `SRS`, a rotated grid, bands that do not read the same sources
 /// band for band, a source without a file or with a broken rectangle, a source file that
 /// does not exist (named).
 pub fn read_vrt(path: &Path) -> Result<Vrt> {
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::damaged(path, why);
     let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
-    let doc = roxmltree::Document::parse(&text).map_err(|e| bad(format!("not a VRT: {e}")))?;
+    let doc = roxmltree::Document::parse(&text).map_err(|error| Error::Xml {
+        path: path.to_owned(),
+        what: "not a VRT",
+        error,
+    })?;
     let root = doc.root_element();
     if !root.has_tag_name("VRTDataset") {
         return Err(bad(format!("not a VRT: the root is <{}>", root.tag_name().name())));
@@ -91,7 +95,7 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
 /// The sources of `band` (band number `number`), each checked to read band `number` of
 /// its file; `grid`: the VRT's west, x pixel size, north and y pixel size.
 fn band_sources(path: &Path, band: roxmltree::Node<'_, '_>, number: usize, grid: [f64; 4]) -> Result<Vec<VrtSource>> {
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::damaged(path, why);
     let [ox, px, oy, py] = grid;
     let folder = path.parent().unwrap_or(Path::new("."));
     let mut sources = Vec::new();
@@ -101,7 +105,7 @@ fn band_sources(path: &Path, band: roxmltree::Node<'_, '_>, number: usize, grid:
         let relative = file.attribute("relativeToVRT").is_some_and(|v| v.trim() == "1");
         let source_path = if relative { folder.join(name) } else { PathBuf::from(name) };
         if !source_path.is_file() {
-            return Err(Error::input(&source_path, format!("named by {} but missing", path.display())));
+            return Err(Error::NamedButMissing { path: source_path, named_by: path.to_owned() });
         }
         let read = child(source, "SourceBand").and_then(|n| n.text()).map_or("1", str::trim);
         if read.parse::<usize>().ok() != Some(number) {

@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 /// a pattern's matches (sorted).
 ///
 /// # Errors
-/// [`Error::Input`] naming an input that does not exist, a folder without GeoTIFFs, or a
+/// [`Error::NotFound`] naming an input that does not exist, a folder without GeoTIFFs, or a
 /// pattern that matches nothing.
 pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
     let mut out = Vec::new();
@@ -24,7 +24,7 @@ pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
                 .filter(|p| p.is_file() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| matches(name, n)))
                 .collect();
             if found.is_empty() {
-                return Err(Error::input(input, "the pattern matches no file"));
+                return Err(Error::NotFound { path: input.clone(), reason: "the pattern matches no file" });
             }
             found.sort();
             out.extend(found);
@@ -32,17 +32,17 @@ pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
             let mut found = Vec::new();
             walk(input, &mut found)?;
             if found.is_empty() {
-                return Err(Error::input(
-                    input,
-                    "the folder holds no GeoTIFF (.tif, .tiff), nor a PNG or JPEG with a world file",
-                ));
+                return Err(Error::NotFound {
+                    path: input.clone(),
+                    reason: "the folder holds no GeoTIFF (.tif, .tiff), nor a PNG or JPEG with a world file",
+                });
             }
             found.sort();
             out.extend(found);
         } else if input.is_file() {
             out.push(input.clone());
         } else {
-            return Err(Error::input(input, "no such file or folder"));
+            return Err(Error::NotFound { path: input.clone(), reason: "no such file or folder" });
         }
     }
     Ok(out)

@@ -26,7 +26,7 @@ pub trait MosaicKind: Send + Sync + 'static {
     /// JPEG read by rows.
     ///
     /// # Errors
-    /// [`Error::Input`] naming a file of another kind.
+    /// An error naming a file of another kind.
     fn open(path: &Path) -> Result<Self::File>;
     /// The file's path.
     fn path(file: &Self::File) -> &Path;
@@ -38,10 +38,17 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn crs_pixel(file: &Self::File) -> Option<(f64, f64)>;
     /// Samples per pixel.
     fn channels(file: &Self::File) -> usize;
-    /// Why a VRT of `bands` bands cannot read `file` band for band, if it cannot.
-    fn check_bands(file: &Self::File, bands: usize) -> std::result::Result<(), String> {
+    /// Whether the VRT at `vrt`, of `bands` bands, can read `file` band for band.
+    ///
+    /// # Errors
+    /// [`Error::Mismatch`] naming the VRT and the file, if it cannot.
+    fn check_bands(file: &Self::File, bands: usize, vrt: &Path) -> Result<()> {
         let channels = Self::channels(file);
-        if bands == channels { Ok(()) } else { Err(format!("a {bands}-band VRT over a file of {channels} band(s)")) }
+        if bands == channels {
+            return Ok(());
+        }
+        let reason = format!("a {bands}-band VRT over a file of {channels} band(s) ({})", Self::path(file).display());
+        Err(Error::mismatch(vrt, reason))
     }
     /// Is the file read by rows from its top (a PNG or JPEG), not by strips or tiles?
     fn read_by_rows(_file: &Self::File) -> bool {
@@ -51,15 +58,15 @@ pub trait MosaicKind: Send + Sync + 'static {
     /// bytes per pixel, from the top.
     ///
     /// # Errors
-    /// [`Error::Input`] naming the file for unreadable data, or for a file that
+    /// An error naming the file for unreadable data, or for a file that
     /// [`Self::read_by_rows`] does not say is read by rows; the error `row` returns.
     fn file_rows(file: &Self::File, _row: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<()> {
-        Err(Error::input(Self::path(file), "read by strips or tiles, not by rows"))
+        Err(Error::unsupported(Self::path(file), "read by strips or tiles, not by rows"))
     }
     /// A decoded strip or tile as values; samples equal to `nodata` are no data.
     ///
     /// # Errors
-    /// [`Error::Input`] naming the file for a sample type this kind does not read.
+    /// An error naming the file for a sample type this kind does not read.
     /// `nodata`: raw samples equal to it are no data; `scale`: (ratio, offset) applied to
     /// the others (a VRT source's).
     fn values(
@@ -106,7 +113,7 @@ impl MosaicKind for Heights {
     fn open(path: &Path) -> Result<ElevationFile> {
         let file = open_elevation(path, None)?;
         if !file.is_plain_tiff() {
-            return Err(Error::input(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
+            return Err(Error::unsupported(path, "a mosaic reads GeoTIFFs of heights (not PNG)"));
         }
         Ok(file)
     }
@@ -131,7 +138,8 @@ impl MosaicKind for Heights {
         nodata: Option<f32>,
         scale: Option<(f32, f32)>,
     ) -> Result<Vec<f32>> {
-        let mut heights = samples_f32(data).ok_or_else(|| Error::input(file.path(), "unsupported sample type"))?;
+        let mut heights =
+            samples_f32(data).ok_or_else(|| Error::unsupported(file.path(), "unsupported sample type"))?;
         file.heights(&mut heights);
         if let Some(nodata) = nodata {
             for v in heights.iter_mut().filter(|v| **v == nodata) {
@@ -219,10 +227,14 @@ impl MosaicKind for Pixels {
         // PNG and JPEG are read by rows, as RGBA.
         file.tiff_channels().unwrap_or(4)
     }
-    fn check_bands(file: &ImageFile, bands: usize) -> std::result::Result<(), String> {
+    fn check_bands(file: &ImageFile, bands: usize, vrt: &Path) -> Result<()> {
         match file.tiff_channels() {
-            Some(channels) if channels != bands => Err(format!(
-                "a {bands}-band VRT over an image of {channels} band(s): each band must be the image's own"
+            Some(channels) if channels != bands => Err(Error::mismatch(
+                vrt,
+                format!(
+                    "a {bands}-band VRT over an image of {channels} band(s): each band must be the image's own ({})",
+                    file.path().display()
+                ),
             )),
             // A PNG or JPEG is read as RGBA whatever it holds.
             _ => Ok(()),
@@ -241,7 +253,7 @@ impl MosaicKind for Pixels {
         scale: Option<(f32, f32)>,
     ) -> Result<Vec<[u8; 4]>> {
         let tiff::decoder::DecodingResult::U8(bytes) = data else {
-            return Err(Error::input(file.path(), "only 8-bit images are read"));
+            return Err(Error::unsupported(file.path(), "only 8-bit images are read"));
         };
         // Colour bands scaled as GDAL does (rounded, clamped to 0..=255); alpha is not.
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]

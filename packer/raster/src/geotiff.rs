@@ -10,7 +10,7 @@ const GDAL_NODATA: u16 = 42113;
 
 /// Where a raster lies in its CRS, when its file says: the CRS, the north-west corner and
 /// the pixel size in CRS units.
-pub(crate) fn crs_placement(
+pub fn crs_placement(
     georeference: Option<&Georeference>,
     pixel: Option<(f64, f64)>,
 ) -> Option<(&str, [f64; 2], (f64, f64))> {

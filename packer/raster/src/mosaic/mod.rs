@@ -175,10 +175,10 @@ impl<K: MosaicKind> Mosaic<K> {
     /// knows), in the order given: a later input wins where inputs overlap.
     ///
     /// # Errors
-    /// [`Error::Input`] naming a file that cannot be read, is not a georeferenced GeoTIFF
+    /// An error naming a file that cannot be read, is not a georeferenced GeoTIFF
     /// of heights, or lies where the output CRS cannot reach; [`Error::UnknownCrs`].
     pub fn open(paths: &[PathBuf], options: &MosaicOptions) -> Result<Self> {
-        let first = paths.first().ok_or(Error::NothingToTile)?;
+        let first = paths.first().ok_or(Error::NoInput)?;
         let mut files = Vec::with_capacity(paths.len());
         let mut skipped = Vec::new();
         // Headers read on every core (thousands of files: most of the time before the
@@ -195,7 +195,7 @@ impl<K: MosaicKind> Mosaic<K> {
             }
         }
         if files.is_empty() {
-            return Err(Error::input(first, "no input can be used (every one was skipped)"));
+            return Err(Error::mismatch(first, "no input can be used (every one was skipped)"));
         }
         let crs = match &options.crs {
             Some(crs) => crs.clone(),
@@ -215,7 +215,7 @@ impl<K: MosaicKind> Mosaic<K> {
         for (o, fp) in files.iter().zip(found) {
             let (w, h) = (o.window[2], o.window[3]);
             let fp = fp.ok_or_else(|| {
-                Error::input(K::path(&o.file), format!("it lies outside what {} can hold", crs.name()))
+                Error::georeference(K::path(&o.file), format!("it lies outside what {} can hold", crs.name()))
             })?;
             bounds = [bounds[0].min(fp[0]), bounds[1].min(fp[1]), bounds[2].max(fp[2]), bounds[3].max(fp[3])];
             let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
@@ -227,7 +227,11 @@ impl<K: MosaicKind> Mosaic<K> {
         }
         let spacing = options.resolution.unwrap_or(finest);
         if !(spacing.is_finite() && spacing > 0.0) {
-            return Err(Error::option("--resolution", spacing, "a positive number of metres"));
+            return Err(Error::InvalidOption {
+                option: "--resolution",
+                value: spacing.to_string(),
+                allowed: "a positive number of metres",
+            });
         }
         // No extent given, and the first input already in the output CRS at this spacing:
         // the grid continues its pixels (its north-west corner moved out onto them), so
@@ -251,7 +255,7 @@ impl<K: MosaicKind> Mosaic<K> {
         };
         let (w, h) = (side(bounds[2] - bounds[0]), side(bounds[3] - bounds[1]));
         let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
-            return Err(Error::input(
+            return Err(Error::mismatch(
                 first,
                 format!("the mosaic would be {w} x {h} samples: set a coarser --resolution"),
             ));
@@ -474,18 +478,18 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     let plain = K::open;
     if is_vrt(path) {
         let vrt = read_vrt(path)?;
-        let crs = Crs::parse(&vrt.crs).map_err(|e| Error::input(path, format!("its SRS cannot be used: {e}")))?;
+        let crs =
+            Crs::parse(&vrt.crs).map_err(|e| Error::georeference(path, format!("its SRS cannot be used: {e}")))?;
         return vrt
             .sources
             .into_iter()
             .map(|source| {
                 let file = plain(&source.path)?;
-                K::check_bands(&file, vrt.bands)
-                    .map_err(|why| Error::input(path, format!("{why} ({})", source.path.display())))?;
+                K::check_bands(&file, vrt.bands, path)?;
                 let (w, h) = K::size(&file);
                 let [x, y, sw, sh] = source.window;
                 if x.saturating_add(sw) > w || y.saturating_add(sh) > h {
-                    return Err(Error::input(
+                    return Err(Error::damaged(
                         &source.path,
                         format!("{} reads pixels {x}+{sw} x {y}+{sh} of this {w}x{h} raster", path.display()),
                     ));
@@ -510,12 +514,13 @@ fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
     }
     let file = plain(path)?;
     let Some((crs, origin, pixel)) = crs_placement(K::georeference(&file), K::crs_pixel(&file)) else {
-        return Err(Error::input(
+        return Err(Error::georeference(
             path,
             "it does not say where it lies (no GeoTIFF georeference, world file or .aux.xml with a CRS)",
         ));
     };
-    let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))?;
+    let crs =
+        Crs::parse(crs).map_err(|e| Error::georeference(path, format!("its georeference cannot be used: {e}")))?;
     let (w, h) = K::size(&file);
     Ok(vec![Opened { file, crs, origin, pixel, window: [0, 0, w, h], nodata: None, scale: None }])
 }

@@ -46,7 +46,7 @@ impl<'a> Warped<'a> {
     /// the image's pixels in size, square in metres.
     ///
     /// # Errors
-    /// [`Error::UnknownCrs`] naming a CRS the tiler does not know; [`Error::Input`]
+    /// [`Error::UnknownCrs`] naming a CRS the tiler does not know; [`Error::Mismatch`]
     /// naming the image when it does not cover the elevation.
     pub fn over(elevation: &dyn ElevationSource, image: &'a dyn ImageSource) -> Result<Option<Self>> {
         let (Some((dem_crs, dem_origin, dem_px)), Some((img_crs, img_origin, img_px))) = (
@@ -59,7 +59,7 @@ impl<'a> Warped<'a> {
             return Ok(None);
         }
         let named = |crs: &str, path: &Path| {
-            Crs::parse(crs).map_err(|e| Error::input(path, format!("its georeference cannot be used: {e}")))
+            Crs::parse(crs).map_err(|e| Error::georeference(path, format!("its georeference cannot be used: {e}")))
         };
         let (from, to) = (named(dem_crs, elevation.path())?, named(img_crs, image.path())?);
         let (dw, dh) = elevation.size();
@@ -68,8 +68,9 @@ impl<'a> Warped<'a> {
         let transform = Transform::new(&from, &to);
         // Texels of about the image's pixel size, square in metres, over the elevation.
         let (ex, ez) = (f64::from(dw) * elevation.spacing().0, f64::from(dh) * elevation.spacing().1);
-        let texel = pixel_metres(&to, image_at, image.size().1)
-            .ok_or_else(|| Error::input(image.path(), format!("its pixels cannot be measured in {}", to.name())))?;
+        let texel = pixel_metres(&to, image_at, image.size().1).ok_or_else(|| {
+            Error::georeference(image.path(), format!("its pixels cannot be measured in {}", to.name()))
+        })?;
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 1..=MAX_SIDE")]
         let side = |metres: f64| (metres / texel).round().clamp(1.0, MAX_SIDE) as u32;
         let warped = Self {
@@ -140,7 +141,7 @@ impl<'a> Warped<'a> {
             .filter(|&(i, j)| self.source_of(i, j).is_some_and(|(x, y)| x >= -1.0 && y >= -1.0 && x <= fw && y <= fh))
             .count();
         if inside == 0 {
-            return Err(Error::input(
+            return Err(Error::mismatch(
                 self.image.path(),
                 format!(
                     "mismatched extents: this {iw}x{ih} image, placed by its georeference, lies nowhere over \
@@ -194,7 +195,7 @@ impl ImageSource for Warped<'_> {
             // The image is read on its own thread, a few rows ahead.
             let (sender, rows) = mpsc::sync_channel::<Vec<[u8; 4]>>(64);
             let reader = scope.spawn(move || {
-                self.image.rows(&mut |r| sender.send(r.to_vec()).map_err(|_| crate::error::interrupted()))
+                self.image.rows(&mut |r| sender.send(r.to_vec()).map_err(|_| Error::Interrupted(crate::Interrupted)))
             });
             let mut band: VecDeque<Vec<[u8; 4]>> = VecDeque::new();
             let mut first = 0i64;

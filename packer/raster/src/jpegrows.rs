@@ -11,6 +11,46 @@ use std::path::Path;
 use super::image::ycbcr_to_rgb;
 use crate::error::{Error, Result};
 
+/// What is wrong with a JPEG that is not read by rows: damaged data, or a kind of JPEG
+/// (progressive, lossless, arithmetic-coded, 12-bit, CMYK) this decoder does not read.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum JpegError {
+    /// Reading the file failed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    /// The data contradicts the format (what was found, in words).
+    #[error("{0}")]
+    Damaged(&'static str),
+    /// The entropy-coded data ends before the image does.
+    #[error("the data ends early, at marker {0:#04x}")]
+    EndsEarly(u8),
+    /// A marker other than RST where a restart interval ends.
+    #[error("marker {0:#04x} where a restart was due")]
+    NoRestart(u8),
+    /// Samples of another precision than 8 bits.
+    #[error("{0}-bit samples (8 are read)")]
+    Precision(u8),
+    /// A frame of other than one or three components, or of no pixels.
+    #[error("{components} components in a {width}x{height} frame (1 or 3 are read)")]
+    Frame {
+        /// Components in the frame.
+        components: usize,
+        /// Pixels across.
+        width: usize,
+        /// Pixels down.
+        height: usize,
+    },
+    /// A coding this decoder does not read (what, in words).
+    #[error("{0}")]
+    Unsupported(&'static str),
+    /// The row consumer stopped the decoding (its own error is what is returned).
+    #[error("stopped by the consumer of rows")]
+    Stopped,
+}
+
+type Decoded<T = ()> = std::result::Result<T, JpegError>;
+
 /// Coefficient order in the stream: ZIGZAG[k] is the k-th coefficient's index (row-major).
 const ZIGZAG: [u8; 64] = [
     0, 1, 8, 16, 9, 2, 3, 10, 17, 24, 32, 25, 18, 11, 4, 5, 12, 19, 26, 33, 40, 48, 41, 34, 27, 20, 13, 6, 7, 14, 21,
@@ -34,20 +74,20 @@ struct Huffman {
 }
 
 impl Huffman {
-    fn new(counts: &[u8; 16], values: Vec<u8>) -> std::result::Result<Self, String> {
+    fn new(counts: &[u8; 16], values: Vec<u8>) -> Decoded<Self> {
         let total: usize = counts.iter().map(|&c| usize::from(c)).sum();
         if total > values.len() || total > 256 {
-            return Err("a Huffman table lists more codes than values".into());
+            return Err(JpegError::Damaged("a Huffman table lists more codes than values"));
         }
         let (mut fast, mut max_code, mut offset) = (vec![(0u8, 0u8); 1 << FAST_BITS], [-1i32; 17], [0i32; 17]);
         let (mut code, mut k) = (0i32, 0usize);
         for (len, &count) in (1u8..=16).zip(counts) {
             let slot = usize::from(len);
-            offset[slot] = i32::try_from(k).map_err(|_| "too many codes")? - code;
+            offset[slot] = i32::try_from(k).map_err(|_| JpegError::Damaged("too many codes"))? - code;
             for _ in 0..count {
                 if u32::from(len) <= FAST_BITS {
                     let shift = FAST_BITS - u32::from(len);
-                    let first = usize::try_from(code).map_err(|_| "a negative code")? << shift;
+                    let first = usize::try_from(code).map_err(|_| JpegError::Damaged("a negative code"))? << shift;
                     for entry in fast.iter_mut().skip(first).take(1 << shift) {
                         *entry = (len, values[k]);
                     }
@@ -59,7 +99,7 @@ impl Huffman {
                 max_code[slot] = code - 1;
             }
             if code > 1 << len {
-                return Err("a Huffman table's codes do not fit their lengths".into());
+                return Err(JpegError::Damaged("a Huffman table's codes do not fit their lengths"));
             }
             code <<= 1;
         }
@@ -86,25 +126,26 @@ impl<R: Read> Bits<R> {
         Self { src, buffer: vec![0; 1 << 16], at: 0, len: 0, acc: 0, count: 0, marker: None, past: 0 }
     }
 
-    fn byte(&mut self) -> std::result::Result<u8, String> {
+    fn byte(&mut self) -> Decoded<u8> {
         if self.at == self.len {
-            self.len = self.src.read(&mut self.buffer).map_err(|e| e.to_string())?;
+            self.len = self.src.read(&mut self.buffer)?;
             self.at = 0;
             if self.len == 0 {
-                return Err("the file ends inside the image".into());
+                return Err(JpegError::Damaged("the file ends inside the image"));
             }
         }
         self.at += 1;
         Ok(self.buffer[self.at - 1])
     }
 
-    fn u16(&mut self) -> std::result::Result<u16, String> {
+    fn u16(&mut self) -> Decoded<u16> {
         Ok(u16::from_be_bytes([self.byte()?, self.byte()?]))
     }
 
     /// A marker segment's payload (its length read first).
-    fn segment(&mut self) -> std::result::Result<Vec<u8>, String> {
-        let len = usize::from(self.u16()?).checked_sub(2).ok_or("a segment shorter than its length")?;
+    fn segment(&mut self) -> Decoded<Vec<u8>> {
+        let len =
+            usize::from(self.u16()?).checked_sub(2).ok_or(JpegError::Damaged("a segment shorter than its length"))?;
         let mut segment = vec![0u8; len];
         for b in &mut segment {
             *b = self.byte()?;
@@ -113,7 +154,7 @@ impl<R: Read> Bits<R> {
     }
 
     /// The next marker (after any fill bytes), outside entropy-coded data.
-    fn next_marker(&mut self) -> std::result::Result<u8, String> {
+    fn next_marker(&mut self) -> Decoded<u8> {
         if let Some(m) = self.marker.take() {
             return Ok(m);
         }
@@ -131,7 +172,7 @@ impl<R: Read> Bits<R> {
         }
     }
 
-    fn fill(&mut self) -> std::result::Result<(), String> {
+    fn fill(&mut self) -> Decoded<()> {
         while self.count <= 56 {
             let mut b = 0u8;
             if self.marker.is_some() {
@@ -139,7 +180,7 @@ impl<R: Read> Bits<R> {
                 // data ends before the image does.
                 self.past += 1;
                 if self.past > 512 {
-                    return Err(format!("the data ends early, at marker {:#04x}", self.marker.unwrap_or(0)));
+                    return Err(JpegError::EndsEarly(self.marker.unwrap_or(0)));
                 }
             } else {
                 b = self.byte()?;
@@ -160,7 +201,7 @@ impl<R: Read> Bits<R> {
         Ok(())
     }
 
-    fn bits(&mut self, n: u32) -> std::result::Result<u32, String> {
+    fn bits(&mut self, n: u32) -> Decoded<u32> {
         if n == 0 {
             return Ok(0);
         }
@@ -174,7 +215,7 @@ impl<R: Read> Bits<R> {
         Ok(v)
     }
 
-    fn decode(&mut self, table: &Huffman) -> std::result::Result<u8, String> {
+    fn decode(&mut self, table: &Huffman) -> Decoded<u8> {
         if self.count < 16 {
             self.fill()?;
         }
@@ -188,31 +229,32 @@ impl<R: Read> Bits<R> {
         for len in FAST_BITS as usize + 1..=16 {
             code = (code << 1) | self.bits(1)? as i32;
             if code <= table.max_code[len] {
-                let i = usize::try_from(table.offset[len] + code).map_err(|_| "bad Huffman code")?;
-                return table.values.get(i).copied().ok_or_else(|| "bad Huffman code".into());
+                let i =
+                    usize::try_from(table.offset[len] + code).map_err(|_| JpegError::Damaged("bad Huffman code"))?;
+                return table.values.get(i).copied().ok_or(JpegError::Damaged("bad Huffman code"));
             }
         }
-        Err("a Huffman code no table holds".into())
+        Err(JpegError::Damaged("a Huffman code no table holds"))
     }
 
     /// `s` bits as a signed value (JPEG's EXTEND).
-    fn signed(&mut self, s: u8) -> std::result::Result<i32, String> {
+    fn signed(&mut self, s: u8) -> Decoded<i32> {
         if s == 0 {
             return Ok(0);
         }
         if s > 16 {
-            return Err("a coefficient of more than 16 bits".into());
+            return Err(JpegError::Damaged("a coefficient of more than 16 bits"));
         }
         let v = self.bits(u32::from(s))? as i32;
         Ok(if v < 1 << (s - 1) { v - (1 << s) + 1 } else { v })
     }
 
     /// At a restart interval's end: the bits left dropped, the RST marker taken.
-    fn restart(&mut self) -> std::result::Result<(), String> {
+    fn restart(&mut self) -> Decoded<()> {
         (self.acc, self.count, self.past) = (0, 0, 0);
         match self.next_marker()? {
             0xD0..=0xD7 => Ok(()),
-            m => Err(format!("marker {m:#04x} where a restart was due")),
+            m => Err(JpegError::NoRestart(m)),
         }
     }
 }
@@ -235,7 +277,7 @@ struct Component {
 /// large to decode whole with.
 ///
 /// # Errors
-/// [`Error::Input`] naming the file: not a JPEG this reads (progressive, lossless,
+/// [`Error::Jpeg`] naming the file: not a JPEG this reads (progressive, lossless,
 /// arithmetic-coded, 12-bit, CMYK), damaged data; `row`'s errors.
 pub fn jpeg_rows(path: &Path, row: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<()> {
     let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
@@ -243,12 +285,12 @@ pub fn jpeg_rows(path: &Path, row: &mut dyn FnMut(&[u8]) -> Result<()>) -> Resul
     let result = decode(file, &mut |r| {
         row(r).map_err(|e| {
             failed = Some(e);
-            String::new()
+            JpegError::Stopped
         })
     });
     match (result, failed) {
         (_, Some(e)) => Err(e),
-        (Err(why), None) => Err(Error::input(path, format!("JPEG: {why}"))),
+        (Err(error), None) => Err(Error::Jpeg { path: path.to_owned(), error }),
         (Ok(()), None) => Ok(()),
     }
 }
@@ -257,14 +299,12 @@ pub fn jpeg_rows(path: &Path, row: &mut dyn FnMut(&[u8]) -> Result<()>) -> Resul
 /// samples, one or three components.
 ///
 /// # Errors
-/// [`Error::Input`] naming the file if its headers cannot be read.
+/// [`Error::Jpeg`] naming the file if its headers cannot be read.
 pub(super) fn reads_by_rows(path: &Path) -> Result<bool> {
     let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
     let mut bits = Bits::new(std::io::BufReader::with_capacity(1 << 12, file));
-    let mut frame = || -> std::result::Result<bool, String> {
-        if bits.byte()? != 0xFF || bits.byte()? != 0xD8 {
-            return Err("no start-of-image marker".into());
-        }
+    let mut frame = || -> Decoded<bool> {
+        start_of_image(&mut bits)?;
         loop {
             match bits.next_marker()? {
                 0x01 | 0xD0..=0xD7 => {}
@@ -280,10 +320,8 @@ pub(super) fn reads_by_rows(path: &Path) -> Result<bool> {
             }
         }
     };
-    frame().map_err(|why| Error::input(path, format!("JPEG: {why}")))
+    frame().map_err(|error| Error::Jpeg { path: path.to_owned(), error })
 }
-
-type Decoded = std::result::Result<(), String>;
 
 /// A frame marker of a kind this does not read: progressive, lossless, hierarchical or
 /// arithmetic-coded.
@@ -291,206 +329,294 @@ fn unread_frame(marker: u8) -> bool {
     matches!(marker, 0xC2 | 0xC3 | 0xC5..=0xC7 | 0xC9..=0xCB | 0xCD..=0xCF)
 }
 
-fn decode(file: impl Read, row: &mut dyn FnMut(&[u8]) -> Decoded) -> Decoded {
-    let mut bits = Bits::new(file);
+fn start_of_image(bits: &mut Bits<impl Read>) -> Decoded {
     if bits.byte()? != 0xFF || bits.byte()? != 0xD8 {
-        return Err("no start-of-image marker".into());
-    }
-    let mut quant = [[0f32; 64]; 4];
-    let (mut dc, mut ac): (Vec<Option<Huffman>>, Vec<Option<Huffman>>) =
-        ((0..4).map(|_| None).collect(), (0..4).map(|_| None).collect());
-    let (mut width, mut height, mut components, mut interval, mut rgb) = (0usize, 0usize, Vec::new(), 0usize, false);
-    loop {
-        let marker = bits.next_marker()?;
-        if matches!(marker, 0x01 | 0xD0..=0xD7) {
-            continue;
-        }
-        if marker == 0xD9 {
-            return Err("the image ends before its scan".into());
-        }
-        let segment = bits.segment()?;
-        let at = |i: usize| segment.get(i).copied().ok_or_else(|| "a segment cut short".to_string());
-        match marker {
-            0xC0 | 0xC1 => {
-                if at(0)? != 8 {
-                    return Err(format!("{}-bit samples (8 are read)", at(0)?));
-                }
-                height = usize::from(u16::from_be_bytes([at(1)?, at(2)?]));
-                width = usize::from(u16::from_be_bytes([at(3)?, at(4)?]));
-                let n = usize::from(at(5)?);
-                if !matches!(n, 1 | 3) || width == 0 || height == 0 {
-                    return Err(format!("{n} components in a {width}x{height} frame (1 or 3 are read)"));
-                }
-                for c in 0..n {
-                    let (h, v) = (usize::from(at(7 + 3 * c)? >> 4), usize::from(at(7 + 3 * c)? & 15));
-                    if !(1..=4).contains(&h) || !(1..=4).contains(&v) {
-                        return Err("a sampling factor outside 1..4".into());
-                    }
-                    let quant = usize::from(at(8 + 3 * c)? & 3);
-                    components.push(Component {
-                        id: at(6 + 3 * c)?,
-                        h,
-                        v,
-                        quant,
-                        dc: 0,
-                        ac: 0,
-                        predictor: 0,
-                        plane: Vec::new(),
-                        stride: 0,
-                    });
-                }
-            }
-            m if unread_frame(m) => {
-                return Err(
-                    "progressive, lossless or arithmetic-coded (only sequential Huffman JPEGs are read by rows)".into(),
-                );
-            }
-            0xC4 => {
-                let mut i = 0;
-                while i < segment.len() {
-                    let class = at(i)?;
-                    let mut counts = [0u8; 16];
-                    for (k, c) in counts.iter_mut().enumerate() {
-                        *c = at(i + 1 + k)?;
-                    }
-                    let total: usize = counts.iter().map(|&c| usize::from(c)).sum();
-                    let values = segment.get(i + 17..i + 17 + total).ok_or("a Huffman table cut short")?.to_vec();
-                    let table = Some(Huffman::new(&counts, values)?);
-                    let slot = usize::from(class & 3);
-                    if class >> 4 == 0 {
-                        dc[slot] = table
-                    } else {
-                        ac[slot] = table
-                    }
-                    i += 17 + total;
-                }
-            }
-            0xDB => {
-                let mut i = 0;
-                while i < segment.len() {
-                    let (precision, slot) = (at(i)? >> 4, usize::from(at(i)? & 3));
-                    for k in 0..64 {
-                        let q = if precision == 0 {
-                            u16::from(at(i + 1 + k)?)
-                        } else {
-                            u16::from_be_bytes([at(i + 1 + 2 * k)?, at(i + 2 + 2 * k)?])
-                        };
-                        quant[slot][usize::from(ZIGZAG[k])] = f32::from(q);
-                    }
-                    i += 1 + 64 * (1 + usize::from(precision != 0));
-                }
-            }
-            0xDD => interval = usize::from(u16::from_be_bytes([at(0)?, at(1)?])),
-            // Adobe's segment: transform 0 with three components is RGB, not YCbCr.
-            0xEE if segment.starts_with(b"Adobe") => rgb = at(11)? == 0,
-            0xDA => {
-                if components.is_empty() {
-                    return Err("a scan before the frame".into());
-                }
-                let n = usize::from(at(0)?);
-                if n != components.len() {
-                    return Err("a scan of some components only (one scan of all is read by rows)".into());
-                }
-                for k in 0..n {
-                    let (id, tables) = (at(1 + 2 * k)?, at(2 + 2 * k)?);
-                    let c = components.iter_mut().find(|c| c.id == id).ok_or("a scan of an unknown component")?;
-                    (c.dc, c.ac) = (usize::from(tables >> 4 & 3), usize::from(tables & 3));
-                }
-                break;
-            }
-            _ => {}
-        }
-    }
-    // One component alone is not interleaved: its blocks are its MCUs.
-    if let [only] = components.as_mut_slice() {
-        (only.h, only.v) = (1, 1);
-    }
-    let (hmax, vmax) =
-        (components.iter().map(|c| c.h).max().unwrap_or(1), components.iter().map(|c| c.v).max().unwrap_or(1));
-    let (mcu_w, mcu_h) = (8 * hmax, 8 * vmax);
-    let (mcus_x, mcus_y) = (width.div_ceil(mcu_w), height.div_ceil(mcu_h));
-    for c in &mut components {
-        c.stride = mcus_x * c.h * 8;
-        c.plane = vec![0; c.stride * c.v * 8];
-    }
-    let mut out = vec![0u8; width * 3];
-    // Per component, the column of its plane under each pixel (replicated chroma).
-    let columns: Vec<Vec<usize>> = components.iter().map(|c| (0..width).map(|x| x * c.h / hmax).collect()).collect();
-    let mut done = 0usize;
-    for my in 0..mcus_y {
-        for mx in 0..mcus_x {
-            if interval > 0 && done > 0 && done.is_multiple_of(interval) {
-                bits.restart()?;
-                components.iter_mut().for_each(|c| c.predictor = 0);
-            }
-            done += 1;
-            for c in &mut components {
-                let (dc_table, ac_table) = (
-                    dc[c.dc].as_ref().ok_or("a scan's DC table is missing")?,
-                    ac[c.ac].as_ref().ok_or("a scan's AC table is missing")?,
-                );
-                let q = &quant[c.quant];
-                for by in 0..c.v {
-                    for bx in 0..c.h {
-                        let mut coefficients = [0f32; 64];
-                        let s = bits.decode(dc_table)?;
-                        c.predictor += bits.signed(s)?;
-                        #[expect(clippy::cast_precision_loss, reason = "DC values fit 16 bits")]
-                        let dc_value = c.predictor as f32;
-                        coefficients[0] = dc_value * q[0];
-                        let mut k = 1;
-                        while k < 64 {
-                            let rs = bits.decode(ac_table)?;
-                            let (run, size) = (usize::from(rs >> 4), rs & 15);
-                            if size == 0 {
-                                if run != 15 {
-                                    break;
-                                }
-                                k += 16;
-                                continue;
-                            }
-                            k += run;
-                            let Some(&z) = ZIGZAG.get(k) else { return Err("a coefficient past the 64th".into()) };
-                            #[expect(clippy::cast_precision_loss, reason = "coefficients fit 16 bits")]
-                            let v = bits.signed(size)? as f32;
-                            coefficients[usize::from(z)] = v * q[usize::from(z)];
-                            k += 1;
-                        }
-                        let x0 = (mx * c.h + bx) * 8;
-                        let y0 = by * 8;
-                        idct(&coefficients, &mut c.plane[y0 * c.stride + x0..], c.stride);
-                    }
-                }
-            }
-        }
-        // The MCU row's pixels: each component's sample under each pixel (replicated).
-        for ly in 0..mcu_h.min(height - my * mcu_h) {
-            // Each component's line under this row of pixels.
-            let line = |k: usize| {
-                let c = &components[k];
-                let at = (ly * c.v / vmax) * c.stride;
-                (&c.plane[at..at + c.stride], &columns[k][..])
-            };
-            match components.len() {
-                1 => {
-                    let (plane, cols) = line(0);
-                    for (px, &col) in out.chunks_exact_mut(3).zip(cols) {
-                        px.fill(plane[col]);
-                    }
-                }
-                3 => {
-                    let [(p0, c0), (p1, c1), (p2, c2)] = [line(0), line(1), line(2)];
-                    for (x, px) in out.chunks_exact_mut(3).enumerate() {
-                        let samples = [p0[c0[x]], p1[c1[x]], p2[c2[x]]];
-                        px.copy_from_slice(&if rgb { samples } else { ycbcr_to_rgb(samples) });
-                    }
-                }
-                _ => out.fill(0),
-            }
-            row(&out)?;
-        }
+        return Err(JpegError::Damaged("no start-of-image marker"));
     }
     Ok(())
+}
+
+fn decode(file: impl Read, row: &mut dyn FnMut(&[u8]) -> Decoded) -> Decoded {
+    let mut bits = Bits::new(file);
+    start_of_image(&mut bits)?;
+    let mut frame = Frame::read(&mut bits)?;
+    frame.decode(&mut bits, row)
+}
+
+/// Byte `i` of a marker segment.
+fn at(segment: &[u8], i: usize) -> Decoded<u8> {
+    segment.get(i).copied().ok_or(JpegError::Damaged("a segment cut short"))
+}
+
+/// What the headers up to the scan say: the frame, its tables, the restart interval.
+struct Frame {
+    width: usize,
+    height: usize,
+    components: Vec<Component>,
+    quant: [[f32; 64]; 4],
+    dc: [Option<Huffman>; 4],
+    ac: [Option<Huffman>; 4],
+    /// MCUs between restart markers (0: none).
+    interval: usize,
+    /// Three components stored as RGB (Adobe's transform 0), not YCbCr.
+    rgb: bool,
+}
+
+impl Frame {
+    /// Reads the markers up to and with the (one) scan's header.
+    fn read(bits: &mut Bits<impl Read>) -> Decoded<Self> {
+        let mut frame = Self {
+            width: 0,
+            height: 0,
+            components: Vec::new(),
+            quant: [[0f32; 64]; 4],
+            dc: [None, None, None, None],
+            ac: [None, None, None, None],
+            interval: 0,
+            rgb: false,
+        };
+        loop {
+            let marker = bits.next_marker()?;
+            if matches!(marker, 0x01 | 0xD0..=0xD7) {
+                continue;
+            }
+            if marker == 0xD9 {
+                return Err(JpegError::Damaged("the image ends before its scan"));
+            }
+            let segment = bits.segment()?;
+            match marker {
+                0xC0 | 0xC1 => frame.start_of_frame(&segment)?,
+                m if unread_frame(m) => {
+                    return Err(JpegError::Unsupported(
+                        "progressive, lossless or arithmetic-coded (only sequential Huffman JPEGs are read by rows)",
+                    ));
+                }
+                0xC4 => frame.huffman_tables(&segment)?,
+                0xDB => frame.quantization_tables(&segment)?,
+                0xDD => frame.interval = usize::from(u16::from_be_bytes([at(&segment, 0)?, at(&segment, 1)?])),
+                // Adobe's segment: transform 0 with three components is RGB, not YCbCr.
+                0xEE if segment.starts_with(b"Adobe") => frame.rgb = at(&segment, 11)? == 0,
+                0xDA => {
+                    frame.start_of_scan(&segment)?;
+                    return Ok(frame);
+                }
+                _ => {}
+            }
+        }
+    }
+
+    fn start_of_frame(&mut self, segment: &[u8]) -> Decoded {
+        let at = |i| at(segment, i);
+        if at(0)? != 8 {
+            return Err(JpegError::Precision(at(0)?));
+        }
+        self.height = usize::from(u16::from_be_bytes([at(1)?, at(2)?]));
+        self.width = usize::from(u16::from_be_bytes([at(3)?, at(4)?]));
+        let n = usize::from(at(5)?);
+        if !matches!(n, 1 | 3) || self.width == 0 || self.height == 0 {
+            return Err(JpegError::Frame { components: n, width: self.width, height: self.height });
+        }
+        for c in 0..n {
+            let (h, v) = (usize::from(at(7 + 3 * c)? >> 4), usize::from(at(7 + 3 * c)? & 15));
+            if !(1..=4).contains(&h) || !(1..=4).contains(&v) {
+                return Err(JpegError::Damaged("a sampling factor outside 1..4"));
+            }
+            let quant = usize::from(at(8 + 3 * c)? & 3);
+            self.components.push(Component {
+                id: at(6 + 3 * c)?,
+                h,
+                v,
+                quant,
+                dc: 0,
+                ac: 0,
+                predictor: 0,
+                plane: Vec::new(),
+                stride: 0,
+            });
+        }
+        Ok(())
+    }
+
+    fn huffman_tables(&mut self, segment: &[u8]) -> Decoded {
+        let mut i = 0;
+        while i < segment.len() {
+            let class = at(segment, i)?;
+            let mut counts = [0u8; 16];
+            for (k, c) in counts.iter_mut().enumerate() {
+                *c = at(segment, i + 1 + k)?;
+            }
+            let total: usize = counts.iter().map(|&c| usize::from(c)).sum();
+            let values = segment.get(i + 17..i + 17 + total).ok_or(JpegError::Damaged("a Huffman table cut short"))?;
+            let table = Some(Huffman::new(&counts, values.to_vec())?);
+            let slot = usize::from(class & 3);
+            if class >> 4 == 0 {
+                self.dc[slot] = table
+            } else {
+                self.ac[slot] = table
+            }
+            i += 17 + total;
+        }
+        Ok(())
+    }
+
+    fn quantization_tables(&mut self, segment: &[u8]) -> Decoded {
+        let mut i = 0;
+        while i < segment.len() {
+            let (precision, slot) = (at(segment, i)? >> 4, usize::from(at(segment, i)? & 3));
+            for (k, &z) in ZIGZAG.iter().enumerate() {
+                let q = if precision == 0 {
+                    u16::from(at(segment, i + 1 + k)?)
+                } else {
+                    u16::from_be_bytes([at(segment, i + 1 + 2 * k)?, at(segment, i + 2 + 2 * k)?])
+                };
+                self.quant[slot][usize::from(z)] = f32::from(q);
+            }
+            i += 1 + 64 * (1 + usize::from(precision != 0));
+        }
+        Ok(())
+    }
+
+    fn start_of_scan(&mut self, segment: &[u8]) -> Decoded {
+        if self.components.is_empty() {
+            return Err(JpegError::Damaged("a scan before the frame"));
+        }
+        let n = usize::from(at(segment, 0)?);
+        if n != self.components.len() {
+            return Err(JpegError::Unsupported("a scan of some components only (one scan of all is read by rows)"));
+        }
+        for k in 0..n {
+            let (id, tables) = (at(segment, 1 + 2 * k)?, at(segment, 2 + 2 * k)?);
+            let c = self
+                .components
+                .iter_mut()
+                .find(|c| c.id == id)
+                .ok_or(JpegError::Damaged("a scan of an unknown component"))?;
+            (c.dc, c.ac) = (usize::from(tables >> 4 & 3), usize::from(tables & 3));
+        }
+        // One component alone is not interleaved: its blocks are its MCUs.
+        if let [only] = self.components.as_mut_slice() {
+            (only.h, only.v) = (1, 1);
+        }
+        Ok(())
+    }
+
+    /// Largest sampling factors across and down: an MCU is 8 times these in pixels.
+    fn max_sampling(&self) -> (usize, usize) {
+        (self.components.iter().map(|c| c.h).max().unwrap_or(1), self.components.iter().map(|c| c.v).max().unwrap_or(1))
+    }
+
+    /// Decodes the scan a row of MCUs at a time, calling `row` with each row of pixels.
+    fn decode(&mut self, bits: &mut Bits<impl Read>, row: &mut dyn FnMut(&[u8]) -> Decoded) -> Decoded {
+        let (hmax, vmax) = self.max_sampling();
+        let (mcu_w, mcu_h) = (8 * hmax, 8 * vmax);
+        let (mcus_x, mcus_y) = (self.width.div_ceil(mcu_w), self.height.div_ceil(mcu_h));
+        for c in &mut self.components {
+            c.stride = mcus_x * c.h * 8;
+            c.plane = vec![0; c.stride * c.v * 8];
+        }
+        let mut out = vec![0u8; self.width * 3];
+        // Per component, the column of its plane under each pixel (replicated chroma).
+        let columns: Vec<Vec<usize>> =
+            self.components.iter().map(|c| (0..self.width).map(|x| x * c.h / hmax).collect()).collect();
+        let mut done = 0usize;
+        for my in 0..mcus_y {
+            for mx in 0..mcus_x {
+                if self.interval > 0 && done > 0 && done.is_multiple_of(self.interval) {
+                    bits.restart()?;
+                    self.components.iter_mut().for_each(|c| c.predictor = 0);
+                }
+                done += 1;
+                self.decode_mcu(bits, mx)?;
+            }
+            for ly in 0..mcu_h.min(self.height - my * mcu_h) {
+                self.pixels(ly, vmax, &columns, &mut out);
+                row(&out)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The blocks of MCU `mx` of the current row, each component's into its plane.
+    fn decode_mcu(&mut self, bits: &mut Bits<impl Read>, mx: usize) -> Decoded {
+        for c in &mut self.components {
+            let (dc_table, ac_table) = (
+                self.dc[c.dc].as_ref().ok_or(JpegError::Damaged("a scan's DC table is missing"))?,
+                self.ac[c.ac].as_ref().ok_or(JpegError::Damaged("a scan's AC table is missing"))?,
+            );
+            let q = &self.quant[c.quant];
+            for by in 0..c.v {
+                for bx in 0..c.h {
+                    let coefficients = block(bits, c, dc_table, ac_table, q)?;
+                    let x0 = (mx * c.h + bx) * 8;
+                    let y0 = by * 8;
+                    idct(&coefficients, &mut c.plane[y0 * c.stride + x0..], c.stride);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Line `ly` of the MCU row as RGB pixels: each component's sample under each pixel
+    /// (replicated).
+    fn pixels(&self, ly: usize, vmax: usize, columns: &[Vec<usize>], out: &mut [u8]) {
+        // Each component's line under this row of pixels.
+        let line = |k: usize| {
+            let c = &self.components[k];
+            let at = (ly * c.v / vmax) * c.stride;
+            (&c.plane[at..at + c.stride], &columns[k][..])
+        };
+        match self.components.len() {
+            1 => {
+                let (plane, cols) = line(0);
+                for (px, &col) in out.chunks_exact_mut(3).zip(cols) {
+                    px.fill(plane[col]);
+                }
+            }
+            3 => {
+                let [(p0, c0), (p1, c1), (p2, c2)] = [line(0), line(1), line(2)];
+                for (x, px) in out.chunks_exact_mut(3).enumerate() {
+                    let samples = [p0[c0[x]], p1[c1[x]], p2[c2[x]]];
+                    px.copy_from_slice(&if self.rgb { samples } else { ycbcr_to_rgb(samples) });
+                }
+            }
+            _ => out.fill(0),
+        }
+    }
+}
+
+/// One 8x8 block of component `c`, dequantized, in row-major order.
+fn block(
+    bits: &mut Bits<impl Read>,
+    c: &mut Component,
+    dc: &Huffman,
+    ac: &Huffman,
+    q: &[f32; 64],
+) -> Decoded<[f32; 64]> {
+    let mut coefficients = [0f32; 64];
+    let s = bits.decode(dc)?;
+    c.predictor += bits.signed(s)?;
+    #[expect(clippy::cast_precision_loss, reason = "DC values fit 16 bits")]
+    let dc_value = c.predictor as f32;
+    coefficients[0] = dc_value * q[0];
+    let mut k = 1;
+    while k < 64 {
+        let rs = bits.decode(ac)?;
+        let (run, size) = (usize::from(rs >> 4), rs & 15);
+        if size == 0 {
+            if run != 15 {
+                break;
+            }
+            k += 16;
+            continue;
+        }
+        k += run;
+        let Some(&z) = ZIGZAG.get(k) else { return Err(JpegError::Damaged("a coefficient past the 64th")) };
+        #[expect(clippy::cast_precision_loss, reason = "coefficients fit 16 bits")]
+        let v = bits.signed(size)? as f32;
+        coefficients[usize::from(z)] = v * q[usize::from(z)];
+        k += 1;
+    }
+    Ok(coefficients)
 }
 
 /// The 8x8 inverse DCT of `f` (row-major, dequantized) into `out` (rows `stride` apart),
@@ -543,7 +669,7 @@ mod tests {
     use jpeg_encoder::{ColorType, Encoder, SamplingFactor};
 
     use super::jpeg_rows;
-    use crate::raster::jpeg::decode_jpeg;
+    use crate::jpeg::decode_jpeg;
 
     /// A smooth gradient with a sharp-edged square and some texture: what orthophotos hold.
     fn picture(w: u16, h: u16) -> Vec<u8> {
@@ -649,7 +775,7 @@ mod tests {
             assert!(err.contains("cut.jpg"), "{err}");
         }
         // A row's own error comes back as it was.
-        let err = jpeg_rows(&good, &mut |_| Err(crate::error::Error::input("elsewhere", "stop"))).unwrap_err();
+        let err = jpeg_rows(&good, &mut |_| Err(crate::error::Error::damaged("elsewhere", "stop"))).unwrap_err();
         assert!(err.to_string().starts_with("elsewhere"), "{err}");
     }
 }

@@ -27,7 +27,7 @@ pub(crate) fn jpeg_fits(
         return Ok(());
     }
     let bytes = width.saturating_mul(height).saturating_mul(3);
-    Err(Error::input(
+    Err(Error::unsupported(
         path,
         format!(
             "a {width}x{height} JPEG takes {} MiB decoded, over the {} MiB a JPEG may take whole, and it cannot \
@@ -42,7 +42,7 @@ pub(crate) fn jpeg_fits(
 /// A JPEG's width and height, from its headers, checked to be readable (see [`jpeg_fits`]).
 pub(super) fn jpeg_header(path: &Path) -> Result<(u32, u32)> {
     use std::io::Read;
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::damaged(path, why);
     // The headers come first: a prefix is enough unless metadata segments are larger.
     let mut head = Vec::new();
     let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
@@ -70,7 +70,7 @@ fn options() -> zune_jpeg::zune_core::options::DecoderOptions {
 
 /// Decodes a JPEG to RGB8: (width, height, pixels).
 pub(super) fn decode_jpeg(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::damaged(path, why);
     let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&bytes, options());
     decoder.decode_headers().map_err(|e| bad(format!("JPEG: {e:?}")))?;
@@ -85,4 +85,22 @@ pub(super) fn decode_jpeg(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
     }
     let dim = |n: usize| u32::try_from(n).map_err(|_| bad("JPEG: too large".into()));
     Ok((dim(w)?, dim(h)?, pixels))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::cast_possible_truncation)]
+
+    use super::*;
+
+    #[test]
+    fn a_jpeg_too_large_to_decode_whole_is_read_by_rows_or_refused_by_name() {
+        let path = Path::new("ortho.jpg");
+        let never = || -> Result<bool> { panic!("a JPEG that fits is decoded whole") };
+        assert!(jpeg_fits(path, 10_800, 5_400, never).is_ok(), "the shaded relief (175 MB decoded) fits");
+        assert!(jpeg_fits(path, 40_000, 30_000, || Ok(true)).is_ok(), "a sequential one is read by rows");
+        let e = jpeg_fits(path, 40_000, 30_000, || Ok(false)).unwrap_err().to_string();
+        assert!(e.contains("ortho.jpg") && e.contains("40000x30000") && e.contains("tiled GeoTIFF"), "{e}");
+        assert!(jpeg_fits(path, usize::MAX, 3, || Ok(false)).is_err(), "no overflow");
+    }
 }

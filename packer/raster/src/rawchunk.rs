@@ -15,6 +15,49 @@ use tiff::tags::Tag;
 
 use super::tiff::TiffDecoder;
 
+/// Why a strip or tile read directly from the file cannot be decoded.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ChunkError {
+    /// The chunk's index is past the file's offset table.
+    #[error("missing from the offset table")]
+    NotListed,
+    /// Asked for more pixels across than the file stores per row.
+    #[error("{width} pixels wide, in rows of {stored}")]
+    Wider {
+        /// Pixels asked for.
+        width: usize,
+        /// Pixels per stored row.
+        stored: usize,
+    },
+    /// Larger than a chunk may be.
+    #[error("too large")]
+    TooLarge,
+    /// Reading the chunk's bytes failed.
+    #[error("reading {count} bytes at {offset}: {error}")]
+    Read {
+        /// Bytes asked for.
+        count: usize,
+        /// Where in the file.
+        offset: u64,
+        /// The OS error.
+        error: std::io::Error,
+    },
+    /// Fewer bytes stored (or inflated) than the chunk's pixels need.
+    #[error("{}{got} bytes, {needed} expected", if *.inflated { "inflates to " } else { "" })]
+    Short {
+        /// Bytes there are.
+        got: usize,
+        /// Bytes needed.
+        needed: usize,
+        /// Whether `got` counts inflated bytes.
+        inflated: bool,
+    },
+    /// The Deflate stream is damaged.
+    #[error("Deflate: {0}")]
+    Deflate(#[from] flate2::DecompressError),
+}
+
 /// Where a chunk's bytes are and how they are coded, read once from the TIFF's tags.
 pub(super) struct RawLayout {
     file: std::fs::File,
@@ -109,7 +152,7 @@ impl RawLayout {
 
     /// Chunk `index` of `w` x `h` pixels of data (rows of `stored_width` in the file:
     /// tiles are padded, strips not), decoded as the `tiff` crate decodes it.
-    pub(super) fn read(&self, index: usize, w: usize, h: usize) -> Result<DecodingResult, String> {
+    pub(super) fn read(&self, index: usize, w: usize, h: usize) -> Result<DecodingResult, ChunkError> {
         self.with_bytes(index, w, h, |coded, row_bytes| {
             let samples = w * self.channels;
             let rows = coded.chunks(row_bytes).take(h);
@@ -125,7 +168,7 @@ impl RawLayout {
     }
 
     /// The same chunk as f32 samples, converted in the predictor's loop (no second pass).
-    pub(super) fn read_f32(&self, index: usize, w: usize, h: usize) -> Result<Vec<f32>, String> {
+    pub(super) fn read_f32(&self, index: usize, w: usize, h: usize) -> Result<Vec<f32>, ChunkError> {
         self.with_bytes(index, w, h, |coded, row_bytes| {
             let samples = w * self.channels;
             let rows = coded.chunks(row_bytes).take(h);
@@ -148,7 +191,7 @@ impl RawLayout {
         w: usize,
         h: usize,
         rows: &mut [&mut [f32]],
-    ) -> Result<(), String> {
+    ) -> Result<(), ChunkError> {
         self.with_bytes(index, w, h, |coded, row_bytes| {
             let samples = w * self.channels;
             for (src, dst) in coded.chunks(row_bytes).take(h).zip(rows.iter_mut()) {
@@ -192,33 +235,33 @@ impl RawLayout {
         w: usize,
         h: usize,
         convert: impl FnOnce(&[u8], usize) -> T,
-    ) -> Result<T, String> {
+    ) -> Result<T, ChunkError> {
         let (offset, count) = match (self.offsets.get(index), self.counts.get(index)) {
             (Some(&o), Some(&c)) => (o, c),
-            _ => return Err("missing from the offset table".into()),
+            _ => return Err(ChunkError::NotListed),
         };
         if w > self.stored_width {
-            return Err(format!("{w} pixels wide, in rows of {}", self.stored_width));
+            return Err(ChunkError::Wider { width: w, stored: self.stored_width });
         }
         let row_bytes = self.stored_width * self.channels * usize::from(self.bits / 8);
-        let needed = row_bytes.checked_mul(h).filter(|&n| n as u64 <= MAX_CHUNK_BYTES).ok_or("too large")?;
-        let count = usize::try_from(count).map_err(|_| "too large")?;
+        let needed = row_bytes.checked_mul(h).filter(|&n| n as u64 <= MAX_CHUNK_BYTES).ok_or(ChunkError::TooLarge)?;
+        let count = usize::try_from(count).map_err(|_| ChunkError::TooLarge)?;
         SCRATCH.with_borrow_mut(|(raw, out)| {
             let result = (|| {
                 let raw = grown(raw, count);
-                read_at(&self.file, raw, offset).map_err(|e| format!("reading {count} bytes at {offset}: {e}"))?;
+                read_at(&self.file, raw, offset).map_err(|error| ChunkError::Read { count, offset, error })?;
                 if !self.deflate {
                     if raw.len() < needed {
-                        return Err(format!("{} bytes, {needed} expected", raw.len()));
+                        return Err(ChunkError::Short { got: raw.len(), needed, inflated: false });
                     }
                     return Ok(convert(raw, row_bytes));
                 }
                 let out = grown(out, needed);
                 let mut inflate = flate2::Decompress::new(true);
-                inflate.decompress(raw, out, flate2::FlushDecompress::Finish).map_err(|e| format!("Deflate: {e}"))?;
+                inflate.decompress(raw, out, flate2::FlushDecompress::Finish)?;
                 let got = usize::try_from(inflate.total_out()).unwrap_or(usize::MAX);
                 if got < needed {
-                    return Err(format!("inflates to {got} bytes, {needed} expected"));
+                    return Err(ChunkError::Short { got, needed, inflated: true });
                 }
                 Ok(convert(out, row_bytes))
             })();

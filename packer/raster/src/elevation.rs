@@ -31,7 +31,7 @@ pub struct ElevationFile {
 /// Reads a single-band GeoTIFF whole (small rasters, tests); [`open_elevation`] streams.
 ///
 /// # Errors
-/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+/// An error naming the file for anything unreadable or unsupported.
 pub fn read_geotiff(path: &Path) -> Result<Raster> {
     let file = open_elevation(path, None)?;
     let (width, height) = file.size();
@@ -50,10 +50,10 @@ pub fn read_geotiff(path: &Path) -> Result<Raster> {
 /// `terrain_rgb`, `terrarium`), transparent pixels being nodata.
 ///
 /// # Errors
-/// [`Error::Input`] naming the file: unreadable, not an elevation raster, a PNG whose
+/// An error naming the file: unreadable, not an elevation raster, a PNG whose
 /// pixels need an encoding that was not given or does not fit them.
 pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Result<ElevationFile> {
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::unsupported(path, why);
     match sniff(path)? {
         Sniffed::Jpeg => Err(bad("JPEG is lossy: elevation must come from a GeoTIFF or a PNG".into())),
         Sniffed::Png => {
@@ -99,11 +99,11 @@ pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Resul
         }
         Sniffed::Tiff => {
             let mut decoder = open_input_tiff(path)?;
-            let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+            let (width, height) = decoder.dimensions().map_err(|e| Error::tiff(path, "", e))?;
             if width == 0 || height == 0 {
-                return Err(bad(format!("the raster is empty ({width}x{height})")));
+                return Err(Error::damaged(path, format!("the raster is empty ({width}x{height})")));
             }
-            let colour = decoder.colortype().map_err(|e| bad(e.to_string()))?;
+            let colour = decoder.colortype().map_err(|e| Error::tiff(path, "", e))?;
             let eight = matches!(colour, tiff::ColorType::Gray(8));
             match colour {
                 tiff::ColorType::Gray(_) => {}
@@ -329,7 +329,7 @@ impl ElevationFile {
     /// The height range of chunk `i`, read and decoded.
     fn range_of_chunk(&self, chunks: &TiffChunks<'_>, i: usize) -> Result<(f32, f32)> {
         let (data, w, h) = chunks.read(i)?;
-        self.chunk_range(data, w * h).ok_or_else(|| Error::input(&self.path, "unsupported sample type".to_string()))
+        self.chunk_range(data, w * h).ok_or_else(|| Error::unsupported(&self.path, "unsupported sample type"))
     }
 
     /// The range of heights in the first `n` samples of a decoded chunk (which holds at
@@ -352,7 +352,7 @@ impl ElevationFile {
         let mut samples = samples_f32(data)?;
         samples.truncate(n);
         self.heights(&mut samples);
-        Some(crate::plan::min_max(&samples))
+        Some(crate::min_max(&samples))
     }
 }
 
@@ -395,4 +395,37 @@ pub(crate) fn integer_range<T: Small>(values: &[T], nodata: Option<f32>) -> (f32
         }
     }
     (lo.into(), hi.into())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::cast_possible_truncation)]
+
+    use super::*;
+
+    #[test]
+    fn integer_samples_give_their_range_without_nodata() {
+        let none = (f32::INFINITY, f32::NEG_INFINITY);
+        // Nodata at either end, in every lane of a vector and the remainder.
+        for at in 0..37 {
+            let mut v: Vec<i16> = (0..37).map(|i| (i * 7 % 23) as i16 - 5).collect();
+            v[at] = -32767;
+            v[(at + 11) % 37] = -32767;
+            let real: Vec<f32> = v.iter().filter(|&&x| x != -32767).map(|&x| f32::from(x)).collect();
+            let want = (
+                real.iter().copied().fold(f32::INFINITY, f32::min),
+                real.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+            );
+            assert_eq!(integer_range(&v, Some(-32767.0)), want, "nodata at {at}");
+            assert_eq!(integer_range(&v, None), (-32767.0, want.1), "no nodata: it is a height");
+        }
+        assert_eq!(integer_range::<i16>(&[], None), none);
+        assert_eq!(integer_range(&[-32767i16; 19], Some(-32767.0)), none, "all nodata: no range");
+        // A nodata no sample of the type can hold skips nothing.
+        assert_eq!(integer_range(&[0u8, 255, 7], Some(-1.0)), (0.0, 255.0));
+        assert_eq!(integer_range(&[0u8, 255, 7], Some(255.5)), (0.0, 255.0));
+        assert_eq!(integer_range(&[3u16, 65_535, 7], Some(1e30)), (3.0, 65_535.0));
+        assert_eq!(integer_range(&[3u16, 65_535, 7], Some(65_535.0)), (3.0, 7.0));
+        assert_eq!(integer_range(&[-128i8, 127, 0], Some(-128.0)), (0.0, 127.0));
+    }
 }

@@ -90,7 +90,7 @@ impl<'a> ImageWindow<'a> {
     /// image.
     ///
     /// # Errors
-    /// [`Error::Input`] naming the image when it does not cover the elevation's extent.
+    /// [`Error::Mismatch`] naming the image when it does not cover the elevation's extent.
     pub fn over(elevation: &dyn ElevationSource, image: &'a dyn ImageSource) -> Result<Option<Self>> {
         let (Some((dem_crs, dem_origin, dem_px)), Some((img_crs, img_origin, img_px))) = (
             crs_placement(elevation.georeference(), elevation.crs_pixel_size()),
@@ -110,7 +110,7 @@ impl<'a> ImageWindow<'a> {
         let bottom = (img_origin[1] - (dem_origin[1] - f64::from(dh) * dem_px.1)) / img_px.1;
         let (fw, fh) = (f64::from(iw), f64::from(ih));
         if left < -0.5 || top < -0.5 || right > fw + 0.5 || bottom > fh + 0.5 {
-            return Err(Error::input(
+            return Err(Error::mismatch(
                 image.path(),
                 format!(
                     "mismatched extents: the elevation lies over pixels x {left:.1}..{right:.1}, y {top:.1}..{bottom:.1} \
@@ -122,7 +122,7 @@ impl<'a> ImageWindow<'a> {
         let edge = |v: f64, max: f64| v.round().clamp(0.0, max) as u32;
         let (x0, x1, y0, y1) = (edge(left, fw), edge(right, fw), edge(top, fh), edge(bottom, fh));
         if x1 <= x0 || y1 <= y0 {
-            return Err(Error::input(image.path(), "the elevation covers less than one pixel of the texture"));
+            return Err(Error::mismatch(image.path(), "the elevation covers less than one pixel of the texture"));
         }
         if (x0, y0, x1, y1) == (0, 0, iw, ih) {
             return Ok(None);
@@ -167,7 +167,7 @@ impl ImageSource for ImageWindow<'_> {
             if here + 1 == rows.end {
                 // Past the window: stop reading the file (told apart from a real interrupt).
                 done = true;
-                return Err(crate::error::interrupted());
+                return Err(Error::Interrupted(crate::Interrupted));
             }
             Ok(())
         });

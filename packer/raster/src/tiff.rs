@@ -22,7 +22,7 @@ fn tiff_decoder(path: &Path, file: std::fs::File) -> Result<TiffDecoder> {
     limits.decoding_buffer_size = 1 << 30;
     limits.intermediate_buffer_size = 1 << 30;
     Ok(Decoder::new(std::io::BufReader::new(file))
-        .map_err(|e| Error::input(path, format!("not a readable TIFF: {e}")))?
+        .map_err(|e| Error::tiff(path, "not a readable TIFF: ", e))?
         .with_limits(limits))
 }
 
@@ -43,7 +43,7 @@ pub(super) fn open_input_tiff(path: &Path) -> Result<TiffDecoder> {
     let (offsets, counts) = (table(offsets), table(counts));
     let outside = offsets.iter().zip(&counts).position(|(&o, &c)| o.checked_add(c).is_none_or(|end| end > len));
     if let Some(i) = outside {
-        return Err(Error::input(
+        return Err(Error::damaged(
             path,
             format!(
                 "{what} {i} lies past the end of the file ({} bytes at {}, the file has {len}): is it truncated?",
@@ -78,12 +78,12 @@ pub(super) struct TiffChunks<'p> {
 impl<'p> TiffChunks<'p> {
     pub(super) fn open(path: &'p Path, channels: usize) -> Result<Self> {
         use tiff::decoder::ChunkType;
-        let bad = |why: String| Error::input(path, why);
+        let bad = |why: String| Error::damaged(path, why);
         // One open file for the decoder and the raw reader (positional reads): thousands
         // of inputs are opened again and again as bands read them.
         let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
         let mut decoder = tiff_decoder(path, file.try_clone().map_err(|e| Error::file(path, e))?)?;
-        let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
+        let (width, height) = decoder.dimensions().map_err(|e| Error::tiff(path, "", e))?;
         let (chunk_w, chunk_h) = decoder.chunk_dimensions();
         if chunk_w == 0 || chunk_h == 0 {
             return Err(bad("zero-size strips or tiles".into()));
@@ -93,7 +93,7 @@ impl<'p> TiffChunks<'p> {
             ChunkType::Strip => decoder.strip_count(),
             ChunkType::Tile => decoder.tile_count(),
         }
-        .map_err(|e| bad(format!("{}s: {e}", Self::name(kind))))? as usize;
+        .map_err(|e| Error::tiff(path, format!("{}s: ", Self::name(kind)), e))? as usize;
         let raw = RawLayout::of(file, &mut decoder, channels, kind == ChunkType::Tile, chunk_w as usize);
         Ok(Self {
             raw,
@@ -140,13 +140,16 @@ impl<'p> TiffChunks<'p> {
         if let Some(raw) = self.raw.as_ref().filter(|_| index < self.count) {
             let (w, h) = self.data_size(index);
             let what = Self::name(self.kind);
-            let values = raw
-                .read_f32(index, w, h)
-                .map_err(|e| Error::input(self.path, format!("reading {what} {index}: {e}")))?;
+            let values = raw.read_f32(index, w, h).map_err(|error| Error::Chunk {
+                path: self.path.to_owned(),
+                what,
+                index,
+                error,
+            })?;
             return Ok((values, w, h));
         }
         let (data, w, h) = self.read(index)?;
-        let values = samples_f32(data).ok_or_else(|| Error::input(self.path, "unsupported sample type"))?;
+        let values = samples_f32(data).ok_or_else(|| Error::unsupported(self.path, "unsupported sample type"))?;
         Ok((values, w, h))
     }
 
@@ -156,8 +159,12 @@ impl<'p> TiffChunks<'p> {
         if let Some(raw) = self.raw.as_ref().filter(|_| index < self.count) {
             let (w, h) = self.data_size(index);
             let what = Self::name(self.kind);
-            raw.read_f32_into(index, w, h, rows)
-                .map_err(|e| Error::input(self.path, format!("reading {what} {index}: {e}")))?;
+            raw.read_f32_into(index, w, h, rows).map_err(|error| Error::Chunk {
+                path: self.path.to_owned(),
+                what,
+                index,
+                error,
+            })?;
             return Ok(h);
         }
         let (values, w, h) = self.read_f32(index)?;
@@ -182,14 +189,19 @@ impl<'p> TiffChunks<'p> {
     /// Chunk `index` decoded, and the pixels across and down it holds.
     pub(super) fn read(&self, index: usize) -> Result<(tiff::decoder::DecodingResult, usize, usize)> {
         let what = Self::name(self.kind);
-        let bad = |why: String| Error::input(self.path, why);
+        let bad = |why: String| Error::damaged(self.path, why);
         let i = u32::try_from(index).map_err(|_| bad("too many chunks".into()))?;
         if index >= self.count {
             return Err(bad(format!("{what} {index} is missing (the file lists {})", self.count)));
         }
         if let Some(raw) = &self.raw {
             let (w, h) = self.data_size(index);
-            let data = raw.read(index, w, h).map_err(|e| bad(format!("reading {what} {index}: {e}")))?;
+            let data = raw.read(index, w, h).map_err(|error| Error::Chunk {
+                path: self.path.to_owned(),
+                what,
+                index,
+                error,
+            })?;
             return Ok((data, w, h));
         }
         let spare = self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop();
@@ -198,7 +210,7 @@ impl<'p> TiffChunks<'p> {
             None => open_tiff(self.path)?,
         };
         let (w, h) = decoder.chunk_data_dimensions(i);
-        let data = decoder.read_chunk(i).map_err(|e| bad(format!("reading {what} {index}: {e}")));
+        let data = decoder.read_chunk(i).map_err(|e| Error::tiff(self.path, format!("reading {what} {index}: "), e));
         self.spare.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(decoder);
         let data = data?;
         let (w, h) = (w as usize, h as usize);
@@ -255,7 +267,7 @@ pub(super) fn tiff_rows_in(
 ) -> Result<()> {
     use rayon::prelude::*;
     use tiff::decoder::ChunkType;
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::damaged(path, why);
     let chunks = TiffChunks::open(path, channels)?;
     let (width, height, kind) = (chunks.width, chunks.height, chunks.kind);
     let stride = width * channels;

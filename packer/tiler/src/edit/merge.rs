@@ -8,7 +8,7 @@
 //! copied as stored (no decoding, but for that), a later input's tile replacing an earlier one's with
 //! the same key (`prefer last`), and written through the writer, which deduplicates
 //! payloads and rebuilds the directories; the output appears only once complete. The tiles
-//! a replacement leaves stale (borders, coarser levels) are made again ([`crate::rederive`]).
+//! a replacement leaves stale (borders, coarser levels) are made again ([`crate::edit::rederive`]).
 //!
 //! Shards (`tile --shard I/N`) hold every layer up to its split LOD K. When all N shards
 //! of a run are given, the levels above K are made here: the shards' LOD-K tiles are
@@ -28,11 +28,11 @@ use terrastream_format::{
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions, compress_heights};
 
+use crate::edit::rederive::{LayerGrid, MergedTiles, Remade, rederive};
 use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
 use crate::options::TextureFormat;
 use crate::pyramid::{Pixel, SortedSpool, Spool, Window};
-use crate::rederive::{Grid, Remade, Tiles, Versions, rederive};
 use crate::tile::{HeightEncoder, ZSTD_LEVEL, run_pyramid};
 
 /// What [`merge`] did.
@@ -491,7 +491,7 @@ fn range_of(bytes: &[u8]) -> Option<(f32, f32)> {
     Some((f32::from_le_bytes([a, b, c, d]), f32::from_le_bytes([e, f, g, h])))
 }
 
-/// Remakes, in every layer, the tiles the merge left stale ([`crate::rederive`]) into
+/// Remakes, in every layer, the tiles the merge left stale ([`crate::edit::rederive`]) into
 /// `spool`; returns the archive keys of stored tiles that hold no data once remade.
 fn rederive_layers(
     metadata: &Metadata,
@@ -501,7 +501,6 @@ fn rederive_layers(
     prefer: Prefer,
     spool: &mut Spool,
 ) -> Result<Vec<u64>> {
-    let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
     let archive = readers[0].archive();
     let keys: Vec<TileKey> =
         conflicts.keys().map(|&k| archive.tile_of(k)).collect::<terrastream_format::Result<_>>()?;
@@ -511,83 +510,35 @@ fn rederive_layers(
         .filter(|(_, found)| found.input != 0)
         .map(|(&k, _)| archive.tile_of(k))
         .collect::<terrastream_format::Result<_>>()?;
-    // Version `i` of an LOD-0 tile several inputs hold, newest first, as stored
-    // (compression undone).
-    let version_of = |key: TileKey, i: usize| -> Result<Option<Vec<u8>>> {
-        let versions = conflicts.get(&Writer::order_key(metadata, key)?).map_or(&[][..], Vec::as_slice);
-        versions.iter().rev().nth(i).map(|&found| unpacked(readers, key, found)).transpose()
-    };
     let mut emptied = Vec::new();
     for (index, layer) in metadata.layers.iter().enumerate() {
         let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
-        let grid = Grid {
+        let grid = LayerGrid {
             layer: index,
             lods: layer.num_lods,
             res: layer.tile_resolution as usize,
             border: usize::from(layer.border),
             tiles: (layer.num_x_tiles, layer.num_y_tiles),
         };
-        let edge = grid.res + 2 * grid.border;
-        let conflicts: HashSet<(u8, u32, u32)> =
-            keys.iter().filter(|k| k.layer() == index).map(|k| (k.lod(), k.x(), k.y())).collect();
-        let later: HashSet<(u8, u32, u32)> =
-            later.iter().filter(|k| k.layer() == index).map(|k| (k.lod(), k.x(), k.y())).collect();
-        let source = |lod: u8, x: u32, y: u32| -> Option<usize> {
-            let key = TileKey::new(index, lod, x, y).ok()?;
-            winners.get(&Writer::order_key(metadata, key).ok()?).map(|f| f.input)
+        let of_layer = |keys: &[TileKey]| keys.iter().filter(|k| k.layer() == index).copied().collect();
+        let merged = MergeLayer {
+            metadata,
+            readers,
+            winners,
+            all_conflicts: conflicts,
+            prefer,
+            index,
+            conflicts: of_layer(&keys),
+            later: of_layer(&later),
         };
         let mut remade = Remade::default();
         match layer.kind {
             LayerKind::Elevation => {
-                let range = find(LayerKind::HeightRange);
-                let heights = HeightEncoder::new(metadata, index, range)?;
-                let encoding = heights.encoding;
-                let decode = |lod: u8, x: u32, y: u32| -> Result<Option<Vec<f32>>> {
-                    let key = TileKey::new(index, lod, x, y)?;
-                    Ok(payload(metadata, readers, winners, key)?.map(|raw| decode_heights(&raw, &encoding)))
-                };
-                let encode = |key: TileKey, samples: &[f32]| heights.encode(key, samples);
-                let quantize = |row: &mut [f32]| quantize_heights(row, &encoding);
-                let versions = |x: u32, y: u32, i: usize| -> Result<Option<Vec<f32>>> {
-                    Ok(version_of(TileKey::new(index, 0, x, y)?, i)?.map(|raw| decode_heights(&raw, &encoding)))
-                };
-                let tiles = Tiles {
-                    source: &source,
-                    conflicts: &conflicts,
-                    later: &later,
-                    decode: &decode,
-                    encode: &encode,
-                    quantize: Some(&quantize),
-                    versions: (prefer == Prefer::Pixels).then_some(&versions as &Versions<'_, f32>),
-                };
-                rederive(&grid, &tiles, &mut remade)?;
-                // Ranges of the remade tiles' children that were not remade widen theirs.
-                let made: HashSet<TileKey> =
-                    remade.entries.iter().map(|(k, _)| *k).chain(remade.emptied.iter().copied()).collect();
-                let mut below = Vec::new();
-                if let Some(r) = range {
-                    for key in made.iter().filter(|k| k.lod() > 0) {
-                        for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                            let (lod, x, y) = (key.lod() - 1, 2 * key.x() + cx, 2 * key.y() + cy);
-                            if x >= layer.num_x_tiles.div_ceil(1 << lod) || y >= layer.num_y_tiles.div_ceil(1 << lod) {
-                                continue;
-                            }
-                            let child = TileKey::new(index, lod, x, y)?;
-                            if made.contains(&child) {
-                                continue;
-                            }
-                            let range_key = TileKey::new(r, child.lod(), child.x(), child.y())?;
-                            let bytes = payload(metadata, readers, winners, range_key)?;
-                            if let Some((lo, hi)) = bytes.as_deref().and_then(range_of) {
-                                below.push((child, lo, hi));
-                            }
-                        }
-                    }
-                    for key in &remade.emptied {
-                        emptied.push(Writer::order_key(metadata, TileKey::new(r, key.lod(), key.x(), key.y())?)?);
-                    }
-                }
-                heights.finish(metadata, below, spool)?;
+                let range = find_layer(metadata, LayerKind::HeightRange);
+                let heights = MergedHeights { merged, encoder: HeightEncoder::new(metadata, index, range)? };
+                rederive(&grid, &heights, &mut remade)?;
+                let below = heights.ranges_below(&remade, range, &mut emptied)?;
+                heights.encoder.finish(metadata, below, spool)?;
             }
             LayerKind::Texture => {
                 let format = match layer.format {
@@ -603,29 +554,8 @@ fn rederive_layers(
                         continue;
                     }
                 };
-                let decode = |lod: u8, x: u32, y: u32| -> Result<Option<Vec<[u8; 4]>>> {
-                    let key = TileKey::new(index, lod, x, y)?;
-                    payload(metadata, readers, winners, key)?
-                        .map(|bytes| decode_texture(key, &bytes, edge, format))
-                        .transpose()
-                };
-                let encode = move |key: TileKey, pixels: &[[u8; 4]]| -> Result<Vec<(TileKey, Vec<u8>)>> {
-                    Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
-                };
-                let versions = |x: u32, y: u32, i: usize| -> Result<Option<Vec<[u8; 4]>>> {
-                    let key = TileKey::new(index, 0, x, y)?;
-                    version_of(key, i)?.map(|bytes| decode_texture(key, &bytes, edge, format)).transpose()
-                };
-                let tiles = Tiles {
-                    source: &source,
-                    conflicts: &conflicts,
-                    later: &later,
-                    decode: &decode,
-                    encode: &encode,
-                    quantize: None,
-                    versions: (prefer == Prefer::Pixels).then_some(&versions as &Versions<'_, [u8; 4]>),
-                };
-                rederive(&grid, &tiles, &mut remade)?;
+                let texture = MergedTexture { merged, format, edge: grid.res + 2 * grid.border };
+                rederive(&grid, &texture, &mut remade)?;
             }
             _ => continue,
         }
@@ -637,6 +567,158 @@ fn rederive_layers(
         }
     }
     Ok(emptied)
+}
+
+/// The index of `metadata`'s first layer of `kind`.
+fn find_layer(metadata: &Metadata, kind: LayerKind) -> Option<u8> {
+    metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok())
+}
+
+/// One layer of a merge: where its tiles come from and their stored bytes.
+struct MergeLayer<'a> {
+    metadata: &'a Metadata,
+    readers: &'a [Reader<MmapSource>],
+    winners: &'a BTreeMap<u64, Found>,
+    all_conflicts: &'a Conflicts,
+    prefer: Prefer,
+    index: u8,
+    /// This layer's tiles two or more inputs hold.
+    conflicts: HashSet<TileKey>,
+    /// This layer's tiles not from the first input.
+    later: HashSet<TileKey>,
+}
+
+impl MergeLayer<'_> {
+    fn source(&self, lod: u8, x: u32, y: u32) -> Option<usize> {
+        let key = TileKey::new(self.index, lod, x, y).ok()?;
+        self.winners.get(&Writer::order_key(self.metadata, key).ok()?).map(|f| f.input)
+    }
+
+    /// The winning input's bytes of tile (lod, x, y) of this layer, compression undone.
+    fn payload(&self, key: TileKey) -> Result<Option<Vec<u8>>> {
+        payload(self.metadata, self.readers, self.winners, key)
+    }
+
+    /// With `--prefer pixels`, version `i` of an LOD-0 tile several inputs hold, newest
+    /// first, as stored (compression undone).
+    fn version(&self, key: TileKey, i: usize) -> Option<Result<Option<Vec<u8>>>> {
+        if self.prefer != Prefer::Pixels {
+            return None;
+        }
+        let versions = match Writer::order_key(self.metadata, key) {
+            Ok(order) => self.all_conflicts.get(&order).map_or(&[][..], Vec::as_slice),
+            Err(e) => return Some(Err(e.into())),
+        };
+        Some(versions.iter().rev().nth(i).map(|&found| unpacked(self.readers, key, found)).transpose())
+    }
+}
+
+/// An elevation layer of a merge: heights decoded and encoded as the layer stores them.
+struct MergedHeights<'a> {
+    merged: MergeLayer<'a>,
+    encoder: HeightEncoder,
+}
+
+impl MergedTiles<f32> for MergedHeights<'_> {
+    fn source(&self, lod: u8, x: u32, y: u32) -> Option<usize> {
+        self.merged.source(lod, x, y)
+    }
+    fn conflicts(&self) -> &HashSet<TileKey> {
+        &self.merged.conflicts
+    }
+    fn later(&self) -> &HashSet<TileKey> {
+        &self.merged.later
+    }
+    fn decode(&self, lod: u8, x: u32, y: u32) -> Result<Option<Vec<f32>>> {
+        let key = TileKey::new(self.merged.index, lod, x, y)?;
+        Ok(self.merged.payload(key)?.map(|raw| decode_heights(&raw, &self.encoder.encoding)))
+    }
+    fn encode(&self, key: TileKey, samples: &[f32]) -> Result<Vec<(TileKey, Vec<u8>)>> {
+        self.encoder.encode(key, samples)
+    }
+    fn quantize(&self, row: &mut [f32]) {
+        quantize_heights(row, &self.encoder.encoding);
+    }
+    fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Vec<f32>>>> {
+        let key = match TileKey::new(self.merged.index, 0, x, y) {
+            Ok(key) => key,
+            Err(e) => return Some(Err(e.into())),
+        };
+        let raw = self.merged.version(key, i)?;
+        Some(raw.map(|raw| raw.map(|raw| decode_heights(&raw, &self.encoder.encoding))))
+    }
+}
+
+impl MergedHeights<'_> {
+    /// The height ranges of the remade tiles' children that were not remade (they widen
+    /// the remade tiles' ranges); the range tiles of emptied tiles go into `emptied`.
+    fn ranges_below(
+        &self,
+        remade: &Remade,
+        range: Option<u8>,
+        emptied: &mut Vec<u64>,
+    ) -> Result<Vec<(TileKey, f32, f32)>> {
+        let Some(r) = range else { return Ok(Vec::new()) };
+        let m = &self.merged;
+        let layer = &m.metadata.layers[usize::from(m.index)];
+        let made: HashSet<TileKey> =
+            remade.entries.iter().map(|(k, _)| *k).chain(remade.emptied.iter().copied()).collect();
+        let mut below = Vec::new();
+        for key in made.iter().filter(|k| k.lod() > 0) {
+            for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                let (lod, x, y) = (key.lod() - 1, 2 * key.x() + cx, 2 * key.y() + cy);
+                if x >= layer.num_x_tiles.div_ceil(1 << lod) || y >= layer.num_y_tiles.div_ceil(1 << lod) {
+                    continue;
+                }
+                let child = TileKey::new(m.index, lod, x, y)?;
+                if made.contains(&child) {
+                    continue;
+                }
+                let bytes = m.payload(TileKey::new(r, child.lod(), child.x(), child.y())?)?;
+                if let Some((lo, hi)) = bytes.as_deref().and_then(range_of) {
+                    below.push((child, lo, hi));
+                }
+            }
+        }
+        for key in &remade.emptied {
+            emptied.push(Writer::order_key(m.metadata, TileKey::new(r, key.lod(), key.x(), key.y())?)?);
+        }
+        Ok(below)
+    }
+}
+
+/// A texture layer of a merge (PNG or WebP tiles: lossless, decoded and encoded again).
+struct MergedTexture<'a> {
+    merged: MergeLayer<'a>,
+    format: TextureFormat,
+    edge: usize,
+}
+
+impl MergedTiles<[u8; 4]> for MergedTexture<'_> {
+    fn source(&self, lod: u8, x: u32, y: u32) -> Option<usize> {
+        self.merged.source(lod, x, y)
+    }
+    fn conflicts(&self) -> &HashSet<TileKey> {
+        &self.merged.conflicts
+    }
+    fn later(&self) -> &HashSet<TileKey> {
+        &self.merged.later
+    }
+    fn decode(&self, lod: u8, x: u32, y: u32) -> Result<Option<Vec<[u8; 4]>>> {
+        let key = TileKey::new(self.merged.index, lod, x, y)?;
+        self.merged.payload(key)?.map(|bytes| decode_texture(key, &bytes, self.edge, self.format)).transpose()
+    }
+    fn encode(&self, key: TileKey, pixels: &[[u8; 4]]) -> Result<Vec<(TileKey, Vec<u8>)>> {
+        Ok(vec![(key, encode_texture(key, pixels, self.edge, self.format, ZSTD_LEVEL)?)])
+    }
+    fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Vec<[u8; 4]>>>> {
+        let key = match TileKey::new(self.merged.index, 0, x, y) {
+            Ok(key) => key,
+            Err(e) => return Some(Err(e.into())),
+        };
+        let raw = self.merged.version(key, i)?;
+        Some(raw.and_then(|raw| raw.map(|bytes| decode_texture(key, &bytes, self.edge, self.format)).transpose()))
+    }
 }
 
 /// Makes every layer's levels above its split LOD from the LOD-K tiles (see the module).

@@ -7,7 +7,7 @@ impl<K: MosaicKind> Mosaic<K> {
     /// The smallest rectangle of samples (columns, rows) holding every input's footprint,
     /// clipped to the mosaic; None when no input lies on it.
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clipped to the u32 grid")]
-    pub(crate) fn footprint_bounds(&self) -> Option<(std::ops::Range<u32>, std::ops::Range<u32>)> {
+    pub fn footprint_bounds(&self) -> Option<(std::ops::Range<u32>, std::ops::Range<u32>)> {
         let (w, h) = (i64::from(self.size.0), i64::from(self.size.1));
         let mut bounds: Option<[i64; 4]> = None;
         for i in self.inputs.iter().filter(|i| !i.is_dropped()) {
@@ -45,11 +45,11 @@ impl<K: MosaicKind> Mosaic<K> {
 /// parallel, a batch at a time, `progress` told the file's rows read after each.
 pub(super) fn values_range(input: &Input<Heights>, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
     let chunks = TiffChunks::open(Heights::path(&input.file), 1)?;
-    crate::raster::elevation::range_by_batches(&chunks, progress, |i| {
+    crate::elevation::range_by_batches(&chunks, progress, |i| {
         let (data, w, h) = chunks.read(i)?;
         let mut heights = Heights::values(&input.file, data, input.nodata, input.scale)?;
         heights.truncate(w * h);
-        Ok(crate::plan::min_max(&heights))
+        Ok(crate::min_max(&heights))
     })
 }
 
@@ -125,7 +125,7 @@ impl ElevationSource for Mosaic<Heights> {
             let next = k + ranges.len();
             for (input, range) in self.inputs[k..next].iter().zip(ranges) {
                 let (l, h) = match range {
-                    Err(e @ (Error::Input { .. } | Error::File { .. })) if self.skip_bad_inputs => {
+                    Err(e) if self.skip_bad_inputs && e.is_bad_input() => {
                         tracing::warn!("skipping {e}");
                         input.dropped.store(true, std::sync::atomic::Ordering::Relaxed);
                         let mut dropped = self.dropped.lock().unwrap_or_else(PoisonError::into_inner);
@@ -142,7 +142,7 @@ impl ElevationSource for Mosaic<Heights> {
             }
         }
         if self.inputs.iter().all(Input::is_dropped) {
-            return Err(Error::input(&self.path, "no input can be used (every one was skipped)"));
+            return Err(Error::mismatch(&self.path, "no input can be used (every one was skipped)"));
         }
         Ok((lo, hi))
     }

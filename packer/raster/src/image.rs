@@ -44,9 +44,10 @@ enum ImageKind {
 /// `.prj` or the `.aux.xml`.
 ///
 /// # Errors
-/// [`Error::Input`] naming the file for anything unreadable or unsupported.
+/// [`Error::Unsupported`] naming the file for anything not read here, other variants for
+/// unreadable or damaged data.
 pub fn open_image(path: &Path) -> Result<ImageFile> {
-    let bad = |why: String| Error::input(path, why);
+    let bad = |why: String| Error::unsupported(path, why);
     let mut crs_pixel = None;
     let (width, height, georeference, kind) = match sniff(path)? {
         Sniffed::Png => {
@@ -59,8 +60,8 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
         }
         Sniffed::Tiff => {
             let mut decoder = open_input_tiff(path)?;
-            let (width, height) = decoder.dimensions().map_err(|e| bad(e.to_string()))?;
-            let colour = decoder.colortype().map_err(|e| bad(e.to_string()))?;
+            let (width, height) = decoder.dimensions().map_err(|e| Error::tiff(path, "", e))?;
+            let colour = decoder.colortype().map_err(|e| Error::tiff(path, "", e))?;
             let channels = match colour {
                 tiff::ColorType::Gray(8) => 1,
                 tiff::ColorType::GrayA(8) => 2,
@@ -82,7 +83,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
         }
     };
     if width == 0 || height == 0 {
-        return Err(bad(format!("the image is empty ({width}x{height} pixels)")));
+        return Err(Error::damaged(path, format!("the image is empty ({width}x{height} pixels)")));
     }
     let mut georeference = georeference;
     if georeference.is_none()
@@ -125,7 +126,7 @@ impl ImageFile {
     /// strips or tiles).
     pub(super) fn streamed_rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         match self.kind {
-            ImageKind::Tiff { .. } => Err(Error::input(&self.path, "read by strips or tiles, not by rows")),
+            ImageKind::Tiff { .. } => Err(Error::unsupported(&self.path, "read by strips or tiles, not by rows")),
             ImageKind::Jpeg => self.rows_by(super::jpegrows::reads_by_rows(&self.path)?, row),
             ImageKind::Png => self.rows_by(false, row),
         }
@@ -146,7 +147,7 @@ impl ImageFile {
         let (w, h, rgb) = decode_jpeg(&self.path)?;
         if (w, h) != (self.width, self.height) || rgb.len() != w as usize * h as usize * 3 {
             let (width, height) = (self.width, self.height);
-            return Err(Error::input(&self.path, format!("{} bytes of pixels for {width}x{height}", rgb.len())));
+            return Err(Error::damaged(&self.path, format!("{} bytes of pixels for {width}x{height}", rgb.len())));
         }
         Ok(rgb)
     }

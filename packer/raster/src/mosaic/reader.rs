@@ -303,7 +303,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
     /// used.
     pub(super) fn chunk(&self, index: usize, chunks: &Chunks<'m>, id: usize) -> Result<Arc<Chunk<K::Value>>> {
         match self.decoded(index, chunks, id) {
-            Err(e @ (Error::Input { .. } | Error::File { .. })) if self.mosaic.skip_bad_inputs => {
+            Err(e) if self.mosaic.skip_bad_inputs && e.is_bad_input() => {
                 let (strips, (w, h), _) = chunks.layout();
                 let mut damaged = self.mosaic.damaged.lock().unwrap_or_else(PoisonError::into_inner);
                 let damage = damaged.entry(index).or_insert_with(|| {
