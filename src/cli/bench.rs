@@ -10,9 +10,9 @@ use std::time::{Duration, Instant};
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use terrastream_format::{Directory, Entry, MmapSource, Reader, TileKey};
-use terrastream_pack::WriterOptions;
 use terrastream_pack::import::{OriginalLayout, pack, scan_original};
 use terrastream_pack::progress::Silent;
+use terrastream_pack::{WriteSummary, WriterOptions};
 
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
@@ -213,8 +213,14 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
             ratio(durable_copy)
         );
     }
-
     let reader = Reader::new(MmapSource::open(&out)?)?;
+    let entries = lookups(&reader, args.lookups, summary.leaf_count)?;
+    directory_sizes(&reader, &summary, &entries)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Times warm lookups of `count` random tiles of the archive; returns its entries.
+fn lookups(reader: &Reader<MmapSource>, count: usize, leaf_count: u64) -> Result<Vec<Entry>> {
     let mut keys = Vec::new();
     let mut entries = Vec::new();
     reader.for_each_entry(|e| -> Result<()> {
@@ -226,7 +232,7 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
     })?;
     let mut rng = Rng(42);
     let picks: Vec<TileKey> =
-        (0..args.lookups).map(|_| keys[usize::try_from(rng.next() % keys.len() as u64).unwrap_or(0)]).collect();
+        (0..count).map(|_| keys[usize::try_from(rng.next() % keys.len() as u64).unwrap_or(0)]).collect();
     for k in &picks {
         reader.tile(*k)?; // warm: leaves cached, pages mapped
     }
@@ -244,7 +250,7 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
         v.sort_unstable();
         v[(v.len() - 1) * p / 100]
     };
-    println!("\n== warm tile lookup, mmap ({} random tiles, {} leaf directories) ==", picks.len(), summary.leaf_count);
+    println!("\n== warm tile lookup, mmap ({} random tiles, {leaf_count} leaf directories) ==", picks.len());
     println!(
         "  locate (directory only)     : p50 {:>6} ns  p99 {:>6} ns",
         pct(&mut locate_ns, 50),
@@ -255,9 +261,13 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
         pct(&mut tile_ns, 50),
         pct(&mut tile_ns, 99)
     );
+    Ok(entries)
+}
 
+/// The archive's directory bytes per tile against PMTiles v3's for the same tiles.
+fn directory_sizes(reader: &Reader<MmapSource>, summary: &WriteSummary, entries: &[Entry]) -> Result<()> {
     let ours = summary.directory_bytes as f64 / summary.addressed_tiles as f64;
-    let pm = pmtiles_directory_bytes(&entries)? as f64 / summary.addressed_tiles as f64;
+    let pm = pmtiles_directory_bytes(entries)? as f64 / summary.addressed_tiles as f64;
     let root_entries = match reader.archive().root() {
         Directory::Tiles(e) => e.len(),
         Directory::Leaves(l) => l.len(),
@@ -270,5 +280,5 @@ fn archive(args: ArchiveBench) -> Result<ExitCode> {
     println!("  PMTiles v3 (gzip), same tiles     : {pm:.3} bytes/tile");
     println!("  tspack / PMTiles                  : {:.2}x", ours / pm);
     println!("  bootstrap read                    : {} bytes", reader.header().bootstrap_len());
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }

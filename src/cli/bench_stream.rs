@@ -106,19 +106,7 @@ pub fn run(args: StreamBench) -> Result<()> {
     let dir = tempfile::tempdir()?;
     let path = match &args.archive {
         Some(p) => p.clone(),
-        None => {
-            let p = dir.path().join("terrain.tspack");
-            let spec = LabelledSpec {
-                texture_grid: 64,
-                texture_res: 64,
-                elevation_grid: 16,
-                elevation_res: 64,
-                ..LabelledSpec::default()
-            };
-            eprintln!("generating a {0}x{0}-tile terrain ({1} px tiles)...", spec.texture_grid, spec.texture_res);
-            write_labelled_archive(&p, &spec)?;
-            p
-        }
+        None => generated_archive(dir.path())?,
     };
     let name = path.file_stem().and_then(|s| s.to_str()).context("archive name")?.to_owned();
     // Our server on a loopback port, in its own runtime.
@@ -141,7 +129,6 @@ pub fn run(args: StreamBench) -> Result<()> {
         locations.push((label, format!("http://{}/{name}.tspack", shaper.addr)));
         shapers.push(shaper);
     }
-    let mut runs = Vec::new();
     if args.http2 {
         let h2: Vec<(String, String)> = locations
             .iter()
@@ -150,32 +137,16 @@ pub fn run(args: StreamBench) -> Result<()> {
             .collect();
         locations.extend(h2);
     }
+    let mut runs = Vec::new();
     for (label, location) in locations {
         for coalesce in [true, false] {
-            // The baseline fetches the way PMTiles-style readers in a
-            // browser do: one request per tile, directories on demand (and cached), at
-            // most 6 at once (a browser's connections per host over HTTP/1.1).
-            let options = StreamOptions {
-                coalesce,
-                coalesce_gap: args.coalesce_gap,
-                max_request_bytes: args.max_request_bytes,
-                max_in_flight: if coalesce { args.max_in_flight } else { BASELINE_IN_FLIGHT },
-                adaptive_in_flight: coalesce && !args.fixed_in_flight,
-                prefetch_ahead: if args.no_prefetch || !coalesce {
-                    Duration::ZERO
-                } else {
-                    StreamOptions::default().prefetch_ahead
-                },
-                select: SelectOptions::default(),
-                ..StreamOptions::default()
-            };
             let origin = match location.strip_prefix("h2c:") {
                 Some(url) => Origin::archive(terrastream_client::HttpSource::new_http2(url)?),
                 None => Origin::parse(&location)?,
             };
             let name = format!("{label}{}", if coalesce { "" } else { ", baseline" });
             eprintln!("flying: {name}");
-            runs.push(fly(name, origin, options, budget, &args)?);
+            runs.push(fly(name, origin, stream_options(&args, coalesce), budget, &args)?);
         }
     }
     println!("archive: {} ({url} on loopback)", path.display());
@@ -186,6 +157,51 @@ pub fn run(args: StreamBench) -> Result<()> {
         args.max_in_flight,
         if args.fixed_in_flight { "fixed" } else { "adaptive limit under it" }
     );
+    print_runs(&runs);
+    print_ratios(&runs, budget);
+    drop(shapers);
+    drop(server);
+    Ok(())
+}
+
+/// A generated terrain of 64 x 64 texture tiles in `dir`, when no archive is given.
+fn generated_archive(dir: &std::path::Path) -> Result<PathBuf> {
+    let p = dir.join("terrain.tspack");
+    let spec = LabelledSpec {
+        texture_grid: 64,
+        texture_res: 64,
+        elevation_grid: 16,
+        elevation_res: 64,
+        ..LabelledSpec::default()
+    };
+    eprintln!("generating a {0}x{0}-tile terrain ({1} px tiles)...", spec.texture_grid, spec.texture_res);
+    write_labelled_archive(&p, &spec)?;
+    Ok(p)
+}
+
+/// The streamer's options for a run: ours (`coalesce`), or the baseline, which fetches
+/// the way PMTiles-style readers in a browser do: one request per tile, directories on
+/// demand (and cached), at most 6 at once (a browser's connections per host over
+/// HTTP/1.1).
+fn stream_options(args: &StreamBench, coalesce: bool) -> StreamOptions {
+    StreamOptions {
+        coalesce,
+        coalesce_gap: args.coalesce_gap,
+        max_request_bytes: args.max_request_bytes,
+        max_in_flight: if coalesce { args.max_in_flight } else { BASELINE_IN_FLIGHT },
+        adaptive_in_flight: coalesce && !args.fixed_in_flight,
+        prefetch_ahead: if args.no_prefetch || !coalesce {
+            Duration::ZERO
+        } else {
+            StreamOptions::default().prefetch_ahead
+        },
+        select: SelectOptions::default(),
+        ..StreamOptions::default()
+    }
+}
+
+/// A line per run.
+fn print_runs(runs: &[Run]) {
     println!(
         "{:<40} {:>10} {:>10} {:>10} {:>9} {:>9} {:>12} {:>12} {:>8} {:>8} {:>10} {:>6} {:>11}",
         "run",
@@ -202,7 +218,7 @@ pub fn run(args: StreamBench) -> Result<()> {
         "limit",
         "hole frames"
     );
-    for r in &runs {
+    for r in runs {
         let mut ups = r.uploads_per_frame.clone();
         ups.sort_unstable();
         let p99 = ups.get(ups.len() * 99 / 100).copied().unwrap_or(0);
@@ -223,7 +239,12 @@ pub fn run(args: StreamBench) -> Result<()> {
             format!("{}/{}", r.frames_with_hole, r.frames_shown),
         );
     }
-    let (mmap, mmap_raw, http, http_raw) = (&runs[0], &runs[1], &runs[2], &runs[3]);
+}
+
+/// The ratios against mmap and the baseline (runs: mmap, its baseline, HTTP, its
+/// baseline, then each link and its baseline).
+fn print_ratios(runs: &[Run], budget: UploadBudget) {
+    let [mmap, mmap_raw, http, http_raw, ..] = runs else { return };
     println!();
     println!(
         "time to full detail, HTTP / mmap (median over jumps): {:.2}x  (target <= 1.3x)",
@@ -258,9 +279,6 @@ pub fn run(args: StreamBench) -> Result<()> {
             );
         }
     }
-    drop(shapers);
-    drop(server);
-    Ok(())
 }
 
 /// Does the view have a hole: a wanted tile in view that neither it nor any coarser tile

@@ -8,8 +8,8 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationScheme, LayerKind};
 use terrastream_pack::WriterOptions;
 use terrastream_pack::import::{
-    LayerInput, OriginalLayout, PyramidSource, Scheme, TilesetInput, XyzOptions, pack, pack_layers, pack_mbtiles,
-    pack_pmtiles, scan_original, scan_xyz,
+    LayerInput, OriginalLayout, PyramidSource, ScannedPyramid, Scheme, TilesetInput, XyzOptions, pack, pack_layers,
+    pack_mbtiles, pack_pmtiles, scan_original, scan_xyz,
 };
 
 use super::CliProgress;
@@ -201,26 +201,7 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         return run_layers(&args, elevation, progress);
     };
     if let Some(set) = tileset(&input).filter(|_| !input.is_dir()) {
-        let started = std::time::Instant::now();
-        let tileset = TilesetInput { kind, elevation };
-        let (summary, from) = match set {
-            Tileset::Pmtiles => {
-                (pack_pmtiles(&input, tileset, &args.output, WriterOptions::default(), progress)?, "PMTiles")
-            }
-            Tileset::Mbtiles => {
-                (pack_mbtiles(&input, tileset, &args.output, WriterOptions::default(), progress)?, "MBTiles")
-            }
-        };
-        progress.finish();
-        println!(
-            "{}: {} tiles ({} distinct) from {from}, {} bytes in {:.2} s",
-            summary.path.display(),
-            summary.addressed_tiles,
-            summary.tile_contents,
-            summary.file_len,
-            started.elapsed().as_secs_f64()
-        );
-        return Ok(ExitCode::SUCCESS);
+        return run_tileset(&args, &input, set, TilesetInput { kind, elevation }, progress);
     }
     if !input.is_dir() {
         bail!(
@@ -231,37 +212,7 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
     let scanned = if args.template.is_none() && has_lod_folders(&input) {
         scan_original(&input, &OriginalLayout { kind, swap_xy: args.swap_xy })?
     } else {
-        let templates = match &args.template {
-            Some(t) => vec![t.clone()],
-            None => ["png", "jpg", "jpeg", "webp"].iter().map(|e| format!("{{z}}/{{x}}/{{y}}.{e}")).collect(),
-        };
-        let options = |template: String| XyzOptions {
-            template,
-            scheme: match args.scheme {
-                SchemeArg::Xyz => Scheme::Xyz,
-                SchemeArg::Tms => Scheme::Tms,
-            },
-            kind,
-            elevation,
-        };
-        let mut last_err = None;
-        let mut found = None;
-        for t in templates {
-            match scan_xyz(&input, &options(t)) {
-                Ok(s) => {
-                    found = Some(s);
-                    break;
-                }
-                Err(e) => last_err = Some(e),
-            }
-        }
-        match (found, last_err) {
-            (Some(s), _) => s,
-            (None, Some(e)) => {
-                return Err(e).context("no LOD folders, and not an XYZ tree either (see --template)");
-            }
-            (None, None) => bail!("{}: nothing to pack", input.display()),
-        }
+        scan_tree(&args, &input, kind, elevation)?
     };
     let tiles = scanned.tiles.len();
     tracing::info!(tiles, layers = scanned.metadata.layers.len(), "packing {}", input.display());
@@ -280,4 +231,67 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
         tiles as f64 / secs.max(1e-9),
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Packs a PMTiles or MBTiles file.
+fn run_tileset(
+    args: &PackArgs,
+    input: &Path,
+    set: Tileset,
+    tileset: TilesetInput,
+    progress: &CliProgress,
+) -> Result<ExitCode> {
+    let started = std::time::Instant::now();
+    let (summary, from) = match set {
+        Tileset::Pmtiles => {
+            (pack_pmtiles(input, tileset, &args.output, WriterOptions::default(), progress)?, "PMTiles")
+        }
+        Tileset::Mbtiles => {
+            (pack_mbtiles(input, tileset, &args.output, WriterOptions::default(), progress)?, "MBTiles")
+        }
+    };
+    progress.finish();
+    println!(
+        "{}: {} tiles ({} distinct) from {from}, {} bytes in {:.2} s",
+        summary.path.display(),
+        summary.addressed_tiles,
+        summary.tile_contents,
+        summary.file_len,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Scans an XYZ or TMS tree by the template given, else by the first of the usual ones
+/// that finds tiles.
+fn scan_tree(
+    args: &PackArgs,
+    input: &Path,
+    kind: LayerKind,
+    elevation: Option<ElevationScheme>,
+) -> Result<ScannedPyramid> {
+    let templates = match &args.template {
+        Some(t) => vec![t.clone()],
+        None => ["png", "jpg", "jpeg", "webp"].iter().map(|e| format!("{{z}}/{{x}}/{{y}}.{e}")).collect(),
+    };
+    let options = |template: String| XyzOptions {
+        template,
+        scheme: match args.scheme {
+            SchemeArg::Xyz => Scheme::Xyz,
+            SchemeArg::Tms => Scheme::Tms,
+        },
+        kind,
+        elevation,
+    };
+    let mut last_err = None;
+    for t in templates {
+        match scan_xyz(input, &options(t)) {
+            Ok(s) => return Ok(s),
+            Err(e) => last_err = Some(e),
+        }
+    }
+    match last_err {
+        Some(e) => Err(e).context("no LOD folders, and not an XYZ tree either (see --template)"),
+        None => bail!("{}: nothing to pack", input.display()),
+    }
 }

@@ -7,7 +7,8 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::{
-    ElevationStorage, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs, plan, tile_shard,
+    ElevationStorage, Plan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs, plan,
+    tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -198,83 +199,70 @@ impl TileArgs {
     }
 }
 
+impl TileArgs {
+    /// The tiling request these arguments state.
+    fn request(&self) -> Result<TileRequest> {
+        let format = match self.texture_format {
+            TextureFormatArg::Png => TextureFormat::Png,
+            TextureFormatArg::Jpeg => TextureFormat::Jpeg(self.jpeg_quality),
+            TextureFormatArg::Webp => TextureFormat::Webp,
+            TextureFormatArg::Bc1 => TextureFormat::Bc1,
+            TextureFormatArg::Bc7 => TextureFormat::Bc7,
+        };
+        Ok(TileRequest {
+            elevation: expand_inputs(&self.elevation)?,
+            texture: expand_inputs(&self.texture)?,
+            encoding: self.encoding()?,
+            crs: self.crs.clone(),
+            resolution: self.resolution,
+            extent: None,
+            keep_geographic: self.keep_geographic,
+            sample_spacing: self.sample_spacing,
+            height_range: self.height_range,
+            skip_bad_inputs: self.skip_bad_inputs,
+            texture_tile_size: self.texture_tile_size,
+            texture_format: format,
+            pixel_size: self.pixel_size,
+        })
+    }
+
+    /// The terrain's name: given, else the first input's file name.
+    fn name(&self) -> String {
+        self.name.clone().unwrap_or_else(|| {
+            let input = self.elevation.first().or(self.texture.first());
+            input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()
+        })
+    }
+
+    fn options(&self) -> TileOptions {
+        let storage = match self.storage {
+            StorageArg::Auto => ElevationStorage::Auto,
+            StorageArg::U16 => ElevationStorage::U16,
+            StorageArg::F32 => ElevationStorage::F32,
+        };
+        TileOptions { tile_size: self.tile_size, border: self.border, storage }
+    }
+}
+
 pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let format = match args.texture_format {
-        TextureFormatArg::Png => TextureFormat::Png,
-        TextureFormatArg::Jpeg => TextureFormat::Jpeg(args.jpeg_quality),
-        TextureFormatArg::Webp => TextureFormat::Webp,
-        TextureFormatArg::Bc1 => TextureFormat::Bc1,
-        TextureFormatArg::Bc7 => TextureFormat::Bc7,
-    };
-    let request = TileRequest {
-        elevation: expand_inputs(&args.elevation)?,
-        texture: expand_inputs(&args.texture)?,
-        encoding: args.encoding()?,
-        crs: args.crs.clone(),
-        resolution: args.resolution,
-        extent: None,
-        keep_geographic: args.keep_geographic,
-        sample_spacing: args.sample_spacing,
-        height_range: args.height_range,
-        skip_bad_inputs: args.skip_bad_inputs,
-        texture_tile_size: args.texture_tile_size,
-        texture_format: format,
-        pixel_size: args.pixel_size,
-    };
-    let sources = Sources::open(&request)?;
+    let sources = Sources::open(&args.request()?)?;
     let inputs = sources.inputs()?;
-    let elevation = inputs.elevation();
-    let texture = inputs.texture();
-    let name = args.name.clone().unwrap_or_else(|| {
-        let input = args.elevation.first().or(args.texture.first());
-        input.and_then(|p| p.file_stem()).and_then(|s| s.to_str()).unwrap_or("terrain").to_owned()
-    });
-    let storage = match args.storage {
-        StorageArg::Auto => ElevationStorage::Auto,
-        StorageArg::U16 => ElevationStorage::U16,
-        StorageArg::F32 => ElevationStorage::F32,
-    };
-    let options = TileOptions { tile_size: args.tile_size, border: args.border, storage };
+    let (elevation, texture) = (inputs.elevation(), inputs.texture());
+    let (name, options) = (args.name(), args.options());
     let started = std::time::Instant::now();
     if args.dry_run {
         let plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
         progress.finish();
-        println!("{name}: plan (nothing written)");
-        println!(
-            "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
-            "layer", "kind", "format", "LOD 0 samples", "tile", "grid", "LODs", "tiles", "~bytes"
-        );
-        for (layer, p) in plan.metadata.layers.iter().zip(&plan.layers) {
-            println!(
-                "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
-                layer.name,
-                format!("{:?}", layer.kind),
-                format!("{:?}", layer.format),
-                format!("{}x{}", p.size.0, p.size.1),
-                format!("{}+{}", layer.tile_resolution, 2 * layer.border),
-                format!("{}x{}", layer.num_x_tiles, layer.num_y_tiles),
-                layer.num_lods,
-                p.tiles,
-                p.estimated_bytes
-            );
-        }
-        let t = &plan.metadata.terrain;
+        print_plan(&name, &plan);
         if let Some(out) = &args.height_range_out {
             anyhow::ensure!(
                 plan.metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation),
                 "--height-range-out: no elevation to take the range of"
             );
+            let t = &plan.metadata.terrain;
             let range = format!("{},{}\n", t.min_elevation, t.max_elevation);
             std::fs::write(out, range).with_context(|| format!("{}: cannot write the height range", out.display()))?;
         }
-        println!(
-            "heights {} .. {}, spacing {:.3} m; at most {} tiles, about {:.1} MiB (typical compression)",
-            t.min_elevation,
-            t.max_elevation,
-            t.base_tile_size,
-            plan.tiles(),
-            plan.estimated_bytes() as f64 / f64::from(1 << 20)
-        );
         print_skipped(&sources);
         return Ok(ExitCode::SUCCESS);
     }
@@ -295,6 +283,38 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// The plan of a dry run: a line per layer, and the totals.
+fn print_plan(name: &str, plan: &Plan) {
+    println!("{name}: plan (nothing written)");
+    println!(
+        "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
+        "layer", "kind", "format", "LOD 0 samples", "tile", "grid", "LODs", "tiles", "~bytes"
+    );
+    for (layer, p) in plan.metadata.layers.iter().zip(&plan.layers) {
+        println!(
+            "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
+            layer.name,
+            format!("{:?}", layer.kind),
+            format!("{:?}", layer.format),
+            format!("{}x{}", p.size.0, p.size.1),
+            format!("{}+{}", layer.tile_resolution, 2 * layer.border),
+            format!("{}x{}", layer.num_x_tiles, layer.num_y_tiles),
+            layer.num_lods,
+            p.tiles,
+            p.estimated_bytes
+        );
+    }
+    let t = &plan.metadata.terrain;
+    println!(
+        "heights {} .. {}, spacing {:.3} m; at most {} tiles, about {:.1} MiB (typical compression)",
+        t.min_elevation,
+        t.max_elevation,
+        t.base_tile_size,
+        plan.tiles(),
+        plan.estimated_bytes() as f64 / f64::from(1 << 20)
+    );
 }
 
 /// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, wholly (when

@@ -24,7 +24,9 @@ use terrastream_format::{
 
 use crate::compress::zstd_compress;
 use crate::error::{Error, Result};
-use crate::writer::{SPILL_RECORD, WriteSummary, WriterOptions, build_directories, output_folder, record_extents};
+use crate::writer::{
+    Directories, SPILL_RECORD, WriteSummary, WriterOptions, build_directories, output_folder, record_extents,
+};
 
 /// Appends a new version of an archive's tiles to it, in place.
 ///
@@ -223,51 +225,35 @@ impl Appender {
         let level = self.options.directory_zstd_level;
         let metadata_bytes = zstd_compress(&metadata.to_json(), level)
             .map_err(|error| Error::Compress { what: "the metadata", error })?;
-        let no_room = |why: String| Error::NoRoom { path: path.clone(), why };
 
         // The bootstrap slot: before the current metadata, or after the current root.
         let old = &self.header;
-        let low = old.metadata.offset.saturating_sub(HEADER_LEN as u64);
-        let high = BOOTSTRAP_READ.saturating_sub(old.bootstrap_len());
+        let free = free_bootstrap(old);
         let target = self.options.bootstrap_target.saturating_sub(HEADER_LEN as u64);
-        let budget = low.max(high).min(target).saturating_sub(metadata_bytes.len() as u64);
+        let budget = free.0.max(free.1).min(target).saturating_sub(metadata_bytes.len() as u64);
         self.spill.flush().map_err(temp)?;
         let mut spill = self.spill.get_ref().try_clone().map_err(temp)?;
         let mut directories =
             build_directories(&mut spill, self.spilled, &self.options, budget, &folder).map_err(temp)?;
         let slot = (metadata_bytes.len() + directories.root.len()) as u64;
-        let metadata_offset = if slot <= low {
-            HEADER_LEN as u64
-        } else if slot <= high {
-            BOOTSTRAP_READ - slot
-        } else {
-            return Err(no_room(format!(
+        let metadata_offset = place(free, HEADER_LEN as u64, BOOTSTRAP_READ, slot).ok_or_else(|| {
+            self.no_room(format!(
                 "the new metadata and root directory take {slot} bytes; the free bootstrap slot has {}",
-                low.max(high)
-            )));
-        };
+                free.0.max(free.1)
+            ))
+        })?;
         let new_metadata = Section { offset: metadata_offset, len: metadata_bytes.len() as u64 };
         let root_dir = Section { offset: new_metadata.offset + new_metadata.len, len: directories.root.len() as u64 };
 
         // The leaves: before the current ones, or after them, in the leaf area.
-        let area = BOOTSTRAP_READ..old.data.offset;
-        let (low, high) = if old.leaf_dirs.len == 0 {
-            (area.end - area.start, 0)
-        } else {
-            let end = old.leaf_dirs.end().unwrap_or(u64::MAX);
-            (old.leaf_dirs.offset - area.start, area.end.saturating_sub(end))
-        };
+        let free = free_leaf_area(old);
         let leaves_len = directories.leaves_len;
-        let leaves_offset = if leaves_len <= low {
-            area.start
-        } else if leaves_len <= high {
-            area.end - leaves_len
-        } else {
-            return Err(no_room(format!(
+        let leaves_offset = place(free, BOOTSTRAP_READ, old.data.offset, leaves_len).ok_or_else(|| {
+            self.no_room(format!(
                 "the new leaf directories take {leaves_len} bytes; the free part of the leaf area has {}",
-                low.max(high)
-            )));
-        };
+                free.0.max(free.1)
+            ))
+        })?;
         let leaf_dirs = Section { offset: leaves_offset, len: leaves_len };
         let data = Section { offset: old.data.offset, len: self.data_len };
         let header = Header {
@@ -285,23 +271,7 @@ impl Appender {
             metadata_compression: Compression::Zstd,
             directory_compression: Compression::Zstd,
         };
-
-        // Everything but the header, then the header.
-        let mut out = self.file.try_clone().map_err(io)?;
-        out.seek(SeekFrom::Start(leaf_dirs.offset)).map_err(io)?;
-        directories.leaves.seek(SeekFrom::Start(0)).map_err(temp)?;
-        let copied = std::io::copy(&mut Read::take(&mut directories.leaves, leaves_len), &mut out).map_err(io)?;
-        if copied != leaves_len {
-            return Err(temp(std::io::Error::new(std::io::ErrorKind::UnexpectedEof, "leaves shorter than written")));
-        }
-        self.file.write_all_at(&metadata_bytes, new_metadata.offset).map_err(io)?;
-        self.file.write_all_at(&directories.root, root_dir.offset).map_err(io)?;
-        let end = data.end().unwrap_or(u64::MAX);
-        self.file.sync_data().map_err(io)?;
-        self.file.write_all_at(&header.encode(), 0).map_err(io)?;
-        self.file.sync_data().map_err(io)?;
-        // Bytes an unfinished update left after a longer data section stay.
-        let file_len = self.file.metadata().map_or(end, |m| m.len().max(end));
+        let file_len = self.write_version(&header, &metadata_bytes, &mut directories)?;
         Ok(WriteSummary {
             path: self.path.clone(),
             file_len,
@@ -313,6 +283,66 @@ impl Appender {
             metadata_bytes: new_metadata.len,
             leaf_count: directories.leaf_count,
         })
+    }
+
+    fn no_room(&self, why: String) -> Error {
+        Error::NoRoom { path: self.path.clone(), why }
+    }
+
+    /// Writes the new version where `header` says: everything but the header, synced,
+    /// then the header, synced. Returns the file's length.
+    fn write_version(&mut self, header: &Header, metadata_bytes: &[u8], directories: &mut Directories) -> Result<u64> {
+        let path = self.path.clone();
+        let io = |e| Error::file(&path, e);
+        let folder = output_folder(&self.path);
+        let temp = |error| Error::Temporary { folder: folder.clone(), error };
+        let leaves_len = header.leaf_dirs.len;
+        let mut out = self.file.try_clone().map_err(io)?;
+        out.seek(SeekFrom::Start(header.leaf_dirs.offset)).map_err(io)?;
+        directories.leaves.seek(SeekFrom::Start(0)).map_err(temp)?;
+        let copied = std::io::copy(&mut Read::take(&mut directories.leaves, leaves_len), &mut out).map_err(io)?;
+        if copied != leaves_len {
+            return Err(temp(std::io::Error::new(std::io::ErrorKind::UnexpectedEof, "leaves shorter than written")));
+        }
+        self.file.write_all_at(metadata_bytes, header.metadata.offset).map_err(io)?;
+        self.file.write_all_at(&directories.root, header.root_dir.offset).map_err(io)?;
+        let end = header.data.end().unwrap_or(u64::MAX);
+        self.file.sync_data().map_err(io)?;
+        self.file.write_all_at(&header.encode(), 0).map_err(io)?;
+        self.file.sync_data().map_err(io)?;
+        // Bytes an unfinished update left after a longer data section stay.
+        Ok(self.file.metadata().map_or(end, |m| m.len().max(end)))
+    }
+}
+
+/// The free bytes of the bootstrap read before the current metadata and after the
+/// current root directory.
+fn free_bootstrap(old: &Header) -> (u64, u64) {
+    (old.metadata.offset.saturating_sub(HEADER_LEN as u64), BOOTSTRAP_READ.saturating_sub(old.bootstrap_len()))
+}
+
+/// The free bytes of the leaf area (between the bootstrap read and the data) before and
+/// after the current leaf directories.
+fn free_leaf_area(old: &Header) -> (u64, u64) {
+    let area = BOOTSTRAP_READ..old.data.offset;
+    if old.leaf_dirs.len == 0 {
+        (area.end - area.start, 0)
+    } else {
+        let end = old.leaf_dirs.end().unwrap_or(u64::MAX);
+        (old.leaf_dirs.offset - area.start, area.end.saturating_sub(end))
+    }
+}
+
+/// Where `len` bytes go in an area from `start` to `end` whose free bytes are `free`
+/// (before and after what it holds now): at its start, else ending at its end; None when
+/// neither has room.
+fn place(free: (u64, u64), start: u64, end: u64, len: u64) -> Option<u64> {
+    if len <= free.0 {
+        Some(start)
+    } else if len <= free.1 {
+        Some(end - len)
+    } else {
+        None
     }
 }
 

@@ -7,7 +7,8 @@ use std::path::Path;
 use crate::error::Error;
 use crate::writer::{WriteSummary, Writer, WriterOptions};
 use terrastream_format::{
-    ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, levels_to_one,
+    ElevationEncoding, ElevationScheme, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey,
+    levels_to_one,
 };
 
 /// A synthetic archive whose every tile says what it is: texture tiles are one solid
@@ -64,6 +65,36 @@ pub fn label_height(x: f64, z: f64, version: u8) -> f64 {
 /// # Errors
 /// Writer and I/O errors.
 pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteSummary, Error> {
+    let metadata = labelled_metadata(spec);
+    let mut tiles = Vec::new();
+    for (index, layer) in (0u8..).zip(&metadata.layers) {
+        for key in (0..layer.num_lods).flat_map(|lod| layer.tiles_at(index, lod)) {
+            let last_column = key.lod() == 0 && key.x() + 1 == layer.num_x_tiles;
+            if index == 0
+                && !last_column
+                && spec.sparse_from.is_some_and(|s| u64::from(key.x()) << key.lod() >= u64::from(s))
+            {
+                continue;
+            }
+            tiles.push((Writer::order_key(&metadata, key)?, key));
+        }
+    }
+    tiles.sort_unstable();
+    let mut writer = Writer::create(path, metadata.clone(), WriterOptions::default())?;
+    for (_, key) in tiles {
+        let layer = &metadata.layers[usize::from(key.layer())];
+        let payload = if key.layer() == 0 {
+            label_png(path, key, layer.tile_resolution, spec.version)?
+        } else {
+            label_heights(key, layer, spec.version)
+        };
+        writer.add(key, payload)?;
+    }
+    writer.finish()
+}
+
+/// The labelled archive's metadata: a texture layer and an elevation layer over one square.
+fn labelled_metadata(spec: &LabelledSpec) -> Metadata {
     let world = f64::from(spec.texture_grid) * spec.texture_tile_size;
     let texture = Layer {
         name: "texture".into(),
@@ -100,51 +131,36 @@ pub fn write_labelled_archive(path: &Path, spec: &LabelledSpec) -> Result<WriteS
     metadata.terrain.displacement = hi - lo;
     metadata.terrain.elevation_range = hi - lo;
     metadata.terrain.base_tile_size = metadata.layers[1].tile_world_size / f64::from(spec.elevation_res);
-    let mut tiles = Vec::new();
-    for (index, layer) in (0u8..).zip(&metadata.layers) {
-        for key in (0..layer.num_lods).flat_map(|lod| layer.tiles_at(index, lod)) {
-            let last_column = key.lod() == 0 && key.x() + 1 == layer.num_x_tiles;
-            if index == 0
-                && !last_column
-                && spec.sparse_from.is_some_and(|s| u64::from(key.x()) << key.lod() >= u64::from(s))
-            {
-                continue;
-            }
-            tiles.push((Writer::order_key(&metadata, key)?, key));
+    metadata
+}
+
+/// A texture tile of one colour, the label of its key.
+fn label_png(path: &Path, key: TileKey, res: u32, version: u8) -> Result<Vec<u8>, Error> {
+    let pixels = label_colour(key.lod(), key.x(), key.y(), version).repeat((res * res) as usize);
+    let mut png_bytes = Vec::new();
+    let mut encoder = png::Encoder::new(&mut png_bytes, res, res);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    let fail = |e: png::EncodingError| Error::input(path, format!("{key}: {e}"));
+    let mut png_writer = encoder.write_header().map_err(fail)?;
+    png_writer.write_image_data(&pixels).map_err(fail)?;
+    drop(png_writer);
+    Ok(png_bytes)
+}
+
+/// An elevation tile of the label heights, as f32 samples.
+fn label_heights(key: TileKey, layer: &Layer, version: u8) -> Vec<u8> {
+    let res = layer.tile_resolution;
+    let size = layer.world_size_at(key.lod());
+    let step = size / f64::from(res);
+    let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
+    let mut raw = Vec::with_capacity((res * res * 4) as usize);
+    for j in 0..res {
+        for i in 0..res {
+            let h = label_height(x0 + (f64::from(i) + 0.5) * step, z0 + (f64::from(j) + 0.5) * step, version);
+            #[expect(clippy::cast_possible_truncation, reason = "stored as f32 by design")]
+            raw.extend_from_slice(&(h as f32).to_le_bytes());
         }
     }
-    tiles.sort_unstable();
-    let mut writer = Writer::create(path, metadata.clone(), WriterOptions::default())?;
-    for (_, key) in tiles {
-        let layer = &metadata.layers[usize::from(key.layer())];
-        let res = layer.tile_resolution;
-        let payload = if key.layer() == 0 {
-            let pixels = label_colour(key.lod(), key.x(), key.y(), spec.version).repeat((res * res) as usize);
-            let mut png_bytes = Vec::new();
-            let mut encoder = png::Encoder::new(&mut png_bytes, res, res);
-            encoder.set_color(png::ColorType::Rgb);
-            encoder.set_depth(png::BitDepth::Eight);
-            let fail = |e: png::EncodingError| Error::input(path, format!("{key}: {e}"));
-            let mut png_writer = encoder.write_header().map_err(fail)?;
-            png_writer.write_image_data(&pixels).map_err(fail)?;
-            drop(png_writer);
-            png_bytes
-        } else {
-            let size = layer.world_size_at(key.lod());
-            let step = size / f64::from(res);
-            let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
-            let mut raw = Vec::with_capacity((res * res * 4) as usize);
-            for j in 0..res {
-                for i in 0..res {
-                    let h =
-                        label_height(x0 + (f64::from(i) + 0.5) * step, z0 + (f64::from(j) + 0.5) * step, spec.version);
-                    #[expect(clippy::cast_possible_truncation, reason = "stored as f32 by design")]
-                    raw.extend_from_slice(&(h as f32).to_le_bytes());
-                }
-            }
-            raw
-        };
-        writer.add(key, payload)?;
-    }
-    writer.finish()
+    raw
 }

@@ -53,93 +53,99 @@ pub fn read_geotiff(path: &Path) -> Result<Raster> {
 /// An error naming the file: unreadable, not an elevation raster, a PNG whose
 /// pixels need an encoding that was not given or does not fit them.
 pub fn open_elevation(path: &Path, encoding: Option<ElevationEncoding>) -> Result<ElevationFile> {
-    let bad = |why: String| Error::unsupported(path, why);
     match sniff(path)? {
-        Sniffed::Jpeg => Err(bad("JPEG is lossy: elevation must come from a GeoTIFF or a PNG".into())),
-        Sniffed::Png => {
-            let ((colour, depth), (width, height)) = png_header(path)?;
-            let channels = colour.samples();
-            let rgb = channels >= 3;
-            let sixteen = depth == png::BitDepth::Sixteen;
-            let encoding = match encoding {
-                Some(e) if e.scheme.needs_rgb() && !rgb => {
-                    return Err(bad(format!("{:?} needs RGB pixels; this PNG is {colour:?}", e.scheme)));
-                }
-                Some(e) if e.scheme.needs_rgb() || e.scheme == ElevationScheme::Gray8 => {
-                    if sixteen {
-                        return Err(bad(format!("{:?} needs 8-bit pixels; this PNG is 16-bit", e.scheme)));
-                    }
-                    e
-                }
-                Some(e) if e.scheme == ElevationScheme::QuantizedU16 && sixteen && !rgb => e,
-                Some(e) => return Err(bad(format!("{:?} does not apply to a {colour:?} {depth:?} PNG", e.scheme))),
-                None if sixteen && !rgb => {
-                    ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 1.0, offset: 0.0, nodata: None }
-                }
-                None => {
-                    return Err(bad(format!(
-                        "a {depth:?}-bit {colour:?} PNG: say how its pixels map to heights (an elevation encoding: \
-                         gray8 with a minimum and displacement, rgb-thirds, terrain-rgb or terrarium)"
-                    )));
-                }
-            };
-            // A world file beside it says where it lies (and the spacing).
-            let sidecar = read_sidecar(path, (width, height))?;
-            Ok(ElevationFile {
-                path: path.to_path_buf(),
-                width,
-                height,
-                spacing: sidecar.as_ref().map_or((1.0, 1.0), |s| s.spacing),
-                crs_pixel: sidecar.as_ref().map(|s| s.crs_pixel),
-                georeference: sidecar.map(|s| s.georeference),
-                nodata: encoding.nodata,
-                encoding: Some(encoding),
-                png: true,
-            })
+        Sniffed::Jpeg => Err(Error::unsupported(path, "JPEG is lossy: elevation must come from a GeoTIFF or a PNG")),
+        Sniffed::Png => open_png(path, encoding),
+        Sniffed::Tiff => open_tiff(path, encoding),
+    }
+}
+
+/// A PNG of heights: its pixels need an encoding (16-bit gray is read as heights).
+fn open_png(path: &Path, encoding: Option<ElevationEncoding>) -> Result<ElevationFile> {
+    let bad = |why: String| Error::unsupported(path, why);
+    let ((colour, depth), (width, height)) = png_header(path)?;
+    let channels = colour.samples();
+    let rgb = channels >= 3;
+    let sixteen = depth == png::BitDepth::Sixteen;
+    let encoding = match encoding {
+        Some(e) if e.scheme.needs_rgb() && !rgb => {
+            return Err(bad(format!("{:?} needs RGB pixels; this PNG is {colour:?}", e.scheme)));
         }
-        Sniffed::Tiff => {
-            let mut decoder = open_input_tiff(path)?;
-            let (width, height) = decoder.dimensions().map_err(|e| Error::tiff(path, "", e))?;
-            if width == 0 || height == 0 {
-                return Err(Error::damaged(path, format!("the raster is empty ({width}x{height})")));
+        Some(e) if e.scheme.needs_rgb() || e.scheme == ElevationScheme::Gray8 => {
+            if sixteen {
+                return Err(bad(format!("{:?} needs 8-bit pixels; this PNG is 16-bit", e.scheme)));
             }
-            let colour = decoder.colortype().map_err(|e| Error::tiff(path, "", e))?;
-            let eight = matches!(colour, tiff::ColorType::Gray(8));
-            match colour {
-                tiff::ColorType::Gray(_) => {}
-                other => {
-                    return Err(bad(format!("{other:?} samples: an elevation GeoTIFF has a single band of numbers")));
-                }
-            }
-            if let Some(e) = encoding
-                && (e.scheme.needs_rgb() || (e.scheme == ElevationScheme::Gray8 && !eight))
-            {
-                return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
-            }
-            let nodata = gdal_nodata(&mut decoder);
-            let tags = GeoTags::read(&mut decoder);
-            let (mut spacing, mut georeference) = tags.placement(width, height).map_err(bad)?;
-            let mut crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
-            // No GeoTIFF tags: a world file beside it may say where it lies.
-            if georeference.is_none()
-                && let Some(sidecar) = read_sidecar(path, (width, height))?
-            {
-                (spacing, georeference, crs_pixel) =
-                    (sidecar.spacing, Some(sidecar.georeference), Some(sidecar.crs_pixel));
-            }
-            Ok(ElevationFile {
-                path: path.to_path_buf(),
-                width,
-                height,
-                spacing,
-                crs_pixel,
-                georeference,
-                nodata,
-                encoding,
-                png: false,
-            })
+            e
+        }
+        Some(e) if e.scheme == ElevationScheme::QuantizedU16 && sixteen && !rgb => e,
+        Some(e) => return Err(bad(format!("{:?} does not apply to a {colour:?} {depth:?} PNG", e.scheme))),
+        None if sixteen && !rgb => {
+            ElevationEncoding { scheme: ElevationScheme::QuantizedU16, scale: 1.0, offset: 0.0, nodata: None }
+        }
+        None => {
+            return Err(bad(format!(
+                "a {depth:?}-bit {colour:?} PNG: say how its pixels map to heights (an elevation encoding: \
+                 gray8 with a minimum and displacement, rgb-thirds, terrain-rgb or terrarium)"
+            )));
+        }
+    };
+    // A world file beside it says where it lies (and the spacing).
+    let sidecar = read_sidecar(path, (width, height))?;
+    Ok(ElevationFile {
+        path: path.to_path_buf(),
+        width,
+        height,
+        spacing: sidecar.as_ref().map_or((1.0, 1.0), |s| s.spacing),
+        crs_pixel: sidecar.as_ref().map(|s| s.crs_pixel),
+        georeference: sidecar.map(|s| s.georeference),
+        nodata: encoding.nodata,
+        encoding: Some(encoding),
+        png: true,
+    })
+}
+
+/// A single-band GeoTIFF of heights, placed by its GeoTIFF tags or a world file beside it.
+fn open_tiff(path: &Path, encoding: Option<ElevationEncoding>) -> Result<ElevationFile> {
+    let bad = |why: String| Error::unsupported(path, why);
+    let mut decoder = open_input_tiff(path)?;
+    let (width, height) = decoder.dimensions().map_err(|e| Error::tiff(path, "", e))?;
+    if width == 0 || height == 0 {
+        return Err(Error::damaged(path, format!("the raster is empty ({width}x{height})")));
+    }
+    let colour = decoder.colortype().map_err(|e| Error::tiff(path, "", e))?;
+    let eight = matches!(colour, tiff::ColorType::Gray(8));
+    match colour {
+        tiff::ColorType::Gray(_) => {}
+        other => {
+            return Err(bad(format!("{other:?} samples: an elevation GeoTIFF has a single band of numbers")));
         }
     }
+    if let Some(e) = encoding
+        && (e.scheme.needs_rgb() || (e.scheme == ElevationScheme::Gray8 && !eight))
+    {
+        return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
+    }
+    let nodata = gdal_nodata(&mut decoder);
+    let tags = GeoTags::read(&mut decoder);
+    let (mut spacing, mut georeference) = tags.placement(path, width, height)?;
+    let mut crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
+    // No GeoTIFF tags: a world file beside it may say where it lies.
+    if georeference.is_none()
+        && let Some(sidecar) = read_sidecar(path, (width, height))?
+    {
+        (spacing, georeference, crs_pixel) = (sidecar.spacing, Some(sidecar.georeference), Some(sidecar.crs_pixel));
+    }
+    Ok(ElevationFile {
+        path: path.to_path_buf(),
+        width,
+        height,
+        spacing,
+        crs_pixel,
+        georeference,
+        nodata,
+        encoding,
+        png: false,
+    })
 }
 
 impl ElevationFile {

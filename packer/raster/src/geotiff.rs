@@ -1,7 +1,11 @@
 //! GeoTIFF tags: where a raster lies (model pixel scale, tiepoint, GeoKeys) and its GDAL
 //! nodata value.
 
+use std::path::Path;
+
 use terrastream_format::Georeference;
+
+use crate::error::{Error, Result};
 
 const MODEL_PIXEL_SCALE: u16 = 33550;
 const MODEL_TIEPOINT: u16 = 33922;
@@ -48,7 +52,10 @@ impl GeoTags {
     }
 
     /// Sample spacing in metres (x, y) and the georeference; (1, 1) and none without tags.
-    pub(super) fn placement(&self, width: u32, height: u32) -> Result<((f64, f64), Option<Georeference>), String> {
+    ///
+    /// # Errors
+    /// [`Error::Georeference`] naming `path` for a pixel scale that is not positive.
+    pub(super) fn placement(&self, path: &Path, width: u32, height: u32) -> Result<((f64, f64), Option<Georeference>)> {
         let (scale, tiepoint, keys) = (&self.scale, &self.tiepoint, &self.keys);
         // Georeference: model type 2 = geographic (degrees), else projected (metres assumed).
         let key = |id: f64| -> Option<f64> {
@@ -80,7 +87,7 @@ impl GeoTags {
             georeference = Some(g);
         }
         if !(spacing.0.is_finite() && spacing.1.is_finite() && spacing.0 > 0.0 && spacing.1 > 0.0) {
-            return Err(format!("bad pixel scale {spacing:?}"));
+            return Err(Error::georeference(path, format!("bad pixel scale {spacing:?}")));
         }
         Ok((spacing, georeference))
     }

@@ -77,7 +77,7 @@ pub fn open_image(path: &Path) -> Result<ImageFile> {
                 return Err(bad("planar (band-separate) pixels: store the bands interleaved".into()));
             }
             let tags = GeoTags::read(&mut decoder);
-            let georeference = tags.placement(width, height).ok().and_then(|(_, g)| g);
+            let georeference = tags.placement(path, width, height).ok().and_then(|(_, g)| g);
             crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
             (width, height, georeference, ImageKind::Tiff { channels, ycbcr })
         }

@@ -68,7 +68,7 @@ pub fn read_vrt(path: &Path) -> Result<Vrt> {
     let text = child(root, "GeoTransform")
         .and_then(|n| n.text())
         .ok_or_else(|| bad("no <GeoTransform>: the VRT does not say where it lies".into()))?;
-    let [ox, px, rx, oy, ry, py] = super::worldfile::parse_geotransform(text).map_err(bad)?;
+    let [ox, px, rx, oy, ry, py] = super::worldfile::parse_geotransform(path, text)?;
     if rx != 0.0 || ry != 0.0 || px <= 0.0 || py >= 0.0 {
         return Err(bad("a rotated or flipped <GeoTransform>: only north-up grids are read".into()));
     }

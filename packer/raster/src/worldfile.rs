@@ -127,7 +127,6 @@ fn aux_xml(image: &Path) -> Result<Option<AuxXml>> {
     if !path.is_file() {
         return Ok(None);
     }
-    let bad = |why: String| Error::georeference(&path, why);
     let text = std::fs::read_to_string(&path).map_err(|e| Error::file(&path, e))?;
     let doc = roxmltree::Document::parse(&text).map_err(|error| Error::Xml {
         path: path.clone(),
@@ -137,19 +136,23 @@ fn aux_xml(image: &Path) -> Result<Option<AuxXml>> {
     let root = doc.root_element();
     let child = |name: &str| root.children().find(|c| c.has_tag_name(name)).and_then(|n| n.text());
     let srs = child("SRS").map(str::to_owned).filter(|s| !s.trim().is_empty());
-    let transform = child("GeoTransform").map(parse_geotransform).transpose().map_err(bad)?;
+    let transform = child("GeoTransform").map(|t| parse_geotransform(&path, t)).transpose()?;
     Ok(Some(AuxXml { path, srs, transform }))
 }
 
 /// The six numbers of a GDAL `<GeoTransform>` (in a VRT or an `.aux.xml`), in GDAL's
-/// order; the reason as text when they are not six numbers.
-pub(super) fn parse_geotransform(text: &str) -> std::result::Result<[f64; 6], String> {
+/// order.
+///
+/// # Errors
+/// [`Error::Georeference`] naming `path` when they are not six numbers.
+pub(super) fn parse_geotransform(path: &Path, text: &str) -> Result<[f64; 6]> {
     let v: Vec<f64> = text
         .split(',')
         .map(|v| v.trim().parse::<f64>())
         .collect::<std::result::Result<_, _>>()
-        .map_err(|e| format!("<GeoTransform>: {e}"))?;
-    v.try_into().map_err(|v: Vec<f64>| format!("<GeoTransform> has {} numbers, 6 expected", v.len()))
+        .map_err(|e| Error::georeference(path, format!("<GeoTransform>: {e}")))?;
+    v.try_into()
+        .map_err(|v: Vec<f64>| Error::georeference(path, format!("<GeoTransform> has {} numbers, 6 expected", v.len())))
 }
 
 #[cfg(test)]

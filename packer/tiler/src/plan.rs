@@ -272,14 +272,9 @@ fn height_encoding(storage: ElevationStorage, min: f64, span: f64) -> ElevationE
     }
 }
 
-/// The texture layer: over the elevation's extent (checked to be the same area), or alone
-/// at `pixel_size` metres a pixel.
-fn plan_texture(
-    t: &TextureInput<'_>,
-    elevation: Option<&dyn ElevationSource>,
-    extent: Option<(f64, f64, f64)>,
-    border: u8,
-) -> Result<(Layer, LayerPlan)> {
+/// Whether the texture can be tiled as given: not empty, its options in range, and
+/// placed in the elevation's CRS when both say where they lie.
+fn check_texture(t: &TextureInput<'_>, elevation: Option<&dyn ElevationSource>) -> Result<()> {
     let path = t.source.path();
     let (w, h) = t.source.size();
     if w == 0 || h == 0 {
@@ -305,6 +300,20 @@ fn plan_texture(
             ),
         ));
     }
+    Ok(())
+}
+
+/// The texture layer: over the elevation's extent (checked to be the same area), or alone
+/// at `pixel_size` metres a pixel.
+fn plan_texture(
+    t: &TextureInput<'_>,
+    elevation: Option<&dyn ElevationSource>,
+    extent: Option<(f64, f64, f64)>,
+    border: u8,
+) -> Result<(Layer, LayerPlan)> {
+    let path = t.source.path();
+    let (w, h) = t.source.size();
+    check_texture(t, elevation)?;
     let (fw, fh) = (f64::from(w), f64::from(h));
     let (width, world_width) = match extent {
         Some((ex, ez, grid_aspect)) => {

@@ -99,7 +99,36 @@ impl State {
         if !matches!(self.phase, Phase::Running { .. }) && !self.open_session() {
             return;
         }
-        let Phase::Running { session, fly } = &mut self.phase else { return };
+        let Some((camera, flying)) = self.steer(dt, now, size) else { return };
+        let Phase::Running { session, .. } = &mut self.phase else { return };
+        let cpu_started = self.page.now_ms();
+        let (stream, frame) = session.frame(&self.gpu.device, &self.gpu.queue, &camera);
+        let present_started = self.page.now_ms();
+        self.uploads_last_frame = stream.uploads - self.uploads_seen;
+        self.uploads_seen = stream.uploads;
+        self.timings.max_uploads_per_frame = self.timings.max_uploads_per_frame.max(self.uploads_last_frame);
+        self.timings.frames += 1;
+        self.present();
+        if self.timings.first_draw.is_none() && frame.resident.0 + frame.resident.1 > 0 {
+            let now = self.page.now_ms();
+            self.timings.first_draw = Some((present_started - cpu_started, now - present_started));
+        }
+        if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_at.is_none() {
+            self.timings.first_frame_at = Some(now);
+            tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
+        }
+        self.record(now, interval_ms, stream.in_flight, flying);
+        self.last = Some((stream, frame));
+        if now - self.hud_at_ms >= 1000.0 / HUD_HZ {
+            self.hud_at_ms = now;
+            self.update_hud(&camera);
+        }
+    }
+
+    /// Moves the camera by the input and, from the first complete view on, by the
+    /// benchmark flight: the frame's camera, and whether the flight steered it.
+    fn steer(&mut self, dt: f64, now: f64, size: (u32, u32)) -> Option<(Camera, bool)> {
+        let Phase::Running { session, fly } = &mut self.phase else { return None };
         let mut input = self.input.keys.fly();
         if self.input.pinch_seconds != 0.0 {
             // A pinch moves along the view as far as that many seconds of flight would.
@@ -112,7 +141,6 @@ impl State {
             input = FlyInput::default();
         }
         fly.step(dt, input, |x, z| session.streamer.height_at(x, z));
-        // The benchmark flight, from the first complete view on: it steers the camera.
         let flying = match &mut self.flight {
             Some(flight) => flight.next(),
             None if self.timings.settled_at.is_some_and(|at| now - at >= FLIGHT_AFTER_MS) => {
@@ -131,26 +159,15 @@ impl State {
             *fly =
                 FlyCamera { speed: fly.speed, ..FlyCamera::from_camera(&Camera::look_at(eye, target, size.0, size.1)) };
         }
-        let camera = fly.camera(size.0, size.1);
-        let cpu_started = self.page.now_ms();
-        let (stream, frame) = session.frame(&self.gpu.device, &self.gpu.queue, &camera);
-        let present_started = self.page.now_ms();
-        self.uploads_last_frame = stream.uploads - self.uploads_seen;
-        self.uploads_seen = stream.uploads;
-        self.timings.max_uploads_per_frame = self.timings.max_uploads_per_frame.max(self.uploads_last_frame);
-        self.timings.frames += 1;
-        self.present();
-        if self.timings.first_draw.is_none() && frame.resident.0 + frame.resident.1 > 0 {
-            let now = self.page.now_ms();
-            self.timings.first_draw = Some((present_started - cpu_started, now - present_started));
-        }
-        if frame.resident.0 + frame.resident.1 > 0 && self.timings.first_frame_at.is_none() {
-            self.timings.first_frame_at = Some(now);
-            tracing::info!("first frame with terrain after {:.0} ms", now - self.started_ms);
-        }
+        Some((fly.camera(size.0, size.1), flying.is_some()))
+    }
+
+    /// The frame's timings, kept apart while tiles stream and once they are resident (for
+    /// the first view, and for the benchmark flight), and the status line.
+    fn record(&mut self, now: f64, interval_ms: f64, in_flight: u64, flying: bool) {
         let Phase::Running { session, .. } = &self.phase else { return };
         let pending = session.streamer.pending();
-        let streaming = pending > 0 || stream.in_flight > 0;
+        let streaming = pending > 0 || in_flight > 0;
         if streaming {
             self.timings.max_frame_ms_streaming = self.timings.max_frame_ms_streaming.max(interval_ms);
         }
@@ -159,7 +176,7 @@ impl State {
         if kept.len() < MAX_FRAME_SAMPLES && self.flight.is_none() {
             kept.push(interval_ms);
         }
-        if let (Some(flight), true) = (&mut self.flight, flying.is_some()) {
+        if let (Some(flight), true) = (&mut self.flight, flying) {
             let kept = if streaming { &mut flight.streaming_ms } else { &mut flight.resident_ms };
             kept.push(interval_ms);
         }
@@ -171,11 +188,6 @@ impl State {
             self.page.status(Some(&format!("Loading terrain… {pending} tiles to go")), false);
         } else {
             self.page.status(None, false);
-        }
-        self.last = Some((stream, frame));
-        if now - self.hud_at_ms >= 1000.0 / HUD_HZ {
-            self.hud_at_ms = now;
-            self.update_hud(&camera);
         }
     }
 

@@ -119,7 +119,7 @@ struct Input<K: MosaicKind> {
     columns: (i64, i64),
     rows: (i64, i64),
     /// How the input's pixels lie on the output grid.
-    grid: Grid,
+    placement: Placement,
     /// Inputs of one CRS and pixel size share a number, and a pixel grid: file pixel +
     /// this offset. Those whole pixels apart lie on one lattice (tiles cut from one
     /// raster); others (tiles each warped onto its own origin) a fraction of a pixel off.
@@ -137,7 +137,7 @@ impl<K: MosaicKind> Input<K> {
 
 /// How an input's pixels lie on the output grid.
 #[derive(Clone, Copy, Debug, PartialEq)]
-enum Grid {
+enum Placement {
     /// Its pixels are the output's (same CRS and spacing, a whole number of pixels apart):
     /// the file pixel of output sample (0, 0). Its rows are copied, not resampled.
     Aligned(i64, i64),
@@ -147,6 +147,126 @@ enum Grid {
     Shifted(f64, f64),
     /// Anything else: each sample's point comes through the transform (on a lattice).
     Warped,
+}
+
+/// The inputs' headers, read on every core (thousands of files: most of the time before
+/// the first row), then taken in order: the first bad one is the one named (or, with
+/// `skip_bad_inputs`, each bad one is left out, with why).
+#[expect(clippy::type_complexity, reason = "the files, and the skipped ones with why")]
+fn open_all<K: MosaicKind>(
+    paths: &[PathBuf],
+    skip_bad_inputs: bool,
+) -> Result<(Vec<Opened<K>>, Vec<(PathBuf, String)>)> {
+    let mut files = Vec::with_capacity(paths.len());
+    let mut skipped = Vec::new();
+    let opened: Vec<Result<Vec<Opened<K>>>> = paths.par_iter().map(|path| open_inputs::<K>(path)).collect();
+    for (path, opened) in paths.iter().zip(opened) {
+        match opened {
+            Ok(opened) => files.extend(opened),
+            Err(e) if skip_bad_inputs => {
+                tracing::warn!("skipping {e}");
+                skipped.push((path.clone(), e.to_string()));
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    Ok((files, skipped))
+}
+
+/// The inputs' footprints in the output CRS.
+struct Footprints {
+    /// Each input's (min x, min y, max x, max y).
+    each: Vec<[f64; 4]>,
+    /// Their union.
+    union: [f64; 4],
+    /// The finest input spacing, in output CRS units.
+    finest: f64,
+}
+
+impl Footprints {
+    fn of<K: MosaicKind>(files: &[Opened<K>], crs: &Crs) -> Result<Self> {
+        let mut union = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
+        let mut finest = f64::INFINITY;
+        let mut each = Vec::with_capacity(files.len());
+        let found: Vec<Option<[f64; 4]>> = (files.par_iter())
+            .map(|o| footprint(&Transform::new(&o.crs, crs), o.origin, o.pixel, (o.window[2], o.window[3])))
+            .collect();
+        for (o, fp) in files.iter().zip(found) {
+            let (w, h) = (o.window[2], o.window[3]);
+            let fp = fp.ok_or_else(|| {
+                Error::georeference(K::path(&o.file), format!("it lies outside what {} can hold", crs.name()))
+            })?;
+            union = [union[0].min(fp[0]), union[1].min(fp[1]), union[2].max(fp[2]), union[3].max(fp[3])];
+            let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
+            finest = finest.min(metres);
+            each.push(fp);
+        }
+        Ok(Self { each, union, finest })
+    }
+}
+
+/// The mosaic's grid in the output CRS.
+struct OutputGrid {
+    /// North-west corner.
+    origin: [f64; 2],
+    /// Sample size (x, y).
+    pixel: (f64, f64),
+    /// Samples across and down.
+    size: (u32, u32),
+}
+
+impl OutputGrid {
+    /// The extent asked for, covered exactly (pixels a little off square); otherwise the
+    /// footprints' union, rounded out to whole pixels of the spacing asked for (else the
+    /// finest input's).
+    fn over<K: MosaicKind>(
+        footprints: &Footprints,
+        files: &[Opened<K>],
+        crs: &Crs,
+        options: &MosaicOptions,
+        first: &Path,
+    ) -> Result<Self> {
+        let mut bounds = options.extent.unwrap_or(footprints.union);
+        let spacing = options.resolution.unwrap_or(footprints.finest);
+        if !(spacing.is_finite() && spacing > 0.0) {
+            return Err(Error::InvalidOption {
+                option: "--resolution",
+                value: spacing.to_string(),
+                allowed: "a positive number of metres",
+            });
+        }
+        // No extent given, and the first input already in the output CRS at this spacing:
+        // the grid continues its pixels (its north-west corner moved out onto them), so
+        // that inputs on one lattice are copied, not resampled.
+        if options.extent.is_none()
+            && let Some(o) = files.first().filter(|o| o.crs == *crs)
+        {
+            let same = |a: f64| (a - spacing).abs() <= 1e-9 * spacing;
+            if same(o.pixel.0) && same(o.pixel.1) {
+                let steps = |d: f64| (d / spacing + 1e-9).floor();
+                bounds[0] = o.origin[0] + steps(bounds[0] - o.origin[0]) * spacing;
+                bounds[3] = o.origin[1] - steps(o.origin[1] - bounds[3]) * spacing;
+            }
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked below")]
+        let side = |span: f64| {
+            let n = if options.extent.is_some() { (span / spacing).round() } else { (span / spacing).ceil() };
+            n.max(1.0) as u64
+        };
+        let (w, h) = (side(bounds[2] - bounds[0]), side(bounds[3] - bounds[1]));
+        let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
+            return Err(Error::mismatch(
+                first,
+                format!("the mosaic would be {w} x {h} samples: set a coarser --resolution"),
+            ));
+        };
+        let pixel = if options.extent.is_some() {
+            ((bounds[2] - bounds[0]) / f64::from(w), (bounds[3] - bounds[1]) / f64::from(h))
+        } else {
+            (spacing, spacing)
+        };
+        Ok(Self { origin: [bounds[0], bounds[3]], pixel, size: (w, h) })
+    }
 }
 
 /// Several elevation rasters on one output grid (see the module's documentation).
@@ -179,21 +299,7 @@ impl<K: MosaicKind> Mosaic<K> {
     /// of heights, or lies where the output CRS cannot reach; [`Error::UnknownCrs`].
     pub fn open(paths: &[PathBuf], options: &MosaicOptions) -> Result<Self> {
         let first = paths.first().ok_or(Error::NoInput)?;
-        let mut files = Vec::with_capacity(paths.len());
-        let mut skipped = Vec::new();
-        // Headers read on every core (thousands of files: most of the time before the
-        // first row), then taken in order: the first bad one is the one named.
-        let opened: Vec<Result<Vec<Opened<K>>>> = paths.par_iter().map(|path| open_inputs::<K>(path)).collect();
-        for (path, opened) in paths.iter().zip(opened) {
-            match opened {
-                Ok(opened) => files.extend(opened),
-                Err(e) if options.skip_bad_inputs => {
-                    tracing::warn!("skipping {e}");
-                    skipped.push((path.clone(), e.to_string()));
-                }
-                Err(e) => return Err(e),
-            }
-        }
+        let (files, skipped) = open_all::<K>(paths, options.skip_bad_inputs)?;
         if files.is_empty() {
             return Err(Error::mismatch(first, "no input can be used (every one was skipped)"));
         }
@@ -205,78 +311,20 @@ impl<K: MosaicKind> Mosaic<K> {
                 Crs::local_transverse_mercator((w + e) / 2.0, (s + n) / 2.0)
             }
         };
-        // Footprints in the output CRS, and the finest spacing in metres.
-        let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
-        let mut finest = f64::INFINITY;
-        let mut footprints = Vec::with_capacity(files.len());
-        let found: Vec<Option<[f64; 4]>> = (files.par_iter())
-            .map(|o| footprint(&Transform::new(&o.crs, &crs), o.origin, o.pixel, (o.window[2], o.window[3])))
-            .collect();
-        for (o, fp) in files.iter().zip(found) {
-            let (w, h) = (o.window[2], o.window[3]);
-            let fp = fp.ok_or_else(|| {
-                Error::georeference(K::path(&o.file), format!("it lies outside what {} can hold", crs.name()))
-            })?;
-            bounds = [bounds[0].min(fp[0]), bounds[1].min(fp[1]), bounds[2].max(fp[2]), bounds[3].max(fp[3])];
-            let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
-            finest = finest.min(metres);
-            footprints.push(fp);
-        }
-        if let Some(extent) = options.extent {
-            bounds = extent;
-        }
-        let spacing = options.resolution.unwrap_or(finest);
-        if !(spacing.is_finite() && spacing > 0.0) {
-            return Err(Error::InvalidOption {
-                option: "--resolution",
-                value: spacing.to_string(),
-                allowed: "a positive number of metres",
-            });
-        }
-        // No extent given, and the first input already in the output CRS at this spacing:
-        // the grid continues its pixels (its north-west corner moved out onto them), so
-        // that inputs on one lattice are copied, not resampled.
-        if options.extent.is_none()
-            && let Some(o) = files.first().filter(|o| o.crs == crs)
-        {
-            let same = |a: f64| (a - spacing).abs() <= 1e-9 * spacing;
-            if same(o.pixel.0) && same(o.pixel.1) {
-                let steps = |d: f64| (d / spacing + 1e-9).floor();
-                bounds[0] = o.origin[0] + steps(bounds[0] - o.origin[0]) * spacing;
-                bounds[3] = o.origin[1] - steps(o.origin[1] - bounds[3]) * spacing;
-            }
-        }
-        // A given extent is covered exactly (pixels a little off square); otherwise the
-        // footprints' union, rounded out to whole pixels.
-        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked below")]
-        let side = |span: f64| {
-            let n = if options.extent.is_some() { (span / spacing).round() } else { (span / spacing).ceil() };
-            n.max(1.0) as u64
-        };
-        let (w, h) = (side(bounds[2] - bounds[0]), side(bounds[3] - bounds[1]));
-        let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h)) else {
-            return Err(Error::mismatch(
-                first,
-                format!("the mosaic would be {w} x {h} samples: set a coarser --resolution"),
-            ));
-        };
-        let pixel = if options.extent.is_some() {
-            ((bounds[2] - bounds[0]) / f64::from(w), (bounds[3] - bounds[1]) / f64::from(h))
-        } else {
-            (spacing, spacing)
-        };
-        let origin = [bounds[0], bounds[3]];
+        let footprints = Footprints::of(&files, &crs)?;
+        let grid = OutputGrid::over(&footprints, &files, &crs, options, first)?;
+        let (origin, pixel) = (grid.origin, grid.pixel);
         let lattices = lattices(&files);
         let inputs = (files.into_par_iter())
-            .zip(footprints)
+            .zip(footprints.each)
             .zip(lattices)
             .map(|((o, fp), lattice)| {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
                 let to_input = Transform::new(&crs, &o.crs);
-                let grid = grid_of(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
+                let placement = placement_of(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
                 Input {
-                    grid,
+                    placement,
                     lattice,
                     dropped: std::sync::atomic::AtomicBool::new(false),
                     columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
@@ -307,7 +355,7 @@ impl<K: MosaicKind> Mosaic<K> {
             crs,
             origin,
             pixel,
-            size: (w, h),
+            size: grid.size,
             georeference,
             cache_bytes: options.cache_bytes.unwrap_or(512 << 20),
         })
@@ -337,7 +385,7 @@ impl<K: MosaicKind> Mosaic<K> {
 
     /// Makes every row, in order, 32 at a time in parallel.
     fn make_rows(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
-        let reader = Reader::new(self);
+        let reader = BandReader::new(self);
         let last = rows.end.min(self.size.1);
         let mut j = rows.start.min(last);
         while j < last {
@@ -405,14 +453,14 @@ impl<K: MosaicKind> Mosaic<K> {
                 }
                 K::NONE
             };
-            match input.grid {
-                Grid::Shifted(sx, sy) => {
+            match input.placement {
+                Placement::Shifted(sx, sy) => {
                     #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
                     window.shifted_into(c0 as f64 + sx, f64::from(j) + sy, &mut out[c0..=c1], &edge);
                 }
                 // The input's own pixels: a copy of its row.
-                Grid::Aligned(ox, oy) => window.fill_row(c0 as i64 + ox, i64::from(j) + oy, &mut out[c0..=c1]),
-                Grid::Warped => {
+                Placement::Aligned(ox, oy) => window.fill_row(c0 as i64 + ox, i64::from(j) + oy, &mut out[c0..=c1]),
+                Placement::Warped => {
                     // The input pixel coordinates of every sample of the row in this
                     // input's footprint: exact on a lattice every LATTICE samples and
                     // rows, bilinear between (see LATTICE for how far off that is).
@@ -445,30 +493,30 @@ impl<K: MosaicKind> Mosaic<K> {
     }
 }
 
-/// How an input's pixels lie on the output grid: [`Grid::Aligned`] when they are the
+/// How an input's pixels lie on the output grid: [`Placement::Aligned`] when they are the
 /// output's (the same CRS and spacing, to 1e-9; its origin a whole number of pixels away,
-/// to 1e-6 of a pixel), [`Grid::Shifted`] when only the offset has a fraction. Output grid
+/// to 1e-6 of a pixel), [`Placement::Shifted`] when only the offset has a fraction. Output grid
 /// and input as (origin, pixel size); `window` the file's pixels read (a VRT source's).
 #[expect(clippy::cast_possible_truncation, reason = "checked to be near a whole number of pixels")]
-fn grid_of(
+fn placement_of(
     to_input: &Transform,
     (origin, pixel): ([f64; 2], (f64, f64)),
     (input_origin, input_pixel): ([f64; 2], (f64, f64)),
     window: [u32; 4],
-) -> Grid {
+) -> Placement {
     let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
     if !to_input.is_identity() || !same(pixel.0, input_pixel.0) || !same(pixel.1, input_pixel.1) {
-        return Grid::Warped;
+        return Placement::Warped;
     }
     let dx = (origin[0] - input_origin[0]) / pixel.0;
     let dy = (input_origin[1] - origin[1]) / pixel.1;
     if !(dx.is_finite() && dy.is_finite() && dx.abs() < 1e12 && dy.abs() < 1e12) {
-        return Grid::Warped;
+        return Placement::Warped;
     }
     let whole = |v: f64| ((v - v.round()).abs() <= 1e-6).then(|| v.round() as i64);
     match (whole(dx), whole(dy)) {
-        (Some(x), Some(y)) => Grid::Aligned(x + i64::from(window[0]), y + i64::from(window[1])),
-        _ => Grid::Shifted(dx + f64::from(window[0]), dy + f64::from(window[1])),
+        (Some(x), Some(y)) => Placement::Aligned(x + i64::from(window[0]), y + i64::from(window[1])),
+        _ => Placement::Shifted(dx + f64::from(window[0]), dy + f64::from(window[1])),
     }
 }
 

@@ -4,8 +4,8 @@
 use super::*;
 
 /// Decoded chunks of the inputs (heights, NaN for nodata), least recently used dropped
-/// past a byte budget; open files, least recently used closed past the bound [`Reader::band`] sets.
-pub(super) struct Reader<'m, K: MosaicKind> {
+/// past a byte budget; open files, least recently used closed past the bound [`BandReader::band`] sets.
+pub(super) struct BandReader<'m, K: MosaicKind> {
     pub(super) mosaic: &'m Mosaic<K>,
     pub(super) state: Mutex<ReaderState<'m, K::Value>>,
     /// The band of output rows being made: what "recently used" counts in.
@@ -51,7 +51,7 @@ pub(super) type ChunkId = (usize, usize);
 /// rows the band's rows of inputs not on the output grid interpolate between.
 pub(super) struct Band<K: MosaicKind> {
     pub(super) inputs: Vec<usize>,
-    pub(super) windows: Vec<Option<Window<K>>>,
+    pub(super) windows: Vec<Option<FileWindow<K>>>,
     pub(super) lattice: HashMap<(usize, u32), LatticeRow>,
     /// For each input that is resampled, the others of the band of its CRS and pixel size
     /// that meet or touch it (places in `inputs`, in order): where its bilinear corners
@@ -100,7 +100,8 @@ pub(super) fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<
         .enumerate()
         .map(|(place, (&k, e))| {
             // Copied inputs read no corners.
-            let Some((id, [x0, y0, x1, y1])) = e.filter(|_| !matches!(m.inputs[k].grid, Grid::Aligned(..))) else {
+            let Some((id, [x0, y0, x1, y1])) = e.filter(|_| !matches!(m.inputs[k].placement, Placement::Aligned(..)))
+            else {
                 return Vec::new();
             };
             let Some((members, widest)) = by_lattice.get(&id) else { return Vec::new() };
@@ -122,7 +123,7 @@ pub(super) fn neighbours<K: MosaicKind>(m: &Mosaic<K>, inputs: &[usize]) -> Vec<
         .collect()
 }
 
-impl<'m, K: MosaicKind> Reader<'m, K> {
+impl<'m, K: MosaicKind> BandReader<'m, K> {
     pub(super) fn new(mosaic: &'m Mosaic<K>) -> Self {
         let state = ReaderState {
             files: HashMap::new(),
@@ -155,7 +156,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         self.state.lock().unwrap_or_else(PoisonError::into_inner).open_files = open_files;
         let lattice_rows = rows.start / LATTICE_ROWS..=(rows.end - 1) / LATTICE_ROWS + 1;
         let wanted: Vec<(usize, u32, (usize, usize))> = (inputs.iter())
-            .filter(|&&index| m.inputs[index].grid == Grid::Warped)
+            .filter(|&&index| m.inputs[index].placement == Placement::Warped)
             .map(|&index| (index, m.columns_of(&m.inputs[index])))
             .filter(|(_, (c0, c1))| c0 <= c1)
             .flat_map(|(index, columns)| lattice_rows.clone().map(move |l| (index, l, columns)))
@@ -177,10 +178,10 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
                 #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
                 let corners = |(x, y): (f64, f64)| vec![(c0 as f64 + x, j0 as f64 + y), (c1 as f64 + x, j1 as f64 + y)];
                 #[expect(clippy::cast_precision_loss, reason = "pixel offsets are far below 2^52")]
-                let points = match input.grid {
-                    Grid::Aligned(ox, oy) => corners((ox as f64, oy as f64)),
-                    Grid::Shifted(sx, sy) => corners((sx, sy)),
-                    Grid::Warped => {
+                let points = match input.placement {
+                    Placement::Aligned(ox, oy) => corners((ox as f64, oy as f64)),
+                    Placement::Shifted(sx, sy) => corners((sx, sy)),
+                    Placement::Warped => {
                         let rows = lattice_rows.clone().filter_map(|l| lattice.get(&(index, l)));
                         rows.flat_map(|row| row.iter().copied()).collect()
                     }
@@ -194,7 +195,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
 
     /// The decoded chunks under `points` (input pixel coordinates) of input `index`;
     /// `None` when no point falls inside the raster.
-    pub(super) fn window(&self, index: usize, points: &[(f64, f64)]) -> Result<Option<Window<K>>> {
+    pub(super) fn window(&self, index: usize, points: &[(f64, f64)]) -> Result<Option<FileWindow<K>>> {
         // The file's pixels this input reads: its window (the whole file, or a VRT's).
         let [wx, wy, ww, wh] = self.mosaic.inputs[index].window;
         let bounds = (i64::from(wx), i64::from(wy), i64::from(wx) + i64::from(ww), i64::from(wy) + i64::from(wh));
@@ -218,7 +219,7 @@ impl<'m, K: MosaicKind> Reader<'m, K> {
         let ids: Vec<usize> =
             (cy0..=cy1).flat_map(|cy| (cx0..=cx1).map(move |cx| if strip { cy } else { cy * across + cx })).collect();
         let held = ids.into_par_iter().map(|id| self.chunk(index, &chunks, id)).collect::<Result<Vec<_>>>()?;
-        Ok(Some(Window { bounds, chunk: (cw, ch), first: (cx0, cy0), across: cx1 - cx0 + 1, held }))
+        Ok(Some(FileWindow { bounds, chunk: (cw, ch), first: (cx0, cy0), across: cx1 - cx0 + 1, held }))
     }
 
     /// The input pixel coordinates (NaN where the transform fails) of input `index` at

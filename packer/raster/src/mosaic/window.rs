@@ -22,7 +22,7 @@ impl<V> Chunk<V> {
 }
 
 /// The chunks under a row's sample points, held for lock-free sampling.
-pub(super) struct Window<K: MosaicKind> {
+pub(super) struct FileWindow<K: MosaicKind> {
     /// The pixels that may be read: first column and row, end column and row (exclusive).
     pub(super) bounds: (i64, i64, i64, i64),
     /// A chunk's nominal width and height (a strip: the raster's width).
@@ -33,7 +33,7 @@ pub(super) struct Window<K: MosaicKind> {
     pub(super) held: Vec<Arc<Chunk<K::Value>>>,
 }
 
-impl<K: MosaicKind> Window<K> {
+impl<K: MosaicKind> FileWindow<K> {
     /// The value of pixel `(x, y)`; no data outside the window, for nodata, or outside
     /// the chunks held.
     pub(super) fn get(&self, x: i64, y: i64) -> K::Value {
