@@ -28,7 +28,7 @@ impl Streamer {
 
     pub(super) fn issue(&mut self, now: Instant) {
         let Some(backend) = self.backend().cloned() else { return };
-        let mut free = self.flow.limit(&self.options).saturating_sub(self.requests.len());
+        let mut free = self.in_flight.limit(&self.options).saturating_sub(self.requests.len());
         if free == 0 {
             return;
         }
@@ -36,7 +36,7 @@ impl Streamer {
         let mut candidates: Vec<(usize, TileKey, Option<Located>)> = Vec::new();
         let limit = free * 64;
         // What the view wants, then what it will want soon, unless the link is queueing.
-        let soon = if self.flow.queueing { &[][..] } else { &self.prefetch[..] };
+        let soon = if self.in_flight.queueing { &[][..] } else { &self.prefetch[..] };
         let keys: Vec<TileKey> = self.wanted.iter().map(|w| w.key).chain(soon.iter().copied()).collect();
         for (rank, &key) in keys.iter().enumerate() {
             if self.cache.contains(key) {

@@ -65,9 +65,9 @@ impl Streamer {
     /// Request `id` came back after `took`: no longer in flight; its round trip tells the
     /// flow control.
     pub(super) fn finished(&mut self, id: u64, took: Duration) {
-        let full = self.requests.len() >= self.flow.limit(&self.options);
+        let full = self.requests.len() >= self.in_flight.limit(&self.options);
         if self.requests.remove(&id).is_some() {
-            self.flow.sample(took, full, self.options.max_in_flight);
+            self.in_flight.sample(took, full, self.options.max_in_flight);
         }
     }
 

@@ -25,13 +25,13 @@ use crate::stream::origin::{Backend, BoxFuture, Origin};
 use crate::stream::select::{SelectOptions, Want, select};
 
 mod fetch;
-mod flow;
+mod in_flight;
 mod lifecycle;
 mod options;
 mod predict;
 mod state;
 
-use flow::*;
+use in_flight::*;
 pub use options::*;
 use state::*;
 
@@ -52,7 +52,7 @@ pub struct Streamer {
     states: HashMap<TileKey, TileState>,
     requests: HashMap<u64, InFlight>,
     leaf_failures: HashMap<(usize, u64), (u32, Instant)>,
-    flow: Flow,
+    in_flight: InFlightLimit,
     next_request: u64,
     pub(super) cache: TileCache,
     delivered: HashSet<TileKey>,
@@ -109,7 +109,7 @@ impl Streamer {
             .enable_all()
             .build()
             .map_err(Error::Threads)?;
-        let flow = Flow::new(options.max_in_flight);
+        let in_flight = InFlightLimit::new(options.max_in_flight);
         Ok(Self {
             origin,
             cache: TileCache::new(options.cache_bytes),
@@ -122,7 +122,7 @@ impl Streamer {
             states: HashMap::new(),
             requests: HashMap::new(),
             leaf_failures: HashMap::new(),
-            flow,
+            in_flight,
             next_request: 0,
             delivered: HashSet::new(),
             wanted: Vec::new(),
@@ -167,7 +167,7 @@ impl Streamer {
     pub fn stats(&self) -> StreamStats {
         StreamStats {
             in_flight: self.requests.len() as u64,
-            in_flight_limit: self.flow.limit(&self.options) as u64,
+            in_flight_limit: self.in_flight.limit(&self.options) as u64,
             prefetch: self.prefetch.len() as u64,
             cache_bytes: self.cache.bytes() as u64,
             cache_tiles: self.cache.len() as u64,

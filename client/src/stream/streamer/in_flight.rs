@@ -9,7 +9,7 @@ use super::*;
 /// fills the bandwidth-delay product with requests; over a slow one it keeps few enough in
 /// flight that the most urgent tiles are not stuck behind less urgent ones.
 #[derive(Clone, Debug)]
-pub(super) struct Flow {
+pub(super) struct InFlightLimit {
     pub(super) limit: f64,
     /// The fastest round trip seen, slowly forgotten (a route may change).
     pub(super) base: Option<Duration>,
@@ -18,7 +18,7 @@ pub(super) struct Flow {
     pub(super) queueing: bool,
 }
 
-impl Flow {
+impl InFlightLimit {
     const START: f64 = 8.0;
     const LOWEST: f64 = 2.0;
 
@@ -58,18 +58,18 @@ impl Flow {
 mod tests {
     use std::time::Duration;
 
-    use super::Flow;
+    use super::InFlightLimit;
 
     const MS: Duration = Duration::from_millis(1);
 
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a small positive limit")]
-    fn limit(flow: &Flow) -> usize {
+    fn limit(flow: &InFlightLimit) -> usize {
         flow.limit as usize
     }
 
     #[test]
     fn the_in_flight_limit_grows_on_a_free_link_and_backs_off_when_requests_queue() {
-        let mut flow = Flow::new(32);
+        let mut flow = InFlightLimit::new(32);
         assert_eq!(limit(&flow), 8);
         // Round trips at the base while the limit is all used: one more each.
         for _ in 0..10 {
@@ -92,6 +92,6 @@ mod tests {
         }
         assert_eq!(limit(&flow), 2);
         // The cap below the start.
-        assert_eq!(limit(&Flow::new(4)), 4);
+        assert_eq!(limit(&InFlightLimit::new(4)), 4);
     }
 }
