@@ -208,5 +208,11 @@ impl Error {
     }
 }
 
+impl From<terrastream_crs::UnknownCrs> for Error {
+    fn from(e: terrastream_crs::UnknownCrs) -> Self {
+        Self::UnknownCrs { crs: e.crs, reason: e.reason }
+    }
+}
+
 /// Result alias of this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;

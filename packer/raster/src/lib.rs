@@ -7,7 +7,6 @@
 //! [`ImageFile`] open a file of any supported format (told apart by content), one format
 //! per module below; [`Raster`], [`Image`] and [`ImageWindow`] are sources in memory.
 
-pub mod crs;
 mod elevation;
 mod error;
 mod geotiff;
@@ -29,8 +28,8 @@ use std::path::Path;
 
 use terrastream_format::Georeference;
 
-pub use crate::crs::{Crs, Transform};
 pub use crate::error::{ChunkError, Error, Interrupted, JpegError, Result};
+pub use terrastream_crs::{self as crs, Crs, Transform, UnknownCrs};
 
 pub use elevation::{ElevationFile, open_elevation, read_geotiff};
 pub use geotiff::crs_placement;

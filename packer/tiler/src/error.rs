@@ -128,6 +128,12 @@ impl From<terrastream_raster::Error> for Error {
     }
 }
 
+impl From<terrastream_raster::UnknownCrs> for Error {
+    fn from(error: terrastream_raster::UnknownCrs) -> Self {
+        Self::Raster(error.into())
+    }
+}
+
 /// A tiler step that consumes a raster read's rows stops the read with its own error.
 impl From<Error> for terrastream_raster::Error {
     fn from(error: Error) -> Self {

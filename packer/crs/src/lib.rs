@@ -1,7 +1,7 @@
 //! Coordinate reference systems: EPSG codes to definitions, and transforms between them.
 //!
 //! Pure Rust ([`proj4rs`] with the EPSG table of `crs-definitions`), so it builds for every
-//! target the tiler does and needs no system library; PROJ's command-line tools are the
+//! target the tiler and the server do and needs no system library; PROJ's command-line tools are the
 //! tests' oracle. Where the EPSG table's definition leaves out the datum shift to WGS 84 of
 //! a national grid, the shift PROJ itself applies without transformation grids is added
 //! ([`DATUM_SHIFTS`]).
@@ -10,7 +10,18 @@ use std::fmt;
 
 use proj4rs::Proj;
 
-use crate::error::{Error, Result};
+/// A coordinate reference system that cannot be used.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown CRS {crs}: {reason}")]
+pub struct UnknownCrs {
+    /// The CRS as given.
+    pub crs: String,
+    /// Why it cannot be used.
+    pub reason: String,
+}
+
+/// Result alias of this crate.
+pub type Result<T, E = UnknownCrs> = std::result::Result<T, E>;
 
 /// Datum shifts (`+towgs84`, metres and arc-seconds) for definitions of the EPSG table
 /// that omit them: the Helmert transformations PROJ uses for these grids when no grid
@@ -48,24 +59,24 @@ impl Crs {
     /// The CRS of an EPSG code.
     ///
     /// # Errors
-    /// [`Error::UnknownCrs`] for a code the table does not hold or a projection the
+    /// [`UnknownCrs`] for a code the table does not hold or a projection the
     /// library does not implement.
     pub fn epsg(code: u16) -> Result<Self> {
         let def = crs_definitions::from_code(code)
-            .ok_or_else(|| Error::UnknownCrs { crs: format!("EPSG:{code}"), reason: "not in the EPSG table".into() })?;
+            .ok_or_else(|| UnknownCrs { crs: format!("EPSG:{code}"), reason: "not in the EPSG table".into() })?;
         let mut definition = def.proj4.replace(" +type=crs", "");
         if let Some((_, shift)) = DATUM_SHIFTS.iter().find(|(c, _)| *c == code) {
             definition = format!("{definition} {shift}");
         }
         let proj = Proj::from_proj_string(&definition)
-            .map_err(|e| Error::UnknownCrs { crs: format!("EPSG:{code}"), reason: e.to_string() })?;
+            .map_err(|e| UnknownCrs { crs: format!("EPSG:{code}"), reason: e.to_string() })?;
         Ok(Self { code: Some(code), definition, proj })
     }
 
     /// A CRS as a user or a file names it: `EPSG:32610` (or a bare code) or a PROJ string.
     ///
     /// # Errors
-    /// [`Error::UnknownCrs`] naming the text.
+    /// [`UnknownCrs`] naming the text.
     pub fn parse(text: &str) -> Result<Self> {
         let t = text.trim();
         let code = t.strip_prefix("EPSG:").or_else(|| t.strip_prefix("epsg:")).unwrap_or(t);
@@ -73,11 +84,11 @@ impl Crs {
             return Self::epsg(code);
         }
         if t.starts_with('+') {
-            let proj = Proj::from_proj_string(t)
-                .map_err(|e| Error::UnknownCrs { crs: t.to_owned(), reason: e.to_string() })?;
+            let proj =
+                Proj::from_proj_string(t).map_err(|e| UnknownCrs { crs: t.to_owned(), reason: e.to_string() })?;
             return Ok(Self { code: None, definition: t.to_owned(), proj });
         }
-        Err(Error::UnknownCrs { crs: t.to_owned(), reason: "neither EPSG:<code> nor a PROJ string".into() })
+        Err(UnknownCrs { crs: t.to_owned(), reason: "neither EPSG:<code> nor a PROJ string".into() })
     }
 
     /// WGS 84 longitude and latitude (EPSG:4326).
@@ -156,7 +167,7 @@ impl Transform {
 /// code, by the name of a CRS of the families the tiler knows (WGS 84, NAD83 and ETRS89
 /// UTM zones, Web Mercator, WGS 84 and NAD83 geographic, the Swiss and British grids).
 /// `None` when it names none of these.
-pub(crate) fn crs_of_srs(srs: &str) -> Option<String> {
+pub fn crs_of_srs(srs: &str) -> Option<String> {
     let t = srs.trim();
     if t.starts_with('+') || t.to_ascii_uppercase().starts_with("EPSG:") {
         return Some(t.to_owned());

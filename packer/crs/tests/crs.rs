@@ -6,7 +6,7 @@
 use std::io::Write;
 use std::process::{Command, Stdio};
 
-use terrastream_raster::{Crs, Transform};
+use terrastream_crs::{Crs, Transform};
 
 /// EPSG code, and the area of use to sample (west, south, east, north, degrees).
 const CASES: &[(u16, [f64; 4])] = &[
