@@ -17,7 +17,7 @@
 //! builds each level from the level below *as stored*, the result is, byte for byte, the
 //! archive one run makes.
 
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
@@ -28,7 +28,8 @@ use terrastream_format::{
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions, compress_heights};
 
-use crate::edit::rederive::{LayerGrid, MergedTiles, Remade, rederive};
+use crate::edit::merged::{MergeLayer, MergedHeights, MergedTexture};
+use crate::edit::rederive::{LayerGrid, Remade, rederive};
 use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
 use crate::error::{Error, Result};
 use crate::options::TextureFormat;
@@ -52,7 +53,7 @@ pub struct MergeSummary {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Found {
     /// The input (its index in the merge's inputs).
-    input: usize,
+    pub(crate) input: usize,
     /// The blob's absolute offset in the input's file.
     offset: u64,
     /// The payload's length.
@@ -66,7 +67,7 @@ impl Found {
 }
 
 /// Tiles several inputs hold with different bytes: every version, in input order.
-type Conflicts = HashMap<u64, Vec<Found>>;
+pub(crate) type Conflicts = HashMap<u64, Vec<Found>>;
 
 /// How tiles that several inputs hold are merged.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -440,7 +441,7 @@ pub(crate) fn write(
 }
 
 /// The stored bytes of a tile if any input has it, its layer's compression undone.
-fn payload(
+pub(crate) fn payload(
     metadata: &Metadata,
     readers: &[Reader<MmapSource>],
     winners: &BTreeMap<u64, Found>,
@@ -452,7 +453,7 @@ fn payload(
 }
 
 /// A tile's bytes where `found` says they are, its input's compression undone.
-fn unpacked(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
+pub(crate) fn unpacked(readers: &[Reader<MmapSource>], key: TileKey, found: Found) -> Result<Vec<u8>> {
     let stored = readers[found.input].read(&found.location(key))?;
     let layer = &readers[found.input].metadata().layers[usize::from(key.layer())];
     Ok(payload_bytes(layer, &stored, &format!("tile {key}"))?.into_owned())
@@ -486,7 +487,7 @@ fn transcodable(a: &Layer, b: &Layer) -> bool {
 }
 
 /// A height-range tile's lowest and highest height.
-fn range_of(bytes: &[u8]) -> Option<(f32, f32)> {
+pub(crate) fn range_of(bytes: &[u8]) -> Option<(f32, f32)> {
     let [a, b, c, d, e, f, g, h] = bytes[..] else { return None };
     Some((f32::from_le_bytes([a, b, c, d]), f32::from_le_bytes([e, f, g, h])))
 }
@@ -572,153 +573,6 @@ fn rederive_layers(
 /// The index of `metadata`'s first layer of `kind`.
 fn find_layer(metadata: &Metadata, kind: LayerKind) -> Option<u8> {
     metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok())
-}
-
-/// One layer of a merge: where its tiles come from and their stored bytes.
-struct MergeLayer<'a> {
-    metadata: &'a Metadata,
-    readers: &'a [Reader<MmapSource>],
-    winners: &'a BTreeMap<u64, Found>,
-    all_conflicts: &'a Conflicts,
-    prefer: Prefer,
-    index: u8,
-    /// This layer's tiles two or more inputs hold.
-    conflicts: HashSet<TileKey>,
-    /// This layer's tiles not from the first input.
-    later: HashSet<TileKey>,
-}
-
-impl MergeLayer<'_> {
-    fn source(&self, lod: u8, x: u32, y: u32) -> Option<usize> {
-        let key = TileKey::new(self.index, lod, x, y).ok()?;
-        self.winners.get(&Writer::order_key(self.metadata, key).ok()?).map(|f| f.input)
-    }
-
-    /// The winning input's bytes of tile (lod, x, y) of this layer, compression undone.
-    fn payload(&self, key: TileKey) -> Result<Option<Vec<u8>>> {
-        payload(self.metadata, self.readers, self.winners, key)
-    }
-
-    /// With `--prefer pixels`, version `i` of an LOD-0 tile several inputs hold, newest
-    /// first, as stored (compression undone).
-    fn version(&self, key: TileKey, i: usize) -> Option<Result<Option<Vec<u8>>>> {
-        if self.prefer != Prefer::Pixels {
-            return None;
-        }
-        let versions = match Writer::order_key(self.metadata, key) {
-            Ok(order) => self.all_conflicts.get(&order).map_or(&[][..], Vec::as_slice),
-            Err(e) => return Some(Err(e.into())),
-        };
-        Some(versions.iter().rev().nth(i).map(|&found| unpacked(self.readers, key, found)).transpose())
-    }
-}
-
-/// An elevation layer of a merge: heights decoded and encoded as the layer stores them.
-struct MergedHeights<'a> {
-    merged: MergeLayer<'a>,
-    encoder: HeightEncoder,
-}
-
-impl MergedTiles<f32> for MergedHeights<'_> {
-    fn source(&self, lod: u8, x: u32, y: u32) -> Option<usize> {
-        self.merged.source(lod, x, y)
-    }
-    fn conflicts(&self) -> &HashSet<TileKey> {
-        &self.merged.conflicts
-    }
-    fn later(&self) -> &HashSet<TileKey> {
-        &self.merged.later
-    }
-    fn decode(&self, lod: u8, x: u32, y: u32) -> Result<Option<Vec<f32>>> {
-        let key = TileKey::new(self.merged.index, lod, x, y)?;
-        Ok(self.merged.payload(key)?.map(|raw| decode_heights(&raw, &self.encoder.encoding)))
-    }
-    fn encode(&self, key: TileKey, samples: &[f32]) -> Result<Vec<(TileKey, Vec<u8>)>> {
-        self.encoder.encode(key, samples)
-    }
-    fn quantize(&self, row: &mut [f32]) {
-        quantize_heights(row, &self.encoder.encoding);
-    }
-    fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Vec<f32>>>> {
-        let key = match TileKey::new(self.merged.index, 0, x, y) {
-            Ok(key) => key,
-            Err(e) => return Some(Err(e.into())),
-        };
-        let raw = self.merged.version(key, i)?;
-        Some(raw.map(|raw| raw.map(|raw| decode_heights(&raw, &self.encoder.encoding))))
-    }
-}
-
-impl MergedHeights<'_> {
-    /// The height ranges of the remade tiles' children that were not remade (they widen
-    /// the remade tiles' ranges); the range tiles of emptied tiles go into `emptied`.
-    fn ranges_below(
-        &self,
-        remade: &Remade,
-        range: Option<u8>,
-        emptied: &mut Vec<u64>,
-    ) -> Result<Vec<(TileKey, f32, f32)>> {
-        let Some(r) = range else { return Ok(Vec::new()) };
-        let m = &self.merged;
-        let layer = &m.metadata.layers[usize::from(m.index)];
-        let made: HashSet<TileKey> =
-            remade.entries.iter().map(|(k, _)| *k).chain(remade.emptied.iter().copied()).collect();
-        let mut below = Vec::new();
-        for key in made.iter().filter(|k| k.lod() > 0) {
-            for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                let (lod, x, y) = (key.lod() - 1, 2 * key.x() + cx, 2 * key.y() + cy);
-                if x >= layer.num_x_tiles.div_ceil(1 << lod) || y >= layer.num_y_tiles.div_ceil(1 << lod) {
-                    continue;
-                }
-                let child = TileKey::new(m.index, lod, x, y)?;
-                if made.contains(&child) {
-                    continue;
-                }
-                let bytes = m.payload(TileKey::new(r, child.lod(), child.x(), child.y())?)?;
-                if let Some((lo, hi)) = bytes.as_deref().and_then(range_of) {
-                    below.push((child, lo, hi));
-                }
-            }
-        }
-        for key in &remade.emptied {
-            emptied.push(Writer::order_key(m.metadata, TileKey::new(r, key.lod(), key.x(), key.y())?)?);
-        }
-        Ok(below)
-    }
-}
-
-/// A texture layer of a merge (PNG or WebP tiles: lossless, decoded and encoded again).
-struct MergedTexture<'a> {
-    merged: MergeLayer<'a>,
-    format: TextureFormat,
-    edge: usize,
-}
-
-impl MergedTiles<[u8; 4]> for MergedTexture<'_> {
-    fn source(&self, lod: u8, x: u32, y: u32) -> Option<usize> {
-        self.merged.source(lod, x, y)
-    }
-    fn conflicts(&self) -> &HashSet<TileKey> {
-        &self.merged.conflicts
-    }
-    fn later(&self) -> &HashSet<TileKey> {
-        &self.merged.later
-    }
-    fn decode(&self, lod: u8, x: u32, y: u32) -> Result<Option<Vec<[u8; 4]>>> {
-        let key = TileKey::new(self.merged.index, lod, x, y)?;
-        self.merged.payload(key)?.map(|bytes| decode_texture(key, &bytes, self.edge, self.format)).transpose()
-    }
-    fn encode(&self, key: TileKey, pixels: &[[u8; 4]]) -> Result<Vec<(TileKey, Vec<u8>)>> {
-        Ok(vec![(key, encode_texture(key, pixels, self.edge, self.format, ZSTD_LEVEL)?)])
-    }
-    fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Vec<[u8; 4]>>>> {
-        let key = match TileKey::new(self.merged.index, 0, x, y) {
-            Ok(key) => key,
-            Err(e) => return Some(Err(e.into())),
-        };
-        let raw = self.merged.version(key, i)?;
-        Some(raw.and_then(|raw| raw.map(|bytes| decode_texture(key, &bytes, self.edge, self.format)).transpose()))
-    }
 }
 
 /// Makes every layer's levels above its split LOD from the LOD-K tiles (see the module).

@@ -6,5 +6,6 @@
 
 pub mod manifest;
 pub mod merge;
+pub mod merged;
 pub mod rederive;
 pub mod update;
