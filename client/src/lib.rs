@@ -22,6 +22,7 @@ pub use source::http::{HttpSource, HttpStats, RetryPolicy};
 pub use stream::cache::TileCache;
 pub use stream::camera::{Aabb, Camera, Frustum};
 pub use stream::decode::{DecodedTile, TileData, decode};
+pub use stream::heights::{Interpolation, height_on_lod};
 pub use stream::origin::{DynSource, EndpointSource, HostTiles, ManifestSource, Origin};
 pub use stream::select::{SelectOptions, Want, select};
 pub use stream::streamer::{

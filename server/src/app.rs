@@ -60,6 +60,8 @@ pub struct AppInner {
     pub config: Arc<ServerConfig>,
     /// `Cache-Control` value, validated once.
     pub cache_control: HeaderValue,
+    /// The web routes' tile-making threads and made tiles.
+    pub web: Arc<crate::web::WebState>,
 }
 
 impl AppState {
@@ -70,6 +72,7 @@ impl AppState {
             metrics: Arc::new(Metrics::default()),
             cache_control: HeaderValue::from_str(&config.cache_control)
                 .unwrap_or_else(|_| HeaderValue::from_static("no-cache")),
+            web: Arc::new(crate::web::WebState::new(config.web_threads, config.web_queue, config.web_cache_bytes)),
             config: Arc::new(config),
         }))
     }
@@ -138,6 +141,10 @@ pub fn service(state: AppState) -> Edge<Router> {
             Route::Metadata => get(metadata),
             Route::Tile => get(tile),
             Route::View => get(view).layer(timeout),
+            Route::TileJson => get(crate::web::elevation_tilejson),
+            Route::LayerTileJson => get(crate::web::layer_tilejson),
+            Route::WebTile => get(crate::web::web_tile),
+            Route::Elevation => get(crate::web::elevation_get).post(crate::web::elevation_post),
             Route::Other => return router,
         };
         router.route(route.template(), handler)

@@ -46,6 +46,16 @@ pub struct ServerConfig {
     /// leaves cover 4 million tiles in at most about 100 MiB per archive, grown as tiles
     /// are asked for.
     pub leaf_cache: usize,
+    /// Threads making web tiles and answering the elevation API (0: one per core), at a
+    /// lower priority than the threads answering requests.
+    pub web_threads: usize,
+    /// Web tiles and elevation requests waiting for those threads; more are answered 503
+    /// with `Retry-After`.
+    pub web_queue: usize,
+    /// Bytes of made web tiles kept (least recently used dropped first).
+    pub web_cache_bytes: usize,
+    /// Locations one elevation request may ask for (Open Topo Data's default: 100).
+    pub max_locations: usize,
 }
 
 impl Default for ServerConfig {
@@ -65,6 +75,10 @@ impl Default for ServerConfig {
             tls_key: None,
             lean_http1: true,
             leaf_cache: 1024,
+            web_threads: 0,
+            web_queue: 64,
+            web_cache_bytes: 256 << 20,
+            max_locations: 100,
         }
     }
 }

@@ -28,7 +28,7 @@ use crate::app::AppState;
 use crate::route::{READ_HEADERS, Route};
 
 /// Methods a browser may use (preflight answer).
-const ALLOW_METHODS: HeaderValue = HeaderValue::from_static("GET, HEAD, OPTIONS");
+const ALLOW_METHODS: HeaderValue = HeaderValue::from_static("GET, HEAD, POST, OPTIONS");
 /// Response headers a page may read.
 const EXPOSE_HEADERS: HeaderValue = HeaderValue::from_static(
     "etag, content-range, content-length, content-encoding, accept-ranges, last-modified, \
@@ -99,7 +99,12 @@ where
             let h = response.headers_mut();
             h.insert(ACCESS_CONTROL_ALLOW_METHODS, ALLOW_METHODS);
             // The request headers a browser may send: those the handlers read.
-            let allowed = READ_HEADERS.iter().map(axum::http::HeaderName::as_str).collect::<Vec<_>>().join(", ");
+            let allowed = READ_HEADERS
+                .iter()
+                .map(axum::http::HeaderName::as_str)
+                .chain(["content-type"])
+                .collect::<Vec<_>>()
+                .join(", ");
             if let Ok(allowed) = HeaderValue::from_str(&allowed) {
                 h.insert(ACCESS_CONTROL_ALLOW_HEADERS, allowed);
             }

@@ -1,7 +1,9 @@
 //! HTTP hosting of terrastream archives (tokio + axum): the raw archive with RFC 9110
 //! Range and conditional requests (any HTTP client, browser or CDN can stream from it),
-//! a tile endpoint, metadata, listing, health and Prometheus metrics. Archives are
-//! memory-mapped and hot-reloaded; bodies are slices of the mapping.
+//! a tile endpoint, metadata, listing, health and Prometheus metrics; and the ecosystem's
+//! protocols ([`web`]): TileJSON, Web Mercator XYZ tiles made from any archive, an
+//! elevation API shaped like Open Topo Data's. Archives are memory-mapped and
+//! hot-reloaded; bodies are slices of the mapping.
 #![forbid(unsafe_code)]
 
 mod app;
@@ -17,6 +19,7 @@ mod route;
 mod sendfile;
 mod serve;
 pub mod shaper;
+pub mod web;
 
 pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app, service};
 pub use catalog::{Catalog, Served, archive_name};

@@ -29,14 +29,34 @@ pub enum Route {
     Tile,
     /// `/view/{name}`: the webplayer on an archive.
     View,
+    /// `/{name}/tiles.json`: the elevation's TileJSON.
+    TileJson,
+    /// `/{name}/{layer}/tiles.json`: a layer's TileJSON.
+    LayerTileJson,
+    /// `/{name}/xyz/{layer}/{z}/{x}/{y}.{ext}`: a Web Mercator tile.
+    WebTile,
+    /// `/v1/{name}`: the elevation API.
+    Elevation,
     /// Anything else (answered 404; counted under "other").
     Other,
 }
 
 impl Route {
     /// Every route, in the order the metrics list them.
-    pub const ALL: [Self; 8] =
-        [Self::Index, Self::Health, Self::Metrics, Self::Archive, Self::Metadata, Self::Tile, Self::View, Self::Other];
+    pub const ALL: [Self; 12] = [
+        Self::Index,
+        Self::Health,
+        Self::Metrics,
+        Self::Archive,
+        Self::Metadata,
+        Self::Tile,
+        Self::View,
+        Self::TileJson,
+        Self::LayerTileJson,
+        Self::WebTile,
+        Self::Elevation,
+        Self::Other,
+    ];
 
     /// The router's path template (axum's syntax), which also labels the route in the
     /// metrics; "other" for [`Route::Other`].
@@ -49,6 +69,10 @@ impl Route {
             Self::Metadata => "/{name}/metadata",
             Self::Tile => "/{name}/{layer}/{lod}/{x}/{y}",
             Self::View => "/view/{name}",
+            Self::TileJson => "/{name}/tiles.json",
+            Self::LayerTileJson => "/{name}/{layer}/tiles.json",
+            Self::WebTile => "/{name}/xyz/{layer}/{z}/{x}/{y}",
+            Self::Elevation => "/v1/{name}",
             Self::Other => "other",
         }
     }
@@ -68,15 +92,21 @@ impl Route {
     pub fn of(path: &str) -> Self {
         let mut segments = path.strip_prefix('/').unwrap_or(path).split('/');
         let first = segments.next().unwrap_or("");
-        let rest: [Option<&str>; 5] = std::array::from_fn(|_| segments.next());
+        let rest: [Option<&str>; 6] = std::array::from_fn(|_| segments.next());
         match (first, rest) {
             ("", [None, ..]) => Self::Index,
             ("healthz", [None, ..]) => Self::Health,
             ("metrics", [None, ..]) => Self::Metrics,
             (f, [None, ..]) if !f.is_empty() => Self::Archive,
             ("view", [Some(n), None, ..]) if !n.is_empty() => Self::View,
+            ("v1", [Some(n), None, ..]) if !n.is_empty() => Self::Elevation,
             (f, [Some("metadata"), None, ..]) if !f.is_empty() => Self::Metadata,
-            (f, [Some(a), Some(b), Some(c), Some(d), None]) if ![f, a, b, c, d].contains(&"") => Self::Tile,
+            (f, [Some("tiles.json"), None, ..]) if !f.is_empty() => Self::TileJson,
+            (f, [Some(l), Some("tiles.json"), None, ..]) if !f.is_empty() && !l.is_empty() => Self::LayerTileJson,
+            (f, [Some("xyz"), Some(l), Some(z), Some(x), Some(y), None]) if ![f, l, z, x, y].contains(&"") => {
+                Self::WebTile
+            }
+            (f, [Some(a), Some(b), Some(c), Some(d), None, ..]) if ![f, a, b, c, d].contains(&"") => Self::Tile,
             _ => Self::Other,
         }
     }
@@ -100,6 +130,12 @@ mod tests {
             ("/a/b", "other"),
             ("/a/b/c", "other"),
             ("/a/texture/0/1/2/3", "other"),
+            ("/a/tiles.json", "/{name}/tiles.json"),
+            ("/a/elevation/tiles.json", "/{name}/{layer}/tiles.json"),
+            ("/a/xyz/elevation/12/655/1582.webp", "/{name}/xyz/{layer}/{z}/{x}/{y}"),
+            ("/a/xyz/elevation/12/655/1582.webp/x", "other"),
+            ("/v1/a", "/v1/{name}"),
+            ("/v1/", "other"),
             ("/a//0/1/2", "other"),
             ("/view/", "other"),
         ];

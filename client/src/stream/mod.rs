@@ -5,7 +5,7 @@
 pub mod cache;
 pub mod camera;
 pub mod decode;
-mod heights;
+pub mod heights;
 pub mod origin;
 pub mod select;
 pub mod streamer;

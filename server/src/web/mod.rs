@@ -1,0 +1,356 @@
+//! The ecosystem's protocols, so that the clients people already use read any archive:
+//! TileJSON and Web Mercator XYZ tiles (MapLibre GL JS, deck.gl, OpenLayers) made from
+//! the archive's own tiles in whatever CRS it is, and an elevation API shaped like Open
+//! Topo Data's.
+//!
+//! Routes (CORS as for the others):
+//! - `GET /{name}/tiles.json`: the elevation as a `raster-dem` source;
+//!   `GET /{name}/{layer}/tiles.json`: any layer (imagery as a `raster` source). Query:
+//!   `encoding=terrarium|mapbox`, `format=webp|png`, `size=512|256`.
+//! - `GET /{name}/xyz/{layer}/{z}/{x}/{y}.{webp|png}`: a tile (same query). Lossless
+//!   WebP and 512 pixels by default: WebP is about two thirds of the PNG's bytes for
+//!   terrain, and 512 is MapLibre's own `raster-dem` default, a quarter of the requests
+//!   of 256 for the same screen. 404 outside the data.
+//! - `GET|POST /v1/{name}`: heights at points (see [`elevation`]).
+
+pub mod cache;
+pub mod elevation;
+pub mod encode;
+pub mod mercator;
+pub mod pool;
+pub mod resample;
+pub mod tilejson;
+
+use axum::body::Body;
+use axum::extract::{Path, Query, State};
+use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE, ETAG, HOST, RETRY_AFTER};
+use axum::http::{HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
+use terrastream_format::LayerKind;
+
+use crate::app::{ARCHIVE_ETAG, AppState};
+use crate::range::{Precondition, preconditions};
+use cache::Lru;
+use encode::{HeightEncoding, ImageFormat};
+use mercator::WebTile;
+use pool::Pool;
+use resample::{Placed, Samples};
+
+/// What the web routes keep: the tile-making threads and the tiles made.
+#[derive(Debug)]
+pub struct WebState {
+    /// The threads that make tiles.
+    pub pool: Pool,
+    /// Tiles made, by what they are.
+    pub made: Lru<MadeKey>,
+}
+
+impl WebState {
+    /// `threads` tile-making threads (0: the cores) behind `queue` waiting jobs, and up to
+    /// `cache_bytes` of made tiles kept.
+    pub fn new(threads: usize, queue: usize, cache_bytes: usize) -> Self {
+        Self { pool: Pool::new(threads, queue), made: Lru::new(cache_bytes) }
+    }
+}
+
+/// A made tile's identity: the archive's version (its strong ETag: a replaced archive
+/// never serves its predecessor's tiles), the layer and tile, and how it is encoded.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct MadeKey {
+    archive: String,
+    layer: u8,
+    tile: WebTile,
+    encoding: Option<HeightEncoding>,
+    format: ImageFormat,
+    size: u32,
+}
+
+impl MadeKey {
+    /// The strong ETag of the made tile.
+    fn etag(&self) -> String {
+        let encoding = self.encoding.map_or("rgba", HeightEncoding::name);
+        format!(
+            "\"{}-w{}-{}-{}-{}-{encoding}-{}.{}\"",
+            self.archive.trim_matches('"'),
+            self.layer,
+            self.tile.z,
+            self.tile.x,
+            self.tile.y,
+            self.size,
+            self.format.extension()
+        )
+    }
+}
+
+/// The query of the web tile and TileJSON routes.
+#[derive(Clone, Debug, Default, serde::Deserialize)]
+pub struct TileQuery {
+    /// `terrarium` (default) or `mapbox`, for heights.
+    pub encoding: Option<String>,
+    /// `webp` (default) or `png`, for TileJSON (a tile's extension says its own).
+    pub format: Option<String>,
+    /// 512 (default) or 256.
+    pub size: Option<u32>,
+}
+
+/// A web route's error: status and a one-line reason.
+#[derive(Debug)]
+pub struct WebError(StatusCode, String);
+
+impl IntoResponse for WebError {
+    fn into_response(self) -> Response {
+        let mut response = (self.0, format!("{}\n", self.1)).into_response();
+        if self.0 == StatusCode::SERVICE_UNAVAILABLE {
+            response.headers_mut().insert(RETRY_AFTER, HeaderValue::from_static("1"));
+        }
+        response
+    }
+}
+
+fn bad(why: impl Into<String>) -> WebError {
+    WebError(StatusCode::BAD_REQUEST, why.into())
+}
+
+fn not_found(why: impl Into<String>) -> WebError {
+    WebError(StatusCode::NOT_FOUND, why.into())
+}
+
+/// The options of a query, checked.
+fn options(query: &TileQuery, kind: LayerKind) -> Result<(Option<HeightEncoding>, ImageFormat, u32), WebError> {
+    let encoding = match (kind, query.encoding.as_deref()) {
+        (LayerKind::Elevation, None) => Some(HeightEncoding::Terrarium),
+        (LayerKind::Elevation, Some(e)) => {
+            Some(HeightEncoding::parse(e).ok_or_else(|| bad(format!("encoding {e:?}: use terrarium or mapbox")))?)
+        }
+        (_, None) => None,
+        (_, Some(e)) => return Err(bad(format!("encoding {e:?}: only elevation layers are encoded"))),
+    };
+    let format = match query.format.as_deref() {
+        None => ImageFormat::Webp,
+        Some(f) => ImageFormat::parse(f).ok_or_else(|| bad(format!("format {f:?}: use webp or png")))?,
+    };
+    let size = match query.size {
+        None => 512,
+        Some(s @ (256 | 512)) => s,
+        Some(s) => return Err(bad(format!("size {s}: use 256 or 512"))),
+    };
+    Ok((encoding, format, size))
+}
+
+/// `GET /{name}/tiles.json`: the elevation's TileJSON.
+pub async fn elevation_tilejson(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+    Query(query): Query<TileQuery>,
+    headers: HeaderMap,
+) -> Result<Response, WebError> {
+    layer_tilejson_of(&state, &name, None, &query, &headers)
+}
+
+/// `GET /{name}/{layer}/tiles.json`: a layer's TileJSON.
+pub async fn layer_tilejson(
+    State(state): State<AppState>,
+    Path((name, layer)): Path<(String, String)>,
+    Query(query): Query<TileQuery>,
+    headers: HeaderMap,
+) -> Result<Response, WebError> {
+    layer_tilejson_of(&state, &name, Some(&layer), &query, &headers)
+}
+
+fn layer_tilejson_of(
+    state: &AppState,
+    name: &str,
+    layer: Option<&str>,
+    query: &TileQuery,
+    headers: &HeaderMap,
+) -> Result<Response, WebError> {
+    let served = state.catalog.get(name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
+    let metadata = served.reader.metadata();
+    let index = match layer {
+        Some(l) => {
+            metadata.resolve_layer(l).ok_or_else(|| not_found(format!("archive {name:?} has no layer {l:?}")))?
+        }
+        None => metadata
+            .layers
+            .iter()
+            .position(|l| l.kind == LayerKind::Elevation)
+            .and_then(|i| u8::try_from(i).ok())
+            .ok_or_else(|| not_found(format!("archive {name:?} has no elevation layer")))?,
+    };
+    let info = &metadata.layers[usize::from(index)];
+    if Placed::new(&served.reader, index).is_none() {
+        return Err(not_found(format!(
+            "layer {:?} of {name:?} has no web tiles: it does not say where it lies, or its tiles are not heights or images",
+            info.name
+        )));
+    }
+    let (encoding, format, size) = options(query, info.kind)?;
+    let coverage = tilejson::coverage(metadata, info, size)
+        .ok_or_else(|| not_found(format!("archive {name:?} does not say where it lies")))?;
+    let host = headers.get(HOST).and_then(|h| h.to_str().ok()).unwrap_or("localhost");
+    let scheme = if state.config.tls_cert.is_some() { "https" } else { "http" };
+    let mut params = vec![];
+    if let Some(e) = encoding.filter(|&e| e != HeightEncoding::Terrarium) {
+        params.push(format!("encoding={}", e.name()));
+    }
+    if size != 512 {
+        params.push(format!("size={size}"));
+    }
+    let query_text = if params.is_empty() { String::new() } else { format!("?{}", params.join("&")) };
+    let tiles =
+        format!("{scheme}://{host}/{name}/xyz/{}/{{z}}/{{x}}/{{y}}.{}{query_text}", info.name, format.extension());
+    let request = tilejson::TileJsonRequest { name, layer: &info.name, tiles, encoding, format, size };
+    let doc = tilejson::tilejson(metadata, info, &request, coverage);
+    let mut response = axum::Json(doc).into_response();
+    let h = response.headers_mut();
+    h.insert(CACHE_CONTROL, state.cache_control.clone());
+    h.insert(ARCHIVE_ETAG, served.etag_header.clone());
+    Ok(response)
+}
+
+/// `GET /{name}/xyz/{layer}/{z}/{x}/{y}.{ext}`: a Web Mercator tile.
+pub async fn web_tile(
+    State(state): State<AppState>,
+    Path((name, layer, z, x, file)): Path<(String, String, u8, u32, String)>,
+    Query(query): Query<TileQuery>,
+    headers: HeaderMap,
+) -> Result<Response, WebError> {
+    let served = state.catalog.get(&name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
+    let metadata = served.reader.metadata();
+    let index =
+        metadata.resolve_layer(&layer).ok_or_else(|| not_found(format!("archive {name:?} has no layer {layer:?}")))?;
+    let info = &metadata.layers[usize::from(index)];
+    let (y, extension) =
+        file.split_once('.').ok_or_else(|| bad(format!("{file:?}: name a tile as {{y}}.webp or {{y}}.png")))?;
+    let y: u32 = y.parse().map_err(|_| bad(format!("{file:?}: the row is not a number")))?;
+    let format = ImageFormat::parse(extension).ok_or_else(|| bad(format!("{file:?}: use .webp or .png")))?;
+    let (encoding, _, size) = options(&TileQuery { format: None, ..query }, info.kind)?;
+    let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
+    let key = MadeKey { archive: served.etag.clone(), layer: index, tile, encoding, format, size };
+    let etag = key.etag();
+    let mut h = HeaderMap::with_capacity(8);
+    h.insert(ETAG, HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")));
+    h.insert(ARCHIVE_ETAG, served.etag_header.clone());
+    h.insert(CACHE_CONTROL, state.cache_control.clone());
+    if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
+        return Ok((StatusCode::NOT_MODIFIED, h).into_response());
+    }
+    let bytes =
+        match state.web.made.get(&key) {
+            Some(bytes) => bytes,
+            None => {
+                let job_key = key.clone();
+                let made =
+                    state.web.pool.run(move || make(&served, &job_key)).await.map_err(|_| {
+                        WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into())
+                    })??;
+                state.web.made.put(key, made.clone());
+                made
+            }
+        };
+    if bytes.is_empty() {
+        return Ok((StatusCode::NOT_FOUND, h, "no data in this tile\n").into_response());
+    }
+    h.insert(CONTENT_TYPE, HeaderValue::from_static(format.media_type()));
+    Ok((StatusCode::OK, h, Body::from(bytes)).into_response())
+}
+
+/// Makes a tile: its file's bytes, empty when it holds no data (answered 404, and kept,
+/// so that the empty tiles around a region cost one check each).
+fn make(served: &crate::catalog::Served, key: &MadeKey) -> Result<Bytes, WebError> {
+    let placed = Placed::new(&served.reader, key.layer)
+        .ok_or_else(|| not_found("this layer has no web tiles: it does not say where it lies"))?;
+    let size = key.size as usize;
+    let positions = placed.positions(key.tile, size);
+    // World units per output pixel, at the tile's centre.
+    let centre = size / 2 * size + size / 2;
+    let per_pixel = match (positions.get(centre).copied().flatten(), positions.get(centre + 1).copied().flatten()) {
+        (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1),
+        _ => f64::INFINITY,
+    };
+    let lod = placed.lod_for(per_pixel);
+    let internal = |e: resample::MakeError| WebError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string());
+    let Some(samples) = placed.sample(&positions, lod).map_err(internal)? else { return Ok(Bytes::new()) };
+    let rgba = match (placed.samples(), key.encoding) {
+        (Samples::Heights, Some(encoding)) => encoding.pixels(&samples),
+        (Samples::Heights, None) => return Err(bad("heights need an encoding")),
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
+        (Samples::Rgba, _) => samples.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect(),
+    };
+    let file = key.format.encode(&rgba, key.size).map_err(|e| WebError(StatusCode::INTERNAL_SERVER_ERROR, e))?;
+    Ok(Bytes::from(file))
+}
+
+/// The JSON error of the elevation API.
+fn api_error(status: StatusCode, error: &str) -> Response {
+    let code = if status == StatusCode::NOT_FOUND {
+        "NOT_FOUND"
+    } else if status.is_client_error() {
+        "INVALID_REQUEST"
+    } else {
+        "SERVER_ERROR"
+    };
+    (status, axum::Json(serde_json::json!({ "error": error, "status": code }))).into_response()
+}
+
+/// `GET /v1/{name}?locations=...`.
+pub async fn elevation_get(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+    query: Result<Query<elevation::Query>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    match query {
+        Ok(Query(query)) => elevation_answer(&state, &name, &query).await,
+        Err(e) => api_error(StatusCode::BAD_REQUEST, &format!("Invalid query: {}", e.body_text())),
+    }
+}
+
+/// `POST /v1/{name}` with `{"locations": ..., "interpolation": ..., "samples": ...}`.
+pub async fn elevation_post(State(state): State<AppState>, Path(name): Path<String>, body: Bytes) -> Response {
+    match serde_json::from_slice::<elevation::Query>(&body) {
+        Ok(query) => elevation_answer(&state, &name, &query).await,
+        Err(e) => api_error(StatusCode::BAD_REQUEST, &format!("Invalid JSON body: {e}")),
+    }
+}
+
+async fn elevation_answer(state: &AppState, name: &str, query: &elevation::Query) -> Response {
+    let Some(served) = state.catalog.get(name) else {
+        return api_error(StatusCode::NOT_FOUND, &format!("No archive named '{name}'."));
+    };
+    let points = match query.points(state.config.max_locations) {
+        Ok(p) => p,
+        Err(elevation::Invalid(why)) => return api_error(StatusCode::BAD_REQUEST, &why),
+    };
+    let job_points = points.clone();
+    let dataset = name.to_owned();
+    let heights = state
+        .web
+        .pool
+        .run(move || {
+            let heights = elevation::Heights::new(&served.reader).ok_or("the archive has no placed elevation")?;
+            heights.at(&job_points.points, job_points.interpolation).map_err(|e| {
+                tracing::error!("elevation of {dataset:?}: {e}");
+                "an archive tile could not be read"
+            })
+        })
+        .await;
+    let heights = match heights {
+        Ok(Ok(h)) => h,
+        Ok(Err(why)) => return api_error(StatusCode::BAD_REQUEST, &format!("Archive '{name}': {why}.")),
+        Err(_) => {
+            let mut r = api_error(StatusCode::SERVICE_UNAVAILABLE, "Busy: try again.");
+            r.headers_mut().insert(RETRY_AFTER, HeaderValue::from_static("1"));
+            return r;
+        }
+    };
+    let results: Vec<serde_json::Value> = points
+        .points
+        .iter()
+        .zip(heights)
+        .map(|(&(lat, lng), h)| {
+            serde_json::json!({ "dataset": name, "elevation": h, "location": { "lat": lat, "lng": lng } })
+        })
+        .collect();
+    axum::Json(serde_json::json!({ "results": results, "status": "OK" })).into_response()
+}

@@ -1,0 +1,405 @@
+//! Web Mercator tiles made from an archive in any CRS: each output pixel's centre goes
+//! through the archive's CRS (an approximate transform: exact on a lattice every
+//! [`LATTICE`] pixels, interpolated between, each cell checked at its centre and made
+//! exact where the interpolation is off by more than 1/8 of a pixel, as GDAL's warper
+//! does) into the archive's world coordinates, and is sampled there from the LOD whose
+//! samples are no larger than the output pixel: bilinear and nodata-aware for heights and
+//! imagery alike.
+//!
+//! The samples a tile needs are first gathered into one window of that LOD (decoding each
+//! archive tile once; a missing tile filled from the nearest coarser LOD that has one), so
+//! the per-pixel work is a lookup in one array, not in a map of tiles.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use terrastream_client::{DecodedTile, TileData, decode};
+use terrastream_crs::{Crs, Transform};
+use terrastream_format::{Layer, MmapSource, Reader, TileKey};
+
+use super::mercator::WebTile;
+
+/// Output pixels between exact transforms.
+pub const LATTICE: usize = 16;
+
+/// Largest interpolation error of the approximate transform, in output pixels.
+pub const MAX_ERROR: f64 = 0.125;
+
+/// What a layer's samples are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Samples {
+    /// One height a sample (NaN: no data).
+    Heights,
+    /// RGBA (alpha 0: no data).
+    Rgba,
+}
+
+/// Why a tile could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum MakeError {
+    /// An archive tile that cannot be read or decoded (the archive is damaged).
+    #[error("tile {key}: {reason}")]
+    Tile {
+        /// The archive tile.
+        key: TileKey,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// An archive layer on the Earth: what web tiles are made from.
+pub struct Placed<'a> {
+    reader: &'a Reader<MmapSource>,
+    index: u8,
+    layer: &'a Layer,
+    samples: Samples,
+    /// Degrees (WGS 84) to the archive's CRS.
+    to_archive: Transform,
+    /// The archive's CRS coordinates to world units: origin and CRS units per world unit.
+    origin: [f64; 2],
+    scale: [f64; 2],
+}
+
+impl<'a> Placed<'a> {
+    /// Layer `index` of the archive, when the archive says where it lies (a CRS
+    /// definition, origin and scale) and the layer's samples are heights or RGBA.
+    pub fn new(reader: &'a Reader<MmapSource>, index: u8) -> Option<Self> {
+        let metadata = reader.metadata();
+        let layer = metadata.layers.get(usize::from(index))?;
+        let samples = match layer.kind {
+            terrastream_format::LayerKind::Elevation => Samples::Heights,
+            terrastream_format::LayerKind::Texture => match layer.format {
+                terrastream_format::TileFormat::Png
+                | terrastream_format::TileFormat::Jpeg
+                | terrastream_format::TileFormat::Webp => Samples::Rgba,
+                _ => return None,
+            },
+            _ => return None,
+        };
+        let g = metadata.georeference.as_ref()?;
+        let crs = Crs::parse(g.definition.as_deref().or(g.crs.as_deref())?).ok()?;
+        let to_archive = Transform::new(&Crs::wgs84(), &crs);
+        Some(Self { reader, index, layer, samples, to_archive, origin: g.origin?, scale: g.scale? })
+    }
+
+    /// What the layer's samples are.
+    pub fn samples(&self) -> Samples {
+        self.samples
+    }
+
+    /// World coordinates of a point in degrees.
+    fn world(&self, lon: f64, lat: f64) -> Option<(f64, f64)> {
+        let (cx, cy) = self.to_archive.apply(lon, lat)?;
+        let (x, z) = ((cx - self.origin[0]) / self.scale[0], (self.origin[1] - cy) / self.scale[1]);
+        (x.is_finite() && z.is_finite()).then_some((x, z))
+    }
+
+    /// The world position of every pixel centre of `tile` (`size` a side), row by row;
+    /// None where the point has no place in the archive's CRS.
+    pub fn positions(&self, tile: WebTile, size: usize) -> Vec<Option<(f64, f64)>> {
+        let f = |u: f64, v: f64| {
+            let (lon, lat) = tile.lon_lat(u, v, size as f64);
+            self.world(lon, lat)
+        };
+        let cells = size.div_ceil(LATTICE);
+        let nodes: Vec<Option<(f64, f64)>> = (0..=cells)
+            .flat_map(|j| (0..=cells).map(move |i| ((i * LATTICE) as f64, (j * LATTICE) as f64)))
+            .map(|(u, v)| f(u, v))
+            .collect();
+        let node = |i: usize, j: usize| nodes[j * (cells + 1) + i];
+        let mut out = vec![None; size * size];
+        for cj in 0..cells {
+            for ci in 0..cells {
+                let corners = [node(ci, cj), node(ci + 1, cj), node(ci, cj + 1), node(ci + 1, cj + 1)];
+                let (u0, v0) = (ci * LATTICE, cj * LATTICE);
+                let (u1, v1) = ((u0 + LATTICE).min(size), (v0 + LATTICE).min(size));
+                let lerp = |fu: f64, fv: f64| -> Option<(f64, f64)> {
+                    let [a, b, c, d] = corners;
+                    let (a, b, c, d) = (a?, b?, c?, d?);
+                    let top = (a.0 + (b.0 - a.0) * fu, a.1 + (b.1 - a.1) * fu);
+                    let bottom = (c.0 + (d.0 - c.0) * fu, c.1 + (d.1 - c.1) * fu);
+                    Some((top.0 + (bottom.0 - top.0) * fv, top.1 + (bottom.1 - top.1) * fv))
+                };
+                // Checked at the cell's centre against the exact transform, in output
+                // pixels (world units per pixel from the cell's own width).
+                let exact =
+                    match (corners[0], corners[1], lerp(0.5, 0.5), f((u0 + u1) as f64 / 2.0, (v0 + v1) as f64 / 2.0)) {
+                        (Some(a), Some(b), Some(approx), Some(truth)) => {
+                            let per_pixel = ((b.0 - a.0).hypot(b.1 - a.1) / LATTICE as f64).max(1e-12);
+                            (approx.0 - truth.0).hypot(approx.1 - truth.1) / per_pixel > MAX_ERROR
+                        }
+                        _ => true,
+                    };
+                for v in v0..v1 {
+                    for u in u0..u1 {
+                        let (pu, pv) = (u as f64 + 0.5, v as f64 + 0.5);
+                        out[v * size + u] = if exact {
+                            f(pu, pv)
+                        } else {
+                            lerp((pu - u0 as f64) / LATTICE as f64, (pv - v0 as f64) / LATTICE as f64)
+                        };
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// The LOD to sample for output pixels of `world_per_pixel` world units: the coarsest
+    /// whose samples are no larger than that (so no detail the pixel shows is lost),
+    /// within the LODs that hold tiles.
+    pub fn lod_for(&self, world_per_pixel: f64) -> u8 {
+        let spacing = self.layer.tile_world_size / f64::from(self.layer.tile_resolution);
+        let (finest, coarsest) = self
+            .layer
+            .extent
+            .as_ref()
+            .map_or((0, self.layer.num_lods.saturating_sub(1)), |e| (e.finest_lod, e.coarsest_lod));
+        let levels = (world_per_pixel / spacing).log2().floor();
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the LODs")]
+        let lod = if levels.is_finite() { levels.max(0.0).min(f64::from(coarsest)) as u8 } else { coarsest };
+        lod.max(finest).min(coarsest)
+    }
+
+    /// The samples of `positions` (world points, None: none) from `lod`: `channels`
+    /// values a point (1 for heights, 4 for RGBA), bilinear; NaN heights and transparent
+    /// pixels where there is no data. None when no point has data (the tile is empty).
+    ///
+    /// # Errors
+    /// [`MakeError::Tile`] for an archive tile that cannot be read or decoded.
+    pub fn sample(&self, positions: &[Option<(f64, f64)>], lod: u8) -> Result<Option<Vec<f32>>, MakeError> {
+        let channels = if self.samples == Samples::Heights { 1 } else { 4 };
+        let Some(window) = Window::gather(self, positions, lod)? else { return Ok(None) };
+        let mut out = Vec::with_capacity(positions.len() * channels);
+        let mut any = false;
+        for p in positions {
+            let value = p.and_then(|(x, z)| window.bilinear(x, z));
+            match value {
+                Some(v) => {
+                    any = true;
+                    out.extend_from_slice(&v[..channels]);
+                }
+                None if channels == 1 => out.push(f32::NAN),
+                None => out.extend_from_slice(&[0.0; 4]),
+            }
+        }
+        Ok(any.then_some(out))
+    }
+}
+
+/// Samples of one LOD over a rectangle, gathered from its tiles (a missing tile's from
+/// the nearest coarser LOD that has one): `channels` f32 values a sample, NaN where there
+/// is no data (alpha 0 for imagery).
+struct Window {
+    /// World units between samples.
+    spacing: f64,
+    /// The first sample's column and row in the LOD's grid.
+    first: (i64, i64),
+    /// Samples across and down.
+    size: (usize, usize),
+    channels: usize,
+    values: Vec<f32>,
+    /// Samples of the LOD's grid (its tiles' interiors, across and down).
+    grid: (i64, i64),
+}
+
+impl Window {
+    fn gather(placed: &Placed<'_>, positions: &[Option<(f64, f64)>], lod: u8) -> Result<Option<Self>, MakeError> {
+        let layer = placed.layer;
+        let res = i64::from(layer.tile_resolution);
+        let spacing = layer.world_size_at(lod) / res as f64;
+        let (tiles_x, tiles_y) = layer.grid_at(lod);
+        let grid = (i64::from(tiles_x) * res, i64::from(tiles_y) * res);
+        let [wx0, wz0, wx1, wz1] = layer.data_world();
+        // The samples under the points (and their bilinear neighbours), inside the data.
+        let mut bounds = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
+        for &(x, z) in positions.iter().flatten() {
+            if x < wx0 || x > wx1 || z < wz0 || z > wz1 {
+                continue;
+            }
+            #[expect(clippy::cast_possible_truncation, reason = "inside the layer's grid")]
+            let (i, j) = ((x / spacing - 0.5).floor() as i64, (z / spacing - 0.5).floor() as i64);
+            bounds = (bounds.0.min(i), bounds.1.min(j), bounds.2.max(i + 1), bounds.3.max(j + 1));
+        }
+        if bounds.0 > bounds.2 {
+            return Ok(None);
+        }
+        let (i0, j0) = (bounds.0.max(0), bounds.1.max(0));
+        let (i1, j1) = (bounds.2.min(grid.0 - 1), bounds.3.min(grid.1 - 1));
+        if i0 > i1 || j0 > j1 {
+            return Ok(None);
+        }
+        let channels = if placed.samples == Samples::Heights { 1 } else { 4 };
+        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "i1 >= i0, j1 >= j0")]
+        let size = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);
+        let mut window =
+            Self { spacing, first: (i0, j0), size, channels, values: vec![f32::NAN; size.0 * size.1 * channels], grid };
+        let mut tiles = Tiles { placed, decoded: HashMap::new() };
+        #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "non-negative tile indices")]
+        for ty in (j0 / res) as u32..=(j1 / res) as u32 {
+            for tx in (i0 / res) as u32..=(i1 / res) as u32 {
+                window.fill_tile(&mut tiles, lod, (tx, ty))?;
+            }
+        }
+        Ok(Some(window))
+    }
+
+    /// Copies tile (tx, ty) of `lod` into the window; where the LOD lacks it, resamples
+    /// the nearest coarser tile that covers it.
+    #[expect(
+        clippy::cast_possible_truncation,
+        clippy::cast_sign_loss,
+        clippy::cast_possible_wrap,
+        clippy::cast_precision_loss,
+        reason = "sample indices inside one window, far below 2^52"
+    )]
+    fn fill_tile(&mut self, tiles: &mut Tiles<'_, '_>, lod: u8, (tx, ty): (u32, u32)) -> Result<(), MakeError> {
+        let layer = tiles.placed.layer;
+        let res = i64::from(layer.tile_resolution);
+        let (gx0, gy0) = (i64::from(tx) * res, i64::from(ty) * res);
+        let (x0, y0) = (gx0.max(self.first.0), gy0.max(self.first.1));
+        let x1 = (gx0 + res).min(self.first.0 + self.size.0 as i64);
+        let y1 = (gy0 + res).min(self.first.1 + self.size.1 as i64);
+        // This LOD's tile, or the nearest coarser one over it.
+        let mut source = None;
+        for up in lod..layer.num_lods {
+            let shift = up - lod;
+            let Ok(key) = TileKey::new(tiles.placed.index, up, tx >> shift, ty >> shift) else { break };
+            if let Some(tile) = tiles.get(key)? {
+                source = Some((shift, tile));
+                break;
+            }
+        }
+        let Some((shift, tile)) = source else { return Ok(()) };
+        let border = i64::from(tile.border);
+        let scale = f64::from(1u32 << shift);
+        let (ox, oy) = (i64::from(tile.key.x()) * res, i64::from(tile.key.y()) * res);
+        for gy in y0..y1 {
+            for gx in x0..x1 {
+                let at = ((gy - self.first.1) as usize * self.size.0 + (gx - self.first.0) as usize) * self.channels;
+                let v = if shift == 0 {
+                    texel(&tile, gx - gx0 + border, gy - gy0 + border)
+                } else {
+                    // The coarser tile's bilinear value at this sample's centre.
+                    let (cx, cy) =
+                        ((gx as f64 + 0.5) / scale - 0.5 - ox as f64, (gy as f64 + 0.5) / scale - 0.5 - oy as f64);
+                    coarse(&tile, cx, cy, res)
+                };
+                if let Some(v) = v {
+                    self.values[at..at + self.channels].copy_from_slice(&v[..self.channels]);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The bilinear value at world `(x, z)` (sample `i` at `(i + 0.5)` spacings): no-data
+    /// corners drop out and the others are re-weighted; None with no corner.
+    #[expect(
+        clippy::cast_possible_truncation,
+        clippy::cast_sign_loss,
+        clippy::cast_possible_wrap,
+        reason = "sample indices inside one window"
+    )]
+    fn bilinear(&self, x: f64, z: f64) -> Option<[f32; 4]> {
+        let (gx, gz) = (x / self.spacing - 0.5, z / self.spacing - 0.5);
+        let (fi, fj) = (gx.floor(), gz.floor());
+        let (fx, fz) = (gx - fi, gz - fj);
+        let (i, j) = (fi as i64, fj as i64);
+        if i < -1 || j < -1 || i >= self.grid.0 || j >= self.grid.1 {
+            return None;
+        }
+        let mut sum = [0f64; 4];
+        let mut weight = 0.0;
+        for (di, dj, w) in
+            [(0, 0, (1.0 - fx) * (1.0 - fz)), (1, 0, fx * (1.0 - fz)), (0, 1, (1.0 - fx) * fz), (1, 1, fx * fz)]
+        {
+            // Clamped to the grid: the edge sample holds out to the grid's edge.
+            let (si, sj) = ((i + di).clamp(0, self.grid.0 - 1), (j + dj).clamp(0, self.grid.1 - 1));
+            let (wi, wj) = (si - self.first.0, sj - self.first.1);
+            if wi < 0 || wj < 0 || wi >= self.size.0 as i64 || wj >= self.size.1 as i64 || w <= 0.0 {
+                continue;
+            }
+            let at = (wj as usize * self.size.0 + wi as usize) * self.channels;
+            let v = &self.values[at..at + self.channels];
+            let has = if self.channels == 1 { v[0].is_finite() } else { v[3] > 0.0 };
+            if !has {
+                continue;
+            }
+            for (s, &c) in sum.iter_mut().zip(v) {
+                *s += f64::from(c) * w;
+            }
+            weight += w;
+        }
+        if weight < 1e-9 {
+            return None;
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "samples are f32")]
+        let out = sum.map(|s| (s / weight) as f32);
+        Some(out)
+    }
+}
+
+/// Texel `(i, j)` of a decoded tile (borders included) as up to four values; None
+/// without data.
+fn texel(tile: &DecodedTile, i: i64, j: i64) -> Option<[f32; 4]> {
+    let (Ok(i), Ok(j)) = (u32::try_from(i), u32::try_from(j)) else { return None };
+    if i >= tile.size || j >= tile.size {
+        return None;
+    }
+    let at = j as usize * tile.size as usize + i as usize;
+    match &tile.data {
+        TileData::Heights { heights, .. } => heights.get(at).filter(|h| h.is_finite()).map(|&h| [h, 0.0, 0.0, 0.0]),
+        TileData::Rgba8(p) => {
+            let px = p.get(at * 4..at * 4 + 4)?;
+            (px[3] > 0).then(|| [f32::from(px[0]), f32::from(px[1]), f32::from(px[2]), f32::from(px[3])])
+        }
+        TileData::Compressed { .. } => None,
+    }
+}
+
+/// A coarser tile's bilinear value at `(cx, cy)` in its interior's samples.
+fn coarse(tile: &DecodedTile, cx: f64, cy: f64, res: i64) -> Option<[f32; 4]> {
+    let border = i64::from(tile.border);
+    let (fi, fj) = (cx.floor(), cy.floor());
+    let (fx, fy) = (cx - fi, cy - fj);
+    #[expect(clippy::cast_possible_truncation, reason = "inside one tile")]
+    let (i, j) = (fi as i64, fj as i64);
+    let mut sum = [0f64; 4];
+    let mut weight = 0.0;
+    for (di, dj, w) in
+        [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+    {
+        let (si, sj) = ((i + di).clamp(-border, res - 1 + border), (j + dj).clamp(-border, res - 1 + border));
+        let Some(v) = texel(tile, si + border, sj + border) else { continue };
+        for (s, c) in sum.iter_mut().zip(v) {
+            *s += f64::from(c) * w;
+        }
+        weight += w;
+    }
+    #[expect(clippy::cast_possible_truncation, reason = "samples are f32")]
+    (weight > 1e-9).then(|| sum.map(|s| (s / weight) as f32))
+}
+
+/// The archive tiles a web tile reads, decoded once each.
+struct Tiles<'p, 'a> {
+    placed: &'p Placed<'a>,
+    decoded: HashMap<TileKey, Option<Arc<DecodedTile>>>,
+}
+
+impl Tiles<'_, '_> {
+    fn get(&mut self, key: TileKey) -> Result<Option<Arc<DecodedTile>>, MakeError> {
+        if let Some(t) = self.decoded.get(&key) {
+            return Ok(t.clone());
+        }
+        let bad = |reason: String| MakeError::Tile { key, reason };
+        let tile = match self.placed.reader.tile(key).map_err(|e| bad(e.to_string()))? {
+            Some(bytes) => {
+                Some(Arc::new(decode(self.placed.layer, key, &bytes, true).map_err(|e| bad(e.to_string()))?))
+            }
+            None => None,
+        };
+        self.decoded.insert(key, tile.clone());
+        Ok(tile)
+    }
+}
