@@ -10,15 +10,21 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 # System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS),
 # Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests, Chromium +
 # chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's, and
-# GDAL + PROJ command-line tools as independent oracles for georeferencing and reprojection,
-# and python3-venv for the Kubernetes schema validator.
+# GDAL + PROJ command-line tools and Pillow as independent oracles for georeferencing,
+# reprojection and web tiles, python3-venv for the Kubernetes schema validator, and npm for
+# the browser clients' packages.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin python3-venv}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin python3-pil python3-venv}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
   as_root apt-get update -qq
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_apt[@]}"
+fi
+# npm: the machine's own Node.js where it has one (it may come from elsewhere than Debian).
+if ! command -v npm >/dev/null; then
+  as_root apt-get update -qq
+  as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm
 fi
 
 # The Kubernetes API schema validator (PyPI), in a virtual environment of its own.
@@ -28,6 +34,14 @@ if ! [ -x "$tools/bin/kubernetes-validate" ]; then
   "$tools/bin/pip" install -q kubernetes-validate==1.37.0
 fi
 export PATH="$tools/bin:$PATH"
+
+# The browser clients the tests run unchanged (pinned), installed once into a cache folder.
+npm_cache=${TERRASTREAM_NPM:-$HOME/.cache/terrastream-npm}
+if ! grep -qs '"version": "5.24.1"' "$npm_cache/node_modules/maplibre-gl/package.json"; then
+  mkdir -p "$npm_cache"
+  npm install --prefix "$npm_cache" --no-audit --no-fund --silent maplibre-gl@5.24.1
+fi
+export TERRASTREAM_NPM="$npm_cache"
 
 # One clean build: incremental caches would only add gigabytes of disk for nothing.
 export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"

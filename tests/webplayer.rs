@@ -15,16 +15,14 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use base64::Engine as _;
 use serde_json::{Value, json};
+use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS, WEBGPU_FLAGS};
 
 const WIDTH: u32 = 640;
 const HEIGHT: u32 = 400;
-const CHROMIUM: &str = "/usr/bin/chromium";
-const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
 /// Elevation tiles in the archive `tile --tile-size 64` makes of the 320² crop (on its
 /// transverse Mercator: 5 x 7 at LOD 0, 12, 4, 1).
 const TILES: u64 = 52;
@@ -36,134 +34,29 @@ const TILES: u64 = 52;
 const TOLERANCE: terrastream_testkit::golden::Tolerance =
     terrastream_testkit::golden::Tolerance { mean: 1.5, pixel: 24, off_share: 0.015 };
 
-/// Flags that give headless Chromium WebGPU on SwiftShader's Vulkan (and compose its
-/// canvas into screenshots). WebGL2 is not available with them.
-const WEBGPU_FLAGS: &[&str] = &[
-    "--enable-unsafe-webgpu",
-    "--enable-features=Vulkan",
-    "--use-angle=vulkan",
-    "--use-vulkan=swiftshader",
-    "--enable-unsafe-swiftshader",
-];
-/// WebGL2 on SwiftShader (ANGLE's default in headless mode).
-const WEBGL_FLAGS: &[&str] = &["--enable-unsafe-swiftshader"];
-
 fn ready() -> bool {
-    let mut missing = Vec::new();
-    if !Path::new(CHROMIUM).exists() {
-        missing.push("chromium (apt-get install chromium)");
-    }
-    if !Path::new(CHROMEDRIVER).exists() {
-        missing.push("chromedriver (apt-get install chromium-driver)");
-    }
+    let mut missing = terrastream_testkit::browser::missing();
     if !terrastream_server::player::available() {
         missing.push("the webplayer in this build (run scripts/build-player.sh, then rebuild)");
     }
     if missing.is_empty() {
         return true;
     }
-    let what = missing.join(", ");
-    assert!(
-        std::env::var_os("TERRASTREAM_ALLOW_NO_BROWSER").is_some(),
-        "missing: {what}; the test command installs them (TERRASTREAM_ALLOW_NO_BROWSER=1 skips)"
-    );
-    eprintln!("\n!!!!! SKIPPING WEBPLAYER TESTS: missing {what} (TERRASTREAM_ALLOW_NO_BROWSER is set) !!!!!\n");
-    false
+    terrastream_testkit::browser::skip_or_fail("WEBPLAYER", &missing)
 }
 
-/// A child process killed on drop.
-struct Process(Child);
-
-impl Drop for Process {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
+/// The player's own state, read from its page.
+trait Player {
+    fn stats(&self) -> Option<Value>;
+    fn status_text(&self) -> (String, bool);
+    fn wait_flight(&self, limit: Duration) -> Value;
+    fn wait_settled(&self) -> Value;
+    fn wait_error(&self) -> String;
+    fn flyer(&self) -> ([f64; 3], f64, f64, f64);
+    fn flyer_once(&self, done: impl Fn(&[f64; 3]) -> bool) -> ([f64; 3], f64, f64, f64);
 }
 
-fn wait_for_port(port: u16, what: &str) {
-    let start = Instant::now();
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(start.elapsed() < Duration::from_secs(20), "{what} did not start on port {port}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-/// chromedriver on a loopback port.
-struct Driver {
-    _process: Process,
-    port: u16,
-}
-
-impl Driver {
-    fn start() -> Self {
-        let port = terrastream_testkit::nginx::free_port();
-        let child = Command::new(CHROMEDRIVER)
-            .arg(format!("--port={port}"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("starting chromedriver");
-        wait_for_port(port, "chromedriver");
-        Self { _process: Process(child), port }
-    }
-
-    fn call(&self, method: &str, path: &str, body: Option<Value>) -> Value {
-        let (status, bytes) = terrastream_testkit::http::request(self.port, method, path, body.as_ref());
-        let value: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
-        assert!(status == 200, "WebDriver {method} {path}: {status} {value}");
-        value["value"].clone()
-    }
-}
-
-/// A headless Chromium session, closed on drop.
-struct Browser<'a> {
-    driver: &'a Driver,
-    session: String,
-    _profile: tempfile::TempDir,
-}
-
-impl<'a> Browser<'a> {
-    fn open(driver: &'a Driver, flags: &[&str]) -> Self {
-        let profile = tempfile::tempdir().unwrap();
-        let mut args: Vec<String> = [
-            "--headless=new",
-            "--no-sandbox",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--hide-scrollbars",
-            "--force-device-scale-factor=1",
-        ]
-        .iter()
-        .map(ToString::to_string)
-        .collect();
-        args.push(format!("--user-data-dir={}", profile.path().display()));
-        args.push(format!("--window-size={WIDTH},{HEIGHT}"));
-        args.extend(flags.iter().map(ToString::to_string));
-        let caps = json!({ "capabilities": { "alwaysMatch": {
-            "browserName": "chrome",
-            "goog:loggingPrefs": { "browser": "ALL" },
-            "goog:chromeOptions": { "binary": CHROMIUM, "args": args },
-        }}});
-        let value = driver.call("POST", "/session", Some(caps));
-        let session = value["sessionId"].as_str().expect("a session id").to_owned();
-        Self { driver, session, _profile: profile }
-    }
-
-    fn call(&self, method: &str, path: &str, body: Option<Value>) -> Value {
-        self.driver.call(method, &format!("/session/{}{path}", self.session), body)
-    }
-
-    fn goto(&self, url: &str) {
-        self.call("POST", "/url", Some(json!({ "url": url })));
-    }
-
-    fn eval(&self, script: &str) -> Value {
-        self.call("POST", "/execute/sync", Some(json!({ "script": script, "args": [] })))
-    }
-
+impl Player for Browser<'_> {
     /// The player's counters, once it runs.
     fn stats(&self) -> Option<Value> {
         let text = self.eval("return window.terrastream ? window.terrastream.stats() : null");
@@ -226,54 +119,6 @@ impl<'a> Browser<'a> {
         }
     }
 
-    /// The browser console since the last call: (level, message).
-    fn console(&self) -> Vec<(String, String)> {
-        let logs = self.call("POST", "/se/log", Some(json!({ "type": "browser" })));
-        logs.as_array()
-            .into_iter()
-            .flatten()
-            .map(|l| (l["level"].as_str().unwrap_or("").to_owned(), l["message"].as_str().unwrap_or("").to_owned()))
-            .collect()
-    }
-
-    /// A screenshot of the element `css`, decoded: (width, height, RGBA).
-    fn screenshot(&self, css: &str) -> (u32, u32, Vec<u8>) {
-        let element = self.call("POST", "/element", Some(json!({ "using": "css selector", "value": css })));
-        let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str).unwrap().to_owned();
-        let png = self.call("GET", &format!("/element/{id}/screenshot"), None);
-        terrastream_testkit::golden::decode_png(
-            &base64::engine::general_purpose::STANDARD.decode(png.as_str().unwrap()).unwrap(),
-        )
-    }
-
-    /// Holds `key` (a WebDriver key value) down for `ms` milliseconds.
-    fn hold_key(&self, key: &str, ms: u64) {
-        let actions = json!({ "actions": [{ "type": "key", "id": "keyboard", "actions": [
-            { "type": "keyDown", "value": key },
-            { "type": "pause", "duration": ms },
-            { "type": "keyUp", "value": key },
-        ]}]});
-        self.call("POST", "/actions", Some(actions));
-    }
-}
-
-impl Browser<'_> {
-    /// Runs WebDriver input `sources` (key, pointer, wheel) tick by tick.
-    fn act(&self, sources: Value) {
-        self.call("POST", "/actions", Some(json!({ "actions": sources })));
-    }
-
-    /// A pointer (`kind`: mouse, touch) pressed at `from`, moved to `to` over `ms`, released
-    /// (viewport pixels).
-    fn drag(id: &str, kind: &str, from: (i64, i64), to: (i64, i64), ms: u64) -> Value {
-        json!({ "type": "pointer", "id": id, "parameters": { "pointerType": kind }, "actions": [
-            { "type": "pointerMove", "x": from.0, "y": from.1, "origin": "viewport", "duration": 0 },
-            { "type": "pointerDown", "button": 0 },
-            { "type": "pointerMove", "x": to.0, "y": to.1, "origin": "viewport", "duration": ms },
-            { "type": "pointerUp", "button": 0 },
-        ]})
-    }
-
     /// The fly camera: eye, yaw, pitch, speed.
     fn flyer(&self) -> ([f64; 3], f64, f64, f64) {
         let s = self.stats().unwrap();
@@ -292,13 +137,6 @@ impl Browser<'_> {
             }
             std::thread::sleep(Duration::from_millis(100));
         }
-    }
-}
-
-impl Drop for Browser<'_> {
-    fn drop(&mut self) {
-        let _ =
-            terrastream_testkit::http::request(self.driver.port, "DELETE", &format!("/session/{}", self.session), None);
     }
 }
 
@@ -389,7 +227,7 @@ fn a_continent_draws_on_webgpu_and_on_webgl2() {
     let port = server.port;
     let driver = Driver::start();
     for (flags, backend) in [(WEBGPU_FLAGS, "webgpu"), (WEBGL_FLAGS, "webgl2")] {
-        let browser = Browser::open(&driver, flags);
+        let browser = Browser::open(&driver, flags, (WIDTH, HEIGHT));
         browser.goto(&format!("http://127.0.0.1:{port}/view/continent?hud=0"));
         let stats = browser.wait_settled();
         eprintln!("continent on {backend}: {stats}");
@@ -422,7 +260,7 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     let before = terrastream_testkit::http::archive_requests(port);
 
     let driver = Driver::start();
-    let browser = Browser::open(&driver, WEBGPU_FLAGS);
+    let browser = Browser::open(&driver, WEBGPU_FLAGS, (WIDTH, HEIGHT));
     let started = Instant::now();
     browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0"));
     let stats = browser.wait_settled();
@@ -502,7 +340,7 @@ fn webplayer_from_nginx_static_files_on_webgl2_with_cors() {
     let Some(archive_host) = static_host(&data, Some(&log)) else { return };
 
     let driver = Driver::start();
-    let browser = Browser::open(&driver, WEBGL_FLAGS);
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
     let archive_url = format!("http://127.0.0.1:{}/tamalpais.tspack", archive_host.port);
     browser.goto(&format!("http://127.0.0.1:{}/player.html?archive={archive_url}&hud=0", player_host.port));
     let stats = browser.wait_settled();
@@ -531,7 +369,7 @@ fn webplayer_explains_what_is_wrong() {
     let page = |query: &str| format!("http://127.0.0.1:{}/player.html{query}", host.port);
 
     // An archive that is not there: named, with the server's answer.
-    let browser = Browser::open(&driver, WEBGL_FLAGS);
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
     browser.goto(&page("?archive=missing.tspack"));
     let text = browser.wait_error();
     assert!(text.contains("Cannot open the archive") && text.contains("missing.tspack"), "{text}");
@@ -543,7 +381,7 @@ fn webplayer_explains_what_is_wrong() {
     drop(browser);
 
     // A browser with neither WebGPU nor WebGL2.
-    let browser = Browser::open(&driver, &["--disable-3d-apis", "--disable-webgpu"]);
+    let browser = Browser::open(&driver, &["--disable-3d-apis", "--disable-webgpu"], (WIDTH, HEIGHT));
     browser.goto(&page("?archive=missing.tspack"));
     let text = browser.wait_error();
     assert!(text.contains("needs WebGPU or WebGL2"), "{text}");
@@ -584,7 +422,7 @@ fn webplayer_streams_a_manifest_of_four_archives() {
     let port = server.port;
 
     let driver = Driver::start();
-    let browser = Browser::open(&driver, WEBGPU_FLAGS);
+    let browser = Browser::open(&driver, WEBGPU_FLAGS, (WIDTH, HEIGHT));
     browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0"));
     let stats = browser.wait_settled();
     eprintln!("manifest: {stats}");
@@ -669,7 +507,7 @@ fn bench_webplayer_over_emulated_links() {
     for (name, link) in links {
         let shaper = link.map(|l| runtime.block_on(Shaper::start(upstream, l)).unwrap());
         let archive_port = shaper.as_ref().map_or(port, |s| s.addr.port());
-        let browser = Browser::open(&driver, &flags);
+        let browser = Browser::open(&driver, &flags, (WIDTH, HEIGHT));
         // WORKERS=0 decodes on the page's thread (the default: Web Workers).
         let workers = std::env::var("WORKERS").map(|w| format!("&workers={w}")).unwrap_or_default();
         browser.goto(&format!(
@@ -752,7 +590,7 @@ fn the_benchmark_flight_steers_the_camera_and_counts_its_frames() {
     let server = serve(&archive);
     let port = server.port;
     let driver = Driver::start();
-    let browser = Browser::open(&driver, WEBGPU_FLAGS);
+    let browser = Browser::open(&driver, WEBGPU_FLAGS, (WIDTH, HEIGHT));
     let frames = 12;
     browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0&flight={frames}"));
     browser.wait_settled();
@@ -783,7 +621,7 @@ fn without_its_worker_script_the_player_decodes_on_the_page() {
     std::fs::remove_file(site.join("decoder.js")).unwrap();
     let Some(host) = static_host(&site, None) else { return };
     let driver = Driver::start();
-    let browser = Browser::open(&driver, WEBGL_FLAGS);
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
     browser.goto(&format!("http://127.0.0.1:{}/player.html?archive=tamalpais.tspack&hud=0", host.port));
     let stats = browser.wait_settled();
     assert_eq!(stats["missing"], json!(0), "{stats}");

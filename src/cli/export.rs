@@ -3,48 +3,145 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
+use terrastream_format::{LayerKind, Reader};
+use terrastream_pack::progress::Progress;
+use terrastream_server::web::encode::{HeightEncoding, ImageFormat};
+use terrastream_server::web::export::{WebExport, export_xyz};
 
 use super::CliProgress;
 
 #[derive(Debug, Args)]
 pub struct ExportArgs {
-    /// The archive: a path or an http(s):// URL.
+    /// The archive: a path (or, for `--to pmtiles` of the archive's own tiles, an
+    /// http(s):// URL).
     archive: String,
-    /// Layer name (or index).
+    /// Layer name (or index); web tiles default to the elevation.
     #[arg(long)]
-    layer: String,
+    layer: Option<String>,
     /// Target format.
     #[arg(long, value_enum)]
     to: ExportFormat,
-    /// Output file (written to a temporary name, then renamed).
+    /// Output file (pmtiles) or folder (xyz); written under a temporary name, then renamed.
     #[arg(short, long)]
     output: PathBuf,
+    /// Web tiles' height encoding (`--to xyz`; with `--to pmtiles`, web tiles instead of
+    /// the archive's own).
+    #[arg(long, value_enum)]
+    encoding: Option<EncodingArg>,
+    /// Web tiles' image format.
+    #[arg(long, value_enum, default_value = "webp")]
+    format: FormatArg,
+    /// Web tiles' pixels a side (256 or 512).
+    #[arg(long, default_value_t = 512)]
+    size: u32,
+    /// The coarsest web zoom written.
+    #[arg(long, default_value_t = 0)]
+    minzoom: u8,
+    /// The finest web zoom written (default: the layer's, as its TileJSON says).
+    #[arg(long)]
+    maxzoom: Option<u8>,
+    /// Absolute URL the tiles will be served under, for tiles.json (default: URLs
+    /// relative to the folder).
+    #[arg(long)]
+    base_url: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum ExportFormat {
     /// PMTiles v3 (web zoom z = coarsest 0), readable by any PMTiles reader.
     Pmtiles,
+    /// An XYZ tree of Web Mercator tiles and its tiles.json, for any static host.
+    Xyz,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum EncodingArg {
+    Terrarium,
+    Mapbox,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum FormatArg {
+    Webp,
+    Png,
 }
 
 pub fn run(args: ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let ExportArgs { archive, layer, to: ExportFormat::Pmtiles, output } = args;
-    let reader = super::open(&archive)?;
+    match args.to {
+        ExportFormat::Pmtiles if args.encoding.is_none() => run_pmtiles(&args, progress),
+        ExportFormat::Pmtiles => bail!("--to pmtiles with --encoding: not offered yet (use --to xyz)"),
+        ExportFormat::Xyz => run_xyz(&args, progress),
+    }
+}
+
+/// The archive's own tiles of one layer as PMTiles.
+fn run_pmtiles(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
+    let reader = super::open(&args.archive)?;
     let meta = reader.metadata();
-    let index = meta.resolve_layer(&layer).with_context(|| {
+    let Some(layer) = &args.layer else { bail!("--to pmtiles needs --layer") };
+    let index = meta.resolve_layer(layer).with_context(|| {
         let names: Vec<&str> = meta.layers.iter().map(|l| l.name.as_str()).collect();
-        format!("{archive} has no layer {layer:?} (layers: {})", names.join(", "))
+        format!("{} has no layer {layer:?} (layers: {})", args.archive, names.join(", "))
     })?;
-    let summary = terrastream_pack::export::pmtiles::export_pmtiles(&reader, index, &output, progress)?;
+    let summary = terrastream_pack::export::pmtiles::export_pmtiles(&reader, index, &args.output, progress)?;
     progress.finish();
     println!(
         "{}: PMTiles v3, {} tiles ({} distinct), {} bytes",
-        output.display(),
+        args.output.display(),
         summary.addressed_tiles,
         summary.tile_contents,
         summary.file_len
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Web Mercator tiles and their TileJSON, in a folder.
+fn run_xyz(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
+    let reader = Reader::open_mmap(&args.archive).with_context(|| format!("cannot open archive {}", args.archive))?;
+    let meta = reader.metadata();
+    let index = match &args.layer {
+        Some(l) => meta.resolve_layer(l).with_context(|| format!("{} has no layer {l:?}", args.archive))?,
+        None => meta
+            .layers
+            .iter()
+            .position(|l| l.kind == LayerKind::Elevation)
+            .and_then(|i| u8::try_from(i).ok())
+            .with_context(|| format!("{} has no elevation layer: name one with --layer", args.archive))?,
+    };
+    let elevation = meta.layers[usize::from(index)].kind == LayerKind::Elevation;
+    let encoding = elevation.then_some(match args.encoding {
+        Some(EncodingArg::Mapbox) => HeightEncoding::Mapbox,
+        _ => HeightEncoding::Terrarium,
+    });
+    anyhow::ensure!(matches!(args.size, 256 | 512), "--size {}: use 256 or 512", args.size);
+    let format = match args.format {
+        FormatArg::Webp => ImageFormat::Webp,
+        FormatArg::Png => ImageFormat::Png,
+    };
+    let export =
+        WebExport { layer: index, encoding, format, size: args.size, minzoom: args.minzoom, maxzoom: args.maxzoom };
+    let started = std::time::Instant::now();
+    let tick = |done: u64, total: u64| {
+        if done == 1 {
+            progress.start("tiles", total);
+        }
+        progress.advance(1);
+        progress.check().map_err(|_| terrastream_format::Interrupted)
+    };
+    let summary = export_xyz(&reader, &export, &args.output, args.base_url.as_deref(), &tick)
+        .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
+    progress.finish();
+    println!(
+        "{}: zooms {}..{}, {} tiles ({} without data left out), {} bytes in {:.2} s",
+        args.output.display(),
+        summary.zooms.0,
+        summary.zooms.1,
+        summary.tiles,
+        summary.empty,
+        summary.bytes,
+        started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -16,6 +16,7 @@
 pub mod cache;
 pub mod elevation;
 pub mod encode;
+pub mod export;
 pub mod mercator;
 pub mod pool;
 pub mod resample;
@@ -35,7 +36,10 @@ use cache::Lru;
 use encode::{HeightEncoding, ImageFormat};
 use mercator::WebTile;
 use pool::Pool;
-use resample::{Placed, Samples};
+pub use resample::MakeError;
+use resample::Placed;
+pub use resample::Samples;
+use terrastream_format::{MmapSource, Reader};
 
 /// What the web routes keep: the tile-making threads and the tiles made.
 #[derive(Debug)]
@@ -54,31 +58,43 @@ impl WebState {
     }
 }
 
+/// A web tile of a layer, as it is encoded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct WebTileRequest {
+    /// The archive's layer.
+    pub layer: u8,
+    /// The tile.
+    pub tile: WebTile,
+    /// Heights' encoding (None for imagery).
+    pub encoding: Option<HeightEncoding>,
+    /// The file's format.
+    pub format: ImageFormat,
+    /// Pixels a side.
+    pub size: u32,
+}
+
 /// A made tile's identity: the archive's version (its strong ETag: a replaced archive
-/// never serves its predecessor's tiles), the layer and tile, and how it is encoded.
+/// never serves its predecessor's tiles) and the tile.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct MadeKey {
     archive: String,
-    layer: u8,
-    tile: WebTile,
-    encoding: Option<HeightEncoding>,
-    format: ImageFormat,
-    size: u32,
+    request: WebTileRequest,
 }
 
 impl MadeKey {
     /// The strong ETag of the made tile.
     fn etag(&self) -> String {
-        let encoding = self.encoding.map_or("rgba", HeightEncoding::name);
+        let r = &self.request;
+        let encoding = r.encoding.map_or("rgba", HeightEncoding::name);
         format!(
             "\"{}-w{}-{}-{}-{}-{encoding}-{}.{}\"",
             self.archive.trim_matches('"'),
-            self.layer,
-            self.tile.z,
-            self.tile.x,
-            self.tile.y,
-            self.size,
-            self.format.extension()
+            r.layer,
+            r.tile.z,
+            r.tile.x,
+            r.tile.y,
+            r.size,
+            r.format.extension()
         )
     }
 }
@@ -227,7 +243,8 @@ pub async fn web_tile(
     let format = ImageFormat::parse(extension).ok_or_else(|| bad(format!("{file:?}: use .webp or .png")))?;
     let (encoding, _, size) = options(&TileQuery { format: None, ..query }, info.kind)?;
     let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
-    let key = MadeKey { archive: served.etag.clone(), layer: index, tile, encoding, format, size };
+    let request = WebTileRequest { layer: index, tile, encoding, format, size };
+    let key = MadeKey { archive: served.etag.clone(), request };
     let etag = key.etag();
     let mut h = HeaderMap::with_capacity(8);
     h.insert(ETAG, HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")));
@@ -236,19 +253,24 @@ pub async fn web_tile(
     if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
         return Ok((StatusCode::NOT_MODIFIED, h).into_response());
     }
-    let bytes =
-        match state.web.made.get(&key) {
-            Some(bytes) => bytes,
-            None => {
-                let job_key = key.clone();
-                let made =
-                    state.web.pool.run(move || make(&served, &job_key)).await.map_err(|_| {
-                        WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into())
-                    })??;
-                state.web.made.put(key, made.clone());
-                made
-            }
-        };
+    let bytes = match state.web.made.get(&key) {
+        Some(bytes) => bytes,
+        None => {
+            let made = state
+                .web
+                .pool
+                .run(move || make_tile(&served.reader, &request))
+                .await
+                .map_err(|_| WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
+                .map_err(|e| {
+                    tracing::error!("{name}: web tile {z}/{x}/{y}: {e}");
+                    WebError(StatusCode::INTERNAL_SERVER_ERROR, "internal server error".into())
+                })?;
+            let made = Bytes::from(made.unwrap_or_default());
+            state.web.made.put(key, made.clone());
+            made
+        }
+    };
     if bytes.is_empty() {
         return Ok((StatusCode::NOT_FOUND, h, "no data in this tile\n").into_response());
     }
@@ -256,13 +278,36 @@ pub async fn web_tile(
     Ok((StatusCode::OK, h, Body::from(bytes)).into_response())
 }
 
-/// Makes a tile: its file's bytes, empty when it holds no data (answered 404, and kept,
-/// so that the empty tiles around a region cost one check each).
-fn make(served: &crate::catalog::Served, key: &MadeKey) -> Result<Bytes, WebError> {
-    let placed = Placed::new(&served.reader, key.layer)
-        .ok_or_else(|| not_found("this layer has no web tiles: it does not say where it lies"))?;
-    let size = key.size as usize;
-    let positions = placed.positions(key.tile, size);
+/// Makes a web tile of an archive: the file's bytes; None when the tile holds no data
+/// (the server answers 404, and keeps the empty answer, so that the empty tiles around a
+/// region cost one check each). What the server sends and `export --to xyz` writes.
+///
+/// # Errors
+/// [`MakeError`] for a layer without web tiles or an archive tile that cannot be read.
+pub fn make_tile(reader: &Reader<MmapSource>, request: &WebTileRequest) -> Result<Option<Vec<u8>>, MakeError> {
+    let Some((samples, kind)) = tile_samples(reader, request)? else { return Ok(None) };
+    let rgba = match kind {
+        Samples::Heights => request.encoding.unwrap_or(HeightEncoding::Terrarium).pixels(&samples),
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
+        Samples::Rgba => samples.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect(),
+    };
+    request.format.encode(&rgba, request.size).map(Some).map_err(MakeError::Encode)
+}
+
+/// The samples of a web tile before they are encoded: a height a pixel (NaN: no data) or
+/// RGBA values (0 to 255, alpha 0: no data), row by row; None outside the bounds the
+/// TileJSON gives (inside them, a tile without data is all no data: a client asks for
+/// every tile there).
+///
+/// # Errors
+/// As [`make_tile`].
+pub fn tile_samples(
+    reader: &Reader<MmapSource>,
+    request: &WebTileRequest,
+) -> Result<Option<(Vec<f32>, Samples)>, MakeError> {
+    let placed = Placed::new(reader, request.layer).ok_or(MakeError::NotPlaced)?;
+    let size = request.size as usize;
+    let positions = placed.positions(request.tile, size);
     // World units per output pixel, at the tile's centre.
     let centre = size / 2 * size + size / 2;
     let per_pixel = match (positions.get(centre).copied().flatten(), positions.get(centre + 1).copied().flatten()) {
@@ -270,16 +315,19 @@ fn make(served: &crate::catalog::Served, key: &MadeKey) -> Result<Bytes, WebErro
         _ => f64::INFINITY,
     };
     let lod = placed.lod_for(per_pixel);
-    let internal = |e: resample::MakeError| WebError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string());
-    let Some(samples) = placed.sample(&positions, lod).map_err(internal)? else { return Ok(Bytes::new()) };
-    let rgba = match (placed.samples(), key.encoding) {
-        (Samples::Heights, Some(encoding)) => encoding.pixels(&samples),
-        (Samples::Heights, None) => return Err(bad("heights need an encoding")),
-        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
-        (Samples::Rgba, _) => samples.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect(),
-    };
-    let file = key.format.encode(&rgba, key.size).map_err(|e| WebError(StatusCode::INTERNAL_SERVER_ERROR, e))?;
-    Ok(Bytes::from(file))
+    if let Some(samples) = placed.sample(&positions, lod)? {
+        return Ok(Some((samples, placed.samples())));
+    }
+    let metadata = reader.metadata();
+    let info = &metadata.layers[usize::from(request.layer)];
+    let inside = tilejson::coverage(metadata, info, request.size).is_some_and(|c| {
+        let [w, s, e, n] = request.tile.bounds();
+        w < c.bounds[2] && c.bounds[0] < e && s < c.bounds[3] && c.bounds[1] < n
+    });
+    Ok(inside.then(|| match placed.samples() {
+        Samples::Heights => (vec![f32::NAN; size * size], Samples::Heights),
+        Samples::Rgba => (vec![0.0; size * size * 4], Samples::Rgba),
+    }))
 }
 
 /// The JSON error of the elevation API.

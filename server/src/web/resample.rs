@@ -37,6 +37,15 @@ pub enum Samples {
 /// Why a tile could not be made.
 #[derive(Debug, thiserror::Error)]
 pub enum MakeError {
+    /// The layer has no web tiles: the archive does not say where it lies, or its tiles
+    /// are neither heights nor images.
+    #[error(
+        "the layer has no web tiles: the archive does not say where it lies, or its tiles are not heights or images"
+    )]
+    NotPlaced,
+    /// The tile could not be encoded.
+    #[error("cannot encode the tile: {0}")]
+    Encode(String),
     /// An archive tile that cannot be read or decoded (the archive is damaged).
     #[error("tile {key}: {reason}")]
     Tile {

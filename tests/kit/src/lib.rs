@@ -12,6 +12,7 @@
 )]
 
 pub mod archives;
+pub mod browser;
 pub mod continent;
 pub mod golden;
 pub mod http;

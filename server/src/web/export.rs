@@ -1,0 +1,229 @@
+//! The web tiles of a layer written for static hosting: an XYZ tree and its TileJSON
+//! (`terrastream export --to xyz`), bit for bit the tiles the server makes.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use terrastream_format::{Interrupted, MmapSource, Reader};
+
+use super::encode::{HeightEncoding, ImageFormat};
+use super::mercator::{WebTile, tiles_over};
+use super::tilejson::{TileJsonRequest, coverage, tilejson};
+use super::{MakeError, WebTileRequest, make_tile};
+
+/// What to export.
+#[derive(Clone, Copy, Debug)]
+pub struct WebExport {
+    /// The layer.
+    pub layer: u8,
+    /// Heights' encoding (elevation layers).
+    pub encoding: Option<HeightEncoding>,
+    /// The tiles' format.
+    pub format: ImageFormat,
+    /// Pixels a side.
+    pub size: u32,
+    /// The coarsest zoom written.
+    pub minzoom: u8,
+    /// The finest zoom written (default: the layer's, as its TileJSON says).
+    pub maxzoom: Option<u8>,
+}
+
+/// Why an export failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    /// A tile could not be made.
+    #[error("tile {z}/{x}/{y}: {error}", z = .tile.z, x = .tile.x, y = .tile.y)]
+    Make {
+        /// The tile.
+        tile: WebTile,
+        /// Why.
+        error: MakeError,
+    },
+    /// The layer does not say where it lies (or is not heights or images).
+    #[error(
+        "the layer has no web tiles: the archive does not say where it lies, or its tiles are not heights or images"
+    )]
+    NotPlaced,
+    /// Writing a file failed.
+    #[error("{path}: {error}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// The error.
+        error: std::io::Error,
+    },
+    /// Stopped on request.
+    #[error(transparent)]
+    Interrupted(#[from] Interrupted),
+}
+
+/// What an export wrote.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WebExportSummary {
+    /// Tiles with data, written.
+    pub tiles: u64,
+    /// Tiles without data, left out.
+    pub empty: u64,
+    /// Bytes of the tiles.
+    pub bytes: u64,
+    /// The zooms written.
+    pub zooms: (u8, u8),
+}
+
+/// The tiles an export makes, zoom by zoom: those over the layer's bounds.
+///
+/// # Errors
+/// [`ExportError::NotPlaced`] for a layer without web tiles.
+pub fn planned_tiles(reader: &Reader<MmapSource>, export: &WebExport) -> Result<(Vec<WebTile>, (u8, u8)), ExportError> {
+    let metadata = reader.metadata();
+    let info = metadata.layers.get(usize::from(export.layer)).ok_or(ExportError::NotPlaced)?;
+    let cover = coverage(metadata, info, export.size).ok_or(ExportError::NotPlaced)?;
+    let maxzoom = export.maxzoom.unwrap_or(cover.maxzoom);
+    let minzoom = export.minzoom.min(maxzoom);
+    let mut tiles = Vec::new();
+    for z in minzoom..=maxzoom {
+        let (columns, rows) = tiles_over(z, cover.bounds);
+        for y in rows {
+            for x in columns.clone() {
+                tiles.extend(WebTile::new(z, x, y));
+            }
+        }
+    }
+    Ok((tiles, (minzoom, maxzoom)))
+}
+
+/// Makes `tiles` on `threads` threads (0: the cores) and hands each with data to `each`
+/// in the order given; `tick` is called after each tile (its error stops the export).
+///
+/// # Errors
+/// The first tile that cannot be made, `each`'s or `tick`'s error.
+pub fn make_tiles(
+    reader: &Reader<MmapSource>,
+    export: &WebExport,
+    tiles: &[WebTile],
+    threads: usize,
+    tick: &(dyn Fn() -> Result<(), Interrupted> + Sync),
+    each: &mut dyn FnMut(WebTile, Vec<u8>) -> Result<(), ExportError>,
+) -> Result<(), ExportError> {
+    let threads = if threads == 0 { std::thread::available_parallelism().map_or(2, usize::from) } else { threads };
+    let next = AtomicUsize::new(0);
+    let (sender, receiver) =
+        std::sync::mpsc::sync_channel::<(usize, Result<Option<Vec<u8>>, ExportError>)>(4 * threads);
+    let failed = Mutex::new(false);
+    std::thread::scope(|scope| -> Result<(), ExportError> {
+        for _ in 0..threads {
+            let (sender, next, failed) = (sender.clone(), &next, &failed);
+            scope.spawn(move || {
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    if i >= tiles.len() || *failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) {
+                        return;
+                    }
+                    let tile = tiles[i];
+                    let request = WebTileRequest {
+                        layer: export.layer,
+                        tile,
+                        encoding: export.encoding,
+                        format: export.format,
+                        size: export.size,
+                    };
+                    let made = make_tile(reader, &request).map_err(|error| ExportError::Make { tile, error });
+                    if sender.send((i, made)).is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+        drop(sender);
+        // Taken in order: a reorder buffer of what arrived early.
+        let mut early = std::collections::BTreeMap::new();
+        let mut want = 0;
+        let result = (|| {
+            for (i, made) in receiver.iter() {
+                early.insert(i, made);
+                while let Some(made) = early.remove(&want) {
+                    if let Some(bytes) = made? {
+                        each(tiles[want], bytes)?;
+                    }
+                    tick()?;
+                    want += 1;
+                }
+            }
+            Ok(())
+        })();
+        if result.is_err() {
+            *failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = true;
+            // Let the threads finish their tile and see the flag.
+            for _ in receiver.iter() {}
+        }
+        result
+    })
+}
+
+/// Writes layer `export.layer` as an XYZ tree in `dir` (`{z}/{x}/{y}.{ext}`, tiles
+/// without data left out, as the server answers 404 for them) and `dir/tiles.json`,
+/// whose tile URLs are relative to the folder (or under `base_url`). Written into a
+/// temporary folder beside `dir` and renamed once complete.
+///
+/// # Errors
+/// As [`make_tiles`]; [`ExportError::File`] naming a file that cannot be written.
+pub fn export_xyz(
+    reader: &Reader<MmapSource>,
+    export: &WebExport,
+    dir: &Path,
+    base_url: Option<&str>,
+    tick: &(dyn Fn(u64, u64) -> Result<(), Interrupted> + Sync),
+) -> Result<WebExportSummary, ExportError> {
+    let (tiles, zooms) = planned_tiles(reader, export)?;
+    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let file_err = |path: &Path| {
+        let path = path.to_path_buf();
+        move |error| ExportError::File { path, error }
+    };
+    std::fs::create_dir_all(parent).map_err(file_err(parent))?;
+    let temp =
+        tempfile::Builder::new().prefix(".xyz-").suffix(".partial").tempdir_in(parent).map_err(file_err(parent))?;
+    let mut summary = WebExportSummary { zooms, ..WebExportSummary::default() };
+    let extension = export.format.extension();
+    let done = AtomicUsize::new(0);
+    let total = tiles.len() as u64;
+    let count = || {
+        let n = done.fetch_add(1, Ordering::Relaxed) as u64 + 1;
+        tick(n, total)
+    };
+    make_tiles(reader, export, &tiles, 0, &count, &mut |tile, bytes| {
+        let folder = temp.path().join(tile.z.to_string()).join(tile.x.to_string());
+        std::fs::create_dir_all(&folder).map_err(file_err(&folder))?;
+        let path = folder.join(format!("{}.{extension}", tile.y));
+        std::fs::write(&path, &bytes).map_err(file_err(&path))?;
+        summary.tiles += 1;
+        summary.bytes += bytes.len() as u64;
+        Ok(())
+    })?;
+    summary.empty = total - summary.tiles;
+    let metadata = reader.metadata();
+    let info = &metadata.layers[usize::from(export.layer)];
+    let mut cover = coverage(metadata, info, export.size).ok_or(ExportError::NotPlaced)?;
+    cover.maxzoom = zooms.1;
+    let base = base_url.map(|b| format!("{}/", b.trim_end_matches('/'))).unwrap_or_default();
+    let request = TileJsonRequest {
+        name: &metadata.name,
+        layer: &info.name,
+        tiles: format!("{base}{{z}}/{{x}}/{{y}}.{extension}"),
+        encoding: export.encoding,
+        format: export.format,
+        size: export.size,
+    };
+    let mut doc = tilejson(metadata, info, &request, cover);
+    doc["minzoom"] = zooms.0.into();
+    let json_path = temp.path().join("tiles.json");
+    let text = serde_json::to_vec_pretty(&doc).unwrap_or_default();
+    std::fs::write(&json_path, text).map_err(file_err(&json_path))?;
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).map_err(file_err(dir))?;
+    }
+    let kept = temp.keep();
+    std::fs::rename(&kept, dir).map_err(file_err(dir))?;
+    Ok(summary)
+}

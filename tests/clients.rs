@@ -1,0 +1,395 @@
+//! The clients people already use read our archives, checked with those clients and with
+//! GDAL as the oracle of the source's heights:
+//! - MapLibre GL JS (npm, pinned in `scripts/test.sh`), unchanged, in headless Chromium:
+//!   a style with the served TileJSON as `terrain` and `hillshade`; its
+//!   `queryTerrainElevation` at random points against GDAL's bilinear value of the source
+//!   DEM; no tile request fails; a screenshot against a golden. The same page against the
+//!   `export --to xyz` folder served by nginx.
+//! - The elevation API at the same points, and its error answers.
+//! - A Terrarium PNG tile decoded by Pillow (an independent decoder) against the heights
+//!   the server meant.
+//!
+//! The source is the committed 1" SRTM crop, tiled with the default settings (a
+//! transverse Mercator: every web tile is reprojected).
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+
+const DEM: &str = "packer/pack/data/srtm-tamalpais-320-public-domain.tif";
+/// The MapLibre GL JS release the tests load (installed by `scripts/test.sh`).
+const MAPLIBRE: &str = "5.24.1";
+const WIDTH: u32 = 640;
+const HEIGHT: u32 = 400;
+/// Random points inside the data.
+const POINTS: usize = 40;
+
+/// MapLibre draws with SwiftShader's WebGL: deterministic for one Chromium build; the
+/// allowance covers another release's anti-aliasing and dithering.
+const TOLERANCE: terrastream_testkit::golden::Tolerance =
+    terrastream_testkit::golden::Tolerance { mean: 2.0, pixel: 32, off_share: 0.02 };
+
+fn repo() -> PathBuf {
+    terrastream_testkit::golden::repo()
+}
+
+/// MapLibre GL JS's `dist` folder, from the npm cache `scripts/test.sh` fills.
+fn maplibre_dist() -> Option<PathBuf> {
+    let root = std::env::var_os("TERRASTREAM_NPM")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/terrastream-npm"));
+    let dist = root.join("node_modules/maplibre-gl/dist");
+    let package = std::fs::read_to_string(root.join("node_modules/maplibre-gl/package.json")).ok()?;
+    let version: Value = serde_json::from_str(&package).ok()?;
+    (version["version"] == json!(MAPLIBRE) && dist.join("maplibre-gl.js").exists()).then_some(dist)
+}
+
+fn ready() -> Option<PathBuf> {
+    let mut missing = terrastream_testkit::browser::missing();
+    let dist = maplibre_dist();
+    if dist.is_none() {
+        missing.push("maplibre-gl (npm install --prefix ~/.cache/terrastream-npm maplibre-gl@5.24.1)");
+    }
+    for tool in ["gdaltransform", "gdallocationinfo"] {
+        if Command::new(tool).arg("--version").output().is_err() {
+            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
+        }
+    }
+    terrastream_testkit::browser::skip_or_fail("MAPLIBRE", &missing).then(|| dist.unwrap())
+}
+
+fn terrastream(args: &[&str]) {
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).arg("-q").args(args).output().unwrap();
+    assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// The DEM tiled as `terrastream tile` does by default, in `dir`.
+fn archive(dir: &Path) -> PathBuf {
+    let path = dir.join("tamalpais.tspack");
+    let dem = repo().join(DEM);
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", path.to_str().unwrap()]);
+    path
+}
+
+/// `count` points (lon, lat) spread at random over the middle 80 % of `bounds`.
+fn random_points(bounds: [f64; 4], count: usize) -> Vec<(f64, f64)> {
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let [w, s, e, n] = bounds;
+    (0..count).map(|_| (w + (e - w) * (0.1 + 0.8 * next()), s + (n - s) * (0.1 + 0.8 * next()))).collect()
+}
+
+/// GDAL's bilinear height of the source at each point: the point's fractional pixel
+/// position (`gdaltransform -i`), the four samples around it (`gdallocationinfo`), and
+/// their bilinear mean, computed here (GDAL 3.6's tools have no bilinear option).
+fn gdal_bilinear(points: &[(f64, f64)]) -> Vec<f64> {
+    let dem = repo().join(DEM);
+    let run = |program: &str, args: &[&str], input: String| -> String {
+        let mut child = Command::new(program)
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        std::io::Write::write_all(&mut child.stdin.take().unwrap(), input.as_bytes()).unwrap();
+        let out = child.wait_with_output().unwrap();
+        assert!(out.status.success(), "{program} {args:?}");
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let lonlat: String = points.iter().map(|(lon, lat)| format!("{lon} {lat}\n")).collect();
+    let pixels: Vec<(f64, f64)> = run("gdaltransform", &["-i", dem.to_str().unwrap()], lonlat)
+        .lines()
+        .map(|l| {
+            let v: Vec<f64> = l.split_whitespace().map(|v| v.parse().unwrap()).collect();
+            (v[0] - 0.5, v[1] - 0.5)
+        })
+        .collect();
+    let mut corners = String::new();
+    for (px, py) in &pixels {
+        let (i, j) = (px.floor() as i64, py.floor() as i64);
+        for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            corners.push_str(&format!("{} {}\n", i + di, j + dj));
+        }
+    }
+    let values: Vec<f64> = run("gdallocationinfo", &["-valonly", dem.to_str().unwrap()], corners)
+        .lines()
+        .map(|l| l.trim().parse().unwrap())
+        .collect();
+    pixels
+        .iter()
+        .zip(values.chunks_exact(4))
+        .map(|((px, py), v)| {
+            let (fx, fy) = (px - px.floor(), py - py.floor());
+            v[0] * (1.0 - fx) * (1.0 - fy) + v[1] * fx * (1.0 - fy) + v[2] * (1.0 - fx) * fy + v[3] * fx * fy
+        })
+        .collect()
+}
+
+/// The median and the 90th percentile of |a - b|.
+fn errors(a: &[f64], b: &[f64]) -> (f64, f64) {
+    let mut e: Vec<f64> = a.iter().zip(b).map(|(x, y)| (x - y).abs()).collect();
+    e.sort_by(f64::total_cmp);
+    (e[e.len() / 2], e[e.len() * 9 / 10])
+}
+
+/// A page with MapLibre GL JS and a style of `tilejson` as terrain and hillshade, in
+/// `folder` (MapLibre's files copied beside it).
+fn write_page(folder: &Path, dist: &Path) {
+    std::fs::create_dir_all(folder).unwrap();
+    for file in ["maplibre-gl.js", "maplibre-gl.css"] {
+        std::fs::copy(dist.join(file), folder.join(file)).unwrap();
+    }
+    let page = format!(
+        r#"<!doctype html><html><head><meta charset="utf-8">
+<link rel="stylesheet" href="maplibre-gl.css"><script src="maplibre-gl.js"></script>
+<style>html, body {{ margin: 0 }} #map {{ width: {WIDTH}px; height: {HEIGHT}px }}</style></head>
+<body><div id="map"></div><script>
+const url = new URLSearchParams(location.search).get('tilejson');
+window.failures = [];
+fetch(url).then(r => r.json()).then(tj => {{
+  const map = new maplibregl.Map({{
+    container: 'map', attributionControl: false, fadeDuration: 0,
+    bounds: [[tj.bounds[0], tj.bounds[1]], [tj.bounds[2], tj.bounds[3]]],
+    style: {{ version: 8,
+      sources: {{ terrain: {{ type: 'raster-dem', url }}, shade: {{ type: 'raster-dem', url }} }},
+      layers: [ {{ id: 'background', type: 'background', paint: {{ 'background-color': '#ffffff' }} }},
+                {{ id: 'hillshade', type: 'hillshade', source: 'shade' }} ],
+      terrain: {{ source: 'terrain', exaggeration: 1 }} }} }});
+  map.on('error', e => window.failures.push(String(e.error && e.error.message || e)));
+  map.on('idle', () => {{ window.idle = true; }});
+  window.map = map;
+}}).catch(e => window.failures.push('tilejson: ' + e));
+</script></body></html>"#
+    );
+    std::fs::write(folder.join("index.html"), page).unwrap();
+}
+
+/// Loads the page with `tilejson`, waits until MapLibre is idle, and returns its
+/// elevations at `points` (after checking no request failed) and a screenshot.
+fn maplibre_run(browser: &Browser<'_>, page: &str, points: &[(f64, f64)]) -> (Vec<Option<f64>>, (u32, u32, Vec<u8>)) {
+    browser.goto(page);
+    let started = Instant::now();
+    loop {
+        let state = browser.eval("return [window.idle === true, window.failures];");
+        assert_eq!(state[1], json!([]), "MapLibre reported errors on {page}: console {:?}", browser.console());
+        if state[0] == json!(true) {
+            break;
+        }
+        assert!(started.elapsed() < Duration::from_secs(90), "MapLibre never became idle on {page}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let picture = browser.screenshot("#map");
+    // The points looked at closely (zoom 13: the terrain's finest tiles, which MapLibre
+    // takes a zoom coarser than the view's): a view is moved only for a point outside
+    // the middle of the current one.
+    browser.call("POST", "/timeouts", Some(json!({ "script": 300_000 })));
+    let list: Vec<[f64; 2]> = points.iter().map(|&(lon, lat)| [lon, lat]).collect();
+    let heights = browser.eval_async(&format!(
+        "const done = arguments[0]; const map = window.map; const points = {};
+         const out = new Array(points.length).fill(null);
+         const order = points.map((p, i) => i).sort((a, b) => points[a][1] - points[b][1] || points[a][0] - points[b][0]);
+         window.views = 0;
+         (async () => {{
+           for (const i of order) {{
+             const p = points[i];
+             const b = map.getBounds();
+             const [w, s, e, n] = [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()];
+             const inside = map.getZoom() >= 13 && p[0] > w + (e - w) * 0.1 && p[0] < e - (e - w) * 0.1
+               && p[1] > s + (n - s) * 0.1 && p[1] < n - (n - s) * 0.1;
+             if (!inside) {{
+               map.jumpTo({{ center: p, zoom: 13 }});
+               window.views += 1;
+               await new Promise(r => map.once('idle', r));
+             }}
+             out[i] = map.queryTerrainElevation(p);
+           }}
+           done(out);
+         }})().catch(e => done(String(e)));",
+        json!(list)
+    ));
+    eprintln!("{page}: {} views to query {} points", browser.eval("return window.views;"), points.len());
+    let failures = browser.eval("return window.failures;");
+    assert_eq!(failures, json!([]), "MapLibre reported errors on {page}: console {:?}", browser.console());
+    let heights = heights.as_array().unwrap_or_else(|| panic!("{heights}")).iter().map(Value::as_f64).collect();
+    (heights, picture)
+}
+
+#[test]
+fn maplibre_reads_the_served_and_the_exported_terrain() {
+    let Some(dist) = ready() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let (status, body) = terrastream_testkit::http::request(server.port, "GET", "/tamalpais/tiles.json", None);
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+    let tilejson: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!((tilejson["type"].as_str(), tilejson["encoding"].as_str()), (Some("raster-dem"), Some("terrarium")));
+    let bounds: [f64; 4] = serde_json::from_value(tilejson["bounds"].clone()).unwrap();
+    let points = random_points(bounds, POINTS);
+    let truth = gdal_bilinear(&points);
+
+    // The static host: the export and a copy of the page inside it (MapLibre takes tile
+    // URLs as they are, so a relative template resolves against the page).
+    let root = dir.path().join("www");
+    let xyz = root.join("xyz");
+    terrastream(&["export", archive.to_str().unwrap(), "--to", "xyz", "-o", xyz.to_str().unwrap()]);
+    write_page(&root, &dist);
+    write_page(&xyz, &dist);
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { image/webp webp; application/json json; \
+         text/html html; application/javascript js; text/css css; } add_header Access-Control-Allow-Origin *; }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let served = format!(
+        "http://127.0.0.1:{}/index.html?tilejson=http://127.0.0.1:{}/tamalpais/tiles.json",
+        nginx.port, server.port
+    );
+    let exported =
+        format!("http://127.0.0.1:{0}/xyz/index.html?tilejson=http://127.0.0.1:{0}/xyz/tiles.json", nginx.port);
+    let mut pictures = Vec::new();
+    for (name, page) in [("served", served), ("exported", exported)] {
+        let (heights, picture) = maplibre_run(&browser, &page, &points);
+        assert!(heights.iter().all(Option::is_some), "{name}: MapLibre has no height at some points: {heights:?}");
+        let heights: Vec<f64> = heights.into_iter().flatten().collect();
+        let (median, p90) = errors(&heights, &truth);
+        eprintln!("MapLibre {name}: |height - GDAL bilinear| median {median:.2} m, 90 % within {p90:.2} m");
+        assert!(median <= 2.0 && p90 <= 15.0, "{name}: median {median:.2} m, p90 {p90:.2} m");
+        pictures.push(picture);
+    }
+    let (w, h, rgba) = &pictures[0];
+    terrastream_testkit::golden::assert_golden("maplibre-hillshade", *w, *h, rgba, TOLERANCE);
+    // Bit for bit the same tiles: the two pictures are one.
+    let (mean, _) = terrastream_testkit::golden::difference(rgba, &pictures[1].2, 0);
+    assert!(mean < 0.01, "the exported tiles draw differently from the served ones: mean difference {mean}");
+}
+
+#[test]
+fn the_elevation_api_agrees_with_gdal_and_names_bad_requests() {
+    if Command::new("gdaltransform").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let get = |path: &str| {
+        let (status, body) = terrastream_testkit::http::request(server.port, "GET", path, None);
+        (status, serde_json::from_slice::<Value>(&body).unwrap_or(Value::Null))
+    };
+    let (_, tilejson) = get("/tamalpais/tiles.json");
+    let bounds: [f64; 4] = serde_json::from_value(tilejson["bounds"].clone()).unwrap();
+    let points = random_points(bounds, POINTS);
+    let truth = gdal_bilinear(&points);
+    let locations: Vec<String> = points.iter().map(|(lon, lat)| format!("{lat},{lon}")).collect();
+    let (status, answer) = get(&format!("/v1/tamalpais?locations={}", locations.join("|")));
+    assert_eq!(status, 200, "{answer}");
+    assert_eq!(answer["status"], json!("OK"));
+    let results = answer["results"].as_array().unwrap();
+    assert_eq!(results.len(), POINTS);
+    assert!(results.iter().all(|r| r["dataset"] == json!("tamalpais")));
+    let heights: Vec<f64> = results.iter().map(|r| r["elevation"].as_f64().unwrap()).collect();
+    let (median, p90) = errors(&heights, &truth);
+    eprintln!("elevation API: |height - GDAL bilinear| median {median:.2} m, 90 % within {p90:.2} m");
+    assert!(median <= 1.0 && p90 <= 3.0, "median {median:.2} m, p90 {p90:.2} m");
+    // The same by POST, with [lat, lng] pairs; a profile along them; nearest and cubic.
+    let pairs: Vec<[f64; 2]> = points.iter().map(|&(lon, lat)| [lat, lon]).collect();
+    let body = json!({ "locations": pairs, "interpolation": "cubic" });
+    let (status, bytes) = terrastream_testkit::http::request(server.port, "POST", "/v1/tamalpais", Some(&body));
+    let posted: Value = serde_json::from_slice(&bytes).unwrap();
+    assert_eq!(status, 200, "{posted}");
+    let cubic: Vec<f64> =
+        posted["results"].as_array().unwrap().iter().map(|r| r["elevation"].as_f64().unwrap()).collect();
+    let (median, _) = errors(&cubic, &truth);
+    assert!(median <= 1.5, "cubic: median {median:.2} m");
+    let (_, profile) = get(&format!("/v1/tamalpais?locations={}|{}&samples=11", locations[0], locations[1]));
+    assert_eq!(profile["results"].as_array().map(Vec::len), Some(11), "{profile}");
+    // Outside the data: null.
+    let (_, far) = get("/v1/tamalpais?locations=10,10");
+    assert_eq!(far["results"][0]["elevation"], Value::Null, "{far}");
+    // Every bad request: 400 (404 for an unknown archive) naming its bad part.
+    let too_many = vec!["37.9,-122.6"; 101].join("|");
+    for (path, status, says) in [
+        ("/v1/tamalpais?locations=91,0".to_owned(), 400, "latitude 91"),
+        ("/v1/tamalpais?locations=37.9,-200".to_owned(), 400, "longitude -200"),
+        ("/v1/tamalpais?locations=37.9".to_owned(), 400, "polyline"),
+        (format!("/v1/tamalpais?locations={too_many}"), 400, "Too many locations provided (101)"),
+        ("/v1/tamalpais?locations=37.9,-122.6&interpolation=spline".to_owned(), 400, "interpolation 'spline'"),
+        ("/v1/tamalpais?locations=37.9,-122.6|37.91,-122.6&samples=0".to_owned(), 400, "samples"),
+        ("/v1/tamalpais".to_owned(), 400, "No locations"),
+        ("/v1/nowhere?locations=37.9,-122.6".to_owned(), 404, "nowhere"),
+    ] {
+        let (got, answer) = get(&path);
+        assert_eq!(got, status, "{path}: {answer}");
+        let expected = if status == 404 { "NOT_FOUND" } else { "INVALID_REQUEST" };
+        assert_eq!(answer["status"], json!(expected), "{path}: {answer}");
+        assert!(answer["error"].as_str().unwrap().contains(says), "{path}: {answer}");
+    }
+    let (status, bytes) =
+        terrastream_testkit::http::request(server.port, "POST", "/v1/tamalpais", Some(&json!({"locations": 5})));
+    assert_eq!(status, 400, "{}", String::from_utf8_lossy(&bytes));
+}
+
+#[test]
+fn a_terrarium_tile_decoded_by_pillow_holds_the_heights_meant() {
+    let pillow = Command::new("/usr/bin/python3").args(["-c", "import PIL"]).status().is_ok_and(|s| s.success());
+    if !pillow {
+        assert!(std::env::var_os("CI").is_none(), "python3-pil is required on CI");
+        eprintln!("\n*** SKIPPING: Pillow (python3-pil) is not installed ***\n");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    // The tile over Mount Tamalpais's summit at the finest zoom, as PNG.
+    use terrastream_server::web::encode::{HeightEncoding, ImageFormat};
+    use terrastream_server::web::mercator::{WebTile, tiles_over};
+    use terrastream_server::web::{WebTileRequest, tile_samples};
+    let (columns, rows) = tiles_over(12, [-122.5965, 37.9235, -122.5965, 37.9235]);
+    let tile = WebTile::new(12, *columns.start(), *rows.start()).unwrap();
+    let path = format!("/tamalpais/xyz/elevation/{}/{}/{}.png", tile.z, tile.x, tile.y);
+    let (status, png) = terrastream_testkit::http::request(server.port, "GET", &path, None);
+    assert_eq!(status, 200);
+    let file = dir.path().join("tile.png");
+    std::fs::write(&file, &png).unwrap();
+    let script = "import sys\nfrom PIL import Image\nim = Image.open(sys.argv[1]).convert('RGBA')\n\
+                  for r, g, b, a in im.getdata():\n    print(r * 256 + g + b / 256 - 32768 if a else 'nan')\n";
+    let out = Command::new("/usr/bin/python3").args(["-c", script, file.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let decoded: Vec<f64> = String::from_utf8(out.stdout).unwrap().lines().map(|l| l.parse().unwrap()).collect();
+    let reader = terrastream_format::Reader::open_mmap(&archive).unwrap();
+    let request = WebTileRequest {
+        layer: reader.metadata().resolve_layer("elevation").unwrap(),
+        tile,
+        encoding: Some(HeightEncoding::Terrarium),
+        format: ImageFormat::Png,
+        size: 512,
+    };
+    let (meant, _) = tile_samples(&reader, &request).unwrap().unwrap();
+    assert_eq!(decoded.len(), meant.len());
+    let mut with_data = 0;
+    for (d, m) in decoded.iter().zip(&meant) {
+        assert_eq!(d.is_nan(), m.is_nan(), "no data in one and not the other");
+        if m.is_finite() {
+            with_data += 1;
+            assert!((d - f64::from(*m)).abs() <= 0.5 / 256.0 + 1e-9, "Pillow reads {d}, the server meant {m}");
+        }
+    }
+    assert!(with_data > 1000, "the summit's tile holds data: {with_data} pixels");
+}
