@@ -285,6 +285,9 @@ pub async fn web_tile(
 /// # Errors
 /// [`MakeError`] for a layer without web tiles or an archive tile that cannot be read.
 pub fn make_tile(reader: &Reader<MmapSource>, request: &WebTileRequest) -> Result<Option<Vec<u8>>, MakeError> {
+    if let Some(stored) = stored_as_asked(reader, request)? {
+        return Ok(Some(stored));
+    }
     let Some((samples, kind)) = tile_samples(reader, request)? else { return Ok(None) };
     let rgba = match kind {
         Samples::Heights => request.encoding.unwrap_or(HeightEncoding::Terrarium).pixels(&samples),
@@ -292,6 +295,54 @@ pub fn make_tile(reader: &Reader<MmapSource>, request: &WebTileRequest) -> Resul
         Samples::Rgba => samples.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect(),
     };
     request.format.encode(&rgba, request.size).map(Some).map_err(MakeError::Encode)
+}
+
+/// The archive's own tile, when the archive's grid is the Web Mercator XYZ grid (an
+/// archive packed from such a pyramid) and the tile is stored as asked: same size, no
+/// border, the same image format, heights in the encoding asked. None otherwise (the
+/// tile is made, as from any grid).
+///
+/// # Errors
+/// [`MakeError::Tile`] for a stored tile that cannot be read.
+fn stored_as_asked(reader: &Reader<MmapSource>, request: &WebTileRequest) -> Result<Option<Vec<u8>>, MakeError> {
+    use terrastream_format::{ElevationScheme, PayloadCompression, TileFormat, TileKey};
+    let metadata = reader.metadata();
+    let Some(info) = metadata.layers.get(usize::from(request.layer)) else { return Ok(None) };
+    let Some(g) = metadata.georeference.as_ref() else { return Ok(None) };
+    let (Some(origin), Some(scale)) = (g.origin, g.scale) else { return Ok(None) };
+    let mercator = g.crs.as_deref() == Some("EPSG:3857")
+        && (origin[0] + mercator::HALF_WORLD).abs() < 1e-3
+        && (origin[1] - mercator::HALF_WORLD).abs() < 1e-3;
+    let format_matches = matches!(
+        (info.format, request.format),
+        (TileFormat::Png, ImageFormat::Png) | (TileFormat::Webp, ImageFormat::Webp)
+    );
+    let encoding_matches = matches!(
+        (info.elevation.map(|e| e.scheme), request.encoding),
+        (None, None)
+            | (Some(ElevationScheme::Terrarium), Some(HeightEncoding::Terrarium))
+            | (Some(ElevationScheme::TerrainRgb), Some(HeightEncoding::Mapbox))
+    );
+    if !mercator
+        || !format_matches
+        || !encoding_matches
+        || info.border != 0
+        || info.tile_resolution != request.size
+        || info.compression != PayloadCompression::None
+    {
+        return Ok(None);
+    }
+    // The zoom of LOD 0: its tiles span 2 * HALF_WORLD / 2^z metres.
+    let zooms = (2.0 * mercator::HALF_WORLD / (info.tile_world_size * scale[0])).log2();
+    if (zooms - zooms.round()).abs() > 1e-9 || zooms < 0.0 {
+        return Ok(None);
+    }
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a whole, non-negative zoom")]
+    let finest = zooms.round() as u8;
+    let Some(lod) = finest.checked_sub(request.tile.z).filter(|&l| l < info.num_lods) else { return Ok(None) };
+    let Ok(key) = TileKey::new(request.layer, lod, request.tile.x, request.tile.y) else { return Ok(None) };
+    let bad = |e: terrastream_format::Error| MakeError::Tile { key, reason: e.to_string() };
+    Ok(reader.tile(key).map_err(bad)?.map(|bytes| bytes.to_vec()))
 }
 
 /// The samples of a web tile before they are encoded: a height a pixel (NaN: no data) or

@@ -47,7 +47,9 @@ pub fn coverage(metadata: &Metadata, layer: &Layer, size: u32) -> Option<Coverag
     let (a, b) = (world_to_degrees(cx, cz)?, world_to_degrees(cx + spacing, cz)?);
     let metres = haversine(a, b).max(1e-6);
     let lat = a.1.clamp(-MAX_LATITUDE, MAX_LATITUDE).to_radians();
-    let zoom = (2.0 * HALF_WORLD * lat.cos() / (f64::from(size) * metres)).log2().ceil();
+    // (A hundredth of a zoom allowed: a pyramid made on the Web Mercator grid has samples
+    // of exactly a zoom's pixels, which the sphere's radius measures a little smaller.)
+    let zoom = ((2.0 * HALF_WORLD * lat.cos() / (f64::from(size) * metres)).log2() - 0.01).ceil();
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=24")]
     let maxzoom = zoom.clamp(0.0, 24.0) as u8;
     Some(Coverage { bounds, maxzoom })
