@@ -142,35 +142,26 @@ fn errors(a: &[f64], b: &[f64]) -> (f64, f64) {
     (e[e.len() / 2], e[e.len() * 9 / 10])
 }
 
-/// A page with MapLibre GL JS and a style of `tilejson` as terrain and hillshade, in
-/// `folder` (MapLibre's files copied beside it).
+/// The fenced block that follows `<!-- snippet: NAME -->` in `docs/clients.md`: the
+/// documented snippets are the ones run here.
+fn snippet(name: &str) -> String {
+    let doc = std::fs::read_to_string(repo().join("docs/clients.md")).unwrap();
+    let marker = format!("<!-- snippet: {name} -->");
+    let after = &doc[doc.find(&marker).unwrap_or_else(|| panic!("docs/clients.md has no snippet {name}"))..];
+    let start = after.find("```").unwrap();
+    let body = &after[start..];
+    let body = &body[body.find('\n').unwrap() + 1..];
+    body[..body.find("```").unwrap()].to_owned()
+}
+
+/// The documented MapLibre page, in `folder` (MapLibre's files copied beside it).
 fn write_page(folder: &Path, dist: &Path) {
     std::fs::create_dir_all(folder).unwrap();
     for file in ["maplibre-gl.js", "maplibre-gl.css"] {
         std::fs::copy(dist.join(file), folder.join(file)).unwrap();
     }
-    let page = format!(
-        r#"<!doctype html><html><head><meta charset="utf-8">
-<link rel="stylesheet" href="maplibre-gl.css"><script src="maplibre-gl.js"></script>
-<style>html, body {{ margin: 0 }} #map {{ width: {WIDTH}px; height: {HEIGHT}px }}</style></head>
-<body><div id="map"></div><script>
-const url = new URLSearchParams(location.search).get('tilejson');
-window.failures = [];
-fetch(url).then(r => r.json()).then(tj => {{
-  const map = new maplibregl.Map({{
-    container: 'map', attributionControl: false, fadeDuration: 0,
-    bounds: [[tj.bounds[0], tj.bounds[1]], [tj.bounds[2], tj.bounds[3]]],
-    style: {{ version: 8,
-      sources: {{ terrain: {{ type: 'raster-dem', url }}, shade: {{ type: 'raster-dem', url }} }},
-      layers: [ {{ id: 'background', type: 'background', paint: {{ 'background-color': '#ffffff' }} }},
-                {{ id: 'hillshade', type: 'hillshade', source: 'shade' }} ],
-      terrain: {{ source: 'terrain', exaggeration: 1 }} }} }});
-  map.on('error', e => window.failures.push(String(e.error && e.error.message || e)));
-  map.on('idle', () => {{ window.idle = true; }});
-  window.map = map;
-}}).catch(e => window.failures.push('tilejson: ' + e));
-</script></body></html>"#
-    );
+    let page = snippet("maplibre-page");
+    assert!(page.contains(&format!("width: {WIDTH}px; height: {HEIGHT}px")), "the page's map size changed");
     std::fs::write(folder.join("index.html"), page).unwrap();
 }
 
@@ -319,6 +310,18 @@ fn the_elevation_api_agrees_with_gdal_and_names_bad_requests() {
     assert!(median <= 1.5, "cubic: median {median:.2} m");
     let (_, profile) = get(&format!("/v1/tamalpais?locations={}|{}&samples=11", locations[0], locations[1]));
     assert_eq!(profile["results"].as_array().map(Vec::len), Some(11), "{profile}");
+    // The documented curl calls.
+    let calls = snippet("elevation-curl")
+        .replace("\\\n", " ")
+        .replace("http://localhost:8080", &format!("http://127.0.0.1:{}", server.port));
+    let calls: Vec<&str> = calls.lines().filter(|l| l.starts_with("curl ")).collect();
+    assert_eq!(calls.len(), 3, "{calls:?}");
+    for call in calls {
+        let out = Command::new("sh").args(["-c", &format!("{call} --silent --show-error --fail")]).output().unwrap();
+        assert!(out.status.success(), "{call}: {}", String::from_utf8_lossy(&out.stderr));
+        let answer: Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(answer["status"], json!("OK"), "{call}: {answer}");
+    }
     // Outside the data: null.
     let (_, far) = get("/v1/tamalpais?locations=10,10");
     assert_eq!(far["results"][0]["elevation"], Value::Null, "{far}");
