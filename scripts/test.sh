@@ -37,9 +37,10 @@ export PATH="$tools/bin:$PATH"
 
 # The browser clients the tests run unchanged (pinned), installed once into a cache folder.
 npm_cache=${TERRASTREAM_NPM:-$HOME/.cache/terrastream-npm}
-if ! grep -qs '"version": "5.24.1"' "$npm_cache/node_modules/maplibre-gl/package.json"; then
+if ! grep -qs '"version": "5.24.1"' "$npm_cache/node_modules/maplibre-gl/package.json" \
+  || ! grep -qs '"version": "4.5.0"' "$npm_cache/node_modules/pmtiles/package.json"; then
   mkdir -p "$npm_cache"
-  npm install --prefix "$npm_cache" --no-audit --no-fund --silent maplibre-gl@5.24.1
+  npm install --prefix "$npm_cache" --no-audit --no-fund --silent maplibre-gl@5.24.1 pmtiles@4.5.0
 fi
 export TERRASTREAM_NPM="$npm_cache"
 

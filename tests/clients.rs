@@ -4,7 +4,8 @@
 //!   a style with the served TileJSON as `terrain` and `hillshade`; its
 //!   `queryTerrainElevation` at random points against GDAL's bilinear value of the source
 //!   DEM; no tile request fails; a screenshot against a golden. The same page against the
-//!   `export --to xyz` folder served by nginx.
+//!   `export --to xyz` folder served by nginx, and against the PMTiles export (npm
+//!   `pmtiles` protocol).
 //! - The elevation API at the same points, and its error answers.
 //! - A Terrarium PNG tile decoded by Pillow (an independent decoder) against the heights
 //!   the server meant.
@@ -45,14 +46,17 @@ fn maplibre_dist() -> Option<PathBuf> {
     let dist = root.join("node_modules/maplibre-gl/dist");
     let package = std::fs::read_to_string(root.join("node_modules/maplibre-gl/package.json")).ok()?;
     let version: Value = serde_json::from_str(&package).ok()?;
-    (version["version"] == json!(MAPLIBRE) && dist.join("maplibre-gl.js").exists()).then_some(dist)
+    let pmtiles = root.join("node_modules/pmtiles/dist/pmtiles.js").exists();
+    (version["version"] == json!(MAPLIBRE) && dist.join("maplibre-gl.js").exists() && pmtiles).then_some(dist)
 }
 
 fn ready() -> Option<PathBuf> {
     let mut missing = terrastream_testkit::browser::missing();
     let dist = maplibre_dist();
     if dist.is_none() {
-        missing.push("maplibre-gl (npm install --prefix ~/.cache/terrastream-npm maplibre-gl@5.24.1)");
+        missing.push(
+            "maplibre-gl and pmtiles (npm install --prefix ~/.cache/terrastream-npm maplibre-gl@5.24.1 pmtiles@4.5.0)",
+        );
     }
     for tool in ["gdaltransform", "gdallocationinfo"] {
         if Command::new(tool).arg("--version").output().is_err() {
@@ -154,15 +158,20 @@ fn snippet(name: &str) -> String {
     body[..body.find("```").unwrap()].to_owned()
 }
 
-/// The documented MapLibre page, in `folder` (MapLibre's files copied beside it).
+/// The documented MapLibre pages, in `folder` (MapLibre's and pmtiles' files beside
+/// them): `index.html` reads a TileJSON, `pmtiles.html` a PMTiles file.
 fn write_page(folder: &Path, dist: &Path) {
     std::fs::create_dir_all(folder).unwrap();
     for file in ["maplibre-gl.js", "maplibre-gl.css"] {
         std::fs::copy(dist.join(file), folder.join(file)).unwrap();
     }
-    let page = snippet("maplibre-page");
-    assert!(page.contains(&format!("width: {WIDTH}px; height: {HEIGHT}px")), "the page's map size changed");
-    std::fs::write(folder.join("index.html"), page).unwrap();
+    let pmtiles = dist.join("../../pmtiles/dist/pmtiles.js");
+    std::fs::copy(&pmtiles, folder.join("pmtiles.js")).unwrap_or_else(|e| panic!("{}: {e}", pmtiles.display()));
+    for (name, file) in [("maplibre-page", "index.html"), ("maplibre-pmtiles-page", "pmtiles.html")] {
+        let page = snippet(name);
+        assert!(page.contains(&format!("width: {WIDTH}px; height: {HEIGHT}px")), "{name}: the map's size changed");
+        std::fs::write(folder.join(file), page).unwrap();
+    }
 }
 
 /// Loads the page with `tilejson`, waits until MapLibre is idle, and returns its
@@ -235,6 +244,9 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
     let root = dir.path().join("www");
     let xyz = root.join("xyz");
     terrastream(&["export", archive.to_str().unwrap(), "--to", "xyz", "-o", xyz.to_str().unwrap()]);
+    let pmtiles_file = root.join("tamalpais.pmtiles");
+    let (a, p) = (archive.to_str().unwrap(), pmtiles_file.to_str().unwrap());
+    terrastream(&["export", a, "--to", "pmtiles", "--encoding", "terrarium", "-o", p]);
     write_page(&root, &dist);
     write_page(&xyz, &dist);
     let Some(nginx) = terrastream_testkit::nginx::start_nginx(
@@ -252,8 +264,10 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
     );
     let exported =
         format!("http://127.0.0.1:{0}/xyz/index.html?tilejson=http://127.0.0.1:{0}/xyz/tiles.json", nginx.port);
+    let pmtiles =
+        format!("http://127.0.0.1:{0}/pmtiles.html?pmtiles=http://127.0.0.1:{0}/tamalpais.pmtiles", nginx.port);
     let mut pictures = Vec::new();
-    for (name, page) in [("served", served), ("exported", exported)] {
+    for (name, page) in [("served", served), ("exported", exported), ("PMTiles", pmtiles)] {
         let (heights, picture) = maplibre_run(&browser, &page, &points);
         assert!(heights.iter().all(Option::is_some), "{name}: MapLibre has no height at some points: {heights:?}");
         let heights: Vec<f64> = heights.into_iter().flatten().collect();
@@ -264,9 +278,11 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
     }
     let (w, h, rgba) = &pictures[0];
     terrastream_testkit::golden::assert_golden("maplibre-hillshade", *w, *h, rgba, TOLERANCE);
-    // Bit for bit the same tiles: the two pictures are one.
-    let (mean, _) = terrastream_testkit::golden::difference(rgba, &pictures[1].2, 0);
-    assert!(mean < 0.01, "the exported tiles draw differently from the served ones: mean difference {mean}");
+    // Bit for bit the same tiles: the pictures are one.
+    for (name, picture) in ["exported", "PMTiles"].iter().zip(&pictures[1..]) {
+        let (mean, _) = terrastream_testkit::golden::difference(rgba, &picture.2, 0);
+        assert!(mean < 0.01, "the {name} tiles draw differently from the served ones: mean difference {mean}");
+    }
 }
 
 #[test]

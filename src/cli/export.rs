@@ -5,10 +5,11 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_format::{LayerKind, Reader};
+use terrastream_format::{LayerKind, MmapSource, Reader, zxy_to_tile_id};
 use terrastream_pack::progress::Progress;
 use terrastream_server::web::encode::{HeightEncoding, ImageFormat};
-use terrastream_server::web::export::{WebExport, export_xyz};
+use terrastream_server::web::export::{WebExport, export_xyz, make_tiles, planned_tiles};
+use terrastream_server::web::tilejson::coverage;
 
 use super::CliProgress;
 
@@ -26,8 +27,8 @@ pub struct ExportArgs {
     /// Output file (pmtiles) or folder (xyz); written under a temporary name, then renamed.
     #[arg(short, long)]
     output: PathBuf,
-    /// Web tiles' height encoding (`--to xyz`; with `--to pmtiles`, web tiles instead of
-    /// the archive's own).
+    /// Web tiles' height encoding (`--to xyz`; with `--to pmtiles`, Web Mercator tiles
+    /// instead of the archive's own: a `raster-dem` for MapLibre's pmtiles protocol).
     #[arg(long, value_enum)]
     encoding: Option<EncodingArg>,
     /// Web tiles' image format.
@@ -71,8 +72,7 @@ enum FormatArg {
 pub fn run(args: ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     match args.to {
         ExportFormat::Pmtiles if args.encoding.is_none() => run_pmtiles(&args, progress),
-        ExportFormat::Pmtiles => bail!("--to pmtiles with --encoding: not offered yet (use --to xyz)"),
-        ExportFormat::Xyz => run_xyz(&args, progress),
+        ExportFormat::Pmtiles | ExportFormat::Xyz => run_web(&args, progress),
     }
 }
 
@@ -97,8 +97,8 @@ fn run_pmtiles(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Web Mercator tiles and their TileJSON, in a folder.
-fn run_xyz(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
+/// Web Mercator tiles: with their TileJSON in a folder, or as a PMTiles file.
+fn run_web(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     let reader = Reader::open_mmap(&args.archive).with_context(|| format!("cannot open archive {}", args.archive))?;
     let meta = reader.metadata();
     let index = match &args.layer {
@@ -130,6 +130,9 @@ fn run_xyz(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
         progress.advance(1);
         progress.check().map_err(|_| terrastream_format::Interrupted)
     };
+    if matches!(args.to, ExportFormat::Pmtiles) {
+        return web_pmtiles(&reader, &export, args, progress, started);
+    }
     let summary = export_xyz(&reader, &export, &args.output, args.base_url.as_deref(), &tick)
         .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
     progress.finish();
@@ -141,6 +144,59 @@ fn run_xyz(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
         summary.tiles,
         summary.empty,
         summary.bytes,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The web tiles as a PMTiles file (a `raster-dem` for MapLibre's pmtiles protocol).
+fn web_pmtiles(
+    reader: &Reader<MmapSource>,
+    export: &WebExport,
+    args: &ExportArgs,
+    progress: &CliProgress,
+    started: std::time::Instant,
+) -> Result<ExitCode> {
+    let (tiles, zooms) = planned_tiles(reader, export)?;
+    progress.start("tiles", tiles.len() as u64);
+    let tick = || {
+        progress.advance(1);
+        progress.check().map_err(|_| terrastream_format::Interrupted)
+    };
+    let mut made = Vec::with_capacity(tiles.len());
+    make_tiles(reader, export, &tiles, 0, &tick, &mut |tile, bytes| {
+        made.push((zxy_to_tile_id(tile.z, tile.x, tile.y), bytes));
+        Ok(())
+    })?;
+    made.sort_by_key(|(id, _)| *id);
+    let meta = reader.metadata();
+    let info = &meta.layers[usize::from(export.layer)];
+    let cover = coverage(meta, info, export.size).context("the archive does not say where it lies")?;
+    let metadata = serde_json::json!({
+        "name": meta.name,
+        "type": "baselayer",
+        "format": export.format.extension(),
+        "encoding": export.encoding.map(HeightEncoding::name),
+        "tileSize": export.size,
+        "minzoom": zooms.0,
+        "maxzoom": zooms.1,
+        "bounds": cover.bounds,
+    });
+    let tile_type = match export.format {
+        ImageFormat::Png => 2,
+        ImageFormat::Webp => 4,
+    };
+    let summary =
+        terrastream_pack::export::pmtiles::write_pmtiles(&args.output, &made, tile_type, cover.bounds, &metadata)?;
+    progress.finish();
+    println!(
+        "{}: PMTiles v3 of web tiles, zooms {}..{}, {} tiles ({} distinct), {} bytes in {:.2} s",
+        args.output.display(),
+        zooms.0,
+        zooms.1,
+        summary.addressed_tiles,
+        summary.tile_contents,
+        summary.file_len,
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)

@@ -161,6 +161,71 @@ pub fn export_pmtiles<S: RangeSource>(
     })
 }
 
+/// Writes `tiles` (PMTiles tile id and file bytes, in id order) as a PMTiles v3 file at
+/// `out` (temporary name, fsync, rename): identical tiles stored once (and runs of them
+/// addressed by one entry), `tile_type` as PMTiles numbers it (2 PNG, 4 WebP), uncompressed
+/// tiles, `metadata` as its JSON metadata. What `export --to pmtiles --encoding` writes of
+/// web tiles.
+///
+/// # Errors
+/// [`Error::File`] on write failure.
+pub fn write_pmtiles(
+    out: &Path,
+    tiles: &[(u64, Vec<u8>)],
+    tile_type: u8,
+    bounds: [f64; 4],
+    metadata: &serde_json::Value,
+) -> Result<PmtilesSummary> {
+    let mut offsets: HashMap<&[u8], u64> = HashMap::new();
+    let mut rows: Vec<Row> = Vec::new();
+    let mut first_use = Vec::new();
+    let mut data_len = 0u64;
+    for (id, bytes) in tiles {
+        let len = u32::try_from(bytes.len()).map_err(|_| Error::too_large("a PMTiles tile", bytes.len()))?;
+        let fresh = !offsets.contains_key(bytes.as_slice());
+        let offset = *offsets.entry(bytes.as_slice()).or_insert_with(|| {
+            let o = data_len;
+            data_len += u64::from(len);
+            o
+        });
+        match rows.last_mut() {
+            Some(last) if !fresh && last.2 == offset && last.0 + u64::from(last.1) == *id => last.1 += 1,
+            _ => rows.push((*id, 1, offset, len)),
+        }
+        first_use.push(fresh);
+    }
+    let layout = Layout { rows, first_use, data_len, contents: offsets.len() as u64 };
+    let (root, leaves) = directories(&layout.rows)?;
+    let metadata = gzip(&serde_json::to_vec(metadata).map_err(|e| Error::metadata(&e))?)?;
+    let sections = [root.len(), metadata.len(), leaves.len()].map(|n| n as u64);
+    let header = header_of(&layout, sections, (tile_type, 1), Some(bounds));
+    let folder = crate::writer::output_folder(out);
+    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
+        .tempfile_in(&folder)
+        .map_err(|e| Error::file(&folder, e))?;
+    let io = |e: std::io::Error| Error::file(out, e);
+    {
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, file.as_file_mut());
+        for part in [&header, &root, &metadata, &leaves] {
+            w.write_all(part).map_err(io)?;
+        }
+        for ((_, bytes), fresh) in tiles.iter().zip(&layout.first_use) {
+            if *fresh {
+                w.write_all(bytes).map_err(io)?;
+            }
+        }
+        w.flush().map_err(io)?;
+    }
+    file.as_file().sync_all().map_err(io)?;
+    file.persist(out).map_err(|e| Error::file(out, e.error))?;
+    Ok(PmtilesSummary {
+        addressed_tiles: layout.addressed(),
+        tile_entries: layout.rows.len() as u64,
+        tile_contents: layout.contents,
+        file_len: HEADER_LEN + sections.iter().sum::<u64>() + layout.data_len,
+    })
+}
+
 /// Where the layer's blobs go in the PMTiles file: without our checksum trailer, back to
 /// back, each at its first use.
 struct Layout {
@@ -212,7 +277,26 @@ fn metadata_json(meta: &Metadata, info: &Layer) -> Result<Vec<u8>> {
 
 /// The 127-byte PMTiles v3 header: sections (root, metadata, leaves) in that order after
 /// it, then the data; zooms, bounds (the world's Web Mercator range without them), centre.
-fn header(layout: &Layout, [root, metadata, leaves]: [u64; 3], info: &Layer, bounds: Option<[f64; 4]>) -> Vec<u8> {
+fn header(layout: &Layout, sections: [u64; 3], info: &Layer, bounds: Option<[f64; 4]>) -> Vec<u8> {
+    let tile_type = match info.format {
+        TileFormat::Png => 2,
+        TileFormat::Jpeg => 3,
+        TileFormat::Webp => 4,
+        _ => 0,
+    };
+    // PMTiles has no name for gradient-coded samples: "unknown", and the layer in the
+    // metadata (`terrastream.layer.compression`) says what they are.
+    let tile_compression = match info.compression {
+        PayloadCompression::None => 1,
+        PayloadCompression::Zstd => 4,
+        PayloadCompression::ZstdGradient => 0,
+    };
+    header_of(layout, sections, (tile_type, tile_compression), bounds)
+}
+
+/// The header of `layout` with sections of these lengths, tiles of PMTiles type and
+/// compression `kind`.
+fn header_of(layout: &Layout, [root, metadata, leaves]: [u64; 3], kind: (u8, u8), bounds: Option<[f64; 4]>) -> Vec<u8> {
     let bounds = bounds.unwrap_or([-180.0, -85.051_13, 180.0, 85.051_13]);
     let zooms = layout.rows.iter().map(|r| tile_id_to_zxy(r.0).0);
     let (min_zoom, max_zoom) = (zooms.clone().min().unwrap_or(0), zooms.max().unwrap_or(0));
@@ -238,20 +322,7 @@ fn header(layout: &Layout, [root, metadata, leaves]: [u64; 3], info: &Layer, bou
     ] {
         h.extend_from_slice(&v.to_le_bytes());
     }
-    let tile_type = match info.format {
-        TileFormat::Png => 2,
-        TileFormat::Jpeg => 3,
-        TileFormat::Webp => 4,
-        _ => 0,
-    };
-    // PMTiles has no name for gradient-coded samples: "unknown", and the layer in the
-    // metadata (`terrastream.layer.compression`) says what they are.
-    let tile_compression = match info.compression {
-        PayloadCompression::None => 1,
-        PayloadCompression::Zstd => 4,
-        PayloadCompression::ZstdGradient => 0,
-    };
-    h.extend_from_slice(&[1, 2, tile_compression, tile_type, min_zoom, max_zoom]);
+    h.extend_from_slice(&[1, 2, kind.1, kind.0, min_zoom, max_zoom]);
     for v in [bounds[0], bounds[1], bounds[2], bounds[3]] {
         h.extend_from_slice(&e7(v).to_le_bytes());
     }
