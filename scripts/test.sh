@@ -42,6 +42,15 @@ if ! grep -qs '"version": "5.24.1"' "$npm_cache/node_modules/maplibre-gl/package
   mkdir -p "$npm_cache"
   npm install --prefix "$npm_cache" --no-audit --no-fund --silent maplibre-gl@5.24.1 pmtiles@4.5.0
 fi
+# deck.gl: its standalone bundle and the terrain worker it loads (the packages'
+# dependencies weigh 600 MB).
+if ! [ -f "$npm_cache/deck.gl-9.2.6/terrain-worker.js" ]; then
+  mkdir -p "$npm_cache/deck.gl-9.2.6"
+  (cd "$npm_cache" && npm pack --silent deck.gl@9.2.6 @loaders.gl/terrain@4.2.1 >/dev/null \
+    && tar -xzf deck.gl-9.2.6.tgz -C deck.gl-9.2.6 --strip-components=1 package/dist.min.js \
+    && tar -xzf loaders.gl-terrain-4.2.1.tgz -C deck.gl-9.2.6 --strip-components=2 package/dist/terrain-worker.js \
+    && rm deck.gl-9.2.6.tgz loaders.gl-terrain-4.2.1.tgz)
+fi
 export TERRASTREAM_NPM="$npm_cache"
 
 # One clean build: incremental caches would only add gigabytes of disk for nothing.

@@ -24,6 +24,8 @@ use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
 const DEM: &str = "packer/pack/data/srtm-tamalpais-320-public-domain.tif";
 /// The MapLibre GL JS release the tests load (installed by `scripts/test.sh`).
 const MAPLIBRE: &str = "5.24.1";
+/// The deck.gl release the tests load (its bundle, installed by `scripts/test.sh`).
+const DECKGL: &str = "9.2.6";
 const WIDTH: u32 = 640;
 const HEIGHT: u32 = 400;
 /// Random points inside the data.
@@ -283,6 +285,67 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
         let (mean, _) = terrastream_testkit::golden::difference(rgba, &picture.2, 0);
         assert!(mean < 0.01, "the {name} tiles draw differently from the served ones: mean difference {mean}");
     }
+}
+
+/// deck.gl's standalone bundle, from the npm cache `scripts/test.sh` fills.
+fn deckgl_bundle() -> Option<PathBuf> {
+    let root = std::env::var_os("TERRASTREAM_NPM")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/terrastream-npm"));
+    let bundle = root.join(format!("deck.gl-{DECKGL}/dist.min.js"));
+    (bundle.exists() && bundle.with_file_name("terrain-worker.js").exists()).then_some(bundle)
+}
+
+#[test]
+fn deckgl_meshes_the_served_terrain() {
+    let mut missing = terrastream_testkit::browser::missing();
+    let bundle = deckgl_bundle();
+    if bundle.is_none() {
+        missing.push("deck.gl's bundle (scripts/test.sh: npm pack deck.gl@9.2.6)");
+    }
+    if !terrastream_testkit::browser::skip_or_fail("DECK.GL", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let root = dir.path().join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    let bundle = bundle.unwrap();
+    std::fs::copy(&bundle, root.join("deck.gl.min.js")).unwrap();
+    std::fs::copy(bundle.with_file_name("terrain-worker.js"), root.join("terrain-worker.js")).unwrap();
+    let page = snippet("deckgl-page");
+    assert!(page.contains(&format!("width: {WIDTH}px; height: {HEIGHT}px")), "the map's size changed");
+    std::fs::write(root.join("index.html"), page).unwrap();
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { text/html html; application/javascript js; } }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    browser.goto(&format!(
+        "http://127.0.0.1:{}/index.html?tilejson=http://127.0.0.1:{}/tamalpais/tiles.json",
+        nginx.port, server.port
+    ));
+    let started = Instant::now();
+    loop {
+        let state = browser.eval("return [!!(window.terrain && window.terrain.isLoaded), window.failures];");
+        assert_eq!(state[1], json!([]), "deck.gl reported errors: console {:?}", browser.console());
+        if state[0] == json!(true) {
+            break;
+        }
+        assert!(started.elapsed() < Duration::from_secs(90), "deck.gl never loaded its view: {:?}", browser.console());
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let (w, h, rgba) = browser.screenshot("#map");
+    // Terrain drawn: most of the view is the mesh's colour, not the empty background.
+    let drawn = rgba.chunks_exact(4).filter(|p| p[3] > 0 && (p[0], p[1], p[2]) != (255, 255, 255)).count();
+    assert!(drawn * 3 > (w * h) as usize, "deck.gl drew terrain over only {drawn} of {} pixels", w * h);
+    terrastream_testkit::golden::assert_golden("deckgl-terrain", w, h, &rgba, TOLERANCE);
 }
 
 #[test]

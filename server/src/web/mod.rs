@@ -48,13 +48,17 @@ pub struct WebState {
     pub pool: Pool,
     /// Tiles made, by what they are.
     pub made: Lru<MadeKey>,
+    /// Archive tiles decoded for them.
+    pub decoded: resample::DecodedCache,
 }
 
 impl WebState {
     /// `threads` tile-making threads (0: the cores) behind `queue` waiting jobs, and up to
     /// `cache_bytes` of made tiles kept.
     pub fn new(threads: usize, queue: usize, cache_bytes: usize) -> Self {
-        Self { pool: Pool::new(threads, queue), made: Lru::new(cache_bytes) }
+        // Decoded tiles weigh about four times their stored bytes: a quarter of the budget
+        // keeps a few hundred of them, what the web tiles of a city's worth of zooms read.
+        Self { pool: Pool::new(threads, queue), made: Lru::new(cache_bytes), decoded: Lru::new(cache_bytes / 4) }
     }
 }
 
@@ -256,10 +260,14 @@ pub async fn web_tile(
     let bytes = match state.web.made.get(&key) {
         Some(bytes) => bytes,
         None => {
+            let web = std::sync::Arc::clone(&state.web);
             let made = state
                 .web
                 .pool
-                .run(move || make_tile(&served.reader, &request))
+                .run(move || {
+                    let version = xxhash_rust::xxh3::xxh3_64(served.etag.as_bytes());
+                    make_tile_cached(&served.reader, &request, Some((&web.decoded, version)))
+                })
                 .await
                 .map_err(|_| WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
                 .map_err(|e| {
@@ -285,10 +293,23 @@ pub async fn web_tile(
 /// # Errors
 /// [`MakeError`] for a layer without web tiles or an archive tile that cannot be read.
 pub fn make_tile(reader: &Reader<MmapSource>, request: &WebTileRequest) -> Result<Option<Vec<u8>>, MakeError> {
+    make_tile_cached(reader, request, None)
+}
+
+/// [`make_tile`], keeping the archive tiles it decodes in `cache` (with the archive's
+/// version number).
+///
+/// # Errors
+/// As [`make_tile`].
+pub fn make_tile_cached(
+    reader: &Reader<MmapSource>,
+    request: &WebTileRequest,
+    cache: Option<(&resample::DecodedCache, u64)>,
+) -> Result<Option<Vec<u8>>, MakeError> {
     if let Some(stored) = stored_as_asked(reader, request)? {
         return Ok(Some(stored));
     }
-    let Some((samples, kind)) = tile_samples(reader, request)? else { return Ok(None) };
+    let Some((samples, kind)) = samples_cached(reader, request, cache)? else { return Ok(None) };
     let rgba = match kind {
         Samples::Heights => request.encoding.unwrap_or(HeightEncoding::Terrarium).pixels(&samples),
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
@@ -356,7 +377,18 @@ pub fn tile_samples(
     reader: &Reader<MmapSource>,
     request: &WebTileRequest,
 ) -> Result<Option<(Vec<f32>, Samples)>, MakeError> {
-    let placed = Placed::new(reader, request.layer).ok_or(MakeError::NotPlaced)?;
+    samples_cached(reader, request, None)
+}
+
+fn samples_cached(
+    reader: &Reader<MmapSource>,
+    request: &WebTileRequest,
+    cache: Option<(&resample::DecodedCache, u64)>,
+) -> Result<Option<(Vec<f32>, Samples)>, MakeError> {
+    let mut placed = Placed::new(reader, request.layer).ok_or(MakeError::NotPlaced)?;
+    if let Some((cache, version)) = cache {
+        placed = placed.with_cache(cache, version);
+    }
     let size = request.size as usize;
     let positions = placed.positions(request.tile, size);
     // World units per output pixel, at the tile's centre.

@@ -56,9 +56,15 @@ pub enum MakeError {
     },
 }
 
+/// Decoded archive tiles kept between web tiles (neighbouring web tiles and zooms read the
+/// same archive tiles), by the archive's version and the tile.
+pub type DecodedCache = super::cache::Lru<(u64, TileKey), Arc<DecodedTile>>;
+
 /// An archive layer on the Earth: what web tiles are made from.
 pub struct Placed<'a> {
     reader: &'a Reader<MmapSource>,
+    /// Decoded tiles kept, and this archive version's number in it.
+    cache: Option<(&'a DecodedCache, u64)>,
     index: u8,
     layer: &'a Layer,
     samples: Samples,
@@ -88,7 +94,15 @@ impl<'a> Placed<'a> {
         let g = metadata.georeference.as_ref()?;
         let crs = Crs::parse(g.definition.as_deref().or(g.crs.as_deref())?).ok()?;
         let to_archive = Transform::new(&Crs::wgs84(), &crs);
-        Some(Self { reader, index, layer, samples, to_archive, origin: g.origin?, scale: g.scale? })
+        Some(Self { reader, cache: None, index, layer, samples, to_archive, origin: g.origin?, scale: g.scale? })
+    }
+
+    /// Keeps decoded archive tiles in `cache`, under `version` (the archive's content tag:
+    /// a replaced archive's tiles are other entries).
+    #[must_use]
+    pub fn with_cache(mut self, cache: &'a DecodedCache, version: u64) -> Self {
+        self.cache = Some((cache, version));
+        self
     }
 
     /// What the layer's samples are.
