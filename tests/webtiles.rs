@@ -218,3 +218,81 @@ fn a_flood_of_cold_tiles_is_bounded_and_the_rest_keeps_answering() {
     // tens of milliseconds each).
     assert!(p99(&flooded) <= (4.0 * p99(&alone)).max(100.0), "{:.2} ms vs {:.2} ms", p99(&flooded), p99(&alone));
 }
+
+/// An imagery layer is a `raster` source too: its web tile's pixels are the source
+/// image's at the same places (GDAL's value of the image, bilinear between its pixels).
+#[test]
+fn imagery_web_tiles_hold_the_source_images_pixels() {
+    if Command::new("gdalinfo").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let dem = terrastream_testkit::golden::repo().join(DEM);
+    // The DEM's hillshade: an image on the DEM's own grid, made by GDAL.
+    let shade = dir.path().join("shade.tif");
+    let out = Command::new("gdaldem").args(["hillshade", "-q"]).arg(&dem).arg(&shade).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let archive = dir.path().join("shaded.tspack");
+    let (d, s, a) = (dem.to_str().unwrap(), shade.to_str().unwrap(), archive.to_str().unwrap());
+    terrastream(&["tile", "--elevation", d, "--texture", s, "-o", a]);
+    let server = terrastream_testkit::server::spawn_serve(exe(), &[a], dir.path());
+    let (status, head, body) = get(server.port, "/shaded/texture/tiles.json", &[]);
+    assert_eq!(status, 200, "{head}");
+    let tilejson: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(tilejson["type"], serde_json::json!("raster"), "{tilejson}");
+    assert!(tilejson.get("encoding").is_none(), "{tilejson}");
+    // The tile over the summit, as PNG; pixels compared at a grid of points inside it.
+    let (z, x, y) = (13u32, 1306u32, 3162u32);
+    let (status, head, png) = get(server.port, &format!("/shaded/xyz/texture/{z}/{x}/{y}.png?size=256"), &[]);
+    assert_eq!(status, 200, "{head}");
+    let (w, h, rgba) = terrastream_testkit::golden::decode_png(&png);
+    assert_eq!((w, h), (256, 256));
+    let n = f64::from(1u32 << z);
+    let lon_lat = |u: f64, v: f64| {
+        let (fx, fy) = ((f64::from(x) + u / 256.0) / n, (f64::from(y) + v / 256.0) / n);
+        (fx * 360.0 - 180.0, (std::f64::consts::PI * (1.0 - 2.0 * fy)).sinh().atan().to_degrees())
+    };
+    let mut points = Vec::new();
+    for j in 0..8 {
+        for i in 0..8 {
+            points.push((i * 32 + 16, j * 32 + 16));
+        }
+    }
+    let input: String = points
+        .iter()
+        .map(|&(u, v)| {
+            let (lon, lat) = lon_lat(f64::from(u) + 0.5, f64::from(v) + 0.5);
+            format!("{lon} {lat}\n")
+        })
+        .collect();
+    let mut child = Command::new("gdallocationinfo")
+        .args(["-valonly", "-wgs84", shade.to_str().unwrap()])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::io::Write::write_all(&mut child.stdin.take().unwrap(), input.as_bytes()).unwrap();
+    let out = child.wait_with_output().unwrap();
+    let gdal: Vec<Option<f64>> =
+        String::from_utf8(out.stdout).unwrap().lines().map(|l| l.trim().parse().ok()).collect();
+    assert_eq!(gdal.len(), points.len());
+    let mut compared = 0;
+    let mut total = 0.0;
+    for (&(u, v), g) in points.iter().zip(&gdal) {
+        let px = &rgba[(v as usize * 256 + u as usize) * 4..][..4];
+        // hillshade leaves its edge pixels without data (0): those are not compared.
+        let Some(g) = g.filter(|&g| g > 0.0) else { continue };
+        if px[3] == 0 {
+            continue;
+        }
+        assert!(px[0] == px[1] && px[1] == px[2], "a gray image stays gray: {px:?}");
+        total += (f64::from(px[0]) - g).abs();
+        compared += 1;
+    }
+    assert!(compared >= 40, "{compared} points compared");
+    let mean = total / f64::from(compared);
+    eprintln!("imagery web tile against GDAL's nearest image pixel: mean |difference| {mean:.1} of 255");
+    // GDAL's value is its nearest pixel; ours is bilinear between pixels: a few levels.
+    assert!(mean < 12.0, "mean difference {mean:.1} of 255");
+}

@@ -217,6 +217,8 @@ pub fn along(points: &[(f64, f64)], n: usize) -> Vec<(f64, f64)> {
 /// The elevation layer of an archive, placed on the Earth: what the API reads.
 pub struct Heights<'a> {
     reader: &'a Reader<MmapSource>,
+    /// Decoded tiles kept between requests, and this archive version's number in it.
+    cache: Option<(&'a super::resample::DecodedCache, u64)>,
     layer: u8,
     to_archive: Transform,
     origin: [f64; 2],
@@ -232,11 +234,20 @@ impl<'a> Heights<'a> {
         let crs = Crs::parse(g.definition.as_deref().or(g.crs.as_deref())?).ok()?;
         Some(Self {
             reader,
+            cache: None,
             layer,
             to_archive: Transform::new(&Crs::wgs84(), &crs),
             origin: g.origin?,
             scale: g.scale?,
         })
+    }
+
+    /// Keeps decoded tiles in `cache` under `version` (the archive's content tag), shared
+    /// with the web tiles.
+    #[must_use]
+    pub fn with_cache(mut self, cache: &'a super::resample::DecodedCache, version: u64) -> Self {
+        self.cache = Some((cache, version));
+        self
     }
 
     /// The height at each point (None: no data there).
@@ -307,11 +318,20 @@ impl<'a> Heights<'a> {
         if let Some(t) = tiles.get(&key) {
             return Ok(t.clone());
         }
+        if let Some((cache, version)) = self.cache
+            && let Some(t) = cache.get(&(version, key))
+        {
+            tiles.insert(key, Some(Arc::clone(&t)));
+            return Ok(Some(t));
+        }
         let info = &self.reader.metadata().layers[usize::from(self.layer)];
         let tile = match self.reader.tile(key).map_err(|e| format!("tile {key}: {e}"))? {
             Some(bytes) => Some(Arc::new(decode(info, key, &bytes, true).map_err(|e| e.to_string())?)),
             None => None,
         };
+        if let (Some((cache, version)), Some(t)) = (self.cache, &tile) {
+            cache.put((version, key), Arc::clone(t));
+        }
         tiles.insert(key, tile.clone());
         Ok(tile)
     }

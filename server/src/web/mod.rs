@@ -455,11 +455,15 @@ async fn elevation_answer(state: &AppState, name: &str, query: &elevation::Query
     };
     let job_points = points.clone();
     let dataset = name.to_owned();
+    let web = std::sync::Arc::clone(&state.web);
     let heights = state
         .web
         .pool
         .run(move || {
-            let heights = elevation::Heights::new(&served.reader).ok_or("the archive has no placed elevation")?;
+            let version = xxhash_rust::xxh3::xxh3_64(served.etag.as_bytes());
+            let heights = elevation::Heights::new(&served.reader)
+                .ok_or("the archive has no placed elevation")?
+                .with_cache(&web.decoded, version);
             heights.at(&job_points.points, job_points.interpolation).map_err(|e| {
                 tracing::error!("elevation of {dataset:?}: {e}");
                 "an archive tile could not be read"
