@@ -72,7 +72,12 @@ impl AppState {
             metrics: Arc::new(Metrics::default()),
             cache_control: HeaderValue::from_str(&config.cache_control)
                 .unwrap_or_else(|_| HeaderValue::from_static("no-cache")),
-            web: Arc::new(crate::web::WebState::new(config.web_threads, config.web_queue, config.web_cache_bytes)),
+            web: Arc::new(crate::web::WebState::new(
+                config.web_threads,
+                config.web_queue,
+                config.web_cache_bytes,
+                config.web_decoded_bytes,
+            )),
             config: Arc::new(config),
         }))
     }

@@ -54,6 +54,9 @@ pub struct ServerConfig {
     pub web_queue: usize,
     /// Bytes of made web tiles kept (least recently used dropped first).
     pub web_cache_bytes: usize,
+    /// Bytes of archive tiles kept decoded for web tiles and the elevation API
+    /// (neighbouring web tiles and zooms read the same archive tiles).
+    pub web_decoded_bytes: usize,
     /// Locations one elevation request may ask for (Open Topo Data's default: 100).
     pub max_locations: usize,
 }
@@ -78,6 +81,7 @@ impl Default for ServerConfig {
             web_threads: 0,
             web_queue: 64,
             web_cache_bytes: 256 << 20,
+            web_decoded_bytes: 256 << 20,
             max_locations: 100,
         }
     }

@@ -53,12 +53,10 @@ pub struct WebState {
 }
 
 impl WebState {
-    /// `threads` tile-making threads (0: the cores) behind `queue` waiting jobs, and up to
-    /// `cache_bytes` of made tiles kept.
-    pub fn new(threads: usize, queue: usize, cache_bytes: usize) -> Self {
-        // Decoded tiles weigh about four times their stored bytes: a quarter of the budget
-        // keeps a few hundred of them, what the web tiles of a city's worth of zooms read.
-        Self { pool: Pool::new(threads, queue), made: Lru::new(cache_bytes), decoded: Lru::new(cache_bytes / 4) }
+    /// `threads` tile-making threads (0: the cores) behind `queue` waiting jobs, up to
+    /// `cache_bytes` of made tiles and `decoded_bytes` of decoded archive tiles kept.
+    pub fn new(threads: usize, queue: usize, cache_bytes: usize, decoded_bytes: usize) -> Self {
+        Self { pool: Pool::new(threads, queue), made: Lru::new(cache_bytes), decoded: Lru::new(decoded_bytes) }
     }
 }
 

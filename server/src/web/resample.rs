@@ -241,7 +241,7 @@ impl Window {
                 continue;
             }
             #[expect(clippy::cast_possible_truncation, reason = "inside the layer's grid")]
-            let (i, j) = ((x / spacing - 0.5).floor() as i64, (z / spacing - 0.5).floor() as i64);
+            let (i, j) = (floor(x / spacing - 0.5) as i64, floor(z / spacing - 0.5) as i64);
             bounds = (bounds.0.min(i), bounds.1.min(j), bounds.2.max(i + 1), bounds.3.max(j + 1));
         }
         if bounds.0 > bounds.2 {
@@ -295,6 +295,22 @@ impl Window {
         }
         let Some((shift, tile)) = source else { return Ok(()) };
         let border = i64::from(tile.border);
+        if shift == 0
+            && x0 < x1
+            && let TileData::Heights { heights, .. } = &tile.data
+        {
+            // The tile's own samples: a row at a time (NaN is no data in both).
+            let size = tile.size as usize;
+            let len = (x1 - x0) as usize;
+            for gy in y0..y1 {
+                let src = (gy - gy0 + border) as usize * size + (x0 - gx0 + border) as usize;
+                let dst = (gy - self.first.1) as usize * self.size.0 + (x0 - self.first.0) as usize;
+                if let (Some(from), Some(to)) = (heights.get(src..src + len), self.values.get_mut(dst..dst + len)) {
+                    to.copy_from_slice(from);
+                }
+            }
+            return Ok(());
+        }
         let scale = f64::from(1u32 << shift);
         let (ox, oy) = (i64::from(tile.key.x()) * res, i64::from(tile.key.y()) * res);
         for gy in y0..y1 {
@@ -326,7 +342,12 @@ impl Window {
     )]
     fn bilinear(&self, x: f64, z: f64) -> Option<[f32; 4]> {
         let (gx, gz) = (x / self.spacing - 0.5, z / self.spacing - 0.5);
-        let (fi, fj) = (gx.floor(), gz.floor());
+        let (fi, fj) = (floor(gx), floor(gz));
+        if self.channels == 1
+            && let Some(h) = self.height_inside(fi as i64, fj as i64, (gx - fi) as f32, (gz - fj) as f32)
+        {
+            return Some([h, 0.0, 0.0, 0.0]);
+        }
         let (fx, fz) = (gx - fi, gz - fj);
         let (i, j) = (fi as i64, fj as i64);
         if i < -1 || j < -1 || i >= self.grid.0 || j >= self.grid.1 {
@@ -361,6 +382,32 @@ impl Window {
         let out = sum.map(|s| (s / weight) as f32);
         Some(out)
     }
+}
+
+impl Window {
+    /// The bilinear height at sample position `(i + fx, j + fz)` when its four samples lie
+    /// in the window and all hold data (the common case, without the general path's
+    /// per-corner checks); None otherwise.
+    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "checked to be inside the window")]
+    fn height_inside(&self, i: i64, j: i64, fx: f32, fz: f32) -> Option<f32> {
+        let (wi, wj) = (i - self.first.0, j - self.first.1);
+        if wi < 0 || wj < 0 || wi + 1 >= self.size.0 as i64 || wj + 1 >= self.size.1 as i64 {
+            return None;
+        }
+        let at = wj as usize * self.size.0 + wi as usize;
+        let (top, bottom) = (self.values.get(at..at + 2)?, self.values.get(at + self.size.0..at + self.size.0 + 2)?);
+        let h = (top[0] * (1.0 - fx) + top[1] * fx) * (1.0 - fz) + (bottom[0] * (1.0 - fx) + bottom[1] * fx) * fz;
+        // A NaN corner (no data) makes the sum NaN: the general path re-weights then.
+        h.is_finite().then_some(h)
+    }
+}
+
+/// `v` rounded down, without a call to the C library (x86-64's baseline has no rounding
+/// instruction, and `f64::floor` became a call per sample).
+#[expect(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "sample positions, far below 2^52")]
+fn floor(v: f64) -> f64 {
+    let t = v as i64 as f64;
+    if t > v { t - 1.0 } else { t }
 }
 
 /// Texel `(i, j)` of a decoded tile (borders included) as up to four values; None
@@ -415,6 +462,12 @@ impl Tiles<'_, '_> {
         if let Some(t) = self.decoded.get(&key) {
             return Ok(t.clone());
         }
+        if let Some((cache, version)) = self.placed.cache
+            && let Some(t) = cache.get(&(version, key))
+        {
+            self.decoded.insert(key, Some(Arc::clone(&t)));
+            return Ok(Some(t));
+        }
         let bad = |reason: String| MakeError::Tile { key, reason };
         let tile = match self.placed.reader.tile(key).map_err(|e| bad(e.to_string()))? {
             Some(bytes) => {
@@ -422,6 +475,9 @@ impl Tiles<'_, '_> {
             }
             None => None,
         };
+        if let (Some((cache, version)), Some(t)) = (self.placed.cache, &tile) {
+            cache.put((version, key), Arc::clone(t));
+        }
         self.decoded.insert(key, tile.clone());
         Ok(tile)
     }
