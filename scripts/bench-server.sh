@@ -3,7 +3,9 @@
 # Range requests on the archive, (c) nginx serving the same file with the same Range
 # requests — in one run, side by side. Optional memory soak: SOAK_SECS=300. LARGE=1 adds
 # (d): the tile endpoint on a 349 525-tile archive whose entries are in 85 leaf
-# directories (about 2 minutes more to build), as large archives are laid out.
+# directories (about 2 minutes more to build), as large archives are laid out. Then
+# (e)-(h), web tiles and the elevation API against TiTiler: scripts/bench-web.sh (WEB=0
+# leaves them out).
 # Needs: nginx, wrk (apt-get install nginx wrk). Loopback only.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -143,4 +145,9 @@ if [ "$SOAK_SECS" -gt 0 ]; then
   done; echo
   awk '/Requests\/sec|Non-2xx|Socket errors/' "$work/soak.txt"
   grep -q -E 'Non-2xx|Socket errors' "$work/soak.txt" || echo "zero errors"
+fi
+
+if [ "${WEB:-1}" = 1 ]; then
+  echo
+  bash scripts/bench-web.sh
 fi
