@@ -37,6 +37,7 @@ use crate::app::{Answer, AppState, TileAt, archive_answer, tile_answer};
 use crate::edge::finish;
 use crate::route::{READ_HEADERS, Route};
 use crate::sendfile::Stream;
+use crate::web::{TileQuery, WebTileAt, web_tile_answer};
 
 /// Most request headers the lean path parses; a request with more goes to hyper.
 pub(crate) const MAX_HEADERS: usize = 32;
@@ -75,7 +76,13 @@ struct Request<'a> {
 /// A request the lean path answers itself, its path's segments captured.
 enum Lean<'a> {
     Archive(&'a str),
-    Tile { name: &'a str, layer: &'a str, at: TileAt },
+    Tile {
+        name: &'a str,
+        layer: &'a str,
+        at: TileAt,
+    },
+    /// A web tile and its query (boxed: the rest of the lean requests stay small).
+    WebTile(Box<(WebTileAt<'a>, TileQuery)>),
 }
 
 impl Lean<'_> {
@@ -84,6 +91,7 @@ impl Lean<'_> {
         match self {
             Lean::Archive(_) => Route::Archive,
             Lean::Tile { .. } => Route::Tile,
+            Lean::WebTile(_) => Route::WebTile,
         }
     }
 }
@@ -175,9 +183,10 @@ async fn answer(
     head: &mut Vec<u8>,
 ) -> std::io::Result<Instant> {
     let started = Instant::now();
-    let mut answer = match request.route {
+    let mut answer = match &request.route {
         Lean::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
-        Lean::Tile { name, layer, at } => tile_answer(state, name, layer, at, &request.headers),
+        Lean::Tile { name, layer, at } => tile_answer(state, name, layer, *at, &request.headers),
+        Lean::WebTile(tile) => web_tile_answer(state, tile.0, &tile.1, &request.headers).await,
     };
     finish(state, request.route.route(), started, &mut answer);
     if tracing::enabled!(tracing::Level::DEBUG) {
@@ -261,9 +270,10 @@ fn parse(buf: &[u8], max_head: usize) -> Parsed<'_> {
 pub fn inspect_head(bytes: &[u8], max_head: usize) -> Option<(usize, &'static str)> {
     let Parsed::Request(request) = parse(bytes, max_head) else { return None };
     assert!(request.len <= bytes.len() && request.len <= max_head, "head of {} bytes", request.len);
-    match request.route {
+    match &request.route {
         Lean::Archive(file) => assert!(file.ends_with(".tspack") && !file.contains('/')),
         Lean::Tile { name, layer, .. } => assert!(!name.is_empty() && !layer.is_empty()),
+        Lean::WebTile(tile) => assert!(!tile.0.name.is_empty() && !tile.0.layer.is_empty() && !tile.0.file.is_empty()),
     }
     let route = request.route.route();
     assert_eq!(Route::of(request.path), route, "{:?}", request.path);
@@ -272,13 +282,26 @@ pub fn inspect_head(bytes: &[u8], max_head: usize) -> Option<(usize, &'static st
 
 /// The lean route a path names, if any: only paths that the router would match the same
 /// way and whose segments need no decoding.
-fn route(path: &str) -> Option<Lean<'_>> {
-    if !path.is_ascii() || path.contains(['%', '?', '#']) {
+fn route(target: &str) -> Option<Lean<'_>> {
+    // Only a web tile's query is read here (its plain parameters); any other target with
+    // a query goes to the router.
+    let (path, query) = match target.split_once('?') {
+        Some((path, query)) => (path, Some(query)),
+        None => (target, None),
+    };
+    if !target.is_ascii() || path.contains(['%', '#']) || query.is_some_and(|q| q.contains(['%', '#', '?'])) {
         return None;
     }
     let mut segments = path.strip_prefix('/')?.split('/');
     let s: [Option<&str>; 6] = std::array::from_fn(|_| segments.next());
     match s {
+        [Some(name), Some("xyz"), Some(layer), Some(z), Some(x), Some(file)]
+            if ![name, layer, z, x, file].contains(&"") && segments.next().is_none() =>
+        {
+            let at = WebTileAt { name, layer, z: z.parse().ok()?, x: x.parse().ok()?, file };
+            Some(Lean::WebTile(Box::new((at, TileQuery::plain(query.unwrap_or(""))?))))
+        }
+        _ if query.is_some() => None,
         [Some(file), None, ..] if file.len() > ".tspack".len() && file.ends_with(".tspack") => {
             Some(Lean::Archive(file))
         }

@@ -109,6 +109,13 @@ fn requests() -> Vec<(String, bool)> {
         ("GET", "/elev/elevation/0/%30/0", &[]),
         ("OPTIONS", "/sample.tspack", &["Origin: http://a", "Access-Control-Request-Method: GET"]),
         ("GET", "/sample.tspack", &["Range: bytes=0-3", "Connection: close"]),
+        // Web tiles: lean with their plain query, to the router with any other.
+        ("GET", "/elev/xyz/elevation/3/1/2.png", &[]),
+        ("GET", "/elev/xyz/elevation/3/1/2.webp?size=256&encoding=mapbox", &[]),
+        ("GET", "/elev/xyz/elevation/3/1/x.webp", &[]),
+        ("GET", "/elev/xyz/elevation/3/1/2.webp?size=300", &[]),
+        ("GET", "/elev/xyz/elevation/3/1/2.webp?other=1", &[]),
+        ("GET", "/nope/xyz/elevation/3/1/2.png", &[]),
     ];
     cases.iter().map(|(m, p, h)| (request(m, p, h), *m == "HEAD")).collect()
 }

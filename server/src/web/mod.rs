@@ -24,13 +24,14 @@ pub mod tilejson;
 
 use axum::body::Body;
 use axum::extract::{Path, Query, State};
-use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE, ETAG, HOST, RETRY_AFTER};
+use axum::http::header::{CACHE_CONTROL, CONTENT_LENGTH, CONTENT_TYPE, ETAG, HOST, RETRY_AFTER};
 use axum::http::{HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use terrastream_format::LayerKind;
 
-use crate::app::{ARCHIVE_ETAG, AppState};
+use crate::app::{ARCHIVE_ETAG, Answer, AppState};
+use crate::body::Payload;
 use crate::range::{Precondition, preconditions};
 use cache::Lru;
 use encode::{HeightEncoding, ImageFormat};
@@ -233,17 +234,60 @@ pub async fn web_tile(
     Path((name, layer, z, x, file)): Path<(String, String, u8, u32, String)>,
     Query(query): Query<TileQuery>,
     headers: HeaderMap,
-) -> Result<Response, WebError> {
-    let served = state.catalog.get(&name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
+) -> Response {
+    let at = WebTileAt { name: &name, layer: &layer, z, x, file: &file };
+    web_tile_answer(&state, at, &query, &headers).await.map(Body::new)
+}
+
+/// A web tile as a request's path names it.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct WebTileAt<'a> {
+    pub(crate) name: &'a str,
+    pub(crate) layer: &'a str,
+    pub(crate) z: u8,
+    pub(crate) x: u32,
+    /// `{y}.webp` or `{y}.png`.
+    pub(crate) file: &'a str,
+}
+
+/// The answer of a web tile, for the router and for the lean HTTP/1.1 path (which passes
+/// only the headers in `route::READ_HEADERS`).
+pub(crate) async fn web_tile_answer(
+    state: &AppState,
+    at: WebTileAt<'_>,
+    query: &TileQuery,
+    headers: &HeaderMap,
+) -> Answer {
+    match web_tile_made(state, at, query, headers).await {
+        Ok(answer) => answer,
+        Err(WebError(status, why)) => {
+            let mut answer = Answer::new(Payload::from(format!("{why}\n")));
+            *answer.status_mut() = status;
+            answer.headers_mut().insert(CONTENT_TYPE, HeaderValue::from_static("text/plain; charset=utf-8"));
+            if status == StatusCode::SERVICE_UNAVAILABLE {
+                answer.headers_mut().insert(RETRY_AFTER, HeaderValue::from_static("1"));
+            }
+            answer
+        }
+    }
+}
+
+async fn web_tile_made(
+    state: &AppState,
+    WebTileAt { name, layer, z, x, file }: WebTileAt<'_>,
+    query: &TileQuery,
+    headers: &HeaderMap,
+) -> Result<Answer, WebError> {
+    let served = state.catalog.get(name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
     let metadata = served.reader.metadata();
     let index =
-        metadata.resolve_layer(&layer).ok_or_else(|| not_found(format!("archive {name:?} has no layer {layer:?}")))?;
+        metadata.resolve_layer(layer).ok_or_else(|| not_found(format!("archive {name:?} has no layer {layer:?}")))?;
     let info = &metadata.layers[usize::from(index)];
     let (y, extension) =
         file.split_once('.').ok_or_else(|| bad(format!("{file:?}: name a tile as {{y}}.webp or {{y}}.png")))?;
     let y: u32 = y.parse().map_err(|_| bad(format!("{file:?}: the row is not a number")))?;
     let format = ImageFormat::parse(extension).ok_or_else(|| bad(format!("{file:?}: use .webp or .png")))?;
-    let (encoding, _, size) = options(&TileQuery { format: None, ..query }, info.kind)?;
+    let (encoding, _, size) = options(&TileQuery { format: None, ..query.clone() }, info.kind)?;
     let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
     let request = WebTileRequest { layer: index, tile, encoding, format, size };
     let key = MadeKey { archive: served.etag.clone(), request };
@@ -252,8 +296,14 @@ pub async fn web_tile(
     h.insert(ETAG, HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")));
     h.insert(ARCHIVE_ETAG, served.etag_header.clone());
     h.insert(CACHE_CONTROL, state.cache_control.clone());
-    if preconditions(&headers, &etag, served.modified, true) == Precondition::NotModified {
-        return Ok((StatusCode::NOT_MODIFIED, h).into_response());
+    let with = |status: StatusCode, h: HeaderMap, body: Payload| {
+        let mut answer = Answer::new(body);
+        *answer.status_mut() = status;
+        *answer.headers_mut() = h;
+        answer
+    };
+    if preconditions(headers, &etag, served.modified, true) == Precondition::NotModified {
+        return Ok(with(StatusCode::NOT_MODIFIED, h, Payload::empty()));
     }
     let bytes = match state.web.made.get(&key) {
         Some(bytes) => bytes,
@@ -278,10 +328,33 @@ pub async fn web_tile(
         }
     };
     if bytes.is_empty() {
-        return Ok((StatusCode::NOT_FOUND, h, "no data in this tile\n").into_response());
+        return Ok(with(StatusCode::NOT_FOUND, h, Payload::from("no data in this tile\n")));
     }
     h.insert(CONTENT_TYPE, HeaderValue::from_static(format.media_type()));
-    Ok((StatusCode::OK, h, Body::from(bytes)).into_response())
+    h.insert(CONTENT_LENGTH, HeaderValue::from(bytes.len()));
+    Ok(with(StatusCode::OK, h, Payload::from(bytes)))
+}
+
+impl TileQuery {
+    /// The query of a request target's `?...` part as the lean path takes it: only
+    /// `encoding`, `format` and `size` with plain values (anything else: None, and the
+    /// router answers).
+    pub(crate) fn plain(query: &str) -> Option<Self> {
+        let mut out = Self::default();
+        for pair in query.split('&').filter(|p| !p.is_empty()) {
+            let (key, value) = pair.split_once('=')?;
+            if !value.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-') {
+                return None;
+            }
+            match key {
+                "encoding" => out.encoding = Some(value.to_owned()),
+                "format" => out.format = Some(value.to_owned()),
+                "size" => out.size = Some(value.parse().ok()?),
+                _ => return None,
+            }
+        }
+        Some(out)
+    }
 }
 
 /// Makes a web tile of an archive: the file's bytes; None when the tile holds no data
