@@ -1,9 +1,10 @@
-//! Made tiles (and decoded archive tiles) kept, least recently used first out, within a
-//! byte budget.
+//! Made tiles (and decoded archive tiles) kept, least recently used first out (nearly),
+//! within a byte budget.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{HashMap, VecDeque};
 use std::hash::Hash;
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
 
 use bytes::Bytes;
 use terrastream_client::DecodedTile;
@@ -26,65 +27,60 @@ impl Weigh for Arc<DecodedTile> {
     }
 }
 
-/// A bounded LRU.
+/// A bounded cache, least recently used out first (approximately: the "second chance"
+/// clock of operating systems' page caches). A hit takes a shared lock and sets a flag,
+/// so that hits on many threads do not queue behind one another; an insertion takes the
+/// exclusive lock and, past the budget, sweeps the oldest entries, sparing (once) those
+/// used since the last sweep.
 #[derive(Debug)]
 pub struct Lru<K, V = Bytes> {
-    inner: Mutex<Inner<K, V>>,
+    inner: RwLock<Inner<K, V>>,
     budget: usize,
 }
 
 #[derive(Debug)]
 struct Inner<K, V> {
-    entries: HashMap<K, (V, u64)>,
-    /// Use order: tick -> key.
-    order: BTreeMap<u64, K>,
-    tick: u64,
+    entries: HashMap<K, (V, AtomicBool)>,
+    /// Keys, oldest first: the clock.
+    order: VecDeque<K>,
     bytes: usize,
 }
 
 impl<K: Clone + Eq + Hash, V: Weigh> Lru<K, V> {
     /// An empty cache of at most `budget` bytes (0: nothing is kept).
     pub fn new(budget: usize) -> Self {
-        Self { inner: Mutex::new(Inner { entries: HashMap::new(), order: BTreeMap::new(), tick: 0, bytes: 0 }), budget }
+        Self { inner: RwLock::new(Inner { entries: HashMap::new(), order: VecDeque::new(), bytes: 0 }), budget }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Inner<K, V>> {
-        self.inner.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-    }
-
-    /// The value of `key`, now the most recently used.
+    /// The value of `key`, marked used.
     pub fn get(&self, key: &K) -> Option<V> {
-        let mut inner = self.lock();
-        inner.tick += 1;
-        let tick = inner.tick;
-        let (value, old) = {
-            let (value, used) = inner.entries.get_mut(key)?;
-            let old = std::mem::replace(used, tick);
-            (value.clone(), old)
-        };
-        inner.order.remove(&old);
-        inner.order.insert(tick, key.clone());
-        Some(value)
+        let inner = self.inner.read().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let (value, used) = inner.entries.get(key)?;
+        used.store(true, Ordering::Relaxed);
+        Some(value.clone())
     }
 
-    /// Keeps `value` under `key`, dropping the least recently used past the budget.
+    /// Keeps `value` under `key`, sweeping out the least recently used past the budget.
     pub fn put(&self, key: K, value: V) {
         let weight = value.weight();
         if weight > self.budget {
             return;
         }
-        let mut inner = self.lock();
-        inner.tick += 1;
-        let tick = inner.tick;
+        let mut inner = self.inner.write().unwrap_or_else(std::sync::PoisonError::into_inner);
         inner.bytes += weight;
-        if let Some((old, used)) = inner.entries.insert(key.clone(), (value, tick)) {
-            inner.bytes -= old.weight();
-            inner.order.remove(&used);
+        match inner.entries.insert(key.clone(), (value, AtomicBool::new(false))) {
+            Some((old, _)) => inner.bytes -= old.weight(),
+            None => inner.order.push_back(key),
         }
-        inner.order.insert(tick, key);
+        // Each entry is looked at most twice: once to clear its flag, once to go.
+        let mut spared = inner.order.len();
         while inner.bytes > self.budget {
-            let Some((_, oldest)) = inner.order.pop_first() else { break };
-            if let Some((gone, _)) = inner.entries.remove(&oldest) {
+            let Some(oldest) = inner.order.pop_front() else { break };
+            let used = inner.entries.get(&oldest).is_some_and(|(_, used)| used.swap(false, Ordering::Relaxed));
+            if used && spared > 0 {
+                spared -= 1;
+                inner.order.push_back(oldest);
+            } else if let Some((gone, _)) = inner.entries.remove(&oldest) {
                 inner.bytes -= gone.weight();
             }
         }
@@ -92,7 +88,7 @@ impl<K: Clone + Eq + Hash, V: Weigh> Lru<K, V> {
 
     /// Bytes kept.
     pub fn bytes(&self) -> usize {
-        self.lock().bytes
+        self.inner.read().unwrap_or_else(std::sync::PoisonError::into_inner).bytes
     }
 }
 
