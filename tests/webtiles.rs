@@ -296,3 +296,46 @@ fn imagery_web_tiles_hold_the_source_images_pixels() {
     // GDAL's value is its nearest pixel; ours is bilinear between pixels: a few levels.
     assert!(mean < 12.0, "mean difference {mean:.1} of 255");
 }
+
+/// The approximate transform of web tiles against the exact one, pixel by pixel, on a
+/// transverse-Mercator archive: within 1/8 of an output pixel everywhere, at the finest
+/// zooms and at coarse ones where the cells must split.
+#[test]
+fn the_approximate_transform_stays_within_an_eighth_of_a_pixel() {
+    use terrastream_crs::{Crs, Transform};
+    use terrastream_server::web::mercator::{WebTile, tiles_over};
+    use terrastream_server::web::resample::Placed;
+    let dir = tempfile::tempdir().unwrap();
+    let archive = dir.path().join("tm.tspack");
+    tile(DEM, &archive);
+    let reader = terrastream_format::Reader::open_mmap(&archive).unwrap();
+    let layer = reader.metadata().resolve_layer("elevation").unwrap();
+    let placed = Placed::new(&reader, layer).unwrap();
+    let g = reader.metadata().georeference.clone().unwrap();
+    let to = Transform::new(&Crs::wgs84(), &Crs::parse(g.definition.as_deref().unwrap()).unwrap());
+    let (origin, scale) = (g.origin.unwrap(), g.scale.unwrap());
+    for z in [3u8, 8, 12, 14] {
+        let (columns, rows) = tiles_over(z, [-122.5965, 37.9235, -122.5965, 37.9235]);
+        let tile = WebTile::new(z, *columns.start(), *rows.start()).unwrap();
+        let size = 256usize;
+        let approx = placed.positions(tile, size);
+        let exact = |u: f64, v: f64| {
+            let (lon, lat) = tile.lon_lat(u, v, size as f64);
+            let (cx, cy) = to.apply(lon, lat).unwrap();
+            ((cx - origin[0]) / scale[0], (origin[1] - cy) / scale[1])
+        };
+        let mut worst = 0f64;
+        for v in 0..size {
+            for u in 0..size {
+                let (pu, pv) = (u as f64 + 0.5, v as f64 + 0.5);
+                let truth = exact(pu, pv);
+                let next = exact(pu + 1.0, pv);
+                let pixel = (next.0 - truth.0).hypot(next.1 - truth.1);
+                let got = approx[v * size + u].unwrap();
+                worst = worst.max((got.0 - truth.0).hypot(got.1 - truth.1) / pixel);
+            }
+        }
+        eprintln!("zoom {z}: the approximate transform is within {worst:.4} pixels of the exact one");
+        assert!(worst <= 0.125, "zoom {z}: {worst} pixels off");
+    }
+}

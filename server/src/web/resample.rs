@@ -1,8 +1,10 @@
 //! Web Mercator tiles made from an archive in any CRS: each output pixel's centre goes
-//! through the archive's CRS (an approximate transform: exact on a lattice every
-//! [`LATTICE`] pixels, interpolated between, each cell checked at its centre and made
-//! exact where the interpolation is off by more than 1/8 of a pixel, as GDAL's warper
-//! does) into the archive's world coordinates, and is sampled there from the LOD whose
+//! through the archive's CRS (an approximate transform: exact at the corners of cells of
+//! [`LATTICE`] pixels, interpolated between, each cell checked at its middle and the
+//! middles of its edges against the exact transform and split where the interpolation is
+//! off by more than 1/8 of a pixel,
+//! down to [`SMALLEST_CELL`] pixels and then exact, as GDAL's warper does) into the
+//! archive's world coordinates, and is sampled there from the LOD whose
 //! samples are no larger than the output pixel: bilinear and nodata-aware for heights and
 //! imagery alike.
 //!
@@ -19,8 +21,12 @@ use terrastream_format::{Layer, MmapSource, Reader, TileKey};
 
 use super::mercator::WebTile;
 
-/// Output pixels between exact transforms.
-pub const LATTICE: usize = 16;
+/// Output pixels a side of the approximate transform's cells before they are checked
+/// (and split, down to [`SMALLEST_CELL`], where the check fails).
+pub const LATTICE: usize = 64;
+
+/// The smallest cell: one whose check fails is transformed pixel by pixel.
+pub const SMALLEST_CELL: usize = 8;
 
 /// Largest interpolation error of the approximate transform, in output pixels.
 pub const MAX_ERROR: f64 = 0.125;
@@ -120,50 +126,26 @@ impl<'a> Placed<'a> {
     /// The world position of every pixel centre of `tile` (`size` a side), row by row;
     /// None where the point has no place in the archive's CRS.
     pub fn positions(&self, tile: WebTile, size: usize) -> Vec<Option<(f64, f64)>> {
-        let f = |u: f64, v: f64| {
+        let exact = |u: f64, v: f64| {
             let (lon, lat) = tile.lon_lat(u, v, size as f64);
             self.world(lon, lat)
         };
-        let cells = size.div_ceil(LATTICE);
-        let nodes: Vec<Option<(f64, f64)>> = (0..=cells)
-            .flat_map(|j| (0..=cells).map(move |i| ((i * LATTICE) as f64, (j * LATTICE) as f64)))
-            .map(|(u, v)| f(u, v))
-            .collect();
-        let node = |i: usize, j: usize| nodes[j * (cells + 1) + i];
         let mut out = vec![None; size * size];
-        for cj in 0..cells {
-            for ci in 0..cells {
-                let corners = [node(ci, cj), node(ci + 1, cj), node(ci, cj + 1), node(ci + 1, cj + 1)];
-                let (u0, v0) = (ci * LATTICE, cj * LATTICE);
+        let mut v0 = 0;
+        while v0 < size {
+            let mut u0 = 0;
+            while u0 < size {
                 let (u1, v1) = ((u0 + LATTICE).min(size), (v0 + LATTICE).min(size));
-                let lerp = |fu: f64, fv: f64| -> Option<(f64, f64)> {
-                    let [a, b, c, d] = corners;
-                    let (a, b, c, d) = (a?, b?, c?, d?);
-                    let top = (a.0 + (b.0 - a.0) * fu, a.1 + (b.1 - a.1) * fu);
-                    let bottom = (c.0 + (d.0 - c.0) * fu, c.1 + (d.1 - c.1) * fu);
-                    Some((top.0 + (bottom.0 - top.0) * fv, top.1 + (bottom.1 - top.1) * fv))
-                };
-                // Checked at the cell's centre against the exact transform, in output
-                // pixels (world units per pixel from the cell's own width).
-                let exact =
-                    match (corners[0], corners[1], lerp(0.5, 0.5), f((u0 + u1) as f64 / 2.0, (v0 + v1) as f64 / 2.0)) {
-                        (Some(a), Some(b), Some(approx), Some(truth)) => {
-                            let per_pixel = ((b.0 - a.0).hypot(b.1 - a.1) / LATTICE as f64).max(1e-12);
-                            (approx.0 - truth.0).hypot(approx.1 - truth.1) / per_pixel > MAX_ERROR
-                        }
-                        _ => true,
-                    };
-                for v in v0..v1 {
-                    for u in u0..u1 {
-                        let (pu, pv) = (u as f64 + 0.5, v as f64 + 0.5);
-                        out[v * size + u] = if exact {
-                            f(pu, pv)
-                        } else {
-                            lerp((pu - u0 as f64) / LATTICE as f64, (pv - v0 as f64) / LATTICE as f64)
-                        };
-                    }
-                }
+                let corners = [
+                    exact(u0 as f64, v0 as f64),
+                    exact(u1 as f64, v0 as f64),
+                    exact(u0 as f64, v1 as f64),
+                    exact(u1 as f64, v1 as f64),
+                ];
+                cell(&exact, &mut out, size, [u0, v0, u1, v1], corners);
+                u0 = u1;
             }
+            v0 = (v0 + LATTICE).min(size);
         }
         out
     }
@@ -207,6 +189,67 @@ impl<'a> Placed<'a> {
             }
         }
         Ok(any.then_some(out))
+    }
+}
+
+/// Fills the positions of the pixels of cell `[u0, v0, u1, v1]` (pixel edges) whose
+/// corners go to `corners` (north-west, north-east, south-west, south-east): bilinear
+/// between them when that is within [`MAX_ERROR`] pixels of the exact transform at the
+/// cell's middle and at the middles of its edges; else split in four there (down to
+/// [`SMALLEST_CELL`]), or exact per pixel.
+#[expect(clippy::cast_precision_loss, reason = "pixel coordinates of one tile")]
+fn cell(
+    exact: &dyn Fn(f64, f64) -> Option<(f64, f64)>,
+    out: &mut [Option<(f64, f64)>],
+    size: usize,
+    [u0, v0, u1, v1]: [usize; 4],
+    corners: [Option<(f64, f64)>; 4],
+) {
+    let (w, h) = ((u1 - u0) as f64, (v1 - v0) as f64);
+    let lerp = |fu: f64, fv: f64| -> Option<(f64, f64)> {
+        let [a, b, c, d] = corners;
+        let (a, b, c, d) = (a?, b?, c?, d?);
+        let top = (a.0 + (b.0 - a.0) * fu, a.1 + (b.1 - a.1) * fu);
+        let bottom = (c.0 + (d.0 - c.0) * fu, c.1 + (d.1 - c.1) * fu);
+        Some((top.0 + (bottom.0 - top.0) * fv, top.1 + (bottom.1 - top.1) * fv))
+    };
+    // Where the cell would split: its middle and the middles of its edges, exact.
+    let (um, vm) = ((u0 + u1) / 2, (v0 + v1) / 2);
+    let at = |u: usize, v: usize| exact(u as f64, v as f64);
+    let (middle, n, s, west, east) = (at(um, vm), at(um, v0), at(um, v1), at(u0, vm), at(u1, vm));
+    // World units per output pixel, from the cell's top edge.
+    let per_pixel = match (corners[0], corners[1]) {
+        (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1) / w,
+        _ => f64::NAN,
+    };
+    let (fu, fv) = ((um - u0) as f64 / w, (vm - v0) as f64 / h);
+    let checks = [((fu, fv), middle), ((fu, 0.0), n), ((fu, 1.0), s), ((0.0, fv), west), ((1.0, fv), east)];
+    let good = per_pixel > 0.0
+        && checks.iter().all(|&((fu, fv), truth)| match (lerp(fu, fv), truth) {
+            (Some(approx), Some(truth)) => (approx.0 - truth.0).hypot(approx.1 - truth.1) / per_pixel <= MAX_ERROR,
+            _ => false,
+        });
+    if good {
+        for v in v0..v1 {
+            let fv = (v as f64 + 0.5 - v0 as f64) / h;
+            for u in u0..u1 {
+                out[v * size + u] = lerp((u as f64 + 0.5 - u0 as f64) / w, fv);
+            }
+        }
+        return;
+    }
+    if u1 - u0 > SMALLEST_CELL && v1 - v0 > SMALLEST_CELL {
+        let [nw, ne, sw, se] = corners;
+        cell(exact, out, size, [u0, v0, um, vm], [nw, n, west, middle]);
+        cell(exact, out, size, [um, v0, u1, vm], [n, ne, middle, east]);
+        cell(exact, out, size, [u0, vm, um, v1], [west, middle, sw, s]);
+        cell(exact, out, size, [um, vm, u1, v1], [middle, east, s, se]);
+        return;
+    }
+    for v in v0..v1 {
+        for u in u0..u1 {
+            out[v * size + u] = exact(u as f64 + 0.5, v as f64 + 0.5);
+        }
     }
 }
 
