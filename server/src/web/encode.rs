@@ -33,10 +33,13 @@ impl HeightEncoding {
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the encoding's range")]
     pub fn rgb(self, height: f32) -> [u8; 3] {
         let h = f64::from(height);
-        let v = match self {
-            Self::Terrarium => ((h + 32_768.0) * 256.0).round().clamp(0.0, 16_777_215.0) as u32,
-            Self::Mapbox => ((h + 10_000.0) * 10.0).round().clamp(0.0, 16_777_215.0) as u32,
+        let steps = match self {
+            Self::Terrarium => (h + 32_768.0) * 256.0,
+            Self::Mapbox => (h + 10_000.0) * 10.0,
         };
+        // Half up, by adding a half and truncating a value clamped to be positive (`round`
+        // would call the C library for every pixel); the same as `round` there.
+        let v = (steps.clamp(0.0, 16_777_215.0) + 0.5) as u32;
         [(v >> 16) as u8, (v >> 8) as u8, v as u8]
     }
 
