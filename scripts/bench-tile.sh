@@ -24,6 +24,11 @@
 # onto the default transverse Mercator): the cost of many files over one; and against
 # gdalwarp (onto UTM 10N at 25 m, about our spacing) + gdal_translate + gdal2tiles.
 # MANY=only runs that case alone.
+# GEO=1 (the default) adds the geographic-to-projected case: a GLOBE-sized geographic DEM
+# (the SRTM tile stretched to 10800 x 6000 over 0-90E, 0-50N, as GLOBE tile G lies), tiled
+# onto its transverse Mercator (our default) and kept geographic (--keep-geographic),
+# against gdal2tiles' Web Mercator profile (reprojecting) and raster profile (not): what
+# reprojection costs each. GEO=only runs that case alone.
 # TAP=1 warps the windows onto one lattice per zone (gdalwarp -tap), as tiles cut from one
 # source usually are: inputs on the output's lattice are then copied, not resampled.
 #
@@ -141,6 +146,35 @@ gdal_mosaic() {
   rm -f "$work/mosaic.tif" "$work/mosaic8.tif"
 }
 export -f gdal_mosaic
+GEO=${GEO:-1}
+geo_case() {
+  gdal_translate -q -outsize 10800 6000 -r bilinear -a_ullr 0 50 90 0 -a_srs EPSG:4326 -co TILED=YES \
+    -co COMPRESS=DEFLATE -co PREDICTOR=2 "$DEM" "$work/globe.tif"
+  gdal_translate -q -ot Byte -scale "$work/globe.tif" "$work/globe8.tif"
+  local tm=("$bin" -q tile --elevation "$work/globe.tif" -o "$work/g-tm.tspack")
+  local geographic=("$bin" -q tile --elevation "$work/globe.tif" --keep-geographic -o "$work/g-geo.tspack")
+  local mercator=(gdal2tiles.py -q -p mercator -r average --processes="$CORES" "$work/globe8.tif" "$work/g-merc")
+  local raster=(gdal2tiles.py -q -p raster -r average --processes="$CORES" "$work/globe8.tif" "$work/g-raster")
+  measure_together ours-geo-tm "$work/g-tm.tspack" tm ours-geo-geo "$work/g-geo.tspack" geographic \
+    gdal-geo-merc "$work/g-merc" mercator gdal-geo-raster "$work/g-raster" raster
+}
+geo_report() {
+  printf '%-40s %9s s %9s MiB
+' "10800x6000 geographic: ours, onto TM" "${secs[ours-geo-tm]}" "$((peak[ours-geo-tm] / 1024))"
+  printf '%-40s %9s s %9s MiB
+' "the same kept geographic: ours" "${secs[ours-geo-geo]}" "$((peak[ours-geo-geo] / 1024))"
+  printf '%-40s %9s s %9s MiB
+' "gdal2tiles, Web Mercator profile" "${secs[gdal-geo-merc]}" "$((peak[gdal-geo-merc] / 1024))"
+  printf '%-40s %9s s %9s MiB
+' "gdal2tiles, raster profile" "${secs[gdal-geo-raster]}" "$((peak[gdal-geo-raster] / 1024))"
+  echo "reprojection costs ours $(awk -v a="${secs[ours-geo-tm]}" -v b="${secs[ours-geo-geo]}" 'BEGIN { printf "%.2fx", a / b }') (by round $(rounds ours-geo-tm ours-geo-geo)), gdal2tiles $(awk -v a="${secs[gdal-geo-merc]}" -v b="${secs[gdal-geo-raster]}" 'BEGIN { printf "%.2fx", a / b }'); reprojecting, ours is $(awk -v a="${secs[gdal-geo-merc]}" -v b="${secs[ours-geo-tm]}" 'BEGIN { printf "%.1fx", a / b }') gdal2tiles (by round $(rounds gdal-geo-merc ours-geo-tm)), without $(awk -v a="${secs[gdal-geo-raster]}" -v b="${secs[ours-geo-geo]}" 'BEGIN { printf "%.1fx", a / b }')"
+}
+if [ "$GEO" = only ]; then
+  geo_case
+  echo
+  geo_report
+  exit 0
+fi
 MANY=${MANY:-1}
 many_case() {
   local dir="$work/many"
@@ -234,5 +268,9 @@ fi
 if [ "$MANY" != 0 ]; then
   many_case
   many_report
+fi
+if [ "$GEO" != 0 ]; then
+  geo_case
+  geo_report
 fi
 echo "peak memory, image streamed from TIFF / decoded JPEG: $(awk -v a="${peak[ours-img-tiff]}" -v b="${peak[ours-img-png]}" 'BEGIN { printf "%.2fx", a / b }')"
