@@ -52,6 +52,18 @@ impl HeightEncoding {
         }
     }
 
+    /// Heights that all hold data as RGB pixels; None when one has no data.
+    pub fn rgb_pixels(self, heights: &[f32]) -> Option<Vec<u8>> {
+        let mut out = Vec::with_capacity(heights.len() * 3);
+        for &h in heights {
+            if !h.is_finite() {
+                return None;
+            }
+            out.extend_from_slice(&self.rgb(h));
+        }
+        Some(out)
+    }
+
     /// Heights (NaN: no data) as RGBA pixels: no data is transparent (and holds 0 m).
     pub fn pixels(self, heights: &[f32]) -> Vec<u8> {
         let mut out = Vec::with_capacity(heights.len() * 4);
@@ -109,27 +121,31 @@ impl ImageFormat {
     /// # Errors
     /// The encoder's message.
     pub fn encode(self, rgba: &[u8], size: u32) -> Result<Vec<u8>, String> {
-        let opaque = rgba.chunks_exact(4).all(|p| p[3] == 255);
-        let pixels: std::borrow::Cow<'_, [u8]> = if opaque {
-            rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect::<Vec<u8>>().into()
-        } else {
-            rgba.into()
-        };
+        if rgba.chunks_exact(4).all(|p| p[3] == 255) {
+            let rgb: Vec<u8> = rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+            return self.encode_raw(&rgb, size, false);
+        }
+        self.encode_raw(rgba, size, true)
+    }
+
+    /// `pixels` (`size` x `size`, RGBA with `alpha`, else RGB) as a file of this format.
+    ///
+    /// # Errors
+    /// The encoder's message.
+    pub fn encode_raw(self, pixels: &[u8], size: u32, alpha: bool) -> Result<Vec<u8>, String> {
         let mut out = Vec::new();
         match self {
             Self::Png => {
                 let mut encoder = png::Encoder::new(&mut out, size, size);
-                encoder.set_color(if opaque { png::ColorType::Rgb } else { png::ColorType::Rgba });
+                encoder.set_color(if alpha { png::ColorType::Rgba } else { png::ColorType::Rgb });
                 encoder.set_depth(png::BitDepth::Eight);
                 encoder.set_compression(png::Compression::Fast);
                 let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-                writer.write_image_data(&pixels).map_err(|e| e.to_string())?;
+                writer.write_image_data(pixels).map_err(|e| e.to_string())?;
             }
             Self::Webp => {
-                let colour = if opaque { image_webp::ColorType::Rgb8 } else { image_webp::ColorType::Rgba8 };
-                image_webp::WebPEncoder::new(&mut out)
-                    .encode(&pixels, size, size, colour)
-                    .map_err(|e| e.to_string())?;
+                let colour = if alpha { image_webp::ColorType::Rgba8 } else { image_webp::ColorType::Rgb8 };
+                image_webp::WebPEncoder::new(&mut out).encode(pixels, size, size, colour).map_err(|e| e.to_string())?;
             }
         }
         Ok(out)

@@ -382,7 +382,14 @@ pub fn make_tile_cached(
     }
     let Some((samples, kind)) = samples_cached(reader, request, cache)? else { return Ok(None) };
     let rgba = match kind {
-        Samples::Heights => request.encoding.unwrap_or(HeightEncoding::Terrarium).pixels(&samples),
+        Samples::Heights => {
+            let encoding = request.encoding.unwrap_or(HeightEncoding::Terrarium);
+            // Every pixel with data (most tiles): RGB straight away.
+            if let Some(rgb) = encoding.rgb_pixels(&samples) {
+                return request.format.encode_raw(&rgb, request.size, false).map(Some).map_err(MakeError::Encode);
+            }
+            encoding.pixels(&samples)
+        }
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
         Samples::Rgba => samples.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect(),
     };

@@ -175,6 +175,9 @@ impl<'a> Placed<'a> {
     pub fn sample(&self, positions: &[Option<(f64, f64)>], lod: u8) -> Result<Option<Vec<f32>>, MakeError> {
         let channels = if self.samples == Samples::Heights { 1 } else { 4 };
         let Some(window) = Window::gather(self, positions, lod)? else { return Ok(None) };
+        if channels == 1 {
+            return Ok(window.heights(positions));
+        }
         let mut out = Vec::with_capacity(positions.len() * channels);
         let mut any = false;
         for p in positions {
@@ -428,6 +431,39 @@ impl Window {
 }
 
 impl Window {
+    /// The heights at `positions` (NaN: no data); None when none has data. The common
+    /// case (four corners with data inside the window) in a loop of its own.
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked to be inside the window")]
+    fn heights(&self, positions: &[Option<(f64, f64)>]) -> Option<Vec<f32>> {
+        let inverse = 1.0 / self.spacing;
+        let (w, h) = (self.size.0 as i64, self.size.1 as i64);
+        let mut out = vec![f32::NAN; positions.len()];
+        let mut any = false;
+        for (o, p) in out.iter_mut().zip(positions) {
+            let Some((x, z)) = *p else { continue };
+            let (gx, gz) = (x * inverse - 0.5, z * inverse - 0.5);
+            let (fi, fj) = (floor(gx), floor(gz));
+            let (wi, wj) = (fi as i64 - self.first.0, fj as i64 - self.first.1);
+            if wi >= 0 && wj >= 0 && wi + 1 < w && wj + 1 < h {
+                let at = wj as usize * self.size.0 + wi as usize;
+                let (fx, fz) = ((gx - fi) as f32, (gz - fj) as f32);
+                let v = &self.values;
+                let (a, b, c, d) = (v[at], v[at + 1], v[at + self.size.0], v[at + self.size.0 + 1]);
+                let value = (a + (b - a) * fx) * (1.0 - fz) + (c + (d - c) * fx) * fz;
+                if value.is_finite() {
+                    *o = value;
+                    any = true;
+                    continue;
+                }
+            }
+            if let Some(v) = self.bilinear(x, z) {
+                *o = v[0];
+                any = true;
+            }
+        }
+        any.then_some(out)
+    }
+
     /// The bilinear height at sample position `(i + fx, j + fz)` when its four samples lie
     /// in the window and all hold data (the common case, without the general path's
     /// per-corner checks); None otherwise.
