@@ -92,7 +92,9 @@ impl<'a> Placed<'a> {
             terrastream_format::LayerKind::Texture => match layer.format {
                 terrastream_format::TileFormat::Png
                 | terrastream_format::TileFormat::Jpeg
-                | terrastream_format::TileFormat::Webp => Samples::Rgba,
+                | terrastream_format::TileFormat::Webp
+                | terrastream_format::TileFormat::Bc1
+                | terrastream_format::TileFormat::Bc7 => Samples::Rgba,
                 _ => return None,
             },
             _ => return None,
@@ -489,6 +491,27 @@ fn floor(v: f64) -> f64 {
     if t > v { t - 1.0 } else { t }
 }
 
+/// A tile of GPU blocks (BC1, BC7) as RGBA pixels, as a GPU would sample them; other
+/// tiles as they are.
+///
+/// # Errors
+/// The block decoder's message, for blocks that do not fill the tile.
+fn unblock(tile: DecodedTile) -> Result<DecodedTile, &'static str> {
+    let TileData::Compressed { format, blocks } = &tile.data else { return Ok(tile) };
+    let size = tile.size as usize;
+    let mut pixels = vec![0u32; size * size];
+    match format {
+        terrastream_format::TileFormat::Bc7 => texture2ddecoder::decode_bc7(blocks, size, size, &mut pixels)?,
+        _ => texture2ddecoder::decode_bc1(blocks, size, size, &mut pixels)?,
+    }
+    // The decoder's pixels are B, G, R, A in memory order.
+    let rgba = pixels.iter().flat_map(|p| {
+        let [b, g, r, a] = p.to_le_bytes();
+        [r, g, b, a]
+    });
+    Ok(DecodedTile { data: TileData::Rgba8(rgba.collect()), ..tile })
+}
+
 /// Texel `(i, j)` of a decoded tile (borders included) as up to four values; None
 /// without data.
 fn texel(tile: &DecodedTile, i: i64, j: i64) -> Option<[f32; 4]> {
@@ -550,7 +573,8 @@ impl Tiles<'_, '_> {
         let bad = |reason: String| MakeError::Tile { key, reason };
         let tile = match self.placed.reader.tile(key).map_err(|e| bad(e.to_string()))? {
             Some(bytes) => {
-                Some(Arc::new(decode(self.placed.layer, key, &bytes, true).map_err(|e| bad(e.to_string()))?))
+                let tile = decode(self.placed.layer, key, &bytes, true).map_err(|e| bad(e.to_string()))?;
+                Some(Arc::new(unblock(tile).map_err(|e| bad(e.to_owned()))?))
             }
             None => None,
         };
