@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use terrastream_client::{DecodedTile, decode};
+use terrastream_client::DecodedTile;
 use terrastream_client::{Interpolation, height_on_lod};
 use terrastream_crs::{Crs, Transform};
 use terrastream_format::{LayerKind, MmapSource, Reader, TileKey};
@@ -318,20 +318,8 @@ impl<'a> Heights<'a> {
         if let Some(t) = tiles.get(&key) {
             return Ok(t.clone());
         }
-        if let Some((cache, version)) = self.cache
-            && let Some(t) = cache.get(&(version, key))
-        {
-            tiles.insert(key, Some(Arc::clone(&t)));
-            return Ok(Some(t));
-        }
         let info = &self.reader.metadata().layers[usize::from(self.layer)];
-        let tile = match self.reader.tile(key).map_err(|e| format!("tile {key}: {e}"))? {
-            Some(bytes) => Some(Arc::new(decode(info, key, &bytes, true).map_err(|e| e.to_string())?)),
-            None => None,
-        };
-        if let (Some((cache, version)), Some(t)) = (self.cache, &tile) {
-            cache.put((version, key), Arc::clone(t));
-        }
+        let tile = super::resample::load_tile(self.reader, info, key, self.cache).map_err(|e| e.to_string())?;
         tiles.insert(key, tile.clone());
         Ok(tile)
     }

@@ -553,6 +553,32 @@ fn coarse(tile: &DecodedTile, cx: f64, cy: f64, res: i64) -> Option<[f32; 4]> {
     (weight > 1e-9).then(|| sum.map(|s| (s / weight) as f32))
 }
 
+/// Archive tile `key` of `layer` decoded (GPU blocks to RGBA), from `cache` when it holds
+/// it (and kept there when not): what web tiles and the elevation API read.
+///
+/// # Errors
+/// [`MakeError::Tile`] for a tile that cannot be read or decoded.
+pub(crate) fn load_tile(
+    reader: &Reader<MmapSource>,
+    layer: &Layer,
+    key: TileKey,
+    cache: Option<(&DecodedCache, u64)>,
+) -> Result<Option<Arc<DecodedTile>>, MakeError> {
+    if let Some((cache, version)) = cache
+        && let Some(t) = cache.get(&(version, key))
+    {
+        return Ok(Some(t));
+    }
+    let bad = |reason: String| MakeError::Tile { key, reason };
+    let Some(bytes) = reader.tile(key).map_err(|e| bad(e.to_string()))? else { return Ok(None) };
+    let tile = decode(layer, key, &bytes, true).map_err(|e| bad(e.to_string()))?;
+    let tile = Arc::new(unblock(tile).map_err(|e| bad(e.to_owned()))?);
+    if let Some((cache, version)) = cache {
+        cache.put((version, key), Arc::clone(&tile));
+    }
+    Ok(Some(tile))
+}
+
 /// The archive tiles a web tile reads, decoded once each.
 struct Tiles<'p, 'a> {
     placed: &'p Placed<'a>,
@@ -564,23 +590,7 @@ impl Tiles<'_, '_> {
         if let Some(t) = self.decoded.get(&key) {
             return Ok(t.clone());
         }
-        if let Some((cache, version)) = self.placed.cache
-            && let Some(t) = cache.get(&(version, key))
-        {
-            self.decoded.insert(key, Some(Arc::clone(&t)));
-            return Ok(Some(t));
-        }
-        let bad = |reason: String| MakeError::Tile { key, reason };
-        let tile = match self.placed.reader.tile(key).map_err(|e| bad(e.to_string()))? {
-            Some(bytes) => {
-                let tile = decode(self.placed.layer, key, &bytes, true).map_err(|e| bad(e.to_string()))?;
-                Some(Arc::new(unblock(tile).map_err(|e| bad(e.to_owned()))?))
-            }
-            None => None,
-        };
-        if let (Some((cache, version)), Some(t)) = (self.placed.cache, &tile) {
-            cache.put((version, key), Arc::clone(t));
-        }
+        let tile = load_tile(self.placed.reader, self.placed.layer, key, self.placed.cache)?;
         self.decoded.insert(key, tile.clone());
         Ok(tile)
     }

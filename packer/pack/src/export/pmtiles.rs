@@ -126,39 +126,25 @@ pub fn export_pmtiles<S: RangeSource>(
         Ok(())
     })?;
     let layout = Layout::of(&entries);
-    let (root, leaves) = directories(&layout.rows)?;
     let metadata = metadata_json(meta, info)?;
-    let sections = [root.len(), metadata.len(), leaves.len()].map(|n| n as u64);
-    let header = header(&layout, sections, info, meta.georeference.as_ref().and_then(|g| g.lat_lon_bounds));
-
-    let folder = crate::writer::output_folder(out);
-    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
-        .tempfile_in(&folder)
-        .map_err(|e| Error::file(&folder, e))?;
-    let io = |e: std::io::Error| Error::file(out, e);
-    {
-        let mut w = std::io::BufWriter::with_capacity(1 << 20, file.as_file_mut());
-        for part in [&header, &root, &metadata, &leaves] {
-            w.write_all(part).map_err(io)?;
-        }
-        progress.start("export", entries.len() as u64);
-        for (e, fresh) in entries.iter().zip(&layout.first_use) {
-            progress.check()?;
-            if *fresh {
-                w.write_all(&reader.entry_payload(e)?).map_err(io)?;
+    let bounds = meta.georeference.as_ref().and_then(|g| g.lat_lon_bounds);
+    progress.start("export", entries.len() as u64);
+    write_file(
+        out,
+        &layout,
+        &metadata,
+        |layout, sections| header(layout, sections, info, bounds),
+        |w| {
+            for (e, fresh) in entries.iter().zip(&layout.first_use) {
+                progress.check()?;
+                if *fresh {
+                    w.write_all(&reader.entry_payload(e)?).map_err(|e| Error::file(out, e))?;
+                }
+                progress.advance(1);
             }
-            progress.advance(1);
-        }
-        w.flush().map_err(io)?;
-    }
-    file.as_file().sync_all().map_err(io)?;
-    file.persist(out).map_err(|e| Error::file(out, e.error))?;
-    Ok(PmtilesSummary {
-        addressed_tiles: layout.addressed(),
-        tile_entries: layout.rows.len() as u64,
-        tile_contents: layout.contents,
-        file_len: HEADER_LEN + sections.iter().sum::<u64>() + layout.data_len,
-    })
+            Ok(())
+        },
+    )
 }
 
 /// Writes `tiles` (PMTiles tile id and file bytes, in id order) as a PMTiles v3 file at
@@ -195,10 +181,36 @@ pub fn write_pmtiles(
         first_use.push(fresh);
     }
     let layout = Layout { rows, first_use, data_len, contents: offsets.len() as u64 };
-    let (root, leaves) = directories(&layout.rows)?;
     let metadata = gzip(&serde_json::to_vec(metadata).map_err(|e| Error::metadata(&e))?)?;
+    write_file(
+        out,
+        &layout,
+        &metadata,
+        |layout, sections| header_of(layout, sections, (tile_type, 1), Some(bounds)),
+        |w| {
+            for ((_, bytes), fresh) in tiles.iter().zip(&layout.first_use) {
+                if *fresh {
+                    w.write_all(bytes).map_err(|e| Error::file(out, e))?;
+                }
+            }
+            Ok(())
+        },
+    )
+}
+
+/// Writes a PMTiles file of `layout` at `out` (temporary name, fsync, rename): the header
+/// `header` makes of the layout and its sections' lengths, the directories, `metadata`
+/// (gzipped), then the tiles `blobs` writes, in the layout's order.
+fn write_file(
+    out: &Path,
+    layout: &Layout,
+    metadata: &[u8],
+    header: impl FnOnce(&Layout, [u64; 3]) -> Vec<u8>,
+    blobs: impl FnOnce(&mut dyn Write) -> Result<()>,
+) -> Result<PmtilesSummary> {
+    let (root, leaves) = directories(&layout.rows)?;
     let sections = [root.len(), metadata.len(), leaves.len()].map(|n| n as u64);
-    let header = header_of(&layout, sections, (tile_type, 1), Some(bounds));
+    let header = header(layout, sections);
     let folder = crate::writer::output_folder(out);
     let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
         .tempfile_in(&folder)
@@ -206,14 +218,10 @@ pub fn write_pmtiles(
     let io = |e: std::io::Error| Error::file(out, e);
     {
         let mut w = std::io::BufWriter::with_capacity(1 << 20, file.as_file_mut());
-        for part in [&header, &root, &metadata, &leaves] {
+        for part in [&header[..], &root, metadata, &leaves] {
             w.write_all(part).map_err(io)?;
         }
-        for ((_, bytes), fresh) in tiles.iter().zip(&layout.first_use) {
-            if *fresh {
-                w.write_all(bytes).map_err(io)?;
-            }
-        }
+        blobs(&mut w)?;
         w.flush().map_err(io)?;
     }
     file.as_file().sync_all().map_err(io)?;
