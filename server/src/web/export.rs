@@ -2,8 +2,8 @@
 //! (`terrastream export --to xyz`), bit for bit the tiles the server makes.
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use terrastream_format::{Interrupted, MmapSource, Reader};
 
@@ -110,14 +110,14 @@ pub fn make_tiles(
     let next = AtomicUsize::new(0);
     let (sender, receiver) =
         std::sync::mpsc::sync_channel::<(usize, Result<Option<Vec<u8>>, ExportError>)>(4 * threads);
-    let failed = Mutex::new(false);
+    let failed = AtomicBool::new(false);
     std::thread::scope(|scope| -> Result<(), ExportError> {
         for _ in 0..threads {
             let (sender, next, failed) = (sender.clone(), &next, &failed);
             scope.spawn(move || {
                 loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
-                    if i >= tiles.len() || *failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) {
+                    if i >= tiles.len() || failed.load(Ordering::Relaxed) {
                         return;
                     }
                     let tile = tiles[i];
@@ -153,7 +153,7 @@ pub fn make_tiles(
             Ok(())
         })();
         if result.is_err() {
-            *failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = true;
+            failed.store(true, Ordering::Relaxed);
             // Let the threads finish their tile and see the flag.
             for _ in receiver.iter() {}
         }

@@ -80,18 +80,19 @@ pub struct WebTileRequest {
 /// never serves its predecessor's tiles) and the tile.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct MadeKey {
-    archive: String,
+    /// The archive's version: a hash of its strong ETag.
+    archive: u64,
     request: WebTileRequest,
 }
 
 impl MadeKey {
-    /// The strong ETag of the made tile.
-    fn etag(&self) -> String {
+    /// The strong ETag of the made tile, from the archive's.
+    fn etag(&self, archive_etag: &str) -> String {
         let r = &self.request;
         let encoding = r.encoding.map_or("rgba", HeightEncoding::name);
         format!(
             "\"{}-w{}-{}-{}-{}-{encoding}-{}.{}\"",
-            self.archive.trim_matches('"'),
+            archive_etag.trim_matches('"'),
             r.layer,
             r.tile.z,
             r.tile.x,
@@ -135,8 +136,13 @@ fn not_found(why: impl Into<String>) -> WebError {
     WebError(StatusCode::NOT_FOUND, why.into())
 }
 
-/// The options of a query, checked.
-fn options(query: &TileQuery, kind: LayerKind) -> Result<(Option<HeightEncoding>, ImageFormat, u32), WebError> {
+/// The options of a query, checked; `format` when the path already names it (a tile's
+/// extension), else the query's.
+fn options(
+    query: &TileQuery,
+    kind: LayerKind,
+    format: Option<ImageFormat>,
+) -> Result<(Option<HeightEncoding>, ImageFormat, u32), WebError> {
     let encoding = match (kind, query.encoding.as_deref()) {
         (LayerKind::Elevation, None) => Some(HeightEncoding::Terrarium),
         (LayerKind::Elevation, Some(e)) => {
@@ -145,9 +151,10 @@ fn options(query: &TileQuery, kind: LayerKind) -> Result<(Option<HeightEncoding>
         (_, None) => None,
         (_, Some(e)) => return Err(bad(format!("encoding {e:?}: only elevation layers are encoded"))),
     };
-    let format = match query.format.as_deref() {
-        None => ImageFormat::Webp,
-        Some(f) => ImageFormat::parse(f).ok_or_else(|| bad(format!("format {f:?}: use webp or png")))?,
+    let format = match (format, query.format.as_deref()) {
+        (Some(format), _) => format,
+        (None, None) => ImageFormat::Webp,
+        (None, Some(f)) => ImageFormat::parse(f).ok_or_else(|| bad(format!("format {f:?}: use webp or png")))?,
     };
     let size = match query.size {
         None => 512,
@@ -204,7 +211,7 @@ fn layer_tilejson_of(
             info.name
         )));
     }
-    let (encoding, format, size) = options(query, info.kind)?;
+    let (encoding, format, size) = options(query, info.kind, None)?;
     let coverage = tilejson::coverage(metadata, info, size)
         .ok_or_else(|| not_found(format!("archive {name:?} does not say where it lies")))?;
     let host = headers.get(HOST).and_then(|h| h.to_str().ok()).unwrap_or("localhost");
@@ -287,11 +294,12 @@ async fn web_tile_made(
         file.split_once('.').ok_or_else(|| bad(format!("{file:?}: name a tile as {{y}}.webp or {{y}}.png")))?;
     let y: u32 = y.parse().map_err(|_| bad(format!("{file:?}: the row is not a number")))?;
     let format = ImageFormat::parse(extension).ok_or_else(|| bad(format!("{file:?}: use .webp or .png")))?;
-    let (encoding, _, size) = options(&TileQuery { format: None, ..query.clone() }, info.kind)?;
+    let (encoding, _, size) = options(query, info.kind, Some(format))?;
     let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
     let request = WebTileRequest { layer: index, tile, encoding, format, size };
-    let key = MadeKey { archive: served.etag.clone(), request };
-    let etag = key.etag();
+    let version = xxhash_rust::xxh3::xxh3_64(served.etag.as_bytes());
+    let key = MadeKey { archive: version, request };
+    let etag = key.etag(&served.etag);
     let mut h = HeaderMap::with_capacity(8);
     h.insert(ETAG, HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")));
     h.insert(ARCHIVE_ETAG, served.etag_header.clone());
@@ -312,10 +320,7 @@ async fn web_tile_made(
             let made = state
                 .web
                 .pool
-                .run(move || {
-                    let version = xxhash_rust::xxh3::xxh3_64(served.etag.as_bytes());
-                    make_tile_cached(&served.reader, &request, Some((&web.decoded, version)))
-                })
+                .run(move || make_tile_cached(&served.reader, &request, Some((&web.decoded, version))))
                 .await
                 .map_err(|_| WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
                 .map_err(|e| {

@@ -41,17 +41,22 @@ impl MergeLayer<'_> {
 
     /// With `--prefer pixels`, version `i` of an LOD-0 tile several inputs hold, newest
     /// first, as stored (compression undone).
-    fn version(&self, key: TileKey, i: usize) -> Option<Result<Option<Vec<u8>>>> {
+    fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Stored>>> {
         if self.prefer != Prefer::Pixels {
             return None;
         }
-        let versions = match Writer::order_key(self.metadata, key) {
-            Ok(order) => self.all_conflicts.get(&order).map_or(&[][..], Vec::as_slice),
-            Err(e) => return Some(Err(e.into())),
+        let found = || -> Result<Option<Stored>> {
+            let key = TileKey::new(self.index, 0, x, y)?;
+            let versions =
+                self.all_conflicts.get(&Writer::order_key(self.metadata, key)?).map_or(&[][..], Vec::as_slice);
+            versions.iter().rev().nth(i).map(|&found| Ok((key, unpacked(self.readers, key, found)?))).transpose()
         };
-        Some(versions.iter().rev().nth(i).map(|&found| unpacked(self.readers, key, found)).transpose())
+        Some(found())
     }
 }
+
+/// A tile and its stored bytes (compression undone).
+type Stored = (TileKey, Vec<u8>);
 
 /// An elevation layer of a merge: heights decoded and encoded as the layer stores them.
 pub(crate) struct MergedHeights<'a> {
@@ -80,12 +85,8 @@ impl MergedTiles<f32> for MergedHeights<'_> {
         quantize_heights(row, &self.encoder.encoding);
     }
     fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Vec<f32>>>> {
-        let key = match TileKey::new(self.merged.index, 0, x, y) {
-            Ok(key) => key,
-            Err(e) => return Some(Err(e.into())),
-        };
-        let raw = self.merged.version(key, i)?;
-        Some(raw.map(|raw| raw.map(|raw| decode_heights(&raw, &self.encoder.encoding))))
+        let version = self.merged.version(x, y, i)?;
+        Some(version.map(|v| v.map(|(_, raw)| decode_heights(&raw, &self.encoder.encoding))))
     }
 }
 
@@ -152,11 +153,9 @@ impl MergedTiles<[u8; 4]> for MergedTexture<'_> {
         Ok(vec![(key, encode_texture(key, pixels, self.edge, self.format, ZSTD_LEVEL)?)])
     }
     fn version(&self, x: u32, y: u32, i: usize) -> Option<Result<Option<Vec<[u8; 4]>>>> {
-        let key = match TileKey::new(self.merged.index, 0, x, y) {
-            Ok(key) => key,
-            Err(e) => return Some(Err(e.into())),
-        };
-        let raw = self.merged.version(key, i)?;
-        Some(raw.and_then(|raw| raw.map(|bytes| decode_texture(key, &bytes, self.edge, self.format)).transpose()))
+        let version = self.merged.version(x, y, i)?;
+        Some(
+            version.and_then(|v| v.map(|(key, bytes)| decode_texture(key, &bytes, self.edge, self.format)).transpose()),
+        )
     }
 }
