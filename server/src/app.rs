@@ -150,6 +150,8 @@ pub fn service(state: AppState) -> Edge<Router> {
             Route::LayerTileJson => get(crate::web::layer_tilejson),
             Route::WebTile => get(crate::web::web_tile),
             Route::Elevation => get(crate::web::elevation_get).post(crate::web::elevation_post),
+            Route::LayerJson => get(crate::web::quantized::layer_json),
+            Route::TerrainTile => get(crate::web::quantized::terrain_tile),
             Route::Other => return router,
         };
         router.route(route.template(), handler)
@@ -393,7 +395,7 @@ fn tile_located(
 }
 
 /// Does `Accept-Encoding` accept `coding` (named, and not with `q=0`)?
-fn accepts(headers: &HeaderMap, coding: &str) -> bool {
+pub(crate) fn accepts(headers: &HeaderMap, coding: &str) -> bool {
     headers.get_all(ACCEPT_ENCODING).iter().filter_map(|v| v.to_str().ok()).flat_map(|v| v.split(',')).any(|c| {
         let mut parts = c.split(';');
         let name = parts.next().unwrap_or("").trim();

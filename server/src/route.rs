@@ -37,13 +37,17 @@ pub enum Route {
     WebTile,
     /// `/v1/{name}`: the elevation API.
     Elevation,
+    /// `/{name}/layer.json`: the quantized-mesh terrain's layer.
+    LayerJson,
+    /// `/{name}/{z}/{x}/{y}.terrain`: a quantized-mesh tile.
+    TerrainTile,
     /// Anything else (answered 404; counted under "other").
     Other,
 }
 
 impl Route {
     /// Every route, in the order the metrics list them.
-    pub const ALL: [Self; 12] = [
+    pub const ALL: [Self; 14] = [
         Self::Index,
         Self::Health,
         Self::Metrics,
@@ -55,6 +59,8 @@ impl Route {
         Self::LayerTileJson,
         Self::WebTile,
         Self::Elevation,
+        Self::LayerJson,
+        Self::TerrainTile,
         Self::Other,
     ];
 
@@ -73,6 +79,8 @@ impl Route {
             Self::LayerTileJson => "/{name}/{layer}/tiles.json",
             Self::WebTile => "/{name}/xyz/{layer}/{z}/{x}/{y}",
             Self::Elevation => "/v1/{name}",
+            Self::LayerJson => "/{name}/layer.json",
+            Self::TerrainTile => "/{name}/{z}/{x}/{y}",
             Self::Other => "other",
         }
     }
@@ -102,11 +110,13 @@ impl Route {
             ("v1", [Some(n), None, ..]) if !n.is_empty() => Self::Elevation,
             (f, [Some("metadata"), None, ..]) if !f.is_empty() => Self::Metadata,
             (f, [Some("tiles.json"), None, ..]) if !f.is_empty() => Self::TileJson,
+            (f, [Some("layer.json"), None, ..]) if !f.is_empty() => Self::LayerJson,
             (f, [Some(l), Some("tiles.json"), None, ..]) if !f.is_empty() && !l.is_empty() => Self::LayerTileJson,
             (f, [Some("xyz"), Some(l), Some(z), Some(x), Some(y), None]) if ![f, l, z, x, y].contains(&"") => {
                 Self::WebTile
             }
             (f, [Some(a), Some(b), Some(c), Some(d), None, ..]) if ![f, a, b, c, d].contains(&"") => Self::Tile,
+            (f, [Some(z), Some(x), Some(y), None, ..]) if ![f, z, x, y].contains(&"") => Self::TerrainTile,
             _ => Self::Other,
         }
     }
@@ -134,6 +144,8 @@ mod tests {
             ("/a/elevation/tiles.json", "/{name}/{layer}/tiles.json"),
             ("/a/xyz/elevation/12/655/1582.webp", "/{name}/xyz/{layer}/{z}/{x}/{y}"),
             ("/a/xyz/elevation/12/655/1582.webp/x", "other"),
+            ("/a/layer.json", "/{name}/layer.json"),
+            ("/a/12/655/1582.terrain", "/{name}/{z}/{x}/{y}"),
             ("/v1/a", "/v1/{name}"),
             ("/v1/", "other"),
             ("/a//0/1/2", "other"),

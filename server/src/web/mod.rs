@@ -19,6 +19,7 @@ pub mod encode;
 pub mod export;
 pub mod mercator;
 pub mod pool;
+pub mod quantized;
 pub mod resample;
 pub mod tilejson;
 
@@ -82,13 +83,21 @@ pub struct WebTileRequest {
 pub struct MadeKey {
     /// The archive's version: a hash of its strong ETag.
     archive: u64,
-    request: WebTileRequest,
+    request: Made,
+}
+
+/// What a made tile is.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+enum Made {
+    /// A Web Mercator tile.
+    Web(WebTileRequest),
+    /// A quantized-mesh tile with these extensions (gzipped).
+    Terrain(quantized::geodetic::GeoTile, quantized::encode::Extensions),
 }
 
 impl MadeKey {
-    /// The strong ETag of the made tile, from the archive's.
-    fn etag(&self, archive_etag: &str) -> String {
-        let r = &self.request;
+    /// The strong ETag of the made web tile `r`, from the archive's.
+    fn etag(r: &WebTileRequest, archive_etag: &str) -> String {
         let encoding = r.encoding.map_or("rgba", HeightEncoding::name);
         format!(
             "\"{}-w{}-{}-{}-{}-{encoding}-{}.{}\"",
@@ -298,8 +307,8 @@ async fn web_tile_made(
     let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
     let request = WebTileRequest { layer: index, tile, encoding, format, size };
     let version = xxhash_rust::xxh3::xxh3_64(served.etag.as_bytes());
-    let key = MadeKey { archive: version, request };
-    let etag = key.etag(&served.etag);
+    let key = MadeKey { archive: version, request: Made::Web(request) };
+    let etag = MadeKey::etag(&request, &served.etag);
     let mut h = HeaderMap::with_capacity(8);
     h.insert(ETAG, HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")));
     h.insert(ARCHIVE_ETAG, served.etag_header.clone());

@@ -119,7 +119,7 @@ impl<'a> Placed<'a> {
     }
 
     /// World coordinates of a point in degrees.
-    fn world(&self, lon: f64, lat: f64) -> Option<(f64, f64)> {
+    pub fn world(&self, lon: f64, lat: f64) -> Option<(f64, f64)> {
         let (cx, cy) = self.to_archive.apply(lon, lat)?;
         let (x, z) = ((cx - self.origin[0]) / self.scale[0], (self.origin[1] - cy) / self.scale[1]);
         (x.is_finite() && z.is_finite()).then_some((x, z))
