@@ -27,13 +27,18 @@ if ! command -v npm >/dev/null; then
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm
 fi
 
-# The Kubernetes API schema validator (PyPI), in a virtual environment of its own.
+# The Kubernetes API schema validator and the quantized-mesh decoder (PyPI), in a virtual
+# environment of their own.
 tools=${TERRASTREAM_TOOLS_VENV:-$HOME/.cache/terrastream-tools}
 if ! [ -x "$tools/bin/kubernetes-validate" ]; then
   python3 -m venv "$tools"
   "$tools/bin/pip" install -q kubernetes-validate==1.37.0
 fi
+if ! "$tools/bin/python" -c "import quantized_mesh_tile" 2>/dev/null; then
+  "$tools/bin/pip" install -q quantized-mesh-tile==0.7.0
+fi
 export PATH="$tools/bin:$PATH"
+export TERRASTREAM_TOOLS_VENV="$tools"
 
 # The browser clients the tests run unchanged (pinned), installed once into a cache folder.
 npm_cache=${TERRASTREAM_NPM:-$HOME/.cache/terrastream-npm}
@@ -50,6 +55,13 @@ if ! [ -f "$npm_cache/deck.gl-9.2.6/terrain-worker.js" ]; then
     && tar -xzf deck.gl-9.2.6.tgz -C deck.gl-9.2.6 --strip-components=1 package/dist.min.js \
     && tar -xzf loaders.gl-terrain-4.2.1.tgz -C deck.gl-9.2.6 --strip-components=2 package/dist/terrain-worker.js \
     && rm deck.gl-9.2.6.tgz loaders.gl-terrain-4.2.1.tgz)
+fi
+# CesiumJS: its built files (the package's dependencies are not needed to run them).
+if ! [ -f "$npm_cache/cesium-1.145.0/Cesium.js" ]; then
+  mkdir -p "$npm_cache/cesium-1.145.0"
+  (cd "$npm_cache" && npm pack --silent cesium@1.145.0 >/dev/null \
+    && tar -xzf cesium-1.145.0.tgz -C cesium-1.145.0 --strip-components=3 package/Build/Cesium \
+    && rm cesium-1.145.0.tgz)
 fi
 export TERRASTREAM_NPM="$npm_cache"
 

@@ -9,6 +9,7 @@ use terrastream_format::{LayerKind, MmapSource, Reader, zxy_to_tile_id};
 use terrastream_pack::progress::Progress;
 use terrastream_server::web::encode::{HeightEncoding, ImageFormat};
 use terrastream_server::web::export::{WebExport, export_xyz, make_tiles, planned_tiles};
+use terrastream_server::web::quantized::export::export_quantized_mesh;
 use terrastream_server::web::tilejson::coverage;
 
 use super::CliProgress;
@@ -24,7 +25,8 @@ pub struct ExportArgs {
     /// Target format.
     #[arg(long, value_enum)]
     to: ExportFormat,
-    /// Output file (pmtiles) or folder (xyz); written under a temporary name, then renamed.
+    /// Output file (pmtiles) or folder (xyz, quantized-mesh); written under a temporary
+    /// name, then renamed.
     #[arg(short, long)]
     output: PathBuf,
     /// Web tiles' height encoding (`--to xyz`; with `--to pmtiles`, Web Mercator tiles
@@ -37,10 +39,11 @@ pub struct ExportArgs {
     /// Web tiles' pixels a side (256 or 512).
     #[arg(long, default_value_t = 512)]
     size: u32,
-    /// The coarsest web zoom written.
+    /// The coarsest web zoom (or terrain level) written.
     #[arg(long, default_value_t = 0)]
     minzoom: u8,
-    /// The finest web zoom written (default: the layer's, as its TileJSON says).
+    /// The finest web zoom (or terrain level) written (default: the layer's, as its
+    /// TileJSON or layer.json says).
     #[arg(long)]
     maxzoom: Option<u8>,
     /// Absolute URL the tiles will be served under, for tiles.json (default: URLs
@@ -55,6 +58,9 @@ enum ExportFormat {
     Pmtiles,
     /// An XYZ tree of Web Mercator tiles and its tiles.json, for any static host.
     Xyz,
+    /// Quantized-mesh terrain (CesiumJS): layer.json and a gzipped {z}/{x}/{y}.terrain
+    /// tree, for any static host that sends `Content-Encoding: gzip` with them.
+    QuantizedMesh,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -73,7 +79,34 @@ pub fn run(args: ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     match args.to {
         ExportFormat::Pmtiles if args.encoding.is_none() => run_pmtiles(&args, progress),
         ExportFormat::Pmtiles | ExportFormat::Xyz => run_web(&args, progress),
+        ExportFormat::QuantizedMesh => run_quantized_mesh(&args, progress),
     }
+}
+
+/// The elevation as quantized-mesh terrain in a folder.
+fn run_quantized_mesh(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
+    let reader = Reader::open_mmap(&args.archive).with_context(|| format!("cannot open archive {}", args.archive))?;
+    let started = std::time::Instant::now();
+    let tick = |done: u64, total: u64| {
+        if done == 1 {
+            progress.start("tiles", total);
+        }
+        progress.advance(1);
+        progress.check().map_err(|_| terrastream_format::Interrupted)
+    };
+    let summary = export_quantized_mesh(&reader, &args.output, args.minzoom, args.maxzoom, &tick)
+        .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
+    progress.finish();
+    println!(
+        "{}: quantized-mesh levels {}..{}, {} tiles, {} bytes gzipped in {:.2} s",
+        args.output.display(),
+        summary.zooms.0,
+        summary.zooms.1,
+        summary.tiles,
+        summary.bytes,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The archive's own tiles of one layer as PMTiles.

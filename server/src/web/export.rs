@@ -40,6 +40,14 @@ pub enum ExportError {
         /// Why.
         error: MakeError,
     },
+    /// A terrain tile could not be made.
+    #[error("terrain tile {z}/{x}/{y}: {error}", z = .tile.z, x = .tile.x, y = .tile.y)]
+    Terrain {
+        /// The tile.
+        tile: super::quantized::geodetic::GeoTile,
+        /// Why.
+        error: MakeError,
+    },
     /// The layer does not say where it lies (or is not heights or images).
     #[error(
         "the layer has no web tiles: the archive does not say where it lies, or its tiles are not heights or images"
@@ -106,30 +114,48 @@ pub fn make_tiles(
     tick: &(dyn Fn() -> Result<(), Interrupted> + Sync),
     each: &mut dyn FnMut(WebTile, Vec<u8>) -> Result<(), ExportError>,
 ) -> Result<(), ExportError> {
+    let make = |&tile: &WebTile| {
+        let request = WebTileRequest {
+            layer: export.layer,
+            tile,
+            encoding: export.encoding,
+            format: export.format,
+            size: export.size,
+        };
+        make_tile(reader, &request).map_err(|error| ExportError::Make { tile, error })
+    };
+    in_order(tiles, threads, &make, tick, each)
+}
+
+/// A made file's bytes, None when it holds no data.
+pub type Made<E> = Result<Option<Vec<u8>>, E>;
+
+/// Makes each of `items` on `threads` threads (0: the cores) and hands those with data to
+/// `each` in the order given; `tick` is called after each (its error stops the work).
+///
+/// # Errors
+/// The first item that cannot be made, `each`'s or `tick`'s error.
+pub fn in_order<T: Copy + Sync, E: From<Interrupted> + Send>(
+    items: &[T],
+    threads: usize,
+    make: &(dyn Fn(&T) -> Made<E> + Sync),
+    tick: &(dyn Fn() -> Result<(), Interrupted> + Sync),
+    each: &mut dyn FnMut(T, Vec<u8>) -> Result<(), E>,
+) -> Result<(), E> {
     let threads = if threads == 0 { std::thread::available_parallelism().map_or(2, usize::from) } else { threads };
     let next = AtomicUsize::new(0);
-    let (sender, receiver) =
-        std::sync::mpsc::sync_channel::<(usize, Result<Option<Vec<u8>>, ExportError>)>(4 * threads);
+    let (sender, receiver) = std::sync::mpsc::sync_channel::<(usize, Made<E>)>(4 * threads);
     let failed = AtomicBool::new(false);
-    std::thread::scope(|scope| -> Result<(), ExportError> {
+    std::thread::scope(|scope| -> Result<(), E> {
         for _ in 0..threads {
             let (sender, next, failed) = (sender.clone(), &next, &failed);
             scope.spawn(move || {
                 loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
-                    if i >= tiles.len() || failed.load(Ordering::Relaxed) {
+                    if i >= items.len() || failed.load(Ordering::Relaxed) {
                         return;
                     }
-                    let tile = tiles[i];
-                    let request = WebTileRequest {
-                        layer: export.layer,
-                        tile,
-                        encoding: export.encoding,
-                        format: export.format,
-                        size: export.size,
-                    };
-                    let made = make_tile(reader, &request).map_err(|error| ExportError::Make { tile, error });
-                    if sender.send((i, made)).is_err() {
+                    if sender.send((i, make(&items[i]))).is_err() {
                         return;
                     }
                 }
@@ -144,7 +170,7 @@ pub fn make_tiles(
                 early.insert(i, made);
                 while let Some(made) = early.remove(&want) {
                     if let Some(bytes) = made? {
-                        each(tiles[want], bytes)?;
+                        each(items[want], bytes)?;
                     }
                     tick()?;
                     want += 1;
@@ -154,7 +180,7 @@ pub fn make_tiles(
         })();
         if result.is_err() {
             failed.store(true, Ordering::Relaxed);
-            // Let the threads finish their tile and see the flag.
+            // Let the threads finish their item and see the flag.
             for _ in receiver.iter() {}
         }
         result
@@ -176,14 +202,7 @@ pub fn export_xyz(
     tick: &(dyn Fn(u64, u64) -> Result<(), Interrupted> + Sync),
 ) -> Result<WebExportSummary, ExportError> {
     let (tiles, zooms) = planned_tiles(reader, export)?;
-    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let file_err = |path: &Path| {
-        let path = path.to_path_buf();
-        move |error| ExportError::File { path, error }
-    };
-    std::fs::create_dir_all(parent).map_err(file_err(parent))?;
-    let temp =
-        tempfile::Builder::new().prefix(".xyz-").suffix(".partial").tempdir_in(parent).map_err(file_err(parent))?;
+    let temp = stage(dir)?;
     let mut summary = WebExportSummary { zooms, ..WebExportSummary::default() };
     let extension = export.format.extension();
     let done = AtomicUsize::new(0);
@@ -220,10 +239,34 @@ pub fn export_xyz(
     let json_path = temp.path().join("tiles.json");
     let text = serde_json::to_vec_pretty(&doc).unwrap_or_default();
     std::fs::write(&json_path, text).map_err(file_err(&json_path))?;
+    publish(temp, dir)?;
+    Ok(summary)
+}
+
+/// The error of a file that could not be written.
+pub(crate) fn file_err(path: &Path) -> impl FnOnce(std::io::Error) -> ExportError + use<> {
+    let path = path.to_path_buf();
+    move |error| ExportError::File { path, error }
+}
+
+/// A temporary folder beside `dir` to write an export into.
+///
+/// # Errors
+/// [`ExportError::File`] when it cannot be made.
+pub(crate) fn stage(dir: &Path) -> Result<tempfile::TempDir, ExportError> {
+    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(file_err(parent))?;
+    tempfile::Builder::new().prefix(".export-").suffix(".partial").tempdir_in(parent).map_err(file_err(parent))
+}
+
+/// Puts a complete export in `dir`'s place.
+///
+/// # Errors
+/// [`ExportError::File`] when the old folder cannot be removed or the new renamed.
+pub(crate) fn publish(temp: tempfile::TempDir, dir: &Path) -> Result<(), ExportError> {
     if dir.exists() {
         std::fs::remove_dir_all(dir).map_err(file_err(dir))?;
     }
     let kept = temp.keep();
-    std::fs::rename(&kept, dir).map_err(file_err(dir))?;
-    Ok(summary)
+    std::fs::rename(&kept, dir).map_err(file_err(dir))
 }

@@ -17,6 +17,7 @@
 //! quantization's half step included).
 
 pub mod encode;
+pub mod export;
 pub mod geodetic;
 pub mod mesh;
 
