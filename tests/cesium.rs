@@ -169,3 +169,131 @@ fn every_terrain_tile_passes_an_independent_decoder_and_the_export_is_what_is_se
         assert!(head.starts_with(&format!("http/1.1 {status}")), "{path}: {head}");
     }
 }
+
+/// The CesiumJS release the tests load (its built files, installed by `scripts/test.sh`).
+const CESIUM: &str = "1.145.0";
+const WIDTH: u32 = 640;
+const HEIGHT: u32 = 400;
+/// Random points inside the data.
+const POINTS: usize = 50;
+/// Cesium draws with SwiftShader's WebGL: deterministic for one Chromium build; the
+/// allowance covers another release's anti-aliasing.
+const TOLERANCE: terrastream_testkit::golden::Tolerance =
+    terrastream_testkit::golden::Tolerance { mean: 2.0, pixel: 32, off_share: 0.02 };
+
+/// CesiumJS's built files (`Build/Cesium` of the npm package).
+fn cesium_build() -> Option<PathBuf> {
+    let build = oracles::npm_cache().join(format!("cesium-{CESIUM}"));
+    build.join("Cesium.js").exists().then_some(build)
+}
+
+/// Loads `page`, waits until the globe has loaded every tile of the view, and returns
+/// Cesium's heights at `points` (`sampleTerrainMostDetailed`, as documented) and a
+/// screenshot; fails on any `errorEvent` or failed request.
+fn cesium_run(
+    browser: &terrastream_testkit::browser::Browser<'_>,
+    page: &str,
+    points: &[(f64, f64)],
+) -> (Vec<f64>, (u32, u32, Vec<u8>)) {
+    use std::time::{Duration, Instant};
+    browser.goto(page);
+    let started = Instant::now();
+    loop {
+        let state = browser.eval(
+            "return [!!(window.viewer && viewer.scene.globe.tilesLoaded && viewer.scene.frameState.frameNumber > 5), window.failures];",
+        );
+        assert_eq!(state[1], json!([]), "Cesium reported errors on {page}: console {:?}", browser.console());
+        if state[0] == json!(true) {
+            break;
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "Cesium never loaded its view: {:?}", browser.console());
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    browser.eval("viewer.cesiumWidget.creditContainer.style.display = 'none'; viewer.scene.requestRender(); return 0;");
+    std::thread::sleep(Duration::from_millis(500));
+    let picture = browser.screenshot("#globe");
+    let sample = oracles::snippet("cesium-sample");
+    let list: Vec<[f64; 2]> = points.iter().map(|&(lon, lat)| [lon, lat]).collect();
+    // The documented call, on the test's points, handing its heights back.
+    let script = sample.replace("[[-122.5965, 37.9235], [-122.6, 37.9]]", &json!(list).to_string()).replace(
+        "console.log(done.map(p => p.height)));",
+        "arguments[0](done.map(p => p.height))).catch(e => arguments[0](String(e)));",
+    );
+    assert!(script.contains("arguments[0]"), "the cesium-sample snippet changed: {sample}");
+    browser.call("POST", "/timeouts", Some(json!({ "script": 120_000 })));
+    let heights = browser.eval_async(&script);
+    let failures = browser.eval("return window.failures;");
+    assert_eq!(failures, json!([]), "Cesium reported errors on {page}: console {:?}", browser.console());
+    let heights =
+        heights.as_array().unwrap_or_else(|| panic!("{heights}")).iter().map(|h| h.as_f64().unwrap()).collect();
+    (heights, picture)
+}
+
+#[test]
+fn cesium_flies_the_served_and_the_exported_terrain() {
+    use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+    let mut missing = terrastream_testkit::browser::missing();
+    let build = cesium_build();
+    if build.is_none() {
+        missing.push("CesiumJS's built files (scripts/test.sh: npm pack cesium@1.145.0)");
+    }
+    for tool in ["gdaltransform", "gdallocationinfo"] {
+        if Command::new(tool).arg("--version").output().is_err() {
+            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
+        }
+    }
+    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let (_, body) = curl(server.port, "/tamalpais/layer.json", &[]);
+    let layer: Value = serde_json::from_slice(&body).unwrap();
+    let bounds: [f64; 4] = serde_json::from_value(layer["bounds"].clone()).unwrap();
+    let points = oracles::random_points(bounds, POINTS);
+    let truth = oracles::gdal_bilinear(&points);
+
+    // The static host: the page, Cesium's files and the export, served by nginx as
+    // documented.
+    let root = dir.path().join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    let page = oracles::snippet("cesium-page");
+    assert!(page.contains(&format!("width: {WIDTH}px; height: {HEIGHT}px")), "the globe's size changed");
+    std::fs::write(root.join("index.html"), page).unwrap();
+    let terrain = root.join("terrain");
+    terrastream(&["export", archive.to_str().unwrap(), "--to", "quantized-mesh", "-o", terrain.to_str().unwrap()]);
+    let location = oracles::snippet("quantized-mesh-nginx");
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        &format!(
+            "server {{ listen 127.0.0.1:{{port}}; root {{root}}; types {{ application/json json; text/html html; \
+             application/javascript js; text/css css; image/png png; application/wasm wasm; }} {location} }}"
+        ),
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let served =
+        format!("http://127.0.0.1:{}/index.html?terrain=http://127.0.0.1:{}/tamalpais", nginx.port, server.port);
+    let exported = format!("http://127.0.0.1:{0}/index.html?terrain=http://127.0.0.1:{0}/terrain", nginx.port);
+    let mut pictures = vec![];
+    for (name, page) in [("served", served), ("exported", exported)] {
+        let (heights, picture) = cesium_run(&browser, &page, &points);
+        let (median, p90) = oracles::errors(&heights, &truth);
+        eprintln!("Cesium {name}: |height - GDAL bilinear| median {median:.2} m, 90 % within {p90:.2} m");
+        assert!(median <= 3.0 && p90 <= 20.0, "{name}: median {median:.2} m, p90 {p90:.2} m");
+        pictures.push(picture);
+    }
+    let (w, h, rgba) = &pictures[0];
+    // Terrain drawn: the lit globe, not the empty sky, over most of the lower half.
+    let lower = &rgba[(*w * *h * 2) as usize..];
+    let lit = lower.chunks_exact(4).filter(|p| u32::from(p[0]) + u32::from(p[1]) + u32::from(p[2]) > 60).count();
+    assert!(lit * 2 > (w * h / 2) as usize, "Cesium drew terrain over only {lit} of the lower half's pixels");
+    terrastream_testkit::golden::assert_golden("cesium-terrain", *w, *h, rgba, TOLERANCE);
+    let (mean, _) = terrastream_testkit::golden::difference(rgba, &pictures[1].2, 0);
+    assert!(mean < 0.01, "the exported terrain draws differently from the served: mean difference {mean}");
+}
