@@ -8,7 +8,9 @@
 #       (gdal_translate -of COG), algorithm=terrainrgb, the same tiles;
 #   (g) nginx serving `terrastream export --to xyz` of the same tiles (static files);
 #   (h) single-point elevation requests: ours (/v1) against TiTiler's /cog/point; and
-#       points per second with 100 locations a request.
+#       points per second with 100 locations a request;
+#   (i) quantized-mesh tiles (both extensions, gzipped, as CesiumJS asks) made on each
+#       request, random level 10-14 tiles inside the bounds, against (e) cold.
 # Needs: wrk, nginx, gdal-bin, python3 (TiTiler is installed from PyPI into a cache venv).
 # SRTM=path picks the DEM (default: ../shared/data/srtm/n37_w123_1arc_v3.tif).
 set -euo pipefail
@@ -92,12 +94,24 @@ with open(f"{work}/titiler-point.txt", "w") as f:
 with open(f"{work}/hundred.txt", "w") as f:
     for i in range(0, 2000, 100):
         f.write("/v1/srtm?locations=" + "|".join(f"{lat:.6f},{lon:.6f}" for lat, lon in points[i:i + 100]) + "\n")
+terrain = set()
+while len(terrain) < 2000:
+    z = random.randint(10, 14)
+    d = 180 / 2 ** z
+    terrain.add((z, int((random.uniform(w, e) + 180) // d), int((random.uniform(s, n) + 90) // d)))
+with open(f"{work}/terrain.txt", "w") as f:
+    f.writelines(f"/srtm/{z}/{x}/{y}.terrain\n" for z, x, y in sorted(terrain))
 PY
 cat > "$work/paths.lua" <<'LUA'
 local paths = {}
 for line in io.lines(os.getenv("PATHS")) do paths[#paths + 1] = line end
 math.randomseed(os.time())
-request = function() return wrk.format("GET", paths[math.random(#paths)]) end
+local headers = nil
+if os.getenv("CESIUM") then
+  headers = { ["Accept"] = "application/vnd.quantized-mesh;extensions=octvertexnormals-metadata",
+              ["Accept-Encoding"] = "gzip" }
+end
+request = function() return wrk.format("GET", paths[math.random(#paths)], headers) end
 LUA
 
 run() { # port paths -> "requests/s p50 p99 errors"
@@ -124,14 +138,16 @@ for row in "e-cold|$cold|ours.txt|(e) terrastream web tiles, cold (made on each 
            "g|$static|static.txt|(g) nginx, the exported tiles" \
            "h-ours|$warm|point.txt|(h) terrastream /v1, one point a request" \
            "h-titiler|$titiler|titiler-point.txt|(h) TiTiler /cog/point" \
-           "h-100|$warm|hundred.txt|(h) terrastream /v1, 100 points a request"; do
+           "h-100|$warm|hundred.txt|(h) terrastream /v1, 100 points a request" \
+           "i|$cold|terrain.txt|(i) terrastream quantized-mesh tiles, cold"; do
   IFS='|' read -r key p file name <<<"$row"
-  r[$key]=$(run "$p" "$file")
+  if [ "$key" = i ]; then r[$key]=$(CESIUM=1 run "$p" "$file"); else r[$key]=$(run "$p" "$file"); fi
   read -r rps p50 p99 <<<"${r[$key]}"
   printf '%-58s %12s %10s %10s\n' "$name" "$rps" "$p50" "$p99"
 done
 ratio() { awk -v a="${r[$1]%% *}" -v b="${r[$2]%% *}" 'BEGIN { printf "%.1f", a / b }'; }
 echo
 echo "cold web tiles / TiTiler: $(ratio e-cold f)x; warm web tiles / nginx static: $(ratio e-warm g)x"
+echo "cold quantized-mesh tiles / cold web tiles: $(ratio i e-cold)x"
 echo "single-point elevation / TiTiler /cog/point: $(ratio h-ours h-titiler)x;" \
   "points/s at 100 a request: $(awk -v a="${r[h-100]%% *}" 'BEGIN { printf "%.0f", a * 100 }')"
