@@ -240,6 +240,61 @@ impl FlyCamera {
 mod tests {
     use super::*;
 
+    /// A transverse Mercator centred at 122.6 W, 37.9 N, one metre a world unit, its
+    /// north-west corner at CRS (-5000, 5000).
+    fn placed() -> Metadata {
+        let mut m = Metadata::new("placed", vec![]);
+        m.georeference = Some(terrastream_format::Georeference {
+            definition: Some(
+                "+proj=tmerc +lat_0=37.9 +lon_0=-122.6 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs".into(),
+            ),
+            origin: Some([-5000.0, 5000.0]),
+            scale: Some([1.0, 1.0]),
+            ..Default::default()
+        });
+        m
+    }
+
+    #[test]
+    fn poses_follow_cesiums_conventions() {
+        let m = placed();
+        let look = |heading: f64, pitch: f64| {
+            let (eye, target) = Pose::parse("-122.6,37.9,500", heading, pitch).unwrap().eye_target(&m).unwrap();
+            (eye, (target - eye).normalize())
+        };
+        let (eye, north) = look(0.0, 0.0);
+        // The projection's centre is the CRS origin: world (5000, 5000); heights as given.
+        assert!((eye - DVec3::new(5000.0, 500.0, 5000.0)).length() < 1e-3, "{eye}");
+        // x east, y up, z south.
+        assert!((north - DVec3::NEG_Z).length() < 1e-6, "heading 0 looks north: {north}");
+        assert!((look(90.0, 0.0).1 - DVec3::X).length() < 1e-6, "heading 90 looks east");
+        assert!((look(180.0, 0.0).1 - DVec3::Z).length() < 1e-6, "heading 180 looks south");
+        assert!((look(0.0, -90.0).1 - DVec3::NEG_Y).length() < 1e-6, "pitch -90 looks down");
+        let down = look(0.0, -30.0).1;
+        assert!((down.y - (-30f64).to_radians().sin()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn north_is_true_north_off_the_central_meridian() {
+        // One degree east of the central meridian at 37.9 N the grid's north is turned
+        // by the meridian convergence, about 1 degree * sin(37.9) = 0.61 degrees.
+        let (eye, target) = Pose::parse("-121.6,37.9,0", 0.0, 0.0).unwrap().eye_target(&placed()).unwrap();
+        let d = target - eye;
+        let turned = d.x.atan2(-d.z).to_degrees();
+        assert!((turned.abs() - 0.614).abs() < 0.01, "north is turned {turned} degrees from grid north");
+    }
+
+    #[test]
+    fn bad_poses_are_named() {
+        assert!(Pose::parse("200,0,0", 0.0, 0.0).unwrap_err().contains("longitude"));
+        assert!(Pose::parse("1,2", 0.0, 0.0).unwrap_err().contains("three numbers"));
+        assert!(Pose::parse("1,2,x", 0.0, 0.0).unwrap_err().contains("LON,LAT,HEIGHT"));
+        assert!(Pose::parse("1,2,3", 0.0, -100.0).unwrap_err().contains("pitch"));
+        let unplaced =
+            Pose::parse("1,2,3", 0.0, 0.0).unwrap().eye_target(&Metadata::new("unplaced", vec![])).unwrap_err();
+        assert!(unplaced.contains("says where it lies"), "{unplaced}");
+    }
+
     #[test]
     fn round_trips_a_camera_direction() {
         let c = Camera::look_at(DVec3::new(0.0, 100.0, 0.0), DVec3::new(100.0, 0.0, -100.0), 64, 64);
@@ -350,5 +405,73 @@ mod tests {
         assert!(fly.pitch >= -1.5);
         fly.scale_speed(1e3);
         assert!(fly.speed <= 100.0);
+    }
+}
+
+/// A camera pose in geographic terms, with CesiumJS's conventions: the eye at a longitude
+/// and latitude (degrees, WGS 84) and a height (metres), heading clockwise from north and
+/// pitch from the horizontal (negative: looking down), both in degrees.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pose {
+    /// Longitude of the eye.
+    pub lon: f64,
+    /// Latitude of the eye.
+    pub lat: f64,
+    /// Height of the eye (metres; the archive's height datum).
+    pub height: f64,
+    /// Degrees clockwise from north.
+    pub heading: f64,
+    /// Degrees above the horizontal (negative: down).
+    pub pitch: f64,
+}
+
+impl Pose {
+    /// The pose of `at` ("LON,LAT,HEIGHT"), `heading` and `pitch`.
+    ///
+    /// # Errors
+    /// A message naming the bad value.
+    pub fn parse(at: &str, heading: f64, pitch: f64) -> Result<Self, String> {
+        let v: Vec<f64> = at
+            .split(',')
+            .map(|p| p.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("at {at:?}: expected LON,LAT,HEIGHT (degrees, degrees, metres)"))?;
+        let [lon, lat, height] = v[..] else {
+            return Err(format!("at {at:?}: expected three numbers LON,LAT,HEIGHT"));
+        };
+        if !(-180.0..=180.0).contains(&lon) || !(-90.0..=90.0).contains(&lat) || !height.is_finite() {
+            return Err(format!("at {at:?}: longitude -180..180, latitude -90..90, a finite height"));
+        }
+        if !heading.is_finite() || !(-90.0..=90.0).contains(&pitch) {
+            return Err(format!("heading {heading}, pitch {pitch}: a finite heading, pitch -90..90"));
+        }
+        Ok(Self { lon, lat, height, heading, pitch })
+    }
+
+    /// The eye and a target one kilometre along the view, in `metadata`'s world: north
+    /// and east are measured on the archive's grid at the eye (a projected grid's north
+    /// is not its -z axis away from the central meridian).
+    ///
+    /// # Errors
+    /// A message when the archive does not say where it lies, or the eye has no place in
+    /// its CRS.
+    pub fn eye_target(&self, metadata: &Metadata) -> Result<(DVec3, DVec3), String> {
+        let geo = crate::geo::Geo::new(metadata)
+            .ok_or("a camera in longitude and latitude needs an archive that says where it lies (a georeference)")?;
+        let world = |lon: f64, lat: f64| {
+            geo.lon_lat_to_world(lon, lat)
+                .ok_or_else(|| format!("{lon},{lat} has no place in the archive's CRS"))
+                .map(|(x, z)| DVec2::new(x, z))
+        };
+        let eye = world(self.lon, self.lat)?;
+        // A step of about a metre north and east, as the grid draws them.
+        let step = 1e-5;
+        let north = (world(self.lon, (self.lat + step).min(90.0))? - eye).try_normalize().unwrap_or(DVec2::NEG_Y);
+        let east = (world(self.lon + step, self.lat)? - eye).try_normalize().unwrap_or(DVec2::X);
+        let (heading, pitch) = (self.heading.to_radians(), self.pitch.to_radians());
+        let flat = north * heading.cos() + east * heading.sin();
+        let direction = DVec3::new(flat.x * pitch.cos(), pitch.sin(), flat.y * pitch.cos());
+        let position = DVec3::new(eye.x, self.height, eye.y);
+        Ok((position, position + direction * 1000.0))
     }
 }

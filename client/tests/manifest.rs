@@ -83,7 +83,7 @@ fn camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
 fn render(gpu: &Gpu, location: &str, cam: Option<Camera>) -> Still {
     let options =
         StillOptions { width: WIDTH, height: HEIGHT, settings: RenderSettings::default(), ..StillOptions::default() };
-    let camera = |m: &Metadata| cam.unwrap_or_else(|| default_camera(m, WIDTH, HEIGHT));
+    let camera = |m: &Metadata| Ok(cam.unwrap_or_else(|| default_camera(m, WIDTH, HEIGHT)));
     render_still(gpu, Origin::parse(location).unwrap(), camera, &options).unwrap()
 }
 

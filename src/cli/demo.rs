@@ -150,7 +150,7 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
         let started = std::time::Instant::now();
         let camera = |metadata: &terrastream_format::Metadata| {
             let pose = pose.map(|(eye, target)| (glam::DVec3::from_array(eye), glam::DVec3::from_array(target)));
-            start_camera(metadata, pose, w, h)
+            Ok(start_camera(metadata, pose, w, h))
         };
         let options = StillOptions { width: w, height: h, ..StillOptions::default() };
         let still = render_still(&gpu, Origin::parse(&location)?, camera, &options)

@@ -7,7 +7,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
-use terrastream_client::fly::start_camera;
+use terrastream_client::fly::{Pose, start_camera};
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
 use terrastream_client::render::still::{StillOptions, render_still, write_png};
@@ -92,6 +92,16 @@ pub struct RenderArgs {
     /// Default: an oblique view from the south framing the whole dataset.
     #[arg(long)]
     camera: Option<String>,
+    /// The eye in geographic terms, as CesiumJS places cameras: "LON,LAT,HEIGHT" (degrees,
+    /// metres), looking along --heading and --pitch (an archive that says where it lies).
+    #[arg(long, conflicts_with = "camera", allow_hyphen_values = true)]
+    at: Option<String>,
+    /// With --at: degrees clockwise from north.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    heading: f64,
+    /// With --at: degrees from the horizontal, negative looking down.
+    #[arg(long, default_value_t = -30.0, allow_hyphen_values = true)]
+    pitch: f64,
     /// Vertical field of view in degrees.
     #[arg(long, default_value_t = 60.0)]
     fov: f64,
@@ -141,6 +151,12 @@ pub fn parse_camera(s: &str) -> Result<(DVec3, DVec3)> {
 pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let (width, height) = parse_size(&args.size)?;
     let camera = args.camera.as_deref().map(parse_camera).transpose()?;
+    let pose = args
+        .at
+        .as_deref()
+        .map(|at| Pose::parse(at, args.heading, args.pitch))
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
     let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
     let gpu =
         Gpu::headless().context("rendering needs a graphics adapter (a software one will do: Mesa's lavapipe)")?;
@@ -156,8 +172,12 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     };
     let fov = args.fov.clamp(1.0, 170.0).to_radians();
     let make_camera = |metadata: &terrastream_format::Metadata| {
-        let start = start_camera(metadata, camera, width, height);
-        if camera.is_some() { Camera { fov_y: fov, ..start } } else { start }
+        let asked = match pose {
+            Some(pose) => Some(pose.eye_target(metadata)?),
+            None => camera,
+        };
+        let start = start_camera(metadata, asked, width, height);
+        Ok(if asked.is_some() { Camera { fov_y: fov, ..start } } else { start })
     };
     let started = std::time::Instant::now();
     let still =

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use terrastream_client::fly::{start_camera, terrain_bounds};
+use terrastream_client::fly::{Pose, start_camera, terrain_bounds};
 use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame};
 use terrastream_client::render::hud::{FrameTimes, Hud, Status, status_lines};
@@ -28,6 +28,16 @@ pub struct ViewArgs {
     /// Start at eye and target "ex,ey,ez,tx,ty,tz" (default: the whole dataset from the south).
     #[arg(long)]
     pub camera: Option<String>,
+    /// Start at "LON,LAT,HEIGHT" (degrees, metres), looking along --heading and --pitch
+    /// (CesiumJS's conventions; an archive that says where it lies).
+    #[arg(long, conflicts_with = "camera", allow_hyphen_values = true)]
+    pub at: Option<String>,
+    /// With --at: degrees clockwise from north.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub heading: f64,
+    /// With --at: degrees from the horizontal, negative looking down.
+    #[arg(long, default_value_t = -30.0, allow_hyphen_values = true)]
+    pub pitch: f64,
     /// Window size, WxH.
     #[arg(long, default_value = "1280x720")]
     pub size: String,
@@ -256,10 +266,19 @@ pub fn run_url(url: &str) -> Result<()> {
 
 pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let (width, height) = parse_size(&args.size)?;
-    let start = args.camera.as_deref().map(parse_camera).transpose()?;
+    let mut start = args.camera.as_deref().map(parse_camera).transpose()?;
+    let pose = args
+        .at
+        .as_deref()
+        .map(|at| Pose::parse(at, args.heading, args.pitch))
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
     let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
     let streamer = Streamer::open(origin, args.look.stream()).with_context(|| format!("opening {}", args.archive))?;
     let metadata = streamer.metadata().cloned().context("the archive has no metadata")?;
+    if let Some(pose) = pose {
+        start = Some(pose.eye_target(&metadata).map_err(anyhow::Error::msg)?);
+    }
     let camera = start_camera(&metadata, start, width, height);
     let ([x0, z0, x1, z1], _) = terrain_bounds(&metadata);
     let (ex, ez) = (x1 - x0, z1 - z0);

@@ -1,7 +1,7 @@
 //! What the client tests share: the committed 1" SRTM crop tiled as `terrastream tile`
 //! does by default, GDAL's bilinear heights of it (the oracle), random points, error
 //! percentiles, and the snippets of `docs/clients.md` (the documented code is the code run).
-#![allow(dead_code)]
+#![allow(dead_code, clippy::cast_possible_truncation)]
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};

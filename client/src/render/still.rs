@@ -22,6 +22,9 @@ pub enum StillError {
     /// The archive could not be opened or read.
     #[error(transparent)]
     Archive(#[from] crate::Error),
+    /// The camera asked for has no place in the archive.
+    #[error("camera: {0}")]
+    Camera(String),
     /// The view was not complete in time (`--no-wait` renders what is there).
     #[error(
         "the view was not fully streamed in time: {pending} tiles pending{}",
@@ -103,13 +106,13 @@ pub struct Still {
 pub fn render_still(
     gpu: &Gpu,
     origin: Origin,
-    camera: impl FnOnce(&Metadata) -> Camera,
+    camera: impl FnOnce(&Metadata) -> Result<Camera, String>,
     options: &StillOptions,
 ) -> Result<Still, StillError> {
     let streamer = Streamer::open(origin, options.stream.clone())?;
     let metadata =
         streamer.metadata().ok_or_else(|| crate::Error::NotOpen { why: streamer.last_error().map(str::to_owned) })?;
-    let camera = camera(metadata).enclosing(&crate::fly::terrain_box(metadata));
+    let camera = camera(metadata).map_err(StillError::Camera)?.enclosing(&crate::fly::terrain_box(metadata));
     let mut session = Session::new(streamer, &gpu.device, options.settings, OFFSCREEN_FORMAT, options.budget)?;
     let wait = options.wait;
     let ready = |s: &Session| {

@@ -6,6 +6,8 @@
 //! - `archive`: URL of a `.tspack` or of a manifest `.json` (relative to the page); without it, the page's
 //!   `<meta name="terrastream-archive">` (what `terrastream serve` fills in at `/view/{name}`);
 //! - `camera=ex,ey,ez,tx,ty,tz`: start there (default: the whole dataset from the south);
+//! - `at=LON,LAT,HEIGHT`, `heading=DEG`, `pitch=DEG`: start there in geographic terms
+//!   (CesiumJS's conventions: heading clockwise from north, pitch negative looking down);
 //! - `backend=webgpu|webgl2`: only that one (default: WebGPU if the browser has it, else WebGL2);
 //! - `hud=0`: start with the HUD hidden (H toggles it);
 //! - `flight=N`: 4 s after the first view is complete, fly the benchmarks' path of N frames
@@ -216,7 +218,15 @@ impl State {
         self.timings.session_ms = Some(self.page.now_ms() - started);
         match made {
             Ok(session) => {
-                let camera = start_camera(&metadata, self.params.camera, width, height);
+                let start = match self.params.pose.map(|pose| pose.eye_target(&metadata)) {
+                    Some(Ok(start)) => Some(start),
+                    Some(Err(why)) => {
+                        tracing::error!("at=: {why}; starting from the default view");
+                        None
+                    }
+                    None => self.params.camera,
+                };
+                let camera = start_camera(&metadata, start, width, height);
                 self.phase = Phase::Running { session: Box::new(session), fly: FlyCamera::from_camera(&camera) };
                 tracing::info!(archive = %self.params.archive, "opened: {} layers", metadata.layers.len());
                 true

@@ -6,6 +6,8 @@ use super::*;
 pub(super) struct Params {
     pub(super) archive: String,
     pub(super) camera: Option<(DVec3, DVec3)>,
+    /// `at=LON,LAT,HEIGHT` with `heading=` and `pitch=` (degrees; CesiumJS's conventions).
+    pub(super) pose: Option<terrastream_client::fly::Pose>,
     pub(super) backends: wgpu::Backends,
     pub(super) hud: bool,
     /// Web Workers that decode tiles (`workers=N`; 0: on the page's thread). Default:
@@ -89,6 +91,16 @@ pub(super) fn params(window: &Window) -> Result<Params, String> {
         Some(text) => Some(parse_camera(&text)?),
         None => None,
     };
+    let degrees = |name: &str, default: f64| match query.get(name) {
+        None => Ok(default),
+        Some(v) => v.trim().parse::<f64>().map_err(|_| format!("{name}={v:?}: a number of degrees")),
+    };
+    let pose = match query.get("at") {
+        Some(at) => {
+            Some(terrastream_client::fly::Pose::parse(&at, degrees("heading", 0.0)?, degrees("pitch", -30.0)?)?)
+        }
+        None => None,
+    };
     let backends = match query.get("backend").as_deref() {
         None | Some("" | "auto") => wgpu::Backends::BROWSER_WEBGPU | wgpu::Backends::GL,
         Some("webgpu") => wgpu::Backends::BROWSER_WEBGPU,
@@ -102,7 +114,7 @@ pub(super) fn params(window: &Window) -> Result<Params, String> {
             Some(n.parse().ok().filter(|&n| n >= 2).ok_or(format!("flight={n:?}: a number of frames, 2 or more"))?)
         }
     };
-    Ok(Params { archive, camera, backends, hud: query.get("hud").as_deref() != Some("0"), workers, flight })
+    Ok(Params { archive, camera, pose, backends, hud: query.get("hud").as_deref() != Some("0"), workers, flight })
 }
 
 pub(super) fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {
