@@ -10,7 +10,9 @@
 #   (h) single-point elevation requests: ours (/v1) against TiTiler's /cog/point; and
 #       points per second with 100 locations a request;
 #   (i) quantized-mesh tiles (both extensions, gzipped, as CesiumJS asks) made on each
-#       request, random level 10-14 tiles inside the bounds, against (e) cold.
+#       request, random tiles of level 10 to the deepest inside the bounds, against (e) cold;
+#   (j) the same tiles warm (kept), against nginx serving `terrastream export --to
+#       quantized-mesh` of them (gzipped files sent with `Content-Encoding: gzip`).
 # Needs: wrk, nginx, gdal-bin, python3 (TiTiler is installed from PyPI into a cache venv).
 # SRTM=path picks the DEM (default: ../shared/data/srtm/n37_w123_1arc_v3.tif).
 set -euo pipefail
@@ -39,6 +41,7 @@ gdal_translate -q -of COG "$SRTM" "$work/srtm-cog.tif"
 mkdir -p "$work/www"
 "$bin" -q export "$work/srtm.tspack" --to xyz --encoding mapbox --format png --size 256 --minzoom 10 --maxzoom 14 \
   -o "$work/www/xyz"
+"$bin" -q export "$work/srtm.tspack" --to quantized-mesh --minzoom 10 -o "$work/www/terrain"
 chmod -R a+rX "$work"
 printf 'web_cache_bytes = 0\n' > "$work/cold.toml"
 
@@ -55,7 +58,9 @@ events { worker_connections 4096; }
 http { access_log off; sendfile on; keepalive_requests 100000; types { image/png png; }
   client_body_temp_path $work/nginx/b; proxy_temp_path $work/nginx/p; fastcgi_temp_path $work/nginx/f;
   uwsgi_temp_path $work/nginx/u; scgi_temp_path $work/nginx/s;
-  server { listen 127.0.0.1:$static; root $work/www; } }
+  server { listen 127.0.0.1:$static; root $work/www;
+    location /terrain/ { types { application/vnd.quantized-mesh terrain; application/json json; }
+      location ~ [.]terrain\$ { add_header Content-Encoding gzip; } } } }
 CONF
 "$NGINX" -p "$work/nginx" -c "$work/nginx/nginx.conf" -e "$work/nginx/error.log" & pids+=($!)
 for p in $cold $warm $titiler $static; do
@@ -94,13 +99,16 @@ with open(f"{work}/titiler-point.txt", "w") as f:
 with open(f"{work}/hundred.txt", "w") as f:
     for i in range(0, 2000, 100):
         f.write("/v1/srtm?locations=" + "|".join(f"{lat:.6f},{lon:.6f}" for lat, lon in points[i:i + 100]) + "\n")
+maxzoom = json.load(urllib.request.urlopen(url.replace("tiles.json", "layer.json")))["maxzoom"]
 terrain = set()
 while len(terrain) < 2000:
-    z = random.randint(10, 14)
+    z = random.randint(10, maxzoom)
     d = 180 / 2 ** z
     terrain.add((z, int((random.uniform(w, e) + 180) // d), int((random.uniform(s, n) + 90) // d)))
 with open(f"{work}/terrain.txt", "w") as f:
     f.writelines(f"/srtm/{z}/{x}/{y}.terrain\n" for z, x, y in sorted(terrain))
+with open(f"{work}/terrain-static.txt", "w") as f:
+    f.writelines(f"/terrain/{z}/{x}/{y}.terrain\n" for z, x, y in sorted(terrain))
 PY
 cat > "$work/paths.lua" <<'LUA'
 local paths = {}
@@ -127,6 +135,10 @@ run() { # port paths -> "requests/s p50 p99 errors"
 }
 # Warm: every tile asked once first.
 while read -r p; do curl -s -o /dev/null "http://127.0.0.1:$warm$p"; done < "$work/ours.txt"
+while read -r p; do
+  curl -s -o /dev/null -H 'Accept: application/vnd.quantized-mesh;extensions=octvertexnormals-metadata' \
+    -H 'Accept-Encoding: gzip' "http://127.0.0.1:$warm$p"
+done < "$work/terrain.txt"
 
 echo
 echo "wrk, $CONNS connections, ${SECS}s each, 2 threads, loopback, $(nproc) cores"
@@ -139,15 +151,18 @@ for row in "e-cold|$cold|ours.txt|(e) terrastream web tiles, cold (made on each 
            "h-ours|$warm|point.txt|(h) terrastream /v1, one point a request" \
            "h-titiler|$titiler|titiler-point.txt|(h) TiTiler /cog/point" \
            "h-100|$warm|hundred.txt|(h) terrastream /v1, 100 points a request" \
-           "i|$cold|terrain.txt|(i) terrastream quantized-mesh tiles, cold"; do
+           "i|$cold|terrain.txt|(i) terrastream quantized-mesh tiles, cold" \
+           "j-warm|$warm|terrain.txt|(j) terrastream quantized-mesh tiles, warm (kept)" \
+           "j-nginx|$static|terrain-static.txt|(j) nginx, the exported quantized-mesh tiles"; do
   IFS='|' read -r key p file name <<<"$row"
-  if [ "$key" = i ]; then r[$key]=$(CESIUM=1 run "$p" "$file"); else r[$key]=$(run "$p" "$file"); fi
+  if [ "${key:0:1}" = i ] || [ "${key:0:1}" = j ]; then r[$key]=$(CESIUM=1 run "$p" "$file"); else r[$key]=$(run "$p" "$file"); fi
   read -r rps p50 p99 <<<"${r[$key]}"
   printf '%-58s %12s %10s %10s\n' "$name" "$rps" "$p50" "$p99"
 done
 ratio() { awk -v a="${r[$1]%% *}" -v b="${r[$2]%% *}" 'BEGIN { printf "%.1f", a / b }'; }
 echo
 echo "cold web tiles / TiTiler: $(ratio e-cold f)x; warm web tiles / nginx static: $(ratio e-warm g)x"
-echo "cold quantized-mesh tiles / cold web tiles: $(ratio i e-cold)x"
+echo "cold quantized-mesh tiles / cold web tiles: $(ratio i e-cold)x;" \
+  "warm quantized-mesh tiles / nginx static: $(ratio j-warm j-nginx)x"
 echo "single-point elevation / TiTiler /cog/point: $(ratio h-ours h-titiler)x;" \
   "points/s at 100 a request: $(awk -v a="${r[h-100]%% *}" 'BEGIN { printf "%.0f", a * 100 }')"

@@ -22,6 +22,9 @@ pub enum BenchCommand {
     Stream(super::bench_stream::StreamBench),
     /// Renderer: frame times along a scripted flight, streaming vs all resident; vertices, draw calls.
     Render(super::bench_render::RenderBench),
+    /// Quantized-mesh tiles: meshes per second per core, triangles per tile; height grids
+    /// for a peer mesher.
+    Mesh(super::bench_mesh::MeshBench),
 }
 
 #[derive(Debug, Args)]
@@ -47,6 +50,7 @@ pub fn run(cmd: BenchCommand, progress: &super::CliProgress) -> Result<ExitCode>
     match cmd {
         BenchCommand::Render(args) => super::bench_render::run(args, progress).map(|()| ExitCode::SUCCESS),
         BenchCommand::Archive(args) => archive(args),
+        BenchCommand::Mesh(args) => super::bench_mesh::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Stream(args) => super::bench_stream::run(args).map(|()| ExitCode::SUCCESS),
     }
 }

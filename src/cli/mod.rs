@@ -1,6 +1,7 @@
 //! Command-line wiring: argument parsing, progress bars, Ctrl-C, output formatting.
 
 mod bench;
+mod bench_mesh;
 mod bench_render;
 mod bench_stream;
 mod demo;

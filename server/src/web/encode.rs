@@ -54,12 +54,12 @@ impl HeightEncoding {
 
     /// Heights that all hold data as RGB pixels; None when one has no data.
     pub fn rgb_pixels(self, heights: &[f32]) -> Option<Vec<u8>> {
-        let mut out = Vec::with_capacity(heights.len() * 3);
-        for &h in heights {
-            if !h.is_finite() {
-                return None;
-            }
-            out.extend_from_slice(&self.rgb(h));
+        if !heights.iter().all(|h| h.is_finite()) {
+            return None;
+        }
+        let mut out = vec![0; heights.len() * 3];
+        for (pixel, &h) in out.chunks_exact_mut(3).zip(heights) {
+            pixel.copy_from_slice(&self.rgb(h));
         }
         Some(out)
     }

@@ -234,11 +234,16 @@ fn cell(
             (Some(approx), Some(truth)) => (approx.0 - truth.0).hypot(approx.1 - truth.1) / per_pixel <= MAX_ERROR,
             _ => false,
         });
-    if good {
+    if good && let [Some(a), Some(b), Some(c), Some(d)] = corners {
+        // Bilinear, as a row's start and step (linear along a row).
         for v in v0..v1 {
             let fv = (v as f64 + 0.5 - v0 as f64) / h;
-            for u in u0..u1 {
-                out[v * size + u] = lerp((u as f64 + 0.5 - u0 as f64) / w, fv);
+            let left = (a.0 + (c.0 - a.0) * fv, a.1 + (c.1 - a.1) * fv);
+            let right = (b.0 + (d.0 - b.0) * fv, b.1 + (d.1 - b.1) * fv);
+            let step = ((right.0 - left.0) / w, (right.1 - left.1) / w);
+            for (k, o) in out[v * size + u0..v * size + u1].iter_mut().enumerate() {
+                let t = k as f64 + 0.5;
+                *o = Some((left.0 + step.0 * t, left.1 + step.1 * t));
             }
         }
         return;
@@ -282,16 +287,26 @@ impl Window {
         let (tiles_x, tiles_y) = layer.grid_at(lod);
         let grid = (i64::from(tiles_x) * res, i64::from(tiles_y) * res);
         let [wx0, wz0, wx1, wz1] = layer.data_world();
-        // The samples under the points (and their bilinear neighbours), inside the data.
-        let mut bounds = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
+        // The samples under the points (and their bilinear neighbours), inside the data:
+        // the box of the points inside it, then its samples.
+        let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
         for &(x, z) in positions.iter().flatten() {
             if x < wx0 || x > wx1 || z < wz0 || z > wz1 {
                 continue;
             }
-            #[expect(clippy::cast_possible_truncation, reason = "inside the layer's grid")]
-            let (i, j) = (floor(x / spacing - 0.5) as i64, floor(z / spacing - 0.5) as i64);
-            bounds = (bounds.0.min(i), bounds.1.min(j), bounds.2.max(i + 1), bounds.3.max(j + 1));
+            (lo, hi) = ((lo.0.min(x), lo.1.min(z)), (hi.0.max(x), hi.1.max(z)));
         }
+        if lo.0 > hi.0 {
+            return Ok(None);
+        }
+        let inverse = 1.0 / spacing;
+        #[expect(clippy::cast_possible_truncation, reason = "inside the layer's grid")]
+        let bounds = (
+            floor(lo.0 * inverse - 0.5) as i64,
+            floor(lo.1 * inverse - 0.5) as i64,
+            floor(hi.0 * inverse - 0.5) as i64 + 1,
+            floor(hi.1 * inverse - 0.5) as i64 + 1,
+        );
         if bounds.0 > bounds.2 {
             return Ok(None);
         }
@@ -439,23 +454,28 @@ impl Window {
     fn heights(&self, positions: &[Option<(f64, f64)>]) -> Option<Vec<f32>> {
         let inverse = 1.0 / self.spacing;
         let (w, h) = (self.size.0 as i64, self.size.1 as i64);
+        // Sample coordinates from one sample before the window's first: non-negative for
+        // every point the fast path takes, so truncation is the floor (one conversion).
+        let (ox, oz) = ((self.first.0 - 1) as f64 + 0.5, (self.first.1 - 1) as f64 + 0.5);
         let mut out = vec![f32::NAN; positions.len()];
         let mut any = false;
         for (o, p) in out.iter_mut().zip(positions) {
             let Some((x, z)) = *p else { continue };
-            let (gx, gz) = (x * inverse - 0.5, z * inverse - 0.5);
-            let (fi, fj) = (floor(gx), floor(gz));
-            let (wi, wj) = (fi as i64 - self.first.0, fj as i64 - self.first.1);
-            if wi >= 0 && wj >= 0 && wi + 1 < w && wj + 1 < h {
-                let at = wj as usize * self.size.0 + wi as usize;
-                let (fx, fz) = ((gx - fi) as f32, (gz - fj) as f32);
-                let v = &self.values;
-                let (a, b, c, d) = (v[at], v[at + 1], v[at + self.size.0], v[at + self.size.0 + 1]);
-                let value = (a + (b - a) * fx) * (1.0 - fz) + (c + (d - c) * fx) * fz;
-                if value.is_finite() {
-                    *o = value;
-                    any = true;
-                    continue;
+            let (gx, gz) = (x * inverse - ox, z * inverse - oz);
+            if gx >= 1.0 && gz >= 1.0 {
+                let (ix, iz) = (gx as i64, gz as i64);
+                let (wi, wj) = (ix - 1, iz - 1);
+                if wi + 1 < w && wj + 1 < h {
+                    let at = wj as usize * self.size.0 + wi as usize;
+                    let (fx, fz) = ((gx - ix as f64) as f32, (gz - iz as f64) as f32);
+                    let v = &self.values;
+                    let (a, b, c, d) = (v[at], v[at + 1], v[at + self.size.0], v[at + self.size.0 + 1]);
+                    let value = (a + (b - a) * fx) * (1.0 - fz) + (c + (d - c) * fx) * fz;
+                    if value.is_finite() {
+                        *o = value;
+                        any = true;
+                        continue;
+                    }
                 }
             }
             if let Some(v) = self.bilinear(x, z) {

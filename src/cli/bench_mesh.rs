@@ -1,0 +1,133 @@
+//! `terrastream bench mesh`: quantized-mesh tiles made per second and per core from an
+//! archive's terrain (mesh + encode, the heights sampled beforehand), triangles per tile,
+//! and the same height grids and bounds written for a peer to mesh (`scripts/bench-mesh.sh`
+//! runs Python's pydelatin + quantized-mesh-encoder on them).
+//!
+//! Grid file (little-endian): `TSGRIDS1`, tile count (u32), grid side (u32), then per tile
+//! level (u8), column and row (u32, TMS), west, south, east, north (f64 degrees), the bound
+//! (f32 metres) and the heights (f32, row by row from the north).
+
+use std::io::Write as _;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use terrastream_format::{MmapSource, Reader};
+use terrastream_server::web::quantized::encode::{self, Extensions, TileMesh};
+use terrastream_server::web::quantized::geodetic::GeoTile;
+use terrastream_server::web::quantized::{GRID, Terrain, geometric_error, mesh};
+
+#[derive(Debug, Args)]
+pub struct MeshBench {
+    /// The archive (with a placed elevation layer).
+    archive: PathBuf,
+    /// Coarsest level.
+    #[arg(long, default_value_t = 8)]
+    min_level: u8,
+    /// Finest level (default: the terrain's deepest).
+    #[arg(long)]
+    max_level: Option<u8>,
+    /// At most this many tiles a level, spread over the level's available tiles.
+    #[arg(long, default_value_t = 150)]
+    per_level: usize,
+    /// Times each tile is meshed (the best time is kept).
+    #[arg(long, default_value_t = 3)]
+    repeat: usize,
+    /// Write the height grids and bounds here, for a peer to mesh.
+    #[arg(long)]
+    grids_out: Option<PathBuf>,
+}
+
+struct Grid {
+    tile: GeoTile,
+    heights: Vec<f32>,
+    bound: f32,
+}
+
+pub fn run(args: &MeshBench) -> Result<()> {
+    let reader =
+        Reader::<MmapSource>::open_mmap(&args.archive).with_context(|| format!("{}", args.archive.display()))?;
+    let Some(terrain) = Terrain::new(&reader, None) else {
+        bail!("{}: no elevation layer that says where it lies", args.archive.display());
+    };
+    let max_level = args.max_level.unwrap_or(terrain.maxzoom()).min(terrain.maxzoom());
+    let mut grids = vec![];
+    for z in args.min_level..=max_level {
+        let Some(([x0, x1], [y0, y1])) = terrain.available(z) else { continue };
+        let all: Vec<GeoTile> = (y0..=y1).flat_map(|y| (x0..=x1).filter_map(move |x| GeoTile::new(z, x, y))).collect();
+        let step = all.len().div_ceil(args.per_level.max(1)).max(1);
+        for &tile in all.iter().step_by(step) {
+            let heights = terrain.heights(tile).with_context(|| format!("tile {}/{}/{}", tile.z, tile.x, tile.y))?;
+            let bound = Terrain::bound(tile, &heights);
+            grids.push(Grid { tile, heights, bound });
+        }
+    }
+    if grids.is_empty() {
+        bail!("no tiles between levels {} and {max_level}", args.min_level);
+    }
+    if let Some(path) = &args.grids_out {
+        write_grids(path, &grids).with_context(|| format!("{}", path.display()))?;
+    }
+    println!("level  tiles  triangles/tile  vertices/tile  bound (m)  mesh+encode µs/tile");
+    let mut total = Duration::ZERO;
+    let mut triangles = 0usize;
+    for z in args.min_level..=max_level {
+        let level: Vec<&Grid> = grids.iter().filter(|g| g.tile.z == z).collect();
+        if level.is_empty() {
+            continue;
+        }
+        let (mut time, mut tris, mut verts) = (Duration::ZERO, 0usize, 0usize);
+        for g in &level {
+            let mut best = Duration::MAX;
+            for _ in 0..args.repeat.max(1) {
+                let start = Instant::now();
+                let m = mesh::mesh(&g.heights, GRID, g.bound);
+                let t = TileMesh { tile: g.tile, mesh: &m, heights: &g.heights, size: GRID };
+                std::hint::black_box(encode::encode(&t, Extensions::default(), None));
+                best = best.min(start.elapsed());
+                (tris, verts) = (tris + m.triangles.len(), verts + m.vertices.len());
+            }
+            time += best;
+        }
+        total += time;
+        let per_tile = (level.len() * args.repeat.max(1)) as f64;
+        triangles += tris / args.repeat.max(1);
+        println!(
+            "{z:>5}  {:>5}  {:>14.1}  {:>13.1}  {:>9.2}  {:>19.1}",
+            level.len(),
+            tris as f64 / per_tile,
+            verts as f64 / per_tile,
+            geometric_error(z),
+            time.as_secs_f64() * 1e6 / level.len() as f64
+        );
+    }
+    let n = grids.len() as f64;
+    println!(
+        "all    {:>5}  {:>14.1}  meshes/s on one core: {:.0}",
+        grids.len(),
+        triangles as f64 / n,
+        n / total.as_secs_f64()
+    );
+    Ok(())
+}
+
+fn write_grids(path: &std::path::Path, grids: &[Grid]) -> std::io::Result<()> {
+    let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
+    out.write_all(b"TSGRIDS1")?;
+    out.write_all(&u32::try_from(grids.len()).unwrap_or(u32::MAX).to_le_bytes())?;
+    out.write_all(&u32::try_from(GRID).unwrap_or(u32::MAX).to_le_bytes())?;
+    for g in grids {
+        out.write_all(&[g.tile.z])?;
+        out.write_all(&g.tile.x.to_le_bytes())?;
+        out.write_all(&g.tile.y.to_le_bytes())?;
+        for v in g.tile.bounds() {
+            out.write_all(&v.to_le_bytes())?;
+        }
+        out.write_all(&g.bound.to_le_bytes())?;
+        for h in &g.heights {
+            out.write_all(&h.to_le_bytes())?;
+        }
+    }
+    out.flush()
+}
