@@ -264,6 +264,9 @@ impl<'a> Triangulation<'a> {
 
     /// The grid point of triangle (a, b, c) furthest from its plane, and how far; points
     /// on the grid's border and the corners themselves are never candidates.
+    ///
+    /// Row by row: the columns inside the triangle (edges included) from the three edge
+    /// functions, exactly, in integers; along them the plane's height by a step per column.
     fn worst_point(&self, a: [i32; 2], b: [i32; 2], c: [i32; 2]) -> ([i32; 2], f32) {
         let area = orient(a, b, c);
         if area <= 0 {
@@ -271,23 +274,55 @@ impl<'a> Triangulation<'a> {
         }
         let (ha, hb, hc) = (self.height(a), self.height(b), self.height(c));
         let area = area as f64;
+        // The plane: z = ha + dx (x - ax) + dy (y - ay).
+        let [(ea, fa), (eb, fb), (ec, fc)] =
+            [(b, c), (c, a), (a, b)].map(|(p, q)| (f64::from(p[1] - q[1]), f64::from(q[0] - p[0])));
+        let dx = (ea * ha + eb * hb + ec * hc) / area;
+        let dy = (fa * ha + fb * hb + fc * hc) / area;
         let last = self.n - 1;
         let (x0, x1) = (a[0].min(b[0]).min(c[0]).max(1), a[0].max(b[0]).max(c[0]).min(last - 1));
         let (y0, y1) = (a[1].min(b[1]).min(c[1]).max(1), a[1].max(b[1]).max(c[1]).min(last - 1));
+        let width = usize::try_from(self.n).unwrap_or(0);
         let mut worst = (a, 0.0f64);
         for y in y0..=y1 {
-            for x in x0..=x1 {
-                let q = [x, y];
-                let (wa, wb, wc) = (orient(b, c, q), orient(c, a, q), orient(a, b, q));
-                if wa < 0 || wb < 0 || wc < 0 || q == a || q == b || q == c {
-                    continue;
-                }
-                let z = (wa as f64 * ha + wb as f64 * hb + wc as f64 * hc) / area;
-                let e = (z - self.height(q)).abs();
-                if e > worst.1 {
-                    worst = (q, e);
+            // Columns where every edge function is >= 0.
+            let (mut from, mut to) = (x0, x1);
+            for (p, q) in [(b, c), (c, a), (a, b)] {
+                // orient(p, q, (x, y)) = (qx - px)(y - py) - (qy - py)(x - px) = k - s x.
+                let s = i64::from(q[1] - p[1]);
+                let k = i64::from(q[0] - p[0]) * i64::from(y - p[1]) + s * i64::from(p[0]);
+                match s.cmp(&0) {
+                    // x <= k / s
+                    std::cmp::Ordering::Greater => to = to.min(i32::try_from(k.div_euclid(s)).unwrap_or(i32::MIN)),
+                    // x >= k / s, rounded up
+                    std::cmp::Ordering::Less => {
+                        from = from.max(i32::try_from(-(k.div_euclid(-s))).unwrap_or(i32::MAX));
+                    }
+                    std::cmp::Ordering::Equal if k < 0 => to = from - 1,
+                    std::cmp::Ordering::Equal => {}
                 }
             }
+            if from > to {
+                continue;
+            }
+            let row = &self.heights[y as usize * width..][from as usize..=to as usize];
+            let z0 = ha + dx * f64::from(from - a[0]) + dy * f64::from(y - a[1]);
+            let (mut best, mut at) = (worst.1, usize::MAX);
+            for (i, &h) in row.iter().enumerate() {
+                let e = (z0 + dx * i as f64 - f64::from(h)).abs();
+                if e > best {
+                    (best, at) = (e, i);
+                }
+            }
+            if at != usize::MAX {
+                #[expect(clippy::cast_possible_truncation, clippy::cast_possible_wrap, reason = "a column of the grid")]
+                let x = from + at as i32;
+                worst = ([x, y], best);
+            }
+        }
+        // The corners lie on the plane (up to rounding): never a candidate.
+        if worst.0 == a || worst.0 == b || worst.0 == c {
+            return (a, 0.0);
         }
         #[expect(clippy::cast_possible_truncation, reason = "an error in metres")]
         let e = worst.1 as f32;
@@ -613,6 +648,39 @@ mod tests {
     }
 
     proptest! {
+        /// The scanline finds what a scan of every point of the triangle's box finds.
+        #[test]
+        fn a_triangles_worst_point_is_the_one_a_full_scan_finds(
+            heights in proptest::collection::vec(-50.0f32..50.0, 17 * 17),
+            corners in proptest::array::uniform3(proptest::array::uniform2(0i32..17)),
+        ) {
+            let [a, b, c] = corners;
+            let t = Triangulation::new(&heights, 17, 0.0);
+            let (found, error) = t.worst_point(a, b, c);
+            let area = orient(a, b, c);
+            let h = |q: [i32; 2]| f64::from(heights[q[1] as usize * 17 + q[0] as usize]);
+            let mut worst = 0.0f64;
+            for y in 1..16 {
+                for x in 1..16 {
+                    let q = [x, y];
+                    let (wa, wb, wc) = (orient(b, c, q), orient(c, a, q), orient(a, b, q));
+                    if area <= 0 || wa < 0 || wb < 0 || wc < 0 || q == a || q == b || q == c {
+                        continue;
+                    }
+                    let z = (wa as f64 * h(a) + wb as f64 * h(b) + wc as f64 * h(c)) / area as f64;
+                    worst = worst.max((z - h(q)).abs());
+                }
+            }
+            prop_assert!((f64::from(error) - worst).abs() <= 1e-4 * (1.0 + worst), "{error} against {worst}");
+            if error > 0.0 {
+                let q = found;
+                let (wa, wb, wc) = (orient(b, c, q), orient(c, a, q), orient(a, b, q));
+                prop_assert!(wa >= 0 && wb >= 0 && wc >= 0, "{q:?} outside the triangle");
+                let z = (wa as f64 * h(a) + wb as f64 * h(b) + wc as f64 * h(c)) / area as f64;
+                prop_assert!(((z - h(q)).abs() - f64::from(error)).abs() <= 1e-4 * (1.0 + worst));
+            }
+        }
+
         #[test]
         fn any_grid_meshes_within_its_bound((n, mut heights, bound) in grid()) {
             fill_nodata(&mut heights, n);
