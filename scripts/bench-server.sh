@@ -4,8 +4,9 @@
 # requests — in one run, side by side. Optional memory soak: SOAK_SECS=300. LARGE=1 adds
 # (d): the tile endpoint on a 349 525-tile archive whose entries are in 85 leaf
 # directories (about 2 minutes more to build), as large archives are laid out. Then
-# (e)-(h), web tiles and the elevation API against TiTiler: scripts/bench-web.sh (WEB=0
-# leaves them out).
+# (e)-(j), web tiles, the elevation API and quantized-mesh terrain against TiTiler and
+# nginx: scripts/bench-web.sh, then meshing against pydelatin: scripts/bench-mesh.sh (WEB=0
+# leaves both out).
 # Needs: nginx, wrk (apt-get install nginx wrk). Loopback only.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -150,4 +151,6 @@ fi
 if [ "${WEB:-1}" = 1 ]; then
   echo
   bash scripts/bench-web.sh
+  echo
+  bash scripts/bench-mesh.sh
 fi
