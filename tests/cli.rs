@@ -453,3 +453,116 @@ fn an_update_in_place_is_verified_and_a_merge_compacts_it() {
     assert_eq!(tiles("t.tspack"), tiles("compact.tspack"));
     assert!(tiles("t.tspack").is_some_and(|n| n > 10));
 }
+
+/// Every tile's stored payload, by key.
+fn archive_tiles(path: &Path) -> std::collections::BTreeMap<terrastream_format::TileKey, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    terrastream_format::Reader::open_mmap(path)
+        .unwrap()
+        .for_each_tile(|key, payload| -> terrastream_format::Result<()> {
+            out.insert(key, payload.to_vec());
+            Ok(())
+        })
+        .unwrap();
+    out
+}
+
+/// A planned sharded run, as the cluster Job runs it: the plan, from the inputs' headers,
+/// lists for each shard the inputs its band reads (their union is every input, and each
+/// shard's is a part); a shard given only those and the plan makes the tiles a shard given
+/// every input makes, and the merge of such shards is the whole run. A listed input
+/// missing is named.
+#[test]
+fn a_shard_of_a_planned_run_needs_only_the_inputs_its_plan_lists() {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    std::fs::create_dir(cwd.join("in")).unwrap();
+    // 6 rows x 4 columns of 40 x 40 samples at 10 m in UTM 32N, reprojected onto 33N.
+    let mut names = vec![];
+    for row in 0..6u32 {
+        for col in 0..4u32 {
+            let name = format!("r{row}c{col}.tif");
+            let mut encoder = TiffEncoder::new(std::fs::File::create(cwd.join("in").join(&name)).unwrap()).unwrap();
+            let mut image = encoder.new_image::<Gray32Float>(40, 40).unwrap();
+            let (east, north) = (780_000.0 + f64::from(col) * 400.0, 5_100_000.0 - f64::from(row) * 400.0);
+            image.encoder().write_tag(Tag::Unknown(33550), &[10.0, 10.0, 0.0][..]).unwrap();
+            image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, north, 0.0][..]).unwrap();
+            image
+                .encoder()
+                .write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32632][..])
+                .unwrap();
+            let data: Vec<f32> = (0..1600u32)
+                .map(|i| {
+                    let (x, y) = (east + f64::from(i % 40) * 10.0, north - f64::from(i / 40) * 10.0);
+                    (300.0 + 80.0 * (x / 310.0).sin() + 50.0 * (y / 170.0).cos()) as f32
+                })
+                .collect();
+            image.write_data(&data).unwrap();
+            names.push(format!("in/{name}"));
+        }
+    }
+    let common = ["--crs", "EPSG:32633", "--tile-size", "32", "--height-range", "0,1000"];
+    let with = |first: &[&str]| -> Vec<String> { first.iter().chain(&common).map(|s| (*s).to_owned()).collect() };
+    let run = |args: &[String], cwd: &Path| {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let out = terrastream(&args, cwd);
+        assert!(out.status.success(), "{args:?}: {}", text(&out));
+        text(&out)
+    };
+    run(&with(&["tile", "--elevation", "in", "--shards", "3", "--shard-plan-out", "plan", "--relative-to", "in"]), cwd);
+    let lists: Vec<Vec<String>> = (0..3)
+        .map(|i| {
+            let list = std::fs::read_to_string(cwd.join(format!("plan/shard-{i}.txt"))).unwrap();
+            list.lines().map(|l| format!("in/{l}")).collect()
+        })
+        .collect();
+    let mut union: Vec<String> = lists.iter().flatten().cloned().collect();
+    union.sort();
+    union.dedup();
+    assert_eq!(union, names, "every input is some shard's");
+    for (i, list) in lists.iter().enumerate() {
+        assert!(!list.is_empty() && list.len() < names.len() * 2 / 3, "shard {i} reads {list:?}");
+        // `--list-inputs` says the same.
+        let shard = format!("{i}/3");
+        let args = with(&["tile", "--elevation", "in", "--shard", &shard, "--list-inputs"]);
+        let out = terrastream(&args.iter().map(String::as_str).collect::<Vec<_>>(), cwd);
+        let said = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{}", text(&out));
+        assert_eq!(said.lines().map(str::to_owned).collect::<Vec<_>>(), *list, "shard {i}");
+    }
+    // Each shard in a folder of its own holding only its inputs (as a pod fetches them).
+    let plan = cwd.join("plan/plan.json");
+    let plan = plan.to_str().unwrap();
+    let mut planned = vec![];
+    for (i, list) in lists.iter().enumerate() {
+        let pod = cwd.join(format!("pod{i}"));
+        std::fs::create_dir_all(pod.join("in")).unwrap();
+        for name in list {
+            std::fs::copy(cwd.join(name), pod.join(name)).unwrap();
+        }
+        let (shard, out) = (format!("{i}/3"), cwd.join(format!("p{i}.tspack")));
+        let out = out.to_str().unwrap();
+        run(&with(&["tile", "--elevation", "in", "--shard", &shard, "--shard-plan", plan, "-o", out]), &pod);
+        let whole = format!("w{i}.tspack");
+        run(&with(&["tile", "--elevation", "in", "--shard", &shard, "-o", &whole]), cwd);
+        let (a, b) = (archive_tiles(&cwd.join(format!("p{i}.tspack"))), archive_tiles(&cwd.join(&whole)));
+        assert!(!a.is_empty());
+        assert!(a == b, "shard {i}: {} tiles from its inputs, {} from all; they differ", a.len(), b.len());
+        planned.push(format!("p{i}.tspack"));
+    }
+    let merge: Vec<&str> =
+        ["merge"].into_iter().chain(planned.iter().map(String::as_str)).chain(["-o", "m.tspack"]).collect();
+    let out = terrastream(&merge, cwd);
+    assert!(out.status.success(), "{}", text(&out));
+    run(&with(&["tile", "--elevation", "in", "-o", "whole.tspack"]), cwd);
+    assert!(archive_tiles(&cwd.join("m.tspack")) == archive_tiles(&cwd.join("whole.tspack")), "merged shards");
+    // A listed input missing: named, nothing written.
+    let pod = cwd.join("pod0");
+    std::fs::remove_file(pod.join(&lists[0][0])).unwrap();
+    let args = with(&["tile", "--elevation", "in", "--shard", "0/3", "--shard-plan", plan, "-o", "again.tspack"]);
+    let out = terrastream(&args.iter().map(String::as_str).collect::<Vec<_>>(), &pod);
+    assert!(!out.status.success() && text(&out).contains(&lists[0][0]), "{}", text(&out));
+    assert!(!pod.join("again.tspack").exists());
+}

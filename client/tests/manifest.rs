@@ -62,7 +62,7 @@ fn publish(split_lod: u8) -> Published {
     let shards: Vec<PathBuf> = (0..3)
         .map(|i| {
             let out = folder.join(format!("shard-{i}.tspack"));
-            let spec = ShardSpec { index: i, count: 3, split_lod: Some(split_lod) };
+            let spec = ShardSpec { index: i, count: 3, split_lod: Some(split_lod), cuts: None };
             tile_shard(Some(&dem), Some(texture()), "tamalpais", &out, options, Some(spec), &Silent::default())
                 .unwrap();
             out

@@ -1,14 +1,14 @@
 //! `terrastream tile`: source rasters -> one archive (or, with `--dry-run`, the plan).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::{
-    ElevationStorage, Plan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs, plan,
-    tile_shard,
+    ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs,
+    is_vrt, plan, shard_plan, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -81,7 +81,7 @@ pub struct TileArgs {
     #[arg(long)]
     pixel_size: Option<f64>,
     /// Output archive (written to a temporary name, then renamed).
-    #[arg(short, long, required_unless_present = "dry_run")]
+    #[arg(short, long, required_unless_present_any = ["dry_run", "list_inputs", "shard_plan_out"])]
     output: Option<PathBuf>,
     /// Samples per elevation tile edge.
     #[arg(long, default_value_t = 256)]
@@ -103,8 +103,30 @@ pub struct TileArgs {
     #[arg(long, value_parser = parse_shard)]
     shard: Option<(u32, u32)>,
     /// The last LOD shards make (default: the coarsest with two rows of tiles a shard).
-    #[arg(long, requires = "shard")]
+    #[arg(long)]
     split_lod: Option<u8>,
+    /// With `--shard`: print the inputs the shard's rows read (elevation, then imagery; one
+    /// a line), found from every input's header (footprints, as the mosaic places them,
+    /// with the resampling margin), and write nothing: what to fetch for the shard.
+    #[arg(long, requires = "shard")]
+    list_inputs: bool,
+    /// Plan a run of N shards from the inputs' headers (no height is read) and write it
+    /// to this folder: `plan.json` (the mosaics' grids, the bands) and `shard-I.txt`, the
+    /// inputs shard I reads (for `rclone copy --files-from`). Needs `--shards`.
+    #[arg(long, requires = "shards", conflicts_with_all = ["shard", "output"])]
+    shard_plan_out: Option<PathBuf>,
+    /// Shards in the run `--shard-plan-out` plans.
+    #[arg(long, requires = "shard_plan_out")]
+    shards: Option<u32>,
+    /// Paths in `shard-I.txt` relative to this folder (where `rclone copy --files-from`
+    /// copies them to); default: as the inputs were named.
+    #[arg(long, requires = "shard_plan_out")]
+    relative_to: Option<PathBuf>,
+    /// With `--shard`: the plan (`plan.json` of `--shard-plan-out`) of the run: its grids
+    /// and bands, so that the shard needs only its own inputs (those of its `shard-I.txt`;
+    /// one missing is named).
+    #[arg(long, requires = "shard")]
+    shard_plan: Option<PathBuf>,
     /// The elevation's lowest and highest height (`-12.5,4810`, or `@FILE` holding that),
     /// instead of a pass over it: what lets the shards of one run skip that pass
     /// (`--dry-run` prints the range; `--height-range-out` writes it to a file). A height
@@ -120,6 +142,77 @@ pub struct TileArgs {
     /// sharded run).
     #[arg(long)]
     manifest_out: Option<PathBuf>,
+}
+
+/// Shard `index` of `count` as `path`'s plan has it: the request goes onto the plan's
+/// grids; every input the plan lists for the shard must be among the request's.
+fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest) -> Result<ShardSpec> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("{}: cannot read the shard plan", path.display()))?;
+    let plan: ShardPlan =
+        serde_json::from_str(&text).with_context(|| format!("{}: not a shard plan (plan.json)", path.display()))?;
+    if plan.count != count {
+        bail!("{}: a plan of {} shards, not {count}", path.display(), plan.count);
+    }
+    let Some(wanted) = plan.shards.get(index as usize) else {
+        bail!("{}: no shard {index} in the plan", path.display());
+    };
+    for (given, wanted, what) in
+        [(&request.elevation, &wanted.elevation, "--elevation"), (&request.texture, &wanted.texture, "--texture")]
+    {
+        if let Some(missing) = wanted.iter().find(|w| !given.contains(w)) {
+            bail!(
+                "shard {index}/{count} reads {} (so says {}), which is not among the {what} inputs",
+                missing.display(),
+                path.display()
+            );
+        }
+    }
+    if let Some(g) = &plan.elevation_grid {
+        request.crs = Some(g.crs.clone());
+        request.elevation_grid = Some(g.spec());
+    }
+    if let Some(g) = &plan.texture_grid {
+        if plan.elevation_grid.is_none() {
+            request.crs = Some(g.crs.clone());
+        }
+        request.texture_grid = Some(g.spec());
+    }
+    Ok(plan.spec(index))
+}
+
+/// The VRTs among the inputs added to every shard's list (a shard's mosaic lists the
+/// files a VRT's sources read; it opens them through the VRT).
+fn with_vrts(plan: &mut ShardPlan, request: &TileRequest) {
+    for shard in &mut plan.shards {
+        for (given, list) in [(&request.elevation, &mut shard.elevation), (&request.texture, &mut shard.texture)] {
+            let vrts: Vec<PathBuf> = given.iter().filter(|p| is_vrt(p) && !list.contains(p)).cloned().collect();
+            list.splice(0..0, vrts);
+        }
+    }
+}
+
+/// `plan.json` and a `shard-I.txt` per shard in `dir` (made if need be).
+fn write_shard_plan(dir: &Path, plan: &ShardPlan, relative_to: Option<&Path>) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot make the folder", dir.display()))?;
+    let json = serde_json::to_string_pretty(plan)?;
+    let path = dir.join("plan.json");
+    std::fs::write(&path, json + "\n").with_context(|| format!("{}: cannot write", path.display()))?;
+    for (i, shard) in plan.shards.iter().enumerate() {
+        let mut list = String::new();
+        for input in shard.elevation.iter().chain(&shard.texture) {
+            let shown = match relative_to {
+                Some(root) => input
+                    .strip_prefix(root)
+                    .with_context(|| format!("{} is not under --relative-to {}", input.display(), root.display()))?,
+                None => input.as_path(),
+            };
+            list.push_str(&format!("{}\n", shown.display()));
+        }
+        let path = dir.join(format!("shard-{i}.txt"));
+        std::fs::write(&path, list).with_context(|| format!("{}: cannot write", path.display()))?;
+    }
+    Ok(())
 }
 
 /// `MIN,MAX`, or `@FILE` holding that.
@@ -223,6 +316,8 @@ impl TileArgs {
             texture_tile_size: self.texture_tile_size,
             texture_format: format,
             pixel_size: self.pixel_size,
+            elevation_grid: None,
+            texture_grid: None,
         })
     }
 
@@ -245,11 +340,41 @@ impl TileArgs {
 }
 
 pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let sources = Sources::open(&args.request()?)?;
+    let mut request = args.request()?;
+    let planned = match (&args.shard_plan, args.shard) {
+        (Some(path), Some((index, count))) => Some(planned_shard(path, index, count, &mut request)?),
+        _ => None,
+    };
+    let sources = Sources::open(&request)?;
     let inputs = sources.inputs()?;
     let (elevation, texture) = (inputs.elevation(), inputs.texture());
     let (name, options) = (args.name(), args.options());
     let started = std::time::Instant::now();
+    if let Some(dir) = &args.shard_plan_out {
+        let count = args.shards.unwrap_or(1);
+        let mut plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
+        with_vrts(&mut plan, &request);
+        write_shard_plan(dir, &plan, args.relative_to.as_deref())?;
+        for (i, shard) in plan.shards.iter().enumerate() {
+            println!(
+                "shard {i}/{count}: {} elevation inputs, {} imagery inputs",
+                shard.elevation.len(),
+                shard.texture.len()
+            );
+        }
+        println!("{}: the plan of {count} shards", dir.join("plan.json").display());
+        return Ok(ExitCode::SUCCESS);
+    }
+    if args.list_inputs {
+        let Some((index, count)) = args.shard else { bail!("--list-inputs needs --shard I/N") };
+        let mut plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
+        with_vrts(&mut plan, &request);
+        let shard = &plan.shards[index as usize];
+        for path in shard.elevation.iter().chain(&shard.texture) {
+            println!("{}", path.display());
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
     if args.dry_run {
         let plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
         progress.finish();
@@ -267,7 +392,10 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let Some(output) = &args.output else { bail!("--output is required") };
-    let shard = args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod });
+    let shard = match planned {
+        Some(spec) => Some(spec),
+        None => args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None }),
+    };
     let summary = tile_shard(elevation, texture, &name, output, options, shard, progress)?;
     progress.finish();
     if let Some(manifest) = &args.manifest_out {

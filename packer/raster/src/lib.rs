@@ -39,7 +39,7 @@ pub use jpeg::JPEG_MAX_DECODED_BYTES;
 pub use jpegrows::jpeg_rows;
 pub use kind::{Heights, MosaicKind, Pixels};
 pub use memory::{Image, ImageWindow, Raster};
-pub use mosaic::{Mosaic, MosaicOptions, OPEN_FILES};
+pub use mosaic::{GridSpec, Mosaic, MosaicOptions, OPEN_FILES};
 pub use vrt::{Vrt, VrtSource, is_vrt, read_vrt};
 pub use warp::{Warped, image_pixel_metres};
 
@@ -74,6 +74,15 @@ pub trait ElevationSource: Sync {
     /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         f64::from(rows.end.saturating_sub(rows.start)) * f64::from(self.size().0)
+    }
+    /// The input files rows `rows` read, as far as the source knows without reading them
+    /// (a mosaic: the inputs whose footprints touch them). Default: the source's own file.
+    fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<std::path::PathBuf> {
+        if rows.is_empty() { vec![] } else { vec![self.path().to_path_buf()] }
+    }
+    /// The output grid a mosaic made (None for a single file, whose grid is its own).
+    fn mosaic_grid(&self) -> Option<GridSpec> {
+        None
     }
     /// The lowest and highest height (NaN skipped; infinities when there is no data),
     /// telling `progress` how many rows have been read so far, now and then. A source may
@@ -232,6 +241,12 @@ impl ElevationSource for KnownRange<'_> {
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.source.data_in_rows(rows)
     }
+    fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<std::path::PathBuf> {
+        self.source.inputs_in_rows(rows)
+    }
+    fn mosaic_grid(&self) -> Option<GridSpec> {
+        self.source.mosaic_grid()
+    }
     fn height_range(&self, _: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         Ok(self.range)
     }
@@ -289,6 +304,15 @@ pub trait ImageSource: Sync {
     /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         f64::from(rows.end.saturating_sub(rows.start)) * f64::from(self.size().0)
+    }
+    /// The input files rows `rows` read, as far as the source knows without reading them
+    /// (a mosaic: the inputs whose footprints touch them). Default: the source's own file.
+    fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<std::path::PathBuf> {
+        if rows.is_empty() { vec![] } else { vec![self.path().to_path_buf()] }
+    }
+    /// The output grid a mosaic made (None for a single image, whose grid is its own).
+    fn mosaic_grid(&self) -> Option<GridSpec> {
+        None
     }
 }
 

@@ -35,6 +35,7 @@ pub use error::{Error, Result};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
 pub use plan::{LayerPlan, Plan, plan};
 pub use request::{Inputs, Sources, TileRequest};
+pub use shard::{PlannedGrid, ShardInputs, ShardPlan, shard_plan};
 pub use terrastream_format::Interrupted;
 /// The raster reading this crate tiles from, re-exported so that a caller needs one crate.
 pub use terrastream_raster::{

@@ -34,7 +34,7 @@ impl Default for TileOptions {
 }
 
 /// One shard of a sharded tile run (`tile --shard I/N --split-lod K`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ShardSpec {
     /// This shard, 0-based.
     pub index: u32,
@@ -43,6 +43,11 @@ pub struct ShardSpec {
     /// The last LOD shards make (each layer's at most its coarsest); None: the coarsest
     /// LOD with at least two rows of tiles per shard.
     pub split_lod: Option<u8>,
+    /// Per layer, where the bands of the run begin and end (`count + 1` rows of tiles at
+    /// the layer's split LOD), as a shard plan gives them ([`crate::ShardPlan`]); None:
+    /// cut here, balancing the source's samples with data (which a shard given only its
+    /// part of the inputs cannot do as the others do).
+    pub cuts: Option<Vec<Vec<u32>>>,
 }
 
 /// How texture tiles are stored.

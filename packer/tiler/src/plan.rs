@@ -24,6 +24,31 @@ pub fn plan(
     options: TileOptions,
     progress: &dyn Progress,
 ) -> Result<Plan> {
+    plan_with(elevation, texture, name, options, Some(progress))
+}
+
+/// [`plan`]'s grids and LOD counts without reading any height: the heights' encoding is a
+/// placeholder. What a shard plan needs (the bands and the inputs they read).
+///
+/// # Errors
+/// As [`plan`], less unreadable heights.
+pub(crate) fn plan_layout(
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<&TextureInput<'_>>,
+    name: &str,
+    options: TileOptions,
+) -> Result<Plan> {
+    plan_with(elevation, texture, name, options, None)
+}
+
+/// A plan; the heights' range read with `progress`, or not read at all without.
+fn plan_with(
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<&TextureInput<'_>>,
+    name: &str,
+    options: TileOptions,
+    progress: Option<&dyn Progress>,
+) -> Result<Plan> {
     if options.border > 16 {
         return Err(Error::option("--border", options.border, "0..=16"));
     }
@@ -144,7 +169,11 @@ struct ElevationPlan {
 /// The elevation layer: square samples (rows resampled along x when the source's are more
 /// than 1 % from square), an encoding that keeps the height range exact enough, the
 /// terrain's settings.
-fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn Progress) -> Result<ElevationPlan> {
+fn plan_elevation(
+    e: &dyn ElevationSource,
+    options: TileOptions,
+    progress: Option<&dyn Progress>,
+) -> Result<ElevationPlan> {
     let res = options.tile_size;
     let (w, h) = e.size();
     if w == 0 || h == 0 {
@@ -160,8 +189,13 @@ fn plan_elevation(e: &dyn ElevationSource, options: TileOptions, progress: &dyn 
         (width, sy)
     };
     let extent = (f64::from(width) * spacing, f64::from(h) * spacing, f64::from(w) / f64::from(h));
-    let (min, max) = height_range(e, progress)?;
-    let estimated = e.height_range_estimate()?.map(|(lo, hi)| (f64::from(lo), f64::from(hi)));
+    let (min, max, estimated) = match progress {
+        Some(progress) => {
+            let (min, max) = height_range(e, progress)?;
+            (min, max, e.height_range_estimate()?.map(|(lo, hi)| (f64::from(lo), f64::from(hi))))
+        }
+        None => (0.0, 0.0, None),
+    };
     let encoding = chosen_encoding(options.storage, (min, max), estimated);
     let (nx, ny) = (width.div_ceil(res), h.div_ceil(res));
     let float = encoding.scheme == ElevationScheme::Float32;

@@ -13,8 +13,8 @@ use crate::crs::Crs;
 use crate::error::{Error, Result};
 use crate::options::{TextureFormat, TextureInput};
 use crate::raster::{
-    ElevationFile, ElevationSource, Heights, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic, MosaicOptions,
-    Pixels, Warped, image_pixel_metres, is_vrt, open_elevation, open_image,
+    ElevationFile, ElevationSource, GridSpec, Heights, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic,
+    MosaicOptions, Pixels, Warped, image_pixel_metres, is_vrt, open_elevation, open_image,
 };
 
 /// What to tile.
@@ -47,6 +47,11 @@ pub struct TileRequest {
     pub texture_format: TextureFormat,
     /// Metres per texture pixel without elevation (default: the georeference's, else 1).
     pub pixel_size: Option<f64>,
+    /// The elevation mosaic's grid, given whole (with `crs`): a shard of a planned run,
+    /// given only the inputs its band reads, makes the grid all of them make.
+    pub elevation_grid: Option<GridSpec>,
+    /// The imagery mosaic's grid, given whole, as `elevation_grid`.
+    pub texture_grid: Option<GridSpec>,
 }
 
 /// The opened inputs of a [`TileRequest`].
@@ -194,7 +199,10 @@ impl Inputs<'_> {
 
 /// Whether a CRS, spacing or extent was asked for: the inputs go onto that grid.
 fn grid_asked(request: &TileRequest) -> bool {
-    request.crs.is_some() || request.resolution.is_some() || request.extent.is_some()
+    request.crs.is_some()
+        || request.resolution.is_some()
+        || request.extent.is_some()
+        || request.elevation_grid.is_some()
 }
 
 /// The elevation inputs as one mosaic on one output grid, when they need one: several
@@ -219,6 +227,7 @@ fn height_mosaic(request: &TileRequest, crs: Option<&Crs>) -> Result<Option<Mosa
         cache_bytes: None,
         extent: request.extent,
         skip_bad_inputs: request.skip_bad_inputs,
+        grid: request.elevation_grid,
     };
     let mosaic = Mosaic::<Heights>::open(inputs, &options)?;
     let (w, h) = mosaic.size();
@@ -236,7 +245,7 @@ fn image_mosaic(
 ) -> Result<Option<Mosaic<Pixels>>> {
     let textures = &request.texture;
     let alone = elevation.is_none() && grid_asked(request);
-    if !(textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone) {
+    if !(textures.len() > 1 || textures.iter().any(|p| is_vrt(p)) || alone || request.texture_grid.is_some()) {
         return Ok(None);
     }
     let (crs, extent, resolution) = match elevation {
@@ -246,8 +255,15 @@ fn image_mosaic(
         }
         None => (crs, request.extent, request.resolution),
     };
-    let options =
-        MosaicOptions { crs, extent, resolution, skip_bad_inputs: request.skip_bad_inputs, ..MosaicOptions::default() };
+    let grid = request.texture_grid;
+    let options = MosaicOptions {
+        crs,
+        extent,
+        resolution,
+        skip_bad_inputs: request.skip_bad_inputs,
+        grid,
+        ..MosaicOptions::default()
+    };
     let mosaic = Mosaic::<Pixels>::open(textures, &options)?;
     let (w, h) = ImageSource::size(&mosaic);
     tracing::info!("texture: a mosaic of {} images in {}, {w} x {h} pixels", textures.len(), mosaic.crs().name());

@@ -7,12 +7,15 @@
 //! whole run makes. The levels above K are made when the shards are merged, from their
 //! LOD-K tiles ([`crate::edit::merge`]).
 
+use std::path::PathBuf;
+
 use terrastream_format::{LayerKind, Shard};
 
 use crate::error::{Error, Result};
-use crate::options::ShardSpec;
-use crate::plan::Plan;
+use crate::options::{ShardSpec, TextureInput, TileOptions};
+use crate::plan::{Plan, plan_layout};
 use crate::pyramid::Window;
+use crate::raster::{ElevationSource, GridSpec};
 
 /// Samples with data in a layer's LOD-0 rows (see `ElevationSource::data_in_rows`).
 pub(crate) type Weight<'a> = dyn Fn(usize, std::ops::Range<u32>) -> f64 + 'a;
@@ -23,7 +26,12 @@ pub(crate) type Weight<'a> = dyn Fn(usize, std::ops::Range<u32>) -> f64 + 'a;
 ///
 /// # Errors
 /// [`Error::InvalidOption`] for a shard out of range.
-pub(crate) fn windows(plan: &Plan, spec: ShardSpec, weight: &Weight<'_>) -> Result<(Shard, Vec<Window>)> {
+pub(crate) fn windows(plan: &Plan, spec: &ShardSpec, weight: &Weight<'_>) -> Result<(Shard, Vec<Window>)> {
+    windows_and_cuts(plan, spec, weight).map(|(shard, windows, _)| (shard, windows))
+}
+
+/// [`windows`], and every layer's band boundaries (`count + 1` tile rows at its split LOD).
+fn windows_and_cuts(plan: &Plan, spec: &ShardSpec, weight: &Weight<'_>) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
     if spec.count == 0 || spec.index >= spec.count {
         return Err(Error::option("--shard", format!("{}/{}", spec.index, spec.count), "I/N with 0 <= I < N"));
     }
@@ -31,6 +39,7 @@ pub(crate) fn windows(plan: &Plan, spec: ShardSpec, weight: &Weight<'_>) -> Resu
     let mut split_lods = Vec::with_capacity(layers.len());
     let mut tile_rows = Vec::with_capacity(layers.len());
     let mut windows = Vec::with_capacity(layers.len());
+    let mut all_cuts = Vec::with_capacity(layers.len());
     for (index, (layer, lp)) in layers.iter().zip(&plan.layers).enumerate() {
         let last = layer.num_lods.saturating_sub(1);
         let rows_at = |k: u8| layer.num_y_tiles.div_ceil(1 << k);
@@ -42,7 +51,25 @@ pub(crate) fn windows(plan: &Plan, spec: ShardSpec, weight: &Weight<'_>) -> Resu
         let lod0 = |r: u32| (r << k).min(layer.num_y_tiles);
         let height = lp.size.1;
         let sample_rows = |r: u32| lod0(r).saturating_mul(layer.tile_resolution).min(height);
-        let cuts = balanced_cuts(rows_k, spec.count, |r| weight(index, sample_rows(r)..sample_rows(r + 1)));
+        let cuts = match &spec.cuts {
+            Some(given) => {
+                let cuts = given.get(index).cloned().unwrap_or_default();
+                let valid = cuts.len() == spec.count as usize + 1
+                    && cuts.first() == Some(&0)
+                    && cuts.last() == Some(&rows_k)
+                    && cuts.windows(2).all(|w| w[0] <= w[1]);
+                if !valid {
+                    return Err(Error::option(
+                        "--shard-plan",
+                        format!("layer {}: bands {cuts:?}", layer.name),
+                        "the plan of these inputs and options: N + 1 rising tile rows from 0 to the split LOD's",
+                    ));
+                }
+                cuts
+            }
+            None => balanced_cuts(rows_k, spec.count, |r| weight(index, sample_rows(r)..sample_rows(r + 1))),
+        };
+        all_cuts.push(cuts.clone());
         let (r0, r1) = (cuts[spec.index as usize], cuts[spec.index as usize + 1]);
         tile_rows.push([lod0(r0), lod0(r1)]);
         split_lods.push(k);
@@ -57,7 +84,121 @@ pub(crate) fn windows(plan: &Plan, spec: ShardSpec, weight: &Weight<'_>) -> Resu
         // The height-range layer follows its elevation layer's grid; it has no pyramid.
         debug_assert!(layer.kind != LayerKind::HeightRange || windows.len() > 1);
     }
-    Ok((Shard { index: spec.index, count: spec.count, split_lods, tile_rows }, windows))
+    Ok((Shard { index: spec.index, count: spec.count, split_lods, tile_rows }, windows, all_cuts))
+}
+
+/// The plan of a sharded run made where only its shards' own inputs are fetched: the
+/// mosaics' grids and the bands, fixed from every input's header, and the inputs each
+/// shard's rows read (`terrastream tile --shards N --shard-plan-out`). A shard given its
+/// inputs and this plan makes the tiles a shard given every input makes.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ShardPlan {
+    /// Shards in the run.
+    pub count: u32,
+    /// The split LOD asked for (see [`ShardSpec::split_lod`]).
+    pub split_lod: Option<u8>,
+    /// The elevation mosaic's grid, when the elevation is one.
+    pub elevation_grid: Option<PlannedGrid>,
+    /// The imagery mosaic's grid, when the imagery is one.
+    pub texture_grid: Option<PlannedGrid>,
+    /// Per layer, the band boundaries ([`ShardSpec::cuts`]).
+    pub cuts: Vec<Vec<u32>>,
+    /// Per shard, the inputs its rows read.
+    pub shards: Vec<ShardInputs>,
+}
+
+/// A mosaic's output grid, with its CRS.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PlannedGrid {
+    /// The CRS (as `Crs::parse` reads it).
+    pub crs: String,
+    /// North-west corner.
+    pub origin: [f64; 2],
+    /// Sample size (x, y).
+    pub pixel: [f64; 2],
+    /// Samples across and down.
+    pub size: [u32; 2],
+}
+
+impl PlannedGrid {
+    fn of(crs: Option<&str>, grid: Option<GridSpec>) -> Option<Self> {
+        let (crs, g) = (crs?, grid?);
+        Some(Self { crs: crs.to_owned(), origin: g.origin, pixel: [g.pixel.0, g.pixel.1], size: [g.size.0, g.size.1] })
+    }
+
+    /// The grid, for [`crate::TileRequest::elevation_grid`] or `texture_grid`.
+    pub fn spec(&self) -> GridSpec {
+        GridSpec { origin: self.origin, pixel: (self.pixel[0], self.pixel[1]), size: (self.size[0], self.size[1]) }
+    }
+}
+
+/// The inputs one shard reads, in the order given.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ShardInputs {
+    /// Elevation inputs.
+    pub elevation: Vec<PathBuf>,
+    /// Imagery inputs.
+    pub texture: Vec<PathBuf>,
+}
+
+impl ShardPlan {
+    /// Shard `index`'s spec: its bands as planned.
+    pub fn spec(&self, index: u32) -> ShardSpec {
+        ShardSpec { index, count: self.count, split_lod: self.split_lod, cuts: Some(self.cuts.clone()) }
+    }
+}
+
+/// The plan of `count` shards over these sources, from the inputs' headers alone (no
+/// height is read).
+///
+/// # Errors
+/// As [`crate::plan`]; [`Error::InvalidOption`] for no shard.
+pub fn shard_plan(
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<&TextureInput<'_>>,
+    name: &str,
+    options: TileOptions,
+    count: u32,
+    split_lod: Option<u8>,
+) -> Result<ShardPlan> {
+    let plan = plan_layout(elevation, texture, name, options)?;
+    let kinds: Vec<LayerKind> = plan.metadata.layers.iter().map(|l| l.kind).collect();
+    let weight = |layer: usize, rows: std::ops::Range<u32>| match kinds[layer] {
+        LayerKind::Texture => texture.map_or(0.0, |t| t.source.data_in_rows(rows)),
+        _ => elevation.map_or(0.0, |e| e.data_in_rows(rows)),
+    };
+    let mut cuts = vec![];
+    let mut shards = vec![];
+    for index in 0..count {
+        let spec = ShardSpec { index, count, split_lod, cuts: None };
+        let (_, windows, c) = windows_and_cuts(&plan, &spec, &weight)?;
+        cuts = c;
+        let mut inputs = ShardInputs::default();
+        for (kind, window) in kinds.iter().zip(&windows) {
+            let rows = to_u32(window.rows.start)..to_u32(window.rows.end);
+            match kind {
+                LayerKind::Elevation => inputs.elevation = elevation.map_or(vec![], |e| e.inputs_in_rows(rows)),
+                LayerKind::Texture => inputs.texture = texture.map_or(vec![], |t| t.source.inputs_in_rows(rows)),
+                _ => {}
+            }
+        }
+        shards.push(inputs);
+    }
+    let grid_of = |crs: Option<&str>, grid| PlannedGrid::of(crs, grid);
+    Ok(ShardPlan {
+        count,
+        split_lod,
+        elevation_grid: elevation
+            .and_then(|e| grid_of(e.georeference().and_then(|g| g.crs.as_deref()), e.mosaic_grid())),
+        texture_grid: texture
+            .and_then(|t| grid_of(t.source.georeference().and_then(|g| g.crs.as_deref()), t.source.mosaic_grid())),
+        cuts,
+        shards,
+    })
+}
+
+fn to_u32(n: usize) -> u32 {
+    u32::try_from(n).unwrap_or(u32::MAX)
 }
 
 /// `count + 1` boundaries splitting `rows` rows into `count` runs of about equal total

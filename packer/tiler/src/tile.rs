@@ -92,7 +92,7 @@ pub fn tile_shard(
                 LayerKind::Texture => texture.as_ref().map_or(0.0, |t| t.source.data_in_rows(rows)),
                 _ => elevation.map_or(0.0, |e| e.data_in_rows(rows)),
             };
-            let (info, windows) = shard::windows(&plan, spec, &weight)?;
+            let (info, windows) = shard::windows(&plan, &spec, &weight)?;
             plan.metadata.shard = Some(info);
             windows
         }

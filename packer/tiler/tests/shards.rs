@@ -65,7 +65,7 @@ fn shards(dir: &Path, n: u32, split_lod: Option<u8>, dem: &Raster, image: &Image
     (0..n)
         .map(|i| {
             let out = dir.join(format!("shard-{n}-{i}.tspack"));
-            let spec = ShardSpec { index: i, count: n, split_lod };
+            let spec = ShardSpec { index: i, count: n, split_lod, cuts: None };
             tile_shard(Some(dem), Some(texture(image)), "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
             out
         })
@@ -261,7 +261,7 @@ fn shards_given_the_height_range_skip_its_pass_and_check_it() {
     let parts: Vec<PathBuf> = (0..3)
         .map(|i| {
             let out = dir.path().join(format!("known-{i}.tspack"));
-            let spec = ShardSpec { index: i, count: 3, split_lod: None };
+            let spec = ShardSpec { index: i, count: 3, split_lod: None, cuts: None };
             tile_shard(Some(&known), Some(texture(&image)), "t", &out, OPTIONS, Some(spec), &Silent::default())
                 .unwrap();
             out
@@ -272,7 +272,7 @@ fn shards_given_the_height_range_skip_its_pass_and_check_it() {
     assert_eq!(tiles(&merged), tiles(&whole));
     // A range that leaves heights out: the shard that meets them stops, naming why.
     let narrow = KnownRange::new(&dem, (range.0 + 10.0, range.1));
-    let spec = ShardSpec { index: 0, count: 1, split_lod: None };
+    let spec = ShardSpec { index: 0, count: 1, split_lod: None, cuts: None };
     let out = dir.path().join("narrow.tspack");
     let err =
         tile_shard(Some(&narrow), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap_err().to_string();
@@ -363,7 +363,7 @@ fn a_whole_run_on_an_estimated_range_encodes_as_shards_given_the_range() {
         let parts: Vec<PathBuf> = (0..3)
             .map(|i| {
                 let out = dir.path().join(format!("{name}-{i}.tspack"));
-                let spec = ShardSpec { index: i, count: 3, split_lod: None };
+                let spec = ShardSpec { index: i, count: 3, split_lod: None, cuts: None };
                 tile_shard(Some(&known), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
                 out
             })

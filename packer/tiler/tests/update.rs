@@ -297,7 +297,7 @@ fn updates_that_cannot_fit_are_refused_and_write_nothing() {
         "s",
         &shard,
         OPTIONS,
-        Some(terrastream_tiler::ShardSpec { index: 0, count: 2, split_lod: None }),
+        Some(terrastream_tiler::ShardSpec { index: 0, count: 2, split_lod: None, cuts: None }),
         &Silent::default(),
     )
     .unwrap();

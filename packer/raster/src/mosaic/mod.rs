@@ -86,6 +86,22 @@ pub struct MosaicOptions {
     /// Leave out inputs that cannot be used (listed by [`Mosaic::skipped`]) instead of
     /// stopping at the first.
     pub skip_bad_inputs: bool,
+    /// The output grid, given whole (over `crs`, which must then be given too): what a
+    /// shard of a planned run opens its part of the inputs onto, so that its grid is the
+    /// one all the inputs make. Overrides `extent` and `resolution`.
+    pub grid: Option<GridSpec>,
+}
+
+/// An output grid: north-west corner and sample size in the output CRS, samples across
+/// and down.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GridSpec {
+    /// North-west corner (x, y).
+    pub origin: [f64; 2],
+    /// Sample size (x, y).
+    pub pixel: (f64, f64),
+    /// Samples across and down.
+    pub size: (u32, u32),
 }
 
 /// An input as opened: a window of a file (the whole file, or a VRT source's), its CRS,
@@ -226,6 +242,9 @@ impl OutputGrid {
         options: &MosaicOptions,
         first: &Path,
     ) -> Result<Self> {
+        if let Some(g) = options.grid {
+            return Ok(Self { origin: g.origin, pixel: g.pixel, size: g.size });
+        }
         let mut bounds = options.extent.unwrap_or(footprints.union);
         let spacing = options.resolution.unwrap_or(footprints.finest);
         if !(spacing.is_finite() && spacing > 0.0) {
@@ -405,6 +424,26 @@ impl<K: MosaicKind> Mosaic<K> {
     /// Inputs, in order.
     pub fn inputs(&self) -> impl Iterator<Item = &Path> {
         self.inputs.iter().map(|i| K::path(&i.file))
+    }
+
+    /// The output grid (to give a shard: [`MosaicOptions::grid`]).
+    pub fn grid(&self) -> GridSpec {
+        GridSpec { origin: self.origin, pixel: self.pixel, size: self.size }
+    }
+
+    /// The inputs (in order, each file once) that output rows `rows` read: those whose
+    /// footprint, with the bilinear margin the rows are made with, touches them. Known
+    /// from the inputs' headers alone.
+    pub fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<PathBuf> {
+        let (start, end) = (i64::from(rows.start), i64::from(rows.end));
+        let mut out: Vec<PathBuf> = vec![];
+        for input in &self.inputs {
+            let path = K::path(&input.file);
+            if start < end && input.rows.0 < end && input.rows.1 >= start && !out.iter().any(|p| p == path) {
+                out.push(path.to_path_buf());
+            }
+        }
+        out
     }
 
     /// The output columns of `input`'s footprint (first, last; last < first for none).

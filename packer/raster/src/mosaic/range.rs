@@ -150,6 +150,12 @@ impl ElevationSource for Mosaic<Heights> {
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.footprint_samples(rows)
     }
+    fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<PathBuf> {
+        Mosaic::inputs_in_rows(self, rows)
+    }
+    fn mosaic_grid(&self) -> Option<GridSpec> {
+        Some(self.grid())
+    }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         self.make_rows(0..self.size.1, row)
     }
@@ -173,6 +179,12 @@ impl ImageSource for Mosaic<Pixels> {
     }
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.footprint_samples(rows)
+    }
+    fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<PathBuf> {
+        Mosaic::inputs_in_rows(self, rows)
+    }
+    fn mosaic_grid(&self) -> Option<GridSpec> {
+        Some(self.grid())
     }
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         self.make_rows(0..self.size.1, row)
