@@ -402,10 +402,12 @@ fn utm_geotiff(path: &Path, (w, h): (u32, u32), (east, north): (f64, f64), spaci
 }
 
 /// The Jobs of `deploy/k8s/tile-job.yaml`, their exact command lines run here: the plan
-/// Job's height range, then the tile Job's N indexed pods as N processes at once (`$(JOB_COMPLETION_INDEX)` set as
-/// Kubernetes sets it, `/work` a local folder; the object-storage copies are the rclone
-/// containers' and are done with a file copy), then the merge Job's. The archive it
-/// publishes is the one a single `tile` run over the same inputs writes, byte for byte.
+/// Job's height range and shard plan, then the tile Job's N indexed pods as N processes at
+/// once (`$(JOB_COMPLETION_INDEX)` set as Kubernetes sets it, `/work` a folder of each
+/// pod's own; the object-storage copies are the rclone containers' and are done with a
+/// file copy, a pod's inputs only those its `--files-from` list names), then the merge
+/// Job's. The archive it publishes is the one a single `tile` run over the same inputs
+/// writes, byte for byte, and no pod fetched every input.
 #[test]
 fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let docs = yaml_docs(&deploy("k8s/tile-job.yaml"));
@@ -431,22 +433,33 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     for d in ["in/elevation", "in/texture", "out", "shards"] {
         std::fs::create_dir_all(work.join(d)).unwrap();
     }
-    // Two overlapping DEM strips and an image over them, in UTM 33N: tall enough for five
-    // rows of 256-sample tiles, so that most of the N shards hold a band.
-    utm_geotiff(&work.join("in/elevation/a.tif"), (150, 1100), (500_000.0, 5_100_000.0), 20.0, false);
-    utm_geotiff(&work.join("in/elevation/b.tif"), (140, 1100), (502_800.0, 5_100_000.0), 20.0, false);
-    utm_geotiff(&work.join("in/texture/ortho.tif"), (290, 1100), (500_000.0, 5_100_000.0), 20.0, true);
+    // DEM tiles, two across (overlapping) and four down, and images over them two down, in
+    // UTM 33N: tall enough for five rows of 256-sample tiles, so that most of the N shards
+    // hold a band, and each band reads some of the files only.
+    for row in 0..4u32 {
+        let north = 5_100_000.0 - f64::from(row) * 275.0 * 20.0;
+        for (name, w, east) in [("a", 150, 500_000.0), ("b", 140, 502_800.0)] {
+            let path = work.join(format!("in/elevation/{name}{row}.tif"));
+            utm_geotiff(&path, (w, 275), (east, north), 20.0, false);
+        }
+    }
+    for row in 0..2u32 {
+        let north = 5_100_000.0 - f64::from(row) * 550.0 * 20.0;
+        utm_geotiff(&work.join(format!("in/texture/ortho{row}.tif")), (290, 550), (500_000.0, north), 20.0, true);
+    }
     let local = |a: &str, index: u64| {
         a.replace("$(JOB_COMPLETION_INDEX)", &index.to_string()).replace("/work", work.to_str().unwrap())
     };
     // The plan Job, then its upload and the shards' fetch-plan: out/ -> the bucket -> plan/.
-    let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .arg("-q")
-        .args(plan_args.iter().map(|a| local(a, 0)))
-        .stdout(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success(), "plan {plan_args:?}");
+    for args in [&plan_args, &args(plan_job, "shard-plan")] {
+        let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+            .arg("-q")
+            .args(args.iter().map(|a| local(a, 0)))
+            .stdout(Stdio::null())
+            .status()
+            .unwrap();
+        assert!(status.success(), "plan {args:?}");
+    }
     std::fs::create_dir_all(work.join("plan")).unwrap();
     for entry in std::fs::read_dir(work.join("out")).unwrap() {
         let path = entry.unwrap().path();
@@ -454,11 +467,38 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     }
     let plan = std::fs::read_to_string(work.join("plan/height-range")).unwrap();
     assert_eq!(format!("@{}", work.join("plan/height-range").display()), local(&tile_args[range + 1], 0), "{plan}");
+    // Each pod: its own /work, the plan fetched, then the inputs its list names.
+    let fetch = args(tile_job, "fetch");
+    let from = fetch.iter().position(|a| a == "--files-from").expect("a pod fetches its list only");
+    let bucket_bytes: u64 = ["in/elevation", "in/texture"]
+        .iter()
+        .flat_map(|d| std::fs::read_dir(work.join(d)).unwrap())
+        .map(|e| e.unwrap().metadata().unwrap().len())
+        .sum();
+    let mut fetched = vec![];
     let pods: Vec<Child> = (0..n)
         .map(|i| {
+            let pod = work.join(format!("pod{i}"));
+            let at =
+                |a: &str| a.replace("$(JOB_COMPLETION_INDEX)", &i.to_string()).replace("/work", pod.to_str().unwrap());
+            for d in ["plan", "in/elevation", "in/texture", "out"] {
+                std::fs::create_dir_all(pod.join(d)).unwrap();
+            }
+            for entry in std::fs::read_dir(work.join("plan")).unwrap() {
+                let path = entry.unwrap().path();
+                std::fs::copy(&path, pod.join("plan").join(path.file_name().unwrap())).unwrap();
+            }
+            let list = std::fs::read_to_string(at(&fetch[from + 1])).unwrap();
+            let (source, target) = (&fetch[from + 2], at(&fetch[from + 3]));
+            assert_eq!(source, "remote:terrain-inputs/current", "the bucket the plan read");
+            let mut bytes = 0;
+            for name in list.lines() {
+                bytes += std::fs::copy(work.join("in").join(name), Path::new(&target).join(name)).unwrap();
+            }
+            fetched.push(bytes);
             Command::new(env!("CARGO_BIN_EXE_terrastream"))
                 .arg("-q")
-                .args(tile_args.iter().map(|a| local(a, i)))
+                .args(tile_args.iter().map(|a| at(a)))
                 .stdout(Stdio::null())
                 .spawn()
                 .unwrap()
@@ -466,7 +506,11 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
         .collect();
     for (i, mut pod) in pods.into_iter().enumerate() {
         assert!(pod.wait().unwrap().success(), "shard {i} failed");
+        let shard = format!("shard-{i}.tspack");
+        std::fs::rename(work.join(format!("pod{i}/out/{shard}")), work.join("out").join(&shard)).unwrap();
     }
+    eprintln!("bytes fetched per pod: {fetched:?} of {bucket_bytes} in the bucket");
+    assert!(fetched.iter().all(|&b| b < bucket_bytes), "a pod fetched every input: {fetched:?} of {bucket_bytes}");
     let sizes: Vec<u64> =
         (0..n).map(|i| std::fs::metadata(work.join(format!("out/shard-{i}.tspack"))).unwrap().len()).collect();
     let holding = sizes.iter().filter(|&&b| b > 4096).count();
@@ -487,11 +531,11 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let published = args(merge_job, "publish");
     let merged = work.join(published[1].strip_prefix("/work/").unwrap());
 
-    // One run over the same inputs, the shard and height-range options left out (it finds
-    // the range itself).
-    let shard = tile_args.iter().position(|a| a == "--shard").unwrap();
+    // One run over the same inputs, the shard, plan and height-range options left out (it
+    // finds the range itself).
     let mut single: Vec<String> = tile_args.iter().map(|a| local(a, 0)).collect();
-    for at in [shard.max(range), shard.min(range)] {
+    for option in ["--shard", "--shard-plan", "--height-range"] {
+        let at = single.iter().position(|a| a == option).unwrap();
         single.drain(at..at + 2);
     }
     let out = single.iter().position(|a| a == "-o").unwrap();

@@ -118,8 +118,9 @@ pub struct TileArgs {
     /// Shards in the run `--shard-plan-out` plans.
     #[arg(long, requires = "shard_plan_out")]
     shards: Option<u32>,
-    /// Paths in `shard-I.txt` relative to this folder (where `rclone copy --files-from`
-    /// copies them to); default: as the inputs were named.
+    /// Paths in `shard-I.txt` and `plan.json` relative to this folder (where `rclone copy
+    /// --files-from` copies them to; a shard matches them against the ends of its inputs'
+    /// paths); default: as the inputs were named.
     #[arg(long, requires = "shard_plan_out")]
     relative_to: Option<PathBuf>,
     /// With `--shard`: the plan (`plan.json` of `--shard-plan-out`) of the run: its grids
@@ -160,7 +161,8 @@ fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest)
     for (given, wanted, what) in
         [(&request.elevation, &wanted.elevation, "--elevation"), (&request.texture, &wanted.texture, "--texture")]
     {
-        if let Some(missing) = wanted.iter().find(|w| !given.contains(w)) {
+        // A path the plan gives relative to `--relative-to` is any input ending with it.
+        if let Some(missing) = wanted.iter().find(|w| !given.iter().any(|g| g.ends_with(w))) {
             bail!(
                 "shard {index}/{count} reads {} (so says {}), which is not among the {what} inputs",
                 missing.display(),
@@ -195,19 +197,24 @@ fn with_vrts(plan: &mut ShardPlan, request: &TileRequest) {
 /// `plan.json` and a `shard-I.txt` per shard in `dir` (made if need be).
 fn write_shard_plan(dir: &Path, plan: &ShardPlan, relative_to: Option<&Path>) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot make the folder", dir.display()))?;
-    let json = serde_json::to_string_pretty(plan)?;
+    let mut plan = plan.clone();
+    if let Some(root) = relative_to {
+        for shard in &mut plan.shards {
+            for input in shard.elevation.iter_mut().chain(&mut shard.texture) {
+                let relative = input
+                    .strip_prefix(root)
+                    .with_context(|| format!("{} is not under --relative-to {}", input.display(), root.display()))?;
+                *input = relative.to_path_buf();
+            }
+        }
+    }
+    let json = serde_json::to_string_pretty(&plan)?;
     let path = dir.join("plan.json");
     std::fs::write(&path, json + "\n").with_context(|| format!("{}: cannot write", path.display()))?;
     for (i, shard) in plan.shards.iter().enumerate() {
         let mut list = String::new();
         for input in shard.elevation.iter().chain(&shard.texture) {
-            let shown = match relative_to {
-                Some(root) => input
-                    .strip_prefix(root)
-                    .with_context(|| format!("{} is not under --relative-to {}", input.display(), root.display()))?,
-                None => input.as_path(),
-            };
-            list.push_str(&format!("{}\n", shown.display()));
+            list.push_str(&format!("{}\n", input.display()));
         }
         let path = dir.join(format!("shard-{i}.txt"));
         std::fs::write(&path, list).with_context(|| format!("{}: cannot write", path.display()))?;

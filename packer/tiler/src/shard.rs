@@ -176,9 +176,18 @@ pub fn shard_plan(
         let mut inputs = ShardInputs::default();
         for (kind, window) in kinds.iter().zip(&windows) {
             let rows = to_u32(window.rows.start)..to_u32(window.rows.end);
+            // A band that reads nothing (more shards than rows of data) still opens its
+            // sources on the planned grid: its list holds the first input.
+            let or_first = |list: Vec<PathBuf>, first: Vec<PathBuf>| if list.is_empty() { first } else { list };
             match kind {
-                LayerKind::Elevation => inputs.elevation = elevation.map_or(vec![], |e| e.inputs_in_rows(rows)),
-                LayerKind::Texture => inputs.texture = texture.map_or(vec![], |t| t.source.inputs_in_rows(rows)),
+                LayerKind::Elevation => {
+                    inputs.elevation =
+                        elevation.map_or(vec![], |e| or_first(e.inputs_in_rows(rows), e.inputs_in_rows(0..1)));
+                }
+                LayerKind::Texture => {
+                    inputs.texture = texture
+                        .map_or(vec![], |t| or_first(t.source.inputs_in_rows(rows), t.source.inputs_in_rows(0..1)));
+                }
                 _ => {}
             }
         }
