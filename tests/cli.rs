@@ -567,3 +567,64 @@ fn a_shard_of_a_planned_run_needs_only_the_inputs_its_plan_lists() {
     assert!(!out.status.success() && text(&out).contains(&format!("reads {missing}")), "{}", text(&out));
     assert!(!pod.join("again.tspack").exists());
 }
+
+/// A UTM 32N GeoTIFF of 40 x 40 samples at 10 m whose heights run from `base` to
+/// `base + 78`, with GDAL's statistics tag saying `statistics` (XML items), if given.
+fn stats_geotiff(path: &Path, east: f64, base: f32, statistics: Option<&str>) {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<Gray32Float>(40, 40).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33550), &[10.0, 10.0, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, east, 5_100_000.0, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32632][..]).unwrap();
+    if let Some(items) = statistics {
+        image.encoder().write_tag(Tag::Unknown(42112), &*format!("<GDALMetadata>{items}</GDALMetadata>")).unwrap();
+    }
+    let data: Vec<f32> = (0..1600u32).map(|i| base + (i % 40 + i / 40) as f32).collect();
+    image.write_data(&data).unwrap();
+}
+
+/// The plan step's height range comes from the inputs' GDAL statistics when every one
+/// records exact ones (no height read: the range is what they say), and from a scan when
+/// one is approximate; a shard given a range the data leaves stops, naming the file.
+#[test]
+fn a_plans_height_range_comes_from_the_inputs_statistics_and_shards_check_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    let stats = |min: f32, max: f32, approximate: bool| {
+        let mut items = format!(
+            r#"<Item name="STATISTICS_MAXIMUM" sample="0">{max}</Item><Item name="STATISTICS_MINIMUM" sample="0">{min}</Item>"#
+        );
+        if approximate {
+            items.push_str(r#"<Item name="STATISTICS_APPROXIMATE" sample="0">YES</Item>"#);
+        }
+        items
+    };
+    let range_of = |folder: &str| {
+        let out = terrastream(&["tile", "--elevation", folder, "--dry-run", "--height-range-out", "r.txt"], cwd);
+        assert!(out.status.success(), "{}", text(&out));
+        std::fs::read_to_string(cwd.join("r.txt")).unwrap().trim().to_owned()
+    };
+    // Exact statistics, wider than the data (100..178, 300..378): the range is theirs.
+    std::fs::create_dir(cwd.join("exact")).unwrap();
+    stats_geotiff(&cwd.join("exact/a.tif"), 500_000.0, 100.0, Some(&stats(90.0, 180.0, false)));
+    stats_geotiff(&cwd.join("exact/b.tif"), 500_400.0, 300.0, Some(&stats(295.5, 400.0, false)));
+    assert_eq!(range_of("exact"), "90,400");
+    // One approximate: every height is scanned.
+    std::fs::create_dir(cwd.join("approx")).unwrap();
+    stats_geotiff(&cwd.join("approx/a.tif"), 500_000.0, 100.0, Some(&stats(90.0, 180.0, false)));
+    stats_geotiff(&cwd.join("approx/b.tif"), 500_400.0, 300.0, Some(&stats(295.5, 400.0, true)));
+    assert_eq!(range_of("approx"), "100,378");
+    // Statistics that lie (b's heights reach 378): the shard reading b stops, naming it.
+    std::fs::create_dir(cwd.join("lying")).unwrap();
+    stats_geotiff(&cwd.join("lying/a.tif"), 500_000.0, 100.0, Some(&stats(100.0, 178.0, false)));
+    stats_geotiff(&cwd.join("lying/b.tif"), 500_400.0, 300.0, Some(&stats(300.0, 310.0, false)));
+    assert_eq!(range_of("lying"), "100,310");
+    let out = terrastream(
+        &["tile", "--elevation", "lying", "--shard", "0/1", "--height-range", "@r.txt", "-o", "s.tspack"],
+        cwd,
+    );
+    assert!(!out.status.success() && text(&out).contains("b.tif"), "{}", text(&out));
+    assert!(!cwd.join("s.tspack").exists());
+}

@@ -352,7 +352,17 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         (Some(path), Some((index, count))) => Some(planned_shard(path, index, count, &mut request)?),
         _ => None,
     };
-    let sources = Sources::open(&request)?;
+    let mut sources = Sources::open(&request)?;
+    // A plan step's range from the inputs' own statistics, when every one records them:
+    // no height read (the shards check every height against it as they tile).
+    if args.dry_run && args.height_range_out.is_some() && request.height_range.is_none() {
+        let recorded = sources.inputs()?.elevation().and_then(|e| e.statistics_range());
+        if let Some(range) = recorded {
+            tracing::info!("height range {range:?}: the inputs' GDAL statistics (no height read)");
+            request.height_range = Some(range);
+            sources = Sources::open(&request)?;
+        }
+    }
     let inputs = sources.inputs()?;
     let (elevation, texture) = (inputs.elevation(), inputs.texture());
     let (name, options) = (args.name(), args.options());

@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use terrastream_format::{ElevationEncoding, ElevationScheme, Georeference};
 
-use super::geotiff::{GeoTags, gdal_nodata};
+use super::geotiff::{GeoTags, gdal_nodata, gdal_statistics};
 use super::memory::Raster;
 use super::png::{png_header, png_rows};
 use super::tiff::{TiffChunks, open_input_tiff, samples_f32, tiff_rows, tiff_rows_in};
@@ -26,6 +26,8 @@ pub struct ElevationFile {
     /// How PNG pixels (or 8-bit TIFF samples) map to heights; None: samples are heights.
     encoding: Option<ElevationEncoding>,
     png: bool,
+    /// The exact range of the samples GDAL recorded in the file, if it did.
+    statistics: Option<(f64, f64)>,
 }
 
 /// Reads a single-band GeoTIFF whole (small rasters, tests); [`open_elevation`] streams.
@@ -101,6 +103,7 @@ fn open_png(path: &Path, encoding: Option<ElevationEncoding>) -> Result<Elevatio
         nodata: encoding.nodata,
         encoding: Some(encoding),
         png: true,
+        statistics: None,
     })
 }
 
@@ -126,6 +129,7 @@ fn open_tiff(path: &Path, encoding: Option<ElevationEncoding>) -> Result<Elevati
         return Err(bad(format!("{:?} does not apply to a single-band {colour:?} GeoTIFF", e.scheme)));
     }
     let nodata = gdal_nodata(&mut decoder);
+    let statistics = gdal_statistics(&mut decoder);
     let tags = GeoTags::read(&mut decoder);
     let (mut spacing, mut georeference) = tags.placement(path, width, height)?;
     let mut crs_pixel = georeference.as_ref().and_then(|_| tags.crs_pixel());
@@ -143,12 +147,19 @@ fn open_tiff(path: &Path, encoding: Option<ElevationEncoding>) -> Result<Elevati
         crs_pixel,
         georeference,
         nodata,
+        // Statistics are of the samples: heights only where samples are heights.
+        statistics: statistics.filter(|_| encoding.is_none()),
         encoding,
         png: false,
     })
 }
 
 impl ElevationFile {
+    /// The exact range of the samples GDAL recorded in the file (its statistics), if it did.
+    pub fn statistics(&self) -> Option<(f64, f64)> {
+        self.statistics
+    }
+
     /// Replaces the sample spacing (metres), e.g. for a PNG, which carries none.
     #[must_use]
     pub fn with_spacing(mut self, spacing: f64) -> Self {
@@ -208,6 +219,9 @@ impl ElevationFile {
 impl ElevationSource for ElevationFile {
     fn path(&self) -> &Path {
         &self.path
+    }
+    fn statistics_range(&self) -> Option<(f32, f32)> {
+        self.statistics.map(crate::widened_f32)
     }
     fn size(&self) -> (u32, u32) {
         (self.width, self.height)

@@ -115,6 +115,37 @@ pub(super) fn georeferenced(
 }
 
 /// The GDAL nodata tag's value, when there is one and it is a number.
+/// GDAL's metadata tag: XML of `<Item name="..." sample="...">value</Item>`.
+const GDAL_METADATA: u16 = 42112;
+
+/// The exact minimum and maximum of band 1 as GDAL records them in its metadata tag
+/// (`gdalinfo -stats`, `gdal_translate -stats`); None where there are none, or where GDAL
+/// says they are approximate (`STATISTICS_APPROXIMATE=YES`: from overviews or a subset).
+pub(super) fn gdal_statistics<R: std::io::Read + std::io::Seek>(
+    decoder: &mut tiff::decoder::Decoder<R>,
+) -> Option<(f64, f64)> {
+    let xml = decoder.find_tag(tiff::tags::Tag::Unknown(GDAL_METADATA)).ok().flatten()?.into_string().ok()?;
+    statistics_in(&xml)
+}
+
+/// [`gdal_statistics`] of a GDAL metadata document.
+pub(super) fn statistics_in(xml: &str) -> Option<(f64, f64)> {
+    let item = |name: &str| -> Option<&str> {
+        xml.split("<Item").skip(1).find_map(|item| {
+            let (head, rest) = item.split_once('>')?;
+            let named = head.contains(&format!("name=\"{name}\""));
+            let band_one = !head.contains("sample=") || head.contains("sample=\"0\"");
+            let role_free = !head.contains("role=");
+            (named && band_one && role_free).then(|| rest.split('<').next().unwrap_or("").trim())
+        })
+    };
+    if item("STATISTICS_APPROXIMATE").is_some_and(|v| v.eq_ignore_ascii_case("YES")) {
+        return None;
+    }
+    let (min, max): (f64, f64) = (item("STATISTICS_MINIMUM")?.parse().ok()?, item("STATISTICS_MAXIMUM")?.parse().ok()?);
+    (min.is_finite() && max.is_finite() && min <= max).then_some((min, max))
+}
+
 pub(super) fn gdal_nodata<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::decoder::Decoder<R>) -> Option<f64> {
     decoder
         .find_tag(tiff::tags::Tag::Unknown(GDAL_NODATA))
@@ -122,4 +153,28 @@ pub(super) fn gdal_nodata<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::
         .flatten()
         .and_then(|v| v.into_string().ok())
         .and_then(|s| s.trim_matches(char::from(0)).trim().parse().ok())
+}
+
+#[cfg(test)]
+mod statistics_tests {
+    use super::statistics_in;
+
+    #[test]
+    fn gdal_statistics_are_read_unless_approximate_or_of_another_band() {
+        let doc = |items: &str| format!("<GDALMetadata>\n{items}\n</GDALMetadata>\n");
+        let exact = doc(r#"<Item name="STATISTICS_MAXIMUM" sample="0">812.5</Item>
+  <Item name="STATISTICS_MEAN" sample="0">300</Item>
+  <Item name="STATISTICS_MINIMUM" sample="0">-3</Item>"#);
+        assert_eq!(statistics_in(&exact), Some((-3.0, 812.5)));
+        let approximate = doc(r#"<Item name="STATISTICS_APPROXIMATE" sample="0">YES</Item>
+  <Item name="STATISTICS_MAXIMUM" sample="0">812.5</Item><Item name="STATISTICS_MINIMUM" sample="0">-3</Item>"#);
+        assert_eq!(statistics_in(&approximate), None);
+        let other_band = doc(r#"<Item name="STATISTICS_MAXIMUM" sample="1">9</Item>
+  <Item name="STATISTICS_MINIMUM" sample="1">1</Item>"#);
+        assert_eq!(statistics_in(&other_band), None);
+        assert_eq!(statistics_in(&doc(r#"<Item name="STATISTICS_MINIMUM" sample="0">5</Item>"#)), None);
+        let backwards = doc(r#"<Item name="STATISTICS_MAXIMUM" sample="0">1</Item>
+  <Item name="STATISTICS_MINIMUM" sample="0">5</Item>"#);
+        assert_eq!(statistics_in(&backwards), None);
+    }
 }

@@ -80,6 +80,13 @@ pub trait ElevationSource: Sync {
     fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<std::path::PathBuf> {
         if rows.is_empty() { vec![] } else { vec![self.path().to_path_buf()] }
     }
+    /// The input file sample `(column, row)` comes from, as far as the source knows
+    /// without reading it (a mosaic: the last input whose footprint holds it). Default:
+    /// the source's own file.
+    fn input_at(&self, column: u32, row: u32) -> Option<std::path::PathBuf> {
+        let (w, h) = self.size();
+        (column < w && row < h).then(|| self.path().to_path_buf())
+    }
     /// The output grid a mosaic made (None for a single file, whose grid is its own).
     fn mosaic_grid(&self) -> Option<GridSpec> {
         None
@@ -92,6 +99,11 @@ pub trait ElevationSource: Sync {
     /// As [`ElevationSource::rows`]; `progress`'s errors.
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {
         range_of_rows(progress, |row| self.rows(row))
+    }
+    /// The heights' exact range as the inputs' headers record it (GDAL's statistics), when
+    /// every input records it: a range without reading any height. Default: none.
+    fn statistics_range(&self) -> Option<(f32, f32)> {
+        None
     }
     /// The range of part of the heights, found at a small part of the cost of
     /// [`ElevationSource::height_range`] (inside it, and the same on every call for the
@@ -195,17 +207,32 @@ impl<'a> KnownRange<'a> {
         self.outside.load(std::sync::atomic::Ordering::Relaxed)
     }
 
-    fn checked<'r>(&'r self, row: &'r mut dyn FnMut(&[f32]) -> Result<()>) -> impl FnMut(&[f32]) -> Result<()> + 'r {
+    /// `row` behind the check, rows counted from `first`.
+    fn checked<'r>(
+        &'r self,
+        first: u32,
+        row: &'r mut dyn FnMut(&[f32]) -> Result<()>,
+    ) -> impl FnMut(&[f32]) -> Result<()> + 'r {
+        let mut at = first;
         move |r: &[f32]| {
             let (lo, hi) = min_max(r);
+            let j = at;
+            at = at.saturating_add(1);
             if lo < self.limits.0 || hi > self.limits.1 {
                 let Some(what) = self.what else {
                     self.outside.store(true, std::sync::atomic::Ordering::Relaxed);
                     return Err(Error::Interrupted(Interrupted));
                 };
+                // The input at the first sample outside (a mosaic's, not its first file).
+                let column = r.iter().position(|&h| h < self.limits.0 || h > self.limits.1).unwrap_or(0);
+                let column = u32::try_from(column).unwrap_or(u32::MAX);
+                let input = self.source.input_at(column, j).unwrap_or_else(|| self.source.path().to_path_buf());
                 return Err(Error::mismatch(
-                    self.source.path(),
-                    format!("heights {lo} .. {hi} lie outside {what} {} .. {}", self.limits.0, self.limits.1),
+                    &input,
+                    format!(
+                        "heights {lo} .. {hi} (row {j}, from column {column}) lie outside {what} {} .. {}",
+                        self.limits.0, self.limits.1
+                    ),
                 ));
             }
             let mut seen = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -233,16 +260,23 @@ impl ElevationSource for KnownRange<'_> {
         self.source.crs_pixel_size()
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        self.source.rows(&mut self.checked(row))
+        self.source.rows(&mut self.checked(0, row))
     }
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        self.source.rows_in(rows, &mut self.checked(row))
+        let first = rows.start;
+        self.source.rows_in(rows, &mut self.checked(first, row))
     }
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.source.data_in_rows(rows)
     }
     fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<std::path::PathBuf> {
         self.source.inputs_in_rows(rows)
+    }
+    fn statistics_range(&self) -> Option<(f32, f32)> {
+        self.source.statistics_range()
+    }
+    fn input_at(&self, column: u32, row: u32) -> Option<std::path::PathBuf> {
+        self.source.input_at(column, row)
     }
     fn mosaic_grid(&self) -> Option<GridSpec> {
         self.source.mosaic_grid()
@@ -368,4 +402,17 @@ pub fn min_max(values: &[f32]) -> (f32, f32) {
         hi[i] = hi[i].max(v);
     }
     (lo.into_iter().fold(f32::INFINITY, f32::min), hi.into_iter().fold(f32::NEG_INFINITY, f32::max))
+}
+
+/// `(min, max)` in f32, widened where rounding would narrow it.
+pub(crate) fn widened_f32((min, max): (f64, f64)) -> (f32, f32) {
+    #[expect(clippy::cast_possible_truncation, reason = "heights as f32, widened below")]
+    let (mut lo, mut hi) = (min as f32, max as f32);
+    if f64::from(lo) > min {
+        lo = lo.next_down();
+    }
+    if f64::from(hi) < max {
+        hi = hi.next_up();
+    }
+    (lo, hi)
 }

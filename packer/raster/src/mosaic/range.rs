@@ -150,8 +150,29 @@ impl ElevationSource for Mosaic<Heights> {
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.footprint_samples(rows)
     }
+    /// The union of every input's GDAL statistics (a VRT source's scale applied; its
+    /// NODATA, if any, can only narrow the true range): None if one has none.
+    fn statistics_range(&self) -> Option<(f32, f32)> {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for input in self.inputs.iter().filter(|i| !i.is_dropped()) {
+            let (mut a, mut b) = input.file.statistics()?;
+            if let Some((ratio, offset)) = input.scale {
+                (a, b) = (a * f64::from(ratio) + f64::from(offset), b * f64::from(ratio) + f64::from(offset));
+                (a, b) = (a.min(b), a.max(b));
+            }
+            (lo, hi) = (lo.min(a), hi.max(b));
+        }
+        (lo <= hi).then(|| crate::widened_f32((lo, hi)))
+    }
     fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<PathBuf> {
         Mosaic::inputs_in_rows(self, rows)
+    }
+    fn input_at(&self, column: u32, row: u32) -> Option<PathBuf> {
+        let (x, y) = (i64::from(column), i64::from(row));
+        let holds = |i: &&Input<Heights>| {
+            !i.is_dropped() && (i.rows.0..=i.rows.1).contains(&y) && (i.columns.0..=i.columns.1).contains(&x)
+        };
+        self.inputs.iter().rev().find(holds).map(|i| Heights::path(&i.file).to_path_buf())
     }
     fn mosaic_grid(&self) -> Option<GridSpec> {
         Some(self.grid())
