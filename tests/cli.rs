@@ -628,3 +628,94 @@ fn a_plans_height_range_comes_from_the_inputs_statistics_and_shards_check_it() {
     assert!(!out.status.success() && text(&out).contains("b.tif"), "{}", text(&out));
     assert!(!cwd.join("s.tspack").exists());
 }
+
+/// The cluster's plan step on the inputs' headers alone: COGs written by GDAL with their
+/// statistics (`gdal_translate -of COG -stats`), of which the plan pod fetches the first
+/// 16 KiB and leaves the rest a hole. The height range and the shard plan are the ones the
+/// whole files give, though the holes hold no heights.
+#[test]
+fn a_shard_plan_from_the_inputs_headers_alone_is_the_plan_of_the_whole_files() {
+    if Command::new("gdal_translate").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal_translate is not installed (gdal-bin)");
+        eprintln!("skipped: gdal_translate not found (gdal-bin)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    for d in ["raw", "full", "heads"] {
+        std::fs::create_dir(cwd.join(d)).unwrap();
+    }
+    for row in 0..3u32 {
+        for col in 0..2u32 {
+            let name = format!("r{row}c{col}.tif");
+            let raw = cwd.join("raw").join(&name);
+            stats_geotiff(&raw, 500_000.0 + f64::from(col) * 400.0, 100.0 * row as f32, None);
+            // Move it down a row of files: rewrite the tie point.
+            let north = 5_100_000.0 - f64::from(row) * 400.0;
+            let out = Command::new("gdal_translate")
+                .args([
+                    "-q",
+                    "-of",
+                    "COG",
+                    "-stats",
+                    "-co",
+                    "COMPRESS=NONE",
+                    "-co",
+                    "BLOCKSIZE=32",
+                    "-outsize",
+                    "400%",
+                    "400%",
+                ])
+                .args(["-a_ullr", &(500_000.0 + f64::from(col) * 400.0).to_string(), &north.to_string()])
+                .args([&(500_400.0 + f64::from(col) * 400.0).to_string(), &(north - 400.0).to_string()])
+                .arg(&raw)
+                .arg(cwd.join("full").join(&name))
+                .output()
+                .unwrap();
+            assert!(out.status.success(), "{}", text(&out));
+            let bytes = std::fs::read(cwd.join("full").join(&name)).unwrap();
+            assert!(bytes.len() > 16_384, "a file larger than its head");
+            let head = cwd.join("heads").join(&name);
+            std::fs::write(&head, &bytes[..16_384]).unwrap();
+            std::fs::File::options().write(true).open(&head).unwrap().set_len(bytes.len() as u64).unwrap();
+        }
+    }
+    let plan = |folder: &str| {
+        let common = ["--elevation", folder, "--crs", "EPSG:32633", "--tile-size", "32"];
+        let range = format!("{folder}-range.txt");
+        let args: Vec<&str> = ["tile"]
+            .into_iter()
+            .chain(common)
+            .chain(["--dry-run", "--height-range-out", &range, "--require-statistics"])
+            .collect();
+        let out = terrastream(&args, cwd);
+        assert!(out.status.success(), "{}", text(&out));
+        let to = format!("{folder}-plan");
+        let args: Vec<&str> = ["tile"]
+            .into_iter()
+            .chain(common)
+            .chain(["--shards", "3", "--shard-plan-out", &to, "--relative-to", folder])
+            .collect();
+        let out = terrastream(&args, cwd);
+        assert!(out.status.success(), "{}", text(&out));
+        let read = |p: String| std::fs::read_to_string(cwd.join(p)).unwrap();
+        (
+            read(range),
+            read(format!("{to}/plan.json")),
+            (0..3).map(|i| read(format!("{to}/shard-{i}.txt"))).collect::<Vec<_>>(),
+        )
+    };
+    let (whole, heads) = (plan("full"), plan("heads"));
+    assert_eq!(whole.0.trim(), "0,278", "the range GDAL's statistics give");
+    assert_eq!(whole, heads, "the plan of the headers alone");
+    assert!(whole.2.iter().all(|l| l.lines().count() < 6), "each shard a part: {:?}", whole.2);
+    // The holes hold no heights (tiles made from them are not the files' tiles): what the
+    // plan gave, it took from the headers.
+    for folder in ["full", "heads"] {
+        let out = format!("{folder}.tspack");
+        let args = ["tile", "--elevation", folder, "--crs", "EPSG:32633", "--height-range", "0,278", "-o", &out];
+        let said = terrastream(&args, cwd);
+        assert!(said.status.success(), "{}", text(&said));
+    }
+    assert!(archive_tiles(&cwd.join("full.tspack")) != archive_tiles(&cwd.join("heads.tspack")));
+}

@@ -397,6 +397,13 @@ fn utm_geotiff(path: &Path, (w, h): (u32, u32), (east, north): (f64, f64), spaci
                 (400.0 + 90.0 * (x / 900.0).sin() * (y / 700.0).cos() + (x - east) * 0.01) as f32
             })
             .collect();
+        // GDAL's exact statistics, as `gdal_translate -stats` writes them: what the plan Job
+        // takes the height range from.
+        let (min, max) = data.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        let stats = format!(
+            r#"<GDALMetadata><Item name="STATISTICS_MAXIMUM" sample="0">{max}</Item><Item name="STATISTICS_MINIMUM" sample="0">{min}</Item></GDALMetadata>"#
+        );
+        image.encoder().write_tag(Tag::Unknown(42112), &*stats).unwrap();
         image.write_data(&data).unwrap();
     }
 }
@@ -450,15 +457,40 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let local = |a: &str, index: u64| {
         a.replace("$(JOB_COMPLETION_INDEX)", &index.to_string()).replace("/work", work.to_str().unwrap())
     };
-    // The plan Job, then its upload and the shards' fetch-plan: out/ -> the bucket -> plan/.
+    // The plan Job in a pod of its own: its fetch copies the head of each input (`--count`
+    // bytes) and leaves the rest a hole of the file's length; then its plan and shard-plan,
+    // their upload and the shards' fetch-plan: out/ -> the bucket -> plan/.
+    let script = args(plan_job, "fetch").join(" ");
+    let count: u64 = script.split("--count ").nth(1).and_then(|r| r.split(' ').next()).unwrap().parse().unwrap();
+    assert!(script.contains("truncate -s"), "{script}");
+    let planner = work.join("planner");
+    for d in ["in/elevation", "in/texture", "out"] {
+        std::fs::create_dir_all(planner.join(d)).unwrap();
+        if d == "out" {
+            continue;
+        }
+        for entry in std::fs::read_dir(work.join(d)).unwrap() {
+            let path = entry.unwrap().path();
+            let bytes = std::fs::read(&path).unwrap();
+            let head = &bytes[..bytes.len().min(usize::try_from(count).unwrap())];
+            let copy = planner.join(d).join(path.file_name().unwrap());
+            std::fs::write(&copy, head).unwrap();
+            std::fs::File::options().write(true).open(&copy).unwrap().set_len(bytes.len() as u64).unwrap();
+        }
+    }
+    let at_planner = |a: &str| a.replace("/work", planner.to_str().unwrap());
     for args in [&plan_args, &args(plan_job, "shard-plan")] {
         let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
             .arg("-q")
-            .args(args.iter().map(|a| local(a, 0)))
+            .args(args.iter().map(|a| at_planner(a)))
             .stdout(Stdio::null())
             .status()
             .unwrap();
         assert!(status.success(), "plan {args:?}");
+    }
+    for entry in std::fs::read_dir(planner.join("out")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::rename(&path, work.join("out").join(path.file_name().unwrap())).unwrap();
     }
     std::fs::create_dir_all(work.join("plan")).unwrap();
     for entry in std::fs::read_dir(work.join("out")).unwrap() {

@@ -138,6 +138,11 @@ pub struct TileArgs {
     /// `--height-range @FILE` reads it (a sharded run's plan step).
     #[arg(long, requires = "dry_run")]
     height_range_out: Option<PathBuf>,
+    /// With `--height-range-out`: take the range from the inputs' GDAL statistics only,
+    /// and fail, naming it, at an input without exact ones, instead of reading its heights
+    /// (a plan step given only the inputs' headers).
+    #[arg(long, requires = "height_range_out")]
+    require_statistics: bool,
     /// Also write a manifest (FORMAT.md §9) naming the archive: what readers open when a
     /// terrain is published as several archives (`merge --manifest` makes the one of a
     /// sharded run).
@@ -356,8 +361,15 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     // A plan step's range from the inputs' own statistics, when every one records them:
     // no height read (the shards check every height against it as they tile).
     if args.dry_run && args.height_range_out.is_some() && request.height_range.is_none() {
-        let recorded = sources.inputs()?.elevation().and_then(|e| e.statistics_range());
-        if let Some(range) = recorded {
+        let recorded = sources.inputs()?.elevation().map(|e| e.statistics_range());
+        if let (Some(Err(without)), true) = (&recorded, args.require_statistics) {
+            bail!(
+                "{}: no exact GDAL statistics (STATISTICS_MINIMUM/MAXIMUM; gdal_translate -stats or gdalinfo -stats \
+                 writes them), and --require-statistics reads no height",
+                without.display()
+            );
+        }
+        if let Some(Ok(range)) = recorded {
             tracing::info!("height range {range:?}: the inputs' GDAL statistics (no height read)");
             request.height_range = Some(range);
             sources = Sources::open(&request)?;

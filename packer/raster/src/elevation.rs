@@ -220,8 +220,8 @@ impl ElevationSource for ElevationFile {
     fn path(&self) -> &Path {
         &self.path
     }
-    fn statistics_range(&self) -> Option<(f32, f32)> {
-        self.statistics.map(crate::widened_f32)
+    fn statistics_range(&self) -> std::result::Result<(f32, f32), PathBuf> {
+        self.statistics.map(crate::nearest_f32).ok_or_else(|| self.path.clone())
     }
     fn size(&self) -> (u32, u32) {
         (self.width, self.height)

@@ -101,9 +101,13 @@ pub trait ElevationSource: Sync {
         range_of_rows(progress, |row| self.rows(row))
     }
     /// The heights' exact range as the inputs' headers record it (GDAL's statistics), when
-    /// every input records it: a range without reading any height. Default: none.
-    fn statistics_range(&self) -> Option<(f32, f32)> {
-        None
+    /// every input records it: a range without reading any height. Else an input that
+    /// records none (or only approximate ones). Default: the source's own file.
+    ///
+    /// # Errors
+    /// The path of an input without exact statistics.
+    fn statistics_range(&self) -> std::result::Result<(f32, f32), std::path::PathBuf> {
+        Err(self.path().to_path_buf())
     }
     /// The range of part of the heights, found at a small part of the cost of
     /// [`ElevationSource::height_range`] (inside it, and the same on every call for the
@@ -272,7 +276,7 @@ impl ElevationSource for KnownRange<'_> {
     fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<std::path::PathBuf> {
         self.source.inputs_in_rows(rows)
     }
-    fn statistics_range(&self) -> Option<(f32, f32)> {
+    fn statistics_range(&self) -> std::result::Result<(f32, f32), std::path::PathBuf> {
         self.source.statistics_range()
     }
     fn input_at(&self, column: u32, row: u32) -> Option<std::path::PathBuf> {
@@ -404,15 +408,11 @@ pub fn min_max(values: &[f32]) -> (f32, f32) {
     (lo.into_iter().fold(f32::INFINITY, f32::min), hi.into_iter().fold(f32::NEG_INFINITY, f32::max))
 }
 
-/// `(min, max)` in f32, widened where rounding would narrow it.
-pub(crate) fn widened_f32((min, max): (f64, f64)) -> (f32, f32) {
-    #[expect(clippy::cast_possible_truncation, reason = "heights as f32, widened below")]
-    let (mut lo, mut hi) = (min as f32, max as f32);
-    if f64::from(lo) > min {
-        lo = lo.next_down();
-    }
-    if f64::from(hi) < max {
-        hi = hi.next_up();
-    }
-    (lo, hi)
+/// `(min, max)` as f32 heights: each the nearest f32, which is the sample itself where the
+/// statistics are of f32 (or integer) samples, as GDAL computes them; as the heights a scan
+/// would find (the shards check every height against the range all the same).
+pub(crate) fn nearest_f32((min, max): (f64, f64)) -> (f32, f32) {
+    #[expect(clippy::cast_possible_truncation, reason = "heights as f32, as samples are kept")]
+    let range = (min as f32, max as f32);
+    range
 }

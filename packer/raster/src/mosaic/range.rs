@@ -152,17 +152,17 @@ impl ElevationSource for Mosaic<Heights> {
     }
     /// The union of every input's GDAL statistics (a VRT source's scale applied; its
     /// NODATA, if any, can only narrow the true range): None if one has none.
-    fn statistics_range(&self) -> Option<(f32, f32)> {
+    fn statistics_range(&self) -> std::result::Result<(f32, f32), PathBuf> {
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         for input in self.inputs.iter().filter(|i| !i.is_dropped()) {
-            let (mut a, mut b) = input.file.statistics()?;
+            let (mut a, mut b) = input.file.statistics().ok_or_else(|| Heights::path(&input.file).to_path_buf())?;
             if let Some((ratio, offset)) = input.scale {
                 (a, b) = (a * f64::from(ratio) + f64::from(offset), b * f64::from(ratio) + f64::from(offset));
                 (a, b) = (a.min(b), a.max(b));
             }
             (lo, hi) = (lo.min(a), hi.max(b));
         }
-        (lo <= hi).then(|| crate::widened_f32((lo, hi)))
+        if lo <= hi { Ok(crate::nearest_f32((lo, hi))) } else { Err(self.path.clone()) }
     }
     fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<PathBuf> {
         Mosaic::inputs_in_rows(self, rows)
