@@ -9,12 +9,13 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
 # System packages the tests start for real: nginx (the reference static host), openssl + curl (TLS),
 # Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests, Chromium +
-# chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's, and
+# chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's,
 # GDAL + PROJ command-line tools and Pillow as independent oracles for georeferencing,
-# reprojection and web tiles, python3-venv for the Kubernetes schema validator, and npm for
-# the browser clients' packages.
+# reprojection and web tiles, python3-venv for the Kubernetes schema validator, the
+# quantized-mesh decoder and the S3 API server, rclone (the cluster Jobs' object-storage
+# copies) and npm for the browser clients' packages.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin python3-pil python3-venv}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin python3-pil python3-venv rclone}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
@@ -27,8 +28,8 @@ if ! command -v npm >/dev/null; then
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm
 fi
 
-# The Kubernetes API schema validator and the quantized-mesh decoder (PyPI), in a virtual
-# environment of their own.
+# The Kubernetes API schema validator, the quantized-mesh decoder and the S3 API server
+# (PyPI), in a virtual environment of their own.
 tools=${TERRASTREAM_TOOLS_VENV:-$HOME/.cache/terrastream-tools}
 if ! [ -x "$tools/bin/kubernetes-validate" ]; then
   python3 -m venv "$tools"
@@ -36,6 +37,10 @@ if ! [ -x "$tools/bin/kubernetes-validate" ]; then
 fi
 if ! "$tools/bin/python" -c "import quantized_mesh_tile" 2>/dev/null; then
   "$tools/bin/pip" install -q quantized-mesh-tile==0.7.0
+fi
+# An S3 API server on loopback for the cluster Jobs' test (moto_server).
+if ! [ -x "$tools/bin/moto_server" ]; then
+  "$tools/bin/pip" install -q "moto[server]==5.1.22"
 fi
 export PATH="$tools/bin:$PATH"
 export TERRASTREAM_TOOLS_VENV="$tools"

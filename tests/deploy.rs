@@ -408,15 +408,59 @@ fn utm_geotiff(path: &Path, (w, h): (u32, u32), (east, north): (f64, f64), spaci
     }
 }
 
-/// The Jobs of `deploy/k8s/tile-job.yaml`, their exact command lines run here: the plan
-/// Job's height range and shard plan, then the tile Job's N indexed pods as N processes at
-/// once (`$(JOB_COMPLETION_INDEX)` set as Kubernetes sets it, `/work` a folder of each
-/// pod's own; the object-storage copies are the rclone containers' and are done with a
-/// file copy, a pod's inputs only those its `--files-from` list names), then the merge
-/// Job's. The archive it publishes is the one a single `tile` run over the same inputs
-/// writes, byte for byte, and no pod fetched every input.
+/// An S3 API server on loopback (PyPI `moto[server]`'s `moto_server`), stopped on drop.
+struct ObjectStore {
+    child: Child,
+    port: u16,
+}
+
+impl Drop for ObjectStore {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl ObjectStore {
+    /// Started, or None (saying why) where `moto_server` or `rclone` is missing; in CI
+    /// their absence fails (scripts/test.sh installs them).
+    fn start() -> Option<Self> {
+        let missing: Vec<&str> = ["moto_server", "rclone"]
+            .into_iter()
+            .filter(|tool| {
+                Command::new(tool).arg("--help").stdout(Stdio::null()).stderr(Stdio::null()).status().is_err()
+            })
+            .collect();
+        if !missing.is_empty() {
+            assert!(std::env::var_os("CI").is_none(), "{missing:?} not installed (scripts/test.sh installs them)");
+            eprintln!("\n*** SKIPPING: {missing:?} not installed (rclone: apt; moto[server]: PyPI) ***\n");
+            return None;
+        }
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let child = Command::new("moto_server")
+            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let store = Self { child, port };
+        terrastream_testkit::browser::wait_for_port(port, "moto_server");
+        Some(store)
+    }
+}
+
+/// The Jobs of `deploy/k8s/tile-job.yaml` run here as their pods would run them, every
+/// container's exact command line in order, against real object storage (an S3 API server
+/// on loopback, rclone with the environment the Job sets, pointed at it): the plan Job's
+/// pod, then the tile Job's N indexed pods (`$(JOB_COMPLETION_INDEX)` set as Kubernetes
+/// sets it; each pod's `/work` a folder of its own, its `/.cache` rclone's cache), then the
+/// merge Job's. The archive it publishes to the bucket is the one a single `tile` run over
+/// the same inputs writes, byte for byte, and no tile pod fetched every input. (The plan
+/// pod fetches each input's first MiB, here the whole of each; `tests/cli.rs` plans from
+/// 16 KiB heads of COGs.)
 #[test]
-fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
+fn the_sharded_tile_jobs_run_against_object_storage_and_make_the_single_runs_archive() {
+    let Some(store) = ObjectStore::start() else { return };
     let docs = yaml_docs(&deploy("k8s/tile-job.yaml"));
     let job =
         |name: &str| docs.iter().find(|d| d["metadata"]["name"] == name).unwrap_or_else(|| panic!("no Job {name}"));
@@ -424,150 +468,143 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     assert_eq!(tile_job["spec"]["completionMode"], "Indexed");
     let n = tile_job["spec"]["completions"].as_u64().unwrap();
     assert_eq!(tile_job["spec"]["parallelism"].as_u64(), Some(n), "all shards at once");
-    let args = |job: &serde_json::Value, container: &str| -> Vec<String> {
-        let spec = &job["spec"]["template"]["spec"];
-        let all = spec["initContainers"].as_array().into_iter().flatten().chain(spec["containers"].as_array().unwrap());
-        let c = all.into_iter().find(|c| c["name"] == container).unwrap_or_else(|| panic!("no container {container}"));
-        c["args"].as_array().unwrap().iter().map(|a| a.as_str().unwrap().to_owned()).collect()
-    };
-    let tile_args = args(tile_job, "tile");
-    assert!(tile_args.iter().any(|a| a == &format!("$(JOB_COMPLETION_INDEX)/{n}")), "--shard I/{n}: {tile_args:?}");
-    let range = tile_args.iter().position(|a| a == "--height-range").expect("the shards take the plan's range");
-    let plan_args = args(plan_job, "plan");
 
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    for d in ["in/elevation", "in/texture", "out", "shards"] {
-        std::fs::create_dir_all(work.join(d)).unwrap();
-    }
     // DEM tiles, two across (overlapping) and four down, and images over them two down, in
     // UTM 33N: tall enough for five rows of 256-sample tiles, so that most of the N shards
     // hold a band, and each band reads some of the files only.
+    let inputs = work.join("inputs");
+    for d in ["elevation", "texture"] {
+        std::fs::create_dir_all(inputs.join(d)).unwrap();
+    }
     for row in 0..4u32 {
         let north = 5_100_000.0 - f64::from(row) * 275.0 * 20.0;
         for (name, w, east) in [("a", 150, 500_000.0), ("b", 140, 502_800.0)] {
-            let path = work.join(format!("in/elevation/{name}{row}.tif"));
+            let path = inputs.join(format!("elevation/{name}{row}.tif"));
             utm_geotiff(&path, (w, 275), (east, north), 20.0, false);
         }
     }
     for row in 0..2u32 {
         let north = 5_100_000.0 - f64::from(row) * 550.0 * 20.0;
-        utm_geotiff(&work.join(format!("in/texture/ortho{row}.tif")), (290, 550), (500_000.0, north), 20.0, true);
+        utm_geotiff(&inputs.join(format!("texture/ortho{row}.tif")), (290, 550), (500_000.0, north), 20.0, true);
     }
-    let local = |a: &str, index: u64| {
-        a.replace("$(JOB_COMPLETION_INDEX)", &index.to_string()).replace("/work", work.to_str().unwrap())
-    };
-    // The plan Job in a pod of its own: its fetch copies the head of each input (`--count`
-    // bytes) and leaves the rest a hole of the file's length; then its plan and shard-plan,
-    // their upload and the shards' fetch-plan: out/ -> the bucket -> plan/.
-    let script = args(plan_job, "fetch").join(" ");
-    let count: u64 = script.split("--count ").nth(1).and_then(|r| r.split(' ').next()).unwrap().parse().unwrap();
-    assert!(script.contains("truncate -s"), "{script}");
-    let planner = work.join("planner");
-    for d in ["in/elevation", "in/texture", "out"] {
-        std::fs::create_dir_all(planner.join(d)).unwrap();
-        if d == "out" {
-            continue;
-        }
-        for entry in std::fs::read_dir(work.join(d)).unwrap() {
-            let path = entry.unwrap().path();
-            let bytes = std::fs::read(&path).unwrap();
-            let head = &bytes[..bytes.len().min(usize::try_from(count).unwrap())];
-            let copy = planner.join(d).join(path.file_name().unwrap());
-            std::fs::write(&copy, head).unwrap();
-            std::fs::File::options().write(true).open(&copy).unwrap().set_len(bytes.len() as u64).unwrap();
-        }
-    }
-    let at_planner = |a: &str| a.replace("/work", planner.to_str().unwrap());
-    for args in [&plan_args, &args(plan_job, "shard-plan")] {
-        let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-            .arg("-q")
-            .args(args.iter().map(|a| at_planner(a)))
-            .stdout(Stdio::null())
-            .status()
-            .unwrap();
-        assert!(status.success(), "plan {args:?}");
-    }
-    for entry in std::fs::read_dir(planner.join("out")).unwrap() {
-        let path = entry.unwrap().path();
-        std::fs::rename(&path, work.join("out").join(path.file_name().unwrap())).unwrap();
-    }
-    std::fs::create_dir_all(work.join("plan")).unwrap();
-    for entry in std::fs::read_dir(work.join("out")).unwrap() {
-        let path = entry.unwrap().path();
-        std::fs::rename(&path, work.join("plan").join(path.file_name().unwrap())).unwrap();
-    }
-    let plan = std::fs::read_to_string(work.join("plan/height-range")).unwrap();
-    assert_eq!(format!("@{}", work.join("plan/height-range").display()), local(&tile_args[range + 1], 0), "{plan}");
-    // Each pod: its own /work, the plan fetched, then the inputs its list names.
-    let fetch = args(tile_job, "fetch");
-    let from = fetch.iter().position(|a| a == "--files-from").expect("a pod fetches its list only");
-    let bucket_bytes: u64 = ["in/elevation", "in/texture"]
+    let bucket_bytes: u64 = ["elevation", "texture"]
         .iter()
-        .flat_map(|d| std::fs::read_dir(work.join(d)).unwrap())
+        .flat_map(|d| std::fs::read_dir(inputs.join(d)).unwrap())
         .map(|e| e.unwrap().metadata().unwrap().len())
         .sum();
-    let mut fetched = vec![];
-    let pods: Vec<Child> = (0..n)
-        .map(|i| {
-            let pod = work.join(format!("pod{i}"));
-            let at =
-                |a: &str| a.replace("$(JOB_COMPLETION_INDEX)", &i.to_string()).replace("/work", pod.to_str().unwrap());
-            for d in ["plan", "in/elevation", "in/texture", "out"] {
-                std::fs::create_dir_all(pod.join(d)).unwrap();
-            }
-            for entry in std::fs::read_dir(work.join("plan")).unwrap() {
-                let path = entry.unwrap().path();
-                std::fs::copy(&path, pod.join("plan").join(path.file_name().unwrap())).unwrap();
-            }
-            let list = std::fs::read_to_string(at(&fetch[from + 1])).unwrap();
-            let (source, target) = (&fetch[from + 2], at(&fetch[from + 3]));
-            assert_eq!(source, "remote:terrain-inputs/current", "the bucket the plan read");
-            let mut bytes = 0;
-            for name in list.lines() {
-                bytes += std::fs::copy(work.join("in").join(name), Path::new(&target).join(name)).unwrap();
-            }
-            fetched.push(bytes);
-            Command::new(env!("CARGO_BIN_EXE_terrastream"))
-                .arg("-q")
-                .args(tile_args.iter().map(|a| at(a)))
-                .stdout(Stdio::null())
-                .spawn()
-                .unwrap()
-        })
-        .collect();
-    for (i, mut pod) in pods.into_iter().enumerate() {
-        assert!(pod.wait().unwrap().success(), "shard {i} failed");
-        let shard = format!("shard-{i}.tspack");
-        std::fs::rename(work.join(format!("pod{i}/out/{shard}")), work.join("out").join(&shard)).unwrap();
-    }
-    eprintln!("bytes fetched per pod: {fetched:?} of {bucket_bytes} in the bucket");
-    assert!(fetched.iter().all(|&b| b < bucket_bytes), "a pod fetched every input: {fetched:?} of {bucket_bytes}");
-    let sizes: Vec<u64> =
-        (0..n).map(|i| std::fs::metadata(work.join(format!("out/shard-{i}.tspack"))).unwrap().len()).collect();
-    let holding = sizes.iter().filter(|&&b| b > 4096).count();
-    assert!(holding >= 4, "shards with tiles: {holding} of {n} ({sizes:?})");
-    // The upload and fetch containers: out/ -> the bucket -> shards/.
-    for entry in std::fs::read_dir(work.join("out")).unwrap() {
-        let path = entry.unwrap().path();
-        std::fs::rename(&path, work.join("shards").join(path.file_name().unwrap())).unwrap();
-    }
-    let merge_args = args(merge_job, "merge");
-    let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .arg("-q")
-        .args(merge_args.iter().map(|a| local(a, 0)))
-        .stdout(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success(), "merge {merge_args:?}");
-    let published = args(merge_job, "publish");
-    let merged = work.join(published[1].strip_prefix("/work/").unwrap());
 
-    // One run over the same inputs, the shard, plan and height-range options left out (it
-    // finds the range itself).
-    let mut single: Vec<String> = tile_args.iter().map(|a| local(a, 0)).collect();
+    // rclone as the Job's containers run it: their environment, the credentials and the
+    // endpoint a cluster's service account and region would give.
+    let rclone_env: Vec<(String, String)> = plan_job["spec"]["template"]["spec"]["initContainers"][0]["env"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| (e["name"].as_str().unwrap().to_owned(), e["value"].as_str().unwrap().to_owned()))
+        .chain([
+            ("RCLONE_CONFIG_REMOTE_ENDPOINT".to_owned(), format!("http://127.0.0.1:{}", store.port)),
+            // A loopback endpoint has no bucket host names: path-style requests, which
+            // rclone makes for any provider but AWS (the Job's, whose endpoint has them).
+            ("RCLONE_CONFIG_REMOTE_PROVIDER".to_owned(), "Other".to_owned()),
+            ("RCLONE_CONFIG_REMOTE_FORCE_PATH_STYLE".to_owned(), "true".to_owned()),
+            ("RCLONE_RETRIES".to_owned(), "1".to_owned()),
+            ("AWS_ACCESS_KEY_ID".to_owned(), "test".to_owned()),
+            ("AWS_SECRET_ACCESS_KEY".to_owned(), "test".to_owned()),
+            ("AWS_REGION".to_owned(), "us-east-1".to_owned()),
+            ("RCLONE_CONFIG".to_owned(), work.join("no-rclone.conf").to_str().unwrap().to_owned()),
+        ])
+        .collect();
+    let rclone = |args: &[&str]| {
+        let out = Command::new("rclone")
+            .args(args)
+            .envs(rclone_env.iter().cloned())
+            .env_remove("AWS_CA_BUNDLE")
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "rclone {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    rclone(&["copy", inputs.to_str().unwrap(), "remote:terrain-inputs/current"]);
+
+    // A pod: its init containers, then its containers, each to completion (an upload's
+    // only dependency is the last init container's output).
+    let pod = |job: &serde_json::Value, index: u64, root: &Path| {
+        std::fs::create_dir_all(root.join(".cache")).unwrap();
+        let spec = &job["spec"]["template"]["spec"];
+        let containers =
+            spec["initContainers"].as_array().into_iter().flatten().chain(spec["containers"].as_array().unwrap());
+        for c in containers {
+            let expand = |a: &str| {
+                a.replace("$(JOB_COMPLETION_INDEX)", &index.to_string()).replace("/work", root.to_str().unwrap())
+            };
+            let args: Vec<String> = c["args"].as_array().unwrap().iter().map(|a| expand(a.as_str().unwrap())).collect();
+            let image = c["image"].as_str().unwrap();
+            let program = match c["command"].as_array() {
+                Some(command) => command.iter().map(|a| a.as_str().unwrap().to_owned()).collect::<Vec<_>>(),
+                None if image.starts_with("rclone/") => vec!["rclone".to_owned()],
+                None => vec![env!("CARGO_BIN_EXE_terrastream").to_owned(), "-q".to_owned()],
+            };
+            let out = Command::new(&program[0])
+                .args(&program[1..])
+                .args(&args)
+                .envs(rclone_env.iter().cloned())
+                .env_remove("AWS_CA_BUNDLE")
+                .env("XDG_CACHE_HOME", root.join(".cache"))
+                .output()
+                .unwrap();
+            let name = c["name"].as_str().unwrap();
+            assert!(
+                out.status.success(),
+                "{} pod {index}, container {name}: {}{}",
+                job["metadata"]["name"],
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+    };
+    let in_bytes = |root: &Path| -> u64 {
+        ["in/elevation", "in/texture"]
+            .iter()
+            .filter_map(|d| std::fs::read_dir(root.join(d)).ok())
+            .flatten()
+            .map(|e| {
+                let e = e.unwrap();
+                // Blocks on disk: a sparse copy's hole takes none.
+                std::os::unix::fs::MetadataExt::blocks(&e.metadata().unwrap()) * 512
+            })
+            .sum()
+    };
+    let planner = work.join("plan-pod");
+    pod(plan_job, 0, &planner);
+    let plan_bytes = in_bytes(&planner);
+    let mut fetched = vec![];
+    for i in 0..n {
+        let root = work.join(format!("tile-pod-{i}"));
+        pod(tile_job, i, &root);
+        fetched.push(in_bytes(&root));
+    }
+    pod(merge_job, 0, &work.join("merge-pod"));
+    eprintln!("on disk: plan pod {plan_bytes} bytes, tile pods {fetched:?}, of {bucket_bytes} in the bucket");
+    assert!(fetched.iter().all(|&b| b < bucket_bytes), "a pod fetched every input: {fetched:?} of {bucket_bytes}");
+    let published = work.join("published.tspack");
+    rclone(&["copyto", "remote:terrain-archives/terrain.tspack", published.to_str().unwrap()]);
+
+    // One run over the same inputs: the tile Job's command line, the shard, plan and
+    // height-range options left out (it finds the range itself).
+    let tile_args: Vec<String> = tile_job["spec"]["template"]["spec"]["initContainers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "tile")
+        .unwrap()["args"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a.as_str().unwrap().replace("/work/in", inputs.to_str().unwrap()))
+        .collect();
+    let mut single = tile_args;
     for option in ["--shard", "--shard-plan", "--height-range"] {
-        let at = single.iter().position(|a| a == option).unwrap();
+        let at = single.iter().position(|a| a == option).unwrap_or_else(|| panic!("the shards take {option}"));
         single.drain(at..at + 2);
     }
     let out = single.iter().position(|a| a == "-o").unwrap();
@@ -575,7 +612,7 @@ fn the_sharded_tile_jobs_command_lines_make_the_single_runs_archive() {
     let status =
         Command::new(env!("CARGO_BIN_EXE_terrastream")).arg("-q").args(&single).stdout(Stdio::null()).status().unwrap();
     assert!(status.success(), "single run {single:?}");
-    let (a, b) = (std::fs::read(work.join("single.tspack")).unwrap(), std::fs::read(&merged).unwrap());
+    let (a, b) = (std::fs::read(work.join("single.tspack")).unwrap(), std::fs::read(&published).unwrap());
     assert!(a.len() > 10_000, "a real archive");
     assert!(a == b, "the merged shards ({} bytes) differ from the single run ({} bytes)", b.len(), a.len());
 }

@@ -39,6 +39,7 @@ enum PreferArg {
 
 pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
     let MergeArgs { inputs, output, prefer, manifest } = args;
+    super::make_parent(&output)?;
     if let Some(manifest) = manifest {
         // The coarse archive of an earlier run in the shards' folder is not an input.
         let earlier = std::fs::canonicalize(&output).ok();

@@ -89,6 +89,18 @@ enum Command {
 }
 
 /// Logs go to stderr through `tracing`; `RUST_LOG` overrides the flags.
+/// Makes the folder `path` is to be written in, as a fresh pod's empty volume lacks it.
+///
+/// # Errors
+/// The folder cannot be made.
+pub(crate) fn make_parent(path: &std::path::Path) -> Result<()> {
+    match path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        Some(parent) => std::fs::create_dir_all(parent)
+            .with_context(|| format!("{}: cannot make the folder to write it in", path.display())),
+        None => Ok(()),
+    }
+}
+
 pub fn init_logging(verbose: u8, quiet: bool) {
     let level = match (quiet, verbose) {
         (true, _) => "error",

@@ -415,12 +415,14 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             );
             let t = &plan.metadata.terrain;
             let range = format!("{},{}\n", t.min_elevation, t.max_elevation);
+            super::make_parent(out)?;
             std::fs::write(out, range).with_context(|| format!("{}: cannot write the height range", out.display()))?;
         }
         print_skipped(&sources);
         return Ok(ExitCode::SUCCESS);
     }
     let Some(output) = &args.output else { bail!("--output is required") };
+    super::make_parent(output)?;
     let shard = match planned {
         Some(spec) => Some(spec),
         None => args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None }),
