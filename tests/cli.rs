@@ -719,3 +719,44 @@ fn a_shard_plan_from_the_inputs_headers_alone_is_the_plan_of_the_whole_files() {
     }
     assert!(archive_tiles(&cwd.join("full.tspack")) != archive_tiles(&cwd.join("heads.tspack")));
 }
+
+/// The publish step from the shards' tops: `info --shard-top-out` names the prefix of a
+/// shard that holds its tiles at the split LOD (less than the shard); `merge --manifest`
+/// over copies holding only that prefix (the rest a hole, as the cluster's merge pod
+/// fetches them) writes the coarse archive and manifest the whole shards give.
+#[test]
+fn a_manifest_is_published_from_the_shards_tops_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = dem.to_str().unwrap();
+    for d in ["whole", "tops"] {
+        std::fs::create_dir(cwd.join(d)).unwrap();
+    }
+    for i in 0..2 {
+        let (shard, out) = (format!("{i}/2"), format!("whole/shard-{i}.tspack"));
+        let args = ["tile", "--elevation", dem, "--tile-size", "32", "--shard", &shard, "--split-lod", "2", "-o", &out];
+        let said = terrastream(&args, cwd);
+        assert!(said.status.success(), "{}", text(&said));
+        let top = format!("whole/shard-{i}.top");
+        let said = terrastream(&["info", &out, "--shard-top-out", &top], cwd);
+        assert!(said.status.success(), "{}", text(&said));
+        let top: usize = std::fs::read_to_string(cwd.join(&top)).unwrap().trim().parse().unwrap();
+        let bytes = std::fs::read(cwd.join(&out)).unwrap();
+        assert!(top > 128 && top < bytes.len() / 2, "a top of {top} bytes of {}", bytes.len());
+        let copy = cwd.join(format!("tops/shard-{i}.tspack"));
+        std::fs::write(&copy, &bytes[..top]).unwrap();
+        std::fs::File::options().write(true).open(&copy).unwrap().set_len(bytes.len() as u64).unwrap();
+    }
+    for d in ["whole", "tops"] {
+        let (coarse, manifest) = (format!("{d}/coarse.tspack"), format!("{d}/terrain.json"));
+        let said = terrastream(&["merge", d, "-o", &coarse, "--manifest", &manifest], cwd);
+        assert!(said.status.success(), "{d}: {}", text(&said));
+    }
+    assert_eq!(archive_tiles(&cwd.join("whole/coarse.tspack")), archive_tiles(&cwd.join("tops/coarse.tspack")));
+    let read = |p: &str| std::fs::read_to_string(cwd.join(p)).unwrap();
+    assert_eq!(read("whole/terrain.json"), read("tops/terrain.json"));
+    // Not a shard: said so.
+    let said = terrastream(&["info", "whole/coarse.tspack", "--shard-top-out", "x.top"], cwd);
+    assert!(!said.status.success() && text(&said).contains("not a shard"), "{}", text(&said));
+}

@@ -408,6 +408,20 @@ fn utm_geotiff(path: &Path, (w, h): (u32, u32), (east, north): (f64, f64), spaci
     }
 }
 
+/// Bytes on disk (blocks: a sparse file's holes take none) of the files in `dir` whose
+/// names start with `prefix`, and their lengths.
+fn on_disk(dir: &Path, prefix: &str) -> (u64, u64) {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap())
+        .filter(|e| e.file_name().to_string_lossy().starts_with(prefix))
+        .map(|e| {
+            let m = e.metadata().unwrap();
+            (std::os::unix::fs::MetadataExt::blocks(&m) * 512, m.len())
+        })
+        .fold((0, 0), |(a, b), (c, d)| (a + c, b + d))
+}
+
 /// An S3 API server on loopback (PyPI `moto[server]`'s `moto_server`), stopped on drop.
 struct ObjectStore {
     child: Child,
@@ -454,8 +468,9 @@ impl ObjectStore {
 /// on loopback, rclone with the environment the Job sets, pointed at it): the plan Job's
 /// pod, then the tile Job's N indexed pods (`$(JOB_COMPLETION_INDEX)` set as Kubernetes
 /// sets it; each pod's `/work` a folder of its own, its `/.cache` rclone's cache), then the
-/// merge Job's. The archive it publishes to the bucket is the one a single `tile` run over
-/// the same inputs writes, byte for byte, and no tile pod fetched every input. (The plan
+/// merge Job's. What it publishes to the bucket (a manifest, the coarse archive, the
+/// shards) verifies, the shards merged into one file are the archive a single `tile` run
+/// over the same inputs writes, byte for byte, and no tile pod fetched every input. (The plan
 /// pod fetches each input's first MiB, here the whole of each; `tests/cli.rs` plans from
 /// 16 KiB heads of COGs.)
 #[test]
@@ -583,11 +598,39 @@ fn the_sharded_tile_jobs_run_against_object_storage_and_make_the_single_runs_arc
         pod(tile_job, i, &root);
         fetched.push(in_bytes(&root));
     }
-    pod(merge_job, 0, &work.join("merge-pod"));
-    eprintln!("on disk: plan pod {plan_bytes} bytes, tile pods {fetched:?}, of {bucket_bytes} in the bucket");
+    let merger = work.join("merge-pod");
+    pod(merge_job, 0, &merger);
+    let shard_bytes: u64 =
+        (0..n).map(|i| std::fs::metadata(work.join(format!("tile-pod-{i}/out/shard-{i}.tspack"))).unwrap().len()).sum();
+    let (tops, _) = on_disk(&merger.join("shards"), "shard-");
+    eprintln!(
+        "on disk: plan pod {plan_bytes} bytes, tile pods {fetched:?}, of {bucket_bytes} in the bucket; \
+         merge pod {tops} of the shards' {shard_bytes}"
+    );
     assert!(fetched.iter().all(|&b| b < bucket_bytes), "a pod fetched every input: {fetched:?} of {bucket_bytes}");
+    // (Here the split LOD is the shards' only one, so their tops are the whole of them;
+    // tests/cli.rs publishes from the tops of shards with more.)
+    assert!(tops > 0);
+    // What the object-storage deployment serves: the manifest, the coarse archive and the
+    // shards, together.
+    let served = work.join("served");
+    rclone(&["copy", "remote:terrain-archives", served.to_str().unwrap()]);
+    let manifest = served.join("terrain.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).arg("verify").arg(&manifest).output().unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    // The coarse archive and every shard that holds tiles.
+    assert!(out.status.success() && said.contains("OK — ") && said.contains("where the manifest routes it"), "{said}");
+    // One file, for those who want one: the shards merged whole.
     let published = work.join("published.tspack");
-    rclone(&["copyto", "remote:terrain-archives/terrain.tspack", published.to_str().unwrap()]);
+    let shards: Vec<PathBuf> = (0..n).map(|i| served.join(format!("shard-{i}.tspack"))).collect();
+    let status = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["-q", "merge"])
+        .args(&shards)
+        .arg("-o")
+        .arg(&published)
+        .status()
+        .unwrap();
+    assert!(status.success());
 
     // One run over the same inputs: the tile Job's command line, the shard, plan and
     // height-range options left out (it finds the range itself).

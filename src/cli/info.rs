@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use terrastream_format::ArchiveStats;
 
@@ -17,10 +17,22 @@ pub struct InfoArgs {
     /// (payload + 4-byte checksum), tab-separated.
     #[arg(long, conflicts_with = "json")]
     tiles: bool,
+    /// A shard: write to this file the length of the prefix of the archive that holds its
+    /// header, directories and every tile at its layers' split LODs (coarsest first: what
+    /// `merge --manifest` reads of a shard), so that a publish step fetches only that.
+    #[arg(long, conflicts_with_all = ["json", "tiles"])]
+    shard_top_out: Option<std::path::PathBuf>,
 }
 
 pub fn run(args: InfoArgs) -> Result<ExitCode> {
-    let InfoArgs { archive, json, tiles } = args;
+    let InfoArgs { archive, json, tiles, shard_top_out } = args;
+    if let Some(out) = shard_top_out {
+        let reader = super::open(&archive)?;
+        let top = shard_top(&reader).with_context(|| format!("{archive}: the prefix of its top tiles"))?;
+        super::make_parent(&out)?;
+        std::fs::write(&out, format!("{top}\n")).with_context(|| format!("{}: cannot write", out.display()))?;
+        return Ok(ExitCode::SUCCESS);
+    }
     if !tiles && terrastream_format::is_manifest_location(&archive) {
         return super::manifest::info(&archive, json);
     }
@@ -57,6 +69,26 @@ pub fn run(args: InfoArgs) -> Result<ExitCode> {
     }
     print!("{}", render(path, &stats, reader.metadata()));
     Ok(ExitCode::SUCCESS)
+}
+
+/// The bytes of a shard from its start to the end of its last blob at or above its layers'
+/// split LODs (at least the header and directories: up to the data section).
+fn shard_top<S: terrastream_format::RangeSource>(reader: &terrastream_format::Reader<S>) -> Result<u64> {
+    let Some(shard) = reader.metadata().shard.as_ref() else {
+        anyhow::bail!("not a shard (its metadata names no shard of a run)");
+    };
+    let data = reader.header().data.offset;
+    let mut end = data;
+    reader.for_each_entry(|e| -> Result<()> {
+        for i in 0..u64::from(e.run_length) {
+            let t = reader.archive().tile_of(e.key + i * terrastream_format::MAX_LAYERS as u64)?;
+            if shard.split_lods.get(usize::from(t.layer())).is_some_and(|&k| t.lod() >= k) {
+                end = end.max(data + e.offset + e.stored_len());
+            }
+        }
+        Ok(())
+    })?;
+    Ok(end)
 }
 
 pub fn human(bytes: u64) -> String {
