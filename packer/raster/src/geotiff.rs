@@ -128,8 +128,9 @@ pub(super) fn gdal_statistics<R: std::io::Read + std::io::Seek>(
     statistics_in(&xml)
 }
 
-/// [`gdal_statistics`] of a GDAL metadata document.
-pub(super) fn statistics_in(xml: &str) -> Option<(f64, f64)> {
+/// [`gdal_statistics`] of a GDAL metadata document (the text of the GDAL_METADATA tag):
+/// the exact minimum and maximum of band 1, if it records them.
+pub fn statistics_in(xml: &str) -> Option<(f64, f64)> {
     let item = |name: &str| -> Option<&str> {
         xml.split("<Item").skip(1).find_map(|item| {
             let (head, rest) = item.split_once('>')?;
@@ -158,6 +159,28 @@ pub(super) fn gdal_nodata<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::
 #[cfg(test)]
 mod statistics_tests {
     use super::statistics_in;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Any text, and items of any name, band and value: no panic, and what is
+        /// accepted is a finite, ordered pair.
+        #[test]
+        fn any_metadata_reads_without_panic(
+            text in ".{0,200}",
+            items in proptest::collection::vec(
+                (prop_oneof!["STATISTICS_MINIMUM", "STATISTICS_MAXIMUM", "STATISTICS_APPROXIMATE", ".{0,12}"],
+                 prop_oneof!["0", "1", ".{0,3}"], prop_oneof!["-?[0-9]{1,6}(\\.[0-9]{0,4})?", "YES", "inf", "NaN", ".{0,8}"]),
+                0..6),
+        ) {
+            let mut xml = format!("<GDALMetadata>{text}");
+            for (name, sample, value) in &items {
+                xml.push_str(&format!("<Item name=\"{name}\" sample=\"{sample}\">{value}</Item>"));
+            }
+            if let Some((min, max)) = statistics_in(&xml) {
+                prop_assert!(min.is_finite() && max.is_finite() && min <= max);
+            }
+        }
+    }
 
     #[test]
     fn gdal_statistics_are_read_unless_approximate_or_of_another_band() {

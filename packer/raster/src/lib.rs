@@ -32,7 +32,7 @@ pub use crate::error::{ChunkError, Error, Interrupted, JpegError, Result};
 pub use terrastream_crs::{self as crs, Crs, Transform, UnknownCrs};
 
 pub use elevation::{ElevationFile, open_elevation, read_geotiff};
-pub use geotiff::crs_placement;
+pub use geotiff::{crs_placement, statistics_in as gdal_statistics_in};
 pub use image::{ImageFile, open_image, read_image};
 pub use inputs::expand_inputs;
 pub use jpeg::JPEG_MAX_DECODED_BYTES;
