@@ -760,3 +760,39 @@ fn a_manifest_is_published_from_the_shards_tops_alone() {
     let said = terrastream(&["info", "whole/coarse.tspack", "--shard-top-out", "x.top"], cwd);
     assert!(!said.status.success() && text(&said).contains("not a shard"), "{}", text(&said));
 }
+
+/// Where stderr is not a terminal (a pod's log), progress comes as lines: each phase's size,
+/// then how far it is, how fast and how long is left.
+#[test]
+fn progress_is_logged_as_lines_where_there_is_no_terminal() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    let out = terrastream(
+        &["--log-progress", "0", "tile", "--elevation", dem.to_str().unwrap(), "--tile-size", "32", "-o", "t.tspack"],
+        dir.path(),
+    );
+    let said = text(&out);
+    assert!(out.status.success(), "{said}");
+    let lines: Vec<&str> = said.lines().filter(|l| l.contains(" %), ")).collect();
+    assert!(lines.iter().filter(|l| l.contains("tile: ")).count() > 2, "{said}");
+    // The last phase (writing the archive) logs its end.
+    assert!(lines.last().unwrap().contains("(100.0 %)"), "{said}");
+    assert!(said.contains("tile: ") && said.contains(" to do"), "{said}");
+    // -q: none.
+    let out = terrastream(
+        &[
+            "-q",
+            "--log-progress",
+            "0",
+            "tile",
+            "--elevation",
+            dem.to_str().unwrap(),
+            "--tile-size",
+            "32",
+            "-o",
+            "u.tspack",
+        ],
+        dir.path(),
+    );
+    assert!(out.status.success() && !text(&out).contains(" %), "), "{}", text(&out));
+}

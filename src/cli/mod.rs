@@ -40,6 +40,10 @@ pub struct Cli {
     /// Only errors.
     #[arg(short, long, global = true)]
     pub quiet: bool,
+    /// Where stderr is not a terminal (a pod's or a service's log), a progress line every
+    /// this many seconds instead of a bar (0: at every step).
+    #[arg(long, global = true, default_value_t = 30.0, value_name = "SECONDS")]
+    pub log_progress: f64,
     #[command(subcommand)]
     command: Command,
 }
@@ -121,7 +125,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
     // Commands that show progress get the progress bar and its Ctrl-C handler; the server
     // handles Ctrl-C / SIGTERM itself (a graceful drain), and the viewers and health
     // checks show none.
-    let progress = || CliProgress::install(cli.quiet);
+    let progress = || CliProgress::install(cli.quiet, cli.log_progress);
     match cli.command {
         Command::Serve(args) => serve::run(args),
         Command::Info(args) => info::run(args),

@@ -1,23 +1,29 @@
 //! Progress bars (indicatif) and Ctrl-C: the first Ctrl-C asks the running command to stop
 //! cleanly, a second one exits at once.
 
-use std::sync::Arc;
+use std::io::IsTerminal as _;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use terrastream_pack::progress::Progress;
 
-/// A progress bar on stderr that also carries the Ctrl-C flag.
+/// A progress bar on stderr that also carries the Ctrl-C flag; where stderr is not a
+/// terminal, a log line now and then instead.
 pub struct CliProgress {
     bar: ProgressBar,
     stop: Arc<AtomicBool>,
     quiet: bool,
+    /// Lines instead of a bar: at most one this often.
+    lines: Option<Duration>,
+    /// When the phase started and when its last line was written.
+    clock: Mutex<(Instant, Instant)>,
 }
 
 impl CliProgress {
     /// Installs the Ctrl-C / SIGTERM handler and returns a hidden bar.
-    pub fn install(quiet: bool) -> Self {
+    pub fn install(quiet: bool, log_every: f64) -> Self {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = Arc::clone(&stop);
         let installed = ctrlc::set_handler(move || {
@@ -30,7 +36,31 @@ impl CliProgress {
             tracing::warn!("cannot install the Ctrl-C handler: {err}");
         }
         // Drawn once a phase starts: before that, its default style is an empty bar.
-        Self { bar: ProgressBar::hidden(), stop, quiet }
+        let lines = (!quiet && !std::io::stderr().is_terminal())
+            .then(|| Duration::try_from_secs_f64(log_every.max(0.0)).unwrap_or(Duration::from_secs(30)));
+        let now = Instant::now();
+        Self { bar: ProgressBar::hidden(), stop, quiet, lines, clock: Mutex::new((now, now)) }
+    }
+
+    /// A progress line (where there is no bar), at most one per interval, and always at
+    /// the phase's end.
+    fn line(&self) {
+        let Some(every) = self.lines else { return };
+        let (pos, len) = (self.bar.position(), self.bar.length().unwrap_or(0));
+        let mut clock = self.clock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let now = Instant::now();
+        if now.duration_since(clock.1) < every && pos < len {
+            return;
+        }
+        clock.1 = now;
+        let secs = now.duration_since(clock.0).as_secs_f64();
+        let rate = if secs > 0.0 { pos as f64 / secs } else { 0.0 };
+        let left = if rate > 0.0 { (len.saturating_sub(pos)) as f64 / rate } else { 0.0 };
+        let percent = if len > 0 { 100.0 * pos as f64 / len as f64 } else { 100.0 };
+        tracing::info!(
+            "{}: {pos}/{len} ({percent:.1} %), {rate:.0}/s, {secs:.0} s so far, about {left:.0} s left",
+            self.bar.message()
+        );
     }
 
     fn style(&self, template: &str) {
@@ -58,6 +88,7 @@ impl CliProgress {
     /// Moves the bar to `pos`.
     pub fn set_position(&self, pos: u64) {
         self.bar.set_position(pos);
+        self.line();
     }
 
     /// Clears the bar.
@@ -71,6 +102,11 @@ impl Progress for CliProgress {
         self.bar.reset();
         self.bar.set_length(total);
         self.bar.set_message(phase.to_owned());
+        if self.lines.is_some() {
+            let now = Instant::now();
+            *self.clock.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = (now, now);
+            tracing::info!("{phase}: {total} to do");
+        }
         // The height scan counts the output's rows; every other phase, tiles.
         let unit = if phase == "scan" { "rows" } else { "tiles" };
         self.style(&format!("{{msg:>8}} [{{bar:40}}] {{pos}}/{{len}} {unit} {{rate}} ETA {{eta}}"));
@@ -78,6 +114,7 @@ impl Progress for CliProgress {
 
     fn advance(&self, n: u64) {
         self.bar.inc(n);
+        self.line();
     }
 
     fn cancelled(&self) -> bool {
