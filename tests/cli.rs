@@ -558,6 +558,11 @@ fn a_shard_of_a_planned_run_needs_only_the_inputs_its_plan_lists() {
     assert!(out.status.success(), "{}", text(&out));
     run(&with(&["tile", "--elevation", "in", "-o", "whole.tspack"]), cwd);
     assert!(archive_tiles(&cwd.join("m.tspack")) == archive_tiles(&cwd.join("whole.tspack")), "merged shards");
+    // A VRT cannot be split between shards: said, naming it.
+    std::fs::write(cwd.join("all.vrt"), "<VRTDataset rasterXSize=\"1\" rasterYSize=\"1\"></VRTDataset>").unwrap();
+    let out = terrastream(&["tile", "--elevation", "all.vrt", "--shards", "2", "--shard-plan-out", "vplan"], cwd);
+    assert!(!out.status.success() && text(&out).contains("all.vrt: a VRT cannot be split"), "{}", text(&out));
+    assert!(!cwd.join("vplan").exists());
     // A listed input missing: named, nothing written.
     let pod = cwd.join("pod0");
     std::fs::remove_file(pod.join(&lists[0][0])).unwrap();

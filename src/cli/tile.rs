@@ -188,15 +188,17 @@ fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest)
     Ok(plan.spec(index))
 }
 
-/// The VRTs among the inputs added to every shard's list (a shard's mosaic lists the
-/// files a VRT's sources read; it opens them through the VRT).
-fn with_vrts(plan: &mut ShardPlan, request: &TileRequest) {
-    for shard in &mut plan.shards {
-        for (given, list) in [(&request.elevation, &mut shard.elevation), (&request.texture, &mut shard.texture)] {
-            let vrts: Vec<PathBuf> = given.iter().filter(|p| is_vrt(p) && !list.contains(p)).cloned().collect();
-            list.splice(0..0, vrts);
-        }
+/// A shard plan's inputs are files: a VRT is read whole (a source missing from a pod is an
+/// error), so a shard given part of its sources could not open it.
+fn refuse_vrts(request: &TileRequest) -> Result<()> {
+    if let Some(vrt) = request.elevation.iter().chain(&request.texture).find(|p| is_vrt(p)) {
+        bail!(
+            "{}: a VRT cannot be split between shards (each would need every source it names); \
+             give its source files, or their folder, instead",
+            vrt.display()
+        );
     }
+    Ok(())
 }
 
 /// `plan.json` and a `shard-I.txt` per shard in `dir` (made if need be).
@@ -353,6 +355,9 @@ impl TileArgs {
 
 pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let mut request = args.request()?;
+    if args.shard_plan_out.is_some() || args.list_inputs || args.shard_plan.is_some() {
+        refuse_vrts(&request)?;
+    }
     let planned = match (&args.shard_plan, args.shard) {
         (Some(path), Some((index, count))) => Some(planned_shard(path, index, count, &mut request)?),
         _ => None,
@@ -381,8 +386,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let started = std::time::Instant::now();
     if let Some(dir) = &args.shard_plan_out {
         let count = args.shards.unwrap_or(1);
-        let mut plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
-        with_vrts(&mut plan, &request);
+        let plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
         write_shard_plan(dir, &plan, args.relative_to.as_deref())?;
         for (i, shard) in plan.shards.iter().enumerate() {
             println!(
@@ -396,8 +400,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     }
     if args.list_inputs {
         let Some((index, count)) = args.shard else { bail!("--list-inputs needs --shard I/N") };
-        let mut plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
-        with_vrts(&mut plan, &request);
+        let plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
         let shard = &plan.shards[index as usize];
         for path in shard.elevation.iter().chain(&shard.texture) {
             println!("{}", path.display());
