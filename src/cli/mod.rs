@@ -92,7 +92,6 @@ enum Command {
     Bench(bench::BenchCommand),
 }
 
-/// Logs go to stderr through `tracing`; `RUST_LOG` overrides the flags.
 /// Makes the folder `path` is to be written in, as a fresh pod's empty volume lacks it.
 ///
 /// # Errors
@@ -105,6 +104,7 @@ pub(crate) fn make_parent(path: &std::path::Path) -> Result<()> {
     }
 }
 
+/// Logs go to stderr through `tracing`; `RUST_LOG` overrides the flags.
 pub fn init_logging(verbose: u8, quiet: bool) {
     let level = match (quiet, verbose) {
         (true, _) => "error",

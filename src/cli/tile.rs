@@ -376,8 +376,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
         if let Some(Ok(range)) = recorded {
             tracing::info!("height range {range:?}: the inputs' GDAL statistics (no height read)");
-            request.height_range = Some(range);
-            sources = Sources::open(&request)?;
+            sources.set_height_range(range);
         }
     }
     let inputs = sources.inputs()?;

@@ -114,7 +114,6 @@ pub(super) fn georeferenced(
     (spacing, g)
 }
 
-/// The GDAL nodata tag's value, when there is one and it is a number.
 /// GDAL's metadata tag: XML of `<Item name="..." sample="...">value</Item>`.
 const GDAL_METADATA: u16 = 42112;
 
@@ -147,6 +146,7 @@ pub fn statistics_in(xml: &str) -> Option<(f64, f64)> {
     (min.is_finite() && max.is_finite() && min <= max).then_some((min, max))
 }
 
+/// The GDAL nodata tag's value, when there is one and it is a number.
 pub(super) fn gdal_nodata<R: std::io::Read + std::io::Seek>(decoder: &mut tiff::decoder::Decoder<R>) -> Option<f64> {
     decoder
         .find_tag(tiff::tags::Tag::Unknown(GDAL_NODATA))

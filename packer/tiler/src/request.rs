@@ -110,6 +110,12 @@ impl Sources {
         })
     }
 
+    /// Gives the elevation's height range (found without reading a height, e.g. from its
+    /// statistics): as `TileRequest::height_range` would, without opening the inputs again.
+    pub fn set_height_range(&mut self, range: (f32, f32)) {
+        self.height_range = Some(range);
+    }
+
     /// The mosaics opened, of heights and of imagery: what a caller that reads them itself
     /// (`update`, which crops them to what they touch) takes.
     pub fn into_mosaics(self) -> (Option<Mosaic<Heights>>, Option<Mosaic<Pixels>>) {

@@ -20,6 +20,19 @@ use crate::raster::{ElevationSource, GridSpec};
 /// Samples with data in a layer's LOD-0 rows (see `ElevationSource::data_in_rows`).
 pub(crate) type Weight<'a> = dyn Fn(usize, std::ops::Range<u32>) -> f64 + 'a;
 
+/// The [`Weight`] of `plan`'s layers: the samples with data their source knows of.
+pub(crate) fn data_weight<'a>(
+    plan: &Plan,
+    elevation: Option<&'a dyn ElevationSource>,
+    texture: Option<&'a TextureInput<'a>>,
+) -> impl Fn(usize, std::ops::Range<u32>) -> f64 + 'a {
+    let kinds: Vec<LayerKind> = plan.metadata.layers.iter().map(|l| l.kind).collect();
+    move |layer, rows| match kinds[layer] {
+        LayerKind::Texture => texture.map_or(0.0, |t| t.source.data_in_rows(rows)),
+        _ => elevation.map_or(0.0, |e| e.data_in_rows(rows)),
+    }
+}
+
 /// The shard's metadata record and each layer's window (in layer order). Bands are cut so
 /// that each shard gets about as many samples with data (`weight(layer, rows)`) as the
 /// others: sparse regions cost little, so their bands are taller.
@@ -121,9 +134,9 @@ pub struct PlannedGrid {
 }
 
 impl PlannedGrid {
-    fn of(crs: Option<&str>, grid: Option<GridSpec>) -> Option<Self> {
+    fn of(crs: Option<String>, grid: Option<GridSpec>) -> Option<Self> {
         let (crs, g) = (crs?, grid?);
-        Some(Self { crs: crs.to_owned(), origin: g.origin, pixel: [g.pixel.0, g.pixel.1], size: [g.size.0, g.size.1] })
+        Some(Self { crs, origin: g.origin, pixel: [g.pixel.0, g.pixel.1], size: [g.size.0, g.size.1] })
     }
 
     /// The grid, for [`crate::TileRequest::elevation_grid`] or `texture_grid`.
@@ -162,45 +175,41 @@ pub fn shard_plan(
     split_lod: Option<u8>,
 ) -> Result<ShardPlan> {
     let plan = plan_layout(elevation, texture, name, options)?;
-    let kinds: Vec<LayerKind> = plan.metadata.layers.iter().map(|l| l.kind).collect();
-    let weight = |layer: usize, rows: std::ops::Range<u32>| match kinds[layer] {
-        LayerKind::Texture => texture.map_or(0.0, |t| t.source.data_in_rows(rows)),
-        _ => elevation.map_or(0.0, |e| e.data_in_rows(rows)),
-    };
-    let mut cuts = vec![];
+    let weight = data_weight(&plan, elevation, texture);
+    // The bands, balanced once (every shard's are the same); then each shard's windows.
+    let first = ShardSpec { index: 0, count, split_lod, cuts: None };
+    let (_, _, cuts) = windows_and_cuts(&plan, &first, &weight)?;
     let mut shards = vec![];
     for index in 0..count {
-        let spec = ShardSpec { index, count, split_lod, cuts: None };
-        let (_, windows, c) = windows_and_cuts(&plan, &spec, &weight)?;
-        cuts = c;
+        let spec = ShardSpec { index, count, split_lod, cuts: Some(cuts.clone()) };
+        let (_, bands) = windows(&plan, &spec, &weight)?;
         let mut inputs = ShardInputs::default();
-        for (kind, window) in kinds.iter().zip(&windows) {
+        for (layer, window) in plan.metadata.layers.iter().zip(&bands) {
             let rows = to_u32(window.rows.start)..to_u32(window.rows.end);
             // A band that reads nothing (more shards than rows of data) still opens its
             // sources on the planned grid: its list holds the first input.
-            let or_first = |list: Vec<PathBuf>, first: Vec<PathBuf>| if list.is_empty() { first } else { list };
-            match kind {
+            let listed = |of: &dyn Fn(std::ops::Range<u32>) -> Vec<PathBuf>| {
+                let list = of(rows.clone());
+                if list.is_empty() { of(0..1) } else { list }
+            };
+            match layer.kind {
                 LayerKind::Elevation => {
-                    inputs.elevation =
-                        elevation.map_or(vec![], |e| or_first(e.inputs_in_rows(rows), e.inputs_in_rows(0..1)));
+                    inputs.elevation = elevation.map_or(vec![], |e| listed(&|r| e.inputs_in_rows(r)))
                 }
                 LayerKind::Texture => {
-                    inputs.texture = texture
-                        .map_or(vec![], |t| or_first(t.source.inputs_in_rows(rows), t.source.inputs_in_rows(0..1)));
+                    inputs.texture = texture.map_or(vec![], |t| listed(&|r| t.source.inputs_in_rows(r)))
                 }
                 _ => {}
             }
         }
         shards.push(inputs);
     }
-    let grid_of = |crs: Option<&str>, grid| PlannedGrid::of(crs, grid);
+    let crs_of = |g: Option<&terrastream_format::Georeference>| g.and_then(|g| g.crs.clone());
     Ok(ShardPlan {
         count,
         split_lod,
-        elevation_grid: elevation
-            .and_then(|e| grid_of(e.georeference().and_then(|g| g.crs.as_deref()), e.mosaic_grid())),
-        texture_grid: texture
-            .and_then(|t| grid_of(t.source.georeference().and_then(|g| g.crs.as_deref()), t.source.mosaic_grid())),
+        elevation_grid: elevation.and_then(|e| PlannedGrid::of(crs_of(e.georeference()), e.mosaic_grid())),
+        texture_grid: texture.and_then(|t| PlannedGrid::of(crs_of(t.source.georeference()), t.source.mosaic_grid())),
         cuts,
         shards,
     })

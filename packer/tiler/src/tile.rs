@@ -87,11 +87,7 @@ pub fn tile_shard(
             if let Some(t) = texture.as_ref().filter(|t| !t.format.lossless()) {
                 return Err(Error::option("--texture-format", t.format.name(), "png or webp with --shard"));
             }
-            let kinds: Vec<LayerKind> = plan.metadata.layers.iter().map(|l| l.kind).collect();
-            let weight = |layer: usize, rows: std::ops::Range<u32>| match kinds[layer] {
-                LayerKind::Texture => texture.as_ref().map_or(0.0, |t| t.source.data_in_rows(rows)),
-                _ => elevation.map_or(0.0, |e| e.data_in_rows(rows)),
-            };
+            let weight = shard::data_weight(&plan, elevation, texture.as_ref());
             let (info, windows) = shard::windows(&plan, &spec, &weight)?;
             plan.metadata.shard = Some(info);
             windows
