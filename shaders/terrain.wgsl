@@ -4,12 +4,26 @@
 // Coordinates: x east, y up, z south. Everything horizontal is relative to an anchor
 // near the camera (camera-relative rendering keeps f32 exact enough on a 1000 km
 // terrain); tile addresses are integer tile indices of the anchor plus a fraction.
+// On the globe the grid stays the archive's; each vertex is placed on the WGS 84
+// ellipsoid, in the frame east-up-south at the anchor (client/src/globe.rs).
 
 struct LodInfo {
     // xy: the anchor's tile index at this LOD.
     tile: vec4<i32>,
     // xy: the anchor's position inside that tile (0..1), z: 1 / tile world size.
     frac: vec4<f32>,
+}
+
+struct GlobeInfo {
+    // x: 0 flat plate, 1 geographic grid, 2 Web Mercator, 3 lattice; y, z: lattice size.
+    kind: vec4<u32>,
+    // Geographic, Web Mercator: radians per world unit along x (longitude) and z
+    // (latitude, or the Mercator ordinate over the radius), z: that ordinate at the anchor.
+    // Lattice: the anchor's lattice coordinates, z: lattice points per world unit.
+    map: vec4<f32>,
+    // x, y: sine and cosine of the anchor's latitude, z: the prime vertical radius there,
+    // w: the column height (the eye's height clamped to the terrain's range).
+    anchor: vec4<f32>,
 }
 
 struct Globals {
@@ -38,6 +52,7 @@ struct Globals {
     // The data's extent relative to the anchor: min x, min z, max x, max z. The mesh
     // ends on patch boundaries, which can lie beyond it.
     bounds: vec4<f32>,
+    globe: GlobeInfo,
     // Per mesh level: morph start, morph end (= the level's range), quad size in base units.
     ranges: array<vec4<f32>, 32>,
     elev_lods: array<LodInfo, 32>,
@@ -49,6 +64,8 @@ struct Globals {
 @group(0) @binding(2) var elevation: texture_2d_array<f32>;
 @group(0) @binding(3) var colour: texture_2d_array<f32>;
 @group(0) @binding(4) var colour_sampler: sampler;
+// Longitude and latitude (radians, from the lattice's centre) at lattice points.
+@group(0) @binding(5) var lattice: texture_2d<f32>;
 
 const NODATA: f32 = -1.0e30;
 const KIND_ELEVATION: u32 = 0u;
@@ -160,10 +177,86 @@ fn coarser_height(start: u32, p: vec2<f32>) -> f32 {
     return NODATA;
 }
 
+const WGS84_A: f32 = 6378137.0;
+const WGS84_E2: f32 = 0.0066943799901413165;
+
+// Bilinear between lattice points.
+fn lattice_at(q: vec2<f32>) -> vec2<f32> {
+    let last = vec2<f32>(G.globe.kind.yz) - 1.0;
+    let c = clamp(q, vec2<f32>(0.0), last);
+    let i = min(floor(c), max(last - 1.0, vec2<f32>(0.0)));
+    let t = c - i;
+    let a = vec2<i32>(i);
+    let b = min(a + 1, vec2<i32>(last));
+    let v00 = textureLoad(lattice, a, 0).xy;
+    let v10 = textureLoad(lattice, vec2<i32>(b.x, a.y), 0).xy;
+    let v01 = textureLoad(lattice, vec2<i32>(a.x, b.y), 0).xy;
+    let v11 = textureLoad(lattice, b, 0).xy;
+    return mix(mix(v00, v10, t.x), mix(v01, v11, t.x), t.y);
+}
+
+// Longitude and latitude of grid point p (from the anchor), less the anchor's.
+fn geo_offset(p: vec2<f32>) -> vec2<f32> {
+    let m = G.globe.map;
+    switch G.globe.kind.x {
+        case 2u: {
+            // gd(v + dv) - gd(v) = 2 atan(sinh(dv / 2) / cosh(v + dv / 2)): no cancellation.
+            let dv = p.y * m.y;
+            return vec2<f32>(p.x * m.x, 2.0 * atan(sinh(0.5 * dv) / cosh(m.z + 0.5 * dv)));
+        }
+        case 3u: {
+            return lattice_at(m.xy + p * m.z) - lattice_at(m.xy);
+        }
+        default: {
+            return vec2<f32>(p.x * m.x, p.y * m.y);
+        }
+    }
+}
+
+// The point d = (longitude, latitude) from the anchor's, h metres above the ellipsoid,
+// in the frame at the anchor (x east, y up, z south; metres from the anchor). Every term
+// is a difference formed from half-angle sines, never of two radii, so f32 keeps its
+// precision relative to the distance from the anchor, not to the Earth's radius.
+fn globe_local(d: vec2<f32>, h: f32) -> vec3<f32> {
+    let sa = G.globe.anchor.x;
+    let ca = G.globe.anchor.y;
+    let na = G.globe.anchor.z;
+    let half = sin(0.5 * d.y);
+    let cos_half = cos(0.5 * d.y);
+    // cos and sin of the latitude less the anchor's: -2 sin(d/2) sin(mid), 2 sin(d/2) cos(mid).
+    let dc = -2.0 * half * (sa * cos_half + ca * half);
+    let ds = 2.0 * half * (ca * cos_half - sa * half);
+    let s = sa + ds;
+    let c = ca + dc;
+    let w = sqrt(1.0 - WGS84_E2 * s * s);
+    let wa = WGS84_A / na;
+    let n = WGS84_A / w;
+    // The prime vertical radius less the anchor's.
+    let dn = n * WGS84_E2 * ds * (s + sa) / (wa * (w + wa));
+    let sl = sin(0.5 * d.x);
+    // ECEF turned so that the anchor's meridian is x = 0, less the anchor's position.
+    let x = (n + h) * c * (-2.0 * sl * sl) + (dn + h) * c + na * dc;
+    let y = (n + h) * c * sin(d.x);
+    let z = (dn * (1.0 - WGS84_E2) + h) * s + na * (1.0 - WGS84_E2) * ds;
+    return vec3<f32>(y, ca * x + sa * z, sa * x - ca * z);
+}
+
+// Where grid point p (from the anchor) at height h is drawn, in the anchor's frame.
+fn place(p: vec2<f32>, h: f32) -> vec3<f32> {
+    if G.globe.kind.x == 0u {
+        return vec3<f32>(p.x, h, p.y);
+    }
+    return globe_local(geo_offset(p), h);
+}
+
 // Distance from the camera to the vertical column at p over the terrain's height range:
 // a function of (x, z) only, the same the CPU selection measures node boxes with, which
 // is what makes the morph reach 1 exactly where a coarser neighbour begins.
+// On the globe: to the point at p at the column height, which lies in the node's box.
 fn column_distance(p: vec2<f32>) -> f32 {
+    if G.globe.kind.x != 0u {
+        return length(place(p, G.globe.anchor.w) - G.camera.xyz);
+    }
     return length(vec3<f32>(p - G.camera.xz, G.terrain.z));
 }
 
@@ -220,6 +313,8 @@ struct VertexOut {
     // 1 where an elevation tile covers the vertex (0 beyond the elevation's tiles, and
     // without an elevation layer): there, only imagery with texels is drawn.
     @location(4) covered: f32,
+    // Position relative to the eye, in the anchor's frame.
+    @location(5) rel: vec3<f32>,
 }
 
 @vertex
@@ -229,7 +324,12 @@ fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> V
     let quad = range.z;
     let base = G.camera.w;
     let g0 = instance.xy + local * quad;
-    let morph = clamp((column_distance(g0 * base) - range.x) / (range.y - range.x), 0.0, 1.0);
+    // On the globe, points are placed within the data's box (the lattice ends there).
+    var m0 = g0 * base;
+    if G.globe.kind.x != 0u {
+        m0 = clamp(m0, G.bounds.xy, G.bounds.zw);
+    }
+    let morph = clamp((column_distance(m0) - range.x) / (range.y - range.x), 0.0, 1.0);
     let odd = fract(local * 0.5) * 2.0;
     let g = instance.xy + (local - odd * morph) * quad;
     // The mesh ends where the data does, at every level: vertices beyond the data's box
@@ -246,7 +346,8 @@ fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> V
         h = G.terrain.x;
     }
     out.world = vec3<f32>(p.x, h, p.y);
-    out.clip = G.view_proj * vec4<f32>(p.x - G.camera.x, h - G.camera.y, p.y - G.camera.z, 1.0);
+    out.rel = place(p, h) - G.camera.xyz;
+    out.clip = G.view_proj * vec4<f32>(out.rel, 1.0);
     out.grid = local;
     out.level = level;
     return out;
@@ -385,7 +486,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         let line = 1.0 - clamp(min(min(dist.x, dist.y), diagonal), 0.0, 1.0);
         rgb = mix(rgb, vec3<f32>(0.02, 0.02, 0.02), line * 0.8);
     }
-    let distance = length(vec3<f32>(in.world.x - G.camera.x, in.world.y - G.camera.y, in.world.z - G.camera.z));
+    let distance = length(in.rel);
     let haze = 1.0 - exp(-G.fog.w * distance);
     return vec4<f32>(mix(rgb, G.fog.rgb, haze), 1.0);
 }

@@ -105,10 +105,10 @@ fn a_continent_draws_in_render_and_in_a_window_alike() {
     let archive =
         terrastream_testkit::continent::continent_archive(Path::new(env!("CARGO_BIN_EXE_terrastream")), dir.path());
 
-    // Headless.
+    // Headless, on the plate the viewer draws.
     let png = dir.path().join("render.png");
     let out = terrastream()
-        .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap()])
+        .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--flat"])
         .arg(format!("--size={WIDTH}x{HEIGHT}"))
         .output()
         .unwrap();

@@ -9,6 +9,7 @@
 use glam::{DMat4, DVec2, DVec3};
 use terrastream_format::{Layer, LayerKind, Metadata, intersect, union};
 
+use crate::globe::Surface;
 use crate::stream::camera::{Aabb, Camera};
 pub use crate::stream::select::drawn_heights;
 
@@ -54,58 +55,134 @@ const FRAME_FILL: f64 = 0.92;
 
 /// An oblique view from the south framing the whole dataset: looking down at
 /// [`DEFAULT_PITCH_DEGREES`], the terrain's box centred in the frame and as close as it
-/// can be while every corner stays inside [`FRAME_FILL`] of the frame.
-pub fn default_camera(metadata: &Metadata, width: u32, height: u32) -> Camera {
-    let terrain = framed_box(metadata);
-    let drawn = terrain_box(metadata);
-    let centre = (terrain.min + terrain.max) * 0.5;
-    let pitch = DEFAULT_PITCH_DEGREES.to_radians();
-    let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
-    // The camera's up: moving the eye along it moves the picture down, direction kept.
-    let up = DVec3::new(0.0, pitch.cos(), -pitch.sin());
-    let at = |distance: f64, lift: f64| {
-        let eye = centre + back * distance + up * lift;
-        Camera::look_at(eye, eye - back, width, height).enclosing(&drawn)
+/// can be while every corner stays inside [`FRAME_FILL`] of the frame. On the globe the
+/// same over the data's box on the ellipsoid, and a data set spanning a hemisphere or
+/// more (a world archive) is seen whole, straight down from above its centre.
+pub fn default_camera(metadata: &Metadata, surface: &Surface, width: u32, height: u32) -> Camera {
+    let Some(globe) = surface.globe() else {
+        let terrain = framed_box(metadata);
+        let drawn = terrain_box(metadata);
+        let centre = (terrain.min + terrain.max) * 0.5;
+        let pitch = DEFAULT_PITCH_DEGREES.to_radians();
+        let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
+        // The camera's up: moving the eye along it moves the picture down, direction kept.
+        let up = DVec3::new(0.0, pitch.cos(), -pitch.sin());
+        let framing = Framing { centre, back, up, points: corners(&terrain).to_vec(), size: 0.0 };
+        return framing.fit(surface, &drawn, width, height);
     };
-    // The box's extent on screen (normalized device coordinates), None if behind the eye.
-    let extent = |camera: &Camera| {
-        let clip = camera.view_projection();
-        let (mut lo, mut hi) = (DVec2::splat(f64::MAX), DVec2::splat(f64::MIN));
-        for corner in corners(&terrain) {
-            let p = clip * corner.extend(1.0);
-            if p.w <= 0.0 {
-                return None;
-            }
-            let ndc = DVec2::new(p.x / p.w, p.y / p.w);
-            (lo, hi) = (lo.min(ndc), hi.max(ndc));
+    let framed = framed_box(metadata);
+    let (lo, hi) = (framed.min.y, framed.max.y);
+    let rect = [framed.min.x, framed.min.z, framed.max.x, framed.max.z];
+    let centre_world = DVec2::new((rect[0] + rect[2]) * 0.5, (rect[1] + rect[3]) * 0.5);
+    let centre_geo = globe.lon_lat(centre_world.x, centre_world.y);
+    let frame = crate::globe::enu(centre_geo.x, centre_geo.y);
+    let (north, up) = (frame.y_axis, frame.z_axis);
+    let drawn = scene_box(metadata, surface);
+    // The data's points on the ellipsoid, and how far apart they lie.
+    let mut points = Vec::new();
+    for j in 0..=8 {
+        for i in 0..=8 {
+            let (u, v) = (f64::from(i) / 8.0, f64::from(j) / 8.0);
+            let (x, z) = (rect[0] + (rect[2] - rect[0]) * u, rect[1] + (rect[3] - rect[1]) * v);
+            points.push(globe.ecef(x, z, lo));
+            points.push(globe.ecef(x, z, hi));
         }
-        Some((lo, hi))
-    };
-    let fits = |camera: &Camera| {
-        extent(camera).is_some_and(|(lo, hi)| {
-            lo.cmpge(DVec2::splat(-FRAME_FILL)).all() && hi.cmple(DVec2::splat(FRAME_FILL)).all()
-        })
-    };
-    let size = (terrain.max - terrain.min).length().max(1.0);
-    let (mut distance, mut lift) = (size * 4.0, 0.0);
-    // Alternately: centre the box vertically, then come as close as the fill allows.
-    for round in 0..4 {
-        let (mut near, mut far) = (size * 1e-3, distance);
-        while !fits(&at(far, lift)) && far < size * 1e4 {
-            far *= 2.0;
-        }
-        for _ in 0..48 {
-            let mid = (near + far) * 0.5;
-            if fits(&at(mid, lift)) { far = mid } else { near = mid }
-        }
-        distance = far;
-        let Some((lo, hi)) = extent(&at(distance, lift)).filter(|_| round < 3) else { break };
-        // One unit of NDC is distance * tan(fov / 2) world units across the view's centre.
-        let camera = at(distance, lift);
-        lift += (lo.y + hi.y) * 0.5 * distance * (camera.fov_y * 0.5).tan();
     }
-    let camera = at(distance, lift);
-    if fits(&camera) { camera } else { at(size * 4.0, 0.0) }
+    let centre = globe.ecef(centre_world.x, centre_world.y, (lo + hi) * 0.5);
+    let widest = points.iter().map(|p| p.normalize().dot(centre.normalize())).fold(1.0, f64::min);
+    if widest < 0.3 {
+        // More than about 70 degrees from the centre: the whole Earth, straight down.
+        let camera = Camera::look_at(centre, DVec3::ZERO, width, height);
+        let half = (camera.fov_y * 0.5).min(((camera.fov_y * 0.5).tan() * camera.aspect).atan());
+        let distance = crate::globe::A / (half * FRAME_FILL).sin();
+        let eye = centre.normalize() * distance;
+        let mut camera = Camera::look_at(eye, DVec3::ZERO, width, height);
+        camera.zenith = north;
+        return camera.enclosing(&drawn);
+    }
+    let pitch = DEFAULT_PITCH_DEGREES.to_radians();
+    let back = up * pitch.sin() - north * pitch.cos();
+    let camera_up = up * pitch.cos() + north * pitch.sin();
+    let size = (drawn.max - drawn.min).length().max(1.0);
+    Framing { centre, back, up: camera_up, points, size }.fit(surface, &drawn, width, height)
+}
+
+/// A view to fit: looking along `-back` at `centre`, moved along `up` to centre the
+/// points vertically, as close as the fill allows.
+struct Framing {
+    centre: DVec3,
+    back: DVec3,
+    up: DVec3,
+    points: Vec<DVec3>,
+    /// A length of the order of the data's size (0: from the points).
+    size: f64,
+}
+
+impl Framing {
+    fn fit(&self, surface: &Surface, drawn: &Aabb, width: u32, height: u32) -> Camera {
+        let Self { centre, back, up, points, .. } = self;
+        let at = |distance: f64, lift: f64| {
+            let eye = *centre + *back * distance + *up * lift;
+            let mut camera = Camera::look_at(eye, eye - *back, width, height);
+            camera.zenith = surface.up(eye);
+            camera.enclosing(drawn)
+        };
+        // The points' extent on screen (normalized device coordinates), None if behind the eye.
+        let extent = |camera: &Camera| {
+            let clip = camera.view_projection();
+            let (mut lo, mut hi) = (DVec2::splat(f64::MAX), DVec2::splat(f64::MIN));
+            for p in points {
+                let p = clip * p.extend(1.0);
+                if p.w <= 0.0 {
+                    return None;
+                }
+                let ndc = DVec2::new(p.x / p.w, p.y / p.w);
+                (lo, hi) = (lo.min(ndc), hi.max(ndc));
+            }
+            Some((lo, hi))
+        };
+        let fits = |camera: &Camera| {
+            extent(camera).is_some_and(|(lo, hi)| {
+                lo.cmpge(DVec2::splat(-FRAME_FILL)).all() && hi.cmple(DVec2::splat(FRAME_FILL)).all()
+            })
+        };
+        let size = if self.size > 0.0 {
+            self.size
+        } else {
+            let (lo, hi) = points.iter().fold((DVec3::MAX, DVec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+            (hi - lo).length().max(1.0)
+        };
+        let (mut distance, mut lift) = (size * 4.0, 0.0);
+        // Alternately: centre the points vertically, then come as close as the fill allows.
+        for round in 0..4 {
+            let (mut near, mut far) = (size * 1e-3, distance);
+            while !fits(&at(far, lift)) && far < size * 1e4 {
+                far *= 2.0;
+            }
+            for _ in 0..48 {
+                let mid = (near + far) * 0.5;
+                if fits(&at(mid, lift)) { far = mid } else { near = mid }
+            }
+            distance = far;
+            let Some((lo, hi)) = extent(&at(distance, lift)).filter(|_| round < 3) else { break };
+            // One unit of NDC is distance * tan(fov / 2) world units across the view's centre.
+            let camera = at(distance, lift);
+            lift += (lo.y + hi.y) * 0.5 * distance * (camera.fov_y * 0.5).tan();
+        }
+        let camera = at(distance, lift);
+        if fits(&camera) { camera } else { at(size * 4.0, 0.0) }
+    }
+}
+
+/// The terrain's box in scene coordinates (world on the plate, ECEF on the globe).
+pub fn scene_box(metadata: &Metadata, surface: &Surface) -> Aabb {
+    match surface {
+        Surface::Flat => terrain_box(metadata),
+        Surface::Globe(globe) => {
+            let (rect, heights) = terrain_bounds(metadata);
+            globe.bounds(rect, heights)
+        }
+    }
 }
 
 /// The benchmarks' flight, `frames` eye and target positions: from the south-west corner
@@ -126,11 +203,22 @@ pub fn bench_flight(metadata: &Metadata, frames: usize) -> Vec<(DVec3, DVec3)> {
         .collect()
 }
 
-/// Where every front end starts: the eye and target asked for, else [`default_camera`].
-pub fn start_camera(metadata: &Metadata, start: Option<(DVec3, DVec3)>, width: u32, height: u32) -> Camera {
+/// Where every front end starts: the eye and target asked for (scene coordinates of
+/// `surface`), else [`default_camera`].
+pub fn start_camera(
+    metadata: &Metadata,
+    surface: &Surface,
+    start: Option<(DVec3, DVec3)>,
+    width: u32,
+    height: u32,
+) -> Camera {
     match start {
-        Some((eye, target)) => Camera::look_at(eye, target, width, height).enclosing(&terrain_box(metadata)),
-        None => default_camera(metadata, width, height),
+        Some((eye, target)) => {
+            let mut camera = Camera::look_at(eye, target, width, height);
+            camera.zenith = surface.up(eye);
+            camera.enclosing(&scene_box(metadata, surface))
+        }
+        None => default_camera(metadata, surface, width, height),
     }
 }
 
@@ -259,7 +347,8 @@ mod tests {
     fn poses_follow_cesiums_conventions() {
         let m = placed();
         let look = |heading: f64, pitch: f64| {
-            let (eye, target) = Pose::parse("-122.6,37.9,500", heading, pitch).unwrap().eye_target(&m).unwrap();
+            let (eye, target) =
+                Pose::parse("-122.6,37.9,500", heading, pitch).unwrap().eye_target(&m, &Surface::Flat).unwrap();
             (eye, (target - eye).normalize())
         };
         let (eye, north) = look(0.0, 0.0);
@@ -278,7 +367,8 @@ mod tests {
     fn north_is_true_north_off_the_central_meridian() {
         // One degree east of the central meridian at 37.9 N the grid's north is turned
         // by the meridian convergence, about 1 degree * sin(37.9) = 0.61 degrees.
-        let (eye, target) = Pose::parse("-121.6,37.9,0", 0.0, 0.0).unwrap().eye_target(&placed()).unwrap();
+        let (eye, target) =
+            Pose::parse("-121.6,37.9,0", 0.0, 0.0).unwrap().eye_target(&placed(), &Surface::Flat).unwrap();
         let d = target - eye;
         let turned = d.x.atan2(-d.z).to_degrees();
         assert!((turned.abs() - 0.614).abs() < 0.01, "north is turned {turned} degrees from grid north");
@@ -290,8 +380,10 @@ mod tests {
         assert!(Pose::parse("1,2", 0.0, 0.0).unwrap_err().contains("three numbers"));
         assert!(Pose::parse("1,2,x", 0.0, 0.0).unwrap_err().contains("LON,LAT,HEIGHT"));
         assert!(Pose::parse("1,2,3", 0.0, -100.0).unwrap_err().contains("pitch"));
-        let unplaced =
-            Pose::parse("1,2,3", 0.0, 0.0).unwrap().eye_target(&Metadata::new("unplaced", vec![])).unwrap_err();
+        let unplaced = Pose::parse("1,2,3", 0.0, 0.0)
+            .unwrap()
+            .eye_target(&Metadata::new("unplaced", vec![]), &Surface::Flat)
+            .unwrap_err();
         assert!(unplaced.contains("says where it lies"), "{unplaced}");
     }
 
@@ -328,7 +420,7 @@ mod tests {
     fn every_front_end_camera_sees_the_whole_continent() {
         let m = continent();
         let terrain = terrain_box(&m);
-        let start = start_camera(&m, None, 1280, 720);
+        let start = start_camera(&m, &Surface::Flat, None, 1280, 720);
         // The flyer's camera (view, webplayer) and the still's (render) are one camera.
         let flown = FlyCamera::from_camera(&start).camera(1280, 720).enclosing(&terrain);
         assert!((flown.position - start.position).length() < 1e-6 && (flown.far - start.far).abs() < 1e-3);
@@ -348,7 +440,7 @@ mod tests {
     fn the_default_view_fills_most_of_the_frame() {
         for (width, height) in [(1280, 720), (800, 600), (600, 900)] {
             let m = continent();
-            let camera = default_camera(&m, width, height);
+            let camera = default_camera(&m, &Surface::Flat, width, height);
             let clip = camera.view_projection();
             let (mut lo, mut hi) = (DVec2::splat(f64::MAX), DVec2::splat(f64::MIN));
             for c in corners(&terrain_box(&m)) {
@@ -372,7 +464,7 @@ mod tests {
         m.layers[0].tile_world_size = 2.5e6;
         m.terrain.data_extent = Some([8.0e6, 5.0e6]);
         assert_eq!(terrain_bounds(&m).0, [0.0, 0.0, 8.0e6, 5.0e6]);
-        let camera = default_camera(&m, 1280, 720);
+        let camera = default_camera(&m, &Surface::Flat, 1280, 720);
         // Looking at the data's middle: the ray from the eye meets its ground there.
         let (eye, dir) = (camera.position, camera.direction());
         let t = (drawn_heights(&m).0 - eye.y) / dir.y;
@@ -455,7 +547,16 @@ impl Pose {
     /// # Errors
     /// A message when the archive does not say where it lies, or the eye has no place in
     /// its CRS.
-    pub fn eye_target(&self, metadata: &Metadata) -> Result<(DVec3, DVec3), String> {
+    pub fn eye_target(&self, metadata: &Metadata, surface: &Surface) -> Result<(DVec3, DVec3), String> {
+        if surface.globe().is_some() {
+            let (lon, lat) = (self.lon.to_radians(), self.lat.to_radians());
+            let eye = crate::globe::ecef(lon, lat, self.height);
+            let frame = crate::globe::enu(lon, lat);
+            let (heading, pitch) = (self.heading.to_radians(), self.pitch.to_radians());
+            let flat = frame.y_axis * heading.cos() + frame.x_axis * heading.sin();
+            let direction = flat * pitch.cos() + frame.z_axis * pitch.sin();
+            return Ok((eye, eye + direction * 1000.0));
+        }
         let geo = crate::geo::Geo::new(metadata)
             .ok_or("a camera in longitude and latitude needs an archive that says where it lies (a georeference)")?;
         let world = |lon: f64, lat: f64| {

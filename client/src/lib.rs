@@ -6,6 +6,7 @@
 mod error;
 pub mod fly;
 pub mod geo;
+pub mod globe;
 pub mod input;
 #[cfg(feature = "render")]
 pub mod render;
@@ -15,6 +16,7 @@ pub mod stream;
 pub use error::{Error, Result};
 pub use fly::{FlyCamera, FlyInput};
 pub use geo::Geo;
+pub use globe::{GlobeMap, Surface};
 pub use input::{Action, Keys};
 #[cfg(not(target_arch = "wasm32"))]
 pub use source::blocking::{AnySource, BlockingSource, open_source};

@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use terrastream_client::Surface;
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::RenderSettings;
 use terrastream_client::render::still::{Still, StillOptions, default_camera, render_still};
@@ -81,9 +82,13 @@ fn camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
 }
 
 fn render(gpu: &Gpu, location: &str, cam: Option<Camera>) -> Still {
-    let options =
-        StillOptions { width: WIDTH, height: HEIGHT, settings: RenderSettings::default(), ..StillOptions::default() };
-    let camera = |m: &Metadata| Ok(cam.unwrap_or_else(|| default_camera(m, WIDTH, HEIGHT)));
+    let options = StillOptions {
+        width: WIDTH,
+        height: HEIGHT,
+        settings: RenderSettings { flat: true, ..RenderSettings::default() },
+        ..StillOptions::default()
+    };
+    let camera = |m: &Metadata, s: &Surface| Ok(cam.unwrap_or_else(|| default_camera(m, s, WIDTH, HEIGHT)));
     render_still(gpu, Origin::parse(location).unwrap(), camera, &options).unwrap()
 }
 
@@ -196,7 +201,7 @@ fn a_missing_archive_is_named_and_the_rest_streams() {
     let origin = Origin::parse(p.folder.join("tamalpais.json").to_str().unwrap()).unwrap();
     let mut streamer = Streamer::open(origin, StreamOptions::default()).unwrap();
     let metadata = streamer.metadata().unwrap().clone();
-    let cam = default_camera(&metadata, WIDTH, HEIGHT);
+    let cam = default_camera(&metadata, &Surface::Flat, WIDTH, HEIGHT);
     for _ in 0..200 {
         streamer.update(&cam);
         streamer.drain_uploads(terrastream_client::UploadBudget { max_tiles: 64, max_bytes: 64 << 20 });
@@ -223,7 +228,7 @@ fn a_republished_manifest_is_picked_up_while_streaming() {
     let options = StreamOptions { manifest_recheck: std::time::Duration::from_millis(50), ..StreamOptions::default() };
     let origin = Origin::parse(&format!("http://{addr}/tamalpais.json")).unwrap();
     let mut streamer = Streamer::open(origin, options).unwrap();
-    let cam = default_camera(streamer.metadata().unwrap(), WIDTH, HEIGHT);
+    let cam = default_camera(streamer.metadata().unwrap(), &Surface::Flat, WIDTH, HEIGHT);
     let stream_until = |s: &mut Streamer, done: &dyn Fn(&Streamer) -> bool| {
         for _ in 0..1000 {
             s.update(&cam);

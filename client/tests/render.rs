@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use glam::DVec3;
+use terrastream_client::Surface;
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
 use terrastream_client::render::still::{Still, StillOptions, default_camera, render_still};
@@ -86,8 +87,10 @@ fn camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
 }
 
 fn render(gpu: &Gpu, location: &str, cam: Option<Camera>, settings: RenderSettings) -> Still {
+    // These views are of the flat plate, posed in world units.
+    let settings = RenderSettings { flat: true, ..settings };
     let options = StillOptions { width: WIDTH, height: HEIGHT, settings, ..StillOptions::default() };
-    let camera = |m: &Metadata| Ok(cam.unwrap_or_else(|| default_camera(m, WIDTH, HEIGHT)));
+    let camera = |m: &Metadata, s: &Surface| Ok(cam.unwrap_or_else(|| default_camera(m, s, WIDTH, HEIGHT)));
     render_still(gpu, Origin::parse(location).unwrap(), camera, &options).unwrap()
 }
 
@@ -512,7 +515,7 @@ fn nothing_is_drawn_past_the_data_extent() {
     let whole = texture_only_archive(dir.path(), None);
     let cut = texture_only_archive(dir.path(), Some([1500.0, 1500.0]));
     // Both seen as the default view frames the whole grid.
-    let cam = default_camera(Reader::open_mmap(&whole).unwrap().metadata(), WIDTH, HEIGHT);
+    let cam = default_camera(Reader::open_mmap(&whole).unwrap().metadata(), &Surface::Flat, WIDTH, HEIGHT);
     // No haze: it follows the extent.
     let settings = RenderSettings { fog_density: Some(0.0), ..RenderSettings::default() };
     let (a, b) = [whole, cut].map(|p| render(gpu, p.to_str().unwrap(), Some(cam), settings)).into();

@@ -94,7 +94,13 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     let budget = UploadBudget { max_tiles: args.max_upload_tiles.max(1), ..UploadBudget::default() };
     let open = || -> Result<Session> {
         let streamer = Streamer::open(Origin::parse(&location)?, StreamOptions::default())?;
-        Ok(Session::new(streamer, &gpu.device, RenderSettings::default(), OFFSCREEN_FORMAT, budget)?)
+        Ok(Session::new(
+            streamer,
+            &gpu.device,
+            RenderSettings { flat: true, ..RenderSettings::default() },
+            OFFSCREEN_FORMAT,
+            budget,
+        )?)
     };
     let mut streaming = open()?;
     let metadata = streaming.streamer.metadata().cloned().context("no metadata")?;

@@ -124,6 +124,7 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     use terrastream_client::Origin;
     use terrastream_client::fly::start_camera;
     use terrastream_client::render::gpu::Gpu;
+    use terrastream_client::render::renderer::RenderSettings;
     use terrastream_client::render::still::{StillOptions, render_still, write_png};
     let url = format!("{base}/tamalpais.tspack");
     let display = ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()));
@@ -148,11 +149,13 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     ];
     for (name, location, pose) in views {
         let started = std::time::Instant::now();
-        let camera = |metadata: &terrastream_format::Metadata| {
+        let camera = |metadata: &terrastream_format::Metadata, surface: &terrastream_client::Surface| {
             let pose = pose.map(|(eye, target)| (glam::DVec3::from_array(eye), glam::DVec3::from_array(target)));
-            Ok(start_camera(metadata, pose, w, h))
+            Ok(start_camera(metadata, surface, pose, w, h))
         };
-        let options = StillOptions { width: w, height: h, ..StillOptions::default() };
+        // The views are posed in world units on the plate.
+        let settings = RenderSettings { flat: true, ..RenderSettings::default() };
+        let options = StillOptions { width: w, height: h, settings, ..StillOptions::default() };
         let still = render_still(&gpu, Origin::parse(&location)?, camera, &options)
             .with_context(|| format!("rendering {location}"))?;
         let path = out.join(format!("{name}.png"));

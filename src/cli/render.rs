@@ -46,6 +46,10 @@ pub struct LookArgs {
     /// Decoded-tile cache budget in MiB.
     #[arg(long, default_value_t = 512)]
     cache_mib: usize,
+    /// Draw the archive as a flat plate, even one that says where it lies (else it is
+    /// drawn on the WGS 84 ellipsoid).
+    #[arg(long)]
+    flat: bool,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -67,6 +71,7 @@ impl LookArgs {
             wireframe: self.wireframe,
             lod_colours: self.lod_colours,
             detail: self.detail,
+            flat: self.flat,
             ..RenderSettings::default()
         }
     }
@@ -88,8 +93,8 @@ impl LookArgs {
 pub struct RenderArgs {
     /// The archive: a path, an http(s):// URL of a .tspack, or a server's tile endpoint URL.
     archive: String,
-    /// Eye and target in world units: "ex,ey,ez,tx,ty,tz" (x east, y up, z south).
-    /// Default: an oblique view from the south framing the whole dataset.
+    /// Eye and target in world units on the flat plate: "ex,ey,ez,tx,ty,tz" (x east, y up,
+    /// z south; implies --flat). Default: an oblique view from the south framing the data.
     #[arg(long)]
     camera: Option<String>,
     /// The eye in geographic terms, as CesiumJS places cameras: "LON,LAT,HEIGHT" (degrees,
@@ -161,22 +166,24 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let gpu =
         Gpu::headless().context("rendering needs a graphics adapter (a software one will do: Mesa's lavapipe)")?;
     tracing::info!(adapter = %gpu.describe(), "rendering");
+    let mut settings = args.look.settings();
+    settings.flat |= camera.is_some();
     let options = StillOptions {
         width,
         height,
-        settings: args.look.settings(),
+        settings,
         stream: args.look.stream(),
         budget: args.look.budget(),
         wait: !args.no_wait,
         timeout: Duration::from_secs(args.timeout),
     };
     let fov = args.fov.clamp(1.0, 170.0).to_radians();
-    let make_camera = |metadata: &terrastream_format::Metadata| {
+    let make_camera = |metadata: &terrastream_format::Metadata, surface: &terrastream_client::Surface| {
         let asked = match pose {
-            Some(pose) => Some(pose.eye_target(metadata)?),
+            Some(pose) => Some(pose.eye_target(metadata, surface)?),
             None => camera,
         };
-        let start = start_camera(metadata, asked, width, height);
+        let start = start_camera(metadata, surface, asked, width, height);
         Ok(if asked.is_some() { Camera { fov_y: fov, ..start } } else { start })
     };
     let started = std::time::Instant::now();

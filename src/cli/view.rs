@@ -10,6 +10,7 @@ use terrastream_client::fly::{Pose, start_camera, terrain_bounds};
 use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame};
 use terrastream_client::render::hud::{FrameTimes, Hud, Status, status_lines};
+use terrastream_client::render::renderer::RenderSettings;
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
 use terrastream_client::{Action, FlyCamera, Keys, Origin, Streamer};
@@ -103,8 +104,13 @@ impl App {
         config.present_mode = wgpu::PresentMode::AutoVsync;
         surface.configure(&gpu.device, &config);
         let streamer = self.streamer.take().context("viewer started twice")?;
-        let session =
-            Session::new(streamer, &gpu.device, self.args.look.settings(), config.format, self.args.look.budget())?;
+        let session = Session::new(
+            streamer,
+            &gpu.device,
+            RenderSettings { flat: true, ..self.args.look.settings() },
+            config.format,
+            self.args.look.budget(),
+        )?;
         let hud = Hud::new(&gpu.device, config.format);
         let depth = depth_view(&gpu.device, config.width, config.height);
         self.running = Some(Running { window, surface, config, gpu, depth, session, hud });
@@ -276,10 +282,12 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
     let streamer = Streamer::open(origin, args.look.stream()).with_context(|| format!("opening {}", args.archive))?;
     let metadata = streamer.metadata().cloned().context("the archive has no metadata")?;
+    // The flyer moves over the plate: the viewer draws it.
+    let surface = terrastream_client::Surface::Flat;
     if let Some(pose) = pose {
-        start = Some(pose.eye_target(&metadata).map_err(anyhow::Error::msg)?);
+        start = Some(pose.eye_target(&metadata, &surface).map_err(anyhow::Error::msg)?);
     }
-    let camera = start_camera(&metadata, start, width, height);
+    let camera = start_camera(&metadata, &surface, start, width, height);
     let ([x0, z0, x1, z1], _) = terrain_bounds(&metadata);
     let (ex, ez) = (x1 - x0, z1 - z0);
     tracing::info!(extent_m = format!("{ex:.0} x {ez:.0}"), "viewing {}", args.archive);

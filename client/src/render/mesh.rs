@@ -14,7 +14,8 @@
 
 use glam::DVec3;
 
-use crate::stream::camera::{Aabb, Frustum};
+use crate::globe::Surface;
+use crate::stream::camera::Frustum;
 
 /// Mesh parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -104,6 +105,8 @@ pub struct Scene<'a> {
     pub column: (f64, f64),
     /// Height range of the data under a box `[x0, x1] x [z0, z1]` (world units), for culling.
     pub heights: &'a dyn Fn(f64, f64, f64, f64) -> (f64, f64),
+    /// The plate or the globe: boxes and the eye are in its scene coordinates.
+    pub surface: &'a Surface,
 }
 
 /// The patches covering the terrain for `scene`.
@@ -123,27 +126,26 @@ pub fn select_nodes(params: &MeshParams, scene: &Scene<'_>) -> Vec<Node> {
     out
 }
 
-fn column_box(params: &MeshParams, scene: &Scene<'_>, origin: (i64, i64), units: i64) -> Aabb {
+/// The node's square in world units.
+fn node_rect(params: &MeshParams, origin: (i64, i64), units: i64) -> [f64; 4] {
     let b = params.base;
     #[allow(clippy::cast_precision_loss)]
-    let (x0, z0, x1, z1) =
-        (origin.0 as f64 * b, origin.1 as f64 * b, (origin.0 + units) as f64 * b, (origin.1 + units) as f64 * b);
-    Aabb { min: DVec3::new(x0, scene.column.0, z0), max: DVec3::new(x1, scene.column.1, z1) }
+    [origin.0 as f64 * b, origin.1 as f64 * b, (origin.0 + units) as f64 * b, (origin.1 + units) as f64 * b]
 }
 
 /// Strugar's recursion: false when the node is beyond its level's range (the parent
 /// then draws that area itself).
 fn select(params: &MeshParams, scene: &Scene<'_>, origin: (i64, i64), level: u32, out: &mut Vec<Node>) -> bool {
     let units = params.node_units(level);
-    let column = column_box(params, scene, origin, units);
+    let rect = node_rect(params, origin, units);
+    let column = scene.surface.bounds(rect, scene.column);
     let distance = column.distance(scene.eye);
     if distance > params.range(level) {
         return false;
     }
-    let (lo, hi) = (scene.heights)(column.min.x, column.min.z, column.max.x, column.max.z);
-    let visible =
-        Aabb { min: DVec3::new(column.min.x, lo, column.min.z), max: DVec3::new(column.max.x, hi, column.max.z) };
-    if !scene.frustum.intersects(&visible) {
+    let [x0, z0, x1, z1] = rect;
+    let visible = scene.surface.bounds(rect, (scene.heights)(x0, z0, x1, z1));
+    if !scene.frustum.intersects(&visible) || scene.surface.hidden(scene.eye, &visible) {
         return true;
     }
     if level == 0 || distance > params.range(level - 1) {
@@ -227,6 +229,7 @@ mod tests {
             frustum: &frustum,
             column: (0.0, 500.0),
             heights: &|_, _, _, _| (0.0, 500.0),
+            surface: &Surface::Flat,
         };
         (params, select_nodes(&params, &scene), extent)
     }

@@ -11,7 +11,8 @@ use wgpu::util::DeviceExt;
 use super::gpu::{self, texture_entry, uniform_entry, write_layer};
 use super::mesh::{MAX_LEVELS, MeshParams, Node, PatchMesh, Scene, select_nodes};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable, Residency};
-use crate::stream::camera::Camera;
+use crate::globe::{Mapping, Surface};
+use crate::stream::camera::{Aabb, Camera};
 use crate::stream::decode::TileData;
 use crate::stream::streamer::Upload;
 
@@ -56,6 +57,9 @@ pub struct RenderSettings {
     pub fog_density: Option<f64>,
     /// Haze and sky colour (sRGB).
     pub sky: [f32; 3],
+    /// Draw every archive as a flat plate, even one that says where it lies (else a
+    /// georeferenced archive is drawn on the WGS 84 ellipsoid, cameras in ECEF).
+    pub flat: bool,
 }
 
 impl Default for RenderSettings {
@@ -71,6 +75,7 @@ impl Default for RenderSettings {
             sun: DVec3::new(-0.45, 0.65, 0.6),
             fog_density: None,
             sky: [0.62, 0.72, 0.84],
+            flat: false,
         }
     }
 }
@@ -146,10 +151,25 @@ struct Globals {
     mode: [u32; 4],
     lod: [f32; 4],
     bounds: [f32; 4],
+    globe: GlobeInfo,
     ranges: [[f32; 4]; 32],
     elev_lods: [LodInfo; 32],
     tex_lods: [LodInfo; 32],
 }
+
+/// How the shader places grid points on the globe (terrain.wgsl's `GlobeInfo`).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct GlobeInfo {
+    kind: [u32; 4],
+    map: [f32; 4],
+    anchor: [f32; 4],
+}
+
+const GLOBE_FLAT: u32 = 0;
+const GLOBE_GEOGRAPHIC: u32 = 1;
+const GLOBE_WEB_MERCATOR: u32 = 2;
+const GLOBE_LATTICE: u32 = 3;
 
 /// One layer's texture array and its residency.
 struct TileArray {
@@ -269,6 +289,14 @@ pub struct TerrainRenderer {
     frame: u64,
     stats: FrameStats,
     params: MeshParams,
+    /// The plate or the globe the terrain is drawn on.
+    surface: Surface,
+    /// The terrain's box in scene coordinates.
+    scene_box: Aabb,
+    /// The globe's lattice of longitudes and latitudes (1 x 1 unused elsewhere), and
+    /// whether it still has to be written.
+    lattice: wgpu::Texture,
+    lattice_dirty: bool,
 }
 
 impl std::fmt::Debug for TerrainRenderer {
@@ -347,6 +375,7 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
                 ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
                 count: None,
             },
+            texture_entry(5, wgpu::TextureSampleType::Float { filterable: false }, wgpu::TextureViewDimension::D2),
         ],
     })
 }
@@ -439,6 +468,23 @@ impl TerrainRenderer {
         let sampler = colour_sampler(device);
         let layout = &shared.layout;
         let page_view = page_texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let surface = if elevation.is_some() || texture.is_some() {
+            Surface::new(metadata, !settings.flat)
+        } else {
+            Surface::Flat
+        };
+        let lattice_size = match surface.globe().map(|g| &g.mapping) {
+            Some(Mapping::Lattice(l)) => (u32::try_from(l.size.0).unwrap_or(1), u32::try_from(l.size.1).unwrap_or(1)),
+            _ => (1, 1),
+        };
+        let lattice = gpu::texture(
+            device,
+            "texture.globe_lattice",
+            (lattice_size.0, lattice_size.1, 1),
+            wgpu::TextureFormat::Rgba32Float,
+            wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        );
+        let lattice_view = lattice.create_view(&wgpu::TextureViewDescriptor::default());
         let bind_group = gpu::bind_group(
             device,
             "bind_group.terrain",
@@ -449,6 +495,7 @@ impl TerrainRenderer {
                 wgpu::BindingResource::TextureView(&elevation_view),
                 wgpu::BindingResource::TextureView(&colour_view),
                 wgpu::BindingResource::Sampler(&sampler),
+                wgpu::BindingResource::TextureView(&lattice_view),
             ],
         );
         let pipeline = shared.pipeline.clone();
@@ -463,14 +510,20 @@ impl TerrainRenderer {
             elevation.as_ref().map_or(1.0, |e| e.layer.tile_world_size / f64::from(e.layer.tile_resolution))
         };
         let params = MeshParams::new(base, settings.patch, terrain.high_detail_range, terrain.num_detail_levels);
+        // Where the data ends (the grid rounds up to whole tiles): nothing is drawn beyond.
+        let extent = match elevation.as_ref().or(texture.as_ref()) {
+            Some(_) => crate::fly::terrain_bounds(metadata).0,
+            None => [0.0; 4],
+        };
+        let column = crate::stream::select::drawn_heights(metadata);
         Self {
             settings,
-            // Where the data ends (the grid rounds up to whole tiles): nothing is drawn beyond.
-            extent: match elevation.as_ref().or(texture.as_ref()) {
-                Some(_) => crate::fly::terrain_bounds(metadata).0,
-                None => [0.0; 4],
-            },
-            column: crate::stream::select::drawn_heights(metadata),
+            extent,
+            column,
+            scene_box: surface.bounds(extent, column),
+            surface,
+            lattice,
+            lattice_dirty: true,
             elevation,
             texture,
             page_table,
@@ -501,6 +554,11 @@ impl TerrainRenderer {
     pub fn set_view_settings(&mut self, settings: RenderSettings) {
         let (e, t, p) = (self.settings.elevation_slots, self.settings.texture_slots, self.settings.patch);
         self.settings = RenderSettings { elevation_slots: e, texture_slots: t, patch: p, ..settings };
+    }
+
+    /// The plate or the globe the terrain is drawn on.
+    pub fn surface(&self) -> &Surface {
+        &self.surface
     }
 
     /// Mesh parameters in use.
@@ -596,6 +654,15 @@ impl TerrainRenderer {
             write_layer(queue, &self.page_texture, 0, entries, (width * 16, height), (width, height));
             self.page_dirty = false;
         }
+        if self.lattice_dirty {
+            self.lattice_dirty = false;
+            if let Some(Mapping::Lattice(l)) = self.surface.globe().map(|g| &g.mapping) {
+                #[allow(clippy::cast_possible_truncation)]
+                let texels: Vec<[f32; 4]> = l.values.iter().map(|v| [v.x as f32, v.y as f32, 0.0, 0.0]).collect();
+                let (w, h) = (u32::try_from(l.size.0).unwrap_or(1), u32::try_from(l.size.1).unwrap_or(1));
+                write_layer(queue, &self.lattice, 0, bytemuck::cast_slice(&texels), (w * 16, h), (w, h));
+            }
+        }
         let (nodes, params) = self.select(camera);
         self.write_frame(device, queue, camera, &nodes, &params);
         self.stats
@@ -606,10 +673,16 @@ impl TerrainRenderer {
         let column = self.column;
         let eye = camera.position;
         // Enough levels that the coarsest ring reaches the far corner of the data.
-        let far = [(x0, z0), (x1, z0), (x0, z1), (x1, z1)]
-            .iter()
-            .map(|&(x, z)| DVec3::new(x, eye.y.clamp(column.0, column.1), z).distance(eye))
-            .fold(0.0, f64::max);
+        let far = match self.surface {
+            Surface::Flat => [(x0, z0), (x1, z0), (x0, z1), (x1, z1)]
+                .iter()
+                .map(|&(x, z)| DVec3::new(x, eye.y.clamp(column.0, column.1), z).distance(eye))
+                .fold(0.0, f64::max),
+            Surface::Globe(_) => {
+                let b = self.scene_box;
+                (b.max - b.min).length() + b.distance(eye)
+            }
+        };
         let params = MeshParams { levels: self.params.levels.max(self.params.levels_to_cover(far)), ..self.params };
         // Boxes of the resident elevation tiles, once per frame: a patch's height range
         // (for culling) is the union of those it overlaps.
@@ -643,7 +716,15 @@ impl TerrainRenderer {
             ((x0 / params.base).floor() as i64, (z0 / params.base).floor() as i64),
             ((x1 / params.base).ceil() as i64, (z1 / params.base).ceil() as i64),
         );
-        let scene = Scene { start: extent.0, extent: extent.1, eye, frustum: &frustum, column, heights: &heights };
+        let scene = Scene {
+            start: extent.0,
+            extent: extent.1,
+            eye,
+            frustum: &frustum,
+            column,
+            heights: &heights,
+            surface: &self.surface,
+        };
         let mut nodes = select_nodes(&params, &scene);
         // Full patches first, then quarters: two instanced draws.
         nodes.sort_by_key(|n| (n.quarter, n.level));
@@ -661,9 +742,13 @@ impl TerrainRenderer {
         // Positions go to the GPU relative to an anchor on the base grid near the eye, so
         // that f32 keeps centimetres on a continent.
         let base = params.base;
-        let eye = camera.position;
+        // On the globe: the grid point under the eye.
+        let under = match self.surface.globe() {
+            Some(globe) => globe.world_under(camera.position),
+            None => glam::DVec2::new(camera.position.x, camera.position.z),
+        };
         #[allow(clippy::cast_possible_truncation)]
-        let anchor_units = ((eye.x / base).floor() as i64, (eye.z / base).floor() as i64);
+        let anchor_units = ((under.x / base).floor() as i64, (under.y / base).floor() as i64);
         #[allow(clippy::cast_precision_loss)]
         let anchor = (anchor_units.0 as f64 * base, anchor_units.1 as f64 * base);
         self.write_instances(device, queue, nodes, anchor_units);
@@ -696,11 +781,49 @@ impl TerrainRenderer {
         self.quarter = u32::try_from(nodes.len()).unwrap_or(u32::MAX) - self.full;
     }
 
+    /// The globe's part of the globals, the eye in the frame drawn in and the camera's
+    /// rotation into that frame: on the plate, x and z from the anchor and heights as
+    /// they are; on the globe, the local frame at the anchor ([`crate::globe`]).
+    fn placement(&self, camera: &Camera, anchor: (f64, f64)) -> (GlobeInfo, DVec3, DMat4) {
+        let eye = camera.position;
+        let Some(globe) = self.surface.globe() else {
+            let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
+            let info = GlobeInfo { kind: [GLOBE_FLAT, 1, 1, 0], map: [0.0; 4], anchor: [0.0; 4] };
+            return (info, DVec3::new(eye.x - anchor.0, eye.y, eye.z - anchor.1), rotation);
+        };
+        let frame = globe.local_frame(glam::DVec2::new(anchor.0, anchor.1));
+        let local_eye = frame.to_local(eye);
+        let rotation = DMat4::look_to_rh(
+            DVec3::ZERO,
+            frame.direction_to_local(camera.direction()),
+            frame.direction_to_local(camera.up()),
+        );
+        let (sin, cos) = frame.lon_lat.y.sin_cos();
+        let n = crate::globe::A / (1.0 - crate::globe::E2 * sin * sin).sqrt();
+        let column = self.surface.height(eye).clamp(self.column.0, self.column.1);
+        let (kind, map) = match &globe.mapping {
+            Mapping::Geographic { step, .. } => ([GLOBE_GEOGRAPHIC, 1, 1, 0], [step.x, step.y, 0.0, 0.0]),
+            Mapping::WebMercator { origin, step } => {
+                let v = origin.y + step.y * anchor.1;
+                ([GLOBE_WEB_MERCATOR, 1, 1, 0], [step.x, step.y, v, 0.0])
+            }
+            Mapping::Lattice(l) => {
+                let q = l.coordinates(anchor.0, anchor.1);
+                let size = [u32::try_from(l.size.0).unwrap_or(1), u32::try_from(l.size.1).unwrap_or(1)];
+                ([GLOBE_LATTICE, size[0], size[1], 0], [q.x, q.y, 1.0 / l.cell, 0.0])
+            }
+        };
+        #[allow(clippy::cast_possible_truncation)]
+        let info =
+            GlobeInfo { kind, map: map.map(|v| v as f32), anchor: [sin as f32, cos as f32, n as f32, column as f32] };
+        (info, local_eye, rotation)
+    }
+
     /// The shader's globals for one frame.
     fn globals(&self, camera: &Camera, params: &MeshParams, anchor: (f64, f64)) -> Globals {
         let base = params.base;
         let eye = camera.position;
-        let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
+        let (globe, local_eye, rotation) = self.placement(camera, anchor);
         let projection = DMat4::perspective_infinite_reverse_rh(camera.fov_y, camera.aspect, camera.near);
         let view_proj: Mat4 = (projection * rotation).as_mat4();
         let column = self.column;
@@ -726,7 +849,7 @@ impl TerrainRenderer {
         #[allow(clippy::cast_possible_truncation)]
         Globals {
             view_proj: view_proj.to_cols_array_2d(),
-            camera: [(eye.x - anchor.0) as f32, eye.y as f32, (eye.z - anchor.1) as f32, base as f32],
+            camera: [local_eye.x as f32, local_eye.y as f32, local_eye.z as f32, base as f32],
             sun: [sun.x as f32, sun.y as f32, sun.z as f32, 0.35],
             fog: [r, g, b, fog as f32],
             terrain: [
@@ -746,6 +869,7 @@ impl TerrainRenderer {
             ],
             lod: [(base / f64::from(elev_info[3])).log2() as f32, params.range(0) as f32, 0.0, 0.0],
             bounds: [(x0 - anchor.0) as f32, (z0 - anchor.1) as f32, (x1 - anchor.0) as f32, (z1 - anchor.1) as f32],
+            globe,
             ranges,
             elev_lods: self.elevation.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),
             tex_lods: self.texture.as_ref().map_or([LodInfo::zeroed(); 32], |a| a.lods(anchor)),

@@ -1,11 +1,10 @@
 //! The streaming core and the renderer, stepped together once per frame.
 
-use glam::DVec3;
 use terrastream_format::{LayerKind, Metadata};
 
 use super::renderer::{FrameStats, RenderSettings, TerrainPipeline, TerrainRenderer};
-use crate::fly::terrain_box;
-use crate::stream::camera::{Aabb, Camera};
+use crate::fly::scene_box;
+use crate::stream::camera::Camera;
 use crate::stream::select::drawn_heights;
 use crate::stream::streamer::{StreamStats, Streamer, UploadBudget};
 
@@ -61,6 +60,7 @@ impl Session {
         let renderer = TerrainRenderer::with_pipeline(device, &metadata, settings, pipeline);
         let mut options = streamer.options().clone();
         options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());
+        options.select.globe = !settings.flat;
         streamer.set_options(options);
         let generation = streamer.generation();
         Ok(Self {
@@ -79,7 +79,7 @@ impl Session {
     /// camera's clip planes are fitted to the terrain first ([`Camera::enclosing`]), the
     /// same for every front end.
     pub fn frame(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, camera: &Camera) -> (StreamStats, FrameStats) {
-        let camera = &camera.enclosing(&terrain_box(&self.metadata));
+        let camera = &camera.enclosing(&scene_box(&self.metadata, self.renderer.surface()));
         self.streamer.update(camera);
         if self.streamer.generation() != self.generation {
             self.generation = self.streamer.generation();
@@ -135,8 +135,7 @@ impl Session {
             let index = u8::try_from(index).ok()?;
             let extent =
                 layer.extent.as_ref().filter(|_| matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture))?;
-            let [x0, z0, x1, z1] = extent.world;
-            let data = Aabb { min: DVec3::new(x0, lo, z0), max: DVec3::new(x1, hi, z1) };
+            let data = self.renderer.surface().bounds(extent.world, (lo, hi));
             let reached =
                 wanted.iter().any(|w| w.key.layer() == index && w.in_view && self.renderer.is_resident(w.key));
             (frustum.intersects(&data) && !reached).then_some(index)

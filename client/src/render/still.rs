@@ -8,6 +8,7 @@ use super::gpu::{Gpu, GpuError, OFFSCREEN_FORMAT, Offscreen, render_pass};
 use super::renderer::{FrameStats, RenderSettings};
 use super::session::Session;
 pub use crate::fly::{default_camera, terrain_bounds};
+use crate::globe::Surface;
 use crate::stream::camera::Camera;
 use crate::stream::origin::Origin;
 use crate::stream::streamer::{StreamOptions, StreamStats, Streamer, UploadBudget};
@@ -97,8 +98,9 @@ pub struct Still {
     pub unreached_layer: Option<String>,
 }
 
-/// Streams `origin` for the camera `camera` makes from the archive's metadata (e.g.
-/// `|m| default_camera(m, w, h)`) and renders one still.
+/// Streams `origin` for the camera `camera` makes from the archive's metadata and the
+/// surface it is drawn on (e.g. `|m, s| Ok(default_camera(m, s, w, h))`) and renders one
+/// still.
 ///
 /// # Errors
 /// When the archive cannot be opened, there is no GPU, or the view does not complete
@@ -106,14 +108,17 @@ pub struct Still {
 pub fn render_still(
     gpu: &Gpu,
     origin: Origin,
-    camera: impl FnOnce(&Metadata) -> Result<Camera, String>,
+    camera: impl FnOnce(&Metadata, &Surface) -> Result<Camera, String>,
     options: &StillOptions,
 ) -> Result<Still, StillError> {
     let streamer = Streamer::open(origin, options.stream.clone())?;
     let metadata =
         streamer.metadata().ok_or_else(|| crate::Error::NotOpen { why: streamer.last_error().map(str::to_owned) })?;
-    let camera = camera(metadata).map_err(StillError::Camera)?.enclosing(&crate::fly::terrain_box(metadata));
+    let metadata = metadata.clone();
     let mut session = Session::new(streamer, &gpu.device, options.settings, OFFSCREEN_FORMAT, options.budget)?;
+    let surface = session.renderer.surface().clone();
+    let camera =
+        camera(&metadata, &surface).map_err(StillError::Camera)?.enclosing(&crate::fly::scene_box(&metadata, &surface));
     let wait = options.wait;
     let ready = |s: &Session| {
         let resident = s.renderer.stats().resident;

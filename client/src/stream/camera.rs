@@ -25,6 +25,9 @@ pub struct Camera {
     pub near: f64,
     /// Far plane distance.
     pub far: f64,
+    /// The scene's up at the eye: world +y on the plate, the ellipsoid's normal on the
+    /// globe ([`crate::globe`]).
+    pub zenith: DVec3,
 }
 
 impl Camera {
@@ -40,6 +43,7 @@ impl Camera {
             viewport_height: height.max(1),
             near: (distance * 1e-4).max(0.1),
             far: distance * 100.0 + 1e5,
+            zenith: DVec3::Y,
         }
     }
 
@@ -48,10 +52,19 @@ impl Camera {
         self.forward.try_normalize().unwrap_or(DVec3::NEG_Y)
     }
 
-    /// An up vector for the view matrix: world up, unless looking straight up or down.
+    /// An up vector for the view matrix: the zenith, unless looking straight up or down
+    /// (then the way north: -z on the plate).
     pub fn up(&self) -> DVec3 {
         let d = self.direction();
-        if d.cross(DVec3::Y).length_squared() < 1e-12 { DVec3::NEG_Z } else { DVec3::Y }
+        let zenith = self.zenith.try_normalize().unwrap_or(DVec3::Y);
+        if d.cross(zenith).length_squared() >= 1e-12 {
+            return zenith;
+        }
+        if zenith == DVec3::Y {
+            return DVec3::NEG_Z;
+        }
+        // On the globe: towards the pole axis, projected onto the view plane.
+        (DVec3::Z - zenith * zenith.z).try_normalize().unwrap_or(DVec3::X)
     }
 
     /// World-to-view matrix (right-handed, looking down -z in view space).

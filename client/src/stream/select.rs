@@ -10,10 +10,10 @@
 
 use std::cmp::Ordering;
 
-use glam::DVec3;
 use terrastream_format::{Layer, LayerKind, Metadata, TileKey};
 
 use super::camera::{Aabb, Camera};
+use crate::globe::Surface;
 
 /// Knobs of the selection.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -22,11 +22,13 @@ pub struct SelectOptions {
     pub pixel_error: f64,
     /// Most tiles wanted at once, all layers together (the finest are dropped first).
     pub max_wanted: usize,
+    /// Place a georeferenced archive on the globe (cameras in ECEF); else the flat plate.
+    pub globe: bool,
 }
 
 impl Default for SelectOptions {
     fn default() -> Self {
-        Self { pixel_error: 1.5, max_wanted: 4096 }
+        Self { pixel_error: 1.5, max_wanted: 4096, globe: false }
     }
 }
 
@@ -73,11 +75,12 @@ pub fn drawn_heights(metadata: &Metadata) -> (f64, f64) {
     }
 }
 
-/// World-space box of a tile: `(x, z)` from the grid, `y` over the given height range.
-pub fn tile_box(layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
+/// Scene box of a tile: its grid square between the given heights, on the plate or the
+/// globe.
+pub fn tile_box(surface: &Surface, layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
     let size = layer.world_size_at(key.lod());
     let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
-    Aabb { min: DVec3::new(x0, heights.0, z0), max: DVec3::new(x0 + size, heights.1, z0 + size) }
+    surface.bounds([x0, z0, x0 + size, z0 + size], heights)
 }
 
 /// The wanted tiles of every layer, most urgent first.
@@ -86,6 +89,7 @@ pub fn tile_box(layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
 /// archive is known not to have: a sparse pyramid has no children under a missing tile).
 pub fn select(
     metadata: &Metadata,
+    surface: &Surface,
     camera: &Camera,
     options: &SelectOptions,
     descend: impl Fn(TileKey) -> bool,
@@ -113,18 +117,23 @@ pub fn select(
         let mut next = Vec::new();
         for key in level {
             let layer = &metadata.layers[usize::from(key.layer())];
-            let bounds = tile_box(layer, key, heights);
+            let bounds = tile_box(surface, layer, key, heights);
+            let top = key.lod() == layer.start_lod();
+            // Behind the horizon: never wanted (but for the coarsest tiles, which always are).
+            let hidden = surface.hidden(camera.position, &bounds);
+            if hidden && !top {
+                continue;
+            }
             let distance = bounds.distance(camera.position);
-            let in_view = frustum.intersects(&bounds);
+            let in_view = !hidden && frustum.intersects(&bounds);
             let size = layer.world_size_at(key.lod());
             let texel = size / f64::from(layer.tile_resolution);
             let projected = texel * pixels_per_radian / distance.max(1e-9);
             let refine = key.lod() > 0
                 && projected > options.pixel_error
-                && (in_view || distance < size)
+                && (in_view || (distance < size && !hidden))
                 && descend(key)
                 && accounted + 4 <= options.max_wanted;
-            let top = key.lod() == layer.start_lod();
             if refine {
                 let lod = key.lod() - 1;
                 let (x0, y0, x1, y1) = layer.data_tiles_at(lod);
@@ -151,6 +160,8 @@ pub fn select(
 mod tests {
     use terrastream_format::{LayerKind, PayloadCompression, TileFormat};
 
+    use glam::DVec3;
+
     use super::*;
 
     fn metadata() -> Metadata {
@@ -175,7 +186,7 @@ mod tests {
     fn near_tiles_are_fine_far_tiles_coarse_and_ancestors_come_first() {
         let m = metadata();
         let cam = Camera::look_at(DVec3::new(1000.0, 200.0, 1000.0), DVec3::new(4000.0, 0.0, 4000.0), 1024, 768);
-        let wants = select(&m, &cam, &SelectOptions::default(), |_| true);
+        let wants = select(&m, &Surface::Flat, &cam, &SelectOptions::default(), |_| true);
         let finest = wants.iter().map(|w| w.key.lod()).min().unwrap();
         assert_eq!(finest, 0, "the ground under the eye is at full detail");
         // Every wanted tile's parent is wanted and more urgent.
@@ -196,8 +207,9 @@ mod tests {
     fn the_cap_drops_the_finest_tiles() {
         let m = metadata();
         let cam = Camera::look_at(DVec3::new(1000.0, 50.0, 1000.0), DVec3::new(9000.0, 0.0, 9000.0), 1920, 1080);
-        let all = select(&m, &cam, &SelectOptions::default(), |_| true);
-        let capped = select(&m, &cam, &SelectOptions { max_wanted: 40, ..SelectOptions::default() }, |_| true);
+        let all = select(&m, &Surface::Flat, &cam, &SelectOptions::default(), |_| true);
+        let capped =
+            select(&m, &Surface::Flat, &cam, &SelectOptions { max_wanted: 40, ..SelectOptions::default() }, |_| true);
         assert!(all.len() > 40 && capped.len() <= 40, "{} / {}", all.len(), capped.len());
         let top = m.layers[0].num_lods - 1;
         assert_eq!(capped.iter().filter(|w| w.key.lod() == top).count(), 1);
@@ -217,7 +229,7 @@ mod tests {
             lon_lat: None,
         });
         let cam = Camera::look_at(DVec3::new(5000.0, 600.0, 6500.0), DVec3::new(5100.0, 0.0, 5100.0), 1024, 768);
-        let wants = select(&m, &cam, &SelectOptions::default(), |_| true);
+        let wants = select(&m, &Surface::Flat, &cam, &SelectOptions::default(), |_| true);
         let tops: Vec<TileKey> = wants.iter().filter(|w| w.top).map(|w| w.key).collect();
         assert_eq!(tops, [TileKey::new(0, 3, 2, 2).unwrap()], "the one LOD-3 tile over the box");
         assert!(wants.iter().all(|w| w.key.lod() <= 3), "nothing above the coarsest populated LOD");
@@ -233,7 +245,7 @@ mod tests {
     fn no_descent_below_a_missing_tile() {
         let m = metadata();
         let cam = Camera::look_at(DVec3::new(1000.0, 200.0, 1000.0), DVec3::new(4000.0, 0.0, 4000.0), 1024, 768);
-        let wants = select(&m, &cam, &SelectOptions::default(), |k| k.lod() > 3);
+        let wants = select(&m, &Surface::Flat, &cam, &SelectOptions::default(), |k| k.lod() > 3);
         assert_eq!(wants.iter().map(|w| w.key.lod()).min(), Some(3));
     }
 }

@@ -21,6 +21,7 @@ use super::cache::TileCache;
 use super::camera::Camera;
 use super::decode::{DecodedTile, decode};
 use crate::error::{Error, Result};
+use crate::globe::Surface;
 use crate::stream::origin::{Backend, BoxFuture, Origin};
 use crate::stream::select::{SelectOptions, Want, select};
 
@@ -70,6 +71,8 @@ pub struct Streamer {
     recheck_at: Option<Instant>,
     rechecking: bool,
     decoder: Option<Decoder>,
+    /// The shape the selection sees, for (generation, globe asked).
+    surface: Option<((u64, bool), Surface)>,
     pub(super) stats: StreamStats,
     pub(super) last_error: Option<String>,
 }
@@ -134,6 +137,7 @@ impl Streamer {
             recheck_at: None,
             rechecking: false,
             decoder: None,
+            surface: None,
             stats: StreamStats::default(),
             last_error: None,
         })
@@ -155,6 +159,21 @@ impl Streamer {
     /// The metadata, once the origin is open.
     pub fn metadata(&self) -> Option<&Metadata> {
         self.backend().map(Backend::metadata)
+    }
+
+    /// The terrain's shape as the selection sees it (the globe for a georeferenced archive
+    /// when [`SelectOptions::globe`] asks for it): cameras must be in its scene
+    /// coordinates. `None` before the archive is open.
+    pub fn surface(&mut self) -> Option<Surface> {
+        let key = (self.generation, self.options.select.globe);
+        if let Some((k, surface)) = &self.surface
+            && *k == key
+        {
+            return Some(surface.clone());
+        }
+        let surface = Surface::new(self.metadata()?, key.1);
+        self.surface = Some((key, surface.clone()));
+        Some(surface)
     }
 
     /// Changes whenever the archive was found replaced: everything uploaded before
@@ -277,10 +296,12 @@ impl Streamer {
                 self.states.retain(|_, s| !s.is_settled_without_data());
             }
         }
+        let Some(surface) = self.surface() else { return };
         let Some(metadata) = self.metadata() else { return };
         let states = &self.states;
-        self.wanted =
-            select(metadata, camera, &self.options.select, |k| !matches!(states.get(&k), Some(TileState::Missing)));
+        self.wanted = select(metadata, &surface, camera, &self.options.select, |k| {
+            !matches!(states.get(&k), Some(TileState::Missing))
+        });
         self.wanted_keys = self.wanted.iter().map(|w| w.key).collect();
         for w in &self.wanted {
             if self.cache.touch(w.key) {

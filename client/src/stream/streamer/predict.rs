@@ -11,6 +11,7 @@ impl Streamer {
         self.prefetch_keys.clear();
         let last = self.last_camera.replace((*camera, now));
         let ahead = self.options.prefetch_ahead.as_secs_f64();
+        let Some(surface) = self.surface() else { return };
         let (Some((before, at)), Some(metadata)) = (last, self.metadata()) else { return };
         let dt = now.saturating_duration_since(at).as_secs_f64();
         if ahead <= 0.0 || dt <= 0.0 || dt > 1.0 {
@@ -27,8 +28,9 @@ impl Streamer {
             ..*camera
         };
         let states = &self.states;
-        let soon =
-            select(metadata, &predicted, &self.options.select, |k| !matches!(states.get(&k), Some(TileState::Missing)));
+        let soon = select(metadata, &surface, &predicted, &self.options.select, |k| {
+            !matches!(states.get(&k), Some(TileState::Missing))
+        });
         for w in soon {
             if !self.wanted_keys.contains(&w.key) && self.prefetch_keys.insert(w.key) {
                 self.prefetch.push(w.key);

@@ -210,15 +210,21 @@ impl State {
             return false;
         };
         let Phase::Opening(streamer) = std::mem::replace(&mut self.phase, Phase::Failed) else { return false };
-        let settings =
-            RenderSettings { elevation_slots: GPU_SLOTS, texture_slots: GPU_SLOTS, ..RenderSettings::default() };
+        let settings = RenderSettings {
+            elevation_slots: GPU_SLOTS,
+            texture_slots: GPU_SLOTS,
+            flat: true,
+            ..RenderSettings::default()
+        };
         let started = self.page.now_ms();
         let made =
             Session::with_pipeline(*streamer, &self.gpu.device, settings, &self.pipeline, UploadBudget::default());
         self.timings.session_ms = Some(self.page.now_ms() - started);
         match made {
             Ok(session) => {
-                let start = match self.params.pose.map(|pose| pose.eye_target(&metadata)) {
+                // The flyer moves over the plate: the player draws it.
+                let surface = terrastream_client::Surface::Flat;
+                let start = match self.params.pose.map(|pose| pose.eye_target(&metadata, &surface)) {
                     Some(Ok(start)) => Some(start),
                     Some(Err(why)) => {
                         tracing::error!("at=: {why}; starting from the default view");
@@ -226,7 +232,7 @@ impl State {
                     }
                     None => self.params.camera,
                 };
-                let camera = start_camera(&metadata, start, width, height);
+                let camera = start_camera(&metadata, &surface, start, width, height);
                 self.phase = Phase::Running { session: Box::new(session), fly: FlyCamera::from_camera(&camera) };
                 tracing::info!(archive = %self.params.archive, "opened: {} layers", metadata.layers.len());
                 true

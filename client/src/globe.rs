@@ -1,0 +1,479 @@
+//! The round Earth: the WGS 84 ellipsoid, and an archive's grid placed on it.
+//!
+//! The quadtree stays in the archive's own grid (world `(x, z)`, see
+//! [`crate::stream::camera`]); a [`GlobeMap`] turns a grid point into longitude and
+//! latitude — analytically for geographic and Web Mercator grids, through a lattice of
+//! exact PROJ transforms for any other CRS (bilinear between lattice points at most
+//! [`LATTICE_CELL`] apart, as GDAL's approximate transformer does) — and that into
+//! Earth-centred, Earth-fixed coordinates (ECEF, metres). Every camera, box and distance
+//! of a globe view is in ECEF, in f64; the GPU gets positions relative to an anchor near
+//! the eye ([`GlobeMap::local_frame`]), so f32 keeps sub-millimetre precision at the
+//! ground 6 400 km from the Earth's centre.
+//!
+//! [`Surface`] is what selection and culling see: the flat plate (scene coordinates are
+//! world coordinates, as before) or the globe (scene coordinates are ECEF).
+
+use std::sync::Arc;
+
+use glam::{DMat3, DVec2, DVec3};
+use terrastream_format::Metadata;
+
+use crate::geo::Geo;
+use crate::stream::camera::Aabb;
+
+/// Semi-major axis of WGS 84, metres.
+pub const A: f64 = 6_378_137.0;
+/// First eccentricity squared of WGS 84.
+pub const E2: f64 = 0.006_694_379_990_141_317;
+/// Semi-minor (polar) axis of WGS 84, metres.
+pub const B: f64 = 6_356_752.314_245_179;
+/// The sphere Web Mercator projects (EPSG:3857), metres.
+const MERCATOR_RADIUS: f64 = 6_378_137.0;
+/// Largest spacing of a lattice of exact transforms, metres on the grid: bilinear
+/// interpolation between its points is within a few centimetres for a transverse
+/// Mercator region (the inverse's curvature is about tan(lat) / R).
+pub const LATTICE_CELL: f64 = 1000.0;
+/// Most lattice points a side (a larger region gets coarser cells).
+pub const LATTICE_MAX: usize = 257;
+
+/// ECEF of a point at longitude, latitude (radians) and height above the ellipsoid (metres).
+pub fn ecef(lon: f64, lat: f64, height: f64) -> DVec3 {
+    let (sl, cl) = lat.sin_cos();
+    let n = A / (1.0 - E2 * sl * sl).sqrt();
+    let (so, co) = lon.sin_cos();
+    DVec3::new((n + height) * cl * co, (n + height) * cl * so, (n * (1.0 - E2) + height) * sl)
+}
+
+/// Longitude, latitude (radians) and height (metres) of an ECEF point (iterated to
+/// convergence; exact at the poles and the centre's neighbourhood excepted).
+pub fn geodetic(p: DVec3) -> (f64, f64, f64) {
+    let lon = p.y.atan2(p.x);
+    let r = p.x.hypot(p.y);
+    let mut lat = p.z.atan2(r * (1.0 - E2));
+    for _ in 0..6 {
+        let s = lat.sin();
+        let n = A / (1.0 - E2 * s * s).sqrt();
+        let h = r * lat.cos() + p.z * s - A * A / n;
+        lat = p.z.atan2(r * (1.0 - E2 * n / (n + h)));
+    }
+    let (s, c) = lat.sin_cos();
+    let n = A / (1.0 - E2 * s * s).sqrt();
+    (lon, lat, r * c + p.z * s - A * A / n)
+}
+
+/// East, north and up at a longitude and latitude (radians), as the columns of a matrix
+/// (ENU to ECEF).
+pub fn enu(lon: f64, lat: f64) -> DMat3 {
+    let (so, co) = lon.sin_cos();
+    let (sl, cl) = lat.sin_cos();
+    DMat3::from_cols(DVec3::new(-so, co, 0.0), DVec3::new(-sl * co, -sl * so, cl), DVec3::new(cl * co, cl * so, sl))
+}
+
+/// The frame the renderer draws in: x east, y up, z south (the flat plate's axes) at a
+/// point, as the columns of a matrix (frame to ECEF).
+pub fn local_axes(lon: f64, lat: f64) -> DMat3 {
+    let m = enu(lon, lat);
+    DMat3::from_cols(m.x_axis, m.z_axis, -m.y_axis)
+}
+
+/// How a grid point becomes longitude and latitude.
+#[derive(Clone, Debug)]
+pub enum Mapping {
+    /// A geographic grid on WGS 84: longitude and latitude linear in `(x, z)`.
+    Geographic {
+        /// Radians at world (0, 0).
+        origin: DVec2,
+        /// Radians per world unit along x (east) and z (south; negative).
+        step: DVec2,
+    },
+    /// Web Mercator (EPSG:3857): longitude linear in x, latitude the Gudermannian of a
+    /// coordinate linear in z.
+    WebMercator {
+        /// Longitude (radians) and Mercator ordinate over the sphere's radius at world (0, 0).
+        origin: DVec2,
+        /// Per world unit, the same (z's negative).
+        step: DVec2,
+    },
+    /// Any other CRS: a lattice of exact transforms.
+    Lattice(Lattice),
+}
+
+/// Longitude and latitude at grid points, relative to a centre (radians), bilinear between.
+#[derive(Clone, Debug)]
+pub struct Lattice {
+    /// World point of lattice point (0, 0).
+    pub origin: DVec2,
+    /// World units between lattice points.
+    pub cell: f64,
+    /// Points per row and per column.
+    pub size: (usize, usize),
+    /// Longitude and latitude (radians) the values are relative to.
+    pub centre: DVec2,
+    /// Row-major values, north row first.
+    pub values: Vec<DVec2>,
+}
+
+impl Lattice {
+    /// Continuous lattice coordinates of a world point, clamped to the lattice.
+    pub fn coordinates(&self, x: f64, z: f64) -> DVec2 {
+        #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
+        let max = DVec2::new((self.size.0 - 1) as f64, (self.size.1 - 1) as f64);
+        ((DVec2::new(x, z) - self.origin) / self.cell).clamp(DVec2::ZERO, max)
+    }
+
+    /// The bilinear value at lattice coordinates `q`, relative to the centre (the
+    /// shader interpolates the same way).
+    pub fn at(&self, q: DVec2) -> DVec2 {
+        let (w, h) = self.size;
+        let i = q.floor();
+        let t = q - i;
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped coordinates")]
+        let (i0, j0) = (i.x as usize, i.y as usize);
+        let (i1, j1) = ((i0 + 1).min(w - 1), (j0 + 1).min(h - 1));
+        let v = |i: usize, j: usize| self.values[j * w + i];
+        let top = v(i0, j0).lerp(v(i1, j0), t.x);
+        let bottom = v(i0, j1).lerp(v(i1, j1), t.x);
+        top.lerp(bottom, t.y)
+    }
+}
+
+/// An archive's grid on the ellipsoid.
+#[derive(Clone, Debug)]
+pub struct GlobeMap {
+    /// Grid to longitude and latitude.
+    pub mapping: Mapping,
+    /// The drawn box `[min x, min z, max x, max z]` (world units): points are clamped to it.
+    pub extent: [f64; 4],
+    /// The heights the terrain is drawn between.
+    pub heights: (f64, f64),
+    geo: Arc<Geo>,
+}
+
+/// What the renderer needs of the frame it draws a globe view in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalFrame {
+    /// The anchor's longitude and latitude (radians).
+    pub lon_lat: DVec2,
+    /// The anchor on the ellipsoid, ECEF.
+    pub origin: DVec3,
+    /// Frame axes (x east, y up, z south) to ECEF.
+    pub axes: DMat3,
+}
+
+impl LocalFrame {
+    /// A frame at a longitude and latitude (radians), on the ellipsoid.
+    pub fn at(lon: f64, lat: f64) -> Self {
+        Self { lon_lat: DVec2::new(lon, lat), origin: ecef(lon, lat, 0.0), axes: local_axes(lon, lat) }
+    }
+
+    /// An ECEF point in the frame.
+    pub fn to_local(&self, p: DVec3) -> DVec3 {
+        self.axes.transpose() * (p - self.origin)
+    }
+
+    /// An ECEF direction in the frame.
+    pub fn direction_to_local(&self, d: DVec3) -> DVec3 {
+        self.axes.transpose() * d
+    }
+}
+
+/// Does the PROJ definition describe EPSG:3857's spherical Mercator?
+fn is_web_mercator(definition: &str) -> bool {
+    let has = |s: &str| definition.split_whitespace().any(|w| w == s);
+    has("+proj=merc") && has("+a=6378137") && has("+b=6378137")
+}
+
+/// Does a geographic definition use WGS 84 itself (no datum shift to apply)?
+fn is_wgs84_geographic(definition: &str) -> bool {
+    let has = |s: &str| definition.split_whitespace().any(|w| w == s);
+    has("+proj=longlat") && (has("+datum=WGS84") || has("+ellps=WGS84")) && !definition.contains("+towgs84=")
+        || has("+proj=longlat") && has("+towgs84=0,0,0,0,0,0,0") && has("+ellps=WGS84")
+}
+
+impl GlobeMap {
+    /// The grid of `metadata` on the ellipsoid; `None` for an archive that does not say
+    /// where it lies (it stays a flat plate).
+    pub fn new(metadata: &Metadata) -> Option<Self> {
+        let geo = Geo::new(metadata)?;
+        let georeference = metadata.georeference.as_ref()?;
+        let definition = georeference.definition.as_deref()?;
+        let (origin, scale) = (georeference.origin?, georeference.scale?);
+        let (extent, heights) = crate::fly::terrain_bounds(metadata);
+        let mapping = if is_wgs84_geographic(definition) {
+            Mapping::Geographic {
+                origin: DVec2::new(origin[0], origin[1]) * std::f64::consts::PI / 180.0,
+                step: DVec2::new(scale[0], -scale[1]) * std::f64::consts::PI / 180.0,
+            }
+        } else if is_web_mercator(definition) {
+            Mapping::WebMercator {
+                origin: DVec2::new(origin[0], origin[1]) / MERCATOR_RADIUS,
+                step: DVec2::new(scale[0], -scale[1]) / MERCATOR_RADIUS,
+            }
+        } else {
+            Mapping::Lattice(Self::lattice(&geo, extent)?)
+        };
+        Some(Self { mapping, extent, heights, geo: Arc::new(geo) })
+    }
+
+    fn lattice(geo: &Geo, [x0, z0, x1, z1]: [f64; 4]) -> Option<Lattice> {
+        let span = (x1 - x0).max(z1 - z0).max(1e-9);
+        #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
+        let cell = LATTICE_CELL.max(span / (LATTICE_MAX - 1) as f64);
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "bounded above")]
+        let count = |extent: f64| ((extent / cell).ceil() as usize + 1).clamp(2, LATTICE_MAX);
+        let size = (count(x1 - x0), count(z1 - z0));
+        let centre_world = ((x0 + x1) * 0.5, (z0 + z1) * 0.5);
+        let (clon, clat) = geo.world_to_lon_lat(centre_world.0, centre_world.1)?;
+        let centre = DVec2::new(clon.to_radians(), clat.to_radians());
+        let mut values = Vec::with_capacity(size.0 * size.1);
+        for j in 0..size.1 {
+            for i in 0..size.0 {
+                #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
+                let (x, z) = (x0 + i as f64 * cell, z0 + j as f64 * cell);
+                let (lon, lat) = geo.world_to_lon_lat(x, z)?;
+                let mut d = DVec2::new(lon.to_radians(), lat.to_radians()) - centre;
+                // Across the antimeridian, the shorter way round.
+                d.x = (d.x + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+                values.push(d);
+            }
+        }
+        Some(Lattice { origin: DVec2::new(x0, z0), cell, size, centre, values })
+    }
+
+    /// Longitude and latitude (radians) of a world point (clamped to the drawn box).
+    pub fn lon_lat(&self, x: f64, z: f64) -> DVec2 {
+        let [x0, z0, x1, z1] = self.extent;
+        let (x, z) = (x.clamp(x0, x1), z.clamp(z0, z1));
+        match &self.mapping {
+            Mapping::Geographic { origin, step } => {
+                let p = *origin + *step * DVec2::new(x, z);
+                DVec2::new(p.x, p.y.clamp(-std::f64::consts::FRAC_PI_2, std::f64::consts::FRAC_PI_2))
+            }
+            Mapping::WebMercator { origin, step } => {
+                let p = *origin + *step * DVec2::new(x, z);
+                DVec2::new(p.x, p.y.sinh().atan())
+            }
+            Mapping::Lattice(l) => l.centre + l.at(l.coordinates(x, z)),
+        }
+    }
+
+    /// ECEF of a world point at a height.
+    pub fn ecef(&self, x: f64, z: f64, height: f64) -> DVec3 {
+        let p = self.lon_lat(x, z);
+        ecef(p.x, p.y, height)
+    }
+
+    /// The world point at a longitude and latitude (radians), if it has one.
+    pub fn world(&self, lon: f64, lat: f64) -> Option<DVec2> {
+        match &self.mapping {
+            Mapping::Geographic { origin, step } => Some((DVec2::new(lon, lat) - *origin) / *step),
+            Mapping::WebMercator { origin, step } => {
+                let v = lat.clamp(-1.5, 1.5).tan().asinh();
+                Some((DVec2::new(lon, v) - *origin) / *step)
+            }
+            Mapping::Lattice(_) => {
+                let (x, z) = self.geo.lon_lat_to_world(lon.to_degrees(), lat.to_degrees())?;
+                Some(DVec2::new(x, z))
+            }
+        }
+    }
+
+    /// A box in ECEF holding the terrain over world rectangle `[x0, z0, x1, z1]` between
+    /// heights `lo` and `hi` (conservative: the surface between sample points bulges by
+    /// at most the sagitta of the arc they span, which pads the box).
+    pub fn bounds(&self, rect: [f64; 4], (lo, hi): (f64, f64)) -> Aabb {
+        let [ex0, ez0, ex1, ez1] = self.extent;
+        let (x0, z0) = (rect[0].clamp(ex0, ex1), rect[1].clamp(ez0, ez1));
+        let (x1, z1) = (rect[2].clamp(ex0, ex1), rect[3].clamp(ez0, ez1));
+        // Angular size from the corners: a small box needs only its corners and centre.
+        let corner = |x: f64, z: f64| self.lon_lat(x, z);
+        let (a, b) = (corner(x0, z0), corner(x1, z1));
+        let (c, d) = (corner(x1, z0), corner(x0, z1));
+        let span = (a - b).abs().max((c - d).abs());
+        let steps: u32 = if span.max_element() < 0.02 { 2 } else { 8 };
+        let (mut min, mut max) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
+        let mut chord: f64 = 0.0;
+        let mut previous_row: Vec<DVec3> = Vec::new();
+        for j in 0..=steps {
+            let mut row = Vec::with_capacity(steps as usize + 1);
+            for i in 0..=steps {
+                let (u, v) = (f64::from(i) / f64::from(steps), f64::from(j) / f64::from(steps));
+                let p = self.lon_lat(x0 + (x1 - x0) * u, z0 + (z1 - z0) * v);
+                let low = ecef(p.x, p.y, lo);
+                let high = ecef(p.x, p.y, hi);
+                min = min.min(low).min(high);
+                max = max.max(low).max(high);
+                if let Some(prev) = row.last() {
+                    chord = chord.max(high.distance(*prev));
+                }
+                if let Some(up) = previous_row.get(i as usize) {
+                    chord = chord.max(high.distance(*up));
+                    if i > 0 {
+                        chord = chord.max(high.distance(previous_row[i as usize - 1]));
+                    }
+                    if let Some(next) = previous_row.get(i as usize + 1) {
+                        chord = chord.max(high.distance(*next));
+                    }
+                }
+                row.push(high);
+            }
+            previous_row = row;
+        }
+        // The arc over a chord c on a sphere of radius r rises r (1 - cos(asin(c / 2r))).
+        let r = A + hi.max(0.0);
+        let half = (chord / (2.0 * r)).min(1.0);
+        let sagitta = r * (1.0 - (1.0 - half * half).sqrt());
+        let pad = sagitta * 1.5 + 1.0;
+        Aabb { min: min - DVec3::splat(pad), max: max + DVec3::splat(pad) }
+    }
+
+    /// The frame a view is drawn in: at the world point nearest below the eye (the
+    /// anchor), on the ellipsoid.
+    pub fn local_frame(&self, anchor: DVec2) -> LocalFrame {
+        let p = self.lon_lat(anchor.x, anchor.y);
+        LocalFrame::at(p.x, p.y)
+    }
+
+    /// The world point under an ECEF eye (clamped to the drawn box).
+    pub fn world_under(&self, eye: DVec3) -> DVec2 {
+        let (lon, lat, _) = geodetic(eye);
+        let [x0, z0, x1, z1] = self.extent;
+        let w = self.world(lon, lat).unwrap_or(DVec2::new((x0 + x1) * 0.5, (z0 + z1) * 0.5));
+        DVec2::new(w.x.clamp(x0, x1), w.y.clamp(z0, z1))
+    }
+}
+
+/// Is every point of `b` hidden from `eye` by the ellipsoid shrunk by `depth` metres (the
+/// terrain's lowest point below it, and a margin)? In coordinates scaled by the
+/// ellipsoid's radii it is a ball; what a ball hides from a point is convex, and so is
+/// its image, so the box's eight corners decide.
+pub fn box_hidden(eye: DVec3, depth: f64, b: &Aabb) -> bool {
+    let scale = DVec3::new(1.0 / A, 1.0 / A, 1.0 / B);
+    let radius = 1.0 - depth.max(0.0) / B;
+    let eye = eye * scale;
+    let corners = [0, 1, 2, 3, 4, 5, 6, 7].map(|i| {
+        DVec3::new(
+            if i & 1 == 0 { b.min.x } else { b.max.x },
+            if i & 2 == 0 { b.min.y } else { b.max.y },
+            if i & 4 == 0 { b.min.z } else { b.max.z },
+        )
+    });
+    corners.iter().all(|&q| segment_hits_ball(eye, q * scale, radius))
+}
+
+/// Does the segment from `a` to `b` meet the ball of radius `r` at the origin?
+fn segment_hits_ball(a: DVec3, b: DVec3, r: f64) -> bool {
+    let d = b - a;
+    let len2 = d.length_squared();
+    let t = if len2 > 0.0 { (-a.dot(d) / len2).clamp(0.0, 1.0) } else { 0.0 };
+    (a + d * t).length_squared() <= r * r
+}
+
+/// What selection and culling see of the terrain's shape.
+#[derive(Clone, Debug, Default)]
+pub enum Surface {
+    /// The flat plate: scene coordinates are world coordinates.
+    #[default]
+    Flat,
+    /// The globe: scene coordinates are ECEF.
+    Globe(Arc<GlobeMap>),
+}
+
+impl Surface {
+    /// The globe for a georeferenced archive when `globe` is asked for, else the plate.
+    pub fn new(metadata: &Metadata, globe: bool) -> Self {
+        match GlobeMap::new(metadata).filter(|_| globe) {
+            Some(map) => Self::Globe(Arc::new(map)),
+            None => Self::Flat,
+        }
+    }
+
+    /// The globe's map, if this is one.
+    pub fn globe(&self) -> Option<&GlobeMap> {
+        match self {
+            Self::Flat => None,
+            Self::Globe(map) => Some(map),
+        }
+    }
+
+    /// A box in scene coordinates holding the terrain over world rectangle
+    /// `[x0, z0, x1, z1]` between heights `lo` and `hi`.
+    pub fn bounds(&self, rect: [f64; 4], heights: (f64, f64)) -> Aabb {
+        match self {
+            Self::Flat => {
+                Aabb { min: DVec3::new(rect[0], heights.0, rect[1]), max: DVec3::new(rect[2], heights.1, rect[3]) }
+            }
+            Self::Globe(map) => map.bounds(rect, heights),
+        }
+    }
+
+    /// Is the box hidden from `eye` by the Earth (always false on the plate)? The Earth
+    /// is taken as the ball inside the ellipsoid and below the terrain's lowest point.
+    pub fn hidden(&self, eye: DVec3, b: &Aabb) -> bool {
+        match self {
+            Self::Flat => false,
+            Self::Globe(map) => box_hidden(eye, 100.0 - map.heights.0.min(0.0), b),
+        }
+    }
+
+    /// The up direction at a scene point.
+    pub fn up(&self, p: DVec3) -> DVec3 {
+        match self {
+            Self::Flat => DVec3::Y,
+            Self::Globe(_) => {
+                let (lon, lat, _) = geodetic(p);
+                enu(lon, lat).z_axis
+            }
+        }
+    }
+
+    /// Height of a scene point above the ellipsoid (the plate's y).
+    pub fn height(&self, p: DVec3) -> f64 {
+        match self {
+            Self::Flat => p.y,
+            Self::Globe(_) => geodetic(p).2,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn geodetic_inverts_ecef() {
+        for (lon, lat, h) in [(0.0, 0.0, 0.0), (86.925, 27.9881, 8848.0), (-122.6, 37.9, -50.0), (10.0, 89.999, 1e5)] {
+            let p = ecef(f64::to_radians(lon), f64::to_radians(lat), h);
+            let (lo, la, he) = geodetic(p);
+            assert!((lo.to_degrees() - lon).abs() < 1e-9 && (la.to_degrees() - lat).abs() < 1e-9, "{lon} {lat}");
+            assert!((he - h).abs() < 1e-6, "{h} -> {he}");
+        }
+        // The equator and the pole.
+        assert!((ecef(0.0, 0.0, 0.0).x - A).abs() < 1e-9);
+        assert!((ecef(0.0, std::f64::consts::FRAC_PI_2, 0.0).z - B).abs() < 1e-6);
+    }
+
+    #[test]
+    fn local_axes_are_east_up_south() {
+        let m = local_axes(0.0, 0.0);
+        assert!((m.x_axis - DVec3::Y).length() < 1e-12, "east at (0, 0) is +y");
+        assert!((m.y_axis - DVec3::X).length() < 1e-12, "up is +x");
+        assert!((m.z_axis + DVec3::Z).length() < 1e-12, "south is -z");
+    }
+
+    #[test]
+    fn a_point_is_hidden_only_behind_the_horizon() {
+        let eye = DVec3::new(A + 10_000.0, 0.0, 0.0);
+        let tiny = |p: DVec3| Aabb { min: p - DVec3::splat(1.0), max: p + DVec3::splat(1.0) };
+        // 100 km east along the equator: visible (the horizon from 10 km is 357 km away).
+        let near = ecef(0.1_f64.to_radians() * 9.0, 0.0, 0.0);
+        assert!(!box_hidden(eye, 0.0, &tiny(near)));
+        // The far side.
+        assert!(box_hidden(eye, 0.0, &tiny(DVec3::new(-A, 0.0, 0.0))));
+        // 450 km east: beyond the horizon (357 km), though not beyond a mountain's.
+        let far = ecef(4.05_f64.to_radians(), 0.0, 0.0);
+        assert!(box_hidden(eye, 0.0, &tiny(far)));
+        let summit = ecef(4.05_f64.to_radians(), 0.0, 8000.0);
+        assert!(!box_hidden(eye, 0.0, &tiny(summit)));
+    }
+}

@@ -1,0 +1,204 @@
+//! The globe: a georeferenced archive is drawn on the WGS 84 ellipsoid. A world archive
+//! seen whole is round; the horizon dips below the horizontal as geometry says it must;
+//! `flat` keeps the plate. Rendered on lavapipe, measured on the pixels.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use terrastream_client::fly::Pose;
+use terrastream_client::render::gpu::Gpu;
+use terrastream_client::render::renderer::{RenderSettings, Shading};
+use terrastream_client::render::still::{Still, StillOptions, default_camera, render_still, write_png};
+use terrastream_client::{Camera, Origin, Surface};
+use terrastream_format::{Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey};
+use terrastream_pack::{Writer, WriterOptions};
+
+fn gpu() -> Option<&'static Gpu> {
+    static GPU: OnceLock<Option<Gpu>> = OnceLock::new();
+    GPU.get_or_init(|| match Gpu::headless() {
+        Ok(gpu) => Some(gpu),
+        Err(e) if std::env::var_os("TERRASTREAM_ALLOW_NO_GPU").is_some() => {
+            eprintln!("\n!!!!! SKIPPING GLOBE TESTS: {e} (TERRASTREAM_ALLOW_NO_GPU is set) !!!!!\n");
+            None
+        }
+        Err(e) => panic!("{e}: install mesa-vulkan-drivers, or set TERRASTREAM_ALLOW_NO_GPU=1 to skip"),
+    })
+    .as_ref()
+}
+
+/// Metres of the equator per degree (the world unit of a geographic archive is a metre
+/// at the equator).
+const EQUATOR_METRES_PER_DEGREE: f64 = 6_378_137.0 * std::f64::consts::PI / 180.0;
+
+/// A texture-only world archive in EPSG:4326: 4 x 2 tiles of 90 degrees, checkered
+/// colours, a coarser LOD above (written once per test binary).
+fn world_archive() -> &'static Path {
+    static ARCHIVE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &ARCHIVE
+        .get_or_init(|| {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("world.tspack");
+            let size = 90.0 * EQUATOR_METRES_PER_DEGREE;
+            let layer = Layer {
+                name: "texture".into(),
+                kind: LayerKind::Texture,
+                format: TileFormat::Png,
+                compression: PayloadCompression::None,
+                tile_resolution: 64,
+                border: 0,
+                num_x_tiles: 4,
+                num_y_tiles: 2,
+                num_lods: 3,
+                tile_world_size: size,
+                elevation: None,
+                extent: None,
+            };
+            let mut metadata = Metadata::new("world", vec![layer]);
+            metadata.georeference = Some(Georeference {
+                crs: Some("EPSG:4326".into()),
+                origin: Some([-180.0, 90.0]),
+                lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
+                definition: Some("+proj=longlat +datum=WGS84 +no_defs".into()),
+                scale: Some([1.0 / EQUATOR_METRES_PER_DEGREE; 2]),
+            });
+            let tile = |rgb: [u8; 3]| {
+                let mut out = Vec::new();
+                let mut encoder = png::Encoder::new(&mut out, 64, 64);
+                encoder.set_color(png::ColorType::Rgb);
+                let pixels: Vec<u8> =
+                    (0..64 * 64).flat_map(|i| if (i % 64 / 8 + i / 512) % 2 == 0 { rgb } else { [40; 3] }).collect();
+                encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
+                out
+            };
+            let mut keys = vec![TileKey::new(0, 2, 0, 0).unwrap()];
+            keys.extend((0..2).map(|i| TileKey::new(0, 1, i, 0).unwrap()));
+            keys.extend((0..8).map(|i| TileKey::new(0, 0, i % 4, i / 4).unwrap()));
+            keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+            let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
+            for key in keys {
+                let colour = [[200, 60, 60], [60, 200, 60], [60, 60, 200], [200, 200, 60]][(key.x() % 4) as usize];
+                writer.add(key, tile(colour)).unwrap();
+            }
+            writer.finish().unwrap();
+            (dir, path)
+        })
+        .1
+}
+
+fn render(
+    path: &Path,
+    width: u32,
+    height: u32,
+    settings: RenderSettings,
+    camera: impl FnOnce(&Metadata, &Surface) -> Result<Camera, String>,
+) -> Option<Still> {
+    let gpu = gpu()?;
+    let options = StillOptions { width, height, settings, ..StillOptions::default() };
+    Some(render_still(gpu, Origin::parse(path.to_str().unwrap()).unwrap(), camera, &options).unwrap())
+}
+
+fn save(name: &str, still: &Still) {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("globe");
+    std::fs::create_dir_all(&dir).unwrap();
+    write_png(&dir.join(format!("{name}.png")), still.width, still.height, &still.rgba).unwrap();
+}
+
+fn lit(still: &Still, x: u32, y: u32) -> bool {
+    let i = ((y * still.width + x) * 4) as usize;
+    still.rgba[i..i + 3].iter().any(|&c| c > 16)
+}
+
+const FLAT_WHITE: RenderSettings = RenderSettings {
+    elevation_slots: 64,
+    texture_slots: 64,
+    patch: 32,
+    shading: Shading::Flat,
+    wireframe: false,
+    lod_colours: false,
+    detail: 0.0,
+    sun: glam::DVec3::Y,
+    fog_density: None,
+    sky: [0.0; 3],
+    flat: false,
+};
+
+/// The default view of a world archive is the whole Earth, and it is round: what is drawn
+/// fills the ellipse inscribed in its bounding box, which is as wide as it is high.
+#[test]
+fn the_earth_is_round() {
+    let Some(still) = render(world_archive(), 800, 600, FLAT_WHITE, |m, s| Ok(default_camera(m, s, 800, 600))) else {
+        return;
+    };
+    save("round", &still);
+    let (mut x0, mut y0, mut x1, mut y1) = (u32::MAX, u32::MAX, 0, 0);
+    for y in 0..still.height {
+        for x in 0..still.width {
+            if lit(&still, x, y) {
+                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+            }
+        }
+    }
+    assert!(x1 > x0 && y1 > y0, "nothing drawn");
+    let (w, h) = (f64::from(x1 - x0 + 1), f64::from(y1 - y0 + 1));
+    assert!((w / h - 1.0).abs() <= 0.03, "the disc is {w} x {h} px");
+    assert!(w > 300.0, "the Earth fills the frame: {w} px wide");
+    let (cx, cy) = (f64::from(x0 + x1) * 0.5, f64::from(y0 + y1) * 0.5);
+    let (mut inside, mut filled) = (0u32, 0u32);
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let (u, v) = ((f64::from(x) - cx) / (w * 0.5), (f64::from(y) - cy) / (h * 0.5));
+            if u * u + v * v <= 1.0 {
+                inside += 1;
+                filled += u32::from(lit(&still, x, y));
+            }
+        }
+    }
+    let share = f64::from(filled) / f64::from(inside);
+    assert!(share >= 0.95, "{share:.4} of the inscribed ellipse is drawn");
+}
+
+/// At 100 km and 10 km above the equator looking east, level, with a 60-degree vertical
+/// field of view on 800 x 600: the horizon lies arccos(R / (R + h)) below the horizontal,
+/// 10.1 and 3.2 degrees, rows 392 and 329 of the middle column.
+#[test]
+fn the_horizon_dips_as_geometry_says() {
+    for (height, row) in [(100_000.0, 392.0), (10_000.0, 329.0)] {
+        let pose = Pose::parse(&format!("0,0,{height}"), 90.0, 0.0).unwrap();
+        let camera = |m: &Metadata, s: &Surface| {
+            let (eye, target) = pose.eye_target(m, s)?;
+            let mut camera = Camera::look_at(eye, target, 800, 600);
+            camera.zenith = s.up(eye);
+            Ok(camera)
+        };
+        let Some(still) = render(world_archive(), 800, 600, FLAT_WHITE, camera) else { return };
+        save(&format!("horizon-{height}"), &still);
+        let first = (0..still.height).find(|&y| lit(&still, 400, y)).expect("no ground in the middle column");
+        let dip = (6_378_137.0f64 / (6_378_137.0 + height)).acos();
+        let expected = 300.0 + dip.tan() / 30f64.to_radians().tan() * 300.0;
+        assert!((expected - row).abs() < 0.6, "the geometry: {expected}");
+        assert!(
+            (f64::from(first) - expected).abs() <= 3.0,
+            "at {height} m the horizon is at row {first}, geometry says {expected:.1}"
+        );
+    }
+}
+
+/// `flat` keeps the plate for a georeferenced archive: the world is a 2:1 sheet.
+#[test]
+fn flat_keeps_the_plate() {
+    let settings = RenderSettings { flat: true, ..FLAT_WHITE };
+    let Some(still) = render(world_archive(), 800, 600, settings, |m, s| {
+        assert!(s.globe().is_none(), "flat asked: the plate");
+        Ok(default_camera(m, s, 800, 600))
+    }) else {
+        return;
+    };
+    save("flat", &still);
+    // Seen obliquely from the south, the sheet's far edge is straight: its top row of
+    // lit pixels spans the same row across the middle half of the picture.
+    let top = |x: u32| (0..still.height).find(|&y| lit(&still, x, y));
+    let rows: Vec<u32> = (300..500).step_by(20).filter_map(top).collect();
+    assert_eq!(rows.len(), 10, "the sheet spans the middle");
+    assert!(rows.iter().max().unwrap() - rows.iter().min().unwrap() <= 1, "a straight far edge: {rows:?}");
+}
