@@ -476,4 +476,67 @@ mod tests {
         let summit = ecef(4.05_f64.to_radians(), 0.0, 8000.0);
         assert!(!box_hidden(eye, 0.0, &tiny(summit)));
     }
+
+    /// terrain.wgsl's `globe_local`, in f32 as the GPU runs it: a point `d` (longitude,
+    /// latitude) from the anchor at height `h`, in the anchor's frame.
+    #[expect(clippy::many_single_char_names, clippy::cast_possible_truncation, reason = "the shader's f32")]
+    fn globe_local_f32(anchor_lat: f64, d: [f32; 2], h: f32) -> [f32; 3] {
+        let (sa, ca) = (anchor_lat.sin() as f32, anchor_lat.cos() as f32);
+        let na = (A / (1.0 - E2 * anchor_lat.sin().powi(2)).sqrt()) as f32;
+        let (a, e2) = (A as f32, E2 as f32);
+        let half = (0.5 * d[1]).sin();
+        let cos_half = (0.5 * d[1]).cos();
+        let dc = -2.0 * half * (sa * cos_half + ca * half);
+        let ds = 2.0 * half * (ca * cos_half - sa * half);
+        let (s, c) = (sa + ds, ca + dc);
+        let w = (1.0 - e2 * s * s).sqrt();
+        let wa = a / na;
+        let n = a / w;
+        let dn = n * e2 * ds * (s + sa) / (wa * (w + wa));
+        let sl = (0.5 * d[0]).sin();
+        let x = (n + h) * c * (-2.0 * sl * sl) + (dn + h) * c + na * dc;
+        let y = (n + h) * c * d[0].sin();
+        let z = (dn * (1.0 - e2) + h) * s + na * (1.0 - e2) * ds;
+        [y, ca * x + sa * z, sa * x - ca * z]
+    }
+
+    #[test]
+    #[expect(clippy::cast_possible_truncation, reason = "what the CPU hands the GPU")]
+    fn the_shaders_f32_placement_is_within_millimetres_at_the_summit() {
+        let (lon, lat) = (86.925_f64.to_radians(), 27.9881_f64.to_radians());
+        let frame = LocalFrame::at(lon, lat);
+        let mut worst_near: f64 = 0.0;
+        let mut worst_far: f64 = 0.0;
+        let mut naive: f64 = 0.0;
+        for (i, (east, north, h)) in [
+            (3.0, -2.0, 8848.0),
+            (-7.5, 9.1, 8846.5),
+            (0.4, 0.3, 8850.0),
+            (25_000.0, -40_000.0, 5000.0),
+            (9.0e5, 3.0e5, 100.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let d = [east / (A * lat.cos()), north / A];
+            let got = globe_local_f32(lat, [d[0] as f32, d[1] as f32], h as f32);
+            // The offset f32 can carry exactly is rounded from the f64 one; the rest is the formula's.
+            let rounded =
+                frame.to_local(ecef(lon + f64::from(d[0] as f32), lat + f64::from(d[1] as f32), f64::from(h as f32)));
+            let error = (DVec3::new(f64::from(got[0]), f64::from(got[1]), f64::from(got[2])) - rounded).length();
+            if i < 3 {
+                worst_near = worst_near.max(error);
+                // The same point in f32 ECEF less the anchor's: what camera-relative rendering avoids.
+                let p = ecef(lon + d[0], lat + d[1], h).as_vec3() - frame.origin.as_vec3();
+                naive = naive.max((p.as_dvec3() - (ecef(lon + d[0], lat + d[1], h) - frame.origin)).length());
+            } else {
+                let distance = DVec3::new(east, h, north).length();
+                worst_far = worst_far.max(error / distance);
+            }
+        }
+        // Heights of 8 848 m carry half a millimetre of f32 rounding themselves.
+        assert!(worst_near < 2e-3, "{worst_near} m off within 10 m of the anchor");
+        assert!(worst_far < 1e-6, "{worst_far} of the distance off far from it");
+        assert!(naive > 0.05, "f32 ECEF would be {naive} m off: the check can tell");
+    }
 }

@@ -99,6 +99,19 @@ impl Crs {
         Self { code: Some(4326), definition, proj }
     }
 
+    /// The CRS a geographic input goes onto by default, given its bounds (west, south,
+    /// east, north; degrees): a transverse Mercator centred on a region, where a metre is
+    /// a metre across it; WGS 84's own grid beyond [`REGION_DEGREES`], where a transverse
+    /// Mercator's scale error grows (30-40 % at the corners of 90 x 50 degrees) and the
+    /// globe draws the geographic grid without distortion.
+    pub fn for_geographic(west: f64, south: f64, east: f64, north: f64) -> Self {
+        if spans_more_than_region(west, south, east, north) {
+            Self::wgs84()
+        } else {
+            Self::local_transverse_mercator((west + east) / 2.0, (south + north) / 2.0)
+        }
+    }
+
     /// A transverse Mercator on WGS 84 centred on `(lon, lat)` (scale 1, no false origin):
     /// metres that are metres across a region, for data given in degrees.
     pub fn local_transverse_mercator(lon: f64, lat: f64) -> Self {
@@ -214,6 +227,19 @@ fn esri_name(wkt: &str) -> Option<u16> {
         ("ETRS_1989", "N") if (28..=38).contains(&n) => Some(25800 + n),
         _ => None,
     }
+}
+
+/// Degrees across beyond which geographic data is more than a region: the larger of its
+/// longitude span (at its middle latitude's scale) and its latitude span. A transverse
+/// Mercator centred on 10 degrees has a scale error of 0.4 % at its edges, 5 degrees
+/// from the central meridian.
+pub const REGION_DEGREES: f64 = 10.0;
+
+/// Does a box (west, south, east, north; degrees) span more than a region?
+pub fn spans_more_than_region(west: f64, south: f64, east: f64, north: f64) -> bool {
+    let middle = ((south + north) / 2.0).to_radians();
+    let across = ((east - west) * middle.cos()).max(north - south);
+    across > REGION_DEGREES
 }
 
 #[cfg(test)]

@@ -213,14 +213,21 @@ fn grid_asked(request: &TileRequest) -> bool {
 
 /// The elevation inputs as one mosaic on one output grid, when they need one: several
 /// inputs, a VRT (a mosaic of its sources, even alone), a grid asked for, or one
-/// geographic GeoTIFF (onto a transverse Mercator centred on it, as a mosaic's geographic
-/// inputs go: a metre is a metre everywhere, not only at the centre latitude).
+/// geographic GeoTIFF of a region (onto a transverse Mercator centred on it, as a
+/// mosaic's geographic inputs go: a metre is a metre everywhere, not only at the centre
+/// latitude; one spanning more than [`crate::crs::REGION_DEGREES`] keeps its grid).
 fn height_mosaic(request: &TileRequest, crs: Option<&Crs>) -> Result<Option<Mosaic<Heights>>> {
     let inputs = &request.elevation;
     let vrt = inputs.iter().any(|p| is_vrt(p));
     let geographic = match inputs.as_slice() {
         [one] if !vrt && !request.keep_geographic && request.sample_spacing.is_none() => {
-            open_elevation(one, request.encoding)?.is_geographic_tiff()
+            let file = open_elevation(one, request.encoding)?;
+            // More than a region keeps its own grid (the globe draws it undistorted).
+            let region = file
+                .georeference()
+                .and_then(|g| g.lat_lon_bounds)
+                .is_none_or(|[w, s, e, n]| !crate::crs::spans_more_than_region(w, s, e, n));
+            file.is_geographic_tiff() && region
         }
         _ => false,
     };

@@ -327,7 +327,7 @@ impl<K: MosaicKind> Mosaic<K> {
             None if !files[0].crs.is_geographic() => files[0].crs.clone(),
             None => {
                 let (w, s, e, n) = lon_lat_bounds(&files);
-                Crs::local_transverse_mercator((w + e) / 2.0, (s + n) / 2.0)
+                Crs::for_geographic(w, s, e, n)
             }
         };
         let footprints = Footprints::of(&files, &crs)?;
