@@ -92,16 +92,17 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     };
     let gpu = Gpu::headless().context("the render benchmark needs a graphics adapter")?;
     let budget = UploadBudget { max_tiles: args.max_upload_tiles.max(1), ..UploadBudget::default() };
-    let open = || -> Result<Session> {
+    let open_on = |flat: bool| -> Result<Session> {
         let streamer = Streamer::open(Origin::parse(&location)?, StreamOptions::default())?;
         Ok(Session::new(
             streamer,
             &gpu.device,
-            RenderSettings { flat: true, ..RenderSettings::default() },
+            RenderSettings { flat, ..RenderSettings::default() },
             OFFSCREEN_FORMAT,
             budget,
         )?)
     };
+    let open = || open_on(true);
     let mut streaming = open()?;
     let metadata = streaming.streamer.metadata().cloned().context("no metadata")?;
     let cameras = flight(&metadata, args.frames, w, h);
@@ -142,5 +143,38 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     let (s50, s99) = stats("streaming", &streamed);
     let (r50, r99) = stats("resident", &settled);
     println!("  streaming / resident: median {:.2}x, p99 {:.2}x (target: p99 within 1.25x)", s50 / r50, s99 / r99);
+    // The same views on the globe (a georeferenced archive): each eye and target placed on
+    // the ellipsoid at its grid point and height.
+    let mut globe = open_on(false)?;
+    let Some(map) = globe.renderer.surface().globe().cloned() else {
+        println!("  globe: the archive does not say where it lies");
+        return Ok(());
+    };
+    let surface = globe.renderer.surface().clone();
+    let on_globe: Vec<Camera> = cameras
+        .iter()
+        .map(|c| {
+            let target = c.position + c.direction() * 100.0;
+            let eye = map.ecef(c.position.x, c.position.z, c.position.y);
+            let mut camera = Camera::look_at(eye, map.ecef(target.x, target.z, target.y), w, h);
+            camera.zenith = surface.up(eye);
+            camera
+        })
+        .collect();
+    let flat_fetched = before.tiles_fetched;
+    for camera in &on_globe {
+        globe.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
+    }
+    let globe_fetched = globe.streamer.stats().tiles_fetched;
+    let on_the_globe = fly(&gpu, &mut globe, &on_globe, &target)?;
+    let (g50, g99) = stats("globe", &on_the_globe);
+    println!(
+        "  globe / flat (resident): median {:.2}x, p99 {:.2}x (target: 1.2x); tiles fetched to settle the flight {} / {} = {:.2}x",
+        g50 / r50,
+        g99 / r99,
+        globe_fetched,
+        flat_fetched,
+        globe_fetched as f64 / flat_fetched.max(1) as f64
+    );
     Ok(())
 }
