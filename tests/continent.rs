@@ -119,8 +119,8 @@ fn a_continent_draws_in_render_and_in_a_window_alike() {
     assert_eq!((w, h), (WIDTH, HEIGHT));
     terrastream_testkit::golden::assert_golden("continent-render", w, h, &rendered, TOLERANCE);
     let share = terrain_share(&rendered);
-    // The default view frames the continent's grid; its data, 90 degrees of longitude on a
-    // transverse Mercator, is a fan inside it: a good part of the picture is terrain.
+    // The default view frames the continent's grid; its data, 90 x 50 degrees kept on its
+    // geographic grid (more than a region), fills most of it: a good part is terrain.
     assert!(share > 0.2, "only {:.0} % of the render is terrain", share * 100.0);
 
     // The same archive in a window.
