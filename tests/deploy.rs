@@ -7,12 +7,13 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use terrastream_client::{Camera, DecodedTile, Origin, SelectOptions, StreamOptions, Streamer, TileData, UploadBudget};
 use terrastream_format::TileKey;
+use terrastream_testkit::browser::Process;
 use terrastream_testkit::labelled::{LabelledSpec, label_colour, write_labelled_archive};
 
 fn deploy(path: &str) -> PathBuf {
@@ -21,15 +22,8 @@ fn deploy(path: &str) -> PathBuf {
 
 /// `terrastream serve` as a child process, killed on drop.
 struct Server {
-    child: Child,
+    _child: Process,
     port: u16,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn start_server(dir: &Path) -> Server {
@@ -49,7 +43,7 @@ fn start_server(dir: &Path) -> Server {
         .stdout(Stdio::null())
         .spawn()
         .unwrap();
-    let server = Server { child, port };
+    let server = Server { _child: Process(child), port };
     let health = format!("http://127.0.0.1:{port}/healthz");
     for _ in 0..200 {
         let ok = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(["health", &health]).output().unwrap();
@@ -424,15 +418,8 @@ fn on_disk(dir: &Path, prefix: &str) -> (u64, u64) {
 
 /// An S3 API server on loopback (PyPI `moto[server]`'s `moto_server`), stopped on drop.
 struct ObjectStore {
-    child: Child,
+    _child: Process,
     port: u16,
-}
-
-impl Drop for ObjectStore {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl ObjectStore {
@@ -457,7 +444,7 @@ impl ObjectStore {
             .stderr(Stdio::null())
             .spawn()
             .unwrap();
-        let store = Self { child, port };
+        let store = Self { _child: Process(child), port };
         terrastream_testkit::browser::wait_for_port(port, "moto_server");
         Some(store)
     }

@@ -67,7 +67,7 @@ pub fn default_camera(metadata: &Metadata, surface: &Surface, width: u32, height
         let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
         // The camera's up: moving the eye along it moves the picture down, direction kept.
         let up = DVec3::new(0.0, pitch.cos(), -pitch.sin());
-        let framing = Framing { centre, back, up, points: corners(&terrain).to_vec(), size: 0.0 };
+        let framing = Framing { centre, back, up, points: terrain.corners().to_vec() };
         return framing.fit(surface, &drawn, width, height);
     };
     let framed = framed_box(metadata);
@@ -103,8 +103,7 @@ pub fn default_camera(metadata: &Metadata, surface: &Surface, width: u32, height
     let pitch = DEFAULT_PITCH_DEGREES.to_radians();
     let back = up * pitch.sin() - north * pitch.cos();
     let camera_up = up * pitch.cos() + north * pitch.sin();
-    let size = (drawn.max - drawn.min).length().max(1.0);
-    Framing { centre, back, up: camera_up, points, size }.fit(surface, &drawn, width, height)
+    Framing { centre, back, up: camera_up, points }.fit(surface, &drawn, width, height)
 }
 
 /// A view to fit: looking along `-back` at `centre`, moved along `up` to centre the
@@ -114,13 +113,11 @@ struct Framing {
     back: DVec3,
     up: DVec3,
     points: Vec<DVec3>,
-    /// A length of the order of the data's size (0: from the points).
-    size: f64,
 }
 
 impl Framing {
     fn fit(&self, surface: &Surface, drawn: &Aabb, width: u32, height: u32) -> Camera {
-        let Self { centre, back, up, points, .. } = self;
+        let Self { centre, back, up, points } = self;
         let at = |distance: f64, lift: f64| {
             let eye = *centre + *back * distance + *up * lift;
             let mut camera = Camera::look_at(eye, eye - *back, width, height);
@@ -146,12 +143,8 @@ impl Framing {
                 lo.cmpge(DVec2::splat(-FRAME_FILL)).all() && hi.cmple(DVec2::splat(FRAME_FILL)).all()
             })
         };
-        let size = if self.size > 0.0 {
-            self.size
-        } else {
-            let (lo, hi) = points.iter().fold((DVec3::MAX, DVec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
-            (hi - lo).length().max(1.0)
-        };
+        let (lo, hi) = points.iter().fold((DVec3::MAX, DVec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        let size = (hi - lo).length().max(1.0);
         let (mut distance, mut lift) = (size * 4.0, 0.0);
         // Alternately: centre the points vertically, then come as close as the fill allows.
         for round in 0..4 {
@@ -222,23 +215,12 @@ pub fn start_camera(
     }
 }
 
-fn corners(b: &Aabb) -> [DVec3; 8] {
-    let (lo, hi) = (b.min, b.max);
-    [0, 1, 2, 3, 4, 5, 6, 7].map(|i| {
-        DVec3::new(
-            if i & 1 == 0 { lo.x } else { hi.x },
-            if i & 2 == 0 { lo.y } else { hi.y },
-            if i & 4 == 0 { lo.z } else { hi.z },
-        )
-    })
-}
-
 impl Camera {
     /// This camera with near and far planes that enclose `terrain` wherever the eye is:
     /// far beyond its farthest corner, near a tenth of the way to its closest point.
     #[must_use]
     pub fn enclosing(mut self, terrain: &Aabb) -> Self {
-        let farthest = corners(terrain).iter().map(|c| c.distance(self.position)).fold(0.0, f64::max);
+        let farthest = terrain.corners().iter().map(|c| c.distance(self.position)).fold(0.0, f64::max);
         self.near = (terrain.distance(self.position) * 0.1).max(0.05);
         self.far = (farthest * 1.05 + 1.0).max(self.near * 2.0);
         self
@@ -425,7 +407,7 @@ mod tests {
         let flown = FlyCamera::from_camera(&start).camera(1280, 720).enclosing(&terrain);
         assert!((flown.position - start.position).length() < 1e-6 && (flown.far - start.far).abs() < 1e-3);
         for camera in [start, flown] {
-            let farthest = corners(&terrain).iter().map(|c| c.distance(camera.position)).fold(0.0, f64::max);
+            let farthest = terrain.corners().iter().map(|c| c.distance(camera.position)).fold(0.0, f64::max);
             assert!(camera.far > farthest, "far {} < farthest corner {farthest}", camera.far);
             assert!(camera.frustum().intersects(&terrain));
         }
@@ -443,7 +425,7 @@ mod tests {
             let camera = default_camera(&m, &Surface::Flat, width, height);
             let clip = camera.view_projection();
             let (mut lo, mut hi) = (DVec2::splat(f64::MAX), DVec2::splat(f64::MIN));
-            for c in corners(&terrain_box(&m)) {
+            for c in terrain_box(&m).corners() {
                 let p = clip * c.extend(1.0);
                 let ndc = DVec2::new(p.x / p.w, p.y / p.w);
                 lo = lo.min(ndc);

@@ -351,14 +351,7 @@ pub fn box_hidden(eye: DVec3, depth: f64, b: &Aabb) -> bool {
     let scale = DVec3::new(1.0 / A, 1.0 / A, 1.0 / B);
     let radius = 1.0 - depth.max(0.0) / B;
     let eye = eye * scale;
-    let corners = [0, 1, 2, 3, 4, 5, 6, 7].map(|i| {
-        DVec3::new(
-            if i & 1 == 0 { b.min.x } else { b.max.x },
-            if i & 2 == 0 { b.min.y } else { b.max.y },
-            if i & 4 == 0 { b.min.z } else { b.max.z },
-        )
-    });
-    corners.iter().all(|&q| segment_hits_ball(eye, q * scale, radius))
+    b.corners().iter().all(|&q| segment_hits_ball(eye, q * scale, radius))
 }
 
 /// Does the segment from `a` to `b` meet the ball of radius `r` at the origin?

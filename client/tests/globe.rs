@@ -62,15 +62,7 @@ fn world_archive() -> &'static Path {
                 definition: Some("+proj=longlat +datum=WGS84 +no_defs".into()),
                 scale: Some([1.0 / EQUATOR_METRES_PER_DEGREE; 2]),
             });
-            let tile = |rgb: [u8; 3]| {
-                let mut out = Vec::new();
-                let mut encoder = png::Encoder::new(&mut out, 64, 64);
-                encoder.set_color(png::ColorType::Rgb);
-                let pixels: Vec<u8> =
-                    (0..64 * 64).flat_map(|i| if (i % 64 / 8 + i / 512) % 2 == 0 { rgb } else { [40; 3] }).collect();
-                encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
-                out
-            };
+            let tile = |rgb: [u8; 3]| terrastream_testkit::archives::checkered_png(64, rgb, [40; 3]);
             let mut keys = vec![TileKey::new(0, 2, 0, 0).unwrap()];
             keys.extend((0..2).map(|i| TileKey::new(0, 1, i, 0).unwrap()));
             keys.extend((0..8).map(|i| TileKey::new(0, 0, i % 4, i / 4).unwrap()));

@@ -550,15 +550,7 @@ fn texture_only_archive(dir: &Path, data_extent: Option<[f64; 2]>) -> PathBuf {
     metadata.terrain.min_elevation = 3000.0;
     metadata.terrain.max_elevation = 3000.0;
     metadata.terrain.data_extent = data_extent;
-    let tile = |rgb: [u8; 3]| {
-        let mut out = Vec::new();
-        let mut encoder = png::Encoder::new(&mut out, 64, 64);
-        encoder.set_color(png::ColorType::Rgb);
-        let pixels: Vec<u8> =
-            (0..64 * 64).flat_map(|i| if (i % 64 / 8 + i / 512) % 2 == 0 { rgb } else { [20; 3] }).collect();
-        encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
-        out
-    };
+    let tile = |rgb: [u8; 3]| terrastream_testkit::archives::checkered_png(64, rgb, [20; 3]);
     let mut keys = vec![TileKey::new(0, 1, 0, 0).unwrap()];
     keys.extend((0..4).map(|i| TileKey::new(0, 0, i % 2, i / 2).unwrap()));
     keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());

@@ -291,7 +291,7 @@ pub struct TerrainRenderer {
     params: MeshParams,
     /// The plate or the globe the terrain is drawn on.
     surface: Surface,
-    /// The terrain's box in scene coordinates.
+    /// The terrain's box in scene coordinates (camera clip planes enclose it).
     scene_box: Aabb,
     /// The globe's lattice of longitudes and latitudes (1 x 1 unused elsewhere), and
     /// whether it still has to be written.
@@ -520,7 +520,7 @@ impl TerrainRenderer {
             settings,
             extent,
             column,
-            scene_box: surface.bounds(extent, column),
+            scene_box: crate::fly::scene_box(metadata, &surface),
             surface,
             lattice,
             lattice_dirty: true,
@@ -559,6 +559,11 @@ impl TerrainRenderer {
     /// The plate or the globe the terrain is drawn on.
     pub fn surface(&self) -> &Surface {
         &self.surface
+    }
+
+    /// The terrain's box in the surface's scene coordinates ([`crate::fly::scene_box`]).
+    pub fn scene_box(&self) -> Aabb {
+        self.scene_box
     }
 
     /// Mesh parameters in use.

@@ -3,7 +3,6 @@
 use terrastream_format::{LayerKind, Metadata};
 
 use super::renderer::{FrameStats, RenderSettings, TerrainPipeline, TerrainRenderer};
-use crate::fly::scene_box;
 use crate::stream::camera::Camera;
 use crate::stream::select::drawn_heights;
 use crate::stream::streamer::{StreamStats, Streamer, UploadBudget};
@@ -62,6 +61,7 @@ impl Session {
         options.select.max_wanted = options.select.max_wanted.min(renderer.max_resident_tiles());
         options.select.globe = !settings.flat;
         streamer.set_options(options);
+        streamer.set_surface(renderer.surface().clone());
         let generation = streamer.generation();
         Ok(Self {
             streamer,
@@ -79,7 +79,7 @@ impl Session {
     /// camera's clip planes are fitted to the terrain first ([`Camera::enclosing`]), the
     /// same for every front end.
     pub fn frame(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, camera: &Camera) -> (StreamStats, FrameStats) {
-        let camera = &camera.enclosing(&scene_box(&self.metadata, self.renderer.surface()));
+        let camera = &camera.enclosing(&self.renderer.scene_box());
         self.streamer.update(camera);
         if self.streamer.generation() != self.generation {
             self.generation = self.streamer.generation();
@@ -88,6 +88,7 @@ impl Session {
                     self.metadata = m.clone();
                     let settings = *self.renderer.settings();
                     self.renderer = TerrainRenderer::with_pipeline(device, &self.metadata, settings, &self.pipeline);
+                    self.streamer.set_surface(self.renderer.surface().clone());
                 }
                 _ => self.renderer.clear(),
             }

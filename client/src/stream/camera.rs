@@ -98,6 +98,18 @@ pub struct Aabb {
 }
 
 impl Aabb {
+    /// The eight corners.
+    pub fn corners(&self) -> [DVec3; 8] {
+        let (lo, hi) = (self.min, self.max);
+        [0, 1, 2, 3, 4, 5, 6, 7].map(|i| {
+            DVec3::new(
+                if i & 1 == 0 { lo.x } else { hi.x },
+                if i & 2 == 0 { lo.y } else { hi.y },
+                if i & 4 == 0 { lo.z } else { hi.z },
+            )
+        })
+    }
+
     /// Distance from `p` to the box (0 inside).
     pub fn distance(&self, p: DVec3) -> f64 {
         (self.min - p).max(p - self.max).max(DVec3::ZERO).length()

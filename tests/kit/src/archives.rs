@@ -70,3 +70,16 @@ pub fn write_u16_archive(path: &Path, version: u16, compression: PayloadCompress
 pub fn raw_tile(t: TileKey, version: u16) -> Vec<u8> {
     (0..256u16).flat_map(|i| (i + u16::from(t.lod()) * 7 + version * 1000).to_le_bytes()).collect()
 }
+
+/// A `size` x `size` RGB PNG checkered in 8-pixel squares of `rgb` and `dark`, starting
+/// with `rgb` at the top left: a tile whose placement and LOD show in a render.
+pub fn checkered_png(size: u32, rgb: [u8; 3], dark: [u8; 3]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut encoder = png::Encoder::new(&mut out, size, size);
+    encoder.set_color(png::ColorType::Rgb);
+    let pixels: Vec<u8> = (0..size * size)
+        .flat_map(|i| if (i % size / 8 + i / size / 8).is_multiple_of(2) { rgb } else { dark })
+        .collect();
+    encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
+    out
+}

@@ -176,6 +176,12 @@ impl Streamer {
         Some(surface)
     }
 
+    /// Hands in the surface made for the current archive elsewhere (a renderer makes the
+    /// same one), so that a lattice of transforms is made once.
+    pub fn set_surface(&mut self, surface: Surface) {
+        self.surface = Some(((self.generation, self.options.select.globe), surface));
+    }
+
     /// Changes whenever the archive was found replaced: everything uploaded before
     /// belongs to the old version and must be dropped.
     pub fn generation(&self) -> u64 {
