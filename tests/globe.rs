@@ -127,3 +127,30 @@ fn a_continent_keeps_its_geographic_grid() {
         assert_eq!(definition.contains("+proj=tmerc"), !geographic, "{degrees} degrees: {definition}");
     }
 }
+
+/// A grazing view over a region fetches no more tiles on the globe than on the plate: the
+/// globe's boxes follow the ground's tangent plane, and the curved Earth hides the rest.
+#[test]
+fn a_grazing_view_fetches_no_more_tiles_on_the_globe() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let tif = dem(dir.path(), EVEREST.0 - 0.1, EVEREST.1 - 0.1, 0.2, 1200.0);
+    let archive = dir.path().join("everest.tspack");
+    let (a, p) = (archive.to_str().unwrap(), dir.path().join("v.png"));
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "--tile-size", "32", "-o", a], dir.path());
+    let fetched = |flat: bool| -> u64 {
+        let mut args = vec!["render", a, "-o", p.to_str().unwrap(), "--size", "640x360"];
+        args.extend(["--at", "86.83,27.9,5200", "--heading", "45", "--pitch", "-4"]);
+        if flat {
+            args.push("--flat");
+        }
+        let said = terrastream(&args, dir.path());
+        let before = said.split(" tiles fetched").next().unwrap();
+        before.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    let (globe, flat) = (fetched(false), fetched(true));
+    assert!(flat > 10, "the view reaches several LODs: {flat} tiles");
+    assert!(globe <= flat, "the globe fetched {globe} tiles, the plate {flat}");
+}

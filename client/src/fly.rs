@@ -10,7 +10,7 @@ use glam::{DMat4, DVec2, DVec3};
 use terrastream_format::{Layer, LayerKind, Metadata, intersect, union};
 
 use crate::globe::Surface;
-use crate::stream::camera::{Aabb, Camera};
+use crate::stream::camera::{Aabb, Camera, SceneBox};
 pub use crate::stream::select::drawn_heights;
 
 /// The box `[min x, min z, max x, max z]` in world units where the terrain is drawn, and
@@ -61,7 +61,7 @@ const FRAME_FILL: f64 = 0.92;
 pub fn default_camera(metadata: &Metadata, surface: &Surface, width: u32, height: u32) -> Camera {
     let Some(globe) = surface.globe() else {
         let terrain = framed_box(metadata);
-        let drawn = terrain_box(metadata);
+        let drawn = SceneBox::from(terrain_box(metadata));
         let centre = (terrain.min + terrain.max) * 0.5;
         let pitch = DEFAULT_PITCH_DEGREES.to_radians();
         let back = DVec3::new(0.0, pitch.sin(), pitch.cos());
@@ -116,7 +116,7 @@ struct Framing {
 }
 
 impl Framing {
-    fn fit(&self, surface: &Surface, drawn: &Aabb, width: u32, height: u32) -> Camera {
+    fn fit(&self, surface: &Surface, drawn: &SceneBox, width: u32, height: u32) -> Camera {
         let Self { centre, back, up, points } = self;
         let at = |distance: f64, lift: f64| {
             let eye = *centre + *back * distance + *up * lift;
@@ -168,9 +168,9 @@ impl Framing {
 }
 
 /// The terrain's box in scene coordinates (world on the plate, ECEF on the globe).
-pub fn scene_box(metadata: &Metadata, surface: &Surface) -> Aabb {
+pub fn scene_box(metadata: &Metadata, surface: &Surface) -> SceneBox {
     match surface {
-        Surface::Flat => terrain_box(metadata),
+        Surface::Flat => terrain_box(metadata).into(),
         Surface::Globe(globe) => {
             let (rect, heights) = terrain_bounds(metadata);
             globe.bounds(rect, heights)
@@ -219,7 +219,7 @@ impl Camera {
     /// This camera with near and far planes that enclose `terrain` wherever the eye is:
     /// far beyond its farthest corner, near a tenth of the way to its closest point.
     #[must_use]
-    pub fn enclosing(mut self, terrain: &Aabb) -> Self {
+    pub fn enclosing(mut self, terrain: &SceneBox) -> Self {
         let farthest = terrain.corners().iter().map(|c| c.distance(self.position)).fold(0.0, f64::max);
         self.near = (terrain.distance(self.position) * 0.1).max(0.05);
         self.far = (farthest * 1.05 + 1.0).max(self.near * 2.0);
@@ -404,7 +404,7 @@ mod tests {
         let terrain = terrain_box(&m);
         let start = start_camera(&m, &Surface::Flat, None, 1280, 720);
         // The flyer's camera (view, webplayer) and the still's (render) are one camera.
-        let flown = FlyCamera::from_camera(&start).camera(1280, 720).enclosing(&terrain);
+        let flown = FlyCamera::from_camera(&start).camera(1280, 720).enclosing(&terrain.into());
         assert!((flown.position - start.position).length() < 1e-6 && (flown.far - start.far).abs() < 1e-3);
         for camera in [start, flown] {
             let farthest = terrain.corners().iter().map(|c| c.distance(camera.position)).fold(0.0, f64::max);
@@ -413,7 +413,7 @@ mod tests {
         }
         // Low over one corner, looking across: the far side is still inside the far plane.
         let low = FlyCamera { eye: DVec3::new(10.0, 300.0, 10.0), yaw: 2.3, pitch: -0.05, speed: 1.0 };
-        let camera = low.camera(1280, 720).enclosing(&terrain);
+        let camera = low.camera(1280, 720).enclosing(&terrain.into());
         assert!(camera.far > DVec3::new(1.0e7, 0.0, 6.0e6).length());
         assert!(camera.near <= 0.1 * 300.0 + 1e-9);
     }

@@ -19,7 +19,7 @@ use glam::{DMat3, DVec2, DVec3};
 use terrastream_format::Metadata;
 
 use crate::geo::Geo;
-use crate::stream::camera::Aabb;
+use crate::stream::camera::{Aabb, SceneBox};
 
 /// Semi-major axis of WGS 84, metres.
 pub const A: f64 = 6_378_137.0;
@@ -278,53 +278,58 @@ impl GlobeMap {
         }
     }
 
-    /// A box in ECEF holding the terrain over world rectangle `[x0, z0, x1, z1]` between
-    /// heights `lo` and `hi` (conservative: the surface between sample points bulges by
-    /// at most the sagitta of the arc they span, which pads the box).
-    pub fn bounds(&self, rect: [f64; 4], (lo, hi): (f64, f64)) -> Aabb {
+    /// A box holding the terrain over world rectangle `[x0, z0, x1, z1]` between heights
+    /// `lo` and `hi`, turned to the east-north-up frame at its middle (conservative: the
+    /// surface between sample points bulges by at most the sagitta of the arc they span,
+    /// which pads the box).
+    pub fn bounds(&self, rect: [f64; 4], (lo, hi): (f64, f64)) -> SceneBox {
         let [ex0, ez0, ex1, ez1] = self.extent;
         let (x0, z0) = (rect[0].clamp(ex0, ex1), rect[1].clamp(ez0, ez1));
         let (x1, z1) = (rect[2].clamp(ex0, ex1), rect[3].clamp(ez0, ez1));
-        // Angular size from the corners: a small box needs only its corners and centre.
-        let corner = |x: f64, z: f64| self.lon_lat(x, z);
-        let (a, b) = (corner(x0, z0), corner(x1, z1));
-        let (c, d) = (corner(x1, z0), corner(x0, z1));
+        // Angular size from the corners: a small box needs only its corners, edges' middles
+        // and centre.
+        let (a, b) = (self.lon_lat(x0, z0), self.lon_lat(x1, z1));
+        let (c, d) = (self.lon_lat(x1, z0), self.lon_lat(x0, z1));
         let span = (a - b).abs().max((c - d).abs());
         let steps: u32 = if span.max_element() < 0.02 { 2 } else { 8 };
+        let middle = self.lon_lat((x0 + x1) * 0.5, (z0 + z1) * 0.5);
+        let axes = enu(middle.x, middle.y);
+        let origin = ecef(middle.x, middle.y, 0.0);
+        let n = steps as usize + 1;
+        let mut top = Vec::with_capacity(n * n);
         let (mut min, mut max) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
-        let mut chord: f64 = 0.0;
-        let mut previous_row: Vec<DVec3> = Vec::new();
         for j in 0..=steps {
-            let mut row = Vec::with_capacity(steps as usize + 1);
             for i in 0..=steps {
                 let (u, v) = (f64::from(i) / f64::from(steps), f64::from(j) / f64::from(steps));
                 let p = self.lon_lat(x0 + (x1 - x0) * u, z0 + (z1 - z0) * v);
-                let low = ecef(p.x, p.y, lo);
-                let high = ecef(p.x, p.y, hi);
-                min = min.min(low).min(high);
-                max = max.max(low).max(high);
-                if let Some(prev) = row.last() {
-                    chord = chord.max(high.distance(*prev));
+                for h in [lo, hi] {
+                    let q = axes.transpose() * (ecef(p.x, p.y, h) - origin);
+                    (min, max) = (min.min(q), max.max(q));
                 }
-                if let Some(up) = previous_row.get(i as usize) {
-                    chord = chord.max(high.distance(*up));
-                    if i > 0 {
-                        chord = chord.max(high.distance(previous_row[i as usize - 1]));
-                    }
-                    if let Some(next) = previous_row.get(i as usize + 1) {
-                        chord = chord.max(high.distance(*next));
-                    }
-                }
-                row.push(high);
+                top.push(ecef(p.x, p.y, hi));
             }
-            previous_row = row;
+        }
+        // The longest chord between neighbouring samples, diagonals included.
+        let mut chord: f64 = 0.0;
+        for j in 0..n {
+            for i in 0..n {
+                let here = top[j * n + i];
+                for (di, dj) in [(1, 0), (0, 1), (1, 1)] {
+                    if i + di < n && j + dj < n {
+                        chord = chord.max(here.distance(top[(j + dj) * n + i + di]));
+                    }
+                }
+                if i > 0 && j + 1 < n {
+                    chord = chord.max(here.distance(top[(j + 1) * n + i - 1]));
+                }
+            }
         }
         // The arc over a chord c on a sphere of radius r rises r (1 - cos(asin(c / 2r))).
         let r = A + hi.max(0.0);
         let half = (chord / (2.0 * r)).min(1.0);
         let sagitta = r * (1.0 - (1.0 - half * half).sqrt());
-        let pad = sagitta * 1.5 + 1.0;
-        Aabb { min: min - DVec3::splat(pad), max: max + DVec3::splat(pad) }
+        let pad = DVec3::splat(sagitta * 1.5 + 1.0);
+        SceneBox { centre: origin + axes * ((min + max) * 0.5), axes, half: (max - min) * 0.5 + pad }
     }
 
     /// The frame a view is drawn in: at the world point nearest below the eye (the
@@ -347,7 +352,7 @@ impl GlobeMap {
 /// terrain's lowest point below it, and a margin)? In coordinates scaled by the
 /// ellipsoid's radii it is a ball; what a ball hides from a point is convex, and so is
 /// its image, so the box's eight corners decide.
-pub fn box_hidden(eye: DVec3, depth: f64, b: &Aabb) -> bool {
+pub fn box_hidden(eye: DVec3, depth: f64, b: &SceneBox) -> bool {
     let scale = DVec3::new(1.0 / A, 1.0 / A, 1.0 / B);
     let radius = 1.0 - depth.max(0.0) / B;
     let eye = eye * scale;
@@ -391,10 +396,11 @@ impl Surface {
 
     /// A box in scene coordinates holding the terrain over world rectangle
     /// `[x0, z0, x1, z1]` between heights `lo` and `hi`.
-    pub fn bounds(&self, rect: [f64; 4], heights: (f64, f64)) -> Aabb {
+    pub fn bounds(&self, rect: [f64; 4], heights: (f64, f64)) -> SceneBox {
         match self {
             Self::Flat => {
                 Aabb { min: DVec3::new(rect[0], heights.0, rect[1]), max: DVec3::new(rect[2], heights.1, rect[3]) }
+                    .into()
             }
             Self::Globe(map) => map.bounds(rect, heights),
         }
@@ -402,7 +408,7 @@ impl Surface {
 
     /// Is the box hidden from `eye` by the Earth (always false on the plate)? The Earth
     /// is taken as the ball inside the ellipsoid and below the terrain's lowest point.
-    pub fn hidden(&self, eye: DVec3, b: &Aabb) -> bool {
+    pub fn hidden(&self, eye: DVec3, b: &SceneBox) -> bool {
         match self {
             Self::Flat => false,
             Self::Globe(map) => box_hidden(eye, 100.0 - map.heights.0.min(0.0), b),
@@ -457,7 +463,7 @@ mod tests {
     #[test]
     fn a_point_is_hidden_only_behind_the_horizon() {
         let eye = DVec3::new(A + 10_000.0, 0.0, 0.0);
-        let tiny = |p: DVec3| Aabb { min: p - DVec3::splat(1.0), max: p + DVec3::splat(1.0) };
+        let tiny = |p: DVec3| SceneBox::from(Aabb { min: p - DVec3::splat(1.0), max: p + DVec3::splat(1.0) });
         // 100 km east along the equator: visible (the horizon from 10 km is 357 km away).
         let near = ecef(0.1_f64.to_radians() * 9.0, 0.0, 0.0);
         assert!(!box_hidden(eye, 0.0, &tiny(near)));

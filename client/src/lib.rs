@@ -22,7 +22,7 @@ pub use input::{Action, Keys};
 pub use source::blocking::{AnySource, BlockingSource, open_source};
 pub use source::http::{HttpSource, HttpStats, RetryPolicy};
 pub use stream::cache::TileCache;
-pub use stream::camera::{Aabb, Camera, Frustum};
+pub use stream::camera::{Aabb, Camera, Frustum, SceneBox};
 pub use stream::decode::{DecodedTile, TileData, decode};
 pub use stream::heights::{Interpolation, height_on_lod};
 pub use stream::origin::{DynSource, EndpointSource, HostTiles, ManifestSource, Origin};

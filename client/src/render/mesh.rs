@@ -145,7 +145,7 @@ fn select(params: &MeshParams, scene: &Scene<'_>, origin: (i64, i64), level: u32
     }
     let [x0, z0, x1, z1] = rect;
     let visible = scene.surface.bounds(rect, (scene.heights)(x0, z0, x1, z1));
-    if !scene.frustum.intersects(&visible) || scene.surface.hidden(scene.eye, &visible) {
+    if !scene.frustum.intersects_box(&visible) || scene.surface.hidden(scene.eye, &visible) {
         return true;
     }
     if level == 0 || distance > params.range(level - 1) {

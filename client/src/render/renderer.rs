@@ -12,7 +12,7 @@ use super::gpu::{self, texture_entry, uniform_entry, write_layer};
 use super::mesh::{MAX_LEVELS, MeshParams, Node, PatchMesh, Scene, select_nodes};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable, Residency};
 use crate::globe::{Mapping, Surface};
-use crate::stream::camera::{Aabb, Camera};
+use crate::stream::camera::{Camera, SceneBox};
 use crate::stream::decode::TileData;
 use crate::stream::streamer::Upload;
 
@@ -292,7 +292,7 @@ pub struct TerrainRenderer {
     /// The plate or the globe the terrain is drawn on.
     surface: Surface,
     /// The terrain's box in scene coordinates (camera clip planes enclose it).
-    scene_box: Aabb,
+    scene_box: SceneBox,
     /// The globe's lattice of longitudes and latitudes (1 x 1 unused elsewhere), and
     /// whether it still has to be written.
     lattice: wgpu::Texture,
@@ -562,7 +562,7 @@ impl TerrainRenderer {
     }
 
     /// The terrain's box in the surface's scene coordinates ([`crate::fly::scene_box`]).
-    pub fn scene_box(&self) -> Aabb {
+    pub fn scene_box(&self) -> SceneBox {
         self.scene_box
     }
 
@@ -685,7 +685,7 @@ impl TerrainRenderer {
                 .fold(0.0, f64::max),
             Surface::Globe(_) => {
                 let b = self.scene_box;
-                (b.max - b.min).length() + b.distance(eye)
+                b.half.length() * 2.0 + b.distance(eye)
             }
         };
         let params = MeshParams { levels: self.params.levels.max(self.params.levels_to_cover(far)), ..self.params };

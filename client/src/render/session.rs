@@ -139,7 +139,7 @@ impl Session {
             let data = self.renderer.surface().bounds(extent.world, (lo, hi));
             let reached =
                 wanted.iter().any(|w| w.key.layer() == index && w.in_view && self.renderer.is_resident(w.key));
-            (frustum.intersects(&data) && !reached).then_some(index)
+            (frustum.intersects_box(&data) && !reached).then_some(index)
         })
     }
 

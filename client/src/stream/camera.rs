@@ -6,7 +6,7 @@
 //! a LOD whose tiles are `s` world units wide covers x in `[tx s, (tx+1) s]` and z in
 //! `[ty s, (ty+1) s]`. Units are the archive's world units (metres).
 
-use glam::{DMat4, DVec3, DVec4};
+use glam::{DMat3, DMat4, DVec3, DVec4};
 
 /// A perspective camera.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -116,6 +116,39 @@ impl Aabb {
     }
 }
 
+/// A box turned by an orthonormal frame: scene boxes on the globe follow the ground's
+/// tangent plane (an axis-aligned box in ECEF of a tilted patch is up to 1.7 times its
+/// size, and a distance to it too short). On the plate the frame is the identity.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SceneBox {
+    /// The box's centre.
+    pub centre: DVec3,
+    /// Its axes (orthonormal columns).
+    pub axes: DMat3,
+    /// Half its size along each axis.
+    pub half: DVec3,
+}
+
+impl SceneBox {
+    /// Distance from `p` to the box (0 inside).
+    pub fn distance(&self, p: DVec3) -> f64 {
+        let q = self.axes.transpose() * (p - self.centre);
+        (q.abs() - self.half).max(DVec3::ZERO).length()
+    }
+
+    /// The eight corners.
+    pub fn corners(&self) -> [DVec3; 8] {
+        let local = Aabb { min: -self.half, max: self.half }.corners();
+        local.map(|c| self.centre + self.axes * c)
+    }
+}
+
+impl From<Aabb> for SceneBox {
+    fn from(b: Aabb) -> Self {
+        Self { centre: (b.min + b.max) * 0.5, axes: DMat3::IDENTITY, half: (b.max - b.min) * 0.5 }
+    }
+}
+
 /// Six planes `(n, d)` with `n . p + d >= 0` inside.
 #[derive(Clone, Copy, Debug)]
 pub struct Frustum {
@@ -131,6 +164,15 @@ impl Frustum {
             if len > 0.0 { p / len } else { p }
         });
         Self { planes }
+    }
+
+    /// False only when the turned box lies entirely outside one plane (conservative).
+    pub fn intersects_box(&self, b: &SceneBox) -> bool {
+        self.planes.iter().all(|p| {
+            let n = p.truncate();
+            let reach = (b.axes.transpose() * n).abs().dot(b.half);
+            n.dot(b.centre) + p.w + reach >= 0.0
+        })
     }
 
     /// False only when the box lies entirely outside one plane (conservative).

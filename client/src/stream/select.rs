@@ -12,7 +12,7 @@ use std::cmp::Ordering;
 
 use terrastream_format::{Layer, LayerKind, Metadata, TileKey};
 
-use super::camera::{Aabb, Camera};
+use super::camera::{Camera, SceneBox};
 use crate::globe::Surface;
 
 /// Knobs of the selection.
@@ -77,7 +77,7 @@ pub fn drawn_heights(metadata: &Metadata) -> (f64, f64) {
 
 /// Scene box of a tile: its grid square between the given heights, on the plate or the
 /// globe.
-pub fn tile_box(surface: &Surface, layer: &Layer, key: TileKey, heights: (f64, f64)) -> Aabb {
+pub fn tile_box(surface: &Surface, layer: &Layer, key: TileKey, heights: (f64, f64)) -> SceneBox {
     let size = layer.world_size_at(key.lod());
     let (x0, z0) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
     surface.bounds([x0, z0, x0 + size, z0 + size], heights)
@@ -125,7 +125,7 @@ pub fn select(
                 continue;
             }
             let distance = bounds.distance(camera.position);
-            let in_view = !hidden && frustum.intersects(&bounds);
+            let in_view = !hidden && frustum.intersects_box(&bounds);
             let size = layer.world_size_at(key.lod());
             let texel = size / f64::from(layer.tile_resolution);
             let projected = texel * pixels_per_radian / distance.max(1e-9);
