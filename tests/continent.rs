@@ -105,10 +105,10 @@ fn a_continent_draws_in_render_and_in_a_window_alike() {
     let archive =
         terrastream_testkit::continent::continent_archive(Path::new(env!("CARGO_BIN_EXE_terrastream")), dir.path());
 
-    // Headless, on the plate the viewer draws.
+    // Headless, on the globe.
     let png = dir.path().join("render.png");
     let out = terrastream()
-        .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--flat"])
+        .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap()])
         .arg(format!("--size={WIDTH}x{HEIGHT}"))
         .output()
         .unwrap();
@@ -119,8 +119,8 @@ fn a_continent_draws_in_render_and_in_a_window_alike() {
     assert_eq!((w, h), (WIDTH, HEIGHT));
     terrastream_testkit::golden::assert_golden("continent-render", w, h, &rendered, TOLERANCE);
     let share = terrain_share(&rendered);
-    // The default view frames the continent's grid; its data, 90 x 50 degrees kept on its
-    // geographic grid (more than a region), fills most of it: a good part is terrain.
+    // The default view frames the continent, 90 x 50 degrees kept on its geographic grid
+    // (more than a region) and drawn on the globe: a good part of the picture is terrain.
     assert!(share > 0.2, "only {:.0} % of the render is terrain", share * 100.0);
 
     // The same archive in a window.

@@ -290,10 +290,13 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     for field in ["fps", "tiles in flight", "received", "MiB", "WebGPU"] {
         assert!(text.contains(field), "HUD lacks {field:?}: {text}");
     }
-    let (eye, ..) = browser.flyer();
+    // On the globe: forward is along the view in the frame at the eye (ECEF).
+    let (eye, yaw, pitch, _) = browser.flyer();
+    let flyer = terrastream_client::FlyCamera { eye: eye.into(), yaw, pitch, speed: 1.0, globe: true };
+    let ahead = |after: [f64; 3]| (glam::DVec3::from(after) - flyer.eye).dot(flyer.forward());
     browser.hold_key("w", 600);
-    let (after, ..) = browser.flyer_once(|after| after[2] < eye[2] - 1.0);
-    assert!(after[2] < eye[2] - 1.0, "W flies forward: {eye:?} -> {after:?}");
+    let (after, ..) = browser.flyer_once(|after| ahead(*after) > 1.0);
+    assert!(ahead(after) > 1.0, "W flies forward: {eye:?} -> {after:?}");
     // A mouse drag to the right turns right (yaw grows), upwards pitches up.
     let (_, yaw, pitch, speed) = browser.flyer();
     browser.act(json!([Browser::drag("mouse", "mouse", (300, 150), (360, 120), 200)]));
@@ -378,6 +381,10 @@ fn webplayer_explains_what_is_wrong() {
     browser.goto(&page(""));
     let text = browser.wait_error();
     assert!(text.contains("player.html?archive="), "{text}");
+    // A bad flat= is named.
+    browser.goto(&page("?archive=x.tspack&flat=maybe"));
+    let text = browser.wait_error();
+    assert!(text.contains("flat=\"maybe\""), "{text}");
     drop(browser);
 
     // A browser with neither WebGPU nor WebGL2.
@@ -601,10 +608,17 @@ fn the_benchmark_flight_steers_the_camera_and_counts_its_frames() {
     // The camera stays where the flight ended: the path's last eye.
     let reader = terrastream_format::Reader::open_mmap(&archive).unwrap();
     let (last, _) = *terrastream_client::fly::bench_flight(reader.metadata(), frames).last().unwrap();
+    // On the globe the flight's world points are placed on the ellipsoid.
+    let last = terrastream_client::Surface::new(reader.metadata(), true).place(last);
     let (eye, ..) = browser.flyer();
     let off = (glam::DVec3::from(eye) - last).length();
     assert!(off < 1e-6 * last.length(), "the flight ends at {last:?}, the eye is at {eye:?}");
     assert_eq!(s["missing"], json!(0), "{s}");
+    // flat=1 keeps the plate: the eye in world units over the crop, not 6 400 km out.
+    browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0&flat=1"));
+    browser.wait_settled();
+    let (eye, ..) = browser.flyer();
+    assert!(glam::DVec3::from(eye).length() < 1.0e5, "on the plate the eye is at {eye:?}");
 }
 
 /// A host without `decoder.js` (an older copy of the player's files): the workers fail to

@@ -244,40 +244,66 @@ pub struct FlyInput {
     pub up: f64,
 }
 
-/// A fly camera: position, yaw (0 = north, towards -z), pitch, and a speed factor.
+/// A fly camera: position, yaw (0 = north), pitch, and a speed factor. On the plate
+/// north is -z and up +y; on the globe (`globe`: the eye in ECEF) they are those of the
+/// ellipsoid under the eye, so level flight follows the Earth's curve.
 /// Speed scales with the height above the ground: at factor 1, a second covers about
-/// the altitude, so the same controls work at 50 m and at 50 km.
+/// the altitude, so the same controls work at 50 m, at 50 km and from orbit.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FlyCamera {
-    /// Eye position in world units.
+    /// Eye position in scene units (world units on the plate, ECEF metres on the globe).
     pub eye: DVec3,
-    /// Heading in radians, 0 = north (-z), positive turns east.
+    /// Heading in radians, 0 = north, positive turns east.
     pub yaw: f64,
     /// Pitch in radians, positive up.
     pub pitch: f64,
     /// Speed factor (the mouse wheel scales it).
     pub speed: f64,
+    /// The eye is in ECEF over the ellipsoid.
+    pub globe: bool,
 }
 
 /// Lowest the eye goes above the ground.
 const CLEARANCE: f64 = 2.0;
 
 impl FlyCamera {
-    /// The flyer at `camera`'s position and direction.
+    /// The flyer at `camera`'s position and direction: on the globe when the camera's
+    /// zenith is not the plate's +y.
     pub fn from_camera(camera: &Camera) -> Self {
+        let globe = camera.zenith != DVec3::Y;
+        let at = Self { eye: camera.position, yaw: 0.0, pitch: 0.0, speed: 1.0, globe };
+        let (east, north, up) = at.frame();
         let d = camera.direction();
-        Self { eye: camera.position, yaw: d.x.atan2(-d.z), pitch: d.y.clamp(-1.0, 1.0).asin(), speed: 1.0 }
+        Self { yaw: d.dot(east).atan2(d.dot(north)), pitch: d.dot(up).clamp(-1.0, 1.0).asin(), ..at }
+    }
+
+    /// East, north and up at the eye.
+    pub fn frame(&self) -> (DVec3, DVec3, DVec3) {
+        if !self.globe {
+            return (DVec3::X, DVec3::NEG_Z, DVec3::Y);
+        }
+        let (lon, lat, _) = crate::globe::geodetic(self.eye);
+        let m = crate::globe::enu(lon, lat);
+        (m.x_axis, m.y_axis, m.z_axis)
+    }
+
+    /// The eye's height above the datum (the plate's y, the ellipsoid's height).
+    pub fn height(&self) -> f64 {
+        if self.globe { crate::globe::geodetic(self.eye).2 } else { self.eye.y }
     }
 
     /// The unit view direction.
     pub fn forward(&self) -> DVec3 {
-        DVec3::new(self.pitch.cos() * self.yaw.sin(), self.pitch.sin(), -self.pitch.cos() * self.yaw.cos())
+        let (east, north, up) = self.frame();
+        (east * self.yaw.sin() + north * self.yaw.cos()) * self.pitch.cos() + up * self.pitch.sin()
     }
 
     /// The camera for a `width` x `height` viewport (a render session fits its clip
     /// planes to the terrain: [`Camera::enclosing`]).
     pub fn camera(&self, width: u32, height: u32) -> Camera {
-        Camera::look_at(self.eye, self.eye + self.forward() * 100.0, width, height)
+        let mut camera = Camera::look_at(self.eye, self.eye + self.forward() * 100.0, width, height);
+        camera.zenith = self.frame().2;
+        camera
     }
 
     /// Turns the view by a pointer drag of (`dx`, `dy`) pixels.
@@ -291,17 +317,23 @@ impl FlyCamera {
         self.speed = (self.speed * 1.25f64.powf(notches)).clamp(0.01, 100.0);
     }
 
-    /// Moves for `dt` seconds as `input` asks, never below `ground(x, z)` (the terrain's
-    /// height where it is known).
-    pub fn step(&mut self, dt: f64, input: FlyInput, ground: impl Fn(f64, f64) -> Option<f64>) {
-        let altitude = (self.eye.y - ground(self.eye.x, self.eye.z).unwrap_or(0.0)).max(1.0);
+    /// Moves for `dt` seconds as `input` asks, never below `ground(eye)` (the terrain's
+    /// height under a scene point, where it is known).
+    pub fn step(&mut self, dt: f64, input: FlyInput, ground: impl Fn(DVec3) -> Option<f64>) {
+        let altitude = (self.height() - ground(self.eye).unwrap_or(0.0)).max(1.0);
         let speed = altitude.max(20.0) * self.speed * dt;
+        let (_, _, up) = self.frame();
         let forward = self.forward();
-        let right = DVec3::new(forward.x, 0.0, forward.z).normalize_or_zero().cross(DVec3::Y);
-        let step = forward * input.forward + right * input.right + DVec3::Y * input.up;
+        let right = (forward - up * forward.dot(up)).normalize_or_zero().cross(up);
+        let step = forward * input.forward + right * input.right + up * input.up;
         self.eye += step.normalize_or_zero() * speed;
-        if let Some(g) = ground(self.eye.x, self.eye.z) {
-            self.eye.y = self.eye.y.max(g + CLEARANCE);
+        // On the globe, the ellipsoid is the ground where no height is known yet.
+        let known = ground(self.eye);
+        if let Some(g) = known.or(self.globe.then_some(0.0)) {
+            let below = g + CLEARANCE - self.height();
+            if below > 0.0 {
+                self.eye += self.frame().2 * below;
+            }
         }
     }
 }
@@ -412,7 +444,7 @@ mod tests {
             assert!(camera.frustum().intersects(&terrain));
         }
         // Low over one corner, looking across: the far side is still inside the far plane.
-        let low = FlyCamera { eye: DVec3::new(10.0, 300.0, 10.0), yaw: 2.3, pitch: -0.05, speed: 1.0 };
+        let low = FlyCamera { eye: DVec3::new(10.0, 300.0, 10.0), yaw: 2.3, pitch: -0.05, speed: 1.0, globe: false };
         let camera = low.camera(1280, 720).enclosing(&terrain.into());
         assert!(camera.far > DVec3::new(1.0e7, 0.0, 6.0e6).length());
         assert!(camera.near <= 0.1 * 300.0 + 1e-9);
@@ -468,12 +500,36 @@ mod tests {
     }
 
     #[test]
+    fn on_the_globe_the_flyer_keeps_north_up_and_the_ground_below() {
+        let eye = crate::globe::ecef(86.9_f64.to_radians(), 27.9_f64.to_radians(), 9000.0);
+        let pose = Pose::parse("86.9,27.9,9000", 90.0, -10.0).unwrap();
+        let (lon, lat) = (86.9_f64.to_radians(), 27.9_f64.to_radians());
+        let frame = crate::globe::enu(lon, lat);
+        let direction = (frame.x_axis * 10f64.to_radians().cos()) - frame.z_axis * 10f64.to_radians().sin();
+        let mut camera = Camera::look_at(eye, eye + direction * 1000.0, 64, 64);
+        camera.zenith = frame.z_axis;
+        let mut fly = FlyCamera::from_camera(&camera);
+        assert!(fly.globe);
+        assert!(
+            (fly.yaw.to_degrees() - pose.heading).abs() < 1e-9 && (fly.pitch.to_degrees() - pose.pitch).abs() < 1e-9
+        );
+        assert!((fly.camera(64, 64).direction() - direction).length() < 1e-9);
+        // A second's flight 1 000 m above the ground: 1 000 m along the view.
+        let before = fly.eye;
+        fly.step(1.0, FlyInput { forward: 1.0, ..FlyInput::default() }, |_| Some(8000.0));
+        assert!(((fly.eye - before).length() - 1000.0).abs() < 1e-6, "{}", (fly.eye - before).length());
+        // Straight down for a long time: on the ground, never under it.
+        fly.step(100.0, FlyInput { up: -1.0, ..FlyInput::default() }, |_| Some(8000.0));
+        assert!((fly.height() - (8000.0 + CLEARANCE)).abs() < 1e-3, "{}", fly.height());
+    }
+
+    #[test]
     fn speed_follows_altitude_and_ground_stops_descent() {
-        let mut fly = FlyCamera { eye: DVec3::new(0.0, 1000.0, 0.0), yaw: 0.0, pitch: 0.0, speed: 1.0 };
-        fly.step(0.5, FlyInput { forward: 1.0, ..FlyInput::default() }, |_, _| Some(0.0));
+        let mut fly = FlyCamera { eye: DVec3::new(0.0, 1000.0, 0.0), yaw: 0.0, pitch: 0.0, speed: 1.0, globe: false };
+        fly.step(0.5, FlyInput { forward: 1.0, ..FlyInput::default() }, |_| Some(0.0));
         // Half a second at 1000 m: 500 m north (-z).
         assert!((fly.eye.z + 500.0).abs() < 1e-6, "{:?}", fly.eye);
-        fly.step(10.0, FlyInput { up: -1.0, ..FlyInput::default() }, |_, _| Some(990.0));
+        fly.step(10.0, FlyInput { up: -1.0, ..FlyInput::default() }, |_| Some(990.0));
         assert!((fly.eye.y - (990.0 + CLEARANCE)).abs() < 1e-9, "{:?}", fly.eye);
         fly.look(0.0, 1e6);
         assert!(fly.pitch >= -1.5);

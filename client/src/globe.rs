@@ -426,6 +426,27 @@ impl Surface {
         }
     }
 
+    /// The scene point of a world point (x, z on the grid, y the height): itself on the
+    /// plate, on the globe its grid point lifted to its height above the ellipsoid.
+    pub fn place(&self, world: DVec3) -> DVec3 {
+        match self {
+            Self::Flat => world,
+            Self::Globe(map) => map.ecef(world.x, world.z, world.y),
+        }
+    }
+
+    /// The world point `(x, z)` under a scene point (on the globe: at its longitude and
+    /// latitude), if the archive's grid has one.
+    pub fn world_under(&self, p: DVec3) -> Option<DVec2> {
+        match self {
+            Self::Flat => Some(DVec2::new(p.x, p.z)),
+            Self::Globe(map) => {
+                let (lon, lat, _) = geodetic(p);
+                map.world(lon, lat)
+            }
+        }
+    }
+
     /// Height of a scene point above the ellipsoid (the plate's y).
     pub fn height(&self, p: DVec3) -> f64 {
         match self {

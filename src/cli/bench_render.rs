@@ -146,17 +146,16 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     // The same views on the globe (a georeferenced archive): each eye and target placed on
     // the ellipsoid at its grid point and height.
     let mut globe = open_on(false)?;
-    let Some(map) = globe.renderer.surface().globe().cloned() else {
+    let surface = globe.renderer.surface().clone();
+    if surface.globe().is_none() {
         println!("  globe: the archive does not say where it lies");
         return Ok(());
-    };
-    let surface = globe.renderer.surface().clone();
+    }
     let on_globe: Vec<Camera> = cameras
         .iter()
         .map(|c| {
-            let target = c.position + c.direction() * 100.0;
-            let eye = map.ecef(c.position.x, c.position.z, c.position.y);
-            let mut camera = Camera::look_at(eye, map.ecef(target.x, target.z, target.y), w, h);
+            let eye = surface.place(c.position);
+            let mut camera = Camera::look_at(eye, surface.place(c.position + c.direction() * 100.0), w, h);
             camera.zenith = surface.up(eye);
             camera
         })

@@ -10,10 +10,9 @@ use terrastream_client::fly::{Pose, start_camera, terrain_bounds};
 use terrastream_client::input::CONTROLS;
 use terrastream_client::render::gpu::{Gpu, depth_target, next_frame};
 use terrastream_client::render::hud::{FrameTimes, Hud, Status, status_lines};
-use terrastream_client::render::renderer::RenderSettings;
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
-use terrastream_client::{Action, FlyCamera, Keys, Origin, Streamer};
+use terrastream_client::{Action, Camera, FlyCamera, Keys, Origin, Streamer};
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
@@ -66,6 +65,9 @@ struct App {
     args: ViewArgs,
     streamer: Option<Streamer>,
     size: (u32, u32),
+    /// The eye and target asked for (world units, on the plate), or a pose.
+    start: Option<(glam::DVec3, glam::DVec3)>,
+    pose: Option<Pose>,
     fly: FlyCamera,
     running: Option<Running>,
     error: Option<anyhow::Error>,
@@ -104,13 +106,18 @@ impl App {
         config.present_mode = wgpu::PresentMode::AutoVsync;
         surface.configure(&gpu.device, &config);
         let streamer = self.streamer.take().context("viewer started twice")?;
-        let session = Session::new(
-            streamer,
-            &gpu.device,
-            RenderSettings { flat: true, ..self.args.look.settings() },
-            config.format,
-            self.args.look.budget(),
-        )?;
+        // A camera in world units is on the plate.
+        let mut settings = self.args.look.settings();
+        settings.flat |= self.start.is_some();
+        let session = Session::new(streamer, &gpu.device, settings, config.format, self.args.look.budget())?;
+        // The start, on the plate or the globe the session draws.
+        let metadata = session.streamer.metadata().cloned().context("the archive has no metadata")?;
+        let shape = session.renderer.surface();
+        let start = match self.pose {
+            Some(pose) => Some(pose.eye_target(&metadata, shape).map_err(anyhow::Error::msg)?),
+            None => self.start,
+        };
+        self.fly = FlyCamera::from_camera(&start_camera(&metadata, shape, start, self.size.0, self.size.1));
         let hud = Hud::new(&gpu.device, config.format);
         let depth = depth_view(&gpu.device, config.width, config.height);
         self.running = Some(Running { window, surface, config, gpu, depth, session, hud });
@@ -119,8 +126,8 @@ impl App {
 
     fn step(&mut self, dt: f64) {
         let Some(r) = &self.running else { return };
-        let streamer = &r.session.streamer;
-        self.fly.step(dt, self.keys.fly(), |x, z| streamer.height_at(x, z));
+        let session = &r.session;
+        self.fly.step(dt, self.keys.fly(), |p| session.ground(p));
     }
 
     fn redraw(&mut self) -> Result<()> {
@@ -272,7 +279,7 @@ pub fn run_url(url: &str) -> Result<()> {
 
 pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let (width, height) = parse_size(&args.size)?;
-    let mut start = args.camera.as_deref().map(parse_camera).transpose()?;
+    let start = args.camera.as_deref().map(parse_camera).transpose()?;
     let pose = args
         .at
         .as_deref()
@@ -282,12 +289,6 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
     let origin = Origin::parse(&args.archive).with_context(|| format!("opening {}", args.archive))?;
     let streamer = Streamer::open(origin, args.look.stream()).with_context(|| format!("opening {}", args.archive))?;
     let metadata = streamer.metadata().cloned().context("the archive has no metadata")?;
-    // The flyer moves over the plate: the viewer draws it.
-    let surface = terrastream_client::Surface::Flat;
-    if let Some(pose) = pose {
-        start = Some(pose.eye_target(&metadata, &surface).map_err(anyhow::Error::msg)?);
-    }
-    let camera = start_camera(&metadata, &surface, start, width, height);
     let ([x0, z0, x1, z1], _) = terrain_bounds(&metadata);
     let (ex, ez) = (x1 - x0, z1 - z0);
     tracing::info!(extent_m = format!("{ex:.0} x {ez:.0}"), "viewing {}", args.archive);
@@ -306,7 +307,10 @@ pub fn run(args: ViewArgs) -> Result<ExitCode> {
         args,
         streamer: Some(streamer),
         size: (width, height),
-        fly: FlyCamera::from_camera(&camera),
+        start,
+        pose,
+        // Placed when the window opens, on the surface the session draws.
+        fly: FlyCamera::from_camera(&Camera::look_at(glam::DVec3::Y, glam::DVec3::ZERO, width, height)),
         running: None,
         error: None,
         keys: Keys::default(),

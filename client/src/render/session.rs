@@ -177,6 +177,13 @@ impl Session {
         }
     }
 
+    /// The terrain's height under a scene point, from the elevation tiles in the cache
+    /// (`None` where none is loaded): the ground a flyer stays above.
+    pub fn ground(&self, p: glam::DVec3) -> Option<f64> {
+        let w = self.renderer.surface().world_under(p)?;
+        self.streamer.height_at(w.x, w.y)
+    }
+
     /// Is everything the view wants on the GPU (and nothing in flight)?
     pub fn settled(&self) -> bool {
         self.streamer.metadata().is_some() && self.streamer.pending() == 0 && self.streamer.stats().in_flight == 0

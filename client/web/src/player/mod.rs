@@ -137,18 +137,22 @@ impl State {
             fly.step(
                 self.input.pinch_seconds.abs(),
                 FlyInput { forward: self.input.pinch_seconds.signum(), ..input },
-                |x, z| session.streamer.height_at(x, z),
+                |p| session.ground(p),
             );
             self.input.pinch_seconds = 0.0;
             input = FlyInput::default();
         }
-        fly.step(dt, input, |x, z| session.streamer.height_at(x, z));
+        fly.step(dt, input, |p| session.ground(p));
         let flying = match &mut self.flight {
             Some(flight) => flight.next(),
             None if self.timings.settled_at.is_some_and(|at| now - at >= FLIGHT_AFTER_MS) => {
                 self.params.flight.and_then(|frames| {
                     let metadata = session.streamer.metadata()?;
-                    let path = bench_flight(metadata, frames);
+                    let surface = session.renderer.surface();
+                    let path = bench_flight(metadata, frames)
+                        .into_iter()
+                        .map(|(eye, target)| (surface.place(eye), surface.place(target)))
+                        .collect();
                     let mut flight = Flight { path, pass: 0, at: 0, streaming_ms: Vec::new(), resident_ms: Vec::new() };
                     let first = flight.next();
                     self.flight = Some(flight);
@@ -158,8 +162,9 @@ impl State {
             None => None,
         };
         if let Some((eye, target)) = flying {
-            *fly =
-                FlyCamera { speed: fly.speed, ..FlyCamera::from_camera(&Camera::look_at(eye, target, size.0, size.1)) };
+            let mut camera = Camera::look_at(eye, target, size.0, size.1);
+            camera.zenith = session.renderer.surface().up(eye);
+            *fly = FlyCamera { speed: fly.speed, ..FlyCamera::from_camera(&camera) };
         }
         Some((fly.camera(size.0, size.1), flying.is_some()))
     }
@@ -213,7 +218,7 @@ impl State {
         let settings = RenderSettings {
             elevation_slots: GPU_SLOTS,
             texture_slots: GPU_SLOTS,
-            flat: true,
+            flat: self.params.flat,
             ..RenderSettings::default()
         };
         let started = self.page.now_ms();
@@ -222,8 +227,7 @@ impl State {
         self.timings.session_ms = Some(self.page.now_ms() - started);
         match made {
             Ok(session) => {
-                // The flyer moves over the plate: the player draws it.
-                let surface = terrastream_client::Surface::Flat;
+                let surface = session.renderer.surface().clone();
                 let start = match self.params.pose.map(|pose| pose.eye_target(&metadata, &surface)) {
                     Some(Ok(start)) => Some(start),
                     Some(Err(why)) => {

@@ -15,6 +15,9 @@ pub(super) struct Params {
     pub(super) workers: Option<usize>,
     /// Frames of the benchmark flight (`flight=N`).
     pub(super) flight: Option<usize>,
+    /// The flat plate even for an archive that says where it lies (`flat=1`; implied by
+    /// `camera=`, which is in world units): else the globe.
+    pub(super) flat: bool,
 }
 
 /// The page's elements.
@@ -114,7 +117,13 @@ pub(super) fn params(window: &Window) -> Result<Params, String> {
             Some(n.parse().ok().filter(|&n| n >= 2).ok_or(format!("flight={n:?}: a number of frames, 2 or more"))?)
         }
     };
-    Ok(Params { archive, camera, pose, backends, hud: query.get("hud").as_deref() != Some("0"), workers, flight })
+    let flat = match query.get("flat").as_deref() {
+        None | Some("0" | "false" | "no") => camera.is_some(),
+        Some("" | "1" | "true" | "yes") => true,
+        Some(other) => return Err(format!("flat={other:?}: 1 (the flat plate) or 0 (the globe)")),
+    };
+    let hud = query.get("hud").as_deref() != Some("0");
+    Ok(Params { archive, camera, pose, backends, hud, workers, flight, flat })
 }
 
 pub(super) fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {

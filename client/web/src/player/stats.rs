@@ -4,7 +4,7 @@ use super::*;
 
 impl State {
     pub(super) fn stats(&self) -> String {
-        let still = FlyCamera { eye: DVec3::ZERO, yaw: 0.0, pitch: 0.0, speed: 1.0 };
+        let still = FlyCamera { eye: DVec3::ZERO, yaw: 0.0, pitch: 0.0, speed: 1.0, globe: false };
         let (pending, settled, error, fly) = match &self.phase {
             Phase::Running { session, fly } => {
                 (session.streamer.pending(), session.settled(), session.streamer.last_error().map(str::to_owned), *fly)
