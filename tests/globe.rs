@@ -154,3 +154,31 @@ fn a_grazing_view_fetches_no_more_tiles_on_the_globe() {
     assert!(flat > 10, "the view reaches several LODs: {flat} tiles");
     assert!(globe <= flat, "the globe fetched {globe} tiles, the plate {flat}");
 }
+
+/// From 20 000 km down to 2 m above the summit: every view draws terrain (a NaN placed
+/// anywhere would drop its triangles, and `render` fails a view that draws none).
+#[test]
+fn from_orbit_to_the_summit_every_view_draws_terrain() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // 12 degrees at 30": more than a region, so it keeps its geographic grid.
+    let tif = dem(dir.path(), EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0);
+    let archive = dir.path().join("himalaya.tspack");
+    let a = archive.to_str().unwrap();
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", a], dir.path());
+    let png = dir.path().join("v.png");
+    for (above, pitch, share) in
+        [(2.0e7, -90.0, 0.0005), (2.0e6, -90.0, 0.02), (2.0e5, -60.0, 0.3), (2.0e4, -30.0, 0.3), (2.0, -30.0, 0.3)]
+    {
+        let at = format!("{},{},{}", EVEREST.0, EVEREST.1, SUMMIT + above);
+        let args = ["render", a, "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
+        terrastream(&[&args[..], &["--heading", "20", "--pitch", &pitch.to_string()]].concat(), dir.path());
+        let (w, h, rgba) = decode(&png);
+        let sky = [rgba[0], rgba[1], rgba[2]];
+        let ground = rgba.chunks_exact(4).filter(|p| p[..3] != sky).count();
+        let drawn = ground as f64 / f64::from(w * h);
+        assert!(drawn >= share, "{above} m above the summit: {drawn:.4} of the view is terrain");
+    }
+}
