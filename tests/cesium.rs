@@ -9,6 +9,8 @@
 //!   headless Chromium on the served archive and on the export served by nginx:
 //!   `sampleTerrainMostDetailed` at random points against GDAL's bilinear value of the
 //!   source, no `errorEvent`, all tiles loaded, a screenshot against a golden.
+//! - Our globe beside Cesium's bare ellipsoid at three poses: the silhouette or horizon
+//!   of every column within 3 px.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
 
 use std::path::{Path, PathBuf};
@@ -296,4 +298,153 @@ fn cesium_flies_the_served_and_the_exported_terrain() {
     terrastream_testkit::golden::assert_golden("cesium-terrain", *w, *h, rgba, TOLERANCE);
     let (mean, _) = terrastream_testkit::golden::difference(rgba, &pictures[1].2, 0);
     assert!(mean < 0.01, "the exported terrain draws differently from the served: mean difference {mean}");
+}
+
+/// The page of the side-by-side: CesiumJS's bare ellipsoid (`EllipsoidTerrainProvider`),
+/// a white globe on black, no imagery, lighting, sky, sun, moon, fog or atmosphere, the
+/// camera at `at=LON,LAT,HEIGHT` with `heading=` and `pitch=` (degrees) and a vertical
+/// field of view of 60 degrees (Cesium's `fov` is the wider side's).
+const BARE_GLOBE_PAGE: &str = r#"<!doctype html><html><head><meta charset="utf-8">
+<script src="cesium/Cesium.js"></script>
+<link rel="stylesheet" href="cesium/Widgets/widgets.css">
+<style>html, body { margin: 0; background: #000 } #globe { width: 640px; height: 400px }</style></head>
+<body><div id="globe"></div><script>
+const q = new URLSearchParams(location.search);
+const [lon, lat, height] = q.get('at').split(',').map(Number);
+const viewer = new Cesium.Viewer('globe', {
+  terrainProvider: new Cesium.EllipsoidTerrainProvider(), baseLayer: false, baseLayerPicker: false,
+  geocoder: false, timeline: false, animation: false, homeButton: false, sceneModePicker: false,
+  navigationHelpButton: false, fullscreenButton: false, infoBox: false, selectionIndicator: false,
+  skyBox: false, skyAtmosphere: false, contextOptions: { webgl: { antialias: false } } });
+const scene = viewer.scene;
+scene.backgroundColor = Cesium.Color.BLACK;
+scene.globe.baseColor = Cesium.Color.WHITE;
+scene.globe.enableLighting = false;
+scene.globe.showGroundAtmosphere = false;
+scene.globe.depthTestAgainstTerrain = true;
+scene.fog.enabled = false;
+if (scene.sun) scene.sun.show = false;
+if (scene.moon) scene.moon.show = false;
+scene.postProcessStages.fxaa.enabled = false;
+viewer.cesiumWidget.creditContainer.style.display = 'none';
+scene.camera.frustum.fov = 2 * Math.atan(Math.tan(Math.PI / 6) * 640 / 400);
+scene.camera.setView({ destination: Cesium.Cartesian3.fromDegrees(lon, lat, height),
+  orientation: { heading: Cesium.Math.toRadians(Number(q.get('heading'))),
+                 pitch: Cesium.Math.toRadians(Number(q.get('pitch'))), roll: 0 } });
+window.viewer = viewer;
+</script></body></html>"#;
+
+/// The topmost and bottommost lit rows of each column (`None`: the column is empty).
+fn column_edges(w: u32, h: u32, rgba: &[u8]) -> Vec<Option<(u32, u32)>> {
+    let lit = |x: u32, y: u32| {
+        let i = ((y * w + x) * 4) as usize;
+        u32::from(rgba[i]) + u32::from(rgba[i + 1]) + u32::from(rgba[i + 2]) > 3 * 128
+    };
+    (0..w).map(|x| Some(((0..h).find(|&y| lit(x, y))?, (0..h).rev().find(|&y| lit(x, y))?))).collect()
+}
+
+/// Our `--shading flat` render of a texture-only world archive (EPSG:4326) and CesiumJS's
+/// bare ellipsoid at the same pose and field of view: the silhouette or horizon of every
+/// column agrees within 3 px, at three poses (the whole Earth from 20 000 km, 2 000 km
+/// oblique, 10 km looking at the horizon).
+#[test]
+fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
+    use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+    let mut missing = terrastream_testkit::browser::missing();
+    let build = cesium_build();
+    if build.is_none() {
+        missing.push("CesiumJS's built files (scripts/test.sh: npm pack cesium@1.145.0)");
+    }
+    if Command::new("gdal_create").arg("--version").output().is_err() {
+        missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
+    }
+    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // A white world in EPSG:4326, tiled as a texture-only archive.
+    let tif = dir.path().join("world.tif");
+    let made = Command::new("gdal_create")
+        .args(["-q", "-of", "GTiff", "-outsize", "720", "360", "-bands", "3", "-burn", "255", "-ot", "Byte"])
+        .args(["-a_srs", "EPSG:4326", "-a_ullr", "-180", "90", "180", "-90", tif.to_str().unwrap()])
+        .status()
+        .unwrap();
+    assert!(made.success(), "gdal_create");
+    let world = dir.path().join("world.tspack");
+    terrastream(&["tile", "--texture", tif.to_str().unwrap(), "-o", world.to_str().unwrap()]);
+
+    let root = dir.path().join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    std::fs::write(root.join("globe.html"), BARE_GLOBE_PAGE).unwrap();
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { text/html html; application/javascript js; \
+         text/css css; image/png png; application/json json; application/wasm wasm; } }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    // A window larger than the globe's element, which the screenshot takes whole.
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH + 200, HEIGHT + 300));
+    for (name, at, heading, pitch) in [
+        ("whole", "0,0,20000000", 0.0, -90.0),
+        ("oblique", "10,20,2000000", 30.0, -30.0),
+        ("horizon", "0,0,10000", 90.0, 0.0),
+    ] {
+        browser.goto(&format!("http://127.0.0.1:{}/globe.html?at={at}&heading={heading}&pitch={pitch}", nginx.port));
+        let started = std::time::Instant::now();
+        while browser.eval(
+            "return !!(window.viewer && viewer.scene.globe.tilesLoaded && viewer.scene.frameState.frameNumber > 5);",
+        ) != json!(true)
+        {
+            assert!(started.elapsed().as_secs() < 60, "Cesium never loaded its view: {:?}", browser.console());
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        let (cw, ch, cesium) = browser.screenshot("#globe");
+        let png = dir.path().join(format!("{name}.png"));
+        let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+            .args(["-q", "render", world.to_str().unwrap(), "-o", png.to_str().unwrap(), "--shading", "flat"])
+            .args(["--size", &format!("{WIDTH}x{HEIGHT}"), "--fov", "60", "--at", at])
+            .args(["--heading", &heading.to_string(), "--pitch", &pitch.to_string()])
+            .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.path().into()))
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "render: {}", String::from_utf8_lossy(&out.stderr));
+        let (w, h, ours) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
+        assert_eq!((w, h), (cw, ch), "the same picture size");
+        let (theirs, mine) = (column_edges(cw, ch, &cesium), column_edges(w, h, &ours));
+        // Where the silhouette is steep (the sides of the disc), a row is the same edge a
+        // column over: the tolerance grows by Cesium's row change to the next column.
+        let steepness = |x: usize, pick: fn((u32, u32)) -> u32| {
+            let row = |i: usize| theirs.get(i).copied().flatten().map(pick);
+            let here = row(x).unwrap_or(0);
+            [x.wrapping_sub(1), x + 1].into_iter().filter_map(row).map(|r| r.abs_diff(here)).max().unwrap_or(0)
+        };
+        let (mut compared, mut one_sided) = (0, 0);
+        let mut disagree = Vec::new();
+        for (x, (a, b)) in theirs.iter().zip(&mine).enumerate() {
+            match (a, b) {
+                (Some(a), Some(b)) => {
+                    compared += 1;
+                    let top = a.0.abs_diff(b.0) <= 3 + steepness(x, |e| e.0);
+                    let bottom = a.1.abs_diff(b.1) <= 3 + steepness(x, |e| e.1);
+                    if !(top && bottom) {
+                        disagree.push((x, *a, *b));
+                    }
+                }
+                (None, None) => {}
+                // The outermost column of a side, lit in one picture only.
+                _ => one_sided += 1,
+            }
+        }
+        let worst = theirs.iter().zip(&mine).filter_map(|(a, b)| Some(a.as_ref()?.0.abs_diff(b.as_ref()?.0))).max();
+        eprintln!(
+            "{name}: {compared} columns compared, {} disagree, {one_sided} lit in one only; top rows differ by at most {worst:?} px",
+            disagree.len()
+        );
+        assert!(compared > 100, "{name}: the globe is in both pictures ({compared} columns)");
+        assert!(disagree.is_empty(), "{name}: (column, Cesium's rows, ours) {:?}", &disagree[..disagree.len().min(12)]);
+        assert!(one_sided <= 4, "{name}: {one_sided} columns lit in one picture only");
+    }
 }
