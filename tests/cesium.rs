@@ -301,7 +301,7 @@ fn cesium_flies_the_served_and_the_exported_terrain() {
 }
 
 /// The page of the side-by-side: CesiumJS's bare ellipsoid (`EllipsoidTerrainProvider`),
-/// a white globe on black, no imagery, lighting, sky, sun, moon, fog or atmosphere, the
+/// or the quantized-mesh terrain at `terrain=`, a white globe on black, no imagery, lighting, sky, sun, moon, fog or atmosphere, the
 /// camera at `at=LON,LAT,HEIGHT` with `heading=` and `pitch=` (degrees) and a vertical
 /// field of view of 60 degrees (Cesium's `fov` is the wider side's).
 const BARE_GLOBE_PAGE: &str = r#"<!doctype html><html><head><meta charset="utf-8">
@@ -311,8 +311,13 @@ const BARE_GLOBE_PAGE: &str = r#"<!doctype html><html><head><meta charset="utf-8
 <body><div id="globe"></div><script>
 const q = new URLSearchParams(location.search);
 const [lon, lat, height] = q.get('at').split(',').map(Number);
+window.failures = [];
+const url = q.get('terrain');
+(url ? Cesium.CesiumTerrainProvider.fromUrl(url) : Promise.resolve(new Cesium.EllipsoidTerrainProvider()))
+.then(terrainProvider => {
+if (terrainProvider.errorEvent) terrainProvider.errorEvent.addEventListener(e => window.failures.push(String(e.message || e)));
 const viewer = new Cesium.Viewer('globe', {
-  terrainProvider: new Cesium.EllipsoidTerrainProvider(), baseLayer: false, baseLayerPicker: false,
+  terrainProvider, baseLayer: false, baseLayerPicker: false,
   geocoder: false, timeline: false, animation: false, homeButton: false, sceneModePicker: false,
   navigationHelpButton: false, fullscreenButton: false, infoBox: false, selectionIndicator: false,
   skyBox: false, skyAtmosphere: false, contextOptions: { webgl: { antialias: false } } });
@@ -332,6 +337,7 @@ scene.camera.setView({ destination: Cesium.Cartesian3.fromDegrees(lon, lat, heig
   orientation: { heading: Cesium.Math.toRadians(Number(q.get('heading'))),
                  pitch: Cesium.Math.toRadians(Number(q.get('pitch'))), roll: 0 } });
 window.viewer = viewer;
+}).catch(e => window.failures.push('terrain: ' + e));
 </script></body></html>"#;
 
 /// The topmost and bottommost lit rows of each column (`None`: the column is empty).
@@ -372,6 +378,14 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
     assert!(made.success(), "gdal_create");
     let world = dir.path().join("world.tspack");
     terrastream(&["tile", "--texture", tif.to_str().unwrap(), "-o", world.to_str().unwrap()]);
+    // And a DEM of 12 x 12 degrees around Everest (kept geographic), served to Cesium as
+    // quantized-mesh terrain.
+    let dem = oracles::dem(dir.path(), oracles::EVEREST.0 - 6.0, oracles::EVEREST.1 - 6.0, 12.0, 120.0);
+    let himalaya = dir.path().join("himalaya.tspack");
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", himalaya.to_str().unwrap()]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[himalaya.to_str().unwrap()], dir.path());
+    let terrain = format!("http://127.0.0.1:{}/himalaya", server.port);
 
     let root = dir.path().join("www");
     std::fs::create_dir_all(&root).unwrap();
@@ -387,24 +401,31 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
     let driver = Driver::start();
     // A window larger than the globe's element, which the screenshot takes whole.
     let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH + 200, HEIGHT + 300));
-    for (name, at, heading, pitch) in [
-        ("whole", "0,0,20000000", 0.0, -90.0),
-        ("oblique", "10,20,2000000", 30.0, -30.0),
-        ("horizon", "0,0,10000", 90.0, 0.0),
+    for (name, archive, at, heading, pitch) in [
+        ("whole", &world, "0,0,20000000", 0.0, -90.0),
+        ("oblique", &world, "10,20,2000000", 30.0, -30.0),
+        ("horizon", &world, "0,0,10000", 90.0, 0.0),
+        // Grazing over the Himalaya, Everest 50 km ahead: the terrain's own skyline.
+        ("himalaya", &himalaya, "86.55,27.75,9000", 50.0, 0.0),
     ] {
-        browser.goto(&format!("http://127.0.0.1:{}/globe.html?at={at}&heading={heading}&pitch={pitch}", nginx.port));
+        let terrain = if *archive == himalaya { format!("&terrain={terrain}") } else { String::new() };
+        browser.goto(&format!(
+            "http://127.0.0.1:{}/globe.html?at={at}&heading={heading}&pitch={pitch}{terrain}",
+            nginx.port
+        ));
         let started = std::time::Instant::now();
         while browser.eval(
             "return !!(window.viewer && viewer.scene.globe.tilesLoaded && viewer.scene.frameState.frameNumber > 5);",
         ) != json!(true)
         {
+            assert_eq!(browser.eval("return window.failures;"), json!([]), "Cesium: {:?}", browser.console());
             assert!(started.elapsed().as_secs() < 60, "Cesium never loaded its view: {:?}", browser.console());
             std::thread::sleep(std::time::Duration::from_millis(100));
         }
         let (cw, ch, cesium) = browser.screenshot("#globe");
         let png = dir.path().join(format!("{name}.png"));
         let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-            .args(["-q", "render", world.to_str().unwrap(), "-o", png.to_str().unwrap(), "--shading", "flat"])
+            .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--shading", "flat"])
             .args(["--size", &format!("{WIDTH}x{HEIGHT}"), "--fov", "60", "--at", at])
             .args(["--heading", &heading.to_string(), "--pitch", &pitch.to_string()])
             .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.path().into()))
@@ -413,6 +434,11 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
         assert!(out.status.success(), "render: {}", String::from_utf8_lossy(&out.stderr));
         let (w, h, ours) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
         assert_eq!((w, h), (cw, ch), "the same picture size");
+        // Both pictures, to look at: target/tmp/side-by-side/.
+        let look = Path::new(env!("CARGO_TARGET_TMPDIR")).join("side-by-side");
+        std::fs::create_dir_all(&look).unwrap();
+        std::fs::copy(&png, look.join(format!("{name}-terrastream.png"))).unwrap();
+        terrastream_testkit::golden::write_png(&look.join(format!("{name}-cesium.png")), cw, ch, &cesium);
         let (theirs, mine) = (column_edges(cw, ch, &cesium), column_edges(w, h, &ours));
         // Where the silhouette is steep (the sides of the disc), a row is the same edge a
         // column over: the tolerance grows by Cesium's row change to the next column.

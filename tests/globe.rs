@@ -9,8 +9,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-const EVEREST: (f64, f64) = (86.9250, 27.9881);
-const SUMMIT: f64 = 8848.86;
+#[path = "support/oracles.rs"]
+mod oracles;
+use oracles::{EVEREST, SUMMIT, dem};
 
 fn gdal() -> bool {
     let found = Command::new("gdal_translate").arg("--version").output().is_ok();
@@ -27,40 +28,6 @@ fn terrastream(args: &[&str], dir: &Path) -> String {
     let said = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(out.status.success(), "terrastream {args:?}: {said}{}", String::from_utf8_lossy(&out.stderr));
     said
-}
-
-/// A peak whose top is the summit at Everest's coordinates, rippled 40 m.
-fn height(lon: f64, lat: f64) -> f64 {
-    let dx = (lon - EVEREST.0) * 111_320.0 * EVEREST.1.to_radians().cos();
-    let dy = (lat - EVEREST.1) * 110_950.0;
-    let r2 = (dx * dx + dy * dy) / (3_000.0f64 * 3_000.0);
-    1200.0 + (SUMMIT - 1240.0) * (-r2).exp() + 40.0 * (dx / 37.0).cos() * (dy / 31.0).cos()
-}
-
-/// An ESRI ASCII grid of `degrees` x `degrees` from (`west`, `south`) with `per_degree`
-/// samples a degree, turned into a GeoTIFF by GDAL.
-fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> PathBuf {
-    let n = (degrees * per_degree).round() as usize;
-    let cell = 1.0 / per_degree;
-    let mut asc =
-        format!("ncols {n}\nnrows {n}\nxllcorner {west}\nyllcorner {south}\ncellsize {cell:.12}\nNODATA_value -9999\n");
-    for row in 0..n {
-        let lat = south + degrees - (row as f64 + 0.5) * cell;
-        let line: Vec<String> =
-            (0..n).map(|col| format!("{:.2}", height(west + (col as f64 + 0.5) * cell, lat))).collect();
-        asc.push_str(&line.join(" "));
-        asc.push('\n');
-    }
-    let source = dir.join(format!("dem-{degrees}.asc"));
-    std::fs::write(&source, asc).unwrap();
-    let tif = dir.join(format!("dem-{degrees}.tif"));
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32"])
-        .args([source.to_str().unwrap(), tif.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
-    tif
 }
 
 fn decode(path: &Path) -> (u32, u32, Vec<u8>) {

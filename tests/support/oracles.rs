@@ -111,3 +111,42 @@ pub fn snippet(name: &str) -> String {
     let body = &body[body.find('\n').unwrap() + 1..];
     body[..body.find("```").unwrap()].to_owned()
 }
+
+/// Everest's summit, longitude and latitude (degrees).
+pub const EVEREST: (f64, f64) = (86.9250, 27.9881);
+/// Its height, metres.
+pub const SUMMIT: f64 = 8848.86;
+
+/// A peak whose top is the summit at Everest's coordinates, rippled 40 m.
+pub fn everest_height(lon: f64, lat: f64) -> f64 {
+    let dx = (lon - EVEREST.0) * 111_320.0 * EVEREST.1.to_radians().cos();
+    let dy = (lat - EVEREST.1) * 110_950.0;
+    let r2 = (dx * dx + dy * dy) / (3_000.0f64 * 3_000.0);
+    1200.0 + (SUMMIT - 1240.0) * (-r2).exp() + 40.0 * (dx / 37.0).cos() * (dy / 31.0).cos()
+}
+
+/// An ESRI ASCII grid of `degrees` x `degrees` from (`west`, `south`) with `per_degree`
+/// samples a degree, turned into a GeoTIFF by GDAL.
+pub fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> PathBuf {
+    let n = (degrees * per_degree).round() as usize;
+    let cell = 1.0 / per_degree;
+    let mut asc =
+        format!("ncols {n}\nnrows {n}\nxllcorner {west}\nyllcorner {south}\ncellsize {cell:.12}\nNODATA_value -9999\n");
+    for row in 0..n {
+        let lat = south + degrees - (row as f64 + 0.5) * cell;
+        let line: Vec<String> =
+            (0..n).map(|col| format!("{:.2}", everest_height(west + (col as f64 + 0.5) * cell, lat))).collect();
+        asc.push_str(&line.join(" "));
+        asc.push('\n');
+    }
+    let source = dir.join(format!("dem-{degrees}.asc"));
+    std::fs::write(&source, asc).unwrap();
+    let tif = dir.join(format!("dem-{degrees}.tif"));
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32"])
+        .args([source.to_str().unwrap(), tif.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    tif
+}
