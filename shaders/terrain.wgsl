@@ -66,6 +66,11 @@ struct Globals {
 @group(0) @binding(4) var colour_sampler: sampler;
 // Longitude and latitude (radians, from the lattice's centre) at lattice points.
 @group(0) @binding(5) var lattice: texture_2d<f32>;
+// The atmosphere (atmosphere.wgsl, appended to this source).
+@group(0) @binding(6) var<uniform> ATMO: AtmosphereUniform;
+@group(0) @binding(7) var transmittance_lut: texture_2d<f32>;
+@group(0) @binding(8) var multiscattering_lut: texture_2d<f32>;
+@group(0) @binding(9) var lut_sampler: sampler;
 
 const NODATA: f32 = -1.0e30;
 const KIND_ELEVATION: u32 = 0u;
@@ -486,7 +491,64 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         let line = 1.0 - clamp(min(min(dist.x, dist.y), diagonal), 0.0, 1.0);
         rgb = mix(rgb, vec3<f32>(0.02, 0.02, 0.02), line * 0.8);
     }
+    if ATMO.look.y > 0.5 {
+        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y), 1.0);
+    }
     let distance = length(in.rel);
     let haze = 1.0 - exp(-G.fog.w * distance);
     return vec4<f32>(mix(rgb, G.fog.rgb, haze), 1.0);
+}
+
+// On the globe with an atmosphere: the ground lit by the sun through the air above it,
+// seen through the air between it and the eye (the aerial perspective), exposed.
+fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32) -> vec3<f32> {
+    // The point at its height above the model's sphere (the ellipsoid's radius varies by
+    // 21 km; the air's density follows the height, not the radius).
+    let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
+    let p = up * (BOTTOM + max(height, 0.0));
+    let sun = ATMO.sun.xyz;
+    // The grid's east, up and south at the point, in the anchor's frame.
+    let east = normalize(cross(ATMO.pole.xyz, up));
+    let north = cross(up, east);
+    let n = normalize(east * grid_normal.x + up * grid_normal.y - north * grid_normal.z);
+    var sun_t = transmittance_to_top(p, sun);
+    if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
+        sun_t = vec3<f32>(0.0);
+    }
+    // Sky light from above, growing with the sun's height.
+    let sky = (0.05 + 0.25 * max(dot(up, sun), 0.0)) * (0.5 + 0.5 * dot(n, up)) * vec3<f32>(0.6, 0.75, 1.0);
+    let radiance = albedo / PI * (sun_t * max(dot(n, sun), 0.0) + sky);
+    let to = p - ATMO.eye.xyz;
+    let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
+    return expose(radiance * air.transmittance + air.light);
+}
+
+struct SkyOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) ndc: vec2<f32>,
+}
+
+// The sky: a fullscreen triangle behind the terrain.
+@vertex
+fn vs_sky(@builtin(vertex_index) i: u32) -> SkyOut {
+    let xy = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u)) * 2.0 - 1.0;
+    return SkyOut(vec4<f32>(xy, 0.0, 1.0), xy);
+}
+
+@fragment
+fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
+    let far = ATMO.inv_view_proj * vec4<f32>(in.ndc, 1.0, 1.0);
+    let d = normalize(far.xyz / far.w);
+    let sun = ATMO.sun.xyz;
+    let eye = ATMO.eye.xyz;
+    var light = integrate(eye, d, 1.0e9, sun, ATMO.look.z).light;
+    // The sun's disc, dimmed by the air in front of it, where the planet does not hide it.
+    if dot(d, sun) > cos(ATMO.sun.w) && ray_sphere(eye, d, BOTTOM) < 0.0 {
+        var through = vec3<f32>(1.0);
+        if dot(eye, eye) <= TOP * TOP {
+            through = transmittance_to_top(eye, d);
+        }
+        light += through * (1.0 / (PI * ATMO.sun.w * ATMO.sun.w)) * 0.02;
+    }
+    return vec4<f32>(expose(light), 1.0);
 }

@@ -113,6 +113,7 @@ const FLAT_WHITE: RenderSettings = RenderSettings {
     fog_density: None,
     sky: [0.0; 3],
     flat: false,
+    atmosphere: false,
 };
 
 /// The default view of a world archive is the whole Earth, and it is round: what is drawn
@@ -193,4 +194,102 @@ fn flat_keeps_the_plate() {
     let rows: Vec<u32> = (300..500).step_by(20).filter_map(top).collect();
     assert_eq!(rows.len(), 10, "the sheet spans the middle");
     assert!(rows.iter().max().unwrap() - rows.iter().min().unwrap() <= 1, "a straight far edge: {rows:?}");
+}
+
+/// Lit, with the atmosphere.
+fn lit_settings(sun: glam::DVec3) -> RenderSettings {
+    RenderSettings { shading: Shading::Lit, sun, atmosphere: true, ..FLAT_WHITE }
+}
+
+/// The direction towards a sun at `azimuth` (clockwise from north) and `elevation`.
+fn sun_at(azimuth: f64, elevation: f64) -> glam::DVec3 {
+    let (a, e) = (azimuth.to_radians(), elevation.to_radians());
+    glam::DVec3::new(a.sin() * e.cos(), e.sin(), -a.cos() * e.cos())
+}
+
+fn posed(at: &str, heading: f64, pitch: f64) -> impl FnOnce(&Metadata, &Surface) -> Result<Camera, String> {
+    let pose = Pose::parse(at, heading, pitch).unwrap();
+    move |m: &Metadata, s: &Surface| {
+        let (eye, target) = pose.eye_target(m, s)?;
+        let mut camera = Camera::look_at(eye, target, 800, 600);
+        camera.zenith = s.up(eye);
+        Ok(camera)
+    }
+}
+
+fn rgb(still: &Still, x: u32, y: u32) -> [f64; 3] {
+    let i = ((y * still.width + x) * 4) as usize;
+    [0, 1, 2].map(|k| f64::from(still.rgba[i + k]))
+}
+
+/// The mean colour of rows `y0..y1`.
+fn band(still: &Still, y0: u32, y1: u32) -> [f64; 3] {
+    let mut sum = [0.0; 3];
+    for y in y0..y1 {
+        for x in 0..still.width {
+            let c = rgb(still, x, y);
+            (0..3).for_each(|k| sum[k] += c[k]);
+        }
+    }
+    sum.map(|v| v / f64::from((y1 - y0) * still.width))
+}
+
+/// From space the Earth has a blue limb: just outside the disc the air glows blue, far
+/// from it space is black.
+#[test]
+fn from_space_the_limb_is_blue() {
+    let default = |m: &Metadata, s: &Surface| Ok(default_camera(m, s, 800, 600));
+    let Some(white) = render(world_archive(), 800, 600, FLAT_WHITE, default) else { return };
+    let Some(sunlit) = render(world_archive(), 800, 600, lit_settings(sun_at(0.0, 90.0)), default) else { return };
+    save("limb", &sunlit);
+    // The disc's rightmost lit pixel on the middle row, from the flat render.
+    let edge = (0..800).rev().find(|&x| lit(&white, x, 300)).unwrap();
+    // The air is 100 km thick: 4 px here.
+    let glow = (1..=4).map(|dx| rgb(&sunlit, edge + dx, 300)).max_by(|a, b| a[2].total_cmp(&b[2])).unwrap();
+    assert!(glow[2] > 40.0 && glow[2] > glow[0] * 1.5, "the air just outside the disc: {glow:?}");
+    let beyond = rgb(&sunlit, edge + 12, 300);
+    assert!(beyond.iter().all(|&c| c < 3.0), "beyond the air, space: {beyond:?}");
+    let space = rgb(&sunlit, 5, 5);
+    assert!(space.iter().all(|&c| c < 3.0), "space is black: {space:?}");
+}
+
+/// Looking along the ground at 2 km with the sun high: the ground grows hazier towards the
+/// horizon (its colour nearer the sky's there), and the sky is blue above, paler below.
+#[test]
+fn distant_ground_is_hazy_and_the_sky_blue() {
+    let Some(still) =
+        render(world_archive(), 800, 600, lit_settings(sun_at(0.0, 60.0)), posed("30,0,2000", 90.0, -5.0))
+    else {
+        return;
+    };
+    save("haze", &still);
+    let horizon = (0..600).find(|&y| band(&still, y, y + 1)[1] > band(&still, 0, 1)[1] + 40.0).unwrap_or(300);
+    let sky_low = band(&still, horizon.saturating_sub(12), horizon.saturating_sub(2));
+    let sky_high = band(&still, 0, 10);
+    assert!(sky_high[2] > sky_high[0] * 1.5, "the sky above is blue: {sky_high:?}");
+    let distance = |a: [f64; 3], b: [f64; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt();
+    let far = band(&still, horizon + 2, horizon + 12);
+    let near = band(&still, 580, 600);
+    assert!(
+        distance(far, sky_low) < 0.5 * distance(near, sky_low),
+        "far ground {far:?} and near {near:?} against the sky at the horizon {sky_low:?}"
+    );
+}
+
+/// The sun: low in the east, the sky there is redder than with the sun high; set, the sky
+/// is dark.
+#[test]
+fn the_sun_colours_the_sky() {
+    let sky = |elevation: f64| {
+        let settings = lit_settings(sun_at(90.0, elevation));
+        render(world_archive(), 800, 600, settings, posed("0,0,100", 90.0, 10.0)).map(|s| {
+            save(&format!("sun-{elevation}"), &s);
+            band(&s, 200, 260)
+        })
+    };
+    let (Some(high), Some(low), Some(set)) = (sky(60.0), sky(3.0), sky(-20.0)) else { return };
+    let warmth = |c: [f64; 3]| c[0] / c[2].max(1.0);
+    assert!(warmth(low) > warmth(high) * 1.3, "sunset {low:?} against noon {high:?}");
+    let brightness = |c: [f64; 3]| c.iter().sum::<f64>();
+    assert!(brightness(set) < 0.2 * brightness(high), "after sunset {set:?} against noon {high:?}");
 }

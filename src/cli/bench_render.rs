@@ -92,17 +92,11 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     };
     let gpu = Gpu::headless().context("the render benchmark needs a graphics adapter")?;
     let budget = UploadBudget { max_tiles: args.max_upload_tiles.max(1), ..UploadBudget::default() };
-    let open_on = |flat: bool| -> Result<Session> {
+    let open_with = |settings: RenderSettings| -> Result<Session> {
         let streamer = Streamer::open(Origin::parse(&location)?, StreamOptions::default())?;
-        Ok(Session::new(
-            streamer,
-            &gpu.device,
-            RenderSettings { flat, ..RenderSettings::default() },
-            OFFSCREEN_FORMAT,
-            budget,
-        )?)
+        Ok(Session::new(streamer, &gpu.device, settings, OFFSCREEN_FORMAT, budget)?)
     };
-    let open = || open_on(true);
+    let open = || open_with(RenderSettings { flat: true, ..RenderSettings::default() });
     let mut streaming = open()?;
     let metadata = streaming.streamer.metadata().cloned().context("no metadata")?;
     let cameras = flight(&metadata, args.frames, w, h);
@@ -145,7 +139,8 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     println!("  streaming / resident: median {:.2}x, p99 {:.2}x (target: p99 within 1.25x)", s50 / r50, s99 / r99);
     // The same views on the globe (a georeferenced archive): each eye and target placed on
     // the ellipsoid at its grid point and height.
-    let mut globe = open_on(false)?;
+    // Without the atmosphere first (the plate has none), then with it: its share.
+    let mut globe = open_with(RenderSettings { atmosphere: false, ..RenderSettings::default() })?;
     let surface = globe.renderer.surface().clone();
     if surface.globe().is_none() {
         println!("  globe: the archive does not say where it lies");
@@ -174,6 +169,16 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
         globe_fetched,
         flat_fetched,
         globe_fetched as f64 / flat_fetched.max(1) as f64
+    );
+    let mut air = open_with(RenderSettings::default())?;
+    for camera in &on_globe {
+        air.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
+    }
+    let with_air = fly(&gpu, &mut air, &on_globe, &target)?;
+    let (a50, _) = stats("atmosphere", &with_air);
+    println!(
+        "  the atmosphere's share of the globe's frame (median): {:.0} % ({a50:.2} ms with it, {g50:.2} ms without)",
+        (a50 - g50) / a50 * 100.0
     );
     Ok(())
 }

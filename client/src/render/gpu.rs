@@ -167,10 +167,24 @@ pub struct PipelineDesc<'a> {
 
 /// A render pipeline from `desc`.
 pub fn pipeline(device: &wgpu::Device, desc: &PipelineDesc<'_>) -> wgpu::RenderPipeline {
-    let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some(&format!("shader.{}", desc.name)),
-        source: wgpu::ShaderSource::Wgsl(desc.wgsl.into()),
-    });
+    pipeline_in(device, &shader(device, desc.name, desc.wgsl), desc)
+}
+
+/// A shader module of WGSL source, named `shader.{name}`.
+pub fn shader(device: &wgpu::Device, name: &str, wgsl: &str) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(&format!("shader.{name}")),
+        source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+    })
+}
+
+/// A render pipeline from `desc` with a module already made (`desc.wgsl` unused): its
+/// other entry points serve other pipelines.
+pub fn pipeline_in(
+    device: &wgpu::Device,
+    shader: &wgpu::ShaderModule,
+    desc: &PipelineDesc<'_>,
+) -> wgpu::RenderPipeline {
     let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some(&format!("pipeline_layout.{}", desc.name)),
         bind_group_layouts: &[Some(desc.layout)],
@@ -180,7 +194,7 @@ pub fn pipeline(device: &wgpu::Device, desc: &PipelineDesc<'_>) -> wgpu::RenderP
         label: Some(&format!("pipeline.{}", desc.name)),
         layout: Some(&layout),
         vertex: wgpu::VertexState {
-            module: &shader,
+            module: shader,
             entry_point: Some("vs_main"),
             compilation_options: wgpu::PipelineCompilationOptions::default(),
             buffers: desc.buffers,
@@ -195,7 +209,7 @@ pub fn pipeline(device: &wgpu::Device, desc: &PipelineDesc<'_>) -> wgpu::RenderP
         }),
         multisample: wgpu::MultisampleState::default(),
         fragment: Some(wgpu::FragmentState {
-            module: &shader,
+            module: shader,
             entry_point: Some("fs_main"),
             compilation_options: wgpu::PipelineCompilationOptions::default(),
             targets: &[Some(wgpu::ColorTargetState {

@@ -2,6 +2,7 @@
 //! shader from GPU-resident elevation tiles, every texture LOD blended in one pass, tiles
 //! found through a page table; offscreen targets for headless rendering.
 
+pub mod atmosphere;
 pub mod gpu;
 pub mod hud;
 pub mod mesh;

@@ -8,6 +8,7 @@ use glam::{DMat4, DVec3, Mat4};
 use terrastream_format::{Layer, LayerKind, Metadata, TileFormat, TileKey};
 use wgpu::util::DeviceExt;
 
+use super::atmosphere::{ATMOSPHERE_WGSL, AtmospherePipelines, AtmosphereTables, AtmosphereUniform};
 use super::gpu::{self, texture_entry, uniform_entry, write_layer};
 use super::mesh::{MAX_LEVELS, MeshParams, Node, PatchMesh, Scene, select_nodes};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable, Residency};
@@ -60,6 +61,9 @@ pub struct RenderSettings {
     /// Draw every archive as a flat plate, even one that says where it lies (else a
     /// georeferenced archive is drawn on the WGS 84 ellipsoid, cameras in ECEF).
     pub flat: bool,
+    /// On the globe, lit: the sky and the aerial perspective of a physically based
+    /// atmosphere (else the plain haze).
+    pub atmosphere: bool,
 }
 
 impl Default for RenderSettings {
@@ -76,6 +80,7 @@ impl Default for RenderSettings {
             fog_density: None,
             sky: [0.62, 0.72, 0.84],
             flat: false,
+            atmosphere: true,
         }
     }
 }
@@ -297,6 +302,10 @@ pub struct TerrainRenderer {
     /// whether it still has to be written.
     lattice: wgpu::Texture,
     lattice_dirty: bool,
+    /// The atmosphere's tables and uniform, its pipelines, and whether this frame draws it.
+    air_tables: AtmosphereTables,
+    air_pipelines: AtmospherePipelines,
+    sky: bool,
 }
 
 impl std::fmt::Debug for TerrainRenderer {
@@ -343,15 +352,20 @@ fn colour_sampler(device: &wgpu::Device) -> wgpu::Sampler {
 pub struct TerrainPipeline {
     layout: wgpu::BindGroupLayout,
     pipeline: wgpu::RenderPipeline,
+    atmosphere: AtmospherePipelines,
     format: wgpu::TextureFormat,
 }
 
 impl TerrainPipeline {
-    /// Makes (compiles) the pipeline for `colour_format`.
+    /// Makes (compiles) the pipelines for `colour_format`: the terrain's, the sky's and
+    /// the atmosphere tables'.
     pub fn new(device: &wgpu::Device, colour_format: wgpu::TextureFormat) -> Self {
         let layout = bind_group_layout(device);
-        let pipeline = terrain_pipeline(device, &layout, colour_format);
-        Self { layout, pipeline, format: colour_format }
+        let source = format!("{TERRAIN_WGSL}\n{ATMOSPHERE_WGSL}");
+        let module = gpu::shader(device, "terrain", &source);
+        let pipeline = terrain_pipeline(device, &module, &layout, colour_format);
+        let atmosphere = AtmospherePipelines::new(device, &module, &layout, colour_format);
+        Self { layout, pipeline, atmosphere, format: colour_format }
     }
 
     /// The colour format it draws into.
@@ -376,6 +390,15 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
                 count: None,
             },
             texture_entry(5, wgpu::TextureSampleType::Float { filterable: false }, wgpu::TextureViewDimension::D2),
+            uniform_entry(6),
+            texture_entry(7, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
+            texture_entry(8, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
+            wgpu::BindGroupLayoutEntry {
+                binding: 9,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                count: None,
+            },
         ],
     })
 }
@@ -383,11 +406,13 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
 /// The terrain pipeline: patch vertices and per-instance patch placement, reversed depth.
 fn terrain_pipeline(
     device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
     layout: &wgpu::BindGroupLayout,
     colour_format: wgpu::TextureFormat,
 ) -> wgpu::RenderPipeline {
-    gpu::pipeline(
+    gpu::pipeline_in(
         device,
+        module,
         &gpu::PipelineDesc {
             name: "terrain",
             wgsl: TERRAIN_WGSL,
@@ -485,6 +510,7 @@ impl TerrainRenderer {
             wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
         );
         let lattice_view = lattice.create_view(&wgpu::TextureViewDescriptor::default());
+        let air_tables = AtmosphereTables::new(device);
         let bind_group = gpu::bind_group(
             device,
             "bind_group.terrain",
@@ -496,6 +522,10 @@ impl TerrainRenderer {
                 wgpu::BindingResource::TextureView(&colour_view),
                 wgpu::BindingResource::Sampler(&sampler),
                 wgpu::BindingResource::TextureView(&lattice_view),
+                air_tables.uniform.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&air_tables.transmittance_view),
+                wgpu::BindingResource::TextureView(&air_tables.multiscattering_view),
+                wgpu::BindingResource::Sampler(&air_tables.sampler),
             ],
         );
         let pipeline = shared.pipeline.clone();
@@ -524,6 +554,9 @@ impl TerrainRenderer {
             surface,
             lattice,
             lattice_dirty: true,
+            air_tables,
+            air_pipelines: shared.atmosphere.clone(),
+            sky: false,
             elevation,
             texture,
             page_table,
@@ -668,6 +701,9 @@ impl TerrainRenderer {
                 write_layer(queue, &self.lattice, 0, bytemuck::cast_slice(&texels), (w * 16, h), (w, h));
             }
         }
+        if self.surface.globe().is_some() && self.settings.shading == Shading::Lit && self.settings.atmosphere {
+            self.air_tables.make(device, queue, &self.air_pipelines);
+        }
         let (nodes, params) = self.select(camera);
         self.write_frame(device, queue, camera, &nodes, &params);
         self.stats
@@ -759,6 +795,9 @@ impl TerrainRenderer {
         self.write_instances(device, queue, nodes, anchor_units);
         let globals = self.globals(camera, params, anchor);
         queue.write_buffer(&self.globals, 0, bytemuck::bytes_of(&globals));
+        let air = self.air(camera, anchor);
+        self.sky = air.is_on();
+        queue.write_buffer(&self.air_tables.uniform, 0, bytemuck::bytes_of(&air));
         self.stats = self.frame_stats(nodes);
     }
 
@@ -822,6 +861,26 @@ impl TerrainRenderer {
         let info =
             GlobeInfo { kind, map: map.map(|v| v as f32), anchor: [sin as f32, cos as f32, n as f32, column as f32] };
         (info, local_eye, rotation)
+    }
+
+    /// The atmosphere's uniform: on for a lit globe, in the frame at the anchor.
+    fn air(&self, camera: &Camera, anchor: (f64, f64)) -> AtmosphereUniform {
+        let drawn = self.settings.shading == Shading::Lit && self.settings.atmosphere;
+        let Some(globe) = self.surface.globe().filter(|_| drawn) else {
+            return AtmosphereUniform::off();
+        };
+        let frame = globe.local_frame(glam::DVec2::new(anchor.0, anchor.1));
+        let rotation = DMat4::look_to_rh(
+            DVec3::ZERO,
+            frame.direction_to_local(camera.direction()),
+            frame.direction_to_local(camera.up()),
+        );
+        let projection = DMat4::perspective_infinite_reverse_rh(camera.fov_y, camera.aspect, camera.near);
+        // The planet's centre in the frame; the eye from it.
+        let eye = frame.to_local(camera.position) - frame.to_local(DVec3::ZERO);
+        let pole = frame.direction_to_local(DVec3::Z);
+        let height = self.surface.height(camera.position);
+        AtmosphereUniform::on(eye, height, frame.origin.length(), projection * rotation, self.settings.sun, pole)
     }
 
     /// The shader's globals for one frame.
@@ -911,6 +970,11 @@ impl TerrainRenderer {
 
     /// Records the terrain into `pass` (after [`Self::prepare`]).
     pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>) {
+        if self.sky {
+            pass.set_pipeline(&self.air_pipelines.sky);
+            pass.set_bind_group(0, &self.bind_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
         if self.full + self.quarter == 0 {
             return;
         }

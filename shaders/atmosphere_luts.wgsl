@@ -1,0 +1,90 @@
+// The atmosphere's tables (appended to atmosphere.wgsl): transmittance to the top of the
+// atmosphere (256 x 64) and the multiple-scattering contribution (32 x 32), each a
+// fullscreen triangle into its texture.
+
+@group(0) @binding(0) var<uniform> ATMO: AtmosphereUniform;
+@group(0) @binding(1) var transmittance_lut: texture_2d<f32>;
+@group(0) @binding(2) var multiscattering_lut: texture_2d<f32>;
+@group(0) @binding(3) var lut_sampler: sampler;
+
+struct Fullscreen {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) uv: vec2<f32>,
+}
+
+@vertex
+fn vs_main(@builtin(vertex_index) i: u32) -> Fullscreen {
+    let xy = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
+    return Fullscreen(vec4<f32>(xy * 2.0 - 1.0, 0.0, 1.0), vec2<f32>(xy.x, 1.0 - xy.y));
+}
+
+@fragment
+fn fs_transmittance(in: Fullscreen) -> @location(0) vec4<f32> {
+    let rm = lut_r_mu(in.uv);
+    let p = vec3<f32>(0.0, rm.x, 0.0);
+    let d = vec3<f32>(sqrt(max(1.0 - rm.y * rm.y, 0.0)), rm.y, 0.0);
+    let length_to_top = ray_sphere(p, d, TOP);
+    let steps = 40.0;
+    let dt = length_to_top / steps;
+    var depth = vec3<f32>(0.0);
+    for (var i = 0.0; i < steps; i += 1.0) {
+        let q = p + d * ((i + 0.5) * dt);
+        depth += medium(length(q) - BOTTOM).extinction * dt;
+    }
+    return vec4<f32>(exp(-depth), 1.0);
+}
+
+// Hillaire 2020, section 5.5: second-order light over the sphere of directions with an
+// isotropic phase, and the transfer factor f_ms; their infinite series is L2 / (1 - f_ms).
+@fragment
+fn fs_multiscattering(in: Fullscreen) -> @location(0) vec4<f32> {
+    let rm = lut_r_mu(in.uv);
+    let p = vec3<f32>(0.0, rm.x, 0.0);
+    let sun = vec3<f32>(sqrt(max(1.0 - rm.y * rm.y, 0.0)), rm.y, 0.0);
+    let isotropic = 1.0 / (4.0 * PI);
+    var l2 = vec3<f32>(0.0);
+    var fms = vec3<f32>(0.0);
+    let n = 8.0;
+    for (var i = 0.0; i < n; i += 1.0) {
+        for (var j = 0.0; j < n; j += 1.0) {
+            let theta = (i + 0.5) / n * 2.0 * PI;
+            let cos_phi = 1.0 - 2.0 * (j + 0.5) / n;
+            let sin_phi = sqrt(max(1.0 - cos_phi * cos_phi, 0.0));
+            let d = vec3<f32>(cos(theta) * sin_phi, cos_phi, sin(theta) * sin_phi);
+            var end = ray_sphere(p, d, TOP);
+            let ground = ray_sphere(p, d, BOTTOM);
+            if ground > 0.0 {
+                end = ground;
+            }
+            let steps = 20.0;
+            let dt = end / steps;
+            var light = vec3<f32>(0.0);
+            var f = vec3<f32>(0.0);
+            var transmittance = vec3<f32>(1.0);
+            for (var k = 0.0; k < steps; k += 1.0) {
+                let q = p + d * ((k + 0.5) * dt);
+                let m = medium(length(q) - BOTTOM);
+                let step = exp(-m.extinction * dt);
+                let scattering = m.rayleigh + vec3<f32>(m.mie);
+                let ext = max(m.extinction, vec3<f32>(1.0e-12));
+                f += transmittance * (scattering - scattering * step) / ext;
+                var sun_t = transmittance_to_top(q, sun);
+                if ray_sphere(q, sun, BOTTOM) > 0.0 {
+                    sun_t = vec3<f32>(0.0);
+                }
+                let s = sun_t * scattering * isotropic;
+                light += transmittance * (s - s * step) / ext;
+                transmittance *= step;
+            }
+            if ground > 0.0 {
+                // Light the ground sends back up (Lambertian).
+                let g = p + d * ground;
+                let up = normalize(g);
+                light += transmittance * transmittance_to_top(g, sun) * max(dot(up, sun), 0.0) * GROUND_ALBEDO / PI;
+            }
+            l2 += light / (n * n);
+            fms += f / (n * n);
+        }
+    }
+    return vec4<f32>(l2 / (vec3<f32>(1.0) - fms), 1.0);
+}
