@@ -38,6 +38,10 @@ struct AtmosphereUniform {
     look: vec4<f32>,
     // xyz: the planet's axis towards the north pole (frame axes), w unused.
     pole: vec4<f32>,
+    // x: 1 when the eye is inside the atmosphere and the per-frame tables serve the sky
+    // and the aerial perspective (else both are ray-marched per pixel), y: the aerial
+    // perspective's farthest distance, zw: the viewport in pixels.
+    tables: vec4<f32>,
 }
 
 struct Medium {
@@ -160,6 +164,74 @@ fn integrate(o: vec3<f32>, d: vec3<f32>, t_max: f32, sun: vec3<f32>, steps: f32)
         transmittance *= step;
     }
     return Scattered(light, transmittance);
+}
+
+// The sky-view table (192 x 108, made per frame from inside the atmosphere): u the
+// azimuth from the sun's (0..pi, the sky is symmetric about the sun's vertical), v the
+// elevation, square-rooted about the horizon so that its rows crowd there.
+const SKY_VIEW_SIZE: vec2<f32> = vec2<f32>(192.0, 108.0);
+// The aerial-perspective table: 32 x 32 rays over the screen, 32 distances (squared
+// spacing out to tables.y), laid side by side in a 1024 x 32 texture.
+const AERIAL_SLICES: f32 = 32.0;
+
+struct ViewFrame {
+    up: vec3<f32>,
+    sun_h: vec3<f32>,
+    side: vec3<f32>,
+    horizon: f32,
+}
+
+fn view_frame(eye: vec3<f32>, sun: vec3<f32>) -> ViewFrame {
+    let up = normalize(eye);
+    var sun_h = sun - up * dot(sun, up);
+    if dot(sun_h, sun_h) < 1.0e-8 {
+        sun_h = cross(up, select(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 0.0, 1.0), abs(up.x) > 0.9));
+    }
+    sun_h = normalize(sun_h);
+    let r = length(eye);
+    let horizon = -acos(clamp(sqrt(max(r * r - BOTTOM * BOTTOM, 0.0)) / r, 0.0, 1.0));
+    return ViewFrame(up, sun_h, cross(up, sun_h), horizon);
+}
+
+fn sky_view_uv(f: ViewFrame, d: vec3<f32>) -> vec2<f32> {
+    let elevation = asin(clamp(dot(d, f.up), -1.0, 1.0));
+    var h = d - f.up * dot(d, f.up);
+    var azimuth = 0.0;
+    if dot(h, h) > 1.0e-12 {
+        h = normalize(h);
+        azimuth = acos(clamp(dot(h, f.sun_h), -1.0, 1.0));
+    }
+    var v = 0.0;
+    if elevation >= f.horizon {
+        v = 0.5 - 0.5 * sqrt((elevation - f.horizon) / (PI / 2.0 - f.horizon));
+    } else {
+        v = 0.5 + 0.5 * sqrt((f.horizon - elevation) / (f.horizon + PI / 2.0));
+    }
+    // Half a texel in from each edge, so the rows at the horizon are sampled, not blended.
+    let texel = 1.0 / SKY_VIEW_SIZE;
+    return vec2<f32>(azimuth / PI, v) * (1.0 - texel) + texel * 0.5;
+}
+
+fn sky_view_direction(f: ViewFrame, uv: vec2<f32>) -> vec3<f32> {
+    let texel = 1.0 / SKY_VIEW_SIZE;
+    let q = clamp((uv - texel * 0.5) / (1.0 - texel), vec2<f32>(0.0), vec2<f32>(1.0));
+    var elevation = 0.0;
+    if q.y < 0.5 {
+        let t = (1.0 - 2.0 * q.y) * (1.0 - 2.0 * q.y);
+        elevation = f.horizon + t * (PI / 2.0 - f.horizon);
+    } else {
+        let t = (2.0 * q.y - 1.0) * (2.0 * q.y - 1.0);
+        elevation = f.horizon - t * (f.horizon + PI / 2.0);
+    }
+    let azimuth = q.x * PI;
+    let horizontal = f.sun_h * cos(azimuth) + f.side * sin(azimuth);
+    return normalize(horizontal * cos(elevation) + f.up * sin(elevation));
+}
+
+// Distance of aerial-perspective slice `k` (0..32), squared spacing.
+fn aerial_distance(k: f32) -> f32 {
+    let s = k / AERIAL_SLICES;
+    return s * s * ATMO.tables.y;
 }
 
 // Display: an exposure and a soft shoulder, so the sun-lit sky and ground fit in.

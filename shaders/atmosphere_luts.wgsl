@@ -1,6 +1,7 @@
 // The atmosphere's tables (appended to atmosphere.wgsl): transmittance to the top of the
-// atmosphere (256 x 64) and the multiple-scattering contribution (32 x 32), each a
-// fullscreen triangle into its texture.
+// atmosphere (256 x 64) and the multiple-scattering contribution (32 x 32), made once;
+// the sky view and the aerial perspective, made per frame from inside the atmosphere.
+// Each is a fullscreen triangle into its texture.
 
 @group(0) @binding(0) var<uniform> ATMO: AtmosphereUniform;
 @group(0) @binding(1) var transmittance_lut: texture_2d<f32>;
@@ -87,4 +88,28 @@ fn fs_multiscattering(in: Fullscreen) -> @location(0) vec4<f32> {
         }
     }
     return vec4<f32>(l2 / (vec3<f32>(1.0) - fms), 1.0);
+}
+
+@fragment
+fn fs_skyview(in: Fullscreen) -> @location(0) vec4<f32> {
+    let sun = ATMO.sun.xyz;
+    let f = view_frame(ATMO.eye.xyz, sun);
+    let d = sky_view_direction(f, in.uv);
+    return vec4<f32>(integrate(ATMO.eye.xyz, d, 1.0e9, sun, 20.0).light, 1.0);
+}
+
+// One froxel: the light scattered towards the eye along its screen ray out to its slice's
+// distance (rgb), and the mean transmittance over that stretch (a).
+@fragment
+fn fs_aerial(in: Fullscreen) -> @location(0) vec4<f32> {
+    let texel = in.uv * vec2<f32>(AERIAL_SLICES * 32.0, 32.0);
+    let slice = floor(texel.x / 32.0);
+    let xy = (vec2<f32>(texel.x - slice * 32.0, texel.y)) / 32.0;
+    // Screen rays: x right, y up in clip space, row 0 at the top.
+    let ndc = vec2<f32>(xy.x * 2.0 - 1.0, 1.0 - xy.y * 2.0);
+    let far = ATMO.inv_view_proj * vec4<f32>(ndc, 1.0, 1.0);
+    let d = normalize(far.xyz / far.w);
+    let distance = aerial_distance(slice + 1.0);
+    let s = integrate(ATMO.eye.xyz, d, distance, ATMO.sun.xyz, 8.0);
+    return vec4<f32>(s.light, dot(s.transmittance, vec3<f32>(1.0 / 3.0)));
 }

@@ -71,6 +71,8 @@ struct Globals {
 @group(0) @binding(7) var transmittance_lut: texture_2d<f32>;
 @group(0) @binding(8) var multiscattering_lut: texture_2d<f32>;
 @group(0) @binding(9) var lut_sampler: sampler;
+@group(0) @binding(10) var sky_view_lut: texture_2d<f32>;
+@group(0) @binding(11) var aerial_lut: texture_2d<f32>;
 
 const NODATA: f32 = -1.0e30;
 const KIND_ELEVATION: u32 = 0u;
@@ -492,7 +494,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         rgb = mix(rgb, vec3<f32>(0.02, 0.02, 0.02), line * 0.8);
     }
     if ATMO.look.y > 0.5 {
-        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y), 1.0);
+        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y, in.clip.xy), 1.0);
     }
     let distance = length(in.rel);
     let haze = 1.0 - exp(-G.fog.w * distance);
@@ -501,7 +503,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
 
 // On the globe with an atmosphere: the ground lit by the sun through the air above it,
 // seen through the air between it and the eye (the aerial perspective), exposed.
-fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32) -> vec3<f32> {
+fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32, pixel: vec2<f32>) -> vec3<f32> {
     // The point at its height above the model's sphere (the ellipsoid's radius varies by
     // 21 km; the air's density follows the height, not the radius).
     let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
@@ -519,8 +521,28 @@ fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>,
     let sky = (0.05 + 0.25 * max(dot(up, sun), 0.0)) * (0.5 + 0.5 * dot(n, up)) * vec3<f32>(0.6, 0.75, 1.0);
     let radiance = albedo / PI * (sun_t * max(dot(n, sun), 0.0) + sky);
     let to = p - ATMO.eye.xyz;
+    if ATMO.tables.x > 0.5 {
+        let air = aerial(pixel / ATMO.tables.zw, length(to));
+        return expose(radiance * air.a + air.rgb);
+    }
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
     return expose(radiance * air.transmittance + air.light);
+}
+
+// The aerial-perspective table at screen position `uv` (0..1, row 0 at the top) and
+// distance `t`: light (rgb) and mean transmittance (a), between its slices.
+fn aerial(uv: vec2<f32>, t: f32) -> vec4<f32> {
+    let w = sqrt(max(t, 0.0) / ATMO.tables.y) * AERIAL_SLICES - 1.0;
+    let inside = clamp(uv, vec2<f32>(0.5 / 32.0), vec2<f32>(1.0 - 0.5 / 32.0));
+    let k0 = clamp(floor(w), -1.0, AERIAL_SLICES - 1.0);
+    let f = clamp(w - k0, 0.0, 1.0);
+    var a = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    if k0 >= 0.0 {
+        a = textureSampleLevel(aerial_lut, lut_sampler, vec2<f32>((k0 + inside.x) / AERIAL_SLICES, inside.y), 0.0);
+    }
+    let k1 = min(k0 + 1.0, AERIAL_SLICES - 1.0);
+    let b = textureSampleLevel(aerial_lut, lut_sampler, vec2<f32>((k1 + inside.x) / AERIAL_SLICES, inside.y), 0.0);
+    return mix(a, b, f);
 }
 
 struct SkyOut {
@@ -541,7 +563,12 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     let d = normalize(far.xyz / far.w);
     let sun = ATMO.sun.xyz;
     let eye = ATMO.eye.xyz;
-    var light = integrate(eye, d, 1.0e9, sun, ATMO.look.z).light;
+    var light = vec3<f32>(0.0);
+    if ATMO.tables.x > 0.5 {
+        light = textureSampleLevel(sky_view_lut, lut_sampler, sky_view_uv(view_frame(eye, sun), d), 0.0).rgb;
+    } else {
+        light = integrate(eye, d, 1.0e9, sun, ATMO.look.z).light;
+    }
     // The sun's disc, dimmed by the air in front of it, where the planet does not hide it.
     if dot(d, sun) > cos(ATMO.sun.w) && ray_sphere(eye, d, BOTTOM) < 0.0 {
         var through = vec3<f32>(1.0);

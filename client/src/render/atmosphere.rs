@@ -19,6 +19,11 @@ pub const BOTTOM: f64 = 6_360_000.0;
 const LUT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 const TRANSMITTANCE_SIZE: (u32, u32) = (256, 64);
 const MULTISCATTERING_SIZE: (u32, u32) = (32, 32);
+const SKY_VIEW_SIZE: (u32, u32) = (192, 108);
+/// 32 x 32 screen rays, 32 distances side by side.
+const AERIAL_SIZE: (u32, u32) = (32 * 32, 32);
+/// The top of the model's atmosphere above its sphere, metres (the shader's TOP - BOTTOM).
+const THICKNESS: f64 = 100_000.0;
 /// Exposure of the displayed radiance (for a sun of illuminance 1).
 const EXPOSURE: f32 = 10.0;
 /// Ray-march samples of the sky and of the aerial perspective.
@@ -36,6 +41,7 @@ pub struct AtmosphereUniform {
     sun: [f32; 4],
     look: [f32; 4],
     pole: [f32; 4],
+    tables: [f32; 4],
 }
 
 impl AtmosphereUniform {
@@ -46,9 +52,17 @@ impl AtmosphereUniform {
 
     /// On, for a view from `eye` (frame metres from the planet's centre, `height` above
     /// the ellipsoid, whose radius under the anchor is `radius`), looking through the
-    /// camera-relative `rotation_projection`, the sun towards `sun` and the pole towards
-    /// `pole` (both in the frame's axes).
-    pub fn on(eye: DVec3, height: f64, radius: f64, rotation_projection: DMat4, sun: DVec3, pole: DVec3) -> Self {
+    /// camera-relative `rotation_projection` onto a `viewport` (pixels), the sun towards
+    /// `sun` and the pole towards `pole` (both in the frame's axes). From inside the
+    /// atmosphere the sky and the aerial perspective come from per-frame tables.
+    pub fn on(
+        eye: DVec3,
+        height: f64,
+        radius: f64,
+        (rotation_projection, viewport): (DMat4, (f64, f64)),
+        sun: DVec3,
+        pole: DVec3,
+    ) -> Self {
         let scale = BOTTOM / radius.max(1.0);
         let inverse: Mat4 = rotation_projection.inverse().as_mat4();
         let e = (eye.normalize_or(DVec3::Y) * (BOTTOM + height)).as_vec3();
@@ -61,7 +75,21 @@ impl AtmosphereUniform {
             sun: [s.x, s.y, s.z, SUN_RADIUS],
             look: [EXPOSURE, 1.0, SKY_STEPS, AERIAL_STEPS],
             pole: [p.x, p.y, p.z, 0.0],
+            tables: {
+                // Out to where the ground and the air's top meet the horizon.
+                let r = BOTTOM + height.max(0.0);
+                let far =
+                    (r * r - BOTTOM * BOTTOM).max(0.0).sqrt() + ((BOTTOM + THICKNESS).powi(2) - BOTTOM * BOTTOM).sqrt();
+                let inside = height < THICKNESS * 0.95;
+                #[allow(clippy::cast_possible_truncation)]
+                [f32::from(u8::from(inside)), far as f32, viewport.0 as f32, viewport.1 as f32]
+            },
         }
+    }
+
+    /// Are the sky and the aerial perspective read from the per-frame tables?
+    pub fn uses_tables(&self) -> bool {
+        self.is_on() && self.tables[0] > 0.5
     }
 
     /// Is the atmosphere drawn?
@@ -80,6 +108,12 @@ pub struct AtmosphereTables {
     pub transmittance_view: wgpu::TextureView,
     /// The same of the multiple-scattering table.
     pub multiscattering_view: wgpu::TextureView,
+    /// The same of the per-frame sky-view table.
+    pub sky_view_view: wgpu::TextureView,
+    /// The same of the per-frame aerial-perspective table.
+    pub aerial_view: wgpu::TextureView,
+    /// The per-frame passes' bind group (made with the tables).
+    frame_group: Option<wgpu::BindGroup>,
     /// Linear, clamped.
     pub sampler: wgpu::Sampler,
     made: bool,
@@ -107,7 +141,12 @@ impl AtmosphereTables {
         let transmittance = lut(device, "texture.atmosphere.transmittance", TRANSMITTANCE_SIZE);
         let multiscattering = lut(device, "texture.atmosphere.multiscattering", MULTISCATTERING_SIZE);
         let view = |t: &wgpu::Texture| t.create_view(&wgpu::TextureViewDescriptor::default());
+        let sky_view = lut(device, "texture.atmosphere.sky_view", SKY_VIEW_SIZE);
+        let aerial = lut(device, "texture.atmosphere.aerial", AERIAL_SIZE);
         Self {
+            sky_view_view: view(&sky_view),
+            aerial_view: view(&aerial),
+            frame_group: None,
             uniform: gpu::uniform_buffer(device, "buffer.atmosphere", size_of::<AtmosphereUniform>()),
             transmittance_view: view(&transmittance),
             multiscattering_view: view(&multiscattering),
@@ -121,6 +160,30 @@ impl AtmosphereTables {
             }),
             made: false,
         }
+    }
+
+    /// This frame's tables (after its uniform is written): the sky view and the aerial
+    /// perspective, from the transmittance and multiple-scattering tables.
+    pub fn make_frame(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, pipelines: &AtmospherePipelines) {
+        let group = self.frame_group.get_or_insert_with(|| {
+            gpu::bind_group(
+                device,
+                "bind_group.atmosphere.frame",
+                &pipelines.lut_layout,
+                &[
+                    self.uniform.as_entire_binding(),
+                    wgpu::BindingResource::TextureView(&self.transmittance_view),
+                    wgpu::BindingResource::TextureView(&self.multiscattering_view),
+                    wgpu::BindingResource::Sampler(&self.sampler),
+                ],
+            )
+        });
+        let mut encoder =
+            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("encoder.atmosphere.frame") });
+        for (target, pipeline) in [(&self.sky_view_view, &pipelines.sky_view), (&self.aerial_view, &pipelines.aerial)] {
+            fill(&mut encoder, target, pipeline, group);
+        }
+        queue.submit([encoder.finish()]);
     }
 
     /// Computes the tables once: transmittance, then multiple scattering from it.
@@ -151,28 +214,35 @@ impl AtmosphereTables {
                 ],
             );
             let view = target.create_view(&wgpu::TextureViewDescriptor::default());
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("pass.atmosphere.lut"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            pass.set_pipeline(pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.draw(0..3, 0..1);
+            fill(&mut encoder, &view, pipeline, &group);
         }
         queue.submit([encoder.finish()]);
     }
+}
+
+/// One fullscreen pass of `pipeline` into `target`.
+fn fill(
+    encoder: &mut wgpu::CommandEncoder,
+    target: &wgpu::TextureView,
+    pipeline: &wgpu::RenderPipeline,
+    group: &wgpu::BindGroup,
+) {
+    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("pass.atmosphere.table"),
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view: target,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+        })],
+        depth_stencil_attachment: None,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, group, &[]);
+    pass.draw(0..3, 0..1);
 }
 
 /// The tables' pipelines and the sky's, compiled with the terrain's (a front end makes
@@ -182,6 +252,8 @@ pub struct AtmospherePipelines {
     lut_layout: wgpu::BindGroupLayout,
     transmittance: wgpu::RenderPipeline,
     multiscattering: wgpu::RenderPipeline,
+    sky_view: wgpu::RenderPipeline,
+    aerial: wgpu::RenderPipeline,
     /// The sky, drawn with the terrain's bind group before the terrain.
     pub sky: wgpu::RenderPipeline,
 }
@@ -275,7 +347,18 @@ impl AtmospherePipelines {
             LUT_FORMAT,
             false,
         );
+        let sky_view = fullscreen(
+            device,
+            "atmosphere.sky_view",
+            &module,
+            &lut_layout,
+            ("vs_main", "fs_skyview"),
+            LUT_FORMAT,
+            false,
+        );
+        let aerial =
+            fullscreen(device, "atmosphere.aerial", &module, &lut_layout, ("vs_main", "fs_aerial"), LUT_FORMAT, false);
         let sky = fullscreen(device, "atmosphere.sky", terrain, layout, ("vs_sky", "fs_sky"), format, true);
-        Self { lut_layout, transmittance, multiscattering, sky }
+        Self { lut_layout, transmittance, multiscattering, sky_view, aerial, sky }
     }
 }

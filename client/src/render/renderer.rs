@@ -399,6 +399,8 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
                 ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
                 count: None,
             },
+            texture_entry(10, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
+            texture_entry(11, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
         ],
     })
 }
@@ -526,6 +528,8 @@ impl TerrainRenderer {
                 wgpu::BindingResource::TextureView(&air_tables.transmittance_view),
                 wgpu::BindingResource::TextureView(&air_tables.multiscattering_view),
                 wgpu::BindingResource::Sampler(&air_tables.sampler),
+                wgpu::BindingResource::TextureView(&air_tables.sky_view_view),
+                wgpu::BindingResource::TextureView(&air_tables.aerial_view),
             ],
         );
         let pipeline = shared.pipeline.clone();
@@ -798,6 +802,9 @@ impl TerrainRenderer {
         let air = self.air(camera, anchor);
         self.sky = air.is_on();
         queue.write_buffer(&self.air_tables.uniform, 0, bytemuck::bytes_of(&air));
+        if air.uses_tables() {
+            self.air_tables.make_frame(device, queue, &self.air_pipelines);
+        }
         self.stats = self.frame_stats(nodes);
     }
 
@@ -880,7 +887,15 @@ impl TerrainRenderer {
         let eye = frame.to_local(camera.position) - frame.to_local(DVec3::ZERO);
         let pole = frame.direction_to_local(DVec3::Z);
         let height = self.surface.height(camera.position);
-        AtmosphereUniform::on(eye, height, frame.origin.length(), projection * rotation, self.settings.sun, pole)
+        let viewport = (f64::from(camera.viewport_height) * camera.aspect, f64::from(camera.viewport_height));
+        AtmosphereUniform::on(
+            eye,
+            height,
+            frame.origin.length(),
+            (projection * rotation, viewport),
+            self.settings.sun,
+            pole,
+        )
     }
 
     /// The shader's globals for one frame.
