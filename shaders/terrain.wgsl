@@ -20,6 +20,7 @@ struct GlobeInfo {
     // Geographic, Web Mercator: radians per world unit along x (longitude) and z
     // (latitude, or the Mercator ordinate over the radius), z: that ordinate at the anchor.
     // Lattice: the anchor's lattice coordinates, z: lattice points per world unit.
+    // w: the anchor's latitude (radians; Web Mercator, for its polar caps).
     map: vec4<f32>,
     // x, y: sine and cosine of the anchor's latitude, z: the prime vertical radius there,
     // w: the column height (the eye's height clamped to the terrain's range).
@@ -185,6 +186,8 @@ fn coarser_height(start: u32, p: vec2<f32>) -> f32 {
 }
 
 const WGS84_A: f32 = 6378137.0;
+// Web Mercator's ordinate (over the radius) at the edge of its world, less a margin.
+const MERCATOR_EDGE: f32 = 3.14159;
 const WGS84_E2: f32 = 0.0066943799901413165;
 
 // Bilinear between lattice points.
@@ -209,7 +212,14 @@ fn geo_offset(p: vec2<f32>) -> vec2<f32> {
         case 2u: {
             // gd(v + dv) - gd(v) = 2 atan(sinh(dv / 2) / cosh(v + dv / 2)): no cancellation.
             let dv = p.y * m.y;
-            return vec2<f32>(p.x * m.x, 2.0 * atan(sinh(0.5 * dv) / cosh(m.z + 0.5 * dv)));
+            var dlat = 2.0 * atan(sinh(0.5 * dv) / cosh(m.z + 0.5 * dv));
+            // The grid's edge at 85.05 degrees goes to the pole: the last row of
+            // triangles closes the cap (a world grid covers the whole Earth).
+            let v = m.z + dv;
+            if abs(v) >= MERCATOR_EDGE {
+                dlat = sign(v) * PI / 2.0 - G.globe.map.w;
+            }
+            return vec2<f32>(p.x * m.x, dlat);
         }
         case 3u: {
             return lattice_at(m.xy + p * m.z) - lattice_at(m.xy);

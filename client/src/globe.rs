@@ -29,6 +29,9 @@ pub const E2: f64 = 0.006_694_379_990_141_317;
 pub const B: f64 = 6_356_752.314_245_179;
 /// The sphere Web Mercator projects (EPSG:3857), metres.
 const MERCATOR_RADIUS: f64 = 6_378_137.0;
+/// Web Mercator's ordinate over the radius at the edge of its world (pi), less a margin:
+/// a grid point there is drawn at the pole, so that a world grid closes its polar caps.
+pub const MERCATOR_EDGE: f64 = std::f64::consts::PI - 3.0e-6;
 /// Largest spacing of a lattice of exact transforms, metres on the grid: bilinear
 /// interpolation between its points is within a few centimetres for a transverse
 /// Mercator region (the inverse's curvature is about tan(lat) / R).
@@ -251,7 +254,13 @@ impl GlobeMap {
             }
             Mapping::WebMercator { origin, step } => {
                 let p = *origin + *step * DVec2::new(x, z);
-                DVec2::new(p.x, p.y.sinh().atan())
+                // The world's edge at 85.05 degrees goes to the pole (the shader's rule).
+                let lat = if p.y.abs() >= MERCATOR_EDGE {
+                    p.y.signum() * std::f64::consts::FRAC_PI_2
+                } else {
+                    p.y.sinh().atan()
+                };
+                DVec2::new(p.x, lat)
             }
             Mapping::Lattice(l) => l.centre + l.at(l.coordinates(x, z)),
         }

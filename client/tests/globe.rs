@@ -78,6 +78,52 @@ fn world_archive() -> &'static Path {
         .1
 }
 
+/// A texture-only world archive in Web Mercator (EPSG:3857): 2 x 2 tiles, one LOD above.
+fn mercator_archive() -> &'static Path {
+    static ARCHIVE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &ARCHIVE
+        .get_or_init(|| {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("mercator.tspack");
+            let half = 20_037_508.342_789_244;
+            let layer = Layer {
+                name: "texture".into(),
+                kind: LayerKind::Texture,
+                format: TileFormat::Png,
+                compression: PayloadCompression::None,
+                tile_resolution: 64,
+                border: 0,
+                num_x_tiles: 2,
+                num_y_tiles: 2,
+                num_lods: 2,
+                tile_world_size: half,
+                elevation: None,
+                extent: None,
+            };
+            let mut metadata = Metadata::new("mercator", vec![layer]);
+            metadata.georeference = Some(Georeference {
+                crs: Some("EPSG:3857".into()),
+                origin: Some([-half, half]),
+                lat_lon_bounds: None,
+                definition: Some(
+                    "+proj=merc +a=6378137 +b=6378137 +lat_ts=0 +lon_0=0 +x_0=0 +y_0=0 +k=1 +units=m +nadgrids=@null +wktext +no_defs"
+                        .into(),
+                ),
+                scale: Some([1.0, 1.0]),
+            });
+            let mut keys = vec![TileKey::new(0, 1, 0, 0).unwrap()];
+            keys.extend((0..4).map(|i| TileKey::new(0, 0, i % 2, i / 2).unwrap()));
+            keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+            let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
+            for key in keys {
+                writer.add(key, terrastream_testkit::archives::checkered_png(64, [200, 200, 60], [40; 3])).unwrap();
+            }
+            writer.finish().unwrap();
+            (dir, path)
+        })
+        .1
+}
+
 fn render(
     path: &Path,
     width: u32,
@@ -292,4 +338,27 @@ fn the_sun_colours_the_sky() {
     assert!(warmth(low) > warmth(high) * 1.3, "sunset {low:?} against noon {high:?}");
     let brightness = |c: [f64; 3]| c.iter().sum::<f64>();
     assert!(brightness(set) < 0.2 * brightness(high), "after sunset {set:?} against noon {high:?}");
+}
+
+/// Straight down on each pole from 20 000 km: a full disc, no hole where the grid's
+/// meridians meet (geographic) or where Web Mercator's world ends at 85.05 degrees.
+#[test]
+fn the_poles_have_no_holes() {
+    for (name, archive) in [("geographic", world_archive()), ("mercator", mercator_archive())] {
+        for (pole, lat) in [("north", 90), ("south", -90)] {
+            let at = format!("0,{lat},20000000");
+            let camera = posed(&at, 0.0, -90.0);
+            let Some(still) = render(archive, 800, 600, FLAT_WHITE, camera) else { return };
+            save(&format!("pole-{name}-{pole}"), &still);
+            for y in 290..310 {
+                for x in 390..410 {
+                    assert!(lit(&still, x, y), "{name}, {pole} pole: a hole at pixel ({x}, {y})");
+                }
+            }
+            let drawn = (0..still.height).flat_map(|y| (0..still.width).map(move |x| (x, y)));
+            let count = drawn.filter(|&(x, y)| lit(&still, x, y)).count();
+            // The Earth's disc at 20 000 km fills about 86 px of radius here.
+            assert!(count > 20_000, "{name}, {pole} pole: {count} pixels drawn");
+        }
+    }
 }

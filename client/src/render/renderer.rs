@@ -856,7 +856,7 @@ impl TerrainRenderer {
             Mapping::Geographic { step, .. } => ([GLOBE_GEOGRAPHIC, 1, 1, 0], [step.x, step.y, 0.0, 0.0]),
             Mapping::WebMercator { origin, step } => {
                 let v = origin.y + step.y * anchor.1;
-                ([GLOBE_WEB_MERCATOR, 1, 1, 0], [step.x, step.y, v, 0.0])
+                ([GLOBE_WEB_MERCATOR, 1, 1, 0], [step.x, step.y, v, frame.lon_lat.y])
             }
             Mapping::Lattice(l) => {
                 let q = l.coordinates(anchor.0, anchor.1);
