@@ -265,6 +265,8 @@ pub struct FlyCamera {
 
 /// Lowest the eye goes above the ground.
 const CLEARANCE: f64 = 2.0;
+/// Height above which a drag orbits the globe rather than turning the view, metres.
+pub const ORBIT_ABOVE: f64 = 200_000.0;
 
 impl FlyCamera {
     /// The flyer at `camera`'s position and direction: on the globe when the camera's
@@ -306,8 +308,19 @@ impl FlyCamera {
         camera
     }
 
-    /// Turns the view by a pointer drag of (`dx`, `dy`) pixels.
+    /// Turns the view by a pointer drag of (`dx`, `dy`) pixels; on the globe above
+    /// [`ORBIT_ABOVE`], orbits instead: the Earth turns under the eye (dragging right
+    /// brings the land to the east into view), at the same height, heading and pitch.
     pub fn look(&mut self, dx: f64, dy: f64) {
+        let height = self.height();
+        if self.globe && height > ORBIT_ABOVE {
+            let (lon, lat, _) = crate::globe::geodetic(self.eye);
+            // A drag across the screen covers about the view's width on the ground.
+            let step = 0.004 * height / crate::globe::A;
+            let lat = (lat + dy * step).clamp(-1.55, 1.55);
+            self.eye = crate::globe::ecef(lon + dx * step / lat.cos().max(0.05), lat, height);
+            return;
+        }
         self.yaw += dx * 0.004;
         self.pitch = (self.pitch - dy * 0.004).clamp(-1.5, 1.5);
     }
@@ -521,6 +534,24 @@ mod tests {
         // Straight down for a long time: on the ground, never under it.
         fly.step(100.0, FlyInput { up: -1.0, ..FlyInput::default() }, |_| Some(8000.0));
         assert!((fly.height() - (8000.0 + CLEARANCE)).abs() < 1e-3, "{}", fly.height());
+    }
+
+    #[test]
+    fn high_above_the_globe_a_drag_orbits_and_low_it_turns() {
+        let eye = crate::globe::ecef(0.0, 0.0, 1.0e7);
+        let frame = crate::globe::enu(0.0, 0.0);
+        let mut camera = Camera::look_at(eye, DVec3::ZERO, 64, 64);
+        camera.zenith = frame.z_axis;
+        let mut fly = FlyCamera::from_camera(&camera);
+        fly.look(100.0, 0.0);
+        let (lon, lat, h) = crate::globe::geodetic(fly.eye);
+        assert!(lon > 0.05 && lat.abs() < 1e-9 && (h - 1.0e7).abs() < 1e-3, "{lon} {lat} {h}");
+        assert!((fly.forward() + fly.eye.normalize()).length() < 1e-6, "still looking straight down");
+        // Low, the same drag turns the view in place.
+        let low = crate::globe::ecef(0.0, 0.0, 1000.0);
+        let mut fly = FlyCamera { eye: low, yaw: 0.0, pitch: 0.0, speed: 1.0, globe: true };
+        fly.look(100.0, 0.0);
+        assert!(fly.eye == low && (fly.yaw - 0.4).abs() < 1e-12);
     }
 
     #[test]
