@@ -248,4 +248,41 @@ mod tests {
         let wants = select(&m, &Surface::Flat, &cam, &SelectOptions::default(), |k| k.lod() > 3);
         assert_eq!(wants.iter().map(|w| w.key.lod()).min(), Some(3));
     }
+
+    #[test]
+    fn on_the_globe_nothing_behind_the_horizon_is_wanted() {
+        // A geographic world: 64 x 32 tiles of 5.6 degrees at LOD 0, 7 LODs.
+        let mut m = metadata();
+        let degree = 6_378_137.0 * std::f64::consts::PI / 180.0;
+        m.layers[0].num_x_tiles = 64;
+        m.layers[0].num_y_tiles = 32;
+        m.layers[0].tile_world_size = 5.625 * degree;
+        m.georeference = Some(terrastream_format::Georeference {
+            crs: Some("EPSG:4326".into()),
+            origin: Some([-180.0, 90.0]),
+            lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
+            definition: Some("+proj=longlat +datum=WGS84 +no_defs".into()),
+            scale: Some([1.0 / degree; 2]),
+        });
+        let surface = Surface::new(&m, true);
+        assert!(surface.globe().is_some());
+        // 10 km above (0, 0), looking east along the horizon: it is 357 km away.
+        let eye = crate::globe::ecef(0.0, 0.0, 10_000.0);
+        let east = crate::globe::enu(0.0, 0.0).x_axis;
+        let mut camera = Camera::look_at(eye, eye + east * 1000.0, 1024, 768);
+        camera.zenith = surface.up(eye);
+        camera.far = 4.0e7;
+        let wants = select(&m, &surface, &camera, &SelectOptions::default(), |_| true);
+        assert!(wants.iter().any(|w| w.in_view && w.key.lod() == 0), "the ground ahead is refined");
+        let top = m.layers[0].start_lod();
+        for w in wants.iter().filter(|w| w.key.lod() < top) {
+            let size = m.layers[0].world_size_at(w.key.lod());
+            assert!(
+                w.distance < 357_000.0 + size,
+                "{} wanted {:.0} km away, beyond the horizon",
+                w.key,
+                w.distance / 1000.0
+            );
+        }
+    }
 }
