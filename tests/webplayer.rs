@@ -385,6 +385,9 @@ fn webplayer_explains_what_is_wrong() {
     browser.goto(&page("?archive=x.tspack&flat=maybe"));
     let text = browser.wait_error();
     assert!(text.contains("flat=\"maybe\""), "{text}");
+    browser.goto(&page("?archive=x.tspack&sun=east"));
+    let text = browser.wait_error();
+    assert!(text.contains("AZIMUTH,ELEVATION"), "{text}");
     drop(browser);
 
     // A browser with neither WebGPU nor WebGL2.

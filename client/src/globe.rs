@@ -376,6 +376,35 @@ fn segment_hits_ball(a: DVec3, b: DVec3, r: f64) -> bool {
     (a + d * t).length_squared() <= r * r
 }
 
+/// The direction towards a sun at `azimuth` (degrees clockwise from north) and
+/// `elevation` (degrees above the horizon), in the renderer's axes (x east, y up, z south).
+///
+/// # Errors
+/// A message naming the bad value.
+pub fn sun_direction(azimuth: f64, elevation: f64) -> Result<DVec3, String> {
+    if !azimuth.is_finite() || !(-90.0..=90.0).contains(&elevation) {
+        return Err(format!("sun {azimuth},{elevation}: a finite azimuth, an elevation of -90..90 degrees"));
+    }
+    let (a, e) = (azimuth.to_radians(), elevation.to_radians());
+    Ok(DVec3::new(a.sin() * e.cos(), e.sin(), -a.cos() * e.cos()))
+}
+
+/// "AZIMUTH,ELEVATION" (degrees) as [`sun_direction`].
+///
+/// # Errors
+/// A message naming the text.
+pub fn parse_sun(text: &str) -> Result<DVec3, String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("sun {text:?}: expected AZIMUTH,ELEVATION in degrees"))?;
+    let [azimuth, elevation] = v[..] else {
+        return Err(format!("sun {text:?}: expected two numbers AZIMUTH,ELEVATION"));
+    };
+    sun_direction(azimuth, elevation)
+}
+
 /// What selection and culling see of the terrain's shape.
 #[derive(Clone, Debug, Default)]
 pub enum Surface {

@@ -249,8 +249,7 @@ fn lit_settings(sun: glam::DVec3) -> RenderSettings {
 
 /// The direction towards a sun at `azimuth` (clockwise from north) and `elevation`.
 fn sun_at(azimuth: f64, elevation: f64) -> glam::DVec3 {
-    let (a, e) = (azimuth.to_radians(), elevation.to_radians());
-    glam::DVec3::new(a.sin() * e.cos(), e.sin(), -a.cos() * e.cos())
+    terrastream_client::globe::sun_direction(azimuth, elevation).unwrap()
 }
 
 fn posed(at: &str, heading: f64, pitch: f64) -> impl FnOnce(&Metadata, &Surface) -> Result<Camera, String> {

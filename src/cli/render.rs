@@ -55,23 +55,8 @@ pub struct LookArgs {
     no_atmosphere: bool,
     /// The sun: "AZIMUTH,ELEVATION" in degrees (clockwise from north; above the horizon)
     /// at the view's anchor.
-    #[arg(long, value_parser = parse_sun, allow_hyphen_values = true)]
+    #[arg(long, value_parser = terrastream_client::globe::parse_sun, allow_hyphen_values = true)]
     sun: Option<DVec3>,
-}
-
-/// "AZIMUTH,ELEVATION" (degrees) -> the direction towards the sun (x east, y up, z south).
-fn parse_sun(s: &str) -> Result<DVec3, String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| format!("sun {s:?}: expected AZIMUTH,ELEVATION in degrees"))?;
-    let [azimuth, elevation] = v[..] else { return Err(format!("sun {s:?}: expected two numbers AZIMUTH,ELEVATION")) };
-    if !azimuth.is_finite() || !(-90.0..=90.0).contains(&elevation) {
-        return Err(format!("sun {s:?}: a finite azimuth, an elevation of -90..90"));
-    }
-    let (a, e) = (azimuth.to_radians(), elevation.to_radians());
-    Ok(DVec3::new(a.sin() * e.cos(), e.sin(), -a.cos() * e.cos()))
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]

@@ -219,6 +219,7 @@ impl State {
             elevation_slots: GPU_SLOTS,
             texture_slots: GPU_SLOTS,
             flat: self.params.flat,
+            sun: self.params.sun.unwrap_or(RenderSettings::default().sun),
             ..RenderSettings::default()
         };
         let started = self.page.now_ms();

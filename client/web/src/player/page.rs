@@ -18,6 +18,8 @@ pub(super) struct Params {
     /// The flat plate even for an archive that says where it lies (`flat=1`; implied by
     /// `camera=`, which is in world units): else the globe.
     pub(super) flat: bool,
+    /// `sun=AZIMUTH,ELEVATION` (degrees), as `render --sun`.
+    pub(super) sun: Option<DVec3>,
 }
 
 /// The page's elements.
@@ -123,7 +125,8 @@ pub(super) fn params(window: &Window) -> Result<Params, String> {
         Some(other) => return Err(format!("flat={other:?}: 1 (the flat plate) or 0 (the globe)")),
     };
     let hud = query.get("hud").as_deref() != Some("0");
-    Ok(Params { archive, camera, pose, backends, hud, workers, flight, flat })
+    let sun = query.get("sun").map(|s| terrastream_client::globe::parse_sun(&s)).transpose()?;
+    Ok(Params { archive, camera, pose, backends, hud, workers, flight, flat, sun })
 }
 
 pub(super) fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {
