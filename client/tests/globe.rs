@@ -31,97 +31,80 @@ fn gpu() -> Option<&'static Gpu> {
 /// at the equator).
 const EQUATOR_METRES_PER_DEGREE: f64 = 6_378_137.0 * std::f64::consts::PI / 180.0;
 
-/// A texture-only world archive in EPSG:4326: 4 x 2 tiles of 90 degrees, checkered
-/// colours, a coarser LOD above (written once per test binary).
-fn world_archive() -> &'static Path {
-    static ARCHIVE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
-    &ARCHIVE
-        .get_or_init(|| {
-            let dir = tempfile::tempdir().unwrap();
-            let path = dir.path().join("world.tspack");
-            let size = 90.0 * EQUATOR_METRES_PER_DEGREE;
-            let layer = Layer {
-                name: "texture".into(),
-                kind: LayerKind::Texture,
-                format: TileFormat::Png,
-                compression: PayloadCompression::None,
-                tile_resolution: 64,
-                border: 0,
-                num_x_tiles: 4,
-                num_y_tiles: 2,
-                num_lods: 3,
-                tile_world_size: size,
-                elevation: None,
-                extent: None,
-            };
-            let mut metadata = Metadata::new("world", vec![layer]);
-            metadata.georeference = Some(Georeference {
-                crs: Some("EPSG:4326".into()),
-                origin: Some([-180.0, 90.0]),
-                lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
-                definition: Some("+proj=longlat +datum=WGS84 +no_defs".into()),
-                scale: Some([1.0 / EQUATOR_METRES_PER_DEGREE; 2]),
-            });
-            let tile = |rgb: [u8; 3]| terrastream_testkit::archives::checkered_png(64, rgb, [40; 3]);
-            let mut keys = vec![TileKey::new(0, 2, 0, 0).unwrap()];
-            keys.extend((0..2).map(|i| TileKey::new(0, 1, i, 0).unwrap()));
-            keys.extend((0..8).map(|i| TileKey::new(0, 0, i % 4, i / 4).unwrap()));
-            keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
-            let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
-            for key in keys {
-                let colour = [[200, 60, 60], [60, 200, 60], [60, 60, 200], [200, 200, 60]][(key.x() % 4) as usize];
-                writer.add(key, tile(colour)).unwrap();
-            }
-            writer.finish().unwrap();
-            (dir, path)
+/// A texture-only archive of `tiles` LOD-0 tiles of 64 checkered pixels (a colour per
+/// column of tiles) and every coarser LOD up to one tile, placed by `georeference`.
+fn texture_world(
+    name: &str,
+    tiles: (u32, u32),
+    tile_world_size: f64,
+    georeference: Georeference,
+) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(format!("{name}.tspack"));
+    let lods = u8::try_from(tiles.0.max(tiles.1).next_power_of_two().trailing_zeros() + 1).unwrap();
+    let layer = Layer {
+        name: "texture".into(),
+        kind: LayerKind::Texture,
+        format: TileFormat::Png,
+        compression: PayloadCompression::None,
+        tile_resolution: 64,
+        border: 0,
+        num_x_tiles: tiles.0,
+        num_y_tiles: tiles.1,
+        num_lods: lods,
+        tile_world_size,
+        elevation: None,
+        extent: None,
+    };
+    let mut metadata = Metadata::new(name, vec![layer]);
+    metadata.georeference = Some(georeference);
+    let mut keys: Vec<TileKey> = (0..lods)
+        .flat_map(|lod| {
+            let (w, h) = (tiles.0.div_ceil(1 << lod), tiles.1.div_ceil(1 << lod));
+            (0..w * h).map(move |i| TileKey::new(0, lod, i % w, i / w).unwrap())
         })
-        .1
+        .collect();
+    keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
+    let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
+    for key in keys {
+        let colour = [[200, 60, 60], [60, 200, 60], [60, 60, 200], [200, 200, 60]][(key.x() % 4) as usize];
+        writer.add(key, terrastream_testkit::archives::checkered_png(64, colour, [40; 3])).unwrap();
+    }
+    writer.finish().unwrap();
+    (dir, path)
 }
 
-/// A texture-only world archive in Web Mercator (EPSG:3857): 2 x 2 tiles, one LOD above.
+/// A texture-only world archive in EPSG:4326: 4 x 2 tiles of 90 degrees (written once per
+/// test binary).
+fn world_archive() -> &'static Path {
+    static ARCHIVE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    let georeference = || Georeference {
+        crs: Some("EPSG:4326".into()),
+        origin: Some([-180.0, 90.0]),
+        lat_lon_bounds: Some([-180.0, -90.0, 180.0, 90.0]),
+        definition: Some("+proj=longlat +datum=WGS84 +no_defs".into()),
+        scale: Some([1.0 / EQUATOR_METRES_PER_DEGREE; 2]),
+    };
+    &ARCHIVE.get_or_init(|| texture_world("world", (4, 2), 90.0 * EQUATOR_METRES_PER_DEGREE, georeference())).1
+}
+
+/// A texture-only world archive in Web Mercator (EPSG:3857): 2 x 2 tiles.
 fn mercator_archive() -> &'static Path {
     static ARCHIVE: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
-    &ARCHIVE
-        .get_or_init(|| {
-            let dir = tempfile::tempdir().unwrap();
-            let path = dir.path().join("mercator.tspack");
-            let half = 20_037_508.342_789_244;
-            let layer = Layer {
-                name: "texture".into(),
-                kind: LayerKind::Texture,
-                format: TileFormat::Png,
-                compression: PayloadCompression::None,
-                tile_resolution: 64,
-                border: 0,
-                num_x_tiles: 2,
-                num_y_tiles: 2,
-                num_lods: 2,
-                tile_world_size: half,
-                elevation: None,
-                extent: None,
-            };
-            let mut metadata = Metadata::new("mercator", vec![layer]);
-            metadata.georeference = Some(Georeference {
-                crs: Some("EPSG:3857".into()),
-                origin: Some([-half, half]),
-                lat_lon_bounds: None,
-                definition: Some(
-                    "+proj=merc +a=6378137 +b=6378137 +lat_ts=0 +lon_0=0 +x_0=0 +y_0=0 +k=1 +units=m +nadgrids=@null +wktext +no_defs"
-                        .into(),
-                ),
-                scale: Some([1.0, 1.0]),
-            });
-            let mut keys = vec![TileKey::new(0, 1, 0, 0).unwrap()];
-            keys.extend((0..4).map(|i| TileKey::new(0, 0, i % 2, i / 2).unwrap()));
-            keys.sort_by_key(|k| Writer::order_key(&metadata, *k).unwrap());
-            let mut writer = Writer::create(&path, metadata, WriterOptions::default()).unwrap();
-            for key in keys {
-                writer.add(key, terrastream_testkit::archives::checkered_png(64, [200, 200, 60], [40; 3])).unwrap();
-            }
-            writer.finish().unwrap();
-            (dir, path)
-        })
-        .1
+    let half = 20_037_508.342_789_244;
+    let georeference = || {
+        Georeference {
+        crs: Some("EPSG:3857".into()),
+        origin: Some([-half, half]),
+        lat_lon_bounds: None,
+        definition: Some(
+            "+proj=merc +a=6378137 +b=6378137 +lat_ts=0 +lon_0=0 +x_0=0 +y_0=0 +k=1 +units=m +nadgrids=@null +wktext +no_defs"
+                .into(),
+        ),
+        scale: Some([1.0, 1.0]),
+    }
+    };
+    &ARCHIVE.get_or_init(|| texture_world("mercator", (2, 2), half, georeference())).1
 }
 
 fn render(
