@@ -474,8 +474,9 @@ impl Surface {
     }
 
     /// The world point `(x, z)` under a scene point (on the globe: at its longitude and
-    /// latitude), if the archive's grid has one.
-    pub fn world_under(&self, p: DVec3) -> Option<DVec2> {
+    /// latitude), if the archive's grid has one; unlike [`GlobeMap::world_under`], not
+    /// clamped to the data.
+    pub fn world_at(&self, p: DVec3) -> Option<DVec2> {
         match self {
             Self::Flat => Some(DVec2::new(p.x, p.z)),
             Self::Globe(map) => {

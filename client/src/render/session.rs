@@ -180,7 +180,7 @@ impl Session {
     /// The terrain's height under a scene point, from the elevation tiles in the cache
     /// (`None` where none is loaded): the ground a flyer stays above.
     pub fn ground(&self, p: glam::DVec3) -> Option<f64> {
-        let w = self.renderer.surface().world_under(p)?;
+        let w = self.renderer.surface().world_at(p)?;
         self.streamer.height_at(w.x, w.y)
     }
 
