@@ -162,6 +162,7 @@ impl App {
                 budget: r.session.budget,
                 received: (stream.bytes_fetched, stream.requests),
                 eye: camera.position,
+                globe: r.session.renderer.surface().globe().is_some(),
                 speed: self.fly.speed,
             });
             lines.push(format!("{CONTROLS}  Esc quit"));

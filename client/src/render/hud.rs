@@ -56,10 +56,23 @@ pub struct Status<'a> {
     pub budget: UploadBudget,
     /// Bytes received and the requests that brought them.
     pub received: (u64, u64),
-    /// The eye.
+    /// The eye (scene coordinates).
     pub eye: DVec3,
+    /// The eye is in ECEF over the globe: shown as longitude, latitude and height.
+    pub globe: bool,
     /// The fly camera's speed factor.
     pub speed: f64,
+}
+
+/// "eye ..." in world units on the plate, in degrees and metres on the globe.
+fn eye_line(s: &Status<'_>) -> String {
+    if s.globe {
+        let (lon, lat, height) = crate::globe::geodetic(s.eye);
+        let (lon, lat) = (lon.to_degrees(), lat.to_degrees());
+        let (ew, ns) = (if lon < 0.0 { 'W' } else { 'E' }, if lat < 0.0 { 'S' } else { 'N' });
+        return format!("eye {:.5} {ew} {:.5} {ns} {height:.0} m   speed x{:.2}", lon.abs(), lat.abs(), s.speed);
+    }
+    format!("eye {:.0} {:.0} {:.0}   speed x{:.2}", s.eye.x, s.eye.y, s.eye.z, s.speed)
 }
 
 /// The HUD's status lines (ASCII, at most 96 columns), the same in every front end.
@@ -92,7 +105,7 @@ pub fn status_lines(s: &Status<'_>) -> Vec<String> {
             "mesh levels in view {}..{}   patches {}   triangles {}   draw calls {}",
             frame.levels.0, frame.levels.1, frame.patches, frame.triangles, frame.draw_calls
         ),
-        format!("eye {:.0} {:.0} {:.0}   speed x{:.2}", s.eye.x, s.eye.y, s.eye.z, s.speed),
+        eye_line(s),
     ];
     if frame.drew_nothing_in_view() {
         lines.push(format!("WARNING: {} tiles in view are resident but no terrain is drawn", frame.in_view_resident));
@@ -241,5 +254,34 @@ impl Hud {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
         pass.draw(0..4, 0..1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_eye_reads_in_degrees_and_metres_on_the_globe() {
+        let (times, stream, frame) = (FrameTimes::default(), StreamStats::default(), FrameStats::default());
+        let status = |eye: DVec3, globe: bool| Status {
+            times: &times,
+            api: "test",
+            stream: &stream,
+            pending: 0,
+            frame: &frame,
+            uploads: 0,
+            budget: UploadBudget::default(),
+            received: (0, 0),
+            eye,
+            globe,
+            speed: 1.0,
+        };
+        let everest = crate::globe::ecef(86.925_f64.to_radians(), 27.9881_f64.to_radians(), 8850.0);
+        let line = eye_line(&status(everest, true));
+        assert!(line.starts_with("eye 86.92500 E 27.98810 N 8850 m"), "{line}");
+        let west = crate::globe::ecef(-122.6_f64.to_radians(), -37.9_f64.to_radians(), 10.0);
+        assert!(eye_line(&status(west, true)).starts_with("eye 122.60000 W 37.90000 S 10 m"));
+        assert!(eye_line(&status(DVec3::new(1.0, 2.0, 3.0), false)).starts_with("eye 1 2 3"));
     }
 }

@@ -294,6 +294,7 @@ impl State {
             budget: session.budget,
             received: (self.http.bytes.load(Relaxed), self.http.requests.load(Relaxed)),
             eye: camera.position,
+            globe: session.renderer.surface().globe().is_some(),
             speed: fly.speed,
         });
         lines.push(format!("{CONTROLS}  pinch move"));
