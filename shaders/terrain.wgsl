@@ -555,6 +555,9 @@ fn aerial(uv: vec2<f32>, t: f32) -> vec4<f32> {
     return mix(a, b, f);
 }
 
+// The plain Earth drawn beyond an archive's data: a dark, slightly blue-green ground.
+const EARTH_ALBEDO: vec3<f32> = vec3<f32>(0.07, 0.09, 0.11);
+
 struct SkyOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) ndc: vec2<f32>,
@@ -579,8 +582,26 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     } else {
         light = integrate(eye, d, 1.0e9, sun, ATMO.look.z).light;
     }
+    // The Earth beyond the archive's data: a plain ground on the model's sphere, lit by
+    // the sun through the air above it, seen through the air in front of it (the
+    // terrain, drawn next, covers it where there is data).
+    let ground = ray_sphere(eye, d, BOTTOM);
+    if ground > 0.0 {
+        let g = eye + d * ground;
+        let up = normalize(g);
+        var sun_t = transmittance_to_top(g, sun);
+        if ray_sphere(g, sun, BOTTOM - 100.0) > 0.0 {
+            sun_t = vec3<f32>(0.0);
+        }
+        let sky = (0.05 + 0.25 * max(dot(up, sun), 0.0)) * vec3<f32>(0.6, 0.75, 1.0);
+        let radiance = EARTH_ALBEDO / PI * (sun_t * max(dot(up, sun), 0.0) + sky);
+        // Along a ray that meets the ground, the air between is the ratio of the two
+        // stretches up to the top (the way back up passes the eye).
+        let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));
+        light += radiance * clamp(through, vec3<f32>(0.0), vec3<f32>(1.0));
+    }
     // The sun's disc, dimmed by the air in front of it, where the planet does not hide it.
-    if dot(d, sun) > cos(ATMO.sun.w) && ray_sphere(eye, d, BOTTOM) < 0.0 {
+    if dot(d, sun) > cos(ATMO.sun.w) && ground < 0.0 {
         var through = vec3<f32>(1.0);
         if dot(eye, eye) <= TOP * TOP {
             through = transmittance_to_top(eye, d);
