@@ -57,10 +57,8 @@ impl HeightEncoding {
         if !heights.iter().all(|h| h.is_finite()) {
             return None;
         }
-        let mut out = vec![0; heights.len() * 3];
-        for (pixel, &h) in out.chunks_exact_mut(3).zip(heights) {
-            pixel.copy_from_slice(&self.rgb(h));
-        }
+        let mut out = Vec::with_capacity(heights.len() * 3);
+        out.extend(heights.iter().flat_map(|&h| self.rgb(h)));
         Some(out)
     }
 

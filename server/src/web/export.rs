@@ -9,8 +9,12 @@ use terrastream_format::{Interrupted, MmapSource, Reader};
 
 use super::encode::{HeightEncoding, ImageFormat};
 use super::mercator::{WebTile, tiles_over};
+use super::resample::DecodedCache;
 use super::tilejson::{TileJsonRequest, coverage, tilejson};
-use super::{MakeError, WebTileRequest, make_tile};
+use super::{MakeError, WebTileRequest, make_tile_cached};
+
+/// Decoded archive tiles an export keeps (the server's default, `web_decoded_bytes`).
+pub const EXPORT_DECODED_BYTES: usize = 256 << 20;
 
 /// What to export.
 #[derive(Clone, Copy, Debug)]
@@ -114,6 +118,9 @@ pub fn make_tiles(
     tick: &(dyn Fn() -> Result<(), Interrupted> + Sync),
     each: &mut dyn FnMut(WebTile, Vec<u8>) -> Result<(), ExportError>,
 ) -> Result<(), ExportError> {
+    // Neighbouring web tiles sample the same archive tiles: decode each once, as the
+    // server does.
+    let decoded = DecodedCache::new(EXPORT_DECODED_BYTES);
     let make = |&tile: &WebTile| {
         let request = WebTileRequest {
             layer: export.layer,
@@ -122,7 +129,7 @@ pub fn make_tiles(
             format: export.format,
             size: export.size,
         };
-        make_tile(reader, &request).map_err(|error| ExportError::Make { tile, error })
+        make_tile_cached(reader, &request, Some((&decoded, 0))).map_err(|error| ExportError::Make { tile, error })
     };
     in_order(tiles, threads, &make, tick, each)
 }

@@ -290,11 +290,14 @@ impl Window {
         // The samples under the points (and their bilinear neighbours), inside the data:
         // the box of the points inside it, then its samples.
         let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
+        // Plain comparisons, not f64::min/max (whose NaN rules cost a blend a point).
         for &(x, z) in positions.iter().flatten() {
-            if x < wx0 || x > wx1 || z < wz0 || z > wz1 {
-                continue;
+            if x >= wx0 && x <= wx1 && z >= wz0 && z <= wz1 {
+                lo.0 = if x < lo.0 { x } else { lo.0 };
+                lo.1 = if z < lo.1 { z } else { lo.1 };
+                hi.0 = if x > hi.0 { x } else { hi.0 };
+                hi.1 = if z > hi.1 { z } else { hi.1 };
             }
-            (lo, hi) = ((lo.0.min(x), lo.1.min(z)), (hi.0.max(x), hi.1.max(z)));
         }
         if lo.0 > hi.0 {
             return Ok(None);
