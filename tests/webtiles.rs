@@ -345,7 +345,7 @@ fn the_approximate_transform_stays_within_an_eighth_of_a_pixel() {
                 let truth = exact(pu, pv);
                 let next = exact(pu + 1.0, pv);
                 let pixel = (next.0 - truth.0).hypot(next.1 - truth.1);
-                let got = approx[v * size + u].unwrap();
+                let got = approx.point(v * size + u).unwrap();
                 worst = worst.max((got.0 - truth.0).hypot(got.1 - truth.1) / pixel);
             }
         }

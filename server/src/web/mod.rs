@@ -485,7 +485,7 @@ fn samples_cached(
     let positions = placed.positions(request.tile, size);
     // World units per output pixel, at the tile's centre.
     let centre = size / 2 * size + size / 2;
-    let per_pixel = match (positions.get(centre).copied().flatten(), positions.get(centre + 1).copied().flatten()) {
+    let per_pixel = match (positions.point(centre), positions.point(centre + 1)) {
         (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1),
         _ => f64::INFINITY,
     };

@@ -126,13 +126,13 @@ impl<'a> Placed<'a> {
     }
 
     /// The world position of every pixel centre of `tile` (`size` a side), row by row;
-    /// None where the point has no place in the archive's CRS.
-    pub fn positions(&self, tile: WebTile, size: usize) -> Vec<Option<(f64, f64)>> {
+    /// none where the point has no place in the archive's CRS.
+    pub fn positions(&self, tile: WebTile, size: usize) -> Positions {
         let exact = |u: f64, v: f64| {
             let (lon, lat) = tile.lon_lat(u, v, size as f64);
             self.world(lon, lat)
         };
-        let mut out = vec![None; size * size];
+        let mut out = Positions { len: size * size, runs: vec![] };
         let mut v0 = 0;
         while v0 < size {
             let mut u0 = 0;
@@ -144,7 +144,7 @@ impl<'a> Placed<'a> {
                     exact(u0 as f64, v1 as f64),
                     exact(u1 as f64, v1 as f64),
                 ];
-                cell(&exact, &mut out, size, [u0, v0, u1, v1], corners);
+                cell(&exact, &mut out.runs, size, [u0, v0, u1, v1], corners);
                 u0 = u1;
             }
             v0 = (v0 + LATTICE).min(size);
@@ -168,32 +168,82 @@ impl<'a> Placed<'a> {
         lod.max(finest).min(coarsest)
     }
 
-    /// The samples of `positions` (world points, None: none) from `lod`: `channels`
-    /// values a point (1 for heights, 4 for RGBA), bilinear; NaN heights and transparent
-    /// pixels where there is no data. None when no point has data (the tile is empty).
+    /// The samples of `positions` from `lod`: `channels` values a point (1 for heights,
+    /// 4 for RGBA), bilinear; NaN heights and transparent pixels where there is no data.
+    /// None when no point has data (the tile is empty).
     ///
     /// # Errors
     /// [`MakeError::Tile`] for an archive tile that cannot be read or decoded.
-    pub fn sample(&self, positions: &[Option<(f64, f64)>], lod: u8) -> Result<Option<Vec<f32>>, MakeError> {
-        let channels = if self.samples == Samples::Heights { 1 } else { 4 };
+    pub fn sample(&self, positions: &Positions, lod: u8) -> Result<Option<Vec<f32>>, MakeError> {
         let Some(window) = Window::gather(self, positions, lod)? else { return Ok(None) };
-        if channels == 1 {
+        if self.samples == Samples::Heights {
             return Ok(window.heights(positions));
         }
-        let mut out = Vec::with_capacity(positions.len() * channels);
+        let mut out = vec![0.0; positions.len * 4];
         let mut any = false;
-        for p in positions {
-            let value = p.and_then(|(x, z)| window.bilinear(x, z));
-            match value {
-                Some(v) => {
+        for run in &positions.runs {
+            for k in 0..run.len {
+                let (x, z) = run.point(k);
+                if let Some(v) = window.bilinear(x, z) {
                     any = true;
-                    out.extend_from_slice(&v[..channels]);
+                    let at = (run.at + k) * 4;
+                    out[at..at + 4].copy_from_slice(&v);
                 }
-                None if channels == 1 => out.push(f32::NAN),
-                None => out.extend_from_slice(&[0.0; 4]),
             }
         }
         Ok(any.then_some(out))
+    }
+}
+
+/// World positions of a grid of points, row by row: runs of consecutive points whose
+/// positions step evenly (along a row of a cell of the approximate transform), or one
+/// point alone. A point in no run has no position.
+#[derive(Clone, Debug, Default)]
+pub struct Positions {
+    len: usize,
+    runs: Vec<Run>,
+}
+
+/// Points `at`, `at + 1`, ... `at + len - 1` at `origin + step * (k + offset)`.
+#[derive(Clone, Copy, Debug)]
+struct Run {
+    at: usize,
+    len: usize,
+    origin: (f64, f64),
+    step: (f64, f64),
+    offset: f64,
+}
+
+impl Run {
+    #[expect(clippy::cast_precision_loss, reason = "offsets within one tile")]
+    fn point(&self, k: usize) -> (f64, f64) {
+        let t = k as f64 + self.offset;
+        (self.origin.0 + self.step.0 * t, self.origin.1 + self.step.1 * t)
+    }
+}
+
+impl Positions {
+    /// Each point on its own.
+    pub fn from_points(points: &[Option<(f64, f64)>]) -> Self {
+        let runs = (points.iter().enumerate())
+            .filter_map(|(at, p)| p.map(|origin| Run { at, len: 1, origin, step: (0.0, 0.0), offset: 0.0 }))
+            .collect();
+        Self { len: points.len(), runs }
+    }
+
+    /// How many points.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether there are no points.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Point `i`'s position; None where it has none (or beyond the points).
+    pub fn point(&self, i: usize) -> Option<(f64, f64)> {
+        self.runs.iter().find(|r| (r.at..r.at + r.len).contains(&i)).map(|r| r.point(i - r.at))
     }
 }
 
@@ -205,7 +255,7 @@ impl<'a> Placed<'a> {
 #[expect(clippy::cast_precision_loss, reason = "pixel coordinates of one tile")]
 fn cell(
     exact: &dyn Fn(f64, f64) -> Option<(f64, f64)>,
-    out: &mut [Option<(f64, f64)>],
+    out: &mut Vec<Run>,
     size: usize,
     [u0, v0, u1, v1]: [usize; 4],
     corners: [Option<(f64, f64)>; 4],
@@ -241,10 +291,7 @@ fn cell(
             let left = (a.0 + (c.0 - a.0) * fv, a.1 + (c.1 - a.1) * fv);
             let right = (b.0 + (d.0 - b.0) * fv, b.1 + (d.1 - b.1) * fv);
             let step = ((right.0 - left.0) / w, (right.1 - left.1) / w);
-            for (k, o) in out[v * size + u0..v * size + u1].iter_mut().enumerate() {
-                let t = k as f64 + 0.5;
-                *o = Some((left.0 + step.0 * t, left.1 + step.1 * t));
-            }
+            out.push(Run { at: v * size + u0, len: u1 - u0, origin: left, step, offset: 0.5 });
         }
         return;
     }
@@ -258,7 +305,9 @@ fn cell(
     }
     for v in v0..v1 {
         for u in u0..u1 {
-            out[v * size + u] = exact(u as f64 + 0.5, v as f64 + 0.5);
+            if let Some(origin) = exact(u as f64 + 0.5, v as f64 + 0.5) {
+                out.push(Run { at: v * size + u, len: 1, origin, step: (0.0, 0.0), offset: 0.0 });
+            }
         }
     }
 }
@@ -280,7 +329,7 @@ struct Window {
 }
 
 impl Window {
-    fn gather(placed: &Placed<'_>, positions: &[Option<(f64, f64)>], lod: u8) -> Result<Option<Self>, MakeError> {
+    fn gather(placed: &Placed<'_>, positions: &Positions, lod: u8) -> Result<Option<Self>, MakeError> {
         let layer = placed.layer;
         let res = i64::from(layer.tile_resolution);
         let spacing = layer.world_size_at(lod) / res as f64;
@@ -290,13 +339,23 @@ impl Window {
         // The samples under the points (and their bilinear neighbours), inside the data:
         // the box of the points inside it, then its samples.
         let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
-        // Plain comparisons, not f64::min/max (whose NaN rules cost a blend a point).
-        for &(x, z) in positions.iter().flatten() {
-            if x >= wx0 && x <= wx1 && z >= wz0 && z <= wz1 {
-                lo.0 = if x < lo.0 { x } else { lo.0 };
-                lo.1 = if z < lo.1 { z } else { lo.1 };
-                hi.0 = if x > hi.0 { x } else { hi.0 };
-                hi.1 = if z > hi.1 { z } else { hi.1 };
+        let inside = |(x, z): (f64, f64)| x >= wx0 && x <= wx1 && z >= wz0 && z <= wz1;
+        let mut grow = |(x, z): (f64, f64)| {
+            // Plain comparisons, not f64::min/max (whose NaN rules cost a blend a point).
+            lo.0 = if x < lo.0 { x } else { lo.0 };
+            lo.1 = if z < lo.1 { z } else { lo.1 };
+            hi.0 = if x > hi.0 { x } else { hi.0 };
+            hi.1 = if z > hi.1 { z } else { hi.1 };
+        };
+        for run in &positions.runs {
+            let (first, last) = (run.point(0), run.point(run.len - 1));
+            if inside(first) && inside(last) {
+                // A run's points move monotonically from one end to the other, and the
+                // data's box is convex: the ends bound the whole run, and all lie inside.
+                grow(first);
+                grow(last);
+            } else {
+                (0..run.len).map(|k| run.point(k)).filter(|&p| inside(p)).for_each(&mut grow);
             }
         }
         if lo.0 > hi.0 {
@@ -454,36 +513,38 @@ impl Window {
     /// The heights at `positions` (NaN: no data); None when none has data. The common
     /// case (four corners with data inside the window) in a loop of its own.
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "checked to be inside the window")]
-    fn heights(&self, positions: &[Option<(f64, f64)>]) -> Option<Vec<f32>> {
+    fn heights(&self, positions: &Positions) -> Option<Vec<f32>> {
         let inverse = 1.0 / self.spacing;
         let (w, h) = (self.size.0 as i64, self.size.1 as i64);
         // Sample coordinates from one sample before the window's first: non-negative for
         // every point the fast path takes, so truncation is the floor (one conversion).
         let (ox, oz) = ((self.first.0 - 1) as f64 + 0.5, (self.first.1 - 1) as f64 + 0.5);
-        let mut out = vec![f32::NAN; positions.len()];
+        let mut out = vec![f32::NAN; positions.len];
         let mut any = false;
-        for (o, p) in out.iter_mut().zip(positions) {
-            let Some((x, z)) = *p else { continue };
-            let (gx, gz) = (x * inverse - ox, z * inverse - oz);
-            if gx >= 1.0 && gz >= 1.0 {
-                let (ix, iz) = (gx as i64, gz as i64);
-                let (wi, wj) = (ix - 1, iz - 1);
-                if wi + 1 < w && wj + 1 < h {
-                    let at = wj as usize * self.size.0 + wi as usize;
-                    let (fx, fz) = ((gx - ix as f64) as f32, (gz - iz as f64) as f32);
-                    let v = &self.values;
-                    let (a, b, c, d) = (v[at], v[at + 1], v[at + self.size.0], v[at + self.size.0 + 1]);
-                    let value = (a + (b - a) * fx) * (1.0 - fz) + (c + (d - c) * fx) * fz;
-                    if value.is_finite() {
-                        *o = value;
-                        any = true;
-                        continue;
+        for run in &positions.runs {
+            for (k, o) in out[run.at..run.at + run.len].iter_mut().enumerate() {
+                let (x, z) = run.point(k);
+                let (gx, gz) = (x * inverse - ox, z * inverse - oz);
+                if gx >= 1.0 && gz >= 1.0 {
+                    let (ix, iz) = (gx as i64, gz as i64);
+                    let (wi, wj) = (ix - 1, iz - 1);
+                    if wi + 1 < w && wj + 1 < h {
+                        let at = wj as usize * self.size.0 + wi as usize;
+                        let (fx, fz) = ((gx - ix as f64) as f32, (gz - iz as f64) as f32);
+                        let v = &self.values;
+                        let (a, b, c, d) = (v[at], v[at + 1], v[at + self.size.0], v[at + self.size.0 + 1]);
+                        let value = (a + (b - a) * fx) * (1.0 - fz) + (c + (d - c) * fx) * fz;
+                        if value.is_finite() {
+                            *o = value;
+                            any = true;
+                            continue;
+                        }
                     }
                 }
-            }
-            if let Some(v) = self.bilinear(x, z) {
-                *o = v[0];
-                any = true;
+                if let Some(v) = self.bilinear(x, z) {
+                    *o = v[0];
+                    any = true;
+                }
             }
         }
         any.then_some(out)

@@ -25,7 +25,7 @@ use std::io::Write as _;
 
 use terrastream_format::{LayerKind, MmapSource, Reader};
 
-use super::resample::{DecodedCache, MakeError, Placed};
+use super::resample::{DecodedCache, MakeError, Placed, Positions};
 use super::tilejson::{self, Coverage};
 use encode::{Extensions, TileMesh};
 use geodetic::{GeoTile, METADATA_LEVELS};
@@ -128,6 +128,7 @@ impl<'a> Terrain<'a> {
                 self.placed.world(lon, lat)
             })
             .collect();
+        let positions = Positions::from_points(&positions);
         let mut heights =
             self.placed.sample(&positions, self.lod(tile.z))?.unwrap_or_else(|| vec![f32::NAN; GRID * GRID]);
         mesh::fill_nodata(&mut heights, GRID);
