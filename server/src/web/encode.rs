@@ -57,8 +57,11 @@ impl HeightEncoding {
         if !heights.iter().all(|h| h.is_finite()) {
             return None;
         }
-        let mut out = Vec::with_capacity(heights.len() * 3);
-        out.extend(heights.iter().flat_map(|&h| self.rgb(h)));
+        let mut out = vec![0; heights.len() * 3];
+        for (pixel, &h) in out.chunks_exact_mut(3).zip(heights) {
+            let [r, g, b] = self.rgb(h);
+            (pixel[0], pixel[1], pixel[2]) = (r, g, b);
+        }
         Some(out)
     }
 
