@@ -128,10 +128,16 @@ impl<'a> Placed<'a> {
     /// The world position of every pixel centre of `tile` (`size` a side), row by row;
     /// none where the point has no place in the archive's CRS.
     pub fn positions(&self, tile: WebTile, size: usize) -> Positions {
-        let exact = |u: f64, v: f64| {
+        self.lattice(size, &|u, v| {
             let (lon, lat) = tile.lon_lat(u, v, size as f64);
             self.world(lon, lat)
-        };
+        })
+    }
+
+    /// The world positions of the pixel centres of a grid of `size` x `size` pixels whose
+    /// pixel-edge coordinates (`u` across, `v` down) go to world positions by `exact`,
+    /// through the approximate transform.
+    pub fn lattice(&self, size: usize, exact: &dyn Fn(f64, f64) -> Option<(f64, f64)>) -> Positions {
         let mut out = Positions { len: size * size, runs: vec![] };
         let mut v0 = 0;
         while v0 < size {
@@ -144,7 +150,7 @@ impl<'a> Placed<'a> {
                     exact(u0 as f64, v1 as f64),
                     exact(u1 as f64, v1 as f64),
                 ];
-                cell(&exact, &mut out.runs, size, [u0, v0, u1, v1], corners);
+                cell(exact, &mut out.runs, size, [u0, v0, u1, v1], corners);
                 u0 = u1;
             }
             v0 = (v0 + LATTICE).min(size);
@@ -223,12 +229,38 @@ impl Run {
 }
 
 impl Positions {
-    /// Each point on its own.
-    pub fn from_points(points: &[Option<(f64, f64)>]) -> Self {
-        let runs = (points.iter().enumerate())
-            .filter_map(|(at, p)| p.map(|origin| Run { at, len: 1, origin, step: (0.0, 0.0), offset: 0.0 }))
-            .collect();
-        Self { len: points.len(), runs }
+    /// The same positions but for the outermost points of the grid (`size` a side), which
+    /// are `exact(column, row)`'s.
+    #[must_use]
+    pub fn with_exact_border(self, size: usize, exact: impl Fn(usize, usize) -> Option<(f64, f64)>) -> Self {
+        if size < 2 {
+            return self;
+        }
+        let last = size - 1;
+        let mut runs = Vec::with_capacity(self.runs.len() + 4 * size);
+        for mut run in self.runs {
+            // A run lies in one row.
+            let (row, column) = (run.at / size, run.at % size);
+            if row == 0 || row == last {
+                continue;
+            }
+            if column == 0 {
+                (run.at, run.len, run.offset) = (run.at + 1, run.len - 1, run.offset + 1.0);
+            }
+            if run.len > 0 && (run.at + run.len - 1) % size == last {
+                run.len -= 1;
+            }
+            if run.len > 0 {
+                runs.push(run);
+            }
+        }
+        let border = (0..size).flat_map(|c| [(c, 0), (c, last)]).chain((1..last).flat_map(|r| [(0, r), (last, r)]));
+        for (column, row) in border {
+            if let Some(origin) = exact(column, row) {
+                runs.push(Run { at: row * size + column, len: 1, origin, step: (0.0, 0.0), offset: 0.0 });
+            }
+        }
+        Self { len: self.len, runs }
     }
 
     /// How many points.

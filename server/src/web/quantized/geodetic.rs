@@ -46,10 +46,15 @@ impl GeoTile {
     /// sampled `size` points a side. Computed from the point's place in the whole level's
     /// grid, so that tiles sharing an edge compute the very same points on it.
     pub fn grid_point(self, column: usize, row: usize, size: usize) -> (f64, f64) {
+        self.grid_point_at(column as f64, row as f64, size)
+    }
+
+    /// [`Self::grid_point`] anywhere in the grid: `column` and `row` in grid steps.
+    pub fn grid_point_at(self, column: f64, row: f64, size: usize) -> (f64, f64) {
         let steps = (size.max(2) - 1) as f64;
         let step = self.degrees() / steps;
-        let gx = f64::from(self.x) * steps + column as f64;
-        let gy = f64::from(self.y) * steps + (steps - row as f64);
+        let gx = f64::from(self.x) * steps + column;
+        let gy = f64::from(self.y) * steps + (steps - row);
         (gx * step - 180.0, gy * step - 90.0)
     }
 

@@ -25,7 +25,7 @@ use std::io::Write as _;
 
 use terrastream_format::{LayerKind, MmapSource, Reader};
 
-use super::resample::{DecodedCache, MakeError, Placed, Positions};
+use super::resample::{DecodedCache, MakeError, Placed};
 use super::tilejson::{self, Coverage};
 use encode::{Extensions, TileMesh};
 use geodetic::{GeoTile, METADATA_LEVELS};
@@ -122,13 +122,16 @@ impl<'a> Terrain<'a> {
     /// # Errors
     /// [`MakeError::Tile`] for an archive tile that cannot be read.
     pub fn heights(&self, tile: GeoTile) -> Result<Vec<f32>, MakeError> {
-        let positions: Vec<Option<(f64, f64)>> = (0..GRID * GRID)
-            .map(|i| {
-                let (lon, lat) = tile.grid_point(i % GRID, i / GRID, GRID);
-                self.placed.world(lon, lat)
-            })
-            .collect();
-        let positions = Positions::from_points(&positions);
+        let at = |column: f64, row: f64| {
+            let (lon, lat) = tile.grid_point_at(column, row, GRID);
+            self.placed.world(lon, lat)
+        };
+        // The approximate transform, as for web tiles (point (i, j) is the centre of
+        // "pixel" (i, j)); the grid's outermost points exact, as its neighbours compute
+        // them, so that tiles sharing an edge sample the same heights on it.
+        #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+        let positions = (self.placed.lattice(GRID, &|u, v| at(u - 0.5, v - 0.5)))
+            .with_exact_border(GRID, |column, row| at(column as f64, row as f64));
         let mut heights =
             self.placed.sample(&positions, self.lod(tile.z))?.unwrap_or_else(|| vec![f32::NAN; GRID * GRID]);
         mesh::fill_nodata(&mut heights, GRID);
