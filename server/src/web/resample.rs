@@ -510,6 +510,15 @@ impl Window {
         if i < -1 || j < -1 || i >= self.grid.0 || j >= self.grid.1 {
             return None;
         }
+        // No corner (clamped to the grid) in the window: none with data, known before the
+        // weights (most points beyond a tile's data come here).
+        #[expect(clippy::cast_possible_wrap, reason = "window sizes are far below 2^63")]
+        let held = |k: i64, grid: i64, first: i64, size: usize| {
+            [k, k + 1].iter().any(|&c| (0..size as i64).contains(&(c.clamp(0, grid - 1) - first)))
+        };
+        if !held(i, self.grid.0, self.first.0, self.size.0) || !held(j, self.grid.1, self.first.1, self.size.1) {
+            return None;
+        }
         let mut sum = [0f64; 4];
         let mut weight = 0.0;
         for (di, dj, w) in
