@@ -141,11 +141,25 @@ fn nginx_caching_proxy_serves_the_second_pass_and_picks_up_a_replaced_archive() 
         assert!(head.contains("x-cache-status: hit"), "{head}");
     }
 
-    // A new version is published by rename. After the cache validity the proxy revalidates;
-    // the streaming client notices the new ETag, drops everything, and shows only version 2.
+    // A new version is published by rename. Once the server serves it, and after the
+    // cache validity, the proxy revalidates; the streaming client notices the new ETag,
+    // drops everything, and shows only version 2. (Waiting for the server first: a
+    // revalidation before it sees the rename renews the old version for another validity,
+    // and a client with every tile it needs asks nothing more.)
+    let etag = || {
+        let head = Command::new("curl").args(["-s", "-o", "/dev/null", "-D", "-", "-r", "0-99", &direct_url]).output();
+        let head = String::from_utf8_lossy(&head.map(|o| o.stdout).unwrap_or_default()).to_lowercase();
+        head.lines().find_map(|l| l.strip_prefix("etag:").map(|v| v.trim().to_owned()))
+    };
+    let old = etag();
     let next = archives.join("next.tmp");
     write_labelled_archive(&next, &LabelledSpec { version: 2, ..LabelledSpec::default() }).unwrap();
     std::fs::rename(&next, &path).unwrap();
+    let start = Instant::now();
+    while etag() == old {
+        assert!(start.elapsed() < Duration::from_secs(20), "the server still serves {old:?}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
     std::thread::sleep(Duration::from_millis(1500));
     let generation = s.generation();
     let mut after = HashMap::new();
