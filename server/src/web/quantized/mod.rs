@@ -12,7 +12,8 @@
 //! A tile samples the archive's heights on a 65 x 65 grid of its own (Cesium's heightmap
 //! size; edges shared with the neighbours, corners included) from the LOD whose samples
 //! are no larger than the grid's at the data's centre (one LOD a level, so that neighbours
-//! read the same heights on their shared edge), then meshes them with a vertical error of
+//! read the same heights on their shared edge; the grid through the web tiles' approximate
+//! transform, its outermost points exact), then meshes them with a vertical error of
 //! at most Cesium's geometric error for the level, [`geometric_error`] (the height
 //! quantization's half step included).
 
