@@ -720,3 +720,45 @@ impl Tiles<'_, '_> {
         Ok(tile)
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::cast_precision_loss, clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    /// A grid's positions through the approximate transform, then its border made exact:
+    /// every point has one position, the border's are the exact ones bit for bit, the
+    /// others unchanged.
+    #[test]
+    fn the_border_of_a_grid_is_exact_and_the_rest_unchanged() {
+        let size = 17;
+        // Pixel-edge coordinates to world; point (i, j) is at edge coordinates + 0.5.
+        // Curved a little: the lattice's interpolation passes the 1/8-pixel check but
+        // is not the exact transform.
+        let exact = |u: f64, v: f64| Some((u + u * u * 1e-4 + v * 0.01, v + u * 0.02 + v * v * 1e-4));
+        let mut approx = Positions { len: size * size, runs: vec![] };
+        let corners = [exact(0.0, 0.0), exact(17.0, 0.0), exact(0.0, 17.0), exact(17.0, 17.0)];
+        cell(&exact, &mut approx.runs, size, [0, 0, size, size], corners);
+        let grid = |c: usize, r: usize| exact(c as f64 + 0.5, r as f64 + 0.5);
+        let bordered = approx.clone().with_exact_border(size, grid);
+        let mut seen = vec![0; size * size];
+        for run in &bordered.runs {
+            for k in 0..run.len {
+                seen[run.at + k] += 1;
+            }
+        }
+        assert!(seen.iter().all(|&n| n == 1), "every point once: {seen:?}");
+        for i in 0..size * size {
+            let (c, r) = (i % size, i / size);
+            let got = bordered.point(i).unwrap();
+            if c == 0 || r == 0 || c == size - 1 || r == size - 1 {
+                assert_eq!(got, grid(c, r).unwrap(), "border point {c},{r}");
+            } else {
+                assert_eq!(got, approx.point(i).unwrap(), "inner point {c},{r}");
+            }
+        }
+        // The approximation is not exact inside (or the test shows nothing).
+        let inner = (1..size - 1).flat_map(|r| (1..size - 1).map(move |c| (c, r)));
+        assert!(inner.clone().any(|(c, r)| approx.point(r * size + c) != grid(c, r)));
+    }
+}
