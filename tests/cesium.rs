@@ -189,6 +189,16 @@ fn cesium_build() -> Option<PathBuf> {
     build.join("Cesium.js").exists().then_some(build)
 }
 
+/// CesiumJS's built files and what a test lacks (the browser's needs, and those files).
+fn cesium_build_or_missing() -> (Option<PathBuf>, Vec<&'static str>) {
+    let mut missing = terrastream_testkit::browser::missing();
+    let build = cesium_build();
+    if build.is_none() {
+        missing.push("CesiumJS's built files (scripts/test.sh: npm pack cesium@1.145.0)");
+    }
+    (build, missing)
+}
+
 /// Loads `page`, waits until the globe has loaded every tile of the view, and returns
 /// Cesium's heights at `points` (`sampleTerrainMostDetailed`, as documented) and a
 /// screenshot; fails on any `errorEvent` or failed request.
@@ -234,11 +244,7 @@ fn cesium_run(
 #[test]
 fn cesium_flies_the_served_and_the_exported_terrain() {
     use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
-    let mut missing = terrastream_testkit::browser::missing();
-    let build = cesium_build();
-    if build.is_none() {
-        missing.push("CesiumJS's built files (scripts/test.sh: npm pack cesium@1.145.0)");
-    }
+    let (build, mut missing) = cesium_build_or_missing();
     for tool in ["gdaltransform", "gdallocationinfo"] {
         if Command::new(tool).arg("--version").output().is_err() {
             missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
@@ -356,11 +362,7 @@ fn column_edges(w: u32, h: u32, rgba: &[u8]) -> Vec<Option<(u32, u32)>> {
 #[test]
 fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
     use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
-    let mut missing = terrastream_testkit::browser::missing();
-    let build = cesium_build();
-    if build.is_none() {
-        missing.push("CesiumJS's built files (scripts/test.sh: npm pack cesium@1.145.0)");
-    }
+    let (build, mut missing) = cesium_build_or_missing();
     if Command::new("gdal_create").arg("--version").output().is_err() {
         missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
     }

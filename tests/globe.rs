@@ -6,7 +6,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_precision_loss, clippy::cast_possible_truncation)]
 #![allow(clippy::cast_sign_loss, missing_docs)]
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 #[path = "support/oracles.rs"]
@@ -30,6 +30,17 @@ fn terrastream(args: &[&str], dir: &Path) -> String {
     said
 }
 
+/// A generated DEM (`oracles::dem`: west, south, degrees, samples a degree) tiled into
+/// `dir/{name}.tspack` with `args` added.
+fn tiled(dir: &Path, name: &str, (west, south, degrees, per_degree): (f64, f64, f64, f64), args: &[&str]) -> PathBuf {
+    let tif = dem(dir, west, south, degrees, per_degree);
+    let archive = dir.join(format!("{name}.tspack"));
+    let mut all = vec!["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()];
+    all.extend(args);
+    terrastream(&all, dir);
+    archive
+}
+
 fn decode(path: &Path) -> (u32, u32, Vec<u8>) {
     terrastream_testkit::golden::decode_png(&std::fs::read(path).unwrap())
 }
@@ -43,12 +54,7 @@ fn no_jitter_two_metres_above_the_summit() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let tif = dem(dir.path(), EVEREST.0 - 0.1, EVEREST.1 - 0.1, 0.2, 1200.0);
-    let archive = dir.path().join("everest.tspack");
-    terrastream(
-        &["-q", "tile", "--elevation", tif.to_str().unwrap(), "--keep-geographic", "-o", archive.to_str().unwrap()],
-        dir.path(),
-    );
+    let archive = tiled(dir.path(), "everest", (EVEREST.0 - 0.1, EVEREST.1 - 0.1, 0.2, 1200.0), &["--keep-geographic"]);
     let render = |name: &str, above: f64| {
         let png = dir.path().join(name);
         let at = format!("{},{},{}", EVEREST.0, EVEREST.1, SUMMIT + above);
@@ -85,9 +91,7 @@ fn a_continent_keeps_its_geographic_grid() {
     }
     let dir = tempfile::tempdir().unwrap();
     for (degrees, geographic) in [(12.0, true), (2.0, false)] {
-        let tif = dem(dir.path(), 86.0 - degrees / 2.0 + 1.0, 27.0, degrees, 60.0);
-        let archive = dir.path().join(format!("{degrees}.tspack"));
-        terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], dir.path());
+        let archive = tiled(dir.path(), &degrees.to_string(), (86.0 - degrees / 2.0 + 1.0, 27.0, degrees, 60.0), &[]);
         let reader = terrastream_format::Reader::open_mmap(&archive).unwrap();
         let definition = reader.metadata().georeference.as_ref().unwrap().definition.clone().unwrap();
         assert_eq!(definition.contains("+proj=longlat"), geographic, "{degrees} degrees: {definition}");
@@ -103,10 +107,8 @@ fn a_grazing_view_fetches_no_more_tiles_on_the_globe() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let tif = dem(dir.path(), EVEREST.0 - 0.1, EVEREST.1 - 0.1, 0.2, 1200.0);
-    let archive = dir.path().join("everest.tspack");
+    let archive = tiled(dir.path(), "everest", (EVEREST.0 - 0.1, EVEREST.1 - 0.1, 0.2, 1200.0), &["--tile-size", "32"]);
     let (a, p) = (archive.to_str().unwrap(), dir.path().join("v.png"));
-    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "--tile-size", "32", "-o", a], dir.path());
     let fetched = |flat: bool| -> u64 {
         let mut args = vec!["render", a, "-o", p.to_str().unwrap(), "--size", "640x360"];
         args.extend(["--at", "86.83,27.9,5200", "--heading", "45", "--pitch", "-4"]);
@@ -131,10 +133,8 @@ fn from_orbit_to_the_summit_every_view_draws_terrain() {
     }
     let dir = tempfile::tempdir().unwrap();
     // 12 degrees at 30": more than a region, so it keeps its geographic grid.
-    let tif = dem(dir.path(), EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0);
-    let archive = dir.path().join("himalaya.tspack");
+    let archive = tiled(dir.path(), "himalaya", (EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0), &[]);
     let a = archive.to_str().unwrap();
-    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", a], dir.path());
     let png = dir.path().join("v.png");
     for (above, pitch, share) in
         [(2.0e7, -90.0, 0.0005), (2.0e6, -90.0, 0.02), (2.0e5, -60.0, 0.3), (2.0e4, -30.0, 0.3), (2.0, -30.0, 0.3)]

@@ -11,7 +11,7 @@ use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
 use terrastream_client::render::still::{Still, StillOptions, default_camera, render_still, write_png};
 use terrastream_client::{Camera, Origin, Surface};
-use terrastream_format::{Georeference, Layer, LayerKind, Metadata, PayloadCompression, TileFormat, TileKey};
+use terrastream_format::{Georeference, Metadata, TileKey};
 use terrastream_pack::{Writer, WriterOptions};
 
 fn gpu() -> Option<&'static Gpu> {
@@ -42,20 +42,7 @@ fn texture_world(
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join(format!("{name}.tspack"));
     let lods = u8::try_from(tiles.0.max(tiles.1).next_power_of_two().trailing_zeros() + 1).unwrap();
-    let layer = Layer {
-        name: "texture".into(),
-        kind: LayerKind::Texture,
-        format: TileFormat::Png,
-        compression: PayloadCompression::None,
-        tile_resolution: 64,
-        border: 0,
-        num_x_tiles: tiles.0,
-        num_y_tiles: tiles.1,
-        num_lods: lods,
-        tile_world_size,
-        elevation: None,
-        extent: None,
-    };
+    let layer = terrastream_testkit::archives::png_texture_layer(tiles, lods, tile_world_size);
     let mut metadata = Metadata::new(name, vec![layer]);
     metadata.georeference = Some(georeference);
     let mut keys: Vec<TileKey> = (0..lods)

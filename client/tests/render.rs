@@ -530,22 +530,9 @@ fn nothing_is_drawn_past_the_data_extent() {
 /// A texture-only archive of 2 x 2 tiles of 1 km, a colour each at LOD 0 (checkered with
 /// dark squares), at 3 000 m; `data_extent` as given.
 fn texture_only_archive(dir: &Path, data_extent: Option<[f64; 2]>) -> PathBuf {
-    use terrastream_format::{Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
+    use terrastream_format::TileKey;
     let path = dir.join(format!("texture-only-{}.tspack", data_extent.is_some()));
-    let layer = Layer {
-        name: "texture".into(),
-        kind: LayerKind::Texture,
-        format: TileFormat::Png,
-        compression: PayloadCompression::None,
-        tile_resolution: 64,
-        border: 0,
-        num_x_tiles: 2,
-        num_y_tiles: 2,
-        num_lods: 2,
-        tile_world_size: 1000.0,
-        elevation: None,
-        extent: None,
-    };
+    let layer = terrastream_testkit::archives::png_texture_layer((2, 2), 2, 1000.0);
     let mut metadata = Metadata::new("texture-only", vec![layer]);
     metadata.terrain.min_elevation = 3000.0;
     metadata.terrain.max_elevation = 3000.0;

@@ -6,7 +6,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{DMat4, DVec3, Mat4};
 
-use super::gpu::{self, texture_entry, uniform_entry};
+use super::gpu::{self, sampler_entry, texture_entry, uniform_entry};
 
 /// Shared functions of the atmosphere (appended to the shaders that use them).
 pub const ATMOSPHERE_WGSL: &str = include_str!("../../../shaders/atmosphere.wgsl");
@@ -316,12 +316,7 @@ impl AtmospherePipelines {
                 uniform_entry(0),
                 texture_entry(1, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
                 texture_entry(2, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 3,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                    count: None,
-                },
+                sampler_entry(3),
             ],
         });
         let source = format!("{ATMOSPHERE_WGSL}\n{LUTS_WGSL}");

@@ -275,6 +275,16 @@ pub fn texture_entry(
     }
 }
 
+/// A bind-group layout entry for a filtering sampler seen by the fragment stage.
+pub fn sampler_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+        count: None,
+    }
+}
+
 /// A colour and depth target that can be read back.
 #[derive(Debug)]
 pub struct Offscreen {

@@ -9,7 +9,7 @@ use terrastream_format::{Layer, LayerKind, Metadata, TileFormat, TileKey};
 use wgpu::util::DeviceExt;
 
 use super::atmosphere::{ATMOSPHERE_WGSL, AtmospherePipelines, AtmosphereTables, AtmosphereUniform};
-use super::gpu::{self, texture_entry, uniform_entry, write_layer};
+use super::gpu::{self, sampler_entry, texture_entry, uniform_entry, write_layer};
 use super::mesh::{MAX_LEVELS, MeshParams, Node, PatchMesh, Scene, select_nodes};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable, Residency};
 use crate::globe::{Mapping, Surface};
@@ -383,22 +383,12 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
             texture_entry(1, wgpu::TextureSampleType::Uint, wgpu::TextureViewDimension::D2),
             texture_entry(2, wgpu::TextureSampleType::Float { filterable: false }, wgpu::TextureViewDimension::D2Array),
             texture_entry(3, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2Array),
-            wgpu::BindGroupLayoutEntry {
-                binding: 4,
-                visibility: wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                count: None,
-            },
+            sampler_entry(4),
             texture_entry(5, wgpu::TextureSampleType::Float { filterable: false }, wgpu::TextureViewDimension::D2),
             uniform_entry(6),
             texture_entry(7, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
             texture_entry(8, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
-            wgpu::BindGroupLayoutEntry {
-                binding: 9,
-                visibility: wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                count: None,
-            },
+            sampler_entry(9),
             texture_entry(10, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
             texture_entry(11, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
         ],

@@ -9,12 +9,9 @@ use terrastream_format::{Interrupted, MmapSource, Reader};
 
 use super::encode::{HeightEncoding, ImageFormat};
 use super::mercator::{WebTile, tiles_over};
-use super::resample::DecodedCache;
+use super::resample::{DECODED_BYTES, DecodedCache};
 use super::tilejson::{TileJsonRequest, coverage, tilejson};
 use super::{MakeError, WebTileRequest, make_tile_cached};
-
-/// Decoded archive tiles an export keeps (the server's default, `web_decoded_bytes`).
-pub const EXPORT_DECODED_BYTES: usize = 256 << 20;
 
 /// What to export.
 #[derive(Clone, Copy, Debug)]
@@ -120,7 +117,7 @@ pub fn make_tiles(
 ) -> Result<(), ExportError> {
     // Neighbouring web tiles sample the same archive tiles: decode each once, as the
     // server does.
-    let decoded = DecodedCache::new(EXPORT_DECODED_BYTES);
+    let decoded = DecodedCache::new(DECODED_BYTES);
     let make = |&tile: &WebTile| {
         let request = WebTileRequest {
             layer: export.layer,

@@ -66,6 +66,10 @@ pub enum MakeError {
 /// same archive tiles), by the archive's version and the tile.
 pub type DecodedCache = super::cache::Lru<(u64, TileKey), Arc<DecodedTile>>;
 
+/// Bytes of decoded archive tiles kept by default: the server's `web_decoded_bytes` and
+/// what an export keeps.
+pub const DECODED_BYTES: usize = 256 << 20;
+
 /// An archive layer on the Earth: what web tiles are made from.
 pub struct Placed<'a> {
     reader: &'a Reader<MmapSource>,

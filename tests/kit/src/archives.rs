@@ -71,6 +71,25 @@ pub fn raw_tile(t: TileKey, version: u16) -> Vec<u8> {
     (0..256u16).flat_map(|i| (i + u16::from(t.lod()) * 7 + version * 1000).to_le_bytes()).collect()
 }
 
+/// A texture layer of `tiles` (across, down) LOD-0 PNG tiles of 64 pixels, no border,
+/// `num_lods` levels, each LOD-0 tile `tile_world_size` world units a side.
+pub fn png_texture_layer(tiles: (u32, u32), num_lods: u8, tile_world_size: f64) -> Layer {
+    Layer {
+        name: "texture".into(),
+        kind: LayerKind::Texture,
+        format: TileFormat::Png,
+        compression: PayloadCompression::None,
+        tile_resolution: 64,
+        border: 0,
+        num_x_tiles: tiles.0,
+        num_y_tiles: tiles.1,
+        num_lods,
+        tile_world_size,
+        elevation: None,
+        extent: None,
+    }
+}
+
 /// A `size` x `size` RGB PNG checkered in 8-pixel squares of `rgb` and `dark`, starting
 /// with `rgb` at the top left: a tile whose placement and LOD show in a render.
 pub fn checkered_png(size: u32, rgb: [u8; 3], dark: [u8; 3]) -> Vec<u8> {

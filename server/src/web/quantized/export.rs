@@ -10,8 +10,8 @@ use terrastream_format::{Interrupted, MmapSource, Reader};
 use super::encode::Extensions;
 use super::geodetic::GeoTile;
 use super::{Terrain, gzip};
-use crate::web::export::{EXPORT_DECODED_BYTES, ExportError, WebExportSummary, file_err, in_order, publish, stage};
-use crate::web::resample::DecodedCache;
+use crate::web::export::{ExportError, WebExportSummary, file_err, in_order, publish, stage};
+use crate::web::resample::{DECODED_BYTES, DecodedCache};
 
 /// Writes the archive's terrain in `dir`, levels `minzoom` to `maxzoom` (default: the
 /// terrain's deepest); `tick(done, total)` after each tile. Written into a temporary
@@ -27,7 +27,7 @@ pub fn export_quantized_mesh(
     maxzoom: Option<u8>,
     tick: &(dyn Fn(u64, u64) -> Result<(), Interrupted> + Sync),
 ) -> Result<WebExportSummary, ExportError> {
-    let decoded = DecodedCache::new(EXPORT_DECODED_BYTES);
+    let decoded = DecodedCache::new(DECODED_BYTES);
     let terrain = Terrain::new(reader, Some((&decoded, 0))).ok_or(ExportError::NotPlaced)?;
     let maxzoom = maxzoom.unwrap_or(terrain.maxzoom()).min(terrain.maxzoom());
     let minzoom = minzoom.min(maxzoom);
