@@ -2,19 +2,23 @@
 # Web tiles and the elevation API against TiTiler, in one run, side by side (run by
 # scripts/bench-server.sh, or alone):
 #   (e) Terrain-RGB tiles made on the fly by `terrastream serve` from a transverse-Mercator
-#       archive of the SRTM tile (every tile reprojected), random z10-z14 tiles inside its
-#       bounds, 256 px PNG: cold (nothing kept: web_cache_bytes = 0) and warm;
+#       archive of the SRTM tile (every tile reprojected), random tiles of the data's five
+#       finest zooms (z10-z14 for the SRTM tile) inside its bounds, 256 px PNG: cold
+#       (nothing kept: web_cache_bytes = 0) and warm;
 #   (f) TiTiler 2.4 (two uvicorn workers) on a Cloud-Optimized GeoTIFF of the same DEM
 #       (gdal_translate -of COG), algorithm=terrainrgb, the same tiles;
 #   (g) nginx serving `terrastream export --to xyz` of the same tiles (static files);
 #   (h) single-point elevation requests: ours (/v1) against TiTiler's /cog/point; and
 #       points per second with 100 locations a request;
 #   (i) quantized-mesh tiles (both extensions, gzipped, as CesiumJS asks) made on each
-#       request, random tiles of level 10 to the deepest inside the bounds, against (e) cold;
+#       request, random tiles of the five deepest levels inside the bounds, against (e) cold;
 #   (j) the same tiles warm (kept), against nginx serving `terrastream export --to
 #       quantized-mesh` of them (gzipped files sent with `Content-Encoding: gzip`).
 # Needs: wrk, nginx, gdal-bin, python3 (TiTiler is installed from PyPI into a cache venv).
-# SRTM=path picks the DEM (default: ../shared/data/srtm/n37_w123_1arc_v3.tif).
+# SRTM=path picks the DEM (default: ../shared/data/srtm/n37_w123_1arc_v3.tif). The work is
+# sized from it: the zooms are the data's own five finest (fewer, from the finest down,
+# where more would export over MAX_TILES = 200000 static tiles), up to 2 000 distinct
+# tiles drawn from them; a DEM with fewer than 100 tiles there is refused, with the reason.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 CONNS=${CONNS:-64}
@@ -35,14 +39,10 @@ pids=()
 cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$work"; }
 trap cleanup EXIT INT TERM
 
-echo "tiling $SRTM (transverse Mercator), making its COG and its static tiles..."
+echo "tiling $SRTM (transverse Mercator), making its COG..."
 "$bin" -q tile --elevation "$SRTM" -o "$work/srtm.tspack"
 gdal_translate -q -of COG "$SRTM" "$work/srtm-cog.tif"
 mkdir -p "$work/www"
-"$bin" -q export "$work/srtm.tspack" --to xyz --encoding mapbox --format png --size 256 --minzoom 10 --maxzoom 14 \
-  -o "$work/www/xyz"
-"$bin" -q export "$work/srtm.tspack" --to quantized-mesh --minzoom 10 -o "$work/www/terrain"
-chmod -R a+rX "$work"
 printf 'web_cache_bytes = 0\n' > "$work/cold.toml"
 
 port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
@@ -51,38 +51,52 @@ cold=$(port); warm=$(port); titiler=$(port); static=$(port)
 "$bin" -q serve "$work/srtm.tspack" --addr "127.0.0.1:$warm" & pids+=($!)
 (cd "$work" && exec "$venv/bin/uvicorn" titiler.application.main:app --workers 2 --host 127.0.0.1 --port "$titiler" \
   --log-level warning) & pids+=($!)
-mkdir -p "$work/nginx"
-cat > "$work/nginx/nginx.conf" <<CONF
-daemon off; master_process on; worker_processes 2; pid $work/nginx/pid; error_log $work/nginx/error.log warn;
-events { worker_connections 4096; }
-http { access_log off; sendfile on; keepalive_requests 100000; types { image/png png; }
-  client_body_temp_path $work/nginx/b; proxy_temp_path $work/nginx/p; fastcgi_temp_path $work/nginx/f;
-  uwsgi_temp_path $work/nginx/u; scgi_temp_path $work/nginx/s;
-  server { listen 127.0.0.1:$static; root $work/www;
-    location /terrain/ { types { application/vnd.quantized-mesh terrain; application/json json; }
-      location ~ [.]terrain\$ { add_header Content-Encoding gzip; } } } }
-CONF
-"$NGINX" -p "$work/nginx" -c "$work/nginx/nginx.conf" -e "$work/nginx/error.log" & pids+=($!)
-for p in $cold $warm $titiler $static; do
+for p in $cold $warm $titiler; do
   for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/$p) 2>/dev/null && break; sleep 0.2; done
 done
 
-# Random z10-z14 tiles inside the data's bounds, and random points inside them.
-python3 - "$work" "http://127.0.0.1:$warm/srtm/tiles.json" <<'PY'
+# Random tiles of the data's finest zooms inside its bounds, and random points inside them:
+# the zooms sized from the DEM (zooms.txt: web min and max, terrain min and max).
+python3 - "$work" "http://127.0.0.1:$warm/srtm/tiles.json" "${MAX_TILES:-200000}" <<'PY'
 import json, math, random, sys, urllib.request
-work, url = sys.argv[1], sys.argv[2]
-w, s, e, n = json.load(urllib.request.urlopen(url))["bounds"]
+work, url, max_tiles = sys.argv[1], sys.argv[2], int(sys.argv[3])
+doc = json.load(urllib.request.urlopen(url))
+w, s, e, n = doc["bounds"]
 random.seed(7)
 def tile(z, lon, lat):
     k = 2 ** z
     y = (1 - math.log(math.tan(math.radians(lat)) + 1 / math.cos(math.radians(lat))) / math.pi) / 2 * k
-    return int((lon + 180) / 360 * k), int(y)
-tiles = set()
-while len(tiles) < 2000:
-    z = random.randint(10, 14)
-    x, y = tile(z, random.uniform(w, e), random.uniform(s, n))
-    tiles.add((z, x, y))
-tiles = sorted(tiles)
+    return min(int((lon + 180) / 360 * k), k - 1), min(max(int(y), 0), k - 1)
+def web_ranges(z):
+    (x0, y0), (x1, y1) = tile(z, w, n), tile(z, e, s)
+    return range(x0, x1 + 1), range(y0, y1 + 1)
+def geo_ranges(z):
+    d = 180 / 2 ** z
+    xs = range(int((w + 180) // d), int((min(e, 179.999999) + 180) // d) + 1)
+    ys = range(int((s + 90) // d), int((min(n, 89.999999) + 90) // d) + 1)
+    return xs, ys
+def zooms(finest, ranges, what):
+    """The five finest zooms (fewer where they would hold over max_tiles), and their tiles."""
+    chosen, total = [], 0
+    for z in range(finest, max(finest - 5, 0) - 1, -1):
+        xs, ys = ranges(z)
+        if total + len(xs) * len(ys) > max_tiles:
+            break
+        chosen.append(z)
+        total += len(xs) * len(ys)
+    if not chosen:
+        sys.exit(f"{what}: zoom {finest} alone holds over {max_tiles} tiles: pick a smaller DEM or raise MAX_TILES")
+    every = [(z, x, y) for z in chosen for x in ranges(z)[0] for y in ranges(z)[1]]
+    if len(every) < 100:
+        sys.exit(f"{what}: only {len(every)} tiles at zooms {min(chosen)}-{max(chosen)} over the data: "
+                 "too few to measure (pick a DEM of more than a few tiles)")
+    return min(chosen), max(chosen), sorted(random.sample(every, min(2000, len(every))))
+maxzoom = json.load(urllib.request.urlopen(url.replace("tiles.json", "layer.json")))["maxzoom"]
+zmin, zmax, tiles = zooms(doc["maxzoom"], web_ranges, "web tiles")
+tmin, tmax, terrain = zooms(maxzoom, geo_ranges, "quantized-mesh")
+with open(f"{work}/zooms.txt", "w") as f:
+    f.write(f"{zmin} {zmax} {tmin} {tmax}\n")
+print(f"web tiles: {len(tiles)} of zooms {zmin}-{zmax}; quantized-mesh: {len(terrain)} of levels {tmin}-{tmax}")
 cog = f"file://{work}/srtm-cog.tif"
 with open(f"{work}/ours.txt", "w") as f:
     f.writelines(f"/srtm/xyz/elevation/{z}/{x}/{y}.png?size=256&encoding=mapbox\n" for z, x, y in tiles)
@@ -99,17 +113,30 @@ with open(f"{work}/titiler-point.txt", "w") as f:
 with open(f"{work}/hundred.txt", "w") as f:
     for i in range(0, 2000, 100):
         f.write("/v1/srtm?locations=" + "|".join(f"{lat:.6f},{lon:.6f}" for lat, lon in points[i:i + 100]) + "\n")
-maxzoom = json.load(urllib.request.urlopen(url.replace("tiles.json", "layer.json")))["maxzoom"]
-terrain = set()
-while len(terrain) < 2000:
-    z = random.randint(10, maxzoom)
-    d = 180 / 2 ** z
-    terrain.add((z, int((random.uniform(w, e) + 180) // d), int((random.uniform(s, n) + 90) // d)))
 with open(f"{work}/terrain.txt", "w") as f:
-    f.writelines(f"/srtm/{z}/{x}/{y}.terrain\n" for z, x, y in sorted(terrain))
+    f.writelines(f"/srtm/{z}/{x}/{y}.terrain\n" for z, x, y in terrain)
 with open(f"{work}/terrain-static.txt", "w") as f:
-    f.writelines(f"/terrain/{z}/{x}/{y}.terrain\n" for z, x, y in sorted(terrain))
+    f.writelines(f"/terrain/{z}/{x}/{y}.terrain\n" for z, x, y in terrain)
 PY
+read -r zmin zmax tmin tmax < "$work/zooms.txt"
+echo "exporting the same tiles for nginx..."
+"$bin" -q export "$work/srtm.tspack" --to xyz --encoding mapbox --format png --size 256 --minzoom "$zmin" \
+  --maxzoom "$zmax" -o "$work/www/xyz"
+"$bin" -q export "$work/srtm.tspack" --to quantized-mesh --minzoom "$tmin" --maxzoom "$tmax" -o "$work/www/terrain"
+chmod -R a+rX "$work"
+mkdir -p "$work/nginx"
+cat > "$work/nginx/nginx.conf" <<CONF
+daemon off; master_process on; worker_processes 2; pid $work/nginx/pid; error_log $work/nginx/error.log warn;
+events { worker_connections 4096; }
+http { access_log off; sendfile on; keepalive_requests 100000; types { image/png png; }
+  client_body_temp_path $work/nginx/b; proxy_temp_path $work/nginx/p; fastcgi_temp_path $work/nginx/f;
+  uwsgi_temp_path $work/nginx/u; scgi_temp_path $work/nginx/s;
+  server { listen 127.0.0.1:$static; root $work/www;
+    location /terrain/ { types { application/vnd.quantized-mesh terrain; application/json json; }
+      location ~ [.]terrain\$ { add_header Content-Encoding gzip; } } } }
+CONF
+"$NGINX" -p "$work/nginx" -c "$work/nginx/nginx.conf" -e "$work/nginx/error.log" & pids+=($!)
+for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/$static) 2>/dev/null && break; sleep 0.2; done
 cat > "$work/paths.lua" <<'LUA'
 local paths = {}
 for line in io.lines(os.getenv("PATHS")) do paths[#paths + 1] = line end

@@ -17,8 +17,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use serde_json::{Value, json};
-use terrastream_server::web::quantized::geodetic::GeoTile;
-use terrastream_server::web::quantized::{GRID, Terrain, geometric_error};
+use terrastream_views::quantized::geodetic::GeoTile;
+use terrastream_views::quantized::{GRID, Terrain, geometric_error};
 
 #[path = "support/oracles.rs"]
 mod oracles;

@@ -4,6 +4,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+use terrastream_testkit::archives::stored_tiles;
 use terrastream_tiler::ElevationSource as _;
 
 fn terrastream(args: &[&str], cwd: &Path) -> Output {
@@ -182,7 +183,7 @@ fn tile_plans_writes_and_refuses_bad_input() {
         (Some("raw_u16"), Some("zstd_gradient"))
     );
     let words = text(&terrastream(&["info", "t.tspack"], work));
-    assert!(words.contains("format 2.0") && words.contains("RawU16+zstd_gradient"), "{words}");
+    assert!(words.contains("format 2.0") && words.contains("raw_u16+zstd_gradient"), "{words}");
     assert_eq!((layers[1]["kind"].as_str(), layers[1]["format"].as_str()), (Some("texture"), Some("bc7")));
     assert_eq!((layers[2]["kind"].as_str(), layers[2]["format"].as_str()), (Some("height_range"), Some("min_max_f32")));
     // A geographic DEM goes onto a transverse Mercator centred on it (unless kept).
@@ -454,19 +455,6 @@ fn an_update_in_place_is_verified_and_a_merge_compacts_it() {
     assert!(tiles("t.tspack").is_some_and(|n| n > 10));
 }
 
-/// Every tile's stored payload, by key.
-fn archive_tiles(path: &Path) -> std::collections::BTreeMap<terrastream_format::TileKey, Vec<u8>> {
-    let mut out = std::collections::BTreeMap::new();
-    terrastream_format::Reader::open_mmap(path)
-        .unwrap()
-        .for_each_tile(|key, payload| -> terrastream_format::Result<()> {
-            out.insert(key, payload.to_vec());
-            Ok(())
-        })
-        .unwrap();
-    out
-}
-
 /// A planned sharded run, as the cluster Job runs it: the plan, from the inputs' headers,
 /// lists for each shard the inputs its band reads (their union is every input, and each
 /// shard's is a part); a shard given only those and the plan makes the tiles a shard given
@@ -547,7 +535,7 @@ fn a_shard_of_a_planned_run_needs_only_the_inputs_its_plan_lists() {
         run(&with(&["tile", "--elevation", "in", "--shard", &shard, "--shard-plan", plan, "-o", out]), &pod);
         let whole = format!("w{i}.tspack");
         run(&with(&["tile", "--elevation", "in", "--shard", &shard, "-o", &whole]), cwd);
-        let (a, b) = (archive_tiles(&cwd.join(format!("p{i}.tspack"))), archive_tiles(&cwd.join(&whole)));
+        let (a, b) = (stored_tiles(&cwd.join(format!("p{i}.tspack"))), stored_tiles(&cwd.join(&whole)));
         assert!(!a.is_empty());
         assert!(a == b, "shard {i}: {} tiles from its inputs, {} from all; they differ", a.len(), b.len());
         planned.push(format!("p{i}.tspack"));
@@ -557,7 +545,7 @@ fn a_shard_of_a_planned_run_needs_only_the_inputs_its_plan_lists() {
     let out = terrastream(&merge, cwd);
     assert!(out.status.success(), "{}", text(&out));
     run(&with(&["tile", "--elevation", "in", "-o", "whole.tspack"]), cwd);
-    assert!(archive_tiles(&cwd.join("m.tspack")) == archive_tiles(&cwd.join("whole.tspack")), "merged shards");
+    assert!(stored_tiles(&cwd.join("m.tspack")) == stored_tiles(&cwd.join("whole.tspack")), "merged shards");
     // A VRT cannot be split between shards: said, naming it.
     std::fs::write(cwd.join("all.vrt"), "<VRTDataset rasterXSize=\"1\" rasterYSize=\"1\"></VRTDataset>").unwrap();
     let out = terrastream(&["tile", "--elevation", "all.vrt", "--shards", "2", "--shard-plan-out", "vplan"], cwd);
@@ -722,7 +710,7 @@ fn a_shard_plan_from_the_inputs_headers_alone_is_the_plan_of_the_whole_files() {
         let said = terrastream(&args, cwd);
         assert!(said.status.success(), "{}", text(&said));
     }
-    assert!(archive_tiles(&cwd.join("full.tspack")) != archive_tiles(&cwd.join("heads.tspack")));
+    assert!(stored_tiles(&cwd.join("full.tspack")) != stored_tiles(&cwd.join("heads.tspack")));
 }
 
 /// The publish step from the shards' tops: `info --shard-top-out` names the prefix of a
@@ -758,7 +746,7 @@ fn a_manifest_is_published_from_the_shards_tops_alone() {
         let said = terrastream(&["merge", d, "-o", &coarse, "--manifest", &manifest], cwd);
         assert!(said.status.success(), "{d}: {}", text(&said));
     }
-    assert_eq!(archive_tiles(&cwd.join("whole/coarse.tspack")), archive_tiles(&cwd.join("tops/coarse.tspack")));
+    assert_eq!(stored_tiles(&cwd.join("whole/coarse.tspack")), stored_tiles(&cwd.join("tops/coarse.tspack")));
     let read = |p: &str| std::fs::read_to_string(cwd.join(p)).unwrap();
     assert_eq!(read("whole/terrain.json"), read("tops/terrain.json"));
     // Not a shard: said so.

@@ -343,9 +343,9 @@ fn a_terrarium_tile_decoded_by_pillow_holds_the_heights_meant() {
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
     let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
     // The tile over Mount Tamalpais's summit at the finest zoom, as PNG.
-    use terrastream_server::web::encode::{HeightEncoding, ImageFormat};
-    use terrastream_server::web::mercator::{WebTile, tiles_over};
-    use terrastream_server::web::{WebTileRequest, tile_samples};
+    use terrastream_views::encode::{HeightEncoding, ImageFormat};
+    use terrastream_views::mercator::{WebTile, tiles_over};
+    use terrastream_views::{WebTileRequest, tile_samples};
     let (columns, rows) = tiles_over(12, [-122.5965, 37.9235, -122.5965, 37.9235]);
     let tile = WebTile::new(12, *columns.start(), *rows.start()).unwrap();
     let path = format!("/tamalpais/xyz/elevation/{}/{}/{}.png", tile.z, tile.x, tile.y);

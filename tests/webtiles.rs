@@ -317,8 +317,8 @@ fn imagery_web_tiles_hold_the_source_images_pixels() {
 #[test]
 fn the_approximate_transform_stays_within_an_eighth_of_a_pixel() {
     use terrastream_crs::{Crs, Transform};
-    use terrastream_server::web::mercator::{WebTile, tiles_over};
-    use terrastream_server::web::resample::Placed;
+    use terrastream_views::mercator::{WebTile, tiles_over};
+    use terrastream_views::resample::Placed;
     let dir = tempfile::tempdir().unwrap();
     let archive = dir.path().join("tm.tspack");
     tile(DEM, &archive);
@@ -352,4 +352,37 @@ fn the_approximate_transform_stays_within_an_eighth_of_a_pixel() {
         eprintln!("zoom {z}: the approximate transform is within {worst:.4} pixels of the exact one");
         assert!(worst <= 0.125, "zoom {z}: {worst} pixels off");
     }
+}
+
+/// An export asked for zooms far finer than the data says so (how far, the data's finest
+/// zoom, how many tiles of upsampled data), and still writes what was asked; two zooms
+/// beyond the data pass without a word.
+#[test]
+fn an_export_far_finer_than_the_data_warns() {
+    let dir = tempfile::tempdir().unwrap();
+    let archive = dir.path().join("dem.tspack");
+    tile(OTHER_DEM, &archive);
+    let export = |maxzoom: u8| {
+        let out = dir.path().join(format!("z{maxzoom}"));
+        let (a, o, z) = (archive.to_str().unwrap(), out.to_str().unwrap(), maxzoom.to_string());
+        let args = ["export", a, "--to", "xyz", "--size", "256", "--minzoom", &z, "--maxzoom", &z, "-o", o];
+        let run = Command::new(exe()).args(args).output().unwrap();
+        assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+        (String::from_utf8_lossy(&run.stderr).into_owned(), walk(&out).len())
+    };
+    // The data's finest zoom, as its TileJSON says (an export without --maxzoom).
+    let probe = dir.path().join("probe");
+    let (a, p) = (archive.to_str().unwrap(), probe.to_str().unwrap());
+    terrastream(&["export", a, "--to", "xyz", "--size", "256", "--minzoom", "30", "-o", p]);
+    let tilejson: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(probe.join("tiles.json")).unwrap()).unwrap();
+    let finest = u8::try_from(tilejson["maxzoom"].as_u64().unwrap()).unwrap_or(0);
+    let (quiet, _) = export(finest + 2);
+    assert!(!quiet.contains("finer than the data"), "two zooms beyond the data: {quiet}");
+    let (warned, files) = export(finest + 3);
+    assert!(
+        warned.contains("is 3 zooms finer than the data") && warned.contains(&format!("its finest is zoom {finest}")),
+        "{warned}"
+    );
+    assert!(files > 1, "the zoom asked for is still written: {files} files");
 }

@@ -77,22 +77,10 @@ pub enum Error {
         /// South, in world units.
         z: f64,
     },
-    /// A tile's payload is not what its layer says (format, size, encoding).
-    #[error("tile {key} of layer {layer:?}: {reason}")]
-    BadTile {
-        /// The tile.
-        key: TileKey,
-        /// Its layer's name.
-        layer: String,
-        /// What is wrong.
-        reason: String,
-    },
-    /// What a decoding thread (a browser's Web Worker) handed back is not a decoded tile.
-    #[error("a decoded tile from a worker: {reason}")]
-    Wire {
-        /// What is wrong with it.
-        reason: String,
-    },
+    /// A tile's payload is not what its layer says (format, size, encoding), or what a
+    /// decoding thread (a browser's Web Worker) handed back is not a decoded tile.
+    #[error(transparent)]
+    Tile(terrastream_tiles::Error),
     /// A tile could not be fetched or decoded for a blocking query.
     #[error("tile {key} could not be loaded: {reason}")]
     TileLoad {
@@ -111,6 +99,15 @@ impl From<terrastream_format::Error> for Error {
         match error {
             terrastream_format::Error::Changed { what } => Self::Changed { what },
             other => Self::Format(other),
+        }
+    }
+}
+
+impl From<terrastream_tiles::Error> for Error {
+    fn from(error: terrastream_tiles::Error) -> Self {
+        match error {
+            terrastream_tiles::Error::Format(e) => e.into(),
+            other => Self::Tile(other),
         }
     }
 }

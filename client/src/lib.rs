@@ -23,11 +23,10 @@ pub use source::blocking::{AnySource, BlockingSource, open_source};
 pub use source::http::{HttpSource, HttpStats, RetryPolicy};
 pub use stream::cache::TileCache;
 pub use stream::camera::{Aabb, Camera, Frustum, SceneBox};
-pub use stream::decode::{DecodedTile, TileData, decode};
-pub use stream::heights::{Interpolation, height_on_lod};
 pub use stream::origin::{DynSource, EndpointSource, HostTiles, ManifestSource, Origin};
 pub use stream::select::{SelectOptions, Want, select};
 pub use stream::streamer::{
     DecodeFailure, DecodeResult, Decoder, StreamOptions, StreamStats, Streamer, Upload, UploadBudget,
 };
 pub use terrastream_format::is_manifest_location;
+pub use terrastream_tiles::{DecodedTile, Interpolation, TileData, decode, height_on_lod};

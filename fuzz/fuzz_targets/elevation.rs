@@ -5,7 +5,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_server::web::elevation::{Locations, Query, decode_polyline};
+use terrastream_views::elevation::{Locations, Query, decode_polyline};
 
 fn check(query: &Query) {
     match query.points(100) {

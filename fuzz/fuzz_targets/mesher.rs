@@ -5,9 +5,9 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_server::web::quantized::encode::{Extensions, TileMesh, encode};
-use terrastream_server::web::quantized::geodetic::GeoTile;
-use terrastream_server::web::quantized::mesh::{fill_nodata, mesh};
+use terrastream_views::quantized::encode::{Extensions, TileMesh, encode};
+use terrastream_views::quantized::geodetic::GeoTile;
+use terrastream_views::quantized::mesh::{fill_nodata, mesh};
 
 fuzz_target!(|data: &[u8]| {
     let Some((&head, rest)) = data.split_first() else { return };

@@ -5,7 +5,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use terrastream_client::decode;
+use terrastream_tiles::decode;
 use terrastream_format::{ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, TileFormat, TileKey};
 
 const FORMATS: [TileFormat; 7] = [

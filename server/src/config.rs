@@ -81,7 +81,7 @@ impl Default for ServerConfig {
             web_threads: 0,
             web_queue: 64,
             web_cache_bytes: 256 << 20,
-            web_decoded_bytes: crate::web::resample::DECODED_BYTES,
+            web_decoded_bytes: terrastream_views::resample::DECODED_BYTES,
             max_locations: 100,
         }
     }

@@ -14,9 +14,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use terrastream_format::{MmapSource, Reader};
-use terrastream_server::web::quantized::encode::{self, Extensions, TileMesh};
-use terrastream_server::web::quantized::geodetic::GeoTile;
-use terrastream_server::web::quantized::{GRID, Terrain, geometric_error, mesh};
+use terrastream_views::quantized::encode::{self, Extensions, TileMesh};
+use terrastream_views::quantized::geodetic::GeoTile;
+use terrastream_views::quantized::{GRID, Terrain, geometric_error, mesh};
 
 #[derive(Debug, Args)]
 pub struct MeshBench {

@@ -73,6 +73,50 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted.get(i).copied().unwrap_or(f64::NAN)
 }
 
+/// What every run of the benchmark shares: the adapter, the archive, the frame.
+struct Bench<'a> {
+    gpu: &'a Gpu,
+    location: &'a str,
+    budget: UploadBudget,
+    target: Offscreen,
+    size: (u32, u32),
+}
+
+impl Bench<'_> {
+    fn open(&self, settings: RenderSettings) -> Result<Session> {
+        let streamer = Streamer::open(Origin::parse(self.location)?, StreamOptions::default())?;
+        Ok(Session::new(streamer, &self.gpu.device, settings, OFFSCREEN_FORMAT, self.budget)?)
+    }
+
+    /// A session that has streamed every view of `cameras` to completion.
+    fn settled(&self, settings: RenderSettings, cameras: &[Camera]) -> Result<Session> {
+        let mut session = self.open(settings)?;
+        for camera in cameras {
+            session.run_until(&self.gpu.device, &self.gpu.queue, camera, Duration::from_secs(30), Session::settled);
+        }
+        Ok(session)
+    }
+
+    fn fly(&self, session: &mut Session, cameras: &[Camera]) -> Result<Run> {
+        fly(self.gpu, session, cameras, &self.target)
+    }
+}
+
+/// Median and p99 frame times, printed with the run's geometry and uploads.
+fn stats(name: &str, r: &Run) -> (f64, f64) {
+    let mut sorted = r.frame_ms.clone();
+    sorted.sort_by(f64::total_cmp);
+    let (p50, p99, max) = (percentile(&sorted, 0.5), percentile(&sorted, 0.99), percentile(&sorted, 1.0));
+    let mean_vertices = r.vertices.iter().sum::<u64>() as f64 / r.vertices.len().max(1) as f64;
+    println!(
+        "  {name:<10} frame ms median {p50:7.2}  p99 {p99:7.2}  max {max:7.2} | vertices/frame mean {mean_vertices:8.0} max {:7} | draw calls/frame max {} | uploads/frame max {}",
+        r.vertices.iter().max().unwrap_or(&0),
+        r.draw_calls.iter().max().unwrap_or(&0),
+        r.uploads_max
+    );
+    (p50, p99)
+}
+
 pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     let (w, h) = super::render::parse_size(&args.size)?;
     let dir = match &args.dir {
@@ -92,55 +136,48 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
     };
     let gpu = Gpu::headless().context("the render benchmark needs a graphics adapter")?;
     let budget = UploadBudget { max_tiles: args.max_upload_tiles.max(1), ..UploadBudget::default() };
-    let open_with = |settings: RenderSettings| -> Result<Session> {
-        let streamer = Streamer::open(Origin::parse(&location)?, StreamOptions::default())?;
-        Ok(Session::new(streamer, &gpu.device, settings, OFFSCREEN_FORMAT, budget)?)
-    };
-    let open = || open_with(RenderSettings { flat: true, ..RenderSettings::default() });
-    let mut streaming = open()?;
+    let bench =
+        Bench { gpu: &gpu, location: &location, budget, target: Offscreen::new(&gpu.device, w, h), size: (w, h) };
+    let plate = RenderSettings { flat: true, ..RenderSettings::default() };
+    let mut streaming = bench.open(plate)?;
     let metadata = streaming.streamer.metadata().cloned().context("no metadata")?;
     let cameras = flight(&metadata, args.frames, w, h);
-    let target = Offscreen::new(&gpu.device, w, h);
     println!("bench render: {location}, {} frames of {w}x{h} on {}", cameras.len(), gpu.describe());
     // Warm-up outside the timings: pipelines compiled, caches of the driver filled.
-    {
-        let mut warm = open()?;
-        fly(&gpu, &mut warm, &cameras[..cameras.len().min(5)], &target)?;
-    }
+    bench.fly(&mut bench.open(plate)?, &cameras[..cameras.len().min(5)])?;
     // Streaming: a fresh session; tiles arrive while it flies.
-    let streamed = fly(&gpu, &mut streaming, &cameras, &target)?;
+    let streamed = bench.fly(&mut streaming, &cameras)?;
     // Resident: a session that has already streamed every view of the flight to completion.
-    let mut resident = open()?;
-    for camera in &cameras {
-        resident.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
-    }
+    let mut resident = bench.settled(plate, &cameras)?;
     let before = resident.streamer.stats();
-    let settled = fly(&gpu, &mut resident, &cameras, &target)?;
+    let settled = bench.fly(&mut resident, &cameras)?;
     let after = resident.streamer.stats();
     println!(
         "  resident run fetched {} tiles during the flight (0 = everything was resident)",
         after.tiles_fetched - before.tiles_fetched
     );
-    let stats = |name: &str, r: &Run| -> (f64, f64) {
-        let mut sorted = r.frame_ms.clone();
-        sorted.sort_by(f64::total_cmp);
-        let (p50, p99, max) = (percentile(&sorted, 0.5), percentile(&sorted, 0.99), percentile(&sorted, 1.0));
-        let mean_vertices = r.vertices.iter().sum::<u64>() as f64 / r.vertices.len().max(1) as f64;
-        println!(
-            "  {name:<10} frame ms median {p50:7.2}  p99 {p99:7.2}  max {max:7.2} | vertices/frame mean {mean_vertices:8.0} max {:7} | draw calls/frame max {} | uploads/frame max {}",
-            r.vertices.iter().max().unwrap_or(&0),
-            r.draw_calls.iter().max().unwrap_or(&0),
-            r.uploads_max
-        );
-        (p50, p99)
-    };
     let (s50, s99) = stats("streaming", &streamed);
-    let (r50, r99) = stats("resident", &settled);
-    println!("  streaming / resident: median {:.2}x, p99 {:.2}x (target: p99 within 1.25x)", s50 / r50, s99 / r99);
-    // The same views on the globe (a georeferenced archive): each eye and target placed on
-    // the ellipsoid at its grid point and height.
-    // Without the atmosphere first (the plate has none), then with it: its share.
-    let mut globe = open_with(RenderSettings { atmosphere: false, ..RenderSettings::default() })?;
+    let flat = stats("resident", &settled);
+    println!(
+        "  streaming / resident: median {:.2}x, p99 {:.2}x (target: p99 within 1.25x)",
+        s50 / flat.0,
+        s99 / flat.1
+    );
+    on_the_globe(&bench, &metadata, &cameras, flat, before.tiles_fetched)
+}
+
+/// The same views on the globe (a georeferenced archive): each eye and target placed on
+/// the ellipsoid at its grid point and height; without the atmosphere first (the plate
+/// has none), then with it: its share; then the descent from orbit.
+fn on_the_globe(
+    bench: &Bench<'_>,
+    metadata: &terrastream_format::Metadata,
+    cameras: &[Camera],
+    (r50, r99): (f64, f64),
+    flat_fetched: u64,
+) -> Result<()> {
+    let (w, h) = bench.size;
+    let mut globe = bench.open(RenderSettings { atmosphere: false, ..RenderSettings::default() })?;
     let surface = globe.renderer.surface().clone();
     if surface.globe().is_none() {
         println!("  globe: the archive does not say where it lies");
@@ -155,12 +192,11 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
             camera
         })
         .collect();
-    let flat_fetched = before.tiles_fetched;
     for camera in &on_globe {
-        globe.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
+        globe.run_until(&bench.gpu.device, &bench.gpu.queue, camera, Duration::from_secs(30), Session::settled);
     }
     let globe_fetched = globe.streamer.stats().tiles_fetched;
-    let on_the_globe = fly(&gpu, &mut globe, &on_globe, &target)?;
+    let on_the_globe = bench.fly(&mut globe, &on_globe)?;
     let (g50, g99) = stats("globe", &on_the_globe);
     println!(
         "  globe / flat (resident): median {:.2}x, p99 {:.2}x (target: 1.2x); tiles fetched to settle the flight {} / {} = {:.2}x",
@@ -170,23 +206,25 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
         flat_fetched,
         globe_fetched as f64 / flat_fetched.max(1) as f64
     );
-    let mut air = open_with(RenderSettings::default())?;
-    for camera in &on_globe {
-        air.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
-    }
-    let with_air = fly(&gpu, &mut air, &on_globe, &target)?;
+    let mut air = bench.settled(RenderSettings::default(), &on_globe)?;
+    let with_air = bench.fly(&mut air, &on_globe)?;
     let (a50, _) = stats("atmosphere", &with_air);
     println!(
         "  the atmosphere's share of the globe's frame (median): {:.0} % ({a50:.2} ms with it, {g50:.2} ms without)",
         (a50 - g50) / a50 * 100.0
     );
-    // From 20 000 km down to 2 m above the terrain's highest point over the data's middle,
-    // and back: every frame must draw terrain (a NaN anywhere drops its triangles).
-    let descent = descent(&metadata, &surface, w, h);
-    let mut down = open_with(RenderSettings::default())?;
+    fly_descent(bench, &descent(metadata, &surface, w, h))
+}
+
+/// From 20 000 km down to 2 m above the terrain's highest point over the data's middle,
+/// and back: every frame must draw terrain (a NaN anywhere drops its triangles).
+fn fly_descent(bench: &Bench<'_>, descent: &[Camera]) -> Result<()> {
+    let gpu = bench.gpu;
+    let target = &bench.target;
+    let mut down = bench.open(RenderSettings::default())?;
     let mut bare = 0;
     let mut frame_ms = Vec::new();
-    for camera in &descent {
+    for camera in descent {
         let start = Instant::now();
         let settled = down.run_until(&gpu.device, &gpu.queue, camera, Duration::from_secs(30), Session::settled);
         let Some((_, frame, _)) = settled else {

@@ -5,12 +5,14 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use terrastream_format::{LayerKind, MmapSource, Reader, zxy_to_tile_id};
+use terrastream_format::{LayerKind, MmapSource, Reader};
 use terrastream_pack::progress::Progress;
-use terrastream_server::web::encode::{HeightEncoding, ImageFormat};
-use terrastream_server::web::export::{WebExport, export_xyz, make_tiles, planned_tiles};
-use terrastream_server::web::quantized::export::export_quantized_mesh;
-use terrastream_server::web::tilejson::coverage;
+use terrastream_views::encode::{HeightEncoding, ImageFormat};
+use terrastream_views::export::{WebExport, export_xyz};
+use terrastream_views::mercator::tiles_over;
+use terrastream_views::pmtiles::export_web_pmtiles;
+use terrastream_views::quantized::export::export_quantized_mesh;
+use terrastream_views::tilejson::coverage;
 
 use super::CliProgress;
 
@@ -155,6 +157,7 @@ fn run_web(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     };
     let export =
         WebExport { layer: index, encoding, format, size: args.size, minzoom: args.minzoom, maxzoom: args.maxzoom };
+    warn_if_far_finer(&reader, &export);
     let started = std::time::Instant::now();
     let tick = |done: u64, total: u64| {
         if done == 1 {
@@ -190,37 +193,15 @@ fn web_pmtiles(
     progress: &CliProgress,
     started: std::time::Instant,
 ) -> Result<ExitCode> {
-    let (tiles, zooms) = planned_tiles(reader, export)?;
-    progress.start("tiles", tiles.len() as u64);
-    let tick = || {
-        progress.advance(1);
+    let tick = |total: Option<u64>| {
+        match total {
+            Some(total) => progress.start("tiles", total),
+            None => progress.advance(1),
+        }
         progress.check().map_err(|_| terrastream_format::Interrupted)
     };
-    let mut made = Vec::with_capacity(tiles.len());
-    make_tiles(reader, export, &tiles, 0, &tick, &mut |tile, bytes| {
-        made.push((zxy_to_tile_id(tile.z, tile.x, tile.y), bytes));
-        Ok(())
-    })?;
-    made.sort_by_key(|(id, _)| *id);
-    let meta = reader.metadata();
-    let info = &meta.layers[usize::from(export.layer)];
-    let cover = coverage(meta, info, export.size).context("the archive does not say where it lies")?;
-    let metadata = serde_json::json!({
-        "name": meta.name,
-        "type": "baselayer",
-        "format": export.format.extension(),
-        "encoding": export.encoding.map(HeightEncoding::name),
-        "tileSize": export.size,
-        "minzoom": zooms.0,
-        "maxzoom": zooms.1,
-        "bounds": cover.bounds,
-    });
-    let tile_type = match export.format {
-        ImageFormat::Png => 2,
-        ImageFormat::Webp => 4,
-    };
-    let summary =
-        terrastream_pack::export::pmtiles::write_pmtiles(&args.output, &made, tile_type, cover.bounds, &metadata)?;
+    let (summary, zooms) = export_web_pmtiles(reader, export, &args.output, &tick)
+        .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
     progress.finish();
     println!(
         "{}: PMTiles v3 of web tiles, zooms {}..{}, {} tiles ({} distinct), {} bytes in {:.2} s",
@@ -234,3 +215,29 @@ fn web_pmtiles(
     );
     Ok(ExitCode::SUCCESS)
 }
+
+/// Warns when the zooms asked for are far finer than the layer's data (its TileJSON's
+/// `maxzoom`): each zoom beyond it makes four times the tiles of upsampled data.
+fn warn_if_far_finer(reader: &Reader<MmapSource>, export: &WebExport) {
+    let meta = reader.metadata();
+    let Some(info) = meta.layers.get(usize::from(export.layer)) else { return };
+    let (Some(asked), Some(cover)) = (export.maxzoom, coverage(meta, info, export.size)) else { return };
+    if asked > cover.maxzoom.saturating_add(FINER_ZOOMS_WARNED) {
+        let tiles: u64 = (cover.maxzoom + 1..=asked)
+            .map(|z| {
+                let (columns, rows) = tiles_over(z, cover.bounds);
+                u64::from(columns.end() - columns.start() + 1) * u64::from(rows.end() - rows.start() + 1)
+            })
+            .sum();
+        tracing::warn!(
+            "--maxzoom {asked} is {} zooms finer than the data of layer {:?} (its finest is zoom {}): {tiles} more \
+             tiles of upsampled data, each zoom four times the one before",
+            asked - cover.maxzoom,
+            info.name,
+            cover.maxzoom
+        );
+    }
+}
+
+/// Zooms beyond the data's finest that an export makes without a warning.
+const FINER_ZOOMS_WARNED: u8 = 2;

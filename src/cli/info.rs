@@ -6,6 +6,8 @@ use anyhow::{Context, Result};
 use clap::Args;
 use terrastream_format::ArchiveStats;
 
+use super::people;
+
 #[derive(Debug, Args)]
 pub struct InfoArgs {
     /// The archive or manifest (`.json`): a path or an http(s):// URL.
@@ -91,16 +93,7 @@ fn shard_top<S: terrastream_format::RangeSource>(reader: &terrastream_format::Re
     Ok(end)
 }
 
-pub fn human(bytes: u64) -> String {
-    let units = ["B", "KiB", "MiB", "GiB", "TiB"];
-    let mut v = bytes as f64;
-    let mut unit = 0;
-    while v >= 1024.0 && unit + 1 < units.len() {
-        v /= 1024.0;
-        unit += 1;
-    }
-    if unit == 0 { format!("{bytes} B") } else { format!("{v:.1} {}", units[unit]) }
-}
+pub use super::people::bytes as human;
 
 pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) -> String {
     use std::fmt::Write;
@@ -125,55 +118,90 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
     let t = &m.terrain;
     let _ = writeln!(
         out,
-        "terrain     elevation {}..{} m · mesh base {} m, high-detail range {} m, {} detail levels",
-        t.min_elevation, t.max_elevation, t.base_tile_size, t.high_detail_range, t.num_detail_levels
+        "terrain     elevation {} to {} · mesh base {}, high-detail range {}, {} detail levels",
+        people::height(t.min_elevation),
+        people::height(t.max_elevation),
+        people::length(t.base_tile_size),
+        people::length(t.high_detail_range),
+        t.num_detail_levels
     );
     if let Some(g) = &m.georeference {
-        let _ = writeln!(out, "georef      {:?} origin {:?} bounds {:?}", g.crs, g.origin, g.lat_lon_bounds);
+        out.push_str(&georeference(g));
     }
     for (i, l) in s.layers.iter().enumerate() {
-        let _ = writeln!(
-            out,
-            "layer {i}     {} ({:?}, {:?}{}, {} px + border {}) grid {}x{} · {} LODs · {} m/tile · {}",
-            l.name,
-            l.kind,
-            l.format,
-            match l.compression {
-                terrastream_format::PayloadCompression::None => String::new(),
-                other => format!("+{}", other.name()),
-            },
-            l.tile_resolution,
-            l.border,
-            l.grid[0],
-            l.grid[1],
-            l.num_lods,
-            l.tile_world_size,
-            human(l.data_bytes)
+        out.push_str(&layer(i, l, m.layers.get(i).and_then(|l| l.extent.as_ref())));
+    }
+    out
+}
+
+/// Where the archive lies: its CRS by name and code, the grid's origin, the bounds.
+fn georeference(g: &terrastream_format::Georeference) -> String {
+    let mut out = String::new();
+    let crs = g.crs.as_deref().or(g.definition.as_deref());
+    let geographic = crs.is_some_and(|c| terrastream_crs::Crs::parse(c).is_ok_and(|c| c.is_geographic()));
+    let mut line = format!("crs         {}", crs.map_or_else(|| "not recorded".to_owned(), people::crs));
+    if let Some([x, y]) = g.origin {
+        // Degrees to five decimals (about a metre); CRS units to the centimetre.
+        let (x, y) = if geographic {
+            (people::fixed(x, 5), people::fixed(y, 5))
+        } else {
+            (people::fixed(x, 2), people::fixed(y, 2))
+        };
+        line.push_str(&format!(" · origin {x}, {y}"));
+    }
+    out.push_str(&line);
+    out.push('\n');
+    if let Some(b) = g.lat_lon_bounds {
+        out.push_str(&format!("bounds      {}\n", people::lon_lat_box(b)));
+    }
+    out
+}
+
+/// One layer: what it stores, its grid, LODs and bytes, then where its data lies.
+fn layer(i: usize, l: &terrastream_format::LayerStats, extent: Option<&terrastream_format::LayerExtent>) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let compression = match l.compression {
+        terrastream_format::PayloadCompression::None => String::new(),
+        other => format!("+{}", other.name()),
+    };
+    let _ = writeln!(
+        out,
+        "layer {i}     {} ({}, {}{compression}, {} px + border {}) grid {}x{} · {} LODs · {}/tile · {}",
+        l.name,
+        people::name(&l.kind),
+        people::name(&l.format),
+        l.tile_resolution,
+        l.border,
+        l.grid[0],
+        l.grid[1],
+        l.num_lods,
+        people::length(l.tile_world_size),
+        human(l.data_bytes)
+    );
+    let per_lod: Vec<String> = l
+        .tiles_per_lod
+        .iter()
+        .zip(&l.grid_tiles_per_lod)
+        .enumerate()
+        .map(|(lod, (n, of))| format!("LOD{lod} {n}/{of}"))
+        .collect();
+    let _ = writeln!(out, "            {}", per_lod.join(" · "));
+    if let Some(e) = extent {
+        let [x0, z0, x1, z1] = e.world.map(|v| people::fixed(v, 1));
+        let [dx0, dz0, dx1, dz1] = e.detail.map(|v| people::fixed(v, 1));
+        let mut line = format!(
+            "            data LOD{}..=LOD{} · world {x0},{z0}..{x1},{z1} · detail {dx0},{dz0}..{dx1},{dz1}",
+            e.finest_lod, e.coarsest_lod
         );
-        let per_lod: Vec<String> = l
-            .tiles_per_lod
-            .iter()
-            .zip(&l.grid_tiles_per_lod)
-            .enumerate()
-            .map(|(lod, (n, of))| format!("LOD{lod} {n}/{of}"))
-            .collect();
-        let _ = writeln!(out, "            {}", per_lod.join(" · "));
-        if let Some(e) = m.layers.get(i).and_then(|l| l.extent.as_ref()) {
-            let [x0, z0, x1, z1] = e.world;
-            let [dx0, dz0, dx1, dz1] = e.detail;
-            let mut line = format!(
-                "            data LOD{}..=LOD{} · world {x0:.1},{z0:.1}..{x1:.1},{z1:.1} · detail \
-                 {dx0:.1},{dz0:.1}..{dx1:.1},{dz1:.1}",
-                e.finest_lod, e.coarsest_lod
-            );
-            if let Some([a, b, c, d]) = e.crs {
-                line.push_str(&format!(" · crs {a:.3},{b:.3}..{c:.3},{d:.3}"));
-            }
-            if let Some([w, so, ea, n]) = e.lon_lat {
-                line.push_str(&format!(" · lon/lat {w:.5},{so:.5}..{ea:.5},{n:.5}"));
-            }
-            let _ = writeln!(out, "{line}");
+        if let Some(c) = e.crs {
+            let [a, b, c, d] = c.map(|v| people::fixed(v, 3));
+            line.push_str(&format!(" · crs {a},{b}..{c},{d}"));
         }
+        if let Some(b) = e.lon_lat {
+            line.push_str(&format!(" · {}", people::lon_lat_box(b)));
+        }
+        let _ = writeln!(out, "{line}");
     }
     out
 }

@@ -37,7 +37,7 @@ pub fn info(location: &str, json: bool) -> Result<ExitCode> {
     let total: u64 = parts.iter().map(|p| p.1.file_bytes).sum();
     let tiles: u64 = parts.iter().map(|p| p.1.addressed_tiles).sum();
     println!(
-        "manifest    {location} — {} archives, {} in all, {tiles} tiles; terrain {:?}",
+        "manifest    {location} — {} archives, {} in all, {tiles} tiles; terrain \"{}\"",
         parts.len(),
         super::info::human(total),
         manifest.metadata.name
@@ -47,7 +47,11 @@ pub fn info(location: &str, json: bool) -> Result<ExitCode> {
             .layers
             .iter()
             .map(|l| {
-                let cover = l.coverage.as_ref().map_or("all".to_owned(), |c| format!("{:?} at LOD {}", c.rects, c.lod));
+                let cover = l.coverage.as_ref().map_or("all".to_owned(), |c| {
+                    let rects: Vec<String> =
+                        c.rects.iter().map(|[x0, y0, x1, y1]| format!("x {x0}..{x1} y {y0}..{y1}")).collect();
+                    format!("tiles {} at LOD {}", rects.join(", "), c.lod)
+                });
                 format!("{} LOD {}..={} {cover}", l.name, l.lods[0], l.lods[1])
             })
             .collect();

@@ -12,6 +12,7 @@ mod info;
 mod manifest;
 mod merge;
 mod pack;
+mod people;
 mod player;
 mod progress;
 mod render;

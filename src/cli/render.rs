@@ -10,7 +10,7 @@ use glam::DVec3;
 use terrastream_client::fly::{Pose, start_camera};
 use terrastream_client::render::gpu::Gpu;
 use terrastream_client::render::renderer::{RenderSettings, Shading};
-use terrastream_client::render::still::{StillOptions, render_still, write_png};
+use terrastream_client::render::still::{Still, StillOptions, render_still, write_png};
 use terrastream_client::{Camera, Origin, StreamOptions, UploadBudget};
 
 /// Renderer and streaming settings shared by `render` and `view`.
@@ -200,6 +200,12 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         render_still(&gpu, origin, make_camera, &options).with_context(|| format!("rendering {}", args.archive))?;
     write_png(&args.output, still.width, still.height, &still.rgba)
         .with_context(|| format!("writing {}", args.output.display()))?;
+    Ok(report(&still, &args.output, started, &gpu.describe()))
+}
+
+/// What a render drew, on standard output; FAILURE when the picture is not of the
+/// terrain (tiles in view but nothing drawn, or a layer in view that cannot be reached).
+fn report(still: &Still, output: &std::path::Path, started: std::time::Instant, adapter: &str) -> ExitCode {
     if still.stream.undecodable > 0 {
         tracing::warn!(
             "{} tiles could not be decoded and were drawn from coarser ones (last: {})",
@@ -210,11 +216,11 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let p = still.camera.position;
     println!(
         "wrote {} ({}x{}) in {:.2} s on {}: {} frames, {} tiles fetched in {} requests, {} patches, {} triangles, mesh levels {}..={}, eye {:.1},{:.1},{:.1}",
-        args.output.display(),
+        output.display(),
         still.width,
         still.height,
         started.elapsed().as_secs_f64(),
-        gpu.describe(),
+        adapter,
         still.frames,
         still.stream.tiles_fetched,
         still.stream.requests,
@@ -230,17 +236,17 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!(
             "error: {} tiles in view were on the GPU but no terrain was drawn: {} shows only sky",
             still.frame.in_view_resident,
-            args.output.display()
+            output.display()
         );
-        return Ok(ExitCode::FAILURE);
+        return ExitCode::FAILURE;
     }
     if let Some(layer) = &still.unreached_layer {
         eprintln!(
             "error: layer {layer:?} has data in view but none of its tiles in view could be fetched (the view cannot \
              reach them): {} does not show it",
-            args.output.display()
+            output.display()
         );
-        return Ok(ExitCode::FAILURE);
+        return ExitCode::FAILURE;
     }
-    Ok(ExitCode::SUCCESS)
+    ExitCode::SUCCESS
 }

@@ -363,21 +363,8 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         _ => None,
     };
     let mut sources = Sources::open(&request)?;
-    // A plan step's range from the inputs' own statistics, when every one records them:
-    // no height read (the shards check every height against it as they tile).
     if args.dry_run && args.height_range_out.is_some() && request.height_range.is_none() {
-        let recorded = sources.inputs()?.elevation().map(|e| e.statistics_range());
-        if let (Some(Err(without)), true) = (&recorded, args.require_statistics) {
-            bail!(
-                "{}: no exact GDAL statistics (STATISTICS_MINIMUM/MAXIMUM; gdal_translate -stats or gdalinfo -stats \
-                 writes them), and --require-statistics reads no height",
-                without.display()
-            );
-        }
-        if let Some(Ok(range)) = recorded {
-            tracing::info!("height range {range:?}: the inputs' GDAL statistics (no height read)");
-            sources.set_height_range(range);
-        }
+        range_from_statistics(&mut sources, args.require_statistics)?;
     }
     let inputs = sources.inputs()?;
     let (elevation, texture) = (inputs.elevation(), inputs.texture());
@@ -411,14 +398,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         progress.finish();
         print_plan(&name, &plan);
         if let Some(out) = &args.height_range_out {
-            anyhow::ensure!(
-                plan.metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation),
-                "--height-range-out: no elevation to take the range of"
-            );
-            let t = &plan.metadata.terrain;
-            let range = format!("{},{}\n", t.min_elevation, t.max_elevation);
-            super::make_parent(out)?;
-            std::fs::write(out, range).with_context(|| format!("{}: cannot write the height range", out.display()))?;
+            write_height_range(&plan, out)?;
         }
         print_skipped(&sources);
         return Ok(ExitCode::SUCCESS);
@@ -446,6 +426,36 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// A plan step's range from the inputs' own statistics, when every one records them: no
+/// height read (the shards check every height against it as they tile).
+fn range_from_statistics(sources: &mut Sources, required: bool) -> Result<()> {
+    let recorded = sources.inputs()?.elevation().map(|e| e.statistics_range());
+    if let (Some(Err(without)), true) = (&recorded, required) {
+        bail!(
+            "{}: no exact GDAL statistics (STATISTICS_MINIMUM/MAXIMUM; gdal_translate -stats or gdalinfo -stats \
+             writes them), and --require-statistics reads no height",
+            without.display()
+        );
+    }
+    if let Some(Ok(range)) = recorded {
+        tracing::info!("height range {range:?}: the inputs' GDAL statistics (no height read)");
+        sources.set_height_range(range);
+    }
+    Ok(())
+}
+
+/// Writes a plan's height range, `MIN,MAX` at full precision, for the shards' `--height-range`.
+fn write_height_range(plan: &Plan, out: &Path) -> Result<()> {
+    anyhow::ensure!(
+        plan.metadata.layers.iter().any(|l| l.kind == LayerKind::Elevation),
+        "--height-range-out: no elevation to take the range of"
+    );
+    let t = &plan.metadata.terrain;
+    let range = format!("{},{}\n", t.min_elevation, t.max_elevation);
+    super::make_parent(out)?;
+    std::fs::write(out, range).with_context(|| format!("{}: cannot write the height range", out.display()))
+}
+
 /// The plan of a dry run: a line per layer, and the totals.
 fn print_plan(name: &str, plan: &Plan) {
     println!("{name}: plan (nothing written)");
@@ -457,8 +467,8 @@ fn print_plan(name: &str, plan: &Plan) {
         println!(
             "{:<16} {:<14} {:<10} {:>13} {:>6} {:>11} {:>5} {:>9} {:>11}",
             layer.name,
-            format!("{:?}", layer.kind),
-            format!("{:?}", layer.format),
+            super::people::name(&layer.kind),
+            super::people::name(&layer.format),
             format!("{}x{}", p.size.0, p.size.1),
             format!("{}+{}", layer.tile_resolution, 2 * layer.border),
             format!("{}x{}", layer.num_x_tiles, layer.num_y_tiles),

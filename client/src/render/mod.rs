@@ -3,14 +3,18 @@
 //! found through a page table; offscreen targets for headless rendering.
 
 pub mod atmosphere;
+mod frame;
 pub mod gpu;
 pub mod hud;
 pub mod mesh;
+mod pipeline;
 pub mod renderer;
 pub mod residency;
 pub mod session;
+mod settings;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod still;
+mod tile_array;
 
 /// The wgpu version the renderer is built with (hosts create surfaces and passes with it).
 pub use wgpu;

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use terrastream_format::TileKey;
 
-use super::decode::DecodedTile;
+use terrastream_tiles::DecodedTile;
 
 struct Slot {
     tile: Arc<DecodedTile>,
@@ -122,8 +122,8 @@ impl TileCache {
 
 #[cfg(test)]
 mod tests {
-    use super::super::decode::TileData;
     use super::*;
+    use terrastream_tiles::TileData;
 
     fn tile(x: u32, bytes: usize) -> Arc<DecodedTile> {
         Arc::new(DecodedTile {

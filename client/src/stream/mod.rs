@@ -4,7 +4,6 @@
 
 pub mod cache;
 pub mod camera;
-pub mod decode;
 pub mod heights;
 pub mod origin;
 pub mod select;

@@ -141,6 +141,47 @@ impl Crs {
     pub fn name(&self) -> String {
         self.code.map_or_else(|| self.definition.clone(), |c| format!("EPSG:{c}"))
     }
+
+    /// The CRS for people: what it is, from its definition, and its EPSG code
+    /// (`UTM zone 10N, WGS 84 (EPSG:32610)`, `transverse Mercator centred on 37.9120°N
+    /// 122.5830°W, WGS 84`); a projection it does not name by its PROJ definition.
+    pub fn label(&self) -> String {
+        let param = |key: &str| self.definition.split_whitespace().find_map(|w| w.strip_prefix(key));
+        let number = |key: &str| param(key).and_then(|v| v.parse::<f64>().ok());
+        let datum = match (param("+datum="), param("+ellps=")) {
+            (Some("WGS84"), _) | (None, Some("WGS84")) => "WGS 84".to_owned(),
+            (Some(d), _) => d.to_owned(),
+            (None, Some("GRS80")) => "GRS 1980".to_owned(),
+            (None, Some(e)) => e.to_owned(),
+            (None, None) if number("+a=") == Some(6_378_137.0) && number("+b=") == Some(6_378_137.0) => {
+                "a sphere of WGS 84's radius".to_owned()
+            }
+            (None, None) => "an unnamed ellipsoid".to_owned(),
+        };
+        let what = match param("+proj=") {
+            Some("longlat") => Some(format!("longitude/latitude, {datum}")),
+            Some("utm") => param("+zone=").map(|zone| {
+                let hemisphere = if self.definition.contains("+south") { 'S' } else { 'N' };
+                format!("UTM zone {zone}{hemisphere}, {datum}")
+            }),
+            Some("merc") if self.code == Some(3857) => Some("Web Mercator".to_owned()),
+            Some("tmerc") => match (number("+lat_0="), number("+lon_0=")) {
+                (Some(lat), Some(lon)) if self.code.is_none() => {
+                    let ns = if lat < 0.0 { 'S' } else { 'N' };
+                    let ew = if lon < 0.0 { 'W' } else { 'E' };
+                    Some(format!("transverse Mercator centred on {:.4}°{ns} {:.4}°{ew}, {datum}", lat.abs(), lon.abs()))
+                }
+                _ => Some(format!("transverse Mercator, {datum}")),
+            },
+            _ => None,
+        };
+        match (what, self.code) {
+            (Some(w), Some(c)) => format!("{w} (EPSG:{c})"),
+            (Some(w), None) => w,
+            (None, Some(c)) => format!("EPSG:{c} ({})", self.definition),
+            (None, None) => self.definition.clone(),
+        }
+    }
 }
 
 /// A transform from one CRS to another; geographic coordinates in degrees (x = longitude).
@@ -255,6 +296,18 @@ mod tests {
         assert_eq!(crs_of_srs(wkt2).as_deref(), Some("EPSG:25832"));
         assert_eq!(crs_of_srs(" EPSG:2056 ").as_deref(), Some("EPSG:2056"));
         assert_eq!(crs_of_srs(r#"LOCAL_CS["somewhere"]"#), None);
+    }
+
+    #[test]
+    fn crs_are_labelled_for_people() {
+        use crate::Crs;
+        assert_eq!(Crs::wgs84().label(), "longitude/latitude, WGS 84 (EPSG:4326)");
+        assert_eq!(Crs::parse("EPSG:32610").unwrap().label(), "UTM zone 10N, WGS 84 (EPSG:32610)");
+        assert_eq!(Crs::parse("EPSG:3857").unwrap().label(), "Web Mercator (EPSG:3857)");
+        let tm = Crs::local_transverse_mercator(-122.583, 37.912);
+        assert_eq!(tm.label(), "transverse Mercator centred on 37.9120°N 122.5830°W, WGS 84");
+        let other = Crs::parse("+proj=merc +datum=WGS84 +units=m").unwrap();
+        assert_eq!(other.label(), "+proj=merc +datum=WGS84 +units=m");
     }
 
     #[test]

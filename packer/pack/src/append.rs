@@ -24,9 +24,8 @@ use terrastream_format::{
 
 use crate::compress::zstd_compress;
 use crate::error::{Error, Result};
-use crate::writer::{
-    Directories, SPILL_RECORD, WriteSummary, WriterOptions, build_directories, output_folder, record_extents,
-};
+use crate::publish::output_folder;
+use crate::writer::{Directories, SPILL_RECORD, WriteSummary, WriterOptions, build_directories, record_extents};
 
 /// Appends a new version of an archive's tiles to it, in place.
 ///

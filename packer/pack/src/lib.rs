@@ -12,11 +12,13 @@ pub mod extract;
 pub mod import;
 pub mod labelled;
 pub mod progress;
+mod publish;
 pub mod sample;
 mod writer;
 
 pub use append::Appender;
 pub use compress::{compress_heights, zstd_compress, zstd_compress_gradient, zstd_compress_samples};
 pub use error::{Error, Result};
+pub use publish::output_folder;
 pub use terrastream_format::Interrupted;
-pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, output_folder, record_extents};
+pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, record_extents};

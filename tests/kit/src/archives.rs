@@ -102,3 +102,20 @@ pub fn checkered_png(size: u32, rgb: [u8; 3], dark: [u8; 3]) -> Vec<u8> {
     encoder.write_header().unwrap().write_image_data(&pixels).unwrap();
     out
 }
+
+/// Every tile's stored payload of the archive at `path`, by key (for comparing two
+/// archives' tiles whatever their layout).
+///
+/// # Panics
+/// When the archive cannot be read.
+pub fn stored_tiles(path: &Path) -> std::collections::BTreeMap<TileKey, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    terrastream_format::Reader::open_mmap(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .for_each_tile(|key, payload| -> terrastream_format::Result<()> {
+            out.insert(key, payload.to_vec());
+            Ok(())
+        })
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    out
+}

@@ -19,11 +19,11 @@ use web_time::Instant;
 
 use super::cache::TileCache;
 use super::camera::Camera;
-use super::decode::{DecodedTile, decode};
 use crate::error::{Error, Result};
 use crate::globe::Surface;
 use crate::stream::origin::{Backend, BoxFuture, Origin};
 use crate::stream::select::{SelectOptions, Want, select};
+use terrastream_tiles::{DecodedTile, decode};
 
 mod fetch;
 mod in_flight;

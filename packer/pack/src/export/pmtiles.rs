@@ -211,8 +211,8 @@ fn write_file(
     let (root, leaves) = directories(&layout.rows)?;
     let sections = [root.len(), metadata.len(), leaves.len()].map(|n| n as u64);
     let header = header(layout, sections);
-    let folder = crate::writer::output_folder(out);
-    let mut file = crate::writer::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
+    let folder = crate::publish::output_folder(out);
+    let mut file = crate::publish::published(tempfile::Builder::new().prefix(".pmtiles.").suffix(".partial"))
         .tempfile_in(&folder)
         .map_err(|e| Error::file(&folder, e))?;
     let io = |e: std::io::Error| Error::file(out, e);

@@ -36,18 +36,18 @@ impl HeightRange {
 /// The heights of one image tile of an elevation layer (pixels with alpha 0 are no data).
 #[cfg(test)]
 fn tile_heights(format: TileFormat, bytes: &[u8], encoding: &ElevationEncoding) -> Result<HeightRange, String> {
-    Ok(Pixels::decode(format, bytes)?.map(|p| pixel_heights(&p, encoding)).transpose()?.unwrap_or_default())
+    Ok(super::pixels::decode(format, bytes)?.map(|p| pixel_heights(&p, encoding)).transpose()?.unwrap_or_default())
 }
 
 /// The heights of a decoded elevation tile (pixels with alpha 0 are no data).
 pub(crate) fn pixel_heights(pixels: &Pixels, encoding: &ElevationEncoding) -> Result<HeightRange, String> {
-    let (channels, scheme) = (pixels.channels, encoding.scheme);
+    let (channels, scheme) = (pixels.channels(), encoding.scheme);
     if scheme.needs_rgb() && channels < 3 {
         return Err(format!("{scheme:?} needs an RGB image, this one has {channels} channel(s)"));
     }
     let alpha = pixels.alpha();
     let mut range: Option<(f64, f64)> = None;
-    for px in pixels.data.chunks_exact(channels) {
+    for px in pixels.data().chunks_exact(channels) {
         if alpha.is_some_and(|a| px[a] == 0) {
             continue;
         }

@@ -71,7 +71,7 @@ impl OpaqueBox {
     /// Counts a tile's pixels, if it is on the rim of its LOD's box (else nothing).
     #[cfg(test)]
     pub fn add(&mut self, key: TileKey, bytes: &[u8]) {
-        let pixels = TileFormat::sniff(bytes).and_then(|f| Pixels::decode(f, bytes).ok().flatten());
+        let pixels = TileFormat::sniff(bytes).and_then(|f| super::pixels::decode(f, bytes).ok().flatten());
         self.add_pixels(key, pixels.as_ref());
     }
 
@@ -82,7 +82,7 @@ impl OpaqueBox {
             return;
         }
         let Some(Some(lod)) = self.lods.get_mut(usize::from(key.lod())) else { return };
-        let (w, h, opaque) = pixels.map_or((1, 1, Some([0, 0, 0, 0])), |p| (p.width, p.height, opaque_pixels(p)));
+        let (w, h, opaque) = pixels.map_or((1, 1, Some([0, 0, 0, 0])), |p| (p.width(), p.height(), opaque_pixels(p)));
         let Some([px0, py0, px1, py1]) = opaque else { return };
         let size = lod.size;
         let (tx, ty) = (f64::from(key.x()) * size, f64::from(key.y()) * size);
@@ -109,10 +109,10 @@ impl OpaqueBox {
 /// The box (inclusive pixel columns and rows) of the pixels with alpha above zero; every
 /// pixel without an alpha channel; `None` when every pixel is transparent.
 fn opaque_pixels(p: &Pixels) -> Option<[u32; 4]> {
-    let (w, h) = (p.width, p.height);
+    let (w, h) = (p.width(), p.height());
     let Some(alpha) = p.alpha() else { return Some([0, 0, w.saturating_sub(1), h.saturating_sub(1)]) };
     let mut found: Option<[u32; 4]> = None;
-    for (i, px) in p.data.chunks_exact(p.channels).enumerate() {
+    for (i, px) in p.data().chunks_exact(p.channels()).enumerate() {
         if px[alpha] == 0 {
             continue;
         }

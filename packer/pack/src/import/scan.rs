@@ -8,7 +8,7 @@ use terrastream_format::{ElevationEncoding, LayerKind, Metadata, TileKey};
 
 use super::heights::{HeightRange, pixel_heights};
 use super::opaque::OpaqueBox;
-use super::pixels::Pixels;
+use super::pixels::{self, Pixels};
 use crate::error::Result;
 use crate::writer::Writer;
 
@@ -47,7 +47,7 @@ impl TileScan {
                 if encoding.is_none() && !rim {
                     return Ok((HeightRange::default(), None));
                 }
-                let pixels = Pixels::decode(metadata.layers[layer].format, bytes);
+                let pixels = pixels::decode(metadata.layers[layer].format, bytes);
                 let heights = match (&pixels, encoding) {
                     (Ok(Some(p)), Some(e)) => pixel_heights(p, &e).map_err(|e| (i, e))?,
                     (Err(e), Some(_)) => return Err((i, e.clone())),

@@ -7,11 +7,12 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use terrastream_format::{Interrupted, MmapSource, Reader};
 
-use super::encode::{HeightEncoding, ImageFormat};
-use super::mercator::{WebTile, tiles_over};
-use super::resample::{DECODED_BYTES, DecodedCache};
-use super::tilejson::{TileJsonRequest, coverage, tilejson};
-use super::{MakeError, WebTileRequest, make_tile_cached};
+use crate::encode::{HeightEncoding, ImageFormat};
+use crate::mercator::{WebTile, tiles_over};
+use crate::resample::MakeError;
+use crate::resample::{DECODED_BYTES, DecodedCache};
+use crate::tilejson::{TileJsonRequest, coverage, tilejson};
+use crate::xyz::{WebTileRequest, make_tile_cached};
 
 /// What to export.
 #[derive(Clone, Copy, Debug)]
@@ -45,7 +46,7 @@ pub enum ExportError {
     #[error("terrain tile {z}/{x}/{y}: {error}", z = .tile.z, x = .tile.x, y = .tile.y)]
     Terrain {
         /// The tile.
-        tile: super::quantized::geodetic::GeoTile,
+        tile: crate::quantized::geodetic::GeoTile,
         /// Why.
         error: MakeError,
     },
@@ -65,6 +66,9 @@ pub enum ExportError {
     /// Stopped on request.
     #[error(transparent)]
     Interrupted(#[from] Interrupted),
+    /// The PMTiles file could not be written (the writer's error names it).
+    #[error(transparent)]
+    Pmtiles(Box<dyn std::error::Error + Send + Sync>),
 }
 
 /// What an export wrote.

@@ -3,8 +3,8 @@
 use terrastream_crs::{Crs, Transform};
 use terrastream_format::{Layer, LayerKind, Metadata};
 
-use super::encode::{HeightEncoding, ImageFormat};
-use super::mercator::{HALF_WORLD, MAX_LATITUDE};
+use crate::encode::{HeightEncoding, ImageFormat};
+use crate::mercator::{HALF_WORLD, MAX_LATITUDE};
 
 /// Where a layer lies and which zooms show it.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -15,11 +15,11 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use terrastream_client::{DecodedTile, TileData, decode};
 use terrastream_crs::{Crs, Transform};
 use terrastream_format::{Layer, MmapSource, Reader, TileKey};
+use terrastream_tiles::{DecodedTile, TileData, decode};
 
-use super::mercator::WebTile;
+use crate::mercator::WebTile;
 
 /// Output pixels a side of the approximate transform's cells before they are checked
 /// (and split, down to [`SMALLEST_CELL`], where the check fails).
@@ -64,7 +64,7 @@ pub enum MakeError {
 
 /// Decoded archive tiles kept between web tiles (neighbouring web tiles and zooms read the
 /// same archive tiles), by the archive's version and the tile.
-pub type DecodedCache = super::cache::Lru<(u64, TileKey), Arc<DecodedTile>>;
+pub type DecodedCache = crate::cache::Lru<(u64, TileKey), Arc<DecodedTile>>;
 
 /// Bytes of decoded archive tiles kept by default: the server's `web_decoded_bytes` and
 /// what an export keeps.
@@ -620,27 +620,6 @@ fn floor(v: f64) -> f64 {
     if t > v { t - 1.0 } else { t }
 }
 
-/// A tile of GPU blocks (BC1, BC7) as RGBA pixels, as a GPU would sample them; other
-/// tiles as they are.
-///
-/// # Errors
-/// The block decoder's message, for blocks that do not fill the tile.
-fn unblock(tile: DecodedTile) -> Result<DecodedTile, &'static str> {
-    let TileData::Compressed { format, blocks } = &tile.data else { return Ok(tile) };
-    let size = tile.size as usize;
-    let mut pixels = vec![0u32; size * size];
-    match format {
-        terrastream_format::TileFormat::Bc7 => texture2ddecoder::decode_bc7(blocks, size, size, &mut pixels)?,
-        _ => texture2ddecoder::decode_bc1(blocks, size, size, &mut pixels)?,
-    }
-    // The decoder's pixels are B, G, R, A in memory order.
-    let rgba = pixels.iter().flat_map(|p| {
-        let [b, g, r, a] = p.to_le_bytes();
-        [r, g, b, a]
-    });
-    Ok(DecodedTile { data: TileData::Rgba8(rgba.collect()), ..tile })
-}
-
 /// Texel `(i, j)` of a decoded tile (borders included) as up to four values; None
 /// without data.
 fn texel(tile: &DecodedTile, i: i64, j: i64) -> Option<[f32; 4]> {
@@ -701,7 +680,7 @@ pub(crate) fn load_tile(
     let bad = |reason: String| MakeError::Tile { key, reason };
     let Some(bytes) = reader.tile(key).map_err(|e| bad(e.to_string()))? else { return Ok(None) };
     let tile = decode(layer, key, &bytes, true).map_err(|e| bad(e.to_string()))?;
-    let tile = Arc::new(unblock(tile).map_err(|e| bad(e.to_owned()))?);
+    let tile = Arc::new(tile.unblocked().map_err(|e| bad(e.to_owned()))?);
     if let Some((cache, version)) = cache {
         cache.put((version, key), Arc::clone(&tile));
     }

@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 
 use bytes::Bytes;
-use terrastream_client::DecodedTile;
+use terrastream_tiles::DecodedTile;
 
 /// What a kept value weighs.
 pub trait Weigh: Clone {

@@ -10,8 +10,8 @@ use terrastream_format::{Interrupted, MmapSource, Reader};
 use super::encode::Extensions;
 use super::geodetic::GeoTile;
 use super::{Terrain, gzip};
-use crate::web::export::{ExportError, WebExportSummary, file_err, in_order, publish, stage};
-use crate::web::resample::{DECODED_BYTES, DecodedCache};
+use crate::export::{ExportError, WebExportSummary, file_err, in_order, publish, stage};
+use crate::resample::{DECODED_BYTES, DecodedCache};
 
 /// Writes the archive's terrain in `dir`, levels `minzoom` to `maxzoom` (default: the
 /// terrain's deepest); `tick(done, total)` after each tile. Written into a temporary

@@ -87,35 +87,9 @@ struct Vertex {
 /// Encodes a tile, with `metadata` JSON when the metadata extension is asked and given.
 pub fn encode(t: &TileMesh<'_>, extensions: Extensions, metadata: Option<&serde_json::Value>) -> Vec<u8> {
     let (order, triangles) = first_use_order(t.mesh);
-    let last = (t.size.max(2) - 1) as f64;
-    let point = |i: usize| t.mesh.vertices[i];
-    let height = |[c, r]: [u32; 2]| f64::from(t.heights[r as usize * t.size + c as usize]);
-    let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
-    for &i in &order {
-        let h = height(point(i));
-        min = min.min(h);
-        max = max.max(h);
-    }
-    if !min.is_finite() {
-        (min, max) = (0.0, 0.0);
-    }
-    // (Heights are f32: the header's f32 range holds these exactly.)
-    let [west, south, east, north] = t.tile.bounds();
-    let vertices: Vec<Vertex> = order
-        .iter()
-        .map(|&i| {
-            let [c, r] = point(i);
-            let u = quantize(f64::from(c) / last);
-            let v = quantize((last - f64::from(r)) / last);
-            let h = if max > min { quantize((height([c, r]) - min) / (max - min)) } else { 0 };
-            let lon = west + (east - west) * f64::from(u) / QUANTA;
-            let lat = south + (north - south) * f64::from(v) / QUANTA;
-            let hd = min + (max - min) * f64::from(h) / QUANTA;
-            Vertex { u, v, h, ecef: geodetic::ecef(lon, lat, hd) }
-        })
-        .collect();
+    let (vertices, range) = quantized_vertices(t, &order);
     let mut out = Vec::with_capacity(88 + vertices.len() * 10 + triangles.len() * 6);
-    header(&mut out, t.tile, &vertices, [min, max]);
+    header(&mut out, t.tile, &vertices, range);
     let count = u32::try_from(vertices.len()).unwrap_or(u32::MAX);
     out.extend_from_slice(&count.to_le_bytes());
     for get in [|v: &Vertex| v.u, |v: &Vertex| v.v, |v: &Vertex| v.h] {
@@ -126,45 +100,25 @@ pub fn encode(t: &TileMesh<'_>, extensions: Extensions, metadata: Option<&serde_
             previous = value;
         }
     }
-    let wide = vertices.len() > 65_536;
-    if wide {
+    let indices = Indices { wide: vertices.len() > 65_536 };
+    if indices.wide {
         while out.len() % 4 != 0 {
             out.push(0);
         }
     }
-    let put = |out: &mut Vec<u8>, index: u32| {
-        if wide {
-            out.extend_from_slice(&index.to_le_bytes());
-        } else {
-            #[expect(clippy::cast_possible_truncation, reason = "16-bit indices below 65 536 vertices")]
-            out.extend_from_slice(&(index as u16).to_le_bytes());
-        }
-    };
     let triangle_count = u32::try_from(triangles.len()).unwrap_or(u32::MAX);
     out.extend_from_slice(&triangle_count.to_le_bytes());
     let mut highest = 0u32;
     for &index in triangles.iter().flatten() {
-        put(&mut out, highest - index);
+        indices.put(&mut out, highest - index);
         if index == highest {
             highest += 1;
         }
     }
-    let edge_of = |keep: &dyn Fn(u16, u16) -> bool, by_u: bool| {
-        let mut edge: Vec<u32> = (0..count).filter(|&i| keep(vertices[i as usize].u, vertices[i as usize].v)).collect();
-        edge.sort_by_key(|&i| if by_u { vertices[i as usize].u } else { vertices[i as usize].v });
-        edge
-    };
-    let top = 32767;
-    let edges = [
-        edge_of(&|u, _| u == 0, false),
-        edge_of(&|_, v| v == 0, true),
-        edge_of(&|u, _| u == top, false),
-        edge_of(&|_, v| v == top, true),
-    ];
-    for edge in edges {
+    for edge in edges(&vertices) {
         out.extend_from_slice(&u32::try_from(edge.len()).unwrap_or(u32::MAX).to_le_bytes());
         for i in edge {
-            put(&mut out, i);
+            indices.put(&mut out, i);
         }
     }
     if extensions.normals {
@@ -178,6 +132,72 @@ pub fn encode(t: &TileMesh<'_>, extensions: Extensions, metadata: Option<&serde_
         extension(&mut out, METADATA, &data);
     }
     out
+}
+
+/// The vertices in `order`, quantized (u, v over the tile, heights over their range),
+/// with their ECEF positions as a decoder finds them; and the height range.
+fn quantized_vertices(t: &TileMesh<'_>, order: &[usize]) -> (Vec<Vertex>, [f64; 2]) {
+    let last = (t.size.max(2) - 1) as f64;
+    let point = |i: usize| t.mesh.vertices[i];
+    let height = |[c, r]: [u32; 2]| f64::from(t.heights[r as usize * t.size + c as usize]);
+    let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
+    for &i in order {
+        let h = height(point(i));
+        min = min.min(h);
+        max = max.max(h);
+    }
+    if !min.is_finite() {
+        (min, max) = (0.0, 0.0);
+    }
+    // (Heights are f32: the header's f32 range holds these exactly.)
+    let [west, south, east, north] = t.tile.bounds();
+    let vertices = order
+        .iter()
+        .map(|&i| {
+            let [c, r] = point(i);
+            let u = quantize(f64::from(c) / last);
+            let v = quantize((last - f64::from(r)) / last);
+            let h = if max > min { quantize((height([c, r]) - min) / (max - min)) } else { 0 };
+            let lon = west + (east - west) * f64::from(u) / QUANTA;
+            let lat = south + (north - south) * f64::from(v) / QUANTA;
+            let hd = min + (max - min) * f64::from(h) / QUANTA;
+            Vertex { u, v, h, ecef: geodetic::ecef(lon, lat, hd) }
+        })
+        .collect();
+    (vertices, [min, max])
+}
+
+/// Vertex indices as written: 16 bits, or 32 beyond 65 536 vertices.
+struct Indices {
+    wide: bool,
+}
+
+impl Indices {
+    fn put(&self, out: &mut Vec<u8>, index: u32) {
+        if self.wide {
+            out.extend_from_slice(&index.to_le_bytes());
+        } else {
+            #[expect(clippy::cast_possible_truncation, reason = "16-bit indices below 65 536 vertices")]
+            out.extend_from_slice(&(index as u16).to_le_bytes());
+        }
+    }
+}
+
+/// The vertices on the west, south, east and north edges, each list along its edge.
+fn edges(vertices: &[Vertex]) -> [Vec<u32>; 4] {
+    let count = u32::try_from(vertices.len()).unwrap_or(u32::MAX);
+    let edge_of = |keep: &dyn Fn(u16, u16) -> bool, by_u: bool| {
+        let mut edge: Vec<u32> = (0..count).filter(|&i| keep(vertices[i as usize].u, vertices[i as usize].v)).collect();
+        edge.sort_by_key(|&i| if by_u { vertices[i as usize].u } else { vertices[i as usize].v });
+        edge
+    };
+    let top = 32767;
+    [
+        edge_of(&|u, _| u == 0, false),
+        edge_of(&|_, v| v == 0, true),
+        edge_of(&|u, _| u == top, false),
+        edge_of(&|_, v| v == top, true),
+    ]
 }
 
 /// The mesh's vertices in the order the triangles first use them (so that each index is

@@ -9,12 +9,12 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use terrastream_client::DecodedTile;
-use terrastream_client::{Interpolation, height_on_lod};
 use terrastream_crs::{Crs, Transform};
 use terrastream_format::{LayerKind, MmapSource, Reader, TileKey};
+use terrastream_tiles::DecodedTile;
+use terrastream_tiles::{Interpolation, height_on_lod};
 
-use super::tilejson::haversine;
+use crate::tilejson::haversine;
 
 /// A request as its parameters state it.
 #[derive(Clone, Debug, Default, serde::Deserialize)]
@@ -218,7 +218,7 @@ pub fn along(points: &[(f64, f64)], n: usize) -> Vec<(f64, f64)> {
 pub struct Heights<'a> {
     reader: &'a Reader<MmapSource>,
     /// Decoded tiles kept between requests, and this archive version's number in it.
-    cache: Option<(&'a super::resample::DecodedCache, u64)>,
+    cache: Option<(&'a crate::resample::DecodedCache, u64)>,
     layer: u8,
     to_archive: Transform,
     origin: [f64; 2],
@@ -245,7 +245,7 @@ impl<'a> Heights<'a> {
     /// Keeps decoded tiles in `cache` under `version` (the archive's content tag), shared
     /// with the web tiles.
     #[must_use]
-    pub fn with_cache(mut self, cache: &'a super::resample::DecodedCache, version: u64) -> Self {
+    pub fn with_cache(mut self, cache: &'a crate::resample::DecodedCache, version: u64) -> Self {
         self.cache = Some((cache, version));
         self
     }
@@ -273,7 +273,7 @@ impl<'a> Heights<'a> {
             // The finest LOD with a tile under the point.
             let mut height = None;
             for lod in finest..info.num_lods {
-                let Some(home) = terrastream_client::stream::heights::tile_of(info, self.layer, lod, x, z) else {
+                let Some(home) = terrastream_tiles::tile_of(info, self.layer, lod, x, z) else {
                     break;
                 };
                 if self.load(&mut tiles, home)?.is_none() {
@@ -291,13 +291,9 @@ impl<'a> Heights<'a> {
                     (0.0, -2.0),
                     (0.0, 2.0),
                 ] {
-                    if let Some(key) = terrastream_client::stream::heights::tile_of(
-                        info,
-                        self.layer,
-                        lod,
-                        x + dx * spacing,
-                        z + dz * spacing,
-                    ) {
+                    if let Some(key) =
+                        terrastream_tiles::tile_of(info, self.layer, lod, x + dx * spacing, z + dz * spacing)
+                    {
                         self.load(&mut tiles, key)?;
                     }
                 }
@@ -319,7 +315,7 @@ impl<'a> Heights<'a> {
             return Ok(t.clone());
         }
         let info = &self.reader.metadata().layers[usize::from(self.layer)];
-        let tile = super::resample::load_tile(self.reader, info, key, self.cache).map_err(|e| e.to_string())?;
+        let tile = crate::resample::load_tile(self.reader, info, key, self.cache).map_err(|e| e.to_string())?;
         tiles.insert(key, tile.clone());
         Ok(tile)
     }
