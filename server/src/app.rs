@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use axum::Router;
 use axum::body::Body;
-use axum::extract::{Path, Request, State};
+use axum::extract::{Extension, Path, Request, State};
 use axum::http::header::{
     ACCEPT, ACCEPT_ENCODING, ACCEPT_RANGES, CACHE_CONTROL, CONTENT_ENCODING, CONTENT_LENGTH, CONTENT_RANGE,
     CONTENT_TYPE, ETAG, HeaderName, HeaderValue, LAST_MODIFIED, RANGE, VARY,
@@ -17,6 +17,7 @@ use bytes::Bytes;
 use terrastream_format::{Error as PackError, PayloadCompression, TileKey, protocol};
 use tower_http::timeout::TimeoutLayer;
 
+use crate::access::{Access, AccessError, Grant};
 use crate::body::Payload;
 use crate::catalog::{Catalog, Served};
 use crate::config::ServerConfig;
@@ -60,18 +61,46 @@ pub struct AppInner {
     pub config: Arc<ServerConfig>,
     /// `Cache-Control` value, validated once.
     pub cache_control: HeaderValue,
+    /// The same for a private archive's answers to a key sent in a header (`private`:
+    /// no shared cache keeps them).
+    pub private_cache_control: HeaderValue,
     /// The web routes' tile-making threads and made tiles.
     pub web: Arc<crate::web::WebState>,
+    /// Who may read what ([`crate::access`]).
+    pub access: Arc<Access>,
 }
 
 impl AppState {
-    /// State for a configuration; call `catalog.reload()` to load the archives.
+    /// State for a configuration; call `catalog.reload()` to load the archives. Access
+    /// rules that cannot be read (a damaged keys file, a missing secret) fail closed:
+    /// every request is refused, and the reason logged; [`AppState::try_new`] says it.
     pub fn new(config: ServerConfig) -> Self {
+        Self::try_new(config.clone()).unwrap_or_else(|e| {
+            tracing::error!("access rules: {e}: every request is refused");
+            let shut = crate::access::Rules { private_all: true, ..crate::access::Rules::default() };
+            let access = Access::new(shut).unwrap_or_default();
+            Self::with_access(config, access)
+        })
+    }
+
+    /// State for a configuration, its access rules read (keys file, signing secret).
+    ///
+    /// # Errors
+    /// [`AccessError`] naming the file at fault.
+    pub fn try_new(config: ServerConfig) -> Result<Self, AccessError> {
+        let access = Access::new(config.access_rules())?;
+        Ok(Self::with_access(config, access))
+    }
+
+    fn with_access(config: ServerConfig, access: Access) -> Self {
         Self(Arc::new(AppInner {
+            access: Arc::new(access),
             catalog: Arc::new(Catalog::new(config.paths.clone()).with_leaf_cache(config.leaf_cache)),
             metrics: Arc::new(Metrics::default()),
             cache_control: HeaderValue::from_str(&config.cache_control)
                 .unwrap_or_else(|_| HeaderValue::from_static("no-cache")),
+            private_cache_control: HeaderValue::from_str(&private_cache_control(&config.cache_control))
+                .unwrap_or_else(|_| HeaderValue::from_static("private, no-cache")),
             web: Arc::new(crate::web::WebState::new(
                 config.web_threads,
                 config.web_queue,
@@ -81,6 +110,13 @@ impl AppState {
             config: Arc::new(config),
         }))
     }
+}
+
+/// `Cache-Control` for answers only the asker may keep: `public` becomes `private`.
+fn private_cache_control(value: &str) -> String {
+    let kept: Vec<&str> =
+        value.split(',').map(str::trim).filter(|d| !d.eq_ignore_ascii_case("public") && !d.is_empty()).collect();
+    std::iter::once("private").chain(kept).collect::<Vec<_>>().join(", ")
 }
 
 /// Errors of the handlers, each with its status. 5xx bodies stay generic.
@@ -168,9 +204,16 @@ fn header(v: &str) -> HeaderValue {
     HeaderValue::from_str(v).unwrap_or_else(|_| HeaderValue::from_static(""))
 }
 
-/// `GET|HEAD /{name}.tspack`: the archive's bytes with Range and conditional requests.
+/// `GET|HEAD /{name}.tspack`: the archive's bytes with Range and conditional requests;
+/// `/{name}.json` a manifest.
 async fn archive_bytes(State(state): State<AppState>, Path(file): Path<String>, req: Request) -> Response {
     // The request by value, not a `HeaderMap` extractor: that one clones every header.
+    if let Some(name) = file.strip_suffix(".json") {
+        let grant = req.extensions().get::<Grant>();
+        return manifest_answer(&state, name, req.headers(), grant)
+            .unwrap_or_else(AppError::into_answer)
+            .map(Body::new);
+    }
     archive_answer(&state, &file, req.method(), req.headers()).map(Body::new)
 }
 
@@ -182,9 +225,6 @@ pub(crate) fn archive_answer(state: &AppState, file: &str, method: &Method, head
 }
 
 fn archive_range(state: &AppState, file: &str, method: &Method, headers: &HeaderMap) -> Result<Answer, AppError> {
-    if let Some(name) = file.strip_suffix(".json") {
-        return manifest_answer(state, name, headers);
-    }
     let name = file.strip_suffix(".tspack").ok_or_else(|| AppError::NotFound("not found\n".into()))?;
     let served = archive(state, name)?;
     let bytes = served.bytes();
@@ -248,20 +288,41 @@ fn archive_range(state: &AppState, file: &str, method: &Method, headers: &Header
 }
 
 /// `GET|HEAD /{name}.json`: a manifest, as found on disk (its archives are served beside
-/// it by name; clients read them with Range requests).
-fn manifest_answer(state: &AppState, name: &str, headers: &HeaderMap) -> Result<Answer, AppError> {
+/// it by name; clients read them with Range requests), its archives' URLs carrying the
+/// request's credential when it came in the query.
+fn manifest_answer(
+    state: &AppState,
+    name: &str,
+    headers: &HeaderMap,
+    grant: Option<&Grant>,
+) -> Result<Answer, AppError> {
     let served =
         state.catalog.manifest(name).ok_or_else(|| AppError::NotFound(format!("no manifest named {name:?}\n")))?;
+    let (bytes, etag) = match grant.filter(|g| g.carried().is_some()) {
+        Some(grant) => {
+            let mut doc: serde_json::Value =
+                serde_json::from_slice(&served.bytes).map_err(|e| AppError::Internal(e.to_string()))?;
+            for part in doc["archives"].as_array_mut().into_iter().flatten() {
+                if let Some(url) = part["url"].as_str() {
+                    part["url"] = grant.carry(url).into();
+                }
+            }
+            let bytes = Bytes::from(serde_json::to_vec(&doc).map_err(|e| AppError::Internal(e.to_string()))?);
+            let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(&bytes));
+            (bytes, etag)
+        }
+        None => (served.bytes.clone(), served.etag.clone()),
+    };
     let mut h = HeaderMap::with_capacity(6);
-    h.insert(ETAG, header(&served.etag));
+    h.insert(ETAG, header(&etag));
     // Revalidated on every use: a republished manifest must be seen at once.
     h.insert(CACHE_CONTROL, HeaderValue::from_static("no-cache"));
-    if if_none_match(headers, &served.etag) {
+    if if_none_match(headers, &etag) {
         return Ok(answer(StatusCode::NOT_MODIFIED, h, Payload::empty()));
     }
     h.insert(CONTENT_TYPE, HeaderValue::from_static("application/json"));
-    h.insert(CONTENT_LENGTH, HeaderValue::from(served.bytes.len()));
-    Ok(answer(StatusCode::OK, h, Payload::from(served.bytes.clone())))
+    h.insert(CONTENT_LENGTH, HeaderValue::from(bytes.len()));
+    Ok(answer(StatusCode::OK, h, Payload::from(bytes)))
 }
 
 /// An answer of these parts.
@@ -410,19 +471,24 @@ async fn metrics(State(state): State<AppState>) -> Response {
     ([(CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
 }
 
-/// `GET /`: the archives, as HTML for people or JSON for `Accept: application/json`.
-async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
+/// `GET /`: the archives the request may see (its credential's, and the public ones), as
+/// HTML for people or JSON for `Accept: application/json`; their URLs carry a credential
+/// given in the query.
+async fn index(State(state): State<AppState>, grant: Option<Extension<Grant>>, headers: HeaderMap) -> Response {
+    let grant = grant.map(|g| g.0).unwrap_or_default();
+    let visible = |name: &str| !state.access.enabled() || grant.opens(name, state.access.is_private(name));
     let archives: Vec<serde_json::Value> = state
         .catalog
         .list()
         .iter()
+        .filter(|a| visible(&a.name))
         .map(|a| {
             let m = a.reader.metadata();
             serde_json::json!({
                 "name": a.name,
-                "url": format!("/{}.tspack", a.name),
-                "metadata": format!("/{}/metadata", a.name),
-                "view": format!("/view/{}", a.name),
+                "url": grant.carry(&format!("/{}.tspack", a.name)),
+                "metadata": grant.carry(&format!("/{}/metadata", a.name)),
+                "view": grant.carry(&format!("/view/{}", a.name)),
                 "bytes": a.bytes().len(),
                 "etag": a.etag,
                 "layers": m.layers.iter().map(|l| serde_json::json!({
@@ -437,10 +503,11 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
         .catalog
         .manifests()
         .iter()
+        .filter(|m| visible(&m.name))
         .map(|m| {
             serde_json::json!({
                 "name": m.name,
-                "url": format!("/{}.json", m.name),
+                "url": grant.carry(&format!("/{}.json", m.name)),
                 "archives": m.manifest.archives.iter().map(|p| p.url.as_str()).collect::<Vec<_>>(),
             })
         })
@@ -454,14 +521,18 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
     );
     for a in &archives {
         let name = escape(a["name"].as_str().unwrap_or(""));
+        let link = |key: &str| escape(a[key].as_str().unwrap_or(""));
         let layers: Vec<String> = a["layers"]
             .as_array()
             .map(|ls| ls.iter().map(|l| escape(l["name"].as_str().unwrap_or(""))).collect())
             .unwrap_or_default();
         html.push_str(&format!(
-            "<tr><td><a href=\"/{name}.tspack\">{name}.tspack</a></td><td>{}</td><td>{}</td><td><a href=\"/{name}/metadata\">json</a></td><td><a href=\"/view/{name}\">fly over it</a></td></tr>",
+            "<tr><td><a href=\"{}\">{name}.tspack</a></td><td>{}</td><td>{}</td><td><a href=\"{}\">json</a></td><td><a href=\"{}\">fly over it</a></td></tr>",
+            link("url"),
             a["bytes"],
-            layers.join(", ")
+            layers.join(", "),
+            link("metadata"),
+            link("view")
         ));
     }
     html.push_str("</table>");
@@ -475,6 +546,7 @@ async fn index(State(state): State<AppState>, headers: HeaderMap) -> Response {
 async fn view(
     State(state): State<AppState>,
     Path(name): Path<String>,
+    grant: Option<Extension<Grant>>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
     if let Some(asset) = crate::player::asset(&name) {
@@ -503,6 +575,8 @@ async fn view(
         (None, Some(manifest)) => format!("../{}.json", manifest.name),
         (None, None) => return Err(AppError::NotFound(format!("no archive or manifest named {name:?}\n"))),
     };
+    // The player fetches the archive with the page's credential, when it came in the query.
+    let target = grant.map(|g| g.0).unwrap_or_default().carry(&target);
     let Some(page) = crate::player::page(&target) else {
         return Ok((
             StatusCode::NOT_IMPLEMENTED,

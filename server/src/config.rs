@@ -59,6 +59,18 @@ pub struct ServerConfig {
     pub web_decoded_bytes: usize,
     /// Locations one elevation request may ask for (Open Topo Data's default: 100).
     pub max_locations: usize,
+    /// Every archive needs a key or a signed token (`serve --private`).
+    pub private_all: bool,
+    /// Names (globs: `*`, `?`) of the archives that need a key or a signed token; the
+    /// others are public.
+    pub private: Vec<String>,
+    /// The keys file (`terrastream key new` writes it; hashes only), reread when it
+    /// changes.
+    pub keys: Option<PathBuf>,
+    /// The file holding the secret that signs tokens (`terrastream sign`).
+    pub signing_secret_file: Option<PathBuf>,
+    /// Seconds past a key's or token's expiry still accepted (clocks differ).
+    pub clock_skew_secs: u64,
 }
 
 impl Default for ServerConfig {
@@ -83,6 +95,11 @@ impl Default for ServerConfig {
             web_cache_bytes: 256 << 20,
             web_decoded_bytes: terrastream_views::resample::DECODED_BYTES,
             max_locations: 100,
+            private_all: false,
+            private: Vec::new(),
+            keys: None,
+            signing_secret_file: None,
+            clock_skew_secs: 60,
         }
     }
 }
@@ -99,6 +116,17 @@ impl ServerConfig {
     /// The request timeout.
     pub fn request_timeout(&self) -> Duration {
         Duration::from_secs(self.request_timeout_secs.max(1))
+    }
+
+    /// The access rules of these settings.
+    pub fn access_rules(&self) -> crate::access::Rules {
+        crate::access::Rules {
+            private_all: self.private_all,
+            private: self.private.clone(),
+            keys: self.keys.clone(),
+            secret: self.signing_secret_file.clone(),
+            clock_skew_secs: self.clock_skew_secs,
+        }
     }
 
     /// The rescan interval.

@@ -1,5 +1,6 @@
 //! What every request goes through, outside the router, in one cheap step: CORS, the
-//! metrics, and a debug span when debug logging is on.
+//! access rules ([`crate::access`]), the metrics, and a debug span when debug logging is
+//! on.
 //!
 //! One hand-written service instead of a stack of general layers (tower-http's CORS and
 //! trace layers, a `from_fn` middleware reading the matched path): they cost more per
@@ -16,14 +17,15 @@ use std::time::Instant;
 use axum::body::Body;
 use axum::http::header::{
     ACCESS_CONTROL_ALLOW_HEADERS, ACCESS_CONTROL_ALLOW_METHODS, ACCESS_CONTROL_ALLOW_ORIGIN,
-    ACCESS_CONTROL_EXPOSE_HEADERS, ACCESS_CONTROL_MAX_AGE, ACCESS_CONTROL_REQUEST_METHOD, CONTENT_LENGTH, HeaderValue,
-    ORIGIN,
+    ACCESS_CONTROL_EXPOSE_HEADERS, ACCESS_CONTROL_MAX_AGE, ACCESS_CONTROL_REQUEST_METHOD, AUTHORIZATION, CACHE_CONTROL,
+    CONTENT_LENGTH, HeaderValue, ORIGIN, REFERER,
 };
 use axum::http::{Method, Request, StatusCode};
 use axum::response::Response;
 use tower::Service;
 use tracing::Instrument;
 
+use crate::access::{Denied, Grant, Presented};
 use crate::app::AppState;
 use crate::route::{READ_HEADERS, Route};
 
@@ -36,6 +38,21 @@ const EXPOSE_HEADERS: HeaderValue = HeaderValue::from_static(
 );
 /// How long a browser may cache a preflight answer (seconds).
 const MAX_AGE: HeaderValue = HeaderValue::from_static("86400");
+
+/// Rules on a request's access ([`crate::access::Access::decide`]), for both HTTP paths:
+/// what it may see, or the answer refusing it.
+pub(crate) fn admit(state: &AppState, presented: &Presented<'_>) -> Result<Grant, Denied> {
+    state.access.decide(presented, std::time::SystemTime::now())
+}
+
+/// What an allowed request's answer gets from its grant: a private archive's answers to a
+/// key sent in a header are kept out of shared caches (they key by URL, which holds no
+/// credential); a credential in the URL keys the cache itself.
+pub(crate) fn mark_private<B>(state: &AppState, grant: &Grant, response: &mut axum::http::Response<B>) {
+    if grant.private && grant.by_header && response.headers().contains_key(CACHE_CONTROL) {
+        response.headers_mut().insert(CACHE_CONTROL, state.private_cache_control.clone());
+    }
+}
 
 /// What every answer gets on its way out, whichever path served it: the CORS headers, and
 /// its line in the metrics under `route`.
@@ -81,39 +98,60 @@ where
         self.inner.poll_ready(cx)
     }
 
-    fn call(&mut self, req: Request<B>) -> Self::Future {
+    fn call(&mut self, mut req: Request<B>) -> Self::Future {
         let started = Instant::now();
         let route = Route::of(req.uri().path());
         let state = self.state.clone();
-        let finish = move |mut response: Response| {
-            finish(&state, route, started, &mut response);
-            Ok(response)
-        };
-        // A CORS preflight is answered here: any origin may read (archives are public).
+        // A CORS preflight is answered here, for any path: it carries no credential and
+        // reveals nothing.
         let preflight = req.method() == Method::OPTIONS
             && req.headers().contains_key(ORIGIN)
             && req.headers().contains_key(ACCESS_CONTROL_REQUEST_METHOD);
         if preflight {
-            let mut response = Response::new(Body::empty());
-            *response.status_mut() = StatusCode::NO_CONTENT;
-            let h = response.headers_mut();
-            h.insert(ACCESS_CONTROL_ALLOW_METHODS, ALLOW_METHODS);
-            // The request headers a browser may send: those the handlers read.
-            let allowed = READ_HEADERS
-                .iter()
-                .map(axum::http::HeaderName::as_str)
-                .chain(["content-type"])
-                .collect::<Vec<_>>()
-                .join(", ");
-            if let Ok(allowed) = HeaderValue::from_str(&allowed) {
-                h.insert(ACCESS_CONTROL_ALLOW_HEADERS, allowed);
-            }
-            h.insert(ACCESS_CONTROL_MAX_AGE, MAX_AGE);
-            return Box::pin(std::future::ready(finish(response)));
+            let mut response = preflight_answer();
+            finish(&state, route, started, &mut response);
+            return Box::pin(std::future::ready(Ok(response)));
         }
+        let grant = if state.access.enabled() {
+            let h = req.headers();
+            let presented = Presented {
+                path: req.uri().path(),
+                query: req.uri().query(),
+                authorization: h.get(AUTHORIZATION).map(HeaderValue::as_bytes),
+                origin: h.get(ORIGIN).map(HeaderValue::as_bytes),
+                referer: h.get(REFERER).map(HeaderValue::as_bytes),
+            };
+            match admit(&state, &presented) {
+                Ok(grant) => grant,
+                Err(refused) => {
+                    let mut response = refused.answer().map(Body::new);
+                    finish(&state, route, started, &mut response);
+                    return Box::pin(std::future::ready(Ok(response)));
+                }
+            }
+        } else {
+            Grant::default()
+        };
+        let finish = {
+            let grant = grant.clone();
+            move |mut response: Response| {
+                mark_private(&state, &grant, &mut response);
+                finish(&state, route, started, &mut response);
+                Ok(response)
+            }
+        };
+        req.extensions_mut().insert(grant);
         if tracing::enabled!(tracing::Level::DEBUG) {
-            let span =
-                tracing::debug_span!("request", method = %req.method(), uri = %req.uri(), version = ?req.version());
+            // The path and the query with any credential's value hidden: keys never reach
+            // the logs.
+            let query = req.uri().query().map(crate::access::redacted).unwrap_or_default();
+            let span = tracing::debug_span!(
+                "request",
+                method = %req.method(),
+                path = %req.uri().path(),
+                query = %query,
+                version = ?req.version()
+            );
             let answer = self.inner.call(req);
             return Box::pin(
                 async move {
@@ -127,6 +165,26 @@ where
         let answer = self.inner.call(req);
         Box::pin(async move { finish(answer.await?) })
     }
+}
+
+/// The answer to a CORS preflight: the methods and request headers a page may use (those
+/// the handlers read, and `Authorization` for keys).
+fn preflight_answer() -> Response {
+    let mut response = Response::new(Body::empty());
+    *response.status_mut() = StatusCode::NO_CONTENT;
+    let h = response.headers_mut();
+    h.insert(ACCESS_CONTROL_ALLOW_METHODS, ALLOW_METHODS);
+    let allowed = READ_HEADERS
+        .iter()
+        .map(axum::http::HeaderName::as_str)
+        .chain(["content-type", "authorization"])
+        .collect::<Vec<_>>()
+        .join(", ");
+    if let Ok(allowed) = HeaderValue::from_str(&allowed) {
+        h.insert(ACCESS_CONTROL_ALLOW_HEADERS, allowed);
+    }
+    h.insert(ACCESS_CONTROL_MAX_AGE, MAX_AGE);
+    response
 }
 
 #[cfg(test)]

@@ -33,8 +33,9 @@ use bytes::{Buf, Bytes};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, ReadBuf};
 use tokio::sync::watch;
 
+use crate::access::{Grant, Presented};
 use crate::app::{Answer, AppState, TileAt, archive_answer, tile_answer};
-use crate::edge::finish;
+use crate::edge::{admit, finish, mark_private};
 use crate::route::{READ_HEADERS, Route};
 use crate::sendfile::Stream;
 use crate::web::{TileQuery, WebTileAt, web_tile_answer};
@@ -71,6 +72,8 @@ struct Request<'a> {
     path: &'a str,
     route: Lean<'a>,
     headers: HeaderMap,
+    /// What the access rules read: `Authorization`, `Origin`, `Referer` (never copied).
+    credentials: [Option<&'a [u8]>; 3],
 }
 
 /// A request the lean path answers itself, its path's segments captured.
@@ -96,6 +99,7 @@ impl Lean<'_> {
     }
 }
 
+#[expect(clippy::large_enum_variant, reason = "on the stack for one request: a box would allocate on the hot path")]
 enum Parsed<'a> {
     /// More bytes needed.
     Partial,
@@ -183,10 +187,24 @@ async fn answer(
     head: &mut Vec<u8>,
 ) -> std::io::Result<Instant> {
     let started = Instant::now();
-    let mut answer = match &request.route {
-        Lean::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
-        Lean::Tile { name, layer, at } => tile_answer(state, name, layer, *at, &request.headers),
-        Lean::WebTile(tile) => web_tile_answer(state, tile.0, &tile.1, &request.headers).await,
+    let grant = if state.access.enabled() {
+        let (path, query) = request.path.split_once('?').map_or((request.path, None), |(p, q)| (p, Some(q)));
+        let [authorization, origin, referer] = request.credentials;
+        admit(state, &Presented { path, query, authorization, origin, referer })
+    } else {
+        Ok(Grant::default())
+    };
+    let mut answer = match grant {
+        Err(refused) => refused.answer(),
+        Ok(grant) => {
+            let mut answer = match &request.route {
+                Lean::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
+                Lean::Tile { name, layer, at } => tile_answer(state, name, layer, *at, &request.headers),
+                Lean::WebTile(tile) => web_tile_answer(state, tile.0, &tile.1, &request.headers).await,
+            };
+            mark_private(state, &grant, &mut answer);
+            answer
+        }
     };
     finish(state, request.route.route(), started, &mut answer);
     if tracing::enabled!(tracing::Level::DEBUG) {
@@ -238,7 +256,11 @@ fn parse(buf: &[u8], max_head: usize) -> Parsed<'_> {
     let (Some(1), Some(path)) = (req.version, req.path) else { return Parsed::Hyper };
     let Some(route) = route(path) else { return Parsed::Hyper };
     let mut headers = HeaderMap::new();
+    let mut credentials = [None; 3];
     for h in req.headers.iter() {
+        if let Some(i) = ["authorization", "origin", "referer"].iter().position(|n| h.name.eq_ignore_ascii_case(n)) {
+            credentials[i] = Some(h.value);
+        }
         if HYPER_HEADERS.iter().any(|n| h.name.eq_ignore_ascii_case(n))
             && !(h.name.eq_ignore_ascii_case("connection") && h.value.eq_ignore_ascii_case(b"keep-alive"))
         {
@@ -257,7 +279,7 @@ fn parse(buf: &[u8], max_head: usize) -> Parsed<'_> {
             None => {}
         }
     }
-    Parsed::Request(Request { len, method, path, route, headers })
+    Parsed::Request(Request { len, method, path, route, headers, credentials })
 }
 
 /// Parses `bytes` as the lean path does, for fuzzing and tests: the head's length and the

@@ -6,6 +6,7 @@
 //! hot-reloaded; bodies are slices of the mapping.
 #![forbid(unsafe_code)]
 
+pub mod access;
 mod app;
 mod body;
 mod catalog;

@@ -443,14 +443,20 @@ fn tls_acceptor(cert: &std::path::Path, key: &std::path::Path) -> std::io::Resul
     Ok(tokio_rustls::TlsAcceptor::from(Arc::new(tls)))
 }
 
-/// Rescans the served paths periodically (hot reload of replaced, added, removed archives).
+/// Rescans the served paths periodically (hot reload of replaced, added, removed archives)
+/// and the keys file.
 async fn reload_loop(state: AppState) {
     let mut tick = tokio::time::interval(state.config.reload_interval());
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tick.tick().await;
-        let catalog = Arc::clone(&state.catalog);
-        match tokio::task::spawn_blocking(move || catalog.reload()).await {
+        let (catalog, access) = (Arc::clone(&state.catalog), Arc::clone(&state.access));
+        match tokio::task::spawn_blocking(move || {
+            access.reload();
+            catalog.reload()
+        })
+        .await
+        {
             Ok(changed) if changed > 0 => tracing::info!(changed, "archives reloaded"),
             Ok(_) => {}
             Err(err) => tracing::error!("reload task failed: {err}"),

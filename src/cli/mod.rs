@@ -9,6 +9,7 @@ mod export;
 mod extract;
 mod health;
 mod info;
+mod key;
 mod manifest;
 mod merge;
 mod pack;
@@ -69,6 +70,12 @@ enum Command {
     Tile(tile::TileArgs),
     /// Serve archives over HTTP: Range requests on the files, tiles, metadata, metrics.
     Serve(serve::ServeArgs),
+    /// API keys for private archives: make, list, revoke (a keys file of hashes).
+    #[command(subcommand)]
+    Key(key::KeyCommand),
+    /// Make a signed, expiring token for one archive or path prefix (a link or a CDN URL
+    /// that needs no key).
+    Sign(key::SignArgs),
     /// Exit 0 if a server answers 200 on its health URL (container health checks; no
     /// shell or curl needed in the image).
     Health(health::HealthArgs),
@@ -129,6 +136,8 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
     let progress = || CliProgress::install(cli.quiet, cli.log_progress);
     match cli.command {
         Command::Serve(args) => serve::run(args),
+        Command::Key(command) => key::run(command),
+        Command::Sign(args) => key::sign(args),
         Command::Info(args) => info::run(args),
         Command::Player(args) => player::run(args),
         Command::Render(args) => render::run(args),

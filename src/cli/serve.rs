@@ -36,6 +36,16 @@ pub struct ServeArgs {
     /// PEM private key of --tls-cert.
     #[arg(long, requires = "tls_cert")]
     tls_key: Option<PathBuf>,
+    /// Every archive needs a key or a signed token (else only those the config's
+    /// `private` globs name).
+    #[arg(long)]
+    private: bool,
+    /// The keys file (`terrastream key new` writes it), reread when it changes.
+    #[arg(long)]
+    keys: Option<PathBuf>,
+    /// The file of the secret that signs tokens (`terrastream sign`).
+    #[arg(long)]
+    secret_file: Option<PathBuf>,
 }
 
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
@@ -66,6 +76,13 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         config.tls_cert = args.tls_cert;
         config.tls_key = args.tls_key;
     }
+    config.private_all |= args.private;
+    if args.keys.is_some() {
+        config.keys = args.keys;
+    }
+    if args.secret_file.is_some() {
+        config.signing_secret_file = args.secret_file;
+    }
     if config.paths.is_empty() {
         bail!("nothing to serve: give archive files or folders");
     }
@@ -74,7 +91,11 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
             bail!("{}: no such file or folder", p.display());
         }
     }
-    let state = AppState::new(config.clone());
+    let state = AppState::try_new(config.clone()).context("reading the access rules")?;
+    if state.access.enabled() {
+        let private = if config.private_all { "every archive".to_owned() } else { format!("{:?}", config.private) };
+        tracing::info!("private terrain: {private} needs a key or a signed token");
+    }
     state.catalog.reload();
     let scheme = if config.tls_cert.is_some() { "https" } else { "http" };
     serve_workers(config.addr, config.workers, state.clone(), shutdown_signal(), |addr| {

@@ -17,7 +17,7 @@ pub mod pool;
 pub mod quantized;
 
 use axum::body::Body;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Extension, Path, Query, State};
 use axum::http::header::{CACHE_CONTROL, CONTENT_LENGTH, CONTENT_TYPE, ETAG, HOST, RETRY_AFTER};
 use axum::http::{HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -29,6 +29,7 @@ use terrastream_views::mercator::WebTile;
 use terrastream_views::resample::{self, Placed};
 use terrastream_views::{WebTileRequest, elevation, make_tile_cached, tilejson};
 
+use crate::access::Grant;
 use crate::app::{ARCHIVE_ETAG, Answer, AppState};
 use crate::body::Payload;
 use crate::range::{Precondition, preconditions};
@@ -154,9 +155,11 @@ pub async fn elevation_tilejson(
     State(state): State<AppState>,
     Path(name): Path<String>,
     Query(query): Query<TileQuery>,
+    grant: Option<Extension<Grant>>,
     headers: HeaderMap,
 ) -> Result<Response, WebError> {
-    layer_tilejson_of(&state, &name, None, &query, &headers)
+    let grant = grant.map(|g| g.0).unwrap_or_default();
+    layer_tilejson_of(&state, (&name, None), &query, &grant, &headers)
 }
 
 /// `GET /{name}/{layer}/tiles.json`: a layer's TileJSON.
@@ -164,16 +167,20 @@ pub async fn layer_tilejson(
     State(state): State<AppState>,
     Path((name, layer)): Path<(String, String)>,
     Query(query): Query<TileQuery>,
+    grant: Option<Extension<Grant>>,
     headers: HeaderMap,
 ) -> Result<Response, WebError> {
-    layer_tilejson_of(&state, &name, Some(&layer), &query, &headers)
+    let grant = grant.map(|g| g.0).unwrap_or_default();
+    layer_tilejson_of(&state, (&name, Some(&layer)), &query, &grant, &headers)
 }
 
+/// The TileJSON of archive `name`'s `layer` (the elevation when None); its tile URLs carry
+/// the request's credential when it came in the query.
 fn layer_tilejson_of(
     state: &AppState,
-    name: &str,
-    layer: Option<&str>,
+    (name, layer): (&str, Option<&str>),
     query: &TileQuery,
+    grant: &Grant,
     headers: &HeaderMap,
 ) -> Result<Response, WebError> {
     let served = state.catalog.get(name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
@@ -208,6 +215,7 @@ fn layer_tilejson_of(
     if size != 512 {
         params.push(format!("size={size}"));
     }
+    params.extend(grant.carried());
     let query_text = if params.is_empty() { String::new() } else { format!("?{}", params.join("&")) };
     let tiles =
         format!("{scheme}://{host}/{name}/xyz/{}/{{z}}/{{x}}/{{y}}.{}{query_text}", info.name, format.extension());

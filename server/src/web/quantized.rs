@@ -25,6 +25,7 @@ pub struct TerrainQuery {
 pub async fn layer_json(
     axum::extract::State(state): axum::extract::State<crate::app::AppState>,
     axum::extract::Path(name): axum::extract::Path<String>,
+    grant: Option<axum::extract::Extension<crate::access::Grant>>,
 ) -> Result<axum::response::Response, super::WebError> {
     use axum::http::header::CACHE_CONTROL;
     use axum::response::IntoResponse as _;
@@ -33,7 +34,10 @@ pub async fn layer_json(
         super::not_found(format!("archive {name:?} has no terrain: no elevation layer that says where it lies"))
     })?;
     let description = served.reader.metadata().name.clone();
-    let doc = terrain.layer_json(&name, &description, "{z}/{x}/{y}.terrain");
+    // The tile template carries the request's credential when it came in the query
+    // (Cesium's template requests send no header of ours).
+    let template = grant.map(|g| g.0).unwrap_or_default().carry("{z}/{x}/{y}.terrain");
+    let doc = terrain.layer_json(&name, &description, &template);
     let mut response = axum::Json(doc).into_response();
     let h = response.headers_mut();
     h.insert(CACHE_CONTROL, state.cache_control.clone());

@@ -1,0 +1,228 @@
+//! API keys: each allowed some archives (names or globs), optionally some HTTP origins, an
+//! expiry and a rate. Kept in a TOML file as hashes (SHA-256), never in plain text: a key
+//! is shown once, when it is made.
+//!
+//! A key reads `tk_{id}_{secret}`: `id` 8 hexadecimal digits that name the key (in the
+//! file, in `key list`, nowhere else), `secret` 64 more from the system's random source.
+
+use std::path::{Path, PathBuf};
+
+use ring::digest;
+use ring::rand::{SecureRandom, SystemRandom};
+use serde::{Deserialize, Serialize};
+use subtle::ConstantTimeEq;
+
+use super::token::{hex, unhex};
+
+/// One key's record in the keys file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeyRecord {
+    /// The key's name: the hexadecimal digits after `tk_`.
+    pub id: String,
+    /// SHA-256 of the whole key, hexadecimal.
+    pub hash: String,
+    /// Archive names or globs (`*` any run of characters, `?` one) it opens.
+    pub archives: Vec<String>,
+    /// HTTP origins (`https://maps.example.com`) it may be used from; empty: any.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub origins: Vec<String>,
+    /// Unix seconds after which it opens nothing.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expires: Option<u64>,
+    /// Requests a second it may make, sustained (none: no limit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rate: Option<f64>,
+    /// Requests it may make at once above the rate (default: the rate, at least 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub burst: Option<f64>,
+    /// It may also read `/metrics`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub admin: bool,
+    /// A note for people (whose key, what for).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub note: String,
+}
+
+/// The keys file.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeyFile {
+    /// The keys.
+    #[serde(default, rename = "key")]
+    pub keys: Vec<KeyRecord>,
+}
+
+/// Why a keys file cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum KeysError {
+    /// Reading or writing it failed.
+    #[error("{path}: {error}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// What failed.
+        error: std::io::Error,
+    },
+    /// Its content is not a keys file.
+    #[error("{path}: {reason}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, naming the line or key.
+        reason: String,
+    },
+    /// The system's random source failed.
+    #[error("the system's random source failed")]
+    Random,
+}
+
+impl KeyFile {
+    /// Reads a keys file; a file that does not exist holds no key.
+    ///
+    /// # Errors
+    /// [`KeysError`] naming the file, and the key at fault.
+    pub fn read(path: &Path) -> Result<Self, KeysError> {
+        let text = match std::fs::read_to_string(path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::default()),
+            Err(error) => return Err(KeysError::File { path: path.to_owned(), error }),
+        };
+        let invalid = |reason: String| KeysError::Invalid { path: path.to_owned(), reason };
+        let file: Self = toml::from_str(&text).map_err(|e| invalid(e.to_string()))?;
+        for k in &file.keys {
+            if unhex::<4>(&k.id).is_none() || unhex::<32>(&k.hash).is_none() {
+                return Err(invalid(format!("key {:?}: id is 8 hexadecimal digits, hash 64", k.id)));
+            }
+            if k.rate.is_some_and(|r| !(r > 0.0 && r.is_finite())) || k.burst.is_some_and(|b| b.is_nan() || b < 1.0) {
+                return Err(invalid(format!("key {}: rate is above 0, burst at least 1", k.id)));
+            }
+        }
+        Ok(file)
+    }
+
+    /// Writes the file (temporary name, then renamed; readable by its owner only).
+    ///
+    /// # Errors
+    /// [`KeysError::File`] naming the file.
+    pub fn write(&self, path: &Path) -> Result<(), KeysError> {
+        let file = |error| KeysError::File { path: path.to_owned(), error };
+        let text = toml::to_string_pretty(self).map_err(|e| file(std::io::Error::other(e)))?;
+        let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let mut temp = tempfile::NamedTempFile::new_in(folder).map_err(file)?;
+        std::io::Write::write_all(&mut temp, text.as_bytes()).map_err(file)?;
+        temp.persist(path).map_err(|e| file(e.error))?;
+        Ok(())
+    }
+
+    /// Makes a new key from `record`'s rules (its `id` and `hash` are filled in), adds it,
+    /// and returns the key itself: the only time it is ever seen.
+    ///
+    /// # Errors
+    /// [`KeysError::Random`].
+    pub fn add(&mut self, mut record: KeyRecord) -> Result<String, KeysError> {
+        let random = SystemRandom::new();
+        let mut bytes = [0u8; 36];
+        random.fill(&mut bytes).map_err(|_| KeysError::Random)?;
+        let mut id = hex(&bytes[..4]);
+        while self.keys.iter().any(|k| k.id == id) {
+            random.fill(&mut bytes[..4]).map_err(|_| KeysError::Random)?;
+            id = hex(&bytes[..4]);
+        }
+        let key = format!("tk_{id}_{}", hex(&bytes[4..]));
+        record.id = id;
+        record.hash = hex(digest::digest(&digest::SHA256, key.as_bytes()).as_ref());
+        self.keys.push(record);
+        Ok(key)
+    }
+}
+
+/// The keys, ready to check a presented key.
+#[derive(Clone, Debug, Default)]
+pub struct KeyStore {
+    keys: Vec<(KeyRecord, [u8; 32])>,
+}
+
+/// A key's id and hash that no key has: what an unknown key is compared against, so that
+/// it costs the time a known one does.
+const NO_HASH: [u8; 32] = [0; 32];
+
+impl KeyStore {
+    /// The keys of a file.
+    pub fn new(file: KeyFile) -> Self {
+        let keys =
+            file.keys.into_iter().filter_map(|k| Some((unhex::<32>(&k.hash)?, k))).map(|(h, k)| (k, h)).collect();
+        Self { keys }
+    }
+
+    /// How many keys there are.
+    pub fn len(&self) -> usize {
+        self.keys.len()
+    }
+
+    /// Whether there is none.
+    pub fn is_empty(&self) -> bool {
+        self.keys.is_empty()
+    }
+
+    /// The record of `key`, if it is one of these (its hash compared in constant time).
+    pub fn find(&self, key: &str) -> Option<&KeyRecord> {
+        let id = key.strip_prefix("tk_").and_then(|rest| rest.split_once('_')).map(|(id, _)| id);
+        let found = id.and_then(|id| self.keys.iter().find(|(k, _)| k.id == id));
+        let hash = digest::digest(&digest::SHA256, key.as_bytes());
+        let expected = found.map_or(&NO_HASH, |(_, h)| h);
+        let same: bool = hash.as_ref().ct_eq(expected).into();
+        found.filter(|_| same).map(|(k, _)| k)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(archives: &[&str]) -> KeyRecord {
+        KeyRecord {
+            id: String::new(),
+            hash: String::new(),
+            archives: archives.iter().map(|s| (*s).to_owned()).collect(),
+            origins: vec![],
+            expires: None,
+            rate: None,
+            burst: None,
+            admin: false,
+            note: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_key_is_stored_as_its_hash_and_found_only_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("keys.toml");
+        let mut file = KeyFile::read(&path).unwrap();
+        let key = file.add(record(&["valley"])).unwrap();
+        let other = file.add(record(&["survey-*"])).unwrap();
+        file.write(&path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(!text.contains(&key[12..]) && !text.contains(&other[12..]), "no key in plain text: {text}");
+        let store = KeyStore::new(KeyFile::read(&path).unwrap());
+        assert_eq!(store.find(&key).map(|k| k.archives.clone()), Some(vec!["valley".to_owned()]));
+        assert_eq!(store.find(&other).map(|k| k.archives.clone()), Some(vec!["survey-*".to_owned()]));
+        let mut wrong = key.clone();
+        wrong.pop();
+        wrong.push(if key.ends_with('0') { '1' } else { '0' });
+        for bad in [wrong.as_str(), &key[..key.len() - 1], "tk_", "", "tk_00000000_00", &key.replace("tk_", "tx_")] {
+            assert!(store.find(bad).is_none(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn a_bad_keys_file_names_itself_and_the_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("keys.toml");
+        std::fs::write(&path, "[[key]]\nid = \"zz\"\nhash = \"00\"\narchives = []\n").unwrap();
+        let e = KeyFile::read(&path).unwrap_err().to_string();
+        assert!(e.contains("keys.toml") && e.contains("\"zz\""), "{e}");
+        std::fs::write(&path, "[[key]]\nidd = 1\n").unwrap();
+        assert!(KeyFile::read(&path).unwrap_err().to_string().contains("idd"));
+    }
+}
