@@ -660,3 +660,67 @@ fn the_sharded_tile_jobs_run_against_object_storage_and_make_the_single_runs_arc
     assert!(a.len() > 10_000, "a real archive");
     assert!(a == b, "the merged shards ({} bytes) differ from the single run ({} bytes)", b.len(), a.len());
 }
+
+/// The shipped caching proxy in front of a server of private terrain: a signed link is
+/// served and then cached under its own URL, and neither that entry nor an answer to a
+/// header key is ever handed to a request without a credential.
+#[test]
+fn a_caching_proxy_keeps_private_terrain_private() {
+    let dir = tempfile::tempdir().unwrap();
+    let archives = dir.path().join("archives");
+    std::fs::create_dir(&archives).unwrap();
+    write_labelled_archive(&archives.join("terrain.tspack"), &LabelledSpec::default()).unwrap();
+    let run = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).current_dir(dir.path()).output().unwrap();
+        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap().trim().to_owned()
+    };
+    std::fs::write(dir.path().join("secret"), "the operator's secret, shared with no one").unwrap();
+    let key = run(&["key", "new", "--archives", "terrain", "--keys", "keys.toml"]);
+    let token = run(&["sign", "--secret-file", "secret", "--archive", "terrain", "--expires", "1h"]);
+    let port = terrastream_testkit::nginx::free_port();
+    let addr = format!("127.0.0.1:{port}");
+    let args =
+        ["-q", "serve", "archives", "--private", "--keys", "keys.toml", "--secret-file", "secret", "--addr", &addr];
+    let child = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).current_dir(dir.path()).spawn().unwrap();
+    let _server = Process(child);
+    let health = format!("http://{addr}/healthz");
+    let healthy = (0..200).any(|_| {
+        std::thread::sleep(Duration::from_millis(25));
+        Command::new(env!("CARGO_BIN_EXE_terrastream")).args(["health", &health]).output().unwrap().status.success()
+    });
+    assert!(healthy, "the server did not become healthy");
+    let shipped = std::fs::read_to_string(deploy("nginx/cache-proxy.conf")).unwrap();
+    let config = shipped
+        .replace("/var/cache/nginx/terrastream", &dir.path().join("cache").display().to_string())
+        .replace("server server:8080;", &format!("server {addr};"))
+        .replace("listen 8080;", "listen 127.0.0.1:{port};");
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(dir.path(), &config) else { return };
+    // Status and cache status of a GET through the proxy.
+    let curl = |path: &str, header: Option<&str>| {
+        let url = format!("http://127.0.0.1:{}{path}", nginx.port);
+        let mut args = vec!["-s", "-o", "/dev/null", "-D", "-", "-r", "0-99"];
+        if let Some(h) = header {
+            args.extend(["-H", h]);
+        }
+        args.push(&url);
+        let out = Command::new("curl").args(&args).output().unwrap();
+        let head = String::from_utf8_lossy(&out.stdout).to_lowercase();
+        let status: u16 = head.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+        let cache = head.lines().find_map(|l| l.strip_prefix("x-cache-status:").map(|v| v.trim().to_owned()));
+        (status, cache.unwrap_or_default())
+    };
+    for path in ["/terrain.tspack", "/terrain/metadata"] {
+        let signed = format!("{path}?access_token={token}");
+        assert_eq!(curl(&signed, None).0, if path.ends_with("tspack") { 206 } else { 200 }, "{path}");
+        let (status, cache) = curl(&signed, None);
+        assert!(status < 300 && cache == "hit", "{path}: the signed link is cached ({status} {cache})");
+        let bearer = format!("Authorization: Bearer {key}");
+        assert!(curl(path, Some(&bearer)).0 < 300, "{path} with a header key");
+        assert!(curl(path, Some(&bearer)).1 != "hit", "{path}: a header key's answer is never stored");
+        for _ in 0..2 {
+            assert_eq!(curl(path, None).0, 401, "{path}: nothing cached reaches a request without a credential");
+        }
+        assert_eq!(curl(&format!("{path}?access_token=ts1~1~terrain~{}", "0".repeat(64)), None).0, 403);
+    }
+}

@@ -208,8 +208,11 @@ async fn answer(
     };
     finish(state, request.route.route(), started, &mut answer);
     if tracing::enabled!(tracing::Level::DEBUG) {
-        let (method, path, status) = (&request.method, request.path, answer.status().as_u16());
-        tracing::debug!(%method, path, status, latency = ?started.elapsed(), "answered");
+        let (method, status) = (&request.method, answer.status().as_u16());
+        // The path, and the query with any credential hidden: keys never reach the logs.
+        let (path, query) = request.path.split_once('?').map_or((request.path, None), |(p, q)| (p, Some(q)));
+        let query = query.map(crate::access::redacted).unwrap_or_default();
+        tracing::debug!(%method, path, query, status, latency = ?started.elapsed(), "answered");
     }
     write_head(head, &answer);
     let body = answer.body();
