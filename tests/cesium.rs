@@ -306,6 +306,67 @@ fn cesium_flies_the_served_and_the_exported_terrain() {
     assert!(mean < 0.01, "the exported terrain draws differently from the served: mean difference {mean}");
 }
 
+/// A private archive read by CesiumJS, as documented: a `Resource` with a signed token as
+/// its `access_token` query parameter (carried into every tile request), and one with a
+/// key in an `Authorization` header. Every tile loads, no error, heights as public.
+#[test]
+fn cesium_reads_private_terrain_with_a_token_or_a_header() {
+    use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+    let (build, mut missing) = cesium_build_or_missing();
+    for tool in ["gdaltransform", "gdallocationinfo"] {
+        if Command::new(tool).arg("--version").output().is_err() {
+            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
+        }
+    }
+    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let cli = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).current_dir(dir.path()).output().unwrap();
+        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap().trim().to_owned()
+    };
+    std::fs::write(dir.path().join("secret"), "a secret the operator keeps to itself").unwrap();
+    let key = cli(&["key", "new", "--archives", "tamalpais", "--keys", "keys.toml"]);
+    let token = cli(&["sign", "--secret-file", "secret", "--archive", "tamalpais", "--expires", "2h"]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let args = [archive.to_str().unwrap(), "--private", "--keys", "keys.toml", "--secret-file", "secret"];
+    let server = terrastream_testkit::server::spawn_serve(exe, &args, dir.path());
+    assert!(curl(server.port, "/tamalpais/layer.json", &[]).0.contains(" 401"), "no key, no layer.json");
+    let (_, body) = curl(server.port, &format!("/tamalpais/layer.json?access_token={token}"), &[]);
+    let layer: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(layer["tiles"][0], format!("{{z}}/{{x}}/{{y}}.terrain?access_token={token}"));
+    let bounds: [f64; 4] = serde_json::from_value(layer["bounds"].clone()).unwrap();
+    let points = oracles::random_points(bounds, POINTS / 5);
+    let truth = oracles::gdal_bilinear(&points);
+    let root = dir.path().join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    std::fs::write(root.join("key.html"), oracles::snippet("cesium-key-page")).unwrap();
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { application/json json; text/html html; \
+         application/javascript js; text/css css; image/png png; application/wasm wasm; } }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let terrain = format!("http://127.0.0.1:{}/tamalpais", server.port);
+    let page = format!("http://127.0.0.1:{}/key.html?terrain={terrain}", nginx.port);
+    for (name, page) in
+        [("signed token", format!("{page}&key={token}")), ("key in a header", format!("{page}&key={key}&header=1"))]
+    {
+        let (heights, (w, h, rgba)) = cesium_run(&browser, &page, &points);
+        let (median, p90) = oracles::errors(&heights, &truth);
+        eprintln!("Cesium, private, {name}: median {median:.2} m, 90 % within {p90:.2} m");
+        assert!(median <= 3.0 && p90 <= 20.0, "{name}: median {median:.2} m, p90 {p90:.2} m");
+        terrastream_testkit::golden::assert_golden("cesium-terrain", w, h, &rgba, TOLERANCE);
+    }
+}
+
 /// The page of the side-by-side: CesiumJS's bare ellipsoid (`EllipsoidTerrainProvider`),
 /// or the quantized-mesh terrain at `terrain=`, a white globe on black, no imagery, lighting, sky, sun, moon, fog or atmosphere, the
 /// camera at `at=LON,LAT,HEIGHT` with `heading=` and `pitch=` (degrees) and a vertical

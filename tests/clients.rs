@@ -192,6 +192,68 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
     }
 }
 
+/// A key of `terrastream key new` for `archives`, in `dir`'s keys file.
+fn new_key(dir: &Path, archives: &str) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["key", "new", "--archives", archives, "--keys", "keys.toml"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap().trim().to_owned()
+}
+
+/// A private archive read by MapLibre, as documented: with the key only in the TileJSON's
+/// URL (carried into the tile URLs by the server), and with `transformRequest` sending it
+/// in a header (across origins: the preflight allows it). Both draw the public archive's
+/// picture, with heights as close to GDAL's; without a key, MapLibre gets nothing.
+#[test]
+fn maplibre_reads_private_terrain_with_a_key_in_the_url_or_a_header() {
+    let Some(dist) = ready() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let key = new_key(dir.path(), "tamalpais");
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let args = [archive.to_str().unwrap(), "--private", "--keys", "keys.toml"];
+    let server = terrastream_testkit::server::spawn_serve(exe, &args, dir.path());
+    let (status, _) = terrastream_testkit::http::request(server.port, "GET", "/tamalpais/tiles.json", None);
+    assert_eq!(status, 401, "no key, no TileJSON");
+    let (_, body) = terrastream_testkit::http::request(
+        server.port,
+        "GET",
+        &format!("/tamalpais/tiles.json?access_token={key}"),
+        None,
+    );
+    let tilejson: Value = serde_json::from_slice(&body).unwrap();
+    let bounds: [f64; 4] = serde_json::from_value(tilejson["bounds"].clone()).unwrap();
+    let points = random_points(bounds, POINTS / 4);
+    let truth = gdal_bilinear(&points);
+    let root = dir.path().join("www");
+    write_page(&root, &dist);
+    std::fs::write(root.join("key.html"), snippet("maplibre-key-page")).unwrap();
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { text/html html; application/javascript js; \
+         text/css css; } }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let tiles = format!("http://127.0.0.1:{}/tamalpais/tiles.json", server.port);
+    let in_url = format!("http://127.0.0.1:{}/index.html?tilejson={tiles}?access_token={key}", nginx.port);
+    let in_header = format!("http://127.0.0.1:{}/key.html?tilejson={tiles}&key={key}", nginx.port);
+    for (name, page) in [("key in the URL", in_url), ("key in a header", in_header)] {
+        let (heights, (w, h, rgba)) = maplibre_run(&browser, &page, &points);
+        assert!(heights.iter().all(Option::is_some), "{name}: MapLibre has no height at some points: {heights:?}");
+        let heights: Vec<f64> = heights.into_iter().flatten().collect();
+        let (median, p90) = errors(&heights, &truth);
+        eprintln!("MapLibre, private, {name}: median {median:.2} m, 90 % within {p90:.2} m");
+        assert!(median <= 2.0 && p90 <= 15.0, "{name}: median {median:.2} m, p90 {p90:.2} m");
+        terrastream_testkit::golden::assert_golden("maplibre-hillshade", w, h, &rgba, TOLERANCE);
+    }
+}
+
 /// deck.gl's standalone bundle, from the npm cache `scripts/test.sh` fills.
 fn deckgl_bundle() -> Option<PathBuf> {
     let root = npm_cache();

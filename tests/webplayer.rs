@@ -448,6 +448,57 @@ fn webplayer_streams_a_manifest_of_four_archives() {
     assert!(errors.is_empty(), "console errors: {errors:?}");
 }
 
+/// Private terrain in the player: `/view/{name}?access_token=…` opens a private archive,
+/// and a private manifest across its archives, with nothing but that URL (the server
+/// carries the key into the page's archive URL and into the manifest's archive URLs);
+/// without it the page is refused, saying why.
+#[test]
+fn webplayer_opens_private_terrain_with_the_key_in_its_url() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    archive(dir.path());
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    let shards: Vec<String> = (0..2).map(|i| dir.path().join(format!("s{i}.tspack")).display().to_string()).collect();
+    for (i, shard) in shards.iter().enumerate() {
+        let spec = format!("{i}/2");
+        let args = ["tile", "--elevation", dem.to_str().unwrap(), "-o", shard, "--tile-size", "64", "--shard", &spec];
+        terrastream(&args);
+    }
+    let (coarse, manifest) = (dir.path().join("coarse.tspack"), dir.path().join("published.json"));
+    let (c, m) = (coarse.display().to_string(), manifest.display().to_string());
+    terrastream(&["merge", &shards[0], &shards[1], "-o", &c, "--manifest", &m]);
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["key", "new", "--archives", "tamalpais", "published", "s*", "coarse", "--keys", "keys.toml"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let key = String::from_utf8(out.stdout).unwrap().trim().to_owned();
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let served = dir.path().display().to_string();
+    let args = [served.as_str(), "--private", "--keys", "keys.toml"];
+    let server = terrastream_testkit::server::spawn_serve(exe, &args, dir.path());
+    let port = server.port;
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGPU_FLAGS, (WIDTH, HEIGHT));
+    for name in ["tamalpais", "published"] {
+        browser.goto(&format!("http://127.0.0.1:{port}/view/{name}?hud=0&access_token={key}"));
+        let stats = browser.wait_settled();
+        eprintln!("private {name}: {stats}");
+        assert_eq!((stats["missing"].clone(), stats["failures"].clone()), (json!(0), json!(0)), "{stats}");
+        assert!(stats["wanted"].as_u64().unwrap() >= 5, "{stats}");
+        std::thread::sleep(Duration::from_millis(500));
+        let (w, h, rgba) = browser.screenshot("#terrain");
+        terrastream_testkit::golden::assert_golden("webplayer-webgpu", w, h, &rgba, TOLERANCE);
+    }
+    // Without the key: the page itself is refused, with the reason.
+    browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0"));
+    let text = browser.eval("return document.body.innerText;");
+    assert!(text.as_str().is_some_and(|t| t.contains("a key is needed")), "{text}");
+}
+
 /// A benchmark, not a test (`scripts/bench-webplayer.sh` runs it): the player over the
 /// emulated links of `bench stream` (a user-space shaper in front of the server, for the
 /// archive's requests only; the page itself loads directly). Per link it prints the first
