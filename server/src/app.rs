@@ -178,6 +178,7 @@ pub fn service(state: AppState) -> Edge<Router> {
             Route::Index => get(index),
             Route::Health => get(|| async { "ok\n" }),
             Route::Metrics => get(metrics),
+            Route::Auth => get(auth),
             Route::Archive => get(archive_bytes),
             Route::Metadata => get(metadata),
             Route::Tile => get(tile),
@@ -463,6 +464,29 @@ pub(crate) fn accepts(headers: &HeaderMap, coding: &str) -> bool {
         let refused = parts.any(|p| p.trim().replace(' ', "") == "q=0");
         name.eq_ignore_ascii_case(coding) && !refused
     })
+}
+
+/// `GET /auth`: the access rules as the authority of a proxy in front of other files
+/// (nginx's `auth_request` on static exports, a CDN's edge function): 204 when the
+/// request's credential opens the URI in `X-Original-URI`, else the refusal (401, 403 or
+/// 429 with its reason), exactly as this server would answer that URI itself.
+async fn auth(State(state): State<AppState>, headers: HeaderMap) -> Response {
+    use axum::http::header::{AUTHORIZATION, ORIGIN, REFERER};
+    let Some(uri) = headers.get("x-original-uri").and_then(|v| v.to_str().ok()) else {
+        return AppError::BadRequest("X-Original-URI: the URI to rule on is missing\n".into()).into_response();
+    };
+    let (path, query) = uri.split_once('?').map_or((uri, None), |(p, q)| (p, Some(q)));
+    let presented = crate::access::Presented {
+        path,
+        query,
+        authorization: headers.get(AUTHORIZATION).map(HeaderValue::as_bytes),
+        origin: headers.get(ORIGIN).map(HeaderValue::as_bytes),
+        referer: headers.get(REFERER).map(HeaderValue::as_bytes),
+    };
+    match crate::edge::admit(&state, &presented) {
+        Ok(_) => StatusCode::NO_CONTENT.into_response(),
+        Err(refused) => refused.answer().map(Body::new),
+    }
 }
 
 /// `GET /metrics`.

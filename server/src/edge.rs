@@ -18,7 +18,7 @@ use axum::body::Body;
 use axum::http::header::{
     ACCESS_CONTROL_ALLOW_HEADERS, ACCESS_CONTROL_ALLOW_METHODS, ACCESS_CONTROL_ALLOW_ORIGIN,
     ACCESS_CONTROL_EXPOSE_HEADERS, ACCESS_CONTROL_MAX_AGE, ACCESS_CONTROL_REQUEST_METHOD, AUTHORIZATION, CACHE_CONTROL,
-    CONTENT_LENGTH, HeaderValue, ORIGIN, REFERER,
+    CONNECTION, CONTENT_LENGTH, HeaderValue, ORIGIN, REFERER,
 };
 use axum::http::{Method, Request, StatusCode};
 use axum::response::Response;
@@ -125,6 +125,10 @@ where
                 Ok(grant) => grant,
                 Err(refused) => {
                     let mut response = refused.answer().map(Body::new);
+                    // HTTP/1.1: the refused request ends its connection, as on the lean path.
+                    if req.version() <= axum::http::Version::HTTP_11 {
+                        response.headers_mut().insert(CONNECTION, HeaderValue::from_static("close"));
+                    }
                     finish(&state, route, started, &mut response);
                     return Box::pin(std::future::ready(Ok(response)));
                 }

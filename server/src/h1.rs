@@ -139,7 +139,13 @@ pub(crate) async fn serve(
                 Parsed::Request(request) => request,
             };
             // From the request's start: a clock read less per request, a few µs shorter.
-            deadline = answer(&mut stream, state, &request, &mut head).await? + limits.timeout;
+            let (started, refused) = answer(&mut stream, state, &request, &mut head).await?;
+            // A refused request ends its connection: a flood of bad credentials pays a
+            // new connection for each try, and the rest of the server keeps its share.
+            if refused {
+                return Ok(Ended::Closed);
+            }
+            deadline = started + limits.timeout;
             at += request.len;
         }
         if at == buf.len() {
@@ -179,13 +185,14 @@ pub(crate) async fn serve(
 }
 
 /// Answers one request: the handler's answer, its CORS headers and metrics, the head into
-/// `head`, then head and body in one vectored write. Returns when it started.
+/// `head`, then head and body in one vectored write. Returns when it started, and whether
+/// the access rules refused it (the connection is then closed).
 async fn answer(
     stream: &mut Stream,
     state: &AppState,
     request: &Request<'_>,
     head: &mut Vec<u8>,
-) -> std::io::Result<Instant> {
+) -> std::io::Result<(Instant, bool)> {
     let started = Instant::now();
     let grant = if state.access.enabled() {
         let (path, query) = request.path.split_once('?').map_or((request.path, None), |(p, q)| (p, Some(q)));
@@ -194,8 +201,13 @@ async fn answer(
     } else {
         Ok(Grant::default())
     };
+    let refused = grant.is_err();
     let mut answer = match grant {
-        Err(refused) => refused.answer(),
+        Err(refused) => {
+            let mut answer = refused.answer();
+            answer.headers_mut().insert(axum::http::header::CONNECTION, HeaderValue::from_static("close"));
+            answer
+        }
         Ok(grant) => {
             let mut answer = match &request.route {
                 Lean::Archive(file) => archive_answer(state, file, &request.method, &request.headers),
@@ -227,7 +239,7 @@ async fn answer(
             write_all(stream, &mut slices).await?;
         }
     }
-    Ok(started)
+    Ok((started, refused))
 }
 
 /// Writes all of `bufs`.

@@ -21,6 +21,8 @@ pub enum Route {
     Health,
     /// `/metrics`: Prometheus text.
     Metrics,
+    /// `/auth`: the access rules' answer for another URI (a proxy's `auth_request`).
+    Auth,
     /// `/{file}`: an archive's bytes (Range requests).
     Archive,
     /// `/{name}/metadata`.
@@ -47,10 +49,11 @@ pub enum Route {
 
 impl Route {
     /// Every route, in the order the metrics list them.
-    pub const ALL: [Self; 14] = [
+    pub const ALL: [Self; 15] = [
         Self::Index,
         Self::Health,
         Self::Metrics,
+        Self::Auth,
         Self::Archive,
         Self::Metadata,
         Self::Tile,
@@ -71,6 +74,7 @@ impl Route {
             Self::Index => "/",
             Self::Health => "/healthz",
             Self::Metrics => "/metrics",
+            Self::Auth => "/auth",
             Self::Archive => "/{file}",
             Self::Metadata => "/{name}/metadata",
             Self::Tile => "/{name}/{layer}/{lod}/{x}/{y}",
@@ -105,6 +109,7 @@ impl Route {
             ("", [None, ..]) => Self::Index,
             ("healthz", [None, ..]) => Self::Health,
             ("metrics", [None, ..]) => Self::Metrics,
+            ("auth", [None, ..]) => Self::Auth,
             (f, [None, ..]) if !f.is_empty() => Self::Archive,
             ("view", [Some(n), None, ..]) if !n.is_empty() => Self::View,
             ("v1", [Some(n), None, ..]) if !n.is_empty() => Self::Elevation,
@@ -132,6 +137,7 @@ mod tests {
             ("/", "/"),
             ("/healthz", "/healthz"),
             ("/metrics", "/metrics"),
+            ("/auth", "/auth"),
             ("/a.tspack", "/{file}"),
             ("/view/a", "/view/{name}"),
             ("/view/metadata", "/view/{name}"),

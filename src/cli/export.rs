@@ -12,6 +12,7 @@ use terrastream_views::export::{WebExport, export_xyz};
 use terrastream_views::mercator::tiles_over;
 use terrastream_views::pmtiles::export_web_pmtiles;
 use terrastream_views::quantized::export::export_quantized_mesh;
+use terrastream_views::relief::{ColorTable, Product, ReliefOptions};
 use terrastream_views::tilejson::coverage;
 
 use super::CliProgress;
@@ -52,6 +53,42 @@ pub struct ExportArgs {
     /// relative to the folder).
     #[arg(long)]
     base_url: Option<String>,
+    /// `--to xyz|pmtiles`: a map made from the elevation instead of a layer's own tiles.
+    #[arg(long, value_enum)]
+    product: Option<ProductArg>,
+    #[command(flatten)]
+    relief: ReliefArgs,
+}
+
+/// `gdaldem`'s parameters of `--product`.
+#[derive(Debug, Args)]
+struct ReliefArgs {
+    /// Vertical exaggeration (gdaldem -z).
+    #[arg(long, default_value_t = 1.0)]
+    z_factor: f64,
+    /// The light's azimuth, degrees clockwise from north (gdaldem -az).
+    #[arg(long, default_value_t = 315.0)]
+    azimuth: f64,
+    /// The light's altitude above the horizon, degrees (gdaldem -alt).
+    #[arg(long, default_value_t = 45.0)]
+    altitude: f64,
+    /// Four lights, as gdaldem hillshade -multidirectional.
+    #[arg(long)]
+    multidirectional: bool,
+    /// Slope in percent rather than degrees (gdaldem slope -p).
+    #[arg(long)]
+    slope_percent: bool,
+    /// A colour table in gdaldem color-relief's text format (default: built-in tints).
+    #[arg(long)]
+    color_table: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ProductArg {
+    Hillshade,
+    Slope,
+    Aspect,
+    ColorRelief,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -79,7 +116,7 @@ enum FormatArg {
 
 pub fn run(args: ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     match args.to {
-        ExportFormat::Pmtiles if args.encoding.is_none() => run_pmtiles(&args, progress),
+        ExportFormat::Pmtiles if args.encoding.is_none() && args.product.is_none() => run_pmtiles(&args, progress),
         ExportFormat::Pmtiles | ExportFormat::Xyz => run_web(&args, progress),
         ExportFormat::QuantizedMesh => run_quantized_mesh(&args, progress),
     }
@@ -155,8 +192,10 @@ fn run_web(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
         FormatArg::Webp => ImageFormat::Webp,
         FormatArg::Png => ImageFormat::Png,
     };
-    let export =
-        WebExport { layer: index, encoding, format, size: args.size, minzoom: args.minzoom, maxzoom: args.maxzoom };
+    let relief = args.product.map(|p| relief(p, &args.relief)).transpose()?;
+    let encoding = if relief.is_some() { None } else { encoding };
+    let (minzoom, maxzoom) = (args.minzoom, args.maxzoom);
+    let export = WebExport { layer: index, encoding, format, size: args.size, minzoom, maxzoom, relief };
     warn_if_far_finer(&reader, &export);
     let started = std::time::Instant::now();
     let tick = |done: u64, total: u64| {
@@ -183,6 +222,33 @@ fn run_web(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// A relief product and its `gdaldem` parameters.
+fn relief(product: ProductArg, a: &ReliefArgs) -> Result<(Product, ReliefOptions)> {
+    let table = match &a.color_table {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            ColorTable::parse(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+        }
+        None => ColorTable::default(),
+    };
+    anyhow::ensure!((0.0..=90.0).contains(&a.altitude), "--altitude {}: degrees from 0 to 90", a.altitude);
+    let product = match product {
+        ProductArg::Hillshade => Product::Hillshade,
+        ProductArg::Slope => Product::Slope,
+        ProductArg::Aspect => Product::Aspect,
+        ProductArg::ColorRelief => Product::ColorRelief,
+    };
+    let options = ReliefOptions {
+        z_factor: a.z_factor,
+        azimuth: a.azimuth,
+        altitude: a.altitude,
+        multidirectional: a.multidirectional,
+        slope_percent: a.slope_percent,
+        table,
+    };
+    Ok((product, options))
 }
 
 /// The web tiles as a PMTiles file (a `raster-dem` for MapLibre's pmtiles protocol).

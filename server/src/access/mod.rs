@@ -322,8 +322,8 @@ impl Access {
                 Err(_) => refused("the key is not valid"),
             };
         }
-        let store = Arc::clone(&self.keys.read().unwrap_or_else(std::sync::PoisonError::into_inner));
-        let Some(record) = store.find(credential) else { return refused("the key is not valid") };
+        let found = self.keys.read().unwrap_or_else(std::sync::PoisonError::into_inner).find(credential);
+        let Some(record) = found else { return refused("the key is not valid") };
         if record.expires.is_some_and(|e| unix > e.saturating_add(self.rules.clock_skew_secs)) {
             return refused("the key has expired");
         }
@@ -333,7 +333,7 @@ impl Access {
                 return refused("the key is not allowed from this origin");
             }
         }
-        Ok(By::Key(Arc::new(record.clone())))
+        Ok(By::Key(record))
     }
 }
 
@@ -415,13 +415,15 @@ fn target(path: &str) -> Target<'_> {
     let name = match route {
         Route::Index => return Target::Listing,
         Route::Metrics => return Target::Metrics,
-        Route::Health | Route::Other => return Target::Open,
+        // `/auth` rules on the URI it is given, in its handler.
+        Route::Health | Route::Auth | Route::Other => return Target::Open,
         Route::View if crate::player::asset(second).is_some() => return Target::Open,
         Route::View | Route::Elevation => second,
         Route::Archive => {
             let Some(decoded) = percent_decoded(first) else { return Target::Open };
-            let stem = decoded.strip_suffix(".tspack").or_else(|| decoded.strip_suffix(".json"));
-            // A file that is neither is answered 404 by every server.
+            // Archives and manifests; and the exports a proxy's `auth_request` asks about.
+            let stem = [".tspack", ".json", ".pmtiles", ".mbtiles"].iter().find_map(|s| decoded.strip_suffix(s));
+            // A file that is none of these is answered 404 by every server.
             return stem.map_or(Target::Open, |s| Target::Archive(Cow::Owned(s.to_owned())));
         }
         Route::Metadata
@@ -466,16 +468,20 @@ fn origin_of(value: &[u8]) -> Option<&str> {
     Some(&text[..scheme.len() + 3 + host_end])
 }
 
-/// Whether `name` matches `pattern`: `*` any run of characters, `?` any one.
+/// Whether `name` matches `pattern`: `*` any run of characters, `?` any one (byte-wise:
+/// names are of a safe ASCII alphabet). No allocation: it runs on every request.
 pub fn glob(pattern: &str, name: &str) -> bool {
-    let (p, n): (Vec<char>, Vec<char>) = (pattern.chars().collect(), name.chars().collect());
+    let (p, n) = (pattern.as_bytes(), name.as_bytes());
+    if !p.contains(&b'*') && !p.contains(&b'?') {
+        return p == n;
+    }
     // Iterative matching with one backtrack point (the last `*`).
     let (mut i, mut j, mut star, mut mark) = (0, 0, None, 0);
     while j < n.len() {
-        if i < p.len() && (p[i] == '?' || p[i] == n[j]) {
+        if i < p.len() && (p[i] == b'?' || p[i] == n[j]) {
             i += 1;
             j += 1;
-        } else if i < p.len() && p[i] == '*' {
+        } else if i < p.len() && p[i] == b'*' {
             star = Some(i);
             mark = j;
             i += 1;
@@ -487,7 +493,7 @@ pub fn glob(pattern: &str, name: &str) -> bool {
             return false;
         }
     }
-    p[i..].iter().all(|&c| c == '*')
+    p[i..].iter().all(|&c| c == b'*')
 }
 
 fn modified(path: &std::path::Path) -> Option<SystemTime> {

@@ -15,6 +15,7 @@
 
 pub mod pool;
 pub mod quantized;
+mod relief;
 
 use axum::body::Body;
 use axum::extract::{Extension, Path, Query, State};
@@ -26,6 +27,7 @@ use terrastream_format::LayerKind;
 use terrastream_views::cache::Lru;
 use terrastream_views::encode::{HeightEncoding, ImageFormat};
 use terrastream_views::mercator::WebTile;
+use terrastream_views::relief::Product;
 use terrastream_views::resample::{self, Placed};
 use terrastream_views::{WebTileRequest, elevation, make_tile_cached, tilejson};
 
@@ -38,6 +40,8 @@ use pool::Pool;
 /// What the web routes keep: the tile-making threads and the tiles made.
 #[derive(Debug)]
 pub struct WebState {
+    /// The colour table of `color-relief` tiles.
+    pub color_table: terrastream_views::relief::ColorTable,
     /// The threads that make tiles.
     pub pool: Pool,
     /// Tiles made, by what they are.
@@ -50,7 +54,12 @@ impl WebState {
     /// `threads` tile-making threads (0: the cores) behind `queue` waiting jobs, up to
     /// `cache_bytes` of made tiles and `decoded_bytes` of decoded archive tiles kept.
     pub fn new(threads: usize, queue: usize, cache_bytes: usize, decoded_bytes: usize) -> Self {
-        Self { pool: Pool::new(threads, queue), made: Lru::new(cache_bytes), decoded: Lru::new(decoded_bytes) }
+        Self {
+            pool: Pool::new(threads, queue),
+            made: Lru::new(cache_bytes),
+            decoded: Lru::new(decoded_bytes),
+            color_table: terrastream_views::relief::ColorTable::default(),
+        }
     }
 }
 
@@ -68,6 +77,8 @@ pub struct MadeKey {
 enum Made {
     /// A Web Mercator tile.
     Web(WebTileRequest),
+    /// A relief tile: what it is, as its ETag names it.
+    Relief(String),
     /// A quantized-mesh tile with these extensions (gzipped).
     Terrain(terrastream_views::quantized::geodetic::GeoTile, terrastream_views::quantized::encode::Extensions),
 }
@@ -98,6 +109,16 @@ pub struct TileQuery {
     pub format: Option<String>,
     /// 512 (default) or 256.
     pub size: Option<u32>,
+    /// Relief tiles: `gdaldem`'s `-z` (vertical exaggeration).
+    pub z_factor: Option<f64>,
+    /// Relief tiles: the light's azimuth, degrees (`-az`).
+    pub azimuth: Option<f64>,
+    /// Relief tiles: the light's altitude, degrees (`-alt`).
+    pub altitude: Option<f64>,
+    /// Relief tiles: `true` for four lights (`-multidirectional`).
+    pub multidirectional: Option<bool>,
+    /// Slope tiles: `degrees` (default) or `percent`.
+    pub units: Option<String>,
 }
 
 /// A web route's error: status and a one-line reason.
@@ -185,16 +206,19 @@ fn layer_tilejson_of(
 ) -> Result<Response, WebError> {
     let served = state.catalog.get(name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
     let metadata = served.reader.metadata();
-    let index = match layer {
-        Some(l) => {
-            metadata.resolve_layer(l).ok_or_else(|| not_found(format!("archive {name:?} has no layer {l:?}")))?
-        }
-        None => metadata
-            .layers
-            .iter()
-            .position(|l| l.kind == LayerKind::Elevation)
-            .and_then(|i| u8::try_from(i).ok())
-            .ok_or_else(|| not_found(format!("archive {name:?} has no elevation layer")))?,
+    let elevation = || {
+        let i = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation);
+        i.and_then(|i| u8::try_from(i).ok())
+            .ok_or_else(|| not_found(format!("archive {name:?} has no elevation layer")))
+    };
+    // A layer by name; else a map made from the heights (`hillshade`, …); else none.
+    let (index, product) = match layer {
+        Some(l) => match (metadata.resolve_layer(l), Product::parse(l)) {
+            (Some(i), _) => (i, None),
+            (None, Some(product)) => (elevation()?, Some(product)),
+            (None, None) => return Err(not_found(format!("archive {name:?} has no layer {l:?}"))),
+        },
+        None => (elevation()?, None),
     };
     let info = &metadata.layers[usize::from(index)];
     if Placed::new(&served.reader, index).is_none() {
@@ -203,7 +227,13 @@ fn layer_tilejson_of(
             info.name
         )));
     }
-    let (encoding, format, size) = options(query, info.kind, None)?;
+    let (encoding, format, size) = match product {
+        Some(_) => {
+            let (_, size) = relief::options(query, &state.web.color_table)?;
+            (None, options(query, LayerKind::Texture, None)?.1, size)
+        }
+        None => options(query, info.kind, None)?,
+    };
     let coverage = tilejson::coverage(metadata, info, size)
         .ok_or_else(|| not_found(format!("archive {name:?} does not say where it lies")))?;
     let host = headers.get(HOST).and_then(|h| h.to_str().ok()).unwrap_or("localhost");
@@ -215,11 +245,14 @@ fn layer_tilejson_of(
     if size != 512 {
         params.push(format!("size={size}"));
     }
+    if product.is_some() {
+        params.extend(relief::query_text(query));
+    }
     params.extend(grant.carried());
     let query_text = if params.is_empty() { String::new() } else { format!("?{}", params.join("&")) };
-    let tiles =
-        format!("{scheme}://{host}/{name}/xyz/{}/{{z}}/{{x}}/{{y}}.{}{query_text}", info.name, format.extension());
-    let request = tilejson::TileJsonRequest { name, layer: &info.name, tiles, encoding, format, size };
+    let shown: &str = product.map_or(info.name.as_str(), |p| p.name());
+    let tiles = format!("{scheme}://{host}/{name}/xyz/{shown}/{{z}}/{{x}}/{{y}}.{}{query_text}", format.extension());
+    let request = tilejson::TileJsonRequest { name, layer: shown, tiles, encoding, format, size };
     let doc = tilejson::tilejson(metadata, info, &request, coverage);
     let mut response = axum::Json(doc).into_response();
     let h = response.headers_mut();
@@ -280,19 +313,50 @@ async fn web_tile_made(
 ) -> Result<Answer, WebError> {
     let served = state.catalog.get(name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
     let metadata = served.reader.metadata();
-    let index =
-        metadata.resolve_layer(layer).ok_or_else(|| not_found(format!("archive {name:?} has no layer {layer:?}")))?;
-    let info = &metadata.layers[usize::from(index)];
     let (y, extension) =
         file.split_once('.').ok_or_else(|| bad(format!("{file:?}: name a tile as {{y}}.webp or {{y}}.png")))?;
     let y: u32 = y.parse().map_err(|_| bad(format!("{file:?}: the row is not a number")))?;
     let format = ImageFormat::parse(extension).ok_or_else(|| bad(format!("{file:?}: use .webp or .png")))?;
-    let (encoding, _, size) = options(query, info.kind, Some(format))?;
     let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
+    let Some(index) = metadata.resolve_layer(layer) else {
+        // A map made from the heights, where no layer has that name.
+        let product =
+            Product::parse(layer).ok_or_else(|| not_found(format!("archive {name:?} has no layer {layer:?}")))?;
+        return relief::answer(state, served, relief::At { product, tile, format }, query, headers).await;
+    };
+    let info = &metadata.layers[usize::from(index)];
+    let (encoding, _, size) = options(query, info.kind, Some(format))?;
     let request = WebTileRequest { layer: index, tile, encoding, format, size };
     let version = xxhash_rust::xxh3::xxh3_64(served.etag.as_bytes());
     let key = MadeKey { archive: version, request: Made::Web(request) };
     let etag = MadeKey::etag(&request, &served.etag);
+    let what = format!("{name}: web tile {z}/{x}/{y}");
+    let make = move |served: std::sync::Arc<crate::catalog::Served>, web: std::sync::Arc<WebState>| {
+        make_tile_cached(&served.reader, &request, Some((&web.decoded, version))).map_err(|e| e.to_string())
+    };
+    made_answer(state, served, Made2 { key, etag, media: format.media_type(), what }, headers, make).await
+}
+
+/// A made tile's identity, ETag, media type and name for the logs.
+pub(crate) struct Made2 {
+    pub(crate) key: MadeKey,
+    pub(crate) etag: String,
+    pub(crate) media: &'static str,
+    pub(crate) what: String,
+}
+
+/// The answer of a made tile: 304 for its ETag, else from the made tiles kept, else made
+/// on the pool by `make` (and kept); 404 when it holds no data.
+pub(crate) async fn made_answer(
+    state: &AppState,
+    served: std::sync::Arc<crate::catalog::Served>,
+    made: Made2,
+    headers: &HeaderMap,
+    make: impl FnOnce(std::sync::Arc<crate::catalog::Served>, std::sync::Arc<WebState>) -> Result<Option<Vec<u8>>, String>
+    + Send
+    + 'static,
+) -> Result<Answer, WebError> {
+    let Made2 { key, etag, media, what } = made;
     let mut h = HeaderMap::with_capacity(8);
     h.insert(ETAG, HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")));
     h.insert(ARCHIVE_ETAG, served.etag_header.clone());
@@ -313,11 +377,11 @@ async fn web_tile_made(
             let made = state
                 .web
                 .pool
-                .run(move || make_tile_cached(&served.reader, &request, Some((&web.decoded, version))))
+                .run(move || make(served, web))
                 .await
                 .map_err(|_| WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
                 .map_err(|e| {
-                    tracing::error!("{name}: web tile {z}/{x}/{y}: {e}");
+                    tracing::error!("{what}: {e}");
                     WebError(StatusCode::INTERNAL_SERVER_ERROR, "internal server error".into())
                 })?;
             let made = Bytes::from(made.unwrap_or_default());
@@ -328,7 +392,7 @@ async fn web_tile_made(
     if bytes.is_empty() {
         return Ok(with(StatusCode::NOT_FOUND, h, Payload::from("no data in this tile\n")));
     }
-    h.insert(CONTENT_TYPE, HeaderValue::from_static(format.media_type()));
+    h.insert(CONTENT_TYPE, HeaderValue::from_static(media));
     h.insert(CONTENT_LENGTH, HeaderValue::from(bytes.len()));
     Ok(with(StatusCode::OK, h, Payload::from(bytes)))
 }

@@ -9,13 +9,14 @@ use terrastream_format::{Interrupted, MmapSource, Reader};
 
 use crate::encode::{HeightEncoding, ImageFormat};
 use crate::mercator::{WebTile, tiles_over};
+use crate::relief::{Product, ReliefOptions, ReliefRequest, relief_tile};
 use crate::resample::MakeError;
 use crate::resample::{DECODED_BYTES, DecodedCache};
 use crate::tilejson::{TileJsonRequest, coverage, tilejson};
 use crate::xyz::{WebTileRequest, make_tile_cached};
 
 /// What to export.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct WebExport {
     /// The layer.
     pub layer: u8,
@@ -29,6 +30,9 @@ pub struct WebExport {
     pub minzoom: u8,
     /// The finest zoom written (default: the layer's, as its TileJSON says).
     pub maxzoom: Option<u8>,
+    /// A map made from the elevation instead of the layer's own samples, with its
+    /// `gdaldem` parameters.
+    pub relief: Option<(Product, ReliefOptions)>,
 }
 
 /// Why an export failed.
@@ -123,6 +127,12 @@ pub fn make_tiles(
     // server does.
     let decoded = DecodedCache::new(DECODED_BYTES);
     let make = |&tile: &WebTile| {
+        if let Some((product, options)) = &export.relief {
+            let (format, size, options) = (export.format, export.size, options.clone());
+            let request = ReliefRequest { product: *product, tile, format, size, options };
+            return relief_tile(reader, &request, Some((&decoded, 0)))
+                .map_err(|error| ExportError::Make { tile, error });
+        }
         let request = WebTileRequest {
             layer: export.layer,
             tile,
@@ -234,9 +244,10 @@ pub fn export_xyz(
     let mut cover = coverage(metadata, info, export.size).ok_or(ExportError::NotPlaced)?;
     cover.maxzoom = zooms.1;
     let base = base_url.map(|b| format!("{}/", b.trim_end_matches('/'))).unwrap_or_default();
+    let shown = export.relief.as_ref().map_or(info.name.as_str(), |(p, _)| p.name());
     let request = TileJsonRequest {
         name: &metadata.name,
-        layer: &info.name,
+        layer: shown,
         tiles: format!("{base}{{z}}/{{x}}/{{y}}.{extension}"),
         encoding: export.encoding,
         format: export.format,

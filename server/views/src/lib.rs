@@ -18,6 +18,7 @@ pub mod mercator;
 #[cfg(feature = "pmtiles")]
 pub mod pmtiles;
 pub mod quantized;
+pub mod relief;
 pub mod resample;
 pub mod tilejson;
 pub mod xyz;

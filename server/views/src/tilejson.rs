@@ -105,7 +105,8 @@ pub fn tilejson(
         "tileSize": request.size,
         "format": request.format.extension(),
     });
-    if layer.kind == LayerKind::Elevation {
+    // Heights as heights: a `raster-dem`; a map made from them (no encoding): a `raster`.
+    if layer.kind == LayerKind::Elevation && request.encoding.is_some() {
         doc["type"] = "raster-dem".into();
         doc["encoding"] = request.encoding.unwrap_or(HeightEncoding::Terrarium).name().into();
     } else {

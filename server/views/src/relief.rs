@@ -1,0 +1,381 @@
+//! Maps from the heights as Web Mercator raster tiles: hillshade, slope, aspect and colour
+//! relief, with `gdaldem`'s definitions (Horn's 3 x 3 gradient; the hillshade's azimuth,
+//! altitude, z factor and multidirectional shading; slope in degrees or percent; aspect
+//! in degrees from north; a colour table in `gdaldem color-relief`'s text format).
+//!
+//! A tile's heights are sampled on its own pixel grid with a margin of one lattice cell
+//! (64 pixels) around it, through the same approximate transform as every web tile: the
+//! margin's cells are the neighbours' own cells (the lattice is aligned to the global
+//! 64-pixel grid), so the window around an edge pixel holds exactly the heights its
+//! neighbour samples there, and tiles join without a seam. The horizontal spacing is the
+//! pixel's size on the ground at its row's latitude (Web Mercator's scale).
+
+use terrastream_format::{LayerKind, MmapSource, Reader};
+
+use crate::encode::ImageFormat;
+use crate::mercator::WebTile;
+use crate::resample::{DecodedCache, LATTICE, MakeError, Placed};
+
+/// What a relief tile shows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Product {
+    /// Shaded relief: gray 1 (in shadow) to 255 (facing the light), `gdaldem hillshade`.
+    Hillshade,
+    /// Steepness: gray, 255 flat to 0 vertical (degrees / 90, or percent / 100 clamped).
+    Slope,
+    /// Direction of the steepest descent: gray 0-255 over 0-360 degrees from north,
+    /// clockwise; flat ground transparent.
+    Aspect,
+    /// Heights through a colour table (hypsometric tints).
+    ColorRelief,
+}
+
+impl Product {
+    /// The product a path names (`hillshade`, `slope`, `aspect`, `color-relief`).
+    pub fn parse(name: &str) -> Option<Self> {
+        match name {
+            "hillshade" => Some(Self::Hillshade),
+            "slope" => Some(Self::Slope),
+            "aspect" => Some(Self::Aspect),
+            "color-relief" => Some(Self::ColorRelief),
+            _ => None,
+        }
+    }
+
+    /// Its name in paths.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Hillshade => "hillshade",
+            Self::Slope => "slope",
+            Self::Aspect => "aspect",
+            Self::ColorRelief => "color-relief",
+        }
+    }
+
+    /// Every product.
+    pub const ALL: [Self; 4] = [Self::Hillshade, Self::Slope, Self::Aspect, Self::ColorRelief];
+}
+
+/// `gdaldem`'s parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReliefOptions {
+    /// Vertical exaggeration (`-z`).
+    pub z_factor: f64,
+    /// Direction of the light, degrees clockwise from north (`-az`).
+    pub azimuth: f64,
+    /// Height of the light above the horizon, degrees (`-alt`).
+    pub altitude: f64,
+    /// Light from four directions, as `gdaldem hillshade -multidirectional`.
+    pub multidirectional: bool,
+    /// Slope in percent rather than degrees (`-p`).
+    pub slope_percent: bool,
+    /// The colour table of `color-relief`.
+    pub table: ColorTable,
+}
+
+impl Default for ReliefOptions {
+    fn default() -> Self {
+        Self {
+            z_factor: 1.0,
+            azimuth: 315.0,
+            altitude: 45.0,
+            multidirectional: false,
+            slope_percent: false,
+            table: ColorTable::default(),
+        }
+    }
+}
+
+/// A colour table in `gdaldem color-relief`'s text format: lines of `height R G B [A]`
+/// (heights ascending or not; `nv` for no data; `#` comments), colours interpolated
+/// linearly between entries and clamped beyond the ends.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColorTable {
+    entries: Vec<(f64, [u8; 4])>,
+    nodata: [u8; 4],
+}
+
+impl Default for ColorTable {
+    /// Hypsometric tints from the sea floor to high mountains.
+    fn default() -> Self {
+        #[expect(clippy::expect_used, reason = "a constant table that parses")]
+        Self::parse(DEFAULT_TABLE).expect("the built-in colour table parses")
+    }
+}
+
+/// The built-in colour table (metres).
+pub const DEFAULT_TABLE: &str = "\
+# height  R   G   B
+-10000   12  38  88
+-200     46  92 148
+0        94 148 190
+0.01    112 162  98
+200     168 198 112
+600     226 214 140
+1200    196 156  98
+2000    156 112  84
+3000    200 196 190
+5000    255 255 255
+nv        0   0   0   0
+";
+
+impl ColorTable {
+    /// Reads a table in `gdaldem`'s format.
+    ///
+    /// # Errors
+    /// The line at fault and why.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let mut entries = Vec::new();
+        let mut nodata = [0, 0, 0, 0];
+        for (number, line) in text.lines().enumerate() {
+            let line = line.split('#').next().unwrap_or("").trim();
+            if line.is_empty() {
+                continue;
+            }
+            let fields: Vec<&str> = line.split([' ', '\t', ',', ':']).filter(|f| !f.is_empty()).collect();
+            let bad = || format!("colour table line {}: {line:?}: expected HEIGHT R G B [A]", number + 1);
+            if fields.len() < 4 || fields.len() > 5 {
+                return Err(bad());
+            }
+            let channel = |f: &str| f.parse::<u8>().map_err(|_| bad());
+            let alpha = fields.get(4).map_or(Ok(255), |a| channel(a))?;
+            let colour = [channel(fields[1])?, channel(fields[2])?, channel(fields[3])?, alpha];
+            if fields[0].eq_ignore_ascii_case("nv") {
+                nodata = colour;
+                continue;
+            }
+            let height: f64 = fields[0].parse().map_err(|_| bad())?;
+            if !height.is_finite() {
+                return Err(bad());
+            }
+            entries.push((height, colour));
+        }
+        if entries.is_empty() {
+            return Err("colour table: no entry".into());
+        }
+        entries.sort_by(|a, b| a.0.total_cmp(&b.0));
+        Ok(Self { entries, nodata })
+    }
+
+    /// The colour of height `h` (NaN: the table's no-data colour).
+    pub fn colour(&self, h: f32) -> [u8; 4] {
+        if !h.is_finite() {
+            return self.nodata;
+        }
+        let h = f64::from(h);
+        let above = self.entries.partition_point(|(e, _)| *e < h);
+        match (above.checked_sub(1).map(|i| self.entries[i]), self.entries.get(above)) {
+            (None, Some(&(_, c))) | (Some((_, c)), None) => c,
+            (Some((h0, c0)), Some(&(h1, c1))) => {
+                let t = if h1 > h0 { (h - h0) / (h1 - h0) } else { 1.0 };
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "between two u8 values")]
+                std::array::from_fn(|k| (f64::from(c0[k]) + (f64::from(c1[k]) - f64::from(c0[k])) * t).round() as u8)
+            }
+            (None, None) => self.nodata,
+        }
+    }
+}
+
+/// The 3 x 3 heights around a pixel, row by row from the north-west (`gdaldem`'s `a` to
+/// `i`); None when one has no data.
+pub type Window = [f64; 9];
+
+/// Horn's gradient of a window: (dz/dx east, dz/dy north) in height per ground unit, for
+/// pixels `ewres` wide and `nsres` tall (ground units).
+fn horn(w: &Window, ewres: f64, nsres: f64) -> (f64, f64) {
+    let dx = ((w[2] + 2.0 * w[5] + w[8]) - (w[0] + 2.0 * w[3] + w[6])) / (8.0 * ewres);
+    let dy = ((w[0] + 2.0 * w[1] + w[2]) - (w[6] + 2.0 * w[7] + w[8])) / (8.0 * nsres);
+    (dx, dy)
+}
+
+/// `gdaldem hillshade`'s value of a window: 1 + 254 x the cosine of the angle between the
+/// light and the surface's normal (1 in shadow); with `multidirectional`, gdaldem's four
+/// lights (225, 270, 315 and 360 degrees) weighted by the slope's aspect, 1 + 127 x it
+/// (1 + 254 x the light's sine on flat ground, as gdaldem does).
+pub fn hillshade(w: &Window, (ewres, nsres): (f64, f64), o: &ReliefOptions) -> f64 {
+    let (dx, dy) = horn(w, ewres, nsres);
+    // gdaldem's x is the descent towards the east, y the rise towards the north.
+    let (x, y) = (-dx * o.z_factor, dy * o.z_factor);
+    let (sin_alt, cos_alt) = o.altitude.to_radians().sin_cos();
+    let xx_plus_yy = x * x + y * y;
+    let norm = (1.0 + xx_plus_yy).sqrt();
+    if !o.multidirectional {
+        let (sin_az, cos_az) = o.azimuth.to_radians().sin_cos();
+        let cang = (sin_alt - (y * cos_az * cos_alt - x * sin_az * cos_alt)) / norm;
+        return if cang <= 0.0 { 1.0 } else { 1.0 + 254.0 * cang };
+    }
+    if xx_plus_yy == 0.0 {
+        return 1.0 + 254.0 * sin_alt;
+    }
+    // cos(225 degrees) x cos(altitude): the 225 and 315 degree lights' share.
+    let diagonal = -cos_alt * std::f64::consts::FRAC_1_SQRT_2;
+    let val225 = (sin_alt + (x - y) * diagonal).max(0.0);
+    let val270 = (sin_alt - x * cos_alt).max(0.0);
+    let val315 = (sin_alt + (x + y) * diagonal).max(0.0);
+    let val360 = (sin_alt - y * cos_alt).max(0.0);
+    let w225 = 0.5 * xx_plus_yy - x * y;
+    let (w270, w315, w360) = (x * x, xx_plus_yy - w225, y * y);
+    let cang = (w225 * val225 + w270 * val270 + w315 * val315 + w360 * val360) / xx_plus_yy / norm;
+    1.0 + 127.0 * cang
+}
+
+/// `gdaldem slope`'s value of a window: degrees (or percent) of steepness.
+pub fn slope(w: &Window, (ewres, nsres): (f64, f64), percent: bool) -> f64 {
+    let (dx, dy) = horn(w, ewres, nsres);
+    let rise = dx.hypot(dy);
+    if percent { 100.0 * rise } else { rise.atan().to_degrees() }
+}
+
+/// `gdaldem aspect`'s value of a window: degrees clockwise from north of the steepest
+/// descent; None on flat ground (gdaldem's -9999).
+pub fn aspect(w: &Window) -> Option<f64> {
+    let dx = (w[2] + 2.0 * w[5] + w[8]) - (w[0] + 2.0 * w[3] + w[6]);
+    let dy = (w[6] + 2.0 * w[7] + w[8]) - (w[0] + 2.0 * w[1] + w[2]);
+    if dx == 0.0 && dy == 0.0 {
+        return None;
+    }
+    let angle = dy.atan2(-dx).to_degrees();
+    let aspect = if angle > 90.0 { 450.0 - angle } else { 90.0 - angle };
+    Some(if aspect >= 360.0 { aspect - 360.0 } else { aspect })
+}
+
+/// A relief tile to make.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReliefRequest {
+    /// What it shows.
+    pub product: Product,
+    /// The tile.
+    pub tile: WebTile,
+    /// The file's format.
+    pub format: ImageFormat,
+    /// Pixels a side.
+    pub size: u32,
+    /// `gdaldem`'s parameters.
+    pub options: ReliefOptions,
+}
+
+/// Makes a relief tile of the archive's elevation: the file's bytes; None when the tile
+/// holds no data. Archive tiles decoded are kept in `cache` when given.
+///
+/// # Errors
+/// [`MakeError::NotPlaced`] for an archive without placed elevation, [`MakeError::Tile`]
+/// for an archive tile that cannot be read, [`MakeError::Encode`].
+pub fn relief_tile(
+    reader: &Reader<MmapSource>,
+    request: &ReliefRequest,
+    cache: Option<(&DecodedCache, u64)>,
+) -> Result<Option<Vec<u8>>, MakeError> {
+    let Some(heights) = margin_heights(reader, request.tile, request.size, cache)? else { return Ok(None) };
+    let size = request.size as usize;
+    let mut rgba = vec![0u8; size * size * 4];
+    let span = size + 2 * LATTICE;
+    for row in 0..size {
+        // The ground size of a pixel at this row's latitude.
+        let (_, lat) = request.tile.lon_lat(0.0, row as f64 + 0.5, size as f64);
+        let res = request.tile.pixel_metres(lat, f64::from(request.size));
+        for column in 0..size {
+            let (r, c) = (row + LATTICE, column + LATTICE);
+            let h = |dr: usize, dc: usize| f64::from(heights[(r + dr - 1) * span + (c + dc - 1)]);
+            let window: Window = std::array::from_fn(|k| h(k / 3, k % 3));
+            let at = (row * size + column) * 4;
+            let centre = heights[r * span + c];
+            let pixel = if request.product == Product::ColorRelief {
+                Some(request.options.table.colour(centre))
+            } else if window.iter().any(|v| !v.is_finite()) {
+                None
+            } else {
+                pixel(request, &window, res)
+            };
+            if let Some(p) = pixel {
+                rgba[at..at + 4].copy_from_slice(&p);
+            }
+        }
+    }
+    request.format.encode(&rgba, request.size).map(Some).map_err(MakeError::Encode)
+}
+
+/// One pixel of a product from its window (`res`: the pixel's ground size, metres).
+#[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
+fn pixel(request: &ReliefRequest, window: &Window, res: f64) -> Option<[u8; 4]> {
+    let gray = |v: f64| {
+        let g = v.round().clamp(0.0, 255.0) as u8;
+        [g, g, g, 255]
+    };
+    let o = &request.options;
+    match request.product {
+        Product::Hillshade => Some(gray(hillshade(window, (res, res), o))),
+        Product::Slope => {
+            let s = slope(window, (res, res), o.slope_percent);
+            let full = if o.slope_percent { 100.0 } else { 90.0 };
+            Some(gray(255.0 * (1.0 - (s / full).min(1.0))))
+        }
+        Product::Aspect => aspect(window).map(|a| gray(a / 360.0 * 255.0)),
+        Product::ColorRelief => None,
+    }
+}
+
+/// The archive's heights on `tile`'s pixel grid (`size` a side) and one lattice cell
+/// around it, row by row ((size + 128) a side); NaN without data; None when none has data.
+fn margin_heights(
+    reader: &Reader<MmapSource>,
+    tile: WebTile,
+    size: u32,
+    cache: Option<(&DecodedCache, u64)>,
+) -> Result<Option<Vec<f32>>, MakeError> {
+    let metadata = reader.metadata();
+    let index = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation).ok_or(MakeError::NotPlaced)?;
+    let mut placed =
+        Placed::new(reader, u8::try_from(index).map_err(|_| MakeError::NotPlaced)?).ok_or(MakeError::NotPlaced)?;
+    if let Some((cache, version)) = cache {
+        placed = placed.with_cache(cache, version);
+    }
+    let span = size as usize + 2 * LATTICE;
+    let (size, margin) = (f64::from(size), LATTICE as f64);
+    let positions = placed.lattice(span, &|u, v| {
+        let (lon, lat) = tile.lon_lat(u - margin, v - margin, size);
+        placed.world(lon, lat)
+    });
+    // One LOD for the tile, from its centre's pixel size, as web tiles choose.
+    let centre = span / 2 * span + span / 2;
+    let per_pixel = match (positions.point(centre), positions.point(centre + 1)) {
+        (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1),
+        _ => f64::INFINITY,
+    };
+    placed.sample(&positions, placed.lod_for(per_pixel))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gdaldem_definitions_on_simple_slopes() {
+        // A plane rising 1 m a metre to the east, 1 m pixels.
+        let east: Window = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0, 0.0, 1.0, 2.0];
+        assert!((slope(&east, (1.0, 1.0), false) - 45.0).abs() < 1e-9);
+        assert!((slope(&east, (1.0, 1.0), true) - 100.0).abs() < 1e-9);
+        // Rising to the east: the steepest descent faces west.
+        assert_eq!(aspect(&east), Some(270.0));
+        let north: Window = [2.0, 2.0, 2.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0];
+        assert_eq!(aspect(&north), Some(180.0), "rising to the north faces south");
+        assert_eq!(aspect(&[5.0; 9]), None);
+        // Flat ground under a light 45 degrees up: 1 + 254 sin 45.
+        let flat = hillshade(&[5.0; 9], (1.0, 1.0), &ReliefOptions::default());
+        assert!((flat - (1.0 + 254.0 * 45f64.to_radians().sin())).abs() < 1e-9, "{flat}");
+        // A slope facing the light (north-west, descending that way) is brighter than flat.
+        let facing: Window = [0.0, 0.5, 1.0, 0.5, 1.0, 1.5, 1.0, 1.5, 2.0];
+        assert!(hillshade(&facing, (1.0, 1.0), &ReliefOptions::default()) > flat);
+    }
+
+    #[test]
+    fn colour_tables_read_gdaldem_text_and_interpolate() {
+        let t = ColorTable::parse("# a comment\n0 0 0 0\n100 200 100 50 128\nnv 1 2 3 0\n").unwrap();
+        assert_eq!(t.colour(50.0), [100, 50, 25, 192]);
+        assert_eq!(t.colour(-10.0), [0, 0, 0, 255]);
+        assert_eq!(t.colour(1000.0), [200, 100, 50, 128]);
+        assert_eq!(t.colour(f32::NAN), [1, 2, 3, 0]);
+        assert!(ColorTable::parse("0 0 0").unwrap_err().contains("line 1"));
+        assert!(ColorTable::parse("# nothing\n").is_err());
+        assert_eq!(ColorTable::default().colour(0.0), [94, 148, 190, 255]);
+    }
+}

@@ -1,0 +1,219 @@
+//! Maps from the heights: relief tiles against `gdaldem` (GDAL's command-line tool, the
+//! definitions they follow) on the same heights, tiles that join without a seam, and the
+//! server's routes and TileJSON for them.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::cast_possible_truncation,
+    clippy::cast_precision_loss,
+    missing_docs
+)]
+
+use std::path::Path;
+use std::process::Command;
+
+use terrastream_views::relief::{ReliefOptions, Window, aspect, hillshade, slope};
+
+const W: u32 = 48;
+const H: u32 = 40;
+/// Pixels of 30 m east-west, 20 m north-south (unequal: each axis's own spacing counts).
+const RES: (f64, f64) = (30.0, 20.0);
+
+fn gdal() -> bool {
+    let missing =
+        if Command::new("gdaldem").output().is_ok() { vec![] } else { vec!["gdaldem (apt-get install gdal-bin)"] };
+    terrastream_testkit::browser::skip_or_fail("GDALDEM", &missing)
+}
+
+/// Hills and a valley, metres.
+fn heights() -> Vec<f32> {
+    (0..W * H)
+        .map(|i| {
+            let (x, y) = (f64::from(i % W), f64::from(i / W));
+            (300.0 + 80.0 * (x / 7.0).sin() * (y / 5.0).cos() + 2.0 * x - 3.0 * y + 0.05 * x * y) as f32
+        })
+        .collect()
+}
+
+/// `heights` as a float32 GeoTIFF in UTM 10N, north up, `RES` pixels.
+fn write_geotiff(path: &Path, heights: &[f32]) {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    let mut encoder = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = encoder.new_image::<Gray32Float>(W, H).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33550), &[RES.0, RES.1, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, 500_000.0, 4_200_000.0, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32610][..]).unwrap();
+    image.write_data(heights).unwrap();
+}
+
+/// gdaldem's output as f64 values, row by row.
+fn read_values(path: &Path) -> Vec<f64> {
+    let mut decoder = tiff::decoder::Decoder::new(std::fs::File::open(path).unwrap()).unwrap();
+    match decoder.read_image().unwrap() {
+        tiff::decoder::DecodingResult::U8(v) => v.into_iter().map(f64::from).collect(),
+        tiff::decoder::DecodingResult::F32(v) => v.into_iter().map(f64::from).collect(),
+        other => panic!("unexpected sample type {:?}", std::mem::discriminant(&other)),
+    }
+}
+
+fn gdaldem(dir: &Path, args: &[&str]) -> Vec<f64> {
+    let out = dir.join(format!("{}.tif", args.join("_").replace('-', "")));
+    let status = Command::new("gdaldem")
+        .args(&args[..1])
+        .arg(dir.join("dem.tif"))
+        .arg(&out)
+        .args(&args[1..])
+        .args(["-q", "-of", "GTiff"])
+        .status()
+        .unwrap();
+    assert!(status.success(), "gdaldem {args:?}");
+    read_values(&out)
+}
+
+/// Every interior pixel's 3 x 3 window.
+fn windows(h: &[f32]) -> impl Iterator<Item = (usize, Window)> + '_ {
+    (1..H - 1).flat_map(move |r| {
+        (1..W - 1).map(move |c| {
+            let at = |dr: u32, dc: u32| f64::from(h[((r + dr - 1) * W + (c + dc - 1)) as usize]);
+            ((r * W + c) as usize, std::array::from_fn(|k| at(k as u32 / 3, k as u32 % 3)))
+        })
+    })
+}
+
+#[test]
+fn relief_follows_gdaldem_pixel_for_pixel() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let h = heights();
+    write_geotiff(&dir.path().join("dem.tif"), &h);
+    let defaults = ReliefOptions::default();
+    let cases: Vec<(&[&str], ReliefOptions, f64)> = vec![
+        (&["hillshade"], defaults.clone(), 0.55),
+        (
+            &["hillshade", "-z", "3", "-az", "120", "-alt", "30"],
+            ReliefOptions { z_factor: 3.0, azimuth: 120.0, altitude: 30.0, ..defaults.clone() },
+            0.55,
+        ),
+        (&["hillshade", "-multidirectional"], ReliefOptions { multidirectional: true, ..defaults.clone() }, 0.55),
+    ];
+    for (args, options, tolerance) in cases {
+        let theirs = gdaldem(dir.path(), args);
+        let mut worst: f64 = 0.0;
+        for (at, w) in windows(&h) {
+            worst = worst.max((hillshade(&w, RES, &options) - theirs[at]).abs());
+        }
+        eprintln!("gdaldem {args:?}: worst difference {worst:.3}");
+        // gdaldem writes bytes: ours rounds to the same byte.
+        assert!(worst <= tolerance, "gdaldem {args:?}: worst difference {worst}");
+    }
+    for (args, percent) in [(&["slope"][..], false), (&["slope", "-p"][..], true)] {
+        let theirs = gdaldem(dir.path(), args);
+        let worst = windows(&h).map(|(at, w)| (slope(&w, RES, percent) - theirs[at]).abs()).fold(0.0, f64::max);
+        eprintln!("gdaldem {args:?}: worst difference {worst:.2e}");
+        assert!(worst < 1e-3, "gdaldem {args:?}: worst difference {worst}");
+    }
+    // Aspect: gdaldem's own Horn form (no spacing: square pixels assumed); gdaldem works
+    // in single precision (with an approximate arc tangent): within 0.01 degree.
+    let theirs = gdaldem(dir.path(), &["aspect"]);
+    let worst = windows(&h).map(|(at, w)| (aspect(&w).unwrap_or(-9999.0) - theirs[at]).abs()).fold(0.0, f64::max);
+    eprintln!("gdaldem aspect: worst difference {worst:.2e}");
+    assert!(worst < 1e-2, "gdaldem aspect: worst difference {worst}");
+}
+
+fn terrastream(args: &[&str], cwd: &Path) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).current_dir(cwd).output().unwrap();
+    assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap()
+}
+
+fn png_gray(path: &Path) -> (u32, Vec<u8>) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut data = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut data).unwrap();
+    let channels = info.color_type.samples();
+    (info.width, data[..info.buffer_size()].chunks_exact(channels).map(|p| p[0]).collect())
+}
+
+/// Exported hillshade tiles join without a seam: across every shared edge between two
+/// tiles holding data, the step from one tile's last column to the next one's first is no
+/// larger than the steps between neighbouring columns inside the tiles. And the server
+/// answers the same tiles, with a TileJSON of a `raster` source for them.
+#[test]
+fn relief_tiles_join_without_a_seam_and_are_served() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    let args =
+        ["-q", "export", "dem.tspack", "--to", "xyz", "--product", "hillshade", "--format", "png", "--size", "256"];
+    terrastream(&[&args[..], &["--minzoom", "14", "--maxzoom", "14", "-o", "shade"]].concat(), work);
+    let doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(work.join("shade/tiles.json")).unwrap()).unwrap();
+    assert_eq!(doc["type"], "raster");
+    let folder = work.join("shade/14");
+    let mut columns: Vec<u32> = std::fs::read_dir(&folder)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_str().unwrap().parse().unwrap())
+        .collect();
+    columns.sort_unstable();
+    let (mut seams, mut inside, mut pairs) = (0.0, 0.0, 0);
+    for pair in columns.windows(2).filter(|p| p[1] == p[0] + 1) {
+        for entry in std::fs::read_dir(folder.join(pair[0].to_string())).unwrap() {
+            let name = entry.unwrap().file_name();
+            let east = folder.join(pair[1].to_string()).join(&name);
+            if !east.exists() {
+                continue;
+            }
+            let (w, a) = png_gray(&folder.join(pair[0].to_string()).join(&name));
+            let (_, b) = png_gray(&east);
+            let w = w as usize;
+            for row in 0..w {
+                let (a1, a2, b0) = (a[row * w + w - 2], a[row * w + w - 1], b[row * w]);
+                if a1 > 0 && a2 > 0 && b0 > 0 {
+                    seams += f64::from(a2.abs_diff(b0));
+                    inside += f64::from(a1.abs_diff(a2));
+                    pairs += 1;
+                }
+            }
+        }
+    }
+    assert!(pairs > 200, "{pairs} pixel pairs across seams");
+    let (seam, interior) = (seams / f64::from(pairs), inside / f64::from(pairs));
+    eprintln!("mean step across seams {seam:.2}, between the last two columns {interior:.2} ({pairs} rows)");
+    assert!(seam <= interior * 1.5 + 0.5, "a seam: {seam:.2} across, {interior:.2} inside");
+
+    // The server: the same tile bytes, a TileJSON of a raster source, 404 off the data.
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &["dem.tspack"], work);
+    let (status, body) =
+        terrastream_testkit::http::request(server.port, "GET", "/dem/hillshade/tiles.json?size=256", None);
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+    let doc: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(doc["type"], "raster");
+    assert!(doc["tiles"][0].as_str().unwrap().contains("/dem/xyz/hillshade/{z}/{x}/{y}.webp?size=256"), "{doc}");
+    let column = columns[0];
+    let row = std::fs::read_dir(folder.join(column.to_string())).unwrap().next().unwrap().unwrap().file_name();
+    let row = row.to_str().unwrap().trim_end_matches(".png").to_owned();
+    let path = format!("/dem/xyz/hillshade/14/{column}/{row}.png?size=256");
+    let (status, served) = terrastream_testkit::http::request(server.port, "GET", &path, None);
+    assert_eq!(status, 200);
+    assert_eq!(served, std::fs::read(folder.join(column.to_string()).join(format!("{row}.png"))).unwrap());
+    for product in ["slope", "aspect", "color-relief"] {
+        let (status, body) = terrastream_testkit::http::request(
+            server.port,
+            "GET",
+            &format!("/dem/xyz/{product}/14/{column}/{row}.webp"),
+            None,
+        );
+        assert_eq!(status, 200, "{product}: {}", String::from_utf8_lossy(&body));
+        assert!(body.starts_with(b"RIFF"), "{product}: a WebP");
+    }
+    let (status, body) =
+        terrastream_testkit::http::request(server.port, "GET", "/dem/xyz/hillshade/3/1/1.png?altitude=95", None);
+    assert_eq!(status, 400, "{}", String::from_utf8_lossy(&body));
+    assert_eq!(terrastream_testkit::http::request(server.port, "GET", "/dem/xyz/hillshade/3/0/0.png", None).0, 404);
+}
