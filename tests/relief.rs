@@ -217,3 +217,122 @@ fn relief_tiles_join_without_a_seam_and_are_served() {
     assert_eq!(status, 400, "{}", String::from_utf8_lossy(&body));
     assert_eq!(terrastream_testkit::http::request(server.port, "GET", "/dem/xyz/hillshade/3/0/0.png", None).0, 404);
 }
+
+/// Where a polyline crosses the vertical line `x` (tile units): the crossings' y.
+fn crossings(points: &[(i32, i32)], x: i32) -> Vec<f64> {
+    let mut out = vec![];
+    for pair in points.windows(2) {
+        let ((x0, y0), (x1, y1)) = (pair[0], pair[1]);
+        if (x0 < x) != (x1 < x) {
+            let t = f64::from(x - x0) / f64::from(x1 - x0);
+            out.push(f64::from(y0) + t * f64::from(y1 - y0));
+        }
+    }
+    out
+}
+
+/// Contour tiles: a line crossing a tile edge goes on in the neighbour from the same
+/// point at the same height (within a unit of 4096: no gap, no kink, none lost); every
+/// vertex lies where the terrain has the line's height (the elevation API at the
+/// vertex); the TileJSON is a vector source naming its fields; the PMTiles export holds
+/// the served tiles.
+#[test]
+fn contour_lines_continue_across_tile_edges_at_their_heights() {
+    use terrastream_views::mvt::{Value, decode};
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &["dem.tspack"], work);
+    let get = |path: &str| terrastream_testkit::http::request(server.port, "GET", path, None);
+    let (status, body) = get("/dem/contours/tiles.json?interval=20");
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+    let doc: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!((doc["type"].as_str(), doc["vector_layers"][0]["id"].as_str()), (Some("vector"), Some("contours")));
+    assert!(doc["tiles"][0].as_str().unwrap().ends_with("/dem/contours/{z}/{x}/{y}.pbf?interval=20"), "{doc}");
+    // Zoom 14 over the data's middle: two neighbours side by side.
+    let [w, s, e, n]: [f64; 4] = serde_json::from_value(doc["bounds"].clone()).unwrap();
+    let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
+    let z = 14u32;
+    let k = f64::from(1u32 << z);
+    let x = ((lon + 180.0) / 360.0 * k) as u32;
+    let y = ((1.0 - lat.to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
+    let tile = |x: u32| {
+        let (status, body) = get(&format!("/dem/contours/{z}/{x}/{y}.pbf?interval=20"));
+        assert_eq!(status, 200);
+        decode(&body).unwrap()
+    };
+    let (west, east) = (tile(x), tile(x + 1));
+    let ele = |l: &terrastream_views::mvt::Line| match l.properties[0].1 {
+        Value::Number(n) => n,
+        Value::Bool(_) => f64::NAN,
+    };
+    let mut matched = 0;
+    for line in &west {
+        for y_west in crossings(&line.points, 4096) {
+            let found = east
+                .iter()
+                .filter(|l| ele(l) == ele(line))
+                .flat_map(|l| crossings(&l.points, 0))
+                .any(|y_east| (y_east - y_west).abs() <= 1.0);
+            let near: Vec<f64> =
+                east.iter().filter(|l| ele(l) == ele(line)).flat_map(|l| crossings(&l.points, 0)).collect();
+            assert!(
+                found,
+                "the {} m line leaves the west tile at y {y_west:.0} and is not in the east one: {near:?}",
+                ele(line)
+            );
+            matched += 1;
+        }
+    }
+    assert!(matched >= 5, "{matched} lines cross the edge");
+    // Every vertex inside the west tile lies at its line's height, within a fifth of the
+    // interval (the elevation API's bilinear heights at the vertex).
+    let mut points = vec![];
+    for line in west.iter().take(40) {
+        for &(px, py) in
+            line.points.iter().filter(|(px, py)| (0..4096).contains(px) && (0..4096).contains(py)).step_by(7)
+        {
+            let (fx, fy) = ((f64::from(x) + f64::from(px) / 4096.0) / k, (f64::from(y) + f64::from(py) / 4096.0) / k);
+            let lon = fx * 360.0 - 180.0;
+            let lat = (std::f64::consts::PI * (1.0 - 2.0 * fy)).sinh().atan().to_degrees();
+            points.push((lat, lon, ele(line)));
+        }
+    }
+    assert!(points.len() >= 20, "{} vertices", points.len());
+    for chunk in points.chunks(100) {
+        let locations: Vec<String> = chunk.iter().map(|(lat, lon, _)| format!("{lat:.7},{lon:.7}")).collect();
+        let (status, body) = get(&format!("/v1/dem?locations={}", locations.join("|")));
+        assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+        let answer: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        for ((_, _, level), result) in chunk.iter().zip(answer["results"].as_array().unwrap()) {
+            let h = result["elevation"].as_f64().unwrap();
+            assert!((h - level).abs() <= 4.0, "a vertex of the {level} m line lies at {h:.1} m");
+        }
+    }
+    // The PMTiles export: the served tile, byte for byte.
+    let zs = z.to_string();
+    terrastream(
+        &[
+            "-q",
+            "export",
+            "dem.tspack",
+            "--to",
+            "contours",
+            "--interval",
+            "20",
+            "--minzoom",
+            &zs,
+            "--maxzoom",
+            &zs,
+            "-o",
+            "c.pmtiles",
+        ],
+        work,
+    );
+    let bytes = std::fs::read(work.join("c.pmtiles")).unwrap();
+    let (_, served) = get(&format!("/dem/contours/{z}/{x}/{y}.pbf?interval=20"));
+    assert!(bytes.windows(served.len()).any(|w| w == served), "the exported tile is the served one");
+    assert_eq!(bytes[99], 1, "PMTiles tile type: MVT");
+}

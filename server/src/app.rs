@@ -189,6 +189,7 @@ pub fn service(state: AppState) -> Edge<Router> {
             Route::Elevation => get(crate::web::elevation_get).post(crate::web::elevation_post),
             Route::LayerJson => get(crate::web::quantized::layer_json),
             Route::TerrainTile => get(crate::web::quantized::terrain_tile),
+            Route::Contours => get(crate::web::contours::tile),
             Route::Other => return router,
         };
         router.route(route.template(), handler)

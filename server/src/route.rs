@@ -43,13 +43,15 @@ pub enum Route {
     LayerJson,
     /// `/{name}/{z}/{x}/{y}.terrain`: a quantized-mesh tile.
     TerrainTile,
+    /// `/{name}/contours/{z}/{x}/{y}.pbf`: a contour vector tile.
+    Contours,
     /// Anything else (answered 404; counted under "other").
     Other,
 }
 
 impl Route {
     /// Every route, in the order the metrics list them.
-    pub const ALL: [Self; 15] = [
+    pub const ALL: [Self; 16] = [
         Self::Index,
         Self::Health,
         Self::Metrics,
@@ -64,6 +66,7 @@ impl Route {
         Self::Elevation,
         Self::LayerJson,
         Self::TerrainTile,
+        Self::Contours,
         Self::Other,
     ];
 
@@ -85,6 +88,7 @@ impl Route {
             Self::Elevation => "/v1/{name}",
             Self::LayerJson => "/{name}/layer.json",
             Self::TerrainTile => "/{name}/{z}/{x}/{y}",
+            Self::Contours => "/{name}/contours/{z}/{x}/{y}",
             Self::Other => "other",
         }
     }
@@ -120,6 +124,9 @@ impl Route {
             (f, [Some("xyz"), Some(l), Some(z), Some(x), Some(y), None]) if ![f, l, z, x, y].contains(&"") => {
                 Self::WebTile
             }
+            (f, [Some("contours"), Some(z), Some(x), Some(y), None, ..]) if ![f, z, x, y].contains(&"") => {
+                Self::Contours
+            }
             (f, [Some(a), Some(b), Some(c), Some(d), None, ..]) if ![f, a, b, c, d].contains(&"") => Self::Tile,
             (f, [Some(z), Some(x), Some(y), None, ..]) if ![f, z, x, y].contains(&"") => Self::TerrainTile,
             _ => Self::Other,
@@ -152,6 +159,7 @@ mod tests {
             ("/a/xyz/elevation/12/655/1582.webp/x", "other"),
             ("/a/layer.json", "/{name}/layer.json"),
             ("/a/12/655/1582.terrain", "/{name}/{z}/{x}/{y}"),
+            ("/a/contours/12/655/1582.pbf", "/{name}/contours/{z}/{x}/{y}"),
             ("/v1/a", "/v1/{name}"),
             ("/v1/", "other"),
             ("/a//0/1/2", "other"),

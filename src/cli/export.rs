@@ -7,10 +7,11 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{LayerKind, MmapSource, Reader};
 use terrastream_pack::progress::Progress;
+use terrastream_views::contours::ContourOptions;
 use terrastream_views::encode::{HeightEncoding, ImageFormat};
 use terrastream_views::export::{WebExport, export_xyz};
 use terrastream_views::mercator::tiles_over;
-use terrastream_views::pmtiles::export_web_pmtiles;
+use terrastream_views::pmtiles::{export_contours_pmtiles, export_web_pmtiles};
 use terrastream_views::quantized::export::export_quantized_mesh;
 use terrastream_views::relief::{ColorTable, Product, ReliefOptions};
 use terrastream_views::tilejson::coverage;
@@ -81,6 +82,15 @@ struct ReliefArgs {
     /// A colour table in gdaldem color-relief's text format (default: built-in tints).
     #[arg(long)]
     color_table: Option<PathBuf>,
+    /// `--to contours`: the height between lines [default: the zoom's].
+    #[arg(long)]
+    interval: Option<f64>,
+    /// `--to contours`: every how many lines a major one is.
+    #[arg(long, default_value_t = 5)]
+    major: u32,
+    /// `--to contours`: heights in feet.
+    #[arg(long)]
+    feet: bool,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -100,6 +110,9 @@ enum ExportFormat {
     /// Quantized-mesh terrain (CesiumJS): layer.json and a gzipped {z}/{x}/{y}.terrain
     /// tree, for any static host that sends `Content-Encoding: gzip` with them.
     QuantizedMesh,
+    /// Contour lines as a PMTiles file of vector tiles (layer `contours`: `ele`, `major`),
+    /// for MapLibre's pmtiles protocol.
+    Contours,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -119,7 +132,38 @@ pub fn run(args: ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
         ExportFormat::Pmtiles if args.encoding.is_none() && args.product.is_none() => run_pmtiles(&args, progress),
         ExportFormat::Pmtiles | ExportFormat::Xyz => run_web(&args, progress),
         ExportFormat::QuantizedMesh => run_quantized_mesh(&args, progress),
+        ExportFormat::Contours => run_contours(&args, progress),
     }
+}
+
+/// Contour lines as a PMTiles file of vector tiles.
+fn run_contours(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
+    let reader = Reader::open_mmap(&args.archive).with_context(|| format!("cannot open archive {}", args.archive))?;
+    anyhow::ensure!(args.relief.interval.is_none_or(|i| i.is_finite() && i >= 0.1), "--interval: at least 0.1");
+    anyhow::ensure!(args.relief.major >= 1, "--major: at least 1");
+    let options = ContourOptions { interval: args.relief.interval, major: args.relief.major, feet: args.relief.feet };
+    let started = std::time::Instant::now();
+    let tick = |total: Option<u64>| {
+        match total {
+            Some(total) => progress.start("tiles", total),
+            None => progress.advance(1),
+        }
+        progress.check().map_err(|_| terrastream_format::Interrupted)
+    };
+    let (summary, zooms) = export_contours_pmtiles(&reader, options, (args.minzoom, args.maxzoom), &args.output, &tick)
+        .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
+    progress.finish();
+    println!(
+        "{}: PMTiles v3 of contour vector tiles, zooms {}..{}, {} tiles ({} distinct), {} bytes in {:.2} s",
+        args.output.display(),
+        zooms.0,
+        zooms.1,
+        summary.addressed_tiles,
+        summary.tile_contents,
+        summary.file_len,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The elevation as quantized-mesh terrain in a folder.

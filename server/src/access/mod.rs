@@ -432,7 +432,8 @@ fn target(path: &str) -> Target<'_> {
         | Route::LayerTileJson
         | Route::WebTile
         | Route::LayerJson
-        | Route::TerrainTile => first,
+        | Route::TerrainTile
+        | Route::Contours => first,
     };
     // Undecodable: the router answers 400 without reaching a handler.
     percent_decoded(name).map_or(Target::Open, Target::Archive)

@@ -13,6 +13,7 @@
 //!   of 256 for the same screen. 404 outside the data.
 //! - `GET|POST /v1/{name}`: heights at points (see [`elevation`]).
 
+pub mod contours;
 pub mod pool;
 pub mod quantized;
 mod relief;
@@ -117,8 +118,12 @@ pub struct TileQuery {
     pub altitude: Option<f64>,
     /// Relief tiles: `true` for four lights (`-multidirectional`).
     pub multidirectional: Option<bool>,
-    /// Slope tiles: `degrees` (default) or `percent`.
+    /// Slope tiles: `degrees` (default) or `percent`; contours: `m` (default) or `ft`.
     pub units: Option<String>,
+    /// Contours: the height between lines (default: the zoom's).
+    pub interval: Option<f64>,
+    /// Contours: every how many lines a major one is (default 5).
+    pub major: Option<u32>,
 }
 
 /// A web route's error: status and a one-line reason.
@@ -206,6 +211,9 @@ fn layer_tilejson_of(
 ) -> Result<Response, WebError> {
     let served = state.catalog.get(name).ok_or_else(|| not_found(format!("no archive named {name:?}")))?;
     let metadata = served.reader.metadata();
+    if layer == Some("contours") && metadata.resolve_layer("contours").is_none() {
+        return contours::tilejson_of(state, name, query, grant, headers);
+    }
     let elevation = || {
         let i = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation);
         i.and_then(|i| u8::try_from(i).ok())

@@ -11,10 +11,12 @@
 #![forbid(unsafe_code)]
 
 pub mod cache;
+pub mod contours;
 pub mod elevation;
 pub mod encode;
 pub mod export;
 pub mod mercator;
+pub mod mvt;
 #[cfg(feature = "pmtiles")]
 pub mod pmtiles;
 pub mod quantized;

@@ -316,7 +316,12 @@ fn pixel(request: &ReliefRequest, window: &Window, res: f64) -> Option<[u8; 4]> 
 
 /// The archive's heights on `tile`'s pixel grid (`size` a side) and one lattice cell
 /// around it, row by row ((size + 128) a side); NaN without data; None when none has data.
-fn margin_heights(
+/// One LOD for every tile of a zoom (chosen at the data's centre, as quantized-mesh
+/// levels are), so that neighbours sample the same heights where their windows overlap.
+///
+/// # Errors
+/// [`MakeError::NotPlaced`] without placed elevation, [`MakeError::Tile`].
+pub(crate) fn margin_heights(
     reader: &Reader<MmapSource>,
     tile: WebTile,
     size: u32,
@@ -335,9 +340,11 @@ fn margin_heights(
         let (lon, lat) = tile.lon_lat(u - margin, v - margin, size);
         placed.world(lon, lat)
     });
-    // One LOD for the tile, from its centre's pixel size, as web tiles choose.
-    let centre = span / 2 * span + span / 2;
-    let per_pixel = match (positions.point(centre), positions.point(centre + 1)) {
+    let coverage = crate::tilejson::coverage(metadata, &metadata.layers[index], 256).ok_or(MakeError::NotPlaced)?;
+    let [w, s, e, n] = coverage.bounds;
+    let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
+    let step = 360.0 / (tile.count() * size);
+    let per_pixel = match (placed.world(lon, lat), placed.world(lon + step, lat)) {
         (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1),
         _ => f64::INFINITY,
     };

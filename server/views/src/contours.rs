@@ -1,0 +1,380 @@
+//! Contour lines as Mapbox Vector Tiles: layer `contours`, properties `ele` (metres or
+//! feet) and `major`.
+//!
+//! A tile's lines are traced (marching squares, saddles split by the cell's mean) on its
+//! heights sampled with a margin of one lattice cell (64 pixels of a 256-pixel grid), the
+//! same heights its neighbours sample there ([`crate::relief`]'s window), then clipped to
+//! the tile and a buffer of 64 units of 4096: a line crossing a tile edge is the same
+//! curve on both sides and continues without a gap. Lines are simplified to a quarter
+//! of a pixel (Douglas-Peucker) and end where the data ends (a cell with a corner without
+//! data draws nothing).
+
+use std::collections::HashMap;
+
+use terrastream_format::{MmapSource, Reader};
+
+use crate::mercator::WebTile;
+use crate::mvt::{self, Line, Value};
+use crate::relief::margin_heights;
+use crate::resample::{DecodedCache, LATTICE, MakeError};
+
+/// Tile units a side.
+pub const EXTENT: i32 = 4096;
+/// Tile units drawn beyond each edge.
+pub const BUFFER: i32 = 64;
+/// Samples a side of the grid a tile is traced on.
+const GRID: u32 = 256;
+
+/// Metres a foot.
+const FOOT: f64 = 0.3048;
+
+/// What a contour tile holds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ContourOptions {
+    /// Height between lines (in `feet` or metres); None: the zoom's default.
+    pub interval: Option<f64>,
+    /// Every how many lines a major one is (default 5).
+    pub major: u32,
+    /// Heights in feet rather than metres.
+    pub feet: bool,
+}
+
+impl Default for ContourOptions {
+    fn default() -> Self {
+        Self { interval: None, major: 5, feet: false }
+    }
+}
+
+/// The default interval of zoom `z` (metres, or feet in `feet`): dense enough to read
+/// the terrain at that scale, sparse enough not to fill it (4 pixels apart on a 45-degree
+/// slope at 45 degrees of latitude, rounded to 1, 2 or 5 times a power of ten): 100 m at
+/// zoom 12, 20 m at zoom 14.
+pub fn default_interval(z: u8, feet: bool) -> f64 {
+    let metres = 40_075_016.686 * std::f64::consts::FRAC_1_SQRT_2 / (256.0 * f64::from(1u32 << z.min(24))) * 4.0;
+    let target = if feet { metres / FOOT } else { metres };
+    let power = 10f64.powf(target.log10().floor());
+    let nice = [1.0, 2.0, 5.0, 10.0].into_iter().map(|m| m * power).find(|&v| v >= target * 0.7).unwrap_or(power);
+    nice.max(1.0)
+}
+
+/// The contour tile of `tile`: MVT bytes; None when the tile has no data.
+///
+/// # Errors
+/// [`MakeError::NotPlaced`] without placed elevation, [`MakeError::Tile`].
+pub fn contour_tile(
+    reader: &Reader<MmapSource>,
+    tile: WebTile,
+    options: ContourOptions,
+    cache: Option<(&DecodedCache, u64)>,
+) -> Result<Option<Vec<u8>>, MakeError> {
+    let Some(mut heights) = margin_heights(reader, tile, GRID, cache)? else { return Ok(None) };
+    if options.feet {
+        #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+        heights.iter_mut().for_each(|h| *h = (f64::from(*h) / FOOT) as f32);
+    }
+    let interval = options.interval.filter(|i| *i > 0.0).unwrap_or_else(|| default_interval(tile.z, options.feet));
+    let span = GRID as usize + 2 * LATTICE;
+    let lines = trace(&heights, span, interval, options.major.max(1));
+    Ok(Some(mvt::encode("contours", EXTENT.unsigned_abs(), &lines)))
+}
+
+/// The TileJSON 3.0.0 document of an archive's contours (`name`: its URL name), a vector
+/// source whose `vector_layers` name the layer and its fields.
+pub fn tilejson(
+    name: &str,
+    description: &str,
+    tiles: String,
+    coverage: crate::tilejson::Coverage,
+) -> serde_json::Value {
+    let [w, s, e, n] = coverage.bounds;
+    serde_json::json!({
+        "tilejson": "3.0.0",
+        "name": format!("{name} contours"),
+        "description": description,
+        "version": "1.0.0",
+        "scheme": "xyz",
+        "type": "vector",
+        "format": "pbf",
+        "tiles": [tiles],
+        "minzoom": 0,
+        "maxzoom": coverage.maxzoom,
+        "bounds": [w, s, e, n],
+        "center": [(w + e) / 2.0, (s + n) / 2.0, coverage.maxzoom.saturating_sub(3)],
+        "vector_layers": [{
+            "id": "contours",
+            "description": "Contour lines: ele, the height (metres or feet); major, every fifth (or as asked)",
+            "minzoom": 0,
+            "maxzoom": coverage.maxzoom,
+            "fields": { "ele": "Number", "major": "Boolean" },
+        }],
+    })
+}
+
+/// Every contour of `heights` (`span` a side, the tile's grid in its middle), clipped
+/// to the tile and its buffer, in tile units.
+#[expect(clippy::cast_possible_truncation, reason = "levels of finite heights; vertices within the buffered tile")]
+fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
+    let (lo, hi) = heights
+        .iter()
+        .filter(|h| h.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &h| (lo.min(f64::from(h)), hi.max(f64::from(h))));
+    if !lo.is_finite() {
+        return vec![];
+    }
+    let mut lines = vec![];
+    let first = (lo / interval).ceil() as i64;
+    let last = (hi / interval).floor() as i64;
+    for k in first..=last {
+        let level = k as f64 * interval;
+        let is_major = k.rem_euclid(i64::from(major)) == 0;
+        for chain in level_chains(heights, span, level) {
+            for piece in clip(&chain) {
+                let piece = simplify_anchored(&piece, 4.0);
+                let points: Vec<(i32, i32)> = dedup(piece.iter().map(|&(x, y)| (x.round() as i32, y.round() as i32)));
+                if points.len() >= 2 {
+                    lines.push(Line {
+                        points,
+                        properties: vec![("ele", Value::Number(level)), ("major", Value::Bool(is_major))],
+                    });
+                }
+            }
+        }
+    }
+    lines
+}
+
+/// The crossings of `level` joined into chains, in tile units.
+fn level_chains(h: &[f32], span: usize, level: f64) -> Vec<Vec<(f64, f64)>> {
+    // An edge of the sample grid: (column, row, horizontal?) as one key.
+    let key = |c: usize, r: usize, horizontal: bool| ((r * span + c) << 1) | usize::from(horizontal);
+    let value = |c: usize, r: usize| f64::from(h[r * span + c]);
+    let scale = f64::from(EXTENT) / f64::from(GRID);
+    // Sample (c, r) lies at the centre of pixel (c - margin, r - margin) of the tile.
+    let point = |c: f64, r: f64| ((c - LATTICE as f64 + 0.5) * scale, (r - LATTICE as f64 + 0.5) * scale);
+    let crossing = |k: usize| {
+        let (horizontal, at) = (k & 1 == 1, k >> 1);
+        let (c, r) = (at % span, at / span);
+        let (a, b) = if horizontal { (value(c, r), value(c + 1, r)) } else { (value(c, r), value(c, r + 1)) };
+        let t = ((level - a) / (b - a)).clamp(0.0, 1.0);
+        if horizontal { point(c as f64 + t, r as f64) } else { point(c as f64, r as f64 + t) }
+    };
+    let mut links: HashMap<usize, Vec<usize>> = HashMap::new();
+    let mut link = |a: usize, b: usize| {
+        links.entry(a).or_default().push(b);
+        links.entry(b).or_default().push(a);
+    };
+    for r in 0..span - 1 {
+        for c in 0..span - 1 {
+            let corners = [value(c, r), value(c + 1, r), value(c + 1, r + 1), value(c, r + 1)];
+            if corners.iter().any(|v| !v.is_finite()) {
+                continue;
+            }
+            let case = corners.iter().enumerate().fold(0, |m, (i, &v)| m | (usize::from(v >= level) << i));
+            let (top, right, bottom, left) =
+                (key(c, r, true), key(c + 1, r, false), key(c, r + 1, true), key(c, r, false));
+            let centre_above = corners.iter().sum::<f64>() / 4.0 >= level;
+            match case {
+                0 | 15 => {}
+                1 | 14 => link(left, top),
+                2 | 13 => link(top, right),
+                3 | 12 => link(left, right),
+                4 | 11 => link(right, bottom),
+                6 | 9 => link(top, bottom),
+                7 | 8 => link(left, bottom),
+                5 if centre_above => (link(left, bottom), link(top, right)).1,
+                5 => (link(left, top), link(right, bottom)).1,
+                10 if centre_above => (link(left, top), link(right, bottom)).1,
+                _ => (link(left, bottom), link(top, right)).1,
+            }
+        }
+    }
+    // Walk the links: open chains from their ends first, then the closed loops.
+    let mut chains = vec![];
+    let mut starts: Vec<usize> = links.iter().filter(|(_, v)| v.len() == 1).map(|(k, _)| *k).collect();
+    starts.sort_unstable();
+    let mut loops: Vec<usize> = links.keys().copied().collect();
+    loops.sort_unstable();
+    for start in starts.into_iter().chain(loops) {
+        if links.get(&start).is_none_or(Vec::is_empty) {
+            continue;
+        }
+        let mut chain = vec![crossing(start)];
+        let mut at = start;
+        while let Some(next) = links.get_mut(&at).and_then(Vec::pop) {
+            if let Some(back) = links.get_mut(&next)
+                && let Some(i) = back.iter().position(|&k| k == at)
+            {
+                back.swap_remove(i);
+            }
+            chain.push(crossing(next));
+            at = next;
+        }
+        if chain.len() >= 2 {
+            chains.push(chain);
+        }
+    }
+    chains
+}
+
+/// The parts of a polyline inside the tile and its buffer.
+fn clip(line: &[(f64, f64)]) -> Vec<Vec<(f64, f64)>> {
+    let (lo, hi) = (f64::from(-BUFFER), f64::from(EXTENT + BUFFER));
+    let inside = |p: (f64, f64)| (lo..=hi).contains(&p.0) && (lo..=hi).contains(&p.1);
+    let mut pieces = vec![];
+    let mut current: Vec<(f64, f64)> = vec![];
+    for pair in line.windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        // Liang-Barsky: the part of segment a-b inside the box.
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        let (mut t0, mut t1) = (0.0f64, 1.0f64);
+        let mut visible = true;
+        for (p, q) in [(-dx, a.0 - lo), (dx, hi - a.0), (-dy, a.1 - lo), (dy, hi - a.1)] {
+            if p == 0.0 {
+                visible &= q >= 0.0;
+            } else if p < 0.0 {
+                t0 = t0.max(q / p);
+            } else {
+                t1 = t1.min(q / p);
+            }
+        }
+        if !visible || t0 > t1 {
+            if !current.is_empty() {
+                pieces.push(std::mem::take(&mut current));
+            }
+            continue;
+        }
+        let (p0, p1) = ((a.0 + t0 * dx, a.1 + t0 * dy), (a.0 + t1 * dx, a.1 + t1 * dy));
+        if current.is_empty() {
+            current.push(p0);
+        }
+        current.push(p1);
+        if t1 < 1.0 || !inside(b) {
+            pieces.push(std::mem::take(&mut current));
+        }
+    }
+    if !current.is_empty() {
+        pieces.push(current);
+    }
+    pieces.into_iter().filter(|p| p.len() >= 2).collect()
+}
+
+/// [`simplify`] between anchors: the points where the line crosses the tile's edges are
+/// added and kept, so that neighbours, which trace the same curve, keep the same crossing
+/// and the line goes on from it.
+fn simplify_anchored(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
+    let edge = f64::from(EXTENT);
+    let mut points = vec![line[0]];
+    let mut anchors = vec![0];
+    for pair in line.windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        let mut cuts: Vec<f64> = [0.0, edge]
+            .iter()
+            .flat_map(|&v| [((v - a.0) / (b.0 - a.0)), ((v - a.1) / (b.1 - a.1))])
+            .filter(|t| t.is_finite() && *t > 0.0 && *t < 1.0)
+            .collect();
+        cuts.sort_by(f64::total_cmp);
+        for t in cuts {
+            points.push((a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1)));
+            anchors.push(points.len() - 1);
+        }
+        points.push(b);
+    }
+    anchors.push(points.len() - 1);
+    anchors.dedup();
+    let mut out: Vec<(f64, f64)> = vec![];
+    for pair in anchors.windows(2) {
+        let part = simplify(&points[pair[0]..=pair[1]], tolerance);
+        out.extend(part.into_iter().skip(usize::from(!out.is_empty())));
+    }
+    out
+}
+
+/// Douglas-Peucker: the vertices to keep so that no dropped one is further than
+/// `tolerance` from the simplified line.
+fn simplify(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
+    if line.len() <= 2 {
+        return line.to_vec();
+    }
+    let mut keep = vec![false; line.len()];
+    keep[0] = true;
+    keep[line.len() - 1] = true;
+    let mut stack = vec![(0, line.len() - 1)];
+    while let Some((first, last)) = stack.pop() {
+        let (a, b) = (line[first], line[last]);
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        let length = dx.hypot(dy);
+        let distance = |p: (f64, f64)| {
+            if length == 0.0 {
+                (p.0 - a.0).hypot(p.1 - a.1)
+            } else {
+                ((p.0 - a.0) * dy - (p.1 - a.1) * dx).abs() / length
+            }
+        };
+        let (worst, d) =
+            (first + 1..last).map(|i| (i, distance(line[i]))).fold((first, 0.0), |m, c| if c.1 > m.1 { c } else { m });
+        if d > tolerance {
+            keep[worst] = true;
+            stack.push((first, worst));
+            stack.push((worst, last));
+        }
+    }
+    line.iter().zip(keep).filter(|(_, k)| *k).map(|(p, _)| *p).collect()
+}
+
+fn dedup(points: impl Iterator<Item = (i32, i32)>) -> Vec<(i32, i32)> {
+    let mut out: Vec<(i32, i32)> = vec![];
+    for p in points {
+        if out.last() != Some(&p) {
+            out.push(p);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cone: every contour a circle around the middle, closed, at its own level.
+    #[test]
+    #[expect(clippy::cast_possible_truncation, reason = "test heights")]
+    fn a_cone_gives_one_closed_ring_a_level() {
+        let span = GRID as usize + 2 * LATTICE;
+        let middle = span as f64 / 2.0;
+        let heights: Vec<f32> = (0..span * span)
+            .map(|i| {
+                let (c, r) = ((i % span) as f64, (i / span) as f64);
+                (1000.0 - (c - middle).hypot(r - middle) * 10.0) as f32
+            })
+            .collect();
+        let lines = trace(&heights, span, 100.0, 5);
+        let levels: Vec<f64> = lines
+            .iter()
+            .filter_map(|l| match l.properties[0].1 {
+                Value::Number(n) => Some(n),
+                Value::Bool(_) => None,
+            })
+            .collect();
+        // Rings of radius 10 to 130 samples lie inside the tile and its buffer; each once.
+        for level in [900.0, 800.0, 700.0] {
+            assert_eq!(levels.iter().filter(|&&l| l == level).count(), 1, "{level}: {levels:?}");
+        }
+        let ring = lines.iter().find(|l| l.properties[0].1 == Value::Number(900.0)).unwrap();
+        assert_eq!(ring.points.first(), ring.points.last(), "closed");
+        assert!(lines.iter().any(|l| l.properties[1].1 == Value::Bool(true)), "500 m and 1000 m are major");
+    }
+
+    #[test]
+    fn clipping_keeps_what_is_inside_the_buffer() {
+        let line = [(-1000.0, 100.0), (5000.0, 100.0)];
+        assert_eq!(clip(&line), vec![vec![(-64.0, 100.0), (4160.0, 100.0)]]);
+        assert!(clip(&[(-1000.0, -1000.0), (-900.0, -900.0)]).is_empty());
+    }
+
+    #[test]
+    fn default_intervals_thin_out_with_the_zoom() {
+        assert!(default_interval(14, false) < default_interval(10, false));
+        assert_eq!((default_interval(12, false), default_interval(14, false)), (100.0, 20.0));
+        assert!(default_interval(16, true) >= 1.0);
+    }
+}
