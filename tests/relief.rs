@@ -311,6 +311,14 @@ fn contour_lines_continue_across_tile_edges_at_their_heights() {
             assert!((h - level).abs() <= 4.0, "a vertex of the {level} m line lies at {h:.1} m");
         }
     }
+    // Bad parameters: 400 naming the parameter.
+    for (query, named) in
+        [("interval=0", "interval"), ("interval=1e9", "interval"), ("major=0", "major"), ("units=yd", "units")]
+    {
+        let (status, body) = get(&format!("/dem/contours/{z}/{x}/{y}.pbf?{query}"));
+        assert_eq!(status, 400, "{query}");
+        assert!(String::from_utf8_lossy(&body).contains(named), "{query}: {}", String::from_utf8_lossy(&body));
+    }
     // The PMTiles export: the served tile, byte for byte.
     let zs = z.to_string();
     terrastream(
@@ -335,4 +343,50 @@ fn contour_lines_continue_across_tile_edges_at_their_heights() {
     let (_, served) = get(&format!("/dem/contours/{z}/{x}/{y}.pbf?interval=20"));
     assert!(bytes.windows(served.len()).any(|w| w == served), "the exported tile is the served one");
     assert_eq!(bytes[99], 1, "PMTiles tile type: MVT");
+}
+
+/// The server's colour table (`color_relief_table`, gdaldem's format) colours its
+/// `color-relief` tiles; a table that is not one stops `serve`, naming the file.
+#[test]
+fn the_servers_colour_table_colours_its_relief() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    std::fs::write(work.join("red.txt"), "# everything red\n-500 200 10 20\n9000 200 10 20\nnv 0 0 0 0\n").unwrap();
+    std::fs::write(work.join("server.toml"), "color_relief_table = \"red.txt\"\n").unwrap();
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &["dem.tspack", "--config", "server.toml"], work);
+    let (status, body) =
+        terrastream_testkit::http::request(server.port, "GET", "/dem/color-relief/tiles.json?size=256", None);
+    assert_eq!(status, 200);
+    let doc: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let [w, s, e, n]: [f64; 4] = serde_json::from_value(doc["bounds"].clone()).unwrap();
+    let k = f64::from(1u32 << 13);
+    let x = (((w + e) / 2.0 + 180.0) / 360.0 * k) as u32;
+    let y = ((1.0 - ((s + n) / 2.0).to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
+    let (status, png) = terrastream_testkit::http::request(
+        server.port,
+        "GET",
+        &format!("/dem/xyz/color-relief/13/{x}/{y}.png?size=256"),
+        None,
+    );
+    assert_eq!(status, 200);
+    let decoder = png::Decoder::new(std::io::Cursor::new(png));
+    let mut reader = decoder.read_info().unwrap();
+    let mut data = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut data).unwrap();
+    let pixels: Vec<&[u8]> = data[..info.buffer_size()].chunks_exact(info.color_type.samples()).collect();
+    let red = pixels.iter().filter(|p| p[..3] == [200, 10, 20]).count();
+    assert!(red * 2 > pixels.len(), "{red} of {} pixels in the table's colour", pixels.len());
+    drop(server);
+    std::fs::write(work.join("bad.txt"), "not a table\n").unwrap();
+    std::fs::write(work.join("bad.toml"), "color_relief_table = \"bad.txt\"\n").unwrap();
+    let out = Command::new(exe)
+        .args(["serve", "dem.tspack", "--config", "bad.toml", "--addr", "127.0.0.1:0"])
+        .current_dir(work)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("bad.txt"), "{}", String::from_utf8_lossy(&out.stderr));
 }

@@ -76,23 +76,32 @@ impl AppState {
     /// every request is refused, and the reason logged; [`AppState::try_new`] says it.
     pub fn new(config: ServerConfig) -> Self {
         Self::try_new(config.clone()).unwrap_or_else(|e| {
-            tracing::error!("access rules: {e}: every request is refused");
+            tracing::error!("settings: {e}: every request is refused");
             let shut = crate::access::Rules { private_all: true, ..crate::access::Rules::default() };
             let access = Access::new(shut).unwrap_or_default();
-            Self::with_access(config, access)
+            Self::with_access(config, access, terrastream_views::relief::ColorTable::default())
         })
     }
 
-    /// State for a configuration, its access rules read (keys file, signing secret).
+    /// State for a configuration, its files read (keys file, signing secret, colour table).
     ///
     /// # Errors
-    /// [`AccessError`] naming the file at fault.
-    pub fn try_new(config: ServerConfig) -> Result<Self, AccessError> {
+    /// [`StartError`] naming the file at fault.
+    pub fn try_new(config: ServerConfig) -> Result<Self, StartError> {
+        let table = match &config.color_relief_table {
+            // Read once, at the start: a table that cannot be read is the operator's to fix.
+            Some(path) => {
+                let bad = |reason: String| StartError::ColorTable { path: path.clone(), reason };
+                let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+                terrastream_views::relief::ColorTable::parse(&text).map_err(bad)?
+            }
+            None => terrastream_views::relief::ColorTable::default(),
+        };
         let access = Access::new(config.access_rules())?;
-        Ok(Self::with_access(config, access))
+        Ok(Self::with_access(config, access, table))
     }
 
-    fn with_access(config: ServerConfig, access: Access) -> Self {
+    fn with_access(config: ServerConfig, access: Access, table: terrastream_views::relief::ColorTable) -> Self {
         Self(Arc::new(AppInner {
             access: Arc::new(access),
             catalog: Arc::new(Catalog::new(config.paths.clone()).with_leaf_cache(config.leaf_cache)),
@@ -101,15 +110,34 @@ impl AppState {
                 .unwrap_or_else(|_| HeaderValue::from_static("no-cache")),
             private_cache_control: HeaderValue::from_str(&private_cache_control(&config.cache_control))
                 .unwrap_or_else(|_| HeaderValue::from_static("private, no-cache")),
-            web: Arc::new(crate::web::WebState::new(
-                config.web_threads,
-                config.web_queue,
-                config.web_cache_bytes,
-                config.web_decoded_bytes,
-            )),
+            web: Arc::new(crate::web::WebState {
+                color_table: table,
+                ..crate::web::WebState::new(
+                    config.web_threads,
+                    config.web_queue,
+                    config.web_cache_bytes,
+                    config.web_decoded_bytes,
+                )
+            }),
             config: Arc::new(config),
         }))
     }
+}
+
+/// Why a server's state cannot be made from its settings.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// The access rules' files.
+    #[error(transparent)]
+    Access(#[from] AccessError),
+    /// The colour table of `color-relief` tiles.
+    #[error("{path}: {reason}")]
+    ColorTable {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why it is not a table.
+        reason: String,
+    },
 }
 
 /// `Cache-Control` for answers only the asker may keep: `public` becomes `private`.

@@ -59,6 +59,9 @@ pub struct ServerConfig {
     pub web_decoded_bytes: usize,
     /// Locations one elevation request may ask for (Open Topo Data's default: 100).
     pub max_locations: usize,
+    /// The colour table of `color-relief` tiles, in `gdaldem color-relief`'s text format
+    /// (default: built-in hypsometric tints).
+    pub color_relief_table: Option<PathBuf>,
     /// Every archive needs a key or a signed token (`serve --private`).
     pub private_all: bool,
     /// Names (globs: `*`, `?`) of the archives that need a key or a signed token; the
@@ -95,6 +98,7 @@ impl Default for ServerConfig {
             web_cache_bytes: 256 << 20,
             web_decoded_bytes: terrastream_views::resample::DECODED_BYTES,
             max_locations: 100,
+            color_relief_table: None,
             private_all: false,
             private: Vec::new(),
             keys: None,

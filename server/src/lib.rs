@@ -22,7 +22,7 @@ mod serve;
 pub mod shaper;
 pub mod web;
 
-pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, app, service};
+pub use app::{ARCHIVE_ETAG, AppError, AppInner, AppState, FALLBACK_LOD, StartError, app, service};
 pub use catalog::{Catalog, Served, archive_name};
 pub use config::ServerConfig;
 pub use edge::Edge;

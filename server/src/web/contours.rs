@@ -20,6 +20,11 @@ use crate::access::Grant;
 use crate::app::{ARCHIVE_ETAG, AppState};
 use crate::catalog::Served;
 
+/// The finest interval asked for (a line a decimetre apart is already a fill).
+const MIN_INTERVAL: f64 = 0.1;
+/// The coarsest (beyond Everest's height, a tile would hold no line at all).
+const MAX_INTERVAL: f64 = 10_000.0;
+
 /// The media type of a vector tile.
 const MVT: &str = "application/vnd.mapbox-vector-tile";
 
@@ -30,8 +35,8 @@ fn options(query: &TileQuery) -> Result<ContourOptions, WebError> {
         Some("ft") => true,
         Some(other) => return Err(bad(format!("units {other:?}: use m or ft"))),
     };
-    if let Some(i) = query.interval.filter(|i| !(i.is_finite() && *i >= 0.1)) {
-        return Err(bad(format!("interval {i}: a height of at least 0.1")));
+    if let Some(i) = query.interval.filter(|i| !(i.is_finite() && (MIN_INTERVAL..=MAX_INTERVAL).contains(i))) {
+        return Err(bad(format!("interval {i}: a height from {MIN_INTERVAL} to {MAX_INTERVAL}")));
     }
     if query.major == Some(0) {
         return Err(bad("major 0: every how many lines a major one is, at least 1"));
