@@ -52,6 +52,12 @@ if ! grep -qs '"version": "5.24.1"' "$npm_cache/node_modules/maplibre-gl/package
   mkdir -p "$npm_cache"
   npm install --prefix "$npm_cache" --no-audit --no-fund --silent maplibre-gl@5.24.1 pmtiles@4.5.0
 fi
+# An independent Mapbox Vector Tile decoder (the contour tiles' oracle).
+if ! grep -qs '"version": "3.0.0"' "$npm_cache/node_modules/@mapbox/vector-tile/package.json" \
+  || ! grep -qs '"version": "5.1.2"' "$npm_cache/node_modules/pbf/package.json"; then
+  mkdir -p "$npm_cache"
+  npm install --prefix "$npm_cache" --no-audit --no-fund --silent @mapbox/vector-tile@3.0.0 pbf@5.1.2
+fi
 # deck.gl: its standalone bundle and the terrain worker it loads (the packages'
 # dependencies weigh 600 MB).
 if ! [ -f "$npm_cache/deck.gl-9.2.6/terrain-worker.js" ]; then

@@ -390,3 +390,197 @@ fn the_servers_colour_table_colours_its_relief() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("bad.txt"), "{}", String::from_utf8_lossy(&out.stderr));
 }
+
+/// Distance from point `p` to the polyline `line` (tile units).
+fn distance_to(p: (f64, f64), line: &[(f64, f64)]) -> f64 {
+    line.windows(2)
+        .map(|s| {
+            let ((x0, y0), (x1, y1)) = (s[0], s[1]);
+            let (dx, dy) = (x1 - x0, y1 - y0);
+            let t = if dx == 0.0 && dy == 0.0 {
+                0.0
+            } else {
+                (((p.0 - x0) * dx + (p.1 - y0) * dy) / (dx * dx + dy * dy)).clamp(0.0, 1.0)
+            };
+            (p.0 - x0 - t * dx).hypot(p.1 - y0 - t * dy)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// The contour tracer against `gdal_contour` on the same grid (a tile's heights with their
+/// margin): every line within half a pixel of gdal's line of the same height, both ways
+/// (a Hausdorff distance inside the tile), and the same closed rings.
+#[test]
+fn contours_follow_gdal_contour_on_the_same_grid() {
+    use terrastream_views::contours::{SPAN, tile_grid, trace_grid};
+    use terrastream_views::mvt::Value;
+    let missing = if Command::new("gdal_contour").output().is_ok() {
+        vec![]
+    } else {
+        vec!["gdal_contour (apt-get install gdal-bin)"]
+    };
+    if !terrastream_testkit::browser::skip_or_fail("GDAL_CONTOUR", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    let reader = terrastream_format::Reader::open_mmap(work.join("dem.tspack")).unwrap();
+    // Zoom 14 at Mt Tamalpais' summit: steep, many rings and lines.
+    let (lon, lat, z) = (-122.5965, 37.9235, 14u32);
+    let k = f64::from(1u32 << z);
+    let x = ((lon + 180.0) / 360.0 * k) as u32;
+    let y = ((1.0 - f64::to_radians(lat).tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
+    let tile = terrastream_views::mercator::WebTile::new(z as u8, x, y).unwrap();
+    let grid = tile_grid(&reader, tile).unwrap().unwrap();
+    assert!(grid.iter().all(|h| h.is_finite()), "the tile lies inside the data");
+    // The grid as a GeoTIFF whose coordinates are tile units (y up): 16 units a pixel.
+    {
+        use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+        use tiff::tags::Tag;
+        let span = SPAN as u32;
+        let mut encoder = TiffEncoder::new(std::fs::File::create(work.join("grid.tif")).unwrap()).unwrap();
+        let mut image = encoder.new_image::<Gray32Float>(span, span).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33550), &[16.0, 16.0, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, -1024.0, 1024.0, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 3857][..]).unwrap();
+        image.write_data(&grid).unwrap();
+    }
+    let out = Command::new("gdal_contour")
+        .args(["-q", "-a", "ele", "-i", "20", "-f", "GeoJSON", "grid.tif", "gdal.geojson"])
+        .current_dir(work)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_contour: {}", String::from_utf8_lossy(&out.stderr));
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(work.join("gdal.geojson")).unwrap()).unwrap();
+    let mut theirs: Vec<(f64, Vec<(f64, f64)>)> = vec![];
+    for f in doc["features"].as_array().unwrap() {
+        let ele = f["properties"]["ele"].as_f64().unwrap();
+        let geometry = &f["geometry"];
+        let lines = match geometry["type"].as_str() {
+            Some("LineString") => vec![geometry["coordinates"].clone()],
+            Some("MultiLineString") => geometry["coordinates"].as_array().unwrap().clone(),
+            other => panic!("{other:?}"),
+        };
+        for line in lines {
+            let points =
+                line.as_array().unwrap().iter().map(|p| (p[0].as_f64().unwrap(), -p[1].as_f64().unwrap())).collect();
+            theirs.push((ele, points));
+        }
+    }
+    let ours: Vec<(f64, Vec<(f64, f64)>)> = trace_grid(&grid, 20.0, 5)
+        .into_iter()
+        .map(|l| {
+            let Value::Number(ele) = l.properties[0].1 else { panic!() };
+            (ele, l.points.iter().map(|&(x, y)| (f64::from(x), f64::from(y))).collect())
+        })
+        .collect();
+    let inside = |p: &(f64, f64)| (0.0..=4096.0).contains(&p.0) && (0.0..=4096.0).contains(&p.1);
+    let worst = |from: &[(f64, Vec<(f64, f64)>)], to: &[(f64, Vec<(f64, f64)>)]| {
+        let mut worst: f64 = 0.0;
+        for (ele, line) in from {
+            for p in line.iter().filter(|p| inside(p)) {
+                let d =
+                    to.iter().filter(|(e, _)| e == ele).map(|(_, l)| distance_to(*p, l)).fold(f64::INFINITY, f64::min);
+                worst = worst.max(d);
+            }
+        }
+        worst
+    };
+    let (ours_to_gdal, gdal_to_ours) = (worst(&ours, &theirs), worst(&theirs, &ours));
+    eprintln!(
+        "{} lines of ours, {} of gdal_contour: Hausdorff {ours_to_gdal:.2} / {gdal_to_ours:.2} units (16 a pixel)",
+        ours.len(),
+        theirs.len()
+    );
+    assert!(ours_to_gdal <= 8.0 && gdal_to_ours <= 8.0, "beyond half a pixel: {ours_to_gdal} / {gdal_to_ours}");
+    let rings = |lines: &[(f64, Vec<(f64, f64)>)]| {
+        let mut r: Vec<f64> = lines
+            .iter()
+            .filter(|(_, l)| {
+                l.len() > 3
+                    && l.iter().all(inside)
+                    && (l[0].0 - l[l.len() - 1].0).hypot(l[0].1 - l[l.len() - 1].1) < 1.0
+            })
+            .map(|(e, _)| *e)
+            .collect();
+        r.sort_by(f64::total_cmp);
+        r
+    };
+    assert_eq!(rings(&ours), rings(&theirs), "closed rings inside the tile, by height");
+    assert!(!rings(&ours).is_empty(), "the summit's rings");
+}
+
+/// A contour tile read by an independent decoder, npm's `@mapbox/vector-tile` (what
+/// MapLibre's own decoder grew from) on `pbf`, under Node.js: version 2, extent 4096,
+/// every feature a line string with our vertices, `ele` and `major`.
+#[test]
+fn contour_tiles_decode_with_mapbox_vector_tile() {
+    use terrastream_views::mvt::{Value, decode};
+    let npm = std::env::var_os("TERRASTREAM_NPM").map_or_else(
+        || std::path::PathBuf::from(std::env::var("HOME").unwrap()).join(".cache/terrastream-npm"),
+        Into::into,
+    );
+    let module = npm.join("node_modules/@mapbox/vector-tile/index.js");
+    let mut missing = vec![];
+    if !module.exists() {
+        missing.push("@mapbox/vector-tile and pbf (scripts/test.sh installs them)");
+    }
+    if Command::new("node").arg("--version").output().is_err() {
+        missing.push("Node.js");
+    }
+    if !terrastream_testkit::browser::skip_or_fail("VECTOR-TILE", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    let reader = terrastream_format::Reader::open_mmap(work.join("dem.tspack")).unwrap();
+    // Zoom 13 at Mt Tamalpais' summit.
+    let (lon, lat, k) = (-122.5965f64, 37.9235f64, 8192.0);
+    let x = ((lon + 180.0) / 360.0 * k) as u32;
+    let y = ((1.0 - lat.to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
+    let tile = terrastream_views::mercator::WebTile::new(13, x, y).unwrap();
+    let options = terrastream_views::contours::ContourOptions { interval: Some(50.0), ..Default::default() };
+    let bytes = terrastream_views::contours::contour_tile(&reader, tile, options, None).unwrap().unwrap();
+    std::fs::write(work.join("t.pbf"), &bytes).unwrap();
+    let script = format!(
+        "import {{ VectorTile }} from {vt:?}; import {{ PbfReader }} from {pbf:?}; import fs from 'fs';
+         const tile = new VectorTile(new PbfReader(fs.readFileSync('t.pbf')));
+         const layer = tile.layers.contours;
+         const features = [];
+         for (let i = 0; i < layer.length; i++) {{
+           const f = layer.feature(i);
+           features.push({{ type: f.type, ele: f.properties.ele, major: f.properties.major,
+             lines: f.loadGeometry().map(r => r.map(p => [p.x, p.y])) }});
+         }}
+         console.log(JSON.stringify({{ names: Object.keys(tile.layers), version: layer.version, extent: layer.extent, features }}));",
+        vt = module.display().to_string(),
+        pbf = npm.join("node_modules/pbf/index.js").display().to_string()
+    );
+    std::fs::write(work.join("read.mjs"), script).unwrap();
+    let out = Command::new("node").arg("read.mjs").current_dir(work).output().unwrap();
+    assert!(out.status.success(), "node: {}", String::from_utf8_lossy(&out.stderr));
+    let read: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        (read["names"].clone(), read["version"].as_u64(), read["extent"].as_u64()),
+        (serde_json::json!(["contours"]), Some(2), Some(4096))
+    );
+    let ours = decode(&bytes).unwrap();
+    let theirs = read["features"].as_array().unwrap();
+    assert!(ours.len() >= 5 && ours.len() == theirs.len(), "{} lines, {} read", ours.len(), theirs.len());
+    for (line, feature) in ours.iter().zip(theirs) {
+        assert_eq!(feature["type"], 2, "a line string");
+        let (Value::Number(ele), Value::Bool(major)) = (line.properties[0].1, line.properties[1].1) else { panic!() };
+        assert_eq!((feature["ele"].as_f64(), feature["major"].as_bool()), (Some(ele), Some(major)));
+        let points: Vec<(i32, i32)> = feature["lines"][0]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| (p[0].as_i64().unwrap() as i32, p[1].as_i64().unwrap() as i32))
+            .collect();
+        assert_eq!(points, line.points);
+    }
+}

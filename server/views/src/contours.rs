@@ -78,6 +78,25 @@ pub fn contour_tile(
     Ok(Some(mvt::encode("contours", EXTENT.unsigned_abs(), &lines)))
 }
 
+/// Samples a side of the grid a contour tile is traced on (its 256 and a lattice cell
+/// around them).
+pub const SPAN: usize = GRID as usize + 2 * LATTICE;
+
+/// The heights a contour tile of `tile` is traced on ([`SPAN`] a side, row by row; sample
+/// `(c, r)` at tile units `((c - 64 + 0.5) * 16, (r - 64 + 0.5) * 16)`): for checking the
+/// tracer against another one on the same grid.
+///
+/// # Errors
+/// As [`contour_tile`].
+pub fn tile_grid(reader: &Reader<MmapSource>, tile: WebTile) -> Result<Option<Vec<f32>>, MakeError> {
+    margin_heights(reader, tile, GRID, None)
+}
+
+/// The lines [`contour_tile`] draws from a grid of [`SPAN`] a side, in tile units.
+pub fn trace_grid(heights: &[f32], interval: f64, major: u32) -> Vec<Line> {
+    trace(heights, SPAN, interval, major.max(1))
+}
+
 /// The TileJSON 3.0.0 document of an archive's contours (`name`: its URL name), a vector
 /// source whose `vector_layers` name the layer and its fields.
 pub fn tilejson(
