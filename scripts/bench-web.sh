@@ -121,7 +121,7 @@ PY
 read -r zmin zmax tmin tmax < "$work/zooms.txt"
 echo "exporting the same tiles for nginx..."
 "$bin" -q export "$work/srtm.tspack" --to xyz --encoding mapbox --format png --size 256 --minzoom "$zmin" \
-  --maxzoom "$zmax" -o "$work/www/xyz"
+  --maxzoom "$zmax" --base-url "http://127.0.0.1:$static/xyz/" -o "$work/www/xyz"
 "$bin" -q export "$work/srtm.tspack" --to quantized-mesh --minzoom "$tmin" --maxzoom "$tmax" -o "$work/www/terrain"
 chmod -R a+rX "$work"
 mkdir -p "$work/nginx"

@@ -146,16 +146,11 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
     let points = random_points(bounds, POINTS);
     let truth = gdal_bilinear(&points);
 
-    // The static host: the export and a copy of the page inside it (MapLibre takes tile
-    // URLs as they are, so a relative template resolves against the page).
+    // The static host, the export under a sub-path (/xyz/) and the page at the root: the
+    // export's tiles.json holds absolute tile URLs under its --base-url.
     let root = dir.path().join("www");
-    let xyz = root.join("xyz");
-    terrastream(&["export", archive.to_str().unwrap(), "--to", "xyz", "-o", xyz.to_str().unwrap()]);
-    let pmtiles_file = root.join("tamalpais.pmtiles");
-    let (a, p) = (archive.to_str().unwrap(), pmtiles_file.to_str().unwrap());
-    terrastream(&["export", a, "--to", "pmtiles", "--encoding", "terrarium", "-o", p]);
+    std::fs::create_dir_all(&root).unwrap();
     write_page(&root, &dist);
-    write_page(&xyz, &dist);
     let Some(nginx) = terrastream_testkit::nginx::start_nginx(
         &root,
         "server { listen 127.0.0.1:{port}; root {root}; types { image/webp webp; application/json json; \
@@ -163,14 +158,28 @@ fn maplibre_reads_the_served_and_the_exported_terrain() {
     ) else {
         return;
     };
+    let xyz = root.join("xyz");
+    let base = format!("http://127.0.0.1:{}/xyz/", nginx.port);
+    terrastream(&[
+        "export",
+        archive.to_str().unwrap(),
+        "--to",
+        "xyz",
+        "--base-url",
+        &base,
+        "-o",
+        xyz.to_str().unwrap(),
+    ]);
+    let pmtiles_file = root.join("tamalpais.pmtiles");
+    let (a, p) = (archive.to_str().unwrap(), pmtiles_file.to_str().unwrap());
+    terrastream(&["export", a, "--to", "pmtiles", "--encoding", "terrarium", "-o", p]);
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
     let served = format!(
         "http://127.0.0.1:{}/index.html?tilejson=http://127.0.0.1:{}/tamalpais/tiles.json",
         nginx.port, server.port
     );
-    let exported =
-        format!("http://127.0.0.1:{0}/xyz/index.html?tilejson=http://127.0.0.1:{0}/xyz/tiles.json", nginx.port);
+    let exported = format!("http://127.0.0.1:{0}/index.html?tilejson=http://127.0.0.1:{0}/xyz/tiles.json", nginx.port);
     let pmtiles =
         format!("http://127.0.0.1:{0}/pmtiles.html?pmtiles=http://127.0.0.1:{0}/tamalpais.pmtiles", nginx.port);
     let mut pictures = Vec::new();

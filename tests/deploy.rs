@@ -742,7 +742,19 @@ fn nginx_serves_private_exports_only_as_the_server_allows() {
     std::fs::create_dir(work.join("archives")).unwrap();
     run(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "archives/valley.tspack"]);
     let www = work.join("www");
-    run(&["-q", "export", "archives/valley.tspack", "--to", "xyz", "--maxzoom", "12", "-o", "www/valley"]);
+    run(&[
+        "-q",
+        "export",
+        "archives/valley.tspack",
+        "--to",
+        "xyz",
+        "--maxzoom",
+        "12",
+        "--base-url",
+        "https://t/valley",
+        "-o",
+        "www/valley",
+    ]);
     run(&["-q", "export", "archives/valley.tspack", "--to", "quantized-mesh", "-o", "www/valley-terrain"]);
     run(&[
         "-q",

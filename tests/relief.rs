@@ -148,8 +148,21 @@ fn relief_tiles_join_without_a_seam_and_are_served() {
     let work = dir.path();
     let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
     terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
-    let args =
-        ["-q", "export", "dem.tspack", "--to", "xyz", "--product", "hillshade", "--format", "png", "--size", "256"];
+    let args = [
+        "-q",
+        "export",
+        "dem.tspack",
+        "--to",
+        "xyz",
+        "--product",
+        "hillshade",
+        "--format",
+        "png",
+        "--size",
+        "256",
+        "--base-url",
+        "https://t/shade",
+    ];
     terrastream(&[&args[..], &["--minzoom", "14", "--maxzoom", "14", "-o", "shade"]].concat(), work);
     let doc: serde_json::Value =
         serde_json::from_slice(&std::fs::read(work.join("shade/tiles.json")).unwrap()).unwrap();

@@ -74,7 +74,20 @@ fn a_web_mercator_archive_serves_its_own_tiles_as_stored() {
     let xyz = dir.path().join("xyz");
     let packed = dir.path().join("mercator.tspack");
     let (a, x, p) = (archive.to_str().unwrap(), xyz.to_str().unwrap(), packed.to_str().unwrap());
-    terrastream(&["export", a, "--to", "xyz", "--format", "png", "--size", "256", "-o", x]);
+    terrastream(&[
+        "export",
+        a,
+        "--to",
+        "xyz",
+        "--format",
+        "png",
+        "--size",
+        "256",
+        "--base-url",
+        "https://t/xyz",
+        "-o",
+        x,
+    ]);
     terrastream(&[
         "pack",
         x,
@@ -365,7 +378,22 @@ fn an_export_far_finer_than_the_data_warns() {
     let export = |maxzoom: u8| {
         let out = dir.path().join(format!("z{maxzoom}"));
         let (a, o, z) = (archive.to_str().unwrap(), out.to_str().unwrap(), maxzoom.to_string());
-        let args = ["export", a, "--to", "xyz", "--size", "256", "--minzoom", &z, "--maxzoom", &z, "-o", o];
+        let args = [
+            "export",
+            a,
+            "--to",
+            "xyz",
+            "--size",
+            "256",
+            "--minzoom",
+            &z,
+            "--maxzoom",
+            &z,
+            "--base-url",
+            "https://t/",
+            "-o",
+            o,
+        ];
         let run = Command::new(exe()).args(args).output().unwrap();
         assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
         (String::from_utf8_lossy(&run.stderr).into_owned(), walk(&out).len())
@@ -373,10 +401,18 @@ fn an_export_far_finer_than_the_data_warns() {
     // The data's finest zoom, as its TileJSON says (an export without --maxzoom).
     let probe = dir.path().join("probe");
     let (a, p) = (archive.to_str().unwrap(), probe.to_str().unwrap());
-    terrastream(&["export", a, "--to", "xyz", "--size", "256", "--minzoom", "30", "-o", p]);
+    terrastream(&["export", a, "--to", "xyz", "--size", "256", "--minzoom", "30", "--base-url", "https://t/", "-o", p]);
     let tilejson: serde_json::Value =
         serde_json::from_slice(&std::fs::read(probe.join("tiles.json")).unwrap()).unwrap();
     let finest = u8::try_from(tilejson["maxzoom"].as_u64().unwrap()).unwrap_or(0);
+    // Without --base-url, no tiles.json of relative URLs: refused, saying what to give.
+    let out = Command::new(exe())
+        .args(["export", a, "--to", "xyz", "-o", "nowhere"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--base-url"));
+    assert!(!dir.path().join("nowhere").exists());
     let (quiet, _) = export(finest + 2);
     assert!(!quiet.contains("finer than the data"), "two zooms beyond the data: {quiet}");
     let (warned, files) = export(finest + 3);

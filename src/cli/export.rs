@@ -50,8 +50,8 @@ pub struct ExportArgs {
     /// TileJSON or layer.json says).
     #[arg(long)]
     maxzoom: Option<u8>,
-    /// Absolute URL the tiles will be served under, for tiles.json (default: URLs
-    /// relative to the folder).
+    /// `--to xyz`: the absolute URL the folder will be served at, for tiles.json's tile
+    /// URLs (`https://cdn.example.com/terrain/`; TileJSON needs absolute ones).
     #[arg(long)]
     base_url: Option<String>,
     /// `--to xyz|pmtiles`: a map made from the elevation instead of a layer's own tiles.
@@ -252,7 +252,14 @@ fn run_web(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     if matches!(args.to, ExportFormat::Pmtiles) {
         return web_pmtiles(&reader, &export, args, progress, started);
     }
-    let summary = export_xyz(&reader, &export, &args.output, args.base_url.as_deref(), &tick)
+    let Some(base_url) = args.base_url.as_deref() else {
+        bail!(
+            "--to xyz needs --base-url: the absolute URL {} will be served at (https://host/path/), for the tile \
+             URLs of its tiles.json (TileJSON needs absolute URLs; MapLibre resolves relative ones against the page)",
+            args.output.display()
+        );
+    };
+    let summary = export_xyz(&reader, &export, &args.output, base_url, &tick)
         .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
     progress.finish();
     println!(

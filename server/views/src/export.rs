@@ -54,6 +54,15 @@ pub enum ExportError {
         /// Why.
         error: MakeError,
     },
+    /// A base URL that is not an absolute http(s) URL.
+    #[error(
+        "--base-url {base_url:?}: the absolute URL the folder will be served at (https://host/path/): TileJSON \
+         needs absolute tile URLs, and MapLibre resolves relative ones against the page, not tiles.json"
+    )]
+    BaseUrl {
+        /// What was given.
+        base_url: String,
+    },
     /// The layer does not say where it lies (or is not heights or images).
     #[error(
         "the layer has no web tiles: the archive does not say where it lies, or its tiles are not heights or images"
@@ -207,18 +216,24 @@ pub fn in_order<T: Copy + Sync, E: From<Interrupted> + Send>(
 
 /// Writes layer `export.layer` as an XYZ tree in `dir` (`{z}/{x}/{y}.{ext}`, tiles
 /// without data left out, as the server answers 404 for them) and `dir/tiles.json`,
-/// whose tile URLs are relative to the folder (or under `base_url`). Written into a
-/// temporary folder beside `dir` and renamed once complete.
+/// whose tile URLs are absolute, under `base_url` (the URL the folder will be served at:
+/// TileJSON 3.0.0 asks for absolute URLs, and MapLibre resolves relative ones against the
+/// page, not the document). Written into a temporary folder beside `dir` and renamed once
+/// complete.
 ///
 /// # Errors
-/// As [`make_tiles`]; [`ExportError::File`] naming a file that cannot be written.
+/// [`ExportError::BaseUrl`] for a base URL that is not absolute; as [`make_tiles`];
+/// [`ExportError::File`] naming a file that cannot be written.
 pub fn export_xyz(
     reader: &Reader<MmapSource>,
     export: &WebExport,
     dir: &Path,
-    base_url: Option<&str>,
+    base_url: &str,
     tick: &(dyn Fn(u64, u64) -> Result<(), Interrupted> + Sync),
 ) -> Result<WebExportSummary, ExportError> {
+    if !(base_url.starts_with("https://") || base_url.starts_with("http://")) || base_url.contains(['?', '#', ' ']) {
+        return Err(ExportError::BaseUrl { base_url: base_url.to_owned() });
+    }
     let (tiles, zooms) = planned_tiles(reader, export)?;
     let temp = stage(dir)?;
     let mut summary = WebExportSummary { zooms, ..WebExportSummary::default() };
@@ -243,7 +258,7 @@ pub fn export_xyz(
     let info = &metadata.layers[usize::from(export.layer)];
     let mut cover = coverage(metadata, info, export.size).ok_or(ExportError::NotPlaced)?;
     cover.maxzoom = zooms.1;
-    let base = base_url.map(|b| format!("{}/", b.trim_end_matches('/'))).unwrap_or_default();
+    let base = format!("{}/", base_url.trim_end_matches('/'));
     let shown = export.relief.as_ref().map_or(info.name.as_str(), |(p, _)| p.name());
     let request = TileJsonRequest {
         name: &metadata.name,
