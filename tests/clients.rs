@@ -263,6 +263,39 @@ fn maplibre_reads_private_terrain_with_a_key_in_the_url_or_a_header() {
     }
 }
 
+/// The documented topographic page: MapLibre draws our terrain in 3D with the hillshade
+/// raster and the contour lines over it (metres and feet), no request failing; the
+/// picture against a golden, and contours drawn (the brown of the lines is on screen).
+#[test]
+fn maplibre_draws_a_topographic_map_of_hillshade_and_contours() {
+    let Some(dist) = ready() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let archive = archive(dir.path());
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let root = dir.path().join("www");
+    write_page(&root, &dist);
+    std::fs::write(root.join("topo.html"), snippet("maplibre-topo-page")).unwrap();
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { text/html html; application/javascript js; \
+         text/css css; } }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let base = format!("http://127.0.0.1:{}/tamalpais", server.port);
+    for (units, golden) in [("m", "maplibre-topo"), ("ft", "maplibre-topo-feet")] {
+        let page = format!("http://127.0.0.1:{}/topo.html?archive={base}&units={units}", nginx.port);
+        let (_, (w, h, rgba)) = maplibre_run(&browser, &page, &[]);
+        // Contour lines drawn: pixels of their brown, not only the hillshade's grays.
+        let brown = rgba.chunks_exact(4).filter(|p| u16::from(p[0]) > u16::from(p[2]) + 40 && p[1] > p[2]).count();
+        assert!(brown > 500, "{units}: {brown} pixels of contour lines");
+        terrastream_testkit::golden::assert_golden(golden, w, h, &rgba, TOLERANCE);
+    }
+}
+
 /// deck.gl's standalone bundle, from the npm cache `scripts/test.sh` fills.
 fn deckgl_bundle() -> Option<PathBuf> {
     let root = npm_cache();
