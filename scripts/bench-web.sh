@@ -57,7 +57,7 @@ done
 
 # Random tiles of the data's finest zooms inside its bounds, and random points inside them:
 # the zooms sized from the DEM (zooms.txt: web min and max, terrain min and max).
-python3 - "$work" "http://127.0.0.1:$warm/srtm/tiles.json" "${MAX_TILES:-200000}" <<'PY'
+python3 - "$work" "http://127.0.0.1:$warm/srtm/tiles.json?size=256" "${MAX_TILES:-200000}" <<'PY'
 import json, math, random, sys, urllib.request
 work, url, max_tiles = sys.argv[1], sys.argv[2], int(sys.argv[3])
 doc = json.load(urllib.request.urlopen(url))
@@ -78,7 +78,7 @@ def geo_ranges(z):
 def zooms(finest, ranges, what):
     """The five finest zooms (fewer where they would hold over max_tiles), and their tiles."""
     chosen, total = [], 0
-    for z in range(finest, max(finest - 5, 0) - 1, -1):
+    for z in range(finest, max(finest - 5, -1), -1):
         xs, ys = ranges(z)
         if total + len(xs) * len(ys) > max_tiles:
             break
@@ -91,7 +91,7 @@ def zooms(finest, ranges, what):
         sys.exit(f"{what}: only {len(every)} tiles at zooms {min(chosen)}-{max(chosen)} over the data: "
                  "too few to measure (pick a DEM of more than a few tiles)")
     return min(chosen), max(chosen), sorted(random.sample(every, min(2000, len(every))))
-maxzoom = json.load(urllib.request.urlopen(url.replace("tiles.json", "layer.json")))["maxzoom"]
+maxzoom = json.load(urllib.request.urlopen(url.replace("tiles.json?size=256", "layer.json")))["maxzoom"]
 zmin, zmax, tiles = zooms(doc["maxzoom"], web_ranges, "web tiles")
 tmin, tmax, terrain = zooms(maxzoom, geo_ranges, "quantized-mesh")
 with open(f"{work}/zooms.txt", "w") as f:
