@@ -425,7 +425,7 @@ fn distance_to(p: (f64, f64), line: &[(f64, f64)]) -> f64 {
 /// (a Hausdorff distance inside the tile), and the same closed rings.
 #[test]
 fn contours_follow_gdal_contour_on_the_same_grid() {
-    use terrastream_views::contours::{SPAN, tile_grid, trace_grid};
+    use terrastream_views::contours::{MARGIN, SPAN, tile_grid, trace_grid};
     use terrastream_views::mvt::Value;
     let missing = if Command::new("gdal_contour").output().is_ok() {
         vec![]
@@ -456,7 +456,8 @@ fn contours_follow_gdal_contour_on_the_same_grid() {
         let mut encoder = TiffEncoder::new(std::fs::File::create(work.join("grid.tif")).unwrap()).unwrap();
         let mut image = encoder.new_image::<Gray32Float>(span, span).unwrap();
         image.encoder().write_tag(Tag::Unknown(33550), &[16.0, 16.0, 0.0][..]).unwrap();
-        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, -1024.0, 1024.0, 0.0][..]).unwrap();
+        let edge = 16.0 * MARGIN as f64;
+        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, -edge, edge, 0.0][..]).unwrap();
         image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 3857][..]).unwrap();
         image.write_data(&grid).unwrap();
     }

@@ -2,9 +2,9 @@
 //! feet) and `major`.
 //!
 //! A tile's lines are traced (marching squares, saddles split by the cell's mean) on its
-//! heights sampled with a margin of one lattice cell (64 pixels of a 256-pixel grid), the
-//! same heights its neighbours sample there ([`crate::relief`]'s window), then clipped to
-//! the tile and a buffer of 64 units of 4096: a line crossing a tile edge is the same
+//! heights sampled with a margin of [`MARGIN`] pixels of a 256-pixel grid, the same
+//! heights its neighbours sample there ([`crate::relief`]'s window), then clipped to the
+//! tile and a buffer of 64 units of 4096 (4 pixels, inside the margin): a line crossing a tile edge is the same
 //! curve on both sides and continues without a gap. Lines are simplified to a quarter
 //! of a pixel (Douglas-Peucker) and end where the data ends (a cell with a corner without
 //! data draws nothing).
@@ -16,7 +16,7 @@ use terrastream_format::{MmapSource, Reader};
 use crate::mercator::WebTile;
 use crate::mvt::{self, Line, Value};
 use crate::relief::margin_heights;
-use crate::resample::{DecodedCache, LATTICE, MakeError};
+use crate::resample::{DecodedCache, MakeError};
 
 /// Tile units a side.
 pub const EXTENT: i32 = 4096;
@@ -24,6 +24,9 @@ pub const EXTENT: i32 = 4096;
 pub const BUFFER: i32 = 64;
 /// Samples a side of the grid a tile is traced on.
 const GRID: u32 = 256;
+/// Samples of the grid's margin beyond each edge: the buffer's 4 and more, so every
+/// line inside the buffer is traced whole (what lies beyond is clipped away).
+pub const MARGIN: usize = 8;
 
 /// Metres a foot.
 const FOOT: f64 = 0.3048;
@@ -67,29 +70,27 @@ pub fn contour_tile(
     options: ContourOptions,
     cache: Option<(&DecodedCache, u64)>,
 ) -> Result<Option<Vec<u8>>, MakeError> {
-    let Some(mut heights) = margin_heights(reader, tile, GRID, cache)? else { return Ok(None) };
+    let Some(mut heights) = margin_heights(reader, tile, GRID, MARGIN, cache)? else { return Ok(None) };
     if options.feet {
         #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
         heights.iter_mut().for_each(|h| *h = (f64::from(*h) / FOOT) as f32);
     }
     let interval = options.interval.filter(|i| *i > 0.0).unwrap_or_else(|| default_interval(tile.z, options.feet));
-    let span = GRID as usize + 2 * LATTICE;
-    let lines = trace(&heights, span, interval, options.major.max(1));
+    let lines = trace(&heights, SPAN, interval, options.major.max(1));
     Ok(Some(mvt::encode("contours", EXTENT.unsigned_abs(), &lines)))
 }
 
-/// Samples a side of the grid a contour tile is traced on (its 256 and a lattice cell
-/// around them).
-pub const SPAN: usize = GRID as usize + 2 * LATTICE;
+/// Samples a side of the grid a contour tile is traced on (its 256 and the margin).
+pub const SPAN: usize = GRID as usize + 2 * MARGIN;
 
 /// The heights a contour tile of `tile` is traced on ([`SPAN`] a side, row by row; sample
-/// `(c, r)` at tile units `((c - 64 + 0.5) * 16, (r - 64 + 0.5) * 16)`): for checking the
+/// `(c, r)` at tile units `((c - MARGIN + 0.5) * 16, (r - MARGIN + 0.5) * 16)`): for checking the
 /// tracer against another one on the same grid.
 ///
 /// # Errors
 /// As [`contour_tile`].
 pub fn tile_grid(reader: &Reader<MmapSource>, tile: WebTile) -> Result<Option<Vec<f32>>, MakeError> {
-    margin_heights(reader, tile, GRID, None)
+    margin_heights(reader, tile, GRID, MARGIN, None)
 }
 
 /// The lines [`contour_tile`] draws from a grid of [`SPAN`] a side, in tile units.
@@ -169,7 +170,8 @@ fn level_chains(h: &[f32], span: usize, level: f64) -> Vec<Vec<(f64, f64)>> {
     let value = |c: usize, r: usize| f64::from(h[r * span + c]);
     let scale = f64::from(EXTENT) / f64::from(GRID);
     // Sample (c, r) lies at the centre of pixel (c - margin, r - margin) of the tile.
-    let point = |c: f64, r: f64| ((c - LATTICE as f64 + 0.5) * scale, (r - LATTICE as f64 + 0.5) * scale);
+    let margin = span.saturating_sub(GRID as usize) as f64 / 2.0;
+    let point = |c: f64, r: f64| ((c - margin + 0.5) * scale, (r - margin + 0.5) * scale);
     let crossing = |k: usize| {
         let (horizontal, at) = (k & 1 == 1, k >> 1);
         let (c, r) = (at % span, at / span);
@@ -274,6 +276,15 @@ fn clip(line: &[(f64, f64)]) -> Vec<Vec<(f64, f64)>> {
     if !current.is_empty() {
         pieces.push(current);
     }
+    // A closed line that leaves the box and starts inside it: its last piece runs on into
+    // its first (one line, not two ending at an arbitrary point).
+    let closed = line.len() > 2 && line.first() == line.last();
+    if closed && pieces.len() > 1 && inside(line[0]) && pieces[0].first() == line.first() {
+        let first = pieces.remove(0);
+        if let Some(last) = pieces.last_mut() {
+            last.extend(first.into_iter().skip(1));
+        }
+    }
     pieces.into_iter().filter(|p| p.len() >= 2).collect()
 }
 
@@ -358,7 +369,7 @@ mod tests {
     #[test]
     #[expect(clippy::cast_possible_truncation, reason = "test heights")]
     fn a_cone_gives_one_closed_ring_a_level() {
-        let span = GRID as usize + 2 * LATTICE;
+        let span = SPAN;
         let middle = span as f64 / 2.0;
         let heights: Vec<f32> = (0..span * span)
             .map(|i| {
@@ -381,6 +392,22 @@ mod tests {
         let ring = lines.iter().find(|l| l.properties[0].1 == Value::Number(900.0)).unwrap();
         assert_eq!(ring.points.first(), ring.points.last(), "closed");
         assert!(lines.iter().any(|l| l.properties[1].1 == Value::Bool(true)), "500 m and 1000 m are major");
+    }
+
+    #[test]
+    fn a_closed_line_leaving_the_box_is_one_piece_from_exit_to_exit() {
+        let hi = f64::from(EXTENT + BUFFER) + 100.0;
+        // A ring starting inside the box, going out across its right edge and back.
+        let ring = [(4000.0, 2000.0), (hi, 2000.0), (hi, 2200.0), (4000.0, 2200.0), (4000.0, 2000.0)];
+        let pieces = clip(&ring);
+        assert_eq!(pieces.len(), 1, "{pieces:?}");
+        let piece = &pieces[0];
+        assert_eq!(piece.first().unwrap().0, f64::from(EXTENT + BUFFER));
+        assert_eq!(piece.last().unwrap().0, f64::from(EXTENT + BUFFER));
+        assert!(piece.contains(&(4000.0, 2000.0)) && piece.contains(&(4000.0, 2200.0)));
+        // One wholly inside stays closed.
+        let inner = [(100.0, 100.0), (200.0, 100.0), (200.0, 200.0), (100.0, 100.0)];
+        assert_eq!(clip(&inner), vec![inner.to_vec()]);
     }
 
     #[test]

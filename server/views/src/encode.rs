@@ -129,6 +129,39 @@ impl ImageFormat {
         self.encode_raw(rgba, size, true)
     }
 
+    /// `gray_alpha` (`size` x `size`, two bytes a pixel: gray and alpha) as a file of this
+    /// format: a gray image, with alpha only where some pixel is not opaque (a third of
+    /// the bytes of RGB for the encoder to go through).
+    ///
+    /// # Errors
+    /// The encoder's message.
+    pub fn encode_gray(self, gray_alpha: &[u8], size: u32) -> Result<Vec<u8>, String> {
+        let alpha = gray_alpha.chunks_exact(2).any(|p| p[1] != 255);
+        let gray: Vec<u8>;
+        let pixels = if alpha {
+            gray_alpha
+        } else {
+            gray = gray_alpha.iter().step_by(2).copied().collect();
+            &gray
+        };
+        let mut out = Vec::new();
+        match self {
+            Self::Png => {
+                let mut encoder = png::Encoder::new(&mut out, size, size);
+                encoder.set_color(if alpha { png::ColorType::GrayscaleAlpha } else { png::ColorType::Grayscale });
+                encoder.set_depth(png::BitDepth::Eight);
+                encoder.set_compression(png::Compression::Fast);
+                let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
+                writer.write_image_data(pixels).map_err(|e| e.to_string())?;
+            }
+            Self::Webp => {
+                let colour = if alpha { image_webp::ColorType::La8 } else { image_webp::ColorType::L8 };
+                image_webp::WebPEncoder::new(&mut out).encode(pixels, size, size, colour).map_err(|e| e.to_string())?;
+            }
+        }
+        Ok(out)
+    }
+
     /// `pixels` (`size` x `size`, RGBA with `alpha`, else RGB) as a file of this format.
     ///
     /// # Errors

@@ -3,11 +3,11 @@
 //! altitude, z factor and multidirectional shading; slope in degrees or percent; aspect
 //! in degrees from north; a colour table in `gdaldem color-relief`'s text format).
 //!
-//! A tile's heights are sampled on its own pixel grid with a margin of one lattice cell
-//! (64 pixels) around it, through the same approximate transform as every web tile: the
-//! margin's cells are the neighbours' own cells (the lattice is aligned to the global
-//! 64-pixel grid), so the window around an edge pixel holds exactly the heights its
-//! neighbour samples there, and tiles join without a seam. The horizontal spacing is the
+//! A tile's heights are sampled on its own pixel grid with a margin of one pixel around
+//! it, through the same approximate transform as every web tile, on a lattice one cell
+//! (64 pixels) wider than the tile: the margin's cells are the neighbours' own cells (the
+//! lattice is aligned to the global 64-pixel grid), so the window around an edge pixel
+//! holds exactly the heights its neighbour samples there, and tiles join without a seam. The horizontal spacing is the
 //! pixel's size on the ground at its row's latitude (Web Mercator's scale).
 
 use terrastream_format::{LayerKind, MmapSource, Reader};
@@ -192,31 +192,80 @@ fn horn(w: &Window, ewres: f64, nsres: f64) -> (f64, f64) {
 /// light and the surface's normal (1 in shadow); with `multidirectional`, gdaldem's four
 /// lights (225, 270, 315 and 360 degrees) weighted by the slope's aspect, 1 + 127 x it
 /// (1 + 254 x the light's sine on flat ground, as gdaldem does).
-pub fn hillshade(w: &Window, (ewres, nsres): (f64, f64), o: &ReliefOptions) -> f64 {
-    let (dx, dy) = horn(w, ewres, nsres);
-    // gdaldem's x is the descent towards the east, y the rise towards the north.
-    let (x, y) = (-dx * o.z_factor, dy * o.z_factor);
-    let (sin_alt, cos_alt) = o.altitude.to_radians().sin_cos();
-    let xx_plus_yy = x * x + y * y;
-    let norm = (1.0 + xx_plus_yy).sqrt();
-    if !o.multidirectional {
+pub fn hillshade(w: &Window, res: (f64, f64), o: &ReliefOptions) -> f64 {
+    Light::new(o).shade(w, res)
+}
+
+/// A hillshade's light, its sines and cosines worked out once for a whole tile.
+#[derive(Clone, Copy, Debug)]
+struct Light {
+    z_factor: f64,
+    multidirectional: bool,
+    sin_alt: f64,
+    cos_alt: f64,
+    sin_az: f64,
+    cos_az: f64,
+}
+
+impl Light {
+    fn new(o: &ReliefOptions) -> Self {
+        let (sin_alt, cos_alt) = o.altitude.to_radians().sin_cos();
         let (sin_az, cos_az) = o.azimuth.to_radians().sin_cos();
-        let cang = (sin_alt - (y * cos_az * cos_alt - x * sin_az * cos_alt)) / norm;
-        return if cang <= 0.0 { 1.0 } else { 1.0 + 254.0 * cang };
+        Self { z_factor: o.z_factor, multidirectional: o.multidirectional, sin_alt, cos_alt, sin_az, cos_az }
     }
-    if xx_plus_yy == 0.0 {
-        return 1.0 + 254.0 * sin_alt;
+
+    /// A row of single-light hillshade as gray and alpha (two bytes a pixel; 0, 0 where
+    /// a window is not all data) from the three rows of heights around it, each two
+    /// longer than the row: [`Light::shade`]'s arithmetic in the same order (so the same
+    /// values), without the per-pixel calls and branches, for the compiler to vectorise.
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255.5")]
+    fn shade_row(&self, [top, middle, bottom]: [&[f32]; 3], (ewres, nsres): (f64, f64), out: &mut [u8]) {
+        let (z, sin_alt, cos_alt) = (self.z_factor, self.sin_alt, self.cos_alt);
+        let (y_weight, x_weight) = (self.cos_az * cos_alt, self.sin_az * cos_alt);
+        let (ew8, ns8) = (8.0 * ewres, 8.0 * nsres);
+        let rows = top.windows(3).zip(middle.windows(3)).zip(bottom.windows(3));
+        for (((t, m), b), pixel) in rows.zip(out.chunks_exact_mut(2)) {
+            let w = |v: &[f32], k: usize| f64::from(v[k]);
+            let (w0, w1, w2, w3, w4, w5) = (w(t, 0), w(t, 1), w(t, 2), w(m, 0), w(m, 1), w(m, 2));
+            let (w6, w7, w8) = (w(b, 0), w(b, 1), w(b, 2));
+            let dx = ((w2 + 2.0 * w5 + w8) - (w0 + 2.0 * w3 + w6)) / ew8;
+            let dy = ((w0 + 2.0 * w1 + w2) - (w6 + 2.0 * w7 + w8)) / ns8;
+            let (x, y) = (-dx * z, dy * z);
+            let norm = (1.0 + (x * x + y * y)).sqrt();
+            let cang = (sin_alt - (y * y_weight - x * x_weight)) / norm;
+            let value = if cang <= 0.0 { 1.0 } else { 1.0 + 254.0 * cang };
+            let gray = (value.clamp(0.0, 255.0) + 0.5) as u8;
+            let data = (w0 + w1 + w2 + w3 + w4 + w5 + w6 + w7 + w8).is_finite();
+            pixel.copy_from_slice(&if data { [gray, 255] } else { [0, 0] });
+        }
     }
-    // cos(225 degrees) x cos(altitude): the 225 and 315 degree lights' share.
-    let diagonal = -cos_alt * std::f64::consts::FRAC_1_SQRT_2;
-    let val225 = (sin_alt + (x - y) * diagonal).max(0.0);
-    let val270 = (sin_alt - x * cos_alt).max(0.0);
-    let val315 = (sin_alt + (x + y) * diagonal).max(0.0);
-    let val360 = (sin_alt - y * cos_alt).max(0.0);
-    let w225 = 0.5 * xx_plus_yy - x * y;
-    let (w270, w315, w360) = (x * x, xx_plus_yy - w225, y * y);
-    let cang = (w225 * val225 + w270 * val270 + w315 * val315 + w360 * val360) / xx_plus_yy / norm;
-    1.0 + 127.0 * cang
+
+    /// [`hillshade`] of a window.
+    fn shade(&self, w: &Window, (ewres, nsres): (f64, f64)) -> f64 {
+        let (dx, dy) = horn(w, ewres, nsres);
+        // gdaldem's x is the descent towards the east, y the rise towards the north.
+        let (x, y) = (-dx * self.z_factor, dy * self.z_factor);
+        let (sin_alt, cos_alt) = (self.sin_alt, self.cos_alt);
+        let xx_plus_yy = x * x + y * y;
+        let norm = (1.0 + xx_plus_yy).sqrt();
+        if !self.multidirectional {
+            let cang = (sin_alt - (y * (self.cos_az * cos_alt) - x * (self.sin_az * cos_alt))) / norm;
+            return if cang <= 0.0 { 1.0 } else { 1.0 + 254.0 * cang };
+        }
+        if xx_plus_yy == 0.0 {
+            return 1.0 + 254.0 * sin_alt;
+        }
+        // cos(225 degrees) x cos(altitude): the 225 and 315 degree lights' share.
+        let diagonal = -cos_alt * std::f64::consts::FRAC_1_SQRT_2;
+        let val225 = (sin_alt + (x - y) * diagonal).max(0.0);
+        let val270 = (sin_alt - x * cos_alt).max(0.0);
+        let val315 = (sin_alt + (x + y) * diagonal).max(0.0);
+        let val360 = (sin_alt - y * cos_alt).max(0.0);
+        let w225 = 0.5 * xx_plus_yy - x * y;
+        let (w270, w315, w360) = (x * x, xx_plus_yy - w225, y * y);
+        let cang = (w225 * val225 + w270 * val270 + w315 * val315 + w360 * val360) / xx_plus_yy / norm;
+        1.0 + 127.0 * cang
+    }
 }
 
 /// `gdaldem slope`'s value of a window: degrees (or percent) of steepness.
@@ -265,45 +314,53 @@ pub fn relief_tile(
     request: &ReliefRequest,
     cache: Option<(&DecodedCache, u64)>,
 ) -> Result<Option<Vec<u8>>, MakeError> {
-    let Some(heights) = margin_heights(reader, request.tile, request.size, cache)? else { return Ok(None) };
+    let Some(heights) = margin_heights(reader, request.tile, request.size, 1, cache)? else { return Ok(None) };
     let size = request.size as usize;
-    let mut rgba = vec![0u8; size * size * 4];
-    let span = size + 2 * LATTICE;
+    let span = size + 2;
+    if request.product == Product::ColorRelief {
+        let table = &request.options.table;
+        let mut rgba = vec![0u8; size * size * 4];
+        for (row, out) in rgba.chunks_exact_mut(size * 4).enumerate() {
+            let heights = &heights[(row + 1) * span + 1..][..size];
+            out.chunks_exact_mut(4).zip(heights).for_each(|(p, h)| p.copy_from_slice(&table.colour(*h)));
+        }
+        return request.format.encode(&rgba, request.size).map(Some).map_err(MakeError::Encode);
+    }
+    let light = Light::new(&request.options);
+    // Gray and alpha, two bytes a pixel.
+    let mut gray = vec![0u8; size * size * 2];
     for row in 0..size {
         // The ground size of a pixel at this row's latitude.
         let (_, lat) = request.tile.lon_lat(0.0, row as f64 + 0.5, size as f64);
         let res = request.tile.pixel_metres(lat, f64::from(request.size));
+        if request.product == Product::Hillshade && !request.options.multidirectional {
+            let rows = [0, 1, 2].map(|k| &heights[(row + k) * span..][..span]);
+            light.shade_row(rows, (res, res), &mut gray[row * size * 2..][..size * 2]);
+            continue;
+        }
         for column in 0..size {
-            let (r, c) = (row + LATTICE, column + LATTICE);
-            let h = |dr: usize, dc: usize| f64::from(heights[(r + dr - 1) * span + (c + dc - 1)]);
-            let window: Window = std::array::from_fn(|k| h(k / 3, k % 3));
-            let at = (row * size + column) * 4;
-            let centre = heights[r * span + c];
-            let pixel = if request.product == Product::ColorRelief {
-                Some(request.options.table.colour(centre))
-            } else if window.iter().any(|v| !v.is_finite()) {
-                None
-            } else {
-                pixel(request, &window, res)
-            };
-            if let Some(p) = pixel {
-                rgba[at..at + 4].copy_from_slice(&p);
+            let h = |dr: usize, dc: usize| f64::from(heights[(row + dr) * span + column + dc]);
+            let window: Window = [h(0, 0), h(0, 1), h(0, 2), h(1, 0), h(1, 1), h(1, 2), h(2, 0), h(2, 1), h(2, 2)];
+            if window.iter().all(|v| v.is_finite())
+                && let Some(g) = level(request, &light, &window, res)
+            {
+                let at = (row * size + column) * 2;
+                gray[at..at + 2].copy_from_slice(&[g, 255]);
             }
         }
     }
-    request.format.encode(&rgba, request.size).map(Some).map_err(MakeError::Encode)
+    request.format.encode_gray(&gray, request.size).map(Some).map_err(MakeError::Encode)
 }
 
-/// One pixel of a product from its window (`res`: the pixel's ground size, metres).
+/// One pixel's gray level of a gray product from its window (`res`: the pixel's ground
+/// size, metres).
 #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded and clamped to 0..=255")]
-fn pixel(request: &ReliefRequest, window: &Window, res: f64) -> Option<[u8; 4]> {
-    let gray = |v: f64| {
-        let g = v.round().clamp(0.0, 255.0) as u8;
-        [g, g, g, 255]
-    };
+fn level(request: &ReliefRequest, light: &Light, window: &Window, res: f64) -> Option<u8> {
+    // Rounded half up (values are not negative), without a call to the C library.
+    let gray = |v: f64| (v.clamp(0.0, 255.0) + 0.5) as u8;
     let o = &request.options;
     match request.product {
-        Product::Hillshade => Some(gray(hillshade(window, (res, res), o))),
+        Product::Hillshade => Some(gray(light.shade(window, (res, res)))),
         Product::Slope => {
             let s = slope(window, (res, res), o.slope_percent);
             let full = if o.slope_percent { 100.0 } else { 90.0 };
@@ -314,10 +371,12 @@ fn pixel(request: &ReliefRequest, window: &Window, res: f64) -> Option<[u8; 4]> 
     }
 }
 
-/// The archive's heights on `tile`'s pixel grid (`size` a side) and one lattice cell
-/// around it, row by row ((size + 128) a side); NaN without data; None when none has data.
-/// One LOD for every tile of a zoom (chosen at the data's centre, as quantized-mesh
-/// levels are), so that neighbours sample the same heights where their windows overlap.
+/// The archive's heights on `tile`'s pixel grid (`size` a side) and `margin` pixels
+/// around it (at most a lattice cell), row by row ((size + 2 margin) a side); NaN without
+/// data; None when none has data. The positions are those of the lattice one cell around
+/// the tile, cropped: the margin's are the neighbours' own. One LOD for every tile of a
+/// zoom (chosen at the data's centre, as quantized-mesh levels are), so that neighbours
+/// sample the same heights where their windows overlap.
 ///
 /// # Errors
 /// [`MakeError::NotPlaced`] without placed elevation, [`MakeError::Tile`].
@@ -325,6 +384,7 @@ pub(crate) fn margin_heights(
     reader: &Reader<MmapSource>,
     tile: WebTile,
     size: u32,
+    margin: usize,
     cache: Option<(&DecodedCache, u64)>,
 ) -> Result<Option<Vec<f32>>, MakeError> {
     let metadata = reader.metadata();
@@ -334,12 +394,16 @@ pub(crate) fn margin_heights(
     if let Some((cache, version)) = cache {
         placed = placed.with_cache(cache, version);
     }
-    let span = size as usize + 2 * LATTICE;
-    let (size, margin) = (f64::from(size), LATTICE as f64);
-    let positions = placed.lattice(span, &|u, v| {
-        let (lon, lat) = tile.lon_lat(u - margin, v - margin, size);
-        placed.world(lon, lat)
-    });
+    let margin = margin.min(LATTICE);
+    let (pixels, span) = (size as usize, size as usize + 2 * LATTICE);
+    let (size, cell) = (f64::from(size), LATTICE as f64);
+    let (first, last) = (LATTICE - margin, LATTICE + pixels + margin);
+    let positions = placed
+        .lattice(span, &|u, v| {
+            let (lon, lat) = tile.lon_lat(u - cell, v - cell, size);
+            placed.world(lon, lat)
+        })
+        .crop(span, [first, first, last, last]);
     let coverage = crate::tilejson::coverage(metadata, &metadata.layers[index], 256).ok_or(MakeError::NotPlaced)?;
     let [w, s, e, n] = coverage.bounds;
     let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
@@ -372,6 +436,36 @@ mod tests {
         // A slope facing the light (north-west, descending that way) is brighter than flat.
         let facing: Window = [0.0, 0.5, 1.0, 0.5, 1.0, 1.5, 1.0, 1.5, 2.0];
         assert!(hillshade(&facing, (1.0, 1.0), &ReliefOptions::default()) > flat);
+    }
+
+    /// The row fast path gives [`hillshade`]'s values, rounded, and no data where a
+    /// window has a hole.
+    #[test]
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "test values")]
+    fn a_row_of_hillshade_is_the_windows_hillshade() {
+        let width = 40;
+        let height = |r: usize, c: usize| {
+            if (r, c) == (1, 17) { f32::NAN } else { ((c * 37 + r * 101) % 23) as f32 * 7.5 - (c as f32).sin() * 30.0 }
+        };
+        let rows: Vec<Vec<f32>> = (0..3).map(|r| (0..width + 2).map(|c| height(r, c)).collect()).collect();
+        for options in [
+            ReliefOptions::default(),
+            ReliefOptions { z_factor: 3.0, azimuth: 120.0, altitude: 30.0, ..ReliefOptions::default() },
+        ] {
+            let light = Light::new(&options);
+            let mut out = vec![9u8; width * 2];
+            light.shade_row([&rows[0], &rows[1], &rows[2]], (12.5, 12.5), &mut out);
+            for c in 0..width {
+                let window: Window = std::array::from_fn(|k| f64::from(rows[k / 3][c + k % 3]));
+                let expected = if window.iter().all(|v| v.is_finite()) {
+                    [hillshade(&window, (12.5, 12.5), &options).round() as u8, 255]
+                } else {
+                    [0, 0]
+                };
+                assert_eq!(out[c * 2..c * 2 + 2], expected, "column {c}");
+            }
+            assert!(out.chunks(2).filter(|p| p[1] == 0).count() == 3, "the hole's three windows");
+        }
     }
 
     #[test]

@@ -267,6 +267,30 @@ impl Positions {
         Self { len: self.len, runs }
     }
 
+    /// The points of the window `[c0, r0, c1, r1]` (columns `c0..c1` of rows `r0..r1`)
+    /// of this grid of `size` points a side, as a grid of their own, row by row: the same
+    /// positions, so a window's samples are the whole grid's there.
+    #[must_use]
+    #[expect(clippy::cast_precision_loss, reason = "offsets within one tile")]
+    pub fn crop(self, size: usize, [c0, r0, c1, r1]: [usize; 4]) -> Self {
+        let width = c1.saturating_sub(c0);
+        let mut runs = Vec::with_capacity(self.runs.len());
+        for run in self.runs {
+            let (row, column) = (run.at / size, run.at % size);
+            let (start, end) = (column.max(c0), (column + run.len).min(c1));
+            if !(r0..r1).contains(&row) || start >= end {
+                continue;
+            }
+            runs.push(Run {
+                at: (row - r0) * width + (start - c0),
+                len: end - start,
+                offset: run.offset + (start - column) as f64,
+                ..run
+            });
+        }
+        Self { len: width * r1.saturating_sub(r0), runs }
+    }
+
     /// How many points.
     pub fn len(&self) -> usize {
         self.len
@@ -743,5 +767,30 @@ mod tests {
         // The approximation is not exact inside (or the test shows nothing).
         let inner = (1..size - 1).flat_map(|r| (1..size - 1).map(move |c| (c, r)));
         assert!(inner.clone().any(|(c, r)| approx.point(r * size + c) != grid(c, r)));
+    }
+
+    /// A window cropped out of a lattice holds the lattice's positions there, bit for
+    /// bit, every point once.
+    #[test]
+    fn a_cropped_window_keeps_the_lattice_positions() {
+        let size = 3 * LATTICE / 2;
+        let exact = |u: f64, v: f64| Some((u + u * v * 1e-3, v - u * u * 2e-4));
+        let mut whole = Positions { len: size * size, runs: vec![] };
+        let corners = [exact(0.0, 0.0), exact(96.0, 0.0), exact(0.0, 96.0), exact(96.0, 96.0)];
+        cell(&exact, &mut whole.runs, size, [0, 0, size, size], corners);
+        assert!(whole.runs.len() > size, "the transform splits the cell (or the test shows little)");
+        let [c0, r0, c1, r1] = [5, 7, 70, 90];
+        let window = whole.clone().crop(size, [c0, r0, c1, r1]);
+        let width = c1 - c0;
+        assert_eq!(window.len(), width * (r1 - r0));
+        let mut seen = vec![0; window.len()];
+        for run in &window.runs {
+            (run.at..run.at + run.len).for_each(|i| seen[i] += 1);
+        }
+        assert!(seen.iter().all(|&n| n == 1), "every point once");
+        for i in 0..window.len() {
+            let (c, r) = (c0 + i % width, r0 + i / width);
+            assert_eq!(window.point(i), whole.point(r * size + c), "point {c},{r}");
+        }
     }
 }
