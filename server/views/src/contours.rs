@@ -144,10 +144,11 @@ fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
     let mut lines = vec![];
     let first = (lo / interval).ceil() as i64;
     let last = (hi / interval).floor() as i64;
-    for k in first..=last {
+    let segments = segments(heights, span, interval, (first, last));
+    for (k, segments) in (first..=last).zip(segments) {
         let level = k as f64 * interval;
         let is_major = k.rem_euclid(i64::from(major)) == 0;
-        for chain in level_chains(heights, span, level) {
+        for chain in level_chains(heights, span, level, &segments) {
             for piece in clip(&chain) {
                 let piece = simplify_anchored(&piece, 4.0);
                 let points: Vec<(i32, i32)> = dedup(piece.iter().map(|&(x, y)| (x.round() as i32, y.round() as i32)));
@@ -163,10 +164,85 @@ fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
     lines
 }
 
-/// The crossings of `level` joined into chains, in tile units.
-fn level_chains(h: &[f32], span: usize, level: f64) -> Vec<Vec<(f64, f64)>> {
-    // An edge of the sample grid: (column, row, horizontal?) as one key.
-    let key = |c: usize, r: usize, horizontal: bool| ((r * span + c) << 1) | usize::from(horizontal);
+/// An edge of the sample grid (`span` a side): (column, row, horizontal?) as one key.
+fn edge_key(span: usize, c: usize, r: usize, horizontal: bool) -> usize {
+    ((r * span + c) << 1) | usize::from(horizontal)
+}
+
+/// Marching squares over every level `first..=last` (x `interval`) in one pass over the
+/// grid: for each level, the segments (pairs of edge keys) its cells hold, in the
+/// cells' order. Each sample's band (the highest level at or below it) is found once; a
+/// cell then visits only the levels between its corners' bands, and most cells none.
+#[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "level indices within first..=last")]
+fn segments(h: &[f32], span: usize, interval: f64, (first, last): (i64, i64)) -> Vec<Vec<(usize, usize)>> {
+    let count = usize::try_from(last - first + 1).unwrap_or(0);
+    let mut out: Vec<Vec<(usize, usize)>> = vec![Vec::new(); count];
+    let bands: Vec<i64> = h.iter().map(|&v| band(f64::from(v), interval)).collect();
+    let key = |c: usize, r: usize, horizontal: bool| edge_key(span, c, r, horizontal);
+    for r in 0..span - 1 {
+        for c in 0..span - 1 {
+            let at = r * span + c;
+            let b = [bands[at], bands[at + 1], bands[at + span + 1], bands[at + span]];
+            let (lo, hi) = (b.iter().copied().min().unwrap_or(NO_DATA), b.iter().copied().max().unwrap_or(NO_DATA));
+            // A level crosses where a corner lies below it and one at or above it.
+            if lo == hi || lo == NO_DATA {
+                continue;
+            }
+            let (top, right, bottom, left) =
+                (key(c, r, true), key(c + 1, r, false), key(c, r + 1, true), key(c, r, false));
+            let mean = || {
+                (f64::from(h[at]) + f64::from(h[at + 1]) + f64::from(h[at + span + 1]) + f64::from(h[at + span])) / 4.0
+            };
+            for k in (lo + 1).max(first)..=hi.min(last) {
+                let case = b.iter().enumerate().fold(0, |m, (i, &band)| m | (usize::from(band >= k) << i));
+                let out = &mut out[(k - first) as usize];
+                let centre_above = || mean() >= k as f64 * interval;
+                match case {
+                    1 | 14 => out.push((left, top)),
+                    2 | 13 => out.push((top, right)),
+                    3 | 12 => out.push((left, right)),
+                    4 | 11 => out.push((right, bottom)),
+                    6 | 9 => out.push((top, bottom)),
+                    7 | 8 => out.push((left, bottom)),
+                    5 if centre_above() => out.extend([(left, bottom), (top, right)]),
+                    5 => out.extend([(left, top), (right, bottom)]),
+                    10 if centre_above() => out.extend([(left, top), (right, bottom)]),
+                    10 => out.extend([(left, bottom), (top, right)]),
+                    _ => {}
+                }
+            }
+        }
+    }
+    out
+}
+
+/// A band no sample without data is in (below every level).
+const NO_DATA: i64 = i64::MIN;
+
+/// The highest `k` with `k x interval` at or below `v` (exactly as the levels compare:
+/// `v >= k as f64 * interval`); [`NO_DATA`] for a value that is not finite.
+#[expect(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "levels of heights")]
+fn band(v: f64, interval: f64) -> i64 {
+    if !v.is_finite() {
+        return NO_DATA;
+    }
+    // Rounded down without a call to the C library, then made exact.
+    let q = v / interval;
+    let mut k = q as i64;
+    if k as f64 > q {
+        k -= 1;
+    }
+    while (k + 1) as f64 * interval <= v {
+        k += 1;
+    }
+    while k as f64 * interval > v {
+        k -= 1;
+    }
+    k
+}
+
+/// The crossings of `level` joined into chains, in tile units, from its `segments`.
+fn level_chains(h: &[f32], span: usize, level: f64, segments: &[(usize, usize)]) -> Vec<Vec<(f64, f64)>> {
     let value = |c: usize, r: usize| f64::from(h[r * span + c]);
     let scale = f64::from(EXTENT) / f64::from(GRID);
     // Sample (c, r) lies at the centre of pixel (c - margin, r - margin) of the tile.
@@ -179,35 +255,10 @@ fn level_chains(h: &[f32], span: usize, level: f64) -> Vec<Vec<(f64, f64)>> {
         let t = ((level - a) / (b - a)).clamp(0.0, 1.0);
         if horizontal { point(c as f64 + t, r as f64) } else { point(c as f64, r as f64 + t) }
     };
-    let mut links: HashMap<usize, Vec<usize>> = HashMap::new();
-    let mut link = |a: usize, b: usize| {
+    let mut links: HashMap<usize, Vec<usize>> = HashMap::with_capacity(segments.len() * 2);
+    for &(a, b) in segments {
         links.entry(a).or_default().push(b);
         links.entry(b).or_default().push(a);
-    };
-    for r in 0..span - 1 {
-        for c in 0..span - 1 {
-            let corners = [value(c, r), value(c + 1, r), value(c + 1, r + 1), value(c, r + 1)];
-            if corners.iter().any(|v| !v.is_finite()) {
-                continue;
-            }
-            let case = corners.iter().enumerate().fold(0, |m, (i, &v)| m | (usize::from(v >= level) << i));
-            let (top, right, bottom, left) =
-                (key(c, r, true), key(c + 1, r, false), key(c, r + 1, true), key(c, r, false));
-            let centre_above = corners.iter().sum::<f64>() / 4.0 >= level;
-            match case {
-                0 | 15 => {}
-                1 | 14 => link(left, top),
-                2 | 13 => link(top, right),
-                3 | 12 => link(left, right),
-                4 | 11 => link(right, bottom),
-                6 | 9 => link(top, bottom),
-                7 | 8 => link(left, bottom),
-                5 if centre_above => (link(left, bottom), link(top, right)).1,
-                5 => (link(left, top), link(right, bottom)).1,
-                10 if centre_above => (link(left, top), link(right, bottom)).1,
-                _ => (link(left, bottom), link(top, right)).1,
-            }
-        }
     }
     // Walk the links: open chains from their ends first, then the closed loops.
     let mut chains = vec![];

@@ -1,0 +1,146 @@
+//! Contour tiles a second against maplibre-contour (npm), which makes the same tiles in
+//! the visitor's browser from Terrarium tiles: both one tile at a time (one core each),
+//! the same tiles, the same interval, in one headless Chromium run. A benchmark that
+//! prints numbers: `scripts/bench-contours.sh` runs it (it packs the DEM and fetches the
+//! package).
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use terrastream_testkit::browser::{Browser, Driver};
+
+/// The maplibre-contour release measured.
+const VERSION: &str = "0.1.1";
+
+/// The page: maplibre-contour on the page's own thread (`worker: false`: one core, as
+/// ours are counted), its DEM tiles fetched and decoded once first (its isolines then
+/// measured alone, which favours it), then our contour tiles fetched one at a time from a
+/// server that keeps nothing (each made on request: cold).
+const PAGE: &str = r#"<!doctype html><meta charset="utf-8"><script src="mlcontour.js"></script>
+<script src="tiles.js"></script><script>
+window.result = null;
+(async () => {
+  try {
+    const src = new mlcontour.DemSource({ url: BASE + "/xyz/elevation/{z}/{x}/{y}.png?size=256&encoding=terrarium",
+      encoding: "terrarium", maxzoom: MAXZOOM, worker: false, cacheSize: 100000 });
+    const options = (levels) => ({ levels, extent: 4096, buffer: 1, elevationKey: "ele", levelKey: "level",
+      contourLayer: "contours" });
+    let t = performance.now();
+    for (const [z, x, y] of TILES) await src.manager.fetchContourTile(z, x, y, options([10000]), new AbortController());
+    const warm = performance.now() - t;
+    let bytes = 0;
+    t = performance.now();
+    for (const [z, x, y] of TILES) {
+      const tile = await src.manager.fetchContourTile(z, x, y, options([INTERVAL]), new AbortController());
+      bytes += tile.arrayBuffer.byteLength;
+    }
+    const theirs = performance.now() - t;
+    let ours_bytes = 0;
+    t = performance.now();
+    for (const [z, x, y] of TILES) {
+      const r = await fetch(BASE + `/contours/${z}/${x}/${y}.pbf?interval=${INTERVAL}`);
+      if (r.status !== 200 && r.status !== 404) throw new Error(`${z}/${x}/${y}: ${r.status}`);
+      ours_bytes += (await r.arrayBuffer()).byteLength;
+    }
+    const ours = performance.now() - t;
+    window.result = { warm, theirs, ours, bytes, ours_bytes };
+  } catch (e) { window.result = { error: String(e) }; }
+})();
+</script>"#;
+
+#[test]
+#[ignore = "a benchmark: scripts/bench-contours.sh"]
+fn bench_contours_against_maplibre_contour() {
+    let archive = PathBuf::from(std::env::var("BENCH_ARCHIVE").expect("BENCH_ARCHIVE: the archive to measure"));
+    let name = archive.file_stem().unwrap().to_str().unwrap().to_owned();
+    let interval: f64 = std::env::var("INTERVAL").map_or(20.0, |v| v.parse().unwrap());
+    let npm = std::env::var_os("TERRASTREAM_NPM")
+        .map_or_else(|| PathBuf::from(std::env::var("HOME").unwrap()).join(".cache/terrastream-npm"), PathBuf::from);
+    let lib = npm.join(format!("maplibre-contour-{VERSION}/package/dist/index.js"));
+    assert!(lib.exists(), "{} (scripts/bench-contours.sh fetches it)", lib.display());
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cold.toml"), "web_cache_bytes = 0\n").unwrap();
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(
+        exe,
+        &[archive.to_str().unwrap(), "--config", "cold.toml"],
+        dir.path(),
+    );
+    let (status, body) =
+        terrastream_testkit::http::request(server.port, "GET", &format!("/{name}/tiles.json?size=256"), None);
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+    let doc: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let tiles = tiles(&doc);
+    let maxzoom = doc["maxzoom"].as_u64().unwrap();
+    let root = dir.path().join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    std::fs::copy(&lib, root.join("mlcontour.js")).unwrap();
+    std::fs::write(root.join("index.html"), PAGE).unwrap();
+    let list: Vec<String> = tiles.iter().map(|(z, x, y)| format!("[{z},{x},{y}]")).collect();
+    let base = format!("http://127.0.0.1:{}/{name}", server.port);
+    let script = format!(
+        "const BASE = {base:?}; const MAXZOOM = {maxzoom}; const INTERVAL = {interval};\nconst TILES = [{}];\n",
+        list.join(",")
+    );
+    std::fs::write(root.join("tiles.js"), script).unwrap();
+    let nginx = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { text/html html; application/javascript js; } }",
+    )
+    .expect("nginx");
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, &[], (800, 600));
+    browser.goto(&format!("http://127.0.0.1:{}/index.html", nginx.port));
+    let start = Instant::now();
+    let result = loop {
+        let r = browser.eval("return window.result;");
+        if !r.is_null() {
+            break r;
+        }
+        assert!(start.elapsed() < Duration::from_secs(1800), "the page did not finish");
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    assert!(result["error"].is_null(), "{result}: {:?}", browser.console());
+    let n = tiles.len() as f64;
+    let rate = |ms: &serde_json::Value| n / (ms.as_f64().unwrap() / 1000.0);
+    let (ours, theirs) = (rate(&result["ours"]), rate(&result["theirs"]));
+    println!(
+        "{} tiles of zooms {}-{maxzoom}, every {interval} m, one at a time (one core each):",
+        tiles.len(),
+        maxzoom - 4
+    );
+    println!(
+        "{:<58} {:>9.1} tiles/s  {:>9} bytes",
+        "terrastream, cold (fetched from the page)", ours, result["ours_bytes"]
+    );
+    println!(
+        "{:<58} {:>9.1} tiles/s  {:>9} bytes",
+        format!("maplibre-contour {VERSION}, isolines only (DEM decoded)"),
+        theirs,
+        result["bytes"]
+    );
+    println!(
+        "terrastream: {:.1}x maplibre-contour per core (its first pass, fetching and decoding: {:.1} s)",
+        ours / theirs,
+        result["warm"].as_f64().unwrap() / 1000.0
+    );
+}
+
+/// The tiles of the data's five finest zooms at 256 px whose eight neighbours lie over
+/// the data too (maplibre-contour fails a tile whose neighbour has no data: 404).
+fn tiles(doc: &serde_json::Value) -> Vec<(u32, u32, u32)> {
+    let [w, s, e, n]: [f64; 4] = serde_json::from_value(doc["bounds"].clone()).unwrap();
+    let maxzoom = doc["maxzoom"].as_u64().unwrap() as u32;
+    let tile = |z: u32, lon: f64, lat: f64| {
+        let k = f64::from(1u32 << z);
+        let y = (1.0 - lat.to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k;
+        (((lon + 180.0) / 360.0 * k) as u32, y.max(0.0) as u32)
+    };
+    let mut out = vec![];
+    for z in maxzoom.saturating_sub(4)..=maxzoom {
+        let ((x0, y0), (x1, y1)) = (tile(z, w, n), tile(z, e, s));
+        out.extend((x0 + 1..x1).flat_map(|x| (y0 + 1..y1).map(move |y| (z, x, y))));
+    }
+    out
+}
