@@ -9,8 +9,6 @@
 //! of a pixel (Douglas-Peucker) and end where the data ends (a cell with a corner without
 //! data draws nothing).
 
-use std::collections::HashMap;
-
 use terrastream_format::{MmapSource, Reader};
 
 use crate::mercator::WebTile;
@@ -145,10 +143,11 @@ fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
     let first = (lo / interval).ceil() as i64;
     let last = (hi / interval).floor() as i64;
     let segments = segments(heights, span, interval, (first, last));
+    let mut links = Links::new(span * span * 2);
     for (k, segments) in (first..=last).zip(segments) {
         let level = k as f64 * interval;
         let is_major = k.rem_euclid(i64::from(major)) == 0;
-        for chain in level_chains(heights, span, level, &segments) {
+        for chain in level_chains(heights, span, level, &segments, &mut links) {
             for piece in clip(&chain) {
                 let piece = simplify_anchored(&piece, 4.0);
                 let points: Vec<(i32, i32)> = dedup(piece.iter().map(|&(x, y)| (x.round() as i32, y.round() as i32)));
@@ -242,7 +241,13 @@ fn band(v: f64, interval: f64) -> i64 {
 }
 
 /// The crossings of `level` joined into chains, in tile units, from its `segments`.
-fn level_chains(h: &[f32], span: usize, level: f64, segments: &[(usize, usize)]) -> Vec<Vec<(f64, f64)>> {
+fn level_chains(
+    h: &[f32],
+    span: usize,
+    level: f64,
+    segments: &[(usize, usize)],
+    links: &mut Links,
+) -> Vec<Vec<(f64, f64)>> {
     let value = |c: usize, r: usize| f64::from(h[r * span + c]);
     let scale = f64::from(EXTENT) / f64::from(GRID);
     // Sample (c, r) lies at the centre of pixel (c - margin, r - margin) of the tile.
@@ -255,29 +260,25 @@ fn level_chains(h: &[f32], span: usize, level: f64, segments: &[(usize, usize)])
         let t = ((level - a) / (b - a)).clamp(0.0, 1.0);
         if horizontal { point(c as f64 + t, r as f64) } else { point(c as f64, r as f64 + t) }
     };
-    let mut links: HashMap<usize, Vec<usize>> = HashMap::with_capacity(segments.len() * 2);
     for &(a, b) in segments {
-        links.entry(a).or_default().push(b);
-        links.entry(b).or_default().push(a);
+        links.push(a, b);
+        links.push(b, a);
     }
+    // Every edge a segment touches, in order.
+    let mut keys: Vec<usize> = segments.iter().flat_map(|&(a, b)| [a, b]).collect();
+    keys.sort_unstable();
+    keys.dedup();
     // Walk the links: open chains from their ends first, then the closed loops.
     let mut chains = vec![];
-    let mut starts: Vec<usize> = links.iter().filter(|(_, v)| v.len() == 1).map(|(k, _)| *k).collect();
-    starts.sort_unstable();
-    let mut loops: Vec<usize> = links.keys().copied().collect();
-    loops.sort_unstable();
-    for start in starts.into_iter().chain(loops) {
-        if links.get(&start).is_none_or(Vec::is_empty) {
+    let starts: Vec<usize> = keys.iter().copied().filter(|&k| links.len(k) == 1).collect();
+    for &start in starts.iter().chain(&keys) {
+        if links.len(start) == 0 {
             continue;
         }
         let mut chain = vec![crossing(start)];
         let mut at = start;
-        while let Some(next) = links.get_mut(&at).and_then(Vec::pop) {
-            if let Some(back) = links.get_mut(&next)
-                && let Some(i) = back.iter().position(|&k| k == at)
-            {
-                back.swap_remove(i);
-            }
+        while let Some(next) = links.pop(at) {
+            links.remove(next, at);
             chain.push(crossing(next));
             at = next;
         }
@@ -286,6 +287,49 @@ fn level_chains(h: &[f32], span: usize, level: f64, segments: &[(usize, usize)])
         }
     }
     chains
+}
+
+/// The links between the edges of a grid that a level's segments join, by edge key: an
+/// edge is in two cells, so it has at most two (a saddle's cell joins four edges in two
+/// pairs). Dense, reused from level to level: a walk empties every entry it touches.
+struct Links {
+    to: Vec<[u32; 2]>,
+    count: Vec<u8>,
+}
+
+impl Links {
+    fn new(keys: usize) -> Self {
+        Self { to: vec![[0; 2]; keys], count: vec![0; keys] }
+    }
+
+    fn len(&self, key: usize) -> u8 {
+        self.count[key]
+    }
+
+    #[expect(clippy::cast_possible_truncation, reason = "edge keys of a tile's grid")]
+    fn push(&mut self, key: usize, to: usize) {
+        let n = &mut self.count[key];
+        if let Some(slot) = self.to[key].get_mut(usize::from(*n)) {
+            *slot = to as u32;
+            *n += 1;
+        }
+    }
+
+    fn pop(&mut self, key: usize) -> Option<usize> {
+        let n = &mut self.count[key];
+        *n = n.checked_sub(1)?;
+        Some(self.to[key][usize::from(*n)] as usize)
+    }
+
+    /// Removes `to` from `key`'s links (as `Vec::swap_remove` of its first place).
+    fn remove(&mut self, key: usize, to: usize) {
+        let n = usize::from(self.count[key]);
+        let links = &mut self.to[key];
+        if let Some(i) = links[..n].iter().position(|&k| k as usize == to) {
+            links[i] = links[n - 1];
+            self.count[key] -= 1;
+        }
+    }
 }
 
 /// The parts of a polyline inside the tile and its buffer.
