@@ -229,6 +229,13 @@ fn relief_tiles_join_without_a_seam_and_are_served() {
         terrastream_testkit::http::request(server.port, "GET", "/dem/xyz/hillshade/3/1/1.png?altitude=95", None);
     assert_eq!(status, 400, "{}", String::from_utf8_lossy(&body));
     assert_eq!(terrastream_testkit::http::request(server.port, "GET", "/dem/xyz/hillshade/3/0/0.png", None).0, 404);
+    // An unknown product: 400 naming it and the products there are.
+    for path in ["/dem/xyz/hilshade/14/0/0.png", "/dem/hilshade/tiles.json"] {
+        let (status, body) = terrastream_testkit::http::request(server.port, "GET", path, None);
+        let text = String::from_utf8_lossy(&body);
+        assert_eq!(status, 400, "{path}: {text}");
+        assert!(text.contains("\"hilshade\"") && text.contains("hillshade, slope, aspect, color-relief"), "{text}");
+    }
 }
 
 /// Where a polyline crosses the vertical line `x` (tile units): the crossings' y.

@@ -148,6 +148,18 @@ fn not_found(why: impl Into<String>) -> WebError {
     WebError(StatusCode::NOT_FOUND, why.into())
 }
 
+/// A web tile's path names neither a layer of the archive nor a map made from the
+/// heights: 400, naming the word and what it may be.
+fn unknown_layer(metadata: &terrastream_format::Metadata, name: &str, word: &str) -> WebError {
+    let layers: Vec<&str> = metadata.layers.iter().map(|l| l.name.as_str()).collect();
+    let products: Vec<&str> = Product::ALL.iter().map(|p| p.name()).collect();
+    bad(format!(
+        "{word:?} is neither a layer of archive {name:?} ({}) nor a product ({})",
+        layers.join(", "),
+        products.join(", ")
+    ))
+}
+
 /// The options of a query, checked; `format` when the path already names it (a tile's
 /// extension), else the query's.
 fn options(
@@ -224,7 +236,7 @@ fn layer_tilejson_of(
         Some(l) => match (metadata.resolve_layer(l), Product::parse(l)) {
             (Some(i), _) => (i, None),
             (None, Some(product)) => (elevation()?, Some(product)),
-            (None, None) => return Err(not_found(format!("archive {name:?} has no layer {l:?}"))),
+            (None, None) => return Err(unknown_layer(metadata, name, l)),
         },
         None => (elevation()?, None),
     };
@@ -328,8 +340,7 @@ async fn web_tile_made(
     let tile = WebTile::new(z, x, y).ok_or_else(|| bad(format!("tile {z}/{x}/{y} is outside the grid of zoom {z}")))?;
     let Some(index) = metadata.resolve_layer(layer) else {
         // A map made from the heights, where no layer has that name.
-        let product =
-            Product::parse(layer).ok_or_else(|| not_found(format!("archive {name:?} has no layer {layer:?}")))?;
+        let product = Product::parse(layer).ok_or_else(|| unknown_layer(metadata, name, layer))?;
         return relief::answer(state, served, relief::At { product, tile, format }, query, headers).await;
     };
     let info = &metadata.layers[usize::from(index)];
