@@ -129,6 +129,18 @@ fn terrastream(args: &[&str], cwd: &Path) -> String {
     String::from_utf8(out.stdout).unwrap()
 }
 
+/// The built-in SRTM DEM around Mt Tamalpais, tiled into `work/dem.tspack`.
+fn tamalpais(work: &Path) {
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+}
+
+/// The column and row of the web tile of zoom `z` holding a point.
+fn tile_at(z: u8, lon: f64, lat: f64) -> (u32, u32) {
+    let (columns, rows) = terrastream_views::mercator::tiles_over(z, [lon, lat, lon, lat]);
+    (*columns.start(), *rows.start())
+}
+
 fn png_gray(path: &Path) -> (u32, Vec<u8>) {
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
     let mut reader = decoder.read_info().unwrap();
@@ -146,8 +158,7 @@ fn png_gray(path: &Path) -> (u32, Vec<u8>) {
 fn relief_tiles_join_without_a_seam_and_are_served() {
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
-    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    tamalpais(work);
     let args = [
         "-q",
         "export",
@@ -261,8 +272,7 @@ fn contour_lines_continue_across_tile_edges_at_their_heights() {
     use terrastream_views::mvt::{Value, decode};
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
-    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    tamalpais(work);
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
     let server = terrastream_testkit::server::spawn_serve(exe, &["dem.tspack"], work);
     let get = |path: &str| terrastream_testkit::http::request(server.port, "GET", path, None);
@@ -274,10 +284,9 @@ fn contour_lines_continue_across_tile_edges_at_their_heights() {
     // Zoom 14 over the data's middle: two neighbours side by side.
     let [w, s, e, n]: [f64; 4] = serde_json::from_value(doc["bounds"].clone()).unwrap();
     let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
-    let z = 14u32;
+    let z = 14u8;
+    let (x, y) = tile_at(z, lon, lat);
     let k = f64::from(1u32 << z);
-    let x = ((lon + 180.0) / 360.0 * k) as u32;
-    let y = ((1.0 - lat.to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
     let tile = |x: u32| {
         let (status, body) = get(&format!("/dem/contours/{z}/{x}/{y}.pbf?interval=20"));
         assert_eq!(status, 200);
@@ -371,8 +380,7 @@ fn contour_lines_continue_across_tile_edges_at_their_heights() {
 fn the_servers_colour_table_colours_its_relief() {
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
-    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    tamalpais(work);
     std::fs::write(work.join("red.txt"), "# everything red\n-500 200 10 20\n9000 200 10 20\nnv 0 0 0 0\n").unwrap();
     std::fs::write(work.join("server.toml"), "color_relief_table = \"red.txt\"\n").unwrap();
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
@@ -382,9 +390,7 @@ fn the_servers_colour_table_colours_its_relief() {
     assert_eq!(status, 200);
     let doc: serde_json::Value = serde_json::from_slice(&body).unwrap();
     let [w, s, e, n]: [f64; 4] = serde_json::from_value(doc["bounds"].clone()).unwrap();
-    let k = f64::from(1u32 << 13);
-    let x = (((w + e) / 2.0 + 180.0) / 360.0 * k) as u32;
-    let y = ((1.0 - ((s + n) / 2.0).to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
+    let (x, y) = tile_at(13, (w + e) / 2.0, (s + n) / 2.0);
     let (status, png) = terrastream_testkit::http::request(
         server.port,
         "GET",
@@ -444,15 +450,12 @@ fn contours_follow_gdal_contour_on_the_same_grid() {
     }
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
-    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    tamalpais(work);
     let reader = terrastream_format::Reader::open_mmap(work.join("dem.tspack")).unwrap();
     // Zoom 14 at Mt Tamalpais' summit: steep, many rings and lines.
-    let (lon, lat, z) = (-122.5965, 37.9235, 14u32);
-    let k = f64::from(1u32 << z);
-    let x = ((lon + 180.0) / 360.0 * k) as u32;
-    let y = ((1.0 - f64::to_radians(lat).tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
-    let tile = terrastream_views::mercator::WebTile::new(z as u8, x, y).unwrap();
+    let (lon, lat, z) = (-122.5965, 37.9235, 14u8);
+    let (x, y) = tile_at(z, lon, lat);
+    let tile = terrastream_views::mercator::WebTile::new(z, x, y).unwrap();
     let grid = tile_grid(&reader, tile).unwrap().unwrap();
     assert!(grid.iter().all(|h| h.is_finite()), "the tile lies inside the data");
     // The grid as a GeoTIFF whose coordinates are tile units (y up): 16 units a pixel.
@@ -556,13 +559,10 @@ fn contour_tiles_decode_with_mapbox_vector_tile() {
     }
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
-    terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
+    tamalpais(work);
     let reader = terrastream_format::Reader::open_mmap(work.join("dem.tspack")).unwrap();
     // Zoom 13 at Mt Tamalpais' summit.
-    let (lon, lat, k) = (-122.5965f64, 37.9235f64, 8192.0);
-    let x = ((lon + 180.0) / 360.0 * k) as u32;
-    let y = ((1.0 - lat.to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * k) as u32;
+    let (x, y) = tile_at(13, -122.5965, 37.9235);
     let tile = terrastream_views::mercator::WebTile::new(13, x, y).unwrap();
     let options = terrastream_views::contours::ContourOptions { interval: Some(50.0), ..Default::default() };
     let bytes = terrastream_views::contours::contour_tile(&reader, tile, options, None).unwrap().unwrap();

@@ -17,17 +17,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 const SECRET: &str = "a signing secret of the operator, long enough";
 
 fn rule(archives: &[&str]) -> KeyRecord {
-    KeyRecord {
-        id: String::new(),
-        hash: String::new(),
-        archives: archives.iter().map(|s| (*s).to_owned()).collect(),
-        origins: vec![],
-        expires: None,
-        rate: None,
-        burst: None,
-        admin: false,
-        note: String::new(),
-    }
+    KeyRecord::opening(archives.iter().copied())
 }
 
 /// Keys: one for `sample` (the private archive), one for another name, one admin.

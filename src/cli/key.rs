@@ -133,15 +133,13 @@ fn new_key(args: NewKey) -> Result<ExitCode> {
     let expires = args.expires.as_deref().map(|e| expiry(e, SystemTime::now())).transpose()?;
     let mut file = KeyFile::read(&args.file.keys)?;
     let key = file.add(KeyRecord {
-        id: String::new(),
-        hash: String::new(),
-        archives: args.archives,
         origins: args.origins.iter().map(|o| o.trim_end_matches('/').to_owned()).collect(),
         expires,
         rate: args.rate,
         burst: args.burst,
         admin: args.admin,
         note: args.note,
+        ..KeyRecord::opening(args.archives)
     })?;
     file.write(&args.file.keys)?;
     eprintln!("{}: key added (shown once: keep it; the file holds its hash only)", args.file.keys.display());

@@ -45,6 +45,24 @@ pub struct KeyRecord {
     pub note: String,
 }
 
+impl KeyRecord {
+    /// A record opening `archives` (names or globs) with no other rule; [`KeyFile::add`]
+    /// gives it its id and hash.
+    pub fn opening<S: Into<String>>(archives: impl IntoIterator<Item = S>) -> Self {
+        Self {
+            id: String::new(),
+            hash: String::new(),
+            archives: archives.into_iter().map(Into::into).collect(),
+            origins: vec![],
+            expires: None,
+            rate: None,
+            burst: None,
+            admin: false,
+            note: String::new(),
+        }
+    }
+}
+
 /// The keys file.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -216,17 +234,7 @@ mod tests {
     use super::*;
 
     fn record(archives: &[&str]) -> KeyRecord {
-        KeyRecord {
-            id: String::new(),
-            hash: String::new(),
-            archives: archives.iter().map(|s| (*s).to_owned()).collect(),
-            origins: vec![],
-            expires: None,
-            rate: None,
-            burst: None,
-            admin: false,
-            note: String::new(),
-        }
+        KeyRecord::opening(archives.iter().copied())
     }
 
     #[test]

@@ -50,14 +50,9 @@ mod tests {
     fn a_burst_then_the_rate() {
         let key = KeyRecord {
             id: "00000001".into(),
-            hash: String::new(),
-            archives: vec![],
-            origins: vec![],
-            expires: None,
             rate: Some(2.0),
             burst: Some(3.0),
-            admin: false,
-            note: String::new(),
+            ..KeyRecord::opening(Vec::<String>::new())
         };
         let limiter = Limiter::default();
         let t0 = Instant::now();

@@ -6,17 +6,7 @@ use super::*;
 const SECRET: &[u8] = b"the operator's signing secret";
 
 fn record(archives: &[&str]) -> KeyRecord {
-    KeyRecord {
-        id: String::new(),
-        hash: String::new(),
-        archives: archives.iter().map(|s| (*s).to_owned()).collect(),
-        origins: vec![],
-        expires: None,
-        rate: None,
-        burst: None,
-        admin: false,
-        note: String::new(),
-    }
+    KeyRecord::opening(archives.iter().copied())
 }
 
 /// Rules with `private` globs, a keys file of `keys` (their keys returned) and a secret.

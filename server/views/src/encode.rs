@@ -124,9 +124,9 @@ impl ImageFormat {
     pub fn encode(self, rgba: &[u8], size: u32) -> Result<Vec<u8>, String> {
         if rgba.chunks_exact(4).all(|p| p[3] == 255) {
             let rgb: Vec<u8> = rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
-            return self.encode_raw(&rgb, size, false);
+            return self.encode_raw(&rgb, size, Layout::Rgb);
         }
-        self.encode_raw(rgba, size, true)
+        self.encode_raw(rgba, size, Layout::Rgba)
     }
 
     /// `gray_alpha` (`size` x `size`, two bytes a pixel: gray and alpha) as a file of this
@@ -136,54 +136,58 @@ impl ImageFormat {
     /// # Errors
     /// The encoder's message.
     pub fn encode_gray(self, gray_alpha: &[u8], size: u32) -> Result<Vec<u8>, String> {
-        let alpha = gray_alpha.chunks_exact(2).any(|p| p[1] != 255);
-        let gray: Vec<u8>;
-        let pixels = if alpha {
-            gray_alpha
-        } else {
-            gray = gray_alpha.iter().step_by(2).copied().collect();
-            &gray
-        };
-        let mut out = Vec::new();
-        match self {
-            Self::Png => {
-                let mut encoder = png::Encoder::new(&mut out, size, size);
-                encoder.set_color(if alpha { png::ColorType::GrayscaleAlpha } else { png::ColorType::Grayscale });
-                encoder.set_depth(png::BitDepth::Eight);
-                encoder.set_compression(png::Compression::Fast);
-                let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-                writer.write_image_data(pixels).map_err(|e| e.to_string())?;
-            }
-            Self::Webp => {
-                let colour = if alpha { image_webp::ColorType::La8 } else { image_webp::ColorType::L8 };
-                image_webp::WebPEncoder::new(&mut out).encode(pixels, size, size, colour).map_err(|e| e.to_string())?;
-            }
+        if gray_alpha.chunks_exact(2).any(|p| p[1] != 255) {
+            return self.encode_raw(gray_alpha, size, Layout::GrayAlpha);
         }
-        Ok(out)
+        let gray: Vec<u8> = gray_alpha.iter().step_by(2).copied().collect();
+        self.encode_raw(&gray, size, Layout::Gray)
     }
 
-    /// `pixels` (`size` x `size`, RGBA with `alpha`, else RGB) as a file of this format.
+    /// `pixels` (`size` x `size`, laid out as `layout` says) as a file of this format.
     ///
     /// # Errors
     /// The encoder's message.
-    pub fn encode_raw(self, pixels: &[u8], size: u32, alpha: bool) -> Result<Vec<u8>, String> {
+    pub fn encode_raw(self, pixels: &[u8], size: u32, layout: Layout) -> Result<Vec<u8>, String> {
         let mut out = Vec::new();
         match self {
             Self::Png => {
                 let mut encoder = png::Encoder::new(&mut out, size, size);
-                encoder.set_color(if alpha { png::ColorType::Rgba } else { png::ColorType::Rgb });
+                encoder.set_color(match layout {
+                    Layout::Gray => png::ColorType::Grayscale,
+                    Layout::GrayAlpha => png::ColorType::GrayscaleAlpha,
+                    Layout::Rgb => png::ColorType::Rgb,
+                    Layout::Rgba => png::ColorType::Rgba,
+                });
                 encoder.set_depth(png::BitDepth::Eight);
                 encoder.set_compression(png::Compression::Fast);
                 let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
                 writer.write_image_data(pixels).map_err(|e| e.to_string())?;
             }
             Self::Webp => {
-                let colour = if alpha { image_webp::ColorType::Rgba8 } else { image_webp::ColorType::Rgb8 };
+                let colour = match layout {
+                    Layout::Gray => image_webp::ColorType::L8,
+                    Layout::GrayAlpha => image_webp::ColorType::La8,
+                    Layout::Rgb => image_webp::ColorType::Rgb8,
+                    Layout::Rgba => image_webp::ColorType::Rgba8,
+                };
                 image_webp::WebPEncoder::new(&mut out).encode(pixels, size, size, colour).map_err(|e| e.to_string())?;
             }
         }
         Ok(out)
     }
+}
+
+/// How an image's bytes hold its pixels: 8 bits a channel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// One byte a pixel.
+    Gray,
+    /// Gray, then alpha.
+    GrayAlpha,
+    /// Red, green, blue.
+    Rgb,
+    /// Red, green, blue, alpha.
+    Rgba,
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@
 
 use terrastream_format::{MmapSource, Reader};
 
-use crate::encode::{HeightEncoding, ImageFormat};
+use crate::encode::{HeightEncoding, ImageFormat, Layout};
 use crate::mercator::{self, WebTile};
 use crate::resample::{self, MakeError, Placed, Samples};
 use crate::tilejson;
@@ -54,7 +54,7 @@ pub fn make_tile_cached(
             let encoding = request.encoding.unwrap_or(HeightEncoding::Terrarium);
             // Every pixel with data (most tiles): RGB straight away.
             if let Some(rgb) = encoding.rgb_pixels(&samples) {
-                return request.format.encode_raw(&rgb, request.size, false).map(Some).map_err(MakeError::Encode);
+                return request.format.encode_raw(&rgb, request.size, Layout::Rgb).map(Some).map_err(MakeError::Encode);
             }
             encoding.pixels(&samples)
         }
