@@ -153,16 +153,7 @@ fn run_contours(args: &ExportArgs, progress: &CliProgress) -> Result<ExitCode> {
     let (summary, zooms) = export_contours_pmtiles(&reader, options, (args.minzoom, args.maxzoom), &args.output, &tick)
         .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
     progress.finish();
-    println!(
-        "{}: PMTiles v3 of contour vector tiles, zooms {}..{}, {} tiles ({} distinct), {} bytes in {:.2} s",
-        args.output.display(),
-        zooms.0,
-        zooms.1,
-        summary.addressed_tiles,
-        summary.tile_contents,
-        summary.file_len,
-        started.elapsed().as_secs_f64()
-    );
+    print_pmtiles(&args.output, "contour vector tiles", zooms, &summary, started);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -320,16 +311,7 @@ fn web_pmtiles(
     let (summary, zooms) = export_web_pmtiles(reader, export, &args.output, &tick)
         .with_context(|| format!("exporting {} to {}", args.archive, args.output.display()))?;
     progress.finish();
-    println!(
-        "{}: PMTiles v3 of web tiles, zooms {}..{}, {} tiles ({} distinct), {} bytes in {:.2} s",
-        args.output.display(),
-        zooms.0,
-        zooms.1,
-        summary.addressed_tiles,
-        summary.tile_contents,
-        summary.file_len,
-        started.elapsed().as_secs_f64()
-    );
+    print_pmtiles(&args.output, "web tiles", zooms, &summary, started);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -358,3 +340,23 @@ fn warn_if_far_finer(reader: &Reader<MmapSource>, export: &WebExport) {
 
 /// Zooms beyond the data's finest that an export makes without a warning.
 const FINER_ZOOMS_WARNED: u8 = 2;
+
+/// What a PMTiles export wrote: the file, its zooms, tiles (distinct), bytes and time.
+fn print_pmtiles(
+    output: &std::path::Path,
+    what: &str,
+    zooms: (u8, u8),
+    summary: &terrastream_views::pmtiles::PmtilesSummary,
+    started: std::time::Instant,
+) {
+    println!(
+        "{}: PMTiles v3 of {what}, zooms {}..{}, {} tiles ({} distinct), {} bytes in {:.2} s",
+        output.display(),
+        zooms.0,
+        zooms.1,
+        summary.addressed_tiles,
+        summary.tile_contents,
+        summary.file_len,
+        started.elapsed().as_secs_f64()
+    );
+}

@@ -389,31 +389,44 @@ pub(crate) async fn made_answer(
     if preconditions(headers, &etag, served.modified, true) == Precondition::NotModified {
         return Ok(with(StatusCode::NOT_MODIFIED, h, Payload::empty()));
     }
-    let bytes = match state.web.made.get(&key) {
-        Some(bytes) => bytes,
-        None => {
-            let web = std::sync::Arc::clone(&state.web);
-            let made = state
-                .web
-                .pool
-                .run(move || make(served, web))
-                .await
-                .map_err(|_| WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
-                .map_err(|e| {
-                    tracing::error!("{what}: {e}");
-                    WebError(StatusCode::INTERNAL_SERVER_ERROR, "internal server error".into())
-                })?;
-            let made = Bytes::from(made.unwrap_or_default());
-            state.web.made.put(key, made.clone());
-            made
-        }
-    };
+    let bytes = made_bytes(state, served, key, &what, make).await?;
     if bytes.is_empty() {
         return Ok(with(StatusCode::NOT_FOUND, h, Payload::from("no data in this tile\n")));
     }
     h.insert(CONTENT_TYPE, HeaderValue::from_static(media));
     h.insert(CONTENT_LENGTH, HeaderValue::from(bytes.len()));
     Ok(with(StatusCode::OK, h, Payload::from(bytes)))
+}
+
+/// The bytes of the made tile `key` (empty where it holds no data): from the made tiles
+/// kept, else made on the pool by `make` and kept. 503 when the pool is full; a failure
+/// is logged with `what` and answered 500.
+pub(crate) async fn made_bytes(
+    state: &AppState,
+    served: std::sync::Arc<crate::catalog::Served>,
+    key: MadeKey,
+    what: &str,
+    make: impl FnOnce(std::sync::Arc<crate::catalog::Served>, std::sync::Arc<WebState>) -> Result<Option<Vec<u8>>, String>
+    + Send
+    + 'static,
+) -> Result<Bytes, WebError> {
+    if let Some(bytes) = state.web.made.get(&key) {
+        return Ok(bytes);
+    }
+    let web = std::sync::Arc::clone(&state.web);
+    let made = state
+        .web
+        .pool
+        .run(move || make(served, web))
+        .await
+        .map_err(|_| WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
+        .map_err(|e| {
+            tracing::error!("{what}: {e}");
+            WebError(StatusCode::INTERNAL_SERVER_ERROR, "internal server error".into())
+        })?;
+    let made = Bytes::from(made.unwrap_or_default());
+    state.web.made.put(key, made.clone());
+    Ok(made)
 }
 
 impl TileQuery {

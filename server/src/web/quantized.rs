@@ -94,28 +94,12 @@ async fn terrain_answer(
     if crate::range::preconditions(headers, &etag, served.modified, true) == crate::range::Precondition::NotModified {
         return Ok((StatusCode::NOT_MODIFIED, h).into_response());
     }
-    let bytes = match state.web.made.get(&key) {
-        Some(bytes) => bytes,
-        None => {
-            let web = std::sync::Arc::clone(&state.web);
-            let made = state
-                .web
-                .pool
-                .run(move || {
-                    let terrain = Terrain::new(&served.reader, Some((&web.decoded, version)));
-                    terrain.map_or(Ok(None), |t| t.tile(tile, extensions)).map(|b| b.map(|b| gzip(&b)))
-                })
-                .await
-                .map_err(|_| super::WebError(StatusCode::SERVICE_UNAVAILABLE, "busy making tiles: try again".into()))?
-                .map_err(|e| {
-                    tracing::error!("{name}: terrain tile {}/{}/{}: {e}", tile.z, tile.x, tile.y);
-                    super::WebError(StatusCode::INTERNAL_SERVER_ERROR, "internal server error".into())
-                })?;
-            let made = bytes::Bytes::from(made.unwrap_or_default());
-            state.web.made.put(key, made.clone());
-            made
-        }
-    };
+    let what = format!("{name}: terrain tile {}/{}/{}", tile.z, tile.x, tile.y);
+    let bytes = super::made_bytes(state, served, key, &what, move |served, web| {
+        let terrain = Terrain::new(&served.reader, Some((&web.decoded, version)));
+        terrain.map_or(Ok(None), |t| t.tile(tile, extensions)).map(|b| b.map(|b| gzip(&b))).map_err(|e| e.to_string())
+    })
+    .await?;
     if bytes.is_empty() {
         return Ok((StatusCode::NOT_FOUND, h, "no such tile: see the available ranges of layer.json\n").into_response());
     }
