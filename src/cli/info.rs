@@ -128,10 +128,31 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
     if let Some(g) = &m.georeference {
         out.push_str(&georeference(g));
     }
+    out.push_str(&vertical(&m.vertical_datum));
     for (i, l) in s.layers.iter().enumerate() {
         out.push_str(&layer(i, l, m.layers.get(i).and_then(|l| l.extent.as_ref())));
     }
     out
+}
+
+/// What the heights are measured from, and the geoid's undulation over the footprint.
+fn vertical(d: &terrastream_format::VerticalDatum) -> String {
+    let mut line = format!("heights     above the {}", d.describe());
+    if d.is_unknown() {
+        line = "heights     vertical datum unknown (served as stored; `tile --vertical-datum` names it)".to_owned();
+    }
+    if let Some(u) = &d.undulation {
+        let (lo, hi) = u.range();
+        line.push_str(&format!(
+            " · geoid {} to {} above the ellipsoid here ({}x{} nodes{})",
+            people::height(lo),
+            people::height(hi),
+            u.columns,
+            u.rows,
+            d.grid.as_deref().map(|g| format!(" of {g}")).unwrap_or_default()
+        ));
+    }
+    line + "\n"
 }
 
 /// Where the archive lies: its CRS by name and code, the grid's origin, the bounds.

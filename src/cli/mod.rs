@@ -155,6 +155,11 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
     }
 }
 
+/// `--vertical-datum`'s value.
+pub fn parse_datum(s: &str) -> std::result::Result<terrastream_tiler::raster::DatumName, String> {
+    terrastream_tiler::raster::DatumName::parse(s)
+}
+
 /// Opens an archive: a file (memory-mapped) or an `http(s)://` URL (Range requests).
 ///
 /// # Errors

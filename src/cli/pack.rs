@@ -38,6 +38,12 @@ pub struct PackArgs {
     /// Output archive (written to a temporary name, then renamed).
     #[arg(short, long)]
     output: PathBuf,
+    /// What the elevation's heights are measured from: an EPSG code (5773 EGM96, 3855
+    /// EGM2008, 4979 ellipsoidal), ellipsoid, egm96, egm2008, unknown, or geoid:FILE (a
+    /// .gtx or GeoTIFF geoid grid). Default: unknown (served as stored). Terrain-RGB and
+    /// Terrarium tile sets are usually above EGM96 or EGM2008.
+    #[arg(long, value_parser = super::parse_datum)]
+    vertical_datum: Option<terrastream_tiler::raster::DatumName>,
     /// Path template of an XYZ/TMS tree, relative to the input folder, e.g. "{z}/{x}/{y}.png"
     /// (z = 0 is the coarsest zoom). Each of {z}, {x}, {y} appears at least once; a repeated
     /// one must agree; {y:06} is y zero-padded to 6 digits. Rows of `row_col` names under
@@ -155,6 +161,17 @@ fn first_image_extension(dir: &Path) -> Option<String> {
     })
 }
 
+/// The writer's options: the vertical datum named, its geoid grid read now (a missing
+/// grid stops the run before anything is packed).
+fn writer_options(args: &PackArgs) -> Result<WriterOptions> {
+    let mut options = WriterOptions::default();
+    if let Some(name) = &args.vertical_datum {
+        let loaded = name.load()?;
+        options.vertical_datum = Some(terrastream_pack::DatumOver(std::sync::Arc::new(move |b| loaded.over(b))));
+    }
+    Ok(options)
+}
+
 fn run_layers(args: &PackArgs, elevation: Option<ElevationScheme>, progress: &CliProgress) -> Result<ExitCode> {
     let scheme = match args.scheme {
         SchemeArg::Xyz => Scheme::Xyz,
@@ -173,7 +190,7 @@ fn run_layers(args: &PackArgs, elevation: Option<ElevationScheme>, progress: &Cl
         inputs.push(layer_source(path, args.texture_template.as_deref(), scheme, kind)?);
     }
     let started = std::time::Instant::now();
-    let summary = pack_layers(&inputs, &args.output, WriterOptions::default(), progress)?;
+    let summary = pack_layers(&inputs, &args.output, writer_options(args)?, progress)?;
     progress.finish();
     println!(
         "{}: {} tiles ({} distinct) in {} layers, {} bytes in {:.2} s",
@@ -217,7 +234,7 @@ pub fn run(args: PackArgs, progress: &CliProgress) -> Result<ExitCode> {
     let tiles = scanned.tiles.len();
     tracing::info!(tiles, layers = scanned.metadata.layers.len(), "packing {}", input.display());
     let started = std::time::Instant::now();
-    let summary = pack(scanned, &args.output, WriterOptions::default(), progress)?;
+    let summary = pack(scanned, &args.output, writer_options(&args)?, progress)?;
     progress.finish();
     let secs = started.elapsed().as_secs_f64();
     println!(
@@ -243,12 +260,8 @@ fn run_tileset(
 ) -> Result<ExitCode> {
     let started = std::time::Instant::now();
     let (summary, from) = match set {
-        Tileset::Pmtiles => {
-            (pack_pmtiles(input, tileset, &args.output, WriterOptions::default(), progress)?, "PMTiles")
-        }
-        Tileset::Mbtiles => {
-            (pack_mbtiles(input, tileset, &args.output, WriterOptions::default(), progress)?, "MBTiles")
-        }
+        Tileset::Pmtiles => (pack_pmtiles(input, tileset, &args.output, writer_options(args)?, progress)?, "PMTiles"),
+        Tileset::Mbtiles => (pack_mbtiles(input, tileset, &args.output, writer_options(args)?, progress)?, "MBTiles"),
     };
     progress.finish();
     println!(

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
+use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
     ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs,
     is_vrt, plan, shard_plan, tile_shard,
@@ -92,6 +93,13 @@ pub struct TileArgs {
     /// Elevation sample storage: quantized u16 (exact for integer sources) or f32.
     #[arg(long, value_enum, default_value_t = StorageArg::Auto)]
     storage: StorageArg,
+    /// What the elevation's heights are measured from, where the inputs do not say (or
+    /// say wrongly): an EPSG code (5773 EGM96 as SRTM's, 3855 EGM2008 as Copernicus',
+    /// 4979 ellipsoidal), ellipsoid, egm96, egm2008, unknown, or geoid:FILE (a .gtx or
+    /// GeoTIFF geoid grid). Default: what the inputs' GeoTIFF keys or WKT name, else
+    /// unknown (served as stored).
+    #[arg(long, value_parser = super::parse_datum)]
+    vertical_datum: Option<DatumName>,
     /// Terrain name in the metadata (default: the input's file name).
     #[arg(long)]
     name: Option<String>,
@@ -332,6 +340,7 @@ impl TileArgs {
             pixel_size: self.pixel_size,
             elevation_grid: None,
             texture_grid: None,
+            vertical_datum: self.vertical_datum.clone(),
         })
     }
 

@@ -24,6 +24,7 @@ mod archive;
 mod async_reader;
 mod checksum;
 mod compression;
+mod datum;
 mod directory;
 mod error;
 mod extent;
@@ -45,6 +46,7 @@ pub use archive::{
 pub use async_reader::AsyncReader;
 pub use checksum::crc32c;
 pub use compression::{decompress, zstd_decompress};
+pub use datum::{HeightReference, Undulation, VerticalDatum};
 pub use directory::{Directory, Entry, LeafPointer, MAX_DIRECTORY_BYTES, TILE_TRAILER_LEN};
 pub use error::{Error, Interrupted, Result};
 pub use extent::{ExtentBuilder, LayerExtent, intersect, mercator_to_lon_lat, union};

@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::datum::VerticalDatum;
 use crate::error::{Error, Result};
 use crate::extent::LayerExtent;
 use crate::key::{MAX_LAYERS, MAX_LODS, TileKey};
@@ -25,6 +26,9 @@ pub struct Metadata {
     /// Optional placement on the Earth.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub georeference: Option<Georeference>,
+    /// What the heights are measured from (absent: unknown, as older archives read).
+    #[serde(default, skip_serializing_if = "VerticalDatum::is_unknown")]
+    pub vertical_datum: VerticalDatum,
     /// Fields of an original-engine metadata text, in their order, values verbatim,
     /// including the ones this format has no field for.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -503,6 +507,7 @@ impl Metadata {
             layers,
             terrain: Terrain::default(),
             georeference: None,
+            vertical_datum: VerticalDatum::default(),
             original_fields: Vec::new(),
             shard: None,
             extra: serde_json::Map::new(),
@@ -599,6 +604,11 @@ impl Metadata {
             if l.compression == PayloadCompression::ZstdGradient && l.format != TileFormat::RawU16 {
                 return bad(format!("{at}: compression zstd_gradient is for raw_u16 tiles, not {:?}", l.format));
             }
+        }
+        if let Some(u) = &self.vertical_datum.undulation
+            && !u.is_valid()
+        {
+            return bad("vertical_datum.undulation: a lattice needs positive steps and one value per node".to_owned());
         }
         Ok(())
     }

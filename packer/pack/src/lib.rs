@@ -21,4 +21,4 @@ pub use compress::{compress_heights, zstd_compress, zstd_compress_gradient, zstd
 pub use error::{Error, Result};
 pub use publish::output_folder;
 pub use terrastream_format::Interrupted;
-pub use writer::{BOOTSTRAP_SLOT, WriteSummary, Writer, WriterOptions, record_extents};
+pub use writer::{BOOTSTRAP_SLOT, DatumOver, WriteSummary, Writer, WriterOptions, record_extents};

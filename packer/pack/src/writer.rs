@@ -58,6 +58,20 @@ pub struct WriterOptions {
     /// Sync the archive to disk before renaming it into place. Off only for scratch
     /// archives that a crash may lose (an update's tiles before they are merged).
     pub durable: bool,
+    /// The heights' vertical datum, recorded when the archive is finished: made over the
+    /// footprint its tiles turned out to cover (a geoid's undulation there).
+    pub vertical_datum: Option<DatumOver>,
+}
+
+/// Makes the record of a vertical datum over a footprint (west, south, east, north in
+/// degrees, when known): see [`WriterOptions::vertical_datum`].
+#[derive(Clone)]
+pub struct DatumOver(pub std::sync::Arc<dyn Fn(Option<[f64; 4]>) -> terrastream_format::VerticalDatum + Send + Sync>);
+
+impl std::fmt::Debug for DatumOver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("DatumOver")
+    }
 }
 
 impl Default for WriterOptions {
@@ -72,6 +86,7 @@ impl Default for WriterOptions {
             bootstrap_target: BOOTSTRAP_READ,
             reserve: true,
             durable: true,
+            vertical_datum: None,
         }
     }
 }
@@ -374,6 +389,16 @@ impl Writer {
         let temp = |e| temporary(&self.folder, e);
         let level = self.options.directory_zstd_level;
         record_extents(&mut self.metadata, &self.extents);
+        if let Some(datum) = &self.options.vertical_datum {
+            let lon_lat = self
+                .metadata
+                .layers
+                .iter()
+                .filter_map(|l| l.extent.as_ref()?.lon_lat)
+                .reduce(|a, b| [a[0].min(b[0]), a[1].min(b[1]), a[2].max(b[2]), a[3].max(b[3])]);
+            self.metadata.vertical_datum =
+                (datum.0)(lon_lat.or(self.metadata.georeference.as_ref().and_then(|g| g.lat_lon_bounds)));
+        }
         let metadata_bytes = zstd_compress(&self.metadata.to_json(), level)
             .map_err(|error| Error::Compress { what: "the metadata", error })?;
         let target = if self.options.reserve {

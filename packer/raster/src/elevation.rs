@@ -28,6 +28,10 @@ pub struct ElevationFile {
     png: bool,
     /// The exact range of the samples GDAL recorded in the file, if it did.
     statistics: Option<(f64, f64)>,
+    /// The GeoTIFF's `VerticalCSTypeGeoKey`, if it has one.
+    vertical: Option<u32>,
+    /// The vertical datum, as the tiler decided it ([`ElevationFile::with_datum`]).
+    datum: Option<crate::DatumName>,
 }
 
 /// Reads a single-band GeoTIFF whole (small rasters, tests); [`open_elevation`] streams.
@@ -104,6 +108,8 @@ fn open_png(path: &Path, encoding: Option<ElevationEncoding>) -> Result<Elevatio
         encoding: Some(encoding),
         png: true,
         statistics: None,
+        vertical: None,
+        datum: None,
     })
 }
 
@@ -149,6 +155,8 @@ fn open_tiff(path: &Path, encoding: Option<ElevationEncoding>) -> Result<Elevati
         nodata,
         // Statistics are of the samples: heights only where samples are heights.
         statistics: statistics.filter(|_| encoding.is_none()),
+        vertical: tags.vertical_code(),
+        datum: None,
         encoding,
         png: false,
     })
@@ -158,6 +166,19 @@ impl ElevationFile {
     /// The exact range of the samples GDAL recorded in the file (its statistics), if it did.
     pub fn statistics(&self) -> Option<(f64, f64)> {
         self.statistics
+    }
+
+    /// The EPSG code of the heights' vertical CRS the file names (GeoTIFF
+    /// `VerticalCSTypeGeoKey`), if it does.
+    pub fn vertical_code(&self) -> Option<u32> {
+        self.vertical
+    }
+
+    /// Records what the heights are measured from.
+    #[must_use]
+    pub fn with_datum(mut self, datum: Option<crate::DatumName>) -> Self {
+        self.datum = datum;
+        self
     }
 
     /// Replaces the sample spacing (metres), e.g. for a PNG, which carries none.
@@ -234,6 +255,9 @@ impl ElevationSource for ElevationFile {
     }
     fn crs_pixel_size(&self) -> Option<(f64, f64)> {
         self.crs_pixel
+    }
+    fn vertical_datum(&self) -> Option<&crate::DatumName> {
+        self.datum.as_ref()
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         if self.png {

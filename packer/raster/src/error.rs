@@ -38,6 +38,14 @@ pub enum Error {
         /// The file that names it.
         named_by: PathBuf,
     },
+    /// A geoid model's grid that is nowhere to be found.
+    #[error("geoid grid {} not found: looked in {} (install Debian's proj-data, put the grid in one of them or set PROJ_DATA, or name the file with --vertical-datum geoid:FILE)", grids.join(" or "), looked.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "))]
+    GeoidMissing {
+        /// The grid files that hold the model.
+        grids: Vec<String>,
+        /// The folders looked in.
+        looked: Vec<PathBuf>,
+    },
     /// A file in a format, or using a feature of one, that is not read here.
     #[error("{path}: {what}")]
     Unsupported {

@@ -45,6 +45,14 @@ impl GeoTags {
         Self { scale, tiepoint, keys }
     }
 
+    /// `VerticalCSTypeGeoKey`: the EPSG code of the heights' vertical CRS, where given.
+    pub(super) fn vertical_code(&self) -> Option<u32> {
+        let k = self.keys.as_ref()?;
+        let v = k.chunks_exact(4).skip(1).find(|e| e[0] == 4096.0 && e[1] == 0.0).map(|e| e[3])?;
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "GeoKey values are u16")]
+        (v > 0.0 && v < 32767.0).then_some(v as u32)
+    }
+
     /// The pixel scale in CRS units, when it is a usable one.
     pub(super) fn crs_pixel(&self) -> Option<(f64, f64)> {
         let s = self.scale.as_ref()?;

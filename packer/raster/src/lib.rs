@@ -9,6 +9,7 @@
 
 mod elevation;
 mod error;
+mod geoid;
 mod geotiff;
 mod image;
 mod inputs;
@@ -32,6 +33,9 @@ pub use crate::error::{ChunkError, Error, Interrupted, JpegError, Result};
 pub use terrastream_crs::{self as crs, Crs, Transform, UnknownCrs};
 
 pub use elevation::{ElevationFile, open_elevation, read_geotiff};
+pub use geoid::{
+    DatumName, GeoidGrid, LoadedDatum, MAX_UNDULATION_NODES, datum_of_input, datum_of_wkt, proj_data_dirs,
+};
 pub use geotiff::{crs_placement, statistics_in as gdal_statistics_in};
 pub use image::{ImageFile, open_image, read_image};
 pub use inputs::expand_inputs;
@@ -122,6 +126,11 @@ pub trait ElevationSource: Sync {
     }
     /// The height range given for this source instead of a pass over it, if one was.
     fn given_height_range(&self) -> Option<(f32, f32)> {
+        None
+    }
+    /// What the heights are measured from, as the inputs or the person name it (None: not
+    /// said).
+    fn vertical_datum(&self) -> Option<&DatumName> {
         None
     }
 }
@@ -262,6 +271,9 @@ impl ElevationSource for KnownRange<'_> {
     }
     fn crs_pixel_size(&self) -> Option<(f64, f64)> {
         self.source.crs_pixel_size()
+    }
+    fn vertical_datum(&self) -> Option<&DatumName> {
+        self.source.vertical_datum()
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         self.source.rows(&mut self.checked(0, row))

@@ -111,6 +111,11 @@ fn plan_with(
         let lon_lat = metadata.georeference.as_ref().and_then(|g| lon_lat_box(g, world));
         layer.extent = Some(LayerExtent { coarsest_lod: 0, finest_lod: 0, world, detail: world, crs: None, lon_lat });
     }
+    // What the heights are measured from, with a geoid's undulation over the footprint.
+    if let Some(datum) = elevation.and_then(ElevationSource::vertical_datum) {
+        let lon_lat = layers.first().and_then(|l| l.extent.as_ref()).and_then(|x| x.lon_lat);
+        metadata.vertical_datum = datum.resolve(lon_lat)?;
+    }
     metadata.layers = layers;
     metadata.validate()?;
     Ok(Plan { metadata, layers: plans })

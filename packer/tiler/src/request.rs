@@ -12,6 +12,7 @@ use terrastream_format::ElevationEncoding;
 use crate::crs::Crs;
 use crate::error::{Error, Result};
 use crate::options::{TextureFormat, TextureInput};
+use crate::raster::{DatumName, datum_of_input};
 use crate::raster::{
     ElevationFile, ElevationSource, GridSpec, Heights, ImageFile, ImageSource, ImageWindow, KnownRange, Mosaic,
     MosaicOptions, Pixels, Warped, image_pixel_metres, is_vrt, open_elevation, open_image,
@@ -52,6 +53,9 @@ pub struct TileRequest {
     pub elevation_grid: Option<GridSpec>,
     /// The imagery mosaic's grid, given whole, as `elevation_grid`.
     pub texture_grid: Option<GridSpec>,
+    /// What the elevation's heights are measured from, named by the person: overrides
+    /// what the inputs say (`--vertical-datum`).
+    pub vertical_datum: Option<DatumName>,
 }
 
 /// The opened inputs of a [`TileRequest`].
@@ -83,11 +87,15 @@ impl Sources {
     /// bad spacing, CRS errors.
     pub fn open(request: &TileRequest) -> Result<Self> {
         let crs = request.crs.as_deref().map(Crs::parse).transpose()?;
-        let heights = height_mosaic(request, crs.as_ref())?;
+        let mut heights = height_mosaic(request, crs.as_ref())?;
+        let datum = vertical_datum(request)?;
         let file = match request.elevation.first().filter(|_| heights.is_none()) {
-            Some(path) => Some(elevation_file(path, request)?),
+            Some(path) => Some(elevation_file(path, request)?.with_datum(datum.clone())),
             None => None,
         };
+        if let Some(m) = &mut heights {
+            m.set_datum(datum);
+        }
         let elevation: Option<&dyn ElevationSource> = match (&heights, &file) {
             (Some(m), _) => Some(m),
             (None, Some(f)) => Some(f),
@@ -281,6 +289,46 @@ fn image_mosaic(
     let (w, h) = ImageSource::size(&mosaic);
     tracing::info!("texture: a mosaic of {} images in {}, {w} x {h} pixels", textures.len(), mosaic.crs().name());
     Ok(Some(mosaic))
+}
+
+/// What the elevation's heights are measured from: the datum named in the request, else
+/// the one the inputs name (GeoTIFF `VerticalCSTypeGeoKey`, a compound CRS's WKT beside
+/// them or in a VRT), else unknown with a warning. Inputs that name different datums
+/// are refused, naming two of them: each would need converting to one.
+///
+/// # Errors
+/// An input naming a vertical CRS with no model here, or inputs in different datums.
+fn vertical_datum(request: &TileRequest) -> Result<Option<DatumName>> {
+    if let Some(d) = &request.vertical_datum {
+        return Ok(Some(d.clone()));
+    }
+    let Some(first) = request.elevation.first() else { return Ok(None) };
+    let mut named: Option<(PathBuf, DatumName)> = None;
+    for path in &request.elevation {
+        let Some(datum) = datum_of_input(path)? else { continue };
+        match &named {
+            Some((other, d)) if *d != datum => {
+                return Err(Error::Input {
+                    path: path.clone(),
+                    reason: format!(
+                        "its heights are above the {}, those of {} above the {}: name the datum of all of them with --vertical-datum, or convert one first",
+                        datum.describe(),
+                        other.display(),
+                        d.describe()
+                    ),
+                });
+            }
+            Some(_) => {}
+            None => named = Some((path.clone(), datum)),
+        }
+    }
+    if named.is_none() {
+        tracing::warn!(
+            "{}: the heights name no vertical datum: recorded as unknown (name it with --vertical-datum: 5773 for EGM96, as SRTM's; 3855 for EGM2008, as Copernicus'; 4979 for ellipsoidal)",
+            first.display()
+        );
+    }
+    Ok(named.map(|(_, d)| d))
 }
 
 /// One elevation file, with the spacing asked for where it says none.

@@ -307,6 +307,8 @@ pub struct Mosaic<K: MosaicKind = Heights> {
     size: (u32, u32),
     georeference: Georeference,
     cache_bytes: usize,
+    /// What the heights are measured from ([`Mosaic::set_datum`]).
+    datum: Option<crate::DatumName>,
 }
 
 impl<K: MosaicKind> Mosaic<K> {
@@ -377,6 +379,7 @@ impl<K: MosaicKind> Mosaic<K> {
             size: grid.size,
             georeference,
             cache_bytes: options.cache_bytes.unwrap_or(512 << 20),
+            datum: None,
         })
     }
 
@@ -395,6 +398,16 @@ impl<K: MosaicKind> Mosaic<K> {
             (K::path(&self.inputs[index].file).to_path_buf(), why)
         });
         self.skipped.iter().chain(dropped.iter()).cloned().chain(damaged).collect()
+    }
+
+    /// Records what the heights are measured from.
+    pub fn set_datum(&mut self, datum: Option<crate::DatumName>) {
+        self.datum = datum;
+    }
+
+    /// What the heights are measured from, as recorded.
+    pub fn datum(&self) -> Option<&crate::DatumName> {
+        self.datum.as_ref()
     }
 
     /// The output CRS.

@@ -74,6 +74,9 @@ impl ElevationSource for Mosaic<Heights> {
     fn path(&self) -> &Path {
         &self.path
     }
+    fn vertical_datum(&self) -> Option<&crate::DatumName> {
+        self.datum()
+    }
     fn size(&self) -> (u32, u32) {
         self.size
     }

@@ -314,6 +314,9 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
             extent.lon_lat = Some(lon_lat);
         }
     }
+    // A geoid's undulation over all the inputs' footprints (one grid's nodes).
+    let lattices = readers.iter().filter_map(|r| r.metadata().vertical_datum.undulation.clone());
+    metadata.vertical_datum.undulation = lattices.reduce(|a, b| a.union(&b).unwrap_or(a));
     let (winners, conflicts) = winners(&readers, progress)?;
     Ok(Prepared { readers, metadata, shards, winners, conflicts })
 }
@@ -345,6 +348,10 @@ fn difference(base: &Metadata, other: &Metadata) -> Option<String> {
             })
         };
         return Some(format!("CRS {} here, {} there", show(other), show(base)));
+    }
+    let (da, db) = (&base.vertical_datum, &other.vertical_datum);
+    if (da.reference, &da.geoid) != (db.reference, &db.geoid) {
+        return Some(format!("heights above the {} here, the {} there", db.describe(), da.describe()));
     }
     None
 }
