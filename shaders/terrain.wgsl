@@ -25,6 +25,9 @@ struct GlobeInfo {
     // x, y: sine and cosine of the anchor's latitude, z: the prime vertical radius there,
     // w: the column height (the eye's height clamped to the terrain's range).
     anchor: vec4<f32>,
+    // The geoid's undulation (the lattice texture's b): the anchor's lattice coordinates,
+    // z: lattice points per world unit, w: 1 where heights are above a geoid (else 0).
+    geoid: vec4<f32>,
 }
 
 struct Globals {
@@ -65,7 +68,8 @@ struct Globals {
 @group(0) @binding(2) var elevation: texture_2d_array<f32>;
 @group(0) @binding(3) var colour: texture_2d_array<f32>;
 @group(0) @binding(4) var colour_sampler: sampler;
-// Longitude and latitude (radians, from the lattice's centre) at lattice points.
+// Longitude and latitude (radians, from the lattice's centre) at lattice points (rg), and
+// the geoid's undulation there (b, metres).
 @group(0) @binding(5) var lattice: texture_2d<f32>;
 // The atmosphere (atmosphere.wgsl, appended to this source).
 @group(0) @binding(6) var<uniform> ATMO: AtmosphereUniform;
@@ -191,17 +195,17 @@ const MERCATOR_EDGE: f32 = 3.14159;
 const WGS84_E2: f32 = 0.0066943799901413165;
 
 // Bilinear between lattice points.
-fn lattice_at(q: vec2<f32>) -> vec2<f32> {
+fn lattice_at(q: vec2<f32>) -> vec4<f32> {
     let last = vec2<f32>(G.globe.kind.yz) - 1.0;
     let c = clamp(q, vec2<f32>(0.0), last);
     let i = min(floor(c), max(last - 1.0, vec2<f32>(0.0)));
     let t = c - i;
     let a = vec2<i32>(i);
     let b = min(a + 1, vec2<i32>(last));
-    let v00 = textureLoad(lattice, a, 0).xy;
-    let v10 = textureLoad(lattice, vec2<i32>(b.x, a.y), 0).xy;
-    let v01 = textureLoad(lattice, vec2<i32>(a.x, b.y), 0).xy;
-    let v11 = textureLoad(lattice, b, 0).xy;
+    let v00 = textureLoad(lattice, a, 0);
+    let v10 = textureLoad(lattice, vec2<i32>(b.x, a.y), 0);
+    let v01 = textureLoad(lattice, vec2<i32>(a.x, b.y), 0);
+    let v11 = textureLoad(lattice, b, 0);
     return mix(mix(v00, v10, t.x), mix(v01, v11, t.x), t.y);
 }
 
@@ -222,7 +226,7 @@ fn geo_offset(p: vec2<f32>) -> vec2<f32> {
             return vec2<f32>(p.x * m.x, dlat);
         }
         case 3u: {
-            return lattice_at(m.xy + p * m.z) - lattice_at(m.xy);
+            return lattice_at(m.xy + p * m.z).xy - lattice_at(m.xy).xy;
         }
         default: {
             return vec2<f32>(p.x * m.x, p.y * m.y);
@@ -258,12 +262,23 @@ fn globe_local(d: vec2<f32>, h: f32) -> vec3<f32> {
     return vec3<f32>(y, ca * x + sa * z, sa * x - ca * z);
 }
 
-// Where grid point p (from the anchor) at height h is drawn, in the anchor's frame.
+// The geoid's undulation at grid point p (from the anchor): what lifts heights above
+// the archive's geoid onto the ellipsoid (0 where they are not above one).
+fn undulation(p: vec2<f32>) -> f32 {
+    let g = G.globe.geoid;
+    if g.w == 0.0 {
+        return 0.0;
+    }
+    return lattice_at(g.xy + p * g.z).z;
+}
+
+// Where grid point p (from the anchor) at height h (the archive's) is drawn, in the
+// anchor's frame.
 fn place(p: vec2<f32>, h: f32) -> vec3<f32> {
     if G.globe.kind.x == 0u {
         return vec3<f32>(p.x, h, p.y);
     }
-    return globe_local(geo_offset(p), h);
+    return globe_local(geo_offset(p), h + undulation(p));
 }
 
 // Distance from the camera to the vertical column at p over the terrain's height range:

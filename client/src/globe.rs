@@ -16,7 +16,7 @@
 use std::sync::Arc;
 
 use glam::{DMat3, DVec2, DVec3};
-use terrastream_format::Metadata;
+use terrastream_format::{Metadata, Undulation};
 
 use crate::geo::Geo;
 use crate::stream::camera::{Aabb, SceneBox};
@@ -140,6 +140,31 @@ impl Lattice {
     }
 }
 
+/// The geoid's undulation N (metres) at the points of a lattice of world points, row-major
+/// from the north-west; bilinear between (the shader's way).
+#[derive(Clone, Debug)]
+pub struct GeoidLattice {
+    /// World point of lattice point (0, 0).
+    pub origin: DVec2,
+    /// World units between lattice points.
+    pub cell: f64,
+    /// Points per row and per column.
+    pub size: (usize, usize),
+    /// N at each point.
+    pub values: Vec<f32>,
+}
+
+/// The points of a lattice over a world box: its origin, cell and size (at most
+/// [`LATTICE_MAX`] a side, cells of at least [`LATTICE_CELL`]).
+fn lattice_points([x0, z0, x1, z1]: [f64; 4]) -> (DVec2, f64, (usize, usize)) {
+    let span = (x1 - x0).max(z1 - z0).max(1e-9);
+    #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
+    let cell = LATTICE_CELL.max(span / (LATTICE_MAX - 1) as f64);
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "bounded above")]
+    let count = |extent: f64| ((extent / cell).ceil() as usize + 1).clamp(2, LATTICE_MAX);
+    (DVec2::new(x0, z0), cell, (count(x1 - x0), count(z1 - z0)))
+}
+
 /// An archive's grid on the ellipsoid.
 #[derive(Clone, Debug)]
 pub struct GlobeMap {
@@ -147,8 +172,15 @@ pub struct GlobeMap {
     pub mapping: Mapping,
     /// The drawn box `[min x, min z, max x, max z]` (world units): points are clamped to it.
     pub extent: [f64; 4],
-    /// The heights the terrain is drawn between.
+    /// The heights the terrain is drawn between (above the ellipsoid: the archive's
+    /// own, plus the geoid's undulation where it has one).
     pub heights: (f64, f64),
+    /// The geoid's undulation over the data, for an archive of heights above a geoid:
+    /// drawn heights are `H + N` above the ellipsoid, as CesiumJS places them.
+    pub geoid: Option<Undulation>,
+    /// N at the points of a lattice over the drawn box (the GPU's: on the same points as
+    /// a [`Mapping::Lattice`]'s), for an archive with a geoid.
+    pub geoid_lattice: Option<GeoidLattice>,
     geo: Arc<Geo>,
 }
 
@@ -201,7 +233,11 @@ impl GlobeMap {
         let georeference = metadata.georeference.as_ref()?;
         let definition = georeference.definition.as_deref()?;
         let (origin, scale) = (georeference.origin?, georeference.scale?);
-        let (extent, heights) = crate::fly::terrain_bounds(metadata);
+        let (extent, (lo, hi)) = crate::fly::terrain_bounds(metadata);
+        let datum = &metadata.vertical_datum;
+        let geoid = datum.undulation.clone().filter(|_| datum.converts());
+        let (n_lo, n_hi) = geoid.as_ref().map_or((0.0, 0.0), Undulation::range);
+        let heights = (lo + n_lo, hi + n_hi);
         let mapping = if is_wgs84_geographic(definition) {
             Mapping::Geographic {
                 origin: DVec2::new(origin[0], origin[1]) * std::f64::consts::PI / 180.0,
@@ -215,16 +251,25 @@ impl GlobeMap {
         } else {
             Mapping::Lattice(Self::lattice(&geo, extent)?)
         };
-        Some(Self { mapping, extent, heights, geo: Arc::new(geo) })
+        let mut map = Self { mapping, extent, heights, geoid, geoid_lattice: None, geo: Arc::new(geo) };
+        if map.geoid.is_some() {
+            let (origin, cell, size) = lattice_points(extent);
+            let mut values = Vec::with_capacity(size.0 * size.1);
+            for j in 0..size.1 {
+                for i in 0..size.0 {
+                    #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
+                    let (x, z) = (origin.x + i as f64 * cell, origin.y + j as f64 * cell);
+                    #[expect(clippy::cast_possible_truncation, reason = "metres as f32")]
+                    values.push(map.undulation_at(map.lon_lat(x, z)) as f32);
+                }
+            }
+            map.geoid_lattice = Some(GeoidLattice { origin, cell, size, values });
+        }
+        Some(map)
     }
 
     fn lattice(geo: &Geo, [x0, z0, x1, z1]: [f64; 4]) -> Option<Lattice> {
-        let span = (x1 - x0).max(z1 - z0).max(1e-9);
-        #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
-        let cell = LATTICE_CELL.max(span / (LATTICE_MAX - 1) as f64);
-        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "bounded above")]
-        let count = |extent: f64| ((extent / cell).ceil() as usize + 1).clamp(2, LATTICE_MAX);
-        let size = (count(x1 - x0), count(z1 - z0));
+        let (_, cell, size) = lattice_points([x0, z0, x1, z1]);
         let centre_world = ((x0 + x1) * 0.5, (z0 + z1) * 0.5);
         let (clon, clat) = geo.world_to_lon_lat(centre_world.0, centre_world.1)?;
         let centre = DVec2::new(clon.to_radians(), clat.to_radians());
@@ -266,10 +311,17 @@ impl GlobeMap {
         }
     }
 
-    /// ECEF of a world point at a height.
+    /// ECEF of a world point at a height in the archive's datum (above its geoid, where
+    /// it has one: lifted by the undulation there).
     pub fn ecef(&self, x: f64, z: f64, height: f64) -> DVec3 {
         let p = self.lon_lat(x, z);
-        ecef(p.x, p.y, height)
+        ecef(p.x, p.y, height + self.undulation_at(p))
+    }
+
+    /// The geoid's undulation N at a longitude and latitude (radians): what lifts the
+    /// archive's heights onto the ellipsoid (0 without a geoid).
+    pub fn undulation_at(&self, lon_lat: DVec2) -> f64 {
+        self.geoid.as_ref().map_or(0.0, |u| u.at(lon_lat.x.to_degrees(), lon_lat.y.to_degrees()))
     }
 
     /// The world point at a longitude and latitude (radians), if it has one.
@@ -311,11 +363,12 @@ impl GlobeMap {
             for i in 0..=steps {
                 let (u, v) = (f64::from(i) / f64::from(steps), f64::from(j) / f64::from(steps));
                 let p = self.lon_lat(x0 + (x1 - x0) * u, z0 + (z1 - z0) * v);
+                let n = self.undulation_at(p);
                 for h in [lo, hi] {
-                    let q = axes.transpose() * (ecef(p.x, p.y, h) - origin);
+                    let q = axes.transpose() * (ecef(p.x, p.y, h + n) - origin);
                     (min, max) = (min.min(q), max.max(q));
                 }
-                top.push(ecef(p.x, p.y, hi));
+                top.push(ecef(p.x, p.y, hi + n));
             }
         }
         // The longest chord between neighbouring samples, diagonals included.
@@ -491,6 +544,30 @@ impl Surface {
         match self {
             Self::Flat => p.y,
             Self::Globe(_) => geodetic(p).2,
+        }
+    }
+
+    /// Height of a scene point in the archive's datum: above its geoid where it has one
+    /// (the ellipsoidal height less the undulation there), else as [`Surface::height`].
+    pub fn datum_height(&self, p: DVec3) -> f64 {
+        match self {
+            Self::Flat => p.y,
+            Self::Globe(map) => {
+                let (lon, lat, h) = geodetic(p);
+                h - map.undulation_at(DVec2::new(lon, lat))
+            }
+        }
+    }
+
+    /// What lifts the archive's heights at a scene point to scene heights: the geoid's
+    /// undulation on a globe of an archive above a geoid, else 0.
+    pub fn lift(&self, p: DVec3) -> f64 {
+        match self {
+            Self::Flat => 0.0,
+            Self::Globe(map) => {
+                let (lon, lat, _) = geodetic(p);
+                map.undulation_at(DVec2::new(lon, lat))
+            }
         }
     }
 }

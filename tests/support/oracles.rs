@@ -25,12 +25,44 @@ pub fn terrastream(args: &[&str]) {
     assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
 }
 
-/// The DEM tiled as `terrastream tile` does by default, in `dir`.
+/// The DEM tiled as `terrastream tile` does by default, in `dir`, its heights named as
+/// SRTM's are: above the EGM96 geoid (EPSG:5773).
 pub fn archive(dir: &Path) -> PathBuf {
     let path = dir.join("tamalpais.tspack");
     let dem = repo().join(DEM);
-    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", path.to_str().unwrap()]);
+    terrastream(&[
+        "tile",
+        "--elevation",
+        dem.to_str().unwrap(),
+        "-o",
+        path.to_str().unwrap(),
+        "--vertical-datum",
+        "5773",
+    ]);
     path
+}
+
+/// PROJ's EGM96 undulation N at each point (lon, lat): `cct` shifting a zero height by
+/// the grid `egm96_15.gtx` (Debian `proj-data`), named explicitly.
+pub fn proj_undulation(points: &[(f64, f64)]) -> Vec<f64> {
+    let input: String = points.iter().map(|(lon, lat)| format!("{lon} {lat} 0 0\n")).collect();
+    let mut child = Command::new("cct")
+        .args(["-d", "6", "+proj=vgridshift", "+grids=egm96_15.gtx", "+multiplier=1"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("PROJ's cct (apt-get install proj-bin)");
+    std::io::Write::write_all(&mut child.stdin.take().unwrap(), input.as_bytes()).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "cct");
+    let n: Vec<f64> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| l.split_whitespace().nth(2).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(n.len(), points.len(), "cct answered {} of {} points", n.len(), points.len());
+    n
 }
 
 /// `count` points (lon, lat) spread at random over the middle 80 % of `bounds`.

@@ -47,6 +47,7 @@ struct GlobeInfo {
     kind: [u32; 4],
     map: [f32; 4],
     anchor: [f32; 4],
+    geoid: [f32; 4],
 }
 
 const GLOBE_FLAT: u32 = 0;
@@ -119,7 +120,7 @@ impl TerrainRenderer {
         let eye = camera.position;
         let Some(globe) = self.surface.globe() else {
             let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
-            let info = GlobeInfo { kind: [GLOBE_FLAT, 1, 1, 0], map: [0.0; 4], anchor: [0.0; 4] };
+            let info = GlobeInfo { kind: [GLOBE_FLAT, 1, 1, 0], map: [0.0; 4], anchor: [0.0; 4], geoid: [0.0; 4] };
             return (info, DVec3::new(eye.x - anchor.0, eye.y, eye.z - anchor.1), rotation);
         };
         let frame = globe.local_frame(glam::DVec2::new(anchor.0, anchor.1));
@@ -131,22 +132,31 @@ impl TerrainRenderer {
         );
         let (sin, cos) = frame.lon_lat.y.sin_cos();
         let n = crate::globe::A / (1.0 - crate::globe::E2 * sin * sin).sqrt();
-        let column = self.surface.height(eye).clamp(self.column.0, self.column.1);
+        let column = self.surface.datum_height(eye).clamp(self.column.0, self.column.1);
+        let (w, h) = super::renderer::lattice_size(&self.surface);
         let (kind, map) = match &globe.mapping {
-            Mapping::Geographic { step, .. } => ([GLOBE_GEOGRAPHIC, 1, 1, 0], [step.x, step.y, 0.0, 0.0]),
+            Mapping::Geographic { step, .. } => ([GLOBE_GEOGRAPHIC, w, h, 0], [step.x, step.y, 0.0, 0.0]),
             Mapping::WebMercator { origin, step } => {
                 let v = origin.y + step.y * anchor.1;
-                ([GLOBE_WEB_MERCATOR, 1, 1, 0], [step.x, step.y, v, frame.lon_lat.y])
+                ([GLOBE_WEB_MERCATOR, w, h, 0], [step.x, step.y, v, frame.lon_lat.y])
             }
             Mapping::Lattice(l) => {
                 let q = l.coordinates(anchor.0, anchor.1);
-                let size = [u32::try_from(l.size.0).unwrap_or(1), u32::try_from(l.size.1).unwrap_or(1)];
-                ([GLOBE_LATTICE, size[0], size[1], 0], [q.x, q.y, 1.0 / l.cell, 0.0])
+                ([GLOBE_LATTICE, w, h, 0], [q.x, q.y, 1.0 / l.cell, 0.0])
             }
         };
+        // The anchor's coordinates on the geoid's lattice, its points per world unit, 1.
+        let geoid = globe.geoid_lattice.as_ref().map_or([0.0; 4], |g| {
+            let q = (glam::DVec2::new(anchor.0, anchor.1) - g.origin) / g.cell;
+            [q.x, q.y, 1.0 / g.cell, 1.0]
+        });
         #[allow(clippy::cast_possible_truncation)]
-        let info =
-            GlobeInfo { kind, map: map.map(|v| v as f32), anchor: [sin as f32, cos as f32, n as f32, column as f32] };
+        let info = GlobeInfo {
+            kind,
+            map: map.map(|v| v as f32),
+            anchor: [sin as f32, cos as f32, n as f32, column as f32],
+            geoid: geoid.map(|v| v as f32),
+        };
         (info, local_eye, rotation)
     }
 

@@ -74,13 +74,24 @@ fn first_layer(metadata: &Metadata, kind: LayerKind) -> Option<(u8, &Layer)> {
     metadata.layers.iter().enumerate().find(|(_, l)| l.kind == kind).and_then(|(i, l)| Some((u8::try_from(i).ok()?, l)))
 }
 
-/// The globe's lattice of longitudes and latitudes as a texture (1 x 1, unused, for the
-/// other placements); written at the first frame.
-fn lattice_texture(device: &wgpu::Device, surface: &Surface) -> wgpu::Texture {
-    let size = match surface.globe().map(|g| &g.mapping) {
-        Some(Mapping::Lattice(l)) => (u32::try_from(l.size.0).unwrap_or(1), u32::try_from(l.size.1).unwrap_or(1)),
-        _ => (1, 1),
+/// Points a side of the globe's lattice texture: its lattice of longitudes and latitudes
+/// and of the geoid's undulation (both on the same points), or 1 x 1 (unused).
+pub(super) fn lattice_size(surface: &Surface) -> (u32, u32) {
+    let size = match surface.globe() {
+        Some(g) => match (&g.mapping, &g.geoid_lattice) {
+            (Mapping::Lattice(l), _) => Some(l.size),
+            (_, Some(n)) => Some(n.size),
+            _ => None,
+        },
+        None => None,
     };
+    size.map_or((1, 1), |(w, h)| (u32::try_from(w).unwrap_or(1), u32::try_from(h).unwrap_or(1)))
+}
+
+/// The globe's lattice of longitudes and latitudes (rg) and of the geoid's undulation (b)
+/// as a texture (1 x 1, unused, where there is neither); written at the first frame.
+fn lattice_texture(device: &wgpu::Device, surface: &Surface) -> wgpu::Texture {
+    let size = lattice_size(surface);
     gpu::texture(
         device,
         "texture.globe_lattice",
@@ -349,11 +360,24 @@ impl TerrainRenderer {
         }
         if self.lattice_dirty {
             self.lattice_dirty = false;
-            if let Some(Mapping::Lattice(l)) = self.surface.globe().map(|g| &g.mapping) {
-                #[allow(clippy::cast_possible_truncation)]
-                let texels: Vec<[f32; 4]> = l.values.iter().map(|v| [v.x as f32, v.y as f32, 0.0, 0.0]).collect();
-                let (w, h) = (u32::try_from(l.size.0).unwrap_or(1), u32::try_from(l.size.1).unwrap_or(1));
-                write_layer(queue, &self.lattice, 0, bytemuck::cast_slice(&texels), (w * 16, h), (w, h));
+            if let Some(globe) = self.surface.globe() {
+                let (w, h) = lattice_size(&self.surface);
+                let mut texels = vec![[0.0f32; 4]; w as usize * h as usize];
+                if let Mapping::Lattice(l) = &globe.mapping {
+                    for (t, v) in texels.iter_mut().zip(&l.values) {
+                        #[allow(clippy::cast_possible_truncation)]
+                        let lon_lat = [v.x as f32, v.y as f32];
+                        t[..2].copy_from_slice(&lon_lat);
+                    }
+                }
+                if let Some(n) = &globe.geoid_lattice {
+                    for (t, v) in texels.iter_mut().zip(&n.values) {
+                        t[2] = *v;
+                    }
+                }
+                if (w, h) != (1, 1) {
+                    write_layer(queue, &self.lattice, 0, bytemuck::cast_slice(&texels), (w * 16, h), (w, h));
+                }
             }
         }
         if self.surface.globe().is_some() && self.settings.shading == Shading::Lit && self.settings.atmosphere {

