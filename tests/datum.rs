@@ -219,6 +219,72 @@ fn the_tiler_records_the_datum_inputs_or_people_name() {
     assert_eq!(DatumName::parse("egm96"), Ok(DatumName::egm96()));
 }
 
+/// Two halves of the crop, one above EGM96 (as SRTM), one made ellipsoidal by GDAL and
+/// PROJ (`gdalwarp` to EPSG:4979): one tile run converts the second back, and the archive
+/// holds the heights of the two halves tiled above EGM96.
+#[test]
+fn inputs_of_different_datums_are_converted_to_one() {
+    if !proj() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let dem = repo().join(DEM);
+    let gdal = |program: &str, args: &[&str]| {
+        let out = Command::new(program).args(args).output().unwrap();
+        assert!(out.status.success(), "{program}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let (west, east_h, east) = (d.join("west.tif"), d.join("east-h.tif"), d.join("east.tif"));
+    let p = |p: &Path| p.to_str().unwrap().to_owned();
+    gdal("gdal_translate", &["-q", "-srcwin", "0", "0", "170", "320", "-a_srs", "EPSG:4326+5773", &p(&dem), &p(&west)]);
+    gdal(
+        "gdal_translate",
+        &[
+            "-q",
+            "-srcwin",
+            "150",
+            "0",
+            "170",
+            "320",
+            "-a_srs",
+            "EPSG:4326+5773",
+            "-ot",
+            "Float32",
+            &p(&dem),
+            &p(&east_h),
+        ],
+    );
+    gdal("gdalwarp", &["-q", "-s_srs", "EPSG:4326+5773", "-t_srs", "EPSG:4979", &p(&east_h), &p(&east)]);
+    let (mixed, whole) = (d.join("mixed.tspack"), d.join("whole.tspack"));
+    // f32 storage for both: heights resampled onto the output grid are not whole
+    // metres, and quantized storage would round them by up to half its step.
+    let said = run(&["tile", "--elevation", &p(&west), &p(&east), "-o", &p(&mixed), "--storage", "f32"], d);
+    assert!(said.status.success(), "{}", String::from_utf8_lossy(&said.stderr));
+    assert!(String::from_utf8_lossy(&said.stderr).contains("1 inputs converted to heights above the EGM96 geoid"));
+    // The same halves, both above EGM96: the same grid, nothing converted.
+    ok(&["-q", "tile", "--elevation", &p(&west), &p(&east_h), "-o", &p(&whole), "--storage", "f32"], d);
+    let (rm, rw) = (
+        terrastream_format::Reader::open_mmap(&mixed).unwrap(),
+        terrastream_format::Reader::open_mmap(&whole).unwrap(),
+    );
+    assert_eq!(rm.metadata().vertical_datum.epsg, Some(5773));
+    // Away from the east half's west edge (-122.600139): within a sample of it, the
+    // halves of different datums do not blend each other's samples (the whole's do).
+    let points: Vec<(f64, f64)> = random_points([-122.64, 37.88, -122.555, 37.965], 200)
+        .into_iter()
+        .filter(|&(lon, _)| (lon + 122.600_139).abs() > 0.000_6)
+        .map(|(lon, lat)| (lat, lon))
+        .collect();
+    let at = |r: &terrastream_format::Reader<terrastream_format::MmapSource>| {
+        let heights = terrastream_views::elevation::Heights::new(r).unwrap();
+        heights.at(&points, terrastream_tiles::Interpolation::Bilinear).unwrap()
+    };
+    let (hm, hw) = (at(&rm), at(&rw));
+    let worst = hm.iter().zip(&hw).map(|(a, b)| (a.unwrap() - b.unwrap()).abs()).fold(0.0, f64::max);
+    eprintln!("mixed datums: worst |converted - whole| {:.1} mm over {} points", worst * 1000.0, points.len());
+    assert!(worst <= 0.02, "the converted half is {worst} m off");
+}
+
 #[test]
 fn each_client_gets_its_datum() {
     if !proj() {

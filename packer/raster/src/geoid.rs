@@ -155,6 +155,108 @@ impl LoadedDatum {
     pub fn grid(&self) -> Option<&GeoidGrid> {
         self.grid.as_ref()
     }
+
+    /// The datum as named.
+    pub fn name(&self) -> &DatumName {
+        &self.name
+    }
+
+    /// Its surface's height above the WGS 84 ellipsoid at `(lon, lat)`: N for a geoid
+    /// (0 off its grid), 0 for the ellipsoid.
+    pub fn undulation(&self, lon: f64, lat: f64) -> f64 {
+        self.grid.as_ref().and_then(|g| g.at(lon, lat)).unwrap_or(0.0)
+    }
+}
+
+/// What turns heights of one vertical datum into another's on a mosaic's output grid:
+/// `N_from - N_to` at each output sample.
+pub(crate) struct DatumShift {
+    from: LoadedDatum,
+    to: LoadedDatum,
+    to_lon_lat: crate::Transform,
+    origin: [f64; 2],
+    pixel: (f64, f64),
+    /// The lowest and highest shift over the input's footprint (a metre's margin).
+    pub(crate) range: (f32, f32),
+}
+
+impl std::fmt::Debug for DatumShift {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "DatumShift({} -> {})", self.from.name.describe(), self.to.name.describe())
+    }
+}
+
+impl DatumShift {
+    pub(crate) fn new(
+        from: &LoadedDatum,
+        to: &LoadedDatum,
+        to_lon_lat: crate::Transform,
+        origin: [f64; 2],
+        pixel: (f64, f64),
+    ) -> Self {
+        Self { from: from.clone(), to: to.clone(), to_lon_lat, origin, pixel, range: (0.0, 0.0) }
+    }
+
+    /// Whether two inputs' heights are of one datum (both unconverted, or converted from
+    /// the same).
+    pub(crate) fn same(a: Option<&Self>, b: Option<&Self>) -> bool {
+        match (a, b) {
+            (None, None) => true,
+            (Some(a), Some(b)) => a.from.name == b.from.name,
+            _ => false,
+        }
+    }
+
+    /// The shift at output sample `(column, row)` (its centre).
+    fn at(&self, column: f64, row: f64) -> f64 {
+        let (x, y) = (self.origin[0] + (column + 0.5) * self.pixel.0, self.origin[1] - (row + 0.5) * self.pixel.1);
+        self.to_lon_lat
+            .apply(x, y)
+            .map_or(0.0, |(lon, lat)| self.from.undulation(lon, lat) - self.to.undulation(lon, lat))
+    }
+
+    /// The shift's range over output columns and rows (inclusive), from a 17 x 17 lattice
+    /// of exact values, a metre wider (the undulation bends little between).
+    pub(crate) fn range_over(&self, columns: (i64, i64), rows: (i64, i64)) -> (f32, f32) {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for j in 0..=16 {
+            for i in 0..=16 {
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices")]
+                let (c, r) = (
+                    columns.0 as f64 + (columns.1 - columns.0) as f64 * f64::from(i) / 16.0,
+                    rows.0 as f64 + (rows.1 - rows.0) as f64 * f64::from(j) / 16.0,
+                );
+                let v = self.at(c, r);
+                (lo, hi) = (lo.min(v), hi.max(v));
+            }
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "metres")]
+        let range = ((lo - 1.0) as f32, (hi + 1.0) as f32);
+        range
+    }
+
+    /// Adds the shift to the samples of output row `row` from column `c0` that `empty`
+    /// says this input just filled.
+    pub(crate) fn lift<K: crate::MosaicKind>(&self, row: u32, c0: usize, out: &mut [K::Value], empty: &[bool]) {
+        const STEP: usize = 32;
+        let n = out.len();
+        let mut k = 0;
+        while k < n {
+            let end = (k + STEP).min(n - 1);
+            #[expect(clippy::cast_precision_loss, reason = "pixel indices")]
+            let (a, b) = (self.at((c0 + k) as f64, f64::from(row)), self.at((c0 + end) as f64, f64::from(row)));
+            let last = if end == n - 1 { end } else { end - 1 };
+            for i in k..=last {
+                if empty[i] && !K::is_none(&out[i]) {
+                    #[expect(clippy::cast_precision_loss, reason = "offsets of at most STEP")]
+                    let t = if end > k { (i - k) as f64 / (end - k) as f64 } else { 0.0 };
+                    #[expect(clippy::cast_possible_truncation, reason = "metres")]
+                    K::lift(&mut out[i], (a + (b - a) * t) as f32);
+                }
+            }
+            k = last + 1;
+        }
+    }
 }
 
 /// Folders where PROJ keeps its grids, in the order PROJ looks: `$PROJ_DATA` (or the older

@@ -22,6 +22,8 @@ pub trait MosaicKind: Send + Sync + 'static {
     const NONE: Self::Value;
     /// Whether `v` is no data.
     fn is_none(v: &Self::Value) -> bool;
+    /// Raises a height by `by` (another vertical datum's); other kinds stay as they are.
+    fn lift(_v: &mut Self::Value, _by: f32) {}
     /// Opens an input: a GeoTIFF this kind reads by strips or tiles, or (imagery) a PNG or
     /// JPEG read by rows.
     ///
@@ -107,6 +109,9 @@ impl MosaicKind for Heights {
     type Value = f32;
     type File = ElevationFile;
     const NONE: f32 = f32::NAN;
+    fn lift(v: &mut f32, by: f32) {
+        *v += by;
+    }
     fn is_none(v: &f32) -> bool {
         v.is_nan()
     }

@@ -88,7 +88,7 @@ impl Sources {
     pub fn open(request: &TileRequest) -> Result<Self> {
         let crs = request.crs.as_deref().map(Crs::parse).transpose()?;
         let mut heights = height_mosaic(request, crs.as_ref())?;
-        let datum = vertical_datum(request)?;
+        let datum = vertical_datum(request, heights.as_mut())?;
         let file = match request.elevation.first().filter(|_| heights.is_none()) {
             Some(path) => Some(elevation_file(path, request)?.with_datum(datum.clone())),
             None => None,
@@ -291,44 +291,56 @@ fn image_mosaic(
     Ok(Some(mosaic))
 }
 
-/// What the elevation's heights are measured from: the datum named in the request, else
-/// the one the inputs name (GeoTIFF `VerticalCSTypeGeoKey`, a compound CRS's WKT beside
-/// them or in a VRT), else unknown with a warning. Inputs that name different datums
-/// are refused, naming two of them: each would need converting to one.
+/// What the elevation's heights are measured from: the datum named in the request (for
+/// every input), else the one the inputs name (GeoTIFF `VerticalCSTypeGeoKey`, a compound
+/// CRS's WKT beside them or in a VRT), else unknown with a warning. Inputs of a mosaic
+/// that name different datums are converted to the first one named; inputs that name
+/// none are taken to be in it.
 ///
 /// # Errors
-/// An input naming a vertical CRS with no model here, or inputs in different datums.
-fn vertical_datum(request: &TileRequest) -> Result<Option<DatumName>> {
+/// An input naming a vertical CRS with no model here; a geoid grid that is missing.
+fn vertical_datum(request: &TileRequest, mosaic: Option<&mut Mosaic<Heights>>) -> Result<Option<DatumName>> {
     if let Some(d) = &request.vertical_datum {
         return Ok(Some(d.clone()));
     }
     let Some(first) = request.elevation.first() else { return Ok(None) };
-    let mut named: Option<(PathBuf, DatumName)> = None;
+    // Each file's datum: a VRT's sources take the VRT's.
+    let mut named: Vec<(PathBuf, DatumName)> = vec![];
     for path in &request.elevation {
         let Some(datum) = datum_of_input(path)? else { continue };
-        match &named {
-            Some((other, d)) if *d != datum => {
-                return Err(Error::Input {
-                    path: path.clone(),
-                    reason: format!(
-                        "its heights are above the {}, those of {} above the {}: name the datum of all of them with --vertical-datum, or convert one first",
-                        datum.describe(),
-                        other.display(),
-                        d.describe()
-                    ),
-                });
+        if is_vrt(path) {
+            for source in crate::raster::read_vrt(path)?.sources {
+                named.push((source.path, datum.clone()));
             }
-            Some(_) => {}
-            None => named = Some((path.clone(), datum)),
         }
+        named.push((path.clone(), datum));
     }
-    if named.is_none() {
+    let Some((_, target)) = named.first().cloned() else {
         tracing::warn!(
             "{}: the heights name no vertical datum: recorded as unknown (name it with --vertical-datum: 5773 for EGM96, as SRTM's; 3855 for EGM2008, as Copernicus'; 4979 for ellipsoidal)",
             first.display()
         );
+        return Ok(None);
+    };
+    if named.iter().all(|(_, d)| *d == target) {
+        return Ok(Some(target));
     }
-    Ok(named.map(|(_, d)| d))
+    let Some(mosaic) = mosaic else { return Ok(Some(target)) };
+    // Each distinct datum's grid read once.
+    let mut loaded: Vec<crate::raster::LoadedDatum> = vec![];
+    for (_, d) in &named {
+        if !loaded.iter().any(|l| l.name() == d) {
+            loaded.push(d.load()?);
+        }
+    }
+    let to = loaded.iter().find(|l| *l.name() == target).cloned().ok_or(Error::NothingToTile)?;
+    let datum_of = |path: &Path| {
+        let d = named.iter().find(|(p, _)| p == path).map(|(_, d)| d)?;
+        loaded.iter().find(|l| l.name() == d).cloned()
+    };
+    let converted = mosaic.convert_datums(&datum_of, &to);
+    tracing::info!("{converted} inputs converted to heights above the {}", target.describe());
+    Ok(Some(target))
 }
 
 /// One elevation file, with the spacing asked for where it says none.

@@ -26,6 +26,7 @@ use super::vrt::{is_vrt, read_vrt};
 use super::{ElevationSource, ImageSource, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
+use crate::geoid::DatumShift;
 
 mod range;
 mod reader;
@@ -143,6 +144,9 @@ struct Input<K: MosaicKind> {
     /// Left out once open: its data could not be decoded when its height range was
     /// scanned (with `skip_bad_inputs`).
     dropped: std::sync::atomic::AtomicBool,
+    /// Heights of another vertical datum than the mosaic's: what to add to them
+    /// ([`Mosaic::convert_datums`]).
+    shift: Option<Arc<DatumShift>>,
 }
 
 impl<K: MosaicKind> Input<K> {
@@ -348,6 +352,7 @@ impl<K: MosaicKind> Mosaic<K> {
                     placement,
                     lattice,
                     dropped: std::sync::atomic::AtomicBool::new(false),
+                    shift: None,
                     columns: (cell((fp[0] - origin[0]) / pixel.0) - 1, cell((fp[2] - origin[0]) / pixel.0) + 1),
                     rows: (cell((origin[1] - fp[3]) / pixel.1) - 1, cell((origin[1] - fp[1]) / pixel.1) + 1),
                     to_input,
@@ -403,6 +408,29 @@ impl<K: MosaicKind> Mosaic<K> {
     /// Records what the heights are measured from.
     pub fn set_datum(&mut self, datum: Option<crate::DatumName>) {
         self.datum = datum;
+    }
+
+    /// Converts the heights of inputs of other vertical datums to `to`'s, the mosaic's:
+    /// `datum_of` says an input file's datum (None: the mosaic's). Each converted
+    /// sample gains the difference of the two geoids' undulations there (an ellipsoid's
+    /// being 0), exact every [`LATTICE`] output samples along a row, linear between.
+    /// Returns how many inputs are converted.
+    pub fn convert_datums(
+        &mut self,
+        datum_of: &dyn Fn(&Path) -> Option<crate::LoadedDatum>,
+        to: &crate::LoadedDatum,
+    ) -> usize {
+        let to_lon_lat = Transform::new(&self.crs, &Crs::wgs84());
+        let (origin, pixel) = (self.origin, self.pixel);
+        let mut converted = 0;
+        for input in &mut self.inputs {
+            let Some(from) = datum_of(K::path(&input.file)).filter(|d| d.name() != to.name()) else { continue };
+            let mut shift = DatumShift::new(&from, to, to_lon_lat.clone(), origin, pixel);
+            shift.range = shift.range_over(input.columns, input.rows);
+            input.shift = Some(Arc::new(shift));
+            converted += 1;
+        }
+        converted
     }
 
     /// What the heights are measured from, as recorded.
@@ -481,13 +509,18 @@ impl<K: MosaicKind> Mosaic<K> {
             if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
+            let empty: Option<Vec<bool>> = input.shift.as_ref().map(|_| out[c0..=c1].iter().map(K::is_none).collect());
             // A corner beyond this input's pixels: the latest neighbour's of its CRS and
             // pixel size with data there (its pixel, on one lattice; else bilinear there).
             let edge = |x: i64, y: i64| {
                 let Some((_, ox, oy)) = input.lattice else { return K::NONE };
                 for &other in band.neighbours[place].iter().rev() {
-                    let (Some(w), Some((_, nx, ny))) = (&band.windows[other], self.inputs[band.inputs[other]].lattice)
-                    else {
+                    let neighbour = &self.inputs[band.inputs[other]];
+                    // Only heights of this input's datum blend with its own.
+                    if !DatumShift::same(neighbour.shift.as_deref(), input.shift.as_deref()) {
+                        continue;
+                    }
+                    let (Some(w), Some((_, nx, ny))) = (&band.windows[other], neighbour.lattice) else {
                         continue;
                     };
                     #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
@@ -539,6 +572,9 @@ impl<K: MosaicKind> Mosaic<K> {
                     }
                     window.bilinear_into(&points, &mut out[c0..c0 + points.len()], &edge);
                 }
+            }
+            if let (Some(shift), Some(empty)) = (&input.shift, empty) {
+                shift.lift::<K>(j, c0, &mut out[c0..=c1], &empty);
             }
         }
         out

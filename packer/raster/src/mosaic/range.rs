@@ -137,7 +137,8 @@ impl ElevationSource for Mosaic<Heights> {
                     }
                     other => other?,
                 };
-                (lo, hi) = (lo.min(l), hi.max(h));
+                let (sl, sh) = input.shift.as_ref().map_or((0.0, 0.0), |s| s.range);
+                (lo, hi) = (lo.min(l + sl), hi.max(h + sh));
             }
             k = next;
             if run > 0 {
@@ -163,7 +164,8 @@ impl ElevationSource for Mosaic<Heights> {
                 (a, b) = (a * f64::from(ratio) + f64::from(offset), b * f64::from(ratio) + f64::from(offset));
                 (a, b) = (a.min(b), a.max(b));
             }
-            (lo, hi) = (lo.min(a), hi.max(b));
+            let (sl, sh) = input.shift.as_ref().map_or((0.0, 0.0), |s| s.range);
+            (lo, hi) = (lo.min(a + f64::from(sl)), hi.max(b + f64::from(sh)));
         }
         if lo <= hi { Ok(crate::nearest_f32((lo, hi))) } else { Err(self.path.clone()) }
     }
