@@ -1,5 +1,6 @@
 //! `terrastream bench mesh`: quantized-mesh tiles made per second and per core from an
-//! archive's terrain (mesh + encode, the heights sampled beforehand), triangles per tile,
+//! archive's terrain (mesh + encode, the heights sampled beforehand), the sampling's and
+//! the vertical datum conversion's share of a whole tile, triangles per tile,
 //! and the same height grids and bounds written for a peer to mesh (`scripts/bench-mesh.sh`
 //! runs Python's pydelatin + quantized-mesh-encoder on them).
 //!
@@ -53,12 +54,27 @@ pub fn run(args: &MeshBench) -> Result<()> {
     };
     let max_level = args.max_level.unwrap_or(terrain.maxzoom()).min(terrain.maxzoom());
     let mut grids = vec![];
+    // Sampling (its datum conversion included), and the conversion alone: the best of
+    // `repeat` each.
+    let (mut sampling, mut converting) = (Duration::ZERO, Duration::ZERO);
     for z in args.min_level..=max_level {
         let Some(([x0, x1], [y0, y1])) = terrain.available(z) else { continue };
         let all: Vec<GeoTile> = (y0..=y1).flat_map(|y| (x0..=x1).filter_map(move |x| GeoTile::new(z, x, y))).collect();
         let step = all.len().div_ceil(args.per_level.max(1)).max(1);
         for &tile in all.iter().step_by(step) {
-            let heights = terrain.heights(tile).with_context(|| format!("tile {}/{}/{}", tile.z, tile.x, tile.y))?;
+            let (mut best, mut best_datum) = (Duration::MAX, Duration::MAX);
+            let mut heights = vec![];
+            for _ in 0..args.repeat.max(1) {
+                let start = Instant::now();
+                heights = terrain.heights(tile).with_context(|| format!("tile {}/{}/{}", tile.z, tile.x, tile.y))?;
+                best = best.min(start.elapsed());
+                let mut copy = heights.clone();
+                let start = Instant::now();
+                terrain.to_ellipsoid(tile, &mut copy);
+                best_datum = best_datum.min(start.elapsed());
+                std::hint::black_box(copy);
+            }
+            (sampling, converting) = (sampling + best, converting + best_datum);
             let bound = Terrain::bound(tile, &heights);
             grids.push(Grid { tile, heights, bound });
         }
@@ -111,6 +127,15 @@ pub fn run(args: &MeshBench) -> Result<()> {
         grids.len(),
         triangles as f64 / n,
         n / total.as_secs_f64()
+    );
+    let whole = sampling + total;
+    println!(
+        "a tile: sampling {:.1} µs + mesh and encode {:.1} µs; of it the vertical datum's conversion {:.1} µs ({:.2} % of the tile{})",
+        sampling.as_secs_f64() * 1e6 / n,
+        total.as_secs_f64() * 1e6 / n,
+        converting.as_secs_f64() * 1e6 / n,
+        100.0 * converting.as_secs_f64() / whole.as_secs_f64().max(1e-12),
+        if reader.metadata().vertical_datum.converts() { "" } else { "; this archive's heights are not converted" }
     );
     Ok(())
 }

@@ -169,32 +169,59 @@ impl LoadedDatum {
 }
 
 /// What turns heights of one vertical datum into another's on a mosaic's output grid:
-/// `N_from - N_to` at each output sample.
+/// `N_from - N_to` at each output sample, exact on a lattice every [`SHIFT_CELL`] samples
+/// over the input's footprint, bilinear between (the undulation bends little over that).
 pub(crate) struct DatumShift {
-    from: LoadedDatum,
-    to: LoadedDatum,
-    to_lon_lat: crate::Transform,
-    origin: [f64; 2],
-    pixel: (f64, f64),
+    from: DatumName,
+    /// Output column and row of lattice point (0, 0).
+    corner: (i64, i64),
+    /// Lattice points across and down.
+    size: (usize, usize),
+    values: Vec<f32>,
     /// The lowest and highest shift over the input's footprint (a metre's margin).
     pub(crate) range: (f32, f32),
 }
 
+/// Output samples between the exact shifts of a [`DatumShift`].
+const SHIFT_CELL: i64 = 32;
+
 impl std::fmt::Debug for DatumShift {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "DatumShift({} -> {})", self.from.name.describe(), self.to.name.describe())
+        write!(f, "DatumShift(from {})", self.from.describe())
     }
 }
 
 impl DatumShift {
+    /// The shift from `from` to `to` over output columns and rows `columns`, `rows`
+    /// (inclusive) of a grid whose north-west corner is `origin` and whose samples are
+    /// `pixel` apart in the CRS that `to_lon_lat` takes to longitude and latitude.
     pub(crate) fn new(
         from: &LoadedDatum,
         to: &LoadedDatum,
-        to_lon_lat: crate::Transform,
-        origin: [f64; 2],
-        pixel: (f64, f64),
+        to_lon_lat: &crate::Transform,
+        (origin, pixel): ([f64; 2], (f64, f64)),
+        (columns, rows): ((i64, i64), (i64, i64)),
     ) -> Self {
-        Self { from: from.clone(), to: to.clone(), to_lon_lat, origin, pixel, range: (0.0, 0.0) }
+        let count = |a: i64, b: i64| usize::try_from((b - a).max(0) / SHIFT_CELL + 2).unwrap_or(2);
+        let size = (count(columns.0, columns.1), count(rows.0, rows.1));
+        let mut values = Vec::with_capacity(size.0 * size.1);
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for j in 0..size.1 {
+            for i in 0..size.0 {
+                #[expect(clippy::cast_precision_loss, reason = "pixel indices")]
+                let (c, r) = ((columns.0 + i as i64 * SHIFT_CELL) as f64, (rows.0 + j as i64 * SHIFT_CELL) as f64);
+                let (x, y) = (origin[0] + (c + 0.5) * pixel.0, origin[1] - (r + 0.5) * pixel.1);
+                let v = to_lon_lat
+                    .apply(x, y)
+                    .map_or(0.0, |(lon, lat)| from.undulation(lon, lat) - to.undulation(lon, lat));
+                (lo, hi) = (lo.min(v), hi.max(v));
+                #[expect(clippy::cast_possible_truncation, reason = "metres")]
+                values.push(v as f32);
+            }
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "metres")]
+        let range = ((lo - 1.0) as f32, (hi + 1.0) as f32);
+        Self { from: from.name.clone(), corner: (columns.0, rows.0), size, values, range }
     }
 
     /// Whether two inputs' heights are of one datum (both unconverted, or converted from
@@ -202,59 +229,46 @@ impl DatumShift {
     pub(crate) fn same(a: Option<&Self>, b: Option<&Self>) -> bool {
         match (a, b) {
             (None, None) => true,
-            (Some(a), Some(b)) => a.from.name == b.from.name,
+            (Some(a), Some(b)) => a.from == b.from,
             _ => false,
         }
     }
 
-    /// The shift at output sample `(column, row)` (its centre).
-    fn at(&self, column: f64, row: f64) -> f64 {
-        let (x, y) = (self.origin[0] + (column + 0.5) * self.pixel.0, self.origin[1] - (row + 0.5) * self.pixel.1);
-        self.to_lon_lat
-            .apply(x, y)
-            .map_or(0.0, |(lon, lat)| self.from.undulation(lon, lat) - self.to.undulation(lon, lat))
-    }
-
-    /// The shift's range over output columns and rows (inclusive), from a 17 x 17 lattice
-    /// of exact values, a metre wider (the undulation bends little between).
-    pub(crate) fn range_over(&self, columns: (i64, i64), rows: (i64, i64)) -> (f32, f32) {
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for j in 0..=16 {
-            for i in 0..=16 {
-                #[expect(clippy::cast_precision_loss, reason = "pixel indices")]
-                let (c, r) = (
-                    columns.0 as f64 + (columns.1 - columns.0) as f64 * f64::from(i) / 16.0,
-                    rows.0 as f64 + (rows.1 - rows.0) as f64 * f64::from(j) / 16.0,
-                );
-                let v = self.at(c, r);
-                (lo, hi) = (lo.min(v), hi.max(v));
-            }
-        }
-        #[expect(clippy::cast_possible_truncation, reason = "metres")]
-        let range = ((lo - 1.0) as f32, (hi + 1.0) as f32);
-        range
+    /// The shift at output sample `(column, row)`: bilinear on the lattice.
+    fn at(&self, column: i64, row: i64) -> f32 {
+        #[expect(clippy::cast_precision_loss, reason = "pixel offsets")]
+        let (x, y) =
+            ((column - self.corner.0) as f32 / SHIFT_CELL as f32, (row - self.corner.1) as f32 / SHIFT_CELL as f32);
+        #[expect(clippy::cast_precision_loss, reason = "lattice sizes")]
+        let (x, y) = (x.clamp(0.0, (self.size.0 - 1) as f32), y.clamp(0.0, (self.size.1 - 1) as f32));
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped")]
+        let (i, j) = ((x as usize).min(self.size.0 - 2), (y as usize).min(self.size.1 - 2));
+        #[expect(clippy::cast_precision_loss, reason = "lattice indices")]
+        let (fx, fy) = (x - i as f32, y - j as f32);
+        let v = |i: usize, j: usize| self.values[j * self.size.0 + i];
+        let top = v(i, j) + (v(i + 1, j) - v(i, j)) * fx;
+        let bottom = v(i, j + 1) + (v(i + 1, j + 1) - v(i, j + 1)) * fx;
+        top + (bottom - top) * fy
     }
 
     /// Adds the shift to the samples of output row `row` from column `c0` that `empty`
     /// says this input just filled.
     pub(crate) fn lift<K: crate::MosaicKind>(&self, row: u32, c0: usize, out: &mut [K::Value], empty: &[bool]) {
-        const STEP: usize = 32;
-        let n = out.len();
-        let mut k = 0;
-        while k < n {
-            let end = (k + STEP).min(n - 1);
-            #[expect(clippy::cast_precision_loss, reason = "pixel indices")]
-            let (a, b) = (self.at((c0 + k) as f64, f64::from(row)), self.at((c0 + end) as f64, f64::from(row)));
-            let last = if end == n - 1 { end } else { end - 1 };
-            for i in k..=last {
-                if empty[i] && !K::is_none(&out[i]) {
-                    #[expect(clippy::cast_precision_loss, reason = "offsets of at most STEP")]
-                    let t = if end > k { (i - k) as f64 / (end - k) as f64 } else { 0.0 };
-                    #[expect(clippy::cast_possible_truncation, reason = "metres")]
-                    K::lift(&mut out[i], (a + (b - a) * t) as f32);
+        let (row, c0) = (i64::from(row), i64::try_from(c0).unwrap_or(i64::MAX));
+        // Exact (on the lattice) every SHIFT_CELL samples, linear between.
+        let cell = usize::try_from(SHIFT_CELL).unwrap_or(32);
+        for (s, (values, empty)) in out.chunks_mut(cell).zip(empty.chunks(cell)).enumerate() {
+            let start = c0 + i64::try_from(s * cell).unwrap_or(0);
+            let a = self.at(start, row);
+            #[expect(clippy::cast_precision_loss, reason = "at most SHIFT_CELL")]
+            let step = (self.at(start + SHIFT_CELL, row) - a) / SHIFT_CELL as f32;
+            let mut shift = a;
+            for (v, &was_empty) in values.iter_mut().zip(empty) {
+                if was_empty && !K::is_none(v) {
+                    K::lift(v, shift);
                 }
+                shift += step;
             }
-            k = last + 1;
         }
     }
 }

@@ -413,7 +413,7 @@ impl<K: MosaicKind> Mosaic<K> {
     /// Converts the heights of inputs of other vertical datums to `to`'s, the mosaic's:
     /// `datum_of` says an input file's datum (None: the mosaic's). Each converted
     /// sample gains the difference of the two geoids' undulations there (an ellipsoid's
-    /// being 0), exact every [`LATTICE`] output samples along a row, linear between.
+    /// being 0), exact every 32 output samples and rows, bilinear between.
     /// Returns how many inputs are converted.
     pub fn convert_datums(
         &mut self,
@@ -425,8 +425,7 @@ impl<K: MosaicKind> Mosaic<K> {
         let mut converted = 0;
         for input in &mut self.inputs {
             let Some(from) = datum_of(K::path(&input.file)).filter(|d| d.name() != to.name()) else { continue };
-            let mut shift = DatumShift::new(&from, to, to_lon_lat.clone(), origin, pixel);
-            shift.range = shift.range_over(input.columns, input.rows);
+            let shift = DatumShift::new(&from, to, &to_lon_lat, (origin, pixel), (input.columns, input.rows));
             input.shift = Some(Arc::new(shift));
             converted += 1;
         }

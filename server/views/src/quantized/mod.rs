@@ -145,35 +145,41 @@ impl<'a> Terrain<'a> {
         if !self.datum.converts() || heights.len() != GRID * GRID {
             return;
         }
-        // N changes over tens of kilometres: exact at every 8th point, linear between.
+        // N changes over tens of kilometres: exact at every 8th point (and the last),
+        // linear between; knots on the edges, so neighbours lift a shared edge alike.
         const STEP: usize = 8;
-        let n = |column: usize, row: usize| {
-            #[expect(clippy::cast_precision_loss, reason = "grid indices")]
-            let (lon, lat) = tile.grid_point_at(column as f64, row as f64, GRID);
-            self.datum.to_ellipsoid(lon, lat)
-        };
-        let knots: Vec<usize> = (0..GRID)
-            .step_by(STEP)
-            .chain(std::iter::once(GRID - 1))
-            .collect::<std::collections::BTreeSet<_>>()
-            .into_iter()
+        let knots: Vec<usize> =
+            (0..GRID).step_by(STEP).chain((!(GRID - 1).is_multiple_of(STEP)).then_some(GRID - 1)).collect();
+        // Where each column falls between knots: the knot before it and the fraction.
+        let spans: Vec<(usize, f64)> = (0..GRID)
+            .map(|v| {
+                let k = knots.partition_point(|&k| k <= v).clamp(1, knots.len() - 1) - 1;
+                #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+                let f = (v - knots[k]) as f64 / (knots[k + 1] - knots[k]) as f64;
+                (k, f)
+            })
             .collect();
-        let at_knots: Vec<Vec<f64>> = knots.iter().map(|&r| knots.iter().map(|&c| n(c, r)).collect()).collect();
-        let span = |v: usize| {
-            let k = knots.partition_point(|&k| k <= v).clamp(1, knots.len() - 1) - 1;
-            #[expect(clippy::cast_precision_loss, reason = "grid indices")]
-            let f = (v - knots[k]) as f64 / (knots[k + 1] - knots[k]) as f64;
-            (k, f)
-        };
-        for row in 0..GRID {
-            let (kr, fr) = span(row);
-            for column in 0..GRID {
-                let (kc, fc) = span(column);
-                let top = at_knots[kr][kc] * (1.0 - fc) + at_knots[kr][kc + 1] * fc;
-                let bottom = at_knots[kr + 1][kc] * (1.0 - fc) + at_knots[kr + 1][kc + 1] * fc;
+        // N along each knot row, at every column.
+        let rows: Vec<Vec<f64>> = knots
+            .iter()
+            .map(|&row| {
+                #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+                let at: Vec<f64> = knots
+                    .iter()
+                    .map(|&column| {
+                        let (lon, lat) = tile.grid_point_at(column as f64, row as f64, GRID);
+                        self.datum.to_ellipsoid(lon, lat)
+                    })
+                    .collect();
+                spans.iter().map(|&(k, f)| at[k] + (at[k + 1] - at[k]) * f).collect()
+            })
+            .collect();
+        for (row, &(k, f)) in spans.iter().enumerate() {
+            let (a, b) = (&rows[k], &rows[k + 1]);
+            for (column, h) in heights[row * GRID..(row + 1) * GRID].iter_mut().enumerate() {
                 #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
-                let shift = (top * (1.0 - fr) + bottom * fr) as f32;
-                heights[row * GRID + column] += shift;
+                let shift = (a[column] + (b[column] - a[column]) * f) as f32;
+                *h += shift;
             }
         }
     }
