@@ -283,6 +283,27 @@ fn inputs_of_different_datums_are_converted_to_one() {
     let worst = hm.iter().zip(&hw).map(|(a, b)| (a.unwrap() - b.unwrap()).abs()).fold(0.0, f64::max);
     eprintln!("mixed datums: worst |converted - whole| {:.1} mm over {} points", worst * 1000.0, points.len());
     assert!(worst <= 0.02, "the converted half is {worst} m off");
+
+    // An update with the ellipsoidal half: converted to the archive's datum, the heights
+    // the archive had (to its height step).
+    let updated = d.join("updated.tspack");
+    ok(&["-q", "update", &p(&whole), "--elevation", &p(&east), "-o", &p(&updated)], d);
+    let ru = terrastream_format::Reader::open_mmap(&updated).unwrap();
+    assert_eq!(ru.metadata().vertical_datum.epsg, Some(5773));
+    let east_points: Vec<(f64, f64)> = points.iter().copied().filter(|&(_, lon)| lon > -122.598).collect();
+    let before = terrastream_views::elevation::Heights::new(&rw).unwrap();
+    let after = terrastream_views::elevation::Heights::new(&ru).unwrap();
+    let (b, a) = (
+        before.at(&east_points, terrastream_tiles::Interpolation::Bilinear).unwrap(),
+        after.at(&east_points, terrastream_tiles::Interpolation::Bilinear).unwrap(),
+    );
+    let worst = b.iter().zip(&a).map(|(b, a)| (b.unwrap() - a.unwrap()).abs()).fold(0.0, f64::max);
+    eprintln!(
+        "update of another datum: worst |after - before| {:.1} mm over {} points",
+        worst * 1000.0,
+        east_points.len()
+    );
+    assert!(worst <= 0.02, "the update's converted heights are {worst} m off");
 }
 
 #[test]

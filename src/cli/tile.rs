@@ -341,6 +341,7 @@ impl TileArgs {
             elevation_grid: None,
             texture_grid: None,
             vertical_datum: self.vertical_datum.clone(),
+            target_datum: None,
         })
     }
 

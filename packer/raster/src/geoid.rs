@@ -62,6 +62,19 @@ impl DatumName {
         }
     }
 
+    /// The datum an archive records, as a name to load again (its geoid's grid by the
+    /// file name recorded); None for an unknown one.
+    pub fn of_record(d: &VerticalDatum) -> Option<Self> {
+        match d.reference {
+            HeightReference::Unknown => None,
+            HeightReference::Ellipsoid => Some(Self::Ellipsoid),
+            HeightReference::Geoid => d.epsg.and_then(Self::from_epsg).or_else(|| {
+                let model = d.geoid.clone().unwrap_or_else(|| "unnamed".into());
+                Some(Self::Geoid { model, epsg: d.epsg, grids: d.grid.iter().cloned().collect() })
+            }),
+        }
+    }
+
     /// Parses what a person writes: `4979`, `EPSG:5773`, `3855`, `ellipsoid`, `egm96`,
     /// `egm2008`, `unknown`, or `geoid:FILE` (a `.gtx` or GeoTIFF geoid grid).
     ///

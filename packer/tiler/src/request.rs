@@ -56,6 +56,9 @@ pub struct TileRequest {
     /// What the elevation's heights are measured from, named by the person: overrides
     /// what the inputs say (`--vertical-datum`).
     pub vertical_datum: Option<DatumName>,
+    /// The datum the output's heights must be in (an update's archive's): inputs that name
+    /// another are converted to it (default: the first one named).
+    pub target_datum: Option<DatumName>,
 }
 
 /// The opened inputs of a [`TileRequest`].
@@ -294,8 +297,8 @@ fn image_mosaic(
 /// What the elevation's heights are measured from: the datum named in the request (for
 /// every input), else the one the inputs name (GeoTIFF `VerticalCSTypeGeoKey`, a compound
 /// CRS's WKT beside them or in a VRT), else unknown with a warning. Inputs of a mosaic
-/// that name different datums are converted to the first one named; inputs that name
-/// none are taken to be in it.
+/// that name different datums are converted to the request's target datum, else to the
+/// first one named; inputs that name none are taken to be in it.
 ///
 /// # Errors
 /// An input naming a vertical CRS with no model here; a geoid grid that is missing.
@@ -315,7 +318,11 @@ fn vertical_datum(request: &TileRequest, mosaic: Option<&mut Mosaic<Heights>>) -
         }
         named.push((path.clone(), datum));
     }
-    let Some((_, target)) = named.first().cloned() else {
+    let target = request.target_datum.clone().or_else(|| named.first().map(|(_, d)| d.clone()));
+    let Some(target) = target.filter(|_| !named.is_empty()) else {
+        if let Some(t) = &request.target_datum {
+            return Ok(Some(t.clone()));
+        }
         tracing::warn!(
             "{}: the heights name no vertical datum: recorded as unknown (name it with --vertical-datum: 5773 for EGM96, as SRTM's; 3855 for EGM2008, as Copernicus'; 4979 for ellipsoidal)",
             first.display()
@@ -328,7 +335,7 @@ fn vertical_datum(request: &TileRequest, mosaic: Option<&mut Mosaic<Heights>>) -
     let Some(mosaic) = mosaic else { return Ok(Some(target)) };
     // Each distinct datum's grid read once.
     let mut loaded: Vec<crate::raster::LoadedDatum> = vec![];
-    for (_, d) in &named {
+    for d in named.iter().map(|(_, d)| d).chain(std::iter::once(&target)) {
         if !loaded.iter().any(|l| l.name() == d) {
             loaded.push(d.load()?);
         }

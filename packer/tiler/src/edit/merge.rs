@@ -314,7 +314,11 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
             extent.lon_lat = Some(lon_lat);
         }
     }
-    // A geoid's undulation over all the inputs' footprints (one grid's nodes).
+    // The known datum, with a geoid's undulation over all the inputs' footprints (one
+    // grid's nodes).
+    if let Some(known) = readers.iter().map(|r| &r.metadata().vertical_datum).find(|d| !d.is_unknown()) {
+        metadata.vertical_datum = known.clone();
+    }
     let lattices = readers.iter().filter_map(|r| r.metadata().vertical_datum.undulation.clone());
     metadata.vertical_datum.undulation = lattices.reduce(|a, b| a.union(&b).unwrap_or(a));
     let (winners, conflicts) = winners(&readers, progress)?;
@@ -349,8 +353,9 @@ fn difference(base: &Metadata, other: &Metadata) -> Option<String> {
         };
         return Some(format!("CRS {} here, {} there", show(other), show(base)));
     }
+    // Heights of unknown datum merge with any (the known one is kept).
     let (da, db) = (&base.vertical_datum, &other.vertical_datum);
-    if (da.reference, &da.geoid) != (db.reference, &db.geoid) {
+    if !da.is_unknown() && !db.is_unknown() && (da.reference, &da.geoid) != (db.reference, &db.geoid) {
         return Some(format!("heights above the {} here, the {} there", db.describe(), da.describe()));
     }
     None

@@ -166,6 +166,8 @@ impl BaseGrid {
             crs: Some(self.crs.clone()),
             resolution: Some(spacing),
             extent: Some(extent),
+            // New heights of another datum than the archive's are converted to it.
+            target_datum: crate::raster::DatumName::of_record(&self.metadata.vertical_datum),
             ..TileRequest::default()
         }
     }
