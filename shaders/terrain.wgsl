@@ -28,6 +28,9 @@ struct GlobeInfo {
     // The geoid's undulation (the lattice texture's b): the anchor's lattice coordinates,
     // z: lattice points per world unit, w: 1 where heights are above a geoid (else 0).
     geoid: vec4<f32>,
+    // xyz: the Earth's centre in the anchor's frame, w: the radius of a ball inside the
+    // Earth and below the terrain (what hides the far side).
+    earth: vec4<f32>,
 }
 
 struct Globals {
@@ -347,6 +350,18 @@ struct VertexOut {
     @location(4) covered: f32,
     // Position relative to the eye, in the anchor's frame.
     @location(5) rel: vec3<f32>,
+    // 1 where the Earth hides the vertex from the eye (the far side, past the limb).
+    @location(6) behind: f32,
+}
+
+// Is the point q (in the anchor's frame) hidden from the eye by the ball inside the Earth?
+fn behind_the_earth(q: vec3<f32>) -> bool {
+    let e = G.camera.xyz;
+    let c = G.globe.earth.xyz;
+    let d = q - e;
+    let t = clamp(dot(c - e, d) / max(dot(d, d), 1.0e-6), 0.0, 1.0);
+    let closest = e + d * t - c;
+    return dot(closest, closest) < G.globe.earth.w * G.globe.earth.w;
 }
 
 @vertex
@@ -378,7 +393,12 @@ fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> V
         h = G.terrain.x;
     }
     out.world = vec3<f32>(p.x, h, p.y);
-    out.rel = place(p, h) - G.camera.xyz;
+    let placed = place(p, h);
+    out.rel = placed - G.camera.xyz;
+    out.behind = 0.0;
+    if G.globe.kind.x != 0u && behind_the_earth(placed) {
+        out.behind = 1.0;
+    }
     out.clip = G.view_proj * vec4<f32>(out.rel, 1.0);
     out.grid = local;
     out.level = level;
@@ -439,7 +459,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // Vertices lie on or inside the box; the slack keeps rounding from cutting its rim.
     let slack = G.camera.w * 0.01;
     let outside = any(in.world.xz < G.bounds.xy - slack) || any(in.world.xz > G.bounds.zw + slack);
-    if in.nodata > 0.999 || outside {
+    if in.nodata > 0.999 || outside || in.behind > 0.5 {
         discard;
     }
     let p = in.world.xz;

@@ -149,3 +149,41 @@ fn from_orbit_to_the_summit_every_view_draws_terrain() {
         assert!(drawn >= share, "{above} m above the summit: {drawn:.4} of the view is terrain");
     }
 }
+
+/// Views of the whole Earth are not errors: with the data behind the Earth (the far side,
+/// just past the limb) nothing of it is in view, and `render` succeeds drawing no terrain;
+/// with it just inside the limb, or seen from above a pole, it is drawn.
+#[test]
+fn data_behind_the_horizon_is_not_in_view() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // 12 degrees at 30" around Everest.
+    let archive = tiled(dir.path(), "himalaya", (EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0), &[]);
+    let a = archive.to_str().unwrap();
+    let png = dir.path().join("v.png");
+    // From 20 000 km the Earth's visible cap reaches 76 degrees of arc from the point
+    // below (77 for the data's 1 200 m): the data's nearest edge 89 degrees away along
+    // the meridian is behind the limb, its farthest 61 degrees away inside it; from the
+    // pole, 56 to 68 degrees.
+    for (name, lon, lat, drawn) in [
+        ("the far side", EVEREST.0 - 180.0, -EVEREST.1, false),
+        ("past the limb", EVEREST.0, EVEREST.1 - 95.0, false),
+        ("inside the limb", EVEREST.0, EVEREST.1 - 55.0, true),
+        ("above the north pole", 0.0, 90.0, true),
+    ] {
+        let at = format!("{lon},{lat},20000000");
+        let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+            .args(["render", a, "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at, "--pitch", "-90"])
+            .args(["--shading", "flat", "--no-atmosphere"])
+            .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.path().into()))
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{name}: {said}");
+        let (w, h, rgba) = decode(&png);
+        let white = rgba.chunks_exact(4).filter(|p| p[0] > 200 && p[1] > 200 && p[2] > 200).count();
+        assert_eq!(white > 0, drawn, "{name}: {white} of {} pixels are terrain", w * h);
+    }
+}

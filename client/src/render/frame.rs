@@ -48,6 +48,7 @@ struct GlobeInfo {
     map: [f32; 4],
     anchor: [f32; 4],
     geoid: [f32; 4],
+    earth: [f32; 4],
 }
 
 const GLOBE_FLAT: u32 = 0;
@@ -120,7 +121,13 @@ impl TerrainRenderer {
         let eye = camera.position;
         let Some(globe) = self.surface.globe() else {
             let rotation = DMat4::look_to_rh(DVec3::ZERO, camera.direction(), camera.up());
-            let info = GlobeInfo { kind: [GLOBE_FLAT, 1, 1, 0], map: [0.0; 4], anchor: [0.0; 4], geoid: [0.0; 4] };
+            let info = GlobeInfo {
+                kind: [GLOBE_FLAT, 1, 1, 0],
+                map: [0.0; 4],
+                anchor: [0.0; 4],
+                geoid: [0.0; 4],
+                earth: [0.0; 4],
+            };
             return (info, DVec3::new(eye.x - anchor.0, eye.y, eye.z - anchor.1), rotation);
         };
         let frame = globe.local_frame(glam::DVec2::new(anchor.0, anchor.1));
@@ -150,12 +157,17 @@ impl TerrainRenderer {
             let q = (glam::DVec2::new(anchor.0, anchor.1) - g.origin) / g.cell;
             [q.x, q.y, 1.0 / g.cell, 1.0]
         });
+        // A ball inside the ellipsoid (its polar radius) and a kilometre below the
+        // terrain's lowest point: what it hides, the Earth hides.
+        let centre = frame.to_local(DVec3::ZERO);
+        let radius = crate::globe::B - 1000.0 - (-globe.heights.0).max(0.0);
         #[allow(clippy::cast_possible_truncation)]
         let info = GlobeInfo {
             kind,
             map: map.map(|v| v as f32),
             anchor: [sin as f32, cos as f32, n as f32, column as f32],
             geoid: geoid.map(|v| v as f32),
+            earth: [centre.x as f32, centre.y as f32, centre.z as f32, radius as f32],
         };
         (info, local_eye, rotation)
     }

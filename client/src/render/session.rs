@@ -124,7 +124,9 @@ impl Session {
     }
 
     /// The first drawn layer whose data box is in view while, with nothing left to fetch,
-    /// none of its tiles in view is on the GPU.
+    /// none of its tiles in view is on the GPU. In view as the selection sees it: inside
+    /// the frustum and, on the globe, not wholly behind the Earth (the far side, past the
+    /// limb).
     fn unreached_layer(&self, camera: &Camera) -> Option<u8> {
         if !self.settled() {
             return None;
@@ -139,7 +141,9 @@ impl Session {
             let data = self.renderer.surface().bounds(extent.world, (lo, hi));
             let reached =
                 wanted.iter().any(|w| w.key.layer() == index && w.in_view && self.renderer.is_resident(w.key));
-            (frustum.intersects_box(&data) && !reached).then_some(index)
+            let surface = self.renderer.surface();
+            let in_view = frustum.intersects_box(&data) && !surface.hidden(camera.position, &data);
+            (in_view && !reached).then_some(index)
         })
     }
 
