@@ -42,6 +42,9 @@ struct AtmosphereUniform {
     // and the aerial perspective (else both are ray-marched per pixel), y: the aerial
     // perspective's farthest distance, zw: the viewport in pixels.
     tables: vec4<f32>,
+    // xyz: the prime meridian at the equator (frame axes), w: 1 to draw the whole-Earth
+    // picture on the ground beyond the data (else plain ground).
+    meridian: vec4<f32>,
 }
 
 struct Medium {

@@ -51,7 +51,8 @@ struct Globals {
     tex: vec4<f32>,
     // x: elevation LODs (0 = no layer), y: texture LODs, z: page table mask, w: page table width.
     counts: vec4<u32>,
-    // x: shading (0 lit, 1 flat white), y: wireframe, z: LOD colours, w: page table probes.
+    // x: shading (0 lit, 1 flat white, 2 baseline: one texel), y: wireframe, z: LOD colours,
+    // w: page table probes.
     mode: vec4<u32>,
     // x: elevation LOD offset (log2 of base spacing / elevation spacing), y: first morph
     // range radius; zw unused.
@@ -81,6 +82,9 @@ struct Globals {
 @group(0) @binding(9) var lut_sampler: sampler;
 @group(0) @binding(10) var sky_view_lut: texture_2d<f32>;
 @group(0) @binding(11) var aerial_lut: texture_2d<f32>;
+// The whole Earth, equirectangular (longitude -180..180, latitude 90..-90), sRGB, mipmapped:
+// the ground beyond the archive's data.
+@group(0) @binding(12) var earth_map: texture_2d<f32>;
 
 const NODATA: f32 = -1.0e30;
 const KIND_ELEVATION: u32 = 0u;
@@ -462,6 +466,10 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     if in.nodata > 0.999 || outside || in.behind > 0.5 {
         discard;
     }
+    // The baseline: one texel a pixel, nothing else.
+    if G.mode.x == 2u {
+        return textureSampleLevel(colour, colour_sampler, fract(in.world.xz / 256.0), 0, 0.0);
+    }
     let p = in.world.xz;
     // The elevation at the pixel's own resolution: where it has no data the terrain ends,
     // at every mesh level (a coarse triangle over the data's edge is cut at the pixel, not
@@ -605,6 +613,25 @@ fn vs_sky(@builtin(vertex_index) i: u32) -> SkyOut {
     return SkyOut(vec4<f32>(xy, 0.0, 1.0), xy);
 }
 
+// The ground's albedo at `up` (the unit direction from the planet's centre): the
+// whole-Earth picture at its longitude and latitude, or a plain ground.
+fn earth_albedo(up: vec3<f32>) -> vec3<f32> {
+    if ATMO.meridian.w < 0.5 {
+        return EARTH_ALBEDO;
+    }
+    let pole = ATMO.pole.xyz;
+    let x = ATMO.meridian.xyz;
+    let y = cross(pole, x);
+    let lat = asin(clamp(dot(up, pole), -1.0, 1.0));
+    let lon = atan2(dot(up, y), dot(up, x));
+    let uv = vec2<f32>(lon / (2.0 * PI) + 0.5, 0.5 - lat / PI);
+    // Gradients of whichever of u and u + 1/2 does not jump at its seam here.
+    let u2 = fract(uv.x + 0.5);
+    let gx = select(dpdx(uv), vec2<f32>(dpdx(u2), dpdx(uv.y)), abs(dpdx(u2)) < abs(dpdx(uv.x)));
+    let gy = select(dpdy(uv), vec2<f32>(dpdy(u2), dpdy(uv.y)), abs(dpdy(u2)) < abs(dpdy(uv.x)));
+    return textureSampleGrad(earth_map, colour_sampler, uv, gx, gy).rgb;
+}
+
 @fragment
 fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     let far = ATMO.inv_view_proj * vec4<f32>(in.ndc, 1.0, 1.0);
@@ -621,6 +648,9 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     // the sun through the air above it, seen through the air in front of it (the
     // terrain, drawn next, covers it where there is data).
     let ground = ray_sphere(eye, d, BOTTOM);
+    // The picture's albedo where the ray meets the ground (its gradients taken here, in
+    // uniform control flow; unused where it does not).
+    let albedo = earth_albedo(normalize(eye + d * max(ground, 0.0)));
     if ground > 0.0 {
         let g = eye + d * ground;
         let up = normalize(g);
@@ -629,7 +659,7 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
             sun_t = vec3<f32>(0.0);
         }
         let sky = (0.05 + 0.25 * max(dot(up, sun), 0.0)) * vec3<f32>(0.6, 0.75, 1.0);
-        let radiance = EARTH_ALBEDO / PI * (sun_t * max(dot(up, sun), 0.0) + sky);
+        let radiance = albedo / PI * (sun_t * max(dot(up, sun), 0.0) + sky);
         // Along a ray that meets the ground, the air between is the ratio of the two
         // stretches up to the top (the way back up passes the eye).
         let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));

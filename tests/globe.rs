@@ -187,3 +187,35 @@ fn data_behind_the_horizon_is_not_in_view() {
         assert_eq!(white > 0, drawn, "{name}: {white} of {} pixels are terrain", w * h);
     }
 }
+
+/// From 20 000 km over the Arabian Sea the Earth reads as continents and oceans (the
+/// built-in picture beyond the data): the disc holds both sea-blue and land-green pixels;
+/// with `--no-earth` it is one plain ground.
+#[test]
+fn from_orbit_the_earth_shows_continents_and_oceans() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let archive = tiled(dir.path(), "everest", (EVEREST.0 - 0.1, EVEREST.1 - 0.1, 0.2, 1200.0), &["--keep-geographic"]);
+    let a = archive.to_str().unwrap();
+    let shares = |extra: &[&str]| {
+        let png = dir.path().join("earth.png");
+        let args = ["render", a, "-o", png.to_str().unwrap(), "--size", "320x240", "--at", "60,10,20000000"];
+        terrastream(&[&args[..], &["--pitch", "-90"], extra].concat(), dir.path());
+        let (w, h, rgba) = decode(&png);
+        let lit: Vec<&[u8]> =
+            rgba.chunks_exact(4).filter(|p| u32::from(p[0]) + u32::from(p[1]) + u32::from(p[2]) > 90).collect();
+        let c = |p: &[u8], i: usize| i32::from(p[i]);
+        let sea = lit.iter().filter(|p| c(p, 2) > c(p, 1) + 25 && c(p, 2) > c(p, 0) + 40).count();
+        let land = lit.iter().filter(|p| c(p, 1) + 5 >= c(p, 2) && c(p, 0) + 60 >= c(p, 2)).count();
+        let n = f64::from(w * h);
+        (lit.len() as f64 / n, sea as f64 / n, land as f64 / n)
+    };
+    let (disc, sea, land) = shares(&[]);
+    eprintln!("the Earth from 20 000 km: disc {disc:.3}, sea {sea:.3}, land {land:.3} of the view");
+    assert!(disc > 0.08, "the Earth fills {disc:.3} of the view");
+    assert!(sea > 0.03 && land > 0.01, "sea {sea:.3} and land {land:.3} of the view");
+    let (_, _, plain_land) = shares(&["--no-earth"]);
+    assert!(plain_land < 0.002, "--no-earth: {plain_land:.3} of the view is land");
+}

@@ -130,6 +130,7 @@ const FLAT_WHITE: RenderSettings = RenderSettings {
     sky: [0.0; 3],
     flat: false,
     atmosphere: false,
+    earth: false,
 };
 
 /// The default view of a world archive is the whole Earth, and it is round: what is drawn

@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use terrastream_client::fly::bench_flight;
 use terrastream_client::render::gpu::{Gpu, OFFSCREEN_FORMAT, Offscreen, render_pass};
-use terrastream_client::render::renderer::RenderSettings;
+use terrastream_client::render::renderer::{RenderSettings, Shading};
 use terrastream_client::render::session::Session;
 use terrastream_client::render::wgpu;
 use terrastream_client::{Camera, Origin, StreamOptions, Streamer, UploadBudget};
@@ -163,7 +163,26 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
         s50 / flat.0,
         s99 / flat.1
     );
-    on_the_globe(&bench, &metadata, &cameras, flat, before.tiles_fetched)
+    let floor = baseline(&bench, plate, &cameras, "baseline", flat)?;
+    on_the_globe(&bench, &metadata, &cameras, (flat, floor), before.tiles_fetched)
+}
+
+/// The same flight, resident, drawn with one texel read a pixel and nothing else (the
+/// same mesh and cameras: the floor of this mesh at this size), and the lit frame's
+/// ratio to it.
+fn baseline(
+    bench: &Bench<'_>,
+    settings: RenderSettings,
+    cameras: &[Camera],
+    name: &str,
+    (l50, l99): (f64, f64),
+) -> Result<(f64, f64)> {
+    let floor = RenderSettings { shading: Shading::Baseline, ..settings };
+    let mut session = bench.settled(floor, cameras)?;
+    let run = bench.fly(&mut session, cameras)?;
+    let (b50, b99) = stats(name, &run);
+    println!("  lit / {name}: median {:.2}x, p99 {:.2}x (target: 1.5x)", l50 / b50, l99 / b99);
+    Ok((b50, b99))
 }
 
 /// The same views on the globe (a georeferenced archive): each eye and target placed on
@@ -173,7 +192,7 @@ fn on_the_globe(
     bench: &Bench<'_>,
     metadata: &terrastream_format::Metadata,
     cameras: &[Camera],
-    (r50, r99): (f64, f64),
+    ((r50, r99), plate_floor): ((f64, f64), (f64, f64)),
     flat_fetched: u64,
 ) -> Result<()> {
     let (w, h) = bench.size;
@@ -206,12 +225,18 @@ fn on_the_globe(
         flat_fetched,
         globe_fetched as f64 / flat_fetched.max(1) as f64
     );
+    let bare = RenderSettings { atmosphere: false, ..RenderSettings::default() };
+    let (f50, f99) = baseline(bench, bare, &on_globe, "globe baseline", (g50, g99))?;
+    println!("  globe baseline / plate baseline: median {:.2}x, p99 {:.2}x", f50 / plate_floor.0, f99 / plate_floor.1);
     let mut air = bench.settled(RenderSettings::default(), &on_globe)?;
     let with_air = bench.fly(&mut air, &on_globe)?;
-    let (a50, _) = stats("atmosphere", &with_air);
+    let (a50, a99) = stats("atmosphere", &with_air);
     println!(
-        "  the atmosphere's share of the globe's frame (median): {:.0} % ({a50:.2} ms with it, {g50:.2} ms without)",
-        (a50 - g50) / a50 * 100.0
+        "  the atmosphere's share of the globe's frame (median): {:.0} % ({a50:.2} ms with it, {g50:.2} ms without); \
+         with it / globe baseline: median {:.2}x, p99 {:.2}x",
+        (a50 - g50) / a50 * 100.0,
+        a50 / f50,
+        a99 / f99
     );
     fly_descent(bench, &descent(metadata, &surface, w, h))
 }

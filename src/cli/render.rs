@@ -53,6 +53,10 @@ pub struct LookArgs {
     /// On the globe: a plain haze instead of the physically based sky and aerial perspective.
     #[arg(long)]
     no_atmosphere: bool,
+    /// On the globe: plain ground beyond the archive's data instead of the built-in
+    /// whole-Earth picture (continents, oceans, ice).
+    #[arg(long)]
+    no_earth: bool,
     /// The sun: "AZIMUTH,ELEVATION" in degrees (clockwise from north; above the horizon)
     /// at the view's anchor.
     #[arg(long, value_parser = terrastream_client::globe::parse_sun, allow_hyphen_values = true)]
@@ -80,6 +84,7 @@ impl LookArgs {
             detail: self.detail,
             flat: self.flat,
             atmosphere: !self.no_atmosphere,
+            earth: !self.no_earth,
             sun: self.sun.unwrap_or(RenderSettings::default().sun),
             ..RenderSettings::default()
         }

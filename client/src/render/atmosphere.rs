@@ -42,6 +42,7 @@ pub struct AtmosphereUniform {
     look: [f32; 4],
     pole: [f32; 4],
     tables: [f32; 4],
+    meridian: [f32; 4],
 }
 
 impl AtmosphereUniform {
@@ -53,21 +54,24 @@ impl AtmosphereUniform {
     /// On, for a view from `eye` (frame metres from the planet's centre, `height` above
     /// the ellipsoid, whose radius under the anchor is `radius`), looking through the
     /// camera-relative `rotation_projection` onto a `viewport` (pixels), the sun towards
-    /// `sun` and the pole towards `pole` (both in the frame's axes). From inside the
-    /// atmosphere the sky and the aerial perspective come from per-frame tables.
+    /// `sun`, the pole towards `pole` and the prime meridian at the equator towards
+    /// `meridian` (all in the frame's axes); the whole-Earth picture on the ground beyond
+    /// the data where `earth`. From inside the atmosphere the sky and the aerial
+    /// perspective come from per-frame tables.
     pub fn on(
         eye: DVec3,
         height: f64,
         radius: f64,
         (rotation_projection, viewport): (DMat4, (f64, f64)),
         sun: DVec3,
-        pole: DVec3,
+        (pole, meridian, earth): (DVec3, DVec3, bool),
     ) -> Self {
         let scale = BOTTOM / radius.max(1.0);
         let inverse: Mat4 = rotation_projection.inverse().as_mat4();
         let e = (eye.normalize_or(DVec3::Y) * (BOTTOM + height)).as_vec3();
         let s = sun.try_normalize().unwrap_or(DVec3::Y).as_vec3();
         let p = pole.try_normalize().unwrap_or(DVec3::Y).as_vec3();
+        let m = meridian.try_normalize().unwrap_or(DVec3::X).as_vec3();
         #[allow(clippy::cast_possible_truncation)]
         Self {
             inv_view_proj: inverse.to_cols_array_2d(),
@@ -75,6 +79,7 @@ impl AtmosphereUniform {
             sun: [s.x, s.y, s.z, SUN_RADIUS],
             look: [EXPOSURE, 1.0, SKY_STEPS, AERIAL_STEPS],
             pole: [p.x, p.y, p.z, 0.0],
+            meridian: [m.x, m.y, m.z, f32::from(u8::from(earth))],
             tables: {
                 // Out to where the ground and the air's top meet the horizon.
                 let r = BOTTOM + height.max(0.0);

@@ -196,7 +196,7 @@ impl TerrainRenderer {
             frame.origin.length(),
             (projection * rotation, viewport),
             self.settings.sun,
-            pole,
+            (pole, frame.direction_to_local(DVec3::X), self.settings.earth),
         )
     }
 
@@ -209,7 +209,7 @@ impl TerrainRenderer {
         let view_proj: Mat4 = (projection * rotation).as_mat4();
         let column = self.column;
         let [x0, z0, x1, z1] = self.extent;
-        let flat = self.settings.shading == Shading::Flat;
+        let flat = self.settings.shading != Shading::Lit;
         let fog =
             if flat { 0.0 } else { self.settings.fog_density.unwrap_or(0.12 / (x1 - x0).hypot(z1 - z0).max(1.0)) };
         let sun = self.settings.sun.try_normalize().unwrap_or(DVec3::Y);
@@ -243,7 +243,11 @@ impl TerrainRenderer {
             tex: tex_info,
             counts: [lods(&self.elevation), lods(&self.texture), self.page_table.mask(), self.page_table.width],
             mode: [
-                u32::from(flat),
+                match self.settings.shading {
+                    Shading::Lit => 0,
+                    Shading::Flat => 1,
+                    Shading::Baseline => 2,
+                },
                 u32::from(self.settings.wireframe),
                 u32::from(self.settings.lod_colours),
                 self.page_table.max_probes,

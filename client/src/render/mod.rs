@@ -3,6 +3,7 @@
 //! found through a page table; offscreen targets for headless rendering.
 
 pub mod atmosphere;
+mod earth;
 mod frame;
 pub mod gpu;
 pub mod hud;

@@ -58,6 +58,9 @@ pub struct TerrainRenderer {
     /// whether it still has to be written.
     pub(super) lattice: wgpu::Texture,
     pub(super) lattice_dirty: bool,
+    /// The whole-Earth picture (written at the first frame that draws the sky).
+    pub(super) earth: wgpu::Texture,
+    pub(super) earth_written: bool,
     /// The atmosphere's tables and uniform, its pipelines, and whether this frame draws it.
     pub(super) air_tables: AtmosphereTables,
     pub(super) air_pipelines: AtmospherePipelines,
@@ -121,12 +124,14 @@ struct BoundResources<'a> {
     colour: &'a wgpu::TextureView,
     lattice: &'a wgpu::Texture,
     air: &'a AtmosphereTables,
+    earth: &'a wgpu::Texture,
 }
 
 impl BoundResources<'_> {
     fn bind_group(&self, device: &wgpu::Device, layout: &wgpu::BindGroupLayout) -> wgpu::BindGroup {
         let page_view = self.page_table.create_view(&wgpu::TextureViewDescriptor::default());
         let lattice_view = self.lattice.create_view(&wgpu::TextureViewDescriptor::default());
+        let earth_view = self.earth.create_view(&wgpu::TextureViewDescriptor::default());
         let sampler = colour_sampler(device);
         let air = self.air;
         gpu::bind_group(
@@ -146,6 +151,7 @@ impl BoundResources<'_> {
                 wgpu::BindingResource::Sampler(&air.sampler),
                 wgpu::BindingResource::TextureView(&air.sky_view_view),
                 wgpu::BindingResource::TextureView(&air.aerial_view),
+                wgpu::BindingResource::TextureView(&earth_view),
             ],
         )
     }
@@ -191,6 +197,7 @@ impl TerrainRenderer {
         };
         let lattice = lattice_texture(device, &surface);
         let air_tables = AtmosphereTables::new(device);
+        let earth = super::earth::earth_texture(device);
         let resources = BoundResources {
             globals: &globals,
             page_table: &page_texture,
@@ -198,6 +205,7 @@ impl TerrainRenderer {
             colour: &array_view(device, texture.as_ref(), wgpu::TextureFormat::Rgba8UnormSrgb),
             lattice: &lattice,
             air: &air_tables,
+            earth: &earth,
         };
         let bind_group = resources.bind_group(device, &shared.layout);
         let pipeline = shared.pipeline.clone();
@@ -220,6 +228,8 @@ impl TerrainRenderer {
             surface,
             lattice,
             lattice_dirty: true,
+            earth,
+            earth_written: false,
             air_tables,
             air_pipelines: shared.atmosphere.clone(),
             sky: false,
@@ -381,6 +391,10 @@ impl TerrainRenderer {
             }
         }
         if self.surface.globe().is_some() && self.settings.shading == Shading::Lit && self.settings.atmosphere {
+            if self.settings.earth && !self.earth_written {
+                super::earth::write_earth(queue, &self.earth);
+                self.earth_written = true;
+            }
             self.air_tables.make(device, queue, &self.air_pipelines);
         }
         let (nodes, params) = self.select(camera);

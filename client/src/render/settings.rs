@@ -10,6 +10,9 @@ pub enum Shading {
     Lit,
     /// Plain white, no light, no haze (coverage and crack checks).
     Flat,
+    /// One texel read a pixel and nothing else: the cost of the mesh and the pixels
+    /// alone, the floor `bench render` measures the lit frame against.
+    Baseline,
 }
 
 /// Renderer settings.
@@ -41,6 +44,9 @@ pub struct RenderSettings {
     /// On the globe, lit: the sky and the aerial perspective of a physically based
     /// atmosphere (else the plain haze).
     pub atmosphere: bool,
+    /// With the atmosphere: the Earth beyond the archive's data drawn from the built-in
+    /// whole-Earth picture (continents, oceans, ice), else as plain ground.
+    pub earth: bool,
 }
 
 impl Default for RenderSettings {
@@ -58,6 +64,7 @@ impl Default for RenderSettings {
             sky: [0.62, 0.72, 0.84],
             flat: false,
             atmosphere: true,
+            earth: true,
         }
     }
 }
@@ -66,7 +73,7 @@ impl RenderSettings {
     /// The background colour a pass should clear to.
     pub fn clear_colour(&self) -> wgpu::Color {
         match self.shading {
-            Shading::Flat => wgpu::Color::BLACK,
+            Shading::Flat | Shading::Baseline => wgpu::Color::BLACK,
             Shading::Lit => {
                 let [r, g, b] = self.sky.map(|c| f64::from(srgb_to_linear(c)));
                 wgpu::Color { r, g, b, a: 1.0 }
@@ -77,6 +84,15 @@ impl RenderSettings {
 
 pub(super) fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+}
+
+/// Linear light (0..1) to an 8-bit sRGB value.
+pub(super) fn linear_to_srgb_u8(c: f32) -> u8 {
+    let c = c.clamp(0.0, 1.0);
+    let s = if c <= 0.003_130_8 { c * 12.92 } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 };
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let v = (s * 255.0).round() as u8;
+    v
 }
 
 /// What one frame drew.
