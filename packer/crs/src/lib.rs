@@ -216,16 +216,26 @@ impl Transform {
 }
 
 /// The CRS that an `SRS` text names, as [`Crs::parse`] takes it: `EPSG:xxxx` or a PROJ
-/// string as they are; WKT by its last `AUTHORITY` or `ID` with an EPSG code (the CRS's
-/// own, after those of its parts), or, for the ESRI WKT of `.prj` files, which carries no
+/// string as they are (a compound `EPSG:h+v` by its horizontal code); WKT by its last
+/// `AUTHORITY` or `ID` with an EPSG code (the CRS's own, after those of its parts; of a
+/// compound CRS, its horizontal part's), or, for the ESRI WKT of `.prj` files, which carries no
 /// code, by the name of a CRS of the families the tiler knows (WGS 84, NAD83 and ETRS89
 /// UTM zones, Web Mercator, WGS 84 and NAD83 geographic, the Swiss and British grids).
 /// `None` when it names none of these.
 pub fn crs_of_srs(srs: &str) -> Option<String> {
     let t = srs.trim();
-    if t.starts_with('+') || t.to_ascii_uppercase().starts_with("EPSG:") {
+    if t.starts_with('+') {
         return Some(t.to_owned());
     }
+    if t.to_ascii_uppercase().starts_with("EPSG:") {
+        // A compound code (`EPSG:4326+5773`): its horizontal part.
+        return Some(t.split('+').next().unwrap_or(t).to_owned());
+    }
+    // A compound CRS: the horizontal part comes first; the vertical part and the
+    // compound's own identifier are not it.
+    let upper = t.to_ascii_uppercase();
+    let t =
+        ["VERT_CS[", "VERTCRS[", "VERTICALCRS["].iter().filter_map(|k| upper.find(k)).min().map_or(t, |at| &t[..at]);
     let last = ["AUTHORITY[\"EPSG\",\"", "ID[\"EPSG\","]
         .iter()
         .filter_map(|key| t.rfind(key).map(|at| (at, &t[at + key.len()..])))
@@ -295,6 +305,12 @@ mod tests {
         let wkt2 = r#"PROJCRS["x",BASEGEOGCRS["y",ID["EPSG",4326]],ID["EPSG",25832]]"#;
         assert_eq!(crs_of_srs(wkt2).as_deref(), Some("EPSG:25832"));
         assert_eq!(crs_of_srs(" EPSG:2056 ").as_deref(), Some("EPSG:2056"));
+        // Compound CRSs: their horizontal part.
+        assert_eq!(crs_of_srs("EPSG:4326+5773").as_deref(), Some("EPSG:4326"));
+        let compound = r#"COMPD_CS["WGS 84 + EGM96 height",GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]],VERT_CS["EGM96 height",AUTHORITY["EPSG","5773"]]]"#;
+        assert_eq!(crs_of_srs(compound).as_deref(), Some("EPSG:4326"));
+        let compound2 = r#"COMPOUNDCRS["x",PROJCRS["ETRS89 / UTM 32N",ID["EPSG",25832]],VERTCRS["DHHN2016 height",ID["EPSG",7837]],ID["EPSG",4647]]"#;
+        assert_eq!(crs_of_srs(compound2).as_deref(), Some("EPSG:25832"));
         assert_eq!(crs_of_srs(r#"LOCAL_CS["somewhere"]"#), None);
     }
 
