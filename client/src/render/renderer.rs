@@ -460,8 +460,22 @@ impl TerrainRenderer {
             surface: &self.surface,
         };
         let mut nodes = select_nodes(&params, &scene);
-        // Full patches first, then quarters: two instanced draws.
-        nodes.sort_by_key(|n| (n.quarter, n.level));
+        // Full patches first, then quarters: two instanced draws; within each, nearest
+        // first, so that the depth test rejects what nearer patches cover before it is
+        // shaded.
+        let distance = |n: &Node| {
+            let units = params.node_units(n.level);
+            #[allow(clippy::cast_precision_loss)]
+            let centre = DVec3::new(
+                (n.origin.0 as f64 + units as f64 * 0.5) * params.base,
+                (column.0 + column.1) * 0.5,
+                (n.origin.1 as f64 + units as f64 * 0.5) * params.base,
+            );
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let d = self.surface.place(centre).distance(eye) as u64;
+            d
+        };
+        nodes.sort_by_cached_key(|n| (n.quarter, distance(n)));
         (nodes, params)
     }
 
