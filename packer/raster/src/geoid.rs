@@ -276,8 +276,9 @@ impl DatumShift {
             #[expect(clippy::cast_precision_loss, reason = "at most SHIFT_CELL")]
             let step = (self.at(start + SHIFT_CELL, row) - a) / SHIFT_CELL as f32;
             let mut shift = a;
+            // A sample still without data stays so (NaN plus the shift is NaN).
             for (v, &was_empty) in values.iter_mut().zip(empty) {
-                if was_empty && !K::is_none(v) {
+                if was_empty {
                     K::lift(v, shift);
                 }
                 shift += step;
