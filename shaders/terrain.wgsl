@@ -606,7 +606,8 @@ struct SkyOut {
     @location(0) ndc: vec2<f32>,
 }
 
-// The sky: a fullscreen triangle behind the terrain.
+// The sky: a fullscreen triangle at the far plane, drawn after the terrain where it left
+// the far depth.
 @vertex
 fn vs_sky(@builtin(vertex_index) i: u32) -> SkyOut {
     let xy = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u)) * 2.0 - 1.0;

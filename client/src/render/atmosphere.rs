@@ -290,7 +290,9 @@ fn fullscreen(
         depth_stencil: depth.then(|| wgpu::DepthStencilState {
             format: super::renderer::DEPTH_FORMAT,
             depth_write_enabled: Some(false),
-            depth_compare: Some(wgpu::CompareFunction::Always),
+            // Drawn after the terrain: only where the depth is still the far plane's
+            // (reversed depth: 0), so covered pixels are never shaded.
+            depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
             stencil: wgpu::StencilState::default(),
             bias: wgpu::DepthBiasState::default(),
         }),

@@ -487,11 +487,16 @@ impl TerrainRenderer {
 
     /// Records the terrain into `pass` (after [`Self::prepare`]).
     pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>) {
+        self.draw_terrain(pass);
+        // The sky last, where no terrain was drawn (its depth test keeps it there).
         if self.sky {
             pass.set_pipeline(&self.air_pipelines.sky);
             pass.set_bind_group(0, &self.bind_group, &[]);
             pass.draw(0..3, 0..1);
         }
+    }
+
+    fn draw_terrain(&self, pass: &mut wgpu::RenderPass<'_>) {
         if self.full + self.quarter == 0 {
             return;
         }
