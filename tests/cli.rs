@@ -24,8 +24,9 @@ fn demo_then_info_verify_and_extract() {
     assert!(text(&out).contains("verify: OK"), "{}", text(&out));
     let archive = work.join("demo/sample.tspack");
     assert!(archive.exists());
-    // pack -> serve -> render: the views were streamed over HTTP and rendered (lavapipe).
-    for view in ["tamalpais-whole", "tamalpais-grazing", "tamalpais-summit", "sample-whole"] {
+    // pack -> serve -> render: the views (a descent on the globe from the whole Earth, and
+    // the sample pyramid) were streamed over HTTP and rendered (lavapipe).
+    for view in ["earth", "tamalpais-whole", "tamalpais-grazing", "tamalpais-summit", "sample-whole"] {
         let png = work.join(format!("demo/views/{view}.png"));
         let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&png).unwrap()));
         let info = decoder.read_info().unwrap().info().clone();

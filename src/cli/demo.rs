@@ -140,21 +140,27 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     println!("\nrendering over HTTP on {} (no display: PNG views instead of the viewer)", gpu.describe());
     let (w, h) = (960, 540);
-    type Pose = Option<([f64; 3], [f64; 3])>;
-    let views: [(&str, String, Pose); 4] = [
-        ("tamalpais-whole", url.clone(), None),
-        ("tamalpais-grazing", url.clone(), Some(([2200.0, 650.0, 9200.0], [5000.0, 350.0, 2500.0]))),
-        ("tamalpais-summit", url.clone(), Some(([3000.0, 1100.0, 4600.0], [4700.0, 600.0, 2600.0]))),
+    // A descent on the globe from the whole Earth to the summit (LON,LAT,HEIGHT above the
+    // ellipsoid, heading, pitch), then the sample pyramid, which does not say where it lies.
+    // LON,LAT,HEIGHT, heading, pitch.
+    type At<'a> = Option<(&'a str, f64, f64)>;
+    let views: [(&str, String, At<'_>); 5] = [
+        ("earth", url.clone(), Some(("-122.6,37.9,20000000", 0.0, -90.0))),
+        ("tamalpais-whole", url.clone(), Some(("-122.60,37.80,9000", 0.0, -38.0))),
+        ("tamalpais-grazing", url.clone(), Some(("-122.665,37.875,1100", 50.0, -9.0))),
+        ("tamalpais-summit", url.clone(), Some(("-122.590,37.922,900", 225.0, -14.0))),
         ("sample-whole", format!("{base}/sample.tspack"), None),
     ];
-    for (name, location, pose) in views {
+    for (name, location, at) in views {
         let started = std::time::Instant::now();
+        let pose = at.map(|(at, heading, pitch)| terrastream_client::fly::Pose::parse(at, heading, pitch)).transpose();
+        let pose = pose.map_err(anyhow::Error::msg)?;
         let camera = |metadata: &terrastream_format::Metadata, surface: &terrastream_client::Surface| {
-            let pose = pose.map(|(eye, target)| (glam::DVec3::from_array(eye), glam::DVec3::from_array(target)));
-            Ok(start_camera(metadata, surface, pose, w, h))
+            let posed = pose.map(|p| p.eye_target(metadata, surface)).transpose()?;
+            let start = start_camera(metadata, surface, posed, w, h);
+            Ok(terrastream_client::Camera { fov_y: 50f64.to_radians(), ..start })
         };
-        // The views are posed in world units on the plate.
-        let settings = RenderSettings { flat: true, ..RenderSettings::default() };
+        let settings = RenderSettings::default();
         let options = StillOptions { width: w, height: h, settings, ..StillOptions::default() };
         let still = render_still(&gpu, Origin::parse(&location)?, camera, &options)
             .with_context(|| format!("rendering {location}"))?;
@@ -172,17 +178,27 @@ fn look(base: &str, dir: &std::path::Path, no_window: bool) -> Result<()> {
     Ok(())
 }
 
-/// Tiles the built-in DEM into `archive` (once).
+/// Tiles the built-in DEM into `archive` (once), as `terrastream tile` does: onto a
+/// transverse Mercator centred on it, its heights named as SRTM's are (above EGM96) where
+/// PROJ's EGM96 grid is at hand (else of unknown datum, with the tiler's warning).
 pub(super) fn tile_builtin_dem(dir: &std::path::Path, archive: &std::path::Path, progress: &CliProgress) -> Result<()> {
-    use terrastream_tiler::{TileOptions, read_geotiff, tile_elevation};
+    use terrastream_tiler::raster::DatumName;
+    use terrastream_tiler::{Sources, TileOptions, TileRequest, tile_terrain};
     if archive.exists() {
         return Ok(());
     }
     let tif = dir.join("srtm-tamalpais-320-public-domain.tif");
     std::fs::write(&tif, TAMALPAIS_TIF).with_context(|| format!("writing {}", tif.display()))?;
-    let raster = read_geotiff(&tif)?;
+    let egm96 = DatumName::egm96();
+    let request = TileRequest {
+        elevation: vec![tif],
+        vertical_datum: egm96.load().is_ok().then_some(egm96),
+        ..TileRequest::default()
+    };
+    let sources = Sources::open(&request)?;
+    let inputs = sources.inputs()?;
     let options = TileOptions { tile_size: 64, border: 1, ..TileOptions::default() };
-    tile_elevation(&raster, "tamalpais", archive, options, progress)?;
+    tile_terrain(inputs.elevation(), None, "tamalpais", archive, options, progress)?;
     progress.finish();
     println!("tiled the built-in SRTM 1\" DEM (Mt Tamalpais, public domain) into {}", archive.display());
     Ok(())
