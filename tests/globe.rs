@@ -41,6 +41,11 @@ fn tiled(dir: &Path, name: &str, (west, south, degrees, per_degree): (f64, f64, 
     archive
 }
 
+/// 12 degrees at 30" around Everest: more than a region, so it keeps its geographic grid.
+fn himalaya(dir: &Path) -> PathBuf {
+    tiled(dir, "himalaya", (EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0), &[])
+}
+
 fn decode(path: &Path) -> (u32, u32, Vec<u8>) {
     terrastream_testkit::golden::decode_png(&std::fs::read(path).unwrap())
 }
@@ -132,8 +137,7 @@ fn from_orbit_to_the_summit_every_view_draws_terrain() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    // 12 degrees at 30": more than a region, so it keeps its geographic grid.
-    let archive = tiled(dir.path(), "himalaya", (EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0), &[]);
+    let archive = himalaya(dir.path());
     let a = archive.to_str().unwrap();
     let png = dir.path().join("v.png");
     for (above, pitch, share) in
@@ -159,8 +163,7 @@ fn data_behind_the_horizon_is_not_in_view() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    // 12 degrees at 30" around Everest.
-    let archive = tiled(dir.path(), "himalaya", (EVEREST.0 - 6.0, EVEREST.1 - 6.0, 12.0, 120.0), &[]);
+    let archive = himalaya(dir.path());
     let a = archive.to_str().unwrap();
     let png = dir.path().join("v.png");
     // From 20 000 km the Earth's visible cap reaches 76 degrees of arc from the point
