@@ -23,7 +23,7 @@ use terrastream_tiler::raster::{DatumName, GeoidGrid};
 
 #[path = "support/oracles.rs"]
 mod oracles;
-use oracles::{DEM, archive, gdal_bilinear, random_points, repo};
+use oracles::{DEM, archive, gdal_bilinear, ok_in as ok, random_points, repo, run_in as run};
 
 /// Mt Tamalpais' summit in the committed crop: its highest sample (785 m), lon, lat.
 const PEAK: (f64, f64, f64) = (-122.597_222_2, 37.924_166_7, 785.0);
@@ -33,20 +33,6 @@ fn proj() -> bool {
         && Command::new("gdaltransform").arg("--version").output().is_ok();
     assert!(found || std::env::var_os("CI").is_none(), "proj-bin and gdal-bin are required on CI");
     found
-}
-
-fn run(args: &[&str], dir: &Path) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(args)
-        .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.into()))
-        .output()
-        .unwrap()
-}
-
-fn ok(args: &[&str], dir: &Path) -> String {
-    let out = run(args, dir);
-    assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
 /// `count` points spread over the whole Earth (poles and antimeridian included).

@@ -11,23 +11,12 @@ use std::process::Command;
 
 #[path = "support/oracles.rs"]
 mod oracles;
-use oracles::{EVEREST, SUMMIT, dem};
+use oracles::{EVEREST, SUMMIT, dem, ok_in as terrastream, run_in};
 
 fn gdal() -> bool {
     let found = Command::new("gdal_translate").arg("--version").output().is_ok();
     assert!(found || std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
     found
-}
-
-fn terrastream(args: &[&str], dir: &Path) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(args)
-        .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.into()))
-        .output()
-        .unwrap();
-    let said = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(out.status.success(), "terrastream {args:?}: {said}{}", String::from_utf8_lossy(&out.stderr));
-    said
 }
 
 /// A generated DEM (`oracles::dem`: west, south, degrees, samples a degree) tiled into
@@ -177,12 +166,8 @@ fn data_behind_the_horizon_is_not_in_view() {
         ("above the north pole", 0.0, 90.0, true),
     ] {
         let at = format!("{lon},{lat},20000000");
-        let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-            .args(["render", a, "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at, "--pitch", "-90"])
-            .args(["--shading", "flat", "--no-atmosphere"])
-            .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.path().into()))
-            .output()
-            .unwrap();
+        let args = ["render", a, "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at, "--pitch", "-90"];
+        let out = run_in(&[&args[..], &["--shading", "flat", "--no-atmosphere"]].concat(), dir.path());
         let said = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "{name}: {said}");
         let (w, h, rgba) = decode(&png);

@@ -25,6 +25,24 @@ pub fn terrastream(args: &[&str]) {
     assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// `terrastream args`, with a private runtime folder for lavapipe (`dir` where the
+/// environment names none).
+pub fn run_in(args: &[&str], dir: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(args)
+        .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.into()))
+        .output()
+        .unwrap()
+}
+
+/// [`run_in`], which must succeed: its standard output.
+pub fn ok_in(args: &[&str], dir: &Path) -> String {
+    let out = run_in(args, dir);
+    let said = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "terrastream {args:?}: {said}{}", String::from_utf8_lossy(&out.stderr));
+    said
+}
+
 /// The DEM tiled as `terrastream tile` does by default, in `dir`, its heights named as
 /// SRTM's are: above the EGM96 geoid (EPSG:5773).
 pub fn archive(dir: &Path) -> PathBuf {

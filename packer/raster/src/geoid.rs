@@ -319,8 +319,6 @@ pub struct GeoidGrid {
     rows: usize,
     /// Rows from the south.
     values: Vec<f32>,
-    /// Whether the columns go round the Earth (the last wraps to the first).
-    global: bool,
 }
 
 /// Values of a `.gtx` that mean "no value" (NOAA's grids).
@@ -392,7 +390,7 @@ impl GeoidGrid {
                 if v == GTX_NODATA { f32::NAN } else { v }
             })
             .collect();
-        Ok(Self::lattice(path, west, south, [dlon, dlat], columns, rows, values))
+        Ok(Self { path: path.to_path_buf(), west, south, step: [dlon, dlat], columns, rows, values })
     }
 
     fn geotiff(path: &Path) -> Result<Self> {
@@ -408,21 +406,15 @@ impl GeoidGrid {
         for r in (0..rows).rev() {
             values.extend_from_slice(&raster.data[r * columns..(r + 1) * columns]);
         }
-        Ok(Self::lattice(path, w + step[0] / 2.0, s + step[1] / 2.0, step, columns, rows, values))
+        let (west, south) = (w + step[0] / 2.0, s + step[1] / 2.0);
+        Ok(Self { path: path.to_path_buf(), west, south, step, columns, rows, values })
     }
 
-    fn lattice(
-        path: &Path,
-        west: f64,
-        south: f64,
-        step: [f64; 2],
-        columns: usize,
-        rows: usize,
-        values: Vec<f32>,
-    ) -> Self {
+    /// Whether the columns go round the Earth (the last wraps to the first).
+    fn global(&self) -> bool {
         #[expect(clippy::cast_precision_loss, reason = "node counts are small")]
-        let global = columns as f64 * step[0] >= 360.0 - step[0] * 0.5;
-        Self { path: path.to_path_buf(), west, south, step, columns, rows, values, global }
+        let span = self.columns as f64 * self.step[0];
+        span >= 360.0 - self.step[0] * 0.5
     }
 
     /// The file read.
@@ -434,7 +426,7 @@ impl GeoidGrid {
     /// round a global grid; None off the grid or where it has no value.
     fn node(&self, i: i64, j: i64) -> Option<f64> {
         let (cols, rows) = (i64::try_from(self.columns).ok()?, i64::try_from(self.rows).ok()?);
-        let i = if self.global { i.rem_euclid(cols) } else { i };
+        let i = if self.global() { i.rem_euclid(cols) } else { i };
         if !(0..cols).contains(&i) || !(0..rows).contains(&j) {
             return None;
         }
@@ -447,7 +439,7 @@ impl GeoidGrid {
     /// a value.
     pub fn at(&self, lon: f64, lat: f64) -> Option<f64> {
         let mut x = (lon - self.west) / self.step[0];
-        if self.global {
+        if self.global() {
             x = x.rem_euclid(360.0 / self.step[0]);
         }
         let y = (lat - self.south) / self.step[1];
@@ -457,7 +449,7 @@ impl GeoidGrid {
         if !(x.is_finite() && y.is_finite())
             || y < -eps
             || y > rows - 1.0 + eps
-            || (!self.global && (x < -eps || x > cols - 1.0 + eps))
+            || (!self.global() && (x < -eps || x > cols - 1.0 + eps))
         {
             return None;
         }
@@ -490,7 +482,7 @@ impl GeoidGrid {
             (i64::try_from(self.columns).unwrap_or(i64::MAX), i64::try_from(self.rows).unwrap_or(i64::MAX));
         j0 = j0.max(0);
         j1 = j1.min(rows - 1).max(j0);
-        if !self.global {
+        if !self.global() {
             i0 = i0.max(0);
             i1 = i1.min(cols - 1).max(i0);
         } else if i1 - i0 >= cols {
