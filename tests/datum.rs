@@ -381,7 +381,7 @@ fn each_client_gets_its_datum() {
     let (rg, rp) = (terrastream_format::Reader::open_mmap(&geoid).unwrap(), reader);
     let (tg, tp) = (Terrain::new(&rg, None).unwrap(), Terrain::new(&rp, None).unwrap());
     let z = tg.maxzoom();
-    let ([x, _], [y, _]) = tg.available(z).unwrap();
+    let ([x, _], [y, _]) = tg.available(z).unwrap()[0];
     let tile = GeoTile::new(z, x, y).unwrap();
     let (lifted, stored) = (tg.heights(tile).unwrap(), tp.heights(tile).unwrap());
     let grid_points: Vec<(f64, f64)> =

@@ -58,8 +58,12 @@ pub fn run(args: &MeshBench) -> Result<()> {
     // `repeat` each.
     let (mut sampling, mut converting) = (Duration::ZERO, Duration::ZERO);
     for z in args.min_level..=max_level {
-        let Some(([x0, x1], [y0, y1])) = terrain.available(z) else { continue };
-        let all: Vec<GeoTile> = (y0..=y1).flat_map(|y| (x0..=x1).filter_map(move |x| GeoTile::new(z, x, y))).collect();
+        let Some(ranges) = terrain.available(z) else { continue };
+        let all: Vec<GeoTile> = (ranges.into_iter())
+            .flat_map(|([x0, x1], [y0, y1])| {
+                (y0..=y1).flat_map(move |y| (x0..=x1).filter_map(move |x| GeoTile::new(z, x, y)))
+            })
+            .collect();
         let step = all.len().div_ceil(args.per_level.max(1)).max(1);
         for &tile in all.iter().step_by(step) {
             let (mut best, mut best_datum) = (Duration::MAX, Duration::MAX);

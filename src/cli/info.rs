@@ -129,6 +129,16 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
         out.push_str(&georeference(g));
     }
     out.push_str(&vertical(&m.vertical_datum));
+    for (k, source) in m.sources.iter().enumerate() {
+        let _ = writeln!(
+            out,
+            "{:<12}{} · {} between samples · from LOD{}",
+            if k == 0 { "inputs" } else { "" },
+            source.name,
+            people::length(source.spacing),
+            source.lod
+        );
+    }
     for (i, l) in s.layers.iter().enumerate() {
         out.push_str(&layer(i, l, m.layers.get(i).and_then(|l| l.extent.as_ref())));
     }
@@ -223,6 +233,14 @@ fn layer(i: usize, l: &terrastream_format::LayerStats, extent: Option<&terrastre
             line.push_str(&format!(" · {}", people::lon_lat_box(b)));
         }
         let _ = writeln!(out, "{line}");
+        if !e.partial.is_empty() {
+            let levels: Vec<String> = (e.partial.iter())
+                .map(|c| {
+                    format!("LOD{} in {} rectangle{}", c.lod, c.tiles.len(), if c.tiles.len() == 1 { "" } else { "s" })
+                })
+                .collect();
+            let _ = writeln!(out, "            only where fine inputs lie: {}", levels.join(" · "));
+        }
     }
     out
 }

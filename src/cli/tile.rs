@@ -8,8 +8,8 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
-    ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest, expand_inputs,
-    is_vrt, plan, shard_plan, tile_shard,
+    Blend, Collection, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest,
+    expand_inputs, is_vrt, plan, shard_plan, tile_collection, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -151,6 +151,18 @@ pub struct TileArgs {
     /// (a plan step given only the inputs' headers).
     #[arg(long, requires = "height_range_out")]
     require_statistics: bool,
+    /// Where inputs of different resolutions overlap: `resolution`, the finer wins, and
+    /// each input reaches only the levels its resolution supports (at most 2x
+    /// upsampling: a base and fine surveys make the base's levels everywhere and the
+    /// surveys' only where they lie); `order`, a later input wins, and every input is
+    /// tiled at the finest spacing everywhere.
+    #[arg(long, value_enum, default_value_t = PriorityArg::Resolution)]
+    priority: PriorityArg,
+    /// The band across which a finer input blends into the coarser data beneath, along
+    /// its data's edge, so that no step shows where a survey ends: samples of its level
+    /// (`16`, the default) or metres (`500m`); 0 for none.
+    #[arg(long, value_parser = parse_blend)]
+    blend: Option<Blend>,
     /// Also write a manifest (FORMAT.md §9) naming the archive: what readers open when a
     /// terrain is published as several archives (`merge --manifest` makes the one of a
     /// sharded run).
@@ -256,6 +268,25 @@ fn parse_shard(s: &str) -> std::result::Result<(u32, u32), String> {
     let (i, n) = s.split_once('/').ok_or_else(bad)?;
     let (i, n) = (i.trim().parse::<u32>().map_err(|_| bad())?, n.trim().parse::<u32>().map_err(|_| bad())?);
     if i >= n { Err(bad()) } else { Ok((i, n)) }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum PriorityArg {
+    /// The finer input wins; each input as deep as its resolution allows.
+    Resolution,
+    /// A later input wins; one resolution (the finest) everywhere.
+    Order,
+}
+
+/// `16` (samples) or `500m` (metres).
+fn parse_blend(s: &str) -> std::result::Result<Blend, String> {
+    let bad = || format!("{s:?}: expected samples (16) or metres (500m)");
+    match s.trim().strip_suffix('m') {
+        Some(m) => {
+            m.trim().parse::<f64>().ok().filter(|m| m.is_finite() && *m >= 0.0).map(Blend::Metres).ok_or_else(bad)
+        }
+        None => s.trim().parse::<u32>().map(Blend::Samples).map_err(|_| bad()),
+    }
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -403,6 +434,52 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
+    // Inputs of different resolutions, each as deep as it reaches.
+    let sparse = (args.priority == PriorityArg::Resolution && !request.elevation.iter().any(|p| is_vrt(p)))
+        .then(|| sources.height_mosaic())
+        .flatten()
+        .filter(|m| Collection::spans_resolutions(m));
+    if let Some(mosaic) = sparse {
+        if args.shard.is_some() {
+            bail!(
+                "--shard: the inputs are of different resolutions (each tiled as deep as it reaches), which shards \
+                 do not split yet: tile without --shard, or with --priority order (every input at the finest spacing)"
+            );
+        }
+        let mut plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
+        let blend = args.blend.unwrap_or_default();
+        let Some(collection) = Collection::plan(mosaic, &plan.metadata, blend) else {
+            bail!("{}: no levels to make", request.elevation[0].display());
+        };
+        collection.apply_to(&mut plan);
+        if args.dry_run {
+            progress.finish();
+            print_plan(&name, &plan);
+            print_collection(&collection);
+            if let Some(out) = &args.height_range_out {
+                write_height_range(&plan, out)?;
+            }
+            return Ok(ExitCode::SUCCESS);
+        }
+        let Some(output) = &args.output else { bail!("--output is required") };
+        super::make_parent(output)?;
+        let summary = tile_collection(&collection, &request, &sources, texture, &plan, output, progress)?;
+        progress.finish();
+        if let Some(manifest) = &args.manifest_out {
+            terrastream_tiler::single_manifest(output, manifest)?;
+        }
+        print_skipped(&sources);
+        println!(
+            "{}: {} tiles, {} bytes in {:.2} s ({} levels over the whole grid from LOD {}, finer ones where the inputs reach)",
+            output.display(),
+            summary.tile_entries,
+            summary.file_len,
+            started.elapsed().as_secs_f64(),
+            plan.metadata.layers[0].num_lods - collection.base,
+            collection.base
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
     if args.dry_run {
         let plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
         progress.finish();
@@ -496,6 +573,19 @@ fn print_plan(name: &str, plan: &Plan) {
         plan.tiles(),
         plan.estimated_bytes() as f64 / f64::from(1 << 20)
     );
+}
+
+/// A collection's levels: each input's spacing and depth, and the tiles of each level
+/// below the base.
+fn print_collection(c: &Collection) {
+    println!("inputs of different resolutions, each as deep as it reaches (LOD 0 at {:.3} units):", c.grid.pixel.0);
+    for i in &c.inputs {
+        println!("  {:<40} spacing {:>10.3}  from LOD {}", i.path.display(), i.spacing, i.depth);
+    }
+    for l in &c.levels {
+        println!("  LOD {:>2}: {} tiles where the finer inputs lie", l.lod, l.tiles.len());
+    }
+    println!("  LOD {:>2} and up: the whole grid", c.base);
 }
 
 /// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, wholly (when

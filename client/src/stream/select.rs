@@ -129,7 +129,7 @@ pub fn select(
             let size = layer.world_size_at(key.lod());
             let texel = size / f64::from(layer.tile_resolution);
             let projected = texel * pixels_per_radian / distance.max(1e-9);
-            let refine = key.lod() > 0
+            let mut refine = key.lod() > 0
                 && projected > options.pixel_error
                 && (in_view || (distance < size && !hidden))
                 && descend(key)
@@ -137,16 +137,21 @@ pub fn select(
             if refine {
                 let lod = key.lod() - 1;
                 let (x0, y0, x1, y1) = layer.data_tiles_at(lod);
+                let before = next.len();
                 for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                     let (x, y) = (key.x() * 2 + dx, key.y() * 2 + dy);
+                    // A partial level (a collection's finer one) holds nothing outside its
+                    // rectangles: the coarser tile stands there.
                     if (x0..=x1).contains(&x)
                         && (y0..=y1).contains(&y)
+                        && layer.extent.as_ref().is_none_or(|e| e.may_hold(lod, x, y))
                         && let Ok(child) = TileKey::new(key.layer(), lod, x, y)
                     {
                         accounted += 1;
                         next.push(child);
                     }
                 }
+                refine = next.len() > before;
             }
             wants.push(Want { key, in_view, distance, top, leaf: !refine });
         }
@@ -227,6 +232,7 @@ mod tests {
             detail: [4096.0, 4096.0, 6144.0, 6144.0],
             crs: None,
             lon_lat: None,
+            partial: Vec::new(),
         });
         let cam = Camera::look_at(DVec3::new(5000.0, 600.0, 6500.0), DVec3::new(5100.0, 0.0, 5100.0), 1024, 768);
         let wants = select(&m, &Surface::Flat, &cam, &SelectOptions::default(), |_| true);

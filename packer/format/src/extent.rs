@@ -34,6 +34,26 @@ pub struct LayerExtent {
     /// reader can invert (or the writer knew them).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lon_lat: Option<[f64; 4]>,
+    /// Levels that hold tiles only over part of the data (a collection's finer levels,
+    /// made only where a fine enough input lies; docs/tiling.md, "Collections"): for each,
+    /// rectangles of tiles outside which it holds none. Readers ask for no tile outside
+    /// them: the nearest coarser tile stands there. Levels not listed may hold a tile
+    /// anywhere over the data.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub partial: Vec<LevelCover>,
+}
+
+/// Where a level of a [`LayerExtent`] holds tiles.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LevelCover {
+    /// The level.
+    pub lod: u8,
+    /// Rectangles of tiles: first column, first row, last column, last row (inclusive).
+    pub tiles: Vec<[u32; 4]>,
+    /// Each rectangle's west, south, east, north in degrees, where the writer knew them
+    /// (what geographic tile schemes' availability is made from).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lon_lat: Vec<[f64; 4]>,
 }
 
 impl LayerExtent {
@@ -95,7 +115,36 @@ impl LayerExtent {
             detail: union(self.detail, other.detail),
             crs: both(self.crs, other.crs),
             lon_lat: both(self.lon_lat, other.lon_lat),
+            partial: union_covers(&self.partial, &other.partial),
         }
+    }
+}
+
+/// Two parts' partial levels joined: a level partial in both keeps both's rectangles; a
+/// level partial in only one is whole in the other, so whole in the join.
+fn union_covers(a: &[LevelCover], b: &[LevelCover]) -> Vec<LevelCover> {
+    (a.iter())
+        .filter_map(|x| {
+            let y = b.iter().find(|y| y.lod == x.lod)?;
+            let lon_lat = if x.lon_lat.len() == x.tiles.len() && y.lon_lat.len() == y.tiles.len() {
+                x.lon_lat.iter().chain(&y.lon_lat).copied().collect()
+            } else {
+                Vec::new()
+            };
+            Some(LevelCover { lod: x.lod, tiles: x.tiles.iter().chain(&y.tiles).copied().collect(), lon_lat })
+        })
+        .collect()
+}
+
+impl LayerExtent {
+    /// Whether tile (`x`, `y`) of level `lod` may be held: false only outside a partial
+    /// level's rectangles.
+    #[must_use]
+    pub fn may_hold(&self, lod: u8, x: u32, y: u32) -> bool {
+        self.partial
+            .iter()
+            .find(|c| c.lod == lod)
+            .is_none_or(|c| c.tiles.iter().any(|r| (r[0]..=r[2]).contains(&x) && (r[1]..=r[3]).contains(&y)))
     }
 }
 
@@ -161,7 +210,7 @@ impl ExtentBuilder {
             .collect();
         let (&(finest_lod, detail), &(coarsest_lod, _)) = (boxes.first()?, boxes.last()?);
         let world = boxes.iter().map(|b| b.1).reduce(union)?;
-        Some(LayerExtent { coarsest_lod, finest_lod, world, detail, crs: None, lon_lat: None })
+        Some(LayerExtent { coarsest_lod, finest_lod, world, detail, crs: None, lon_lat: None, partial: Vec::new() })
     }
 }
 
@@ -182,6 +231,7 @@ impl ExtentBuilder {
             if extent.detail == given.detail {
                 extent.lon_lat = given.lon_lat;
             }
+            extent.partial.clone_from(&given.partial);
         }
         extent.georeference(georeference);
         Some(extent)
@@ -247,6 +297,7 @@ mod tests {
             detail: [0.0, 0.0, 1.0, 1.0],
             crs: None,
             lon_lat: None,
+            partial: Vec::new(),
         };
         let half = 20_037_508.342_789_244;
         let g = Georeference {

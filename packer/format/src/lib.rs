@@ -49,7 +49,7 @@ pub use compression::{decompress, zstd_decompress};
 pub use datum::{HeightReference, Undulation, VerticalDatum};
 pub use directory::{Directory, Entry, LeafPointer, MAX_DIRECTORY_BYTES, TILE_TRAILER_LEN};
 pub use error::{Error, Interrupted, Result};
-pub use extent::{ExtentBuilder, LayerExtent, intersect, mercator_to_lon_lat, union};
+pub use extent::{ExtentBuilder, LayerExtent, LevelCover, intersect, mercator_to_lon_lat, union};
 pub use gradient::{gradient_decode, gradient_encode, gradient_encode_into, payload_bytes};
 pub use header::{BOOTSTRAP_READ, Compression, HEADER_LEN, Header, MAGIC, Section, VERSION_MAJOR, VERSION_MINOR};
 pub use key::{MAX_LAYERS, MAX_LODS, TileKey, layer_of, tile_id_to_zxy, zxy_to_tile_id};
@@ -58,7 +58,7 @@ pub use manifest::{
 };
 pub use metadata::{
     ElevationEncoding, ElevationScheme, Georeference, Layer, LayerKind, Metadata, OriginalField, PayloadCompression,
-    Shard, Terrain, TileFormat, levels_to_one,
+    Shard, SourceRecord, Terrain, TileFormat, levels_to_one,
 };
 pub use ranges::{AsyncRangeSource, MaybeSend, MaybeSync, MemorySource, RangeSource};
 #[cfg(not(target_arch = "wasm32"))]

@@ -37,9 +37,40 @@ pub struct Metadata {
     /// grid it holds. A merge of all N shards makes the levels above the split LODs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<Shard>,
+    /// The elevation's inputs of a collection (inputs of different resolutions, each as
+    /// deep as it reaches; docs/tiling.md, "Collections"), in the order given.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sources: Vec<SourceRecord>,
     /// Members this version does not know, kept on rewrite.
     #[serde(flatten)]
     pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// One input of a collection, as the archive records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SourceRecord {
+    /// The input's file name.
+    pub name: String,
+    /// Its sample spacing in world metres.
+    pub spacing: f64,
+    /// The finest LOD it reaches.
+    pub lod: u8,
+    /// Its footprint's box in world units (min x, min z, max x, max z).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub world: Option<[f64; 4]>,
+}
+
+impl Metadata {
+    /// The spacing in world metres of the finest collection input whose footprint holds
+    /// world point (`x`, `z`): what a height there is surveyed at (None: not a collection,
+    /// or no input there).
+    #[must_use]
+    pub fn source_spacing_at(&self, x: f64, z: f64) -> Option<f64> {
+        (self.sources.iter())
+            .filter(|s| s.world.is_some_and(|[x0, z0, x1, z1]| x >= x0 && x <= x1 && z >= z0 && z <= z1))
+            .map(|s| s.spacing)
+            .reduce(f64::min)
+    }
 }
 
 /// One shard of a sharded tile run: tiles of every layer from LOD 0 up to that layer's
@@ -510,6 +541,7 @@ impl Metadata {
             vertical_datum: VerticalDatum::default(),
             original_fields: Vec::new(),
             shard: None,
+            sources: Vec::new(),
             extra: serde_json::Map::new(),
         }
     }

@@ -18,6 +18,7 @@
 //! PNG, JPEG, lossless WebP, or GPU-ready BC1/BC7 blocks (zstd).
 
 mod bc;
+mod collection;
 mod edit;
 mod encode;
 mod error;
@@ -28,6 +29,7 @@ mod request;
 mod shard;
 mod tile;
 
+pub use collection::{Blend, Collection, CollectionInput, DEFAULT_BLEND, SparseLevel, depth_of, tile_collection};
 pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
 pub use edit::merge::{MergeSummary, Prefer, merge, merge_with};
 pub use edit::update::{UpdateSummary, update};
@@ -39,10 +41,10 @@ pub use shard::{PlannedGrid, ShardInputs, ShardPlan, shard_plan};
 pub use terrastream_format::Interrupted;
 /// The raster reading this crate tiles from, re-exported so that a caller needs one crate.
 pub use terrastream_raster::{
-    self as raster, Crs, ElevationFile, ElevationSource, Heights, Image, ImageFile, ImageSource, ImageWindow,
-    KnownRange, Mosaic, MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Transform, Vrt, VrtSource, Warped, crs,
-    expand_inputs, image_pixel_metres, is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff, read_image,
-    read_vrt,
+    self as raster, Crs, ElevationFile, ElevationSource, GridSpec, Heights, Image, ImageFile, ImageSource, ImageWindow,
+    InputLayout, KnownRange, Mosaic, MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Transform, Vrt, VrtSource,
+    Warped, crs, expand_inputs, image_pixel_metres, is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff,
+    read_image, read_vrt,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
 

@@ -109,7 +109,15 @@ fn plan_with(
         };
         let world = [x0, z0, x0 + w, z0 + h];
         let lon_lat = metadata.georeference.as_ref().and_then(|g| lon_lat_box(g, world));
-        layer.extent = Some(LayerExtent { coarsest_lod: 0, finest_lod: 0, world, detail: world, crs: None, lon_lat });
+        layer.extent = Some(LayerExtent {
+            coarsest_lod: 0,
+            finest_lod: 0,
+            world,
+            detail: world,
+            crs: None,
+            lon_lat,
+            partial: Vec::new(),
+        });
     }
     // What the heights are measured from, with a geoid's undulation over the footprint.
     if let Some(datum) = elevation.and_then(ElevationSource::vertical_datum) {

@@ -127,6 +127,11 @@ impl Sources {
         self.height_range = Some(range);
     }
 
+    /// The heights' mosaic, where the inputs make one.
+    pub fn height_mosaic(&self) -> Option<&Mosaic<Heights>> {
+        self.heights.as_ref()
+    }
+
     /// The mosaics opened, of heights and of imagery: what a caller that reads them itself
     /// (`update`, which crops them to what they touch) takes.
     pub fn into_mosaics(self) -> (Option<Mosaic<Heights>>, Option<Mosaic<Pixels>>) {

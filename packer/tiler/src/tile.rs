@@ -129,7 +129,7 @@ fn tile_on_estimate(
 }
 
 /// Every level of every layer of `plan`.
-fn full_windows(plan: &Plan) -> Vec<Window> {
+pub(crate) fn full_windows(plan: &Plan) -> Vec<Window> {
     plan.metadata.layers.iter().zip(&plan.layers).map(|(l, p)| Window::full(l.num_lods, p.size.1 as usize)).collect()
 }
 
@@ -188,26 +188,44 @@ fn cut_planned(
         })?;
         heights.finish(metadata, Vec::new(), &mut spool)?;
     }
-    if let (Some(t), Some(index)) = (texture, find(LayerKind::Texture)) {
-        let format = t.format;
-        let offset = plan.layers[usize::from(index)].offset;
-        let encode = move |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
-            let key = shifted(key, offset)?;
-            Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
-        };
-        let size = plan.layers[usize::from(index)].size;
-        let resample = Resample::new(t.source.size().0 as usize, size.0 as usize);
-        let window = &windows[usize::from(index)];
-        let rows = window_rows(window);
-        run_pyramid(metadata, index, size, window, &encode, None, &mut spool, progress, |push| {
-            Ok(t.source.rows_in(rows, &mut |row| Ok(push(resample.row(row))?))?)
-        })?;
+    if let Some(t) = texture {
+        cut_texture(t, plan, windows, &mut spool, progress)?;
     }
     Ok(spool)
 }
 
+/// Cuts and encodes the texture layer's tiles of `plan` (in its window) into `spool`.
+pub(crate) fn cut_texture(
+    t: TextureInput<'_>,
+    plan: &Plan,
+    windows: &[Window],
+    spool: &mut Spool,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let metadata = &plan.metadata;
+    let Some(index) =
+        metadata.layers.iter().position(|l| l.kind == LayerKind::Texture).and_then(|i| u8::try_from(i).ok())
+    else {
+        return Ok(());
+    };
+    let format = t.format;
+    let offset = plan.layers[usize::from(index)].offset;
+    let encode = move |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+        let key = shifted(key, offset)?;
+        Ok(vec![(key, encode_texture(key, pixels, edge, format, ZSTD_LEVEL)?)])
+    };
+    let size = plan.layers[usize::from(index)].size;
+    let resample = Resample::new(t.source.size().0 as usize, size.0 as usize);
+    let window = &windows[usize::from(index)];
+    let rows = window_rows(window);
+    run_pyramid(metadata, index, size, window, &encode, None, spool, progress, |push| {
+        Ok(t.source.rows_in(rows, &mut |row| Ok(push(resample.row(row))?))?)
+    })?;
+    Ok(())
+}
+
 /// Writes the spooled tiles into the archive at `out`, with `metadata`.
-fn write_spool(
+pub(crate) fn write_spool(
     spool: Spool,
     metadata: &Metadata,
     out: &Path,

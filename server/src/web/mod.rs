@@ -502,16 +502,18 @@ async fn elevation_answer(state: &AppState, name: &str, query: &elevation::Query
             let heights = elevation::Heights::new(&served.reader)
                 .ok_or("the archive has no placed elevation")?
                 .with_cache(&web.decoded, version);
-            let mut found = heights.at(&job_points.points, job_points.interpolation).map_err(|e| {
+            let found = heights.found(&job_points.points, job_points.interpolation).map_err(|e| {
                 tracing::error!("elevation of {dataset:?}: {e}");
                 "an archive tile could not be read"
             })?;
+            let spacing: Vec<Option<f64>> = found.iter().map(|f| f.map(|(_, s)| s)).collect();
+            let mut found: Vec<Option<f64>> = found.into_iter().map(|f| f.map(|(h, _)| h)).collect();
             let datum = &served.reader.metadata().vertical_datum;
             let above = elevation::answer_datum(datum, job_points.datum, &job_points.points, &mut found);
-            Ok::<_, &str>((found, above, datum.describe()))
+            Ok::<_, &str>((found, spacing, above, datum.describe()))
         })
         .await;
-    let (heights, above, datum) = match heights {
+    let (heights, spacing, above, datum) = match heights {
         Ok(Ok(h)) => h,
         Ok(Err(why)) => return api_error(StatusCode::BAD_REQUEST, &format!("Archive '{name}': {why}.")),
         Err(_) => {
@@ -524,8 +526,18 @@ async fn elevation_answer(state: &AppState, name: &str, query: &elevation::Query
         .points
         .iter()
         .zip(heights)
-        .map(|(&(lat, lng), h)| {
-            serde_json::json!({ "dataset": name, "elevation": h, "datum": above, "location": { "lat": lat, "lng": lng } })
+        .zip(spacing)
+        .map(|((&(lat, lng), h), spacing)| {
+            // The spacing of the level the height came from, to the centimetre: the
+            // finest data there (a collection's finer survey where one lies).
+            let resolution = spacing.map(|s| (s * 100.0).round() / 100.0);
+            serde_json::json!({
+                "dataset": name,
+                "elevation": h,
+                "resolution": resolution,
+                "datum": above,
+                "location": { "lat": lat, "lng": lng }
+            })
         })
         .collect();
     axum::Json(serde_json::json!({ "results": results, "datum": above, "vertical_datum": datum, "status": "OK" }))

@@ -299,6 +299,21 @@ impl<'a> Heights<'a> {
     /// # Errors
     /// A tile of the archive that cannot be read or decoded, named.
     pub fn at(&self, points: &[(f64, f64)], interpolation: Interpolation) -> Result<Vec<Option<f64>>, String> {
+        Ok(self.found(points, interpolation)?.into_iter().map(|h| h.map(|(h, _)| h)).collect())
+    }
+
+    /// The height at each point, from the finest level with data there, and that level's
+    /// sample spacing in metres (None: no data there). In a collection of inputs of
+    /// different resolutions (docs/tiling.md, "Collections"), that is the finest input's
+    /// there.
+    ///
+    /// # Errors
+    /// As [`Heights::at`].
+    pub fn found(
+        &self,
+        points: &[(f64, f64)],
+        interpolation: Interpolation,
+    ) -> Result<Vec<Option<(f64, f64)>>, String> {
         let info = &self.reader.metadata().layers[usize::from(self.layer)];
         let finest = info.extent.as_ref().map_or(0, |e| e.finest_lod);
         let mut tiles: HashMap<TileKey, Option<Arc<DecodedTile>>> = HashMap::new();
@@ -341,8 +356,13 @@ impl<'a> Heights<'a> {
                         self.load(&mut tiles, key)?;
                     }
                 }
+                // The finest input's spacing there, where a collection's level is
+                // filled from coarser data beneath its finer inputs' footprints.
+                let surveyed = self.reader.metadata().source_spacing_at(x, z).unwrap_or(0.0);
+                let metres = spacing.max(surveyed);
                 height =
-                    height_on_lod(info, self.layer, lod, x, z, interpolation, |key| tiles.get(&key).cloned().flatten());
+                    height_on_lod(info, self.layer, lod, x, z, interpolation, |key| tiles.get(&key).cloned().flatten())
+                        .map(|h| (h, metres));
                 break;
             }
             out.push(height);

@@ -117,6 +117,11 @@ impl<'a> Placed<'a> {
         self
     }
 
+    /// The layer.
+    pub fn layer(&self) -> &'a Layer {
+        self.layer
+    }
+
     /// What the layer's samples are.
     pub fn samples(&self) -> Samples {
         self.samples

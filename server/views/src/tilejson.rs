@@ -25,10 +25,15 @@ pub fn coverage(metadata: &Metadata, layer: &Layer, size: u32) -> Option<Coverag
     let to_degrees = Transform::new(&crs, &Crs::wgs84());
     let world_to_degrees = |x: f64, z: f64| to_degrees.apply(origin[0] + x * scale[0], origin[1] - z * scale[1]);
     let detail = layer.data_detail();
-    let bounds = match layer.extent.as_ref().and_then(|e| e.lon_lat) {
+    // A collection's finest levels cover only its finer inputs: its data is the whole
+    // box, which its coarser levels cover.
+    let partial = layer.extent.as_ref().is_some_and(|e| !e.partial.is_empty());
+    let framed = if partial { layer.data_world() } else { detail };
+    let bounds = match layer.extent.as_ref().and_then(|e| e.lon_lat).filter(|_| !partial) {
         Some(b) => b,
         None => {
-            // The detail box's edges, sampled (a projected box is curved in degrees).
+            // The box's edges, sampled (a projected box is curved in degrees).
+            let detail = framed;
             let mut b = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
             for k in 0..=16 {
                 let t = f64::from(k) / 16.0;

@@ -89,6 +89,7 @@ impl TileScan {
                     detail,
                     crs: None,
                     lon_lat: None,
+                    partial: Vec::new(),
                 });
             }
         }

@@ -105,6 +105,20 @@ pub struct GridSpec {
     pub size: (u32, u32),
 }
 
+/// Where an input lies on a mosaic's output grid ([`Mosaic::layout`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct InputLayout {
+    /// The file (a VRT source's file for a VRT).
+    pub path: PathBuf,
+    /// Its spacing in output CRS units (the finer of its two axes).
+    pub spacing: f64,
+    /// Its footprint in output samples, first and last column (inclusive), with one
+    /// sample of margin each side (what its bilinear samples reach).
+    pub columns: (i64, i64),
+    /// Its first and last row, as `columns`.
+    pub rows: (i64, i64),
+}
+
 /// An input as opened: a window of a file (the whole file, or a VRT source's), its CRS,
 /// the window's north-west corner and pixel size there, and a nodata value of the VRT.
 struct Opened<K: MosaicKind> {
@@ -132,6 +146,8 @@ struct Input<K: MosaicKind> {
     scale: Option<(f32, f32)>,
     /// Output CRS -> the input's.
     to_input: Transform,
+    /// Its spacing in output CRS units (the finer of its two axes).
+    spacing: f64,
     /// Footprint in output pixels: first and last column and row (inclusive).
     columns: (i64, i64),
     rows: (i64, i64),
@@ -197,6 +213,8 @@ fn open_all<K: MosaicKind>(
 struct Footprints {
     /// Each input's (min x, min y, max x, max y).
     each: Vec<[f64; 4]>,
+    /// Each input's spacing in output CRS units (the finer of its two axes).
+    spacings: Vec<f64>,
     /// Their union.
     union: [f64; 4],
     /// The finest input spacing, in output CRS units.
@@ -208,6 +226,7 @@ impl Footprints {
         let mut union = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
         let mut finest = f64::INFINITY;
         let mut each = Vec::with_capacity(files.len());
+        let mut spacings = Vec::with_capacity(files.len());
         let found: Vec<Option<[f64; 4]>> = (files.par_iter())
             .map(|o| footprint(&Transform::new(&o.crs, crs), o.origin, o.pixel, (o.window[2], o.window[3])))
             .collect();
@@ -220,8 +239,9 @@ impl Footprints {
             let metres = ((fp[2] - fp[0]) / f64::from(w)).min((fp[3] - fp[1]) / f64::from(h));
             finest = finest.min(metres);
             each.push(fp);
+            spacings.push(metres);
         }
-        Ok(Self { each, union, finest })
+        Ok(Self { each, spacings, union, finest })
     }
 }
 
@@ -342,14 +362,16 @@ impl<K: MosaicKind> Mosaic<K> {
         let lattices = lattices(&files);
         let inputs = (files.into_par_iter())
             .zip(footprints.each)
+            .zip(footprints.spacings)
             .zip(lattices)
-            .map(|((o, fp), lattice)| {
+            .map(|(((o, fp), spacing), lattice)| {
                 #[expect(clippy::cast_possible_truncation, reason = "within the u32 grid checked above")]
                 let cell = |v: f64| v.floor() as i64;
                 let to_input = Transform::new(&crs, &o.crs);
                 let placement = placement_of(&to_input, (origin, pixel), (o.origin, o.pixel), o.window);
                 Input {
                     placement,
+                    spacing,
                     lattice,
                     dropped: std::sync::atomic::AtomicBool::new(false),
                     shift: None,
@@ -464,6 +486,20 @@ impl<K: MosaicKind> Mosaic<K> {
     /// Inputs, in order.
     pub fn inputs(&self) -> impl Iterator<Item = &Path> {
         self.inputs.iter().map(|i| K::path(&i.file))
+    }
+
+    /// Where each input lies on the output grid and how fine it is, in order (a VRT's
+    /// sources one by one): what a collection's levels are planned from.
+    pub fn layout(&self) -> Vec<InputLayout> {
+        (self.inputs.iter())
+            .filter(|i| !i.is_dropped())
+            .map(|i| InputLayout {
+                path: K::path(&i.file).to_path_buf(),
+                spacing: i.spacing,
+                columns: i.columns,
+                rows: i.rows,
+            })
+            .collect()
     }
 
     /// The output grid (to give a shard: [`MosaicOptions::grid`]).

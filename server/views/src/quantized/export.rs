@@ -33,10 +33,17 @@ pub fn export_quantized_mesh(
     let minzoom = minzoom.min(maxzoom);
     let mut tiles = vec![];
     for z in minzoom..=maxzoom {
-        let Some(([x0, x1], [y0, y1])) = terrain.available(z) else { continue };
-        for y in y0..=y1 {
-            tiles.extend((x0..=x1).filter_map(|x| GeoTile::new(z, x, y)));
+        let Some(ranges) = terrain.available(z) else { continue };
+        let mut level: Vec<GeoTile> = vec![];
+        for ([x0, x1], [y0, y1]) in ranges {
+            for y in y0..=y1 {
+                level.extend((x0..=x1).filter_map(|x| GeoTile::new(z, x, y)));
+            }
         }
+        // Rectangles of one level may overlap: each tile once.
+        level.sort_by_key(|t| (t.y, t.x));
+        level.dedup();
+        tiles.extend(level);
     }
     let temp = stage(dir)?;
     let mut summary = WebExportSummary { zooms: (minzoom, maxzoom), ..WebExportSummary::default() };

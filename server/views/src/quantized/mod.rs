@@ -83,19 +83,31 @@ impl<'a> Terrain<'a> {
     }
 
     /// The tiles of level `z` that exist: those the data's box touches, and both root
-    /// tiles (a client starts from them); None beyond [`Terrain::maxzoom`].
-    pub fn available(&self, z: u8) -> Option<Range> {
+    /// tiles (a client starts from them); where the level samples a partial LOD of the
+    /// archive (a collection's finer levels, made only where a fine input lies), those
+    /// its rectangles touch. None beyond [`Terrain::maxzoom`].
+    pub fn available(&self, z: u8) -> Option<Vec<Range>> {
         match z {
-            0 => Some(([0, 1], [0, 0])),
-            z if z <= self.maxzoom() => Some(GeoTile::range(z, self.coverage.bounds)),
+            0 => Some(vec![([0, 1], [0, 0])]),
+            z if z <= self.maxzoom() => {
+                let partial = self.placed.layer().extent.as_ref().and_then(|e| {
+                    let lod = self.lod(z);
+                    e.partial.iter().find(|c| c.lod == lod && !c.lon_lat.is_empty())
+                });
+                Some(match partial {
+                    Some(cover) => cover.lon_lat.iter().map(|b| GeoTile::range(z, *b)).collect(),
+                    None => vec![GeoTile::range(z, self.coverage.bounds)],
+                })
+            }
             _ => None,
         }
     }
 
     /// Whether `tile` exists.
     pub fn exists(&self, tile: GeoTile) -> bool {
-        self.available(tile.z)
-            .is_some_and(|([x0, x1], [y0, y1])| (x0..=x1).contains(&tile.x) && (y0..=y1).contains(&tile.y))
+        self.available(tile.z).is_some_and(|ranges| {
+            ranges.iter().any(|&([x0, x1], [y0, y1])| (x0..=x1).contains(&tile.x) && (y0..=y1).contains(&tile.y))
+        })
     }
 
     /// The LOD a level samples: the coarsest whose samples are no larger than the level's
@@ -220,12 +232,17 @@ impl<'a> Terrain<'a> {
         let levels: Vec<serde_json::Value> = (1..=METADATA_LEVELS)
             .map_while(|k| {
                 let z = tile.z.checked_add(k)?;
-                let ([x0, x1], [y0, y1]) = self.available(z)?;
                 let first = |v: u32| v << k;
                 let last = |v: u32| ((v + 1) << k) - 1;
-                let (cx, cy) =
-                    ([x0.max(first(tile.x)), x1.min(last(tile.x))], [y0.max(first(tile.y)), y1.min(last(tile.y))]);
-                let ranges = if cx[0] <= cx[1] && cy[0] <= cy[1] { vec![range_json((cx, cy))] } else { vec![] };
+                let ranges = (self.available(z)?.into_iter())
+                    .filter_map(|([x0, x1], [y0, y1])| {
+                        let (cx, cy) = (
+                            [x0.max(first(tile.x)), x1.min(last(tile.x))],
+                            [y0.max(first(tile.y)), y1.min(last(tile.y))],
+                        );
+                        (cx[0] <= cx[1] && cy[0] <= cy[1]).then(|| range_json((cx, cy)))
+                    })
+                    .collect();
                 Some(serde_json::Value::Array(ranges))
             })
             .collect();
@@ -237,7 +254,7 @@ impl<'a> Terrain<'a> {
     pub fn layer_json(&self, name: &str, description: &str, tiles: &str) -> serde_json::Value {
         let available: Vec<serde_json::Value> = (0..=self.maxzoom())
             .filter_map(|z| self.available(z))
-            .map(|r| serde_json::json!([range_json(r)]))
+            .map(|ranges| serde_json::Value::Array(ranges.into_iter().map(range_json).collect()))
             .collect();
         serde_json::json!({
             "tilejson": "2.1.0",

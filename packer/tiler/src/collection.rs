@@ -1,0 +1,713 @@
+//! Collections: inputs of different resolutions in one archive, each only as deep as its
+//! own resolution allows (sparse depth; docs/tiling.md, "Collections").
+//!
+//! LOD 0 has the finest input's spacing `f`; level `L` spacing `f · 2^L`. An input of
+//! spacing `s` reaches down to its *depth*, the finest level no finer than half its own
+//! spacing (at most 2x upsampling): `ceil(log2(s / 2f))`, 0 at least. The coarsest inputs'
+//! depth is the *base*: from there up every level covers the whole grid, built as a
+//! pyramid of 2x2 means as a single-resolution run builds it. Below the base, level `L`
+//! holds only the tiles touching an input as deep as `L` (its footprint, and the tiles
+//! its edges touch), each made on its own grid at `L`'s spacing:
+//!
+//! - where a finer level holds tiles, the 2x2 mean of them, as stored (so every level is
+//!   the mean of the level below wherever that level exists, as in a single run);
+//! - elsewhere the inputs of depth `L` (later wins among them), completed from the coarser
+//!   inputs beneath (resampled) where they have no data, and blended into them across a
+//!   band along their data's edge (`blend` samples, smoothstep), so no step shows where
+//!   a survey ends.
+//!
+//! So tiles, bytes and work follow the data: a continent at 1 km with a valley at 2 m
+//! makes the continent's levels and the valley's, not the continent at 2 m.
+
+use std::collections::{HashSet, VecDeque};
+use std::path::{Path, PathBuf};
+
+use terrastream_format::{LayerKind, LevelCover, Metadata, SourceRecord, TileKey};
+use terrastream_pack::WriteSummary;
+use terrastream_pack::progress::Progress;
+
+use crate::encode::quantize_heights;
+use crate::error::{Error, Result};
+use crate::options::TextureInput;
+use crate::plan::Plan;
+use crate::pyramid::{Pyramid, Spool, Window, halve_rows};
+use crate::raster::{ElevationSource, GridSpec, Heights, InputLayout, Mosaic};
+use crate::request::{Sources, TileRequest};
+use crate::tile::{HeightEncoder, cut_texture, full_windows, write_spool};
+
+/// How a collection's inputs meet.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Blend {
+    /// Across this many samples of the finer input's level.
+    Samples(u32),
+    /// Across this many metres (output CRS units), rounded to samples of the finer level.
+    Metres(f64),
+}
+
+impl Default for Blend {
+    fn default() -> Self {
+        Self::Samples(DEFAULT_BLEND)
+    }
+}
+
+/// Samples of a finer input's level across which it blends into the coarser data beneath
+/// by default: wide enough to hide metres of disagreement between surveys on gentle
+/// ground (a 4 m step over 16 samples is a slope of a quarter of a sample's spacing per
+/// metre), narrow enough to keep nearly all of a survey as surveyed.
+pub const DEFAULT_BLEND: u32 = 16;
+
+/// One input of a collection: its file, spacing and depth.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CollectionInput {
+    /// The file.
+    pub path: PathBuf,
+    /// Its spacing in output CRS units (the finest of its parts).
+    pub spacing: f64,
+    /// The finest level it reaches.
+    pub depth: u8,
+    /// Its footprint in LOD-0 samples: first and last column and row (inclusive).
+    pub columns: (i64, i64),
+    /// As `columns`.
+    pub rows: (i64, i64),
+}
+
+/// One level below the base: the tiles it holds, and the rectangles of tiles made to
+/// make them (each with a ring of tiles around, for the borders).
+#[derive(Clone, Debug)]
+pub struct SparseLevel {
+    /// The level.
+    pub lod: u8,
+    /// Tiles held (column, row).
+    pub tiles: HashSet<(u32, u32)>,
+    /// Rectangles of tiles made: first and last column and row (inclusive).
+    pub rects: Vec<[u32; 4]>,
+    /// Rectangles holding the tiles held (as `rects`, without their rings).
+    pub cover: Vec<[u32; 4]>,
+}
+
+/// The levels of a collection ([`Collection::plan`]).
+#[derive(Clone, Debug)]
+pub struct Collection {
+    /// The inputs, in the order given, with their depths.
+    pub inputs: Vec<CollectionInput>,
+    /// From this level up every level covers the grid.
+    pub base: u8,
+    /// The levels below the base, finest first.
+    pub levels: Vec<SparseLevel>,
+    /// The LOD-0 grid.
+    pub grid: GridSpec,
+    /// Blend band, samples of each finer input's level.
+    pub blend: u32,
+}
+
+/// The depth of an input of spacing `spacing` on a LOD 0 of spacing `finest`: the finest
+/// level whose spacing is no finer than half the input's.
+#[must_use]
+pub fn depth_of(spacing: f64, finest: f64) -> u8 {
+    let ratio = spacing / (2.0 * finest);
+    if !(ratio.is_finite() && ratio > 1.0) {
+        return 0;
+    }
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=60")]
+    let d = (ratio.log2() - 1e-9).ceil().clamp(0.0, 60.0) as u8;
+    d
+}
+
+impl Collection {
+    /// The levels of `mosaic`'s inputs on `metadata`'s elevation layer (its tile size and
+    /// LOD count): None when every input reaches LOD 0 (a single-resolution run).
+    #[must_use]
+    pub fn plan(mosaic: &Mosaic<Heights>, metadata: &Metadata, blend: Blend) -> Option<Self> {
+        let layer = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation)?;
+        let grid = mosaic.grid();
+        let finest = grid.pixel.0.min(grid.pixel.1);
+        let top = layer.num_lods.saturating_sub(1);
+        let layout = mosaic.layout();
+        let mut inputs: Vec<CollectionInput> = Vec::new();
+        for InputLayout { path, spacing, columns, rows } in layout {
+            // A file read as several parts (a VRT's sources) keeps its finest part's depth.
+            if let Some(known) = inputs.iter_mut().find(|i| i.path == path) {
+                known.spacing = known.spacing.min(spacing);
+                known.columns = (known.columns.0.min(columns.0), known.columns.1.max(columns.1));
+                known.rows = (known.rows.0.min(rows.0), known.rows.1.max(rows.1));
+                continue;
+            }
+            inputs.push(CollectionInput { path, spacing, depth: 0, columns, rows });
+        }
+        for i in &mut inputs {
+            i.depth = depth_of(i.spacing, finest);
+        }
+        let least = inputs.iter().map(|i| i.depth).min()?;
+        for i in &mut inputs {
+            i.depth = (i.depth - least).min(top);
+        }
+        let base = inputs.iter().map(|i| i.depth).max()?;
+        if base == 0 {
+            return None;
+        }
+        let res = u64::from(layer.tile_resolution);
+        let levels = (0..base)
+            .map(|lod| {
+                let (nx, ny) = layer.grid_at(lod);
+                let span = res << lod;
+                let cell =
+                    |v: i64, n: u32| u32::try_from(v.max(0).unsigned_abs() / span).unwrap_or(u32::MAX).min(n - 1);
+                let mut tiles = HashSet::new();
+                let mut rects: Vec<[u32; 4]> = Vec::new();
+                let mut cover: Vec<[u32; 4]> = Vec::new();
+                for i in inputs.iter().filter(|i| i.depth <= lod) {
+                    let (x0, x1) = (cell(i.columns.0, nx), cell(i.columns.1, nx));
+                    let (y0, y1) = (cell(i.rows.0, ny), cell(i.rows.1, ny));
+                    tiles.extend((y0..=y1).flat_map(|y| (x0..=x1).map(move |x| (x, y))));
+                    cover.push([x0, y0, x1, y1]);
+                    rects.push([
+                        x0.saturating_sub(1),
+                        y0.saturating_sub(1),
+                        (x1 + 1).min(nx - 1),
+                        (y1 + 1).min(ny - 1),
+                    ]);
+                }
+                SparseLevel { lod, tiles, rects: merged(rects), cover: merged(cover) }
+            })
+            .collect();
+        let blend = match blend {
+            Blend::Samples(n) => n,
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped")]
+            Blend::Metres(m) => {
+                // Of the finest level's samples (each finer input's own level's are
+                // coarser; a band in metres would be narrower there, so the finest's).
+                (m / finest).round().clamp(0.0, 4096.0) as u32
+            }
+        };
+        Some(Self { inputs, base, levels, grid, blend })
+    }
+
+    /// Whether `mosaic`'s inputs reach different levels (some more than 2x coarser than
+    /// the finest): known from their headers.
+    #[must_use]
+    pub fn spans_resolutions(mosaic: &Mosaic<Heights>) -> bool {
+        let grid = mosaic.grid();
+        let finest = grid.pixel.0.min(grid.pixel.1);
+        let depths: HashSet<u8> = mosaic.layout().iter().map(|i| depth_of(i.spacing, finest)).collect();
+        depths.len() > 1
+    }
+
+    /// Makes `plan`'s counts those of the collection: the elevation's tiles and the height
+    /// ranges' (the estimated bytes scaled alike).
+    pub fn apply_to(&self, plan: &mut Plan) {
+        let tiles = self.tiles(&plan.metadata);
+        for (layer, p) in plan.metadata.layers.iter().zip(&mut plan.layers) {
+            if matches!(layer.kind, LayerKind::Elevation | LayerKind::HeightRange) && p.tiles > 0 {
+                #[expect(
+                    clippy::cast_precision_loss,
+                    clippy::cast_possible_truncation,
+                    clippy::cast_sign_loss,
+                    reason = "an estimate"
+                )]
+                let bytes = (p.estimated_bytes as f64 * tiles as f64 / p.tiles as f64) as u64;
+                p.estimated_bytes = bytes;
+                p.tiles = tiles;
+            }
+        }
+    }
+
+    /// Tiles of the elevation layer, every level: those below the base, and the base's
+    /// whole pyramid.
+    #[must_use]
+    pub fn tiles(&self, metadata: &Metadata) -> u64 {
+        let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else { return 0 };
+        let sparse: u64 = self.levels.iter().map(|l| l.tiles.len() as u64).sum();
+        let full: u64 = (self.base..layer.num_lods)
+            .map(|lod| {
+                let (nx, ny) = layer.grid_at(lod);
+                u64::from(nx) * u64::from(ny)
+            })
+            .sum();
+        sparse + full
+    }
+
+    /// Tiles cut, every level: the rectangles' (rings included) and the base's pyramid.
+    fn cut_tiles(&self, metadata: &Metadata) -> u64 {
+        let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else { return 0 };
+        let rects: u64 = (self.levels.iter().flat_map(|l| &l.rects))
+            .map(|r| u64::from(r[2] - r[0] + 1) * u64::from(r[3] - r[1] + 1))
+            .sum();
+        let full: u64 = (self.base..layer.num_lods)
+            .map(|lod| {
+                let (nx, ny) = layer.grid_at(lod);
+                u64::from(nx) * u64::from(ny)
+            })
+            .sum();
+        rects + full
+    }
+
+    /// The level-`lod` grid over tile rectangle `rect` (with `res`-sample tiles), clipped
+    /// to the level's samples: its corner sample, and the grid.
+    fn rect_grid(&self, lod: u8, rect: [u32; 4], res: u32) -> ((u32, u32), GridSpec) {
+        let g = self.grid;
+        let scale = f64::from(1u32 << lod);
+        let (w, h) = (g.size.0.div_ceil(1 << lod).max(1), g.size.1.div_ceil(1 << lod).max(1));
+        let (c0, r0) = (rect[0] * res, rect[1] * res);
+        let (c1, r1) = (((rect[2] + 1) * res).min(w), ((rect[3] + 1) * res).min(h));
+        let pixel = (g.pixel.0 * scale, g.pixel.1 * scale);
+        let origin = [g.origin[0] + f64::from(c0) * pixel.0, g.origin[1] - f64::from(r0) * pixel.1];
+        ((c0, r0), GridSpec { origin, pixel, size: (c1 - c0, r1 - r0) })
+    }
+}
+
+/// Rectangles (inclusive) merged until none overlaps or touches another.
+fn merged(mut rects: Vec<[u32; 4]>) -> Vec<[u32; 4]> {
+    let touch = |a: &[u32; 4], b: &[u32; 4]| {
+        a[0] <= b[2].saturating_add(1)
+            && b[0] <= a[2].saturating_add(1)
+            && a[1] <= b[3].saturating_add(1)
+            && b[1] <= a[3].saturating_add(1)
+    };
+    loop {
+        let mut changed = false;
+        let mut out: Vec<[u32; 4]> = Vec::with_capacity(rects.len());
+        for r in rects {
+            if let Some(o) = out.iter_mut().find(|o| touch(o, &r)) {
+                *o = [o[0].min(r[0]), o[1].min(r[1]), o[2].max(r[2]), o[3].max(r[3])];
+                changed = true;
+            } else {
+                out.push(r);
+            }
+        }
+        rects = out;
+        if !changed {
+            return rects;
+        }
+    }
+}
+
+/// A level's rows over a rectangle, halved: what the next coarser level takes where it
+/// lies (the 2x2 mean of the finer level as stored).
+struct Override {
+    /// First column and row at the coarser level.
+    x0: usize,
+    y0: usize,
+    rows: Vec<Vec<f32>>,
+}
+
+/// Tiles the collection `c` of `request`'s heights (opened as `sources`), with `texture`
+/// tiled as a single run tiles it, into the archive at `out`, on `plan` (made from the
+/// whole mosaic: its grid, LOD count and height encoding).
+///
+/// # Errors
+/// As [`crate::tile_terrain`]; inputs that cannot be opened again on a level's grid.
+pub fn tile_collection(
+    c: &Collection,
+    request: &TileRequest,
+    sources: &Sources,
+    texture: Option<TextureInput<'_>>,
+    plan: &Plan,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<WriteSummary> {
+    let started = std::time::Instant::now();
+    let mut recorded = plan.metadata.clone();
+    let georeference = recorded.georeference.clone();
+    // Output CRS units per world metre (the spacings are CRS units).
+    let per_metre = georeference.as_ref().and_then(|g| g.scale).map_or(1.0, |s| s[0]);
+    let sample = recorded.layers.first().map_or(1.0, |l| l.tile_world_size / f64::from(l.tile_resolution));
+    recorded.sources = (c.inputs.iter())
+        .map(|i| SourceRecord {
+            // Its samples, less the margin the layout counts each side.
+            #[expect(clippy::cast_precision_loss, reason = "sample indices")]
+            world: Some([
+                (i.columns.0 + 1).max(0) as f64 * sample,
+                (i.rows.0 + 1).max(0) as f64 * sample,
+                i.columns.1 as f64 * sample,
+                i.rows.1 as f64 * sample,
+            ]),
+            name: i.path.file_name().map_or_else(|| i.path.display().to_string(), |n| n.to_string_lossy().into_owned()),
+            spacing: i.spacing / per_metre,
+            lod: i.depth,
+        })
+        .collect();
+    for layer in &mut recorded.layers {
+        let size = |lod: u8| layer.world_size_at(lod);
+        let covers: Vec<LevelCover> = (c.levels.iter())
+            .map(|l| {
+                let s = size(l.lod);
+                let boxes = (l.cover.iter()).map(|r| {
+                    let world =
+                        [f64::from(r[0]) * s, f64::from(r[1]) * s, f64::from(r[2] + 1) * s, f64::from(r[3] + 1) * s];
+                    georeference.as_ref().and_then(|g| crate::plan::lon_lat_box(g, world))
+                });
+                let lon_lat: Option<Vec<[f64; 4]>> = boxes.collect();
+                LevelCover { lod: l.lod, tiles: l.cover.clone(), lon_lat: lon_lat.unwrap_or_default() }
+            })
+            .collect();
+        if let (Some(extent), LayerKind::Elevation | LayerKind::HeightRange) = (&mut layer.extent, layer.kind) {
+            extent.partial = covers;
+        }
+    }
+    let metadata = &recorded;
+    let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    let index = find(LayerKind::Elevation).ok_or(Error::NothingToTile)?;
+    let layer = &metadata.layers[usize::from(index)];
+    let res = layer.tile_resolution;
+    let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
+    let encoding = heights.encoding;
+    let quantize = move |row: &mut [f32]| quantize_heights(row, &encoding);
+    let folder = terrastream_pack::output_folder(out);
+    let mut spool = Spool::new(&folder)?;
+    progress.start("tile", c.cut_tiles(metadata));
+    let main = sources.height_mosaic().ok_or(Error::NothingToTile)?;
+    let datum = main.datum().cloned();
+    let crs = main.crs().definition().to_owned();
+    let range = (metadata.terrain.min_elevation, metadata.terrain.max_elevation);
+    #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+    let range = ((range.0 as f32).next_down(), (range.1 as f32).next_up());
+    // Inputs of the collection whose footprints reach `grid` (LOD-0 samples), by depth.
+    let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Heights>>> {
+        if paths.is_empty() {
+            return Ok(None);
+        }
+        let sub = TileRequest {
+            elevation: paths,
+            encoding: request.encoding,
+            crs: Some(crs.clone()),
+            elevation_grid: Some(grid),
+            height_range: Some(range),
+            skip_bad_inputs: request.skip_bad_inputs,
+            vertical_datum: request.vertical_datum.clone(),
+            target_datum: datum.clone(),
+            ..TileRequest::default()
+        };
+        Ok(Sources::open(&sub)?.into_mosaics().0)
+    };
+    let reaching = |lod: u8, corner: (u32, u32), grid: &GridSpec, depth: &dyn Fn(u8) -> bool| -> Vec<PathBuf> {
+        let scale = 1i64 << lod;
+        let (c0, r0) = (i64::from(corner.0) * scale, i64::from(corner.1) * scale);
+        let (c1, r1) = (c0 + i64::from(grid.size.0) * scale, r0 + i64::from(grid.size.1) * scale);
+        // One sample of the level around, for the bilinear samples at the edge.
+        let (c0, r0, c1, r1) = (c0 - scale, r0 - scale, c1 + scale, r1 + scale);
+        (c.inputs.iter())
+            .filter(|i| depth(i.depth) && i.columns.0 <= c1 && i.columns.1 >= c0 && i.rows.0 <= r1 && i.rows.1 >= r0)
+            .map(|i| i.path.clone())
+            .collect()
+    };
+
+    let mut overrides: Vec<Override> = Vec::new();
+    for level in &c.levels {
+        let lod = level.lod;
+        let mut next: Vec<Override> = Vec::new();
+        for &rect in &level.rects {
+            progress.check()?;
+            let (corner, grid) = c.rect_grid(lod, rect, res);
+            let fine = open(reaching(lod, corner, &grid, &|d| d == lod), grid)?;
+            let coarse = open(reaching(lod, corner, &grid, &|d| d > lod), grid)?;
+            let mut local = metadata.clone();
+            {
+                let l = &mut local.layers[usize::from(index)];
+                l.num_x_tiles = rect[2] - rect[0] + 1;
+                l.num_y_tiles = rect[3] - rect[1] + 1;
+                l.num_lods = 1;
+                l.extent = None;
+            }
+            let mut made = Spool::new(&folder)?;
+            let encode = |key: TileKey, samples: &[f32], _edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+                let (x, y) = (rect[0] + key.x(), rect[1] + key.y());
+                if !level.tiles.contains(&(x, y)) {
+                    return Ok(Vec::new());
+                }
+                let global = TileKey::new(index, lod, x, y)?;
+                Ok(heights.encode(global, samples)?.into_iter().map(|(_, bytes)| (key, bytes)).collect())
+            };
+            let mut halved = Override { x0: corner.0 as usize / 2, y0: corner.1 as usize / 2, rows: Vec::new() };
+            let mut even: Option<Vec<f32>> = None;
+            {
+                let mut pyramid = Pyramid::window(
+                    &local,
+                    index,
+                    grid.size,
+                    &Window::full(1, grid.size.1 as usize),
+                    &encode,
+                    &mut made,
+                    progress,
+                )?;
+                rayon::in_place_scope(|cuts| -> Result<()> {
+                    level_rows(fine.as_ref(), coarse.as_ref(), &grid, corner, &overrides, c.blend, &mut |mut row| {
+                        quantize(&mut row);
+                        match even.take() {
+                            None => even = Some(row.clone()),
+                            Some(a) => {
+                                let mut half = halve_rows(&a, &row);
+                                quantize(&mut half);
+                                halved.rows.push(half);
+                            }
+                        }
+                        pyramid.push(row, cuts)
+                    })?;
+                    pyramid.finish(cuts)
+                })?;
+            }
+            if let Some(a) = even.take() {
+                let mut half = halve_rows(&a, &vec![f32::NAN; a.len()]);
+                quantize(&mut half);
+                halved.rows.push(half);
+            }
+            let mut sorted = made.into_sorted()?;
+            while let Some((_, key, bytes)) = sorted.next_tile()? {
+                let global = TileKey::new(index, lod, rect[0] + key.x(), rect[1] + key.y())?;
+                spool.add(metadata, global, &bytes)?;
+            }
+            next.push(halved);
+            tracing::debug!(lod, ?rect, elapsed = ?started.elapsed(), "level of the collection made over a rectangle");
+        }
+        overrides = next;
+    }
+
+    // The base: every level from here up over the whole grid, a pyramid as a single run's.
+    let base = c.base;
+    let g = c.grid;
+    let size = (g.size.0.div_ceil(1 << base).max(1), g.size.1.div_ceil(1 << base).max(1));
+    let scale = f64::from(1u32 << base);
+    let grid = GridSpec { origin: g.origin, pixel: (g.pixel.0 * scale, g.pixel.1 * scale), size };
+    let mosaic = open(reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
+    let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+    let window = Window {
+        input_lod: base,
+        last_lod: layer.num_lods - 1,
+        encode_from: base,
+        rows: 0..size.1 as usize,
+        band: 0..size.1 as usize,
+    };
+    {
+        let mut pyramid =
+            Pyramid::window(metadata, index, g.size, &window, &encode, &mut spool, progress)?.with_quantize(&quantize);
+        rayon::in_place_scope(|cuts| -> Result<()> {
+            level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, &mut |row| pyramid.push(row, cuts))?;
+            pyramid.finish(cuts)
+        })?;
+    }
+    heights.finish(metadata, Vec::new(), &mut spool)?;
+    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights of the collection cut");
+    if let Some(t) = texture {
+        let plan = Plan { metadata: recorded.clone(), layers: plan.layers.clone() };
+        cut_texture(t, &plan, &full_windows(&plan), &mut spool, progress)?;
+    }
+    write_spool(spool, metadata, out, true, progress, started)
+}
+
+/// Makes the rows of a level over `grid` (its corner sample `corner`): the finer level's
+/// halved rows where they lie (`overrides`), else the `fine` inputs' heights, completed
+/// from the `coarse` ones where they have none and blended into them across `blend`
+/// samples along their data's edge.
+fn level_rows(
+    fine: Option<&Mosaic<Heights>>,
+    coarse: Option<&Mosaic<Heights>>,
+    grid: &GridSpec,
+    corner: (u32, u32),
+    overrides: &[Override],
+    blend: u32,
+    emit: &mut dyn FnMut(Vec<f32>) -> Result<()>,
+) -> Result<()> {
+    let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
+    let mut ring =
+        Blender { width: w, band: blend as usize, corner, overrides, held: VecDeque::new(), front: 0, emitted: 0 };
+    let none = || vec![f32::NAN; w];
+    match (fine, coarse) {
+        (None, None) => {
+            for _ in 0..h {
+                ring.push(none(), none(), emit)?;
+            }
+        }
+        (Some(m), None) => m.rows_in(0..grid.size.1, &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
+        (None, Some(m)) => m.rows_in(0..grid.size.1, &mut |r| Ok(ring.push(none(), r.to_vec(), emit)?))?,
+        (Some(f), Some(k)) => {
+            let (send, receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
+            std::thread::scope(|scope| -> Result<()> {
+                let reader = scope.spawn(move || {
+                    k.rows_in(0..grid.size.1, &mut |r| {
+                        Ok(send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?)
+                    })
+                });
+                let made = f.rows_in(0..grid.size.1, &mut |r| {
+                    let coarse = receive.recv().map_err(|_| crate::error::interrupted())?;
+                    Ok(ring.push(r.to_vec(), coarse, emit)?)
+                });
+                drop(receive);
+                let read = reader.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted)));
+                // The rows' error first (it stopped the reader); else the reader's.
+                made?;
+                Ok(read?)
+            })?;
+        }
+    }
+    ring.finish(h, emit)
+}
+
+/// A level's rows held until the rows `band` below them are in (for the blend's distance
+/// to the fine data's edge), with each row's distance along it.
+struct Blender<'a> {
+    width: usize,
+    band: usize,
+    corner: (u32, u32),
+    overrides: &'a [Override],
+    /// Rows `front..` (fine, coarse, distance along the row to the fine data's edge).
+    held: VecDeque<(Vec<f32>, Vec<f32>, Vec<u32>)>,
+    front: usize,
+    emitted: usize,
+}
+
+impl Blender<'_> {
+    fn push(&mut self, fine: Vec<f32>, coarse: Vec<f32>, emit: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+        // Along the row: the distance to the nearest sample where the coarse data has
+        // heights and the fine data none (the fine data's edge), up to the band + 1.
+        let cap = u32::try_from(self.band + 1).unwrap_or(u32::MAX);
+        let mut across = vec![cap; self.width];
+        // (A row with no fine data is all edge where the coarse data has heights: the
+        // rows above and below a survey count as much as those beside it.)
+        if self.band > 0 {
+            let edge = |x: usize| fine[x].is_nan() && !coarse[x].is_nan();
+            let mut d = cap;
+            for (x, a) in across.iter_mut().enumerate() {
+                d = if edge(x) { 0 } else { (d + 1).min(cap) };
+                *a = d;
+            }
+            let mut d = cap;
+            for (x, a) in across.iter_mut().enumerate().rev() {
+                d = if edge(x) { 0 } else { (d + 1).min(cap) };
+                *a = (*a).min(d);
+            }
+        }
+        self.held.push_back((fine, coarse, across));
+        let received = self.front + self.held.len();
+        if received > self.emitted + self.band {
+            self.emit_next(emit)?;
+        }
+        Ok(())
+    }
+
+    fn finish(mut self, h: usize, emit: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+        while self.emitted < h.min(self.front + self.held.len()) {
+            self.emit_next(emit)?;
+        }
+        Ok(())
+    }
+
+    /// Emits row `emitted`, then drops the rows no later row needs.
+    fn emit_next(&mut self, emit: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+        let y = self.emitted;
+        let (band, w) = (self.band, self.width);
+        let (f, k, _) = &self.held[y - self.front];
+        let mut row = vec![f32::NAN; w];
+        for x in 0..w {
+            let (a, b) = (f[x], k[x]);
+            row[x] = if a.is_nan() {
+                b
+            } else if b.is_nan() || band == 0 {
+                a
+            } else {
+                // Chessboard distance to the fine data's edge, over the rows held.
+                let mut d = u32::try_from(band + 1).unwrap_or(u32::MAX);
+                for (j, (_, _, across)) in self.held.iter().enumerate() {
+                    let dy = u32::try_from((self.front + j).abs_diff(y)).unwrap_or(u32::MAX);
+                    d = d.min(dy.max(across[x]));
+                }
+                #[expect(clippy::cast_precision_loss, reason = "small counts")]
+                let t = d as f32 / (band as f32 + 1.0);
+                let s = t * t * (3.0 - 2.0 * t);
+                b + (a - b) * s
+            };
+        }
+        // The finer level's means, where it lies.
+        let (gx0, gy) = (self.corner.0 as usize, self.corner.1 as usize + y);
+        for o in self.overrides {
+            let Some(src) = gy.checked_sub(o.y0).and_then(|r| o.rows.get(r)) else { continue };
+            let (from, to) = (o.x0.max(gx0), (o.x0 + src.len()).min(gx0 + w));
+            for gx in from..to {
+                let v = src[gx - o.x0];
+                if !v.is_nan() {
+                    row[gx - gx0] = v;
+                }
+            }
+        }
+        emit(row)?;
+        self.emitted += 1;
+        while self.front + band < self.emitted && !self.held.is_empty() {
+            self.held.pop_front();
+            self.front += 1;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_input_reaches_the_finest_level_no_finer_than_half_its_spacing() {
+        assert_eq!(depth_of(30.0, 30.0), 0);
+        assert_eq!(depth_of(60.0, 30.0), 0, "2x: upsampled 2x at LOD 0");
+        assert_eq!(depth_of(61.0, 30.0), 1);
+        assert_eq!(depth_of(1000.0, 200.0), 2, "a 1 km base over 200 m reaches 800 m");
+        assert_eq!(depth_of(f64::NAN, 1.0), 0);
+    }
+
+    #[test]
+    fn rectangles_that_touch_merge_and_others_stay_apart() {
+        let m = merged(vec![[0, 0, 2, 2], [3, 0, 4, 1], [10, 10, 11, 11]]);
+        assert_eq!(m, vec![[0, 0, 4, 2], [10, 10, 11, 11]]);
+    }
+
+    /// A fine square 3 m above a coarse ramp, blended over 4 samples: no step between
+    /// neighbours above the ramp's own plus a share of the offset, where without a band
+    /// the offset shows whole.
+    #[test]
+    #[expect(clippy::cast_possible_truncation, clippy::needless_range_loop, reason = "a small test grid")]
+    fn a_finer_input_blends_into_the_coarser_across_its_edge() {
+        let (w, h) = (40usize, 40usize);
+        let run = |band: u32| {
+            let grid = GridSpec { origin: [0.0, 0.0], pixel: (1.0, 1.0), size: (w as u32, h as u32) };
+            let mut ring = Blender {
+                width: w,
+                band: band as usize,
+                corner: (0, 0),
+                overrides: &[],
+                held: VecDeque::new(),
+                front: 0,
+                emitted: 0,
+            };
+            let mut rows = vec![];
+            let mut emit = |r: Vec<f32>| {
+                rows.push(r);
+                Ok(())
+            };
+            for y in 0..h {
+                let coarse: Vec<f32> = (0..w).map(|x| x as f32 * 0.1).collect();
+                let fine: Vec<f32> =
+                    (0..w)
+                        .map(|x| {
+                            if (10..30).contains(&x) && (10..30).contains(&y) { x as f32 * 0.1 + 3.0 } else { f32::NAN }
+                        })
+                        .collect();
+                ring.push(fine, coarse, &mut emit).unwrap();
+            }
+            ring.finish(grid.size.1 as usize, &mut emit).unwrap();
+            rows
+        };
+        let worst = |rows: &[Vec<f32>]| {
+            let mut worst = 0f32;
+            for y in 0..h {
+                for x in 1..w {
+                    worst = worst.max((rows[y][x] - rows[y][x - 1]).abs());
+                    worst = worst.max((rows[x][y] - rows[x - 1][y]).abs());
+                }
+            }
+            worst
+        };
+        let (blended, stepped) = (run(4), run(0));
+        assert_eq!(blended.len(), h);
+        assert!(worst(&stepped) >= 3.0, "no band: the 3 m offset is a step");
+        assert!(worst(&blended) < 1.2, "band of 4: largest step {}", worst(&blended));
+        // The middle is the fine input's own, the outside the coarse's.
+        assert_eq!(blended[20][20], 20.0 * 0.1 + 3.0);
+        assert_eq!(blended[5][5], 0.5);
+    }
+}

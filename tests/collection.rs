@@ -1,0 +1,302 @@
+//! Collections: a coarse base and a fine patch in one `tile` run, each as deep as its own
+//! resolution allows (docs/tiling.md, "Collections").
+//!
+//! The base is the committed SRTM crop averaged to 10" (about 244 m) and raised 3 m, as a
+//! second survey of other age would disagree; the patch is the crop's central 160 x 160
+//! samples at 1" (about 24 m). Checked:
+//! - levels finer than the base's hold tiles only over the patch (and the tiles its edges
+//!   touch); the archive records where, and the inputs' spacings;
+//! - inside the patch, beyond the blend band, heights are the patch's, sample for sample
+//!   (a run with `--priority order`, which puts the patch over the base at LOD 0
+//!   everywhere, is the oracle); outside it, the base's within its resampling;
+//! - across the patch's edge the heights blend: the step between neighbouring samples of
+//!   (collection - base) is a fraction of the one a run with `--blend 0` leaves;
+//! - the elevation API answers the finest data at each point and says its spacing;
+//!   quantized-mesh availability lists only the patch's rectangle at the patch's levels,
+//!   and every tile it lists is served;
+//! - a grazing render across the patch's edge matches its golden (looked at).
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, clippy::cast_precision_loss)]
+#![allow(missing_docs)]
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use terrastream_format::{MmapSource, Reader};
+
+#[path = "support/oracles.rs"]
+mod oracles;
+use oracles::{ok_in as ok, random_points, repo};
+
+const BASE: &str = "tests/data/collection-base-10s-plus3m.tif";
+const PATCH: &str = "tests/data/collection-patch-1s.tif";
+/// The patch's west, south, east, north (pixels 80..240 of the 1" crop).
+const PATCH_BOX: [f64; 4] = [-122.619_583, 37.900_139, -122.575_139, 37.944_583];
+
+fn tile(dir: &Path, name: &str, inputs: &[&str], extra: &[&str]) -> PathBuf {
+    let out = dir.join(name);
+    let mut args = vec!["tile", "--elevation"];
+    let paths: Vec<String> = inputs.iter().map(|i| repo().join(i).to_str().unwrap().to_owned()).collect();
+    args.extend(paths.iter().map(String::as_str));
+    args.extend(["--tile-size", "32", "--vertical-datum", "5773", "-o", out.to_str().unwrap()]);
+    args.extend(extra);
+    ok(&args, dir);
+    out
+}
+
+/// Elevation tiles per LOD.
+fn per_lod(path: &Path) -> BTreeMap<u8, usize> {
+    let reader = Reader::open_mmap(path).unwrap();
+    let mut counts = BTreeMap::new();
+    reader
+        .for_each_tile(|key, _| -> Result<(), terrastream_format::Error> {
+            if key.layer() == 0 {
+                *counts.entry(key.lod()).or_default() += 1;
+            }
+            Ok(())
+        })
+        .unwrap();
+    counts
+}
+
+/// Heights (and the spacing they came from) at (lon, lat) points, as the elevation API
+/// reads them.
+fn heights(reader: &Reader<MmapSource>, points: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    let latlng: Vec<(f64, f64)> = points.iter().map(|&(lon, lat)| (lat, lon)).collect();
+    let h = terrastream_views::elevation::Heights::new(reader).unwrap();
+    h.found(&latlng, terrastream_tiles::Interpolation::Bilinear).unwrap().into_iter().map(Option::unwrap).collect()
+}
+
+fn inside(b: [f64; 4], margin: (f64, f64)) -> [f64; 4] {
+    [b[0] + margin.0, b[1] + margin.1, b[2] - margin.0, b[3] - margin.1]
+}
+
+#[test]
+fn a_base_and_a_patch_each_reach_their_own_depth_and_meet_without_a_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let col = tile(d, "col.tspack", &[BASE, PATCH], &[]);
+    let flat = tile(d, "noblend.tspack", &[BASE, PATCH], &["--blend", "0"]);
+    let order = tile(d, "order.tspack", &[BASE, PATCH], &["--priority", "order"]);
+    let base = tile(d, "base.tspack", &[BASE], &[]);
+    let patch = tile(d, "patch.tspack", &[PATCH], &[]);
+
+    // Depth: LOD 0-2 only over the patch, LOD 3 up (the base's) everywhere.
+    let (c, o, p) = (per_lod(&col), per_lod(&order), per_lod(&patch));
+    eprintln!(
+        "tiles per LOD: collection {c:?}, one resolution {o:?}, patch alone {p:?}, base alone {:?}",
+        per_lod(&base)
+    );
+    let grid = Reader::open_mmap(&col).unwrap().metadata().layers[0].clone();
+    for lod in 0..3u8 {
+        let (nx, ny) = grid.grid_at(lod);
+        // The patch's tiles at this level (its own grid), one more each way for its edges.
+        let alone = p.get(&lod).copied().unwrap_or(1);
+        let side = (alone as f64).sqrt().ceil() as usize + 2;
+        assert!(c[&lod] <= side * side, "LOD {lod}: {} tiles, the patch covers about {alone}", c[&lod]);
+        assert!(c[&lod] < o[&lod], "LOD {lod}: {} tiles, as many as over the whole grid", c[&lod]);
+        if lod == 0 {
+            assert!(c[&lod] * 3 < (nx * ny) as usize, "LOD 0: {} of {} tiles: not sparse", c[&lod], nx * ny);
+        }
+    }
+    for lod in 3..grid.num_lods {
+        assert_eq!(c[&lod], o[&lod], "LOD {lod} covers the whole grid");
+    }
+    let bytes = |p: &Path| std::fs::metadata(p).unwrap().len();
+    let ratio = bytes(&col) as f64 / (bytes(&base) + bytes(&patch)) as f64;
+    eprintln!(
+        "bytes: collection {}, base + patch alone {} ({ratio:.2}x), one resolution {}",
+        bytes(&col),
+        bytes(&base) + bytes(&patch),
+        bytes(&order)
+    );
+    // 32-sample tiles over a 160-sample patch: the edge tiles are a third of its tiles.
+    assert!(ratio <= 1.3, "the collection is {ratio:.2}x its parts");
+    let info = ok(&["info", col.to_str().unwrap()], d);
+    assert!(info.contains("collection-patch-1s.tif · 24.43 m between samples · from LOD0"), "{info}");
+    assert!(info.contains("only where fine inputs lie: LOD0 in 1 rectangle"), "{info}");
+
+    let (rc, rf, ro) =
+        (Reader::open_mmap(&col).unwrap(), Reader::open_mmap(&flat).unwrap(), Reader::open_mmap(&order).unwrap());
+    // Inside the patch beyond the band (17 samples of 1" and a margin): the patch's heights.
+    let deep = random_points(inside(PATCH_BOX, (0.008, 0.006)), 300);
+    let (hc, ho) = (heights(&rc, &deep), heights(&ro, &deep));
+    for ((a, b), p) in hc.iter().zip(&ho).zip(&deep) {
+        assert!((a.0 - b.0).abs() < 1e-6, "{p:?}: {} in the collection, {} from the patch", a.0, b.0);
+        assert!((a.1 - 24.43).abs() < 0.01, "{p:?}: from a spacing of {} m", a.1);
+    }
+    // Outside it: the base's (from LOD 3, 195 m), as the one-resolution run resamples it.
+    let around: Vec<(f64, f64)> = random_points([-122.64, 37.88, -122.555, 37.965], 600)
+        .into_iter()
+        .filter(|&(lon, lat)| {
+            let o = inside(PATCH_BOX, (-0.004, -0.004));
+            !(lon > o[0] && lon < o[2] && lat > o[1] && lat < o[3])
+        })
+        .take(200)
+        .collect();
+    let (hc, ho) = (heights(&rc, &around), heights(&ro, &around));
+    let mut off: Vec<f64> = hc.iter().zip(&ho).map(|(a, b)| (a.0 - b.0).abs()).collect();
+    off.sort_by(f64::total_cmp);
+    // Two resamplings of a 244 m grid (to 195 m at LOD 3, then bilinear) against one
+    // (to 24 m): they part most on ridges.
+    eprintln!(
+        "outside the patch: |collection - base at LOD 0| median {:.2} m, p95 {:.2} m, max {:.2} m",
+        off[100], off[190], off[199]
+    );
+    assert!(off[100] < 1.0 && off[190] < 6.0 && off[199] < 20.0, "outside the patch: {off:?}");
+    assert!(hc.iter().all(|h| h.1 > 190.0), "outside the patch the base's spacing answers");
+
+    // Across the west and south edges: the jump between the samples either side of the
+    // edge beyond what the ground's slope makes there (the mean of the jumps beside it),
+    // with and without the blend.
+    let step = |r: &Reader<MmapSource>, inward: f64| {
+        let arc = 1.0 / 3600.0;
+        let edge = (PATCH_BOX[0] + inward, PATCH_BOX[1] + inward);
+        let mut excess = Vec::new();
+        for k in 0..24 {
+            let t = (f64::from(k) + 0.5) / 24.0;
+            let lat = PATCH_BOX[1] + 0.004 + t * (PATCH_BOX[3] - PATCH_BOX[1] - 0.008);
+            let lon = PATCH_BOX[0] + 0.004 + t * (PATCH_BOX[2] - PATCH_BOX[0] - 0.008);
+            let west: Vec<(f64, f64)> = (-3..3).map(|i| (edge.0 + (f64::from(i) + 0.5) * arc, lat)).collect();
+            let south: Vec<(f64, f64)> = (-3..3).map(|i| (lon, edge.1 + (f64::from(i) + 0.5) * arc)).collect();
+            for line in [west, south] {
+                let h: Vec<f64> = heights(r, &line).iter().map(|h| h.0).collect();
+                let j: Vec<f64> = h.windows(2).map(|w| w[1] - w[0]).collect();
+                excess.push((j[2] - (j[1] + j[3]) / 2.0).abs());
+            }
+        }
+        excess.iter().sum::<f64>() / excess.len() as f64
+    };
+    // The same measure 40 samples inside the patch: what the ground's curvature alone gives.
+    let (blended, stepped, ground) = (step(&rc, 0.0), step(&rf, 0.0), step(&rc, 40.0 / 3600.0));
+    eprintln!(
+        "mean jump at the patch's edge beyond the slope: blended {blended:.2} m, --blend 0 {stepped:.2} m \
+         (the ground inside the patch: {ground:.2} m)"
+    );
+    assert!(stepped > ground + 1.0, "without the blend the surveys' disagreement shows as a step ({stepped:.2} m)");
+    assert!(blended < ground * 1.25, "the blend leaves a step of {blended:.2} m (ground: {ground:.2} m)");
+}
+
+#[test]
+fn readers_follow_sparse_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let col = tile(d, "col.tspack", &[BASE, PATCH], &[]);
+    let order = tile(d, "order.tspack", &[BASE, PATCH], &["--priority", "order"]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[col.to_str().unwrap(), order.to_str().unwrap()], d);
+    let get = |path: &str| terrastream_testkit::http::request(server.port, "GET", path, None);
+    let json = |path: &str| {
+        let (status, body) = get(path);
+        assert_eq!(status, 200, "{path}: {}", String::from_utf8_lossy(&body));
+        serde_json::from_slice::<serde_json::Value>(&body).unwrap()
+    };
+
+    // Quantized mesh: the deepest levels list the patch's rectangle, not the base's box.
+    let layer = json("/col/layer.json");
+    let bounds: Vec<f64> = serde_json::from_value(layer["bounds"].clone()).unwrap();
+    let max = layer["maxzoom"].as_u64().unwrap() as usize;
+    let available = layer["available"].as_array().unwrap();
+    let count = |ranges: &serde_json::Value| -> u64 {
+        (ranges.as_array().unwrap().iter())
+            .map(|r| {
+                (r["endX"].as_u64().unwrap() - r["startX"].as_u64().unwrap() + 1)
+                    * (r["endY"].as_u64().unwrap() - r["startY"].as_u64().unwrap() + 1)
+            })
+            .sum()
+    };
+    let deepest = &available[max];
+    let ([x0, x1], [y0, y1]) = (
+        [
+            ((bounds[0] + 180.0) / 180.0 * f64::from(1u32 << max)).floor() as u64,
+            ((bounds[2] + 180.0) / 180.0 * f64::from(1u32 << max)).floor() as u64,
+        ],
+        [
+            ((bounds[1] + 90.0) / 180.0 * f64::from(1u32 << max)).floor() as u64,
+            ((bounds[3] + 90.0) / 180.0 * f64::from(1u32 << max)).floor() as u64,
+        ],
+    );
+    let whole = (x1 - x0 + 1) * (y1 - y0 + 1);
+    eprintln!("layer.json level {max}: {} tiles listed, {whole} over the data's box", count(deepest));
+    assert!(count(deepest) * 2 < whole, "level {max} lists {deepest} of the box's {whole} tiles");
+    // Every listed tile of the deepest level is served; one outside the list is not.
+    let r = &deepest[0];
+    let (sx, sy) = (r["startX"].as_u64().unwrap(), r["startY"].as_u64().unwrap());
+    let (status, _) = get(&format!("/col/{max}/{sx}/{sy}.terrain"));
+    assert_eq!(status, 200, "a listed tile");
+    let outside = (x0..=x1)
+        .flat_map(|x| (y0..=y1).map(move |y| (x, y)))
+        .find(|&(x, y)| {
+            !deepest.as_array().unwrap().iter().any(|r| {
+                (r["startX"].as_u64().unwrap()..=r["endX"].as_u64().unwrap()).contains(&x)
+                    && (r["startY"].as_u64().unwrap()..=r["endY"].as_u64().unwrap()).contains(&y)
+            })
+        })
+        .unwrap();
+    let (status, _) = get(&format!("/col/{max}/{}/{}.terrain", outside.0, outside.1));
+    assert_eq!(status, 404, "tile {outside:?} of level {max} is not listed");
+
+    // The elevation API: the finest data at each point, and its spacing.
+    let answer = json(&format!(
+        "/v1/col?locations={},{}|{},{}",
+        (PATCH_BOX[1] + PATCH_BOX[3]) / 2.0,
+        (PATCH_BOX[0] + PATCH_BOX[2]) / 2.0,
+        37.96,
+        -122.635
+    ));
+    let resolution = |i: usize| answer["results"][i]["resolution"].as_f64().unwrap();
+    assert!((resolution(0) - 24.43).abs() < 0.01, "{answer}");
+    assert!(resolution(1) > 190.0, "{answer}");
+
+    // Web tiles: the deepest level with data under each pixel: a zoom that samples LOD 0
+    // over the patch is served over the base as well (from LOD 3 there), with no hole.
+    let tiles = json("/col/tiles.json");
+    let z = tiles["maxzoom"].as_u64().unwrap() as u32;
+    let n = f64::from(1u32 << z);
+    let tx = ((-122.632 + 180.0) / 360.0 * n).floor() as u32;
+    let lat = 37.955f64.to_radians();
+    let ty = ((1.0 - (lat.tan() + 1.0 / lat.cos()).ln() / std::f64::consts::PI) / 2.0 * n).floor() as u32;
+    let opaque = |name: &str| {
+        let (status, body) = get(&format!("/{name}/xyz/elevation/{z}/{tx}/{ty}.png"));
+        assert_eq!(status, 200, "web tile {z}/{tx}/{ty} of {name} over the base only");
+        let (_, _, rgba) = terrastream_testkit::golden::decode_png(&body);
+        rgba.chunks_exact(4).filter(|p| p[3] == 255).count()
+    };
+    let (ours, theirs) = (opaque("col"), opaque("order"));
+    eprintln!("web tile {z}/{tx}/{ty} over the base: {ours} pixels with heights, {theirs} in one resolution");
+    assert!(ours > 0 && ours * 100 >= theirs * 99, "{ours} pixels with heights, {theirs} in one resolution");
+}
+
+#[test]
+fn a_grazing_view_across_the_patch_edge_matches_its_golden() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let col = tile(d, "col.tspack", &[BASE, PATCH], &[]);
+    let png = d.join("edge.png");
+    ok(
+        &[
+            "render",
+            col.to_str().unwrap(),
+            "-o",
+            png.to_str().unwrap(),
+            "--at=-122.628,37.912,800",
+            "--heading",
+            "80",
+            "--pitch",
+            "-12",
+            "--size",
+            "480x300",
+            "--no-atmosphere",
+            "--no-earth",
+        ],
+        d,
+    );
+    let (w, h, rgba) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
+    // Terrain fills the lower half: a view with tiles but no ground is a failure.
+    let sky = rgba[((h - 2) * w * 4) as usize..((h - 1) * w * 4) as usize]
+        .chunks_exact(4)
+        .filter(|p| p[2] > p[0] + 40)
+        .count();
+    assert!(sky < (w / 10) as usize, "the bottom row is sky: no ground drawn");
+    let tolerance = terrastream_testkit::golden::Tolerance { mean: 2.0, pixel: 24, off_share: 0.02 };
+    terrastream_testkit::golden::assert_golden("collection-edge", w, h, &rgba, tolerance);
+}
