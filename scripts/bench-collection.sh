@@ -1,21 +1,23 @@
 #!/usr/bin/env bash
 # A collection against its parts: the SRTM tile averaged to 30" and raised 3 m (the base,
-# as an older survey disagrees) and a 1" crop of a quarter degree of it (the patch), tiled
-# together (each as deep as it reaches), each alone, and together at one resolution
-# (--priority order: the base at the patch's spacing everywhere). Prints tiles, bytes and
+# as an older survey disagrees) and a 1" crop of it (the patch: PATCH samples a side from
+# pixel 600, 600; default 2400), tiled together (each as deep as it reaches), each alone,
+# and together at one resolution (--priority order: the base at the patch's spacing
+# everywhere). Prints tiles, bytes and
 # the median time of RUNS runs of each, and the collection's ratios to the parts' sums.
 # Needs: gdal-bin. SRTM=path picks the DEM (default: ../shared/data/srtm/n37_w123_1arc_v3.tif).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SRTM=${SRTM:-../shared/data/srtm/n37_w123_1arc_v3.tif}
 RUNS=${RUNS:-3}
+PATCH=${PATCH:-2400}
 cargo build --release --quiet --bin terrastream
 t=target/release/terrastream
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT INT TERM
 gdalwarp -q -tr "$(echo '30/3600' | bc -l)" "$(echo '30/3600' | bc -l)" -r average -ot Float32 "$SRTM" "$work/base0.tif"
 gdal_calc.py --quiet -A "$work/base0.tif" --outfile="$work/base.tif" --calc="A+3" --type=Float32 --overwrite
-gdal_translate -q -srcwin 1500 1500 900 900 "$SRTM" "$work/patch.tif"
+gdal_translate -q -srcwin 600 600 "$PATCH" "$PATCH" "$SRTM" "$work/patch.tif"
 run() { # name inputs... -> "seconds tiles bytes"
   local name=$1 start end
   shift

@@ -142,7 +142,7 @@ fn a_base_and_a_patch_each_reach_their_own_depth_and_meet_without_a_step() {
         "outside the patch: |collection - base at LOD 0| median {:.2} m, p95 {:.2} m, max {:.2} m",
         off[100], off[190], off[199]
     );
-    assert!(off[100] < 1.0 && off[190] < 6.0 && off[199] < 20.0, "outside the patch: {off:?}");
+    assert!(off[100] < 1.5 && off[190] < 8.0 && off[199] < 20.0, "outside the patch: {off:?}");
     assert!(hc.iter().all(|h| h.1 > 190.0), "outside the patch the base's spacing answers");
 
     // Across the west and south edges: the jump between the samples either side of the

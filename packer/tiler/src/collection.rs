@@ -30,10 +30,10 @@ use crate::encode::quantize_heights;
 use crate::error::{Error, Result};
 use crate::options::TextureInput;
 use crate::plan::Plan;
-use crate::pyramid::{Pyramid, Spool, Window, halve_rows};
-use crate::raster::{ElevationSource, GridSpec, Heights, InputLayout, Mosaic};
+use crate::pyramid::{Spool, Window, halve_rows};
+use crate::raster::{DatumName, ElevationSource, GridSpec, Heights, InputLayout, Mosaic};
 use crate::request::{Sources, TileRequest};
-use crate::tile::{HeightEncoder, cut_texture, full_windows, write_spool};
+use crate::tile::{HeightEncoder, cut_texture, full_windows, run_pyramid, write_spool};
 
 /// How a collection's inputs meet.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -373,7 +373,11 @@ pub fn tile_collection(
             elevation_grid: Some(grid),
             height_range: Some(range),
             skip_bad_inputs: request.skip_bad_inputs,
-            vertical_datum: request.vertical_datum.clone(),
+            // The datum the whole mosaic found (no warning again for each level).
+            vertical_datum: request
+                .vertical_datum
+                .clone()
+                .or_else(|| Some(datum.clone().unwrap_or(DatumName::Unknown))),
             target_datum: datum.clone(),
             ..TileRequest::default()
         };
@@ -399,7 +403,18 @@ pub fn tile_collection(
             progress.check()?;
             let (corner, grid) = c.rect_grid(lod, rect, res);
             let fine = open(reaching(lod, corner, &grid, &|d| d == lod), grid)?;
-            let coarse = open(reaching(lod, corner, &grid, &|d| d > lod), grid)?;
+            // The coarser inputs on a grid no finer than half their own spacing.
+            let below = reaching(lod, corner, &grid, &|d| d > lod);
+            let shift = (c.inputs.iter())
+                .filter(|i| i.depth > lod && below.contains(&i.path))
+                .map(|i| u32::from(i.depth - lod - 1))
+                .min()
+                .unwrap_or(0);
+            let scale = f64::from(1u32 << lod);
+            let (first, coarse_grid) =
+                coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
+            let coarse_mosaic = open(below, coarse_grid)?;
+            let coarse = coarse_mosaic.as_ref().map(|mosaic| Coarse { mosaic, shift, first });
             let mut local = metadata.clone();
             {
                 let l = &mut local.layers[usize::from(index)];
@@ -420,30 +435,34 @@ pub fn tile_collection(
             let mut halved = Override { x0: corner.0 as usize / 2, y0: corner.1 as usize / 2, rows: Vec::new() };
             let mut even: Option<Vec<f32>> = None;
             {
-                let mut pyramid = Pyramid::window(
+                let (fine, coarse, halved, even) = (fine.as_ref(), coarse.as_ref(), &mut halved, &mut even);
+                let (overrides, quantize, blend) = (&overrides, &quantize, c.blend);
+                // Rows are made (read, blended, halved) on a thread of their own while
+                // the pyramid cuts the ones before.
+                run_pyramid(
                     &local,
                     index,
                     grid.size,
                     &Window::full(1, grid.size.1 as usize),
                     &encode,
+                    Some(quantize),
                     &mut made,
                     progress,
-                )?;
-                rayon::in_place_scope(|cuts| -> Result<()> {
-                    level_rows(fine.as_ref(), coarse.as_ref(), &grid, corner, &overrides, c.blend, &mut |mut row| {
-                        quantize(&mut row);
-                        match even.take() {
-                            None => even = Some(row.clone()),
-                            Some(a) => {
-                                let mut half = halve_rows(&a, &row);
-                                quantize(&mut half);
-                                halved.rows.push(half);
+                    move |push| {
+                        level_rows(fine, coarse, &grid, corner, overrides, blend, &mut |mut row| {
+                            quantize(&mut row);
+                            match even.take() {
+                                None => *even = Some(row.clone()),
+                                Some(a) => {
+                                    let mut half = halve_rows(&a, &row);
+                                    quantize(&mut half);
+                                    halved.rows.push(half);
+                                }
                             }
-                        }
-                        pyramid.push(row, cuts)
-                    })?;
-                    pyramid.finish(cuts)
-                })?;
+                            push(row)
+                        })
+                    },
+                )?;
             }
             if let Some(a) = even.take() {
                 let mut half = halve_rows(&a, &vec![f32::NAN; a.len()]);
@@ -476,14 +495,9 @@ pub fn tile_collection(
         rows: 0..size.1 as usize,
         band: 0..size.1 as usize,
     };
-    {
-        let mut pyramid =
-            Pyramid::window(metadata, index, g.size, &window, &encode, &mut spool, progress)?.with_quantize(&quantize);
-        rayon::in_place_scope(|cuts| -> Result<()> {
-            level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, &mut |row| pyramid.push(row, cuts))?;
-            pyramid.finish(cuts)
-        })?;
-    }
+    run_pyramid(metadata, index, g.size, &window, &encode, Some(&quantize), &mut spool, progress, |push| {
+        level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, push)
+    })?;
     heights.finish(metadata, Vec::new(), &mut spool)?;
     tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights of the collection cut");
     if let Some(t) = texture {
@@ -493,13 +507,114 @@ pub fn tile_collection(
     write_spool(spool, metadata, out, true, progress, started)
 }
 
+/// The coarser inputs beneath a level, sampled on a grid `2^shift` times coarser than the
+/// level's (no finer than half their own spacing: their detail is all there) and brought
+/// to the level's samples bilinearly, which costs a level's row a few operations a sample
+/// instead of a transform and a bilinear read of the inputs each.
+struct Coarse<'a> {
+    mosaic: &'a Mosaic<Heights>,
+    shift: u32,
+    /// The level's sample of the coarse grid's first column and row (its corner).
+    first: (i64, i64),
+}
+
+/// The coarse grid over a level's rectangle (corner `corner`, size `size` samples of a
+/// level of spacing `pixel` from `origin`): `shift` levels coarser, a sample of margin each
+/// way for the bilinear reads at the edges.
+fn coarse_grid(
+    origin: [f64; 2],
+    pixel: (f64, f64),
+    corner: (u32, u32),
+    size: (u32, u32),
+    shift: u32,
+) -> ((i64, i64), GridSpec) {
+    let k = 1i64 << shift;
+    let (c0, r0) = (i64::from(corner.0).div_euclid(k) - 1, i64::from(corner.1).div_euclid(k) - 1);
+    let (c1, r1) = (
+        (i64::from(corner.0) + i64::from(size.0)).div_euclid(k) + 2,
+        (i64::from(corner.1) + i64::from(size.1)).div_euclid(k) + 2,
+    );
+    #[expect(clippy::cast_precision_loss, reason = "sample indices")]
+    let scale = k as f64;
+    let cell = (pixel.0 * scale, pixel.1 * scale);
+    #[expect(clippy::cast_precision_loss, reason = "sample indices")]
+    let at = [origin[0] + c0 as f64 * cell.0, origin[1] - r0 as f64 * cell.1];
+    let side = |n: i64| u32::try_from(n).unwrap_or(u32::MAX);
+    ((c0, r0), GridSpec { origin: at, pixel: cell, size: (side(c1 - c0), side(r1 - r0)) })
+}
+
+/// Rows of a [`Coarse`] grid brought to a level's samples.
+struct Upsample {
+    shift: u32,
+    first: (i64, i64),
+    size: (usize, usize),
+    /// Per output column: the coarse column left of it and the weight of the right one.
+    columns: Vec<(usize, f32)>,
+    held: VecDeque<Vec<f32>>,
+    /// Coarse row index of `held[0]`.
+    front: usize,
+}
+
+impl Upsample {
+    fn new(coarse: &Coarse<'_>, corner: (u32, u32), width: usize) -> Self {
+        let grid = coarse.mosaic.grid();
+        let size = (grid.size.0 as usize, grid.size.1 as usize);
+        let columns = (0..width)
+            .map(|i| {
+                let (c, f) =
+                    Self::at(u32::try_from(i).unwrap_or(u32::MAX) + corner.0, coarse.shift, coarse.first.0, size.0);
+                (c, f)
+            })
+            .collect();
+        Self { shift: coarse.shift, first: coarse.first, size, columns, held: VecDeque::new(), front: 0 }
+    }
+
+    /// Level sample `n`'s coarse cell (clamped) and weight of the next one.
+    fn at(n: u32, shift: u32, first: i64, len: usize) -> (usize, f32) {
+        let k = f64::from(1u32 << shift);
+        #[expect(clippy::cast_precision_loss, reason = "sample indices")]
+        let u = (f64::from(n) + 0.5) / k - 0.5 - first as f64;
+        let fl = u.floor();
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the grid")]
+        let c = (fl.max(0.0) as usize).min(len.saturating_sub(2));
+        #[expect(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "a weight")]
+        let f = ((u - c as f64).clamp(0.0, 1.0)) as f32;
+        (c, f)
+    }
+
+    /// Level row `gy` (absolute), pulling coarse rows as needed.
+    fn row(&mut self, gy: u32, pull: &mut dyn FnMut() -> Result<Vec<f32>>) -> Result<Vec<f32>> {
+        let (r, fy) = Self::at(gy, self.shift, self.first.1, self.size.1);
+        while self.front + self.held.len() < (r + 2).min(self.size.1) {
+            self.held.push_back(pull()?);
+        }
+        while self.front < r && self.held.len() > 2 {
+            self.held.pop_front();
+            self.front += 1;
+        }
+        let top = &self.held[r - self.front];
+        let bottom = self.held.get(r + 1 - self.front).unwrap_or(top);
+        // Between two values, one of which may be missing (then the other stands).
+        let lerp = |a: f32, b: f32, t: f32| match (a.is_nan(), b.is_nan()) {
+            (false, false) => a + (b - a) * t,
+            (false, true) => a,
+            (true, false) => b,
+            (true, true) => f32::NAN,
+        };
+        // Down first (a coarse row's worth), then across.
+        let between: Vec<f32> = top.iter().zip(bottom).map(|(&a, &b)| lerp(a, b, fy)).collect();
+        let last = self.size.0.saturating_sub(1);
+        Ok(self.columns.iter().map(|&(c, fx)| lerp(between[c], between[(c + 1).min(last)], fx)).collect())
+    }
+}
+
 /// Makes the rows of a level over `grid` (its corner sample `corner`): the finer level's
 /// halved rows where they lie (`overrides`), else the `fine` inputs' heights, completed
 /// from the `coarse` ones where they have none and blended into them across `blend`
 /// samples along their data's edge.
 fn level_rows(
     fine: Option<&Mosaic<Heights>>,
-    coarse: Option<&Mosaic<Heights>>,
+    coarse: Option<&Coarse<'_>>,
     grid: &GridSpec,
     corner: (u32, u32),
     overrides: &[Override],
@@ -507,37 +622,65 @@ fn level_rows(
     emit: &mut dyn FnMut(Vec<f32>) -> Result<()>,
 ) -> Result<()> {
     let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
-    let mut ring =
-        Blender { width: w, band: blend as usize, corner, overrides, held: VecDeque::new(), front: 0, emitted: 0 };
+    let mut ring = Blender {
+        width: w,
+        band: blend as usize,
+        corner,
+        overrides,
+        held: VecDeque::new(),
+        near: VecDeque::new(),
+        front: 0,
+        emitted: 0,
+    };
     let none = || vec![f32::NAN; w];
-    match (fine, coarse) {
-        (None, None) => {
-            for _ in 0..h {
-                ring.push(none(), none(), emit)?;
+    let Some(coarse) = coarse else {
+        match fine {
+            Some(m) => m.rows_in(0..grid.size.1, &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
+            None => {
+                for _ in 0..h {
+                    ring.push(none(), none(), emit)?;
+                }
             }
         }
-        (Some(m), None) => m.rows_in(0..grid.size.1, &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
-        (None, Some(m)) => m.rows_in(0..grid.size.1, &mut |r| Ok(ring.push(none(), r.to_vec(), emit)?))?,
-        (Some(f), Some(k)) => {
-            let (send, receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
-            std::thread::scope(|scope| -> Result<()> {
-                let reader = scope.spawn(move || {
-                    k.rows_in(0..grid.size.1, &mut |r| {
-                        Ok(send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?)
-                    })
-                });
-                let made = f.rows_in(0..grid.size.1, &mut |r| {
-                    let coarse = receive.recv().map_err(|_| crate::error::interrupted())?;
-                    Ok(ring.push(r.to_vec(), coarse, emit)?)
-                });
-                drop(receive);
-                let read = reader.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted)));
-                // The rows' error first (it stopped the reader); else the reader's.
-                made?;
-                Ok(read?)
-            })?;
-        }
-    }
+        return ring.finish(h, emit);
+    };
+    let mut up = Upsample::new(coarse, corner, w);
+    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
+    let k = coarse.mosaic;
+    let rows = k.grid().size.1;
+    std::thread::scope(|scope| -> Result<()> {
+        let reader = scope.spawn(move || {
+            k.rows_in(0..rows, &mut |r| Ok(send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?))
+        });
+        let mut pull = || receive.recv().map_err(|_| crate::error::interrupted());
+        // The fine rows are made on a thread of their own too, while this one blends the
+        // rows before.
+        let (fine_send, fine_receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
+        let fine_reader = fine.map(|f| {
+            scope.spawn(move || {
+                f.rows_in(0..grid.size.1, &mut |r| {
+                    Ok(fine_send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?)
+                })
+            })
+        });
+        let made = (0..grid.size.1).try_for_each(|j| {
+            let fine_row = match fine_reader {
+                Some(_) => fine_receive.recv().map_err(|_| crate::error::interrupted())?,
+                None => none(),
+            };
+            let coarse = up.row(corner.1 + j, &mut pull)?;
+            ring.push(fine_row, coarse, emit)
+        });
+        drop(receive);
+        drop(fine_receive);
+        let read = reader.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted)));
+        let fine_read = fine_reader
+            .map_or(Ok(()), |r| r.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted))));
+        // The rows' error first (it stopped the readers); else the readers'.
+        made?;
+        fine_read?;
+        Ok(read?)
+    })?;
     ring.finish(h, emit)
 }
 
@@ -550,6 +693,8 @@ struct Blender<'a> {
     overrides: &'a [Override],
     /// Rows `front..` (fine, coarse, distance along the row to the fine data's edge).
     held: VecDeque<(Vec<f32>, Vec<f32>, Vec<u32>)>,
+    /// Per row held, the runs of columns within the band of an edge (first, end).
+    near: VecDeque<Vec<(usize, usize)>>,
     front: usize,
     emitted: usize,
 }
@@ -575,6 +720,22 @@ impl Blender<'_> {
                 *a = (*a).min(d);
             }
         }
+        let mut runs = vec![];
+        let mut start = None;
+        for (x, &a) in across.iter().enumerate() {
+            match (a < cap, start) {
+                (true, None) => start = Some(x),
+                (false, Some(s)) => {
+                    runs.push((s, x));
+                    start = None;
+                }
+                _ => {}
+            }
+        }
+        if let Some(s) = start {
+            runs.push((s, across.len()));
+        }
+        self.near.push_back(runs);
         self.held.push_back((fine, coarse, across));
         let received = self.front + self.held.len();
         if received > self.emitted + self.band {
@@ -595,26 +756,44 @@ impl Blender<'_> {
         let y = self.emitted;
         let (band, w) = (self.band, self.width);
         let (f, k, _) = &self.held[y - self.front];
-        let mut row = vec![f32::NAN; w];
-        for x in 0..w {
-            let (a, b) = (f[x], k[x]);
-            row[x] = if a.is_nan() {
-                b
-            } else if b.is_nan() || band == 0 {
-                a
-            } else {
-                // Chessboard distance to the fine data's edge, over the rows held.
-                let mut d = u32::try_from(band + 1).unwrap_or(u32::MAX);
-                for (j, (_, _, across)) in self.held.iter().enumerate() {
-                    let dy = u32::try_from((self.front + j).abs_diff(y)).unwrap_or(u32::MAX);
-                    d = d.min(dy.max(across[x]));
+        // Chessboard distance to the fine data's edge over the rows held: per row, the
+        // larger of its distance along the row and its distance in rows; the least of
+        // those (whole rows at once, which the compiler vectorizes).
+        let cap = u32::try_from(band + 1).unwrap_or(u32::MAX);
+        let mut distance = vec![cap; w];
+        // Only where this row has fine data to blend.
+        let first = f.iter().position(|v| !v.is_nan());
+        let last = f.iter().rposition(|v| !v.is_nan()).map_or(0, |l| l + 1);
+        if let (true, Some(first)) = (band > 0, first) {
+            // Only the runs of columns near an edge: elsewhere a row's distance is the cap.
+            for (j, ((_, _, across), runs)) in self.held.iter().zip(&self.near).enumerate() {
+                let dy = u32::try_from((self.front + j).abs_diff(y)).unwrap_or(u32::MAX);
+                for &(from, to) in runs {
+                    let (from, to) = (from.max(first), to.min(last));
+                    if from >= to {
+                        continue;
+                    }
+                    for (d, &a) in distance[from..to].iter_mut().zip(&across[from..to]) {
+                        *d = (*d).min(a.max(dy));
+                    }
                 }
-                #[expect(clippy::cast_precision_loss, reason = "small counts")]
-                let t = d as f32 / (band as f32 + 1.0);
-                let s = t * t * (3.0 - 2.0 * t);
-                b + (a - b) * s
-            };
+            }
         }
+        #[expect(clippy::cast_precision_loss, reason = "small counts")]
+        let scale = 1.0 / (band as f32 + 1.0);
+        let mut row: Vec<f32> = (f.iter().zip(k).zip(&distance))
+            .map(|((&a, &b), &d)| {
+                if a.is_nan() {
+                    b
+                } else if b.is_nan() || d >= cap {
+                    a
+                } else {
+                    #[expect(clippy::cast_precision_loss, reason = "small counts")]
+                    let t = d as f32 * scale;
+                    b + (a - b) * (t * t * (3.0 - 2.0 * t))
+                }
+            })
+            .collect();
         // The finer level's means, where it lies.
         let (gx0, gy) = (self.corner.0 as usize, self.corner.1 as usize + y);
         for o in self.overrides {
@@ -631,6 +810,7 @@ impl Blender<'_> {
         self.emitted += 1;
         while self.front + band < self.emitted && !self.held.is_empty() {
             self.held.pop_front();
+            self.near.pop_front();
             self.front += 1;
         }
         Ok(())
@@ -671,6 +851,7 @@ mod tests {
                 corner: (0, 0),
                 overrides: &[],
                 held: VecDeque::new(),
+                near: VecDeque::new(),
                 front: 0,
                 emitted: 0,
             };

@@ -279,6 +279,15 @@ impl Prepared {
     }
 }
 
+/// Why an archive of inputs of different resolutions cannot be merged or updated.
+pub(crate) const COLLECTION: &str = "it holds inputs of different resolutions, each only as deep as it reaches (docs/tiling.md, \
+     \"Collections\"), which merge and update do not take yet: tile every input in one run";
+
+/// Whether an archive's levels do not all cover its data (a collection's).
+pub(crate) fn is_collection(metadata: &Metadata) -> bool {
+    metadata.layers.iter().any(|l| l.extent.as_ref().is_some_and(|e| !e.partial.is_empty()))
+}
+
 /// Opens and checks the inputs, and indexes their tiles.
 pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Prepared> {
     let Some(first) = inputs.first() else {
@@ -288,6 +297,13 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
         .iter()
         .map(|p| Reader::open_mmap(p).map_err(|e| Error::input(p, format!("cannot open archive: {e}"))))
         .collect::<Result<Vec<_>>>()?;
+    // A collection's finer levels hold tiles only where its finer inputs lie: remaking a
+    // tile from its children, as a merge does, would leave holes where they are not.
+    for (path, reader) in inputs.iter().zip(&readers) {
+        if is_collection(reader.metadata()) {
+            return Err(Error::input(path, COLLECTION));
+        }
+    }
     let base = readers[0].metadata();
     for (path, reader) in inputs.iter().zip(&readers).skip(1) {
         if let Some(why) = difference(base, reader.metadata()) {

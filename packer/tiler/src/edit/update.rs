@@ -108,6 +108,9 @@ impl BaseGrid {
         let metadata = reader.metadata().clone();
         drop(reader);
         let bad = |why: String| Error::input(base, why);
+        if crate::edit::merge::is_collection(&metadata) {
+            return Err(bad(crate::edit::merge::COLLECTION.into()));
+        }
         if let Some(shard) = &metadata.shard {
             return Err(bad(format!(
                 "it is shard {}/{} of a sharded run: update the merged archive, or tile the shard again and \
