@@ -553,3 +553,70 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
         assert!(one_sided <= 4, "{name}: {one_sided} columns lit in one picture only");
     }
 }
+
+/// A collection (a 10" base raised 3 m and a 1" patch, each as deep as it reaches:
+/// docs/tiling.md, "Collections") read by CesiumJS: `layer.json` lists the patch's
+/// rectangle at the patch's levels, so Cesium asks for no tile that is not there (no
+/// `errorEvent`, every tile of the view loaded), and its most detailed heights inside the
+/// patch are the patch's (GDAL's bilinear height of the 1" DEM plus PROJ's N).
+#[test]
+fn cesium_flies_a_collection_of_a_base_and_a_patch() {
+    use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+    let (build, mut missing) = cesium_build_or_missing();
+    for tool in ["gdaltransform", "gdallocationinfo"] {
+        if Command::new(tool).arg("--version").output().is_err() {
+            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
+        }
+    }
+    if Command::new("cct").arg("--version").output().is_err() {
+        missing.push("PROJ's command-line tools (apt-get install proj-bin)");
+    }
+    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let repo = oracles::repo();
+    let collection = dir.path().join("collection.tspack");
+    terrastream(&[
+        "tile",
+        "--elevation",
+        repo.join("tests/data/collection-base-10s-plus3m.tif").to_str().unwrap(),
+        repo.join("tests/data/collection-patch-1s.tif").to_str().unwrap(),
+        "--vertical-datum",
+        "5773",
+        "--tile-size",
+        "64",
+        "-o",
+        collection.to_str().unwrap(),
+    ]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[collection.to_str().unwrap()], dir.path());
+    let (_, body) = curl(server.port, "/collection/layer.json", &[]);
+    let layer: Value = serde_json::from_slice(&body).unwrap();
+    let deepest = &layer["available"][layer["maxzoom"].as_u64().unwrap() as usize];
+    assert_eq!(deepest.as_array().unwrap().len(), 1, "the deepest level lists the patch alone: {deepest}");
+    // Inside the patch (pixels 80..240 of the 1" crop), beyond its blend band.
+    let points = oracles::random_points([-122.611, 37.906, -122.583, 37.938], POINTS);
+    let truth = ellipsoidal_truth(&points);
+    let root = dir.path().join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    std::fs::write(root.join("index.html"), oracles::snippet("cesium-page")).unwrap();
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { application/json json; text/html html; \
+         application/javascript js; text/css css; image/png png; application/wasm wasm; } }",
+    ) else {
+        return;
+    };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let page =
+        format!("http://127.0.0.1:{}/index.html?terrain=http://127.0.0.1:{}/collection", nginx.port, server.port);
+    let (heights, _) = cesium_run(&browser, &page, &points);
+    let (median, p90) = oracles::errors(&heights, &truth);
+    eprintln!(
+        "Cesium on a collection, inside the patch: |height - (GDAL bilinear H + PROJ N)| median {median:.2} m, 90 % within {p90:.2} m"
+    );
+    assert!(median <= 1.5 && p90 <= 3.0, "median {median:.2} m, p90 {p90:.2} m");
+}
