@@ -300,3 +300,23 @@ fn a_grazing_view_across_the_patch_edge_matches_its_golden() {
     let tolerance = terrastream_testkit::golden::Tolerance { mean: 2.0, pixel: 24, off_share: 0.02 };
     terrastream_testkit::golden::assert_golden("collection-edge", w, h, &rgba, tolerance);
 }
+
+#[test]
+fn update_and_merge_refuse_a_collection_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let col = tile(d, "col.tspack", &[BASE, PATCH], &[]);
+    let before = std::fs::read(&col).unwrap();
+    let patch = repo().join(PATCH);
+    for args in [
+        vec!["update", col.to_str().unwrap(), "--elevation", patch.to_str().unwrap(), "--in-place"],
+        vec!["merge", col.to_str().unwrap(), col.to_str().unwrap(), "-o", d.join("m.tspack").to_str().unwrap()],
+    ] {
+        let out = oracles::run_in(&args, d);
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        assert!(said.contains("col.tspack") && said.contains("different resolutions"), "{args:?}: {said}");
+    }
+    assert_eq!(std::fs::read(&col).unwrap(), before, "the archive is as it was");
+    assert!(!d.join("m.tspack").exists());
+}
