@@ -58,6 +58,10 @@ pub struct SourceRecord {
     /// Its footprint's box in world units (min x, min z, max x, max z).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub world: Option<[f64; 4]>,
+    /// The band, in samples of the finest level, across which it blends into the coarser
+    /// data beneath (what an update adding a survey blends it with).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blend: Option<u32>,
 }
 
 impl Metadata {

@@ -108,11 +108,29 @@ pub(crate) fn merge_widened(
     heights: Option<(f32, f32)>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
-    let Prepared { readers, mut metadata, shards, mut winners, conflicts } = prepare(inputs, progress)?;
+    merge_widened_as(inputs, out, prefer, heights, None, progress)
+}
+
+/// [`merge_widened`]; with `as_is`, as [`merge_in_place_as`].
+pub(crate) fn merge_widened_as(
+    inputs: &[PathBuf],
+    out: &Path,
+    prefer: Prefer,
+    heights: Option<(f32, f32)>,
+    as_is: Option<&Metadata>,
+    progress: &dyn Progress,
+) -> Result<MergeSummary> {
+    let Prepared { readers, mut metadata, shards, mut winners, conflicts } =
+        prepare_any(inputs, as_is.is_some(), progress)?;
     widen(&mut metadata, heights);
+    if let Some(m) = as_is {
+        metadata = m.clone();
+    }
     let folder = terrastream_pack::output_folder(out);
     let mut spool = Spool::new(&folder)?;
-    if let Some(split_lods) = &shards {
+    if as_is.is_some() {
+        // The second input's tiles stand as they are.
+    } else if let Some(split_lods) = &shards {
         reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
     } else {
         for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
@@ -134,23 +152,33 @@ pub(crate) fn merge_widened(
 /// `terrastream_pack::Error::NoRoom` (in [`Error::Pack`]) when `target` was written
 /// without room for updates or the new directories outgrow it: `target` is then as it
 /// was. Otherwise as [`merge_with`].
-pub(crate) fn merge_in_place(
+///
+/// With `as_is`, the second input's tiles replace the first's as they are (none made
+/// again) and the result has that metadata.
+pub(crate) fn merge_in_place_as(
     inputs: &[PathBuf; 2],
     target: &Path,
     prefer: Prefer,
     heights: Option<(f32, f32)>,
+    as_is: Option<&Metadata>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
-    let Prepared { readers, mut metadata, mut winners, conflicts, .. } = prepare(inputs, progress)?;
+    let Prepared { readers, mut metadata, mut winners, conflicts, .. } =
+        prepare_any(inputs, as_is.is_some(), progress)?;
     widen(&mut metadata, heights);
+    if let Some(m) = as_is {
+        metadata = m.clone();
+    }
     tracing::debug!(tiles = winners.len(), replaced = conflicts.len(), "archives indexed");
     let mut appender = Appender::open(target, WriterOptions::default())?;
     if appender.header() != readers[0].header() {
         return Err(Error::input(target, format!("is not {} (it changed while updating?)", inputs[0].display())));
     }
     let mut spool = Spool::new(&terrastream_pack::output_folder(target))?;
-    for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
-        winners.remove(&order);
+    if as_is.is_none() {
+        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
+            winners.remove(&order);
+        }
     }
     let made = spool.tiles() as u64;
     tracing::debug!(made, "tiles around and above the changes made again");
@@ -290,6 +318,12 @@ pub(crate) fn is_collection(metadata: &Metadata) -> bool {
 
 /// Opens and checks the inputs, and indexes their tiles.
 pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Prepared> {
+    prepare_any(inputs, false, progress)
+}
+
+/// [`prepare`]; with `collections`, archives whose levels are partial too (their tiles
+/// replaced as they are, none made again).
+pub(crate) fn prepare_any(inputs: &[PathBuf], collections: bool, progress: &dyn Progress) -> Result<Prepared> {
     let Some(first) = inputs.first() else {
         return Err(Error::NothingToTile);
     };
@@ -300,7 +334,7 @@ pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Pre
     // A collection's finer levels hold tiles only where its finer inputs lie: remaking a
     // tile from its children, as a merge does, would leave holes where they are not.
     for (path, reader) in inputs.iter().zip(&readers) {
-        if is_collection(reader.metadata()) {
+        if !collections && is_collection(reader.metadata()) {
             return Err(Error::input(path, COLLECTION));
         }
     }

@@ -14,7 +14,7 @@ use terrastream_format::{ElevationScheme, LayerKind, Reader, TileFormat};
 use terrastream_pack::progress::Progress;
 
 use crate::crs::Crs;
-use crate::edit::merge::{MergeSummary, Prefer, merge_in_place, merge_widened};
+use crate::edit::merge::{MergeSummary, Prefer, merge_in_place_as, merge_widened_as};
 use crate::error::{Error, Result};
 use crate::options::{TextureFormat, TextureInput};
 use crate::plan::{LayerPlan, Plan};
@@ -53,6 +53,16 @@ pub fn update(
     progress: &dyn Progress,
 ) -> Result<UpdateSummary> {
     let started = std::time::Instant::now();
+    if let Ok(reader) = Reader::open_mmap(base)
+        && crate::edit::merge::is_collection(reader.metadata())
+    {
+        drop(reader);
+        if let Some(t) = texture.first() {
+            return Err(Error::input(t, "imagery over a collection is not updated yet: tile every input again"));
+        }
+        let made = crate::collection::update::update_collection(base, elevation, None, out, progress)?;
+        return Ok(UpdateSummary { merge: made.merge, tiled: made.made });
+    }
     let grid = BaseGrid::open(base)?;
     let mut changes = Changes {
         layers: vec![
@@ -275,16 +285,39 @@ fn merge_changes(
     seen: Option<(f32, f32)>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
+    merge_changes_as(base, made, out, seen, None, progress)
+}
+
+/// `made`'s tiles over `base`'s as they are (none made again), with `metadata`, written
+/// to `out` as an update writes (in place where `out` is `base`): a collection's update.
+pub(crate) fn replace_tiles(
+    base: &Path,
+    made: PathBuf,
+    out: &Path,
+    metadata: &terrastream_format::Metadata,
+    progress: &dyn Progress,
+) -> Result<MergeSummary> {
+    merge_changes_as(base, made, out, None, Some(metadata), progress)
+}
+
+fn merge_changes_as(
+    base: &Path,
+    made: PathBuf,
+    out: &Path,
+    seen: Option<(f32, f32)>,
+    as_is: Option<&terrastream_format::Metadata>,
+    progress: &dyn Progress,
+) -> Result<MergeSummary> {
     let inputs = [base.to_path_buf(), made];
     let rewrite = |why: &str| {
         tracing::info!("{}: {why}: writing the archive anew", base.display());
-        merge_widened(&inputs, out, Prefer::Pixels, seen, progress)
+        merge_widened_as(&inputs, out, Prefer::Pixels, seen, as_is, progress)
     };
     let same = |a: &Path, b: &Path| {
         std::fs::canonicalize(a).ok().zip(std::fs::canonicalize(b).ok()).is_some_and(|(a, b)| a == b)
     };
     if same(base, out) {
-        return match merge_in_place(&inputs, base, Prefer::Pixels, seen, progress) {
+        return match merge_in_place_as(&inputs, base, Prefer::Pixels, seen, as_is, progress) {
             Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why),
             other => other,
         };
@@ -299,7 +332,7 @@ fn merge_changes(
         .tempfile_in(&folder)
         .map_err(|e| Error::file(&folder, e))?;
     std::fs::copy(base, copy.path()).map_err(|e| Error::file(copy.path(), e))?;
-    match merge_in_place(&inputs, copy.path(), Prefer::Pixels, seen, progress) {
+    match merge_in_place_as(&inputs, copy.path(), Prefer::Pixels, seen, as_is, progress) {
         Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why),
         Err(e) => Err(e),
         Ok(mut merge) => {

@@ -19,6 +19,8 @@
 //! So tiles, bytes and work follow the data: a continent at 1 km with a valley at 2 m
 //! makes the continent's levels and the valley's, not the continent at 2 m.
 
+pub(crate) mod update;
+
 use std::collections::{HashSet, VecDeque};
 use std::path::{Path, PathBuf};
 
@@ -145,40 +147,8 @@ impl Collection {
         if base == 0 {
             return None;
         }
-        let res = u64::from(layer.tile_resolution);
-        let levels = (0..base)
-            .map(|lod| {
-                let (nx, ny) = layer.grid_at(lod);
-                let span = res << lod;
-                let cell =
-                    |v: i64, n: u32| u32::try_from(v.max(0).unsigned_abs() / span).unwrap_or(u32::MAX).min(n - 1);
-                let mut tiles = HashSet::new();
-                let mut rects: Vec<[u32; 4]> = Vec::new();
-                let mut cover: Vec<[u32; 4]> = Vec::new();
-                for i in inputs.iter().filter(|i| i.depth <= lod) {
-                    let (x0, x1) = (cell(i.columns.0, nx), cell(i.columns.1, nx));
-                    let (y0, y1) = (cell(i.rows.0, ny), cell(i.rows.1, ny));
-                    tiles.extend((y0..=y1).flat_map(|y| (x0..=x1).map(move |x| (x, y))));
-                    cover.push([x0, y0, x1, y1]);
-                    rects.push([
-                        x0.saturating_sub(1),
-                        y0.saturating_sub(1),
-                        (x1 + 1).min(nx - 1),
-                        (y1 + 1).min(ny - 1),
-                    ]);
-                }
-                SparseLevel { lod, tiles, rects: merged(rects), cover: merged(cover) }
-            })
-            .collect();
-        let blend = match blend {
-            Blend::Samples(n) => n,
-            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped")]
-            Blend::Metres(m) => {
-                // Of the finest level's samples (each finer input's own level's are
-                // coarser; a band in metres would be narrower there, so the finest's).
-                (m / finest).round().clamp(0.0, 4096.0) as u32
-            }
-        };
+        let levels = sparse_levels(&inputs, layer, base);
+        let blend = blend_samples(blend, finest);
         Some(Self { inputs, base, levels, grid, blend })
     }
 
@@ -226,6 +196,33 @@ impl Collection {
         sparse + full
     }
 
+    /// The inputs (by `depth`) whose footprints reach level `lod`'s `grid` (corner sample
+    /// `corner`), with a sample of the level around for the bilinear samples at its edge.
+    pub(crate) fn reaching(
+        &self,
+        lod: u8,
+        corner: (u32, u32),
+        grid: &GridSpec,
+        depth: &dyn Fn(u8) -> bool,
+    ) -> Vec<PathBuf> {
+        let scale = 1i64 << lod;
+        let (c0, r0) = (i64::from(corner.0) * scale, i64::from(corner.1) * scale);
+        let (c1, r1) = (c0 + i64::from(grid.size.0) * scale, r0 + i64::from(grid.size.1) * scale);
+        let (c0, r0, c1, r1) = (c0 - scale, r0 - scale, c1 + scale, r1 + scale);
+        (self.inputs.iter())
+            .filter(|i| depth(i.depth) && i.columns.0 <= c1 && i.columns.1 >= c0 && i.rows.0 <= r1 && i.rows.1 >= r0)
+            .map(|i| i.path.clone())
+            .collect()
+    }
+
+    /// Level `lod`'s whole grid.
+    pub(crate) fn level_grid(&self, lod: u8) -> GridSpec {
+        let g = self.grid;
+        let size = (g.size.0.div_ceil(1 << lod).max(1), g.size.1.div_ceil(1 << lod).max(1));
+        let scale = f64::from(1u32 << lod);
+        GridSpec { origin: g.origin, pixel: (g.pixel.0 * scale, g.pixel.1 * scale), size }
+    }
+
     /// Tiles cut, every level: the rectangles' (rings included) and the base's pyramid.
     fn cut_tiles(&self, metadata: &Metadata) -> u64 {
         let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else { return 0 };
@@ -255,13 +252,99 @@ impl Collection {
     }
 }
 
-/// Rectangles (inclusive) merged until none overlaps or touches another.
-fn merged(mut rects: Vec<[u32; 4]>) -> Vec<[u32; 4]> {
+/// The levels below `base` of `inputs` on `layer`'s grid: the tiles each holds (those its
+/// inputs as deep touch), and the rectangles made to make them.
+pub(crate) fn sparse_levels(
+    inputs: &[CollectionInput],
+    layer: &terrastream_format::Layer,
+    base: u8,
+) -> Vec<SparseLevel> {
+    let res = u64::from(layer.tile_resolution);
+    (0..base)
+        .map(|lod| {
+            let (nx, ny) = layer.grid_at(lod);
+            let span = res << lod;
+            let cell = |v: i64, n: u32| u32::try_from(v.max(0).unsigned_abs() / span).unwrap_or(u32::MAX).min(n - 1);
+            let mut tiles = HashSet::new();
+            let mut rects: Vec<[u32; 4]> = Vec::new();
+            let mut cover: Vec<[u32; 4]> = Vec::new();
+            for i in inputs.iter().filter(|i| i.depth <= lod) {
+                let (x0, x1) = (cell(i.columns.0, nx), cell(i.columns.1, nx));
+                let (y0, y1) = (cell(i.rows.0, ny), cell(i.rows.1, ny));
+                tiles.extend((y0..=y1).flat_map(|y| (x0..=x1).map(move |x| (x, y))));
+                cover.push([x0, y0, x1, y1]);
+                rects.push([x0.saturating_sub(1), y0.saturating_sub(1), (x1 + 1).min(nx - 1), (y1 + 1).min(ny - 1)]);
+            }
+            SparseLevel { lod, tiles, rects: merged(rects, false), cover: merged(cover, true) }
+        })
+        .collect()
+}
+
+/// A blend band in samples of a LOD 0 of spacing `finest`.
+pub(crate) fn blend_samples(blend: Blend, finest: f64) -> u32 {
+    match blend {
+        Blend::Samples(n) => n,
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped")]
+        Blend::Metres(m) => {
+            // Of the finest level's samples (each finer input's own level's are coarser; a
+            // band in metres would be narrower there, so the finest's).
+            (m / finest).round().clamp(0.0, 4096.0) as u32
+        }
+    }
+}
+
+/// What the archive records of `c` (on `metadata`'s grid and georeference): its inputs
+/// and the rectangles of its partial levels.
+pub(crate) fn records(c: &Collection, metadata: &Metadata) -> (Vec<SourceRecord>, Vec<LevelCover>) {
+    let georeference = metadata.georeference.clone();
+    // Output CRS units per world metre (the spacings are CRS units).
+    let per_metre = georeference.as_ref().and_then(|g| g.scale).map_or(1.0, |s| s[0]);
+    let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else {
+        return (vec![], vec![]);
+    };
+    let sample = layer.tile_world_size / f64::from(layer.tile_resolution);
+    let sources = (c.inputs.iter())
+        .map(|i| SourceRecord {
+            // Its samples, less the margin the layout counts each side.
+            #[expect(clippy::cast_precision_loss, reason = "sample indices")]
+            world: Some([
+                (i.columns.0 + 1).max(0) as f64 * sample,
+                (i.rows.0 + 1).max(0) as f64 * sample,
+                i.columns.1 as f64 * sample,
+                i.rows.1 as f64 * sample,
+            ]),
+            name: i.path.file_name().map_or_else(|| i.path.display().to_string(), |n| n.to_string_lossy().into_owned()),
+            spacing: i.spacing / per_metre,
+            lod: i.depth,
+            blend: Some(c.blend),
+        })
+        .collect();
+    let covers = (c.levels.iter())
+        .filter(|l| !l.cover.is_empty())
+        .map(|l| {
+            let s = layer.world_size_at(l.lod);
+            let boxes = (l.cover.iter()).map(|r| {
+                let world =
+                    [f64::from(r[0]) * s, f64::from(r[1]) * s, f64::from(r[2] + 1) * s, f64::from(r[3] + 1) * s];
+                georeference.as_ref().and_then(|g| crate::plan::lon_lat_box(g, world))
+            });
+            let lon_lat: Option<Vec<[f64; 4]>> = boxes.collect();
+            LevelCover { lod: l.lod, tiles: l.cover.clone(), lon_lat: lon_lat.unwrap_or_default() }
+        })
+        .collect();
+    (sources, covers)
+}
+
+/// Rectangles (inclusive) merged until none overlaps (or, with `touching`, touches)
+/// another. The rectangles a level is made over merge only where they overlap: apart,
+/// each is made as a later update would make it alone.
+fn merged(mut rects: Vec<[u32; 4]>, touching: bool) -> Vec<[u32; 4]> {
+    let gap = u32::from(touching);
     let touch = |a: &[u32; 4], b: &[u32; 4]| {
-        a[0] <= b[2].saturating_add(1)
-            && b[0] <= a[2].saturating_add(1)
-            && a[1] <= b[3].saturating_add(1)
-            && b[1] <= a[3].saturating_add(1)
+        a[0] <= b[2].saturating_add(gap)
+            && b[0] <= a[2].saturating_add(gap)
+            && a[1] <= b[3].saturating_add(gap)
+            && b[1] <= a[3].saturating_add(gap)
     };
     loop {
         let mut changed = false;
@@ -283,7 +366,7 @@ fn merged(mut rects: Vec<[u32; 4]>) -> Vec<[u32; 4]> {
 
 /// A level's rows over a rectangle, halved: what the next coarser level takes where it
 /// lies (the 2x2 mean of the finer level as stored).
-struct Override {
+pub(crate) struct Override {
     /// First column and row at the coarser level.
     x0: usize,
     y0: usize,
@@ -307,48 +390,17 @@ pub fn tile_collection(
 ) -> Result<WriteSummary> {
     let started = std::time::Instant::now();
     let mut recorded = plan.metadata.clone();
-    let georeference = recorded.georeference.clone();
-    // Output CRS units per world metre (the spacings are CRS units).
-    let per_metre = georeference.as_ref().and_then(|g| g.scale).map_or(1.0, |s| s[0]);
-    let sample = recorded.layers.first().map_or(1.0, |l| l.tile_world_size / f64::from(l.tile_resolution));
-    recorded.sources = (c.inputs.iter())
-        .map(|i| SourceRecord {
-            // Its samples, less the margin the layout counts each side.
-            #[expect(clippy::cast_precision_loss, reason = "sample indices")]
-            world: Some([
-                (i.columns.0 + 1).max(0) as f64 * sample,
-                (i.rows.0 + 1).max(0) as f64 * sample,
-                i.columns.1 as f64 * sample,
-                i.rows.1 as f64 * sample,
-            ]),
-            name: i.path.file_name().map_or_else(|| i.path.display().to_string(), |n| n.to_string_lossy().into_owned()),
-            spacing: i.spacing / per_metre,
-            lod: i.depth,
-        })
-        .collect();
+    let (inputs, covers) = records(c, &recorded);
+    recorded.sources = inputs;
     for layer in &mut recorded.layers {
-        let size = |lod: u8| layer.world_size_at(lod);
-        let covers: Vec<LevelCover> = (c.levels.iter())
-            .map(|l| {
-                let s = size(l.lod);
-                let boxes = (l.cover.iter()).map(|r| {
-                    let world =
-                        [f64::from(r[0]) * s, f64::from(r[1]) * s, f64::from(r[2] + 1) * s, f64::from(r[3] + 1) * s];
-                    georeference.as_ref().and_then(|g| crate::plan::lon_lat_box(g, world))
-                });
-                let lon_lat: Option<Vec<[f64; 4]>> = boxes.collect();
-                LevelCover { lod: l.lod, tiles: l.cover.clone(), lon_lat: lon_lat.unwrap_or_default() }
-            })
-            .collect();
         if let (Some(extent), LayerKind::Elevation | LayerKind::HeightRange) = (&mut layer.extent, layer.kind) {
-            extent.partial = covers;
+            extent.partial.clone_from(&covers);
         }
     }
     let metadata = &recorded;
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
     let index = find(LayerKind::Elevation).ok_or(Error::NothingToTile)?;
     let layer = &metadata.layers[usize::from(index)];
-    let res = layer.tile_resolution;
     let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
     let encoding = heights.encoding;
     let quantize = move |row: &mut [f32]| quantize_heights(row, &encoding);
@@ -383,18 +435,82 @@ pub fn tile_collection(
         };
         Ok(Sources::open(&sub)?.into_mosaics().0)
     };
-    let reaching = |lod: u8, corner: (u32, u32), grid: &GridSpec, depth: &dyn Fn(u8) -> bool| -> Vec<PathBuf> {
-        let scale = 1i64 << lod;
-        let (c0, r0) = (i64::from(corner.0) * scale, i64::from(corner.1) * scale);
-        let (c1, r1) = (c0 + i64::from(grid.size.0) * scale, r0 + i64::from(grid.size.1) * scale);
-        // One sample of the level around, for the bilinear samples at the edge.
-        let (c0, r0, c1, r1) = (c0 - scale, r0 - scale, c1 + scale, r1 + scale);
-        (c.inputs.iter())
-            .filter(|i| depth(i.depth) && i.columns.0 <= c1 && i.columns.1 >= c0 && i.rows.0 <= r1 && i.rows.1 >= r0)
-            .map(|i| i.path.clone())
-            .collect()
-    };
+    let reaching =
+        |lod: u8, corner: (u32, u32), grid: &GridSpec, depth: &dyn Fn(u8) -> bool| c.reaching(lod, corner, grid, depth);
 
+    let sources_of = |lod: u8, corner: (u32, u32), grid: &GridSpec| -> Result<LevelSources<'static>> {
+        let fine = open(reaching(lod, corner, grid, &|d| d == lod), *grid)?;
+        // The coarser inputs, on the grid of the level they reach (as it stores them).
+        let below = reaching(lod, corner, grid, &|d| d > lod);
+        let shift = (c.inputs.iter())
+            .filter(|i| i.depth > lod && below.contains(&i.path))
+            .map(|i| u32::from(i.depth - lod))
+            .min()
+            .unwrap_or(0);
+        let scale = f64::from(1u32 << lod);
+        let (first, part) =
+            coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
+        let coarse_lod = lod + u8::try_from(shift).unwrap_or(0);
+        let whole = c.level_grid(coarse_lod);
+        let coarse = open(below, whole)?.map(|m| (CoarseSource::Mosaic(Box::new(m), first, part.size), shift, first));
+        Ok(LevelSources { fine, coarse })
+    };
+    let overrides = make_levels(c, metadata, index, &heights, &quantize, &folder, &mut spool, progress, &sources_of)?;
+    tracing::debug!(elapsed = ?started.elapsed(), "levels below the base made");
+
+    // The base: every level from here up over the whole grid, a pyramid as a single run's.
+    let base = c.base;
+    let g = c.grid;
+    let grid = c.level_grid(base);
+    let size = grid.size;
+    let mosaic = open(reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
+    let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+    let window = Window {
+        input_lod: base,
+        last_lod: layer.num_lods - 1,
+        encode_from: base,
+        rows: 0..size.1 as usize,
+        band: 0..size.1 as usize,
+    };
+    run_pyramid(metadata, index, g.size, &window, &encode, Some(&quantize), &mut spool, progress, |push| {
+        level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, push)
+    })?;
+    heights.finish(metadata, Vec::new(), &mut spool)?;
+    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights of the collection cut");
+    if let Some(t) = texture {
+        let plan = Plan { metadata: recorded.clone(), layers: plan.layers.clone() };
+        cut_texture(t, &plan, &full_windows(&plan), &mut spool, progress)?;
+    }
+    write_spool(spool, metadata, out, true, progress, started)
+}
+
+/// Opens what level `lod`'s rectangle (corner sample, grid) is made from.
+pub(crate) type OpenLevel<'f, 's> = dyn Fn(u8, (u32, u32), &GridSpec) -> Result<LevelSources<'s>> + 'f;
+
+/// What a level's rectangle is made from: the inputs as deep as the level, and the
+/// coarser data beneath (with its grid's shift and first sample).
+pub(crate) struct LevelSources<'a> {
+    pub(crate) fine: Option<Mosaic<Heights>>,
+    pub(crate) coarse: Option<(CoarseSource<'a>, u32, (i64, i64))>,
+}
+
+/// Makes `c`'s levels below its base, finest first, into `spool` (tiles `c` holds, with
+/// the height ranges gathered by `heights`): each rectangle from what `sources` opens for
+/// it, and the finer level's means. Returns the last level's rectangles halved: what the
+/// base takes where they lie.
+#[expect(clippy::too_many_arguments, reason = "the collection, its encoding and where tiles go")]
+pub(crate) fn make_levels<'s>(
+    c: &Collection,
+    metadata: &Metadata,
+    index: u8,
+    heights: &HeightEncoder,
+    quantize: &(dyn Fn(&mut [f32]) + Sync),
+    folder: &Path,
+    spool: &mut Spool,
+    progress: &dyn Progress,
+    sources: &OpenLevel<'_, 's>,
+) -> Result<Vec<Override>> {
+    let res = metadata.layers[usize::from(index)].tile_resolution;
     let mut overrides: Vec<Override> = Vec::new();
     for level in &c.levels {
         let lod = level.lod;
@@ -402,19 +518,8 @@ pub fn tile_collection(
         for &rect in &level.rects {
             progress.check()?;
             let (corner, grid) = c.rect_grid(lod, rect, res);
-            let fine = open(reaching(lod, corner, &grid, &|d| d == lod), grid)?;
-            // The coarser inputs on a grid no finer than half their own spacing.
-            let below = reaching(lod, corner, &grid, &|d| d > lod);
-            let shift = (c.inputs.iter())
-                .filter(|i| i.depth > lod && below.contains(&i.path))
-                .map(|i| u32::from(i.depth - lod - 1))
-                .min()
-                .unwrap_or(0);
-            let scale = f64::from(1u32 << lod);
-            let (first, coarse_grid) =
-                coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
-            let coarse_mosaic = open(below, coarse_grid)?;
-            let coarse = coarse_mosaic.as_ref().map(|mosaic| Coarse { mosaic, shift, first });
+            let LevelSources { fine, coarse } = sources(lod, corner, &grid)?;
+            let coarse = coarse.map(|(source, shift, first)| Coarse { source, shift, first, quantize });
             let mut local = metadata.clone();
             {
                 let l = &mut local.layers[usize::from(index)];
@@ -423,7 +528,7 @@ pub fn tile_collection(
                 l.num_lods = 1;
                 l.extent = None;
             }
-            let mut made = Spool::new(&folder)?;
+            let mut made = Spool::new(folder)?;
             let encode = |key: TileKey, samples: &[f32], _edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
                 let (x, y) = (rect[0] + key.x(), rect[1] + key.y());
                 if !level.tiles.contains(&(x, y)) {
@@ -436,7 +541,7 @@ pub fn tile_collection(
             let mut even: Option<Vec<f32>> = None;
             {
                 let (fine, coarse, halved, even) = (fine.as_ref(), coarse.as_ref(), &mut halved, &mut even);
-                let (overrides, quantize, blend) = (&overrides, &quantize, c.blend);
+                let (overrides, blend) = (&overrides, c.blend);
                 // Rows are made (read, blended, halved) on a thread of their own while
                 // the pyramid cuts the ones before.
                 run_pyramid(
@@ -475,53 +580,80 @@ pub fn tile_collection(
                 spool.add(metadata, global, &bytes)?;
             }
             next.push(halved);
-            tracing::debug!(lod, ?rect, elapsed = ?started.elapsed(), "level of the collection made over a rectangle");
+            tracing::debug!(lod, ?rect, "level of the collection made over a rectangle");
         }
         overrides = next;
     }
-
-    // The base: every level from here up over the whole grid, a pyramid as a single run's.
-    let base = c.base;
-    let g = c.grid;
-    let size = (g.size.0.div_ceil(1 << base).max(1), g.size.1.div_ceil(1 << base).max(1));
-    let scale = f64::from(1u32 << base);
-    let grid = GridSpec { origin: g.origin, pixel: (g.pixel.0 * scale, g.pixel.1 * scale), size };
-    let mosaic = open(reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
-    let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
-    let window = Window {
-        input_lod: base,
-        last_lod: layer.num_lods - 1,
-        encode_from: base,
-        rows: 0..size.1 as usize,
-        band: 0..size.1 as usize,
-    };
-    run_pyramid(metadata, index, g.size, &window, &encode, Some(&quantize), &mut spool, progress, |push| {
-        level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, push)
-    })?;
-    heights.finish(metadata, Vec::new(), &mut spool)?;
-    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights of the collection cut");
-    if let Some(t) = texture {
-        let plan = Plan { metadata: recorded.clone(), layers: plan.layers.clone() };
-        cut_texture(t, &plan, &full_windows(&plan), &mut spool, progress)?;
-    }
-    write_spool(spool, metadata, out, true, progress, started)
+    Ok(overrides)
 }
 
 /// The coarser inputs beneath a level, sampled on a grid `2^shift` times coarser than the
 /// level's (no finer than half their own spacing: their detail is all there) and brought
 /// to the level's samples bilinearly, which costs a level's row a few operations a sample
 /// instead of a transform and a bilinear read of the inputs each.
-struct Coarse<'a> {
-    mosaic: &'a Mosaic<Heights>,
+struct Coarse<'a, 'q> {
+    source: CoarseSource<'a>,
     shift: u32,
+    /// The stored precision (a level's values as its tiles hold them).
+    quantize: &'q (dyn Fn(&mut [f32]) + Sync),
     /// The level's sample of the coarse grid's first column and row (its corner).
     first: (i64, i64),
+}
+
+/// Where a [`Coarse`] grid's values come from.
+pub(crate) enum CoarseSource<'a> {
+    /// The coarser inputs on their level's whole grid (so that each sample is the one the
+    /// level stores: the mosaic's transforms are exact on a lattice from its corner), and
+    /// the part of it wanted: first column and row, columns and rows.
+    Mosaic(Box<Mosaic<Heights>>, (i64, i64), (u32, u32)),
+    /// An archive's stored samples of the grid's level (an update's).
+    Archive(update::StoredLevel<'a>),
+}
+
+impl CoarseSource<'_> {
+    /// Samples across and down.
+    fn size(&self) -> (u32, u32) {
+        match self {
+            Self::Mosaic(_, _, size) => *size,
+            Self::Archive(a) => a.size(),
+        }
+    }
+
+    /// Every row, in order.
+    fn rows(&self, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+        match self {
+            Self::Mosaic(m, first, size) => {
+                let (w, h) = (i64::from(m.grid().size.0), i64::from(m.grid().size.1));
+                let crop = |r: &[f32]| -> Vec<f32> {
+                    (0..i64::from(size.0))
+                        .map(|c| {
+                            let x = first.0 + c;
+                            if (0..w).contains(&x) { r[usize::try_from(x).unwrap_or(0)] } else { f32::NAN }
+                        })
+                        .collect()
+                };
+                let none = || vec![f32::NAN; size.0 as usize];
+                let (r0, r1) = (first.1, first.1 + i64::from(size.1));
+                // Rows above and below the grid: none.
+                for _ in r0..r1.min(0) {
+                    each(none())?;
+                }
+                let inside = u32::try_from(r0.clamp(0, h)).unwrap_or(0)..u32::try_from(r1.clamp(0, h)).unwrap_or(0);
+                m.rows_in(inside, &mut |r| Ok(each(crop(r))?))?;
+                for _ in r0.max(h)..r1 {
+                    each(none())?;
+                }
+                Ok(())
+            }
+            Self::Archive(a) => a.rows(each),
+        }
+    }
 }
 
 /// The coarse grid over a level's rectangle (corner `corner`, size `size` samples of a
 /// level of spacing `pixel` from `origin`): `shift` levels coarser, a sample of margin each
 /// way for the bilinear reads at the edges.
-fn coarse_grid(
+pub(crate) fn coarse_grid(
     origin: [f64; 2],
     pixel: (f64, f64),
     corner: (u32, u32),
@@ -556,9 +688,9 @@ struct Upsample {
 }
 
 impl Upsample {
-    fn new(coarse: &Coarse<'_>, corner: (u32, u32), width: usize) -> Self {
-        let grid = coarse.mosaic.grid();
-        let size = (grid.size.0 as usize, grid.size.1 as usize);
+    fn new(coarse: &Coarse<'_, '_>, corner: (u32, u32), width: usize) -> Self {
+        let grid = coarse.source.size();
+        let size = (grid.0 as usize, grid.1 as usize);
         let columns = (0..width)
             .map(|i| {
                 let (c, f) =
@@ -614,7 +746,7 @@ impl Upsample {
 /// samples along their data's edge.
 fn level_rows(
     fine: Option<&Mosaic<Heights>>,
-    coarse: Option<&Coarse<'_>>,
+    coarse: Option<&Coarse<'_, '_>>,
     grid: &GridSpec,
     corner: (u32, u32),
     overrides: &[Override],
@@ -646,11 +778,13 @@ fn level_rows(
     };
     let mut up = Upsample::new(coarse, corner, w);
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
-    let k = coarse.mosaic;
-    let rows = k.grid().size.1;
+    let (k, quantize) = (&coarse.source, coarse.quantize);
     std::thread::scope(|scope| -> Result<()> {
         let reader = scope.spawn(move || {
-            k.rows_in(0..rows, &mut |r| Ok(send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?))
+            k.rows(&mut |mut r| {
+                quantize(&mut r);
+                send.send(r).map_err(|_| crate::error::interrupted())
+            })
         });
         let mut pull = || receive.recv().map_err(|_| crate::error::interrupted());
         // The fine rows are made on a thread of their own too, while this one blends the
@@ -673,13 +807,13 @@ fn level_rows(
         });
         drop(receive);
         drop(fine_receive);
-        let read = reader.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted)));
+        let read = reader.join().unwrap_or(Err(Error::Panicked { thread: "coarse rows" }));
         let fine_read = fine_reader
             .map_or(Ok(()), |r| r.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted))));
         // The rows' error first (it stopped the readers); else the readers'.
         made?;
         fine_read?;
-        Ok(read?)
+        read
     })?;
     ring.finish(h, emit)
 }
@@ -832,7 +966,9 @@ mod tests {
 
     #[test]
     fn rectangles_that_touch_merge_and_others_stay_apart() {
-        let m = merged(vec![[0, 0, 2, 2], [3, 0, 4, 1], [10, 10, 11, 11]]);
+        let m = merged(vec![[0, 0, 2, 2], [3, 0, 4, 1], [10, 10, 11, 11]], true);
+        assert_eq!(merged(vec![[0, 0, 2, 2], [3, 0, 4, 1]], false), vec![[0, 0, 2, 2], [3, 0, 4, 1]]);
+        assert_eq!(merged(vec![[0, 0, 2, 2], [3, 0, 4, 1], [2, 1, 5, 5]], false), vec![[0, 0, 5, 5]]);
         assert_eq!(m, vec![[0, 0, 4, 2], [10, 10, 11, 11]]);
     }
 
