@@ -366,6 +366,13 @@ fn a_survey_added_by_update_equals_a_run_with_every_input() {
     assert!(changed > 0 && changed * 3 < old.len(), "{changed} of {} tiles changed", old.len());
     let info = ok(&["info", in_place.to_str().unwrap()], d);
     assert!(info.contains("collection-survey-b-1s.tif") && info.contains("LOD0 in 2 rectangles"), "{info}");
+    // The compact copy `verify` suggests after updates in place: the same tiles.
+    let said = ok(&["verify", in_place.to_str().unwrap()], d);
+    assert!(said.contains("OK") && said.contains("merge"), "{said}");
+    let compact = d.join("compact.tspack");
+    ok(&["merge", in_place.to_str().unwrap(), "-o", compact.to_str().unwrap()], d);
+    assert_eq!(tiles_of(&compact), whole);
+    assert!(std::fs::metadata(&compact).unwrap().len() < std::fs::metadata(&in_place).unwrap().len());
     // Heights where the survey lies: those of the run with every input.
     let points = random_points([-122.565, 37.888, -122.552, 37.898], 50);
     let (r, w) = (Reader::open_mmap(&in_place).unwrap(), Reader::open_mmap(&all).unwrap());

@@ -96,6 +96,16 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
 /// # Errors
 /// As [`merge`].
 pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn Progress) -> Result<MergeSummary> {
+    // One collection alone: copied as it is (the compact copy of an archive updated in
+    // place), its tiles made again from none.
+    if let [one] = inputs
+        && let Ok(reader) = Reader::open_mmap(one)
+        && is_collection(reader.metadata())
+    {
+        let metadata = reader.metadata().clone();
+        drop(reader);
+        return merge_widened_as(inputs, out, prefer, None, Some(&metadata), progress);
+    }
     merge_widened(inputs, out, prefer, None, progress)
 }
 
