@@ -482,3 +482,76 @@ fn a_terrarium_tile_decoded_by_pillow_holds_the_heights_meant() {
     }
     assert!(with_data > 1000, "the summit's tile holds data: {with_data} pixels");
 }
+
+/// A collection (a 10" base raised 3 m and a 1" patch: docs/tiling.md, "Collections") read
+/// by MapLibre through its TileJSON: every tile it asks for is served (no failed request,
+/// the base's area included, whose finest level is coarser), and inside the patch its
+/// heights are those it reads from the same inputs tiled at one resolution (where the
+/// patch wins at LOD 0), and GDAL's bilinear heights of the 1" DEM within MapLibre's own
+/// sampling on that steep ground.
+#[test]
+fn maplibre_reads_a_collection_of_a_base_and_a_patch() {
+    let Some(dist) = ready() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let repo = oracles::repo();
+    let (collection, one) = (dir.path().join("collection.tspack"), dir.path().join("one.tspack"));
+    for (out, priority) in [(&collection, "resolution"), (&one, "order")] {
+        terrastream(&[
+            "tile",
+            "--elevation",
+            repo.join("tests/data/collection-base-10s-plus3m.tif").to_str().unwrap(),
+            repo.join("tests/data/collection-patch-1s.tif").to_str().unwrap(),
+            "--tile-size",
+            "64",
+            "--priority",
+            priority,
+            "-o",
+            out.to_str().unwrap(),
+        ]);
+    }
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(
+        exe,
+        &[collection.to_str().unwrap(), one.to_str().unwrap()],
+        dir.path(),
+    );
+    let root = dir.path().join("www");
+    write_page(&root, &dist);
+    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { application/json json; text/html html; \
+         application/javascript js; text/css css; } }",
+    ) else {
+        return;
+    };
+    // Inside the patch (pixels 80..240 of the 1" crop) beyond its blend band, and over the
+    // base beyond the patch.
+    let inside = random_points([-122.611, 37.906, -122.583, 37.938], POINTS / 2);
+    let outside: Vec<(f64, f64)> = random_points([-122.64, 37.87, -122.555, 37.965], POINTS * 2)
+        .into_iter()
+        .filter(|&(lon, lat)| !(-122.624..=-122.571).contains(&lon) || !(37.896..=37.949).contains(&lat))
+        .take(POINTS / 2)
+        .collect();
+    let points: Vec<(f64, f64)> = inside.iter().chain(&outside).copied().collect();
+    let truth = gdal_bilinear(&inside);
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    let read = |name: &str| {
+        let page = format!(
+            "http://127.0.0.1:{}/index.html?tilejson=http://127.0.0.1:{}/{name}/tiles.json",
+            nginx.port, server.port
+        );
+        let (heights, _) = maplibre_run(&browser, &page, &points);
+        assert!(heights.iter().all(Option::is_some), "{name}: MapLibre has no height at some points: {heights:?}");
+        heights.into_iter().flatten().collect::<Vec<f64>>()
+    };
+    let (ours, theirs) = (read("collection"), read("one"));
+    let (median, p90) = errors(&ours[..inside.len()], &theirs[..inside.len()]);
+    let (gdal, gdal90) = errors(&ours[..inside.len()], &truth);
+    eprintln!(
+        "MapLibre on a collection, inside the patch: |height - one resolution's| median {median:.2} m, \
+         90 % within {p90:.2} m; |height - GDAL bilinear| median {gdal:.2} m, 90 % within {gdal90:.2} m"
+    );
+    assert!(median <= 0.1 && p90 <= 0.5, "against one resolution: median {median:.2} m, p90 {p90:.2} m");
+    assert!(gdal <= 4.0 && gdal90 <= 15.0, "against GDAL: median {gdal:.2} m, p90 {gdal90:.2} m");
+}
