@@ -698,3 +698,34 @@ fn without_its_worker_script_the_player_decodes_on_the_page() {
     assert_eq!(stats["decoded_in_workers"], json!(0), "{stats}");
     assert!(stats["tiles_fetched"].as_u64().unwrap() > 0, "{stats}");
 }
+
+/// A collection (a 10" base and a 1" patch, each as deep as it reaches: docs/tiling.md,
+/// "Collections") in the player: it asks for no tile the archive lacks (the finer levels'
+/// rectangles say where they hold tiles), completes the view with no failure, and draws
+/// terrain (golden, looked at).
+#[test]
+fn webplayer_streams_a_collection_asking_for_no_missing_tile() {
+    if !ready() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let repo = terrastream_testkit::golden::repo();
+    let path = dir.path().join("collection.tspack");
+    let (base, patch) =
+        (repo.join("tests/data/collection-base-10s-plus3m.tif"), repo.join("tests/data/collection-patch-1s.tif"));
+    let (b, p, o) = (base.to_str().unwrap(), patch.to_str().unwrap(), path.to_str().unwrap());
+    terrastream(&["tile", "--elevation", b, p, "-o", o, "--tile-size", "64"]);
+    let server = serve(&path);
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGPU_FLAGS, (WIDTH, HEIGHT));
+    browser.goto(&format!("http://127.0.0.1:{}/view/collection?hud=0", server.port));
+    let stats = browser.wait_settled();
+    eprintln!("collection: {stats}");
+    assert_eq!((stats["missing"].clone(), stats["failures"].clone()), (json!(0), json!(0)), "{stats}");
+    assert!(stats["wanted"].as_u64().unwrap() >= 5, "{stats}");
+    assert_eq!(stats["resident"][0], stats["wanted"], "{stats}");
+    assert_eq!(stats["drew_nothing_in_view"], json!(false), "{stats}");
+    std::thread::sleep(Duration::from_millis(500));
+    let (w, h, rgba) = browser.screenshot("#terrain");
+    terrastream_testkit::golden::assert_golden("webplayer-collection", w, h, &rgba, TOLERANCE);
+}
