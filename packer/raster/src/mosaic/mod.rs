@@ -483,6 +483,15 @@ impl<K: MosaicKind> Mosaic<K> {
         Ok(())
     }
 
+    /// Output rows `rows`, in order, made as [`ElevationSource::rows_in`] and
+    /// [`ImageSource::rows_in`] make them, for either kind.
+    ///
+    /// # Errors
+    /// As those.
+    pub fn rows_of(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
+        self.make_rows(rows, row)
+    }
+
     /// Inputs, in order.
     pub fn inputs(&self) -> impl Iterator<Item = &Path> {
         self.inputs.iter().map(|i| K::path(&i.file))

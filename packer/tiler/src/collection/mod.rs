@@ -32,8 +32,8 @@ use crate::encode::quantize_heights;
 use crate::error::{Error, Result};
 use crate::options::TextureInput;
 use crate::plan::Plan;
-use crate::pyramid::{Spool, Window, halve_rows};
-use crate::raster::{DatumName, ElevationSource, GridSpec, Heights, InputLayout, Mosaic};
+use crate::pyramid::{Pixel, Spool, Window, halve_rows};
+use crate::raster::{DatumName, GridSpec, Heights, InputLayout, Mosaic, MosaicKind};
 use crate::request::{Sources, TileRequest};
 use crate::tile::{HeightEncoder, cut_texture, full_windows, run_pyramid, write_spool};
 
@@ -366,11 +366,11 @@ fn merged(mut rects: Vec<[u32; 4]>, touching: bool) -> Vec<[u32; 4]> {
 
 /// A level's rows over a rectangle, halved: what the next coarser level takes where it
 /// lies (the 2x2 mean of the finer level as stored).
-pub(crate) struct Override {
+pub(crate) struct Override<S = f32> {
     /// First column and row at the coarser level.
     x0: usize,
     y0: usize,
-    rows: Vec<Vec<f32>>,
+    rows: Vec<Vec<S>>,
 }
 
 /// Tiles the collection `c` of `request`'s heights (opened as `sources`), with `texture`
@@ -452,10 +452,15 @@ pub fn tile_collection(
             coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
         let coarse_lod = lod + u8::try_from(shift).unwrap_or(0);
         let whole = c.level_grid(coarse_lod);
-        let coarse = open(below, whole)?.map(|m| (CoarseSource::Mosaic(Box::new(m), first, part.size), shift, first));
+        let coarse = open(below, whole)?.map(|mosaic| {
+            let part: Box<dyn CoarseRows<f32>> = Box::new(MosaicPart { mosaic, first, size: part.size });
+            (part, shift, first)
+        });
         Ok(LevelSources { fine, coarse })
     };
-    let overrides = make_levels(c, metadata, index, &heights, &quantize, &folder, &mut spool, progress, &sources_of)?;
+    let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+    let overrides =
+        make_levels(c, metadata, index, &encode_tile, Some(&quantize), &folder, &mut spool, progress, &sources_of)?;
     tracing::debug!(elapsed = ?started.elapsed(), "levels below the base made");
 
     // The base: every level from here up over the whole grid, a pyramid as a single run's.
@@ -485,36 +490,49 @@ pub fn tile_collection(
 }
 
 /// Opens what level `lod`'s rectangle (corner sample, grid) is made from.
-pub(crate) type OpenLevel<'f, 's> = dyn Fn(u8, (u32, u32), &GridSpec) -> Result<LevelSources<'s>> + 'f;
+pub(crate) type OpenLevel<'f, 's, K> = dyn Fn(u8, (u32, u32), &GridSpec) -> Result<LevelSources<'s, K>> + 'f;
 
 /// What a level's rectangle is made from: the inputs as deep as the level, and the
 /// coarser data beneath (with its grid's shift and first sample).
-pub(crate) struct LevelSources<'a> {
-    pub(crate) fine: Option<Mosaic<Heights>>,
-    pub(crate) coarse: Option<(CoarseSource<'a>, u32, (i64, i64))>,
+pub(crate) struct LevelSources<'a, K: MosaicKind = Heights> {
+    pub(crate) fine: Option<Mosaic<K>>,
+    pub(crate) coarse: Option<CoarseSource<'a, K::Value>>,
 }
+
+/// Coarser data beneath a level's rectangle: its rows, its grid's shift (levels coarser)
+/// and its first sample (on the level's grid, divided by 2^shift).
+pub(crate) type CoarseSource<'a, S> = (Box<dyn CoarseRows<S> + 'a>, u32, (i64, i64));
+
+/// Encodes a tile of a level (its global key) into the archive entries it makes.
+pub(crate) type EncodeTile<'a, S> = dyn Fn(TileKey, &[S], usize) -> Result<Vec<(TileKey, Vec<u8>)>> + Sync + 'a;
+
+/// Rounds a row to the precision its tiles store (heights; imagery as it is).
+pub(crate) type QuantizeRow<'a, S> = dyn Fn(&mut [S]) + Sync + 'a;
 
 /// Makes `c`'s levels below its base, finest first, into `spool` (tiles `c` holds, with
 /// the height ranges gathered by `heights`): each rectangle from what `sources` opens for
 /// it, and the finer level's means. Returns the last level's rectangles halved: what the
 /// base takes where they lie.
 #[expect(clippy::too_many_arguments, reason = "the collection, its encoding and where tiles go")]
-pub(crate) fn make_levels<'s>(
+pub(crate) fn make_levels<'s, K: MosaicKind>(
     c: &Collection,
     metadata: &Metadata,
     index: u8,
-    heights: &HeightEncoder,
-    quantize: &(dyn Fn(&mut [f32]) + Sync),
+    encode_tile: &EncodeTile<'_, K::Value>,
+    quantize: Option<&QuantizeRow<'_, K::Value>>,
     folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
-    sources: &OpenLevel<'_, 's>,
-) -> Result<Vec<Override>> {
+    sources: &OpenLevel<'_, 's, K>,
+) -> Result<Vec<Override<K::Value>>>
+where
+    K::Value: Pixel,
+{
     let res = metadata.layers[usize::from(index)].tile_resolution;
-    let mut overrides: Vec<Override> = Vec::new();
+    let mut overrides: Vec<Override<K::Value>> = Vec::new();
     for level in &c.levels {
         let lod = level.lod;
-        let mut next: Vec<Override> = Vec::new();
+        let mut next: Vec<Override<K::Value>> = Vec::new();
         for &rect in &level.rects {
             progress.check()?;
             let (corner, grid) = c.rect_grid(lod, rect, res);
@@ -529,16 +547,16 @@ pub(crate) fn make_levels<'s>(
                 l.extent = None;
             }
             let mut made = Spool::new(folder)?;
-            let encode = |key: TileKey, samples: &[f32], _edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+            let encode = |key: TileKey, samples: &[K::Value], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
                 let (x, y) = (rect[0] + key.x(), rect[1] + key.y());
                 if !level.tiles.contains(&(x, y)) {
                     return Ok(Vec::new());
                 }
                 let global = TileKey::new(index, lod, x, y)?;
-                Ok(heights.encode(global, samples)?.into_iter().map(|(_, bytes)| (key, bytes)).collect())
+                Ok(encode_tile(global, samples, edge)?.into_iter().map(|(_, bytes)| (key, bytes)).collect())
             };
             let mut halved = Override { x0: corner.0 as usize / 2, y0: corner.1 as usize / 2, rows: Vec::new() };
-            let mut even: Option<Vec<f32>> = None;
+            let mut even: Option<Vec<K::Value>> = None;
             {
                 let (fine, coarse, halved, even) = (fine.as_ref(), coarse.as_ref(), &mut halved, &mut even);
                 let (overrides, blend) = (&overrides, c.blend);
@@ -550,17 +568,21 @@ pub(crate) fn make_levels<'s>(
                     grid.size,
                     &Window::full(1, grid.size.1 as usize),
                     &encode,
-                    Some(quantize),
+                    quantize,
                     &mut made,
                     progress,
                     move |push| {
                         level_rows(fine, coarse, &grid, corner, overrides, blend, &mut |mut row| {
-                            quantize(&mut row);
+                            if let Some(q) = quantize {
+                                q(&mut row);
+                            }
                             match even.take() {
                                 None => *even = Some(row.clone()),
                                 Some(a) => {
                                     let mut half = halve_rows(&a, &row);
-                                    quantize(&mut half);
+                                    if let Some(q) = quantize {
+                                        q(&mut half);
+                                    }
                                     halved.rows.push(half);
                                 }
                             }
@@ -570,8 +592,10 @@ pub(crate) fn make_levels<'s>(
                 )?;
             }
             if let Some(a) = even.take() {
-                let mut half = halve_rows(&a, &vec![f32::NAN; a.len()]);
-                quantize(&mut half);
+                let mut half = halve_rows(&a, &vec![K::Value::NONE; a.len()]);
+                if let Some(q) = quantize {
+                    q(&mut half);
+                }
                 halved.rows.push(half);
             }
             let mut sorted = made.into_sorted()?;
@@ -591,62 +615,64 @@ pub(crate) fn make_levels<'s>(
 /// level's (no finer than half their own spacing: their detail is all there) and brought
 /// to the level's samples bilinearly, which costs a level's row a few operations a sample
 /// instead of a transform and a bilinear read of the inputs each.
-struct Coarse<'a, 'q> {
-    source: CoarseSource<'a>,
+struct Coarse<'a, 'q, S> {
+    source: Box<dyn CoarseRows<S> + 'a>,
     shift: u32,
     /// The stored precision (a level's values as its tiles hold them).
-    quantize: &'q (dyn Fn(&mut [f32]) + Sync),
+    quantize: Option<&'q QuantizeRow<'q, S>>,
     /// The level's sample of the coarse grid's first column and row (its corner).
     first: (i64, i64),
 }
 
-/// Where a [`Coarse`] grid's values come from.
-pub(crate) enum CoarseSource<'a> {
-    /// The coarser inputs on their level's whole grid (so that each sample is the one the
-    /// level stores: the mosaic's transforms are exact on a lattice from its corner), and
-    /// the part of it wanted: first column and row, columns and rows.
-    Mosaic(Box<Mosaic<Heights>>, (i64, i64), (u32, u32)),
-    /// An archive's stored samples of the grid's level (an update's).
-    Archive(update::StoredLevel<'a>),
+/// Where a [`Coarse`] grid's values come from: the coarser inputs ([`MosaicPart`]), or an
+/// archive's stored level (an update's).
+pub(crate) trait CoarseRows<S>: Send + Sync {
+    /// Samples across and down.
+    fn size(&self) -> (u32, u32);
+    /// Every row, in order.
+    fn rows(&self, each: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()>;
 }
 
-impl CoarseSource<'_> {
-    /// Samples across and down.
+/// The coarser inputs on their level's whole grid (so that each sample is the one the
+/// level stores: the mosaic's transforms are exact on a lattice from its corner), and the
+/// part of it wanted: first column and row, columns and rows.
+pub(crate) struct MosaicPart<K: MosaicKind> {
+    pub(crate) mosaic: Mosaic<K>,
+    pub(crate) first: (i64, i64),
+    pub(crate) size: (u32, u32),
+}
+
+impl<K: MosaicKind> CoarseRows<K::Value> for MosaicPart<K>
+where
+    K::Value: Pixel,
+{
     fn size(&self) -> (u32, u32) {
-        match self {
-            Self::Mosaic(_, _, size) => *size,
-            Self::Archive(a) => a.size(),
-        }
+        self.size
     }
 
-    /// Every row, in order.
-    fn rows(&self, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
-        match self {
-            Self::Mosaic(m, first, size) => {
-                let (w, h) = (i64::from(m.grid().size.0), i64::from(m.grid().size.1));
-                let crop = |r: &[f32]| -> Vec<f32> {
-                    (0..i64::from(size.0))
-                        .map(|c| {
-                            let x = first.0 + c;
-                            if (0..w).contains(&x) { r[usize::try_from(x).unwrap_or(0)] } else { f32::NAN }
-                        })
-                        .collect()
-                };
-                let none = || vec![f32::NAN; size.0 as usize];
-                let (r0, r1) = (first.1, first.1 + i64::from(size.1));
-                // Rows above and below the grid: none.
-                for _ in r0..r1.min(0) {
-                    each(none())?;
-                }
-                let inside = u32::try_from(r0.clamp(0, h)).unwrap_or(0)..u32::try_from(r1.clamp(0, h)).unwrap_or(0);
-                m.rows_in(inside, &mut |r| Ok(each(crop(r))?))?;
-                for _ in r0.max(h)..r1 {
-                    each(none())?;
-                }
-                Ok(())
-            }
-            Self::Archive(a) => a.rows(each),
+    fn rows(&self, each: &mut dyn FnMut(Vec<K::Value>) -> Result<()>) -> Result<()> {
+        let (first, size) = (self.first, self.size);
+        let (w, h) = (i64::from(self.mosaic.grid().size.0), i64::from(self.mosaic.grid().size.1));
+        let crop = |r: &[K::Value]| -> Vec<K::Value> {
+            (0..i64::from(size.0))
+                .map(|c| {
+                    let x = first.0 + c;
+                    if (0..w).contains(&x) { r[usize::try_from(x).unwrap_or(0)] } else { K::Value::NONE }
+                })
+                .collect()
+        };
+        let none = || vec![K::Value::NONE; size.0 as usize];
+        let (r0, r1) = (first.1, first.1 + i64::from(size.1));
+        // Rows above and below the grid: none.
+        for _ in r0..r1.min(0) {
+            each(none())?;
         }
+        let inside = u32::try_from(r0.clamp(0, h)).unwrap_or(0)..u32::try_from(r1.clamp(0, h)).unwrap_or(0);
+        self.mosaic.rows_of(inside, &mut |r| Ok(each(crop(r))?))?;
+        for _ in r0.max(h)..r1 {
+            each(none())?;
+        }
+        Ok(())
     }
 }
 
@@ -676,19 +702,19 @@ pub(crate) fn coarse_grid(
 }
 
 /// Rows of a [`Coarse`] grid brought to a level's samples.
-struct Upsample {
+struct Upsample<S> {
     shift: u32,
     first: (i64, i64),
     size: (usize, usize),
     /// Per output column: the coarse column left of it and the weight of the right one.
     columns: Vec<(usize, f32)>,
-    held: VecDeque<Vec<f32>>,
+    held: VecDeque<Vec<S>>,
     /// Coarse row index of `held[0]`.
     front: usize,
 }
 
-impl Upsample {
-    fn new(coarse: &Coarse<'_, '_>, corner: (u32, u32), width: usize) -> Self {
+impl<S: Pixel> Upsample<S> {
+    fn new(coarse: &Coarse<'_, '_, S>, corner: (u32, u32), width: usize) -> Self {
         let grid = coarse.source.size();
         let size = (grid.0 as usize, grid.1 as usize);
         let columns = (0..width)
@@ -715,7 +741,7 @@ impl Upsample {
     }
 
     /// Level row `gy` (absolute), pulling coarse rows as needed.
-    fn row(&mut self, gy: u32, pull: &mut dyn FnMut() -> Result<Vec<f32>>) -> Result<Vec<f32>> {
+    fn row(&mut self, gy: u32, pull: &mut dyn FnMut() -> Result<Vec<S>>) -> Result<Vec<S>> {
         let (r, fy) = Self::at(gy, self.shift, self.first.1, self.size.1);
         while self.front + self.held.len() < (r + 2).min(self.size.1) {
             self.held.push_back(pull()?);
@@ -726,17 +752,11 @@ impl Upsample {
         }
         let top = &self.held[r - self.front];
         let bottom = self.held.get(r + 1 - self.front).unwrap_or(top);
-        // Between two values, one of which may be missing (then the other stands).
-        let lerp = |a: f32, b: f32, t: f32| match (a.is_nan(), b.is_nan()) {
-            (false, false) => a + (b - a) * t,
-            (false, true) => a,
-            (true, false) => b,
-            (true, true) => f32::NAN,
-        };
-        // Down first (a coarse row's worth), then across.
-        let between: Vec<f32> = top.iter().zip(bottom).map(|(&a, &b)| lerp(a, b, fy)).collect();
+        // Down first (a coarse row's worth), then across; where one of two values is
+        // missing, the other stands.
+        let between: Vec<S> = top.iter().zip(bottom).map(|(&a, &b)| S::lerp(a, b, fy)).collect();
         let last = self.size.0.saturating_sub(1);
-        Ok(self.columns.iter().map(|&(c, fx)| lerp(between[c], between[(c + 1).min(last)], fx)).collect())
+        Ok(self.columns.iter().map(|&(c, fx)| S::lerp(between[c], between[(c + 1).min(last)], fx)).collect())
     }
 }
 
@@ -744,15 +764,18 @@ impl Upsample {
 /// halved rows where they lie (`overrides`), else the `fine` inputs' heights, completed
 /// from the `coarse` ones where they have none and blended into them across `blend`
 /// samples along their data's edge.
-fn level_rows(
-    fine: Option<&Mosaic<Heights>>,
-    coarse: Option<&Coarse<'_, '_>>,
+fn level_rows<K: MosaicKind>(
+    fine: Option<&Mosaic<K>>,
+    coarse: Option<&Coarse<'_, '_, K::Value>>,
     grid: &GridSpec,
     corner: (u32, u32),
-    overrides: &[Override],
+    overrides: &[Override<K::Value>],
     blend: u32,
-    emit: &mut dyn FnMut(Vec<f32>) -> Result<()>,
-) -> Result<()> {
+    emit: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
+) -> Result<()>
+where
+    K::Value: Pixel,
+{
     let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
     let mut ring = Blender {
         width: w,
@@ -764,10 +787,10 @@ fn level_rows(
         front: 0,
         emitted: 0,
     };
-    let none = || vec![f32::NAN; w];
+    let none = || vec![K::Value::NONE; w];
     let Some(coarse) = coarse else {
         match fine {
-            Some(m) => m.rows_in(0..grid.size.1, &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
+            Some(m) => m.rows_of(0..grid.size.1, &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
             None => {
                 for _ in 0..h {
                     ring.push(none(), none(), emit)?;
@@ -777,22 +800,24 @@ fn level_rows(
         return ring.finish(h, emit);
     };
     let mut up = Upsample::new(coarse, corner, w);
-    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
+    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
     let (k, quantize) = (&coarse.source, coarse.quantize);
     std::thread::scope(|scope| -> Result<()> {
         let reader = scope.spawn(move || {
             k.rows(&mut |mut r| {
-                quantize(&mut r);
+                if let Some(q) = quantize {
+                    q(&mut r);
+                }
                 send.send(r).map_err(|_| crate::error::interrupted())
             })
         });
         let mut pull = || receive.recv().map_err(|_| crate::error::interrupted());
         // The fine rows are made on a thread of their own too, while this one blends the
         // rows before.
-        let (fine_send, fine_receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(64);
+        let (fine_send, fine_receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
         let fine_reader = fine.map(|f| {
             scope.spawn(move || {
-                f.rows_in(0..grid.size.1, &mut |r| {
+                f.rows_of(0..grid.size.1, &mut |r| {
                     Ok(fine_send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?)
                 })
             })
@@ -820,21 +845,21 @@ fn level_rows(
 
 /// A level's rows held until the rows `band` below them are in (for the blend's distance
 /// to the fine data's edge), with each row's distance along it.
-struct Blender<'a> {
+struct Blender<'a, S> {
     width: usize,
     band: usize,
     corner: (u32, u32),
-    overrides: &'a [Override],
+    overrides: &'a [Override<S>],
     /// Rows `front..` (fine, coarse, distance along the row to the fine data's edge).
-    held: VecDeque<(Vec<f32>, Vec<f32>, Vec<u32>)>,
+    held: VecDeque<(Vec<S>, Vec<S>, Vec<u32>)>,
     /// Per row held, the runs of columns within the band of an edge (first, end).
     near: VecDeque<Vec<(usize, usize)>>,
     front: usize,
     emitted: usize,
 }
 
-impl Blender<'_> {
-    fn push(&mut self, fine: Vec<f32>, coarse: Vec<f32>, emit: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+impl<S: Pixel> Blender<'_, S> {
+    fn push(&mut self, fine: Vec<S>, coarse: Vec<S>, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
         // Along the row: the distance to the nearest sample where the coarse data has
         // heights and the fine data none (the fine data's edge), up to the band + 1.
         let cap = u32::try_from(self.band + 1).unwrap_or(u32::MAX);
@@ -842,7 +867,7 @@ impl Blender<'_> {
         // (A row with no fine data is all edge where the coarse data has heights: the
         // rows above and below a survey count as much as those beside it.)
         if self.band > 0 {
-            let edge = |x: usize| fine[x].is_nan() && !coarse[x].is_nan();
+            let edge = |x: usize| !fine[x].has_data() && coarse[x].has_data();
             let mut d = cap;
             for (x, a) in across.iter_mut().enumerate() {
                 d = if edge(x) { 0 } else { (d + 1).min(cap) };
@@ -878,7 +903,7 @@ impl Blender<'_> {
         Ok(())
     }
 
-    fn finish(mut self, h: usize, emit: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+    fn finish(mut self, h: usize, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
         while self.emitted < h.min(self.front + self.held.len()) {
             self.emit_next(emit)?;
         }
@@ -886,7 +911,7 @@ impl Blender<'_> {
     }
 
     /// Emits row `emitted`, then drops the rows no later row needs.
-    fn emit_next(&mut self, emit: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+    fn emit_next(&mut self, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
         let y = self.emitted;
         let (band, w) = (self.band, self.width);
         let (f, k, _) = &self.held[y - self.front];
@@ -896,8 +921,8 @@ impl Blender<'_> {
         let cap = u32::try_from(band + 1).unwrap_or(u32::MAX);
         let mut distance = vec![cap; w];
         // Only where this row has fine data to blend.
-        let first = f.iter().position(|v| !v.is_nan());
-        let last = f.iter().rposition(|v| !v.is_nan()).map_or(0, |l| l + 1);
+        let first = f.iter().position(Pixel::has_data);
+        let last = f.iter().rposition(Pixel::has_data).map_or(0, |l| l + 1);
         if let (true, Some(first)) = (band > 0, first) {
             // Only the runs of columns near an edge: elsewhere a row's distance is the cap.
             for (j, ((_, _, across), runs)) in self.held.iter().zip(&self.near).enumerate() {
@@ -915,16 +940,16 @@ impl Blender<'_> {
         }
         #[expect(clippy::cast_precision_loss, reason = "small counts")]
         let scale = 1.0 / (band as f32 + 1.0);
-        let mut row: Vec<f32> = (f.iter().zip(k).zip(&distance))
+        let mut row: Vec<S> = (f.iter().zip(k).zip(&distance))
             .map(|((&a, &b), &d)| {
-                if a.is_nan() {
+                if !a.has_data() {
                     b
-                } else if b.is_nan() || d >= cap {
+                } else if !b.has_data() || d >= cap {
                     a
                 } else {
                     #[expect(clippy::cast_precision_loss, reason = "small counts")]
                     let t = d as f32 * scale;
-                    b + (a - b) * (t * t * (3.0 - 2.0 * t))
+                    S::lerp(b, a, t * t * (3.0 - 2.0 * t))
                 }
             })
             .collect();
@@ -935,7 +960,7 @@ impl Blender<'_> {
             let (from, to) = (o.x0.max(gx0), (o.x0 + src.len()).min(gx0 + w));
             for gx in from..to {
                 let v = src[gx - o.x0];
-                if !v.is_nan() {
+                if v.has_data() {
                     row[gx - gx0] = v;
                 }
             }

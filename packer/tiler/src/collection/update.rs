@@ -18,7 +18,7 @@ use terrastream_format::{
 };
 use terrastream_pack::progress::Progress;
 
-use super::{Blend, CoarseSource, Collection, CollectionInput, LevelSources, coarse_grid, depth_of};
+use super::{Blend, CoarseRows, Collection, CollectionInput, LevelSources, coarse_grid, depth_of};
 use crate::encode::{decode_heights, quantize_heights};
 use crate::error::{Error, Result};
 use crate::pyramid::{Pixel, Spool};
@@ -35,12 +35,12 @@ pub(crate) struct StoredLevel<'a> {
     size: (u32, u32),
 }
 
-impl StoredLevel<'_> {
-    pub(crate) fn size(&self) -> (u32, u32) {
+impl CoarseRows<f32> for StoredLevel<'_> {
+    fn size(&self) -> (u32, u32) {
         self.size
     }
 
-    pub(crate) fn rows(&self, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+    fn rows(&self, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
         for r in 0..i64::from(self.size.1) {
             let row = (0..i64::from(self.size.0))
                 .map(|c| self.stored.sample(self.lod, self.first.0 + c, self.first.1 + r))
@@ -261,10 +261,21 @@ pub(crate) fn update_collection(
         let (first, coarse) =
             coarse_grid(grid.origin, (grid.pixel.0 * scale, grid.pixel.1 * scale), corner, g.size, shift);
         let level = StoredLevel { stored: &stored, lod: base_lod, first, size: coarse.size };
-        Ok(LevelSources { fine, coarse: Some((CoarseSource::Archive(level), shift, first)) })
+        let level: Box<dyn CoarseRows<f32> + '_> = Box::new(level);
+        Ok(LevelSources { fine, coarse: Some((level, shift, first)) })
     };
-    let overrides =
-        super::make_levels(&c, &metadata, index, &heights, &quantize, &folder, &mut spool, progress, &sources_of)?;
+    let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+    let overrides = super::make_levels(
+        &c,
+        &metadata,
+        index,
+        &encode_tile,
+        Some(&quantize),
+        &folder,
+        &mut spool,
+        progress,
+        &sources_of,
+    )?;
 
     // The base level under them, and every level above, made again where they changed.
     let res = i64::from(layer.tile_resolution);
