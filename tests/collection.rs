@@ -404,3 +404,63 @@ fn update_refuses_what_it_cannot_add_and_merge_a_collection() {
     assert_eq!(std::fs::read(&col).unwrap(), before, "the archive is as it was");
     assert!(!d.join("m.tspack").exists());
 }
+
+/// Imagery follows the same rules: a 10" picture and a 1" one of its middle (GDAL's colour
+/// relief of the committed crop, made here) over the crop's heights. The texture's finer
+/// levels hold tiles only over the fine picture; inside it, beyond the blend band, its
+/// tiles are those a one-resolution run makes, byte for byte.
+#[test]
+fn imagery_of_different_resolutions_reaches_its_own_depth() {
+    if std::process::Command::new("gdaldem").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let dem = repo().join(oracles::DEM);
+    let gdal = |args: &[&str]| {
+        let out = std::process::Command::new(args[0]).args(&args[1..]).current_dir(d).output().unwrap();
+        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    std::fs::write(d.join("ramp.txt"), "0 20 60 20\n300 140 160 60\n600 200 200 200\n800 255 255 255\n").unwrap();
+    gdal(&["gdaldem", "color-relief", "-q", dem.to_str().unwrap(), "ramp.txt", "rgb.tif"]);
+    gdal(&["gdal_translate", "-q", "-srcwin", "80", "80", "160", "160", "rgb.tif", "fine.tif"]);
+    let ten = format!("{}", 10.0 / 3600.0);
+    gdal(&["gdalwarp", "-q", "-tr", &ten, &ten, "-r", "average", "rgb.tif", "coarse.tif"]);
+    let (coarse, fine) = (d.join("coarse.tif"), d.join("fine.tif"));
+    let run = |name: &str, extra: &[&str]| {
+        let out = d.join(name);
+        let (c, f) = (coarse.to_str().unwrap(), fine.to_str().unwrap());
+        let mut args = vec!["tile", "--elevation", dem.to_str().unwrap(), "--texture", c, f];
+        args.extend(["--tile-size", "32", "--texture-tile-size", "32", "-o", out.to_str().unwrap()]);
+        args.extend(extra);
+        ok(&args, d);
+        out
+    };
+    let (col, one) = (run("col.tspack", &[]), run("one.tspack", &["--priority", "order"]));
+    let texture = |p: &Path| -> BTreeMap<terrastream_format::TileKey, Vec<u8>> {
+        tiles_of(p).into_iter().filter(|(k, _)| k.layer() == 1).collect()
+    };
+    let (ours, theirs) = (texture(&col), texture(&one));
+    let lod0: Vec<_> = ours.keys().filter(|k| k.lod() == 0).copied().collect();
+    let all0 = theirs.keys().filter(|k| k.lod() == 0).count();
+    eprintln!(
+        "imagery: LOD 0 holds {} tiles, {all0} at one resolution; {} against {} in all",
+        lod0.len(),
+        ours.len(),
+        theirs.len()
+    );
+    assert!(lod0.len() * 2 < all0, "LOD 0: {} of {all0} tiles", lod0.len());
+    let info = ok(&["info", col.to_str().unwrap()], d);
+    let texture_layer = info.split("layer 1").nth(1).unwrap_or_default().split("layer 2").next().unwrap_or_default();
+    assert!(texture_layer.contains("only where fine inputs lie: LOD0"), "{info}");
+    // Two tiles in from the fine picture's tiles: beyond the blend band.
+    let (x0, x1) = (lod0.iter().map(|k| k.x()).min().unwrap(), lod0.iter().map(|k| k.x()).max().unwrap());
+    let (y0, y1) = (lod0.iter().map(|k| k.y()).min().unwrap(), lod0.iter().map(|k| k.y()).max().unwrap());
+    let inner: Vec<_> =
+        lod0.iter().filter(|k| k.x() >= x0 + 2 && k.x() + 2 <= x1 && k.y() >= y0 + 2 && k.y() + 2 <= y1).collect();
+    assert!(inner.len() >= 4, "{inner:?}");
+    for k in inner {
+        assert_eq!(ours[k], theirs[k], "tile {k} inside the fine picture");
+    }
+}

@@ -8,8 +8,8 @@ use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
-    Blend, Collection, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions, TileRequest,
-    expand_inputs, is_vrt, plan, shard_plan, tile_collection, tile_shard,
+    Blend, Collection, Collections, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions,
+    TileRequest, expand_inputs, is_vrt, plan, shard_plan, tile_collection, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -435,11 +435,17 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     // Inputs of different resolutions, each as deep as it reaches.
-    let sparse = (args.priority == PriorityArg::Resolution && !request.elevation.iter().any(|p| is_vrt(p)))
+    // Inputs of different resolutions, each as deep as it reaches (heights, imagery).
+    let by_resolution = args.priority == PriorityArg::Resolution;
+    let sparse_heights = (by_resolution && !request.elevation.iter().any(|p| is_vrt(p)))
         .then(|| sources.height_mosaic())
         .flatten()
         .filter(|m| Collection::spans_resolutions(m));
-    if let Some(mosaic) = sparse {
+    let sparse_images = (by_resolution && !request.texture.iter().any(|p| is_vrt(p)))
+        .then(|| sources.image_mosaic())
+        .flatten()
+        .filter(|m| Collection::spans_resolutions(m));
+    if sparse_heights.is_some() || sparse_images.is_some() {
         if args.shard.is_some() {
             bail!(
                 "--shard: the inputs are of different resolutions (each tiled as deep as it reaches), which shards \
@@ -448,14 +454,17 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
         let mut plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
         let blend = args.blend.unwrap_or_default();
-        let Some(collection) = Collection::plan(mosaic, &plan.metadata, blend) else {
-            bail!("{}: no levels to make", request.elevation[0].display());
-        };
-        collection.apply_to(&mut plan);
+        let heights = sparse_heights.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Elevation, blend));
+        let imagery = sparse_images.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Texture, blend));
+        for c in [&heights, &imagery].into_iter().flatten() {
+            c.apply_to(&mut plan);
+        }
         if args.dry_run {
             progress.finish();
             print_plan(&name, &plan);
-            print_collection(&collection);
+            for c in [&heights, &imagery].into_iter().flatten() {
+                print_collection(c);
+            }
             if let Some(out) = &args.height_range_out {
                 write_height_range(&plan, out)?;
             }
@@ -463,20 +472,31 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
         let Some(output) = &args.output else { bail!("--output is required") };
         super::make_parent(output)?;
-        let summary = tile_collection(&collection, &request, &sources, texture, &plan, output, progress)?;
+        let collections = Collections { heights: heights.as_ref(), imagery: imagery.as_ref() };
+        let summary = tile_collection(collections, &request, &sources, elevation, texture, &plan, output, progress)?;
         progress.finish();
         if let Some(manifest) = &args.manifest_out {
             terrastream_tiler::single_manifest(output, manifest)?;
         }
         print_skipped(&sources);
+        let deep: Vec<String> = [&heights, &imagery]
+            .into_iter()
+            .flatten()
+            .map(|c| {
+                format!(
+                    "{}: the whole grid from LOD {}, finer levels where the inputs reach",
+                    people_kind(c.kind),
+                    c.base
+                )
+            })
+            .collect();
         println!(
-            "{}: {} tiles, {} bytes in {:.2} s ({} levels over the whole grid from LOD {}, finer ones where the inputs reach)",
+            "{}: {} tiles, {} bytes in {:.2} s ({})",
             output.display(),
             summary.tile_entries,
             summary.file_len,
             started.elapsed().as_secs_f64(),
-            plan.metadata.layers[0].num_lods - collection.base,
-            collection.base
+            deep.join("; ")
         );
         return Ok(ExitCode::SUCCESS);
     }
@@ -575,10 +595,19 @@ fn print_plan(name: &str, plan: &Plan) {
     );
 }
 
+/// The layer a collection makes, for people.
+fn people_kind(kind: LayerKind) -> &'static str {
+    if kind == LayerKind::Texture { "imagery" } else { "elevation" }
+}
+
 /// A collection's levels: each input's spacing and depth, and the tiles of each level
 /// below the base.
 fn print_collection(c: &Collection) {
-    println!("inputs of different resolutions, each as deep as it reaches (LOD 0 at {:.3} units):", c.grid.pixel.0);
+    println!(
+        "{} inputs of different resolutions, each as deep as it reaches (LOD 0 at {:.3} units):",
+        people_kind(c.kind),
+        c.grid.pixel.0
+    );
     for i in &c.inputs {
         println!("  {:<40} spacing {:>10.3}  from LOD {}", i.path.display(), i.spacing, i.depth);
     }

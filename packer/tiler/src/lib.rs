@@ -29,7 +29,9 @@ mod request;
 mod shard;
 mod tile;
 
-pub use collection::{Blend, Collection, CollectionInput, DEFAULT_BLEND, SparseLevel, depth_of, tile_collection};
+pub use collection::{
+    Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, SparseLevel, depth_of, tile_collection,
+};
 pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
 pub use edit::merge::{MergeSummary, Prefer, merge, merge_with};
 pub use edit::update::{UpdateSummary, update};

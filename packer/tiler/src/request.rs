@@ -127,6 +127,11 @@ impl Sources {
         self.height_range = Some(range);
     }
 
+    /// The imagery's mosaic, where the inputs make one.
+    pub fn image_mosaic(&self) -> Option<&Mosaic<Pixels>> {
+        self.images.as_ref()
+    }
+
     /// The heights' mosaic, where the inputs make one.
     pub fn height_mosaic(&self) -> Option<&Mosaic<Heights>> {
         self.heights.as_ref()

@@ -161,7 +161,7 @@ pub(crate) fn tile_planned(
 }
 
 /// Cuts and encodes `plan`'s tiles (as [`tile_planned`]) into a spool in `folder`.
-fn cut_planned(
+pub(crate) fn cut_planned(
     folder: &Path,
     elevation: Option<&dyn ElevationSource>,
     texture: Option<TextureInput<'_>>,

@@ -33,7 +33,7 @@ use crate::error::{Error, Result};
 use crate::options::TextureInput;
 use crate::plan::Plan;
 use crate::pyramid::{Pixel, Spool, Window, halve_rows};
-use crate::raster::{DatumName, GridSpec, Heights, InputLayout, Mosaic, MosaicKind};
+use crate::raster::{DatumName, GridSpec, Heights, InputLayout, Mosaic, MosaicKind, Pixels};
 use crate::request::{Sources, TileRequest};
 use crate::tile::{HeightEncoder, cut_texture, full_windows, run_pyramid, write_spool};
 
@@ -100,6 +100,8 @@ pub struct Collection {
     pub grid: GridSpec,
     /// Blend band, samples of each finer input's level.
     pub blend: u32,
+    /// The layer it makes: elevation (with its height ranges) or imagery.
+    pub kind: LayerKind,
 }
 
 /// The depth of an input of spacing `spacing` on a LOD 0 of spacing `finest`: the finest
@@ -116,11 +118,12 @@ pub fn depth_of(spacing: f64, finest: f64) -> u8 {
 }
 
 impl Collection {
-    /// The levels of `mosaic`'s inputs on `metadata`'s elevation layer (its tile size and
-    /// LOD count): None when every input reaches LOD 0 (a single-resolution run).
+    /// The levels of `mosaic`'s inputs on `metadata`'s layer of `kind` (elevation or
+    /// texture: its tile size and LOD count): None when every input reaches LOD 0 (a
+    /// single-resolution run).
     #[must_use]
-    pub fn plan(mosaic: &Mosaic<Heights>, metadata: &Metadata, blend: Blend) -> Option<Self> {
-        let layer = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation)?;
+    pub fn plan<K: MosaicKind>(mosaic: &Mosaic<K>, metadata: &Metadata, kind: LayerKind, blend: Blend) -> Option<Self> {
+        let layer = metadata.layers.iter().find(|l| l.kind == kind)?;
         let grid = mosaic.grid();
         let finest = grid.pixel.0.min(grid.pixel.1);
         let top = layer.num_lods.saturating_sub(1);
@@ -149,25 +152,25 @@ impl Collection {
         }
         let levels = sparse_levels(&inputs, layer, base);
         let blend = blend_samples(blend, finest);
-        Some(Self { inputs, base, levels, grid, blend })
+        Some(Self { inputs, base, levels, grid, blend, kind })
     }
 
     /// Whether `mosaic`'s inputs reach different levels (some more than 2x coarser than
     /// the finest): known from their headers.
     #[must_use]
-    pub fn spans_resolutions(mosaic: &Mosaic<Heights>) -> bool {
+    pub fn spans_resolutions<K: MosaicKind>(mosaic: &Mosaic<K>) -> bool {
         let grid = mosaic.grid();
         let finest = grid.pixel.0.min(grid.pixel.1);
         let depths: HashSet<u8> = mosaic.layout().iter().map(|i| depth_of(i.spacing, finest)).collect();
         depths.len() > 1
     }
 
-    /// Makes `plan`'s counts those of the collection: the elevation's tiles and the height
-    /// ranges' (the estimated bytes scaled alike).
+    /// Makes `plan`'s counts those of the collection: its layer's tiles (and the height
+    /// ranges' with the elevation's), the estimated bytes scaled alike.
     pub fn apply_to(&self, plan: &mut Plan) {
         let tiles = self.tiles(&plan.metadata);
         for (layer, p) in plan.metadata.layers.iter().zip(&mut plan.layers) {
-            if matches!(layer.kind, LayerKind::Elevation | LayerKind::HeightRange) && p.tiles > 0 {
+            if self.makes(layer.kind) && p.tiles > 0 {
                 #[expect(
                     clippy::cast_precision_loss,
                     clippy::cast_possible_truncation,
@@ -181,11 +184,18 @@ impl Collection {
         }
     }
 
-    /// Tiles of the elevation layer, every level: those below the base, and the base's
+    /// Whether a layer of `kind` is this collection's (the height ranges go with the
+    /// elevation).
+    #[must_use]
+    pub fn makes(&self, kind: LayerKind) -> bool {
+        kind == self.kind || (self.kind == LayerKind::Elevation && kind == LayerKind::HeightRange)
+    }
+
+    /// Tiles of the collection's layer, every level: those below the base, and the base's
     /// whole pyramid.
     #[must_use]
     pub fn tiles(&self, metadata: &Metadata) -> u64 {
-        let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else { return 0 };
+        let Some(layer) = metadata.layers.iter().find(|l| l.kind == self.kind) else { return 0 };
         let sparse: u64 = self.levels.iter().map(|l| l.tiles.len() as u64).sum();
         let full: u64 = (self.base..layer.num_lods)
             .map(|lod| {
@@ -225,7 +235,7 @@ impl Collection {
 
     /// Tiles cut, every level: the rectangles' (rings included) and the base's pyramid.
     fn cut_tiles(&self, metadata: &Metadata) -> u64 {
-        let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else { return 0 };
+        let Some(layer) = metadata.layers.iter().find(|l| l.kind == self.kind) else { return 0 };
         let rects: u64 = (self.levels.iter().flat_map(|l| &l.rects))
             .map(|r| u64::from(r[2] - r[0] + 1) * u64::from(r[3] - r[1] + 1))
             .sum();
@@ -299,7 +309,7 @@ pub(crate) fn records(c: &Collection, metadata: &Metadata) -> (Vec<SourceRecord>
     let georeference = metadata.georeference.clone();
     // Output CRS units per world metre (the spacings are CRS units).
     let per_metre = georeference.as_ref().and_then(|g| g.scale).map_or(1.0, |s| s[0]);
-    let Some(layer) = metadata.layers.iter().find(|l| l.kind == LayerKind::Elevation) else {
+    let Some(layer) = metadata.layers.iter().find(|l| l.kind == c.kind) else {
         return (vec![], vec![]);
     };
     let sample = layer.tile_world_size / f64::from(layer.tile_resolution);
@@ -373,16 +383,28 @@ pub(crate) struct Override<S = f32> {
     rows: Vec<Vec<S>>,
 }
 
-/// Tiles the collection `c` of `request`'s heights (opened as `sources`), with `texture`
-/// tiled as a single run tiles it, into the archive at `out`, on `plan` (made from the
-/// whole mosaic: its grid, LOD count and height encoding).
+/// The collections of one run: of the heights, of the imagery, or both.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Collections<'c> {
+    /// The heights' (None: tiled as one resolution).
+    pub heights: Option<&'c Collection>,
+    /// The imagery's (None: tiled as one resolution).
+    pub imagery: Option<&'c Collection>,
+}
+
+/// Tiles `request`'s inputs (opened as `sources`; `elevation` and `texture` as
+/// [`crate::Inputs`] gives them), each layer of `collections` as a collection and the others
+/// as a single run tiles them, into the archive at `out`, on `plan` (made from the whole
+/// mosaics: their grids, LOD counts and height encoding).
 ///
 /// # Errors
 /// As [`crate::tile_terrain`]; inputs that cannot be opened again on a level's grid.
+#[expect(clippy::too_many_arguments, reason = "the request, its sources, its plan, and where to write")]
 pub fn tile_collection(
-    c: &Collection,
+    collections: Collections<'_>,
     request: &TileRequest,
     sources: &Sources,
+    elevation: Option<&dyn crate::raster::ElevationSource>,
     texture: Option<TextureInput<'_>>,
     plan: &Plan,
     out: &Path,
@@ -390,30 +412,62 @@ pub fn tile_collection(
 ) -> Result<WriteSummary> {
     let started = std::time::Instant::now();
     let mut recorded = plan.metadata.clone();
-    let (inputs, covers) = records(c, &recorded);
-    recorded.sources = inputs;
-    for layer in &mut recorded.layers {
-        if let (Some(extent), LayerKind::Elevation | LayerKind::HeightRange) = (&mut layer.extent, layer.kind) {
-            extent.partial.clone_from(&covers);
+    for c in [collections.heights, collections.imagery].into_iter().flatten() {
+        let (inputs, covers) = records(c, &recorded);
+        if c.kind == LayerKind::Elevation {
+            recorded.sources = inputs;
+        }
+        for layer in &mut recorded.layers {
+            if let (Some(extent), true) = (&mut layer.extent, c.makes(layer.kind)) {
+                extent.partial.clone_from(&covers);
+            }
         }
     }
-    let metadata = &recorded;
+    let planned = Plan { metadata: recorded, layers: plan.layers.clone() };
+    let metadata = &planned.metadata;
+    let folder = terrastream_pack::output_folder(out);
+    let mut spool = match (collections.heights, elevation) {
+        (Some(c), _) => {
+            let mut spool = Spool::new(&folder)?;
+            cut_heights(c, request, sources, metadata, &folder, &mut spool, progress)?;
+            spool
+        }
+        (None, Some(e)) => {
+            crate::tile::cut_planned(&folder, Some(e), None, &planned, &full_windows(&planned), progress)?
+        }
+        (None, None) => Spool::new(&folder)?,
+    };
+    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights cut");
+    match (collections.imagery, texture) {
+        (Some(c), Some(t)) => cut_imagery(c, request, sources, t.format, metadata, &folder, &mut spool, progress)?,
+        (None, Some(t)) => cut_texture(t, &planned, &full_windows(&planned), &mut spool, progress)?,
+        _ => {}
+    }
+    write_spool(spool, metadata, out, true, progress, started)
+}
+
+/// Cuts the heights' collection `c` (and its height ranges) into `spool`.
+fn cut_heights(
+    c: &Collection,
+    request: &TileRequest,
+    sources: &Sources,
+    metadata: &Metadata,
+    folder: &Path,
+    spool: &mut Spool,
+    progress: &dyn Progress,
+) -> Result<()> {
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
     let index = find(LayerKind::Elevation).ok_or(Error::NothingToTile)?;
-    let layer = &metadata.layers[usize::from(index)];
     let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
     let encoding = heights.encoding;
     let quantize = move |row: &mut [f32]| quantize_heights(row, &encoding);
-    let folder = terrastream_pack::output_folder(out);
-    let mut spool = Spool::new(&folder)?;
-    progress.start("tile", c.cut_tiles(metadata));
     let main = sources.height_mosaic().ok_or(Error::NothingToTile)?;
     let datum = main.datum().cloned();
     let crs = main.crs().definition().to_owned();
     let range = (metadata.terrain.min_elevation, metadata.terrain.max_elevation);
     #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
     let range = ((range.0 as f32).next_down(), (range.1 as f32).next_up());
-    // Inputs of the collection whose footprints reach `grid` (LOD-0 samples), by depth.
+    // Inputs of the collection on a grid.
     let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Heights>>> {
         if paths.is_empty() {
             return Ok(None);
@@ -435,13 +489,71 @@ pub fn tile_collection(
         };
         Ok(Sources::open(&sub)?.into_mosaics().0)
     };
-    let reaching =
-        |lod: u8, corner: (u32, u32), grid: &GridSpec, depth: &dyn Fn(u8) -> bool| c.reaching(lod, corner, grid, depth);
+    let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress)?;
+    heights.finish(metadata, Vec::new(), spool)
+}
 
-    let sources_of = |lod: u8, corner: (u32, u32), grid: &GridSpec| -> Result<LevelSources<'static>> {
-        let fine = open(reaching(lod, corner, grid, &|d| d == lod), *grid)?;
+/// Cuts the imagery's collection `c` into `spool`, its tiles stored as `format`.
+#[expect(clippy::too_many_arguments, reason = "the collection, its sources, and where tiles go")]
+fn cut_imagery(
+    c: &Collection,
+    request: &TileRequest,
+    sources: &Sources,
+    format: crate::options::TextureFormat,
+    metadata: &Metadata,
+    folder: &Path,
+    spool: &mut Spool,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let index = (metadata.layers.iter().position(|l| l.kind == LayerKind::Texture))
+        .and_then(|i| u8::try_from(i).ok())
+        .ok_or(Error::NothingToTile)?;
+    let main = sources.image_mosaic().ok_or(Error::NothingToTile)?;
+    let crs = main.crs().definition().to_owned();
+    let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Pixels>>> {
+        if paths.is_empty() {
+            return Ok(None);
+        }
+        let sub = TileRequest {
+            texture: paths,
+            crs: Some(crs.clone()),
+            texture_grid: Some(grid),
+            skip_bad_inputs: request.skip_bad_inputs,
+            ..TileRequest::default()
+        };
+        Ok(Sources::open(&sub)?.into_mosaics().1)
+    };
+    let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+        Ok(vec![(key, crate::encode::encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
+    };
+    cut_levels(c, metadata, index, &open, &encode_tile, None, folder, spool, progress)
+}
+
+/// Cuts collection `c`'s levels of layer `index`: those below its base from the inputs
+/// `open` opens on each rectangle's grid, and the base's pyramid over the whole grid.
+#[expect(clippy::too_many_arguments, reason = "the collection, how to read and encode, and where tiles go")]
+fn cut_levels<K: MosaicKind>(
+    c: &Collection,
+    metadata: &Metadata,
+    index: u8,
+    open: &(dyn Fn(Vec<PathBuf>, GridSpec) -> Result<Option<Mosaic<K>>> + Sync),
+    encode_tile: &EncodeTile<'_, K::Value>,
+    quantize: Option<&QuantizeRow<'_, K::Value>>,
+    folder: &Path,
+    spool: &mut Spool,
+    progress: &dyn Progress,
+) -> Result<()>
+where
+    K::Value: Pixel,
+{
+    let started = std::time::Instant::now();
+    let layer = &metadata.layers[usize::from(index)];
+    progress.start("tile", c.cut_tiles(metadata));
+    let sources_of = |lod: u8, corner: (u32, u32), grid: &GridSpec| -> Result<LevelSources<'static, K>> {
+        let fine = open(c.reaching(lod, corner, grid, &|d| d == lod), *grid)?;
         // The coarser inputs, on the grid of the level they reach (as it stores them).
-        let below = reaching(lod, corner, grid, &|d| d > lod);
+        let below = c.reaching(lod, corner, grid, &|d| d > lod);
         let shift = (c.inputs.iter())
             .filter(|i| i.depth > lod && below.contains(&i.path))
             .map(|i| u32::from(i.depth - lod))
@@ -451,25 +563,21 @@ pub fn tile_collection(
         let (first, part) =
             coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
         let coarse_lod = lod + u8::try_from(shift).unwrap_or(0);
-        let whole = c.level_grid(coarse_lod);
-        let coarse = open(below, whole)?.map(|mosaic| {
-            let part: Box<dyn CoarseRows<f32>> = Box::new(MosaicPart { mosaic, first, size: part.size });
+        let coarse = open(below, c.level_grid(coarse_lod))?.map(|mosaic| {
+            let part: Box<dyn CoarseRows<K::Value>> = Box::new(MosaicPart { mosaic, first, size: part.size });
             (part, shift, first)
         });
         Ok(LevelSources { fine, coarse })
     };
-    let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
-    let overrides =
-        make_levels(c, metadata, index, &encode_tile, Some(&quantize), &folder, &mut spool, progress, &sources_of)?;
-    tracing::debug!(elapsed = ?started.elapsed(), "levels below the base made");
+    let overrides = make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of)?;
+    tracing::debug!(elapsed = ?started.elapsed(), layer = index, "levels below the base made");
 
     // The base: every level from here up over the whole grid, a pyramid as a single run's.
     let base = c.base;
-    let g = c.grid;
     let grid = c.level_grid(base);
     let size = grid.size;
-    let mosaic = open(reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
-    let encode = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+    let mosaic = open(c.reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
+    let encode = |key: TileKey, samples: &[K::Value], edge: usize| encode_tile(key, samples, edge);
     let window = Window {
         input_lod: base,
         last_lod: layer.num_lods - 1,
@@ -477,16 +585,11 @@ pub fn tile_collection(
         rows: 0..size.1 as usize,
         band: 0..size.1 as usize,
     };
-    run_pyramid(metadata, index, g.size, &window, &encode, Some(&quantize), &mut spool, progress, |push| {
+    run_pyramid(metadata, index, c.grid.size, &window, &encode, quantize, spool, progress, |push| {
         level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, push)
     })?;
-    heights.finish(metadata, Vec::new(), &mut spool)?;
-    tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights of the collection cut");
-    if let Some(t) = texture {
-        let plan = Plan { metadata: recorded.clone(), layers: plan.layers.clone() };
-        cut_texture(t, &plan, &full_windows(&plan), &mut spool, progress)?;
-    }
-    write_spool(spool, metadata, out, true, progress, started)
+    tracing::debug!(elapsed = ?started.elapsed(), layer = index, tiles = spool.tiles(), "collection cut");
+    Ok(())
 }
 
 /// Opens what level `lod`'s rectangle (corner sample, grid) is made from.

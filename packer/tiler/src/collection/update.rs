@@ -224,7 +224,7 @@ pub(crate) fn update_collection(
         (None, Some(recorded)) => recorded,
         (asked, _) => super::blend_samples(asked.unwrap_or_default(), finest),
     };
-    let c = Collection { inputs, base: base_lod, levels, grid, blend };
+    let c = Collection { inputs, base: base_lod, levels, grid, blend, kind: LayerKind::Elevation };
     for level in &c.levels {
         for &(x, y) in &level.tiles {
             if reader.locate(TileKey::new(index, level.lod, x, y)?)?.is_some() {
