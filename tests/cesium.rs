@@ -208,6 +208,21 @@ fn cesium_build_or_missing() -> (Option<PathBuf>, Vec<&'static str>) {
     (build, missing)
 }
 
+/// CesiumJS's built files, when they, the browser and the GDAL and PROJ oracles are here
+/// (else None, the test skipped, or failed on CI).
+fn cesium_with_oracles() -> Option<PathBuf> {
+    let (build, mut missing) = cesium_build_or_missing();
+    for tool in ["gdaltransform", "gdallocationinfo"] {
+        if Command::new(tool).arg("--version").output().is_err() {
+            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
+        }
+    }
+    if Command::new("cct").arg("--version").output().is_err() {
+        missing.push("PROJ's command-line tools (apt-get install proj-bin)");
+    }
+    terrastream_testkit::browser::skip_or_fail("CESIUM", &missing).then_some(build).flatten()
+}
+
 /// Loads `page`, waits until the globe has loaded every tile of the view, and returns
 /// Cesium's heights at `points` (`sampleTerrainMostDetailed`, as documented) and a
 /// screenshot; fails on any `errorEvent` or failed request.
@@ -253,18 +268,7 @@ fn cesium_run(
 #[test]
 fn cesium_flies_the_served_and_the_exported_terrain() {
     use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
-    let (build, mut missing) = cesium_build_or_missing();
-    for tool in ["gdaltransform", "gdallocationinfo"] {
-        if Command::new(tool).arg("--version").output().is_err() {
-            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
-        }
-    }
-    if Command::new("cct").arg("--version").output().is_err() {
-        missing.push("PROJ's command-line tools (apt-get install proj-bin)");
-    }
-    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
-        return;
-    }
+    let Some(build) = cesium_with_oracles() else { return };
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
@@ -279,7 +283,7 @@ fn cesium_flies_the_served_and_the_exported_terrain() {
     // documented.
     let root = dir.path().join("www");
     std::fs::create_dir_all(&root).unwrap();
-    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    std::os::unix::fs::symlink(&build, root.join("cesium")).unwrap();
     let page = oracles::snippet("cesium-page");
     assert!(page.contains(&format!("width: {WIDTH}px; height: {HEIGHT}px")), "the globe's size changed");
     std::fs::write(root.join("index.html"), page).unwrap();
@@ -324,18 +328,7 @@ fn cesium_flies_the_served_and_the_exported_terrain() {
 #[test]
 fn cesium_reads_private_terrain_with_a_token_or_a_header() {
     use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
-    let (build, mut missing) = cesium_build_or_missing();
-    for tool in ["gdaltransform", "gdallocationinfo"] {
-        if Command::new(tool).arg("--version").output().is_err() {
-            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
-        }
-    }
-    if Command::new("cct").arg("--version").output().is_err() {
-        missing.push("PROJ's command-line tools (apt-get install proj-bin)");
-    }
-    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
-        return;
-    }
+    let Some(build) = cesium_with_oracles() else { return };
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
     let cli = |args: &[&str]| {
@@ -358,7 +351,7 @@ fn cesium_reads_private_terrain_with_a_token_or_a_header() {
     let truth = ellipsoidal_truth(&points);
     let root = dir.path().join("www");
     std::fs::create_dir_all(&root).unwrap();
-    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    std::os::unix::fs::symlink(&build, root.join("cesium")).unwrap();
     std::fs::write(root.join("key.html"), oracles::snippet("cesium-key-page")).unwrap();
     let Some(nginx) = terrastream_testkit::nginx::start_nginx(
         &root,
@@ -562,18 +555,7 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
 #[test]
 fn cesium_flies_a_collection_of_a_base_and_a_patch() {
     use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
-    let (build, mut missing) = cesium_build_or_missing();
-    for tool in ["gdaltransform", "gdallocationinfo"] {
-        if Command::new(tool).arg("--version").output().is_err() {
-            missing.push("GDAL's command-line tools (apt-get install gdal-bin)");
-        }
-    }
-    if Command::new("cct").arg("--version").output().is_err() {
-        missing.push("PROJ's command-line tools (apt-get install proj-bin)");
-    }
-    if !terrastream_testkit::browser::skip_or_fail("CESIUM", &missing) {
-        return;
-    }
+    let Some(build) = cesium_with_oracles() else { return };
     let dir = tempfile::tempdir().unwrap();
     let repo = oracles::repo();
     let collection = dir.path().join("collection.tspack");
@@ -600,7 +582,7 @@ fn cesium_flies_a_collection_of_a_base_and_a_patch() {
     let truth = ellipsoidal_truth(&points);
     let root = dir.path().join("www");
     std::fs::create_dir_all(&root).unwrap();
-    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
+    std::os::unix::fs::symlink(&build, root.join("cesium")).unwrap();
     std::fs::write(root.join("index.html"), oracles::snippet("cesium-page")).unwrap();
     let Some(nginx) = terrastream_testkit::nginx::start_nginx(
         &root,

@@ -48,16 +48,10 @@ fn tile(dir: &Path, name: &str, inputs: &[&str], extra: &[&str]) -> PathBuf {
 
 /// Elevation tiles per LOD.
 fn per_lod(path: &Path) -> BTreeMap<u8, usize> {
-    let reader = Reader::open_mmap(path).unwrap();
     let mut counts = BTreeMap::new();
-    reader
-        .for_each_tile(|key, _| -> Result<(), terrastream_format::Error> {
-            if key.layer() == 0 {
-                *counts.entry(key.lod()).or_default() += 1;
-            }
-            Ok(())
-        })
-        .unwrap();
+    for key in tiles_of(path).keys().filter(|k| k.layer() == 0) {
+        *counts.entry(key.lod()).or_default() += 1;
+    }
     counts
 }
 

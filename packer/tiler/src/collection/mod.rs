@@ -197,13 +197,7 @@ impl Collection {
     pub fn tiles(&self, metadata: &Metadata) -> u64 {
         let Some(layer) = metadata.layers.iter().find(|l| l.kind == self.kind) else { return 0 };
         let sparse: u64 = self.levels.iter().map(|l| l.tiles.len() as u64).sum();
-        let full: u64 = (self.base..layer.num_lods)
-            .map(|lod| {
-                let (nx, ny) = layer.grid_at(lod);
-                u64::from(nx) * u64::from(ny)
-            })
-            .sum();
-        sparse + full
+        sparse + self.full_tiles(layer)
     }
 
     /// The inputs (by `depth`) whose footprints reach level `lod`'s `grid` (corner sample
@@ -233,19 +227,23 @@ impl Collection {
         GridSpec { origin: g.origin, pixel: (g.pixel.0 * scale, g.pixel.1 * scale), size }
     }
 
+    /// Tiles of the levels from the base up, over the whole grid.
+    fn full_tiles(&self, layer: &terrastream_format::Layer) -> u64 {
+        (self.base..layer.num_lods)
+            .map(|lod| {
+                let (nx, ny) = layer.grid_at(lod);
+                u64::from(nx) * u64::from(ny)
+            })
+            .sum()
+    }
+
     /// Tiles cut, every level: the rectangles' (rings included) and the base's pyramid.
     fn cut_tiles(&self, metadata: &Metadata) -> u64 {
         let Some(layer) = metadata.layers.iter().find(|l| l.kind == self.kind) else { return 0 };
         let rects: u64 = (self.levels.iter().flat_map(|l| &l.rects))
             .map(|r| u64::from(r[2] - r[0] + 1) * u64::from(r[3] - r[1] + 1))
             .sum();
-        let full: u64 = (self.base..layer.num_lods)
-            .map(|lod| {
-                let (nx, ny) = layer.grid_at(lod);
-                u64::from(nx) * u64::from(ny)
-            })
-            .sum();
-        rects + full
+        rects + self.full_tiles(layer)
     }
 
     /// The level-`lod` grid over tile rectangle `rect` (with `res`-sample tiles), clipped
