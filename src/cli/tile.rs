@@ -437,14 +437,26 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     // Inputs of different resolutions, each as deep as it reaches.
     // Inputs of different resolutions, each as deep as it reaches (heights, imagery).
     let by_resolution = args.priority == PriorityArg::Resolution;
-    let sparse_heights = (by_resolution && !request.elevation.iter().any(|p| is_vrt(p)))
+    let vrt = request.elevation.iter().chain(&request.texture).find(|p| is_vrt(p));
+    let sparse_heights = (by_resolution && vrt.is_none())
         .then(|| sources.height_mosaic())
         .flatten()
         .filter(|m| Collection::spans_resolutions(m));
-    let sparse_images = (by_resolution && !request.texture.iter().any(|p| is_vrt(p)))
+    let sparse_images = (by_resolution && vrt.is_none())
         .then(|| sources.image_mosaic())
         .flatten()
         .filter(|m| Collection::spans_resolutions(m));
+    if let Some(vrt) = vrt {
+        let spans = sources.height_mosaic().is_some_and(Collection::spans_resolutions)
+            || sources.image_mosaic().is_some_and(Collection::spans_resolutions);
+        if spans {
+            tracing::warn!(
+                "{}: a VRT among inputs of different resolutions: every input is tiled at the finest spacing \
+                 (give the VRT's files instead, for each to reach only the levels its resolution supports)",
+                vrt.display()
+            );
+        }
+    }
     if sparse_heights.is_some() || sparse_images.is_some() {
         if args.shard.is_some() {
             bail!(

@@ -880,7 +880,8 @@ where
     let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
     let mut ring = Blender {
         width: w,
-        band: blend as usize,
+        // No fine data: nothing to blend (and no distances to find).
+        band: if fine.is_some() { blend as usize } else { 0 },
         corner,
         overrides,
         held: VecDeque::new(),
