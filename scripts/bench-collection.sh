@@ -3,8 +3,8 @@
 # as an older survey disagrees) and a 1" crop of it (the patch: PATCH samples a side from
 # pixel 600, 600; default 2400), tiled together (each as deep as it reaches), each alone,
 # and together at one resolution (--priority order: the base at the patch's spacing
-# everywhere). Prints tiles, bytes and
-# the median time of RUNS runs of each, and the collection's ratios to the parts' sums.
+# everywhere). Prints tiles, bytes and the median time of RUNS runs of each, and the
+# collection's ratios to the parts' sums.
 # Needs: gdal-bin. SRTM=path picks the DEM (default: ../shared/data/srtm/n37_w123_1arc_v3.tif).
 set -euo pipefail
 cd "$(dirname "$0")/.."
