@@ -458,3 +458,30 @@ fn imagery_of_different_resolutions_reaches_its_own_depth() {
         assert_eq!(ours[k], theirs[k], "tile {k} inside the fine picture");
     }
 }
+
+/// A collection tiled in shards (`tile --shard I/N`, every shard given every input) and
+/// merged: the same tiles, byte for byte, as one run, and the same partial levels.
+#[test]
+fn shards_of_a_collection_merge_into_the_single_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let whole = tile(d, "whole.tspack", &[BASE, PATCH], &[]);
+    let mut shards = vec![];
+    for i in 0..3 {
+        let spec = format!("{i}/3");
+        shards.push(tile(d, &format!("s{i}.tspack"), &[BASE, PATCH], &["--shard", &spec]));
+    }
+    let merged = d.join("merged.tspack");
+    let mut args = vec!["merge"];
+    args.extend(shards.iter().map(|s| s.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap()]);
+    ok(&args, d);
+    assert_eq!(tiles_of(&merged), tiles_of(&whole), "the merged shards' tiles are the single run's");
+    let partial = |p: &Path| {
+        let r = Reader::open_mmap(p).unwrap();
+        r.metadata().layers.iter().map(|l| l.extent.as_ref().map(|e| e.partial.clone())).collect::<Vec<_>>()
+    };
+    assert_eq!(partial(&merged), partial(&whole));
+    let held: Vec<usize> = shards.iter().map(|s| tiles_of(s).len()).collect();
+    eprintln!("shards hold {held:?} tiles; the single run {}", tiles_of(&whole).len());
+}

@@ -458,10 +458,10 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
     }
     if sparse_heights.is_some() || sparse_images.is_some() {
-        if args.shard.is_some() {
+        if planned.is_some() || args.shard_plan_out.is_some() || args.list_inputs {
             bail!(
-                "--shard: the inputs are of different resolutions (each tiled as deep as it reaches), which shards \
-                 do not split yet: tile without --shard, or with --priority order (every input at the finest spacing)"
+                "the inputs are of different resolutions (each tiled as deep as it reaches), which planned shards \
+                 do not take yet: give every shard every input (--shard I/N alone), or tile with --priority order"
             );
         }
         let mut plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
@@ -485,7 +485,9 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         let Some(output) = &args.output else { bail!("--output is required") };
         super::make_parent(output)?;
         let collections = Collections { heights: heights.as_ref(), imagery: imagery.as_ref() };
-        let summary = tile_collection(collections, &request, &sources, elevation, texture, &plan, output, progress)?;
+        let shard = args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None });
+        let summary =
+            tile_collection(collections, &request, &sources, elevation, texture, &plan, output, shard, progress)?;
         progress.finish();
         if let Some(manifest) = &args.manifest_out {
             terrastream_tiler::single_manifest(output, manifest)?;

@@ -131,7 +131,19 @@ fn union_covers(a: &[LevelCover], b: &[LevelCover]) -> Vec<LevelCover> {
             } else {
                 Vec::new()
             };
-            Some(LevelCover { lod: x.lod, tiles: x.tiles.iter().chain(&y.tiles).copied().collect(), lon_lat })
+            // Each rectangle once (the shards of one run all record the run's).
+            let mut tiles: Vec<[u32; 4]> = vec![];
+            let mut degrees: Vec<[f64; 4]> = vec![];
+            for (k, t) in x.tiles.iter().chain(&y.tiles).enumerate() {
+                if !tiles.contains(t) {
+                    tiles.push(*t);
+                    if let Some(d) = lon_lat.get(k) {
+                        degrees.push(*d);
+                    }
+                }
+            }
+            let lon_lat = if degrees.len() == tiles.len() { degrees } else { Vec::new() };
+            Some(LevelCover { lod: x.lod, tiles, lon_lat })
         })
         .collect()
 }

@@ -43,6 +43,15 @@ pub(crate) fn windows(plan: &Plan, spec: &ShardSpec, weight: &Weight<'_>) -> Res
     windows_and_cuts(plan, spec, weight).map(|(shard, windows, _)| (shard, windows))
 }
 
+/// The split LOD a run of `count` shards takes by default: the coarsest with at least two
+/// rows of tiles a shard, of the first layer.
+pub(crate) fn default_split(plan: &Plan, count: u32) -> u8 {
+    let Some(layer) = plan.metadata.layers.first() else { return 0 };
+    let last = layer.num_lods.saturating_sub(1);
+    let rows_at = |k: u8| layer.num_y_tiles.div_ceil(1 << k);
+    (0..=last).rev().find(|&k| rows_at(k) >= 2 * count).unwrap_or(0)
+}
+
 /// [`windows`], and every layer's band boundaries (`count + 1` tile rows at its split LOD).
 fn windows_and_cuts(plan: &Plan, spec: &ShardSpec, weight: &Weight<'_>) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
     if spec.count == 0 || spec.index >= spec.count {

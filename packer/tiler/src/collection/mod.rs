@@ -184,6 +184,22 @@ impl Collection {
         }
     }
 
+    /// The samples made from the inputs over LOD-0 rows `rows`: each input's area there
+    /// at the level it reaches (the work a shard of those rows does).
+    #[must_use]
+    pub fn work(&self, rows: std::ops::Range<u32>) -> f64 {
+        let (start, end) = (i64::from(rows.start), i64::from(rows.end));
+        (self.inputs.iter())
+            .map(|i| {
+                let down = (i.rows.1 + 1).min(end) - i.rows.0.max(start);
+                let across = i.columns.1 - i.columns.0 + 1;
+                #[expect(clippy::cast_precision_loss, reason = "a weight")]
+                let area = (down.max(0) * across.max(0)) as f64;
+                area / 4f64.powi(i32::from(i.depth))
+            })
+            .sum()
+    }
+
     /// Whether a layer of `kind` is this collection's (the height ranges go with the
     /// elevation).
     #[must_use]
@@ -406,6 +422,7 @@ pub fn tile_collection(
     texture: Option<TextureInput<'_>>,
     plan: &Plan,
     out: &Path,
+    shard: Option<crate::options::ShardSpec>,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
     let started = std::time::Instant::now();
@@ -421,30 +438,69 @@ pub fn tile_collection(
             }
         }
     }
-    let planned = Plan { metadata: recorded, layers: plan.layers.clone() };
+    let mut planned = Plan { metadata: recorded, layers: plan.layers.clone() };
+    // A shard: every layer's band up to a split LOD no finer than the collections' bases
+    // (above them the merge makes the levels from the shards' tiles, as for any run).
+    let windows = match shard {
+        Some(mut spec) => {
+            if let Some(t) = texture.as_ref().filter(|t| !t.format.lossless()) {
+                return Err(Error::option("--texture-format", t.format.name(), "png or webp with --shard"));
+            }
+            let least = [collections.heights, collections.imagery].into_iter().flatten().map(|c| c.base).max();
+            let default = crate::shard::default_split(&planned, spec.count);
+            spec.split_lod = Some(spec.split_lod.unwrap_or(default).max(least.unwrap_or(0)));
+            let samples = crate::shard::data_weight(&planned, elevation, texture.as_ref());
+            // Balanced by work: each input's samples at the level it reaches (a survey
+            // 2^d times finer than its level counts 4^d times its area's share).
+            let kinds: Vec<LayerKind> = planned.metadata.layers.iter().map(|l| l.kind).collect();
+            let of = |kind: LayerKind| {
+                [collections.heights, collections.imagery].into_iter().flatten().find(|c| c.makes(kind))
+            };
+            let weight = |index: usize, rows: std::ops::Range<u32>| match kinds.get(index).and_then(|&k| of(k)) {
+                Some(c) => c.work(rows),
+                None => samples(index, rows),
+            };
+            let (info, windows) = crate::shard::windows(&planned, &spec, &weight)?;
+            planned.metadata.shard = Some(info);
+            windows
+        }
+        None => full_windows(&planned),
+    };
+    let part_of = |c: &Collection| -> Option<ShardPart> {
+        let info = planned.metadata.shard.as_ref()?;
+        let index = planned.metadata.layers.iter().position(|l| l.kind == c.kind)?;
+        Some(ShardPart {
+            split: info.split_lods[index],
+            tile_rows: info.tile_rows[index],
+            window: windows[index].clone(),
+        })
+    };
     let metadata = &planned.metadata;
     let folder = terrastream_pack::output_folder(out);
     let mut spool = match (collections.heights, elevation) {
         (Some(c), _) => {
             let mut spool = Spool::new(&folder)?;
-            cut_heights(c, request, sources, metadata, &folder, &mut spool, progress)?;
+            let part = part_of(c);
+            cut_heights(c, request, sources, metadata, &folder, &mut spool, progress, part.as_ref())?;
             spool
         }
-        (None, Some(e)) => {
-            crate::tile::cut_planned(&folder, Some(e), None, &planned, &full_windows(&planned), progress)?
-        }
+        (None, Some(e)) => crate::tile::cut_planned(&folder, Some(e), None, &planned, &windows, progress)?,
         (None, None) => Spool::new(&folder)?,
     };
     tracing::debug!(elapsed = ?started.elapsed(), tiles = spool.tiles(), "heights cut");
     match (collections.imagery, texture) {
-        (Some(c), Some(t)) => cut_imagery(c, request, sources, t.format, metadata, &folder, &mut spool, progress)?,
-        (None, Some(t)) => cut_texture(t, &planned, &full_windows(&planned), &mut spool, progress)?,
+        (Some(c), Some(t)) => {
+            let part = part_of(c);
+            cut_imagery(c, request, sources, t.format, metadata, &folder, &mut spool, progress, part.as_ref())?;
+        }
+        (None, Some(t)) => cut_texture(t, &planned, &windows, &mut spool, progress)?,
         _ => {}
     }
     write_spool(spool, metadata, out, true, progress, started)
 }
 
 /// Cuts the heights' collection `c` (and its height ranges) into `spool`.
+#[expect(clippy::too_many_arguments, reason = "the collection, its sources, and where tiles go")]
 fn cut_heights(
     c: &Collection,
     request: &TileRequest,
@@ -453,6 +509,7 @@ fn cut_heights(
     folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
+    part: Option<&ShardPart>,
 ) -> Result<()> {
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
     let index = find(LayerKind::Elevation).ok_or(Error::NothingToTile)?;
@@ -488,7 +545,7 @@ fn cut_heights(
         Ok(Sources::open(&sub)?.into_mosaics().0)
     };
     let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
-    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress)?;
+    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress, part)?;
     heights.finish(metadata, Vec::new(), spool)
 }
 
@@ -503,6 +560,7 @@ fn cut_imagery(
     folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
+    part: Option<&ShardPart>,
 ) -> Result<()> {
     let index = (metadata.layers.iter().position(|l| l.kind == LayerKind::Texture))
         .and_then(|i| u8::try_from(i).ok())
@@ -525,7 +583,7 @@ fn cut_imagery(
     let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
         Ok(vec![(key, crate::encode::encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
     };
-    cut_levels(c, metadata, index, &open, &encode_tile, None, folder, spool, progress)
+    cut_levels(c, metadata, index, &open, &encode_tile, None, folder, spool, progress, part)
 }
 
 /// Cuts collection `c`'s levels of layer `index`: those below its base from the inputs
@@ -541,6 +599,7 @@ fn cut_levels<K: MosaicKind>(
     folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
+    part: Option<&ShardPart>,
 ) -> Result<()>
 where
     K::Value: Pixel,
@@ -567,7 +626,7 @@ where
         });
         Ok(LevelSources { fine, coarse })
     };
-    let overrides = make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of)?;
+    let overrides = make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, part)?;
     tracing::debug!(elapsed = ?started.elapsed(), layer = index, "levels below the base made");
 
     // The base: every level from here up over the whole grid, a pyramid as a single run's.
@@ -576,18 +635,89 @@ where
     let size = grid.size;
     let mosaic = open(c.reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
     let encode = |key: TileKey, samples: &[K::Value], edge: usize| encode_tile(key, samples, edge);
-    let window = Window {
-        input_lod: base,
-        last_lod: layer.num_lods - 1,
-        encode_from: base,
-        rows: 0..size.1 as usize,
-        band: 0..size.1 as usize,
+    let window = match part {
+        // A shard's band, from the base up to its split LOD.
+        Some(p) => {
+            let down = |n: usize| n >> base;
+            let up = |n: usize, end: usize| if n >= end { size.1 as usize } else { n >> base };
+            let height = c.grid.size.1 as usize;
+            Window {
+                input_lod: base,
+                last_lod: p.split,
+                encode_from: base,
+                rows: down(p.window.rows.start)..up(p.window.rows.end, height),
+                band: down(p.window.band.start)..up(p.window.band.end, height),
+            }
+        }
+        None => Window {
+            input_lod: base,
+            last_lod: layer.num_lods - 1,
+            encode_from: base,
+            rows: 0..size.1 as usize,
+            band: 0..size.1 as usize,
+        },
     };
+    let rows = u32::try_from(window.rows.start).unwrap_or(0)..u32::try_from(window.rows.end).unwrap_or(0);
     run_pyramid(metadata, index, c.grid.size, &window, &encode, quantize, spool, progress, |push| {
-        level_rows(mosaic.as_ref(), None, &grid, (0, 0), &overrides, 0, push)
+        level_rows_in(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &overrides, 0, push)
     })?;
     tracing::debug!(elapsed = ?started.elapsed(), layer = index, tiles = spool.tiles(), "collection cut");
     Ok(())
+}
+
+/// One shard's part of a collection's layer: the band of tile rows it holds at every level
+/// up to its split LOD, and the base's window (LOD-0 rows, as [`crate::shard`] cuts it).
+#[derive(Clone, Debug)]
+pub(crate) struct ShardPart {
+    /// The split LOD (at least the collection's base).
+    pub(crate) split: u8,
+    /// LOD-0 tile rows held: `[start, end)`.
+    pub(crate) tile_rows: [u32; 2],
+    /// The layer's window over LOD-0 rows.
+    pub(crate) window: Window,
+}
+
+impl ShardPart {
+    /// Tile rows of level `lod` this shard holds.
+    fn rows_at(&self, lod: u8) -> std::ops::Range<u32> {
+        (self.tile_rows[0] >> lod)..(self.tile_rows[1] >> lod)
+    }
+
+    /// Whether tile row `y` of level `lod` is this shard's.
+    fn holds(&self, lod: u8, y: u32) -> bool {
+        let (y0, y1) = (self.tile_rows[0], self.tile_rows[1]);
+        // Level `lod`'s tile `y` covers LOD-0 tile rows y << lod ..: whole bands at the split.
+        let first = y << lod;
+        first >= y0 && first < y1.max(y0 + 1) && y0 < y1
+    }
+}
+
+/// Per level below `c`'s base (finest first), the rectangles `part` needs made: those
+/// whose rows its tiles lie in, and those whose means the rectangles above it take.
+fn needed_rects(c: &Collection, res: u32, part: &ShardPart) -> Vec<Vec<[u32; 4]>> {
+    let border = 1u64;
+    let mut out: Vec<Vec<[u32; 4]>> = vec![Vec::new(); c.levels.len()];
+    // Sample rows (of the level above) whose values the level above needs: the base's
+    // window, then each chosen rectangle's rows.
+    let base_rows = part.window.rows.start as u64 >> c.base..(part.window.rows.end as u64).div_ceil(1 << c.base);
+    let mut wanted: Vec<std::ops::Range<u64>> = vec![base_rows];
+    for (i, level) in c.levels.iter().enumerate().rev() {
+        let res64 = u64::from(res);
+        let band = part.rows_at(level.lod);
+        let mut rows: Vec<std::ops::Range<u64>> =
+            wanted.iter().map(|r| (r.start * 2).saturating_sub(2)..r.end * 2 + 2).collect();
+        rows.push((u64::from(band.start) * res64).saturating_sub(border)..u64::from(band.end) * res64 + border);
+        let chosen: Vec<[u32; 4]> = (level.rects.iter())
+            .filter(|r| {
+                let (a, b) = (u64::from(r[1]) * res64, (u64::from(r[3]) + 1) * res64);
+                rows.iter().any(|w| w.start < b && a < w.end)
+            })
+            .copied()
+            .collect();
+        wanted = chosen.iter().map(|r| u64::from(r[1]) * res64..(u64::from(r[3]) + 1) * res64).collect();
+        out[i] = chosen;
+    }
+    out
 }
 
 /// Opens what level `lod`'s rectangle (corner sample, grid) is made from.
@@ -625,16 +755,19 @@ pub(crate) fn make_levels<'s, K: MosaicKind>(
     spool: &mut Spool,
     progress: &dyn Progress,
     sources: &OpenLevel<'_, 's, K>,
+    part: Option<&ShardPart>,
 ) -> Result<Vec<Override<K::Value>>>
 where
     K::Value: Pixel,
 {
     let res = metadata.layers[usize::from(index)].tile_resolution;
+    let needed = part.map(|p| needed_rects(c, res, p));
     let mut overrides: Vec<Override<K::Value>> = Vec::new();
-    for level in &c.levels {
+    for (l, level) in c.levels.iter().enumerate() {
         let lod = level.lod;
         let mut next: Vec<Override<K::Value>> = Vec::new();
-        for &rect in &level.rects {
+        let rects = needed.as_ref().map_or(&level.rects, |n| &n[l]);
+        for &rect in rects {
             progress.check()?;
             let (corner, grid) = c.rect_grid(lod, rect, res);
             let LevelSources { fine, coarse } = sources(lod, corner, &grid)?;
@@ -650,7 +783,7 @@ where
             let mut made = Spool::new(folder)?;
             let encode = |key: TileKey, samples: &[K::Value], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
                 let (x, y) = (rect[0] + key.x(), rect[1] + key.y());
-                if !level.tiles.contains(&(x, y)) {
+                if !level.tiles.contains(&(x, y)) || part.is_some_and(|p| !p.holds(lod, y)) {
                     return Ok(Vec::new());
                 }
                 let global = TileKey::new(index, lod, x, y)?;
@@ -877,7 +1010,26 @@ fn level_rows<K: MosaicKind>(
 where
     K::Value: Pixel,
 {
-    let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
+    level_rows_in(fine, coarse, grid, corner, 0..grid.size.1, overrides, blend, emit)
+}
+
+/// [`level_rows`] of rows `rows` of `grid` only (the grid's row `rows.start` at the
+/// level's row `corner.1`).
+#[expect(clippy::too_many_arguments, reason = "level_rows', and the rows")]
+fn level_rows_in<K: MosaicKind>(
+    fine: Option<&Mosaic<K>>,
+    coarse: Option<&Coarse<'_, '_, K::Value>>,
+    grid: &GridSpec,
+    corner: (u32, u32),
+    rows: std::ops::Range<u32>,
+    overrides: &[Override<K::Value>],
+    blend: u32,
+    emit: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
+) -> Result<()>
+where
+    K::Value: Pixel,
+{
+    let (w, h) = (grid.size.0 as usize, rows.len());
     let mut ring = Blender {
         width: w,
         // No fine data: nothing to blend (and no distances to find).
@@ -892,7 +1044,7 @@ where
     let none = || vec![K::Value::NONE; w];
     let Some(coarse) = coarse else {
         match fine {
-            Some(m) => m.rows_of(0..grid.size.1, &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
+            Some(m) => m.rows_of(rows.clone(), &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
             None => {
                 for _ in 0..h {
                     ring.push(none(), none(), emit)?;
@@ -919,12 +1071,12 @@ where
         let (fine_send, fine_receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
         let fine_reader = fine.map(|f| {
             scope.spawn(move || {
-                f.rows_of(0..grid.size.1, &mut |r| {
+                f.rows_of(rows.clone(), &mut |r| {
                     Ok(fine_send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?)
                 })
             })
         });
-        let made = (0..grid.size.1).try_for_each(|j| {
+        let made = (0..u32::try_from(h).unwrap_or(u32::MAX)).try_for_each(|j| {
             let fine_row = match fine_reader {
                 Some(_) => fine_receive.recv().map_err(|_| crate::error::interrupted())?,
                 None => none(),

@@ -275,6 +275,7 @@ pub(crate) fn update_collection(
         &mut spool,
         progress,
         &sources_of,
+        None,
     )?;
 
     // The base level under them, and every level above, made again where they changed.

@@ -344,7 +344,9 @@ pub(crate) fn prepare_any(inputs: &[PathBuf], collections: bool, progress: &dyn 
     // A collection's finer levels hold tiles only where its finer inputs lie: remaking a
     // tile from its children, as a merge does, would leave holes where they are not.
     for (path, reader) in inputs.iter().zip(&readers) {
-        if !collections && is_collection(reader.metadata()) {
+        // The shards of one run are merged as any run's: the levels above their split LOD
+        // (no finer than a collection's base) made from their tiles.
+        if !collections && is_collection(reader.metadata()) && reader.metadata().shard.is_none() {
             return Err(Error::input(path, COLLECTION));
         }
     }
