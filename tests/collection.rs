@@ -448,6 +448,7 @@ fn imagery_of_different_resolutions_reaches_its_own_depth() {
     let info = ok(&["info", col.to_str().unwrap()], d);
     let texture_layer = info.split("layer 1").nth(1).unwrap_or_default().split("layer 2").next().unwrap_or_default();
     assert!(texture_layer.contains("only where fine inputs lie: LOD0"), "{info}");
+    assert!(info.contains("fine.tif") && info.contains("from LOD0 (texture)"), "{info}");
     // Two tiles in from the fine picture's tiles: beyond the blend band.
     let (x0, x1) = (lod0.iter().map(|k| k.x()).min().unwrap(), lod0.iter().map(|k| k.x()).max().unwrap());
     let (y0, y1) = (lod0.iter().map(|k| k.y()).min().unwrap(), lod0.iter().map(|k| k.y()).max().unwrap());

@@ -132,11 +132,12 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
     for (k, source) in m.sources.iter().enumerate() {
         let _ = writeln!(
             out,
-            "{:<12}{} · {} between samples · from LOD{}",
+            "{:<12}{} · {} between samples · from LOD{}{}",
             if k == 0 { "inputs" } else { "" },
             source.name,
             people::length(source.spacing),
-            source.lod
+            source.lod,
+            source.layer.as_deref().map_or_else(String::new, |l| format!(" ({l})"))
         );
     }
     for (i, l) in s.layers.iter().enumerate() {

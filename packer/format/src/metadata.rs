@@ -62,6 +62,9 @@ pub struct SourceRecord {
     /// data beneath (what an update adding a survey blends it with).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub blend: Option<u32>,
+    /// The layer it feeds, when not the elevation (`"texture"` for imagery).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layer: Option<String>,
 }
 
 impl Metadata {
@@ -71,6 +74,7 @@ impl Metadata {
     #[must_use]
     pub fn source_spacing_at(&self, x: f64, z: f64) -> Option<f64> {
         (self.sources.iter())
+            .filter(|s| s.layer.is_none())
             .filter(|s| s.world.is_some_and(|[x0, z0, x1, z1]| x >= x0 && x <= x1 && z >= z0 && z <= z1))
             .map(|s| s.spacing)
             .reduce(f64::min)

@@ -341,6 +341,7 @@ pub(crate) fn records(c: &Collection, metadata: &Metadata) -> (Vec<SourceRecord>
             spacing: i.spacing / per_metre,
             lod: i.depth,
             blend: Some(c.blend),
+            layer: (c.kind == LayerKind::Texture).then(|| "texture".to_owned()),
         })
         .collect();
     let covers = (c.levels.iter())
@@ -429,9 +430,7 @@ pub fn tile_collection(
     let mut recorded = plan.metadata.clone();
     for c in [collections.heights, collections.imagery].into_iter().flatten() {
         let (inputs, covers) = records(c, &recorded);
-        if c.kind == LayerKind::Elevation {
-            recorded.sources = inputs;
-        }
+        recorded.sources.extend(inputs);
         for layer in &mut recorded.layers {
             if let (Some(extent), true) = (&mut layer.extent, c.makes(layer.kind)) {
                 extent.partial.clone_from(&covers);
