@@ -679,7 +679,9 @@ pub(crate) struct ShardPart {
 impl ShardPart {
     /// Tile rows of level `lod` this shard holds.
     fn rows_at(&self, lod: u8) -> std::ops::Range<u32> {
-        (self.tile_rows[0] >> lod)..(self.tile_rows[1] >> lod)
+        // The last band ends at the grid's last row, which a coarser level's last row
+        // covers in part.
+        (self.tile_rows[0] >> lod)..self.tile_rows[1].div_ceil(1 << lod)
     }
 
     /// Whether tile row `y` of level `lod` is this shard's.
