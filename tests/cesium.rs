@@ -223,6 +223,20 @@ fn cesium_with_oracles() -> Option<PathBuf> {
     terrastream_testkit::browser::skip_or_fail("CESIUM", &missing).then_some(build).flatten()
 }
 
+/// CesiumJS's built files (`build`) and `page` as `name`, served by nginx from `dir/www`
+/// (None where nginx is missing: the test is skipped).
+fn cesium_host(dir: &Path, build: &Path, name: &str, page: &str) -> Option<terrastream_testkit::nginx::Nginx> {
+    let root = dir.join("www");
+    std::fs::create_dir_all(&root).unwrap();
+    std::os::unix::fs::symlink(build, root.join("cesium")).unwrap();
+    std::fs::write(root.join(name), page).unwrap();
+    terrastream_testkit::nginx::start_nginx(
+        &root,
+        "server { listen 127.0.0.1:{port}; root {root}; types { application/json json; text/html html; \
+         application/javascript js; text/css css; image/png png; application/wasm wasm; } }",
+    )
+}
+
 /// Loads `page`, waits until the globe has loaded every tile of the view, and returns
 /// Cesium's heights at `points` (`sampleTerrainMostDetailed`, as documented) and a
 /// screenshot; fails on any `errorEvent` or failed request.
@@ -349,15 +363,7 @@ fn cesium_reads_private_terrain_with_a_token_or_a_header() {
     let bounds: [f64; 4] = serde_json::from_value(layer["bounds"].clone()).unwrap();
     let points = oracles::random_points(bounds, POINTS / 5);
     let truth = ellipsoidal_truth(&points);
-    let root = dir.path().join("www");
-    std::fs::create_dir_all(&root).unwrap();
-    std::os::unix::fs::symlink(&build, root.join("cesium")).unwrap();
-    std::fs::write(root.join("key.html"), oracles::snippet("cesium-key-page")).unwrap();
-    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
-        &root,
-        "server { listen 127.0.0.1:{port}; root {root}; types { application/json json; text/html html; \
-         application/javascript js; text/css css; image/png png; application/wasm wasm; } }",
-    ) else {
+    let Some(nginx) = cesium_host(dir.path(), &build, "key.html", &oracles::snippet("cesium-key-page")) else {
         return;
     };
     let driver = Driver::start();
@@ -459,15 +465,7 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
     let server = terrastream_testkit::server::spawn_serve(exe, &[himalaya.to_str().unwrap()], dir.path());
     let terrain = format!("http://127.0.0.1:{}/himalaya", server.port);
 
-    let root = dir.path().join("www");
-    std::fs::create_dir_all(&root).unwrap();
-    std::os::unix::fs::symlink(build.unwrap(), root.join("cesium")).unwrap();
-    std::fs::write(root.join("globe.html"), BARE_GLOBE_PAGE).unwrap();
-    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
-        &root,
-        "server { listen 127.0.0.1:{port}; root {root}; types { text/html html; application/javascript js; \
-         text/css css; image/png png; application/json json; application/wasm wasm; } }",
-    ) else {
+    let Some(nginx) = cesium_host(dir.path(), &build.unwrap(), "globe.html", BARE_GLOBE_PAGE) else {
         return;
     };
     let driver = Driver::start();
@@ -580,15 +578,7 @@ fn cesium_flies_a_collection_of_a_base_and_a_patch() {
     // Inside the patch (pixels 80..240 of the 1" crop), beyond its blend band.
     let points = oracles::random_points([-122.611, 37.906, -122.583, 37.938], POINTS);
     let truth = ellipsoidal_truth(&points);
-    let root = dir.path().join("www");
-    std::fs::create_dir_all(&root).unwrap();
-    std::os::unix::fs::symlink(&build, root.join("cesium")).unwrap();
-    std::fs::write(root.join("index.html"), oracles::snippet("cesium-page")).unwrap();
-    let Some(nginx) = terrastream_testkit::nginx::start_nginx(
-        &root,
-        "server { listen 127.0.0.1:{port}; root {root}; types { application/json json; text/html html; \
-         application/javascript js; text/css css; image/png png; application/wasm wasm; } }",
-    ) else {
+    let Some(nginx) = cesium_host(dir.path(), &build, "index.html", &oracles::snippet("cesium-page")) else {
         return;
     };
     let driver = Driver::start();

@@ -498,6 +498,34 @@ pub fn tile_collection(
     write_spool(spool, metadata, out, true, progress, started)
 }
 
+/// The request that opens a collection's height inputs `paths` onto `grid` in `crs`: in
+/// the heights' `datum` (the one `named` by the person, else the whole mosaic's; named
+/// for each level, so that the warning about an unknown one is not repeated).
+pub(crate) fn heights_on(
+    paths: Vec<PathBuf>,
+    grid: GridSpec,
+    crs: &str,
+    datum: Option<&DatumName>,
+    named: Option<&DatumName>,
+) -> TileRequest {
+    TileRequest {
+        elevation: paths,
+        crs: Some(crs.to_owned()),
+        elevation_grid: Some(grid),
+        vertical_datum: named.cloned().or_else(|| Some(datum.cloned().unwrap_or(DatumName::Unknown))),
+        target_datum: datum.cloned(),
+        ..TileRequest::default()
+    }
+}
+
+/// The mosaic of a [`heights_on`] request (None without inputs).
+pub(crate) fn open_heights(request: &TileRequest) -> Result<Option<Mosaic<Heights>>> {
+    if request.elevation.is_empty() {
+        return Ok(None);
+    }
+    Ok(Sources::open(request)?.into_mosaics().0)
+}
+
 /// Cuts the heights' collection `c` (and its height ranges) into `spool`.
 #[expect(clippy::too_many_arguments, reason = "the collection, its sources, and where tiles go")]
 fn cut_heights(
@@ -523,25 +551,13 @@ fn cut_heights(
     let range = ((range.0 as f32).next_down(), (range.1 as f32).next_up());
     // Inputs of the collection on a grid.
     let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Heights>>> {
-        if paths.is_empty() {
-            return Ok(None);
-        }
         let sub = TileRequest {
-            elevation: paths,
             encoding: request.encoding,
-            crs: Some(crs.clone()),
-            elevation_grid: Some(grid),
             height_range: Some(range),
             skip_bad_inputs: request.skip_bad_inputs,
-            // The datum the whole mosaic found (no warning again for each level).
-            vertical_datum: request
-                .vertical_datum
-                .clone()
-                .or_else(|| Some(datum.clone().unwrap_or(DatumName::Unknown))),
-            target_datum: datum.clone(),
-            ..TileRequest::default()
+            ..heights_on(paths, grid, &crs, datum.as_ref(), request.vertical_datum.as_ref())
         };
-        Ok(Sources::open(&sub)?.into_mosaics().0)
+        open_heights(&sub)
     };
     let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
     cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress, part)?;
@@ -658,7 +674,7 @@ where
     };
     let rows = u32::try_from(window.rows.start).unwrap_or(0)..u32::try_from(window.rows.end).unwrap_or(0);
     run_pyramid(metadata, index, c.grid.size, &window, &encode, quantize, spool, progress, |push| {
-        level_rows_in(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &overrides, 0, push)
+        level_rows(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &overrides, 0, push)
     })?;
     tracing::debug!(elapsed = ?started.elapsed(), layer = index, tiles = spool.tiles(), "collection cut");
     Ok(())
@@ -807,7 +823,7 @@ where
                     &mut made,
                     progress,
                     move |push| {
-                        level_rows(fine, coarse, &grid, corner, overrides, blend, &mut |mut row| {
+                        level_rows(fine, coarse, &grid, corner, 0..grid.size.1, overrides, blend, &mut |mut row| {
                             if let Some(q) = quantize {
                                 q(&mut row);
                             }
@@ -953,11 +969,7 @@ impl<S: Pixel> Upsample<S> {
         let grid = coarse.source.size();
         let size = (grid.0 as usize, grid.1 as usize);
         let columns = (0..width)
-            .map(|i| {
-                let (c, f) =
-                    Self::at(u32::try_from(i).unwrap_or(u32::MAX) + corner.0, coarse.shift, coarse.first.0, size.0);
-                (c, f)
-            })
+            .map(|i| Self::at(u32::try_from(i).unwrap_or(u32::MAX) + corner.0, coarse.shift, coarse.first.0, size.0))
             .collect();
         Self { shift: coarse.shift, first: coarse.first, size, columns, held: VecDeque::new(), front: 0 }
     }
@@ -995,29 +1007,12 @@ impl<S: Pixel> Upsample<S> {
     }
 }
 
-/// Makes the rows of a level over `grid` (its corner sample `corner`): the finer level's
-/// halved rows where they lie (`overrides`), else the `fine` inputs' heights, completed
-/// from the `coarse` ones where they have none and blended into them across `blend`
-/// samples along their data's edge.
+/// Makes rows `rows` of a level's `grid` (its first column the level's `corner.0`, row
+/// `rows.start` the level's `corner.1`): the finer level's halved rows where they lie
+/// (`overrides`), else the `fine` inputs' samples, completed from the `coarse` ones where
+/// they have none and blended into them across `blend` samples along their data's edge.
+#[expect(clippy::too_many_arguments, reason = "the sources, where the rows lie, and what to blend")]
 fn level_rows<K: MosaicKind>(
-    fine: Option<&Mosaic<K>>,
-    coarse: Option<&Coarse<'_, '_, K::Value>>,
-    grid: &GridSpec,
-    corner: (u32, u32),
-    overrides: &[Override<K::Value>],
-    blend: u32,
-    emit: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
-) -> Result<()>
-where
-    K::Value: Pixel,
-{
-    level_rows_in(fine, coarse, grid, corner, 0..grid.size.1, overrides, blend, emit)
-}
-
-/// [`level_rows`] of rows `rows` of `grid` only (the grid's row `rows.start` at the
-/// level's row `corner.1`).
-#[expect(clippy::too_many_arguments, reason = "level_rows', and the rows")]
-fn level_rows_in<K: MosaicKind>(
     fine: Option<&Mosaic<K>>,
     coarse: Option<&Coarse<'_, '_, K::Value>>,
     grid: &GridSpec,

@@ -21,9 +21,8 @@ use terrastream_pack::progress::Progress;
 use super::{Blend, CoarseRows, Collection, CollectionInput, LevelSources, coarse_grid, depth_of};
 use crate::encode::{decode_heights, quantize_heights};
 use crate::error::{Error, Result};
-use crate::pyramid::{Pixel, Spool};
+use crate::pyramid::{Spool, halve_rows};
 use crate::raster::{DatumName, ElevationSource, GridSpec, Heights, InputLayout, Mosaic};
-use crate::request::{Sources, TileRequest};
 use crate::tile::{HeightEncoder, write_spool};
 
 /// An archive's stored samples of one level over a grid of that level's samples (its
@@ -114,17 +113,36 @@ impl<'a> Stored<'a> {
     }
 }
 
-/// Samples of a level being remade: the changed ones, over the archive's.
+/// Samples of a level being remade: over a region (first column and row, end column and
+/// row), those changed (None: the archive's stand).
 struct Level<'s> {
     stored: &'s Stored<'s>,
     lod: u8,
-    changed: HashMap<(i64, i64), f32>,
+    region: [i64; 4],
+    changed: Vec<Option<f32>>,
 }
 
-impl Level<'_> {
+impl<'s> Level<'s> {
+    fn new(stored: &'s Stored<'s>, lod: u8, region: [i64; 4]) -> Self {
+        let len = usize::try_from((region[2] - region[0]).max(0) * (region[3] - region[1]).max(0)).unwrap_or(0);
+        Self { stored, lod, region, changed: vec![None; len] }
+    }
+
+    /// Where sample (`x`, `y`) lies in `changed`.
+    fn at(&self, x: i64, y: i64) -> Option<usize> {
+        let [x0, y0, x1, y1] = self.region;
+        ((x0..x1).contains(&x) && (y0..y1).contains(&y)).then(|| usize::try_from((y - y0) * (x1 - x0) + x - x0).ok())?
+    }
+
+    fn set(&mut self, x: i64, y: i64, v: f32) {
+        if let Some(i) = self.at(x, y) {
+            self.changed[i] = Some(v);
+        }
+    }
+
     fn sample(&self, x: i64, y: i64) -> Result<f32> {
-        match self.changed.get(&(x, y)) {
-            Some(&v) => Ok(v),
+        match self.at(x, y).and_then(|i| self.changed[i]) {
+            Some(v) => Ok(v),
             None => self.stored.sample(self.lod, x, y),
         }
     }
@@ -139,21 +157,21 @@ pub struct CollectionUpdate {
     pub made: u64,
 }
 
-/// Adds `elevation` rasters to the collection `base` (see the module), written to `out`
-/// (`base` itself: in place).
+/// Adds `elevation` rasters to the collection `base` (see the module; `reader` has it
+/// open), written to `out` (`base` itself: in place).
 ///
 /// # Errors
 /// [`Error::Input`] naming the base or a raster: a raster as coarse as the archive's base
 /// level, one over tiles the archive's finer levels already hold, heights the archive's
 /// encoding cannot hold; as [`crate::update`].
 pub(crate) fn update_collection(
+    reader: Reader<MmapSource>,
     base: &Path,
     elevation: &[PathBuf],
     blend: Option<Blend>,
     out: &Path,
     progress: &dyn Progress,
 ) -> Result<CollectionUpdate> {
-    let reader = Reader::open_mmap(base).map_err(|e| Error::input(base, format!("cannot open archive: {e}")))?;
     let old = reader.metadata().clone();
     let bad = |why: String| Error::input(base, why);
     let find = |kind: LayerKind| old.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
@@ -174,18 +192,7 @@ pub(crate) fn update_collection(
     let finest = grid.pixel.0.min(grid.pixel.1);
     let datum = DatumName::of_record(&old.vertical_datum);
     let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Heights>>> {
-        if paths.is_empty() {
-            return Ok(None);
-        }
-        let request = TileRequest {
-            elevation: paths,
-            crs: Some(crs.clone()),
-            elevation_grid: Some(grid),
-            vertical_datum: Some(datum.clone().unwrap_or(DatumName::Unknown)),
-            target_datum: datum.clone(),
-            ..TileRequest::default()
-        };
-        Ok(Sources::open(&request)?.into_mosaics().0)
+        super::open_heights(&super::heights_on(paths, grid, &crs, datum.as_ref(), None))
     };
     let whole = open(elevation.to_vec(), grid)?.ok_or(Error::NothingToTile)?;
     // The new heights must fit the archive's encoding.
@@ -281,54 +288,43 @@ pub(crate) fn update_collection(
     // The base level under them, and every level above, made again where they changed.
     let res = i64::from(layer.tile_resolution);
     let border = i64::from(layer.border);
-    let mut changed: HashMap<(i64, i64), f32> = HashMap::new();
-    let mut region: Option<[i64; 4]> = None;
+    let region = (overrides.iter())
+        .map(|o| {
+            let (x1, y1) = (o.x0 + o.rows.first().map_or(0, Vec::len), o.y0 + o.rows.len());
+            [to_i64(o.x0), to_i64(o.y0), to_i64(x1), to_i64(y1)]
+        })
+        .reduce(|a, r| [a[0].min(r[0]), a[1].min(r[1]), a[2].max(r[2]), a[3].max(r[3])]);
+    let Some(mut region) = region else { return Err(Error::NothingToTile) };
+    // The base level: the survey's means where they lie (a later rectangle's over an
+    // earlier's, as the rows take them).
+    let mut level = Level::new(&stored, base_lod, region);
     for o in &overrides {
         for (r, row) in o.rows.iter().enumerate() {
             for (k, &v) in row.iter().enumerate() {
-                let (x, y) = (to_i64(o.x0 + k), to_i64(o.y0 + r));
                 if !v.is_nan() {
-                    changed.insert((x, y), v);
+                    level.set(to_i64(o.x0 + k), to_i64(o.y0 + r), v);
                 }
             }
         }
-        let (x1, y1) = (to_i64(o.x0 + o.rows.first().map_or(0, Vec::len)), to_i64(o.y0 + o.rows.len()));
-        let r = [to_i64(o.x0), to_i64(o.y0), x1, y1];
-        region = Some(region.map_or(r, |a| [a[0].min(r[0]), a[1].min(r[1]), a[2].max(r[2]), a[3].max(r[3])]));
     }
     let mut remade: Vec<TileKey> = vec![];
-    let mut level = Level { stored: &stored, lod: base_lod, changed };
-    let Some(mut region) = region else { return Err(Error::NothingToTile) };
     for lod in base_lod..layer.num_lods {
         if lod > base_lod {
-            // This level's samples over the region, the 2x2 means of the level below.
-            let below = &level;
+            // This level's samples over the region, the 2x2 means of the level below, as
+            // the pyramid makes them.
             region = [region[0] / 2, region[1] / 2, (region[2] + 1) / 2, (region[3] + 1) / 2];
             let (w, h) = stored.sizes[usize::from(lod)];
-            let mut next = HashMap::new();
+            let mut next = Level::new(&stored, lod, region);
+            let columns = 2 * region[0].max(0)..2 * region[2].min(w);
             for y in region[1].max(0)..region[3].min(h) {
-                let (a, b) = (
-                    (2 * region[0].max(0)..2 * region[2].min(w))
-                        .map(|x| below.sample(x, 2 * y))
-                        .collect::<Result<Vec<f32>>>()?,
-                    (2 * region[0].max(0)..2 * region[2].min(w))
-                        .map(|x| below.sample(x, 2 * y + 1))
-                        .collect::<Result<Vec<f32>>>()?,
-                );
-                let mut half: Vec<f32> = a
-                    .chunks(2)
-                    .zip(b.chunks(2))
-                    .map(|(a, b)| {
-                        let at = |r: &[f32], i: usize| r.get(i).copied().unwrap_or(f32::NAN);
-                        f32::mean4([at(a, 0), at(a, 1), at(b, 0), at(b, 1)])
-                    })
-                    .collect();
+                let row = |j: i64| columns.clone().map(|x| level.sample(x, j)).collect::<Result<Vec<f32>>>();
+                let mut half = halve_rows(&row(2 * y)?, &row(2 * y + 1)?);
                 quantize(&mut half);
                 for (k, v) in half.into_iter().enumerate() {
-                    next.insert((region[0].max(0) + to_i64(k), y), v);
+                    next.set(region[0].max(0) + to_i64(k), y, v);
                 }
             }
-            level = Level { stored: &stored, lod, changed: next };
+            level = next;
         }
         // Tiles whose samples, borders included, reach the region.
         let (tx0, ty0) = ((region[0] - border).div_euclid(res).max(0), (region[1] - border).div_euclid(res).max(0));
