@@ -13,7 +13,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 CONNS=${CONNS:-64}
 SECS=${SECS:-8}
-ROUNDS=${ROUNDS:-3}
+ROUNDS=${ROUNDS:-5}
 FLOOD=${FLOOD:-100000}
 command -v wrk >/dev/null || { echo "wrk is not installed (apt-get install wrk)"; exit 1; }
 
@@ -35,7 +35,12 @@ key=$("$bin" key new --archives bench --keys "$work/keys.toml")
 port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 public=$(port); private=$(port)
 "$bin" -q serve "$work/public" --addr "127.0.0.1:$public" & pids+=($!)
-"$bin" -q serve "$work/private" --private --keys "$work/keys.toml" --addr "127.0.0.1:$private" & pids+=($!)
+# REFUSAL_RATE / REFUSAL_BURST: the private server's pace of refusals (its defaults if unset).
+: > "$work/private.toml"
+[ -n "${REFUSAL_RATE:-}" ] && echo "refusal_rate = $REFUSAL_RATE" >> "$work/private.toml"
+[ -n "${REFUSAL_BURST:-}" ] && echo "refusal_burst = $REFUSAL_BURST" >> "$work/private.toml"
+"$bin" -q serve "$work/private" --config "$work/private.toml" --private --keys "$work/keys.toml" \
+  --addr "127.0.0.1:$private" & pids+=($!)
 for p in $public $private; do
   for _ in $(seq 50); do (exec 3<>/dev/tcp/127.0.0.1/$p) 2>/dev/null && break; sleep 0.1; done
 done
@@ -72,7 +77,7 @@ echo
 echo "wrk, $CONNS connections, ${SECS}s each, 2 threads, loopback, $(nproc) cores, $ROUNDS rounds"
 printf '%-6s %-40s %12s %10s %10s %8s %12s %8s\n' round target requests/s p50 p99 "x (a)" "CPU us/ans" "x (a)"
 : > "$work/ratios.txt"
-for round in $(seq "$ROUNDS"); do
+for round in $(seq "${CHECK_ROUNDS:-$ROUNDS}"); do
   read -r a_rps a_p50 a_p99 a_bad _ _ a_cpu <<<"$(run "http://127.0.0.1:$public" "" "$SECS" "${pids[0]}")"
   read -r k_rps k_p50 k_p99 k_bad _ _ k_cpu <<<"$(run "http://127.0.0.1:$private" "$key" "$SECS" "${pids[1]}")"
   [ "$a_bad$k_bad" = 00 ] || echo "WARNING: non-2xx answers: (a) $a_bad, (k) $k_bad" >&2
@@ -89,22 +94,37 @@ for column in 1 2; do
     else printf "median (k) / (a) server CPU per answer: %.3f: checking a key costs %.1f %%\n", m, (m - 1) * 100 }'
 done
 
-# The flood: a saturating wrk (all but 4 connections) sending bad keys, while 4
-# connections of good keys read tiles beside it; their p99 against the same 4 connections
-# alone. (The load generators share this machine's cores with the server.)
+# The flood: a saturating wrk (all but 4 connections) sending bad keys for FLOOD_SECS,
+# while 4 connections of good keys read tiles beside it, ROUNDS rounds of SECS; their
+# p99 against the same rounds before the flood (medians of the rounds: single rounds of a
+# closed loop on 2 cores shared with both load generators vary by 2x). The server paces
+# its refusals (`refusal_rate`, default 200/s), so the flood needs about 500 s to send
+# 100 000 requests.
 echo
-good_alone=$(CONNS=4 run "http://127.0.0.1:$private" "$key" "$SECS")
+to_ms() { awk -v v="$1" 'BEGIN { u = v; sub(/[0-9.]+/, "", u); x = v + 0; if (u == "us") x /= 1000; if (u == "s") x *= 1000; print x }'; }
+median() { sort -n | awk '{ r[NR] = $1 } END { print (NR % 2) ? r[(NR + 1) / 2] : (r[NR / 2] + r[NR / 2 + 1]) / 2 }'; }
+good_rounds() { # -> lines "p99-ms requests/s non-2xx"
+  for _ in $(seq "$ROUNDS"); do
+    read -r rps _ p99 bad _ <<<"$(CONNS=4 run "http://127.0.0.1:$private" "$key" "$SECS")"
+    echo "$(to_ms "$p99") $rps $bad"
+  done
+}
+good_rounds > "$work/alone.txt"
 bad_key="tk_00000000_$(printf '0%.0s' $(seq 64))"
-CONNS=$((CONNS - 4)) run "http://127.0.0.1:$private" "$bad_key" "$SECS" > "$work/flood.txt" &
+# Long enough for FLOOD requests at the pace (the server's default: 200 refusals a second).
+FLOOD_SECS=${FLOOD_SECS:-$((FLOOD / ${REFUSAL_RATE:-200} + 5))}
+CONNS=$((CONNS - 4)) run "http://127.0.0.1:$private" "$bad_key" "$FLOOD_SECS" > "$work/flood.txt" &
 flood=$!
-good_during=$(CONNS=4 run "http://127.0.0.1:$private" "$key" "$SECS")
+sleep 2
+good_rounds > "$work/during.txt"
 wait $flood
 read -r f_rps _ _ f_bad f_n f_bytes _ <<<"$(cat "$work/flood.txt")"
-read -r g_rps _ g_p99 g_bad _ <<<"$good_alone"
-read -r d_rps _ d_p99 d_bad _ <<<"$good_during"
-echo "flood: $f_n requests with a bad key ($f_rps/s), $f_bad answered non-2xx, $f_bytes read in all"
-[ "$f_n" -ge "$FLOOD" ] || echo "WARNING: fewer than $FLOOD flood requests: raise SECS" >&2
+echo "flood: $f_n requests with a bad key in ${FLOOD_SECS}s ($f_rps/s), $f_bad answered non-2xx, $f_bytes read in all"
+[ "$f_n" -ge "$FLOOD" ] || echo "WARNING: fewer than $FLOOD flood requests: raise FLOOD_SECS" >&2
 if [ "$f_bad" = "$f_n" ]; then echo "  every flood answer a refusal: no byte of the archive"; else echo "WARNING: a flood request was answered 2xx" >&2; fi
-to_ms() { awk -v v="$1" 'BEGIN { u = v; sub(/[0-9.]+/, "", u); x = v + 0; if (u == "us") x /= 1000; if (u == "s") x *= 1000; print x }'; }
-ratio=$(awk -v a="$(to_ms "$d_p99")" -v b="$(to_ms "$g_p99")" 'BEGIN { printf "%.2f", a / b }')
-echo "good keys (4 connections): p99 $g_p99 alone ($g_rps/s), $d_p99 during the flood ($d_rps/s): ${ratio}x; non-2xx $g_bad, $d_bad"
+g_p99=$(awk '{ print $1 }' "$work/alone.txt" | median); d_p99=$(awk '{ print $1 }' "$work/during.txt" | median)
+g_rps=$(awk '{ print $2 }' "$work/alone.txt" | median); d_rps=$(awk '{ print $2 }' "$work/during.txt" | median)
+bad=$(awk '{ n += $3 } END { print n + 0 }' "$work/alone.txt" "$work/during.txt")
+echo "good keys (4 connections), rounds' p99 in ms: alone $(awk '{ printf "%s ", $1 }' "$work/alone.txt")| during $(awk '{ printf "%s ", $1 }' "$work/during.txt")"
+ratio=$(awk -v a="$d_p99" -v b="$g_p99" 'BEGIN { printf "%.2f", a / b }')
+echo "good keys: median p99 ${g_p99} ms alone ($g_rps/s), ${d_p99} ms during the flood ($d_rps/s): ${ratio}x; non-2xx $bad"

@@ -74,6 +74,12 @@ pub struct ServerConfig {
     pub signing_secret_file: Option<PathBuf>,
     /// Seconds past a key's or token's expiry still accepted (clocks differ).
     pub clock_skew_secs: u64,
+    /// Refusals (401, 403, 429) a second, all clients together, answered at once; beyond
+    /// it each is held for its turn (up to a second), so a flood of bad credentials costs
+    /// the server this rate and no more. 0: no pace.
+    pub refusal_rate: u32,
+    /// Refusals answered at once before the pace applies.
+    pub refusal_burst: u32,
 }
 
 impl Default for ServerConfig {
@@ -104,6 +110,8 @@ impl Default for ServerConfig {
             keys: None,
             signing_secret_file: None,
             clock_skew_secs: 60,
+            refusal_rate: 200,
+            refusal_burst: 400,
         }
     }
 }
@@ -130,6 +138,8 @@ impl ServerConfig {
             keys: self.keys.clone(),
             secret: self.signing_secret_file.clone(),
             clock_skew_secs: self.clock_skew_secs,
+            refusal_rate: self.refusal_rate,
+            refusal_burst: self.refusal_burst,
         }
     }
 

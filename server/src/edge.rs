@@ -42,7 +42,7 @@ const MAX_AGE: HeaderValue = HeaderValue::from_static("86400");
 /// Rules on a request's access ([`crate::access::Access::decide`]), for both HTTP paths:
 /// what it may see, or the answer refusing it.
 pub(crate) fn admit(state: &AppState, presented: &Presented<'_>) -> Result<Grant, Denied> {
-    state.access.decide(presented, std::time::SystemTime::now())
+    state.access.decide_now(presented)
 }
 
 /// What an allowed request's answer gets from its grant: a private archive's answers to a
@@ -125,12 +125,22 @@ where
                 Ok(grant) => grant,
                 Err(refused) => {
                     let mut response = refused.answer().map(Body::new);
-                    // HTTP/1.1: the refused request ends its connection, as on the lean path.
-                    if req.version() <= axum::http::Version::HTTP_11 {
+                    // HTTP/1.1 without a pace: the refused request ends its connection, as
+                    // on the lean path.
+                    if req.version() <= axum::http::Version::HTTP_11 && !state.access.paced() {
                         response.headers_mut().insert(CONNECTION, HeaderValue::from_static("close"));
                     }
-                    finish(&state, route, started, &mut response);
-                    return Box::pin(std::future::ready(Ok(response)));
+                    // Held for its turn among refusals (a flood's connections wait here).
+                    let hold = state.access.hold();
+                    if hold.is_zero() {
+                        finish(&state, route, started, &mut response);
+                        return Box::pin(std::future::ready(Ok(response)));
+                    }
+                    return Box::pin(async move {
+                        tokio::time::sleep(hold).await;
+                        finish(&state, route, started, &mut response);
+                        Ok(response)
+                    });
                 }
             }
         } else {

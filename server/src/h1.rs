@@ -140,9 +140,11 @@ pub(crate) async fn serve(
             };
             // From the request's start: a clock read less per request, a few µs shorter.
             let (started, refused) = answer(&mut stream, state, &request, &mut head).await?;
-            // A refused request ends its connection: a flood of bad credentials pays a
-            // new connection for each try, and the rest of the server keeps its share.
-            if refused {
+            // A refusal held for its turn keeps its connection (the hold is what slows a
+            // flood; reconnecting would cost both sides more). Without a pace, a refused
+            // request ends its connection: a flood of bad credentials pays a new
+            // connection for each try, and the rest of the server keeps its share.
+            if refused && !state.access.paced() {
                 return Ok(Ended::Closed);
             }
             deadline = started + limits.timeout;
@@ -186,7 +188,7 @@ pub(crate) async fn serve(
 
 /// Answers one request: the handler's answer, its CORS headers and metrics, the head into
 /// `head`, then head and body in one vectored write. Returns when it started, and whether
-/// the access rules refused it (the connection is then closed).
+/// the access rules refused it (the connection is then closed, unless refusals are paced).
 async fn answer(
     stream: &mut Stream,
     state: &AppState,
@@ -204,8 +206,15 @@ async fn answer(
     let refused = grant.is_err();
     let mut answer = match grant {
         Err(refused) => {
+            // Held for its turn among refusals (a flood's connections wait here).
+            let hold = state.access.hold();
+            if !hold.is_zero() {
+                tokio::time::sleep(hold).await;
+            }
             let mut answer = refused.answer();
-            answer.headers_mut().insert(axum::http::header::CONNECTION, HeaderValue::from_static("close"));
+            if !state.access.paced() {
+                answer.headers_mut().insert(axum::http::header::CONNECTION, HeaderValue::from_static("close"));
+            }
             answer
         }
         Ok(grant) => {

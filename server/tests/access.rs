@@ -46,6 +46,8 @@ async fn private_server(dir: &Path, rules: &Path, lean: bool) -> Running {
         c.private = vec!["sample".into(), "secret-*".into()];
         c.keys = Some(keys);
         c.signing_secret_file = Some(secret);
+        // Thousands of refusals a test: paced, but not at the default's 200 a second.
+        c.refusal_rate = 5000;
     })
     .await
 }
@@ -328,4 +330,53 @@ async fn a_flood_of_bad_keys_serves_nothing_private() {
     assert_eq!(leaked, 0, "bytes beyond the refusals' JSON");
     assert_eq!(good.await.unwrap(), 100, "every good request answered whole during the flood");
     server.stop().await;
+}
+
+/// Refusals share a pace (`refusal_rate`, `refusal_burst`): beyond the burst each waits
+/// its turn before it is answered, and keeps its connection; a valid key never waits. On
+/// both paths.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refusals_beyond_the_pace_wait_their_turn_and_valid_keys_do_not() {
+    let (dir, _) = archives();
+    let rules = tempfile::tempdir().unwrap();
+    let keys = write_rules(rules.path());
+    for lean in [true, false] {
+        let (keys_file, secret) = (rules.path().join("keys.toml"), rules.path().join("secret"));
+        let server = start(dir.path(), |c| {
+            c.lean_http1 = lean;
+            c.private = vec!["sample".into()];
+            c.keys = Some(keys_file);
+            c.signing_secret_file = Some(secret);
+            c.refusal_rate = 20;
+            c.refusal_burst = 2;
+        })
+        .await;
+        let addr = server.addr;
+        let started = std::time::Instant::now();
+        // Eight refusals at once: two in the burst, then one every 50 ms (the last about
+        // 300 ms after the first).
+        let refused: Vec<_> = (0..8)
+            .map(|_| {
+                tokio::spawn(async move {
+                    let (status, head, _) = get(addr, "GET", "/sample.tspack", &[]).await;
+                    (status, head, started.elapsed())
+                })
+            })
+            .collect();
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        let bearer = format!("Bearer {}", keys.sample);
+        let (status, _, _) = get(addr, "GET", "/sample.tspack", &[("authorization", &bearer)]).await;
+        let good_at = started.elapsed();
+        assert_eq!(status, 200);
+        let mut last = std::time::Duration::ZERO;
+        for r in refused {
+            let (status, head, at) = r.await.unwrap();
+            assert_eq!(status, 401, "lean {lean}");
+            assert!(!head.contains("connection: close"), "a paced refusal keeps its connection: {head}");
+            last = last.max(at);
+        }
+        assert!(last >= std::time::Duration::from_millis(250), "lean {lean}: the last refusal after {last:?}");
+        assert!(good_at < last, "lean {lean}: the valid key ({good_at:?}) waited for the refusals ({last:?})");
+        server.stop().await;
+    }
 }

@@ -21,10 +21,13 @@
 
 pub mod keys;
 mod limiter;
+mod pace;
 pub mod token;
 
 use std::borrow::Cow;
+use std::cell::RefCell;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::SystemTime;
 
@@ -36,6 +39,7 @@ use crate::body::Payload;
 use crate::route::Route;
 use keys::{KeyFile, KeyRecord, KeyStore, KeysError};
 use limiter::Limiter;
+use pace::Pace;
 use token::Scope;
 
 /// The query parameters a credential may be given in, in the order they are looked for.
@@ -165,6 +169,11 @@ pub struct Rules {
     pub secret: Option<PathBuf>,
     /// Seconds past an expiry still accepted (clocks differ).
     pub clock_skew_secs: u64,
+    /// Refusals a second, all clients together, answered without delay (0: no pace);
+    /// beyond it each is held for its turn ([`pace`]).
+    pub refusal_rate: u32,
+    /// Refusals answered at once before the pace applies.
+    pub refusal_burst: u32,
 }
 
 /// Why the access rules cannot be used.
@@ -183,14 +192,30 @@ pub enum AccessError {
     },
 }
 
+/// Numbers told apart [`Access`] values (for the per-thread copies of their keys).
+static ACCESS_IDS: AtomicU64 = AtomicU64::new(1);
+
+thread_local! {
+    /// This thread's copy of the key store it last used: which [`Access`] it is of, the
+    /// store's generation, the store ([`KeyStore::private_copy`]). A decision reads the
+    /// keys without touching a lock or a reference count shared with the other threads:
+    /// on 2 cores their cache lines going back and forth doubled a decision's time.
+    static KEYS: RefCell<Option<(u64, u64, KeyStore)>> = const { RefCell::new(None) };
+}
+
 /// The rules, the keys and the rate limits, shared by every connection.
 #[derive(Debug, Default)]
 pub struct Access {
     rules: Rules,
+    /// This value's number among others (0: none yet, for `Default`).
+    id: u64,
     keys: RwLock<Arc<KeyStore>>,
+    /// Bumped when `keys` is replaced: threads' copies of an older one are renewed.
+    generation: AtomicU64,
     keys_stamp: Mutex<Option<SystemTime>>,
     secret: Option<Vec<u8>>,
     limiter: Limiter,
+    pace: Option<Pace>,
     enabled: bool,
 }
 
@@ -224,13 +249,27 @@ impl Access {
         };
         let enabled = rules.private_all || !rules.private.is_empty() || rules.keys.is_some() || secret.is_some();
         Ok(Self {
+            pace: Pace::new(rules.refusal_rate, rules.refusal_burst),
             rules,
+            id: ACCESS_IDS.fetch_add(1, Ordering::Relaxed),
             keys: RwLock::new(Arc::new(store)),
+            generation: AtomicU64::new(0),
             keys_stamp: Mutex::new(stamp),
             secret,
             limiter: Limiter::default(),
             enabled,
         })
+    }
+
+    /// How long to hold a refusal made now before answering it: refusals share one pace
+    /// ([`pace`]), so a flood of bad credentials leaves the cores to valid requests.
+    pub fn hold(&self) -> std::time::Duration {
+        self.pace.as_ref().map_or(std::time::Duration::ZERO, |p| p.hold(std::time::Instant::now()))
+    }
+
+    /// Whether refusals are paced (`refusal_rate` above 0).
+    pub fn paced(&self) -> bool {
+        self.pace.is_some()
     }
 
     /// Whether any rule is set (else every request is allowed without a look).
@@ -252,10 +291,28 @@ impl Access {
                 let store = KeyStore::new(file);
                 tracing::info!(keys = store.len(), "{}: keys reloaded", path.display());
                 *self.keys.write().unwrap_or_else(std::sync::PoisonError::into_inner) = Arc::new(store);
+                self.generation.fetch_add(1, Ordering::Release);
                 *seen = stamp;
             }
             Err(e) => tracing::warn!("keys not reloaded: {e}"),
         }
+    }
+
+    /// `f` of the keys, from this thread's copy while it is current.
+    fn with_keys<R>(&self, f: impl FnOnce(&KeyStore) -> R) -> R {
+        let generation = self.generation.load(Ordering::Acquire);
+        KEYS.with(|slot| {
+            let mut slot = slot.borrow_mut();
+            match slot.as_ref() {
+                Some((id, g, store)) if *id == self.id && *g == generation && self.id != 0 => f(store),
+                _ => {
+                    let store = self.keys.read().unwrap_or_else(std::sync::PoisonError::into_inner).private_copy();
+                    let answer = f(&store);
+                    *slot = Some((self.id, generation, store));
+                    answer
+                }
+            }
+        })
     }
 
     /// Whether archive `name` needs a credential.
@@ -269,6 +326,20 @@ impl Access {
     /// [`Denied`]: 401 without a credential where one is needed, 403 for a credential
     /// that does not open what is asked, 429 over a key's rate.
     pub fn decide(&self, req: &Presented<'_>, now: SystemTime) -> Result<Grant, Denied> {
+        self.rule(req, &mut || now)
+    }
+
+    /// [`Access::decide`] at the present time (read only where a credential's expiry
+    /// needs it).
+    ///
+    /// # Errors
+    /// As [`Access::decide`].
+    pub fn decide_now(&self, req: &Presented<'_>) -> Result<Grant, Denied> {
+        self.rule(req, &mut SystemTime::now)
+    }
+
+    /// The rules themselves, for [`Access::decide`] and [`Access::decide_now`].
+    fn rule(&self, req: &Presented<'_>, now: &mut dyn FnMut() -> SystemTime) -> Result<Grant, Denied> {
         if !self.enabled {
             return Ok(Grant::default());
         }
@@ -289,8 +360,8 @@ impl Access {
                 Ok(Grant::default())
             };
         };
-        let unix = now.duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        let by = self.credential_opens(&credential, req, unix)?;
+        let mut unix = || now().duration_since(SystemTime::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        let by = self.credential_opens(&credential, req, &mut unix)?;
         let grant = Grant { by, private, by_header: carry.is_none(), carry };
         let allowed = match &target {
             Target::Archive(name) => grant.opens(name, private) || prefix_opens(&grant.by, req.path),
@@ -301,6 +372,7 @@ impl Access {
             return Err(Denied::new(StatusCode::FORBIDDEN, "the key does not open this"));
         }
         if let By::Key(k) = &grant.by
+            && k.rate.is_some()
             && let Err(wait) = self.limiter.take(k, std::time::Instant::now())
         {
             return Err(Denied {
@@ -312,19 +384,24 @@ impl Access {
     }
 
     /// What a presented credential is, if it is valid here and now.
-    fn credential_opens(&self, credential: &str, req: &Presented<'_>, unix: u64) -> Result<By, Denied> {
+    fn credential_opens(
+        &self,
+        credential: &str,
+        req: &Presented<'_>,
+        unix: &mut dyn FnMut() -> u64,
+    ) -> Result<By, Denied> {
         let refused = |reason| Err(Denied::new(StatusCode::FORBIDDEN, reason));
         if credential.starts_with("ts1~") {
             let Some(secret) = &self.secret else { return refused("the key is not valid") };
-            return match token::verify(secret, credential, unix, self.rules.clock_skew_secs) {
+            return match token::verify(secret, credential, unix(), self.rules.clock_skew_secs) {
                 Ok(scope) => Ok(By::Token(scope)),
                 Err(token::Refused::Expired) => refused("the key has expired"),
                 Err(_) => refused("the key is not valid"),
             };
         }
-        let found = self.keys.read().unwrap_or_else(std::sync::PoisonError::into_inner).find(credential);
+        let found = self.with_keys(|keys| keys.find(credential));
         let Some(record) = found else { return refused("the key is not valid") };
-        if record.expires.is_some_and(|e| unix > e.saturating_add(self.rules.clock_skew_secs)) {
+        if record.expires.is_some_and(|e| unix() > e.saturating_add(self.rules.clock_skew_secs)) {
             return refused("the key has expired");
         }
         if !record.origins.is_empty() {
@@ -355,12 +432,17 @@ type Carried = Option<(&'static str, String)>;
 fn credential<'a>(req: &Presented<'a>) -> Result<(Option<Cow<'a, str>>, Carried), Denied> {
     let bad = || Denied::new(StatusCode::FORBIDDEN, "the key is not valid");
     if let Some(header) = req.authorization {
-        let text = std::str::from_utf8(header).map_err(|_| bad())?;
-        let (scheme, value) = text.trim().split_once(' ').ok_or_else(bad)?;
-        if !scheme.eq_ignore_ascii_case("bearer") || value.len() > MAX_CREDENTIAL {
+        let header = header.trim_ascii();
+        let scheme = b"bearer ";
+        let value = match header.get(..scheme.len()) {
+            Some(s) if s.eq_ignore_ascii_case(scheme) => header[scheme.len()..].trim_ascii(),
+            _ => return Err(bad()),
+        };
+        if value.len() > MAX_CREDENTIAL {
             return Err(bad());
         }
-        return Ok((Some(Cow::Borrowed(value.trim())), None));
+        let value = std::str::from_utf8(value).map_err(|_| bad())?;
+        return Ok((Some(Cow::Borrowed(value)), None));
     }
     let Some(query) = req.query else { return Ok((None, None)) };
     for param in QUERY_PARAMETERS {

@@ -23,6 +23,7 @@ fn access(private: &[&str], keys: Vec<KeyRecord>) -> (Access, Vec<String>, tempf
         keys: Some(keys_path),
         secret: Some(secret_path),
         clock_skew_secs: 60,
+        ..Rules::default()
     };
     (Access::new(rules).unwrap(), made, dir)
 }
@@ -182,4 +183,34 @@ fn globs_match_whole_names() {
     ] {
         assert_eq!(glob(p, n), m, "{p} {n}");
     }
+}
+
+/// What a decision costs (release: `cargo test --release -p terrastream-server --lib
+/// decision_cost -- --ignored --nocapture`), one thread and two at once on one key.
+#[test]
+#[ignore = "a measurement: prints nanoseconds, asserts nothing about them"]
+fn decision_cost() {
+    let (access, keys, _dir) = access(&[], vec![record(&["bench"])]);
+    let access = Access { rules: Rules { private_all: true, ..access.rules.clone() }, ..access };
+    let header = format!("Bearer {}", keys[0]);
+    let n = 2_000_000u32;
+    let run = |access: &Access| {
+        let req = Presented {
+            path: "/bench/elevation/12/655/1586",
+            authorization: Some(header.as_bytes()),
+            ..Presented::default()
+        };
+        let t = std::time::Instant::now();
+        for _ in 0..n {
+            std::hint::black_box(access.decide_now(std::hint::black_box(&req)).is_ok());
+        }
+        t.elapsed().as_nanos() as f64 / f64::from(n)
+    };
+    println!("one thread: {:.1} ns a decision", run(&access));
+    let both = std::thread::scope(|s| {
+        let a = s.spawn(|| run(&access));
+        let b = s.spawn(|| run(&access));
+        (a.join().unwrap(), b.join().unwrap())
+    });
+    println!("two threads: {:.1} / {:.1} ns a decision", both.0, both.1);
 }
