@@ -823,7 +823,7 @@ where
                     &mut made,
                     progress,
                     move |push| {
-                        level_rows(fine, coarse, &grid, corner, 0..grid.size.1, overrides, blend, &mut |mut row| {
+                        level_rows_in_bands(fine, coarse, &grid, corner, overrides, blend, &mut |mut row| {
                             if let Some(q) = quantize {
                                 q(&mut row);
                             }
@@ -880,8 +880,8 @@ struct Coarse<'a, 'q, S> {
 pub(crate) trait CoarseRows<S>: Send + Sync {
     /// Samples across and down.
     fn size(&self) -> (u32, u32);
-    /// Every row, in order.
-    fn rows(&self, each: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()>;
+    /// Rows `rows`, in order.
+    fn rows(&self, rows: std::ops::Range<u32>, each: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()>;
 }
 
 /// The coarser inputs on their level's whole grid (so that each sample is the one the
@@ -901,7 +901,7 @@ where
         self.size
     }
 
-    fn rows(&self, each: &mut dyn FnMut(Vec<K::Value>) -> Result<()>) -> Result<()> {
+    fn rows(&self, rows: std::ops::Range<u32>, each: &mut dyn FnMut(Vec<K::Value>) -> Result<()>) -> Result<()> {
         let (first, size) = (self.first, self.size);
         let (w, h) = (i64::from(self.mosaic.grid().size.0), i64::from(self.mosaic.grid().size.1));
         let crop = |r: &[K::Value]| -> Vec<K::Value> {
@@ -913,7 +913,7 @@ where
                 .collect()
         };
         let none = || vec![K::Value::NONE; size.0 as usize];
-        let (r0, r1) = (first.1, first.1 + i64::from(size.1));
+        let (r0, r1) = (first.1 + i64::from(rows.start), first.1 + i64::from(rows.end.min(size.1)));
         // Rows above and below the grid: none.
         for _ in r0..r1.min(0) {
             each(none())?;
@@ -965,13 +965,19 @@ struct Upsample<S> {
 }
 
 impl<S: Pixel> Upsample<S> {
-    fn new(coarse: &Coarse<'_, '_, S>, corner: (u32, u32), width: usize) -> Self {
+    /// For `height` level rows from `corner` (its first column and row), `width` across;
+    /// with the coarse rows they read (the rows to pull, in order).
+    fn new(coarse: &Coarse<'_, '_, S>, corner: (u32, u32), width: usize, height: u32) -> (Self, std::ops::Range<u32>) {
         let grid = coarse.source.size();
         let size = (grid.0 as usize, grid.1 as usize);
         let columns = (0..width)
             .map(|i| Self::at(u32::try_from(i).unwrap_or(u32::MAX) + corner.0, coarse.shift, coarse.first.0, size.0))
             .collect();
-        Self { shift: coarse.shift, first: coarse.first, size, columns, held: VecDeque::new(), front: 0 }
+        let top = Self::at(corner.1, coarse.shift, coarse.first.1, size.1).0;
+        let bottom = Self::at(corner.1 + height.saturating_sub(1), coarse.shift, coarse.first.1, size.1).0;
+        let pulled =
+            u32::try_from(top).unwrap_or(u32::MAX)..u32::try_from((bottom + 2).min(size.1)).unwrap_or(u32::MAX);
+        (Self { shift: coarse.shift, first: coarse.first, size, columns, held: VecDeque::new(), front: top }, pulled)
     }
 
     /// Level sample `n`'s coarse cell (clamped) and weight of the next one.
@@ -1005,6 +1011,74 @@ impl<S: Pixel> Upsample<S> {
         let last = self.size.0.saturating_sub(1);
         Ok(self.columns.iter().map(|&(c, fx)| S::lerp(between[c], between[(c + 1).min(last)], fx)).collect())
     }
+}
+
+/// [`level_rows`] of a whole rectangle's `grid`, made in bands of rows on every core (each
+/// band with `blend` rows more above and below, for the blend's distances) and handed to
+/// `emit` in order. The rows are those [`level_rows`] makes in one run.
+fn level_rows_in_bands<K: MosaicKind>(
+    fine: Option<&Mosaic<K>>,
+    coarse: Option<&Coarse<'_, '_, K::Value>>,
+    grid: &GridSpec,
+    corner: (u32, u32),
+    overrides: &[Override<K::Value>],
+    blend: u32,
+    emit: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
+) -> Result<()>
+where
+    K::Value: Pixel,
+{
+    /// Rows a band holds (at least; more where the blend's margin would outweigh it).
+    const BAND: u32 = 128;
+    let h = grid.size.1;
+    let threads = std::thread::available_parallelism().map_or(1, std::num::NonZero::get).min(8);
+    let band = BAND.max(blend.saturating_mul(4));
+    let bands: Vec<std::ops::Range<u32>> = (0..h).step_by(band as usize).map(|a| a..(a + band).min(h)).collect();
+    if threads < 2 || bands.len() < 2 {
+        return level_rows(fine, coarse, grid, corner, 0..h, overrides, blend, emit);
+    }
+    let make = |b: &std::ops::Range<u32>| -> Result<Vec<Vec<K::Value>>> {
+        let read = b.start.saturating_sub(blend)..b.end.saturating_add(blend).min(h);
+        let mut rows = Vec::with_capacity(read.len());
+        let at = (corner.0, corner.1 + read.start);
+        level_rows(fine, coarse, grid, at, read.clone(), overrides, blend, &mut |r| {
+            rows.push(r);
+            Ok(())
+        })?;
+        Ok(rows.into_iter().skip((b.start - read.start) as usize).take(b.len()).collect())
+    };
+    std::thread::scope(|scope| -> Result<()> {
+        // Worker t makes bands t, t + threads, …; each hands them over one at a time, so
+        // at most a band a worker waits made ahead of the one being emitted.
+        let (bands, make) = (&bands, &make);
+        let mut workers = Vec::with_capacity(threads);
+        let mut receivers = Vec::with_capacity(threads);
+        for t in 0..threads {
+            let (send, receive) = std::sync::mpsc::sync_channel::<Result<Vec<Vec<K::Value>>>>(1);
+            receivers.push(receive);
+            workers.push(scope.spawn(move || {
+                for b in bands.iter().skip(t).step_by(threads) {
+                    let made = make(b);
+                    let failed = made.is_err();
+                    // A send fails once the rows' consumer has stopped.
+                    if send.send(made).is_err() || failed {
+                        break;
+                    }
+                }
+            }));
+        }
+        let emitted = (0..bands.len()).try_for_each(|i| -> Result<()> {
+            let rows = receivers[i % threads].recv().map_err(|_| crate::error::interrupted())??;
+            rows.into_iter().try_for_each(&mut *emit)
+        });
+        drop(receivers);
+        let joined = workers.into_iter().map(std::thread::ScopedJoinHandle::join).collect::<Vec<_>>();
+        // A worker that panicked dropped its channel: say so rather than "interrupted".
+        if joined.iter().any(std::result::Result::is_err) {
+            return Err(Error::Panicked { thread: "collection rows" });
+        }
+        emitted
+    })
 }
 
 /// Makes rows `rows` of a level's `grid` (its first column the level's `corner.0`, row
@@ -1049,12 +1123,12 @@ where
         }
         return ring.finish(h, emit);
     };
-    let mut up = Upsample::new(coarse, corner, w);
+    let (mut up, pulled) = Upsample::new(coarse, corner, w, u32::try_from(h).unwrap_or(u32::MAX));
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
     let (k, quantize) = (&coarse.source, coarse.quantize);
     std::thread::scope(|scope| -> Result<()> {
         let reader = scope.spawn(move || {
-            k.rows(&mut |mut r| {
+            k.rows(pulled, &mut |mut r| {
                 if let Some(q) = quantize {
                     q(&mut r);
                 }
@@ -1115,34 +1189,49 @@ impl<S: Pixel> Blender<'_, S> {
         let cap = u32::try_from(self.band + 1).unwrap_or(u32::MAX);
         let mut across = vec![cap; self.width];
         // (A row with no fine data is all edge where the coarse data has heights: the
-        // rows above and below a survey count as much as those beside it.)
-        if self.band > 0 {
-            let edge = |x: usize| !fine[x].has_data() && coarse[x].has_data();
-            let mut d = cap;
-            for (x, a) in across.iter_mut().enumerate() {
-                d = if edge(x) { 0 } else { (d + 1).min(cap) };
-                *a = d;
-            }
-            let mut d = cap;
-            for (x, a) in across.iter_mut().enumerate().rev() {
-                d = if edge(x) { 0 } else { (d + 1).min(cap) };
-                *a = (*a).min(d);
-            }
-        }
-        let mut runs = vec![];
-        let mut start = None;
-        for (x, &a) in across.iter().enumerate() {
-            match (a < cap, start) {
-                (true, None) => start = Some(x),
-                (false, Some(s)) => {
-                    runs.push((s, x));
-                    start = None;
+        // rows above and below a survey count as much as those beside it. A row with fine
+        // data everywhere has no edge: most rows inside a survey.)
+        let edged = self.band > 0 && !fine.iter().all(Pixel::has_data);
+        // Runs of columns within the band of an edge, in order, touching ones joined.
+        let mut runs: Vec<(usize, usize)> = Vec::new();
+        let add = |runs: &mut Vec<(usize, usize)>, from: usize, to: usize| match runs.last_mut() {
+            _ if from >= to => {}
+            Some(last) if last.1 >= from => last.1 = last.1.max(to),
+            _ => runs.push((from, to)),
+        };
+        if edged {
+            // Each edge sample, then each run of others between two edges (or an edge and
+            // the row's end): the distance to the nearer edge, set only within the band.
+            let (w, c) = (self.width, self.band + 1);
+            let is_edge = |x: usize| !fine[x].has_data() && coarse[x].has_data();
+            let distance = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+            let mut x = 0;
+            while x < w {
+                if is_edge(x) {
+                    across[x] = 0;
+                    add(&mut runs, x, x + 1);
+                    x += 1;
+                    continue;
                 }
-                _ => {}
+                let s = x;
+                while x < w && !is_edge(x) {
+                    x += 1;
+                }
+                if s > 0 {
+                    let end = x.min(s + c - 1);
+                    for (i, a) in across.iter_mut().enumerate().take(end).skip(s) {
+                        *a = distance(i - s + 1);
+                    }
+                    add(&mut runs, s, end);
+                }
+                if x < w {
+                    let from = s.max((x + 1).saturating_sub(c));
+                    for (i, a) in across.iter_mut().enumerate().take(x).skip(from) {
+                        *a = (*a).min(distance(x - i));
+                    }
+                    add(&mut runs, from, x);
+                }
             }
-        }
-        if let Some(s) = start {
-            runs.push((s, across.len()));
         }
         self.near.push_back(runs);
         self.held.push_back((fine, coarse, across));
@@ -1227,6 +1316,7 @@ impl<S: Pixel> Blender<'_, S> {
 }
 
 #[cfg(test)]
+#[allow(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "small test grids")]
 mod tests {
     use super::*;
 
@@ -1301,5 +1391,136 @@ mod tests {
         // The middle is the fine input's own, the outside the coarse's.
         assert_eq!(blended[20][20], 20.0 * 0.1 + 3.0);
         assert_eq!(blended[5][5], 0.5);
+    }
+
+    /// A deterministic pattern: fine data in blocks with holes, coarse data nearly
+    /// everywhere.
+    fn pattern(w: usize, h: usize) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+        let hash = |x: usize, y: usize| (x.wrapping_mul(73_856_093) ^ y.wrapping_mul(19_349_663)) % 97;
+        let fine = (0..h)
+            .map(|y| {
+                (0..w)
+                    .map(|x| {
+                        let inside = (5..w - 7).contains(&x) && (4..h - 6).contains(&y) && hash(x, y) > 6;
+                        if inside { (x * 3 + y) as f32 * 0.25 + 3.0 } else { f32::NAN }
+                    })
+                    .collect()
+            })
+            .collect();
+        let coarse = (0..h)
+            .map(|y| (0..w).map(|x| if hash(y, x) == 0 { f32::NAN } else { (x + y) as f32 * 0.5 }).collect())
+            .collect();
+        (fine, coarse)
+    }
+
+    #[test]
+    fn the_blend_is_the_chessboard_distance_to_the_nearest_edge() {
+        let (w, h, band) = (47usize, 39usize, 3usize);
+        let (fine, coarse) = pattern(w, h);
+        let mut ring = Blender {
+            width: w,
+            band,
+            corner: (0, 0),
+            overrides: &[],
+            held: VecDeque::new(),
+            near: VecDeque::new(),
+            front: 0,
+            emitted: 0,
+        };
+        let mut rows = vec![];
+        let mut emit = |r: Vec<f32>| {
+            rows.push(r);
+            Ok(())
+        };
+        for y in 0..h {
+            ring.push(fine[y].clone(), coarse[y].clone(), &mut emit).unwrap();
+        }
+        ring.finish(h, &mut emit).unwrap();
+        // By brute force: every sample's distance to every edge sample (no fine data where
+        // the coarse has some).
+        let edges: Vec<(usize, usize)> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .filter(|&(x, y)| fine[y][x].is_nan() && !coarse[y][x].is_nan())
+            .collect();
+        let cap = band as u32 + 1;
+        let scale = 1.0 / (band as f32 + 1.0);
+        for y in 0..h {
+            for x in 0..w {
+                let (a, b) = (fine[y][x], coarse[y][x]);
+                let d = edges
+                    .iter()
+                    .map(|&(ex, ey)| x.abs_diff(ex).max(y.abs_diff(ey)) as u32)
+                    .min()
+                    .unwrap_or(cap)
+                    .min(cap);
+                let expected = if a.is_nan() {
+                    b
+                } else if b.is_nan() || d >= cap {
+                    a
+                } else {
+                    let t = d as f32 * scale;
+                    f32::lerp(b, a, t * t * (3.0 - 2.0 * t))
+                };
+                let got = rows[y][x];
+                assert!(got == expected || (got.is_nan() && expected.is_nan()), "({x}, {y}): {got} against {expected}");
+            }
+        }
+    }
+
+    /// Coarse rows from memory, counting the rows read.
+    struct Rows(Vec<Vec<f32>>, std::sync::atomic::AtomicUsize);
+
+    impl CoarseRows<f32> for Rows {
+        fn size(&self) -> (u32, u32) {
+            (self.0[0].len() as u32, self.0.len() as u32)
+        }
+
+        fn rows(&self, rows: std::ops::Range<u32>, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+            for r in rows {
+                self.1.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                each(self.0[r as usize].clone())?;
+            }
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn rows_made_in_bands_are_the_rows_made_in_one_run() {
+        // A level 700 rows high (six bands) over coarse data two levels coarser, with a
+        // finer level's means over part of it.
+        let (w, h) = (90u32, 700u32);
+        let (_, coarse_rows) = pattern(30, 180);
+        let grid = GridSpec { origin: [0.0, 0.0], pixel: (1.0, 1.0), size: (w, h) };
+        let corner = (8, 12);
+        let overrides = [Override {
+            x0: 20,
+            y0: 200,
+            rows: (0..300)
+                .map(|y| (0..40).map(|x| if (x + y) % 11 == 0 { f32::NAN } else { 7.0 + x as f32 }).collect())
+                .collect(),
+        }];
+        let make = |bands: bool| {
+            let source = Rows(coarse_rows.clone(), std::sync::atomic::AtomicUsize::new(0));
+            let coarse = Coarse { source: Box::new(source), shift: 2, quantize: None, first: (1, 2) };
+            let mut rows = vec![];
+            let mut emit = |r: Vec<f32>| {
+                rows.push(r);
+                Ok(())
+            };
+            if bands {
+                level_rows_in_bands::<Heights>(None, Some(&coarse), &grid, corner, &overrides, 0, &mut emit).unwrap();
+            } else {
+                level_rows::<Heights>(None, Some(&coarse), &grid, corner, 0..h, &overrides, 0, &mut emit).unwrap();
+            }
+            rows
+        };
+        let (one, banded) = (make(false), make(true));
+        assert_eq!(one.len(), h as usize);
+        assert_eq!(banded.len(), one.len());
+        for (y, (a, b)) in one.iter().zip(&banded).enumerate() {
+            let same = a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
+            assert!(same, "row {y} differs");
+        }
+        assert!(one.iter().flatten().any(|v| *v == 7.0 + 5.0), "the overrides are in");
     }
 }

@@ -39,8 +39,8 @@ impl CoarseRows<f32> for StoredLevel<'_> {
         self.size
     }
 
-    fn rows(&self, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
-        for r in 0..i64::from(self.size.1) {
+    fn rows(&self, rows: std::ops::Range<u32>, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+        for r in i64::from(rows.start)..i64::from(rows.end.min(self.size.1)) {
             let row = (0..i64::from(self.size.0))
                 .map(|c| self.stored.sample(self.lod, self.first.0 + c, self.first.1 + r))
                 .collect::<Result<Vec<f32>>>()?;
