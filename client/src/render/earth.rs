@@ -1,12 +1,13 @@
 //! The whole Earth beyond an archive's data: a picture of continents, oceans and ice
-//! (`client/data/earth.png`, 2048 x 1024, equirectangular; made by `scripts/make-earth.py`
-//! from Natural Earth's 1:50m land polygons, public domain) built into the binary and the
-//! webplayer, drawn on the ground the sky pass shows where the terrain is not.
+//! (`client/data/earth.webp`, 2048 x 1024, equirectangular: Natural Earth II with its
+//! shaded relief, public domain, as CesiumJS ships it for its own globe; joined by
+//! `scripts/make-earth.sh`) built into the binary and the webplayer, drawn on the ground
+//! the sky pass shows where the terrain is not.
 
 use super::wgpu;
 
-/// The picture, as committed (23 KiB).
-const EARTH_PNG: &[u8] = include_bytes!("../../data/earth.png");
+/// The picture, as committed (171 KiB).
+const EARTH_WEBP: &[u8] = include_bytes!("../../data/earth.webp");
 
 /// Its size in pixels.
 const SIZE: (u32, u32) = (2048, 1024);
@@ -31,15 +32,8 @@ pub(super) fn earth_texture(device: &wgpu::Device) -> wgpu::Texture {
 /// The picture's RGBA pixels (None if the built-in bytes do not decode, which a test
 /// rules out).
 fn pixels() -> Option<Vec<u8>> {
-    let mut decoder = png::Decoder::new(std::io::Cursor::new(EARTH_PNG));
-    decoder.set_transformations(png::Transformations::EXPAND);
-    let mut reader = decoder.read_info().ok()?;
-    let mut data = vec![0; reader.output_buffer_size()?];
-    let info = reader.next_frame(&mut data).ok()?;
-    if (info.width, info.height) != SIZE || info.color_type != png::ColorType::Rgb {
-        return None;
-    }
-    Some(data[..info.buffer_size()].chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect())
+    let image = terrastream_tiles::Image::decode(terrastream_format::TileFormat::Webp, EARTH_WEBP).ok()?;
+    ((image.width(), image.height()) == SIZE).then(|| image.rgba8())
 }
 
 /// Writes the picture and its mip chain (each level the mean of 2 x 2 of the one above,
@@ -88,19 +82,25 @@ pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) {
 mod tests {
     #[test]
     fn the_built_in_picture_decodes_to_sea_land_and_ice() {
-        let p = super::pixels().expect("earth.png decodes");
+        let p = super::pixels().expect("earth.webp decodes");
         let at = |lon: f64, lat: f64| {
             let x = ((lon + 180.0) / 360.0 * 2048.0) as usize;
             let y = ((90.0 - lat) / 180.0 * 1024.0) as usize;
-            [p[4 * (y * 2048 + x)], p[4 * (y * 2048 + x) + 1], p[4 * (y * 2048 + x) + 2]]
+            let i = 4 * (y * 2048 + x);
+            [i32::from(p[i]), i32::from(p[i + 1]), i32::from(p[i + 2])]
         };
-        let (sea, land, ice) = ([12, 36, 78], [86, 104, 62], [236, 240, 244]);
-        // The Pacific, the Sahara, the Amazon, Greenland, Antarctica, the Atlantic.
-        assert_eq!(at(-150.0, 0.0), sea);
-        assert_eq!(at(10.0, 23.0), land);
-        assert_eq!(at(-60.0, -5.0), land);
-        assert_eq!(at(-40.0, 72.0), ice);
-        assert_eq!(at(30.0, -80.0), ice);
-        assert_eq!(at(-30.0, 30.0), sea);
+        let sea = |[r, g, b]: [i32; 3]| b > r + 35 && b > g + 15 && b < 120;
+        let green = |[r, g, b]: [i32; 3]| g > r + 30 && g > b + 30;
+        let desert = |[r, g, b]: [i32; 3]| r + g > 2 * b + 40 && r > 150;
+        let ice = |[r, g, b]: [i32; 3]| r.min(g).min(b) > 180 && b >= r;
+        // The Pacific and the Atlantic, the Amazon, the Sahara, Greenland, Antarctica; north
+        // up and east to the right (a picture flipped or turned would fail these).
+        for (lon, lat) in [(-150.0, 0.0), (-30.0, 30.0), (160.0, -40.0)] {
+            assert!(sea(at(lon, lat)), "{lon}, {lat}: {:?}", at(lon, lat));
+        }
+        assert!(green(at(-60.0, -5.0)), "{:?}", at(-60.0, -5.0));
+        assert!(desert(at(10.0, 23.0)), "{:?}", at(10.0, 23.0));
+        assert!(ice(at(-40.0, 72.0)) && ice(at(30.0, -80.0)), "{:?} {:?}", at(-40.0, 72.0), at(30.0, -80.0));
+        assert!(!sea(at(10.0, 23.0)) && !ice(at(10.0, 23.0)) && !green(at(-150.0, 0.0)));
     }
 }
