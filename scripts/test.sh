@@ -14,9 +14,10 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 # reprojection and web tiles, PROJ's EGM96 geoid grid (proj-data: egm96_15.gtx, which
 # the tiler reads too), python3-venv for the Kubernetes schema validator, the
 # quantized-mesh decoder and the S3 API server, rclone (the cluster Jobs' object-storage
-# copies) and npm for the browser clients' packages.
+# copies), npm for the browser clients' packages, and DejaVu's fonts (the labels' glyphs
+# the server makes for MapLibre).
 need_apt=()
-for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin proj-data python3-pil python3-venv rclone}; do
+for pkg in ${TERRASTREAM_APT_PACKAGES:-nginx openssl curl mesa-vulkan-drivers libvulkan1 chromium chromium-driver xvfb x11-apps gdal-bin proj-bin proj-data python3-pil python3-venv rclone fonts-dejavu-core}; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then

@@ -272,7 +272,10 @@ fn maplibre_draws_a_topographic_map_of_hillshade_and_contours() {
     let dir = tempfile::tempdir().unwrap();
     let archive = archive(dir.path());
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
-    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let fonts = Path::new("/usr/share/fonts/truetype/dejavu");
+    assert!(fonts.join("DejaVuSans.ttf").exists(), "DejaVu's fonts (apt-get install fonts-dejavu-core)");
+    let args = [archive.to_str().unwrap(), "--fonts", fonts.to_str().unwrap()];
+    let server = terrastream_testkit::server::spawn_serve(exe, &args, dir.path());
     let root = dir.path().join("www");
     write_page(&root, &dist);
     std::fs::write(root.join("topo.html"), snippet("maplibre-topo-page")).unwrap();
@@ -286,12 +289,40 @@ fn maplibre_draws_a_topographic_map_of_hillshade_and_contours() {
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
     let base = format!("http://127.0.0.1:{}/tamalpais", server.port);
-    for (units, golden) in [("m", "maplibre-topo"), ("ft", "maplibre-topo-feet")] {
-        let page = format!("http://127.0.0.1:{}/topo.html?archive={base}&units={units}", nginx.port);
+    // Labels' glyphs from the same server (DejaVu Sans for any stack it does not hold).
+    let glyphs = format!("http://127.0.0.1:{}/fonts/{{fontstack}}/{{range}}.pbf", server.port);
+    let brown =
+        |rgba: &[u8]| rgba.chunks_exact(4).filter(|p| u16::from(p[0]) > u16::from(p[2]) + 40 && p[1] > p[2]).count();
+    let mut unlabelled = Vec::new();
+    for (units, golden, labels) in
+        [("m", "maplibre-topo", false), ("ft", "maplibre-topo-feet", false), ("ft", "maplibre-topo-labels", true)]
+    {
+        let mut page = format!("http://127.0.0.1:{}/topo.html?archive={base}&units={units}", nginx.port);
+        if labels {
+            page.push_str(&format!("&labels=all&glyphs={}", glyphs.replace('{', "%7B").replace('}', "%7D")));
+        }
         let (_, (w, h, rgba)) = maplibre_run(&browser, &page, &[]);
         // Contour lines drawn: pixels of their brown, not only the hillshade's grays.
-        let brown = rgba.chunks_exact(4).filter(|p| u16::from(p[0]) > u16::from(p[2]) + 40 && p[1] > p[2]).count();
-        assert!(brown > 500, "{units}: {brown} pixels of contour lines");
+        let lines = brown(&rgba);
+        assert!(lines > 500, "{units}: {lines} pixels of contour lines");
+        if labels {
+            // Labels placed and drawn where the unlabelled map of the same units has
+            // none, with glyphs from us (MapLibre draws a range it cannot load with the
+            // browser's own font instead: the server's count of glyph ranges says).
+            let (_, metrics) = terrastream_testkit::http::request(server.port, "GET", "/metrics", None);
+            let metrics = String::from_utf8_lossy(&metrics);
+            let served = "terrastream_requests_total{route=\"/fonts/{fontstack}/{range}\",status=\"200\"}";
+            assert!(metrics.contains(served), "no glyph range served: {metrics}");
+            let changed = rgba.chunks_exact(4).zip(unlabelled.chunks_exact(4)).filter(|(a, b)| a != b).count();
+            let placed = browser.eval("return window.map.queryRenderedFeatures({ layers: ['labels'] }).length;");
+            assert!(
+                changed > 300 && placed.as_u64().is_some_and(|n| n > 0),
+                "labels: {placed} placed, {changed} pixels changed; console {:?}",
+                browser.console()
+            );
+        } else {
+            unlabelled = rgba.clone();
+        }
         terrastream_testkit::golden::assert_golden(golden, w, h, &rgba, TOLERANCE);
     }
 }

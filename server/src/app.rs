@@ -79,7 +79,7 @@ impl AppState {
             tracing::error!("settings: {e}: every request is refused");
             let shut = crate::access::Rules { private_all: true, ..crate::access::Rules::default() };
             let access = Access::new(shut).unwrap_or_default();
-            Self::with_access(config, access, terrastream_views::relief::ColorTable::default())
+            Self::with_access(config, access, terrastream_views::relief::ColorTable::default(), None)
         })
     }
 
@@ -98,10 +98,26 @@ impl AppState {
             None => terrastream_views::relief::ColorTable::default(),
         };
         let access = Access::new(config.access_rules())?;
-        Ok(Self::with_access(config, access, table))
+        let fonts = match &config.fonts {
+            Some(dir) => {
+                let set = terrastream_views::glyphs::FontSet::load(dir)?;
+                for (file, why) in set.skipped() {
+                    tracing::warn!("{}: not a font ({why}): skipped", file.display());
+                }
+                tracing::info!(fonts = set.names().count(), "{}: fonts for labels", dir.display());
+                Some(Arc::new(crate::web::fonts::Fonts::new(set)))
+            }
+            None => None,
+        };
+        Ok(Self::with_access(config, access, table, fonts))
     }
 
-    fn with_access(config: ServerConfig, access: Access, table: terrastream_views::relief::ColorTable) -> Self {
+    fn with_access(
+        config: ServerConfig,
+        access: Access,
+        table: terrastream_views::relief::ColorTable,
+        fonts: Option<Arc<crate::web::fonts::Fonts>>,
+    ) -> Self {
         Self(Arc::new(AppInner {
             access: Arc::new(access),
             catalog: Arc::new(Catalog::new(config.paths.clone()).with_leaf_cache(config.leaf_cache)),
@@ -112,6 +128,7 @@ impl AppState {
                 .unwrap_or_else(|_| HeaderValue::from_static("private, no-cache")),
             web: Arc::new(crate::web::WebState {
                 color_table: table,
+                fonts,
                 ..crate::web::WebState::new(
                     config.web_threads,
                     config.web_queue,
@@ -130,6 +147,9 @@ pub enum StartError {
     /// The access rules' files.
     #[error(transparent)]
     Access(#[from] AccessError),
+    /// The fonts folder of labels' glyphs.
+    #[error(transparent)]
+    Fonts(#[from] terrastream_views::glyphs::GlyphError),
     /// The colour table of `color-relief` tiles.
     #[error("{path}: {reason}")]
     ColorTable {
@@ -218,6 +238,7 @@ pub fn service(state: AppState) -> Edge<Router> {
             Route::LayerJson => get(crate::web::quantized::layer_json),
             Route::TerrainTile => get(crate::web::quantized::terrain_tile),
             Route::Contours => get(crate::web::contours::tile),
+            Route::Fonts => get(crate::web::fonts::glyphs),
             Route::Other => return router,
         };
         router.route(route.template(), handler)

@@ -80,6 +80,10 @@ pub struct ServerConfig {
     pub refusal_rate: u32,
     /// Refusals answered at once before the pace applies.
     pub refusal_burst: u32,
+    /// A folder of TrueType/OpenType fonts (searched four folders deep) whose glyphs
+    /// `/fonts/{fontstack}/{range}.pbf` serves for map labels (none: that route answers
+    /// 404).
+    pub fonts: Option<PathBuf>,
 }
 
 impl Default for ServerConfig {
@@ -112,6 +116,7 @@ impl Default for ServerConfig {
             clock_skew_secs: 60,
             refusal_rate: 200,
             refusal_burst: 400,
+            fonts: None,
         }
     }
 }

@@ -45,13 +45,15 @@ pub enum Route {
     TerrainTile,
     /// `/{name}/contours/{z}/{x}/{y}.pbf`: a contour vector tile.
     Contours,
+    /// `/fonts/{fontstack}/{range}.pbf`: glyphs for map labels.
+    Fonts,
     /// Anything else (answered 404; counted under "other").
     Other,
 }
 
 impl Route {
     /// Every route, in the order the metrics list them.
-    pub const ALL: [Self; 16] = [
+    pub const ALL: [Self; 17] = [
         Self::Index,
         Self::Health,
         Self::Metrics,
@@ -67,6 +69,7 @@ impl Route {
         Self::LayerJson,
         Self::TerrainTile,
         Self::Contours,
+        Self::Fonts,
         Self::Other,
     ];
 
@@ -89,6 +92,7 @@ impl Route {
             Self::LayerJson => "/{name}/layer.json",
             Self::TerrainTile => "/{name}/{z}/{x}/{y}",
             Self::Contours => "/{name}/contours/{z}/{x}/{y}",
+            Self::Fonts => "/fonts/{fontstack}/{range}",
             Self::Other => "other",
         }
     }
@@ -117,6 +121,7 @@ impl Route {
             (f, [None, ..]) if !f.is_empty() => Self::Archive,
             ("view", [Some(n), None, ..]) if !n.is_empty() => Self::View,
             ("v1", [Some(n), None, ..]) if !n.is_empty() => Self::Elevation,
+            ("fonts", [Some(s), Some(r), None, ..]) if !s.is_empty() && !r.is_empty() => Self::Fonts,
             (f, [Some("metadata"), None, ..]) if !f.is_empty() => Self::Metadata,
             (f, [Some("tiles.json"), None, ..]) if !f.is_empty() => Self::TileJson,
             (f, [Some("layer.json"), None, ..]) if !f.is_empty() => Self::LayerJson,

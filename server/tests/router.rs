@@ -366,3 +366,41 @@ async fn manifests_are_served_beside_the_archives_and_hot_reloaded() {
     let (r, _) = send(&s, get("/planet.json", &[])).await;
     assert_eq!(r.status(), StatusCode::NOT_FOUND);
 }
+
+/// Labels' glyphs: a range of the fonts folder's font (a stack it does not hold answered
+/// with the fallback, named in a header), the range checked, no folder a 404; and a
+/// folder that holds no font refuses to start naming it.
+#[tokio::test]
+async fn glyph_ranges_for_map_labels() {
+    let (dir, _) = archives();
+    let fonts = std::path::Path::new("/usr/share/fonts/truetype/dejavu");
+    assert!(fonts.join("DejaVuSans.ttf").exists(), "DejaVu's fonts (apt-get install fonts-dejavu-core)");
+    let config = |fonts: Option<&std::path::Path>| terrastream_server::ServerConfig {
+        paths: vec![dir.path().to_path_buf()],
+        fonts: fonts.map(std::path::Path::to_path_buf),
+        ..terrastream_server::ServerConfig::default()
+    };
+    let served = terrastream_server::AppState::try_new(config(Some(fonts))).unwrap();
+    let (r, body) = send(&served, get("/fonts/DejaVu%20Sans%20Bold/0-255.pbf", &[])).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(h(&r, "content-type"), "application/x-protobuf");
+    assert_eq!(h(&r, "x-terrastream-font"), "DejaVu Sans Bold");
+    assert!(body.len() > 20_000, "{} bytes for the Latin range", body.len());
+    let (r, _) =
+        send(&served, get("/fonts/Open%20Sans%20Regular,Arial%20Unicode%20MS%20Regular/256-511.pbf", &[])).await;
+    assert_eq!((r.status(), h(&r, "x-terrastream-font").as_str()), (StatusCode::OK, "DejaVu Sans"));
+    for bad in
+        ["/fonts/DejaVu%20Sans/1-256.pbf", "/fonts/DejaVu%20Sans/0-100.pbf", "/fonts/DejaVu%20Sans/65536-65791.pbf"]
+    {
+        let (r, body) = send(&served, get(bad, &[])).await;
+        assert_eq!(r.status(), StatusCode::BAD_REQUEST, "{bad}");
+        assert!(String::from_utf8_lossy(&body).contains("range"), "{bad}");
+    }
+    let without = terrastream_server::AppState::try_new(config(None)).unwrap();
+    let (r, body) = send(&without, get("/fonts/DejaVu%20Sans/0-255.pbf", &[])).await;
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    assert!(String::from_utf8_lossy(&body).contains("--fonts"));
+    let empty = tempfile::tempdir().unwrap();
+    let refused = terrastream_server::AppState::try_new(config(Some(empty.path()))).unwrap_err().to_string();
+    assert!(refused.contains(&empty.path().display().to_string()) && refused.contains("no TrueType"), "{refused}");
+}

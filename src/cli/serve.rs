@@ -46,6 +46,10 @@ pub struct ServeArgs {
     /// The file of the secret that signs tokens (`terrastream sign`).
     #[arg(long)]
     secret_file: Option<PathBuf>,
+    /// A folder of TrueType/OpenType fonts: `/fonts/{fontstack}/{range}.pbf` serves their
+    /// glyphs, for map styles' labels (e.g. /usr/share/fonts/truetype/dejavu).
+    #[arg(long)]
+    fonts: Option<PathBuf>,
 }
 
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
@@ -82,6 +86,9 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
     }
     if args.secret_file.is_some() {
         config.signing_secret_file = args.secret_file;
+    }
+    if args.fonts.is_some() {
+        config.fonts = args.fonts;
     }
     if config.paths.is_empty() {
         bail!("nothing to serve: give archive files or folders");

@@ -498,7 +498,7 @@ fn target(path: &str) -> Target<'_> {
         Route::Index => return Target::Listing,
         Route::Metrics => return Target::Metrics,
         // `/auth` rules on the URI it is given, in its handler.
-        Route::Health | Route::Auth | Route::Other => return Target::Open,
+        Route::Health | Route::Auth | Route::Fonts | Route::Other => return Target::Open,
         Route::View if crate::player::asset(second).is_some() => return Target::Open,
         Route::View | Route::Elevation => second,
         Route::Archive => {

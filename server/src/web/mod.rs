@@ -14,6 +14,7 @@
 //! - `GET|POST /v1/{name}`: heights at points (see [`elevation`]).
 
 pub mod contours;
+pub mod fonts;
 pub mod pool;
 pub mod quantized;
 mod relief;
@@ -49,6 +50,8 @@ pub struct WebState {
     pub made: Lru<MadeKey>,
     /// Archive tiles decoded for them.
     pub decoded: resample::DecodedCache,
+    /// The fonts of map labels' glyphs (`serve --fonts`), if any.
+    pub fonts: Option<std::sync::Arc<fonts::Fonts>>,
 }
 
 impl WebState {
@@ -60,6 +63,7 @@ impl WebState {
             made: Lru::new(cache_bytes),
             decoded: Lru::new(decoded_bytes),
             color_table: terrastream_views::relief::ColorTable::default(),
+            fonts: None,
         }
     }
 }

@@ -15,6 +15,7 @@ pub mod contours;
 pub mod elevation;
 pub mod encode;
 pub mod export;
+pub mod glyphs;
 pub mod mercator;
 pub mod mvt;
 #[cfg(feature = "pmtiles")]

@@ -93,12 +93,12 @@ fn geometry(points: &[(i32, i32)]) -> Vec<u8> {
 }
 
 #[expect(clippy::cast_sign_loss, reason = "zig-zag: the sign moves to the lowest bit")]
-fn zigzag(v: i64) -> u64 {
+pub(crate) fn zigzag(v: i64) -> u64 {
     ((v << 1) ^ (v >> 63)) as u64
 }
 
 #[expect(clippy::cast_possible_truncation, reason = "seven bits at a time")]
-fn varint(out: &mut Vec<u8>, mut v: u64) {
+pub(crate) fn varint(out: &mut Vec<u8>, mut v: u64) {
     while v >= 0x80 {
         out.push((v as u8) | 0x80);
         v >>= 7;
@@ -106,12 +106,12 @@ fn varint(out: &mut Vec<u8>, mut v: u64) {
     out.push(v as u8);
 }
 
-fn varint_field(out: &mut Vec<u8>, field: u64, v: u64) {
+pub(crate) fn varint_field(out: &mut Vec<u8>, field: u64, v: u64) {
     varint(out, field << 3);
     varint(out, v);
 }
 
-fn bytes_field(out: &mut Vec<u8>, field: u64, bytes: &[u8]) {
+pub(crate) fn bytes_field(out: &mut Vec<u8>, field: u64, bytes: &[u8]) {
     varint(out, field << 3 | 2);
     varint(out, bytes.len() as u64);
     out.extend_from_slice(bytes);

@@ -1,0 +1,80 @@
+//! Glyphs for map labels: `GET /fonts/{fontstack}/{range}.pbf`, the URL a MapLibre style's
+//! `glyphs` names (`http://host/fonts/{fontstack}/{range}.pbf`), made by
+//! [`terrastream_views::glyphs`] from the fonts of the folder `serve --fonts` (or the
+//! config's `fonts`) names, on a blocking thread, and kept.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use axum::extract::{Path, State};
+use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE};
+use axum::http::{HeaderName, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
+use terrastream_views::glyphs::{FontSet, parse_range};
+
+use super::{WebError, bad, not_found};
+use crate::app::AppState;
+
+/// Header naming the font a stack was answered with (a fallback's name where none of the
+/// stack's names is served).
+pub const FONT_HEADER: HeaderName = HeaderName::from_static("x-terrastream-font");
+
+/// The fonts served, and the ranges made from them.
+#[derive(Debug)]
+pub struct Fonts {
+    /// The fonts.
+    pub set: FontSet,
+    /// Ranges made: by font, stack and first code point.
+    made: Mutex<HashMap<(usize, String, u32), Bytes>>,
+}
+
+impl Fonts {
+    /// The fonts of `set`, nothing made yet.
+    pub fn new(set: FontSet) -> Self {
+        Self { set, made: Mutex::new(HashMap::new()) }
+    }
+}
+
+/// `GET /fonts/{fontstack}/{range}.pbf`.
+pub async fn glyphs(State(state): State<AppState>, Path((stack, range)): Path<(String, String)>) -> Response {
+    match answer(&state, stack, &range).await {
+        Ok(response) => response,
+        Err(e) => e.into_response(),
+    }
+}
+
+async fn answer(state: &AppState, stack: String, range: &str) -> Result<Response, WebError> {
+    let Some(fonts) = state.web.fonts.clone() else {
+        return Err(not_found("no fonts are served here (serve --fonts DIR)"));
+    };
+    let start = parse_range(range).ok_or_else(|| {
+        bad(format!("range {range:?}: START-END.pbf, START a multiple of 256 below 65536, END START + 255"))
+    })?;
+    if stack.is_empty() || stack.len() > 512 {
+        return Err(bad("fontstack: one to 512 characters of comma-separated font names"));
+    }
+    let (font, name, _) = fonts.set.pick(&stack);
+    let name = name.to_owned();
+    let key = (font, stack.clone(), start);
+    let kept = fonts.made.lock().unwrap_or_else(std::sync::PoisonError::into_inner).get(&key).cloned();
+    let bytes = match kept {
+        Some(bytes) => bytes,
+        None => {
+            let made = Arc::clone(&fonts);
+            let bytes = tokio::task::spawn_blocking(move || Bytes::from(made.set.range(font, &stack, start)))
+                .await
+                .map_err(|_| WebError(StatusCode::INTERNAL_SERVER_ERROR, "glyphs could not be made".into()))?;
+            fonts.made.lock().unwrap_or_else(std::sync::PoisonError::into_inner).insert(key, bytes.clone());
+            bytes
+        }
+    };
+    let mut response = bytes.into_response();
+    let h = response.headers_mut();
+    h.insert(CONTENT_TYPE, HeaderValue::from_static("application/x-protobuf"));
+    h.insert(CACHE_CONTROL, state.cache_control.clone());
+    if let Ok(v) = HeaderValue::from_str(&name) {
+        h.insert(FONT_HEADER, v);
+    }
+    Ok(response)
+}
