@@ -423,6 +423,9 @@ fn texel_from(start: u32, p: vec2<f32>) -> vec4<f32> {
 }
 
 // Colour ramp by height when the archive has no texture layer.
+// The sea's albedo in linear light: the whole-Earth picture's sea (client/data/earth.webp).
+const SEA_ALBEDO: vec3<f32> = vec3<f32>(0.015, 0.045, 0.09);
+
 fn hypsometric(h: f32) -> vec3<f32> {
     let t = clamp((h - G.terrain.x) / max(G.terrain.y - G.terrain.x, 1.0), 0.0, 1.0);
     let low = vec3<f32>(0.09, 0.21, 0.07);
@@ -487,6 +490,9 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     }
     // Normal from the elevation data at the pixel's own resolution.
     var normal = vec3<f32>(0.0, 1.0, 0.0);
+    // The sea, as DEMs that store it as a flat 0 have it (SRTM, Copernicus): the sample
+    // and its four neighbours at one height within half a metre of sea level.
+    var sea = false;
     if G.counts.x > 0u {
         if found.lod >= 0.0 {
             let lod = u32(found.lod);
@@ -498,9 +504,13 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
             if min(min(hx0, hx1), min(hz0, hz1)) > NODATA * 0.5 {
                 normal = normalize(vec3<f32>(hx0 - hx1, 2.0 * s, hz0 - hz1));
             }
+            sea = abs(found.h) < 0.5 && hx0 == found.h && hx1 == found.h && hz0 == found.h && hz1 == found.h;
         }
     }
     var albedo = hypsometric(in.world.y);
+    if sea {
+        albedo = SEA_ALBEDO;
+    }
     if G.counts.y > 0u {
         let t = clamp(log2(max(footprint, 1.0e-6) / G.tex.w), 0.0, f32(G.counts.y - 1u));
         let l0 = floor(t);

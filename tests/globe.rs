@@ -207,3 +207,72 @@ fn from_orbit_the_earth_shows_continents_and_oceans() {
     let (_, _, plain_land) = shares(&["--no-earth"]);
     assert!(plain_land < 0.002, "--no-earth: {plain_land:.3} of the view is land");
 }
+
+/// A coast (0.1 x 0.1 degrees at 3"): the west half a flat sea stored as 0, as SRTM and
+/// Copernicus store it; the east half land rising from 2 m, with a basin 30 m below sea
+/// level in it. Drawn from above with the height tint, the sea is water-blue and the land
+/// and the basin (below sea level, but not a flat 0) are not.
+#[test]
+fn the_sea_stored_as_zero_is_drawn_as_water() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (west, south, degrees, per_degree) = (-20.05, 30.0, 0.1, 1200.0);
+    let n = (degrees * per_degree) as usize;
+    let cell = 1.0 / per_degree;
+    let mid = west + degrees / 2.0;
+    let height = |lon: f64, lat: f64| {
+        if lon < mid {
+            return 0.0;
+        }
+        let basin = ((lon - (mid + 0.025)).powi(2) + (lat - (south + 0.05)).powi(2)).sqrt() < 0.012;
+        if basin { -30.0 } else { 2.0 + (lon - mid) * 8000.0 + ((lat * 300.0).sin() * 5.0).abs() }
+    };
+    let mut asc = format!("ncols {n}\nnrows {n}\nxllcorner {west}\nyllcorner {south}\ncellsize {cell:.12}\n");
+    for row in 0..n {
+        let lat = south + degrees - (row as f64 + 0.5) * cell;
+        let line: Vec<String> =
+            (0..n).map(|col| format!("{:.2}", height(west + (col as f64 + 0.5) * cell, lat))).collect();
+        asc.push_str(&line.join(" "));
+        asc.push('\n');
+    }
+    std::fs::write(dir.path().join("coast.asc"), asc).unwrap();
+    let tif = dir.path().join("coast.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32", "coast.asc", "coast.tif"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    let archive = dir.path().join("coast.tspack");
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], dir.path());
+    let png = dir.path().join("coast.png");
+    let at = format!("{mid},{},7000", south + degrees / 2.0);
+    let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
+    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir.path());
+    let (w, h, rgba) = decode(&png);
+    let px = |x: u32, y: u32| {
+        let i = 4 * (y * w + x) as usize;
+        (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]))
+    };
+    let blue = |(r, g, b): (i32, i32, i32)| b > r + 30 && b > g + 10;
+    // The middle third of rows: a band of columns inside each half, and the basin.
+    let share = |x0: u32, x1: u32| {
+        let (mut n, mut water) = (0, 0);
+        for y in h / 3..2 * h / 3 {
+            for x in x0..x1 {
+                n += 1;
+                water += usize::from(blue(px(x, y)));
+            }
+        }
+        water as f64 / f64::from(n)
+    };
+    // (At 7 km the view is a little narrower than the data: no ground beyond it in these.)
+    let (sea, land) = (share(w / 10, w / 3), share(w * 11 / 20, w * 13 / 20));
+    let basin = blue(px(w * 3 / 4, h / 2));
+    eprintln!("sea {sea:.2}, land {land:.2} of their bands water-blue; basin {:?}", px(w * 3 / 4, h / 2));
+    assert!(sea > 0.95, "the sea: {sea:.2} water-blue");
+    assert!(land < 0.05, "the land: {land:.2} water-blue");
+    assert!(!basin, "the basin below sea level is land: {:?}", px(w * 3 / 4, h / 2));
+}
