@@ -68,7 +68,7 @@ fn curl(port: u16, path: &str, headers: &[&str]) -> (String, Vec<u8>) {
     (std::fs::read_to_string(head).unwrap().to_ascii_lowercase(), std::fs::read(body).unwrap_or_default())
 }
 
-const CESIUM_ACCEPT: &str = "Accept: application/vnd.quantized-mesh;extensions=octvertexnormals-metadata,application/octet-stream;q=0.9,*/*;q=0.01";
+const CESIUM_ACCEPT: &str = "Accept: application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata,application/octet-stream;q=0.9,*/*;q=0.01";
 
 #[test]
 fn every_terrain_tile_passes_an_independent_decoder_and_the_export_is_what_is_served() {
@@ -143,7 +143,7 @@ fn every_terrain_tile_passes_an_independent_decoder_and_the_export_is_what_is_se
         let (head, body) = curl(server.port, &path, &[CESIUM_ACCEPT, "Accept-Encoding: gzip, deflate"]);
         assert!(head.starts_with("http/1.1 200"), "{path}: {head}");
         for header in [
-            "content-type: application/vnd.quantized-mesh;extensions=octvertexnormals-metadata",
+            "content-type: application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata",
             "content-encoding: gzip",
             "access-control-allow-origin: *",
             "vary: accept, accept-encoding",
@@ -591,4 +591,83 @@ fn cesium_flies_a_collection_of_a_base_and_a_patch() {
         "Cesium on a collection, inside the patch: |height - (GDAL bilinear H + PROJ N)| median {median:.2} m, 90 % within {p90:.2} m"
     );
     assert!(median <= 1.5 && p90 <= 3.0, "median {median:.2} m, p90 {p90:.2} m");
+}
+
+/// The sea as CesiumJS reads it: a coast whose sea is stored as a flat 0 (and a basin
+/// below sea level on land), served; Cesium, asked for the water mask
+/// (`requestWaterMask: true`), decodes a sea tile as all water, a land tile as all land,
+/// and the coast's tile as water in the west and land in the east, from our tiles.
+#[test]
+fn cesium_reads_the_water_mask_of_a_coast() {
+    use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+    let Some(build) = cesium_with_oracles() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (tif, [west, south, degrees]) = oracles::coast_dem(dir.path());
+    let archive = dir.path().join("coast.tspack");
+    terrastream(&["tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let (_, body) = curl(server.port, "/coast/layer.json", &[]);
+    let layer: Value = serde_json::from_slice(&body).unwrap();
+    assert!(layer["extensions"].as_array().unwrap().contains(&json!("watermask")), "{layer}");
+    let deepest = u8::try_from(layer["available"].as_array().unwrap().len() - 1).unwrap();
+    // The tile holding a point at the deepest level; the sea's west of the coast at
+    // `west + degrees / 2`, the land's east of it.
+    let holding = |lon: f64, lat: f64, z: u8| {
+        let d = 180.0 / f64::from(1u32 << z);
+        [((lon + 180.0) / d).floor() as u32, ((lat + 90.0) / d).floor() as u32, u32::from(z)]
+    };
+    let (mid, lat) = (west + degrees / 2.0, south + degrees / 2.0);
+    let d = 180.0 / f64::from(1u32 << deepest);
+    // A sea tile wholly inside the sea, a land tile wholly on land (the basin below sea
+    // level in it), and the one the coast crosses.
+    let sea = holding(west + degrees / 4.0, lat, deepest);
+    let land = holding(mid + degrees / 4.0, lat, deepest);
+    let coast = holding(mid, lat, deepest);
+    let inside = |[x, y, _]: [u32; 3], [w, s, e, n]: [f64; 4]| {
+        let (x0, y0) = (f64::from(x) * d - 180.0, f64::from(y) * d - 90.0);
+        x0 >= w && x0 + d <= e && y0 >= s && y0 + d <= n
+    };
+    assert!(inside(sea, [west, south, mid, south + degrees]), "level {deepest} too coarse for a sea tile");
+    assert!(inside(land, [mid, south, west + degrees, south + degrees]), "level {deepest} too coarse for a land tile");
+    let page = "<!doctype html><html><head><script src=\"cesium/Cesium.js\"></script></head><body></body></html>";
+    let Some(nginx) = cesium_host(dir.path(), &build, "index.html", page) else { return };
+    let driver = Driver::start();
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+    browser.goto(&format!("http://127.0.0.1:{}/index.html", nginx.port));
+    browser.call("POST", "/timeouts", Some(json!({ "script": 60_000 })));
+    let masks = browser.eval_async(&format!(
+        "const done = arguments[0];
+         (async () => {{
+           const provider = await Cesium.CesiumTerrainProvider.fromUrl('http://127.0.0.1:{port}/coast', {{ requestWaterMask: true }});
+           const out = [];
+           for (const [x, y, z] of {tiles}) {{
+             // Cesium counts rows from the north; the tiles' URLs (TMS) from the south.
+             const data = await provider.requestTileGeometry(x, (2 ** z) - 1 - y, z);
+             const m = data.waterMask;
+             if (!m) {{ out.push(null); continue; }}
+             const column = c => Array.from({{ length: m.length === 1 ? 1 : 256 }}, (_, r) => m[m.length === 1 ? 0 : r * 256 + c]);
+             const mean = a => a.reduce((s, v) => s + v, 0) / a.length;
+             out.push([m.length, mean(column(0)), mean(column(m.length === 1 ? 0 : 255))]);
+           }}
+           done([provider.hasWaterMask, out]);
+         }})().catch(e => done(String(e)));",
+        port = server.port,
+        tiles = json!([sea, land, coast])
+    ));
+    eprintln!("Cesium's water masks (length, mean of the west column, of the east column): {masks}");
+    assert_eq!(masks[0], json!(true), "Cesium sees no water mask: {masks}; console {:?}", browser.console());
+    let mask = |i: usize| {
+        masks[1][i]
+            .as_array()
+            .unwrap_or_else(|| panic!("{masks}"))
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(mask(0), vec![1.0, 255.0, 255.0], "the sea tile");
+    assert_eq!(mask(1), vec![1.0, 0.0, 0.0], "the land tile");
+    let coast = mask(2);
+    assert_eq!(coast[0], 65_536.0, "the coast's tile holds a mask of 256 x 256");
+    assert!(coast[1] > 250.0 && coast[2] < 5.0, "the coast's tile: west {} east {}", coast[1], coast[2]);
 }

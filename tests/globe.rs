@@ -218,33 +218,8 @@ fn the_sea_stored_as_zero_is_drawn_as_water() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let (west, south, degrees, per_degree) = (-20.05, 30.0, 0.1, 1200.0);
-    let n = (degrees * per_degree) as usize;
-    let cell = 1.0 / per_degree;
+    let (tif, [west, south, degrees]) = oracles::coast_dem(dir.path());
     let mid = west + degrees / 2.0;
-    let height = |lon: f64, lat: f64| {
-        if lon < mid {
-            return 0.0;
-        }
-        let basin = ((lon - (mid + 0.025)).powi(2) + (lat - (south + 0.05)).powi(2)).sqrt() < 0.012;
-        if basin { -30.0 } else { 2.0 + (lon - mid) * 8000.0 + ((lat * 300.0).sin() * 5.0).abs() }
-    };
-    let mut asc = format!("ncols {n}\nnrows {n}\nxllcorner {west}\nyllcorner {south}\ncellsize {cell:.12}\n");
-    for row in 0..n {
-        let lat = south + degrees - (row as f64 + 0.5) * cell;
-        let line: Vec<String> =
-            (0..n).map(|col| format!("{:.2}", height(west + (col as f64 + 0.5) * cell, lat))).collect();
-        asc.push_str(&line.join(" "));
-        asc.push('\n');
-    }
-    std::fs::write(dir.path().join("coast.asc"), asc).unwrap();
-    let tif = dir.path().join("coast.tif");
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32", "coast.asc", "coast.tif"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
     let archive = dir.path().join("coast.tspack");
     terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], dir.path());
     let png = dir.path().join("coast.png");

@@ -200,3 +200,39 @@ pub fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> 
     assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
     tif
 }
+
+/// A coast, made a GeoTIFF by GDAL: 0.1 x 0.1 degrees at 1.5" from 20.05°W 30°N, the west
+/// half a flat sea stored as 0 (as SRTM and Copernicus store it), the east half land
+/// rising from 2 m, with a round basin 30 m below sea level in it (centre 0.025° east of
+/// the coast, 0.05° north of the south edge, radius 0.012°). Returns the file and its
+/// west, south and size in degrees.
+#[allow(dead_code, reason = "not every test binary uses it")]
+pub fn coast_dem(dir: &Path) -> (PathBuf, [f64; 3]) {
+    let (west, south, degrees, per_degree) = (-20.05, 30.0, 0.1, 2400.0);
+    let n = (degrees * per_degree) as usize;
+    let cell = 1.0 / per_degree;
+    let mid = west + degrees / 2.0;
+    let height = |lon: f64, lat: f64| {
+        if lon < mid {
+            return 0.0;
+        }
+        let basin = ((lon - (mid + 0.025)).powi(2) + (lat - (south + 0.05)).powi(2)).sqrt() < 0.012;
+        if basin { -30.0 } else { 2.0 + (lon - mid) * 8000.0 + ((lat * 300.0).sin() * 5.0).abs() }
+    };
+    let mut asc = format!("ncols {n}\nnrows {n}\nxllcorner {west}\nyllcorner {south}\ncellsize {cell:.12}\n");
+    for row in 0..n {
+        let lat = south + degrees - (row as f64 + 0.5) * cell;
+        let line: Vec<String> =
+            (0..n).map(|col| format!("{:.2}", height(west + (col as f64 + 0.5) * cell, lat))).collect();
+        asc.push_str(&line.join(" "));
+        asc.push('\n');
+    }
+    std::fs::write(dir.join("coast.asc"), asc).unwrap();
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32", "coast.asc", "coast.tif"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    (dir.join("coast.tif"), [west, south, degrees])
+}

@@ -44,9 +44,13 @@ def main():
                 tile = TerrainTile(west=w, south=s, east=e, north=n)
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # the metadata extension is skipped
-                    tile.fromBytesIO(io.BytesIO(raw), hasLighting=True)
+                    tile.fromBytesIO(io.BytesIO(raw), hasLighting=True, hasWatermask=True)
                 where = f"{z}/{x}/{y}"
                 fail = lambda why: failures.append(f"{where}: {why}")
+                # The water mask: one value, or 256 rows of 256.
+                mask = tile.watermask
+                if not (len(mask) == 1 and len(mask[0]) == 1) and not (len(mask) == 256 and all(len(r) == 256 for r in mask)):
+                    fail(f"a water mask of {len(mask)} rows")
                 u, v = np.array(tile.u, float), np.array(tile.v, float)
                 h = np.array([p[2] for p in tile.getVerticesCoordinates()])
                 idx = np.array(tile.indices).reshape(-1, 3)

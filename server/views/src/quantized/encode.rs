@@ -11,6 +11,7 @@ const QUANTA: f64 = 32767.0;
 
 /// Extension identifiers.
 const OCT_NORMALS: u8 = 1;
+const WATER_MASK: u8 = 2;
 const METADATA: u8 = 4;
 
 /// The extensions a tile carries.
@@ -18,6 +19,9 @@ const METADATA: u8 = 4;
 pub struct Extensions {
     /// `octvertexnormals`: a unit normal a vertex, oct-encoded in two bytes.
     pub normals: bool,
+    /// `watermask`: where the tile is sea (one byte, 0 all land or 255 all sea, or 256 x
+    /// 256 from the north-west corner, rows north to south).
+    pub water: bool,
     /// `metadata`: JSON with the availability of the levels below (tiles whose level is a
     /// multiple of [`geodetic::METADATA_LEVELS`] only).
     pub metadata: bool,
@@ -37,6 +41,7 @@ impl Extensions {
                 for name in value.trim().trim_matches('"').split('-') {
                     match name {
                         "octvertexnormals" | "vertexnormals" => out.normals = true,
+                        "watermask" => out.water = true,
                         "metadata" => out.metadata = true,
                         _ => {}
                     }
@@ -47,13 +52,16 @@ impl Extensions {
     }
 
     /// All the extensions this server offers (what `export` writes).
-    pub const ALL: Self = Self { normals: true, metadata: true };
+    pub const ALL: Self = Self { normals: true, water: true, metadata: true };
 
     /// The `extensions=` value naming these (empty for none).
     pub fn names(self) -> String {
         let mut names = vec![];
         if self.normals {
             names.push("octvertexnormals");
+        }
+        if self.water {
+            names.push("watermask");
         }
         if self.metadata {
             names.push("metadata");
@@ -72,6 +80,8 @@ pub struct TileMesh<'a> {
     pub heights: &'a [f32],
     /// Grid points a side.
     pub size: usize,
+    /// The water mask (one byte or 256 x 256), where the tile's sea is known.
+    pub water: Option<&'a [u8]>,
 }
 
 /// A vertex as the tile stores it and as a client decodes it.
@@ -124,6 +134,9 @@ pub fn encode(t: &TileMesh<'_>, extensions: Extensions, metadata: Option<&serde_
     if extensions.normals {
         let normals = vertex_normals(&vertices, &triangles);
         extension(&mut out, OCT_NORMALS, &normals.iter().flat_map(|&n| oct_encode(n)).collect::<Vec<u8>>());
+    }
+    if extensions.water {
+        extension(&mut out, WATER_MASK, t.water.unwrap_or(&[0]));
     }
     if let (true, Some(json)) = (extensions.metadata, metadata) {
         let text = json.to_string();
@@ -424,7 +437,7 @@ mod tests {
         let heights: Vec<f32> = (0..25).map(|i| 100.0 + (i * 37 % 11) as f32).collect();
         let mesh = grid_mesh(n);
         let tile = GeoTile::new(3, 9, 5).unwrap();
-        let t = TileMesh { tile, mesh: &mesh, heights: &heights, size: 5 };
+        let t = TileMesh { tile, mesh: &mesh, heights: &heights, size: 5, water: None };
         let json = serde_json::json!({"available": [[]]});
         let d = decode(&encode(&t, Extensions::ALL, Some(&json)));
         assert_eq!(d.vertices.len(), 25);
@@ -445,9 +458,10 @@ mod tests {
             let key = |i: &u32| d.vertices[*i as usize][if k % 2 == 0 { 1 } else { 0 }];
             assert!(edge.windows(2).all(|w| key(&w[0]) < key(&w[1])));
         }
-        assert_eq!(d.extensions.iter().map(|e| e.0).collect::<Vec<_>>(), vec![1, 4]);
+        assert_eq!(d.extensions.iter().map(|e| e.0).collect::<Vec<_>>(), vec![1, 2, 4]);
         assert_eq!(d.extensions[0].1.len(), 50);
-        let meta = &d.extensions[1].1;
+        assert_eq!(d.extensions[1].1, vec![0], "no mask known: all land");
+        let meta = &d.extensions[2].1;
         assert_eq!(&meta[4..], json.to_string().as_bytes());
         // Without extensions: none.
         let d = decode(&encode(&t, Extensions::default(), Some(&json)));
@@ -468,8 +482,13 @@ mod tests {
         let n = 257;
         let mesh = grid_mesh(n);
         let heights = vec![5.0f32; (n * n) as usize];
-        let t =
-            TileMesh { tile: GeoTile::new(12, 100, 200).unwrap(), mesh: &mesh, heights: &heights, size: n as usize };
+        let t = TileMesh {
+            tile: GeoTile::new(12, 100, 200).unwrap(),
+            mesh: &mesh,
+            heights: &heights,
+            size: n as usize,
+            water: None,
+        };
         let bytes = encode(&t, Extensions::default(), None);
         let d = decode(&bytes);
         assert_eq!(d.vertices.len(), 66_049);
@@ -491,11 +510,29 @@ mod tests {
 
     #[test]
     fn accept_headers_name_the_extensions() {
-        let cesium = "application/vnd.quantized-mesh;extensions=octvertexnormals-metadata,application/octet-stream;q=0.9,*/*;q=0.01";
+        let cesium = "application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata,application/octet-stream;q=0.9,*/*;q=0.01";
         assert_eq!(Extensions::from_accept(cesium), Extensions::ALL);
         assert_eq!(Extensions::from_accept("application/vnd.quantized-mesh,*/*;q=0.01"), Extensions::default());
         let only = Extensions::from_accept("application/vnd.quantized-mesh;extensions=metadata");
-        assert_eq!(only, Extensions { normals: false, metadata: true });
-        assert_eq!(Extensions::ALL.names(), "octvertexnormals-metadata");
+        assert_eq!(only, Extensions { normals: false, water: false, metadata: true });
+        assert_eq!(Extensions::ALL.names(), "octvertexnormals-watermask-metadata");
+    }
+
+    #[test]
+    fn the_water_mask_is_the_flat_zero_from_the_north_west() {
+        use super::super::water_mask;
+        let n = 9;
+        // West of column 4 a flat 0; east of it land; one land point inside the sea.
+        let mut h: Vec<f32> = (0..n * n).map(|i| if i % n < 4 { 0.0 } else { 3.0 + (i % n) as f32 }).collect();
+        assert_eq!(water_mask(&vec![0.0; n * n], n), vec![255]);
+        assert_eq!(water_mask(&h.iter().map(|v| v + 10.0).collect::<Vec<_>>(), n), vec![0]);
+        h[n + 1] = 0.3;
+        let m = water_mask(&h, n);
+        assert_eq!(m.len(), 65_536);
+        assert_eq!(m[200 * 256 + 2], 255, "west: sea");
+        assert_eq!(m[200 * 256 + 253], 0, "east: land");
+        assert!(m[20 * 256 + 20] < 255, "the point at 0.3 m breaks the flat 0 near the north-west");
+        // A basin below sea level (not flat at 0) is land.
+        assert_eq!(water_mask(&vec![-30.0; n * n], n), vec![0]);
     }
 }

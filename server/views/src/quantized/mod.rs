@@ -133,6 +133,12 @@ impl<'a> Terrain<'a> {
     /// # Errors
     /// [`MakeError::Tile`] for an archive tile that cannot be read.
     pub fn heights(&self, tile: GeoTile) -> Result<Vec<f32>, MakeError> {
+        Ok(self.grid(tile, false)?.0)
+    }
+
+    /// [`Terrain::heights`], and where `water` is asked the tile's water mask
+    /// ([`water_mask`]) from the heights as stored.
+    fn grid(&self, tile: GeoTile, water: bool) -> Result<(Vec<f32>, Option<Vec<u8>>), MakeError> {
         let at = |column: f64, row: f64| {
             let (lon, lat) = tile.grid_point_at(column, row, GRID);
             self.placed.world(lon, lat)
@@ -145,9 +151,10 @@ impl<'a> Terrain<'a> {
             .with_exact_border(GRID, |column, row| at(column as f64, row as f64));
         let mut heights =
             self.placed.sample(&positions, self.lod(tile.z))?.unwrap_or_else(|| vec![f32::NAN; GRID * GRID]);
+        let mask = water.then(|| water_mask(&heights, GRID));
         mesh::fill_nodata(&mut heights, GRID);
         self.to_ellipsoid(tile, &mut heights);
-        Ok(heights)
+        Ok((heights, mask))
     }
 
     /// Makes `tile`'s grid of heights above a geoid heights above the WGS 84 ellipsoid,
@@ -215,10 +222,10 @@ impl<'a> Terrain<'a> {
         if !self.exists(tile) {
             return Ok(None);
         }
-        let heights = self.heights(tile)?;
+        let (heights, water) = self.grid(tile, extensions.water)?;
         let mesh = mesh::mesh(&heights, GRID, Self::bound(tile, &heights));
         let metadata = self.metadata(tile);
-        let t = TileMesh { tile, mesh: &mesh, heights: &heights, size: GRID };
+        let t = TileMesh { tile, mesh: &mesh, heights: &heights, size: GRID, water: water.as_deref() };
         Ok(Some(encode::encode(&t, extensions, metadata.as_ref())))
     }
 
@@ -270,7 +277,7 @@ impl<'a> Terrain<'a> {
             "maxzoom": self.maxzoom(),
             "bounds": self.bounds(),
             "available": available,
-            "extensions": ["octvertexnormals", "metadata"],
+            "extensions": ["octvertexnormals", "watermask", "metadata"],
             "metadataAvailability": METADATA_LEVELS,
             "verticalDatum": self.vertical_datum_json(),
         })
@@ -301,4 +308,50 @@ pub fn gzip(bytes: &[u8]) -> Vec<u8> {
     // Writing into a Vec cannot fail.
     let _ = encoder.write_all(bytes);
     encoder.finish().unwrap_or_default()
+}
+/// Where a grid of heights (`size` a side, rows from the north, as stored: before any
+/// datum shift) is the sea as DEMs store it, a flat 0 (SRTM, Copernicus): a point and its
+/// neighbours in the grid at one height within half a metre of 0. As the quantized-mesh
+/// water mask: one byte (0 all land, 255 all sea), else 256 x 256 from the north-west
+/// corner, rows north to south, bilinear between the grid's points (the coast
+/// anti-aliased, as the format allows).
+#[must_use]
+pub fn water_mask(h: &[f32], size: usize) -> Vec<u8> {
+    let at = |c: usize, r: usize| h[r * size + c];
+    let sea: Vec<f32> = (0..size * size)
+        .map(|i| {
+            let (c, r) = (i % size, i / size);
+            let v = h[i];
+            let same = |cc: usize, rr: usize| at(cc, rr) == v;
+            let flat = (c == 0 || same(c - 1, r))
+                && (c + 1 == size || same(c + 1, r))
+                && (r == 0 || same(c, r - 1))
+                && (r + 1 == size || same(c, r + 1));
+            if v.abs() < 0.5 && flat { 1.0 } else { 0.0 }
+        })
+        .collect();
+    if sea.iter().all(|&s| s == 0.0) {
+        return vec![0];
+    }
+    if sea.iter().all(|&s| s == 1.0) {
+        return vec![255];
+    }
+    #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+    let last = (size - 1) as f32;
+    let mut out = Vec::with_capacity(256 * 256);
+    for j in 0..256u16 {
+        for i in 0..256u16 {
+            let (u, v) = ((f32::from(i) + 0.5) / 256.0 * last, (f32::from(j) + 0.5) / 256.0 * last);
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "within the grid")]
+            let (c0, r0) = (u.floor() as usize, v.floor() as usize);
+            let (c1, r1) = ((c0 + 1).min(size - 1), (r0 + 1).min(size - 1));
+            #[expect(clippy::cast_precision_loss, reason = "grid indices")]
+            let (fu, fv) = (u - c0 as f32, v - r0 as f32);
+            let top = sea[r0 * size + c0] * (1.0 - fu) + sea[r0 * size + c1] * fu;
+            let bottom = sea[r1 * size + c0] * (1.0 - fu) + sea[r1 * size + c1] * fu;
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "0..=255")]
+            out.push(((top * (1.0 - fv) + bottom * fv) * 255.0).round() as u8);
+        }
+    }
+    out
 }
