@@ -178,6 +178,18 @@ pub fn everest_height(lon: f64, lat: f64) -> f64 {
 /// An ESRI ASCII grid of `degrees` x `degrees` from (`west`, `south`) with `per_degree`
 /// samples a degree, turned into a GeoTIFF by GDAL.
 pub fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> PathBuf {
+    grid_tif(dir, &format!("dem-{degrees}"), [west, south, degrees, per_degree], &everest_height)
+}
+
+/// A geographic Float32 GeoTIFF `dir/{name}.tif` (GDAL's `gdal_translate` of an ASCII
+/// grid), `degrees` a side from `west`, `south` at `per_degree` samples a degree, of
+/// `height` at each sample's centre (longitude, latitude).
+fn grid_tif(
+    dir: &Path,
+    name: &str,
+    [west, south, degrees, per_degree]: [f64; 4],
+    height: &dyn Fn(f64, f64) -> f64,
+) -> PathBuf {
     let n = (degrees * per_degree).round() as usize;
     let cell = 1.0 / per_degree;
     let mut asc =
@@ -185,13 +197,13 @@ pub fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> 
     for row in 0..n {
         let lat = south + degrees - (row as f64 + 0.5) * cell;
         let line: Vec<String> =
-            (0..n).map(|col| format!("{:.2}", everest_height(west + (col as f64 + 0.5) * cell, lat))).collect();
+            (0..n).map(|col| format!("{:.2}", height(west + (col as f64 + 0.5) * cell, lat))).collect();
         asc.push_str(&line.join(" "));
         asc.push('\n');
     }
-    let source = dir.join(format!("dem-{degrees}.asc"));
+    let source = dir.join(format!("{name}.asc"));
     std::fs::write(&source, asc).unwrap();
-    let tif = dir.join(format!("dem-{degrees}.tif"));
+    let tif = dir.join(format!("{name}.tif"));
     let out = Command::new("gdal_translate")
         .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32"])
         .args([source.to_str().unwrap(), tif.to_str().unwrap()])
@@ -209,8 +221,6 @@ pub fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> 
 #[allow(dead_code, reason = "not every test binary uses it")]
 pub fn coast_dem(dir: &Path) -> (PathBuf, [f64; 3]) {
     let (west, south, degrees, per_degree) = (-20.05, 30.0, 0.1, 2400.0);
-    let n = (degrees * per_degree) as usize;
-    let cell = 1.0 / per_degree;
     let mid = west + degrees / 2.0;
     let height = |lon: f64, lat: f64| {
         if lon < mid {
@@ -219,20 +229,5 @@ pub fn coast_dem(dir: &Path) -> (PathBuf, [f64; 3]) {
         let basin = ((lon - (mid + 0.025)).powi(2) + (lat - (south + 0.05)).powi(2)).sqrt() < 0.012;
         if basin { -30.0 } else { 2.0 + (lon - mid) * 8000.0 + ((lat * 300.0).sin() * 5.0).abs() }
     };
-    let mut asc = format!("ncols {n}\nnrows {n}\nxllcorner {west}\nyllcorner {south}\ncellsize {cell:.12}\n");
-    for row in 0..n {
-        let lat = south + degrees - (row as f64 + 0.5) * cell;
-        let line: Vec<String> =
-            (0..n).map(|col| format!("{:.2}", height(west + (col as f64 + 0.5) * cell, lat))).collect();
-        asc.push_str(&line.join(" "));
-        asc.push('\n');
-    }
-    std::fs::write(dir.join("coast.asc"), asc).unwrap();
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-a_srs", "EPSG:4326", "-ot", "Float32", "coast.asc", "coast.tif"])
-        .current_dir(dir)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
-    (dir.join("coast.tif"), [west, south, degrees])
+    (grid_tif(dir, "coast", [west, south, degrees, per_degree], &height), [west, south, degrees])
 }

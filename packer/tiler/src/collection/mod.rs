@@ -1100,17 +1100,8 @@ where
     K::Value: Pixel,
 {
     let (w, h) = (grid.size.0 as usize, rows.len());
-    let mut ring = Blender {
-        width: w,
-        // No fine data: nothing to blend (and no distances to find).
-        band: if fine.is_some() { blend as usize } else { 0 },
-        corner,
-        overrides,
-        held: VecDeque::new(),
-        near: VecDeque::new(),
-        front: 0,
-        emitted: 0,
-    };
+    // No fine data: nothing to blend (and no distances to find).
+    let mut ring = Blender::new(w, if fine.is_some() { blend as usize } else { 0 }, corner, overrides);
     let none = || vec![K::Value::NONE; w];
     let Some(coarse) = coarse else {
         match fine {
@@ -1182,7 +1173,13 @@ struct Blender<'a, S> {
     emitted: usize,
 }
 
-impl<S: Pixel> Blender<'_, S> {
+impl<'a, S: Pixel> Blender<'a, S> {
+    /// Rows `width` across from level column `corner.0`, row `corner.1`, blended across
+    /// `band` samples, the finer level's means `overrides` over them.
+    fn new(width: usize, band: usize, corner: (u32, u32), overrides: &'a [Override<S>]) -> Self {
+        Self { width, band, corner, overrides, held: VecDeque::new(), near: VecDeque::new(), front: 0, emitted: 0 }
+    }
+
     fn push(&mut self, fine: Vec<S>, coarse: Vec<S>, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
         // Along the row: the distance to the nearest sample where the coarse data has
         // heights and the fine data none (the fine data's edge), up to the band + 1.
@@ -1337,43 +1334,41 @@ mod tests {
         assert_eq!(m, vec![[0, 0, 4, 2], [10, 10, 11, 11]]);
     }
 
+    /// The rows a [`Blender`] makes of `fine` and `coarse` (as many rows each) across
+    /// `band` samples.
+    fn blended(fine: &[Vec<f32>], coarse: &[Vec<f32>], band: usize) -> Vec<Vec<f32>> {
+        let mut ring = Blender::new(fine[0].len(), band, (0, 0), &[]);
+        let mut rows = vec![];
+        let mut emit = |r: Vec<f32>| {
+            rows.push(r);
+            Ok(())
+        };
+        for (f, c) in fine.iter().zip(coarse) {
+            ring.push(f.clone(), c.clone(), &mut emit).unwrap();
+        }
+        ring.finish(fine.len(), &mut emit).unwrap();
+        rows
+    }
+
     /// A fine square 3 m above a coarse ramp, blended over 4 samples: no step between
     /// neighbours above the ramp's own plus a share of the offset, where without a band
     /// the offset shows whole.
     #[test]
-    #[expect(clippy::cast_possible_truncation, clippy::needless_range_loop, reason = "a small test grid")]
+    #[expect(clippy::needless_range_loop, reason = "a small test grid")]
     fn a_finer_input_blends_into_the_coarser_across_its_edge() {
         let (w, h) = (40usize, 40usize);
-        let run = |band: u32| {
-            let grid = GridSpec { origin: [0.0, 0.0], pixel: (1.0, 1.0), size: (w as u32, h as u32) };
-            let mut ring = Blender {
-                width: w,
-                band: band as usize,
-                corner: (0, 0),
-                overrides: &[],
-                held: VecDeque::new(),
-                near: VecDeque::new(),
-                front: 0,
-                emitted: 0,
-            };
-            let mut rows = vec![];
-            let mut emit = |r: Vec<f32>| {
-                rows.push(r);
-                Ok(())
-            };
-            for y in 0..h {
-                let coarse: Vec<f32> = (0..w).map(|x| x as f32 * 0.1).collect();
-                let fine: Vec<f32> =
+        let coarse: Vec<Vec<f32>> = (0..h).map(|_| (0..w).map(|x| x as f32 * 0.1).collect()).collect();
+        let fine: Vec<Vec<f32>> =
+            (0..h)
+                .map(|y| {
                     (0..w)
                         .map(|x| {
                             if (10..30).contains(&x) && (10..30).contains(&y) { x as f32 * 0.1 + 3.0 } else { f32::NAN }
                         })
-                        .collect();
-                ring.push(fine, coarse, &mut emit).unwrap();
-            }
-            ring.finish(grid.size.1 as usize, &mut emit).unwrap();
-            rows
-        };
+                        .collect()
+                })
+                .collect();
+        let run = |band: u32| blended(&fine, &coarse, band as usize);
         let worst = |rows: &[Vec<f32>]| {
             let mut worst = 0f32;
             for y in 0..h {
@@ -1417,25 +1412,7 @@ mod tests {
     fn the_blend_is_the_chessboard_distance_to_the_nearest_edge() {
         let (w, h, band) = (47usize, 39usize, 3usize);
         let (fine, coarse) = pattern(w, h);
-        let mut ring = Blender {
-            width: w,
-            band,
-            corner: (0, 0),
-            overrides: &[],
-            held: VecDeque::new(),
-            near: VecDeque::new(),
-            front: 0,
-            emitted: 0,
-        };
-        let mut rows = vec![];
-        let mut emit = |r: Vec<f32>| {
-            rows.push(r);
-            Ok(())
-        };
-        for y in 0..h {
-            ring.push(fine[y].clone(), coarse[y].clone(), &mut emit).unwrap();
-        }
-        ring.finish(h, &mut emit).unwrap();
+        let rows = blended(&fine, &coarse, band);
         // By brute force: every sample's distance to every edge sample (no fine data where
         // the coarse has some).
         let edges: Vec<(usize, usize)> = (0..h)
