@@ -386,9 +386,13 @@ async fn glyph_ranges_for_map_labels() {
     assert_eq!(h(&r, "content-type"), "application/x-protobuf");
     assert_eq!(h(&r, "x-terrastream-font"), "DejaVu Sans Bold");
     assert!(body.len() > 20_000, "{} bytes for the Latin range", body.len());
-    let (r, _) =
+    let (r, body) =
         send(&served, get("/fonts/Open%20Sans%20Regular,Arial%20Unicode%20MS%20Regular/256-511.pbf", &[])).await;
     assert_eq!((r.status(), h(&r, "x-terrastream-font").as_str()), (StatusCode::OK, "DejaVu Sans"));
+    // The answer names the stack asked for and its range (the glyphs are the fallback's).
+    for label in ["Open Sans Regular,Arial Unicode MS Regular", "256-511"] {
+        assert!(body.windows(label.len()).any(|w| w == label.as_bytes()), "{label} not in the answer");
+    }
     for bad in
         ["/fonts/DejaVu%20Sans/1-256.pbf", "/fonts/DejaVu%20Sans/0-100.pbf", "/fonts/DejaVu%20Sans/65536-65791.pbf"]
     {

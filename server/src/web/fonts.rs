@@ -1,7 +1,8 @@
 //! Glyphs for map labels: `GET /fonts/{fontstack}/{range}.pbf`, the URL a MapLibre style's
 //! `glyphs` names (`http://host/fonts/{fontstack}/{range}.pbf`), made by
 //! [`terrastream_views::glyphs`] from the fonts of the folder `serve --fonts` (or the
-//! config's `fonts`) names, on a blocking thread, and kept.
+//! config's `fonts`) names, on a blocking thread, and kept (by font and range: a stack's
+//! name only labels the answer).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -11,7 +12,7 @@ use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE};
 use axum::http::{HeaderName, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
-use terrastream_views::glyphs::{FontSet, parse_range};
+use terrastream_views::glyphs::{FontSet, parse_range, range_message};
 
 use super::{WebError, bad, not_found};
 use crate::app::AppState;
@@ -25,8 +26,9 @@ pub const FONT_HEADER: HeaderName = HeaderName::from_static("x-terrastream-font"
 pub struct Fonts {
     /// The fonts.
     pub set: FontSet,
-    /// Ranges made: by font, stack and first code point.
-    made: Mutex<HashMap<(usize, String, u32), Bytes>>,
+    /// Glyphs made, by font and first code point (not by the stack's name: any number of
+    /// names map to one font, and memory stays bounded by the fonts' glyphs).
+    made: Mutex<HashMap<(usize, u32), Bytes>>,
 }
 
 impl Fonts {
@@ -56,20 +58,20 @@ async fn answer(state: &AppState, stack: String, range: &str) -> Result<Response
     }
     let (font, name, _) = fonts.set.pick(&stack);
     let name = name.to_owned();
-    let key = (font, stack.clone(), start);
+    let key = (font, start);
     let kept = fonts.made.lock().unwrap_or_else(std::sync::PoisonError::into_inner).get(&key).cloned();
-    let bytes = match kept {
+    let glyphs = match kept {
         Some(bytes) => bytes,
         None => {
             let made = Arc::clone(&fonts);
-            let bytes = tokio::task::spawn_blocking(move || Bytes::from(made.set.range(font, &stack, start)))
+            let bytes = tokio::task::spawn_blocking(move || Bytes::from(made.set.glyphs(font, start)))
                 .await
                 .map_err(|_| WebError(StatusCode::INTERNAL_SERVER_ERROR, "glyphs could not be made".into()))?;
             fonts.made.lock().unwrap_or_else(std::sync::PoisonError::into_inner).insert(key, bytes.clone());
             bytes
         }
     };
-    let mut response = bytes.into_response();
+    let mut response = Bytes::from(range_message(&stack, start, &glyphs)).into_response();
     let h = response.headers_mut();
     h.insert(CONTENT_TYPE, HeaderValue::from_static("application/x-protobuf"));
     h.insert(CACHE_CONTROL, state.cache_control.clone());

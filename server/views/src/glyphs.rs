@@ -133,25 +133,35 @@ impl FontSet {
     /// `stack`'s range: a `glyphs` message (the code points the font has; none is an
     /// empty stack, which clients accept).
     pub fn range(&self, font: usize, stack: &str, start: u32) -> Vec<u8> {
+        range_message(stack, start, &self.glyphs(font, start))
+    }
+
+    /// The glyph fields of code points `start..start + 256` of font `font`, as
+    /// [`range_message`] wraps them: what depends on the font alone (a server keeps these,
+    /// whatever stack names asked for them).
+    pub fn glyphs(&self, font: usize, start: u32) -> Vec<u8> {
         let face = &self.fonts[font.min(self.fonts.len() - 1)];
-        let mut glyphs = Vec::new();
-        for code in start..start + 256 {
-            let Some(c) = char::from_u32(code) else { continue };
-            if !face.font.chars().contains_key(&c) {
-                continue;
-            }
-            glyphs.push(glyph(&face.font, c));
-        }
-        let mut stack_message = Vec::new();
-        bytes_field(&mut stack_message, 1, stack.as_bytes());
-        bytes_field(&mut stack_message, 2, format!("{start}-{}", start + 255).as_bytes());
-        for g in &glyphs {
-            bytes_field(&mut stack_message, 3, g);
-        }
         let mut out = Vec::new();
-        bytes_field(&mut out, 1, &stack_message);
+        for code in start..start.saturating_add(256) {
+            let Some(c) = char::from_u32(code) else { continue };
+            if face.font.chars().contains_key(&c) {
+                bytes_field(&mut out, 3, &glyph(&face.font, c));
+            }
+        }
         out
     }
+}
+
+/// A `glyphs` message: one font stack named `stack`, range `start`-`start + 255`, of the
+/// glyph fields `glyphs` ([`FontSet::glyphs`]).
+pub fn range_message(stack: &str, start: u32, glyphs: &[u8]) -> Vec<u8> {
+    let mut stack_message = Vec::with_capacity(glyphs.len() + stack.len() + 16);
+    bytes_field(&mut stack_message, 1, stack.as_bytes());
+    bytes_field(&mut stack_message, 2, format!("{start}-{}", start + 255).as_bytes());
+    stack_message.extend_from_slice(glyphs);
+    let mut out = Vec::with_capacity(stack_message.len() + 8);
+    bytes_field(&mut out, 1, &stack_message);
+    out
 }
 
 fn stem(path: &Path) -> String {
