@@ -386,6 +386,12 @@ async fn glyph_ranges_for_map_labels() {
     assert_eq!(h(&r, "content-type"), "application/x-protobuf");
     assert_eq!(h(&r, "x-terrastream-font"), "DejaVu Sans Bold");
     assert!(body.len() > 20_000, "{} bytes for the Latin range", body.len());
+    // Gzipped when accepted: the same message.
+    let (r, gz) = send(&served, get("/fonts/DejaVu%20Sans%20Bold/0-255.pbf", &[("accept-encoding", "gzip, br")])).await;
+    assert_eq!(h(&r, "content-encoding"), "gzip");
+    let mut plain = Vec::new();
+    std::io::Read::read_to_end(&mut flate2::read::GzDecoder::new(&gz[..]), &mut plain).unwrap();
+    assert!(plain == body && gz.len() * 2 < body.len(), "{} gzipped bytes of {}", gz.len(), body.len());
     let (r, body) =
         send(&served, get("/fonts/Open%20Sans%20Regular,Arial%20Unicode%20MS%20Regular/256-511.pbf", &[])).await;
     assert_eq!((r.status(), h(&r, "x-terrastream-font").as_str()), (StatusCode::OK, "DejaVu Sans"));

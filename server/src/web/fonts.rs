@@ -8,8 +8,8 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use axum::extract::{Path, State};
-use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE};
-use axum::http::{HeaderName, HeaderValue, StatusCode};
+use axum::http::header::{CACHE_CONTROL, CONTENT_ENCODING, CONTENT_TYPE, VARY};
+use axum::http::{HeaderMap, HeaderName, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use terrastream_views::glyphs::{FontSet, parse_range, range_message};
@@ -38,15 +38,20 @@ impl Fonts {
     }
 }
 
-/// `GET /fonts/{fontstack}/{range}.pbf`.
-pub async fn glyphs(State(state): State<AppState>, Path((stack, range)): Path<(String, String)>) -> Response {
-    match answer(&state, stack, &range).await {
+/// `GET /fonts/{fontstack}/{range}.pbf` (gzipped when the client accepts it: a Latin
+/// range is about 100 KiB, a third of that gzipped).
+pub async fn glyphs(
+    State(state): State<AppState>,
+    Path((stack, range)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    match answer(&state, stack, &range, crate::app::accepts(&headers, "gzip")).await {
         Ok(response) => response,
         Err(e) => e.into_response(),
     }
 }
 
-async fn answer(state: &AppState, stack: String, range: &str) -> Result<Response, WebError> {
+async fn answer(state: &AppState, stack: String, range: &str, gzipped: bool) -> Result<Response, WebError> {
     let Some(fonts) = state.web.fonts.clone() else {
         return Err(not_found("no fonts are served here (serve --fonts DIR)"));
     };
@@ -71,8 +76,14 @@ async fn answer(state: &AppState, stack: String, range: &str) -> Result<Response
             bytes
         }
     };
-    let mut response = Bytes::from(range_message(&stack, start, &glyphs)).into_response();
+    let message = range_message(&stack, start, &glyphs);
+    let body = if gzipped { terrastream_views::quantized::gzip(&message) } else { message };
+    let mut response = Bytes::from(body).into_response();
     let h = response.headers_mut();
+    if gzipped {
+        h.insert(CONTENT_ENCODING, HeaderValue::from_static("gzip"));
+    }
+    h.insert(VARY, HeaderValue::from_static("accept-encoding"));
     h.insert(CONTENT_TYPE, HeaderValue::from_static("application/x-protobuf"));
     h.insert(CACHE_CONTROL, state.cache_control.clone());
     if let Ok(v) = HeaderValue::from_str(&name) {

@@ -309,6 +309,7 @@ pub fn gzip(bytes: &[u8]) -> Vec<u8> {
     let _ = encoder.write_all(bytes);
     encoder.finish().unwrap_or_default()
 }
+
 /// Where a grid of heights (`size` a side, rows from the north, as stored: before any
 /// datum shift) is the sea as DEMs store it, a flat 0 (SRTM, Copernicus): a point and its
 /// neighbours in the grid at one height within half a metre of 0. As the quantized-mesh
