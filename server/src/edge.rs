@@ -131,13 +131,8 @@ where
                         response.headers_mut().insert(CONNECTION, HeaderValue::from_static("close"));
                     }
                     // Held for its turn among refusals (a flood's connections wait here).
-                    let hold = state.access.hold();
-                    if hold.is_zero() {
-                        finish(&state, route, started, &mut response);
-                        return Box::pin(std::future::ready(Ok(response)));
-                    }
                     return Box::pin(async move {
-                        tokio::time::sleep(hold).await;
+                        state.access.wait_turn().await;
                         finish(&state, route, started, &mut response);
                         Ok(response)
                     });

@@ -207,10 +207,7 @@ async fn answer(
     let mut answer = match grant {
         Err(refused) => {
             // Held for its turn among refusals (a flood's connections wait here).
-            let hold = state.access.hold();
-            if !hold.is_zero() {
-                tokio::time::sleep(hold).await;
-            }
+            state.access.wait_turn().await;
             let mut answer = refused.answer();
             if !state.access.paced() {
                 answer.headers_mut().insert(axum::http::header::CONNECTION, HeaderValue::from_static("close"));

@@ -261,10 +261,14 @@ impl Access {
         })
     }
 
-    /// How long to hold a refusal made now before answering it: refusals share one pace
-    /// ([`pace`]), so a flood of bad credentials leaves the cores to valid requests.
-    pub fn hold(&self) -> std::time::Duration {
-        self.pace.as_ref().map_or(std::time::Duration::ZERO, |p| p.hold(std::time::Instant::now()))
+    /// Waits the turn of a refusal made now before it is answered: refusals share one pace
+    /// ([`pace`]), so a flood of bad credentials leaves the cores to valid requests. Both
+    /// HTTP paths await it on every refusal.
+    pub async fn wait_turn(&self) {
+        let hold = self.pace.as_ref().map_or(std::time::Duration::ZERO, |p| p.hold(std::time::Instant::now()));
+        if !hold.is_zero() {
+            tokio::time::sleep(hold).await;
+        }
     }
 
     /// Whether refusals are paced (`refusal_rate` above 0).

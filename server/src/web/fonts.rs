@@ -61,7 +61,7 @@ async fn answer(state: &AppState, stack: String, range: &str, gzipped: bool) -> 
     if stack.is_empty() || stack.len() > 512 {
         return Err(bad("fontstack: one to 512 characters of comma-separated font names"));
     }
-    let (font, name, _) = fonts.set.pick(&stack);
+    let (font, name) = fonts.set.pick(&stack);
     let name = name.to_owned();
     let key = (font, start);
     let kept = fonts.made.lock().unwrap_or_else(std::sync::PoisonError::into_inner).get(&key).cloned();
@@ -69,9 +69,12 @@ async fn answer(state: &AppState, stack: String, range: &str, gzipped: bool) -> 
         Some(bytes) => bytes,
         None => {
             let made = Arc::clone(&fonts);
-            let bytes = tokio::task::spawn_blocking(move || Bytes::from(made.set.glyphs(font, start)))
-                .await
-                .map_err(|_| WebError(StatusCode::INTERNAL_SERVER_ERROR, "glyphs could not be made".into()))?;
+            let failed = || WebError(StatusCode::INTERNAL_SERVER_ERROR, "glyphs could not be made".into());
+            let made = tokio::task::spawn_blocking(move || made.set.glyphs(font, start)).await.map_err(|_| failed())?;
+            let bytes = Bytes::from(made.map_err(|why| {
+                tracing::error!("glyphs of {name}: {why}");
+                failed()
+            })?);
             fonts.made.lock().unwrap_or_else(std::sync::PoisonError::into_inner).insert(key, bytes.clone());
             bytes
         }

@@ -50,7 +50,28 @@ pub struct FontSet {
 struct Face {
     name: String,
     key: String,
-    font: fontdue::Font,
+    file: PathBuf,
+    bytes: Vec<u8>,
+    /// The font, parsed for glyphs at its first use (not at start-up: a folder of 22
+    /// DejaVu faces took a third of a second to parse whole).
+    font: std::sync::OnceLock<Result<fontdue::Font, String>>,
+}
+
+impl Face {
+    /// The font parsed for glyphs, or why it cannot be.
+    fn font(&self) -> Result<&fontdue::Font, String> {
+        let parsed = self.font.get_or_init(|| {
+            fontdue::Font::from_bytes(self.bytes.as_slice(), fontdue::FontSettings::default())
+                .map_err(|e| format!("{}: {e}", self.file.display()))
+        });
+        parsed.as_ref().map_err(Clone::clone)
+    }
+}
+
+/// A font file's full name (name ID 4), if it parses as one.
+fn full_name(bytes: &[u8]) -> Result<Option<String>, String> {
+    let face = ttf_parser::Face::parse(bytes, 0).map_err(|e| e.to_string())?;
+    Ok(face.names().into_iter().filter(|n| n.name_id == ttf_parser::name_id::FULL_NAME).find_map(|n| n.to_string()))
 }
 
 impl std::fmt::Debug for FontSet {
@@ -86,14 +107,13 @@ impl FontSet {
         files.sort();
         let (mut fonts, mut skipped) = (Vec::new(), Vec::new());
         for file in files {
-            let parsed = std::fs::read(&file).map_err(|e| e.to_string()).and_then(|bytes| {
-                fontdue::Font::from_bytes(bytes, fontdue::FontSettings::default()).map_err(str::to_owned)
-            });
-            match parsed {
-                Ok(font) => {
-                    let name = font.name().map_or_else(|| stem(&file), str::to_owned);
+            // Only the name table is read here; the glyphs' tables at first use.
+            let read = std::fs::read(&file).map_err(|e| e.to_string());
+            match read.and_then(|bytes| full_name(&bytes).map(|name| (bytes, name))) {
+                Ok((bytes, name)) => {
+                    let name = name.unwrap_or_else(|| stem(&file));
                     if fonts.iter().all(|f: &Face| f.name != name) {
-                        fonts.push(Face { key: key(&name), name, font });
+                        fonts.push(Face { key: key(&name), name, file, bytes, font: std::sync::OnceLock::new() });
                     }
                 }
                 Err(reason) => skipped.push((file, reason)),
@@ -115,40 +135,35 @@ impl FontSet {
         self.fonts.iter().map(|f| f.name.as_str())
     }
 
-    /// The font for a stack (comma-separated names): its index and name, and whether it is
-    /// a fallback (no name of the stack is here).
-    pub fn pick(&self, stack: &str) -> (usize, &str, bool) {
+    /// The font for a stack (comma-separated names): its index and name; the fallback's
+    /// where no name of the stack is here.
+    pub fn pick(&self, stack: &str) -> (usize, &str) {
         let find = |name: &str| {
             let k = key(name);
             self.fonts.iter().position(|f| f.key == k)
         };
-        if let Some(i) = stack.split(',').find_map(|n| find(n.trim())) {
-            return (i, &self.fonts[i].name, false);
-        }
-        let i = Self::fallback_order().iter().find_map(|n| find(n)).unwrap_or(0);
-        (i, &self.fonts[i].name, true)
-    }
-
-    /// The glyphs of code points `start..start + 256` of font `font` as the stack
-    /// `stack`'s range: a `glyphs` message (the code points the font has; none is an
-    /// empty stack, which clients accept).
-    pub fn range(&self, font: usize, stack: &str, start: u32) -> Vec<u8> {
-        range_message(stack, start, &self.glyphs(font, start))
+        let i = (stack.split(',').find_map(|n| find(n.trim())))
+            .or_else(|| Self::fallback_order().iter().find_map(|n| find(n)))
+            .unwrap_or(0);
+        (i, &self.fonts[i].name)
     }
 
     /// The glyph fields of code points `start..start + 256` of font `font`, as
     /// [`range_message`] wraps them: what depends on the font alone (a server keeps these,
     /// whatever stack names asked for them).
-    pub fn glyphs(&self, font: usize, start: u32) -> Vec<u8> {
-        let face = &self.fonts[font.min(self.fonts.len() - 1)];
+    ///
+    /// # Errors
+    /// The font's file, where its glyphs cannot be read.
+    pub fn glyphs(&self, font: usize, start: u32) -> Result<Vec<u8>, String> {
+        let font = self.fonts[font.min(self.fonts.len() - 1)].font()?;
         let mut out = Vec::new();
         for code in start..start.saturating_add(256) {
             let Some(c) = char::from_u32(code) else { continue };
-            if face.font.chars().contains_key(&c) {
-                bytes_field(&mut out, 3, &glyph(&face.font, c));
+            if font.chars().contains_key(&c) {
+                bytes_field(&mut out, 3, &glyph(font, c));
             }
         }
-        out
+        Ok(out)
     }
 }
 
