@@ -187,6 +187,9 @@ fn globs_match_whole_names() {
 
 /// What a decision costs (release: `cargo test --release -p terrastream-server --lib
 /// decision_cost -- --ignored --nocapture`), one thread and two at once on one key.
+// Ignored in the test run on purpose: speed is measured by benchmarks that print numbers,
+// never asserted by pass/fail tests, and a debug build's nanoseconds mean nothing. Run by
+// the command above; its numbers are in docs/BENCHMARKS.md ("Private terrain").
 #[test]
 #[ignore = "a measurement: prints nanoseconds, asserts nothing about them"]
 fn decision_cost() {
