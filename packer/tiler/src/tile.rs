@@ -333,6 +333,9 @@ fn conservative_ranges(mut ranges: Vec<(TileKey, f32, f32)>) -> Vec<(TileKey, f3
     ranges
 }
 
+/// LOD-0 rows handed from the reading thread to the pyramid at once.
+const ROWS_A_BATCH: usize = 128;
+
 /// Streams `read`'s rows through a pyramid for layer `index`. Reading (decompression,
 /// conversion, resampling) runs on its own thread, overlapping the cutting and encoding,
 /// with at most one band of LOD-0 rows (a row of tiles and its borders) between them: the
@@ -357,16 +360,26 @@ pub(crate) fn run_pyramid<S: Pixel>(
     if let Some(q) = quantize {
         pyramid = pyramid.with_quantize(q);
     }
-    let (rows, received) = std::sync::mpsc::sync_channel::<Vec<S>>(pyramid.band_rows());
+    // Rows travel in batches, which the pyramid rounds and halves in parallel.
+    let (rows, received) = std::sync::mpsc::sync_channel::<Vec<Vec<S>>>(pyramid.band_rows().div_ceil(ROWS_A_BATCH));
     std::thread::scope(|scope| {
         let reader = scope.spawn(move || {
             // A send fails only once the pyramid has stopped, with its own error.
-            read(&mut |row| rows.send(row).map_err(|_| crate::error::interrupted()))
+            let send = |batch| rows.send(batch).map_err(|_| crate::error::interrupted());
+            let mut batch = Vec::with_capacity(ROWS_A_BATCH);
+            read(&mut |row| {
+                batch.push(row);
+                if batch.len() == ROWS_A_BATCH {
+                    send(std::mem::replace(&mut batch, Vec::with_capacity(ROWS_A_BATCH)))?;
+                }
+                Ok(())
+            })?;
+            if batch.is_empty() { Ok(()) } else { send(batch) }
         });
         // Rows of tiles are cut on the pool while this thread halves the next rows.
         rayon::in_place_scope(|cuts| {
             let mut built =
-                std::iter::from_fn(|| pyramid::receive(&received)).try_for_each(|row| pyramid.push(row, cuts));
+                std::iter::from_fn(|| pyramid::receive(&received)).try_for_each(|batch| pyramid.push_rows(batch, cuts));
             drop(received);
             let read = reader.join().unwrap_or(Err(Error::Panicked { thread: "raster reading" }));
             // The pyramid's error first (it stopped the reader); else the reader's.

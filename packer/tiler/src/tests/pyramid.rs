@@ -238,3 +238,31 @@ fn tiling_from_inside_a_one_thread_pool_finishes() {
         assert!(tiles > 0 && out.exists(), "tiff {tiff}: {tiles} tiles");
     }
 }
+
+#[test]
+fn the_archive_is_the_same_with_rows_halved_on_one_thread_or_on_many() {
+    // Pools of over four threads round and halve rows in parallel batches
+    // (`pyramid::rows_in_parallel`), smaller ones a row at a time on the calling thread:
+    // both must write the same bytes, odd sizes, no data and a quantized encoding included.
+    let r = raster(301, 517, |x, y| {
+        if (x + 2 * y) % 97 == 0 || (x > 250 && y < 40) {
+            f32::NAN
+        } else {
+            (x as f32 * 0.37).sin() * 90.0 + y as f32 * 0.3
+        }
+    });
+    let dir = tempfile::tempdir().unwrap();
+    let archive = |threads: usize| {
+        let out = dir.path().join(format!("threads-{threads}.tspack"));
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let options = TileOptions { tile_size: 32, ..TileOptions::default() };
+        pool.install(|| {
+            assert_eq!(rayon::current_num_threads(), threads);
+            tile_elevation(&r, "pooled", &out, options, &Silent::default()).unwrap();
+        });
+        std::fs::read(&out).unwrap()
+    };
+    let (one, many) = (archive(1), archive(8));
+    assert!(one.len() > 10_000, "{} bytes", one.len());
+    assert!(one == many, "the archives differ: {} and {} bytes", one.len(), many.len());
+}
