@@ -55,7 +55,7 @@ struct Globals {
     // w: page table probes.
     mode: vec4<u32>,
     // x: elevation LOD offset (log2 of base spacing / elevation spacing), y: first morph
-    // range radius; zw unused.
+    // range radius, z: log2 of the page table's width (a power of two); w unused.
     lod: vec4<f32>,
     // The data's extent relative to the anchor: min x, min z, max x, max z. The mesh
     // ends on patch boundaries, which can lie beyond it.
@@ -108,8 +108,12 @@ fn find_slot(kind: u32, lod: u32, t: vec2<i32>) -> i32 {
     let y = u32(t.y);
     let k = lod | (kind << 8u);
     var h = hash_key(x, y, k) & G.counts.z;
+    // The table's width is a power of two: a mask and a shift, where the modulo and the
+    // division of a width the compiler does not know cost dozens of instructions a probe.
+    let column = G.counts.w - 1u;
+    let row = u32(G.lod.z);
     for (var i = 0u; i < G.mode.w; i++) {
-        let e = textureLoad(page_table, vec2<i32>(i32(h % G.counts.w), i32(h / G.counts.w)), 0);
+        let e = textureLoad(page_table, vec2<i32>(i32(h & column), i32(h >> row)), 0);
         if e.w == 0u {
             return -1;
         }
@@ -150,8 +154,13 @@ fn sample_height_cover(slot: i32, within: vec2<f32>) -> vec2<f32> {
     let h10 = textureLoad(elevation, vec2<i32>(b.x, a.y), slot, 0).r;
     let h01 = textureLoad(elevation, vec2<i32>(a.x, b.y), slot, 0).r;
     let h11 = textureLoad(elevation, vec2<i32>(b.x, b.y), slot, 0).r;
+    return bilinear(vec4<f32>(h00, h10, h01, h11), t);
+}
+
+// Four samples (x0y0, x1y0, x0y1, x1y1) at fraction t between them, nodata left out:
+// the height and the weight of the samples with data.
+fn bilinear(hs: vec4<f32>, t: vec2<f32>) -> vec2<f32> {
     let w = vec4<f32>((1.0 - t.x) * (1.0 - t.y), t.x * (1.0 - t.y), (1.0 - t.x) * t.y, t.x * t.y);
-    let hs = vec4<f32>(h00, h10, h01, h11);
     let valid = select(vec4<f32>(0.0), vec4<f32>(1.0), hs > vec4<f32>(NODATA * 0.5));
     let weight = dot(w, valid);
     if weight <= 1.0e-6 {
@@ -160,11 +169,53 @@ fn sample_height_cover(slot: i32, within: vec2<f32>) -> vec2<f32> {
     return vec2<f32>(dot(w * valid, hs) / weight, weight);
 }
 
+// The heights one sample west, east, north and south of `within` in the resident tile
+// `slot` (x0, x1, z0, z1), from the 4 x 4 samples around it: twelve loads and no
+// page-table probe, where finding each neighbour's tile anew costs a probe and four loads
+// apiece. NODATA in x where those samples reach past the stored tile (its outermost
+// sample and a half) or one of them has no data: the caller looks the neighbours up
+// one by one there.
+fn neighbours_in_tile(slot: i32, within: vec2<f32>) -> vec4<f32> {
+    let s = G.elev.y + within * G.elev.x - 0.5;
+    let i0 = floor(s);
+    let t = s - i0;
+    let i = vec2<i32>(i0);
+    let last = i32(G.elev.z) - 1;
+    if any(i < vec2<i32>(1)) || any(i > vec2<i32>(last - 2)) {
+        return vec4<f32>(NODATA);
+    }
+    let hm0 = textureLoad(elevation, i + vec2<i32>(-1, 0), slot, 0).r;
+    let hm1 = textureLoad(elevation, i + vec2<i32>(-1, 1), slot, 0).r;
+    let h00 = textureLoad(elevation, i, slot, 0).r;
+    let h10 = textureLoad(elevation, i + vec2<i32>(1, 0), slot, 0).r;
+    let h01 = textureLoad(elevation, i + vec2<i32>(0, 1), slot, 0).r;
+    let h11 = textureLoad(elevation, i + vec2<i32>(1, 1), slot, 0).r;
+    let h20 = textureLoad(elevation, i + vec2<i32>(2, 0), slot, 0).r;
+    let h21 = textureLoad(elevation, i + vec2<i32>(2, 1), slot, 0).r;
+    let h0m = textureLoad(elevation, i + vec2<i32>(0, -1), slot, 0).r;
+    let h1m = textureLoad(elevation, i + vec2<i32>(1, -1), slot, 0).r;
+    let h02 = textureLoad(elevation, i + vec2<i32>(0, 2), slot, 0).r;
+    let h12 = textureLoad(elevation, i + vec2<i32>(1, 2), slot, 0).r;
+    let lowest = min(min(min(hm0, hm1), min(h00, h10)), min(min(h01, h11), min(h20, h21)));
+    if min(lowest, min(min(h0m, h1m), min(h02, h12))) <= NODATA * 0.5 {
+        return vec4<f32>(NODATA);
+    }
+    return vec4<f32>(
+        bilinear(vec4<f32>(hm0, h00, hm1, h01), t).x,
+        bilinear(vec4<f32>(h10, h20, h11, h21), t).x,
+        bilinear(vec4<f32>(h0m, h1m, h00, h10), t).x,
+        bilinear(vec4<f32>(h01, h11, h02, h12), t).x,
+    );
+}
+
 struct HeightSample {
     h: f32,
     lod: f32,
     // The bilinear weight of the samples with data.
     cover: f32,
+    // The resident tile it came from, and where in it.
+    slot: i32,
+    within: vec2<f32>,
 }
 
 // Height at p from the finest resident elevation tile at `start` or coarser.
@@ -174,10 +225,10 @@ fn height_from(start: u32, p: vec2<f32>) -> HeightSample {
         let slot = find_slot(KIND_ELEVATION, lod, tp.tile);
         if slot >= 0 {
             let hc = sample_height_cover(slot, tp.within);
-            return HeightSample(hc.x, f32(lod), hc.y);
+            return HeightSample(hc.x, f32(lod), hc.y, slot, tp.within);
         }
     }
-    return HeightSample(0.0, -1.0, 0.0);
+    return HeightSample(0.0, -1.0, 0.0, -1, vec2<f32>(0.0));
 }
 
 // The first height with data at p from LOD `start` up: coarser samples are nodata-aware
@@ -477,7 +528,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // The elevation at the pixel's own resolution: where it has no data the terrain ends,
     // at every mesh level (a coarse triangle over the data's edge is cut at the pixel, not
     // dropped whole, which drew the edge as stair steps).
-    var found = HeightSample(0.0, -1.0, 0.0);
+    var found = HeightSample(0.0, -1.0, 0.0, -1, vec2<f32>(0.0));
     if G.counts.x > 0u {
         let le = u32(clamp(floor(log2(max(footprint, 1.0e-6) / G.elev.w)), 0.0, f32(G.counts.x - 1u)));
         found = height_from(le, p);
@@ -498,10 +549,19 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         if found.lod >= 0.0 {
             let lod = u32(found.lod);
             let s = G.elev.w * exp2(found.lod);
-            let hx0 = height_from(lod, p - vec2<f32>(s, 0.0)).h;
-            let hx1 = height_from(lod, p + vec2<f32>(s, 0.0)).h;
-            let hz0 = height_from(lod, p - vec2<f32>(0.0, s)).h;
-            let hz1 = height_from(lod, p + vec2<f32>(0.0, s)).h;
+            var n = neighbours_in_tile(found.slot, found.within);
+            if n.x <= NODATA * 0.5 {
+                n = vec4<f32>(
+                    height_from(lod, p - vec2<f32>(s, 0.0)).h,
+                    height_from(lod, p + vec2<f32>(s, 0.0)).h,
+                    height_from(lod, p - vec2<f32>(0.0, s)).h,
+                    height_from(lod, p + vec2<f32>(0.0, s)).h,
+                );
+            }
+            let hx0 = n.x;
+            let hx1 = n.y;
+            let hz0 = n.z;
+            let hz1 = n.w;
             if min(min(hx0, hx1), min(hz0, hz1)) > NODATA * 0.5 {
                 normal = normalize(vec3<f32>(hx0 - hx1, 2.0 * s, hz0 - hz1));
             }

@@ -252,7 +252,12 @@ impl TerrainRenderer {
                 u32::from(self.settings.lod_colours),
                 self.page_table.max_probes,
             ],
-            lod: [(base / f64::from(elev_info[3])).log2() as f32, params.range(0) as f32, 0.0, 0.0],
+            lod: [
+                (base / f64::from(elev_info[3])).log2() as f32,
+                params.range(0) as f32,
+                self.page_table.width.trailing_zeros() as f32,
+                0.0,
+            ],
             bounds: [(x0 - anchor.0) as f32, (z0 - anchor.1) as f32, (x1 - anchor.0) as f32, (z1 - anchor.1) as f32],
             globe,
             ranges,
