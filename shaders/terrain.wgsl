@@ -85,6 +85,10 @@ struct Globals {
 // The whole Earth, equirectangular (longitude -180..180, latitude 90..-90), sRGB, mipmapped:
 // the ground beyond the archive's data.
 @group(0) @binding(12) var earth_map: texture_2d<f32>;
+// Per elevation sample, made at upload (client/src/render/tile_array.rs, `shade_texels`):
+// x and z of the normal, 1 in a flat sea, 1 where the normal is there (the sample and its
+// four neighbours have data). The same slots as `elevation`; filtered.
+@group(0) @binding(13) var elevation_shade: texture_2d_array<f32>;
 
 const NODATA: f32 = -1.0e30;
 const KIND_ELEVATION: u32 = 0u;
@@ -99,10 +103,11 @@ fn hash_key(x: u32, y: u32, k: u32) -> u32 {
     return h;
 }
 
-// The array slot holding tile (lod, t) of a layer kind, or -1 when it is not resident.
-fn find_slot(kind: u32, lod: u32, t: vec2<i32>) -> i32 {
+// The array slot holding tile (lod, t) of a layer kind (x), and the slot of its parent
+// (y); -1 where not resident.
+fn find_slots(kind: u32, lod: u32, t: vec2<i32>) -> vec2<i32> {
     if t.x < 0 || t.y < 0 {
-        return -1;
+        return vec2<i32>(-1);
     }
     let x = u32(t.x);
     let y = u32(t.y);
@@ -115,14 +120,20 @@ fn find_slot(kind: u32, lod: u32, t: vec2<i32>) -> i32 {
     for (var i = 0u; i < G.mode.w; i++) {
         let e = textureLoad(page_table, vec2<i32>(i32(h & column), i32(h >> row)), 0);
         if e.w == 0u {
-            return -1;
+            return vec2<i32>(-1);
         }
-        if e.x == x && e.y == y && e.z == k {
-            return i32(e.w) - 1;
+        // z: the key's LOD and kind, and the parent's slot + 1 above them.
+        if e.x == x && e.y == y && (e.z & 0xFFFFu) == k {
+            return vec2<i32>(i32(e.w) - 1, i32(e.z >> 16u) - 1);
         }
         h = (h + 1u) & G.counts.z;
     }
-    return -1;
+    return vec2<i32>(-1);
+}
+
+// The array slot holding tile (lod, t) of a layer kind, or -1 when it is not resident.
+fn find_slot(kind: u32, lod: u32, t: vec2<i32>) -> i32 {
+    return find_slots(kind, lod, t).x;
 }
 
 struct TilePos {
@@ -205,6 +216,24 @@ fn neighbours_in_tile(slot: i32, within: vec2<f32>) -> vec4<f32> {
         bilinear(vec4<f32>(h10, h20, h11, h21), t).x,
         bilinear(vec4<f32>(h0m, h1m, h00, h10), t).x,
         bilinear(vec4<f32>(h01, h11, h02, h12), t).x,
+    );
+}
+
+// The heights one sample west, east, north and south of p (x0, x1, z0, z1) at the LOD of
+// `found`, the height at p: from found's own tile where they lie in it, else each looked
+// up (in the neighbouring tile, or a coarser one).
+fn neighbours_of(found: HeightSample, p: vec2<f32>) -> vec4<f32> {
+    let n = neighbours_in_tile(found.slot, found.within);
+    if n.x > NODATA * 0.5 {
+        return n;
+    }
+    let lod = u32(found.lod);
+    let s = G.elev.w * exp2(found.lod);
+    return vec4<f32>(
+        height_from(lod, p - vec2<f32>(s, 0.0)).h,
+        height_from(lod, p + vec2<f32>(s, 0.0)).h,
+        height_from(lod, p - vec2<f32>(0.0, s)).h,
+        height_from(lod, p + vec2<f32>(0.0, s)).h,
     );
 }
 
@@ -460,14 +489,47 @@ fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> V
     return out;
 }
 
+// The colour of texture tile `slot` at `within` (0..1 across the tile proper).
+fn texel_in(slot: i32, within: vec2<f32>) -> vec4<f32> {
+    let uv = (G.tex.y + within * G.tex.x) / G.tex.z;
+    return textureSampleLevel(colour, colour_sampler, uv, slot, 0.0);
+}
+
+struct TwoTexels {
+    fine: vec4<f32>,
+    coarse: vec4<f32>,
+}
+
+// The colours of p at texture LODs l0 and l0 + 1 (the last LOD at most), each from the
+// finest resident tile at that LOD or coarser, as `texel_from` gives them: the coarser
+// tile is the finer one's parent, whose slot its page-table entry names, so one probe
+// serves both where both are resident.
+fn texels_at(l0: u32, p: vec2<f32>) -> TwoTexels {
+    let l1 = min(l0 + 1u, G.counts.y - 1u);
+    let tp = tile_pos(G.tex_lods[l0], p);
+    let slots = find_slots(KIND_TEXTURE, l0, tp.tile);
+    if slots.x < 0 {
+        // The walk from l0 continues at l0 + 1, which is where l1's starts.
+        let c = texel_from(l0 + 1u, p);
+        return TwoTexels(c, c);
+    }
+    let c0 = texel_in(slots.x, tp.within);
+    if l1 == l0 {
+        return TwoTexels(c0, c0);
+    }
+    if slots.y >= 0 {
+        return TwoTexels(c0, texel_in(slots.y, tile_pos(G.tex_lods[l1], p).within));
+    }
+    return TwoTexels(c0, texel_from(l1, p));
+}
+
 // Colour of p from the finest resident texture tile at `start` or coarser.
 fn texel_from(start: u32, p: vec2<f32>) -> vec4<f32> {
     for (var lod = start; lod < G.counts.y; lod++) {
         let tp = tile_pos(G.tex_lods[lod], p);
         let slot = find_slot(KIND_TEXTURE, lod, tp.tile);
         if slot >= 0 {
-            let uv = (G.tex.y + tp.within * G.tex.x) / G.tex.z;
-            return textureSampleLevel(colour, colour_sampler, uv, slot, 0.0);
+            return texel_in(slot, tp.within);
         }
     }
     return vec4<f32>(0.5, 0.5, 0.5, 0.0);
@@ -547,25 +609,22 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     var sea = false;
     if G.counts.x > 0u {
         if found.lod >= 0.0 {
-            let lod = u32(found.lod);
-            let s = G.elev.w * exp2(found.lod);
-            var n = neighbours_in_tile(found.slot, found.within);
-            if n.x <= NODATA * 0.5 {
-                n = vec4<f32>(
-                    height_from(lod, p - vec2<f32>(s, 0.0)).h,
-                    height_from(lod, p + vec2<f32>(s, 0.0)).h,
-                    height_from(lod, p - vec2<f32>(0.0, s)).h,
-                    height_from(lod, p + vec2<f32>(0.0, s)).h,
-                );
+            // One filtered sample of the tile's shade texels where its four samples
+            // around p have their normals (everywhere but the tile's outermost samples
+            // and the rim of the data): the same normal and sea, at a twelfth of the loads.
+            let uv = (G.elev.y + found.within * G.elev.x) / G.elev.z;
+            let shade = textureSampleLevel(elevation_shade, colour_sampler, uv, found.slot, 0.0);
+            if shade.w > 0.99 {
+                let up = sqrt(max(1.0 - shade.x * shade.x - shade.y * shade.y, 0.0));
+                normal = normalize(vec3<f32>(shade.x, up, shade.y));
+                sea = shade.z > 0.99;
+            } else {
+                let around = neighbours_of(found, p);
+                if min(min(around.x, around.y), min(around.z, around.w)) > NODATA * 0.5 {
+                    normal = normalize(vec3<f32>(around.x - around.y, 2.0 * G.elev.w * exp2(found.lod), around.z - around.w));
+                }
+                sea = (abs(found.h) < 0.5) & all(around == vec4<f32>(found.h));
             }
-            let hx0 = n.x;
-            let hx1 = n.y;
-            let hz0 = n.z;
-            let hz1 = n.w;
-            if min(min(hx0, hx1), min(hz0, hz1)) > NODATA * 0.5 {
-                normal = normalize(vec3<f32>(hx0 - hx1, 2.0 * s, hz0 - hz1));
-            }
-            sea = (abs(found.h) < 0.5) & (hx0 == found.h) & (hx1 == found.h) & (hz0 == found.h) & (hz1 == found.h);
         }
     }
     var albedo = hypsometric(in.world.y);
@@ -575,8 +634,9 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     if G.counts.y > 0u {
         let t = clamp(log2(max(footprint, 1.0e-6) / G.tex.w), 0.0, f32(G.counts.y - 1u));
         let l0 = floor(t);
-        let c0 = texel_from(u32(l0), p);
-        let c1 = texel_from(min(u32(l0) + 1u, G.counts.y - 1u), p);
+        let two = texels_at(u32(l0), p);
+        let c0 = two.fine;
+        let c1 = two.coarse;
         // Alpha is coverage (LODs are alpha-weighted averages): the two LODs' colours are
         // mixed by their coverage, so the partly covered texels along the data's edge at a
         // coarse LOD do not let the height tint show through as a fringe.

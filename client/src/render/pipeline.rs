@@ -73,6 +73,7 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
             texture_entry(10, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
             texture_entry(11, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
             texture_entry(12, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2),
+            texture_entry(13, wgpu::TextureSampleType::Float { filterable: true }, wgpu::TextureViewDimension::D2Array),
         ],
     })
 }

@@ -20,7 +20,7 @@ pub use super::pipeline::{DEPTH_FORMAT, TERRAIN_WGSL, TerrainPipeline};
 use super::pipeline::{colour_sampler, patch_buffers};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable};
 pub use super::settings::{FrameStats, RenderSettings, Shading};
-use super::tile_array::{TileArray, array_view};
+use super::tile_array::{SHADE_FORMAT, TileArray, array_view};
 use crate::globe::{Mapping, Surface};
 use crate::stream::camera::{Camera, SceneBox};
 use crate::stream::streamer::Upload;
@@ -121,6 +121,7 @@ struct BoundResources<'a> {
     globals: &'a wgpu::Buffer,
     page_table: &'a wgpu::Texture,
     elevation: &'a wgpu::TextureView,
+    elevation_shade: &'a wgpu::TextureView,
     colour: &'a wgpu::TextureView,
     lattice: &'a wgpu::Texture,
     air: &'a AtmosphereTables,
@@ -152,6 +153,7 @@ impl BoundResources<'_> {
                 wgpu::BindingResource::TextureView(&air.sky_view_view),
                 wgpu::BindingResource::TextureView(&air.aerial_view),
                 wgpu::BindingResource::TextureView(&earth_view),
+                wgpu::BindingResource::TextureView(self.elevation_shade),
             ],
         )
     }
@@ -201,8 +203,9 @@ impl TerrainRenderer {
         let resources = BoundResources {
             globals: &globals,
             page_table: &page_texture,
-            elevation: &array_view(device, elevation.as_ref(), wgpu::TextureFormat::R32Float),
-            colour: &array_view(device, texture.as_ref(), wgpu::TextureFormat::Rgba8UnormSrgb),
+            elevation: &array_view(device, elevation.as_ref().map(|a| &a.texture), wgpu::TextureFormat::R32Float),
+            elevation_shade: &array_view(device, elevation.as_ref().and_then(|a| a.shade.as_ref()), SHADE_FORMAT),
+            colour: &array_view(device, texture.as_ref().map(|a| &a.texture), wgpu::TextureFormat::Rgba8UnormSrgb),
             lattice: &lattice,
             air: &air_tables,
             earth: &earth,
@@ -332,7 +335,7 @@ impl TerrainRenderer {
                 continue;
             };
             dropped.extend(placement.evicted);
-            if !array.write(queue, placement.slot, &tile.data, tile.size) {
+            if !array.write(queue, placement.slot, tile.key, &tile.data, tile.size) {
                 tracing::warn!(tile = %tile.key, size = tile.size, "tile does not fit its layer's GPU array: skipped");
                 array.residency.remove(tile.key);
             }

@@ -153,26 +153,32 @@ impl PageTable {
         u32::try_from(self.entries.len()).unwrap_or(u32::MAX) - 1
     }
 
-    /// Refills the table from `(kind, key, slot)` triples.
+    /// Refills the table from `(kind, key, slot)` triples. Each entry also names the slot of
+    /// its tile's parent where that is resident (0 where not): a pixel blending two LODs
+    /// finds the coarser tile with the finer one's probe.
     pub fn rebuild(&mut self, tiles: impl IntoIterator<Item = (u32, TileKey, u32)>) {
+        let tiles: Vec<(u32, TileKey, u32)> = tiles.into_iter().collect();
+        let slots: HashMap<(u32, TileKey), u32> = tiles.iter().map(|&(kind, key, slot)| ((kind, key), slot)).collect();
         self.entries.fill([0; 4]);
         self.max_probes = 1;
         let mask = self.mask();
         for (kind, key, slot) in tiles {
             let k = u32::from(key.lod()) | (kind << 8);
+            let parent = key.parent().and_then(|p| slots.get(&(kind, p))).map_or(0, |&s| s + 1).min(PARENT_NONE_ABOVE);
+            let parent = if parent == PARENT_NONE_ABOVE { 0 } else { parent };
             let mut h = hash_key(key.x(), key.y(), k) & mask;
             let mut probes = 1;
             while self.entries[h as usize][3] != 0 {
                 h = (h + 1) & mask;
                 probes += 1;
             }
-            self.entries[h as usize] = [key.x(), key.y(), k, slot + 1];
+            self.entries[h as usize] = [key.x(), key.y(), k | (parent << 16), slot + 1];
             self.max_probes = self.max_probes.max(probes);
         }
     }
 
-    /// What the shaders' `find_slot` returns.
-    pub fn lookup(&self, kind: u32, lod: u8, x: u32, y: u32) -> Option<u32> {
+    /// What the shaders' `find_slots` returns: the tile's slot and its parent's.
+    pub fn lookup_with_parent(&self, kind: u32, lod: u8, x: u32, y: u32) -> Option<(u32, Option<u32>)> {
         let k = u32::from(lod) | (kind << 8);
         let mask = self.mask();
         let mut h = hash_key(x, y, k) & mask;
@@ -181,14 +187,23 @@ impl PageTable {
             if e[3] == 0 {
                 return None;
             }
-            if e[0] == x && e[1] == y && e[2] == k {
-                return Some(e[3] - 1);
+            if e[0] == x && e[1] == y && e[2] & 0xFFFF == k {
+                return Some((e[3] - 1, (e[2] >> 16).checked_sub(1)));
             }
             h = (h + 1) & mask;
         }
         None
     }
+
+    /// What the shaders' `find_slot` returns.
+    pub fn lookup(&self, kind: u32, lod: u8, x: u32, y: u32) -> Option<u32> {
+        self.lookup_with_parent(kind, lod, x, y).map(|(slot, _)| slot)
+    }
 }
+
+/// A parent's slot + 1 is kept in an entry's upper 16 bits: slots from here on are not
+/// named (texture arrays hold 2048 layers at most on the adapters seen).
+const PARENT_NONE_ABOVE: u32 = 0xFFFF;
 
 #[cfg(test)]
 mod tests {
@@ -230,6 +245,15 @@ mod tests {
         }
         assert_eq!(table.lookup(0, 9, 1, 1), None);
         assert_eq!(table.lookup(2, 0, 0, 0), None);
+        // Each entry names its parent's slot where the parent is resident, of its own kind.
+        let slots: HashMap<(u32, TileKey), u32> = tiles.iter().map(|&(kind, k, s)| ((kind, k), s)).collect();
+        let mut parents = 0;
+        for &(kind, k, slot) in &tiles {
+            let parent = k.parent().and_then(|p| slots.get(&(kind, p)).copied());
+            parents += usize::from(parent.is_some());
+            assert_eq!(table.lookup_with_parent(kind, k.lod(), k.x(), k.y()), Some((slot, parent)), "{k}");
+        }
+        assert!(parents > 0, "no tile had its parent resident");
         assert!(table.max_probes < 16, "probe sequences stay short: {}", table.max_probes);
         assert_eq!(table.entries.len(), (table.width * table.height()) as usize);
     }
