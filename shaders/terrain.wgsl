@@ -85,9 +85,9 @@ struct Globals {
 // The whole Earth, equirectangular (longitude -180..180, latitude 90..-90), sRGB, mipmapped:
 // the ground beyond the archive's data.
 @group(0) @binding(12) var earth_map: texture_2d<f32>;
-// Per elevation sample, made at upload (client/src/render/tile_array.rs, `shade_texels`):
-// x and z of the normal, 1 in a flat sea, 1 where the normal is there (the sample and its
-// four neighbours have data). The same slots as `elevation`; filtered.
+// Per elevation sample, made on the GPU at upload (shaders/shade.wgsl): x and z of the
+// normal (as n * 0.5 + 0.5), 1 in a flat sea, 1 where the normal is there (the sample and
+// its four neighbours have data). The same slots as `elevation`; filtered.
 @group(0) @binding(13) var elevation_shade: texture_2d_array<f32>;
 
 const NODATA: f32 = -1.0e30;
@@ -615,8 +615,8 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
             let uv = (G.elev.y + found.within * G.elev.x) / G.elev.z;
             let shade = textureSampleLevel(elevation_shade, colour_sampler, uv, found.slot, 0.0);
             if shade.w > 0.99 {
-                let up = sqrt(max(1.0 - shade.x * shade.x - shade.y * shade.y, 0.0));
-                normal = normalize(vec3<f32>(shade.x, up, shade.y));
+                let xz = shade.xy * 2.0 - 1.0;
+                normal = normalize(vec3<f32>(xz.x, sqrt(max(1.0 - dot(xz, xz), 0.0)), xz.y));
                 sea = shade.z > 0.99;
             } else {
                 let around = neighbours_of(found, p);

@@ -2,6 +2,9 @@
 
 use bytemuck::Zeroable;
 use terrastream_format::{Layer, TileFormat, TileKey};
+
+use super::atmosphere::{fill, fullscreen};
+use super::gpu::{texture_entry, uniform_entry};
 use terrastream_tiles::TileData;
 
 use super::frame::LodInfo;
@@ -17,8 +20,8 @@ pub(super) struct TileArray {
     pub(super) index: u8,
     pub(super) kind: u32,
     pub(super) texture: wgpu::Texture,
-    /// Elevation only: each sample's normal, and whether it lies in a flat sea, made at
-    /// upload ([`shade_texels`]); the same slots as `texture`.
+    /// Elevation only: each sample's normal, and whether it lies in a flat sea, made on
+    /// the GPU at upload (shaders/shade.wgsl); the same slots as `texture`.
     pub(super) shade: Option<wgpu::Texture>,
     pub(super) format: wgpu::TextureFormat,
     pub(super) edge: u32,
@@ -62,7 +65,7 @@ impl TileArray {
                 "texture.tiles.elevation_shade",
                 (edge, edge, slots),
                 SHADE_FORMAT,
-                wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::RENDER_ATTACHMENT,
             )
         });
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
@@ -71,8 +74,8 @@ impl TileArray {
         Some(Self { layer: layer.clone(), index, kind, texture, shade, format, edge, residency, bytes })
     }
 
-    /// Writes decoded tile `key` into `slot`; false if its size or kind does not fit.
-    pub(super) fn write(&self, queue: &wgpu::Queue, slot: u32, key: TileKey, data: &TileData, size: u32) -> bool {
+    /// Writes a decoded tile into `slot`; false if its size or kind does not fit.
+    pub(super) fn write(&self, queue: &wgpu::Queue, slot: u32, data: &TileData, size: u32) -> bool {
         if size != self.edge {
             return false;
         }
@@ -80,12 +83,6 @@ impl TileArray {
         let (bytes, bytes_per_row, rows): (&[u8], u32, u32) = match (data, self.format) {
             (TileData::Heights { heights, .. }, wgpu::TextureFormat::R32Float) => {
                 converted = heights.iter().map(|h| if h.is_finite() { *h } else { NODATA }).collect::<Vec<f32>>();
-                if let Some(shade) = &self.shade {
-                    #[allow(clippy::cast_possible_truncation)]
-                    let spacing = (self.layer.world_size_at(key.lod()) / f64::from(self.layer.tile_resolution)) as f32;
-                    let texels = shade_texels(&converted, size as usize, spacing);
-                    write_layer(queue, shade, slot, bytemuck::cast_slice(&texels), (size * 4, size), (size, size));
-                }
                 (bytemuck::cast_slice(&converted), size * 4, size)
             }
             (TileData::Rgba8(pixels), wgpu::TextureFormat::Rgba8UnormSrgb) => (pixels, size * 4, size),
@@ -131,39 +128,76 @@ impl TileArray {
     }
 }
 
-/// The format of an elevation tile's shade texels: filterable everywhere (WebGL2 too).
-pub(super) const SHADE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Snorm;
-
-/// The shade texels of an `edge` x `edge` tile of heights (NODATA where none) whose samples
-/// lie `spacing` metres apart: for each sample, x and z of the terrain's normal there (y is
-/// the rest of a unit vector), made as the lit shader made it from the four neighbours,
-/// `normalize(h west - h east, 2 spacing, h north - h south)`; then 1 where the sample and
-/// its four neighbours are one height within half a metre of 0 (a flat sea, as SRTM and
-/// Copernicus store it), and 1 where the sample and its four neighbours have data (the
-/// normal is there), else 0: along the tile's outermost samples, whose neighbours lie in
-/// other tiles, and beside no data. Filtered bilinearly, one sample gives what twelve
-/// height loads gave a pixel (the shader falls back to them where the last is under 1).
-pub(super) fn shade_texels(heights: &[f32], edge: usize, spacing: f32) -> Vec<[i8; 4]> {
-    let mut out = vec![[0i8; 4]; edge * edge];
-    let has = |h: f32| h > NODATA * 0.5;
-    #[allow(clippy::cast_possible_truncation)]
-    let snorm = |v: f32| (v.clamp(-1.0, 1.0) * 127.0).round() as i8;
-    for y in 1..edge.saturating_sub(1) {
-        for x in 1..edge - 1 {
-            let h = heights[y * edge + x];
-            let (w, e) = (heights[y * edge + x - 1], heights[y * edge + x + 1]);
-            let (n, s) = (heights[(y - 1) * edge + x], heights[(y + 1) * edge + x]);
-            if !(has(h) && has(w) && has(e) && has(n) && has(s)) {
-                continue;
-            }
-            let (gx, gz) = (w - e, n - s);
-            let scale = 1.0 / (gx * gx + 4.0 * spacing * spacing + gz * gz).sqrt();
-            let sea = h.abs() < 0.5 && w == h && e == h && n == h && s == h;
-            out[y * edge + x] = [snorm(gx * scale), snorm(gz * scale), if sea { 127 } else { 0 }, 127];
-        }
-    }
-    out
+/// The pass that makes elevation tiles' shade texels (shaders/shade.wgsl), made with the
+/// terrain's pipelines.
+#[derive(Clone, Debug)]
+pub struct ShadePipeline {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::RenderPipeline,
 }
+
+impl ShadePipeline {
+    pub(super) fn new(device: &wgpu::Device) -> Self {
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("layout.shade"),
+            entries: &[
+                texture_entry(
+                    0,
+                    wgpu::TextureSampleType::Float { filterable: false },
+                    wgpu::TextureViewDimension::D2Array,
+                ),
+                uniform_entry(1),
+            ],
+        });
+        let module = gpu::shader(device, "shade", include_str!("../../../shaders/shade.wgsl"));
+        let pipeline = fullscreen(device, "shade", &module, &layout, ("vs_main", "fs_shade"), SHADE_FORMAT, false);
+        Self { layout, pipeline }
+    }
+
+    /// Makes the shade texels of elevation tiles `tiles` (their keys and slots), just
+    /// written into `array`, on the GPU.
+    pub(super) fn make(&self, device: &wgpu::Device, queue: &wgpu::Queue, array: &TileArray, tiles: &[(TileKey, u32)]) {
+        let Some(shade) = &array.shade else { return };
+        if tiles.is_empty() {
+            return;
+        }
+        let heights = array_view(device, Some(&array.texture), array.format);
+        let mut encoder =
+            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("encoder.shade") });
+        for &(key, slot) in tiles {
+            #[allow(clippy::cast_possible_truncation)]
+            let spacing = (array.layer.world_size_at(key.lod()) / f64::from(array.layer.tile_resolution)) as f32;
+            let job: [u32; 4] = [slot, spacing.to_bits(), array.edge, 0];
+            let buffer = wgpu::util::DeviceExt::create_buffer_init(
+                device,
+                &wgpu::util::BufferInitDescriptor {
+                    label: Some("buffer.shade.job"),
+                    contents: bytemuck::cast_slice(&job),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                },
+            );
+            let group = gpu::bind_group(
+                device,
+                "bind_group.shade",
+                &self.layout,
+                &[wgpu::BindingResource::TextureView(&heights), buffer.as_entire_binding()],
+            );
+            let target = shade.create_view(&wgpu::TextureViewDescriptor {
+                label: Some("view.shade.layer"),
+                dimension: Some(wgpu::TextureViewDimension::D2),
+                base_array_layer: slot,
+                array_layer_count: Some(1),
+                ..Default::default()
+            });
+            fill(&mut encoder, &target, &self.pipeline, &group);
+        }
+        queue.submit([encoder.finish()]);
+    }
+}
+
+/// The format of an elevation tile's shade texels (shaders/shade.wgsl): filterable and
+/// renderable everywhere (WebGL2 too).
+pub(super) const SHADE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
 /// A view of a layer's tile array, or of a 1x1 dummy of `format` standing in for a missing
 /// layer, so that one pipeline serves all archives.
@@ -185,44 +219,4 @@ pub(super) fn array_view(
         dimension: Some(wgpu::TextureViewDimension::D2Array),
         ..Default::default()
     })
-}
-
-#[cfg(test)]
-mod tests {
-    #![allow(clippy::unwrap_used, clippy::cast_precision_loss)]
-    use super::*;
-
-    #[test]
-    fn shade_texels_hold_the_lit_shaders_normal_and_sea() {
-        let edge = 9;
-        let spacing = 30.0;
-        // A slope with a bump, a flat sea at 0 in the south-west, a hole of no data.
-        let mut h: Vec<f32> = (0..edge * edge)
-            .map(|i| {
-                let (x, y) = ((i % edge) as f32, (i / edge) as f32);
-                if x < 4.0 && y > 4.0 { 0.0 } else { 3.0 * x * x - 40.0 * y + 5.0 }
-            })
-            .collect();
-        h[2 * edge + 6] = NODATA;
-        let texels = shade_texels(&h, edge, spacing);
-        let at = |x: usize, y: usize| h[y * edge + x];
-        for y in 0..edge {
-            for x in 0..edge {
-                let t = texels[y * edge + x];
-                let rim = x == 0 || y == 0 || x == edge - 1 || y == edge - 1;
-                let beside_hole = x.abs_diff(6) + y.abs_diff(2) <= 1;
-                if rim || beside_hole {
-                    assert_eq!(t, [0; 4], "({x}, {y}) has no normal");
-                    continue;
-                }
-                assert_eq!(t[3], 127, "({x}, {y}) has a normal");
-                let (gx, gz) = (at(x - 1, y) - at(x + 1, y), at(x, y - 1) - at(x, y + 1));
-                let len = (gx * gx + 4.0 * spacing * spacing + gz * gz).sqrt();
-                let (nx, nz) = (f32::from(t[0]) / 127.0, f32::from(t[1]) / 127.0);
-                assert!((nx - gx / len).abs() <= 0.5 / 127.0 && (nz - gz / len).abs() <= 0.5 / 127.0, "({x}, {y})");
-                let sea = x < 3 && y > 5 && y < edge - 1;
-                assert_eq!(t[2], if sea { 127 } else { 0 }, "({x}, {y}) sea {sea}");
-            }
-        }
-    }
 }
