@@ -86,8 +86,8 @@ struct Globals {
 // the ground beyond the archive's data.
 @group(0) @binding(12) var earth_map: texture_2d<f32>;
 // Per elevation sample, made on the GPU at upload (shaders/shade.wgsl): x and z of the
-// normal (as n * 0.5 + 0.5), 1 in a flat sea, 1 where the normal is there (the sample and
-// its four neighbours have data). The same slots as `elevation`; filtered.
+// normal (as n * 0.5 + 0.5), 1 in a flat sea, 1 where the sample has data. The same slots
+// as `elevation`; filtered.
 @group(0) @binding(13) var elevation_shade: texture_2d_array<f32>;
 
 const NODATA: f32 = -1.0e30;
@@ -178,63 +178,6 @@ fn bilinear(hs: vec4<f32>, t: vec2<f32>) -> vec2<f32> {
         return vec2<f32>(NODATA, 0.0);
     }
     return vec2<f32>(dot(w * valid, hs) / weight, weight);
-}
-
-// The heights one sample west, east, north and south of `within` in the resident tile
-// `slot` (x0, x1, z0, z1), from the 4 x 4 samples around it: twelve loads and no
-// page-table probe, where finding each neighbour's tile anew costs a probe and four loads
-// apiece. NODATA in x where those samples reach past the stored tile (its outermost
-// sample and a half) or one of them has no data: the caller looks the neighbours up
-// one by one there.
-fn neighbours_in_tile(slot: i32, within: vec2<f32>) -> vec4<f32> {
-    let s = G.elev.y + within * G.elev.x - 0.5;
-    let i0 = floor(s);
-    let t = s - i0;
-    let i = vec2<i32>(i0);
-    let last = i32(G.elev.z) - 1;
-    if any(i < vec2<i32>(1)) || any(i > vec2<i32>(last - 2)) {
-        return vec4<f32>(NODATA);
-    }
-    let hm0 = textureLoad(elevation, i + vec2<i32>(-1, 0), slot, 0).r;
-    let hm1 = textureLoad(elevation, i + vec2<i32>(-1, 1), slot, 0).r;
-    let h00 = textureLoad(elevation, i, slot, 0).r;
-    let h10 = textureLoad(elevation, i + vec2<i32>(1, 0), slot, 0).r;
-    let h01 = textureLoad(elevation, i + vec2<i32>(0, 1), slot, 0).r;
-    let h11 = textureLoad(elevation, i + vec2<i32>(1, 1), slot, 0).r;
-    let h20 = textureLoad(elevation, i + vec2<i32>(2, 0), slot, 0).r;
-    let h21 = textureLoad(elevation, i + vec2<i32>(2, 1), slot, 0).r;
-    let h0m = textureLoad(elevation, i + vec2<i32>(0, -1), slot, 0).r;
-    let h1m = textureLoad(elevation, i + vec2<i32>(1, -1), slot, 0).r;
-    let h02 = textureLoad(elevation, i + vec2<i32>(0, 2), slot, 0).r;
-    let h12 = textureLoad(elevation, i + vec2<i32>(1, 2), slot, 0).r;
-    let lowest = min(min(min(hm0, hm1), min(h00, h10)), min(min(h01, h11), min(h20, h21)));
-    if min(lowest, min(min(h0m, h1m), min(h02, h12))) <= NODATA * 0.5 {
-        return vec4<f32>(NODATA);
-    }
-    return vec4<f32>(
-        bilinear(vec4<f32>(hm0, h00, hm1, h01), t).x,
-        bilinear(vec4<f32>(h10, h20, h11, h21), t).x,
-        bilinear(vec4<f32>(h0m, h1m, h00, h10), t).x,
-        bilinear(vec4<f32>(h01, h11, h02, h12), t).x,
-    );
-}
-
-// The heights one sample west, east, north and south of p (x0, x1, z0, z1) at the LOD of
-// `found`, the height at p: from found's own tile where they lie in it, else each looked
-// up (in the neighbouring tile, or a coarser one).
-fn neighbours_of(found: HeightSample, p: vec2<f32>) -> vec4<f32> {
-    let n = neighbours_in_tile(found.slot, found.within);
-    if n.x > NODATA * 0.5 {
-        return n;
-    }
-    let lod = u32(found.lod);
-    let s = G.elev.w * exp2(found.lod);
-    return vec4<f32>(
-        height_from(lod, p - vec2<f32>(s, 0.0)).h,
-        height_from(lod, p + vec2<f32>(s, 0.0)).h,
-        height_from(lod, p - vec2<f32>(0.0, s)).h,
-        height_from(lod, p + vec2<f32>(0.0, s)).h,
-    );
 }
 
 struct HeightSample {
@@ -603,27 +546,26 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     }
     // Normal from the elevation data at the pixel's own resolution.
     var normal = vec3<f32>(0.0, 1.0, 0.0);
-    // The sea, as DEMs that store it as a flat 0 have it (SRTM, Copernicus): the sample
-    // and its four neighbours at one height within half a metre of sea level. (`&`, not
-    // `&&`: the short-circuit's branches made lavapipe's globe frame 1.8x slower.)
+    // The sea, as DEMs that store it as a flat 0 have it (SRTM, Copernicus): where the
+    // pixel's samples and their four neighbours are one height within half a metre of sea
+    // level (the shade texels' flag).
     var sea = false;
     if G.counts.x > 0u {
         if found.lod >= 0.0 {
-            // One filtered sample of the tile's shade texels where its four samples
-            // around p have their normals (everywhere but the tile's outermost samples
-            // and the rim of the data): the same normal and sea, at a twelfth of the loads.
+            // One filtered sample of the tile's shade texels (shaders/shade.wgsl): the
+            // normal, and the flat sea, from the pixel's four samples with data. One
+            // sample, where
+            // the neighbours' four bilinear heights took twelve loads and, across a
+            // tile's edge, four page-table probes (a slower path kept for those made
+            // lavapipe's globe frame 2.5x slower, though few pixels took it).
             let uv = (G.elev.y + found.within * G.elev.x) / G.elev.z;
             let shade = textureSampleLevel(elevation_shade, colour_sampler, uv, found.slot, 0.0);
-            if shade.w > 0.99 {
-                let xz = shade.xy * 2.0 - 1.0;
+            if shade.w > 0.01 {
+                // Samples without data hold a zero normal: dividing by the weight of
+                // those with data leaves their weighted mean (the data's rim included).
+                let xz = (shade.xy * 2.0 - 1.0) / shade.w;
                 normal = normalize(vec3<f32>(xz.x, sqrt(max(1.0 - dot(xz, xz), 0.0)), xz.y));
                 sea = shade.z > 0.99;
-            } else {
-                let around = neighbours_of(found, p);
-                if min(min(around.x, around.y), min(around.z, around.w)) > NODATA * 0.5 {
-                    normal = normalize(vec3<f32>(around.x - around.y, 2.0 * G.elev.w * exp2(found.lod), around.z - around.w));
-                }
-                sea = (abs(found.h) < 0.5) & all(around == vec4<f32>(found.h));
             }
         }
     }

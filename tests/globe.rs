@@ -213,6 +213,38 @@ fn from_orbit_the_earth_shows_continents_and_oceans() {
 /// level in it. Drawn from above with the height tint, the sea is water-blue and the land
 /// and the basin (below sea level, but not a flat 0) are not.
 #[test]
+fn the_sea_is_water_across_the_edges_of_its_tiles() {
+    // Each tile's outermost samples have neighbours in the next tile: the sea's test must
+    // not draw them as a line of land (it did, once its flag came from each tile alone).
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (tif, _, (lon, lat)) = oracles::sea_dem(dir.path());
+    let archive = dir.path().join("sea.tspack");
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], dir.path());
+    let png = dir.path().join("sea.png");
+    // Looking straight down on the corner where four tiles of LOD 0 meet.
+    let at = format!("{lon},{lat},6000");
+    let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
+    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir.path());
+    let (w, h, rgba) = decode(&png);
+    let (mut n, mut land) = (0, Vec::new());
+    for y in h / 10..h * 9 / 10 {
+        for x in w / 10..w * 9 / 10 {
+            let i = 4 * (y * w + x) as usize;
+            let (r, g, b) = (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]));
+            n += 1;
+            if !(b > r + 30 && b > g + 10) {
+                land.push((x, y, (r, g, b)));
+            }
+        }
+    }
+    eprintln!("{} of {n} pixels not water", land.len());
+    assert!(land.is_empty(), "{} of {n} sea pixels drawn as land, first {:?}", land.len(), &land[..land.len().min(5)]);
+}
+
+#[test]
 fn the_sea_stored_as_zero_is_drawn_as_water() {
     if !gdal() {
         return;

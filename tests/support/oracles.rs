@@ -181,6 +181,19 @@ pub fn dem(dir: &Path, west: f64, south: f64, degrees: f64, per_degree: f64) -> 
     grid_tif(dir, &format!("dem-{degrees}"), [west, south, degrees, per_degree], &everest_height)
 }
 
+/// A sea stored as a flat 0 with an island in its north-east corner, 720 samples a side
+/// (three tiles of 256 across): `dir/sea.tif` and its west, south and side in degrees, and
+/// the corner where its first tiles meet (longitude, latitude).
+pub fn sea_dem(dir: &Path) -> (PathBuf, [f64; 3], (f64, f64)) {
+    let (west, south, degrees, per_degree) = (-20.2, 30.0, 0.3, 2400.0);
+    let island = |lon: f64, lat: f64| {
+        let d = ((lon - (west + 0.27)).powi(2) + (lat - (south + 0.27)).powi(2)).sqrt();
+        (300.0 - d * 20_000.0).max(0.0)
+    };
+    let corner = (west + 256.0 / per_degree, south + degrees - 256.0 / per_degree);
+    (grid_tif(dir, "sea", [west, south, degrees, per_degree], &island), [west, south, degrees], corner)
+}
+
 /// A geographic Float32 GeoTIFF `dir/{name}.tif` (GDAL's `gdal_translate` of an ASCII
 /// grid), `degrees` a side from `west`, `south` at `per_degree` samples a degree, of
 /// `height` at each sample's centre (longitude, latitude).
