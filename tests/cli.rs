@@ -150,6 +150,26 @@ fn pack_then_serve_then_stop_on_sigterm() {
 /// tiles and the height-range layer; an image alone makes a texture-only archive; bad input
 /// names the file and leaves nothing under the output name.
 #[test]
+fn tile_v_names_each_phase_its_time_and_the_cores_it_kept_busy() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/srtm-tamalpais-150x100-tiled-float32-public-domain.tif");
+    let out = terrastream(&["-v", "tile", "--elevation", dem.to_str().unwrap(), "-o", "t.tspack"], dir.path());
+    assert!(out.status.success(), "{}", text(&out));
+    let log = String::from_utf8_lossy(&out.stderr).to_string();
+    for phase in ["planned", "tiles cut and encoded", "tiles handed to the writer", "archive written"] {
+        let line = log.lines().find(|l| l.contains(phase)).unwrap_or_else(|| panic!("no {phase:?} line in:\n{log}"));
+        assert!(line.contains("took=") && line.contains("elapsed="), "{line}");
+        if cfg!(target_os = "linux") {
+            // The process's CPU time over the phase's wall time: a number of cores.
+            let cores = line.split("cores=").nth(1).and_then(|r| r.split_whitespace().next()).unwrap_or("");
+            let cores: f64 = cores.parse().unwrap_or_else(|_| panic!("no cores in {line}"));
+            assert!((0.0..=64.0).contains(&cores), "{line}");
+        }
+    }
+}
+
+#[test]
 fn tile_plans_writes_and_refuses_bad_input() {
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();

@@ -112,7 +112,8 @@ pub(crate) fn make_parent(path: &std::path::Path) -> Result<()> {
     }
 }
 
-/// Logs go to stderr through `tracing`; `RUST_LOG` overrides the flags.
+/// Logs go to stderr through `tracing`; `RUST_LOG` overrides the flags. Colours only on a
+/// terminal (and not with `NO_COLOR` set): a pod's log or a file gets plain text.
 pub fn init_logging(verbose: u8, quiet: bool) {
     let level = match (quiet, verbose) {
         (true, _) => "error",
@@ -122,7 +123,13 @@ pub fn init_logging(verbose: u8, quiet: bool) {
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
-    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .with_ansi(colour)
+        .init();
 }
 
 /// Runs a parsed command line.

@@ -23,6 +23,7 @@ mod edit;
 mod encode;
 mod error;
 mod options;
+mod phases;
 mod plan;
 pub mod pyramid;
 mod request;

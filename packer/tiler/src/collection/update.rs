@@ -379,7 +379,7 @@ pub(crate) fn update_collection(
         .tempdir_in(&folder)
         .map_err(|e| Error::file(&folder, e))?;
     let path = changes.path().join("changes.tspack");
-    write_spool(spool, &metadata, &path, false, progress, std::time::Instant::now())?;
+    write_spool(spool, &metadata, &path, false, progress, &crate::phases::Phases::start())?;
     drop(stored);
     drop(reader);
     let merge = crate::edit::update::replace_tiles(base, path, out, &metadata, progress)?;
