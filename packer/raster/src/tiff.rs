@@ -303,12 +303,12 @@ pub(super) fn tiff_rows_in(
         }
         ChunkType::Tile => {
             let across = chunks.across();
-            let mut band = vec![0f32; stride * chunk_h];
             let tile_rows = height.div_ceil(chunk_h).min(wanted.end.div_ceil(chunk_h));
-            for ty in (wanted.start / chunk_h).min(tile_rows)..tile_rows {
+            // Row of tiles `ty`, every tile decoded in parallel straight into its columns
+            // of `band`'s rows (no tile is held apart and copied): the rows it holds. The
+            // first failure in file order is the error.
+            let decode_band = |ty: usize, band: &mut [f32]| -> Result<usize> {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
-                // Every tile of the row decoded in parallel straight into its columns of
-                // the band's rows: no tile is held apart and copied.
                 let mut columns: Vec<Vec<&mut [f32]>> = (0..across).map(|_| Vec::with_capacity(rows_here)).collect();
                 for band_row in band.chunks_exact_mut(stride).take(rows_here) {
                     for (column, part) in columns.iter_mut().zip(band_row.chunks_mut(chunk_w * channels)) {
@@ -324,15 +324,36 @@ pub(super) fn tiff_rows_in(
                         Ok(h)
                     })
                     .collect();
-                // The first failure in file order is the error.
                 for h in held {
                     rows_here = rows_here.min(h?);
                 }
-                for (k, r) in band.chunks_exact(stride).take(rows_here).enumerate() {
-                    if wanted.contains(&(ty * chunk_h + k)) {
-                        row(r)?;
+                Ok(rows_here)
+            };
+            let first = (wanted.start / chunk_h).min(tile_rows);
+            let (mut band, mut ahead) = (vec![0f32; stride * chunk_h], vec![0f32; stride * chunk_h]);
+            let mut decoded = (first < tile_rows).then(|| decode_band(first, &mut band));
+            for ty in first..tile_rows {
+                let rows_here = decoded.take().unwrap_or(Ok(0))?;
+                // The next row of tiles is decoded on the pool while this one's rows are
+                // handed on: the pool does not wait for the hand-over, nor the hand-over
+                // for the decoding (rows came in bursts, with the pool idle between).
+                let mut next = None;
+                let mut handed = Ok(());
+                rayon::in_place_scope(|s| {
+                    if ty + 1 < tile_rows {
+                        let (ahead, next) = (&mut ahead, &mut next);
+                        s.spawn(move |_| *next = Some(decode_band(ty + 1, ahead)));
                     }
-                }
+                    handed = band
+                        .chunks_exact(stride)
+                        .take(rows_here)
+                        .enumerate()
+                        .filter(|(k, _)| wanted.contains(&(ty * chunk_h + k)))
+                        .try_for_each(|(_, r)| row(r));
+                });
+                handed?;
+                std::mem::swap(&mut band, &mut ahead);
+                decoded = next;
             }
         }
     }
