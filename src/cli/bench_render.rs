@@ -164,6 +164,9 @@ pub fn run(args: RenderBench, progress: &CliProgress) -> Result<()> {
         s99 / flat.1
     );
     let floor = baseline(&bench, plate, &cameras, "baseline", flat)?;
+    // The plate's sessions end here: their streamers' threads must not share the
+    // machine with the globe's runs (on a software rasterizer they are its cores).
+    drop((streaming, resident));
     on_the_globe(&bench, &metadata, &cameras, (flat, floor), before.tiles_fetched)
 }
 
