@@ -164,8 +164,8 @@ impl PageTable {
         let mask = self.mask();
         for (kind, key, slot) in tiles {
             let k = u32::from(key.lod()) | (kind << 8);
-            let parent = key.parent().and_then(|p| slots.get(&(kind, p))).map_or(0, |&s| s + 1).min(PARENT_NONE_ABOVE);
-            let parent = if parent == PARENT_NONE_ABOVE { 0 } else { parent };
+            let parent = key.parent().and_then(|p| slots.get(&(kind, p))).map(|&s| s + 1);
+            let parent = parent.filter(|&p| p < PARENT_NONE_ABOVE).unwrap_or(0);
             let mut h = hash_key(key.x(), key.y(), k) & mask;
             let mut probes = 1;
             while self.entries[h as usize][3] != 0 {

@@ -46,7 +46,7 @@ fn cores(now: Option<Duration>, before: Option<Duration>, wall: Duration) -> Opt
 /// The process's CPU time so far (user and system, all threads): Linux's
 /// `/proc/self/stat`, in its clock ticks of 1/100 s (a fixed part of its interface); None
 /// elsewhere.
-pub(crate) fn process_cpu() -> Option<Duration> {
+fn process_cpu() -> Option<Duration> {
     let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
     // Fields after the command's name (which may hold spaces, in parentheses): state is
     // the third field of the line, user time the 14th and system time the 15th.

@@ -490,13 +490,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
             }
         }
         let quantize = self.quantize;
-        let halve = |(even, odd): (Arc<Vec<S>>, Arc<Vec<S>>)| {
-            let mut half = halve_rows(&even, &odd);
-            if let Some(quantize) = quantize {
-                quantize(&mut half);
-            }
-            Arc::new(half)
-        };
+        let halve = |(even, odd): (Arc<Vec<S>>, Arc<Vec<S>>)| Arc::new(rounded_half(&even, &odd, quantize));
         let halves: Vec<Arc<Vec<S>>> = if rows_in_parallel() {
             pairs.into_par_iter().map(halve).collect()
         } else {
@@ -534,11 +528,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
                 });
             }
             if let Some(even) = self.levels[l].pending.take() {
-                let none = vec![S::NONE; even.len()];
-                let mut half = halve_rows(&even, &none);
-                if let Some(quantize) = self.quantize {
-                    quantize(&mut half);
-                }
+                let half = rounded_half(&even, &vec![S::NONE; even.len()], self.quantize);
                 self.push_at(l + 1, vec![Arc::new(half)], scope)?;
             }
         }
@@ -627,6 +617,15 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
             }
         }
     }
+}
+
+/// Two rows of a level -> one row of the next, rounded as the layer stores it.
+fn rounded_half<S: Pixel>(even: &[S], odd: &[S], quantize: Option<&Quantize<'_, S>>) -> Vec<S> {
+    let mut half = halve_rows(even, odd);
+    if let Some(quantize) = quantize {
+        quantize(&mut half);
+    }
+    half
 }
 
 /// Whether [`Pyramid::push_rows`] rounds and halves rows on the pool, or on the calling

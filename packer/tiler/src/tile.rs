@@ -67,13 +67,13 @@ pub fn tile_shard(
     shard: Option<ShardSpec>,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
-    let started = Phases::start();
+    let phases = Phases::start();
     if shard.is_none()
         && let Some(source) = elevation
         && source.given_height_range().is_none()
         && let Some(estimate) = source.height_range_estimate()?
     {
-        if let Some(summary) = tile_on_estimate(source, estimate, texture, name, out, options, progress, &started)? {
+        if let Some(summary) = tile_on_estimate(source, estimate, texture, name, out, options, progress, &phases)? {
             return Ok(summary);
         }
         tracing::info!(
@@ -82,7 +82,7 @@ pub fn tile_shard(
         );
     }
     let mut plan = plan(elevation, texture.as_ref(), name, options, progress)?;
-    started.mark("planned (height range scanned)");
+    phases.mark("planned (height range scanned)");
     let windows = match shard {
         Some(spec) => {
             if let Some(t) = texture.as_ref().filter(|t| !t.format.lossless()) {
@@ -95,7 +95,7 @@ pub fn tile_shard(
         }
         None => full_windows(&plan),
     };
-    tile_planned(elevation, texture, &plan, &windows, out, true, progress, &started)
+    tile_planned(elevation, texture, &plan, &windows, out, true, progress, &phases)
 }
 
 /// A whole run on the encoding of the elevation's estimated height range (see
@@ -111,12 +111,12 @@ fn tile_on_estimate(
     out: &Path,
     options: TileOptions,
     progress: &dyn Progress,
-    started: &Phases,
+    phases: &Phases,
 ) -> Result<Option<WriteSummary>> {
     let widened = (f64::from(estimate.0), f64::from(estimate.1));
     let tracked = KnownRange::estimated(source, estimate, holds(&estimated_encoding(options.storage, widened)));
     let mut plan = plan(Some(&tracked), texture.as_ref(), name, options, progress)?;
-    started.mark(&format!("planned (height range estimated: {} to {})", estimate.0, estimate.1));
+    phases.mark(&format!("planned (height range estimated: {} to {})", estimate.0, estimate.1));
     let windows = full_windows(&plan);
     let folder = terrastream_pack::output_folder(out);
     let spool = match cut_planned(&folder, Some(&tracked), texture, &plan, &windows, progress) {
@@ -125,8 +125,8 @@ fn tile_on_estimate(
     };
     let seen = tracked.seen().ok_or_else(|| Error::input(source.path(), "the raster holds no data"))?;
     set_height_range(&mut plan.metadata.terrain, (f64::from(seen.0), f64::from(seen.1)));
-    started.mark(&format!("{} tiles cut and encoded", spool.tiles()));
-    write_spool(spool, &plan.metadata, out, true, progress, started).map(Some)
+    phases.mark(&format!("{} tiles cut and encoded", spool.tiles()));
+    write_spool(spool, &plan.metadata, out, true, progress, phases).map(Some)
 }
 
 /// Every level of every layer of `plan`.
@@ -154,11 +154,11 @@ pub(crate) fn tile_planned(
     out: &Path,
     durable: bool,
     progress: &dyn Progress,
-    started: &Phases,
+    phases: &Phases,
 ) -> Result<WriteSummary> {
     let spool = cut_planned(&terrastream_pack::output_folder(out), elevation, texture, plan, windows, progress)?;
-    started.mark(&format!("{} tiles cut and encoded", spool.tiles()));
-    write_spool(spool, &plan.metadata, out, durable, progress, started)
+    phases.mark(&format!("{} tiles cut and encoded", spool.tiles()));
+    write_spool(spool, &plan.metadata, out, durable, progress, phases)
 }
 
 /// Cuts and encodes `plan`'s tiles (as [`tile_planned`]) into a spool in `folder`.
@@ -232,15 +232,15 @@ pub(crate) fn write_spool(
     out: &Path,
     durable: bool,
     progress: &dyn Progress,
-    started: &Phases,
+    phases: &Phases,
 ) -> Result<WriteSummary> {
     // Tiles come already compressed: small batches are enough for the writer's hashing.
     let options = WriterOptions { batch_bytes: 4 << 20, durable, ..WriterOptions::default() };
     let mut writer = Writer::create(out, metadata.clone(), options)?;
     spool.drain_into(&mut writer, progress)?;
-    started.mark("tiles handed to the writer in archive order");
+    phases.mark("tiles handed to the writer in archive order");
     let summary = writer.finish()?;
-    started.mark("archive written");
+    phases.mark("archive written");
     Ok(summary)
 }
 

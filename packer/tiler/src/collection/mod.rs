@@ -426,7 +426,7 @@ pub fn tile_collection(
     shard: Option<crate::options::ShardSpec>,
     progress: &dyn Progress,
 ) -> Result<WriteSummary> {
-    let started = crate::phases::Phases::start();
+    let phases = crate::phases::Phases::start();
     let mut recorded = plan.metadata.clone();
     for c in [collections.heights, collections.imagery].into_iter().flatten() {
         let (inputs, covers) = records(c, &recorded);
@@ -486,7 +486,7 @@ pub fn tile_collection(
         (None, Some(e)) => crate::tile::cut_planned(&folder, Some(e), None, &planned, &windows, progress)?,
         (None, None) => Spool::new(&folder)?,
     };
-    started.mark(&format!("{} tiles of heights cut", spool.tiles()));
+    phases.mark(&format!("{} tiles of heights cut", spool.tiles()));
     match (collections.imagery, texture) {
         (Some(c), Some(t)) => {
             let part = part_of(c);
@@ -495,7 +495,7 @@ pub fn tile_collection(
         (None, Some(t)) => cut_texture(t, &planned, &windows, &mut spool, progress)?,
         _ => {}
     }
-    write_spool(spool, metadata, out, true, progress, &started)
+    write_spool(spool, metadata, out, true, progress, &phases)
 }
 
 /// The request that opens a collection's height inputs `paths` onto `grid` in `crs`: in
@@ -619,7 +619,7 @@ fn cut_levels<K: MosaicKind>(
 where
     K::Value: Pixel,
 {
-    let started = crate::phases::Phases::start();
+    let phases = crate::phases::Phases::start();
     let layer = &metadata.layers[usize::from(index)];
     progress.start("tile", c.cut_tiles(metadata));
     let sources_of = |lod: u8, corner: (u32, u32), grid: &GridSpec| -> Result<LevelSources<'static, K>> {
@@ -642,7 +642,7 @@ where
         Ok(LevelSources { fine, coarse })
     };
     let overrides = make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, part)?;
-    started.mark(&format!("layer {index}: the levels below the base made"));
+    phases.mark(&format!("layer {index}: the levels below the base made"));
 
     // The base: every level from here up over the whole grid, a pyramid as a single run's.
     let base = c.base;
@@ -676,7 +676,7 @@ where
     run_pyramid(metadata, index, c.grid.size, &window, &encode, quantize, spool, progress, |push| {
         level_rows(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &overrides, 0, push)
     })?;
-    started.mark(&format!("layer {index}: the collection cut, {} tiles in all", spool.tiles()));
+    phases.mark(&format!("layer {index}: the collection cut, {} tiles in all", spool.tiles()));
     Ok(())
 }
 

@@ -52,7 +52,7 @@ pub fn update(
     out: &Path,
     progress: &dyn Progress,
 ) -> Result<UpdateSummary> {
-    let started = crate::phases::Phases::start();
+    let phases = crate::phases::Phases::start();
     if let Ok(reader) = Reader::open_mmap(base)
         && crate::edit::merge::is_collection(reader.metadata())
     {
@@ -94,7 +94,7 @@ pub fn update(
     let elevation_source = known.as_ref().map(|k| k as &dyn ElevationSource);
     let windows = &changes.windows;
     tracing::debug!(?windows, "new rasters opened");
-    let tiled = tile_planned(elevation_source, texture_input, &plan, windows, &made, false, progress, &started)?;
+    let tiled = tile_planned(elevation_source, texture_input, &plan, windows, &made, false, progress, &phases)?;
     let seen = known.as_ref().and_then(KnownRange::seen);
     let merge = merge_changes(base, made, out, seen, progress)?;
     Ok(UpdateSummary { merge, tiled: tiled.tile_entries })
