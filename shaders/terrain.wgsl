@@ -85,7 +85,7 @@ struct Globals {
 // The whole Earth, equirectangular (longitude -180..180, latitude 90..-90), sRGB, mipmapped:
 // the ground beyond the archive's data.
 @group(0) @binding(12) var earth_map: texture_2d<f32>;
-// Per elevation sample, made on the GPU at upload (shaders/shade.wgsl): x and z of the
+// Per elevation sample, made where the tile was decoded (terrastream-tiles' shade.rs): x and z of the
 // normal (as n * 0.5 + 0.5), 1 in a flat sea, 1 where the sample has data. The same slots
 // as `elevation`; filtered.
 @group(0) @binding(13) var elevation_shade: texture_2d_array<f32>;
@@ -552,7 +552,7 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     var sea = false;
     if G.counts.x > 0u {
         if found.lod >= 0.0 {
-            // One filtered sample of the tile's shade texels (shaders/shade.wgsl): the
+            // One filtered sample of the tile's shade texels (terrastream-tiles): the
             // normal, and the flat sea, from the pixel's four samples with data. One
             // sample, where
             // the neighbours' four bilinear heights took twelve loads and, across a

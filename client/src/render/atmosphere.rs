@@ -226,7 +226,7 @@ impl AtmosphereTables {
 }
 
 /// One fullscreen pass of `pipeline` into `target`.
-pub(super) fn fill(
+fn fill(
     encoder: &mut wgpu::CommandEncoder,
     target: &wgpu::TextureView,
     pipeline: &wgpu::RenderPipeline,
@@ -263,7 +263,7 @@ pub struct AtmospherePipelines {
     pub sky: wgpu::RenderPipeline,
 }
 
-pub(super) fn fullscreen(
+fn fullscreen(
     device: &wgpu::Device,
     name: &str,
     module: &wgpu::ShaderModule,

@@ -6,7 +6,6 @@ use wgpu::util::DeviceExt;
 use super::atmosphere::{ATMOSPHERE_WGSL, AtmospherePipelines};
 use super::gpu::{self, sampler_entry, texture_entry, uniform_entry};
 use super::mesh::PatchMesh;
-use super::tile_array::ShadePipeline;
 
 /// The shader source.
 pub const TERRAIN_WGSL: &str = include_str!("../../../shaders/terrain.wgsl");
@@ -35,7 +34,6 @@ pub struct TerrainPipeline {
     pub(super) layout: wgpu::BindGroupLayout,
     pub(super) pipeline: wgpu::RenderPipeline,
     pub(super) atmosphere: AtmospherePipelines,
-    pub(super) shade: ShadePipeline,
     format: wgpu::TextureFormat,
 }
 
@@ -48,8 +46,7 @@ impl TerrainPipeline {
         let module = gpu::shader(device, "terrain", &source);
         let pipeline = terrain_pipeline(device, &module, &layout, colour_format);
         let atmosphere = AtmospherePipelines::new(device, &module, &layout, colour_format);
-        let shade = ShadePipeline::new(device);
-        Self { layout, pipeline, atmosphere, shade, format: colour_format }
+        Self { layout, pipeline, atmosphere, format: colour_format }
     }
 
     /// The colour format it draws into.

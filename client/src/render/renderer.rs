@@ -20,7 +20,7 @@ pub use super::pipeline::{DEPTH_FORMAT, TERRAIN_WGSL, TerrainPipeline};
 use super::pipeline::{colour_sampler, patch_buffers};
 use super::residency::{KIND_ELEVATION, KIND_TEXTURE, PageTable};
 pub use super::settings::{FrameStats, RenderSettings, Shading};
-use super::tile_array::{SHADE_FORMAT, ShadePipeline, TileArray, array_view};
+use super::tile_array::{SHADE_FORMAT, TileArray, array_view};
 use crate::globe::{Mapping, Surface};
 use crate::stream::camera::{Camera, SceneBox};
 use crate::stream::streamer::Upload;
@@ -64,8 +64,6 @@ pub struct TerrainRenderer {
     /// The atmosphere's tables and uniform, its pipelines, and whether this frame draws it.
     pub(super) air_tables: AtmosphereTables,
     pub(super) air_pipelines: AtmospherePipelines,
-    /// Makes elevation tiles' shade texels as they are uploaded.
-    shade: ShadePipeline,
     pub(super) sky: bool,
 }
 
@@ -237,7 +235,6 @@ impl TerrainRenderer {
             earth_written: false,
             air_tables,
             air_pipelines: shared.atmosphere.clone(),
-            shade: shared.shade.clone(),
             sky: false,
             elevation,
             texture,
@@ -321,9 +318,8 @@ impl TerrainRenderer {
     /// Uploads tiles handed over by the streaming core. Returns the tiles the GPU does
     /// not keep (evicted to make room, or refused): hand them to
     /// [`crate::Streamer::release`] so they are offered again when wanted.
-    pub fn upload(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, uploads: &[Upload]) -> Vec<TileKey> {
+    pub fn upload(&mut self, queue: &wgpu::Queue, uploads: &[Upload]) -> Vec<TileKey> {
         let mut dropped = Vec::new();
-        let mut shaded = Vec::new();
         let frame = self.frame;
         for upload in uploads {
             let tile = &upload.tile;
@@ -339,16 +335,11 @@ impl TerrainRenderer {
                 continue;
             };
             dropped.extend(placement.evicted);
-            if !array.write(queue, placement.slot, &tile.data, tile.size) {
+            if !array.write(queue, placement.slot, tile.key, &tile.data, tile.size) {
                 tracing::warn!(tile = %tile.key, size = tile.size, "tile does not fit its layer's GPU array: skipped");
                 array.residency.remove(tile.key);
-            } else if array.shade.is_some() {
-                shaded.push((tile.key, placement.slot));
             }
             self.page_dirty = true;
-        }
-        if let Some(elevation) = &self.elevation {
-            self.shade.make(device, queue, elevation, &shaded);
         }
         dropped
     }

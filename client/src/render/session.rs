@@ -94,7 +94,7 @@ impl Session {
             }
         }
         let uploads = self.streamer.drain_uploads(self.budget);
-        for key in self.renderer.upload(device, queue, &uploads) {
+        for key in self.renderer.upload(queue, &uploads) {
             self.streamer.release(key);
         }
         let mut stats = self.renderer.prepare(device, queue, camera, self.streamer.wanted().iter().map(|w| w.key));

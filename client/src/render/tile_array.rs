@@ -3,9 +3,7 @@
 use bytemuck::Zeroable;
 use terrastream_format::{Layer, TileFormat, TileKey};
 
-use super::atmosphere::{fill, fullscreen};
-use super::gpu::{texture_entry, uniform_entry};
-use terrastream_tiles::TileData;
+use terrastream_tiles::{TileData, shade_texels};
 
 use super::frame::LodInfo;
 use super::gpu::{self, write_layer};
@@ -20,8 +18,9 @@ pub(super) struct TileArray {
     pub(super) index: u8,
     pub(super) kind: u32,
     pub(super) texture: wgpu::Texture,
-    /// Elevation only: each sample's normal, and whether it lies in a flat sea, made on
-    /// the GPU at upload (shaders/shade.wgsl); the same slots as `texture`.
+    /// Elevation only: each sample's normal, and whether it lies in a flat sea (the
+    /// decoded tile's shade texels, [`terrastream_tiles::DecodedTile::shade`]); the same
+    /// slots as `texture`.
     pub(super) shade: Option<wgpu::Texture>,
     pub(super) format: wgpu::TextureFormat,
     pub(super) edge: u32,
@@ -65,7 +64,7 @@ impl TileArray {
                 "texture.tiles.elevation_shade",
                 (edge, edge, slots),
                 SHADE_FORMAT,
-                wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::RENDER_ATTACHMENT,
+                wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
             )
         });
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
@@ -74,14 +73,33 @@ impl TileArray {
         Some(Self { layer: layer.clone(), index, kind, texture, shade, format, edge, residency, bytes })
     }
 
-    /// Writes a decoded tile into `slot`; false if its size or kind does not fit.
-    pub(super) fn write(&self, queue: &wgpu::Queue, slot: u32, data: &TileData, size: u32) -> bool {
+    /// Writes decoded tile `key` into `slot`; false if its size or kind does not fit.
+    pub(super) fn write(&self, queue: &wgpu::Queue, slot: u32, key: TileKey, data: &TileData, size: u32) -> bool {
         if size != self.edge {
             return false;
         }
         let converted;
         let (bytes, bytes_per_row, rows): (&[u8], u32, u32) = match (data, self.format) {
-            (TileData::Heights { heights, .. }, wgpu::TextureFormat::R32Float) => {
+            (TileData::Heights { heights, shade, .. }, wgpu::TextureFormat::R32Float) => {
+                if let Some(array) = &self.shade {
+                    let made;
+                    let texels = match shade {
+                        Some(texels) if texels.len() == heights.len() * 4 => texels,
+                        // A tile decoded without them (a streamer told not to make them):
+                        // made here, on the frame's thread.
+                        _ => {
+                            #[allow(clippy::cast_possible_truncation)]
+                            let spacing =
+                                (self.layer.world_size_at(key.lod()) / f64::from(self.layer.tile_resolution)) as f32;
+                            made = shade_texels(heights, size as usize, spacing);
+                            &made
+                        }
+                    };
+                    if texels.len() < (size * size * 4) as usize {
+                        return false;
+                    }
+                    write_layer(queue, array, slot, texels, (size * 4, size), (size, size));
+                }
                 converted = heights.iter().map(|h| if h.is_finite() { *h } else { NODATA }).collect::<Vec<f32>>();
                 (bytemuck::cast_slice(&converted), size * 4, size)
             }
@@ -128,75 +146,7 @@ impl TileArray {
     }
 }
 
-/// The pass that makes elevation tiles' shade texels (shaders/shade.wgsl), made with the
-/// terrain's pipelines.
-#[derive(Clone, Debug)]
-pub struct ShadePipeline {
-    layout: wgpu::BindGroupLayout,
-    pipeline: wgpu::RenderPipeline,
-}
-
-impl ShadePipeline {
-    pub(super) fn new(device: &wgpu::Device) -> Self {
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("layout.shade"),
-            entries: &[
-                texture_entry(
-                    0,
-                    wgpu::TextureSampleType::Float { filterable: false },
-                    wgpu::TextureViewDimension::D2Array,
-                ),
-                uniform_entry(1),
-            ],
-        });
-        let module = gpu::shader(device, "shade", include_str!("../../../shaders/shade.wgsl"));
-        let pipeline = fullscreen(device, "shade", &module, &layout, ("vs_main", "fs_shade"), SHADE_FORMAT, false);
-        Self { layout, pipeline }
-    }
-
-    /// Makes the shade texels of elevation tiles `tiles` (their keys and slots), just
-    /// written into `array`, on the GPU.
-    pub(super) fn make(&self, device: &wgpu::Device, queue: &wgpu::Queue, array: &TileArray, tiles: &[(TileKey, u32)]) {
-        let Some(shade) = &array.shade else { return };
-        if tiles.is_empty() {
-            return;
-        }
-        let heights = array_view(device, Some(&array.texture), array.format);
-        let mut encoder =
-            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("encoder.shade") });
-        for &(key, slot) in tiles {
-            #[allow(clippy::cast_possible_truncation)]
-            let spacing = (array.layer.world_size_at(key.lod()) / f64::from(array.layer.tile_resolution)) as f32;
-            let job: [u32; 4] = [slot, spacing.to_bits(), array.edge, 0];
-            let buffer = wgpu::util::DeviceExt::create_buffer_init(
-                device,
-                &wgpu::util::BufferInitDescriptor {
-                    label: Some("buffer.shade.job"),
-                    contents: bytemuck::cast_slice(&job),
-                    usage: wgpu::BufferUsages::UNIFORM,
-                },
-            );
-            let group = gpu::bind_group(
-                device,
-                "bind_group.shade",
-                &self.layout,
-                &[wgpu::BindingResource::TextureView(&heights), buffer.as_entire_binding()],
-            );
-            let target = shade.create_view(&wgpu::TextureViewDescriptor {
-                label: Some("view.shade.layer"),
-                dimension: Some(wgpu::TextureViewDimension::D2),
-                base_array_layer: slot,
-                array_layer_count: Some(1),
-                ..Default::default()
-            });
-            fill(&mut encoder, &target, &self.pipeline, &group);
-        }
-        queue.submit([encoder.finish()]);
-    }
-}
-
-/// The format of an elevation tile's shade texels (shaders/shade.wgsl): filterable and
-/// renderable everywhere (WebGL2 too).
+/// The format of an elevation tile's shade texels: filterable everywhere (WebGL2 too).
 pub(super) const SHADE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
 /// A view of a layer's tile array, or of a 1x1 dummy of `format` standing in for a missing

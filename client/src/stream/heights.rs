@@ -86,7 +86,7 @@ impl Streamer {
             };
             let group = Group { rank: 0, tiles: vec![(key, location)] };
             // Fetched and taken in as the frame loop's requests are.
-            match self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation, None)) {
+            match self.runtime.block_on(fetch_and_decode(backend.clone(), group, 0, self.generation, None, false)) {
                 Completion::Tiles { results, .. } => {
                     if let Some((key, reason)) = self.absorb(results, Instant::now()) {
                         return Err(Error::TileLoad { key, reason });

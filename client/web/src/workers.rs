@@ -167,7 +167,14 @@ pub fn decode_tile(layer: &str, key: &[u32], payload: &[u8], compressed: bool) -
     let (index, lod) = (u8::try_from(field(0)).unwrap_or(u8::MAX), u8::try_from(field(1)).unwrap_or(u8::MAX));
     let key = TileKey::new(index, lod, field(2), field(3)).map_err(|e| JsValue::from_str(&e.to_string()))?;
     // A decoder that panics (a bug: they are fuzzed) costs that tile, not the worker.
-    let decoded = std::panic::catch_unwind(|| terrastream_client::decode(&layer, key, payload, compressed))
-        .map_err(|_| JsValue::from_str(&format!("tile {key} of layer {:?}: the decoder failed", layer.name)))?;
+    // The page draws every tile it asks for: an elevation tile's shade texels are made
+    // here too, off the page's thread.
+    let decoded = std::panic::catch_unwind(|| {
+        terrastream_client::decode(&layer, key, payload, compressed).map(|mut tile| {
+            tile.shade(&layer);
+            tile
+        })
+    })
+    .map_err(|_| JsValue::from_str(&format!("tile {key} of layer {:?}: the decoder failed", layer.name)))?;
     decoded.map(|tile| tile.to_wire()).map_err(|e| JsValue::from_str(&e.to_string()))
 }

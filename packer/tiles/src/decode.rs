@@ -34,6 +34,9 @@ pub enum TileData {
         min: f32,
         /// Highest valid height (`-inf` if none).
         max: f32,
+        /// The renderer's shade texels, four bytes a sample, where they were made
+        /// ([`DecodedTile::shade`]).
+        shade: Option<Vec<u8>>,
     },
     /// GPU block-compressed texels, uploaded as they are.
     Compressed {
@@ -49,7 +52,7 @@ impl DecodedTile {
     pub fn byte_len(&self) -> usize {
         match &self.data {
             TileData::Rgba8(p) => p.len(),
-            TileData::Heights { heights, .. } => heights.len() * 4,
+            TileData::Heights { heights, shade, .. } => heights.len() * 4 + shade.as_ref().map_or(0, Vec::len),
             TileData::Compressed { blocks, .. } => blocks.len(),
         }
     }
@@ -68,11 +71,12 @@ impl DecodedTile {
                 out.push(0);
                 out.extend_from_slice(p);
             }
-            TileData::Heights { heights, min, max } => {
-                out.push(1);
+            TileData::Heights { heights, min, max, shade } => {
+                out.push(if shade.is_some() { 4 } else { 1 });
                 out.extend_from_slice(&min.to_le_bytes());
                 out.extend_from_slice(&max.to_le_bytes());
                 out.extend(heights.iter().flat_map(|h| h.to_le_bytes()));
+                out.extend(shade.iter().flatten());
             }
             TileData::Compressed { format, blocks } => {
                 out.push(if *format == TileFormat::Bc7 { 3 } else { 2 });
@@ -95,12 +99,14 @@ impl DecodedTile {
         let pixels = usize::try_from(u64::from(size) * u64::from(size)).map_err(|_| bad("size"))?;
         let data = match head[18] {
             0 if rest.len() == pixels * 4 => TileData::Rgba8(rest.to_vec()),
-            1 if rest.len() == 8 + pixels * 4 => {
+            kind @ (1 | 4) if rest.len() == 8 + pixels * (if kind == 4 { 8 } else { 4 }) => {
                 let f = |c: &[u8]| f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+                let (samples, shade) = rest[8..].split_at(pixels * 4);
                 TileData::Heights {
                     min: f(&rest[0..4]),
                     max: f(&rest[4..8]),
-                    heights: rest[8..].chunks_exact(4).map(f).collect(),
+                    heights: samples.chunks_exact(4).map(f).collect(),
+                    shade: (kind == 4).then(|| shade.to_vec()),
                 }
             }
             2 => TileData::Compressed { format: TileFormat::Bc1, blocks: Bytes::copy_from_slice(rest) },
@@ -231,7 +237,7 @@ fn heights(encoding: &ElevationEncoding, values: impl Iterator<Item = f64>) -> T
             h
         })
         .collect();
-    TileData::Heights { heights, min, max }
+    TileData::Heights { heights, min, max, shade: None }
 }
 
 #[cfg(test)]
@@ -440,7 +446,13 @@ mod tests {
         let key = TileKey::new(2, 3, 5, 7).unwrap();
         let tiles = [
             TileData::Rgba8((0..16u8).collect()),
-            TileData::Heights { heights: vec![1.5, f32::NAN, -2.0, 9.25], min: -2.0, max: 9.25 },
+            TileData::Heights { heights: vec![1.5, f32::NAN, -2.0, 9.25], min: -2.0, max: 9.25, shade: None },
+            TileData::Heights {
+                heights: vec![1.5, f32::NAN, -2.0, 9.25],
+                min: -2.0,
+                max: 9.25,
+                shade: Some((0..16).collect()),
+            },
             TileData::Compressed { format: TileFormat::Bc7, blocks: Bytes::from_static(&[9; 16]) },
             TileData::Compressed { format: TileFormat::Bc1, blocks: Bytes::from_static(&[3; 8]) },
         ];
@@ -449,8 +461,12 @@ mod tests {
             let back = DecodedTile::from_wire(&tile.to_wire()).unwrap();
             assert_eq!((back.key, back.size, back.border), (key, 2, 1));
             match (&back.data, &tile.data) {
-                (TileData::Heights { heights: a, .. }, TileData::Heights { heights: b, .. }) => {
+                (
+                    TileData::Heights { heights: a, shade: shade_a, .. },
+                    TileData::Heights { heights: b, shade: shade_b, .. },
+                ) => {
                     assert!(a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()));
+                    assert_eq!(shade_a, shade_b);
                 }
                 (a, b) => assert_eq!(a, b),
             }

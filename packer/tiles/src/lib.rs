@@ -12,8 +12,10 @@ mod decode;
 mod error;
 mod image;
 mod sample;
+mod shade;
 
 pub use decode::{DecodedTile, TileData, decode};
 pub use error::{Error, Result};
 pub use image::Image;
 pub use sample::{Interpolation, height_on_lod, tile_of};
+pub use shade::shade_texels;

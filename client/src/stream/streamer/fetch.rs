@@ -227,9 +227,9 @@ impl Streamer {
         self.stats.coalesced += keys.len() as u64 - 1;
         self.requests.insert(id, InFlight { tiles: keys, leaf: None, abort });
         let (queue, generation, backend) = (self.queue.clone(), self.generation, backend.clone());
-        let decoder = self.decoder.clone();
+        let (decoder, shade) = (self.decoder.clone(), self.options.shade);
         self.spawn(async move {
-            let work = fetch_and_decode(backend, group, id, generation, decoder);
+            let work = fetch_and_decode(backend, group, id, generation, decoder, shade);
             if let Ok(c) = Abortable::new(work, registration).await {
                 queue.push(c);
             }
@@ -259,8 +259,16 @@ impl Group {
 
 /// Decodes one payload. A decoder that panics on some input (a bug: the decoders are
 /// fuzzed so as not to) costs that tile, never the worker thread or the page.
-pub(super) fn decode_guarded(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> Outcome {
-    let attempt = std::panic::catch_unwind(|| decode(layer, key, payload, compressed));
+/// With `shade`, an elevation tile's shade texels are made too, here, off the frame's
+/// thread ([`DecodedTile::shade`]).
+pub(super) fn decode_guarded(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool, shade: bool) -> Outcome {
+    let attempt = std::panic::catch_unwind(|| {
+        let mut tile = decode(layer, key, payload, compressed)?;
+        if shade {
+            tile.shade(layer);
+        }
+        Ok::<_, terrastream_tiles::Error>(tile)
+    });
     match attempt {
         Ok(Ok(tile)) => Outcome::Ready(Arc::new(tile)),
         Ok(Err(e)) => Outcome::Undecodable(e.to_string()),
@@ -312,7 +320,7 @@ pub(super) async fn decode_with(
     decoder: &Decoder,
     metadata: &Metadata,
     raw: Fetched,
-    compressed: bool,
+    (compressed, shade): (bool, bool),
 ) -> Vec<(TileKey, Outcome)> {
     let jobs = raw.into_iter().map(|(key, fetched)| {
         let layer = metadata.layers.get(usize::from(key.layer())).cloned();
@@ -321,9 +329,11 @@ pub(super) async fn decode_with(
             let outcome = match (fetched, layer) {
                 (Ok(None), _) => Outcome::Missing,
                 (Ok(Some(payload)), Some(layer)) => match decoder(&layer, key, payload.clone(), compressed).await {
+                    // A browser's workers make the shade texels as they decode; a decoder
+                    // that did not leaves them to the upload.
                     Ok(tile) => Outcome::Ready(Arc::new(tile)),
                     Err(DecodeFailure::Undecodable(why)) => Outcome::Undecodable(why),
-                    Err(DecodeFailure::Unavailable) => decode_guarded(&layer, key, &payload, compressed),
+                    Err(DecodeFailure::Unavailable) => decode_guarded(&layer, key, &payload, compressed, shade),
                 },
                 (Ok(Some(_)), None) => Outcome::Failed(format!("tile {key}: no such layer")),
                 (Err(why), _) => Outcome::Failed(why),
@@ -341,6 +351,7 @@ pub(in crate::stream) async fn fetch_and_decode(
     request: u64,
     generation: u64,
     decoder: Option<Decoder>,
+    shade: bool,
 ) -> Completion {
     let changed = |what| Completion::Changed { generation, what };
     let started = Instant::now();
@@ -386,7 +397,7 @@ pub(in crate::stream) async fn fetch_and_decode(
     let took = started.elapsed();
     let metadata = backend.metadata().clone();
     if let Some(decoder) = decoder {
-        let results = decode_with(&decoder, &metadata, raw, compressed).await;
+        let results = decode_with(&decoder, &metadata, raw, (compressed, shade)).await;
         return Completion::Tiles { request, generation, results, bytes, needed, took };
     }
     let decode_all = move || -> Vec<(TileKey, Outcome)> {
@@ -395,7 +406,7 @@ pub(in crate::stream) async fn fetch_and_decode(
                 let outcome = match r {
                     Ok(None) => Outcome::Missing,
                     Ok(Some(payload)) => match metadata.layers.get(usize::from(key.layer())) {
-                        Some(layer) => decode_guarded(layer, key, &payload, compressed),
+                        Some(layer) => decode_guarded(layer, key, &payload, compressed, shade),
                         None => Outcome::Failed(format!("tile {key}: no such layer")),
                     },
                     Err(why) => Outcome::Failed(why),

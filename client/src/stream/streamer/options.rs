@@ -32,6 +32,10 @@ pub struct StreamOptions {
     /// How often a manifest is asked whether it was republished (one conditional
     /// request); when it was, everything is re-read from the new one (zero: never).
     pub manifest_recheck: Duration,
+    /// Make elevation tiles' shade texels as they are decoded, for the renderer (see
+    /// [`crate::DecodedTile::shade`]): off the frame's thread, at 4 more bytes a sample. A
+    /// program that only reads heights can leave them out.
+    pub shade: bool,
 }
 
 impl Default for StreamOptions {
@@ -49,6 +53,7 @@ impl Default for StreamOptions {
             worker_threads: 2,
             prefetch_ahead: Duration::from_millis(500),
             manifest_recheck: Duration::from_secs(30),
+            shade: true,
         }
     }
 }

@@ -1,0 +1,149 @@
+//! An elevation tile's shade texels: what the renderer's lit shader reads for a pixel's
+//! normal and whether it lies in a flat sea, made once per tile where the tile is decoded
+//! (a worker thread, or a browser's Web Worker), never on the frame's thread.
+//!
+//! For each sample, four bytes (`Rgba8Unorm` on the GPU):
+//! - x and z of the terrain's normal there (y is the rest of a unit vector), stored as
+//!   `n * 0.5 + 0.5`, from the four neighbours: `normalize(h west - h east, 2 spacing,
+//!   h north - h south)`. Beside the tile's outermost samples (whose neighbours lie in the
+//!   next tile) and the data's edge the difference is one-sided, doubled; with neither
+//!   neighbour, 0.
+//! - 1 where the sample and its four neighbours are one height within half a metre of 0
+//!   (a flat sea, as SRTM and Copernicus store it). Neighbours past the tile's rim or the
+//!   data are left out of that test, or every tile's rim would draw a line of land across
+//!   the sea.
+//! - 1 where the sample has data (the normal is there), else 0.
+//!
+//! Filtered bilinearly, one texel gives a pixel what twelve height loads gave it:
+//! interpolation and the neighbours' differences commute.
+
+use terrastream_format::{Layer, LayerKind};
+
+use crate::decode::{DecodedTile, TileData};
+
+/// The texel of a sample without data: a level normal, no sea, no data.
+const NONE: [u8; 4] = [128, 128, 0, 0];
+
+impl DecodedTile {
+    /// Makes the shade texels of an elevation tile of `layer` (see the module), where it
+    /// has none; other tiles are left as they are.
+    pub fn shade(&mut self, layer: &Layer) {
+        if layer.kind != LayerKind::Elevation {
+            return;
+        }
+        let size = self.size;
+        let TileData::Heights { heights, shade, .. } = &mut self.data else { return };
+        if shade.is_some() {
+            return;
+        }
+        #[expect(clippy::cast_possible_truncation, reason = "a sample's spacing in metres fits an f32")]
+        let spacing = (layer.world_size_at(self.key.lod()) / f64::from(layer.tile_resolution)) as f32;
+        *shade = Some(shade_texels(heights, size as usize, spacing));
+    }
+}
+
+/// The shade texels (see the module) of `edge` x `edge` heights, row-major, NaN where
+/// there is no data, whose samples lie `spacing` metres apart.
+pub fn shade_texels(heights: &[f32], edge: usize, spacing: f32) -> Vec<u8> {
+    let mut out = vec![0u8; edge * edge * 4];
+    if heights.len() < edge * edge || edge == 0 {
+        return out;
+    }
+    let two_spacing_squared = 4.0 * spacing * spacing;
+    let none = [f32::NAN; 1];
+    for (y, texels) in out.chunks_exact_mut(edge * 4).enumerate() {
+        let row = &heights[y * edge..(y + 1) * edge];
+        let north = if y > 0 { &heights[(y - 1) * edge..y * edge] } else { &none[..] };
+        let south = if y + 1 < edge { &heights[(y + 1) * edge..(y + 2) * edge] } else { &none[..] };
+        let vertical =
+            |x: usize| (north.get(x).copied().unwrap_or(f32::NAN), south.get(x).copied().unwrap_or(f32::NAN));
+        for (x, texel) in texels.chunks_exact_mut(4).enumerate() {
+            let h = row[x];
+            if !h.is_finite() {
+                texel.copy_from_slice(&NONE);
+                continue;
+            }
+            let w = if x > 0 { row[x - 1] } else { f32::NAN };
+            let e = row.get(x + 1).copied().unwrap_or(f32::NAN);
+            let (n, s) = vertical(x);
+            let (gx, gz) = (difference(w, h, e), difference(n, h, s));
+            let scale = 1.0 / (gx * gx + two_spacing_squared + gz * gz).sqrt();
+            let level = |v: f32| v == h || !v.is_finite();
+            let sea = h.abs() < 0.5 && level(w) && level(e) && level(n) && level(s);
+            texel.copy_from_slice(&[unorm(gx * scale), unorm(gz * scale), if sea { 255 } else { 0 }, 255]);
+        }
+    }
+    out
+}
+
+/// The central difference `before - after` across a sample `h`; where one of them has no
+/// data, the one-sided difference, doubled; where neither has, 0.
+fn difference(before: f32, h: f32, after: f32) -> f32 {
+    match (before.is_finite(), after.is_finite()) {
+        (true, true) => before - after,
+        (true, false) => 2.0 * (before - h),
+        (false, true) => 2.0 * (h - after),
+        (false, false) => 0.0,
+    }
+}
+
+/// A component of a unit vector as a unorm byte, `v * 0.5 + 0.5` rounded.
+fn unorm(v: f32) -> u8 {
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]
+    let byte = ((v * 0.5 + 0.5) * 255.0).round().clamp(0.0, 255.0) as u8;
+    byte
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn texel(t: &[u8], edge: usize, x: usize, y: usize) -> [u8; 4] {
+        let i = (y * edge + x) * 4;
+        [t[i], t[i + 1], t[i + 2], t[i + 3]]
+    }
+
+    #[test]
+    fn a_slope_rising_east_leans_its_normal_west() {
+        // h = 2 x on a 1 m grid: normal ∝ (-2, 1, 0) after the doubling, (w - e, 2, 0).
+        let edge = 4;
+        let heights: Vec<f32> = (0..edge * edge).map(|i| 2.0 * (i % edge) as f32 + 10.0).collect();
+        let t = shade_texels(&heights, edge, 1.0);
+        let expected = unorm(-4.0 / (16.0f32 + 4.0).sqrt());
+        for y in 0..edge {
+            for x in 0..edge {
+                // The rim's one-sided differences, doubled, equal the interior's here.
+                assert_eq!(texel(&t, edge, x, y), [expected, 128, 0, 255], "at {x},{y}");
+            }
+        }
+    }
+
+    #[test]
+    fn no_data_is_no_normal_and_its_neighbours_take_one_sided_differences() {
+        let edge = 3;
+        let mut heights = vec![0.0f32; 9];
+        heights[3] = f32::NAN; // west of the middle
+        heights[5] = 4.0; // east of the middle
+        let t = shade_texels(&heights, edge, 1.0);
+        assert_eq!(texel(&t, edge, 0, 1), NONE);
+        // Middle: one-sided (h - e) doubled = -8, vertical 0.
+        let expected = unorm(-8.0 / (64.0f32 + 4.0).sqrt());
+        assert_eq!(texel(&t, edge, 1, 1)[..2], [expected, 128]);
+        assert_eq!(texel(&t, edge, 1, 1)[3], 255);
+    }
+
+    #[test]
+    fn a_flat_zero_is_sea_up_to_the_rim_and_a_step_is_not() {
+        let edge = 4;
+        let mut heights = vec![0.0f32; 16];
+        let t = shade_texels(&heights, edge, 30.0);
+        assert!((0..16).all(|i| t[i * 4 + 2] == 255), "every sample of a flat 0 is sea, rims included");
+        heights[5] = 0.25;
+        let t = shade_texels(&heights, edge, 30.0);
+        assert_eq!(texel(&t, edge, 1, 1)[2], 0, "the step itself");
+        assert_eq!(texel(&t, edge, 2, 1)[2], 0, "beside the step");
+        assert_eq!(texel(&t, edge, 3, 3)[2], 255, "away from it");
+        heights.fill(3.0);
+        assert!(shade_texels(&heights, edge, 30.0).chunks(4).all(|c| c[2] == 0), "flat land above 0.5 m");
+    }
+}
