@@ -643,16 +643,16 @@ fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>,
     if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
         sun_t = vec3<f32>(0.0);
     }
-    // Sky light from above, growing with the sun's height.
-    let sky = (0.05 + 0.25 * max(dot(up, sun), 0.0)) * (0.5 + 0.5 * dot(n, up)) * vec3<f32>(0.6, 0.75, 1.0);
+    // Sky light from above, growing with the sun's height, less on slopes facing away.
+    let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
     let radiance = albedo / PI * (sun_t * max(dot(n, sun), 0.0) + sky);
     let to = p - ATMO.eye.xyz;
     if ATMO.tables.x > 0.5 {
         let air = aerial(pixel / ATMO.tables.zw, length(to));
-        return expose(radiance * air.a + air.rgb);
+        return expose(radiance * pow(air.a, GROUND_HAZE) + air.rgb * GROUND_HAZE);
     }
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
-    return expose(radiance * air.transmittance + air.light);
+    return expose(radiance * pow(air.transmittance, vec3<f32>(GROUND_HAZE)) + air.light * GROUND_HAZE);
 }
 
 // The aerial-perspective table at screen position `uv` (0..1, row 0 at the top) and
@@ -732,12 +732,12 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
         if ray_sphere(g, sun, BOTTOM - 100.0) > 0.0 {
             sun_t = vec3<f32>(0.0);
         }
-        let sky = (0.05 + 0.25 * max(dot(up, sun), 0.0)) * vec3<f32>(0.6, 0.75, 1.0);
-        let radiance = albedo / PI * (sun_t * max(dot(up, sun), 0.0) + sky);
+        let radiance = albedo / PI * (sun_t * max(dot(up, sun), 0.0) + sky_light(up, sun));
         // Along a ray that meets the ground, the air between is the ratio of the two
         // stretches up to the top (the way back up passes the eye).
         let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));
-        light += radiance * clamp(through, vec3<f32>(0.0), vec3<f32>(1.0));
+        let seen = pow(clamp(through, vec3<f32>(0.0), vec3<f32>(1.0)), vec3<f32>(GROUND_HAZE));
+        light = light * GROUND_HAZE + radiance * seen;
     }
     // The sun's disc, dimmed by the air in front of it, where the planet does not hide it.
     if dot(d, sun) > cos(ATMO.sun.w) && ground < 0.0 {
