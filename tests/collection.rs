@@ -486,3 +486,56 @@ fn shards_of_a_collection_merge_into_the_single_run() {
     let held: Vec<usize> = shards.iter().map(|s| tiles_of(s).len()).collect();
     eprintln!("shards hold {held:?} tiles; the single run {}", tiles_of(&whole).len());
 }
+
+/// A VRT of the base and the patch (`gdalbuildvrt -resolution highest`, each source a
+/// whole file read as it is) is tiled as its two files, each as deep as it reaches: tile
+/// for tile, byte for byte, the run given the files, and its levels finer than the base's
+/// hold tiles only over the patch. A VRT that gives a source a nodata of its own is one
+/// input at its finest spacing, as before, and says so.
+#[test]
+fn a_vrt_of_a_base_and_a_patch_is_tiled_as_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // gdalbuildvrt takes sources of one data type: the patch as Float32, as the base is.
+    let patch = d.join("patch-f32.tif");
+    let made = std::process::Command::new("gdal_translate")
+        .args(["-q", "-ot", "Float32"])
+        .args([repo().join(PATCH), patch.clone()])
+        .output()
+        .unwrap();
+    assert!(made.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&made.stderr));
+    let patch = patch.to_str().unwrap();
+    let vrt = |name: &str, extra: &[&str]| {
+        let path = d.join(name);
+        let built = std::process::Command::new("gdalbuildvrt")
+            .args(["-q", "-resolution", "highest"])
+            .args(extra)
+            .arg(&path)
+            .args([repo().join(BASE).to_str().unwrap(), patch])
+            .output()
+            .unwrap();
+        assert!(built.status.success(), "gdalbuildvrt: {}", String::from_utf8_lossy(&built.stderr));
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert_eq!(text.matches("<SourceFilename").count(), 2, "both sources in the VRT: {text}");
+        path.to_str().unwrap().to_owned()
+    };
+    let files = tile(d, "files.tspack", &[BASE, patch], &[]);
+    let plain = vrt("plain.vrt", &[]);
+    let from_vrt = tile(d, "vrt.tspack", &[&plain], &[]);
+    let (a, b) = (tiles_of(&files), tiles_of(&from_vrt));
+    assert_eq!(a.len(), b.len(), "as many tiles");
+    assert!(a == b, "the VRT's archive holds the files' tiles, byte for byte");
+    let lods = per_lod(&from_vrt);
+    let one_resolution = per_lod(&tile(d, "order.tspack", &[BASE, patch], &["--priority", "order"]));
+    assert!(lods[&0] < one_resolution[&0], "LOD 0 only over the patch: {lods:?} against {one_resolution:?}");
+    let info = ok(&["info", "--json", from_vrt.to_str().unwrap()], d);
+    assert!(info.contains("patch-f32.tif") && info.contains("collection-base-10s-plus3m.tif"), "{info}");
+    // A nodata of the VRT's own: read as the VRT, every input at the finest spacing.
+    let nodata = vrt("nodata.vrt", &["-srcnodata", "-1000"]);
+    let out = d.join("nodata.tspack");
+    let run = oracles::run_in(&["tile", "--elevation", &nodata, "--tile-size", "32", "-o", out.to_str().unwrap()], d);
+    let said = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{said}");
+    assert!(said.contains("nodata.vrt") && said.contains("finest spacing"), "{said}");
+    assert_eq!(per_lod(&out)[&0], one_resolution[&0], "one resolution everywhere");
+}

@@ -9,7 +9,7 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
     Blend, Collection, Collections, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions,
-    TileRequest, expand_inputs, is_vrt, plan, shard_plan, tile_collection, tile_shard,
+    TileRequest, expand_inputs, is_vrt, plan, shard_plan, tile_collection, tile_shard, vrt_files_by_resolution,
 };
 
 use super::progress::CliProgress;
@@ -208,6 +208,37 @@ fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest)
     Ok(plan.spec(index))
 }
 
+/// A VRT whose sources are of different resolutions, each a whole file read as it is, is
+/// tiled as its files (in its order): each as deep as its own resolution reaches, where the
+/// VRT would be one input at its finest source's spacing. Other VRTs are read as before.
+fn vrts_as_their_files(request: &mut TileRequest) -> Result<()> {
+    for (inputs, heights) in [(&mut request.elevation, true), (&mut request.texture, false)] {
+        let mut out = Vec::with_capacity(inputs.len());
+        for path in inputs.drain(..) {
+            let files = if !is_vrt(&path) {
+                None
+            } else if heights {
+                vrt_files_by_resolution::<terrastream_tiler::Heights>(&path)?
+            } else {
+                vrt_files_by_resolution::<terrastream_tiler::Pixels>(&path)?
+            };
+            match files {
+                Some(files) => {
+                    tracing::info!(
+                        vrt = %path.display(),
+                        files = files.len(),
+                        "a VRT of sources of different resolutions: each of its files tiled as deep as it reaches"
+                    );
+                    out.extend(files);
+                }
+                None => out.push(path),
+            }
+        }
+        *inputs = out;
+    }
+    Ok(())
+}
+
 /// A shard plan's inputs are files: a VRT is read whole (a source missing from a pod is an
 /// error), so a shard given part of its sources could not open it.
 fn refuse_vrts(request: &TileRequest) -> Result<()> {
@@ -399,6 +430,9 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     if args.shard_plan_out.is_some() || args.list_inputs || args.shard_plan.is_some() {
         refuse_vrts(&request)?;
     }
+    if args.priority == PriorityArg::Resolution {
+        vrts_as_their_files(&mut request)?;
+    }
     let planned = match (&args.shard_plan, args.shard) {
         (Some(path), Some((index, count))) => Some(planned_shard(path, index, count, &mut request)?),
         _ => None,
@@ -451,8 +485,9 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             || sources.image_mosaic().is_some_and(Collection::spans_resolutions);
         if spans {
             tracing::warn!(
-                "{}: a VRT among inputs of different resolutions: every input is tiled at the finest spacing \
-                 (give the VRT's files instead, for each to reach only the levels its resolution supports)",
+                "{}: a VRT among inputs of different resolutions whose sources are not whole files read as they \
+                 are (a window, a nodata or a scale of its own): every input is tiled at the finest spacing \
+                 (give its files instead, for each to reach only the levels its resolution supports)",
                 vrt.display()
             );
         }

@@ -22,7 +22,7 @@ pub struct ElevationFile {
     spacing: (f64, f64),
     georeference: Option<Georeference>,
     crs_pixel: Option<(f64, f64)>,
-    nodata: Option<f64>,
+    pub(crate) nodata: Option<f64>,
     /// How PNG pixels (or 8-bit TIFF samples) map to heights; None: samples are heights.
     encoding: Option<ElevationEncoding>,
     png: bool,

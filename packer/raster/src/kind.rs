@@ -40,6 +40,10 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn crs_pixel(file: &Self::File) -> Option<(f64, f64)>;
     /// Samples per pixel.
     fn channels(file: &Self::File) -> usize;
+    /// The file's own nodata value, if it names one.
+    fn nodata(_file: &Self::File) -> Option<f64> {
+        None
+    }
     /// Whether the VRT at `vrt`, of `bands` bands, can read `file` band for band.
     ///
     /// # Errors
@@ -136,6 +140,9 @@ impl MosaicKind for Heights {
     }
     fn channels(_: &ElevationFile) -> usize {
         1
+    }
+    fn nodata(file: &ElevationFile) -> Option<f64> {
+        file.nodata
     }
     fn values(
         file: &ElevationFile,

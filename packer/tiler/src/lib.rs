@@ -47,7 +47,7 @@ pub use terrastream_raster::{
     self as raster, Crs, ElevationFile, ElevationSource, GridSpec, Heights, Image, ImageFile, ImageSource, ImageWindow,
     InputLayout, KnownRange, Mosaic, MosaicKind, MosaicOptions, OPEN_FILES, Pixels, Raster, Transform, Vrt, VrtSource,
     Warped, crs, expand_inputs, image_pixel_metres, is_vrt, jpeg_rows, open_elevation, open_image, read_geotiff,
-    read_image, read_vrt,
+    read_image, read_vrt, vrt_files_by_resolution,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
 

@@ -652,6 +652,51 @@ fn placement_of(
     }
 }
 
+/// The files of the VRT at `path`, when reading them as inputs of their own is reading the
+/// VRT: every source is a whole file, read as it is (no window or scale of the VRT's own,
+/// no nodata but the file's own), and placed where the file's own georeference places it,
+/// in the VRT's CRS.
+/// Ok(None) otherwise, or when its sources are all of one resolution. A collection takes
+/// such files each as deep as its resolution reaches, where a VRT would be one input at
+/// its finest source's spacing.
+///
+/// # Errors
+/// What [`read_vrt`] or opening a source reports.
+pub fn vrt_files_by_resolution<K: MosaicKind>(path: &Path) -> Result<Option<Vec<PathBuf>>> {
+    let vrt = read_vrt(path)?;
+    let Ok(crs) = Crs::parse(&vrt.crs) else { return Ok(None) };
+    let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1e-300);
+    let first = vrt.sources.first().map(|s| s.pixel);
+    if vrt.sources.iter().all(|s| first.is_some_and(|p| same(s.pixel.0, p.0) && same(s.pixel.1, p.1))) {
+        return Ok(None);
+    }
+    let mut files = Vec::new();
+    for source in &vrt.sources {
+        let file = K::open(&source.path)?;
+        #[expect(clippy::cast_possible_truncation, reason = "nodata is compared as f32, as samples are kept")]
+        let own = |n: f64| K::nodata(&file).is_some_and(|m| m as f32 == n as f32);
+        if source.nodata.is_some_and(|n| !own(n)) || source.scale.is_some() {
+            return Ok(None);
+        }
+        let (w, h) = K::size(&file);
+        let Some((file_crs, origin, pixel)) = crs_placement(K::georeference(&file), K::crs_pixel(&file)) else {
+            return Ok(None);
+        };
+        let placed = |a: f64, b: f64, unit: f64| (a - b).abs() <= 1e-6 * unit;
+        let whole = source.window == [0, 0, w, h];
+        let here = Crs::parse(file_crs).is_ok_and(|c| c == crs)
+            && placed(origin[0], source.origin[0], pixel.0)
+            && placed(origin[1], source.origin[1], pixel.1)
+            && same(pixel.0, source.pixel.0)
+            && same(pixel.1, source.pixel.1);
+        if !(whole && here) {
+            return Ok(None);
+        }
+        files.push(source.path.clone());
+    }
+    Ok(Some(files))
+}
+
 /// Opens one input: a georeferenced GeoTIFF of heights in a CRS the tiler knows, or a
 /// VRT's sources (each a window of a GeoTIFF, placed by the VRT).
 fn open_inputs<K: MosaicKind>(path: &Path) -> Result<Vec<Opened<K>>> {
