@@ -99,7 +99,10 @@ fn fs_skyview(in: Fullscreen) -> @location(0) vec4<f32> {
 }
 
 // One froxel: the light scattered towards the eye along its screen ray out to its slice's
-// distance (rgb), and the mean transmittance over that stretch (a).
+// distance (rgb), and the mean transmittance over that stretch (a), both as the ground is
+// seen through them (GROUND_HAZE: the table serves only the ground). The slices' distances
+// grow as the square of their number, so the near ones are short: 2 steps for the first
+// eight, one more for every four after, 8 for the last four (148 steps a ray, not 256).
 @fragment
 fn fs_aerial(in: Fullscreen) -> @location(0) vec4<f32> {
     let texel = in.uv * vec2<f32>(AERIAL_SLICES * 32.0, 32.0);
@@ -110,6 +113,7 @@ fn fs_aerial(in: Fullscreen) -> @location(0) vec4<f32> {
     let far = ATMO.inv_view_proj * vec4<f32>(ndc, 1.0, 1.0);
     let d = normalize(far.xyz / far.w);
     let distance = aerial_distance(slice + 1.0);
-    let s = integrate(ATMO.eye.xyz, d, distance, ATMO.sun.xyz, 8.0);
-    return vec4<f32>(s.light, dot(s.transmittance, vec3<f32>(1.0 / 3.0)));
+    let steps = clamp(ceil((slice + 1.0) / 4.0), 2.0, 8.0);
+    let s = integrate(ATMO.eye.xyz, d, distance, ATMO.sun.xyz, steps);
+    return vec4<f32>(s.light * GROUND_HAZE, pow(dot(s.transmittance, vec3<f32>(1.0 / 3.0)), GROUND_HAZE));
 }

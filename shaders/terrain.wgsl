@@ -649,7 +649,8 @@ fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>,
     let to = p - ATMO.eye.xyz;
     if ATMO.tables.x > 0.5 {
         let air = aerial(pixel / ATMO.tables.zw, length(to));
-        return expose(radiance * pow(air.a, GROUND_HAZE) + air.rgb * GROUND_HAZE);
+        // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
+        return expose(radiance * air.a + air.rgb);
     }
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
     return expose(radiance * pow(air.transmittance, vec3<f32>(GROUND_HAZE)) + air.light * GROUND_HAZE);
