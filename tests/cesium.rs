@@ -424,6 +424,47 @@ window.viewer = viewer;
 }).catch(e => window.failures.push('terrain: ' + e));
 </script></body></html>"#;
 
+/// Waits until Cesium's page has drawn a few frames and `ready` (a JavaScript
+/// expression) holds, failing on any failure the page reports or after 60 s.
+fn wait_for_cesium(browser: &terrastream_testkit::browser::Browser<'_>, ready: &str) {
+    let started = std::time::Instant::now();
+    let script = format!("return !!(window.viewer && viewer.scene.frameState.frameNumber > 5 && {ready});");
+    while browser.eval(&script) != json!(true) {
+        assert_eq!(browser.eval("return window.failures;"), json!([]), "Cesium: {:?}", browser.console());
+        assert!(started.elapsed().as_secs() < 60, "Cesium never loaded its view: {:?}", browser.console());
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+}
+
+/// Our render of the pose `(name, archive, at, heading, pitch)` at Cesium's picture's size
+/// and field of view, with `extra` arguments; both pictures are written to look at in
+/// `target/tmp/{folder}/`.
+fn ours_beside(
+    dir: &Path,
+    (name, archive, at, heading, pitch): (&str, &Path, &str, f64, f64),
+    extra: &[&str],
+    (cw, ch, cesium): (u32, u32, &[u8]),
+    folder: &str,
+) -> (u32, u32, Vec<u8>) {
+    let png = dir.join(format!("{name}.png"));
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap()])
+        .args(["--size", &format!("{WIDTH}x{HEIGHT}"), "--fov", "60", "--at", at])
+        .args(["--heading", &heading.to_string(), "--pitch", &pitch.to_string()])
+        .args(extra)
+        .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.into()))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "render: {}", String::from_utf8_lossy(&out.stderr));
+    let (w, h, ours) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
+    assert_eq!((w, h), (cw, ch), "the same picture size");
+    let look = Path::new(env!("CARGO_TARGET_TMPDIR")).join(folder);
+    std::fs::create_dir_all(&look).unwrap();
+    std::fs::copy(&png, look.join(format!("{name}-terrastream.png"))).unwrap();
+    terrastream_testkit::golden::write_png(&look.join(format!("{name}-cesium.png")), cw, ch, cesium);
+    (w, h, ours)
+}
+
 /// The topmost and bottommost lit rows of each column (`None`: the column is empty).
 fn column_edges(w: u32, h: u32, rgba: &[u8]) -> Vec<Option<(u32, u32)>> {
     let lit = |x: u32, y: u32| {
@@ -485,32 +526,10 @@ fn the_globe_matches_cesiums_ellipsoid_column_by_column() {
             "http://127.0.0.1:{}/globe.html?at={at}&heading={heading}&pitch={pitch}{terrain}",
             nginx.port
         ));
-        let started = std::time::Instant::now();
-        while browser.eval(
-            "return !!(window.viewer && viewer.scene.globe.tilesLoaded && viewer.scene.frameState.frameNumber > 5);",
-        ) != json!(true)
-        {
-            assert_eq!(browser.eval("return window.failures;"), json!([]), "Cesium: {:?}", browser.console());
-            assert!(started.elapsed().as_secs() < 60, "Cesium never loaded its view: {:?}", browser.console());
-            std::thread::sleep(std::time::Duration::from_millis(100));
-        }
+        wait_for_cesium(&browser, "viewer.scene.globe.tilesLoaded");
         let (cw, ch, cesium) = browser.screenshot("#globe");
-        let png = dir.path().join(format!("{name}.png"));
-        let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-            .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--shading", "flat"])
-            .args(["--size", &format!("{WIDTH}x{HEIGHT}"), "--fov", "60", "--at", at])
-            .args(["--heading", &heading.to_string(), "--pitch", &pitch.to_string()])
-            .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.path().into()))
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "render: {}", String::from_utf8_lossy(&out.stderr));
-        let (w, h, ours) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
-        assert_eq!((w, h), (cw, ch), "the same picture size");
-        // Both pictures, to look at: target/tmp/side-by-side/.
-        let look = Path::new(env!("CARGO_TARGET_TMPDIR")).join("side-by-side");
-        std::fs::create_dir_all(&look).unwrap();
-        std::fs::copy(&png, look.join(format!("{name}-terrastream.png"))).unwrap();
-        terrastream_testkit::golden::write_png(&look.join(format!("{name}-cesium.png")), cw, ch, &cesium);
+        let pose = (name, archive.as_path(), at, heading, pitch);
+        let (w, h, ours) = ours_beside(dir.path(), pose, &["--shading", "flat"], (cw, ch, &cesium), "side-by-side");
         let (theirs, mine) = (column_edges(cw, ch, &cesium), column_edges(w, h, &ours));
         // Where the silhouette is steep (the sides of the disc), a row is the same edge a
         // column over: the tolerance grows by Cesium's row change to the next column.
@@ -772,8 +791,6 @@ fn the_sky_and_the_haze_look_like_cesiums() {
     };
     let driver = Driver::start();
     let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH + 200, HEIGHT + 300));
-    let look = Path::new(env!("CARGO_TARGET_TMPDIR")).join("sky-beside-cesium");
-    std::fs::create_dir_all(&look).unwrap();
     // Three in the afternoon, local time, at the March equinox: the sun in the south-west.
     let (at, time) = ("-116,39,3000", "2026-03-20T22:44:00Z");
     let centre = HEIGHT / 2;
@@ -793,32 +810,13 @@ fn the_sky_and_the_haze_look_like_cesiums() {
             "http://127.0.0.1:{}/sky.html?at={at}&heading={heading}&pitch={pitch}&time={time}",
             nginx.port
         ));
-        let started = std::time::Instant::now();
-        while browser.eval(
-            "return !!(window.viewer && window.sun && viewer.scene.globe.tilesLoaded && viewer.scene.frameState.frameNumber > 5);",
-        ) != json!(true)
-        {
-            assert_eq!(browser.eval("return window.failures;"), json!([]), "Cesium: {:?}", browser.console());
-            assert!(started.elapsed().as_secs() < 60, "Cesium never loaded its view: {:?}", browser.console());
-            std::thread::sleep(std::time::Duration::from_millis(100));
-        }
+        wait_for_cesium(&browser, "window.sun && viewer.scene.globe.tilesLoaded");
         let sun = browser.eval("return window.sun;");
         let (azimuth, elevation) = (sun[0].as_f64().unwrap(), sun[1].as_f64().unwrap());
         let (cw, ch, cesium) = browser.screenshot("#globe");
-        let png = dir.path().join(format!("{name}.png"));
-        let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-            .args(["-q", "render", archive.to_str().unwrap(), "-o", png.to_str().unwrap()])
-            .args(["--size", &format!("{WIDTH}x{HEIGHT}"), "--fov", "60", "--at", at])
-            .args(["--heading", &heading.to_string(), "--pitch", &pitch.to_string()])
-            .args(["--sun", &format!("{azimuth:.3},{elevation:.3}")])
-            .env("XDG_RUNTIME_DIR", std::env::var_os("XDG_RUNTIME_DIR").unwrap_or_else(|| dir.path().into()))
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "render: {}", String::from_utf8_lossy(&out.stderr));
-        let (w, h, ours) = terrastream_testkit::golden::decode_png(&std::fs::read(&png).unwrap());
-        assert_eq!((w, h), (cw, ch), "the same picture size");
-        std::fs::copy(&png, look.join(format!("{name}-terrastream.png"))).unwrap();
-        terrastream_testkit::golden::write_png(&look.join(format!("{name}-cesium.png")), cw, ch, &cesium);
+        let sun = format!("{azimuth:.3},{elevation:.3}");
+        let pose = (name, archive.as_path(), at, heading, pitch);
+        let (w, _, ours) = ours_beside(dir.path(), pose, &["--sun", &sun], (cw, ch, &cesium), "sky-beside-cesium");
         for (band, rows, bound) in bands {
             let (theirs, mine) = (mean_lab(cw, &cesium, rows.clone()), mean_lab(w, &ours, rows));
             let distance = delta_e(theirs, mine);
