@@ -31,6 +31,12 @@ const GROUND_ALBEDO: f32 = 0.3;
 // 70 km away from 3 km up was a white bank, CIE76 25.7 from Cesium's; at 0.5, 18.
 const GROUND_HAZE: f32 = 0.5;
 
+// Ground of `radiance` seen through air that scatters `light` towards the eye and lets
+// `transmittance` through, as GROUND_HAZE has it.
+fn ground_seen(radiance: vec3<f32>, light: vec3<f32>, transmittance: vec3<f32>) -> vec3<f32> {
+    return radiance * pow(transmittance, vec3<f32>(GROUND_HAZE)) + light * GROUND_HAZE;
+}
+
 // The sky's light on ground whose up is `up` and the sun `sun` (a share of a sun of
 // illuminance 1): about a fifth of the direct light when the sun is high, bluish.
 fn sky_light(up: vec3<f32>, sun: vec3<f32>) -> vec3<f32> {

@@ -653,7 +653,7 @@ fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>,
         return expose(radiance * air.a + air.rgb);
     }
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
-    return expose(radiance * pow(air.transmittance, vec3<f32>(GROUND_HAZE)) + air.light * GROUND_HAZE);
+    return expose(ground_seen(radiance, air.light, air.transmittance));
 }
 
 // The aerial-perspective table at screen position `uv` (0..1, row 0 at the top) and
@@ -737,8 +737,7 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
         // Along a ray that meets the ground, the air between is the ratio of the two
         // stretches up to the top (the way back up passes the eye).
         let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));
-        let seen = pow(clamp(through, vec3<f32>(0.0), vec3<f32>(1.0)), vec3<f32>(GROUND_HAZE));
-        light = light * GROUND_HAZE + radiance * seen;
+        light = ground_seen(radiance, light, clamp(through, vec3<f32>(0.0), vec3<f32>(1.0)));
     }
     // The sun's disc, dimmed by the air in front of it, where the planet does not hide it.
     if dot(d, sun) > cos(ATMO.sun.w) && ground < 0.0 {

@@ -384,11 +384,13 @@ fn cesium_reads_private_terrain_with_a_token_or_a_header() {
     }
 }
 
-/// The page of the side-by-side: CesiumJS's bare ellipsoid (`EllipsoidTerrainProvider`),
-/// or the quantized-mesh terrain at `terrain=`, a white globe on black, no imagery, lighting, sky, sun, moon, fog or atmosphere, the
-/// camera at `at=LON,LAT,HEIGHT` with `heading=` and `pitch=` (degrees) and a vertical
-/// field of view of 60 degrees (Cesium's `fov` is the wider side's).
-const BARE_GLOBE_PAGE: &str = r#"<!doctype html><html><head><meta charset="utf-8">
+/// A page of CesiumJS's built files with a 640 x 400 `#globe` on black: `script` runs
+/// with `q` (the page's query), `lon`, `lat` and `height` (from `at=LON,LAT,HEIGHT`) and
+/// `window.failures` (what the tests check is empty) defined.
+macro_rules! cesium_page {
+    ($script:literal) => {
+        concat!(
+            r#"<!doctype html><html><head><meta charset="utf-8">
 <script src="cesium/Cesium.js"></script>
 <link rel="stylesheet" href="cesium/Widgets/widgets.css">
 <style>html, body { margin: 0; background: #000 } #globe { width: 640px; height: 400px }</style></head>
@@ -396,7 +398,19 @@ const BARE_GLOBE_PAGE: &str = r#"<!doctype html><html><head><meta charset="utf-8
 const q = new URLSearchParams(location.search);
 const [lon, lat, height] = q.get('at').split(',').map(Number);
 window.failures = [];
-const url = q.get('terrain');
+"#,
+            $script,
+            "</script></body></html>"
+        )
+    };
+}
+
+/// The page of the side-by-side: CesiumJS's bare ellipsoid (`EllipsoidTerrainProvider`),
+/// or the quantized-mesh terrain at `terrain=`, a white globe on black, no imagery, lighting, sky, sun, moon, fog or atmosphere, the
+/// camera at `at=LON,LAT,HEIGHT` with `heading=` and `pitch=` (degrees) and a vertical
+/// field of view of 60 degrees (Cesium's `fov` is the wider side's).
+const BARE_GLOBE_PAGE: &str = cesium_page!(
+    r#"const url = q.get('terrain');
 (url ? Cesium.CesiumTerrainProvider.fromUrl(url) : Promise.resolve(new Cesium.EllipsoidTerrainProvider()))
 .then(terrainProvider => {
 if (terrainProvider.errorEvent) terrainProvider.errorEvent.addEventListener(e => window.failures.push(String(e.message || e)));
@@ -422,7 +436,8 @@ scene.camera.setView({ destination: Cesium.Cartesian3.fromDegrees(lon, lat, heig
                  pitch: Cesium.Math.toRadians(Number(q.get('pitch'))), roll: 0 } });
 window.viewer = viewer;
 }).catch(e => window.failures.push('terrain: ' + e));
-</script></body></html>"#;
+"#
+);
 
 /// Waits until Cesium's page has drawn a few frames and `ready` (a JavaScript
 /// expression) holds, failing on any failure the page reports or after 60 s.
@@ -697,15 +712,8 @@ fn cesium_reads_the_water_mask_of_a_coast() {
 /// lit by the sun of the clock's time (`time`), over the Natural Earth II imagery it ships
 /// (the picture our globe draws beyond the data). The page answers the sun's azimuth and
 /// elevation at the camera (`window.sun`), to give our renderer the same sun.
-const SKY_PAGE: &str = r#"<!doctype html><html><head><meta charset="utf-8">
-<script src="cesium/Cesium.js"></script>
-<link rel="stylesheet" href="cesium/Widgets/widgets.css">
-<style>html, body { margin: 0; background: #000 } #globe { width: 640px; height: 400px }</style></head>
-<body><div id="globe"></div><script>
-const q = new URLSearchParams(location.search);
-const [lon, lat, height] = q.get('at').split(',').map(Number);
-window.failures = [];
-Cesium.TileMapServiceImageryProvider.fromUrl(Cesium.buildModuleUrl('Assets/Textures/NaturalEarthII'))
+const SKY_PAGE: &str = cesium_page!(
+    r#"Cesium.TileMapServiceImageryProvider.fromUrl(Cesium.buildModuleUrl('Assets/Textures/NaturalEarthII'))
 .then(imagery => {
 const viewer = new Cesium.Viewer('globe', {
   baseLayer: new Cesium.ImageryLayer(imagery), baseLayerPicker: false,
@@ -734,7 +742,8 @@ scene.postRender.addEventListener(() => {
 });
 window.viewer = viewer;
 }).catch(e => window.failures.push('imagery: ' + e));
-</script></body></html>"#;
+"#
+);
 
 /// The mean colour of rows `rows` of a picture, in CIE L*a*b* (D65) from its sRGB.
 fn mean_lab(w: u32, rgba: &[u8], rows: std::ops::Range<u32>) -> [f64; 3] {

@@ -50,22 +50,18 @@ pub fn shade_texels(heights: &[f32], edge: usize, spacing: f32) -> Vec<u8> {
         return out;
     }
     let two_spacing_squared = 4.0 * spacing * spacing;
-    let none = [f32::NAN; 1];
+    let row = |y: usize| &heights[y * edge..(y + 1) * edge];
     for (y, texels) in out.chunks_exact_mut(edge * 4).enumerate() {
-        let row = &heights[y * edge..(y + 1) * edge];
-        let north = if y > 0 { &heights[(y - 1) * edge..y * edge] } else { &none[..] };
-        let south = if y + 1 < edge { &heights[(y + 1) * edge..(y + 2) * edge] } else { &none[..] };
-        let vertical =
-            |x: usize| (north.get(x).copied().unwrap_or(f32::NAN), south.get(x).copied().unwrap_or(f32::NAN));
+        let (north, here, south) = ((y > 0).then(|| row(y - 1)), row(y), (y + 1 < edge).then(|| row(y + 1)));
         for (x, texel) in texels.chunks_exact_mut(4).enumerate() {
-            let h = row[x];
+            let h = here[x];
             if !h.is_finite() {
                 texel.copy_from_slice(&NONE);
                 continue;
             }
-            let w = if x > 0 { row[x - 1] } else { f32::NAN };
-            let e = row.get(x + 1).copied().unwrap_or(f32::NAN);
-            let (n, s) = vertical(x);
+            let w = if x > 0 { here[x - 1] } else { f32::NAN };
+            let e = here.get(x + 1).copied().unwrap_or(f32::NAN);
+            let (n, s) = (north.map_or(f32::NAN, |r| r[x]), south.map_or(f32::NAN, |r| r[x]));
             let (gx, gz) = (difference(w, h, e), difference(n, h, s));
             let scale = 1.0 / (gx * gx + two_spacing_squared + gz * gz).sqrt();
             let level = |v: f32| v == h || !v.is_finite();
