@@ -385,8 +385,9 @@ fn cesium_reads_private_terrain_with_a_token_or_a_header() {
 }
 
 /// A page of CesiumJS's built files with a 640 x 400 `#globe` on black: `script` runs
-/// with `q` (the page's query), `lon`, `lat` and `height` (from `at=LON,LAT,HEIGHT`) and
-/// `window.failures` (what the tests check is empty) defined.
+/// with `q` (the page's query), `lon`, `lat` and `height` (from `at=LON,LAT,HEIGHT`),
+/// `window.failures` (what the tests check is empty) and `posedViewer` (the viewer at the
+/// page's pose) defined.
 macro_rules! cesium_page {
     ($script:literal) => {
         concat!(
@@ -398,6 +399,26 @@ macro_rules! cesium_page {
 const q = new URLSearchParams(location.search);
 const [lon, lat, height] = q.get('at').split(',').map(Number);
 window.failures = [];
+// A viewer of `options` without widgets, stars, sun, moon, FXAA or credits, its camera at
+// at=, heading= and pitch= (degrees) with a vertical field of view of 60 degrees (Cesium's
+// `fov` is the wider side's); and the camera's place.
+function posedViewer(options) {
+  const viewer = new Cesium.Viewer('globe', Object.assign({ baseLayerPicker: false,
+    geocoder: false, timeline: false, animation: false, homeButton: false, sceneModePicker: false,
+    navigationHelpButton: false, fullscreenButton: false, infoBox: false, selectionIndicator: false,
+    skyBox: false, contextOptions: { webgl: { antialias: false } } }, options));
+  const scene = viewer.scene;
+  if (scene.sun) scene.sun.show = false;
+  if (scene.moon) scene.moon.show = false;
+  scene.postProcessStages.fxaa.enabled = false;
+  viewer.cesiumWidget.creditContainer.style.display = 'none';
+  scene.camera.frustum.fov = 2 * Math.atan(Math.tan(Math.PI / 6) * 640 / 400);
+  const at = Cesium.Cartesian3.fromDegrees(lon, lat, height);
+  scene.camera.setView({ destination: at,
+    orientation: { heading: Cesium.Math.toRadians(Number(q.get('heading'))),
+                   pitch: Cesium.Math.toRadians(Number(q.get('pitch'))), roll: 0 } });
+  return [viewer, at];
+}
 "#,
             $script,
             "</script></body></html>"
@@ -414,11 +435,7 @@ const BARE_GLOBE_PAGE: &str = cesium_page!(
 (url ? Cesium.CesiumTerrainProvider.fromUrl(url) : Promise.resolve(new Cesium.EllipsoidTerrainProvider()))
 .then(terrainProvider => {
 if (terrainProvider.errorEvent) terrainProvider.errorEvent.addEventListener(e => window.failures.push(String(e.message || e)));
-const viewer = new Cesium.Viewer('globe', {
-  terrainProvider, baseLayer: false, baseLayerPicker: false,
-  geocoder: false, timeline: false, animation: false, homeButton: false, sceneModePicker: false,
-  navigationHelpButton: false, fullscreenButton: false, infoBox: false, selectionIndicator: false,
-  skyBox: false, skyAtmosphere: false, contextOptions: { webgl: { antialias: false } } });
+const [viewer] = posedViewer({ terrainProvider, baseLayer: false, skyAtmosphere: false });
 const scene = viewer.scene;
 scene.backgroundColor = Cesium.Color.BLACK;
 scene.globe.baseColor = Cesium.Color.WHITE;
@@ -426,14 +443,6 @@ scene.globe.enableLighting = false;
 scene.globe.showGroundAtmosphere = false;
 scene.globe.depthTestAgainstTerrain = true;
 scene.fog.enabled = false;
-if (scene.sun) scene.sun.show = false;
-if (scene.moon) scene.moon.show = false;
-scene.postProcessStages.fxaa.enabled = false;
-viewer.cesiumWidget.creditContainer.style.display = 'none';
-scene.camera.frustum.fov = 2 * Math.atan(Math.tan(Math.PI / 6) * 640 / 400);
-scene.camera.setView({ destination: Cesium.Cartesian3.fromDegrees(lon, lat, height),
-  orientation: { heading: Cesium.Math.toRadians(Number(q.get('heading'))),
-                 pitch: Cesium.Math.toRadians(Number(q.get('pitch'))), roll: 0 } });
 window.viewer = viewer;
 }).catch(e => window.failures.push('terrain: ' + e));
 "#
@@ -715,24 +724,11 @@ fn cesium_reads_the_water_mask_of_a_coast() {
 const SKY_PAGE: &str = cesium_page!(
     r#"Cesium.TileMapServiceImageryProvider.fromUrl(Cesium.buildModuleUrl('Assets/Textures/NaturalEarthII'))
 .then(imagery => {
-const viewer = new Cesium.Viewer('globe', {
-  baseLayer: new Cesium.ImageryLayer(imagery), baseLayerPicker: false,
-  geocoder: false, timeline: false, animation: false, homeButton: false, sceneModePicker: false,
-  navigationHelpButton: false, fullscreenButton: false, infoBox: false, selectionIndicator: false,
-  skyBox: false, contextOptions: { webgl: { antialias: false } } });
+const [viewer, at] = posedViewer({ baseLayer: new Cesium.ImageryLayer(imagery) });
 const scene = viewer.scene;
 viewer.clock.shouldAnimate = false;
 viewer.clock.currentTime = Cesium.JulianDate.fromIso8601(q.get('time'));
 scene.globe.enableLighting = true;
-if (scene.sun) scene.sun.show = false;
-if (scene.moon) scene.moon.show = false;
-scene.postProcessStages.fxaa.enabled = false;
-viewer.cesiumWidget.creditContainer.style.display = 'none';
-scene.camera.frustum.fov = 2 * Math.atan(Math.tan(Math.PI / 6) * 640 / 400);
-const at = Cesium.Cartesian3.fromDegrees(lon, lat, height);
-scene.camera.setView({ destination: at,
-  orientation: { heading: Cesium.Math.toRadians(Number(q.get('heading'))),
-                 pitch: Cesium.Math.toRadians(Number(q.get('pitch'))), roll: 0 } });
 scene.postRender.addEventListener(() => {
   const sun = scene.context.uniformState.sunDirectionWC;
   const toEnu = Cesium.Matrix4.inverseTransformation(Cesium.Transforms.eastNorthUpToFixedFrame(at), new Cesium.Matrix4());
