@@ -132,11 +132,13 @@ pub fn tilejson(
 /// to the tile and its buffer, in tile units.
 #[expect(clippy::cast_possible_truncation, reason = "levels of finite heights; vertices within the buffered tile")]
 fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
-    let (lo, hi) = heights
-        .iter()
-        .filter(|h| h.is_finite())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &h| (lo.min(f64::from(h)), hi.max(f64::from(h))));
-    if !lo.is_finite() {
+    // Plain comparisons, not f32::min/max (whose NaN rules cost a blend a sample): a NaN
+    // (no data) compares false and changes nothing.
+    let (lo, hi) = heights.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &h| {
+        (if h < lo && h.is_finite() { h } else { lo }, if h > hi && h.is_finite() { h } else { hi })
+    });
+    let (lo, hi) = (f64::from(lo), f64::from(hi));
+    if !lo.is_finite() || !hi.is_finite() {
         return vec![];
     }
     let mut lines = vec![];
@@ -176,15 +178,20 @@ fn edge_key(span: usize, c: usize, r: usize, horizontal: bool) -> usize {
 fn segments(h: &[f32], span: usize, interval: f64, (first, last): (i64, i64)) -> Vec<Vec<(usize, usize)>> {
     let count = usize::try_from(last - first + 1).unwrap_or(0);
     let mut out: Vec<Vec<(usize, usize)>> = vec![Vec::new(); count];
-    let bands: Vec<i64> = h.iter().map(|&v| band(f64::from(v), interval)).collect();
+    let inverse = 1.0 / interval;
+    let bands: Vec<i64> = h.iter().map(|&v| band(f64::from(v), interval, inverse)).collect();
     let key = |c: usize, r: usize, horizontal: bool| edge_key(span, c, r, horizontal);
     for r in 0..span - 1 {
         for c in 0..span - 1 {
             let at = r * span + c;
             let b = [bands[at], bands[at + 1], bands[at + span + 1], bands[at + span]];
-            let (lo, hi) = (b.iter().copied().min().unwrap_or(NO_DATA), b.iter().copied().max().unwrap_or(NO_DATA));
+            // Most cells lie within one band: no level crosses them.
+            if b[0] == b[1] && b[1] == b[2] && b[2] == b[3] {
+                continue;
+            }
+            let (lo, hi) = (b[0].min(b[1]).min(b[2].min(b[3])), b[0].max(b[1]).max(b[2].max(b[3])));
             // A level crosses where a corner lies below it and one at or above it.
-            if lo == hi || lo == NO_DATA {
+            if lo == NO_DATA {
                 continue;
             }
             let (top, right, bottom, left) =
@@ -221,12 +228,13 @@ const NO_DATA: i64 = i64::MIN;
 /// The highest `k` with `k x interval` at or below `v` (exactly as the levels compare:
 /// `v >= k as f64 * interval`); [`NO_DATA`] for a value that is not finite.
 #[expect(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "levels of heights")]
-fn band(v: f64, interval: f64) -> i64 {
+fn band(v: f64, interval: f64, inverse: f64) -> i64 {
     if !v.is_finite() {
         return NO_DATA;
     }
-    // Rounded down without a call to the C library, then made exact.
-    let q = v / interval;
+    // Rounded down without a call to the C library (nor a division: `inverse` is
+    // 1 / `interval`), then made exact.
+    let q = v * inverse;
     let mut k = q as i64;
     if k as f64 > q {
         k -= 1;
@@ -264,10 +272,8 @@ fn level_chains(
         links.push(a, b);
         links.push(b, a);
     }
-    // Every edge a segment touches, in order.
-    let mut keys: Vec<usize> = segments.iter().flat_map(|&(a, b)| [a, b]).collect();
-    keys.sort_unstable();
-    keys.dedup();
+    // Every edge a segment touches, in order (read off the links' bitmap, not sorted).
+    let keys = links.take_touched();
     // Walk the links: open chains from their ends first, then the closed loops.
     let mut chains = vec![];
     let starts: Vec<usize> = keys.iter().copied().filter(|&k| links.len(k) == 1).collect();
@@ -295,11 +301,29 @@ fn level_chains(
 struct Links {
     to: Vec<[u32; 2]>,
     count: Vec<u8>,
+    /// A bit for each key pushed since the last [`Links::take_touched`], and the range of
+    /// words holding them.
+    touched: Vec<u64>,
+    words: std::ops::Range<usize>,
 }
 
 impl Links {
     fn new(keys: usize) -> Self {
-        Self { to: vec![[0; 2]; keys], count: vec![0; keys] }
+        Self { to: vec![[0; 2]; keys], count: vec![0; keys], touched: vec![0; keys.div_ceil(64)], words: 0..0 }
+    }
+
+    /// The keys pushed since the last call, ascending, once each; clears them.
+    fn take_touched(&mut self) -> Vec<usize> {
+        let mut keys = vec![];
+        for w in self.words.clone() {
+            let mut bits = std::mem::take(&mut self.touched[w]);
+            while bits != 0 {
+                keys.push(w * 64 + bits.trailing_zeros() as usize);
+                bits &= bits - 1;
+            }
+        }
+        self.words = 0..0;
+        keys
     }
 
     fn len(&self, key: usize) -> u8 {
@@ -308,6 +332,9 @@ impl Links {
 
     #[expect(clippy::cast_possible_truncation, reason = "edge keys of a tile's grid")]
     fn push(&mut self, key: usize, to: usize) {
+        let w = key / 64;
+        self.touched[w] |= 1 << (key % 64);
+        self.words = if self.words.is_empty() { w..w + 1 } else { self.words.start.min(w)..self.words.end.max(w + 1) };
         let n = &mut self.count[key];
         if let Some(slot) = self.to[key].get_mut(usize::from(*n)) {
             *slot = to as u32;
@@ -427,13 +454,12 @@ fn simplify(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
     while let Some((first, last)) = stack.pop() {
         let (a, b) = (line[first], line[last]);
         let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-        let length = dx.hypot(dy);
+        // Squares and one root (tile units are far from overflowing): `hypot`'s care for
+        // extreme values is a library call a vertex.
+        let length = (dx * dx + dy * dy).sqrt();
         let distance = |p: (f64, f64)| {
-            if length == 0.0 {
-                (p.0 - a.0).hypot(p.1 - a.1)
-            } else {
-                ((p.0 - a.0) * dy - (p.1 - a.1) * dx).abs() / length
-            }
+            let (px, py) = (p.0 - a.0, p.1 - a.1);
+            if length == 0.0 { (px * px + py * py).sqrt() } else { (px * dy - py * dx).abs() / length }
         };
         let (worst, d) =
             (first + 1..last).map(|i| (i, distance(line[i]))).fold((first, 0.0), |m, c| if c.1 > m.1 { c } else { m });
