@@ -18,4 +18,4 @@ pub use decode::{DecodedTile, TileData, decode};
 pub use error::{Error, Result};
 pub use image::Image;
 pub use sample::{Interpolation, height_on_lod, tile_of};
-pub use shade::shade_texels;
+pub use shade::{flat_sea, shade_texels};

@@ -64,12 +64,19 @@ pub fn shade_texels(heights: &[f32], edge: usize, spacing: f32) -> Vec<u8> {
             let (n, s) = (north.map_or(f32::NAN, |r| r[x]), south.map_or(f32::NAN, |r| r[x]));
             let (gx, gz) = (difference(w, h, e), difference(n, h, s));
             let scale = 1.0 / (gx * gx + two_spacing_squared + gz * gz).sqrt();
-            let level = |v: f32| v == h || !v.is_finite();
-            let sea = h.abs() < 0.5 && level(w) && level(e) && level(n) && level(s);
+            let sea = flat_sea(h, [w, e, n, s]);
             texel.copy_from_slice(&[unorm(gx * scale), unorm(gz * scale), if sea { 255 } else { 0 }, 255]);
         }
     }
     out
+}
+
+/// Whether a sample of height `h` lies in a flat sea, as SRTM and Copernicus store the
+/// sea: within half a metre of 0, and its `neighbours` (west, east, north, south) at the
+/// same height. A neighbour without data (NaN), or past a grid's rim, is left out, or
+/// every tile's rim and every coast beside missing data would draw a line of land.
+pub fn flat_sea(h: f32, neighbours: [f32; 4]) -> bool {
+    h.abs() < 0.5 && neighbours.iter().all(|&v| v == h || !v.is_finite())
 }
 
 /// The central difference `before - after` across a sample `h`; where one of them has no

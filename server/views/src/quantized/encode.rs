@@ -534,5 +534,14 @@ mod tests {
         assert!(m[20 * 256 + 20] < 255, "the point at 0.3 m breaks the flat 0 near the north-west");
         // A basin below sea level (not flat at 0) is land.
         assert_eq!(water_mask(&vec![-30.0; n * n], n), vec![0]);
+        // Beside missing data the sea stays sea, as the renderer draws it (its shade
+        // texels' rule): a flat 0 whose northern rows have no data.
+        let mut coast = vec![0.0f32; n * n];
+        coast[..2 * n].fill(f32::NAN);
+        let m = water_mask(&coast, n);
+        assert_eq!(m[255 * 256 + 128], 255, "south: sea");
+        assert_eq!(m[70 * 256 + 128], 255, "between the row beside the missing data and the next: sea");
+        assert!(terrastream_tiles::flat_sea(0.0, [f32::NAN, 0.0, f32::NAN, 0.0]));
+        assert!(!terrastream_tiles::flat_sea(0.0, [0.2, 0.0, 0.0, 0.0]));
     }
 }

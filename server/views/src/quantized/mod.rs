@@ -312,7 +312,8 @@ pub fn gzip(bytes: &[u8]) -> Vec<u8> {
 
 /// Where a grid of heights (`size` a side, rows from the north, as stored: before any
 /// datum shift) is the sea as DEMs store it, a flat 0 (SRTM, Copernicus): a point and its
-/// neighbours in the grid at one height within half a metre of 0. As the quantized-mesh
+/// neighbours in the grid at one height within half a metre of 0, a neighbour without
+/// data left out ([`terrastream_tiles::flat_sea`], the renderer's rule). As the quantized-mesh
 /// water mask: one byte (0 all land, 255 all sea), else 256 x 256 from the north-west
 /// corner, rows north to south, bilinear between the grid's points (the coast
 /// anti-aliased, as the format allows).
@@ -322,13 +323,18 @@ pub fn water_mask(h: &[f32], size: usize) -> Vec<u8> {
     let sea: Vec<f32> = (0..size * size)
         .map(|i| {
             let (c, r) = (i % size, i / size);
-            let v = h[i];
-            let same = |cc: usize, rr: usize| at(cc, rr) == v;
-            let flat = (c == 0 || same(c - 1, r))
-                && (c + 1 == size || same(c + 1, r))
-                && (r == 0 || same(c, r - 1))
-                && (r + 1 == size || same(c, r + 1));
-            if v.abs() < 0.5 && flat { 1.0 } else { 0.0 }
+            // Past the grid's rim: no neighbour (NaN), as the renderer's shade texels take it.
+            let near = |cc: Option<usize>, rr: Option<usize>| match (cc, rr) {
+                (Some(cc), Some(rr)) if cc < size && rr < size => at(cc, rr),
+                _ => f32::NAN,
+            };
+            let neighbours = [
+                near(c.checked_sub(1), Some(r)),
+                near(Some(c + 1), Some(r)),
+                near(Some(c), r.checked_sub(1)),
+                near(Some(c), Some(r + 1)),
+            ];
+            if terrastream_tiles::flat_sea(h[i], neighbours) { 1.0 } else { 0.0 }
         })
         .collect();
     if sea.iter().all(|&s| s == 0.0) {
