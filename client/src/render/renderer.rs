@@ -111,7 +111,7 @@ fn mesh_params(metadata: &Metadata, elevation: Option<&TileArray>, patch: u32) -
     let base = if terrain.base_tile_size > 0.0 {
         terrain.base_tile_size
     } else {
-        elevation.map_or(1.0, |e| e.layer.tile_world_size / f64::from(e.layer.tile_resolution))
+        elevation.map_or(1.0, |e| e.layer.sample_spacing(0))
     };
     MeshParams::new(base, patch, terrain.high_detail_range, terrain.num_detail_levels)
 }

@@ -89,8 +89,7 @@ impl TileArray {
                         // made here, on the frame's thread.
                         _ => {
                             #[allow(clippy::cast_possible_truncation)]
-                            let spacing =
-                                (self.layer.world_size_at(key.lod()) / f64::from(self.layer.tile_resolution)) as f32;
+                            let spacing = self.layer.sample_spacing(key.lod()) as f32;
                             made = shade_texels(heights, size as usize, spacing);
                             &made
                         }
@@ -123,7 +122,7 @@ impl TileArray {
 
     pub(super) fn shader_info(&self) -> [f32; 4] {
         #[allow(clippy::cast_precision_loss)]
-        let spacing = self.layer.tile_world_size / f64::from(self.layer.tile_resolution);
+        let spacing = self.layer.sample_spacing(0);
         #[allow(clippy::cast_possible_truncation)]
         [self.layer.tile_resolution as f32, f32::from(self.layer.border), self.edge as f32, spacing as f32]
     }

@@ -35,7 +35,7 @@ impl Streamer {
     pub fn normal_at(&self, x: f64, z: f64) -> Option<[f64; 3]> {
         let (layer, lod) = self.best_elevation(x, z)?;
         let info = &self.metadata()?.layers[usize::from(layer)];
-        let h = info.world_size_at(lod) / f64::from(info.tile_resolution);
+        let h = info.sample_spacing(lod);
         let at = |dx: f64, dz: f64| self.sample_height(layer, lod, x + dx, z + dz);
         let (l, r, u, d) = (at(-h, 0.0)?, at(h, 0.0)?, at(0.0, -h)?, at(0.0, h)?);
         let n = glam::DVec3::new(-(r - l) / (2.0 * h), 1.0, -(d - u) / (2.0 * h)).normalize();
@@ -54,7 +54,7 @@ impl Streamer {
         let metadata = backend.metadata();
         let layer = elevation_layer(metadata).ok_or(Error::NoLayer { kind: "elevation" })?;
         let info = &metadata.layers[usize::from(layer)];
-        let spacing = info.tile_world_size / f64::from(info.tile_resolution);
+        let spacing = info.sample_spacing(0);
         // The (up to) four tiles holding the bilinear footprint.
         let mut keys = Vec::new();
         for (dx, dz) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {

@@ -383,6 +383,11 @@ impl Layer {
         self.tile_world_size * f64::from(1u32 << lod.min(31))
     }
 
+    /// World units between two samples at `lod` (a tile's width over its resolution).
+    pub fn sample_spacing(&self, lod: u8) -> f64 {
+        self.world_size_at(lod) / f64::from(self.tile_resolution)
+    }
+
     /// World units covered by the LOD-0 grid: (x across, z down).
     pub fn world_extent(&self) -> (f64, f64) {
         (f64::from(self.num_x_tiles) * self.tile_world_size, f64::from(self.num_y_tiles) * self.tile_world_size)

@@ -100,7 +100,7 @@ fn plan_with(
     }
     // Where each layer's samples end inside its grid (the writer adds the LODs).
     for (layer, plan) in layers.iter_mut().zip(&plans) {
-        let texel = layer.tile_world_size / f64::from(layer.tile_resolution);
+        let texel = layer.sample_spacing(0);
         let (x0, z0) =
             (f64::from(plan.offset.0) * layer.tile_world_size, f64::from(plan.offset.1) * layer.tile_world_size);
         let (w, h) = match (layer.kind, metadata.terrain.data_extent) {

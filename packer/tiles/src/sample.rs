@@ -35,7 +35,7 @@ pub fn height_on_lod<T: std::ops::Deref<Target = DecodedTile>>(
     tile: impl Fn(TileKey) -> Option<T>,
 ) -> Option<f64> {
     let res = info.tile_resolution;
-    let spacing = info.world_size_at(lod) / f64::from(res);
+    let spacing = info.sample_spacing(lod);
     let (nx, ny) = info.grid_at(lod);
     let home = tile_of(info, layer, lod, x, z)?;
     let (gx, gz) = (x / spacing - 0.5, z / spacing - 0.5);

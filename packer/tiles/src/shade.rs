@@ -37,7 +37,7 @@ impl DecodedTile {
             return;
         }
         #[expect(clippy::cast_possible_truncation, reason = "a sample's spacing in metres fits an f32")]
-        let spacing = (layer.world_size_at(self.key.lod()) / f64::from(layer.tile_resolution)) as f32;
+        let spacing = layer.sample_spacing(self.key.lod()) as f32;
         *shade = Some(shade_texels(heights, size as usize, spacing));
     }
 }

@@ -339,7 +339,7 @@ impl<'a> Heights<'a> {
                     continue;
                 }
                 // The neighbours a bilinear or cubic footprint reaches.
-                let spacing = info.world_size_at(lod) / f64::from(info.tile_resolution);
+                let spacing = info.sample_spacing(lod);
                 for (dx, dz) in [
                     (-2.0, -2.0),
                     (2.0, -2.0),

@@ -171,7 +171,7 @@ impl<'a> Placed<'a> {
     /// whose samples are no larger than that (so no detail the pixel shows is lost),
     /// within the LODs that hold tiles.
     pub fn lod_for(&self, world_per_pixel: f64) -> u8 {
-        let spacing = self.layer.tile_world_size / f64::from(self.layer.tile_resolution);
+        let spacing = self.layer.sample_spacing(0);
         let (finest, coarsest) = self
             .layer
             .extent

@@ -47,7 +47,7 @@ pub fn coverage(metadata: &Metadata, layer: &Layer, size: u32) -> Option<Coverag
         }
     };
     // The finest samples' size in metres, measured between two samples at the centre.
-    let spacing = layer.tile_world_size / f64::from(layer.tile_resolution);
+    let spacing = layer.sample_spacing(0);
     let (cx, cz) = ((detail[0] + detail[2]) / 2.0, (detail[1] + detail[3]) / 2.0);
     let (a, b) = (world_to_degrees(cx, cz)?, world_to_degrees(cx + spacing, cz)?);
     let metres = haversine(a, b).max(1e-6);

@@ -326,7 +326,7 @@ pub(crate) fn records(c: &Collection, metadata: &Metadata) -> (Vec<SourceRecord>
     let Some(layer) = metadata.layers.iter().find(|l| l.kind == c.kind) else {
         return (vec![], vec![]);
     };
-    let sample = layer.tile_world_size / f64::from(layer.tile_resolution);
+    let sample = layer.sample_spacing(0);
     let sources = (c.inputs.iter())
         .map(|i| SourceRecord {
             // Its samples, less the margin the layout counts each side.

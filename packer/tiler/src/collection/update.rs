@@ -184,7 +184,7 @@ pub(crate) fn update_collection(
         return Err(bad("its georeference has no origin and scale".into()));
     };
     let crs = g.definition.clone().or(g.crs.clone()).unwrap_or_default();
-    let sample = layer.tile_world_size / f64::from(layer.tile_resolution);
+    let sample = layer.sample_spacing(0);
     let [w_m, h_m] = old.terrain.data_extent.ok_or_else(|| bad("it records no data extent".into()))?;
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a grid's samples")]
     let size = ((w_m / sample).round() as u32, (h_m / sample).round() as u32);

@@ -155,7 +155,7 @@ impl BaseGrid {
     /// cover.
     fn layer_grid(&self, index: usize) -> Result<((u32, u32), f64, [f64; 4])> {
         let l = &self.metadata.layers[index];
-        let spacing = l.tile_world_size / f64::from(l.tile_resolution);
+        let spacing = l.sample_spacing(0);
         let (px, py) = (spacing * self.scale[0], spacing * self.scale[1]);
         if ((px / py) - 1.0).abs() > 1e-9 {
             return Err(Error::input(
