@@ -487,6 +487,89 @@ fn shards_of_a_collection_merge_into_the_single_run() {
     eprintln!("shards hold {held:?} tiles; the single run {}", tiles_of(&whole).len());
 }
 
+/// A collection's planned run, as the cluster Job runs it: the plan, from the inputs'
+/// headers, records every input's depth and lists for each shard the inputs its levels
+/// and its band of the base read (a survey only where its band reaches it); a shard given
+/// only those and the plan makes the tiles a shard given every input makes, byte for byte,
+/// and their merge is the single run. `--list-inputs` says the same lists.
+#[test]
+fn a_planned_shard_of_a_collection_needs_only_the_inputs_its_plan_lists() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let inputs = d.join("in");
+    std::fs::create_dir(&inputs).unwrap();
+    let names = [BASE6, SURVEY_A, SURVEY_B].map(|p| Path::new(p).file_name().unwrap().to_str().unwrap().to_owned());
+    for (path, name) in [BASE6, SURVEY_A, SURVEY_B].iter().zip(&names) {
+        std::fs::copy(repo().join(path), inputs.join(name)).unwrap();
+    }
+    let common = ["--tile-size", "16", "--vertical-datum", "5773", "--height-range", "0,1000"];
+    let tile_in = |folder: &Path, out: &Path, extra: &[&str]| {
+        let mut args = vec!["tile", "--elevation", folder.to_str().unwrap(), "-o", out.to_str().unwrap()];
+        args.extend(common);
+        args.extend(extra);
+        ok(&args, d)
+    };
+    let plan = d.join("plan");
+    let mut args = vec!["tile", "--elevation", inputs.to_str().unwrap(), "--shards", "3"];
+    args.extend(["--shard-plan-out", plan.to_str().unwrap(), "--relative-to", inputs.to_str().unwrap()]);
+    args.extend(common);
+    ok(&args, d);
+    let lists: Vec<Vec<String>> = (0..3)
+        .map(|i| {
+            std::fs::read_to_string(plan.join(format!("shard-{i}.txt"))).unwrap().lines().map(str::to_owned).collect()
+        })
+        .collect();
+    let mut union: Vec<&String> = lists.iter().flatten().collect();
+    union.sort();
+    union.dedup();
+    assert_eq!(union.len(), 3, "every input is some shard's: {lists:?}");
+    assert!(lists.iter().all(|l| l.contains(&names[0])), "every shard reads the base beneath: {lists:?}");
+    assert!(lists.iter().filter(|l| l.len() < 3).count() >= 2, "the surveys are read only where they lie: {lists:?}");
+    let plan_file = plan.join("plan.json");
+    let mut planned = vec![];
+    for (i, list) in lists.iter().enumerate() {
+        let spec = format!("{i}/3");
+        let mut args = vec!["tile", "--elevation", inputs.to_str().unwrap(), "--shard", &spec, "--list-inputs"];
+        args.extend(common);
+        let said = ok(&args, d);
+        let said: Vec<String> =
+            said.lines().map(|l| Path::new(l).file_name().unwrap().to_str().unwrap().to_owned()).collect();
+        assert_eq!(&said, list, "--list-inputs of shard {i}");
+        // In a folder of its own holding only its inputs (as a pod fetches them).
+        let pod = d.join(format!("pod{i}"));
+        std::fs::create_dir(&pod).unwrap();
+        for name in list {
+            std::fs::copy(inputs.join(name), pod.join(name)).unwrap();
+        }
+        let (ours, everyone) = (d.join(format!("p{i}.tspack")), d.join(format!("w{i}.tspack")));
+        tile_in(&pod, &ours, &["--shard", &spec, "--shard-plan", plan_file.to_str().unwrap()]);
+        tile_in(&inputs, &everyone, &["--shard", &spec]);
+        let (a, b) = (tiles_of(&ours), tiles_of(&everyone));
+        assert!(!a.is_empty());
+        assert!(a == b, "shard {i}: {} tiles from its inputs, {} from all; they differ", a.len(), b.len());
+        planned.push(ours);
+    }
+    let merged = d.join("merged.tspack");
+    let mut args = vec!["merge"];
+    args.extend(planned.iter().map(|p| p.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap()]);
+    ok(&args, d);
+    let whole = d.join("whole.tspack");
+    tile_in(&inputs, &whole, &[]);
+    assert_eq!(tiles_of(&merged), tiles_of(&whole), "the merged planned shards' tiles are the single run's");
+    // A shard missing a listed input is told which.
+    let pod = d.join("pod0");
+    let missing = pod.join(&lists[0][1]);
+    std::fs::remove_file(&missing).unwrap();
+    let refused = d.join("x.tspack");
+    let mut args = vec!["tile", "--elevation", pod.to_str().unwrap(), "--shard", "0/3"];
+    args.extend(["--shard-plan", plan_file.to_str().unwrap(), "-o", refused.to_str().unwrap()]);
+    args.extend(common);
+    let out = oracles::run_in(&args, d);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && said.contains(&lists[0][1]), "{said}");
+}
+
 /// A VRT of the base and the patch (`gdalbuildvrt -resolution highest`, each source a
 /// whole file read as it is) is tiled as its two files, each as deep as it reaches: tile
 /// for tile, byte for byte, the run given the files, and its levels finer than the base's

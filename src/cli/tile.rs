@@ -9,7 +9,8 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
     Blend, Collection, Collections, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions,
-    TileRequest, expand_inputs, is_vrt, plan, shard_plan, tile_collection, tile_shard, vrt_files_by_resolution,
+    TileRequest, collection_shard_plan, expand_inputs, is_vrt, plan, plan_layout, shard_plan, tile_collection,
+    tile_shard, vrt_files_by_resolution,
 };
 
 use super::progress::CliProgress;
@@ -172,7 +173,7 @@ pub struct TileArgs {
 
 /// Shard `index` of `count` as `path`'s plan has it: the request goes onto the plan's
 /// grids; every input the plan lists for the shard must be among the request's.
-fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest) -> Result<ShardSpec> {
+fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest) -> Result<(ShardSpec, ShardPlan)> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("{}: cannot read the shard plan", path.display()))?;
     let plan: ShardPlan =
@@ -205,7 +206,29 @@ fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest)
         }
         request.texture_grid = Some(g.spec());
     }
-    Ok(plan.spec(index))
+    Ok((plan.spec(index), plan))
+}
+
+/// The collections a shard plan records, on this shard's plan (the planned grids), their
+/// inputs named as this shard's are.
+fn planned_collections_of(
+    shards: &ShardPlan,
+    plan: &Plan,
+    sources: &Sources,
+    request: &TileRequest,
+) -> Result<(Option<Collection>, Option<Collection>)> {
+    let given: Vec<PathBuf> = request.elevation.iter().chain(&request.texture).cloned().collect();
+    let of = |kind: LayerKind, grid: Option<terrastream_tiler::raster::GridSpec>| -> Result<Option<Collection>> {
+        let Some(planned) = shards.collections.iter().find(|c| c.kind == kind) else { return Ok(None) };
+        let Some(grid) = grid else {
+            bail!("the shard plan holds a collection of {} but this shard has none of those inputs", people_kind(kind))
+        };
+        Ok(Some(Collection::from_planned(planned, &plan.metadata, grid, &given)?))
+    };
+    Ok((
+        of(LayerKind::Elevation, sources.height_mosaic().map(|m| m.grid()))?,
+        of(LayerKind::Texture, sources.image_mosaic().map(|m| m.grid()))?,
+    ))
 }
 
 /// A VRT whose sources are of different resolutions, each a whole file read as it is, is
@@ -257,13 +280,13 @@ fn write_shard_plan(dir: &Path, plan: &ShardPlan, relative_to: Option<&Path>) ->
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot make the folder", dir.display()))?;
     let mut plan = plan.clone();
     if let Some(root) = relative_to {
-        for shard in &mut plan.shards {
-            for input in shard.elevation.iter_mut().chain(&mut shard.texture) {
-                let relative = input
-                    .strip_prefix(root)
-                    .with_context(|| format!("{} is not under --relative-to {}", input.display(), root.display()))?;
-                *input = relative.to_path_buf();
-            }
+        let collected = plan.collections.iter_mut().flat_map(|c| c.inputs.iter_mut().map(|i| &mut i.path));
+        let listed = plan.shards.iter_mut().flat_map(|s| s.elevation.iter_mut().chain(&mut s.texture));
+        for input in listed.chain(collected) {
+            let relative = input
+                .strip_prefix(root)
+                .with_context(|| format!("{} is not under --relative-to {}", input.display(), root.display()))?;
+            *input = relative.to_path_buf();
         }
     }
     let json = serde_json::to_string_pretty(&plan)?;
@@ -445,32 +468,9 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let (elevation, texture) = (inputs.elevation(), inputs.texture());
     let (name, options) = (args.name(), args.options());
     let started = std::time::Instant::now();
-    if let Some(dir) = &args.shard_plan_out {
-        let count = args.shards.unwrap_or(1);
-        let plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
-        write_shard_plan(dir, &plan, args.relative_to.as_deref())?;
-        for (i, shard) in plan.shards.iter().enumerate() {
-            println!(
-                "shard {i}/{count}: {} elevation inputs, {} imagery inputs",
-                shard.elevation.len(),
-                shard.texture.len()
-            );
-        }
-        println!("{}: the plan of {count} shards", dir.join("plan.json").display());
-        return Ok(ExitCode::SUCCESS);
-    }
-    if args.list_inputs {
-        let Some((index, count)) = args.shard else { bail!("--list-inputs needs --shard I/N") };
-        let plan = shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?;
-        let shard = &plan.shards[index as usize];
-        for path in shard.elevation.iter().chain(&shard.texture) {
-            println!("{}", path.display());
-        }
-        return Ok(ExitCode::SUCCESS);
-    }
-    // Inputs of different resolutions, each as deep as it reaches.
-    // Inputs of different resolutions, each as deep as it reaches (heights, imagery).
-    let by_resolution = args.priority == PriorityArg::Resolution;
+    // Inputs of different resolutions, each as deep as it reaches (heights, imagery); a
+    // planned shard's are the plan's (its own inputs are a part of them).
+    let by_resolution = args.priority == PriorityArg::Resolution && planned.is_none();
     let vrt = request.elevation.iter().chain(&request.texture).find(|p| is_vrt(p));
     let sparse_heights = (by_resolution && vrt.is_none())
         .then(|| sources.height_mosaic())
@@ -492,17 +492,54 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
             );
         }
     }
-    if sparse_heights.is_some() || sparse_images.is_some() {
-        if planned.is_some() || args.shard_plan_out.is_some() || args.list_inputs {
-            bail!(
-                "the inputs are of different resolutions (each tiled as deep as it reaches), which planned shards \
-                 do not take yet: give every shard every input (--shard I/N alone), or tile with --priority order"
-            );
+    let blend = args.blend.unwrap_or_default();
+    // The shard plan of this run, from the inputs' headers.
+    let plan_shards = |count: u32| -> Result<ShardPlan> {
+        if sparse_heights.is_none() && sparse_images.is_none() {
+            return Ok(shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?);
         }
-        let mut plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
-        let blend = args.blend.unwrap_or_default();
+        let mut plan = plan_layout(elevation, texture.as_ref(), &name, options)?;
         let heights = sparse_heights.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Elevation, blend));
         let imagery = sparse_images.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Texture, blend));
+        for c in [&heights, &imagery].into_iter().flatten() {
+            c.apply_to(&mut plan);
+        }
+        let collections = Collections { heights: heights.as_ref(), imagery: imagery.as_ref() };
+        Ok(collection_shard_plan(collections, &plan, elevation, texture.as_ref(), count, args.split_lod)?)
+    };
+    if let Some(dir) = &args.shard_plan_out {
+        let count = args.shards.unwrap_or(1);
+        let plan = plan_shards(count)?;
+        write_shard_plan(dir, &plan, args.relative_to.as_deref())?;
+        for (i, shard) in plan.shards.iter().enumerate() {
+            println!(
+                "shard {i}/{count}: {} elevation inputs, {} imagery inputs",
+                shard.elevation.len(),
+                shard.texture.len()
+            );
+        }
+        println!("{}: the plan of {count} shards", dir.join("plan.json").display());
+        return Ok(ExitCode::SUCCESS);
+    }
+    if args.list_inputs {
+        let Some((index, count)) = args.shard else { bail!("--list-inputs needs --shard I/N") };
+        let plan = plan_shards(count)?;
+        let shard = &plan.shards[index as usize];
+        for path in shard.elevation.iter().chain(&shard.texture) {
+            println!("{}", path.display());
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let planned_collections = planned.as_ref().is_some_and(|(_, p)| !p.collections.is_empty());
+    if sparse_heights.is_some() || sparse_images.is_some() || planned_collections {
+        let mut plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
+        let (heights, imagery) = match &planned {
+            Some((_, shards)) => planned_collections_of(shards, &plan, &sources, &request)?,
+            None => (
+                sparse_heights.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Elevation, blend)),
+                sparse_images.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Texture, blend)),
+            ),
+        };
         for c in [&heights, &imagery].into_iter().flatten() {
             c.apply_to(&mut plan);
         }
@@ -520,7 +557,10 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         let Some(output) = &args.output else { bail!("--output is required") };
         super::make_parent(output)?;
         let collections = Collections { heights: heights.as_ref(), imagery: imagery.as_ref() };
-        let shard = args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None });
+        let shard = match &planned {
+            Some((spec, _)) => Some(spec.clone()),
+            None => args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None }),
+        };
         let summary =
             tile_collection(collections, &request, &sources, elevation, texture, &plan, output, shard, progress)?;
         progress.finish();
@@ -562,7 +602,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let Some(output) = &args.output else { bail!("--output is required") };
     super::make_parent(output)?;
     let shard = match planned {
-        Some(spec) => Some(spec),
+        Some((spec, _)) => Some(spec),
         None => args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None }),
     };
     let summary = tile_shard(elevation, texture, &name, output, options, shard, progress)?;

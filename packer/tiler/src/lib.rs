@@ -31,14 +31,15 @@ mod shard;
 mod tile;
 
 pub use collection::{
-    Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, SparseLevel, depth_of, tile_collection,
+    Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, PlannedCollection, SparseLevel,
+    collection_shard_plan, depth_of, tile_collection,
 };
 pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
 pub use edit::merge::{MergeSummary, Prefer, merge, merge_with};
 pub use edit::update::{UpdateSummary, update};
 pub use error::{Error, Result};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
-pub use plan::{LayerPlan, Plan, plan};
+pub use plan::{LayerPlan, Plan, plan, plan_layout};
 pub use request::{Inputs, Sources, TileRequest};
 pub use shard::{PlannedGrid, ShardInputs, ShardPlan, shard_plan};
 pub use terrastream_format::Interrupted;

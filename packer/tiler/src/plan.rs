@@ -32,7 +32,7 @@ pub fn plan(
 ///
 /// # Errors
 /// As [`plan`], less unreadable heights.
-pub(crate) fn plan_layout(
+pub fn plan_layout(
     elevation: Option<&dyn ElevationSource>,
     texture: Option<&TextureInput<'_>>,
     name: &str,

@@ -53,7 +53,11 @@ pub(crate) fn default_split(plan: &Plan, count: u32) -> u8 {
 }
 
 /// [`windows`], and every layer's band boundaries (`count + 1` tile rows at its split LOD).
-fn windows_and_cuts(plan: &Plan, spec: &ShardSpec, weight: &Weight<'_>) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
+pub(crate) fn windows_and_cuts(
+    plan: &Plan,
+    spec: &ShardSpec,
+    weight: &Weight<'_>,
+) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
     if spec.count == 0 || spec.index >= spec.count {
         return Err(Error::option("--shard", format!("{}/{}", spec.index, spec.count), "I/N with 0 <= I < N"));
     }
@@ -127,6 +131,10 @@ pub struct ShardPlan {
     pub cuts: Vec<Vec<u32>>,
     /// Per shard, the inputs its rows read.
     pub shards: Vec<ShardInputs>,
+    /// The collections of the run (inputs of different resolutions, each as deep as it
+    /// reaches): none for a run of one resolution.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub collections: Vec<crate::collection::PlannedCollection>,
 }
 
 /// A mosaic's output grid, with its CRS.
@@ -143,7 +151,7 @@ pub struct PlannedGrid {
 }
 
 impl PlannedGrid {
-    fn of(crs: Option<String>, grid: Option<GridSpec>) -> Option<Self> {
+    pub(crate) fn of(crs: Option<String>, grid: Option<GridSpec>) -> Option<Self> {
         let (crs, g) = (crs?, grid?);
         Some(Self { crs, origin: g.origin, pixel: [g.pixel.0, g.pixel.1], size: [g.size.0, g.size.1] })
     }
@@ -221,6 +229,7 @@ pub fn shard_plan(
         texture_grid: texture.and_then(|t| PlannedGrid::of(crs_of(t.source.georeference()), t.source.mosaic_grid())),
         cuts,
         shards,
+        collections: Vec::new(),
     })
 }
 

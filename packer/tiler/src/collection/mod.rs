@@ -19,7 +19,10 @@
 //! So tiles, bytes and work follow the data: a continent at 1 km with a valley at 2 m
 //! makes the continent's levels and the valley's, not the continent at 2 m.
 
+mod shards;
 pub(crate) mod update;
+
+pub use shards::{PlannedCollection, collection_shard_plan};
 
 use std::collections::{HashSet, VecDeque};
 use std::path::{Path, PathBuf};
@@ -59,7 +62,7 @@ impl Default for Blend {
 pub const DEFAULT_BLEND: u32 = 16;
 
 /// One input of a collection: its file, spacing and depth.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CollectionInput {
     /// The file.
     pub path: PathBuf,
@@ -233,6 +236,61 @@ impl Collection {
             .filter(|i| depth(i.depth) && i.columns.0 <= c1 && i.columns.1 >= c0 && i.rows.0 <= r1 && i.rows.1 >= r0)
             .map(|i| i.path.clone())
             .collect()
+    }
+
+    /// The inputs level `lod`'s rectangle (corner sample `corner`, `grid`) is made from:
+    /// those as deep as the level, the coarser ones beneath, and how many levels coarser
+    /// the finest of those reaches (0: none).
+    pub(crate) fn level_inputs(
+        &self,
+        lod: u8,
+        corner: (u32, u32),
+        grid: &GridSpec,
+    ) -> (Vec<PathBuf>, Vec<PathBuf>, u32) {
+        let fine = self.reaching(lod, corner, grid, &|d| d == lod);
+        let below = self.reaching(lod, corner, grid, &|d| d > lod);
+        let shift = (self.inputs.iter())
+            .filter(|i| i.depth > lod && below.contains(&i.path))
+            .map(|i| u32::from(i.depth - lod))
+            .min()
+            .unwrap_or(0);
+        (fine, below, shift)
+    }
+
+    /// The base level's window: its whole grid, or a shard's band of it (`part`), from
+    /// the base up to the last level (a layer of `num_lods`) or the shard's split LOD.
+    pub(crate) fn base_window(&self, part: Option<&ShardPart>, num_lods: u8) -> Window {
+        let (base, size) = (self.base, self.level_grid(self.base).size);
+        match part {
+            Some(p) => {
+                let down = |n: usize| n >> base;
+                let up = |n: usize, end: usize| if n >= end { size.1 as usize } else { n >> base };
+                let height = self.grid.size.1 as usize;
+                Window {
+                    input_lod: base,
+                    last_lod: p.split,
+                    encode_from: base,
+                    rows: down(p.window.rows.start)..up(p.window.rows.end, height),
+                    band: down(p.window.band.start)..up(p.window.band.end, height),
+                }
+            }
+            None => Window {
+                input_lod: base,
+                last_lod: num_lods - 1,
+                encode_from: base,
+                rows: 0..size.1 as usize,
+                band: 0..size.1 as usize,
+            },
+        }
+    }
+
+    /// The inputs the base level's rows in `window` are made from.
+    pub(crate) fn base_inputs(&self, window: &Window) -> Vec<PathBuf> {
+        let grid = self.level_grid(self.base);
+        let rows =
+            u32::try_from(window.rows.start).unwrap_or(u32::MAX)..u32::try_from(window.rows.end).unwrap_or(u32::MAX);
+        let band = GridSpec { size: (grid.size.0, rows.end.saturating_sub(rows.start)), ..grid };
+        self.reaching(self.base, (0, rows.start), &band, &|d| d >= self.base)
     }
 
     /// Level `lod`'s whole grid.
@@ -441,39 +499,17 @@ pub fn tile_collection(
     // A shard: every layer's band up to a split LOD no finer than the collections' bases
     // (above them the merge makes the levels from the shards' tiles, as for any run).
     let windows = match shard {
-        Some(mut spec) => {
+        Some(spec) => {
             if let Some(t) = texture.as_ref().filter(|t| !t.format.lossless()) {
                 return Err(Error::option("--texture-format", t.format.name(), "png or webp with --shard"));
             }
-            let least = [collections.heights, collections.imagery].into_iter().flatten().map(|c| c.base).max();
-            let default = crate::shard::default_split(&planned, spec.count);
-            spec.split_lod = Some(spec.split_lod.unwrap_or(default).max(least.unwrap_or(0)));
-            let samples = crate::shard::data_weight(&planned, elevation, texture.as_ref());
-            // Balanced by work: each input's samples at the level it reaches (a survey
-            // 2^d times finer than its level counts 4^d times its area's share).
-            let kinds: Vec<LayerKind> = planned.metadata.layers.iter().map(|l| l.kind).collect();
-            let of = |kind: LayerKind| {
-                [collections.heights, collections.imagery].into_iter().flatten().find(|c| c.makes(kind))
-            };
-            let weight = |index: usize, rows: std::ops::Range<u32>| match kinds.get(index).and_then(|&k| of(k)) {
-                Some(c) => c.work(rows),
-                None => samples(index, rows),
-            };
-            let (info, windows) = crate::shard::windows(&planned, &spec, &weight)?;
+            let (info, windows, _) = shards::windows(collections, &planned, spec, elevation, texture.as_ref())?;
             planned.metadata.shard = Some(info);
             windows
         }
         None => full_windows(&planned),
     };
-    let part_of = |c: &Collection| -> Option<ShardPart> {
-        let info = planned.metadata.shard.as_ref()?;
-        let index = planned.metadata.layers.iter().position(|l| l.kind == c.kind)?;
-        Some(ShardPart {
-            split: info.split_lods[index],
-            tile_rows: info.tile_rows[index],
-            window: windows[index].clone(),
-        })
-    };
+    let part_of = |c: &Collection| shards::part(c, &planned.metadata, &windows);
     let metadata = &planned.metadata;
     let folder = terrastream_pack::output_folder(out);
     let mut spool = match (collections.heights, elevation) {
@@ -623,14 +659,9 @@ where
     let layer = &metadata.layers[usize::from(index)];
     progress.start("tile", c.cut_tiles(metadata));
     let sources_of = |lod: u8, corner: (u32, u32), grid: &GridSpec| -> Result<LevelSources<'static, K>> {
-        let fine = open(c.reaching(lod, corner, grid, &|d| d == lod), *grid)?;
+        let (fine, below, shift) = c.level_inputs(lod, corner, grid);
+        let fine = open(fine, *grid)?;
         // The coarser inputs, on the grid of the level they reach (as it stores them).
-        let below = c.reaching(lod, corner, grid, &|d| d > lod);
-        let shift = (c.inputs.iter())
-            .filter(|i| i.depth > lod && below.contains(&i.path))
-            .map(|i| u32::from(i.depth - lod))
-            .min()
-            .unwrap_or(0);
         let scale = f64::from(1u32 << lod);
         let (first, part) =
             coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
@@ -644,34 +675,13 @@ where
     let overrides = make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, part)?;
     phases.mark(&format!("layer {index}: the levels below the base made"));
 
-    // The base: every level from here up over the whole grid, a pyramid as a single run's.
+    // The base: every level from here up over the whole grid, a pyramid as a single run's
+    // (a shard's band of it: made from the inputs its rows read).
     let base = c.base;
     let grid = c.level_grid(base);
-    let size = grid.size;
-    let mosaic = open(c.reaching(base, (0, 0), &grid, &|d| d >= base), grid)?;
+    let window = c.base_window(part, layer.num_lods);
+    let mosaic = open(c.base_inputs(&window), grid)?;
     let encode = |key: TileKey, samples: &[K::Value], edge: usize| encode_tile(key, samples, edge);
-    let window = match part {
-        // A shard's band, from the base up to its split LOD.
-        Some(p) => {
-            let down = |n: usize| n >> base;
-            let up = |n: usize, end: usize| if n >= end { size.1 as usize } else { n >> base };
-            let height = c.grid.size.1 as usize;
-            Window {
-                input_lod: base,
-                last_lod: p.split,
-                encode_from: base,
-                rows: down(p.window.rows.start)..up(p.window.rows.end, height),
-                band: down(p.window.band.start)..up(p.window.band.end, height),
-            }
-        }
-        None => Window {
-            input_lod: base,
-            last_lod: layer.num_lods - 1,
-            encode_from: base,
-            rows: 0..size.1 as usize,
-            band: 0..size.1 as usize,
-        },
-    };
     let rows = u32::try_from(window.rows.start).unwrap_or(0)..u32::try_from(window.rows.end).unwrap_or(0);
     run_pyramid(metadata, index, c.grid.size, &window, &encode, quantize, spool, progress, |push| {
         level_rows(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &overrides, 0, push)

@@ -1,0 +1,195 @@
+//! A collection's run in shards: the bands each shard holds (balanced by work), the inputs
+//! each reads, and the plan that lets a shard given only those make the tiles a shard
+//! given every input makes (`tile --shards N --shard-plan-out`, then `--shard-plan`).
+
+use std::path::{Path, PathBuf};
+
+use terrastream_format::{LayerKind, Metadata, Shard};
+
+use super::{Collection, CollectionInput, Collections, ShardPart, sparse_levels};
+use crate::error::{Error, Result};
+use crate::options::{ShardSpec, TextureInput};
+use crate::plan::Plan;
+use crate::pyramid::Window;
+use crate::raster::{ElevationSource, GridSpec};
+use crate::shard::{PlannedGrid, ShardInputs, ShardPlan};
+
+/// What a shard plan records of a collection: enough for a shard given only some of the
+/// inputs to make the levels a run given all of them makes (the depths come from every
+/// input's spacing, the base from the coarsest: a shard's own inputs would say otherwise).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PlannedCollection {
+    /// The layer it makes (`elevation` or `texture`).
+    pub kind: LayerKind,
+    /// From this level up every level covers the grid.
+    pub base: u8,
+    /// Blend band, samples of each finer input's level.
+    pub blend: u32,
+    /// Every input, in the order given, with its spacing, depth and footprint.
+    pub inputs: Vec<CollectionInput>,
+}
+
+impl Collection {
+    /// What a shard plan records of it.
+    #[must_use]
+    pub fn planned(&self) -> PlannedCollection {
+        PlannedCollection { kind: self.kind, base: self.base, blend: self.blend, inputs: self.inputs.clone() }
+    }
+
+    /// The collection `planned` records, on `metadata`'s layer of its kind and the
+    /// mosaic's LOD-0 `grid` (the plan's), each input named as the one of `given` whose
+    /// path ends with the recorded one (a plan's paths may be relative to a root); inputs
+    /// not given keep the recorded path (a shard's rows do not read them).
+    ///
+    /// # Errors
+    /// [`Error::InvalidOption`] when `metadata` has no layer of the collection's kind.
+    pub fn from_planned(
+        planned: &PlannedCollection,
+        metadata: &Metadata,
+        grid: GridSpec,
+        given: &[PathBuf],
+    ) -> Result<Self> {
+        let layer = metadata.layers.iter().find(|l| l.kind == planned.kind).ok_or_else(|| {
+            Error::option("--shard-plan", format!("a collection of {:?}", planned.kind), "a plan of these inputs")
+        })?;
+        let named = |p: &Path| given.iter().find(|g| g.ends_with(p)).cloned().unwrap_or_else(|| p.to_path_buf());
+        let inputs: Vec<CollectionInput> =
+            (planned.inputs.iter()).map(|i| CollectionInput { path: named(&i.path), ..i.clone() }).collect();
+        let levels = sparse_levels(&inputs, layer, planned.base);
+        Ok(Self { inputs, base: planned.base, levels, grid, blend: planned.blend, kind: planned.kind })
+    }
+
+    /// The inputs shard `part` of this collection reads, each once, in order: those of
+    /// its levels' rectangles (the fine inputs and the coarser ones beneath) and those of
+    /// its band of the base.
+    pub(crate) fn inputs_of(&self, res: u32, num_lods: u8, part: &ShardPart) -> Vec<PathBuf> {
+        let mut read: Vec<PathBuf> = Vec::new();
+        for (l, rects) in self.levels.iter().zip(super::needed_rects(self, res, part)) {
+            for rect in rects {
+                let (corner, grid) = self.rect_grid(l.lod, rect, res);
+                let (fine, below, _) = self.level_inputs(l.lod, corner, &grid);
+                read.extend(fine.into_iter().chain(below));
+            }
+        }
+        read.extend(self.base_inputs(&self.base_window(Some(part), num_lods)));
+        self.inputs.iter().map(|i| &i.path).filter(|p| read.contains(p)).cloned().collect()
+    }
+}
+
+/// Shard `spec` of `collections`' run on `planned`: its split LOD raised to the
+/// collections' bases (the merge makes the levels above from the shards' tiles, as for
+/// any run), its record, every layer's window, and every layer's bands.
+pub(crate) fn windows(
+    collections: Collections<'_>,
+    planned: &Plan,
+    mut spec: ShardSpec,
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<&TextureInput<'_>>,
+) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
+    spec.split_lod = Some(split_lod(collections, planned, &spec));
+    let samples = crate::shard::data_weight(planned, elevation, texture);
+    // Balanced by work: each input's samples at the level it reaches (a survey 2^d times
+    // finer than its level counts 4^d times its area's share).
+    let kinds: Vec<LayerKind> = planned.metadata.layers.iter().map(|l| l.kind).collect();
+    let of = |kind: LayerKind| [collections.heights, collections.imagery].into_iter().flatten().find(|c| c.makes(kind));
+    let weight = |index: usize, rows: std::ops::Range<u32>| match kinds.get(index).and_then(|&k| of(k)) {
+        Some(c) => c.work(rows),
+        None => samples(index, rows),
+    };
+    crate::shard::windows_and_cuts(planned, &spec, &weight)
+}
+
+/// The split LOD of shard `spec` of `collections`' run: the one asked for (or the
+/// default), no finer than the collections' bases.
+fn split_lod(collections: Collections<'_>, planned: &Plan, spec: &ShardSpec) -> u8 {
+    let least = [collections.heights, collections.imagery].into_iter().flatten().map(|c| c.base).max();
+    let default = crate::shard::default_split(planned, spec.count);
+    spec.split_lod.unwrap_or(default).max(least.unwrap_or(0))
+}
+
+/// Collection `c`'s part of a shard (None for a whole run): its layer's band and window.
+pub(crate) fn part(c: &Collection, metadata: &Metadata, windows: &[Window]) -> Option<ShardPart> {
+    let info = metadata.shard.as_ref()?;
+    let index = metadata.layers.iter().position(|l| l.kind == c.kind)?;
+    Some(ShardPart { split: info.split_lods[index], tile_rows: info.tile_rows[index], window: windows[index].clone() })
+}
+
+/// The plan of `count` shards of `collections`' run on `plan` (made from the inputs'
+/// headers): the grids, every layer's bands (balanced by work, the split LOD no finer than
+/// the bases), the collections (every input's depth), and each shard's inputs: those its
+/// levels' rectangles and its band of the base read (a layer of one resolution: those its
+/// rows read, as [`crate::shard_plan`] lists them).
+///
+/// # Errors
+/// [`Error::InvalidOption`] for no shard, or a lossy texture format (shards are merged
+/// from their decoded tiles).
+pub fn collection_shard_plan(
+    collections: Collections<'_>,
+    plan: &Plan,
+    elevation: Option<&dyn ElevationSource>,
+    texture: Option<&TextureInput<'_>>,
+    count: u32,
+    split_lod: Option<u8>,
+) -> Result<ShardPlan> {
+    if let Some(t) = texture.filter(|t| !t.format.lossless()) {
+        return Err(Error::option("--texture-format", t.format.name(), "png or webp with --shard"));
+    }
+    let first = ShardSpec { index: 0, count, split_lod, cuts: None };
+    let split = Some(self::split_lod(collections, plan, &first));
+    let (_, _, cuts) = windows(collections, plan, first, elevation, texture)?;
+    let mut shards = Vec::with_capacity(count as usize);
+    for index in 0..count {
+        let spec = ShardSpec { index, count, split_lod: split, cuts: Some(cuts.clone()) };
+        let (info, bands, _) = windows(collections, plan, spec, elevation, texture)?;
+        let mut metadata = plan.metadata.clone();
+        metadata.shard = Some(info);
+        let mut inputs = ShardInputs::default();
+        for (layer, window) in plan.metadata.layers.iter().zip(&bands) {
+            let rows = to_u32(window.rows.start)..to_u32(window.rows.end);
+            let kind = layer.kind;
+            let list = match layer.kind {
+                LayerKind::Elevation => match collections.heights.filter(|c| c.kind == kind) {
+                    Some(c) => part(c, &metadata, &bands)
+                        .map_or_else(Vec::new, |p| c.inputs_of(layer.tile_resolution, layer.num_lods, &p)),
+                    None => elevation.map_or_else(Vec::new, |e| e.inputs_in_rows(rows.clone())),
+                },
+                LayerKind::Texture => match collections.imagery.filter(|c| c.kind == kind) {
+                    Some(c) => part(c, &metadata, &bands)
+                        .map_or_else(Vec::new, |p| c.inputs_of(layer.tile_resolution, layer.num_lods, &p)),
+                    None => texture.map_or_else(Vec::new, |t| t.source.inputs_in_rows(rows.clone())),
+                },
+                _ => continue,
+            };
+            // A shard that reads nothing still opens its sources on the planned grid: its
+            // list holds the first input.
+            let first = || match layer.kind {
+                LayerKind::Texture => texture.and_then(|t| t.source.inputs_in_rows(0..u32::MAX).into_iter().next()),
+                _ => elevation.and_then(|e| e.inputs_in_rows(0..u32::MAX).into_iter().next()),
+            };
+            let list = if list.is_empty() { first().into_iter().collect() } else { list };
+            match layer.kind {
+                LayerKind::Texture => inputs.texture = list,
+                _ => inputs.elevation = list,
+            }
+        }
+        shards.push(inputs);
+    }
+    let crs_of = |g: Option<&terrastream_format::Georeference>| g.and_then(|g| g.crs.clone());
+    Ok(ShardPlan {
+        count,
+        split_lod: split,
+        elevation_grid: elevation.and_then(|e| PlannedGrid::of(crs_of(e.georeference()), e.mosaic_grid())),
+        texture_grid: texture.and_then(|t| PlannedGrid::of(crs_of(t.source.georeference()), t.source.mosaic_grid())),
+        cuts,
+        shards,
+        collections: [collections.heights, collections.imagery]
+            .into_iter()
+            .flatten()
+            .map(Collection::planned)
+            .collect(),
+    })
+}
+
+fn to_u32(n: usize) -> u32 {
+    u32::try_from(n).unwrap_or(u32::MAX)
+}
