@@ -43,7 +43,7 @@ pub use jpeg::JPEG_MAX_DECODED_BYTES;
 pub use jpegrows::jpeg_rows;
 pub use kind::{Heights, MosaicKind, Pixels};
 pub use memory::{Image, ImageWindow, Raster};
-pub use mosaic::{GridSpec, InputLayout, Mosaic, MosaicOptions, OPEN_FILES, vrt_files_by_resolution};
+pub use mosaic::{GridSpec, InputLayout, LATTICE, Mosaic, MosaicOptions, OPEN_FILES, vrt_files_by_resolution};
 pub use vrt::{Vrt, VrtSource, is_vrt, read_vrt};
 pub use warp::{Warped, image_pixel_metres};
 

@@ -62,8 +62,9 @@ fn open_files_limit() -> usize {
 /// that grows with the square of the lattice's cell: on the 64-file mosaic of two UTM
 /// zones at 6.8 m, heights differ from a lattice of 16's by 0.18 mm at most (measured),
 /// where GDAL's warper allows 1/8 of a pixel of position error by default. 32 rather
-/// than 16 made that mosaic's rows 9 % faster.
-const LATTICE: usize = 32;
+/// than 16 made that mosaic's rows 9 % faster. A part of a grid opened on its own (its
+/// corner a whole number of lattice cells from the grid's) makes the grid's samples there.
+pub const LATTICE: usize = 32;
 
 /// [`LATTICE`], for row numbers.
 const LATTICE_ROWS: u32 = 32;

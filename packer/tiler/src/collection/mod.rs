@@ -323,14 +323,20 @@ impl Collection {
     /// The level-`lod` grid over tile rectangle `rect` (with `res`-sample tiles), clipped
     /// to the level's samples: its corner sample, and the grid.
     fn rect_grid(&self, lod: u8, rect: [u32; 4], res: u32) -> ((u32, u32), GridSpec) {
-        let g = self.grid;
-        let scale = f64::from(1u32 << lod);
-        let (w, h) = (g.size.0.div_ceil(1 << lod).max(1), g.size.1.div_ceil(1 << lod).max(1));
+        let (w, h) = (self.grid.size.0.div_ceil(1 << lod).max(1), self.grid.size.1.div_ceil(1 << lod).max(1));
         let (c0, r0) = (rect[0] * res, rect[1] * res);
         let (c1, r1) = (((rect[2] + 1) * res).min(w), ((rect[3] + 1) * res).min(h));
+        ((c0, r0), self.sample_grid(lod, (c0, r0), (c1 - c0, r1 - r0)))
+    }
+
+    /// The level-`lod` grid of `size` samples from its sample `corner` (its corner placed
+    /// from the whole grid's, as every part of the level is: the same samples).
+    fn sample_grid(&self, lod: u8, corner: (u32, u32), size: (u32, u32)) -> GridSpec {
+        let g = self.grid;
+        let scale = f64::from(1u32 << lod);
         let pixel = (g.pixel.0 * scale, g.pixel.1 * scale);
-        let origin = [g.origin[0] + f64::from(c0) * pixel.0, g.origin[1] - f64::from(r0) * pixel.1];
-        ((c0, r0), GridSpec { origin, pixel, size: (c1 - c0, r1 - r0) })
+        let origin = [g.origin[0] + f64::from(corner.0) * pixel.0, g.origin[1] - f64::from(corner.1) * pixel.1];
+        GridSpec { origin, pixel, size }
     }
 }
 
@@ -797,7 +803,12 @@ where
         for &rect in rects {
             progress.check()?;
             let (corner, grid) = c.rect_grid(lod, rect, res);
-            let LevelSources { fine, coarse } = sources(lod, corner, &grid)?;
+            // Only the part of the rectangle its tiles (and their borders) need is made:
+            // the rest of its ring of tiles, which no tile holds, stays empty.
+            let Some(live) = live_part(level, rect, res, corner, &grid) else { continue };
+            let live_corner = (corner.0 + live[0], corner.1 + live[1]);
+            let live_grid = c.sample_grid(lod, live_corner, (live[2] - live[0], live[3] - live[1]));
+            let LevelSources { fine, coarse } = sources(lod, live_corner, &live_grid)?;
             let coarse = coarse.map(|(source, shift, first)| Coarse { source, shift, first, quantize });
             let mut local = metadata.clone();
             {
@@ -816,48 +827,58 @@ where
                 let global = TileKey::new(index, lod, x, y)?;
                 Ok(encode_tile(global, samples, edge)?.into_iter().map(|(_, bytes)| (key, bytes)).collect())
             };
-            let mut halved = Override { x0: corner.0 as usize / 2, y0: corner.1 as usize / 2, rows: Vec::new() };
-            let mut even: Option<Vec<K::Value>> = None;
+            let mut halved =
+                Override { x0: live_corner.0 as usize / 2, y0: live_corner.1 as usize / 2, rows: Vec::new() };
             {
-                let (fine, coarse, halved, even) = (fine.as_ref(), coarse.as_ref(), &mut halved, &mut even);
+                let (fine, coarse, halved) = (fine.as_ref(), coarse.as_ref(), &mut halved);
                 let (overrides, blend) = (&overrides, c.blend);
-                // Rows are made (read, blended, halved) on a thread of their own while
-                // the pyramid cuts the ones before.
+                let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
+                let (x0, y0, lh) = (live[0] as usize, live[1] as usize, live_grid.size.1 as usize);
+                // Rows are made (read, blended, rounded, halved, widened to the
+                // rectangle) in bands on every core while the pyramid cuts the ones
+                // before (one level: nothing for it to round again).
+                let widen = move |row: Vec<K::Value>| {
+                    let mut full = Vec::with_capacity(w);
+                    full.resize(x0, K::Value::NONE);
+                    full.extend_from_slice(&row);
+                    full.resize(w, K::Value::NONE);
+                    full
+                };
+                let finish = RowFinish { quantize, widen: &widen };
                 run_pyramid(
                     &local,
                     index,
                     grid.size,
-                    &Window::full(1, grid.size.1 as usize),
+                    &Window::full(1, h),
                     &encode,
-                    quantize,
+                    None,
                     &mut made,
                     progress,
                     move |push| {
-                        level_rows_in_bands(fine, coarse, &grid, corner, overrides, blend, &mut |mut row| {
-                            if let Some(q) = quantize {
-                                q(&mut row);
-                            }
-                            match even.take() {
-                                None => *even = Some(row.clone()),
-                                Some(a) => {
-                                    let mut half = halve_rows(&a, &row);
-                                    if let Some(q) = quantize {
-                                        q(&mut half);
-                                    }
-                                    halved.rows.push(half);
-                                }
-                            }
-                            push(row)
-                        })
+                        let none = || vec![K::Value::NONE; w];
+                        for _ in 0..y0 {
+                            push(none())?;
+                        }
+                        let finish = &finish;
+                        level_rows_in_bands(
+                            fine,
+                            coarse,
+                            &live_grid,
+                            live_corner,
+                            overrides,
+                            blend,
+                            finish,
+                            &mut |(row, half)| {
+                                halved.rows.extend(half);
+                                push(row)
+                            },
+                        )?;
+                        for _ in y0 + lh..h {
+                            push(none())?;
+                        }
+                        Ok(())
                     },
                 )?;
-            }
-            if let Some(a) = even.take() {
-                let mut half = halve_rows(&a, &vec![K::Value::NONE; a.len()]);
-                if let Some(q) = quantize {
-                    q(&mut half);
-                }
-                halved.rows.push(half);
             }
             let mut sorted = made.into_sorted()?;
             while let Some((_, key, bytes)) = sorted.next_tile()? {
@@ -870,6 +891,30 @@ where
         overrides = next;
     }
     Ok(overrides)
+}
+
+/// The part of a level's rectangle `rect` (corner sample `corner`, `grid`) that its tiles
+/// need made: the tiles `level` holds there, with a margin of two samples (their borders,
+/// and the edge beyond the fine data the blend measures from), its corner on the mosaics'
+/// lattice (an even sample of the level: its 2x2 means fall on the next level's): its
+/// first and end column and row in the rectangle; None when it holds no tile.
+fn live_part(level: &SparseLevel, rect: [u32; 4], res: u32, corner: (u32, u32), grid: &GridSpec) -> Option<[u32; 4]> {
+    const MARGIN: u32 = 2;
+    let inside = |&&(x, y): &&(u32, u32)| (rect[0]..=rect[2]).contains(&x) && (rect[1]..=rect[3]).contains(&y);
+    let held: Vec<&(u32, u32)> = level.tiles.iter().filter(inside).collect();
+    let (tx0, tx1) = (held.iter().map(|t| t.0).min()?, held.iter().map(|t| t.0).max()?);
+    let (ty0, ty1) = (held.iter().map(|t| t.1).min()?, held.iter().map(|t| t.1).max()?);
+    // From the rectangle's corner, on the mosaic's lattice of exact transforms from the
+    // level's corner (so that the part's samples are the whole level's; even, too).
+    let lattice = u32::try_from(crate::raster::LATTICE).unwrap_or(32);
+    let start = |t: u32, first: u32, corner: u32| {
+        let s = ((t - first) * res).saturating_sub(MARGIN);
+        ((corner + s) / lattice * lattice).max(corner) - corner
+    };
+    let end = |t: u32, first: u32, size: u32| ((t + 1 - first) * res + MARGIN).min(size);
+    let (x0, y0) = (start(tx0, rect[0], corner.0), start(ty0, rect[1], corner.1));
+    let (x1, y1) = (end(tx1, rect[0], grid.size.0), end(ty1, rect[1], grid.size.1));
+    (x1 > x0 && y1 > y0).then_some([x0, y0, x1, y1])
 }
 
 /// The coarser inputs beneath a level, sampled on a grid `2^shift` times coarser than the
@@ -1003,29 +1048,90 @@ impl<S: Pixel> Upsample<S> {
         (c, f)
     }
 
-    /// Level row `gy` (absolute), pulling coarse rows as needed.
-    fn row(&mut self, gy: u32, pull: &mut dyn FnMut() -> Result<Vec<S>>) -> Result<Vec<S>> {
-        let (r, fy) = Self::at(gy, self.shift, self.first.1, self.size.1);
+    /// Pulls the coarse rows level row `gy` (absolute) reads.
+    fn reach(&mut self, gy: u32, pull: &mut dyn FnMut() -> Result<Vec<S>>) -> Result<()> {
+        let (r, _) = Self::at(gy, self.shift, self.first.1, self.size.1);
         while self.front + self.held.len() < (r + 2).min(self.size.1) {
             self.held.push_back(pull()?);
         }
+        Ok(())
+    }
+
+    /// Lets go of the coarse rows no level row from `gy` on reads.
+    fn release(&mut self, gy: u32) {
+        let (r, _) = Self::at(gy, self.shift, self.first.1, self.size.1);
         while self.front < r && self.held.len() > 2 {
             self.held.pop_front();
             self.front += 1;
         }
+    }
+
+    /// Columns `columns` of level row `gy` (absolute) into `row`, between the rows
+    /// [`Self::reach`] pulled and [`Self::release`] kept.
+    fn fill(&self, gy: u32, row: &mut [S], columns: std::ops::Range<usize>) {
+        let Some(&(c0, _)) = self.columns.get(columns.start) else { return };
+        let (r, fy) = Self::at(gy, self.shift, self.first.1, self.size.1);
         let top = &self.held[r - self.front];
         let bottom = self.held.get(r + 1 - self.front).unwrap_or(top);
-        // Down first (a coarse row's worth), then across; where one of two values is
-        // missing, the other stands.
-        let between: Vec<S> = top.iter().zip(bottom).map(|(&a, &b)| S::lerp(a, b, fy)).collect();
+        // Down first (the coarse columns these read), then across; where one of two
+        // values is missing, the other stands.
         let last = self.size.0.saturating_sub(1);
-        Ok(self.columns.iter().map(|&(c, fx)| S::lerp(between[c], between[(c + 1).min(last)], fx)).collect())
+        let c1 = self.columns.get(columns.end.saturating_sub(1)).map_or(c0, |&(c, _)| c);
+        let (c1, c1_next) = (c1.min(last), (c1 + 1).min(last));
+        let between: Vec<S> = (c0..=c1_next.max(c1)).map(|c| S::lerp(top[c], bottom[c], fy)).collect();
+        let at = |c: usize| between[c - c0];
+        for (out, &(c, fx)) in row[columns.clone()].iter_mut().zip(&self.columns[columns]) {
+            *out = S::lerp(at(c), at((c + 1).min(last)), fx);
+        }
+    }
+}
+
+/// How [`level_rows_in_bands`] finishes each row where it is made: rounded to the stored
+/// precision (`quantize`), the 2x2 means of each pair of rows taken from it (with the
+/// grid's first row even on the level), then `widened` (the rows the pyramid takes).
+pub(crate) struct RowFinish<'f, S> {
+    quantize: Option<&'f QuantizeRow<'f, S>>,
+    widen: &'f (dyn Fn(Vec<S>) -> Vec<S> + Sync),
+}
+
+/// A row as [`level_rows_in_bands`] hands it over: the row, and after each pair (or a
+/// last row alone), the pair's 2x2 means.
+type Finished<S> = (Vec<S>, Option<Vec<S>>);
+
+impl<S: Pixel> RowFinish<'_, S> {
+    /// Rows `rows` (the grid's from an even one) finished.
+    fn rows(&self, rows: Vec<Vec<S>>, emit: &mut dyn FnMut(Finished<S>) -> Result<()>) -> Result<()> {
+        let mut rows = rows.into_iter();
+        while let Some(mut a) = rows.next() {
+            let q = |row: &mut Vec<S>| {
+                if let Some(q) = self.quantize {
+                    q(row);
+                }
+            };
+            q(&mut a);
+            let b = rows.next().map(|mut b| {
+                q(&mut b);
+                b
+            });
+            let mut half = halve_rows(&a, b.as_deref().unwrap_or(&vec![S::NONE; a.len()]));
+            q(&mut half);
+            match b {
+                Some(b) => {
+                    emit(((self.widen)(a), None))?;
+                    emit(((self.widen)(b), Some(half)))?;
+                }
+                None => emit(((self.widen)(a), Some(half)))?,
+            }
+        }
+        Ok(())
     }
 }
 
 /// [`level_rows`] of a whole rectangle's `grid`, made in bands of rows on every core (each
-/// band with `blend` rows more above and below, for the blend's distances) and handed to
-/// `emit` in order. The rows are those [`level_rows`] makes in one run.
+/// band with `blend` rows more above and below, for the blend's distances), finished
+/// there (`finish`) and handed to `emit` in order. The rows are those [`level_rows`] makes
+/// in one run.
+#[expect(clippy::too_many_arguments, reason = "the sources, where the rows lie, what to blend and finish")]
 fn level_rows_in_bands<K: MosaicKind>(
     fine: Option<&Mosaic<K>>,
     coarse: Option<&Coarse<'_, '_, K::Value>>,
@@ -1033,21 +1139,27 @@ fn level_rows_in_bands<K: MosaicKind>(
     corner: (u32, u32),
     overrides: &[Override<K::Value>],
     blend: u32,
-    emit: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
+    finish: &RowFinish<'_, K::Value>,
+    emit: &mut dyn FnMut(Finished<K::Value>) -> Result<()>,
 ) -> Result<()>
 where
     K::Value: Pixel,
 {
     /// Rows a band holds (at least; more where the blend's margin would outweigh it).
     const BAND: u32 = 128;
+    /// Samples a band holds at most (unless its least rows are more): each worker holds
+    /// one being made and one made.
+    const BAND_SAMPLES: u32 = 1 << 24;
     let h = grid.size.1;
     let threads = std::thread::available_parallelism().map_or(1, std::num::NonZero::get).min(8);
-    let band = BAND.max(blend.saturating_mul(4));
+    // Each band is made with the blend's rows above and below it again: a few bands a
+    // worker, as tall as memory allows, so that those are few. An even number of rows,
+    // so that each pair of rows lies in one band.
+    let least = BAND.max(blend.saturating_mul(4));
+    let most = least.max(BAND_SAMPLES / grid.size.0.max(1));
+    let band = h.div_ceil(u32::try_from(threads * 3).unwrap_or(u32::MAX)).clamp(least, most).next_multiple_of(2);
     let bands: Vec<std::ops::Range<u32>> = (0..h).step_by(band as usize).map(|a| a..(a + band).min(h)).collect();
-    if threads < 2 || bands.len() < 2 {
-        return level_rows(fine, coarse, grid, corner, 0..h, overrides, blend, emit);
-    }
-    let make = |b: &std::ops::Range<u32>| -> Result<Vec<Vec<K::Value>>> {
+    let make = |b: &std::ops::Range<u32>| -> Result<Vec<Finished<K::Value>>> {
         let read = b.start.saturating_sub(blend)..b.end.saturating_add(blend).min(h);
         let mut rows = Vec::with_capacity(read.len());
         let at = (corner.0, corner.1 + read.start);
@@ -1055,8 +1167,17 @@ where
             rows.push(r);
             Ok(())
         })?;
-        Ok(rows.into_iter().skip((b.start - read.start) as usize).take(b.len()).collect())
+        let rows: Vec<Vec<K::Value>> = rows.into_iter().skip((b.start - read.start) as usize).take(b.len()).collect();
+        let mut made = Vec::with_capacity(rows.len());
+        finish.rows(rows, &mut |r| {
+            made.push(r);
+            Ok(())
+        })?;
+        Ok(made)
     };
+    if threads < 2 || bands.len() < 2 {
+        return bands.iter().try_for_each(|b| make(b)?.into_iter().try_for_each(&mut *emit));
+    }
     std::thread::scope(|scope| -> Result<()> {
         // Worker t makes bands t, t + threads, …; each hands them over one at a time, so
         // at most a band a worker waits made ahead of the one being emitted.
@@ -1064,7 +1185,7 @@ where
         let mut workers = Vec::with_capacity(threads);
         let mut receivers = Vec::with_capacity(threads);
         for t in 0..threads {
-            let (send, receive) = std::sync::mpsc::sync_channel::<Result<Vec<Vec<K::Value>>>>(1);
+            let (send, receive) = std::sync::mpsc::sync_channel::<Result<Vec<Finished<K::Value>>>>(1);
             receivers.push(receive);
             workers.push(scope.spawn(move || {
                 for b in bands.iter().skip(t).step_by(threads) {
@@ -1112,21 +1233,22 @@ where
     let (w, h) = (grid.size.0 as usize, rows.len());
     // No fine data: nothing to blend (and no distances to find).
     let mut ring = Blender::new(w, if fine.is_some() { blend as usize } else { 0 }, corner, overrides);
-    let none = || vec![K::Value::NONE; w];
     let Some(coarse) = coarse else {
+        let no_coarse = |_: usize, _: &mut [K::Value], _: std::ops::Range<usize>| {};
         match fine {
-            Some(m) => m.rows_of(rows.clone(), &mut |r| Ok(ring.push(r.to_vec(), none(), emit)?))?,
+            Some(m) => m.rows_of(rows.clone(), &mut |r| Ok(ring.push(r.to_vec(), &no_coarse, emit)?))?,
             None => {
-                for _ in 0..h {
-                    ring.push(none(), none(), emit)?;
+                for j in 0..h {
+                    emit(overridden(overrides, corner.0 as usize, corner.1 as usize + j, w, &|_, _| {}))?;
                 }
             }
         }
-        return ring.finish(h, emit);
+        return ring.finish(h, &no_coarse, emit);
     };
     let (mut up, pulled) = Upsample::new(coarse, corner, w, u32::try_from(h).unwrap_or(u32::MAX));
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
     let (k, quantize) = (&coarse.source, coarse.quantize);
+    let level_row = |y: usize| corner.1 + u32::try_from(y).unwrap_or(u32::MAX);
     std::thread::scope(|scope| -> Result<()> {
         let reader = scope.spawn(move || {
             k.rows(pulled, &mut |mut r| {
@@ -1147,13 +1269,24 @@ where
                 })
             })
         });
-        let made = (0..u32::try_from(h).unwrap_or(u32::MAX)).try_for_each(|j| {
-            let fine_row = match fine_reader {
-                Some(_) => fine_receive.recv().map_err(|_| crate::error::interrupted())?,
-                None => none(),
-            };
-            let coarse = up.row(corner.1 + j, &mut pull)?;
-            ring.push(fine_row, coarse, emit)
+        let made = (0..u32::try_from(h).unwrap_or(u32::MAX)).try_for_each(|j| -> Result<()> {
+            let gy = corner.1 + j;
+            up.reach(gy, &mut pull)?;
+            if fine_reader.is_none() {
+                // No fine data: the finer level's means where they lie, else the coarser
+                // data beneath (nothing to blend, nothing held).
+                let row = overridden(overrides, corner.0 as usize, gy as usize, w, &|row, columns| {
+                    up.fill(gy, row, columns);
+                });
+                up.release(gy);
+                return emit(row);
+            }
+            let fine_row = fine_receive.recv().map_err(|_| crate::error::interrupted())?;
+            // The coarse rows stay until the rows the blend holds are out: a row inside
+            // a survey reads them only near its edge, when it is emitted.
+            ring.push(fine_row, &|y, row: &mut [K::Value], columns| up.fill(level_row(y), row, columns), emit)?;
+            up.release(level_row(ring.emitted));
+            Ok(())
         });
         drop(receive);
         drop(fine_receive);
@@ -1165,7 +1298,44 @@ where
         fine_read?;
         read
     })?;
-    ring.finish(h, emit)
+    ring.finish(h, &|y, row: &mut [K::Value], columns| up.fill(level_row(y), row, columns), emit)
+}
+
+/// Row `gy` (absolute) of a level without fine data, `w` columns from `gx0`: the finer
+/// level's means where they lie (`overrides`), else the coarser data beneath (`fill` of
+/// those columns).
+fn overridden<S: Pixel>(
+    overrides: &[Override<S>],
+    gx0: usize,
+    gy: usize,
+    w: usize,
+    fill: &dyn Fn(&mut [S], std::ops::Range<usize>),
+) -> Vec<S> {
+    let mut out = vec![S::NONE; w];
+    apply_overrides(overrides, gx0, gy, &mut out);
+    let mut x = 0;
+    while let Some(start) = out[x..].iter().position(|v| !v.has_data()).map(|p| p + x) {
+        let end = out[start..].iter().position(Pixel::has_data).map_or(w, |p| p + start);
+        fill(&mut out, start..end);
+        x = end;
+    }
+    out
+}
+
+/// The finer level's means (`overrides`) where they lie over row `gy` (absolute) of a
+/// level, `out` from column `gx0`.
+fn apply_overrides<S: Pixel>(overrides: &[Override<S>], gx0: usize, gy: usize, out: &mut [S]) {
+    let w = out.len();
+    for o in overrides {
+        let Some(src) = gy.checked_sub(o.y0).and_then(|r| o.rows.get(r)) else { continue };
+        let (from, to) = (o.x0.max(gx0), (o.x0 + src.len()).min(gx0 + w));
+        for gx in from..to {
+            let v = src[gx - o.x0];
+            if v.has_data() {
+                out[gx - gx0] = v;
+            }
+        }
+    }
 }
 
 /// A level's rows held until the rows `band` below them are in (for the blend's distance
@@ -1175,147 +1345,199 @@ struct Blender<'a, S> {
     band: usize,
     corner: (u32, u32),
     overrides: &'a [Override<S>],
-    /// Rows `front..` (fine, coarse, distance along the row to the fine data's edge).
-    held: VecDeque<(Vec<S>, Vec<S>, Vec<u32>)>,
-    /// Per row held, the runs of columns within the band of an edge (first, end).
-    near: VecDeque<Vec<(usize, usize)>>,
+    /// Rows `front..`.
+    held: VecDeque<Held<S>>,
     front: usize,
     emitted: usize,
 }
+
+/// A row a [`Blender`] holds.
+struct Held<S> {
+    fine: Vec<S>,
+    /// The coarser data beneath where the fine data has none, and where the blend
+    /// reaches (else none; empty: none at all).
+    coarse: Vec<S>,
+    /// Distance along the row to the fine data's edge, up to the band + 1 (empty: a row
+    /// without an edge).
+    across: Vec<u32>,
+    /// The runs of columns within the band of an edge (first, end), in order.
+    near: Vec<(usize, usize)>,
+}
+
+/// Fills columns of a [`Blender`]'s row `y` (of the rows it is given) with the coarser
+/// data beneath.
+type CoarseOf<'c, S> = dyn Fn(usize, &mut [S], std::ops::Range<usize>) + 'c;
 
 impl<'a, S: Pixel> Blender<'a, S> {
     /// Rows `width` across from level column `corner.0`, row `corner.1`, blended across
     /// `band` samples, the finer level's means `overrides` over them.
     fn new(width: usize, band: usize, corner: (u32, u32), overrides: &'a [Override<S>]) -> Self {
-        Self { width, band, corner, overrides, held: VecDeque::new(), near: VecDeque::new(), front: 0, emitted: 0 }
+        Self { width, band, corner, overrides, held: VecDeque::new(), front: 0, emitted: 0 }
     }
 
-    fn push(&mut self, fine: Vec<S>, coarse: Vec<S>, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
-        // Along the row: the distance to the nearest sample where the coarse data has
-        // heights and the fine data none (the fine data's edge), up to the band + 1.
+    /// Takes the next row's fine data (the coarser data beneath read from `coarse_of` as
+    /// needed); emits the rows whose blend is known.
+    fn push(
+        &mut self,
+        fine: Vec<S>,
+        coarse_of: &CoarseOf<'_, S>,
+        emit: &mut dyn FnMut(Vec<S>) -> Result<()>,
+    ) -> Result<()> {
+        let y = self.front + self.held.len();
+        // The coarser data where the fine data has none; where the blend reaches the
+        // fine data from an edge, once the rows around are in (most of a survey: none).
+        let mut coarse = Vec::new();
+        let mut x = 0;
+        while let Some(start) = fine[x..].iter().position(|v| !v.has_data()).map(|p| p + x) {
+            let end = fine[start..].iter().position(Pixel::has_data).map_or(fine.len(), |p| p + start);
+            if coarse.is_empty() {
+                coarse = vec![S::NONE; self.width];
+            }
+            coarse_of(y, &mut coarse, start..end);
+            x = end;
+        }
+        let (across, near) =
+            if self.band > 0 && !coarse.is_empty() { self.edge(&fine, &coarse) } else { (Vec::new(), Vec::new()) };
+        self.held.push_back(Held { fine, coarse, across, near });
+        if y + 1 > self.emitted + self.band {
+            self.emit_next(coarse_of, emit)?;
+        }
+        Ok(())
+    }
+
+    /// Along a row: the distance to the nearest sample where the coarse data has heights
+    /// and the fine data none (the fine data's edge), up to the band + 1; and the runs of
+    /// columns within the band of an edge, in order, touching ones joined. (A row with no
+    /// fine data is all edge where the coarse data has heights: the rows above and below
+    /// a survey count as much as those beside it.)
+    fn edge(&self, fine: &[S], coarse: &[S]) -> (Vec<u32>, Vec<(usize, usize)>) {
         let cap = u32::try_from(self.band + 1).unwrap_or(u32::MAX);
         let mut across = vec![cap; self.width];
-        // (A row with no fine data is all edge where the coarse data has heights: the
-        // rows above and below a survey count as much as those beside it. A row with fine
-        // data everywhere has no edge: most rows inside a survey.)
-        let edged = self.band > 0 && !fine.iter().all(Pixel::has_data);
-        // Runs of columns within the band of an edge, in order, touching ones joined.
         let mut runs: Vec<(usize, usize)> = Vec::new();
         let add = |runs: &mut Vec<(usize, usize)>, from: usize, to: usize| match runs.last_mut() {
             _ if from >= to => {}
             Some(last) if last.1 >= from => last.1 = last.1.max(to),
             _ => runs.push((from, to)),
         };
-        if edged {
-            // Each edge sample, then each run of others between two edges (or an edge and
-            // the row's end): the distance to the nearer edge, set only within the band.
-            let (w, c) = (self.width, self.band + 1);
-            let is_edge = |x: usize| !fine[x].has_data() && coarse[x].has_data();
-            let distance = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
-            let mut x = 0;
-            while x < w {
-                if is_edge(x) {
-                    across[x] = 0;
-                    add(&mut runs, x, x + 1);
-                    x += 1;
-                    continue;
+        // Each edge sample, then each run of others between two edges (or an edge and the
+        // row's end): the distance to the nearer edge, set only within the band.
+        let (w, c) = (self.width, self.band + 1);
+        let is_edge = |x: usize| !fine[x].has_data() && coarse[x].has_data();
+        let distance = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+        let mut x = 0;
+        while x < w {
+            if is_edge(x) {
+                across[x] = 0;
+                add(&mut runs, x, x + 1);
+                x += 1;
+                continue;
+            }
+            let s = x;
+            while x < w && !is_edge(x) {
+                x += 1;
+            }
+            if s > 0 {
+                let end = x.min(s + c - 1);
+                for (i, a) in across.iter_mut().enumerate().take(end).skip(s) {
+                    *a = distance(i - s + 1);
                 }
-                let s = x;
-                while x < w && !is_edge(x) {
-                    x += 1;
+                add(&mut runs, s, end);
+            }
+            if x < w {
+                let from = s.max((x + 1).saturating_sub(c));
+                for (i, a) in across.iter_mut().enumerate().take(x).skip(from) {
+                    *a = (*a).min(distance(x - i));
                 }
-                if s > 0 {
-                    let end = x.min(s + c - 1);
-                    for (i, a) in across.iter_mut().enumerate().take(end).skip(s) {
-                        *a = distance(i - s + 1);
-                    }
-                    add(&mut runs, s, end);
-                }
-                if x < w {
-                    let from = s.max((x + 1).saturating_sub(c));
-                    for (i, a) in across.iter_mut().enumerate().take(x).skip(from) {
-                        *a = (*a).min(distance(x - i));
-                    }
-                    add(&mut runs, from, x);
-                }
+                add(&mut runs, from, x);
             }
         }
-        self.near.push_back(runs);
-        self.held.push_back((fine, coarse, across));
-        let received = self.front + self.held.len();
-        if received > self.emitted + self.band {
-            self.emit_next(emit)?;
-        }
-        Ok(())
+        (across, runs)
     }
 
-    fn finish(mut self, h: usize, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
+    fn finish(
+        mut self,
+        h: usize,
+        coarse_of: &CoarseOf<'_, S>,
+        emit: &mut dyn FnMut(Vec<S>) -> Result<()>,
+    ) -> Result<()> {
         while self.emitted < h.min(self.front + self.held.len()) {
-            self.emit_next(emit)?;
+            self.emit_next(coarse_of, emit)?;
         }
         Ok(())
     }
 
     /// Emits row `emitted`, then drops the rows no later row needs.
-    fn emit_next(&mut self, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
+    fn emit_next(&mut self, coarse_of: &CoarseOf<'_, S>, emit: &mut dyn FnMut(Vec<S>) -> Result<()>) -> Result<()> {
         let y = self.emitted;
         let (band, w) = (self.band, self.width);
-        let (f, k, _) = &self.held[y - self.front];
+        let f = &self.held[y - self.front].fine;
         // Chessboard distance to the fine data's edge over the rows held: per row, the
         // larger of its distance along the row and its distance in rows; the least of
-        // those (whole rows at once, which the compiler vectorizes).
+        // those (whole rows at once, which the compiler vectorizes). Only where this row
+        // has fine data to blend, and only the runs of columns near an edge: elsewhere a
+        // row's distance is the cap.
         let cap = u32::try_from(band + 1).unwrap_or(u32::MAX);
-        let mut distance = vec![cap; w];
-        // Only where this row has fine data to blend.
         let first = f.iter().position(Pixel::has_data);
         let last = f.iter().rposition(Pixel::has_data).map_or(0, |l| l + 1);
+        let mut distance: Option<Vec<u32>> = None;
         if let (true, Some(first)) = (band > 0, first) {
-            // Only the runs of columns near an edge: elsewhere a row's distance is the cap.
-            for (j, ((_, _, across), runs)) in self.held.iter().zip(&self.near).enumerate() {
+            for (j, held) in self.held.iter().enumerate() {
                 let dy = u32::try_from((self.front + j).abs_diff(y)).unwrap_or(u32::MAX);
-                for &(from, to) in runs {
+                for &(from, to) in &held.near {
                     let (from, to) = (from.max(first), to.min(last));
                     if from >= to {
                         continue;
                     }
-                    for (d, &a) in distance[from..to].iter_mut().zip(&across[from..to]) {
+                    let d = distance.get_or_insert_with(|| vec![cap; w]);
+                    for (d, &a) in d[from..to].iter_mut().zip(&held.across[from..to]) {
                         *d = (*d).min(a.max(dy));
                     }
                 }
             }
         }
-        #[expect(clippy::cast_precision_loss, reason = "small counts")]
-        let scale = 1.0 / (band as f32 + 1.0);
-        let mut row: Vec<S> = (f.iter().zip(k).zip(&distance))
-            .map(|((&a, &b), &d)| {
-                if !a.has_data() {
-                    b
-                } else if !b.has_data() || d >= cap {
-                    a
-                } else {
-                    #[expect(clippy::cast_precision_loss, reason = "small counts")]
-                    let t = d as f32 * scale;
-                    S::lerp(b, a, t * t * (3.0 - 2.0 * t))
+        let row = &mut self.held[y - self.front];
+        // The coarser data where the blend reaches.
+        if let Some(distance) = &distance {
+            let mut x = 0;
+            while let Some(start) = distance[x..].iter().position(|&d| d < cap).map(|p| p + x) {
+                let end = distance[start..].iter().position(|&d| d >= cap).map_or(w, |p| p + start);
+                if row.coarse.is_empty() {
+                    row.coarse = vec![S::NONE; w];
                 }
-            })
-            .collect();
-        // The finer level's means, where it lies.
-        let (gx0, gy) = (self.corner.0 as usize, self.corner.1 as usize + y);
-        for o in self.overrides {
-            let Some(src) = gy.checked_sub(o.y0).and_then(|r| o.rows.get(r)) else { continue };
-            let (from, to) = (o.x0.max(gx0), (o.x0 + src.len()).min(gx0 + w));
-            for gx in from..to {
-                let v = src[gx - o.x0];
-                if v.has_data() {
-                    row[gx - gx0] = v;
-                }
+                coarse_of(y, &mut row.coarse, start..end);
+                x = end;
             }
         }
-        emit(row)?;
+        let (f, k) = (&row.fine, &row.coarse);
+        let mut out: Vec<S> = match &distance {
+            // Fine data everywhere, no edge within the band: the fine data as it is.
+            _ if k.is_empty() => f.clone(),
+            distance => {
+                #[expect(clippy::cast_precision_loss, reason = "small counts")]
+                let scale = 1.0 / (band as f32 + 1.0);
+                let blended = |(&a, &b): (&S, &S), d: u32| {
+                    if !a.has_data() {
+                        b
+                    } else if !b.has_data() || d >= cap {
+                        a
+                    } else {
+                        #[expect(clippy::cast_precision_loss, reason = "small counts")]
+                        let t = d as f32 * scale;
+                        S::lerp(b, a, t * t * (3.0 - 2.0 * t))
+                    }
+                };
+                match &distance {
+                    Some(distance) => f.iter().zip(k).zip(distance).map(|(ab, &d)| blended(ab, d)).collect(),
+                    None => f.iter().zip(k).map(|ab| blended(ab, cap)).collect(),
+                }
+            }
+        };
+        // The finer level's means, where it lies.
+        apply_overrides(self.overrides, self.corner.0 as usize, self.corner.1 as usize + y, &mut out);
+        emit(out)?;
         self.emitted += 1;
         while self.front + band < self.emitted && !self.held.is_empty() {
             self.held.pop_front();
-            self.near.pop_front();
             self.front += 1;
         }
         Ok(())
@@ -1353,10 +1575,13 @@ mod tests {
             rows.push(r);
             Ok(())
         };
-        for (f, c) in fine.iter().zip(coarse) {
-            ring.push(f.clone(), c.clone(), &mut emit).unwrap();
+        let coarse_of = |y: usize, row: &mut [f32], columns: std::ops::Range<usize>| {
+            row[columns.clone()].copy_from_slice(&coarse[y][columns]);
+        };
+        for f in fine {
+            ring.push(f.clone(), &coarse_of, &mut emit).unwrap();
         }
-        ring.finish(fine.len(), &mut emit).unwrap();
+        ring.finish(fine.len(), &coarse_of, &mut emit).unwrap();
         rows
     }
 
@@ -1490,13 +1715,20 @@ mod tests {
             let source = Rows(coarse_rows.clone(), std::sync::atomic::AtomicUsize::new(0));
             let coarse = Coarse { source: Box::new(source), shift: 2, quantize: None, first: (1, 2) };
             let mut rows = vec![];
-            let mut emit = |r: Vec<f32>| {
-                rows.push(r);
-                Ok(())
-            };
             if bands {
-                level_rows_in_bands::<Heights>(None, Some(&coarse), &grid, corner, &overrides, 0, &mut emit).unwrap();
+                let widen = |r: Vec<f32>| r;
+                let finish = RowFinish { quantize: None, widen: &widen };
+                let mut emit = |(r, _): Finished<f32>| {
+                    rows.push(r);
+                    Ok(())
+                };
+                level_rows_in_bands::<Heights>(None, Some(&coarse), &grid, corner, &overrides, 0, &finish, &mut emit)
+                    .unwrap();
             } else {
+                let mut emit = |r: Vec<f32>| {
+                    rows.push(r);
+                    Ok(())
+                };
                 level_rows::<Heights>(None, Some(&coarse), &grid, corner, 0..h, &overrides, 0, &mut emit).unwrap();
             }
             rows
