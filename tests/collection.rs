@@ -460,6 +460,83 @@ fn imagery_of_different_resolutions_reaches_its_own_depth() {
     }
 }
 
+/// Imagery added to a collection of images by `update` (GDAL's colour relief of the crop:
+/// a 6" picture with a 1" one of its north-west, then a 1" one of its south-east added)
+/// makes the archive a run with all three makes, tile for tile, byte for byte, in place
+/// and into a copy; the heights are untouched. A picture no finer than the base is
+/// refused, naming it.
+#[test]
+fn imagery_added_by_update_equals_a_run_with_every_picture() {
+    if std::process::Command::new("gdaldem").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let dem = repo().join(oracles::DEM);
+    let gdal = |args: &[&str]| {
+        let out = std::process::Command::new(args[0]).args(&args[1..]).current_dir(d).output().unwrap();
+        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    std::fs::write(d.join("ramp.txt"), "0 20 60 20\n300 140 160 60\n600 200 200 200\n800 255 255 255\n").unwrap();
+    gdal(&["gdaldem", "color-relief", "-q", dem.to_str().unwrap(), "ramp.txt", "rgb.tif"]);
+    // Far enough apart that no level's ring of tiles joins them (docs/tiling.md).
+    gdal(&["gdal_translate", "-q", "-srcwin", "20", "20", "70", "70", "rgb.tif", "a.tif"]);
+    gdal(&["gdal_translate", "-q", "-srcwin", "230", "230", "70", "70", "rgb.tif", "b.tif"]);
+    let six = format!("{}", 6.0 / 3600.0);
+    gdal(&["gdalwarp", "-q", "-tr", &six, &six, "-r", "average", "rgb.tif", "coarse.tif"]);
+    let path = |name: &str| d.join(name).to_str().unwrap().to_owned();
+    let run = |name: &str, pictures: &[&str]| {
+        let mut args = vec!["tile".to_owned(), "--elevation".into(), dem.to_str().unwrap().into(), "--texture".into()];
+        args.extend(pictures.iter().map(|p| path(p)));
+        args.extend(["--tile-size", "32", "--texture-tile-size", "16", "-o"].map(str::to_owned));
+        args.push(path(name));
+        ok(&args.iter().map(String::as_str).collect::<Vec<_>>(), d);
+        d.join(name)
+    };
+    let all = run("all.tspack", &["coarse.tif", "a.tif", "b.tif"]);
+    let before = run("a.tspack", &["coarse.tif", "a.tif"]);
+    let old = tiles_of(&before);
+    let copy = path("copy.tspack");
+    ok(&["update", before.to_str().unwrap(), "--texture", &path("b.tif"), "-o", &copy], d);
+    assert_eq!(tiles_of(&before), old, "-o leaves the archive as it was");
+    let in_place = d.join("in-place.tspack");
+    std::fs::copy(&before, &in_place).unwrap();
+    ok(&["update", in_place.to_str().unwrap(), "--texture", &path("b.tif"), "--in-place"], d);
+    let whole = tiles_of(&all);
+    for updated in [Path::new(&copy), &in_place] {
+        let ours = tiles_of(updated);
+        let differ: Vec<_> = whole.iter().filter(|(k, v)| ours.get(k) != Some(v)).map(|(k, _)| *k).collect();
+        assert!(
+            differ.is_empty(),
+            "{}: {} tiles differ from a run with every picture: {differ:?}",
+            updated.display(),
+            differ.len()
+        );
+        assert_eq!(ours.len(), whole.len(), "{}: tiles", updated.display());
+    }
+    let ours = tiles_of(&in_place);
+    let kept = old.iter().filter(|(k, v)| ours.get(k) == Some(v)).count();
+    eprintln!(
+        "imagery update: {} tiles added, {} of {} made again",
+        ours.len() - old.len(),
+        old.len() - kept,
+        old.len()
+    );
+    assert!(
+        old.iter().filter(|(k, _)| k.layer() != 1).all(|(k, v)| ours.get(k) == Some(v)),
+        "the heights are as they were"
+    );
+    let info = ok(&["info", in_place.to_str().unwrap()], d);
+    assert!(info.contains("b.tif") && info.contains("from LOD0 (texture)"), "{info}");
+    // A picture as coarse as the base: refused, naming it, the archive as it was.
+    let out =
+        oracles::run_in(&["update", in_place.to_str().unwrap(), "--texture", &path("coarse.tif"), "--in-place"], d);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && said.contains("coarse.tif") && said.contains("no finer than"), "{said}");
+    assert_eq!(tiles_of(&in_place), ours);
+}
+
 /// A collection tiled in shards (`tile --shard I/N`, every shard given every input) and
 /// merged: the same tiles, byte for byte, as one run, and the same partial levels.
 #[test]

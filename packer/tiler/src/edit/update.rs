@@ -56,10 +56,7 @@ pub fn update(
     if let Ok(reader) = Reader::open_mmap(base)
         && crate::edit::merge::is_collection(reader.metadata())
     {
-        if let Some(t) = texture.first() {
-            return Err(Error::input(t, "imagery over a collection is not updated yet: tile every input again"));
-        }
-        let made = crate::collection::update::update_collection(reader, base, elevation, None, out, progress)?;
+        let made = crate::collection::update::update_collection(reader, base, elevation, texture, None, out, progress)?;
         return Ok(UpdateSummary { merge: made.merge, tiled: made.made });
     }
     let grid = BaseGrid::open(base)?;
