@@ -10,7 +10,7 @@ use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
     Blend, Collection, Collections, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions,
     TileRequest, collection_shard_plan, expand_inputs, is_vrt, plan, plan_layout, shard_plan, tile_collection,
-    tile_shard, vrt_files_by_resolution,
+    tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -231,37 +231,6 @@ fn planned_collections_of(
     ))
 }
 
-/// A VRT whose sources are of different resolutions, each a whole file read as it is, is
-/// tiled as its files (in its order): each as deep as its own resolution reaches, where the
-/// VRT would be one input at its finest source's spacing. Other VRTs are read as before.
-fn vrts_as_their_files(request: &mut TileRequest) -> Result<()> {
-    for (inputs, heights) in [(&mut request.elevation, true), (&mut request.texture, false)] {
-        let mut out = Vec::with_capacity(inputs.len());
-        for path in inputs.drain(..) {
-            let files = if !is_vrt(&path) {
-                None
-            } else if heights {
-                vrt_files_by_resolution::<terrastream_tiler::Heights>(&path)?
-            } else {
-                vrt_files_by_resolution::<terrastream_tiler::Pixels>(&path)?
-            };
-            match files {
-                Some(files) => {
-                    tracing::info!(
-                        vrt = %path.display(),
-                        files = files.len(),
-                        "a VRT of sources of different resolutions: each of its files tiled as deep as it reaches"
-                    );
-                    out.extend(files);
-                }
-                None => out.push(path),
-            }
-        }
-        *inputs = out;
-    }
-    Ok(())
-}
-
 /// A shard plan's inputs are files: a VRT is read whole (a source missing from a pod is an
 /// error), so a shard given part of its sources could not open it.
 fn refuse_vrts(request: &TileRequest) -> Result<()> {
@@ -454,7 +423,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         refuse_vrts(&request)?;
     }
     if args.priority == PriorityArg::Resolution {
-        vrts_as_their_files(&mut request)?;
+        request.vrts_as_their_files()?;
     }
     let planned = match (&args.shard_plan, args.shard) {
         (Some(path), Some((index, count))) => Some(planned_shard(path, index, count, &mut request)?),

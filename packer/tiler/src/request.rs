@@ -61,6 +61,43 @@ pub struct TileRequest {
     pub target_datum: Option<DatumName>,
 }
 
+impl TileRequest {
+    /// Each VRT whose sources are of different resolutions, each a whole file read as it
+    /// is, replaced by its files (in its order), so that each is tiled as deep as its own
+    /// resolution reaches (a collection) where the VRT would be one input at its finest
+    /// source's spacing. Other VRTs stay as they are.
+    ///
+    /// # Errors
+    /// A VRT that cannot be read.
+    pub fn vrts_as_their_files(&mut self) -> Result<()> {
+        for (inputs, heights) in [(&mut self.elevation, true), (&mut self.texture, false)] {
+            let mut out = Vec::with_capacity(inputs.len());
+            for path in inputs.drain(..) {
+                let files = if !is_vrt(&path) {
+                    None
+                } else if heights {
+                    crate::raster::vrt_files_by_resolution::<Heights>(&path)?
+                } else {
+                    crate::raster::vrt_files_by_resolution::<Pixels>(&path)?
+                };
+                match files {
+                    Some(files) => {
+                        tracing::info!(
+                            vrt = %path.display(),
+                            files = files.len(),
+                            "a VRT of sources of different resolutions: each of its files tiled as deep as it reaches"
+                        );
+                        out.extend(files);
+                    }
+                    None => out.push(path),
+                }
+            }
+            *inputs = out;
+        }
+        Ok(())
+    }
+}
+
 /// The opened inputs of a [`TileRequest`].
 pub struct Sources {
     heights: Option<Mosaic<Heights>>,
