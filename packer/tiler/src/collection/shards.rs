@@ -86,7 +86,21 @@ pub(crate) fn windows(
     elevation: Option<&dyn ElevationSource>,
     texture: Option<&TextureInput<'_>>,
 ) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
-    spec.split_lod = Some(split_lod(collections, planned, &spec));
+    let split = split_lod(collections, planned, &spec);
+    spec.split_lod = Some(split);
+    // Bands are whole rows of the split level's tiles, which is no finer than the bases
+    // (said once: where the bands are cut, not where a plan gives them).
+    if let Some(layer) = planned.metadata.layers.first() {
+        let rows = layer.num_y_tiles.div_ceil(1 << split.min(layer.num_lods.saturating_sub(1)));
+        if rows < spec.count && spec.cuts.is_none() {
+            tracing::warn!(
+                "{} shards of a collection split at LOD {split}, no finer than its base: its {rows} rows of tiles leave \
+                 {} shards nothing to make (docs/tiling.md, \"Shards\")",
+                spec.count,
+                spec.count - rows
+            );
+        }
+    }
     let samples = crate::shard::data_weight(planned, elevation, texture);
     // Balanced by work: each input's samples at the level it reaches (a survey 2^d times
     // finer than its level counts 4^d times its area's share).
