@@ -360,6 +360,13 @@ fn a_survey_added_by_update_equals_a_run_with_every_input() {
     assert!(changed > 0 && changed * 3 < old.len(), "{changed} of {} tiles changed", old.len());
     let info = ok(&["info", in_place.to_str().unwrap()], d);
     assert!(info.contains("collection-survey-b-1s.tif") && info.contains("LOD0 in 2 rectangles"), "{info}");
+    // Its layers' bytes (what `info` says) are every distinct tile's, as `verify` reads
+    // them, though the new ones lie after the old.
+    let reader = Reader::open_mmap(&in_place).unwrap();
+    let stats = terrastream_format::ArchiveStats::collect(&reader).unwrap();
+    let checked = terrastream_format::verify(&reader, |_| {}).unwrap();
+    assert_eq!(stats.layers.iter().map(|l| l.data_bytes).sum::<u64>(), checked.bytes_checked);
+    drop(reader);
     // The compact copy `verify` suggests after updates in place: the same tiles.
     let said = ok(&["verify", in_place.to_str().unwrap()], d);
     assert!(said.contains("OK") && said.contains("merge"), "{said}");

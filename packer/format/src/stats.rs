@@ -103,15 +103,16 @@ impl ArchiveStats {
                 data_bytes: 0,
             })
             .collect();
-        let mut last_offset_end = 0u64;
+        // Each distinct blob once, where it is first referenced. (Not by offsets rising:
+        // an archive updated in place has its new blobs after the old ones, so entries in
+        // key order jump back.)
+        let mut seen = std::collections::HashSet::new();
         reader.for_each_entry(|e: &Entry| -> Result<()> {
             let layer = usize::from(crate::key::layer_of(e.key));
             if let Some(stats) = layers.get_mut(layer) {
                 count_run(stats, e, depths[layer]);
-                // Blobs are written in order: a blob past the furthest one seen is new.
-                if e.offset >= last_offset_end {
+                if seen.insert(e.offset) {
                     stats.data_bytes += u64::from(e.length);
-                    last_offset_end = e.offset + e.stored_len();
                 }
             }
             Ok(())
