@@ -406,25 +406,33 @@ fn update_refuses_what_it_cannot_add_and_merge_a_collection() {
     assert!(!d.join("m.tspack").exists());
 }
 
+/// GDAL's colour relief of the committed crop, `rgb.tif` in `d`, and a runner of GDAL's
+/// tools there; None without gdal-bin (which CI has).
+fn colour_relief(d: &Path) -> Option<impl Fn(&[&str]) + '_> {
+    if std::process::Command::new("gdaldem").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
+        return None;
+    }
+    let gdal = move |args: &[&str]| {
+        let out = std::process::Command::new(args[0]).args(&args[1..]).current_dir(d).output().unwrap();
+        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let dem = repo().join(oracles::DEM);
+    std::fs::write(d.join("ramp.txt"), "0 20 60 20\n300 140 160 60\n600 200 200 200\n800 255 255 255\n").unwrap();
+    gdal(&["gdaldem", "color-relief", "-q", dem.to_str().unwrap(), "ramp.txt", "rgb.tif"]);
+    Some(gdal)
+}
+
 /// Imagery follows the same rules: a 10" picture and a 1" one of its middle (GDAL's colour
 /// relief of the committed crop, made here) over the crop's heights. The texture's finer
 /// levels hold tiles only over the fine picture; inside it, beyond the blend band, its
 /// tiles are those a one-resolution run makes, byte for byte.
 #[test]
 fn imagery_of_different_resolutions_reaches_its_own_depth() {
-    if std::process::Command::new("gdaldem").arg("--version").output().is_err() {
-        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
-        return;
-    }
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let dem = repo().join(oracles::DEM);
-    let gdal = |args: &[&str]| {
-        let out = std::process::Command::new(args[0]).args(&args[1..]).current_dir(d).output().unwrap();
-        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
-    };
-    std::fs::write(d.join("ramp.txt"), "0 20 60 20\n300 140 160 60\n600 200 200 200\n800 255 255 255\n").unwrap();
-    gdal(&["gdaldem", "color-relief", "-q", dem.to_str().unwrap(), "ramp.txt", "rgb.tif"]);
+    let Some(gdal) = colour_relief(d) else { return };
     gdal(&["gdal_translate", "-q", "-srcwin", "80", "80", "160", "160", "rgb.tif", "fine.tif"]);
     let ten = format!("{}", 10.0 / 3600.0);
     gdal(&["gdalwarp", "-q", "-tr", &ten, &ten, "-r", "average", "rgb.tif", "coarse.tif"]);
@@ -474,19 +482,10 @@ fn imagery_of_different_resolutions_reaches_its_own_depth() {
 /// refused, naming it.
 #[test]
 fn imagery_added_by_update_equals_a_run_with_every_picture() {
-    if std::process::Command::new("gdaldem").arg("--version").output().is_err() {
-        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
-        return;
-    }
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let dem = repo().join(oracles::DEM);
-    let gdal = |args: &[&str]| {
-        let out = std::process::Command::new(args[0]).args(&args[1..]).current_dir(d).output().unwrap();
-        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
-    };
-    std::fs::write(d.join("ramp.txt"), "0 20 60 20\n300 140 160 60\n600 200 200 200\n800 255 255 255\n").unwrap();
-    gdal(&["gdaldem", "color-relief", "-q", dem.to_str().unwrap(), "ramp.txt", "rgb.tif"]);
+    let Some(gdal) = colour_relief(d) else { return };
     // Far enough apart that no level's ring of tiles joins them (docs/tiling.md).
     gdal(&["gdal_translate", "-q", "-srcwin", "20", "20", "70", "70", "rgb.tif", "a.tif"]);
     gdal(&["gdal_translate", "-q", "-srcwin", "230", "230", "70", "70", "rgb.tif", "b.tif"]);
