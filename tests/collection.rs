@@ -640,6 +640,18 @@ fn a_planned_shard_of_a_collection_needs_only_the_inputs_its_plan_lists() {
     let whole = d.join("whole.tspack");
     tile_in(&inputs, &whole, &[]);
     assert_eq!(tiles_of(&merged), tiles_of(&whole), "the merged planned shards' tiles are the single run's");
+    // A shard given an input the plan does not record is told which (the other shards
+    // know nothing of it).
+    let stray = d.join("pod2").join("stray.tif");
+    std::fs::copy(repo().join(PATCH), &stray).unwrap();
+    let refused = d.join("y.tspack");
+    let pod = d.join("pod2");
+    let mut args = vec!["tile", "--elevation", pod.to_str().unwrap(), "--shard", "2/3"];
+    args.extend(["--shard-plan", plan_file.to_str().unwrap(), "-o", refused.to_str().unwrap()]);
+    args.extend(common);
+    let out = oracles::run_in(&args, d);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && said.contains("stray.tif") && said.contains("plan records"), "{said}");
     // A shard missing a listed input is told which.
     let pod = d.join("pod0");
     let missing = pod.join(&lists[0][1]);

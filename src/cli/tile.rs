@@ -217,13 +217,13 @@ fn planned_collections_of(
     sources: &Sources,
     request: &TileRequest,
 ) -> Result<(Option<Collection>, Option<Collection>)> {
-    let given: Vec<PathBuf> = request.elevation.iter().chain(&request.texture).cloned().collect();
     let of = |kind: LayerKind, grid: Option<terrastream_tiler::raster::GridSpec>| -> Result<Option<Collection>> {
         let Some(planned) = shards.collections.iter().find(|c| c.kind == kind) else { return Ok(None) };
         let Some(grid) = grid else {
             bail!("the shard plan holds a collection of {} but this shard has none of those inputs", people_kind(kind))
         };
-        Ok(Some(Collection::from_planned(planned, &plan.metadata, grid, &given)?))
+        let given = if kind == LayerKind::Texture { &request.texture } else { &request.elevation };
+        Ok(Some(Collection::from_planned(planned, &plan.metadata, grid, given)?))
     };
     Ok((
         of(LayerKind::Elevation, sources.height_mosaic().map(|m| m.grid()))?,

@@ -37,12 +37,15 @@ impl Collection {
     }
 
     /// The collection `planned` records, on `metadata`'s layer of its kind and the
-    /// mosaic's LOD-0 `grid` (the plan's), each input named as the one of `given` whose
-    /// path ends with the recorded one (a plan's paths may be relative to a root); inputs
-    /// not given keep the recorded path (a shard's rows do not read them).
+    /// mosaic's LOD-0 `grid` (the plan's), each input named as the one of `given` (this
+    /// shard's inputs of that kind) whose path ends with the recorded one (a plan's paths
+    /// may be relative to a root); inputs not given keep the recorded path (a shard's rows
+    /// do not read them).
     ///
     /// # Errors
-    /// [`Error::InvalidOption`] when `metadata` has no layer of the collection's kind.
+    /// [`Error::InvalidOption`] when `metadata` has no layer of the collection's kind;
+    /// [`Error::Input`] for an input given that the plan does not record (its depth and
+    /// footprint are unknown to the other shards).
     pub fn from_planned(
         planned: &PlannedCollection,
         metadata: &Metadata,
@@ -52,6 +55,9 @@ impl Collection {
         let layer = metadata.layers.iter().find(|l| l.kind == planned.kind).ok_or_else(|| {
             Error::option("--shard-plan", format!("a collection of {:?}", planned.kind), "a plan of these inputs")
         })?;
+        if let Some(stray) = given.iter().find(|g| !planned.inputs.iter().any(|i| g.ends_with(&i.path))) {
+            return Err(Error::input(stray, "not among the inputs the shard plan records: plan the run with it"));
+        }
         let named = |p: &Path| given.iter().find(|g| g.ends_with(p)).cloned().unwrap_or_else(|| p.to_path_buf());
         let inputs: Vec<CollectionInput> =
             (planned.inputs.iter()).map(|i| CollectionInput { path: named(&i.path), ..i.clone() }).collect();
