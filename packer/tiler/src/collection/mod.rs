@@ -329,6 +329,15 @@ impl Collection {
         ((c0, r0), self.sample_grid(lod, (c0, r0), (c1 - c0, r1 - r0)))
     }
 
+    /// The part of `level`'s rectangle `rect` that is made (see [`live_part`]): its corner
+    /// sample on the level, and its grid; None when the rectangle holds no tile.
+    pub(crate) fn live_grid(&self, level: &SparseLevel, rect: [u32; 4], res: u32) -> Option<((u32, u32), GridSpec)> {
+        let (corner, grid) = self.rect_grid(level.lod, rect, res);
+        let live = live_part(level, rect, res, corner, &grid)?;
+        let at = (corner.0 + live[0], corner.1 + live[1]);
+        Some((at, self.sample_grid(level.lod, at, (live[2] - live[0], live[3] - live[1]))))
+    }
+
     /// The level-`lod` grid of `size` samples from its sample `corner` (its corner placed
     /// from the whole grid's, as every part of the level is: the same samples).
     fn sample_grid(&self, lod: u8, corner: (u32, u32), size: (u32, u32)) -> GridSpec {
@@ -805,9 +814,8 @@ where
             let (corner, grid) = c.rect_grid(lod, rect, res);
             // Only the part of the rectangle its tiles (and their borders) need is made:
             // the rest of its ring of tiles, which no tile holds, stays empty.
-            let Some(live) = live_part(level, rect, res, corner, &grid) else { continue };
-            let live_corner = (corner.0 + live[0], corner.1 + live[1]);
-            let live_grid = c.sample_grid(lod, live_corner, (live[2] - live[0], live[3] - live[1]));
+            let Some((live_corner, live_grid)) = c.live_grid(level, rect, res) else { continue };
+            let live = [live_corner.0 - corner.0, live_corner.1 - corner.1];
             let LevelSources { fine, coarse } = sources(lod, live_corner, &live_grid)?;
             let coarse = coarse.map(|(source, shift, first)| Coarse { source, shift, first, quantize });
             let mut local = metadata.clone();

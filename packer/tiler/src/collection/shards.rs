@@ -72,7 +72,8 @@ impl Collection {
         let mut read: Vec<PathBuf> = Vec::new();
         for (l, rects) in self.levels.iter().zip(super::needed_rects(self, res, part)) {
             for rect in rects {
-                let (corner, grid) = self.rect_grid(l.lod, rect, res);
+                // The part of it that is made, as the shard makes it.
+                let Some((corner, grid)) = self.live_grid(l, rect, res) else { continue };
                 let (fine, below, _) = self.level_inputs(l.lod, corner, &grid);
                 read.extend(fine.into_iter().chain(below));
             }
