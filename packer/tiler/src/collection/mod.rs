@@ -908,8 +908,12 @@ where
 /// first and end column and row in the rectangle; None when it holds no tile.
 fn live_part(level: &SparseLevel, rect: [u32; 4], res: u32, corner: (u32, u32), grid: &GridSpec) -> Option<[u32; 4]> {
     const MARGIN: u32 = 2;
-    let inside = |&&(x, y): &&(u32, u32)| (rect[0]..=rect[2]).contains(&x) && (rect[1]..=rect[3]).contains(&y);
-    let held: Vec<&(u32, u32)> = level.tiles.iter().filter(inside).collect();
+    // The rectangle's own tiles looked up, as many as making it costs (filtering the
+    // level's whole set would cost every survey's tiles for each rectangle).
+    let held: Vec<(u32, u32)> = (rect[1]..=rect[3])
+        .flat_map(|y| (rect[0]..=rect[2]).map(move |x| (x, y)))
+        .filter(|t| level.tiles.contains(t))
+        .collect();
     let (tx0, tx1) = (held.iter().map(|t| t.0).min()?, held.iter().map(|t| t.0).max()?);
     let (ty0, ty1) = (held.iter().map(|t| t.1).min()?, held.iter().map(|t| t.1).max()?);
     // From the rectangle's corner, on the mosaic's lattice of exact transforms from the
