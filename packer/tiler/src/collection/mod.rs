@@ -228,13 +228,23 @@ impl Collection {
         grid: &GridSpec,
         depth: &dyn Fn(u8) -> bool,
     ) -> Vec<PathBuf> {
+        self.reaching_inputs(lod, corner, grid, depth).into_iter().map(|i| i.path.clone()).collect()
+    }
+
+    /// [`Self::reaching`]'s inputs.
+    fn reaching_inputs(
+        &self,
+        lod: u8,
+        corner: (u32, u32),
+        grid: &GridSpec,
+        depth: &dyn Fn(u8) -> bool,
+    ) -> Vec<&CollectionInput> {
         let scale = 1i64 << lod;
         let (c0, r0) = (i64::from(corner.0) * scale, i64::from(corner.1) * scale);
         let (c1, r1) = (c0 + i64::from(grid.size.0) * scale, r0 + i64::from(grid.size.1) * scale);
         let (c0, r0, c1, r1) = (c0 - scale, r0 - scale, c1 + scale, r1 + scale);
         (self.inputs.iter())
             .filter(|i| depth(i.depth) && i.columns.0 <= c1 && i.columns.1 >= c0 && i.rows.0 <= r1 && i.rows.1 >= r0)
-            .map(|i| i.path.clone())
             .collect()
     }
 
@@ -248,12 +258,9 @@ impl Collection {
         grid: &GridSpec,
     ) -> (Vec<PathBuf>, Vec<PathBuf>, u32) {
         let fine = self.reaching(lod, corner, grid, &|d| d == lod);
-        let below = self.reaching(lod, corner, grid, &|d| d > lod);
-        let shift = (self.inputs.iter())
-            .filter(|i| i.depth > lod && below.contains(&i.path))
-            .map(|i| u32::from(i.depth - lod))
-            .min()
-            .unwrap_or(0);
+        let beneath = self.reaching_inputs(lod, corner, grid, &|d| d > lod);
+        let shift = beneath.iter().map(|i| u32::from(i.depth - lod)).min().unwrap_or(0);
+        let below = beneath.into_iter().map(|i| i.path.clone()).collect();
         (fine, below, shift)
     }
 

@@ -69,7 +69,7 @@ impl Collection {
     /// its levels' rectangles (the fine inputs and the coarser ones beneath) and those of
     /// its band of the base.
     pub(crate) fn inputs_of(&self, res: u32, num_lods: u8, part: &ShardPart) -> Vec<PathBuf> {
-        let mut read: Vec<PathBuf> = Vec::new();
+        let mut read: std::collections::HashSet<PathBuf> = std::collections::HashSet::new();
         for (l, rects) in self.levels.iter().zip(super::needed_rects(self, res, part)) {
             for rect in rects {
                 // The part of it that is made, as the shard makes it.
@@ -79,7 +79,7 @@ impl Collection {
             }
         }
         read.extend(self.base_inputs(&self.base_window(Some(part), num_lods)));
-        self.inputs.iter().map(|i| &i.path).filter(|p| read.contains(p)).cloned().collect()
+        self.inputs.iter().map(|i| &i.path).filter(|p| read.contains(*p)).cloned().collect()
     }
 }
 
