@@ -705,8 +705,9 @@ where
     let mosaic = open(c.base_inputs(&window), grid)?;
     let encode = |key: TileKey, samples: &[K::Value], edge: usize| encode_tile(key, samples, edge);
     let rows = u32::try_from(window.rows.start).unwrap_or(0)..u32::try_from(window.rows.end).unwrap_or(0);
+    let finer: Vec<&Override<K::Value>> = overrides.iter().collect();
     run_pyramid(metadata, index, c.grid.size, &window, &encode, quantize, spool, progress, |push| {
-        level_rows(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &overrides, 0, push)
+        level_rows(mosaic.as_ref(), None, &grid, (0, rows.start), rows.clone(), &finer, 0, push)
     })?;
     phases.mark(&format!("layer {index}: the collection cut, {} tiles in all", spool.tiles()));
     Ok(())
@@ -846,7 +847,15 @@ where
                 Override { x0: live_corner.0 as usize / 2, y0: live_corner.1 as usize / 2, rows: Vec::new() };
             {
                 let (fine, coarse, halved) = (fine.as_ref(), coarse.as_ref(), &mut halved);
-                let (overrides, blend) = (&overrides, c.blend);
+                // The finer level's means that reach this part (of every survey's).
+                let near = |o: &&Override<K::Value>| {
+                    let (w, h) = (o.rows.first().map_or(0, Vec::len), o.rows.len());
+                    let (x0, y0) = (live_corner.0 as usize, live_corner.1 as usize);
+                    let (x1, y1) = (x0 + live_grid.size.0 as usize, y0 + live_grid.size.1 as usize);
+                    o.x0 < x1 && x0 < o.x0 + w && o.y0 < y1 && y0 < o.y0 + h
+                };
+                let finer: Vec<&Override<K::Value>> = overrides.iter().filter(near).collect();
+                let (overrides, blend) = (&finer, c.blend);
                 let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
                 let (x0, y0, lh) = (live[0] as usize, live[1] as usize, live_grid.size.1 as usize);
                 // Rows are made (read, blended, rounded, halved, widened to the
@@ -1156,7 +1165,7 @@ fn level_rows_in_bands<K: MosaicKind>(
     coarse: Option<&Coarse<'_, '_, K::Value>>,
     grid: &GridSpec,
     corner: (u32, u32),
-    overrides: &[Override<K::Value>],
+    overrides: &[&Override<K::Value>],
     blend: u32,
     finish: &RowFinish<'_, K::Value>,
     emit: &mut dyn FnMut(Finished<K::Value>) -> Result<()>,
@@ -1242,7 +1251,7 @@ fn level_rows<K: MosaicKind>(
     grid: &GridSpec,
     corner: (u32, u32),
     rows: std::ops::Range<u32>,
-    overrides: &[Override<K::Value>],
+    overrides: &[&Override<K::Value>],
     blend: u32,
     emit: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
 ) -> Result<()>
@@ -1324,7 +1333,7 @@ where
 /// level's means where they lie (`overrides`), else the coarser data beneath (`fill` of
 /// those columns).
 fn overridden<S: Pixel>(
-    overrides: &[Override<S>],
+    overrides: &[&Override<S>],
     gx0: usize,
     gy: usize,
     w: usize,
@@ -1343,7 +1352,7 @@ fn overridden<S: Pixel>(
 
 /// The finer level's means (`overrides`) where they lie over row `gy` (absolute) of a
 /// level, `out` from column `gx0`.
-fn apply_overrides<S: Pixel>(overrides: &[Override<S>], gx0: usize, gy: usize, out: &mut [S]) {
+fn apply_overrides<S: Pixel>(overrides: &[&Override<S>], gx0: usize, gy: usize, out: &mut [S]) {
     let w = out.len();
     for o in overrides {
         let Some(src) = gy.checked_sub(o.y0).and_then(|r| o.rows.get(r)) else { continue };
@@ -1363,7 +1372,7 @@ struct Blender<'a, S> {
     width: usize,
     band: usize,
     corner: (u32, u32),
-    overrides: &'a [Override<S>],
+    overrides: &'a [&'a Override<S>],
     /// Rows `front..`.
     held: VecDeque<Held<S>>,
     front: usize,
@@ -1390,7 +1399,7 @@ type CoarseOf<'c, S> = dyn Fn(usize, &mut [S], std::ops::Range<usize>) + 'c;
 impl<'a, S: Pixel> Blender<'a, S> {
     /// Rows `width` across from level column `corner.0`, row `corner.1`, blended across
     /// `band` samples, the finer level's means `overrides` over them.
-    fn new(width: usize, band: usize, corner: (u32, u32), overrides: &'a [Override<S>]) -> Self {
+    fn new(width: usize, band: usize, corner: (u32, u32), overrides: &'a [&'a Override<S>]) -> Self {
         Self { width, band, corner, overrides, held: VecDeque::new(), front: 0, emitted: 0 }
     }
 
@@ -1730,6 +1739,7 @@ mod tests {
                 .map(|y| (0..40).map(|x| if (x + y) % 11 == 0 { f32::NAN } else { 7.0 + x as f32 }).collect())
                 .collect(),
         }];
+        let finer: Vec<&Override<f32>> = overrides.iter().collect();
         let make = |bands: bool| {
             let source = Rows(coarse_rows.clone(), std::sync::atomic::AtomicUsize::new(0));
             let coarse = Coarse { source: Box::new(source), shift: 2, quantize: None, first: (1, 2) };
@@ -1741,14 +1751,14 @@ mod tests {
                     rows.push(r);
                     Ok(())
                 };
-                level_rows_in_bands::<Heights>(None, Some(&coarse), &grid, corner, &overrides, 0, &finish, &mut emit)
+                level_rows_in_bands::<Heights>(None, Some(&coarse), &grid, corner, &finer, 0, &finish, &mut emit)
                     .unwrap();
             } else {
                 let mut emit = |r: Vec<f32>| {
                     rows.push(r);
                     Ok(())
                 };
-                level_rows::<Heights>(None, Some(&coarse), &grid, corner, 0..h, &overrides, 0, &mut emit).unwrap();
+                level_rows::<Heights>(None, Some(&coarse), &grid, corner, 0..h, &finer, 0, &mut emit).unwrap();
             }
             rows
         };
