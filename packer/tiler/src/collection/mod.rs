@@ -132,14 +132,16 @@ impl Collection {
         let top = layer.num_lods.saturating_sub(1);
         let layout = mosaic.layout();
         let mut inputs: Vec<CollectionInput> = Vec::new();
+        let mut seen: std::collections::HashMap<PathBuf, usize> = std::collections::HashMap::new();
         for InputLayout { path, spacing, columns, rows } in layout {
             // A file read as several parts (a VRT's sources) keeps its finest part's depth.
-            if let Some(known) = inputs.iter_mut().find(|i| i.path == path) {
+            if let Some(known) = seen.get(&path).map(|&i| &mut inputs[i]) {
                 known.spacing = known.spacing.min(spacing);
                 known.columns = (known.columns.0.min(columns.0), known.columns.1.max(columns.1));
                 known.rows = (known.rows.0.min(rows.0), known.rows.1.max(rows.1));
                 continue;
             }
+            seen.insert(path.clone(), inputs.len());
             inputs.push(CollectionInput { path, spacing, depth: 0, columns, rows });
         }
         for i in &mut inputs {
