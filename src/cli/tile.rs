@@ -462,14 +462,20 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         }
     }
     let blend = args.blend.unwrap_or_default();
+    // The collections of these inputs (heights, imagery) on a plan's layers.
+    let collections_on = |plan: &Plan| {
+        (
+            sparse_heights.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Elevation, blend)),
+            sparse_images.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Texture, blend)),
+        )
+    };
     // The shard plan of this run, from the inputs' headers.
     let plan_shards = |count: u32| -> Result<ShardPlan> {
         if sparse_heights.is_none() && sparse_images.is_none() {
             return Ok(shard_plan(elevation, texture.as_ref(), &name, options, count, args.split_lod)?);
         }
         let mut plan = plan_layout(elevation, texture.as_ref(), &name, options)?;
-        let heights = sparse_heights.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Elevation, blend));
-        let imagery = sparse_images.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Texture, blend));
+        let (heights, imagery) = collections_on(&plan);
         for c in [&heights, &imagery].into_iter().flatten() {
             c.apply_to(&mut plan);
         }
@@ -504,10 +510,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         let mut plan = plan(elevation, texture.as_ref(), &name, options, progress)?;
         let (heights, imagery) = match &planned {
             Some((_, shards)) => planned_collections_of(shards, &plan, &sources, &request)?,
-            None => (
-                sparse_heights.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Elevation, blend)),
-                sparse_images.and_then(|m| Collection::plan(m, &plan.metadata, LayerKind::Texture, blend)),
-            ),
+            None => collections_on(&plan),
         };
         for c in [&heights, &imagery].into_iter().flatten() {
             c.apply_to(&mut plan);

@@ -67,13 +67,23 @@ pub enum TextureFormat {
 }
 
 impl TextureFormat {
-    /// The format's name in messages.
     /// Decoded exactly as encoded (PNG, WebP): what the levels above a shard's split LOD
     /// are made from.
     pub(crate) fn lossless(self) -> bool {
         matches!(self, Self::Png | Self::Webp)
     }
 
+    /// The format a layer's stored tiles of `format` decode back from exactly: None for a
+    /// lossy one (or one that is not imagery).
+    pub(crate) fn decodable(format: TileFormat) -> Option<Self> {
+        match format {
+            TileFormat::Png => Some(Self::Png),
+            TileFormat::Webp => Some(Self::Webp),
+            _ => None,
+        }
+    }
+
+    /// The format's name in messages.
     pub(crate) fn name(self) -> &'static str {
         match self {
             Self::Png => "PNG",

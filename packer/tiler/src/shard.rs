@@ -151,7 +151,7 @@ pub struct PlannedGrid {
 }
 
 impl PlannedGrid {
-    pub(crate) fn of(crs: Option<String>, grid: Option<GridSpec>) -> Option<Self> {
+    fn of(crs: Option<String>, grid: Option<GridSpec>) -> Option<Self> {
         let (crs, g) = (crs?, grid?);
         Some(Self { crs, origin: g.origin, pixel: [g.pixel.0, g.pixel.1], size: [g.size.0, g.size.1] })
     }
@@ -221,16 +221,33 @@ pub fn shard_plan(
         }
         shards.push(inputs);
     }
-    let crs_of = |g: Option<&terrastream_format::Georeference>| g.and_then(|g| g.crs.clone());
-    Ok(ShardPlan {
-        count,
-        split_lod,
-        elevation_grid: elevation.and_then(|e| PlannedGrid::of(crs_of(e.georeference()), e.mosaic_grid())),
-        texture_grid: texture.and_then(|t| PlannedGrid::of(crs_of(t.source.georeference()), t.source.mosaic_grid())),
-        cuts,
-        shards,
-        collections: Vec::new(),
-    })
+    Ok(ShardPlan::of_sources(count, split_lod, elevation, texture, cuts, shards))
+}
+
+impl ShardPlan {
+    /// The plan of `count` shards with these `cuts` and `shards`' inputs, the mosaics'
+    /// grids taken from the sources (no collection: see
+    /// [`crate::collection_shard_plan`]).
+    pub(crate) fn of_sources(
+        count: u32,
+        split_lod: Option<u8>,
+        elevation: Option<&dyn ElevationSource>,
+        texture: Option<&TextureInput<'_>>,
+        cuts: Vec<Vec<u32>>,
+        shards: Vec<ShardInputs>,
+    ) -> Self {
+        let crs_of = |g: Option<&terrastream_format::Georeference>| g.and_then(|g| g.crs.clone());
+        Self {
+            count,
+            split_lod,
+            elevation_grid: elevation.and_then(|e| PlannedGrid::of(crs_of(e.georeference()), e.mosaic_grid())),
+            texture_grid: texture
+                .and_then(|t| PlannedGrid::of(crs_of(t.source.georeference()), t.source.mosaic_grid())),
+            cuts,
+            shards,
+            collections: Vec::new(),
+        }
+    }
 }
 
 fn to_u32(n: usize) -> u32 {

@@ -586,6 +586,27 @@ pub(crate) fn open_heights(request: &TileRequest) -> Result<Option<Mosaic<Height
     Ok(Sources::open(request)?.into_mosaics().0)
 }
 
+/// A collection's images `paths` opened onto `grid` in `crs` (None without inputs),
+/// leaving out the ones that cannot be read where `skip_bad_inputs` says so.
+pub(crate) fn open_images(
+    paths: Vec<PathBuf>,
+    grid: GridSpec,
+    crs: &str,
+    skip_bad_inputs: bool,
+) -> Result<Option<Mosaic<Pixels>>> {
+    if paths.is_empty() {
+        return Ok(None);
+    }
+    let request = TileRequest {
+        texture: paths,
+        crs: Some(crs.to_owned()),
+        texture_grid: Some(grid),
+        skip_bad_inputs,
+        ..TileRequest::default()
+    };
+    Ok(Sources::open(&request)?.into_mosaics().1)
+}
+
 /// Cuts the heights' collection `c` (and its height ranges) into `spool`.
 #[expect(clippy::too_many_arguments, reason = "the collection, its sources, and where tiles go")]
 fn cut_heights(
@@ -642,19 +663,7 @@ fn cut_imagery(
         .ok_or(Error::NothingToTile)?;
     let main = sources.image_mosaic().ok_or(Error::NothingToTile)?;
     let crs = main.crs().definition().to_owned();
-    let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Pixels>>> {
-        if paths.is_empty() {
-            return Ok(None);
-        }
-        let sub = TileRequest {
-            texture: paths,
-            crs: Some(crs.clone()),
-            texture_grid: Some(grid),
-            skip_bad_inputs: request.skip_bad_inputs,
-            ..TileRequest::default()
-        };
-        Ok(Sources::open(&sub)?.into_mosaics().1)
-    };
+    let open = |paths: Vec<PathBuf>, grid: GridSpec| open_images(paths, grid, &crs, request.skip_bad_inputs);
     let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
         Ok(vec![(key, crate::encode::encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
     };

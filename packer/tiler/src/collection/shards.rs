@@ -12,7 +12,7 @@ use crate::options::{ShardSpec, TextureInput};
 use crate::plan::Plan;
 use crate::pyramid::Window;
 use crate::raster::{ElevationSource, GridSpec};
-use crate::shard::{PlannedGrid, ShardInputs, ShardPlan};
+use crate::shard::{ShardInputs, ShardPlan};
 
 /// What a shard plan records of a collection: enough for a shard given only some of the
 /// inputs to make the levels a run given all of them makes (the depths come from every
@@ -166,49 +166,33 @@ pub fn collection_shard_plan(
         metadata.shard = Some(info);
         let mut inputs = ShardInputs::default();
         for (layer, window) in plan.metadata.layers.iter().zip(&bands) {
-            let rows = to_u32(window.rows.start)..to_u32(window.rows.end);
             let kind = layer.kind;
-            let list = match layer.kind {
-                LayerKind::Elevation => match collections.heights.filter(|c| c.kind == kind) {
-                    Some(c) => part(c, &metadata, &bands)
-                        .map_or_else(Vec::new, |p| c.inputs_of(layer.tile_resolution, layer.num_lods, &p)),
-                    None => elevation.map_or_else(Vec::new, |e| e.inputs_in_rows(rows.clone())),
-                },
-                LayerKind::Texture => match collections.imagery.filter(|c| c.kind == kind) {
-                    Some(c) => part(c, &metadata, &bands)
-                        .map_or_else(Vec::new, |p| c.inputs_of(layer.tile_resolution, layer.num_lods, &p)),
-                    None => texture.map_or_else(Vec::new, |t| t.source.inputs_in_rows(rows.clone())),
-                },
-                _ => continue,
+            if !matches!(kind, LayerKind::Elevation | LayerKind::Texture) {
+                continue;
+            }
+            // The inputs of the layer's source in rows of its grid.
+            let in_rows = |rows: std::ops::Range<u32>| match kind {
+                LayerKind::Texture => texture.map_or_else(Vec::new, |t| t.source.inputs_in_rows(rows)),
+                _ => elevation.map_or_else(Vec::new, |e| e.inputs_in_rows(rows)),
+            };
+            let collection = [collections.heights, collections.imagery].into_iter().flatten().find(|c| c.kind == kind);
+            let list = match collection {
+                Some(c) => part(c, &metadata, &bands)
+                    .map_or_else(Vec::new, |p| c.inputs_of(layer.tile_resolution, layer.num_lods, &p)),
+                None => in_rows(to_u32(window.rows.start)..to_u32(window.rows.end)),
             };
             // A shard that reads nothing still opens its sources on the planned grid: its
             // list holds the first input.
-            let first = || match layer.kind {
-                LayerKind::Texture => texture.and_then(|t| t.source.inputs_in_rows(0..u32::MAX).into_iter().next()),
-                _ => elevation.and_then(|e| e.inputs_in_rows(0..u32::MAX).into_iter().next()),
-            };
-            let list = if list.is_empty() { first().into_iter().collect() } else { list };
-            match layer.kind {
+            let list = if list.is_empty() { in_rows(0..u32::MAX).into_iter().take(1).collect() } else { list };
+            match kind {
                 LayerKind::Texture => inputs.texture = list,
                 _ => inputs.elevation = list,
             }
         }
         shards.push(inputs);
     }
-    let crs_of = |g: Option<&terrastream_format::Georeference>| g.and_then(|g| g.crs.clone());
-    Ok(ShardPlan {
-        count,
-        split_lod: split,
-        elevation_grid: elevation.and_then(|e| PlannedGrid::of(crs_of(e.georeference()), e.mosaic_grid())),
-        texture_grid: texture.and_then(|t| PlannedGrid::of(crs_of(t.source.georeference()), t.source.mosaic_grid())),
-        cuts,
-        shards,
-        collections: [collections.heights, collections.imagery]
-            .into_iter()
-            .flatten()
-            .map(Collection::planned)
-            .collect(),
-    })
+    let planned = [collections.heights, collections.imagery].into_iter().flatten().map(Collection::planned).collect();
+    Ok(ShardPlan { collections: planned, ..ShardPlan::of_sources(count, split, elevation, texture, cuts, shards) })
 }
 
 fn to_u32(n: usize) -> u32 {

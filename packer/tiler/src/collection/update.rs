@@ -15,7 +15,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
 
-use terrastream_format::{LayerKind, LevelCover, Metadata, MmapSource, Reader, TileFormat, TileKey, payload_bytes};
+use terrastream_format::{LayerKind, LevelCover, Metadata, MmapSource, Reader, TileKey, payload_bytes};
 use terrastream_pack::progress::Progress;
 
 use super::{
@@ -25,8 +25,7 @@ use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_hei
 use crate::error::{Error, Result};
 use crate::options::TextureFormat;
 use crate::pyramid::{Pixel, Spool, halve_rows};
-use crate::raster::{DatumName, ElevationSource, GridSpec, Heights, InputLayout, Mosaic, MosaicKind, Pixels};
-use crate::request::{Sources, TileRequest};
+use crate::raster::{DatumName, ElevationSource, GridSpec, Heights, InputLayout, Mosaic, MosaicKind};
 use crate::tile::{HeightEncoder, write_spool};
 
 /// An archive's stored samples of one level over a grid of that level's samples (its
@@ -299,27 +298,17 @@ fn update_imagery(
              images; tile every input again",
         ));
     }
-    let format = match layer.format {
-        TileFormat::Png => TextureFormat::Png,
-        TileFormat::Webp => TextureFormat::Webp,
-        other => {
-            return Err(Error::input(
-                base,
-                format!(
-                    "its texture is {other:?}: an update completes new imagery from the stored tiles, which needs png or webp"
-                ),
-            ));
-        }
-    };
+    let format = TextureFormat::decodable(layer.format).ok_or_else(|| {
+        Error::input(
+            base,
+            format!(
+                "its texture is {:?}: an update completes new imagery from the stored tiles, which needs png or webp",
+                layer.format
+            ),
+        )
+    })?;
     let (grid, crs, base_lod) = layer_grid(&old, base, index)?;
-    let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Pixels>>> {
-        if paths.is_empty() {
-            return Ok(None);
-        }
-        let sub =
-            TileRequest { texture: paths, crs: Some(crs.clone()), texture_grid: Some(grid), ..TileRequest::default() };
-        Ok(Sources::open(&sub)?.into_mosaics().1)
-    };
+    let open = |paths: Vec<PathBuf>, grid: GridSpec| super::open_images(paths, grid, &crs, false);
     let whole = open(texture.to_vec(), grid)?.ok_or(Error::NothingToTile)?;
     let folder = terrastream_pack::output_folder(out);
     let target = Target { reader: &reader, base, folder: &folder, index, kind: LayerKind::Texture, grid, base_lod };

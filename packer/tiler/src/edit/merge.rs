@@ -616,12 +616,12 @@ fn rederive_layers(
                 heights.encoder.finish(metadata, below, spool)?;
             }
             LayerKind::Texture => {
-                let format = match layer.format {
-                    TileFormat::Png => TextureFormat::Png,
-                    TileFormat::Webp => TextureFormat::Webp,
+                let format = match TextureFormat::decodable(layer.format) {
+                    Some(format) => format,
                     // Lossy tiles are not decoded back: stale tiles stay as they are.
-                    _ if conflicts.is_empty() => continue,
-                    other => {
+                    None if conflicts.is_empty() => continue,
+                    None => {
+                        let other = layer.format;
                         tracing::warn!(
                             "layer {:?}: {other:?} tiles are lossy; the tiles around and above replaced ones are kept, not remade",
                             layer.name
@@ -700,17 +700,11 @@ fn reduce(
                 heights.finish(metadata, below, spool)?;
             }
             LayerKind::Texture => {
-                let format = match layer.format {
-                    TileFormat::Png => TextureFormat::Png,
-                    TileFormat::Webp => TextureFormat::Webp,
-                    other => {
-                        return Err(Error::Pyramid {
-                            layer: index,
-                            lod: k,
-                            reason: format!("{other:?} tiles are lossy: shards need png or webp"),
-                        });
-                    }
-                };
+                let format = TextureFormat::decodable(layer.format).ok_or_else(|| Error::Pyramid {
+                    layer: index,
+                    lod: k,
+                    reason: format!("{:?} tiles are lossy: shards need png or webp", layer.format),
+                })?;
                 let decode = |key: TileKey| -> Result<Option<Vec<[u8; 4]>>> {
                     payload(metadata, readers, winners, key)?
                         .map(|bytes| decode_texture(key, &bytes, edge, format))

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use terrastream_format::{ElevationScheme, LayerKind, Reader, TileFormat};
+use terrastream_format::{ElevationScheme, LayerKind, Reader};
 use terrastream_pack::progress::Progress;
 
 use crate::crs::Crs;
@@ -246,18 +246,15 @@ impl Changes {
             .find(LayerKind::Texture)
             .ok_or_else(|| Error::input(&grid.path, "it has no texture layer to update"))?;
         let layer = &grid.metadata.layers[t];
-        let format = match layer.format {
-            TileFormat::Png => TextureFormat::Png,
-            TileFormat::Webp => TextureFormat::Webp,
-            other => {
-                return Err(Error::input(
-                    &grid.path,
-                    format!(
-                        "its texture is {other:?}: an update merges new imagery per pixel, which needs png or webp tiles"
-                    ),
-                ));
-            }
-        };
+        let format = TextureFormat::decodable(layer.format).ok_or_else(|| {
+            Error::input(
+                &grid.path,
+                format!(
+                    "its texture is {:?}: an update merges new imagery per pixel, which needs png or webp tiles",
+                    layer.format
+                ),
+            )
+        })?;
         let (size, spacing, extent) = grid.layer_grid(t)?;
         let open = |extent| Sources::open(&grid.request(&[], inputs, spacing, extent)).map(|s| s.into_mosaics().1);
         let Some(mosaic) = open(extent)? else { return Ok(None) };
