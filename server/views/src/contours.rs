@@ -9,6 +9,8 @@
 //! of a pixel (Douglas-Peucker) and end where the data ends (a cell with a corner without
 //! data draws nothing).
 
+use std::cell::Cell;
+
 use terrastream_format::{MmapSource, Reader};
 
 use crate::mercator::WebTile;
@@ -132,25 +134,29 @@ pub fn tilejson(
 /// to the tile and its buffer, in tile units.
 #[expect(clippy::cast_possible_truncation, reason = "levels of finite heights; vertices within the buffered tile")]
 fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
-    // Plain comparisons, not f32::min/max (whose NaN rules cost a blend a sample): a NaN
-    // (no data) compares false and changes nothing.
-    let (lo, hi) = heights.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &h| {
-        (if h < lo && h.is_finite() { h } else { lo }, if h > hi && h.is_finite() { h } else { hi })
-    });
-    let (lo, hi) = (f64::from(lo), f64::from(hi));
-    if !lo.is_finite() || !hi.is_finite() {
+    let interval = interval.max(MIN_INTERVAL);
+    // The buffers of the tile before on this thread (as large as a tile's grid: new ones
+    // would cost their pages' first touch each time); taken, so a panic leaves none.
+    let mut scratch = SCRATCH.with(Cell::take);
+    bands(heights, interval, &mut scratch.bands);
+    let bands = &scratch.bands;
+    // The levels some cell crosses lie above the lowest band and up to the highest.
+    let Some((lowest, highest)) = band_range(bands) else {
+        SCRATCH.with(|s| s.set(scratch));
         return vec![];
-    }
+    };
+    let (first, last) = (i64::from(lowest) + 1, i64::from(highest));
     let mut lines = vec![];
-    let first = (lo / interval).ceil() as i64;
-    let last = (hi / interval).floor() as i64;
-    let segments = segments(heights, span, interval, (first, last));
-    let mut links = Links::new(span * span * 2);
+    let segments = segments(heights, bands, span, interval, (first, last), &mut scratch.crossed);
+    let links = &mut scratch.links;
+    if links.count.len() != span * span * 2 {
+        *links = Links::new(span * span * 2);
+    }
     for (k, segments) in (first..=last).zip(segments) {
         let level = k as f64 * interval;
         let is_major = k.rem_euclid(i64::from(major)) == 0;
-        for chain in level_chains(heights, span, level, &segments, &mut links) {
-            for piece in clip(&chain) {
+        for chain in level_chains(heights, span, level, &segments, links) {
+            for piece in clip(chain) {
                 let piece = simplify_anchored(&piece, 4.0);
                 let points: Vec<(i32, i32)> = dedup(piece.iter().map(|&(x, y)| (x.round() as i32, y.round() as i32)));
                 if points.len() >= 2 {
@@ -162,7 +168,21 @@ fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
             }
         }
     }
+    SCRATCH.with(|s| s.set(scratch));
     lines
+}
+
+/// Buffers a tile's tracing reuses from the tile before on its thread.
+#[derive(Default)]
+struct Scratch {
+    bands: Vec<i32>,
+    /// A row's cells some level crosses.
+    crossed: Vec<u8>,
+    links: Links,
+}
+
+thread_local! {
+    static SCRATCH: Cell<Scratch> = Cell::new(Scratch::default());
 }
 
 /// An edge of the sample grid (`span` a side): (column, row, horizontal?) as one key.
@@ -175,32 +195,43 @@ fn edge_key(span: usize, c: usize, r: usize, horizontal: bool) -> usize {
 /// cells' order. Each sample's band (the highest level at or below it) is found once; a
 /// cell then visits only the levels between its corners' bands, and most cells none.
 #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "level indices within first..=last")]
-fn segments(h: &[f32], span: usize, interval: f64, (first, last): (i64, i64)) -> Vec<Vec<(usize, usize)>> {
+fn segments(
+    h: &[f32],
+    bands: &[i32],
+    span: usize,
+    interval: f64,
+    (first, last): (i64, i64),
+    crossed: &mut Vec<u8>,
+) -> Vec<Vec<(usize, usize)>> {
     let count = usize::try_from(last - first + 1).unwrap_or(0);
     let mut out: Vec<Vec<(usize, usize)>> = vec![Vec::new(); count];
-    let inverse = 1.0 / interval;
-    let bands: Vec<i64> = h.iter().map(|&v| band(f64::from(v), interval, inverse)).collect();
     let key = |c: usize, r: usize, horizontal: bool| edge_key(span, c, r, horizontal);
+    crossed.resize(span, 0);
     for r in 0..span - 1 {
-        for c in 0..span - 1 {
+        let (upper, lower) = (&bands[r * span..(r + 1) * span], &bands[(r + 1) * span..(r + 2) * span]);
+        // Most cells lie within one band: no level crosses them. Which do not, for the
+        // whole row at once (a loop without branches, which the compiler vectorises).
+        for (((flag, u), l), (u1, l1)) in
+            crossed.iter_mut().zip(upper).zip(lower).zip(upper[1..].iter().zip(&lower[1..]))
+        {
+            *flag = u8::from(((u ^ u1) | (u ^ l) | (u ^ l1)) != 0);
+        }
+        for c in (0..span - 1).filter(|&c| crossed[c] != 0) {
             let at = r * span + c;
             let b = [bands[at], bands[at + 1], bands[at + span + 1], bands[at + span]];
-            // Most cells lie within one band: no level crosses them.
-            if b[0] == b[1] && b[1] == b[2] && b[2] == b[3] {
-                continue;
-            }
             let (lo, hi) = (b[0].min(b[1]).min(b[2].min(b[3])), b[0].max(b[1]).max(b[2].max(b[3])));
             // A level crosses where a corner lies below it and one at or above it.
             if lo == NO_DATA {
                 continue;
             }
+            let (lo, hi) = (i64::from(lo), i64::from(hi));
             let (top, right, bottom, left) =
                 (key(c, r, true), key(c + 1, r, false), key(c, r + 1, true), key(c, r, false));
             let mean = || {
                 (f64::from(h[at]) + f64::from(h[at + 1]) + f64::from(h[at + span + 1]) + f64::from(h[at + span])) / 4.0
             };
             for k in (lo + 1).max(first)..=hi.min(last) {
-                let case = b.iter().enumerate().fold(0, |m, (i, &band)| m | (usize::from(band >= k) << i));
+                let case = b.iter().enumerate().fold(0, |m, (i, &band)| m | (usize::from(i64::from(band) >= k) << i));
                 let out = &mut out[(k - first) as usize];
                 let centre_above = || mean() >= k as f64 * interval;
                 match case {
@@ -223,29 +254,41 @@ fn segments(h: &[f32], span: usize, interval: f64, (first, last): (i64, i64)) ->
 }
 
 /// A band no sample without data is in (below every level).
-const NO_DATA: i64 = i64::MIN;
+const NO_DATA: i32 = i32::MIN;
 
-/// The highest `k` with `k x interval` at or below `v` (exactly as the levels compare:
-/// `v >= k as f64 * interval`); [`NO_DATA`] for a value that is not finite.
-#[expect(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "levels of heights")]
-fn band(v: f64, interval: f64, inverse: f64) -> i64 {
-    if !v.is_finite() {
-        return NO_DATA;
-    }
-    // Rounded down without a call to the C library (nor a division: `inverse` is
-    // 1 / `interval`), then made exact.
-    let q = v * inverse;
-    let mut k = q as i64;
-    if k as f64 > q {
-        k -= 1;
-    }
-    while (k + 1) as f64 * interval <= v {
-        k += 1;
-    }
-    while k as f64 * interval > v {
-        k -= 1;
-    }
-    k
+/// The finest interval traced: finer ones are taken as this (heights of tens of
+/// kilometres then still have bands well inside an `i32`).
+pub const MIN_INTERVAL: f64 = 1e-3;
+
+/// Each sample's band: the highest `k` with `k x interval` at or below it (exactly as the
+/// levels compare: `v >= k as f64 * interval`); [`NO_DATA`] for a value that is not
+/// finite. Without a branch or a library call, so the compiler vectorises it: the
+/// quotient by a multiplication, rounded down, then made exact by one step either way
+/// (the product's rounding is far below one band).
+#[expect(clippy::cast_possible_truncation, reason = "bands of heights, clamped to +-2^30")]
+fn bands(heights: &[f32], interval: f64, out: &mut Vec<i32>) {
+    const LIMIT: f64 = (1u32 << 30) as f64;
+    // Added to a whole number below 2^51 in magnitude: the sum's low 32 bits are that
+    // number as an i32, and the sum less it is a number rounded to a whole one.
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    let inverse = 1.0 / interval;
+    let one = |yes: bool| if yes { 1.0 } else { 0.0 };
+    out.clear();
+    out.extend(heights.iter().map(|&h| {
+        let v = f64::from(h);
+        let q = (v * inverse).clamp(-LIMIT, LIMIT);
+        let nearest = (q + MAGIC) - MAGIC;
+        let k = nearest - one(nearest > q);
+        let k = k + one((k + 1.0) * interval <= v) - one(k * interval > v);
+        if h.is_finite() { (k + MAGIC).to_bits() as u32 as i32 } else { NO_DATA }
+    }));
+}
+
+/// The lowest and highest band of the samples with data; None when none has.
+fn band_range(bands: &[i32]) -> Option<(i32, i32)> {
+    let highest = bands.iter().copied().max()?;
+    let lowest = bands.iter().map(|&b| if b == NO_DATA { i32::MAX } else { b }).min()?;
+    (highest != NO_DATA).then_some((lowest, highest))
 }
 
 /// The crossings of `level` joined into chains, in tile units, from its `segments`.
@@ -298,6 +341,7 @@ fn level_chains(
 /// The links between the edges of a grid that a level's segments join, by edge key: an
 /// edge is in two cells, so it has at most two (a saddle's cell joins four edges in two
 /// pairs). Dense, reused from level to level: a walk empties every entry it touches.
+#[derive(Default)]
 struct Links {
     to: Vec<[u32; 2]>,
     count: Vec<u8>,
@@ -360,9 +404,13 @@ impl Links {
 }
 
 /// The parts of a polyline inside the tile and its buffer.
-fn clip(line: &[(f64, f64)]) -> Vec<Vec<(f64, f64)>> {
+fn clip(line: Vec<(f64, f64)>) -> Vec<Vec<(f64, f64)>> {
     let (lo, hi) = (f64::from(-BUFFER), f64::from(EXTENT + BUFFER));
     let inside = |p: (f64, f64)| (lo..=hi).contains(&p.0) && (lo..=hi).contains(&p.1);
+    // Most lines lie wholly inside: themselves, as they are.
+    if line.iter().all(|&p| inside(p)) {
+        return if line.len() >= 2 { vec![line] } else { vec![] };
+    }
     let mut pieces = vec![];
     let mut current: Vec<(f64, f64)> = vec![];
     for pair in line.windows(2) {
@@ -415,19 +463,30 @@ fn clip(line: &[(f64, f64)]) -> Vec<Vec<(f64, f64)>> {
 /// and the line goes on from it.
 fn simplify_anchored(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
     let edge = f64::from(EXTENT);
+    // Strictly between a segment's ends: a cut at a `t` inside (0, 1) (the division,
+    // which is monotonic, only where it is).
+    let between = |v: f64, a: f64, b: f64| (a < v && v < b) || (b < v && v < a);
+    let crosses =
+        |a: (f64, f64), b: (f64, f64)| [0.0, edge].iter().any(|&v| between(v, a.0, b.0) || between(v, a.1, b.1));
+    // Most lines cross no edge of the tile: one part, nothing added.
+    if !line.windows(2).any(|pair| crosses(pair[0], pair[1])) {
+        return simplify(line, tolerance);
+    }
     let mut points = vec![line[0]];
     let mut anchors = vec![0];
     for pair in line.windows(2) {
         let (a, b) = (pair[0], pair[1]);
-        let mut cuts: Vec<f64> = [0.0, edge]
-            .iter()
-            .flat_map(|&v| [((v - a.0) / (b.0 - a.0)), ((v - a.1) / (b.1 - a.1))])
-            .filter(|t| t.is_finite() && *t > 0.0 && *t < 1.0)
-            .collect();
-        cuts.sort_by(f64::total_cmp);
-        for t in cuts {
-            points.push((a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1)));
-            anchors.push(points.len() - 1);
+        if crosses(a, b) {
+            let mut cuts: Vec<f64> = [0.0, edge]
+                .iter()
+                .flat_map(|&v| [((v - a.0) / (b.0 - a.0)), ((v - a.1) / (b.1 - a.1))])
+                .filter(|t| t.is_finite() && *t > 0.0 && *t < 1.0)
+                .collect();
+            cuts.sort_by(f64::total_cmp);
+            for t in cuts {
+                points.push((a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1)));
+                anchors.push(points.len() - 1);
+            }
         }
         points.push(b);
     }
@@ -515,12 +574,54 @@ mod tests {
         assert!(lines.iter().any(|l| l.properties[1].1 == Value::Bool(true)), "500 m and 1000 m are major");
     }
 
+    /// The bands found without branches are the highest `k` with `k x interval` at or
+    /// below the height, as the levels compare, at and next to every level.
+    #[test]
+    #[expect(clippy::cast_possible_truncation, clippy::cast_precision_loss, reason = "test heights")]
+    fn bands_are_exact_at_and_beside_every_level() {
+        let reference = |v: f32, interval: f64| {
+            let v = f64::from(v);
+            let mut k = (v / interval).floor() as i64;
+            while (k + 1) as f64 * interval <= v {
+                k += 1;
+            }
+            while k as f64 * interval > v {
+                k -= 1;
+            }
+            i32::try_from(k).unwrap()
+        };
+        // 0.7: its inverse rounded, -65534 x it lands on -93620 exactly, but -93620 x 0.7
+        // lies above -65534 (the band is -93621).
+        for interval in [MIN_INTERVAL, 0.1, 0.3, 0.7, 1.0, 7.0, 20.0, 25.4, 100.0, 1000.0] {
+            let mut heights = vec![];
+            for k in (-40..400).chain(-93_700..-93_500) {
+                let at = (f64::from(k) * interval * 23.0 / 7.0) as f32;
+                let level = (f64::from(k) * interval) as f32;
+                for h in [at, level] {
+                    let beside = [f32::from_bits(h.to_bits() + 1), f32::from_bits(h.to_bits().wrapping_sub(1))];
+                    heights.extend(std::iter::once(h).chain(beside).filter(|h| h.is_finite()));
+                }
+            }
+            heights.extend([0.0, -0.0, 8848.86, -10_994.0, 1e-7, -1e-7]);
+            let mut out = vec![];
+            bands(&heights, interval, &mut out);
+            for (&h, &b) in heights.iter().zip(&out) {
+                assert_eq!(b, reference(h, interval), "{h} at {interval}");
+            }
+        }
+        let mut out = vec![];
+        bands(&[f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 5.0], 1.0, &mut out);
+        assert_eq!(out, [NO_DATA, NO_DATA, NO_DATA, 5]);
+        assert_eq!(band_range(&out), Some((5, 5)));
+        assert_eq!(band_range(&out[..3]), None, "no data, no levels");
+    }
+
     #[test]
     fn a_closed_line_leaving_the_box_is_one_piece_from_exit_to_exit() {
         let hi = f64::from(EXTENT + BUFFER) + 100.0;
         // A ring starting inside the box, going out across its right edge and back.
         let ring = [(4000.0, 2000.0), (hi, 2000.0), (hi, 2200.0), (4000.0, 2200.0), (4000.0, 2000.0)];
-        let pieces = clip(&ring);
+        let pieces = clip(ring.to_vec());
         assert_eq!(pieces.len(), 1, "{pieces:?}");
         let piece = &pieces[0];
         assert_eq!(piece.first().unwrap().0, f64::from(EXTENT + BUFFER));
@@ -528,14 +629,14 @@ mod tests {
         assert!(piece.contains(&(4000.0, 2000.0)) && piece.contains(&(4000.0, 2200.0)));
         // One wholly inside stays closed.
         let inner = [(100.0, 100.0), (200.0, 100.0), (200.0, 200.0), (100.0, 100.0)];
-        assert_eq!(clip(&inner), vec![inner.to_vec()]);
+        assert_eq!(clip(inner.to_vec()), vec![inner.to_vec()]);
     }
 
     #[test]
     fn clipping_keeps_what_is_inside_the_buffer() {
         let line = [(-1000.0, 100.0), (5000.0, 100.0)];
-        assert_eq!(clip(&line), vec![vec![(-64.0, 100.0), (4160.0, 100.0)]]);
-        assert!(clip(&[(-1000.0, -1000.0), (-900.0, -900.0)]).is_empty());
+        assert_eq!(clip(line.to_vec()), vec![vec![(-64.0, 100.0), (4160.0, 100.0)]]);
+        assert!(clip(vec![(-1000.0, -1000.0), (-900.0, -900.0)]).is_empty());
     }
 
     #[test]
