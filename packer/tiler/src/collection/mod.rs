@@ -443,31 +443,59 @@ pub(crate) fn records(c: &Collection, metadata: &Metadata) -> (Vec<SourceRecord>
 }
 
 /// Rectangles (inclusive) merged until none overlaps (or, with `touching`, touches)
-/// another. The rectangles a level is made over merge only where they overlap: apart,
-/// each is made as a later update would make it alone.
-fn merged(mut rects: Vec<[u32; 4]>, touching: bool) -> Vec<[u32; 4]> {
+/// another, in the order of each group's first rectangle. The rectangles a level is made
+/// over merge only where they overlap: apart, each is made as a later update would make it
+/// alone.
+///
+/// A sweep across the columns (each rectangle met only by those still open at its first
+/// column), the overlapping ones joined, then their bounding boxes swept again until none
+/// joins: a survey of many thousand scattered tiles costs about n log n, not n squared.
+fn merged(rects: Vec<[u32; 4]>, touching: bool) -> Vec<[u32; 4]> {
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
     let gap = u32::from(touching);
-    let touch = |a: &[u32; 4], b: &[u32; 4]| {
-        a[0] <= b[2].saturating_add(gap)
-            && b[0] <= a[2].saturating_add(gap)
-            && a[1] <= b[3].saturating_add(gap)
-            && b[1] <= a[3].saturating_add(gap)
-    };
+    // Each box with the index of the first rectangle in it.
+    let mut boxes: Vec<([u32; 4], usize)> = rects.into_iter().enumerate().map(|(i, r)| (r, i)).collect();
     loop {
-        let mut changed = false;
-        let mut out: Vec<[u32; 4]> = Vec::with_capacity(rects.len());
-        for r in rects {
-            if let Some(o) = out.iter_mut().find(|o| touch(o, &r)) {
-                *o = [o[0].min(r[0]), o[1].min(r[1]), o[2].max(r[2]), o[3].max(r[3])];
-                changed = true;
-            } else {
-                out.push(r);
+        let n = boxes.len();
+        let mut parent: Vec<usize> = (0..n).collect();
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by_key(|&i| boxes[i].0[0]);
+        // Boxes whose columns reach the sweep's (with the gap): every one that can meet the
+        // next, which starts at or after theirs.
+        let mut open: Vec<usize> = Vec::new();
+        for &i in &order {
+            let r = boxes[i].0;
+            open.retain(|&a| boxes[a].0[2].saturating_add(gap) >= r[0]);
+            for &a in &open {
+                let o = boxes[a].0;
+                if o[1] <= r[3].saturating_add(gap) && r[1] <= o[3].saturating_add(gap) {
+                    let (x, y) = (root(&mut parent, a), root(&mut parent, i));
+                    parent[x.max(y)] = x.min(y);
+                }
             }
+            open.push(i);
         }
-        rects = out;
-        if !changed {
-            return rects;
+        let mut joined: Vec<Option<([u32; 4], usize)>> = vec![None; n];
+        for i in 0..n {
+            let (r, first) = boxes[i];
+            let slot = &mut joined[root(&mut parent, i)];
+            *slot = Some(match *slot {
+                Some((o, f)) => ([o[0].min(r[0]), o[1].min(r[1]), o[2].max(r[2]), o[3].max(r[3])], f.min(first)),
+                None => (r, first),
+            });
         }
+        let mut next: Vec<([u32; 4], usize)> = joined.into_iter().flatten().collect();
+        next.sort_by_key(|&(_, first)| first);
+        if next.len() == n {
+            return next.into_iter().map(|(r, _)| r).collect();
+        }
+        boxes = next;
     }
 }
 
@@ -1603,6 +1631,57 @@ mod tests {
         assert_eq!(merged(vec![[0, 0, 2, 2], [3, 0, 4, 1]], false), vec![[0, 0, 2, 2], [3, 0, 4, 1]]);
         assert_eq!(merged(vec![[0, 0, 2, 2], [3, 0, 4, 1], [2, 1, 5, 5]], false), vec![[0, 0, 5, 5]]);
         assert_eq!(m, vec![[0, 0, 4, 2], [10, 10, 11, 11]]);
+    }
+
+    /// The sweep gives what joining any two overlapping rectangles until none overlaps
+    /// gives (the pairwise merge it replaced), on scattered and chained rectangles.
+    #[test]
+    fn the_sweep_merges_as_pairwise_joining_does() {
+        fn pairwise(mut rects: Vec<[u32; 4]>, touching: bool) -> Vec<[u32; 4]> {
+            let gap = u32::from(touching);
+            let touch = |a: &[u32; 4], b: &[u32; 4]| {
+                a[0] <= b[2] + gap && b[0] <= a[2] + gap && a[1] <= b[3] + gap && b[1] <= a[3] + gap
+            };
+            loop {
+                let mut changed = false;
+                let mut out: Vec<[u32; 4]> = Vec::new();
+                for r in rects {
+                    if let Some(o) = out.iter_mut().find(|o| touch(o, &r)) {
+                        *o = [o[0].min(r[0]), o[1].min(r[1]), o[2].max(r[2]), o[3].max(r[3])];
+                        changed = true;
+                    } else {
+                        out.push(r);
+                    }
+                }
+                rects = out;
+                if !changed {
+                    return rects;
+                }
+            }
+        }
+        // A small generator of its own (deterministic): rectangles of 1 to 6 a side over
+        // 200 x 200, few enough to leave many apart.
+        let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut next = |n: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            u32::try_from(state % n).unwrap()
+        };
+        for count in [0, 1, 5, 50, 400, 1500] {
+            let rects: Vec<[u32; 4]> = (0..count)
+                .map(|_| {
+                    let (x, y) = (next(200), next(200));
+                    [x, y, x + next(6), y + next(6)]
+                })
+                .collect();
+            for touching in [false, true] {
+                assert_eq!(merged(rects.clone(), touching), pairwise(rects.clone(), touching), "{count} {touching}");
+            }
+        }
+        // A chain whose boxes join only once joined: an L whose arms meet through a third.
+        let chain = vec![[0, 0, 1, 10], [20, 0, 21, 1], [5, 5, 25, 6], [2, 9, 4, 9]];
+        assert_eq!(merged(chain.clone(), false), pairwise(chain, false));
     }
 
     /// The rows a [`Blender`] makes of `fine` and `coarse` (as many rows each) across
