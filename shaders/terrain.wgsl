@@ -379,6 +379,11 @@ struct VertexOut {
     @location(5) rel: vec3<f32>,
     // 1 where the Earth hides the vertex from the eye (the far side, past the limb).
     @location(6) behind: f32,
+    // On the globe with the atmosphere's tables, the air at the vertex (see `air_at`):
+    // the up direction, the sunlight that reaches it, the air between it and the eye.
+    @location(7) up: vec3<f32>,
+    @location(8) sunlight: vec3<f32>,
+    @location(9) air: vec4<f32>,
 }
 
 // Is the point q (in the anchor's frame) hidden from the eye by the ball inside the Earth?
@@ -429,7 +434,44 @@ fn vs_main(@location(0) local: vec2<f32>, @location(1) instance: vec4<f32>) -> V
     out.clip = G.view_proj * vec4<f32>(out.rel, 1.0);
     out.grid = local;
     out.level = level;
+    out.up = vec3<f32>(0.0, 1.0, 0.0);
+    out.sunlight = vec3<f32>(1.0);
+    out.air = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    if ATMO.look.y > 0.5 && ATMO.tables.x > 0.5 {
+        let air = air_at(out.rel, h, out.clip);
+        out.up = air.up;
+        out.sunlight = air.sunlight;
+        out.air = air.air;
+    }
     return out;
+}
+
+struct AirAt {
+    up: vec3<f32>,
+    sunlight: vec3<f32>,
+    air: vec4<f32>,
+}
+
+// The air at a vertex `rel` from the eye, `height` above the model's sphere, at `clip`:
+// its up direction, the sunlight through the air above it (none in the planet's shadow),
+// and the aerial perspective between it and the eye. They change over kilometres, not
+// pixels: computed a vertex, they cost a pixel an interpolation (three table reads and
+// two square roots fewer), and the mesh's vertices lie about eight pixels apart.
+fn air_at(rel: vec3<f32>, height: f32, clip: vec4<f32>) -> AirAt {
+    // The point at its height above the model's sphere (the ellipsoid's radius varies by
+    // 21 km; the air's density follows the height, not the radius).
+    let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
+    let p = up * (BOTTOM + max(height, 0.0));
+    let sun = ATMO.sun.xyz;
+    var sunlight = transmittance_to_top(p, sun);
+    if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
+        sunlight = vec3<f32>(0.0);
+    }
+    // Its place on the screen (0..1, row 0 at the top), as a fragment's pixel over the
+    // target's size. (A vertex behind the eye is near it, where the air is thin.)
+    let ndc = clip.xy / max(clip.w, 1.0e-6);
+    let uv = vec2<f32>(0.5 + 0.5 * ndc.x, 0.5 - 0.5 * ndc.y);
+    return AirAt(up, sunlight, aerial(uv, length(p - ATMO.eye.xyz)));
 }
 
 // The colour of texture tile `slot` at `within` (0..1 across the tile proper).
@@ -620,7 +662,10 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
         rgb = mix(rgb, vec3<f32>(0.02, 0.02, 0.02), line * 0.8);
     }
     if ATMO.look.y > 0.5 {
-        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y, in.clip.xy), 1.0);
+        if ATMO.tables.x > 0.5 {
+            return vec4<f32>(seen_through_air(albedo, normal, AirAt(in.up, in.sunlight, in.air)), 1.0);
+        }
+        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y), 1.0);
     }
     let distance = length(in.rel);
     let haze = 1.0 - exp(-G.fog.w * distance);
@@ -628,30 +673,39 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
 }
 
 // On the globe with an atmosphere: the ground lit by the sun through the air above it,
-// seen through the air between it and the eye (the aerial perspective), exposed.
-fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32, pixel: vec2<f32>) -> vec3<f32> {
-    // The point at its height above the model's sphere (the ellipsoid's radius varies by
-    // 21 km; the air's density follows the height, not the radius).
+// seen through the air between it and the eye (the aerial perspective), exposed; the air
+// as `air_at` found it at the vertices.
+fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt) -> vec3<f32> {
+    let up = normalize(at.up);
+    let n = grid_to_frame(grid_normal, up);
+    let sun = ATMO.sun.xyz;
+    // Sky light from above, growing with the sun's height, less on slopes facing away.
+    let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
+    let radiance = albedo / PI * (at.sunlight * max(dot(n, sun), 0.0) + sky);
+    // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
+    return expose(radiance * at.air.a + at.air.rgb);
+}
+
+// The grid's normal `n` (east, up, south) in the anchor's frame at a point whose up is `up`.
+fn grid_to_frame(n: vec3<f32>, up: vec3<f32>) -> vec3<f32> {
+    let east = normalize(cross(ATMO.pole.xyz, up));
+    let north = cross(up, east);
+    return normalize(east * n.x + up * n.y - north * n.z);
+}
+
+// The same without the tables: the air integrated along the ray, a pixel at a time.
+fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32) -> vec3<f32> {
     let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
     let p = up * (BOTTOM + max(height, 0.0));
     let sun = ATMO.sun.xyz;
-    // The grid's east, up and south at the point, in the anchor's frame.
-    let east = normalize(cross(ATMO.pole.xyz, up));
-    let north = cross(up, east);
-    let n = normalize(east * grid_normal.x + up * grid_normal.y - north * grid_normal.z);
+    let n = grid_to_frame(grid_normal, up);
     var sun_t = transmittance_to_top(p, sun);
     if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
         sun_t = vec3<f32>(0.0);
     }
-    // Sky light from above, growing with the sun's height, less on slopes facing away.
     let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
     let radiance = albedo / PI * (sun_t * max(dot(n, sun), 0.0) + sky);
     let to = p - ATMO.eye.xyz;
-    if ATMO.tables.x > 0.5 {
-        let air = aerial(pixel / ATMO.tables.zw, length(to));
-        // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
-        return expose(radiance * air.a + air.rgb);
-    }
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
     return expose(ground_seen(radiance, air.light, air.transmittance));
 }

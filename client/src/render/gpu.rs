@@ -275,11 +275,11 @@ pub fn texture_entry(
     }
 }
 
-/// A bind-group layout entry for a filtering sampler seen by the fragment stage.
+/// A bind-group layout entry for a filtering sampler seen by both stages.
 pub fn sampler_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
-        visibility: wgpu::ShaderStages::FRAGMENT,
+        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
         ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
         count: None,
     }
