@@ -34,7 +34,8 @@ const FOOT: f64 = 0.3048;
 /// What a contour tile holds.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ContourOptions {
-    /// Height between lines (in `feet` or metres); None: the zoom's default.
+    /// Height between lines (in `feet` or metres; finer than [`MIN_INTERVAL`] is taken as
+    /// it); None: the zoom's default.
     pub interval: Option<f64>,
     /// Every how many lines a major one is (default 5).
     pub major: u32,
