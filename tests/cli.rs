@@ -810,3 +810,21 @@ fn progress_is_logged_as_lines_where_there_is_no_terminal() {
     );
     assert!(out.status.success() && !text(&out).contains(" %), "), "{}", text(&out));
 }
+
+/// `bench render` flies every row on the built-in crop (tiny frames: its numbers are not
+/// checked, only that each row is drawn and the descent always shows terrain).
+#[test]
+fn bench_render_flies_every_row_and_the_descent_shows_terrain() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = terrastream(&["bench", "render", "--frames", "3", "--size", "96x54"], dir.path());
+    let said = text(&out);
+    assert!(out.status.success(), "{said}");
+    for row in ["streaming ", "resident ", "baseline ", "globe ", "globe baseline ", "atmosphere ", "globe, in turn "] {
+        assert!(
+            said.lines().any(|l| l.trim_start().starts_with(row) && l.contains("frame ms median")),
+            "{row}: {said}"
+        );
+    }
+    assert!(said.contains("the atmosphere's share of the globe's frame (median, frames in turn)"), "{said}");
+    assert!(said.contains(", 0 without terrain;"), "{said}");
+}
