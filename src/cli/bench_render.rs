@@ -255,8 +255,8 @@ fn on_the_globe(
     let bare = RenderSettings { atmosphere: false, ..RenderSettings::default() };
     let (f50, f99) = baseline(bench, bare, &on_globe, "globe baseline", (g50, g99))?;
     println!("  globe baseline / plate baseline: median {:.2}x, p99 {:.2}x", f50 / plate_floor.0, f99 / plate_floor.1);
-    // With and without the atmosphere a frame of each in turn: its share is a few
-    // percent, less than this machine's spells move a whole run.
+    // With and without the atmosphere a frame of each in turn: flown one after the
+    // other, this machine's spells move a whole run by more than the atmosphere costs.
     let mut air = bench.settled(RenderSettings::default(), &on_globe)?;
     let mut runs = fly_in_turn(bench.gpu, &mut [&mut globe, &mut air], &on_globe, &bench.target)?.into_iter();
     let (without, with_air) = (runs.next().context("the globe's run")?, runs.next().context("the atmosphere's run")?);
