@@ -458,20 +458,29 @@ struct AirAt {
 // pixels: computed a vertex, they cost a pixel an interpolation (three table reads and
 // two square roots fewer), and the mesh's vertices lie about eight pixels apart.
 fn air_at(rel: vec3<f32>, height: f32, clip: vec4<f32>) -> AirAt {
-    // The point at its height above the model's sphere (the ellipsoid's radius varies by
-    // 21 km; the air's density follows the height, not the radius).
     let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
-    let p = up * (BOTTOM + max(height, 0.0));
-    let sun = ATMO.sun.xyz;
-    var sunlight = transmittance_to_top(p, sun);
-    if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
-        sunlight = vec3<f32>(0.0);
-    }
+    let p = ground_point(up, height);
     // Its place on the screen (0..1, row 0 at the top), as a fragment's pixel over the
     // target's size. (A vertex behind the eye is near it, where the air is thin.)
     let ndc = clip.xy / max(clip.w, 1.0e-6);
     let uv = vec2<f32>(0.5 + 0.5 * ndc.x, 0.5 - 0.5 * ndc.y);
-    return AirAt(up, sunlight, aerial(uv, length(p - ATMO.eye.xyz)));
+    return AirAt(up, sunlight_at(p), aerial(uv, length(p - ATMO.eye.xyz)));
+}
+
+// The point `height` above the model's sphere under `up` (the ellipsoid's radius varies
+// by 21 km; the air's density follows the height, not the radius).
+fn ground_point(up: vec3<f32>, height: f32) -> vec3<f32> {
+    return up * (BOTTOM + max(height, 0.0));
+}
+
+// The sunlight that reaches ground point `p` through the air above it; none in the
+// planet's shadow.
+fn sunlight_at(p: vec3<f32>) -> vec3<f32> {
+    let sun = ATMO.sun.xyz;
+    if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
+        return vec3<f32>(0.0);
+    }
+    return transmittance_to_top(p, sun);
 }
 
 // The colour of texture tile `slot` at `within` (0..1 across the tile proper).
@@ -676,37 +685,31 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
 // seen through the air between it and the eye (the aerial perspective), exposed; the air
 // as `air_at` found it at the vertices.
 fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt) -> vec3<f32> {
-    let up = normalize(at.up);
-    let n = grid_to_frame(grid_normal, up);
-    let sun = ATMO.sun.xyz;
-    // Sky light from above, growing with the sun's height, less on slopes facing away.
-    let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
-    let radiance = albedo / PI * (at.sunlight * max(dot(n, sun), 0.0) + sky);
+    let radiance = ground_radiance(albedo, grid_normal, normalize(at.up), at.sunlight);
     // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
     return expose(radiance * at.air.a + at.air.rgb);
 }
 
-// The grid's normal `n` (east, up, south) in the anchor's frame at a point whose up is `up`.
-fn grid_to_frame(n: vec3<f32>, up: vec3<f32>) -> vec3<f32> {
+// The light ground of `albedo` sends back where its up is `up`, its grid normal (east, up,
+// south) `grid_normal` and `sunlight` reaches it: the sun's and the sky's.
+fn ground_radiance(albedo: vec3<f32>, grid_normal: vec3<f32>, up: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
+    // The grid's east, up and south at the point, in the anchor's frame.
     let east = normalize(cross(ATMO.pole.xyz, up));
     let north = cross(up, east);
-    return normalize(east * n.x + up * n.y - north * n.z);
+    let n = normalize(east * grid_normal.x + up * grid_normal.y - north * grid_normal.z);
+    let sun = ATMO.sun.xyz;
+    // Sky light from above, growing with the sun's height, less on slopes facing away.
+    let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
+    return albedo / PI * (sunlight * max(dot(n, sun), 0.0) + sky);
 }
 
 // The same without the tables: the air integrated along the ray, a pixel at a time.
 fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32) -> vec3<f32> {
     let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
-    let p = up * (BOTTOM + max(height, 0.0));
-    let sun = ATMO.sun.xyz;
-    let n = grid_to_frame(grid_normal, up);
-    var sun_t = transmittance_to_top(p, sun);
-    if ray_sphere(p, sun, BOTTOM - 100.0) > 0.0 {
-        sun_t = vec3<f32>(0.0);
-    }
-    let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
-    let radiance = albedo / PI * (sun_t * max(dot(n, sun), 0.0) + sky);
+    let p = ground_point(up, height);
+    let radiance = ground_radiance(albedo, grid_normal, up, sunlight_at(p));
     let to = p - ATMO.eye.xyz;
-    let air = integrate(ATMO.eye.xyz, normalize(to), length(to), sun, ATMO.look.w);
+    let air = integrate(ATMO.eye.xyz, normalize(to), length(to), ATMO.sun.xyz, ATMO.look.w);
     return expose(ground_seen(radiance, air.light, air.transmittance));
 }
 
@@ -783,11 +786,7 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     if ground > 0.0 {
         let g = eye + d * ground;
         let up = normalize(g);
-        var sun_t = transmittance_to_top(g, sun);
-        if ray_sphere(g, sun, BOTTOM - 100.0) > 0.0 {
-            sun_t = vec3<f32>(0.0);
-        }
-        let radiance = albedo / PI * (sun_t * max(dot(up, sun), 0.0) + sky_light(up, sun));
+        let radiance = albedo / PI * (sunlight_at(g) * max(dot(up, sun), 0.0) + sky_light(up, sun));
         // Along a ray that meets the ground, the air between is the ratio of the two
         // stretches up to the top (the way back up passes the eye).
         let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));

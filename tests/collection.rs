@@ -640,29 +640,25 @@ fn a_planned_shard_of_a_collection_needs_only_the_inputs_its_plan_lists() {
     let whole = d.join("whole.tspack");
     tile_in(&inputs, &whole, &[]);
     assert_eq!(tiles_of(&merged), tiles_of(&whole), "the merged planned shards' tiles are the single run's");
+    // Shard `i` made from its pod folder as it now is: whether it failed, and what it said.
+    let refused = |i: usize| {
+        let (pod, out) = (d.join(format!("pod{i}")), d.join("refused.tspack"));
+        let shard = format!("{i}/3");
+        let mut args = vec!["tile", "--elevation", pod.to_str().unwrap(), "--shard", &shard];
+        args.extend(["--shard-plan", plan_file.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        args.extend(common);
+        let out = oracles::run_in(&args, d);
+        (!out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
     // A shard given an input the plan does not record is told which (the other shards
     // know nothing of it).
-    let stray = d.join("pod2").join("stray.tif");
-    std::fs::copy(repo().join(PATCH), &stray).unwrap();
-    let refused = d.join("y.tspack");
-    let pod = d.join("pod2");
-    let mut args = vec!["tile", "--elevation", pod.to_str().unwrap(), "--shard", "2/3"];
-    args.extend(["--shard-plan", plan_file.to_str().unwrap(), "-o", refused.to_str().unwrap()]);
-    args.extend(common);
-    let out = oracles::run_in(&args, d);
-    let said = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && said.contains("stray.tif") && said.contains("plan records"), "{said}");
+    std::fs::copy(repo().join(PATCH), d.join("pod2").join("stray.tif")).unwrap();
+    let (failed, said) = refused(2);
+    assert!(failed && said.contains("stray.tif") && said.contains("plan records"), "{said}");
     // A shard missing a listed input is told which.
-    let pod = d.join("pod0");
-    let missing = pod.join(&lists[0][1]);
-    std::fs::remove_file(&missing).unwrap();
-    let refused = d.join("x.tspack");
-    let mut args = vec!["tile", "--elevation", pod.to_str().unwrap(), "--shard", "0/3"];
-    args.extend(["--shard-plan", plan_file.to_str().unwrap(), "-o", refused.to_str().unwrap()]);
-    args.extend(common);
-    let out = oracles::run_in(&args, d);
-    let said = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && said.contains(&lists[0][1]), "{said}");
+    std::fs::remove_file(d.join("pod0").join(&lists[0][1])).unwrap();
+    let (failed, said) = refused(0);
+    assert!(failed && said.contains(&lists[0][1]), "{said}");
 }
 
 /// A VRT of the base and the patch (`gdalbuildvrt -resolution highest`, each source a

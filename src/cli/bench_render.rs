@@ -44,8 +44,6 @@ struct Run {
     vertices: Vec<u64>,
     draw_calls: Vec<u32>,
     uploads_max: u64,
-    /// The session's uploads before the last frame.
-    uploads_before: u64,
 }
 
 /// Flies `cameras`, timing each whole frame (stream update, uploads, draw, GPU finish).
@@ -59,16 +57,12 @@ fn fly(gpu: &Gpu, session: &mut Session, cameras: &[Camera], target: &Offscreen)
 fn fly_in_turn(gpu: &Gpu, sessions: &mut [&mut Session], cameras: &[Camera], target: &Offscreen) -> Result<Vec<Run>> {
     let (colour, depth) = (target.colour_view(), target.depth_view());
     let mut runs: Vec<Run> = (sessions.iter())
-        .map(|s| Run {
-            frame_ms: Vec::new(),
-            vertices: Vec::new(),
-            draw_calls: Vec::new(),
-            uploads_max: 0,
-            uploads_before: s.streamer.stats().uploads,
-        })
+        .map(|_| Run { frame_ms: Vec::new(), vertices: Vec::new(), draw_calls: Vec::new(), uploads_max: 0 })
         .collect();
+    // Each session's uploads before its last frame.
+    let mut uploads: Vec<u64> = sessions.iter().map(|s| s.streamer.stats().uploads).collect();
     for camera in cameras {
-        for (session, run) in sessions.iter_mut().zip(&mut runs) {
+        for ((session, run), uploads) in sessions.iter_mut().zip(&mut runs).zip(&mut uploads) {
             let start = Instant::now();
             let (stream, frame) = session.frame(&gpu.device, &gpu.queue, camera);
             render_pass(&gpu.device, &gpu.queue, &colour, &depth, session.renderer.settings().clear_colour(), |pass| {
@@ -78,8 +72,8 @@ fn fly_in_turn(gpu: &Gpu, sessions: &mut [&mut Session], cameras: &[Camera], tar
             run.frame_ms.push(start.elapsed().as_secs_f64() * 1e3);
             run.vertices.push(frame.vertices);
             run.draw_calls.push(frame.draw_calls);
-            run.uploads_max = run.uploads_max.max(stream.uploads - run.uploads_before);
-            run.uploads_before = stream.uploads;
+            run.uploads_max = run.uploads_max.max(stream.uploads - *uploads);
+            *uploads = stream.uploads;
         }
     }
     Ok(runs)
