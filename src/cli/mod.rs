@@ -22,6 +22,7 @@ mod tile;
 mod update;
 mod verify;
 mod view;
+mod water;
 
 use std::process::ExitCode;
 
@@ -93,6 +94,9 @@ enum Command {
     /// Tile new rasters over the part of an archive they cover, keeping the rest: the
     /// archive's grid, CRS and height encoding; tiles around and above are made again.
     Update(update::UpdateArgs),
+    /// Add a water layer to an archive from a water mask raster (lakes, rivers, the sea):
+    /// drawn as water, and served as quantized-mesh's water mask.
+    Water(water::WaterArgs),
     /// Pack the built-in sample terrain and show what is in it.
     Demo(demo::DemoArgs),
     /// Benchmarks that print numbers.
@@ -155,6 +159,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Extract(args) => extract::run(args, &progress()),
         Command::Export(args) => export::run(args, &progress()),
         Command::Update(args) => update::run(args, &progress()),
+        Command::Water(args) => water::run(args, &progress()),
         Command::Merge(args) => merge::run(args, &progress()),
         Command::Demo(args) => demo::run(args, &progress()),
         Command::Tile(args) => tile::run(args, &progress()),

@@ -197,7 +197,8 @@ pub fn sea_dem(dir: &Path) -> (PathBuf, [f64; 3], (f64, f64)) {
 /// A geographic Float32 GeoTIFF `dir/{name}.tif` (GDAL's `gdal_translate` of an ASCII
 /// grid), `degrees` a side from `west`, `south` at `per_degree` samples a degree, of
 /// `height` at each sample's centre (longitude, latitude).
-fn grid_tif(
+#[allow(dead_code, reason = "not every test binary uses it")]
+pub fn grid_tif(
     dir: &Path,
     name: &str,
     [west, south, degrees, per_degree]: [f64; 4],

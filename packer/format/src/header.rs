@@ -9,8 +9,9 @@ pub const MAGIC: [u8; 8] = *b"TSPACK\r\n";
 pub const HEADER_LEN: usize = 128;
 /// Newest major version this crate reads and writes; it reads every major from 1 up to
 /// this one and writes the lowest that holds an archive's metadata
-/// ([`crate::Metadata::format_major`]): 2 only where a layer is `zstd_gradient`.
-pub const VERSION_MAJOR: u16 = 2;
+/// ([`crate::Metadata::format_major`]): 3 only where a layer is a water layer, 2 only
+/// where a layer is `zstd_gradient`.
+pub const VERSION_MAJOR: u16 = 3;
 /// Minor version written by this crate; readers accept any minor of their major.
 pub const VERSION_MINOR: u16 = 0;
 /// What a reader fetches first when it knows nothing of the archive.
@@ -257,15 +258,17 @@ mod tests {
         assert_eq!(Header::decode(&h.encode(), file_len).unwrap(), h);
     }
 
-    /// Majors 1 and 2 are read (2 only adds a payload compression); 0 and 3 are refused
-    /// before anything else is looked at.
+    /// Majors 1 to 3 are read (2 only adds a payload compression, 3 a layer kind); 0 and
+    /// 4 are refused before anything else is looked at.
     #[test]
-    fn reads_majors_one_and_two_only() {
+    fn reads_majors_one_to_three_only() {
         let mut h = sample();
         let file_len = h.data.end().unwrap();
-        h.version_major = 2;
-        assert_eq!(Header::decode(&h.encode(), file_len).unwrap(), h);
-        for major in [0, 3, 0x8001] {
+        for major in [2, 3] {
+            h.version_major = major;
+            assert_eq!(Header::decode(&h.encode(), file_len).unwrap(), h);
+        }
+        for major in [0, 4, 0x8001] {
             h.version_major = major;
             let err = Header::decode(&h.encode(), file_len).unwrap_err();
             assert!(matches!(err, Error::UnsupportedVersion { major: m, minor: 0 } if m == major), "{err}");

@@ -113,6 +113,11 @@ pub enum LayerKind {
     /// (format [`TileFormat::MinMaxF32`]), for culling and LOD decisions before the tile
     /// itself is loaded.
     HeightRange,
+    /// Where the surface is water (sea, lakes, rivers): on the grid of the elevation layer
+    /// it follows, each sample the fraction of water there, decoded by the layer's
+    /// `elevation` encoding (0 land, 1 water; no data where the mask said nothing, which a
+    /// reader takes from the heights' flat-sea rule instead). Format major 3.
+    Water,
 }
 
 /// Encoding of each tile payload of a layer.
@@ -611,10 +616,16 @@ impl Metadata {
         self.layers.iter().map(Layer::depth).collect()
     }
 
-    /// The lowest format major version that can hold this metadata: 2 where a layer's
-    /// tiles are `zstd_gradient`, else 1 (FORMAT.md §8).
+    /// The lowest format major version that can hold this metadata: 3 where a layer is a
+    /// water layer, 2 where a layer's tiles are `zstd_gradient`, else 1 (FORMAT.md §8).
     pub fn format_major(&self) -> u16 {
-        if self.layers.iter().any(|l| l.compression == PayloadCompression::ZstdGradient) { 2 } else { 1 }
+        if self.layers.iter().any(|l| l.kind == LayerKind::Water) {
+            3
+        } else if self.layers.iter().any(|l| l.compression == PayloadCompression::ZstdGradient) {
+            2
+        } else {
+            1
+        }
     }
 
     /// Checks the limits every reader relies on.
@@ -648,6 +659,9 @@ impl Metadata {
             }
             if l.compression == PayloadCompression::ZstdGradient && l.format != TileFormat::RawU16 {
                 return bad(format!("{at}: compression zstd_gradient is for raw_u16 tiles, not {:?}", l.format));
+            }
+            if l.kind == LayerKind::Water && l.elevation.is_none() {
+                return bad(format!("{at}: a water layer needs an encoding (`elevation`) for its fractions"));
             }
         }
         if let Some(u) = &self.vertical_datum.undulation

@@ -29,6 +29,7 @@ pub mod pyramid;
 mod request;
 mod shard;
 mod tile;
+mod water;
 
 pub use collection::{
     Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, PlannedCollection, SparseLevel,
@@ -51,6 +52,7 @@ pub use terrastream_raster::{
     read_image, read_vrt, vrt_files_by_resolution,
 };
 pub use tile::{tile_elevation, tile_shard, tile_terrain};
+pub use water::{ALL_WATER, KNOT, NO_WATER_DATA, WATER_LAYER, WaterSummary, add_water, water_encoding};
 
 #[cfg(test)]
 mod tests;

@@ -211,7 +211,7 @@ pub fn decode(layer: &Layer, key: TileKey, payload: &[u8], compressed: bool) -> 
                 )));
             }
             match (layer.kind, layer.elevation) {
-                (LayerKind::Elevation, Some(encoding)) => {
+                (LayerKind::Elevation | LayerKind::Water, Some(encoding)) => {
                     let values = image.values(encoding.scheme).map_err(bad)?;
                     tile(heights(&encoding, values.into_iter()))
                 }

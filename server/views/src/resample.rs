@@ -92,7 +92,8 @@ impl<'a> Placed<'a> {
         let metadata = reader.metadata();
         let layer = metadata.layers.get(usize::from(index))?;
         let samples = match layer.kind {
-            terrastream_format::LayerKind::Elevation => Samples::Heights,
+            // A water layer's samples decode as heights do: the fraction of water.
+            terrastream_format::LayerKind::Elevation | terrastream_format::LayerKind::Water => Samples::Heights,
             terrastream_format::LayerKind::Texture => match layer.format {
                 terrastream_format::TileFormat::Png
                 | terrastream_format::TileFormat::Jpeg

@@ -632,6 +632,17 @@ fn rederive_layers(
                 let texture = MergedTexture { merged, format, edge: grid.res + 2 * grid.border };
                 rederive(&grid, &texture, &mut remade)?;
             }
+            // A water tile depends on its mask alone, not on its neighbours: it is taken
+            // as it is. Only a coarse tile two inputs both hold loses one's part.
+            LayerKind::Water if !merged.conflicts.is_empty() => {
+                tracing::warn!(
+                    "layer {:?}: {} water tiles are held by two inputs and the later one's is kept: add the water \
+                     again to the merged archive (`terrastream water`) from a mask that covers it all",
+                    layer.name,
+                    merged.conflicts.len()
+                );
+                continue;
+            }
             _ => continue,
         }
         for (key, bytes) in remade.entries {

@@ -524,24 +524,44 @@ mod tests {
         let n = 9;
         // West of column 4 a flat 0; east of it land; one land point inside the sea.
         let mut h: Vec<f32> = (0..n * n).map(|i| if i % n < 4 { 0.0 } else { 3.0 + (i % n) as f32 }).collect();
-        assert_eq!(water_mask(&vec![0.0; n * n], n), vec![255]);
-        assert_eq!(water_mask(&h.iter().map(|v| v + 10.0).collect::<Vec<_>>(), n), vec![0]);
+        assert_eq!(water_mask(&vec![0.0; n * n], n, None), vec![255]);
+        assert_eq!(water_mask(&h.iter().map(|v| v + 10.0).collect::<Vec<_>>(), n, None), vec![0]);
         h[n + 1] = 0.3;
-        let m = water_mask(&h, n);
+        let m = water_mask(&h, n, None);
         assert_eq!(m.len(), 65_536);
         assert_eq!(m[200 * 256 + 2], 255, "west: sea");
         assert_eq!(m[200 * 256 + 253], 0, "east: land");
         assert!(m[20 * 256 + 20] < 255, "the point at 0.3 m breaks the flat 0 near the north-west");
         // A basin below sea level (not flat at 0) is land.
-        assert_eq!(water_mask(&vec![-30.0; n * n], n), vec![0]);
+        assert_eq!(water_mask(&vec![-30.0; n * n], n, None), vec![0]);
         // Beside missing data the sea stays sea, as the renderer draws it (its shade
         // texels' rule): a flat 0 whose northern rows have no data.
         let mut coast = vec![0.0f32; n * n];
         coast[..2 * n].fill(f32::NAN);
-        let m = water_mask(&coast, n);
+        let m = water_mask(&coast, n, None);
         assert_eq!(m[255 * 256 + 128], 255, "south: sea");
         assert_eq!(m[70 * 256 + 128], 255, "between the row beside the missing data and the next: sea");
         assert!(terrastream_tiles::flat_sea(0.0, [f32::NAN, 0.0, f32::NAN, 0.0]));
         assert!(!terrastream_tiles::flat_sea(0.0, [0.2, 0.0, 0.0, 0.0]));
+    }
+
+    #[test]
+    fn a_water_layer_overrides_the_flat_zero_where_it_has_data() {
+        use super::super::water_mask;
+        let n = 9;
+        // Land at 300 m with a lake in the middle columns; the layer says nothing in the
+        // last three rows, which are a flat 0 (the sea, by the heights' rule).
+        let mut h = vec![300.0f32; n * n];
+        h[6 * n..].fill(0.0);
+        let mut w: Vec<f32> = (0..n * n).map(|i| if (3..6).contains(&(i % n)) { 1.0 } else { 0.0 }).collect();
+        w[6 * n..].fill(f32::NAN);
+        let m = water_mask(&h, n, Some(&w));
+        assert_eq!(m.len(), 65_536);
+        assert_eq!(m[64 * 256 + 128], 255, "the lake, from the layer");
+        assert_eq!(m[64 * 256 + 10], 0, "land beside it");
+        assert_eq!(m[255 * 256 + 10], 255, "the sea where the layer says nothing");
+        // The layer's land wins over a flat 0: a polder stored at 0 m.
+        assert_eq!(water_mask(&vec![0.0; n * n], n, Some(&vec![0.0; n * n])), vec![0]);
+        assert_eq!(water_mask(&h, n, Some(&vec![1.0; n * n])), vec![255]);
     }
 }

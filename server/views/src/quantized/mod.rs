@@ -42,6 +42,8 @@ pub fn geometric_error(z: u8) -> f64 {
 /// An archive's elevation as quantized-mesh terrain.
 pub struct Terrain<'a> {
     placed: Placed<'a>,
+    /// The archive's water layer, when it has one: the water mask where it has data.
+    water: Option<Placed<'a>>,
     /// What the archive's heights are measured from: tiles hold heights above the WGS 84
     /// ellipsoid where it says how to make them.
     datum: &'a VerticalDatum,
@@ -60,16 +62,21 @@ impl<'a> Terrain<'a> {
         let metadata = reader.metadata();
         let index = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation)?;
         let layer = &metadata.layers[index];
-        let mut placed = Placed::new(reader, u8::try_from(index).ok()?)?;
-        if let Some((cache, version)) = cache {
-            placed = placed.with_cache(cache, version);
-        }
+        let placed_layer = |index: usize| {
+            let placed = Placed::new(reader, u8::try_from(index).ok()?)?;
+            Some(match cache {
+                Some((cache, version)) => placed.with_cache(cache, version),
+                None => placed,
+            })
+        };
+        let placed = placed_layer(index)?;
+        let water = metadata.layers.iter().position(|l| l.kind == LayerKind::Water).and_then(placed_layer);
         // A level's grid spans what a Web Mercator tile of 64 pixels spans a zoom deeper.
         let mut coverage = tilejson::coverage(metadata, layer, 64)?;
         coverage.maxzoom = coverage.maxzoom.saturating_sub(1);
         let [w, s, e, n] = coverage.bounds;
         let centre = placed.world((w + e) / 2.0, (s + n) / 2.0)?;
-        Some(Self { placed, coverage, centre, datum: &metadata.vertical_datum })
+        Some(Self { placed, water, coverage, centre, datum: &metadata.vertical_datum })
     }
 
     /// West, south, east, north of the data (degrees).
@@ -137,7 +144,8 @@ impl<'a> Terrain<'a> {
     }
 
     /// [`Terrain::heights`], and where `water` is asked the tile's water mask
-    /// ([`water_mask`]) from the heights as stored.
+    /// ([`water_mask`]): from the archive's water layer where it has data, else from the
+    /// heights as stored.
     fn grid(&self, tile: GeoTile, water: bool) -> Result<(Vec<f32>, Option<Vec<u8>>), MakeError> {
         let at = |column: f64, row: f64| {
             let (lon, lat) = tile.grid_point_at(column, row, GRID);
@@ -149,9 +157,13 @@ impl<'a> Terrain<'a> {
         #[expect(clippy::cast_precision_loss, reason = "grid indices")]
         let positions = (self.placed.lattice(GRID, &|u, v| at(u - 0.5, v - 0.5)))
             .with_exact_border(GRID, |column, row| at(column as f64, row as f64));
-        let mut heights =
-            self.placed.sample(&positions, self.lod(tile.z))?.unwrap_or_else(|| vec![f32::NAN; GRID * GRID]);
-        let mask = water.then(|| water_mask(&heights, GRID));
+        let lod = self.lod(tile.z);
+        let mut heights = self.placed.sample(&positions, lod)?.unwrap_or_else(|| vec![f32::NAN; GRID * GRID]);
+        let mask = match (water, &self.water) {
+            (false, _) => None,
+            (true, None) => Some(water_mask(&heights, GRID, None)),
+            (true, Some(layer)) => Some(water_mask(&heights, GRID, layer.sample(&positions, lod)?.as_deref())),
+        };
         mesh::fill_nodata(&mut heights, GRID);
         self.to_ellipsoid(tile, &mut heights);
         Ok((heights, mask))
@@ -311,17 +323,21 @@ pub fn gzip(bytes: &[u8]) -> Vec<u8> {
 }
 
 /// Where a grid of heights (`size` a side, rows from the north, as stored: before any
-/// datum shift) is the sea as DEMs store it, a flat 0 (SRTM, Copernicus): a point and its
-/// neighbours in the grid at one height within half a metre of 0, a neighbour without
-/// data left out ([`terrastream_tiles::flat_sea`], the renderer's rule). As the quantized-mesh
-/// water mask: one byte (0 all land, 255 all sea), else 256 x 256 from the north-west
-/// corner, rows north to south, bilinear between the grid's points (the coast
-/// anti-aliased, as the format allows).
+/// datum shift) is water: the fraction of the archive's water layer at a point (`water`,
+/// the same grid) where it has data; elsewhere the sea as DEMs store it, a flat 0 (SRTM,
+/// Copernicus): a point and its neighbours in the grid at one height within half a metre
+/// of 0, a neighbour without data left out ([`terrastream_tiles::flat_sea`], the
+/// renderer's rule). As the quantized-mesh water mask: one byte (0 all land, 255 all
+/// water), else 256 x 256 from the north-west corner, rows north to south, bilinear between
+/// the grid's points (the coast anti-aliased, as the format allows).
 #[must_use]
-pub fn water_mask(h: &[f32], size: usize) -> Vec<u8> {
+pub fn water_mask(h: &[f32], size: usize, water: Option<&[f32]>) -> Vec<u8> {
     let at = |c: usize, r: usize| h[r * size + c];
     let sea: Vec<f32> = (0..size * size)
         .map(|i| {
+            if let Some(w) = water.and_then(|w| w.get(i)).filter(|w| w.is_finite()) {
+                return w.clamp(0.0, 1.0);
+            }
             let (c, r) = (i % size, i / size);
             // Past the grid's rim: no neighbour (NaN), as the renderer's shade texels take it.
             let near = |cc: Option<usize>, rr: Option<usize>| match (cc, rr) {

@@ -204,6 +204,7 @@ fn scan_layer(
         LayerKind::Normals => "normals",
         LayerKind::Material => "material",
         LayerKind::HeightRange => "elevation-range",
+        LayerKind::Water => "water",
         LayerKind::Texture => "texture",
     };
     let (tiles, naming) = find_tiles(dir, layer_name, folder, options.swap_xy)?;

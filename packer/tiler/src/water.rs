@@ -1,0 +1,464 @@
+//! `terrastream water`: a water mask raster carried into an archive as its water layer.
+//!
+//! The mask is any single-band raster the tiler reads (a GeoTIFF, in any CRS): 0 is land,
+//! 1 water (larger values count as 1, fractions between as partial cover, as an
+//! anti-aliased rasterization gives them), no data where the mask says nothing. It is
+//! read whole into a fraction per pixel (one byte each) and averaged 2 x 2 into a pyramid
+//! of its own.
+//!
+//! Every elevation tile of the archive gets a water tile with the same LOD, x and y and
+//! the same samples (borders included): each sample's position on the archive's grid is
+//! taken into the mask's CRS (exactly at every [`KNOT`]-th sample of a tile, bilinear
+//! between: a tile spans a few kilometres, where a projection is smooth to far below a
+//! pixel), and the mask is read there bilinearly from the level of its pyramid whose pixels
+//! are no larger than the sample. A tile wholly outside the mask (or over its no data) is
+//! left missing: readers then take the sea from the heights (a flat 0), as without a water
+//! layer. A tile the mask covers is authoritative, land included: a polder stored at 0 m
+//! stays land.
+//!
+//! Tiles are 8-bit gray PNGs: `v / 254` the fraction, 255 no data (FORMAT.md §3.1).
+//! The archive is written anew beside itself and renamed over the output once complete,
+//! so an error or Ctrl-C leaves it as it was.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use rayon::prelude::*;
+
+use terrastream_format::{
+    ElevationEncoding, ElevationScheme, Layer, LayerKind, PayloadCompression, Reader, TileFormat, TileKey,
+};
+use terrastream_pack::progress::Progress;
+use terrastream_pack::{Writer, WriterOptions};
+
+use crate::crs::{Crs, Transform};
+use crate::error::{Error, Result};
+use crate::raster::ElevationSource;
+
+/// Samples between the exact transforms of a tile's positions into the mask's CRS.
+pub const KNOT: usize = 16;
+
+/// The stored value of a sample the mask says nothing about.
+pub const NO_WATER_DATA: u8 = 255;
+
+/// The stored value of a sample wholly water.
+pub const ALL_WATER: u8 = 254;
+
+/// A made water tile: its place in the archive's order, its key, its PNG, whether it has
+/// any water.
+struct Made {
+    order: u64,
+    key: TileKey,
+    png: Vec<u8>,
+    wet: bool,
+}
+
+/// The name the water layer is given.
+pub const WATER_LAYER: &str = "water";
+
+/// What [`add_water`] did.
+#[derive(Clone, Debug)]
+pub struct WaterSummary {
+    /// Water tiles written (elevation tiles the mask covers).
+    pub tiles: u64,
+    /// Of them, tiles with some water.
+    pub wet: u64,
+    /// Elevation tiles the mask does not cover (left to the flat-sea rule).
+    pub uncovered: u64,
+    /// Bytes of the water tiles.
+    pub bytes: u64,
+    /// The archive written.
+    pub write: terrastream_pack::WriteSummary,
+}
+
+/// The encoding of a water layer's samples: `v / 254`, 255 no data.
+#[must_use]
+pub fn water_encoding() -> ElevationEncoding {
+    ElevationEncoding {
+        scheme: ElevationScheme::Gray8,
+        scale: 255.0 / f64::from(ALL_WATER),
+        offset: 0.0,
+        nodata: Some(f64::from(NO_WATER_DATA)),
+    }
+}
+
+/// Adds (or replaces) the water layer of the archive `base`, from the mask raster `mask`,
+/// and writes the archive to `out` (which may be `base`).
+///
+/// # Errors
+/// [`Error::Input`] naming the archive when it has no elevation layer or no georeference
+/// to place the mask by, or naming the mask when it cannot be read, has no georeference,
+/// or is too large; I/O and archive errors; [`Error::Interrupted`] when `progress` is
+/// cancelled (the output is then as it was).
+pub fn add_water(base: &Path, mask: &Path, out: &Path, progress: &dyn Progress) -> Result<WaterSummary> {
+    let reader = Reader::open_mmap(base).map_err(|e| Error::input(base, format!("cannot open archive: {e}")))?;
+    let metadata = reader.metadata().clone();
+    let bad = |why: &str| Error::input(base, why.to_owned());
+    if metadata.shard.is_some() {
+        return Err(bad("it is one shard of a sharded run: add the water to the merged archive"));
+    }
+    let elevation = metadata
+        .layers
+        .iter()
+        .position(|l| l.kind == LayerKind::Elevation)
+        .ok_or_else(|| bad("it has no elevation layer: a water layer follows its grid"))?;
+    let grid = metadata.layers[elevation].clone();
+    let g =
+        metadata.georeference.as_ref().ok_or_else(|| bad("it has no georeference: nothing to place the mask by"))?;
+    let (Some(origin), Some(scale), Some(definition)) =
+        (g.origin, g.scale, g.definition.as_deref().or(g.crs.as_deref()))
+    else {
+        return Err(bad("its georeference has no CRS, origin and scale: tile it again"));
+    };
+    let archive_crs = Crs::parse(definition).map_err(|e| Error::input(base, format!("its CRS: {e}")))?;
+    let mask = Mask::read(mask)?;
+    let to_mask = Transform::new(&archive_crs, &mask.crs);
+    let place = Placement { origin, scale, to_mask };
+
+    // The elevation tiles, in archive order.
+    let mut keys = Vec::new();
+    let step = terrastream_format::MAX_LAYERS as u64;
+    reader.for_each_entry(|entry| -> Result<()> {
+        for i in 0..u64::from(entry.run_length) {
+            let key = reader.archive().tile_of(entry.key + i * step)?;
+            if usize::from(key.layer()) == elevation {
+                keys.push(key);
+            }
+        }
+        Ok(())
+    })?;
+    let existing = metadata.layers.iter().position(|l| l.kind == LayerKind::Water);
+    let index = existing.unwrap_or(metadata.layers.len());
+    let mut metadata = metadata;
+    let layer = Layer {
+        name: WATER_LAYER.into(),
+        kind: LayerKind::Water,
+        format: TileFormat::Png,
+        compression: PayloadCompression::None,
+        elevation: Some(water_encoding()),
+        extent: None,
+        ..grid.clone()
+    };
+    match existing {
+        Some(i) => metadata.layers[i] = layer,
+        None if metadata.layers.len() < terrastream_format::MAX_LAYERS => metadata.layers.push(layer),
+        None => return Err(bad("it has 16 layers already, the most an archive holds")),
+    }
+    metadata.validate().map_err(|e| Error::input(base, e.to_string()))?;
+
+    progress.start("water", keys.len() as u64);
+    let index_u8 = u8::try_from(index).unwrap_or(u8::MAX);
+    let made: Vec<Option<Made>> = keys
+        .par_iter()
+        .map(|&key| -> Result<_> {
+            progress.check()?;
+            let values = place.tile(&grid, &mask, key);
+            progress.advance(1);
+            if values.iter().all(|&v| v == NO_WATER_DATA) {
+                return Ok(None);
+            }
+            let wet = values.iter().any(|&v| v != 0 && v != NO_WATER_DATA);
+            let water = TileKey::new(index_u8, key.lod(), key.x(), key.y())?;
+            let order = Writer::order_key(&metadata, water)?;
+            Ok(Some(Made { order, key: water, png: gray_png(&values, edge(&grid)), wet }))
+        })
+        .collect::<Result<_>>()?;
+    let uncovered = made.iter().filter(|m| m.is_none()).count() as u64;
+    let tiles: BTreeMap<u64, Made> = made.into_iter().flatten().map(|m| (m.order, m)).collect();
+    let wet = tiles.values().filter(|t| t.wet).count() as u64;
+    let bytes = tiles.values().map(|t| t.png.len() as u64).sum();
+
+    // The archive's tiles as they are stored (an old water layer's left out), the water
+    // tiles in their places among them.
+    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
+    let mut writer = Writer::create(out, metadata.clone(), options)?;
+    let mut pending = tiles.into_iter().peekable();
+    reader.for_each_entry(|entry| -> Result<()> {
+        progress.check()?;
+        let payload = reader.entry_payload(entry)?;
+        for i in 0..u64::from(entry.run_length) {
+            let order = entry.key + i * step;
+            let key = reader.archive().tile_of(order)?;
+            if Some(usize::from(key.layer())) == existing {
+                continue;
+            }
+            while let Some((_, water)) = pending.next_if(|(o, _)| *o < order) {
+                writer.add_stored(water.key, water.png)?;
+            }
+            writer.add_stored(key, payload.to_vec())?;
+        }
+        Ok(())
+    })?;
+    for (_, water) in pending {
+        writer.add_stored(water.key, water.png)?;
+    }
+    drop(reader);
+    let write = writer.finish()?;
+    Ok(WaterSummary { tiles: keys.len() as u64 - uncovered, wet, uncovered, bytes, write })
+}
+
+/// Samples a stored tile of `layer` holds across (borders included).
+fn edge(layer: &Layer) -> usize {
+    (layer.tile_resolution + 2 * u32::from(layer.border)) as usize
+}
+
+/// A water mask in memory: a fraction per pixel (0..=[`ALL_WATER`], [`NO_WATER_DATA`]) and
+/// its 2 x 2 means, level by level.
+struct Mask {
+    crs: Crs,
+    /// The north-west corner of pixel (0, 0) and the pixel size, in the mask's CRS.
+    origin: [f64; 2],
+    pixel: (f64, f64),
+    /// Level 0 the mask's pixels; each next level half the size, rounded up.
+    levels: Vec<Level>,
+}
+
+struct Level {
+    width: usize,
+    height: usize,
+    values: Vec<u8>,
+}
+
+/// Pixels of the largest mask read (4 GiB at a byte a pixel).
+const MAX_MASK_PIXELS: u64 = 1 << 32;
+
+impl Mask {
+    fn read(path: &Path) -> Result<Self> {
+        let file = crate::raster::open_elevation(path, None)?;
+        let no_place =
+            || Error::input(path, "the mask has no georeference (a CRS and where it lies): nothing to place it by");
+        let g = file.georeference().ok_or_else(no_place)?;
+        let (crs, origin) =
+            (g.definition.as_deref().or(g.crs.as_deref()).ok_or_else(no_place)?, g.origin.ok_or_else(no_place)?);
+        let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("the mask's CRS: {e}")))?;
+        let pixel = file.crs_pixel_size().ok_or_else(no_place)?;
+        let (width, height) = file.size();
+        if u64::from(width) * u64::from(height) > MAX_MASK_PIXELS {
+            return Err(Error::input(path, format!("the mask is {width} x {height} pixels: at most 2^32 are read")));
+        }
+        let mut values = Vec::with_capacity(width as usize * height as usize);
+        file.rows(&mut |row| {
+            values.extend(row.iter().map(|&v| fraction(v)));
+            Ok(())
+        })?;
+        let mut levels = vec![Level { width: width as usize, height: height as usize, values }];
+        while let Some(last) = levels.last().filter(|l| l.width > 1 || l.height > 1) {
+            levels.push(last.halved());
+        }
+        Ok(Self { crs, origin, pixel, levels })
+    }
+}
+
+/// A mask sample as stored: 0 land, [`ALL_WATER`] water, fractions between; no data and
+/// non-numbers [`NO_WATER_DATA`].
+fn fraction(v: f32) -> u8 {
+    if v.is_nan() {
+        return NO_WATER_DATA;
+    }
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=254")]
+    let stored = (v.clamp(0.0, 1.0) * f32::from(ALL_WATER)).round() as u8;
+    stored
+}
+
+impl Level {
+    /// The mean of each 2 x 2 block of known pixels (no data where none is known).
+    fn halved(&self) -> Self {
+        let (width, height) = (self.width.div_ceil(2), self.height.div_ceil(2));
+        let mut values = Vec::with_capacity(width * height);
+        for y in 0..height {
+            for x in 0..width {
+                let (mut sum, mut n) = (0u32, 0u32);
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let (sx, sy) = (2 * x + dx, 2 * y + dy);
+                    if sx < self.width && sy < self.height {
+                        let v = self.values[sy * self.width + sx];
+                        if v != NO_WATER_DATA {
+                            sum += u32::from(v);
+                            n += 1;
+                        }
+                    }
+                }
+                #[expect(clippy::cast_possible_truncation, reason = "a mean of bytes up to 254")]
+                values.push((sum + n / 2).checked_div(n).map_or(NO_WATER_DATA, |mean| mean as u8));
+            }
+        }
+        Self { width, height, values }
+    }
+
+    /// Bilinear at pixel coordinates (`u`, `v`; pixel (i, j)'s centre at `i + 0.5`), over
+    /// the known pixels around; no data where less than half the weight is known.
+    fn bilinear(&self, u: f64, v: f64) -> u8 {
+        let (x, y) = (u - 0.5, v - 0.5);
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let (mut sum, mut weight) = (0.0, 0.0);
+        for (dx, dy, w) in [
+            (0.0, 0.0, (1.0 - fx) * (1.0 - fy)),
+            (1.0, 0.0, fx * (1.0 - fy)),
+            (0.0, 1.0, (1.0 - fx) * fy),
+            (1.0, 1.0, fx * fy),
+        ] {
+            let (px, py) = (x0 + dx, y0 + dy);
+            #[expect(clippy::cast_precision_loss, reason = "raster sizes")]
+            let inside = px >= 0.0 && py >= 0.0 && px < self.width as f64 && py < self.height as f64;
+            if w > 0.0 && inside {
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "inside the level")]
+                let value = self.values[py as usize * self.width + px as usize];
+                if value != NO_WATER_DATA {
+                    sum += w * f64::from(value);
+                    weight += w;
+                }
+            }
+        }
+        if weight < 0.5 {
+            return NO_WATER_DATA;
+        }
+        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a mean of bytes up to 254")]
+        let mean = (sum / weight).round() as u8;
+        mean
+    }
+}
+
+/// How the archive's grid lies in the mask's CRS.
+struct Placement {
+    origin: [f64; 2],
+    scale: [f64; 2],
+    to_mask: Transform,
+}
+
+impl Placement {
+    /// The mask's pixel coordinates (level 0) of world point (`x`, `z`).
+    fn mask_pixel(&self, mask: &Mask, x: f64, z: f64) -> Option<(f64, f64)> {
+        let (cx, cy) = (self.origin[0] + x * self.scale[0], self.origin[1] - z * self.scale[1]);
+        let (mx, my) = self.to_mask.apply(cx, cy)?;
+        Some(((mx - mask.origin[0]) / mask.pixel.0, (mask.origin[1] - my) / mask.pixel.1))
+    }
+
+    /// The water samples of the tile of `grid` at `key`'s LOD, x and y (see the module).
+    fn tile(&self, grid: &Layer, mask: &Mask, key: TileKey) -> Vec<u8> {
+        let edge = edge(grid);
+        let res = f64::from(grid.tile_resolution);
+        let spacing = grid.world_size_at(key.lod()) / res;
+        let (first_x, first_z) =
+            (f64::from(key.x()) * res - f64::from(grid.border), f64::from(key.y()) * res - f64::from(grid.border));
+        #[expect(clippy::cast_precision_loss, reason = "sample indices of one tile")]
+        let world = |a: usize, b: usize| ((first_x + a as f64 + 0.5) * spacing, (first_z + b as f64 + 0.5) * spacing);
+        // Exact at the knots (every KNOT-th sample and the last), bilinear between.
+        let knots: Vec<usize> =
+            (0..edge).step_by(KNOT).chain((!(edge - 1).is_multiple_of(KNOT)).then_some(edge - 1)).collect();
+        let exact: Vec<Option<(f64, f64)>> = knots
+            .iter()
+            .flat_map(|&b| knots.iter().map(move |&a| (a, b)))
+            .map(|(a, b)| {
+                let (x, z) = world(a, b);
+                self.mask_pixel(mask, x, z)
+            })
+            .collect();
+        // The level whose pixels are no larger than a sample, measured at the tile's middle.
+        let middle = edge / 2;
+        let (x, z) = world(middle, middle);
+        let level = match (
+            self.mask_pixel(mask, x, z),
+            self.mask_pixel(mask, x + spacing, z),
+            self.mask_pixel(mask, x, z + spacing),
+        ) {
+            (Some(p), Some(px), Some(pz)) => {
+                let size = (px.0 - p.0).hypot(px.1 - p.1).min((pz.0 - p.0).hypot(pz.1 - p.1));
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the levels")]
+                let l = if size > 1.0 { size.log2().floor().min(63.0) as usize } else { 0 };
+                l.min(mask.levels.len() - 1)
+            }
+            _ => 0,
+        };
+        let at = &mask.levels[level];
+        #[expect(clippy::cast_precision_loss, reason = "a level's power of two")]
+        let shrink = 1.0 / (1u64 << level) as f64;
+        let span = |i: usize| {
+            let k = knots.partition_point(|&k| k <= i).clamp(1, knots.len() - 1) - 1;
+            #[expect(clippy::cast_precision_loss, reason = "sample indices of one tile")]
+            let f = (i - knots[k]) as f64 / (knots[k + 1] - knots[k]) as f64;
+            (k, f)
+        };
+        let n = knots.len();
+        let mut out = vec![NO_WATER_DATA; edge * edge];
+        if n < 2 {
+            return out;
+        }
+        for b in 0..edge {
+            let (kb, fb) = span(b);
+            for a in 0..edge {
+                let (ka, fa) = span(a);
+                let corners = [
+                    exact[kb * n + ka],
+                    exact[kb * n + ka + 1],
+                    exact[(kb + 1) * n + ka],
+                    exact[(kb + 1) * n + ka + 1],
+                ];
+                let [Some(p00), Some(p10), Some(p01), Some(p11)] = corners else {
+                    // A point the transform cannot take: exactly, or no data.
+                    let (x, z) = world(a, b);
+                    if let Some((u, v)) = self.mask_pixel(mask, x, z) {
+                        out[b * edge + a] = at.bilinear(u * shrink, v * shrink);
+                    }
+                    continue;
+                };
+                let lerp = |p: f64, q: f64, f: f64| p + (q - p) * f;
+                let u = lerp(lerp(p00.0, p10.0, fa), lerp(p01.0, p11.0, fa), fb);
+                let v = lerp(lerp(p00.1, p10.1, fa), lerp(p01.1, p11.1, fa), fb);
+                out[b * edge + a] = at.bilinear(u * shrink, v * shrink);
+            }
+        }
+        out
+    }
+}
+
+/// An 8-bit gray PNG of `edge` x `edge` values.
+fn gray_png(values: &[u8], edge: usize) -> Vec<u8> {
+    let mut out = Vec::new();
+    let side = u32::try_from(edge).unwrap_or(u32::MAX);
+    let mut encoder = png::Encoder::new(&mut out, side, side);
+    encoder.set_color(png::ColorType::Grayscale);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::Balanced);
+    // Writing into a Vec cannot fail for a buffer of the stated size.
+    if let Ok(mut w) = encoder.write_header() {
+        let _ = w.write_image_data(values);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pyramid_averages_known_pixels_and_keeps_no_data_apart() {
+        let l = Level { width: 3, height: 2, values: vec![0, 254, NO_WATER_DATA, 254, 254, NO_WATER_DATA] };
+        let h = l.halved();
+        assert_eq!((h.width, h.height), (2, 1));
+        assert_eq!(h.values, vec![191, NO_WATER_DATA]);
+    }
+
+    #[test]
+    fn fractions_clamp_and_no_data_stays_apart() {
+        assert_eq!(fraction(0.0), 0);
+        assert_eq!(fraction(1.0), ALL_WATER);
+        assert_eq!(fraction(255.0), ALL_WATER);
+        assert_eq!(fraction(-3.0), 0);
+        assert_eq!(fraction(0.5), 127);
+        assert_eq!(fraction(f32::NAN), NO_WATER_DATA);
+        let e = water_encoding();
+        assert!((e.height(f64::from(ALL_WATER)) - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bilinear_reads_between_pixels_and_past_the_edge() {
+        let l = Level { width: 2, height: 1, values: vec![0, 254] };
+        assert_eq!(l.bilinear(0.5, 0.5), 0);
+        assert_eq!(l.bilinear(1.5, 0.5), 254);
+        assert_eq!(l.bilinear(1.0, 0.5), 127);
+        // Half a pixel past the edge: the edge pixel alone.
+        assert_eq!(l.bilinear(2.0, 0.5), 254);
+        assert_eq!(l.bilinear(5.0, 0.5), NO_WATER_DATA);
+    }
+}

@@ -1,0 +1,212 @@
+//! A water layer from a mask raster (`terrastream water`): lakes that the heights' flat-sea
+//! rule cannot see, carried in the archive and served as quantized-mesh's water mask.
+//! GDAL is the oracle: it makes the mask (rasterized in degrees, warped to UTM with an
+//! area average, so the lake's shore holds fractions) and measures the lake's area.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::cast_possible_truncation, missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use terrastream_format::{LayerKind, Reader, TileKey};
+use terrastream_views::quantized::Terrain;
+use terrastream_views::quantized::encode::Extensions;
+use terrastream_views::quantized::geodetic::GeoTile;
+
+#[path = "support/oracles.rs"]
+mod oracles;
+use oracles::terrastream;
+
+/// The lake: a circle of this radius (degrees) round the coast DEM's basin, 30 m below
+/// sea level (a lake like the Dead Sea: no flat 0 says it is water).
+const RADIUS: f64 = 0.012;
+
+/// The coast DEM and a mask of the lake over its land half (no data over the sea), in
+/// UTM zone 28 at 20 m, made by GDAL; the basin's centre (lon, lat).
+fn coast_and_lake(dir: &Path) -> (PathBuf, PathBuf, (f64, f64)) {
+    let (dem, [west, south, degrees]) = oracles::coast_dem(dir);
+    let mid = west + degrees / 2.0;
+    let centre = (mid + 0.025, south + 0.05);
+    let lake = |lon: f64, lat: f64| {
+        if lon < mid {
+            return -9999.0;
+        }
+        if (lon - centre.0).hypot(lat - centre.1) < RADIUS { 1.0 } else { 0.0 }
+    };
+    let degrees_mask = oracles::grid_tif(dir, "lake-degrees", [west, south, degrees, 2400.0], &lake);
+    let mask = dir.join("lake-utm.tif");
+    let out = Command::new("gdalwarp")
+        .args(["-q", "-overwrite", "-t_srs", "EPSG:32628", "-tr", "20", "20", "-r", "average"])
+        .args(["-srcnodata", "-9999", "-dstnodata", "-1"])
+        .args([degrees_mask.to_str().unwrap(), mask.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdalwarp: {}", String::from_utf8_lossy(&out.stderr));
+    (dem, mask, centre)
+}
+
+/// The lake's area in square metres by GDAL: the mask's mean (no data left out) times its
+/// valid pixels times a pixel's area.
+fn gdal_lake_area(mask: &Path) -> f64 {
+    let out = Command::new("gdalinfo").args(["-json", "-stats", mask.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "gdalinfo: {}", String::from_utf8_lossy(&out.stderr));
+    let info: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let band = &info["bands"][0];
+    let mean: f64 = band["metadata"][""]["STATISTICS_MEAN"].as_str().unwrap().parse().unwrap();
+    let valid: f64 = band["metadata"][""]["STATISTICS_VALID_PERCENT"].as_str().unwrap().parse().unwrap();
+    let size = info["size"].as_array().unwrap();
+    let pixels = size[0].as_f64().unwrap() * size[1].as_f64().unwrap() * valid / 100.0;
+    mean * pixels * 400.0
+}
+
+/// The water layer's index and its LOD-0 tiles decoded: the fraction of water at each
+/// sample (NaN where the mask said nothing).
+fn water_tiles(reader: &Reader<terrastream_format::MmapSource>) -> (usize, Vec<(TileKey, Vec<f32>)>) {
+    let metadata = reader.metadata();
+    let index = metadata.layers.iter().position(|l| l.kind == LayerKind::Water).expect("a water layer");
+    let layer = &metadata.layers[index];
+    let mut tiles = vec![];
+    reader
+        .for_each_tile(|key, stored| -> Result<(), terrastream_format::Error> {
+            if usize::from(key.layer()) == index && key.lod() == 0 {
+                let decoded = terrastream_tiles::decode(layer, key, stored, true).unwrap();
+                let terrastream_tiles::TileData::Heights { heights, .. } = decoded.data else { panic!("{key}") };
+                tiles.push((key, heights));
+            }
+            Ok(())
+        })
+        .unwrap();
+    (index, tiles)
+}
+
+/// The quantized-mesh water mask of `tile` (only that extension asked): one byte, or
+/// 256 x 256 rows from the north. The extension is the tile's last bytes: its id (2), its
+/// length, its data.
+fn served_mask(reader: &Reader<terrastream_format::MmapSource>, tile: GeoTile) -> Vec<u8> {
+    let terrain = Terrain::new(reader, None).unwrap();
+    let only_water = Extensions { normals: false, water: true, metadata: false };
+    let bytes = terrain.tile(tile, only_water).unwrap().expect("the tile exists");
+    for len in [65_536usize, 1] {
+        let Some(at) = bytes.len().checked_sub(len + 5) else { continue };
+        if bytes[at] == 2 && u32::from_le_bytes(bytes[at + 1..at + 5].try_into().unwrap()) as usize == len {
+            return bytes[at + 5..].to_vec();
+        }
+    }
+    panic!("no water mask at the end of tile {tile:?}");
+}
+
+/// The mask in UTM is carried into the archive's water layer (the archive in its own
+/// transverse Mercator): the lake's area as GDAL measures it within 3 %, no data over
+/// the sea, every other tile stored as before, format major 3; added again, it replaces
+/// the layer; and the quantized-mesh mask shows the lake where the heights alone show
+/// land, while the sea stays water by the flat-0 rule.
+#[test]
+fn a_lake_from_a_mask_in_another_crs_is_water() {
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, mask, centre) = coast_and_lake(dir.path());
+    let plain = dir.path().join("coast.tspack");
+    let wet = dir.path().join("coast-water.tspack");
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", plain.to_str().unwrap()]);
+    terrastream(&["water", plain.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()]);
+
+    let reader = Reader::open_mmap(&wet).unwrap();
+    assert_eq!(reader.header().version_major, 3);
+    let (index, tiles) = water_tiles(&reader);
+    assert!(!tiles.is_empty());
+    let elevation = reader.metadata().layers.iter().position(|l| l.kind == LayerKind::Elevation).unwrap();
+    let layer = &reader.metadata().layers[elevation];
+    let (res, border) = (layer.tile_resolution as usize, usize::from(layer.border));
+    let spacing = layer.sample_spacing(0);
+    let edge = res + 2 * border;
+    // The interior samples: the lake's area, and the share the mask says nothing of.
+    let (mut area, mut unknown, mut samples) = (0.0, 0usize, 0usize);
+    for (_, values) in &tiles {
+        for row in border..border + res {
+            for &v in &values[row * edge + border..row * edge + border + res] {
+                samples += 1;
+                if v.is_nan() {
+                    unknown += 1;
+                } else {
+                    assert!((0.0..=1.0).contains(&v), "a fraction: {v}");
+                    area += f64::from(v) * spacing * spacing;
+                }
+            }
+        }
+    }
+    let truth = gdal_lake_area(&mask);
+    eprintln!(
+        "lake area: ours {area:.0} m², GDAL's {truth:.0} m² ({:.4}x); {unknown} of {samples} samples unknown",
+        area / truth
+    );
+    assert!((area / truth - 1.0).abs() < 0.03, "ours {area:.0} m², GDAL's {truth:.0} m²");
+    assert!(unknown > 0, "the sea's half has no mask: no data there");
+
+    // Every tile of the other layers is stored as it was.
+    let before = terrastream_testkit::archives::stored_tiles(&plain);
+    let after = terrastream_testkit::archives::stored_tiles(&wet);
+    let others: std::collections::BTreeMap<_, _> =
+        after.iter().filter(|(k, _)| usize::from(k.layer()) != index).map(|(k, v)| (*k, v.clone())).collect();
+    assert_eq!(others, before, "the archive's own tiles");
+
+    // Added again over itself: one water layer, the same tiles.
+    terrastream(&["water", wet.to_str().unwrap(), "--mask", mask.to_str().unwrap()]);
+    let again = terrastream_testkit::archives::stored_tiles(&wet);
+    assert_eq!(again, after);
+
+    // The quantized-mesh mask at the deepest level: the tile holding the lake's centre.
+    let plain_reader = Reader::open_mmap(&plain).unwrap();
+    let z = Terrain::new(&reader, None).unwrap().maxzoom();
+    let d = 180.0 / f64::from(1u32 << z);
+    let (x, y) = (((centre.0 + 180.0) / d).floor() as u32, ((centre.1 + 90.0) / d).floor() as u32);
+    let tile = GeoTile::new(z, x, y).unwrap();
+    // The centre's pixel in the mask (rows from the north).
+    let (u, v) = (
+        ((centre.0 + 180.0 - f64::from(x) * d) / d * 256.0) as usize,
+        ((f64::from(y + 1) * d - (centre.1 + 90.0)) / d * 256.0) as usize,
+    );
+    let lake = served_mask(&reader, tile);
+    let without = served_mask(&plain_reader, tile);
+    let at = |m: &[u8], u: usize, v: usize| if m.len() == 1 { m[0] } else { m[v.min(255) * 256 + u.min(255)] };
+    eprintln!(
+        "tile {tile:?}: the lake's centre at ({u}, {v}): {} with the layer, {} without",
+        at(&lake, u, v),
+        at(&without, u, v)
+    );
+    assert_eq!(at(&without, u, v), 0, "the heights alone: the basin is land");
+    assert_eq!(at(&lake, u, v), 255, "the layer: the lake");
+    // A point on the shore's far side, 1.5 radii east of the centre, is land.
+    let pixels_east = (1.5 * RADIUS / d * 256.0) as usize;
+    if u + pixels_east < 256 {
+        assert_eq!(at(&lake, u + pixels_east, v), 0, "east of the lake");
+    }
+    // The sea (the DEM's west quarter, where the mask has no data): the flat 0.
+    let sea = GeoTile::new(z, ((-20.025 + 180.0) / d).floor() as u32, y).unwrap();
+    assert_eq!(served_mask(&reader, sea), vec![255], "the sea by the heights' rule");
+}
+
+/// A mask that does not say where it lies is refused, naming it, and the archive is left
+/// as it was.
+#[test]
+fn a_mask_without_a_georeference_is_refused_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, _, _) = coast_and_lake(dir.path());
+    let archive = dir.path().join("coast.tspack");
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", archive.to_str().unwrap()]);
+    let bare = dir.path().join("bare.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-of", "GTiff", "-co", "PROFILE=BASELINE", "-outsize", "64", "64"])
+        .args([dem.to_str().unwrap(), bare.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    // GDAL keeps the georeference of a baseline TIFF beside it, where it is read too.
+    let _ = std::fs::remove_file(dir.path().join("bare.tif.aux.xml"));
+    let before = std::fs::read(&archive).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["water", archive.to_str().unwrap(), "--mask", bare.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("bare.tif") && stderr.contains("georeference"), "{stderr}");
+    assert_eq!(std::fs::read(&archive).unwrap(), before, "the archive as it was");
+}
