@@ -283,3 +283,52 @@ fn the_sea_stored_as_zero_is_drawn_as_water() {
     assert!(land < 0.05, "the land: {land:.2} water-blue");
     assert!(!basin, "the basin below sea level is land: {:?}", px(w * 3 / 4, h / 2));
 }
+
+/// The same coast with a water layer from a mask of a lake filling the basin
+/// (`terrastream water`): the lake is drawn as water, though its heights (30 m below sea
+/// level, not a flat 0) alone are land; the sea, which the mask says nothing of, stays
+/// water by the flat-0 rule; the land stays land.
+#[test]
+fn a_lake_from_the_water_layer_is_drawn_as_water() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (tif, bounds) = oracles::coast_dem(dir.path());
+    let [west, south, degrees] = bounds;
+    let (mask, _) = oracles::lake_mask(dir.path(), bounds);
+    let (plain, wet) = (dir.path().join("coast.tspack"), dir.path().join("coast-water.tspack"));
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", plain.to_str().unwrap()], dir.path());
+    let water = ["-q", "water", plain.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()];
+    terrastream(&water, dir.path());
+    let png = dir.path().join("lake.png");
+    let at = format!("{},{},7000", west + degrees / 2.0, south + degrees / 2.0);
+    let args = ["render", wet.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
+    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir.path());
+    let (w, h, rgba) = decode(&png);
+    let px = |x: u32, y: u32| {
+        let i = 4 * (y * w + x) as usize;
+        (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]))
+    };
+    let blue = |(r, g, b): (i32, i32, i32)| b > r + 30 && b > g + 10;
+    let share = |x0: u32, x1: u32, y0: u32, y1: u32| {
+        let (mut n, mut water) = (0, 0);
+        for y in y0..y1 {
+            for x in x0..x1 {
+                n += 1;
+                water += usize::from(blue(px(x, y)));
+            }
+        }
+        water as f64 / f64::from(n)
+    };
+    // The lake's middle (the basin: about 70 px across here, from x = 0.62 w to 0.85 w),
+    // the sea, and the land between them and east of the lake.
+    let lake = share(w * 3 / 4 - 10, w * 3 / 4 + 10, h / 2 - 10, h / 2 + 10);
+    let sea = share(w / 10, w / 3, h / 3, 2 * h / 3);
+    let land =
+        share(w * 53 / 100, w * 58 / 100, h / 3, 2 * h / 3).max(share(w * 9 / 10, w * 19 / 20, h / 3, 2 * h / 3));
+    eprintln!("water-blue: lake {lake:.2}, sea {sea:.2}, land {land:.2}");
+    assert!(lake > 0.95, "the lake: {lake:.2} water-blue");
+    assert!(sea > 0.95, "the sea: {sea:.2} water-blue");
+    assert!(land < 0.05, "the land: {land:.2} water-blue");
+}

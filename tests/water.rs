@@ -16,31 +16,14 @@ use terrastream_views::quantized::geodetic::GeoTile;
 mod oracles;
 use oracles::terrastream;
 
-/// The lake: a circle of this radius (degrees) round the coast DEM's basin, 30 m below
-/// sea level (a lake like the Dead Sea: no flat 0 says it is water).
-const RADIUS: f64 = 0.012;
+/// The lake's radius in degrees ([`oracles::lake_mask`]).
+const RADIUS: f64 = oracles::LAKE_RADIUS;
 
-/// The coast DEM and a mask of the lake over its land half (no data over the sea), in
-/// UTM zone 28 at 20 m, made by GDAL; the basin's centre (lon, lat).
+/// The coast DEM and a mask of a lake in its basin ([`oracles::lake_mask`]); the basin's
+/// centre (lon, lat).
 fn coast_and_lake(dir: &Path) -> (PathBuf, PathBuf, (f64, f64)) {
-    let (dem, [west, south, degrees]) = oracles::coast_dem(dir);
-    let mid = west + degrees / 2.0;
-    let centre = (mid + 0.025, south + 0.05);
-    let lake = |lon: f64, lat: f64| {
-        if lon < mid {
-            return -9999.0;
-        }
-        if (lon - centre.0).hypot(lat - centre.1) < RADIUS { 1.0 } else { 0.0 }
-    };
-    let degrees_mask = oracles::grid_tif(dir, "lake-degrees", [west, south, degrees, 2400.0], &lake);
-    let mask = dir.join("lake-utm.tif");
-    let out = Command::new("gdalwarp")
-        .args(["-q", "-overwrite", "-t_srs", "EPSG:32628", "-tr", "20", "20", "-r", "average"])
-        .args(["-srcnodata", "-9999", "-dstnodata", "-1"])
-        .args([degrees_mask.to_str().unwrap(), mask.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdalwarp: {}", String::from_utf8_lossy(&out.stderr));
+    let (dem, bounds) = oracles::coast_dem(dir);
+    let (mask, centre) = oracles::lake_mask(dir, bounds);
     (dem, mask, centre)
 }
 

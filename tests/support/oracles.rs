@@ -194,6 +194,37 @@ pub fn sea_dem(dir: &Path) -> (PathBuf, [f64; 3], (f64, f64)) {
     (grid_tif(dir, "sea", [west, south, degrees, per_degree], &island), [west, south, degrees], corner)
 }
 
+/// The radius in degrees of the lake [`lake_mask`] draws.
+#[allow(dead_code, reason = "not every test binary uses it")]
+pub const LAKE_RADIUS: f64 = 0.012;
+
+/// A water mask for [`coast_dem`]'s land (`bounds` its west, south and size): a lake of
+/// [`LAKE_RADIUS`] filling its basin (30 m below sea level, like the Dead Sea: no flat 0
+/// says it is water), no data over the sea; rasterized in degrees, then warped by GDAL to
+/// UTM zone 28 at 20 m with an area average (the shore holds fractions). Returns the mask
+/// and the lake's centre (lon, lat).
+#[allow(dead_code, reason = "not every test binary uses it")]
+pub fn lake_mask(dir: &Path, [west, south, degrees]: [f64; 3]) -> (PathBuf, (f64, f64)) {
+    let mid = west + degrees / 2.0;
+    let centre = (mid + 0.025, south + 0.05);
+    let lake = |lon: f64, lat: f64| {
+        if lon < mid {
+            return -9999.0;
+        }
+        if (lon - centre.0).hypot(lat - centre.1) < LAKE_RADIUS { 1.0 } else { 0.0 }
+    };
+    let degrees_mask = grid_tif(dir, "lake-degrees", [west, south, degrees, 2400.0], &lake);
+    let mask = dir.join("lake-utm.tif");
+    let out = Command::new("gdalwarp")
+        .args(["-q", "-overwrite", "-t_srs", "EPSG:32628", "-tr", "20", "20", "-r", "average"])
+        .args(["-srcnodata", "-9999", "-dstnodata", "-1"])
+        .args([degrees_mask.to_str().unwrap(), mask.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdalwarp: {}", String::from_utf8_lossy(&out.stderr));
+    (mask, centre)
+}
+
 /// A geographic Float32 GeoTIFF `dir/{name}.tif` (GDAL's `gdal_translate` of an ASCII
 /// grid), `degrees` a side from `west`, `south` at `per_degree` samples a degree, of
 /// `height` at each sample's centre (longitude, latitude).

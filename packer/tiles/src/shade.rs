@@ -14,6 +14,11 @@
 //!   the sea.
 //! - 1 where the sample has data (the normal is there), else 0.
 //!
+//! Where the archive has a water layer, its tile of the same LOD, x and y says where the
+//! water is ([`DecodedTile::set_water`]): the sea byte is then its fraction of water at
+//! each sample it has data for (lakes at any height; land at 0 m stays land), the flat-0
+//! rule only where it has none.
+//!
 //! Filtered bilinearly, one texel gives a pixel what twelve height loads gave it:
 //! interpolation and the neighbours' differences commute.
 
@@ -39,6 +44,29 @@ impl DecodedTile {
         #[expect(clippy::cast_possible_truncation, reason = "a sample's spacing in metres fits an f32")]
         let spacing = layer.sample_spacing(self.key.lod()) as f32;
         *shade = Some(shade_texels(heights, size as usize, spacing));
+    }
+}
+
+impl DecodedTile {
+    /// Takes the sea byte of this elevation tile's shade texels from `water`, the water
+    /// layer's tile of the same LOD, x and y (its samples the fraction of water, NaN where
+    /// it has none): the fraction where it has one, the flat-0 rule elsewhere. The shade
+    /// texels are made first where the tile has none. A tile of another size, or one that
+    /// is not heights, changes nothing.
+    pub fn set_water(&mut self, layer: &Layer, water: &DecodedTile) {
+        let TileData::Heights { heights: fractions, .. } = &water.data else { return };
+        if water.size != self.size {
+            return;
+        }
+        self.shade(layer);
+        let TileData::Heights { shade: Some(shade), .. } = &mut self.data else { return };
+        for (texel, &f) in shade.chunks_exact_mut(4).zip(fractions) {
+            if f.is_finite() {
+                #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=255")]
+                let byte = (f.clamp(0.0, 1.0) * 255.0).round() as u8;
+                texel[2] = byte;
+            }
+        }
     }
 }
 
@@ -148,5 +176,52 @@ mod tests {
         assert_eq!(texel(&t, edge, 3, 3)[2], 255, "away from it");
         heights.fill(3.0);
         assert!(shade_texels(&heights, edge, 30.0).chunks(4).all(|c| c[2] == 0), "flat land above 0.5 m");
+    }
+
+    #[test]
+    fn a_water_tile_sets_the_sea_byte_where_it_has_data() {
+        use terrastream_format::{ElevationEncoding, ElevationScheme, PayloadCompression, TileFormat, TileKey};
+        let layer = Layer {
+            name: "elevation".into(),
+            kind: LayerKind::Elevation,
+            format: TileFormat::RawF32,
+            compression: PayloadCompression::None,
+            tile_resolution: 2,
+            border: 1,
+            num_x_tiles: 1,
+            num_y_tiles: 1,
+            num_lods: 1,
+            tile_world_size: 60.0,
+            elevation: Some(ElevationEncoding {
+                scheme: ElevationScheme::Float32,
+                scale: 1.0,
+                offset: 0.0,
+                nodata: None,
+            }),
+            extent: None,
+        };
+        let key = TileKey::new(0, 0, 0, 0).unwrap();
+        let tile = |heights: Vec<f32>| DecodedTile {
+            key,
+            size: 4,
+            border: 1,
+            data: TileData::Heights { heights, min: 0.0, max: 0.0, shade: None },
+        };
+        // A lake at 300 m in the first row, land at 0 m (a polder) in the second, and a
+        // flat 0 in the last two rows, which the layer says nothing of.
+        let mut heights = vec![300.0f32; 16];
+        heights[4..8].fill(0.0);
+        heights[8..].fill(0.0);
+        let mut water = vec![0.0f32; 16];
+        water[..4].fill(1.0);
+        water[2] = 0.5;
+        water[8..].fill(f32::NAN);
+        let mut elevation = tile(heights);
+        elevation.set_water(&layer, &tile(water));
+        let TileData::Heights { shade: Some(shade), .. } = &elevation.data else { panic!("no shade") };
+        let sea: Vec<u8> = shade.chunks(4).map(|t| t[2]).collect();
+        assert_eq!(&sea[..4], &[255, 255, 128, 255], "the lake, its shore half water");
+        assert_eq!(&sea[4..8], &[0; 4], "the polder at 0 m: land, as the layer says");
+        assert_eq!(&sea[12..], &[255; 4], "where the layer says nothing: the sea by the flat-0 rule");
     }
 }

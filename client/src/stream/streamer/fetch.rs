@@ -358,11 +358,12 @@ pub(in crate::stream) async fn fetch_and_decode(
     let mut raw: Fetched = Vec::new();
     let (mut bytes, mut needed) = (0, 0);
     let compressed;
+    let water = water_layers(backend.metadata());
     match &backend {
         Backend::Archive(_) | Backend::Manifest(_) => {
             compressed = true;
             match group.part().and_then(|part| backend.part_reader(part)) {
-                Some(reader) => match fetch_located(reader, &group).await {
+                Some(reader) => match fetch_located(reader, &with_water(reader, &group, water.as_ref())).await {
                     Ok(fetched) => (raw, bytes, needed) = fetched,
                     Err(what) => return changed(what),
                 },
@@ -398,6 +399,7 @@ pub(in crate::stream) async fn fetch_and_decode(
     let metadata = backend.metadata().clone();
     if let Some(decoder) = decoder {
         let results = decode_with(&decoder, &metadata, raw, (compressed, shade)).await;
+        let results = apply_water(water.as_ref(), results);
         return Completion::Tiles { request, generation, results, bytes, needed, took };
     }
     let decode_all = move || -> Vec<(TileKey, Outcome)> {
@@ -422,5 +424,77 @@ pub(in crate::stream) async fn fetch_and_decode(
     };
     #[cfg(target_arch = "wasm32")]
     let results = decode_all();
+    let results = apply_water(water.as_ref(), results);
     Completion::Tiles { request, generation, results, bytes, needed, took }
+}
+
+/// An archive's elevation layer and its water layer.
+struct Water {
+    elevation: u8,
+    water: u8,
+    layer: Layer,
+}
+
+/// The elevation layer and the water layer, where the archive has both.
+fn water_layers(metadata: &Metadata) -> Option<Water> {
+    use terrastream_format::LayerKind;
+    let find = |kind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    let (elevation, water) = (find(LayerKind::Elevation)?, find(LayerKind::Water)?);
+    Some(Water { elevation, water, layer: metadata.layers[usize::from(elevation)].clone() })
+}
+
+/// `group` with the water tile of each of its elevation tiles, where the archive has one
+/// and its directory is at hand: the tile right after the elevation tile in the archive's
+/// order (FORMAT.md §6), so the range grows by its bytes alone. One whose leaf directory
+/// is not loaded is left out (its elevation tile then takes the sea from its heights).
+fn with_water(
+    reader: &terrastream_format::AsyncReader<crate::stream::origin::DynSource>,
+    group: &Group,
+    water: Option<&Water>,
+) -> Group {
+    let Some(&Water { elevation, water, .. }) = water else {
+        return Group { rank: group.rank, tiles: group.tiles.clone() };
+    };
+    let mut tiles = group.tiles.clone();
+    for (key, located) in &group.tiles {
+        let Some((part, _)) = located else { continue };
+        if key.layer() != elevation {
+            continue;
+        }
+        let Ok(companion) = TileKey::new(water, key.lod(), key.x(), key.y()) else { continue };
+        if tiles.iter().any(|t| t.0 == companion) {
+            continue;
+        }
+        if let Ok(Locate::Found(location)) = reader.archive().locate(companion) {
+            tiles.push((companion, Some((*part, location))));
+        }
+    }
+    Group { rank: group.rank, tiles }
+}
+
+/// Puts each water tile's fractions into the shade texels of the elevation tile with the
+/// same LOD, x and y ([`terrastream_tiles::DecodedTile::set_water`]) and leaves the water
+/// tiles out of the results: they are not tiles the streamer asked for.
+fn apply_water(water: Option<&Water>, results: Vec<(TileKey, Outcome)>) -> Vec<(TileKey, Outcome)> {
+    let Some(&Water { elevation, water, ref layer }) = water else { return results };
+    let (fractions, mut results): (Vec<_>, Vec<_>) = results.into_iter().partition(|(k, _)| k.layer() == water);
+    let fractions: HashMap<(u8, u32, u32), Arc<DecodedTile>> = fractions
+        .into_iter()
+        .filter_map(|(k, o)| match o {
+            Outcome::Ready(tile) => Some(((k.lod(), k.x(), k.y()), tile)),
+            _ => None,
+        })
+        .collect();
+    for (key, outcome) in &mut results {
+        let Outcome::Ready(tile) = outcome else { continue };
+        if key.layer() != elevation {
+            continue;
+        }
+        if let Some(w) = fractions.get(&(key.lod(), key.x(), key.y())) {
+            let mut with = DecodedTile::clone(tile);
+            with.set_water(layer, w);
+            *tile = Arc::new(with);
+        }
+    }
+    results
 }
