@@ -650,8 +650,13 @@ fn cesium_reads_the_water_mask_of_a_coast() {
     let (tif, [west, south, degrees]) = oracles::coast_dem(dir.path());
     let archive = dir.path().join("coast.tspack");
     terrastream(&["tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()]);
+    // The same coast with a water layer: a lake filling the basin, from a mask in UTM.
+    let (mask, lake_centre) = oracles::lake_mask(dir.path(), [west, south, degrees]);
+    let wet = dir.path().join("lake.tspack");
+    terrastream(&["water", archive.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()]);
     let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
-    let server = terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap()], dir.path());
+    let server =
+        terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap(), wet.to_str().unwrap()], dir.path());
     let (_, body) = curl(server.port, "/coast/layer.json", &[]);
     let layer: Value = serde_json::from_slice(&body).unwrap();
     assert!(layer["extensions"].as_array().unwrap().contains(&json!("watermask")), "{layer}");
@@ -715,6 +720,40 @@ fn cesium_reads_the_water_mask_of_a_coast() {
     let coast = mask(2);
     assert_eq!(coast[0], 65_536.0, "the coast's tile holds a mask of 256 x 256");
     assert!(coast[1] > 250.0 && coast[2] < 5.0, "the coast's tile: west {} east {}", coast[1], coast[2]);
+
+    // With the water layer, the land tile's basin is a lake: Cesium decodes the mask at
+    // the lake's centre as water, the tile's corners (outside the lake) as land, and the
+    // sea tile (which the mask says nothing of) still as all water.
+    let [x, y, _] = land;
+    let (x0, y0) = (f64::from(x) * d - 180.0, f64::from(y) * d - 90.0);
+    let u = ((lake_centre.0 - x0) / d * 256.0) as usize;
+    let v = ((y0 + d - lake_centre.1) / d * 256.0) as usize;
+    let lake = browser.eval_async(&format!(
+        "const done = arguments[0];
+         (async () => {{
+           const provider = await Cesium.CesiumTerrainProvider.fromUrl('http://127.0.0.1:{port}/lake', {{ requestWaterMask: true }});
+           const out = [];
+           for (const [x, y, z] of {tiles}) {{
+             const data = await provider.requestTileGeometry(x, (2 ** z) - 1 - y, z);
+             const m = data.waterMask;
+             out.push(m ? [m.length, m.length === 1 ? m[0] : m[{v} * 256 + {u}], m.length === 1 ? m[0] : m[0], m.length === 1 ? m[0] : m[65535]] : null);
+           }}
+           done(out);
+         }})().catch(e => done(String(e)));",
+        port = server.port,
+        tiles = json!([land, sea])
+    ));
+    eprintln!(
+        "Cesium's water masks with the water layer (length, the lake's centre, north-west and south-east corners): {lake}"
+    );
+    let values = |i: usize| {
+        lake[i].as_array().unwrap_or_else(|| panic!("{lake}")).iter().map(|v| v.as_f64().unwrap()).collect::<Vec<_>>()
+    };
+    let basin = values(0);
+    assert_eq!(basin[0], 65_536.0, "the lake's tile holds a mask of 256 x 256: {lake}");
+    assert_eq!(basin[1], 255.0, "the lake's centre at ({u}, {v}): {lake}");
+    assert!(basin[2] == 0.0 && basin[3] == 0.0, "the corners, land: {lake}");
+    assert_eq!(values(1), vec![1.0, 255.0, 255.0, 255.0], "the sea tile: {lake}");
 }
 
 /// CesiumJS's globe as it draws itself: its sky atmosphere, its ground atmosphere and fog,

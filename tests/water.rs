@@ -77,11 +77,44 @@ fn served_mask(reader: &Reader<terrastream_format::MmapSource>, tile: GeoTile) -
     panic!("no water mask at the end of tile {tile:?}");
 }
 
+/// The water mask of `tile` as PyPI `quantized-mesh-tile` decodes it (installed by
+/// `scripts/test.sh` in the tools' virtual environment) equals `ours`.
+fn independent_decoder_agrees(reader: &Reader<terrastream_format::MmapSource>, tile: GeoTile, ours: &[u8], dir: &Path) {
+    let venv = std::env::var_os("TERRASTREAM_TOOLS_VENV").map(PathBuf::from).unwrap_or_else(|| {
+        PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/terrastream-tools")
+    });
+    let python = venv.join("bin/python");
+    let has = Command::new(&python).args(["-c", "import quantized_mesh_tile"]).status().is_ok_and(|s| s.success());
+    if !has {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "quantized-mesh-tile is required on CI (scripts/test.sh installs it)"
+        );
+        eprintln!("\n*** SKIPPING the independent decoder: PyPI quantized-mesh-tile is not installed ***\n");
+        return;
+    }
+    let only_water = Extensions { normals: false, water: true, metadata: false };
+    let bytes = Terrain::new(reader, None).unwrap().tile(tile, only_water).unwrap().unwrap();
+    let path = dir.join("lake.terrain");
+    std::fs::write(&path, bytes).unwrap();
+    let script = "import io, json, sys\n\
+from quantized_mesh_tile.terrain import TerrainTile\n\
+t = TerrainTile()\n\
+t.fromBytesIO(io.BytesIO(open(sys.argv[1], 'rb').read()), hasWatermask=True)\n\
+print(json.dumps([v for row in t.watermask for v in row]))\n";
+    let out = Command::new(&python).args(["-c", script, path.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "the decoder: {}", String::from_utf8_lossy(&out.stderr));
+    let theirs: Vec<u8> = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(theirs.len(), ours.len(), "the mask's length");
+    assert!(theirs == ours, "quantized-mesh-tile decodes another water mask");
+}
+
 /// The mask in UTM is carried into the archive's water layer (the archive in its own
 /// transverse Mercator): the lake's area as GDAL measures it within 3 %, no data over
 /// the sea, every other tile stored as before, format major 3; added again, it replaces
-/// the layer; and the quantized-mesh mask shows the lake where the heights alone show
-/// land, while the sea stays water by the flat-0 rule.
+/// the layer; `tile --water` makes the same archive; and the quantized-mesh mask (as PyPI
+/// `quantized-mesh-tile` decodes it too) shows the lake where the heights alone show land,
+/// while the sea stays water by the flat-0 rule.
 #[test]
 fn a_lake_from_a_mask_in_another_crs_is_water() {
     let dir = tempfile::tempdir().unwrap();
@@ -134,6 +167,11 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     terrastream(&["water", wet.to_str().unwrap(), "--mask", mask.to_str().unwrap()]);
     let again = terrastream_testkit::archives::stored_tiles(&wet);
     assert_eq!(again, after);
+    // `tile --water` makes the same archive in one run.
+    let one_run = dir.path().join("one-run.tspack");
+    let (dem, mask) = (dem.to_str().unwrap(), mask.to_str().unwrap());
+    terrastream(&["tile", "--elevation", dem, "--water", mask, "-o", one_run.to_str().unwrap()]);
+    assert_eq!(terrastream_testkit::archives::stored_tiles(&one_run), after, "tile --water");
 
     // The quantized-mesh mask at the deepest level: the tile holding the lake's centre.
     let plain_reader = Reader::open_mmap(&plain).unwrap();
@@ -148,6 +186,7 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     );
     let lake = served_mask(&reader, tile);
     let without = served_mask(&plain_reader, tile);
+    independent_decoder_agrees(&reader, tile, &lake, dir.path());
     let at = |m: &[u8], u: usize, v: usize| if m.len() == 1 { m[0] } else { m[v.min(255) * 256 + u.min(255)] };
     eprintln!(
         "tile {tile:?}: the lake's centre at ({u}, {v}): {} with the layer, {} without",

@@ -169,6 +169,11 @@ pub struct TileArgs {
     /// sharded run).
     #[arg(long)]
     manifest_out: Option<PathBuf>,
+    /// A water mask (a raster in any CRS: 0 land, 1 water, no data where it says
+    /// nothing) made the archive's water layer once its tiles are written, as `terrastream
+    /// water` does: lakes and rivers drawn as water, and in quantized-mesh's water mask.
+    #[arg(long, conflicts_with = "shard")]
+    water: Option<PathBuf>,
 }
 
 /// Shard `index` of `count` as `path`'s plan has it: the request goes onto the plan's
@@ -535,6 +540,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         };
         let summary =
             tile_collection(collections, &request, &sources, elevation, texture, &plan, output, shard, progress)?;
+        add_water(args.water.as_deref(), output, progress)?;
         progress.finish();
         if let Some(manifest) = &args.manifest_out {
             terrastream_tiler::single_manifest(output, manifest)?;
@@ -578,6 +584,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         None => args.shard.map(|(index, count)| ShardSpec { index, count, split_lod: args.split_lod, cuts: None }),
     };
     let summary = tile_shard(elevation, texture, &name, output, options, shard, progress)?;
+    add_water(args.water.as_deref(), output, progress)?;
     progress.finish();
     if let Some(manifest) = &args.manifest_out {
         terrastream_tiler::single_manifest(output, manifest)?;
@@ -592,6 +599,20 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// `--water`: the mask made the water layer of the archive just written.
+fn add_water(mask: Option<&Path>, output: &Path, progress: &CliProgress) -> Result<()> {
+    let Some(mask) = mask else { return Ok(()) };
+    let summary = terrastream_tiler::add_water(output, mask, output, progress)?;
+    tracing::info!(
+        tiles = summary.tiles,
+        wet = summary.wet,
+        outside = summary.uncovered,
+        "water layer from {}",
+        mask.display()
+    );
+    Ok(())
 }
 
 /// A plan step's range from the inputs' own statistics, when every one records them: no
