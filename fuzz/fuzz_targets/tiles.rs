@@ -31,7 +31,12 @@ fuzz_target!(|data: &[u8]| {
     // compression; the rest is the payload.
     let [pick, size, how, payload @ ..] = data else { return };
     let format = FORMATS[usize::from(pick % 7)];
-    let kind = if pick & 8 == 0 { LayerKind::Texture } else { LayerKind::Elevation };
+    // A water layer's samples decode as heights do (the fraction of water).
+    let kind = match (pick & 8 == 0, how & 4 == 0) {
+        (true, _) => LayerKind::Texture,
+        (false, true) => LayerKind::Elevation,
+        (false, false) => LayerKind::Water,
+    };
     let scheme = SCHEMES[usize::from((pick >> 4) % 6)];
     let compression = [PayloadCompression::None, PayloadCompression::Zstd, PayloadCompression::ZstdGradient]
         [usize::from(how % 3)];
@@ -46,7 +51,7 @@ fuzz_target!(|data: &[u8]| {
         num_y_tiles: 1,
         num_lods: 1,
         tile_world_size: 1.0,
-        elevation: (kind == LayerKind::Elevation).then_some(ElevationEncoding {
+        elevation: (kind != LayerKind::Texture).then_some(ElevationEncoding {
             scheme,
             scale: 1.0,
             offset: 0.0,
