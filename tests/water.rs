@@ -173,6 +173,24 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     terrastream(&["tile", "--elevation", dem, "--water", mask, "-o", one_run.to_str().unwrap()]);
     assert_eq!(terrastream_testkit::archives::stored_tiles(&one_run), after, "tile --water");
 
+    // An update of the heights over part of the land keeps the water tiles as they are.
+    let updated = dir.path().join("updated.tspack");
+    std::fs::copy(&wet, &updated).unwrap();
+    let raised = dir.path().join("raised.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-ot", "Float32", "-srcwin", "150", "60", "60", "60", "-scale", "0", "1000", "5", "1005"])
+        .args([dem, raised.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    terrastream(&["update", updated.to_str().unwrap(), "--elevation", raised.to_str().unwrap(), "--in-place"]);
+    let water_of = |tiles: &std::collections::BTreeMap<TileKey, Vec<u8>>| {
+        tiles.iter().filter(|(k, _)| usize::from(k.layer()) == index).map(|(k, v)| (*k, v.clone())).collect::<Vec<_>>()
+    };
+    let after_update = terrastream_testkit::archives::stored_tiles(&updated);
+    assert_ne!(after_update, after, "the update changed heights");
+    assert_eq!(water_of(&after_update), water_of(&after), "the water tiles after an update");
+
     // The quantized-mesh mask at the deepest level: the tile holding the lake's centre.
     let plain_reader = Reader::open_mmap(&plain).unwrap();
     let z = Terrain::new(&reader, None).unwrap().maxzoom();

@@ -136,7 +136,9 @@ pub fn add_water(base: &Path, mask: &Path, out: &Path, progress: &dyn Progress) 
         format: TileFormat::Png,
         compression: PayloadCompression::None,
         elevation: Some(water_encoding()),
-        extent: None,
+        // The writer narrows the box of the tiles written to the elevation's (whose last
+        // tiles' samples end inside them); the water's levels are its own.
+        extent: grid.extent.clone().map(|e| terrastream_format::LayerExtent { partial: Vec::new(), ..e }),
         ..grid.clone()
     };
     match existing {
