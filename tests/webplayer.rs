@@ -21,6 +21,9 @@ use std::time::{Duration, Instant};
 use serde_json::{Value, json};
 use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS, WEBGPU_FLAGS};
 
+#[path = "support/oracles.rs"]
+mod oracles;
+
 const WIDTH: u32 = 640;
 const HEIGHT: u32 = 400;
 /// Elevation tiles in the archive `tile --tile-size 64` makes of the 320² crop (on its
@@ -728,4 +731,60 @@ fn webplayer_streams_a_collection_asking_for_no_missing_tile() {
     std::thread::sleep(Duration::from_millis(500));
     let (w, h, rgba) = browser.screenshot("#terrain");
     terrastream_testkit::golden::assert_golden("webplayer-collection", w, h, &rgba, TOLERANCE);
+}
+
+/// A coast with a water layer (a lake filling a basin 30 m below sea level, from a mask
+/// in UTM: `terrastream water`) in the player on WebGL2, looking straight down on the
+/// lake: its water tiles come with the elevation tiles and the lake is drawn as water
+/// (the page's decoding in Web Workers, the water applied on the page); the same view of
+/// the archive without the layer draws the basin as land.
+#[test]
+fn the_webplayer_draws_a_lake_from_the_water_layer() {
+    if !ready() {
+        return;
+    }
+    if Command::new("gdal_translate").arg("--version").output().is_err() {
+        assert!(std::env::var_os("CI").is_none(), "gdal-bin is required on CI");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, bounds) = oracles::coast_dem(dir.path());
+    let (mask, (lon, lat)) = oracles::lake_mask(dir.path(), bounds);
+    let (plain, wet) = (dir.path().join("coast.tspack"), dir.path().join("lake.tspack"));
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", plain.to_str().unwrap()]);
+    terrastream(&["water", plain.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server =
+        terrastream_testkit::server::spawn_serve(exe, &[plain.to_str().unwrap(), wet.to_str().unwrap()], dir.path());
+    let driver = Driver::start();
+    let mut blue = vec![];
+    for name in ["lake", "coast"] {
+        let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH, HEIGHT));
+        browser.goto(&format!(
+            "http://127.0.0.1:{}/view/{name}?hud=0&at={lon},{lat},5000&pitch=-90&heading=0",
+            server.port
+        ));
+        let stats = browser.wait_settled();
+        eprintln!("{name}: {stats}");
+        assert_eq!((stats["missing"].clone(), stats["failures"].clone()), (json!(0), json!(0)), "{stats}");
+        assert_eq!(stats["drew_nothing_in_view"], json!(false), "{stats}");
+        std::thread::sleep(Duration::from_millis(500));
+        let (w, h, rgba) = browser.screenshot("#terrain");
+        // The middle 40 x 40 pixels: the lake's middle.
+        let (mut n, mut water) = (0, 0);
+        for y in h / 2 - 20..h / 2 + 20 {
+            for x in w / 2 - 20..w / 2 + 20 {
+                let i = 4 * (y * w + x) as usize;
+                let (r, g, b) = (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]));
+                n += 1;
+                water += usize::from(b > r + 30 && b > g + 10);
+            }
+        }
+        blue.push(water as f64 / f64::from(n));
+        let console = browser.console();
+        assert!(console.iter().all(|(level, _)| level != "SEVERE"), "{console:?}");
+    }
+    eprintln!("water-blue in the middle: with the water layer {:.2}, without {:.2}", blue[0], blue[1]);
+    assert!(blue[0] > 0.95, "the lake with the water layer: {:.2} water-blue", blue[0]);
+    assert!(blue[1] < 0.05, "the basin without it: {:.2} water-blue", blue[1]);
 }
