@@ -375,23 +375,23 @@ pub(in crate::stream) async fn fetch_and_decode(
         }
         Backend::Endpoint(endpoint, _) => {
             compressed = false;
-            for (key, _) in &group.tiles {
-                match endpoint.tile(*key).await {
+            for key in with_companions(&group, water.as_ref()) {
+                match endpoint.tile(key).await {
                     Ok(body) => {
                         let n = body.as_ref().map_or(0, |b| b.len() as u64);
                         bytes += n;
                         needed += n;
-                        raw.push((*key, Ok(body)));
+                        raw.push((key, Ok(body)));
                     }
                     Err(Error::Changed { what }) => return changed(what),
-                    Err(e) => raw.push((*key, Err(e.to_string()))),
+                    Err(e) => raw.push((key, Err(e.to_string()))),
                 }
             }
         }
         Backend::Host(host) => {
             compressed = true;
-            for (key, _) in &group.tiles {
-                raw.push((*key, Ok(host.get(*key))));
+            for key in with_companions(&group, water.as_ref()) {
+                raw.push((key, Ok(host.get(key))));
             }
         }
     }
@@ -470,6 +470,21 @@ fn with_water(
         }
     }
     Group { rank: group.rank, tiles }
+}
+
+/// The keys of `group`, each elevation tile's water tile after it (tiles fetched one by
+/// one: a tile endpoint, a host's tiles).
+fn with_companions(group: &Group, water: Option<&Water>) -> Vec<TileKey> {
+    let mut keys = Vec::with_capacity(group.tiles.len() * 2);
+    for (key, _) in &group.tiles {
+        keys.push(*key);
+        if let Some(w) = water.filter(|w| key.layer() == w.elevation)
+            && let Ok(companion) = TileKey::new(w.water, key.lod(), key.x(), key.y())
+        {
+            keys.push(companion);
+        }
+    }
+    keys
 }
 
 /// Puts each water tile's fractions into the shade texels of the elevation tile with the
