@@ -244,44 +244,51 @@ fn the_sea_is_water_across_the_edges_of_its_tiles() {
     assert!(land.is_empty(), "{} of {n} sea pixels drawn as land, first {:?}", land.len(), &land[..land.len().min(5)]);
 }
 
+/// `archive` (of [`oracles::coast_dem`], `bounds` its west, south and size) rendered
+/// 320 x 240 from 7 km straight down on the data's middle, where the coast runs: width,
+/// height, RGBA.
+fn coast_from_above(archive: &Path, dir: &Path, [west, south, degrees]: [f64; 3]) -> (u32, u32, Vec<u8>) {
+    let png = dir.join("coast.png");
+    let at = format!("{},{},7000", west + degrees / 2.0, south + degrees / 2.0);
+    let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
+    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir);
+    decode(&png)
+}
+
+/// The share of the pixels in columns `x` and rows `y` of a picture `w` wide drawn
+/// water-blue (the height tint has no such blue).
+fn water_blue(w: u32, rgba: &[u8], x: std::ops::Range<u32>, y: std::ops::Range<u32>) -> f64 {
+    let (mut n, mut water) = (0, 0);
+    for row in y {
+        for column in x.clone() {
+            let i = 4 * (row * w + column) as usize;
+            let (r, g, b) = (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]));
+            n += 1;
+            water += usize::from(b > r + 30 && b > g + 10);
+        }
+    }
+    water as f64 / f64::from(n)
+}
+
 #[test]
 fn the_sea_stored_as_zero_is_drawn_as_water() {
     if !gdal() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let (tif, [west, south, degrees]) = oracles::coast_dem(dir.path());
-    let mid = west + degrees / 2.0;
+    let (tif, bounds) = oracles::coast_dem(dir.path());
     let archive = dir.path().join("coast.tspack");
     terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], dir.path());
-    let png = dir.path().join("coast.png");
-    let at = format!("{mid},{},7000", south + degrees / 2.0);
-    let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
-    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir.path());
-    let (w, h, rgba) = decode(&png);
-    let px = |x: u32, y: u32| {
-        let i = 4 * (y * w + x) as usize;
-        (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]))
-    };
-    let blue = |(r, g, b): (i32, i32, i32)| b > r + 30 && b > g + 10;
+    let (w, h, rgba) = coast_from_above(&archive, dir.path(), bounds);
     // The middle third of rows: a band of columns inside each half, and the basin.
-    let share = |x0: u32, x1: u32| {
-        let (mut n, mut water) = (0, 0);
-        for y in h / 3..2 * h / 3 {
-            for x in x0..x1 {
-                n += 1;
-                water += usize::from(blue(px(x, y)));
-            }
-        }
-        water as f64 / f64::from(n)
-    };
     // (At 7 km the view is a little narrower than the data: no ground beyond it in these.)
-    let (sea, land) = (share(w / 10, w / 3), share(w * 11 / 20, w * 13 / 20));
-    let basin = blue(px(w * 3 / 4, h / 2));
-    eprintln!("sea {sea:.2}, land {land:.2} of their bands water-blue; basin {:?}", px(w * 3 / 4, h / 2));
+    let band = |x: std::ops::Range<u32>| water_blue(w, &rgba, x, h / 3..2 * h / 3);
+    let (sea, land) = (band(w / 10..w / 3), band(w * 11 / 20..w * 13 / 20));
+    let basin = water_blue(w, &rgba, w * 3 / 4..w * 3 / 4 + 1, h / 2..h / 2 + 1);
+    eprintln!("sea {sea:.2}, land {land:.2} of their bands water-blue; basin {basin}");
     assert!(sea > 0.95, "the sea: {sea:.2} water-blue");
     assert!(land < 0.05, "the land: {land:.2} water-blue");
-    assert!(!basin, "the basin below sea level is land: {:?}", px(w * 3 / 4, h / 2));
+    assert_eq!(basin, 0.0, "the basin below sea level is land");
 }
 
 /// The same coast with a water layer from a mask of a lake filling the basin
@@ -295,38 +302,23 @@ fn a_lake_from_the_water_layer_is_drawn_as_water() {
     }
     let dir = tempfile::tempdir().unwrap();
     let (tif, bounds) = oracles::coast_dem(dir.path());
-    let [west, south, degrees] = bounds;
     let (mask, _) = oracles::lake_mask(dir.path(), bounds);
     let (plain, wet) = (dir.path().join("coast.tspack"), dir.path().join("coast-water.tspack"));
     terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", plain.to_str().unwrap()], dir.path());
     let water = ["-q", "water", plain.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()];
     terrastream(&water, dir.path());
-    let png = dir.path().join("lake.png");
-    let at = format!("{},{},7000", west + degrees / 2.0, south + degrees / 2.0);
-    let args = ["render", wet.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
-    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir.path());
-    let (w, h, rgba) = decode(&png);
-    let px = |x: u32, y: u32| {
-        let i = 4 * (y * w + x) as usize;
-        (i32::from(rgba[i]), i32::from(rgba[i + 1]), i32::from(rgba[i + 2]))
-    };
-    let blue = |(r, g, b): (i32, i32, i32)| b > r + 30 && b > g + 10;
-    let share = |x0: u32, x1: u32, y0: u32, y1: u32| {
-        let (mut n, mut water) = (0, 0);
-        for y in y0..y1 {
-            for x in x0..x1 {
-                n += 1;
-                water += usize::from(blue(px(x, y)));
-            }
-        }
-        water as f64 / f64::from(n)
-    };
+    let (w, h, rgba) = coast_from_above(&wet, dir.path(), bounds);
     // The lake's middle (the basin: about 70 px across here, from x = 0.62 w to 0.85 w),
     // the sea, and the land between them and east of the lake.
-    let lake = share(w * 3 / 4 - 10, w * 3 / 4 + 10, h / 2 - 10, h / 2 + 10);
-    let sea = share(w / 10, w / 3, h / 3, 2 * h / 3);
-    let land =
-        share(w * 53 / 100, w * 58 / 100, h / 3, 2 * h / 3).max(share(w * 9 / 10, w * 19 / 20, h / 3, 2 * h / 3));
+    let rows = h / 3..2 * h / 3;
+    let lake = water_blue(w, &rgba, w * 3 / 4 - 10..w * 3 / 4 + 10, h / 2 - 10..h / 2 + 10);
+    let sea = water_blue(w, &rgba, w / 10..w / 3, rows.clone());
+    let land = water_blue(w, &rgba, w * 53 / 100..w * 58 / 100, rows.clone()).max(water_blue(
+        w,
+        &rgba,
+        w * 9 / 10..w * 19 / 20,
+        rows,
+    ));
     eprintln!("water-blue: lake {lake:.2}, sea {sea:.2}, land {land:.2}");
     assert!(lake > 0.95, "the lake: {lake:.2} water-blue");
     assert!(sea > 0.95, "the sea: {sea:.2} water-blue");
