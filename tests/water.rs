@@ -223,8 +223,8 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     assert_eq!(served_mask(&reader, sea), vec![255], "the sea by the heights' rule");
 }
 
-/// A mask that does not say where it lies is refused, naming it, and the archive is left
-/// as it was.
+/// A mask that does not say where it lies, or lies elsewhere, is refused, naming it, and
+/// the archive is left as it was.
 #[test]
 fn a_mask_without_a_georeference_is_refused_naming_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -248,5 +248,22 @@ fn a_mask_without_a_georeference_is_refused_naming_it() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(stderr.contains("bare.tif") && stderr.contains("georeference"), "{stderr}");
+    assert_eq!(std::fs::read(&archive).unwrap(), before, "the archive as it was");
+
+    // A mask that lies elsewhere (the same pixels placed in Europe) is refused too.
+    let elsewhere = dir.path().join("elsewhere.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-a_srs", "EPSG:4326", "-a_ullr", "10", "50", "11", "49"])
+        .args([dem.to_str().unwrap(), elsewhere.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["water", archive.to_str().unwrap(), "--mask", elsewhere.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("elsewhere.tif") && stderr.contains("says nothing"), "{stderr}");
     assert_eq!(std::fs::read(&archive).unwrap(), before, "the archive as it was");
 }

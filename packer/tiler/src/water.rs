@@ -88,9 +88,9 @@ pub fn water_encoding() -> ElevationEncoding {
 /// # Errors
 /// [`Error::Input`] naming the archive when it has no elevation layer or no georeference
 /// to place the mask by, or naming the mask when it cannot be read, has no georeference,
-/// or is too large; I/O and archive errors; [`Error::Interrupted`] when `progress` is
+/// or is too large, or says nothing of any elevation tile; I/O and archive errors; [`Error::Interrupted`] when `progress` is
 /// cancelled (the output is then as it was).
-pub fn add_water(base: &Path, mask: &Path, out: &Path, progress: &dyn Progress) -> Result<WaterSummary> {
+pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progress) -> Result<WaterSummary> {
     let reader = Reader::open_mmap(base).map_err(|e| Error::input(base, format!("cannot open archive: {e}")))?;
     let metadata = reader.metadata().clone();
     let bad = |why: &str| Error::input(base, why.to_owned());
@@ -111,7 +111,7 @@ pub fn add_water(base: &Path, mask: &Path, out: &Path, progress: &dyn Progress) 
         return Err(bad("its georeference has no CRS, origin and scale: tile it again"));
     };
     let archive_crs = Crs::parse(definition).map_err(|e| Error::input(base, format!("its CRS: {e}")))?;
-    let mask = Mask::read(mask)?;
+    let mask = Mask::read(mask_path)?;
     let to_mask = Transform::new(&archive_crs, &mask.crs);
     let place = Placement { origin, scale, to_mask };
 
@@ -166,6 +166,16 @@ pub fn add_water(base: &Path, mask: &Path, out: &Path, progress: &dyn Progress) 
         })
         .collect::<Result<_>>()?;
     let uncovered = made.iter().filter(|m| m.is_none()).count() as u64;
+    if made.iter().all(Option::is_none) {
+        return Err(Error::input(
+            mask_path,
+            format!(
+                "the mask says nothing of any of {}'s {} elevation tiles: it lies elsewhere, or is all no data",
+                base.display(),
+                keys.len()
+            ),
+        ));
+    }
     let tiles: BTreeMap<u64, Made> = made.into_iter().flatten().map(|m| (m.order, m)).collect();
     let wet = tiles.values().filter(|t| t.wet).count() as u64;
     let bytes = tiles.values().map(|t| t.png.len() as u64).sum();
