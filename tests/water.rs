@@ -167,6 +167,25 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     terrastream(&["water", wet.to_str().unwrap(), "--mask", mask.to_str().unwrap()]);
     let again = terrastream_testkit::archives::stored_tiles(&wet);
     assert_eq!(again, after);
+    // A mask 2048 pixels wider on every side (no data there, its pixels on the same
+    // lattice): the same tiles, reading only its rows and columns under the archive.
+    let padded = dir.path().join("padded.tif");
+    let out = Command::new("gdal_translate")
+        .args(["-q", "-srcwin", "-2048", "-2048", "5000", "5000"])
+        .args([mask.to_str().unwrap(), padded.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    let from_padded = dir.path().join("padded.tspack");
+    terrastream(&[
+        "water",
+        plain.to_str().unwrap(),
+        "--mask",
+        padded.to_str().unwrap(),
+        "-o",
+        from_padded.to_str().unwrap(),
+    ]);
+    assert_eq!(terrastream_testkit::archives::stored_tiles(&from_padded), after, "the padded mask");
     // `tile --water` makes the same archive in one run.
     let one_run = dir.path().join("one-run.tspack");
     let (dem, mask) = (dem.to_str().unwrap(), mask.to_str().unwrap());

@@ -2,9 +2,15 @@
 //!
 //! The mask is any single-band raster the tiler reads (a GeoTIFF, in any CRS): 0 is land,
 //! 1 water (larger values count as 1, fractions between as partial cover, as an
-//! anti-aliased rasterization gives them), no data where the mask says nothing. It is
-//! read whole into a fraction per pixel (one byte each) and averaged 2 x 2 into a pyramid
-//! of its own.
+//! anti-aliased rasterization gives them), no data where the mask says nothing. Each pixel
+//! becomes a fraction (one byte), averaged 2 x 2 into a pyramid of its own.
+//!
+//! The mask is read once, top to bottom, and only its rows and columns under the
+//! archive's tiles: each tile's footprint (the level it reads, and that level's rows and
+//! columns around its samples) is found first, and a tile is made as soon as the rows it
+//! reads are in, on the worker threads. Each level keeps only the rows a tile still to be
+//! made reads, so memory follows a band of rows of the window read, not the mask: a
+//! planet-wide mask over a valley's archive reads the valley's rows.
 //!
 //! Every elevation tile of the archive gets a water tile with the same LOD, x and y and
 //! the same samples (borders included): each sample's position on the archive's grid is
@@ -88,7 +94,7 @@ pub fn water_encoding() -> ElevationEncoding {
 /// # Errors
 /// [`Error::Input`] naming the archive when it has no elevation layer or no georeference
 /// to place the mask by, or naming the mask when it cannot be read, has no georeference,
-/// or is too large, or says nothing of any elevation tile; I/O and archive errors; [`Error::Interrupted`] when `progress` is
+/// or says nothing of any elevation tile; I/O and archive errors; [`Error::Interrupted`] when `progress` is
 /// cancelled (the output is then as it was).
 pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progress) -> Result<WaterSummary> {
     let reader = Reader::open_mmap(base).map_err(|e| Error::input(base, format!("cannot open archive: {e}")))?;
@@ -111,9 +117,16 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
         return Err(bad("its georeference has no CRS, origin and scale: tile it again"));
     };
     let archive_crs = Crs::parse(definition).map_err(|e| Error::input(base, format!("its CRS: {e}")))?;
-    let mask = Mask::read(mask_path)?;
-    let to_mask = Transform::new(&archive_crs, &mask.crs);
-    let place = Placement { origin, scale, to_mask };
+    let mask = MaskFile::open(mask_path)?;
+    let place = Placement {
+        origin,
+        scale,
+        to_mask: Transform::new(&archive_crs, &mask.crs),
+        mask_origin: mask.origin,
+        mask_pixel: mask.pixel,
+        levels: mask.levels(),
+        size: (mask.width, mask.height),
+    };
 
     // The elevation tiles, in archive order.
     let mut keys = Vec::new();
@@ -150,21 +163,23 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
 
     progress.start("water", keys.len() as u64);
     let index_u8 = u8::try_from(index).unwrap_or(u8::MAX);
-    let made: Vec<Option<Made>> = keys
-        .par_iter()
-        .map(|&key| -> Result<_> {
-            progress.check()?;
-            let values = place.tile(&grid, &mask, key);
-            progress.advance(1);
-            if values.iter().all(|&v| v == NO_WATER_DATA) {
-                return Ok(None);
-            }
-            let wet = values.iter().any(|&v| v != 0 && v != NO_WATER_DATA);
-            let water = TileKey::new(index_u8, key.lod(), key.x(), key.y())?;
-            let order = Writer::order_key(&metadata, water)?;
-            Ok(Some(Made { order, key: water, png: gray_png(&values, edge(&grid)), wet }))
-        })
-        .collect::<Result<_>>()?;
+    let mut made: Vec<Option<Made>> = keys.iter().map(|_| None).collect();
+    let make = |i: usize, values: Vec<u8>| -> Result<Option<Made>> {
+        if values.iter().all(|&v| v == NO_WATER_DATA) {
+            return Ok(None);
+        }
+        let key = keys[i];
+        let wet = values.iter().any(|&v| v != 0 && v != NO_WATER_DATA);
+        let water = TileKey::new(index_u8, key.lod(), key.x(), key.y())?;
+        let order = Writer::order_key(&metadata, water)?;
+        Ok(Some(Made { order, key: water, png: gray_png(&values, edge(&grid)), wet }))
+    };
+    stream_tiles(&mask, &place, &grid, &keys, progress, &make, &mut |done| {
+        for (i, tile) in done {
+            made[i] = tile;
+        }
+        Ok(())
+    })?;
     let uncovered = made.iter().filter(|m| m.is_none()).count() as u64;
     if made.iter().all(Option::is_none) {
         return Err(Error::input(
@@ -214,28 +229,19 @@ fn edge(layer: &Layer) -> usize {
     (layer.tile_resolution + 2 * u32::from(layer.border)) as usize
 }
 
-/// A water mask in memory: a fraction per pixel (0..=[`ALL_WATER`], [`NO_WATER_DATA`]) and
-/// its 2 x 2 means, level by level.
-struct Mask {
+/// A water mask file: where it lies, and its size.
+struct MaskFile {
+    file: crate::raster::ElevationFile,
     crs: Crs,
     /// The north-west corner of pixel (0, 0) and the pixel size, in the mask's CRS.
     origin: [f64; 2],
     pixel: (f64, f64),
-    /// Level 0 the mask's pixels; each next level half the size, rounded up.
-    levels: Vec<Level>,
-}
-
-struct Level {
     width: usize,
     height: usize,
-    values: Vec<u8>,
 }
 
-/// Pixels of the largest mask read (4 GiB at a byte a pixel).
-const MAX_MASK_PIXELS: u64 = 1 << 32;
-
-impl Mask {
-    fn read(path: &Path) -> Result<Self> {
+impl MaskFile {
+    fn open(path: &Path) -> Result<Self> {
         let file = crate::raster::open_elevation(path, None)?;
         let no_place =
             || Error::input(path, "the mask has no georeference (a CRS and where it lies): nothing to place it by");
@@ -245,19 +251,19 @@ impl Mask {
         let crs = Crs::parse(crs).map_err(|e| Error::input(path, format!("the mask's CRS: {e}")))?;
         let pixel = file.crs_pixel_size().ok_or_else(no_place)?;
         let (width, height) = file.size();
-        if u64::from(width) * u64::from(height) > MAX_MASK_PIXELS {
-            return Err(Error::input(path, format!("the mask is {width} x {height} pixels: at most 2^32 are read")));
+        Ok(Self { file, crs, origin, pixel, width: width as usize, height: height as usize })
+    }
+
+    /// Levels of its pyramid: level 0 its pixels, each next one half the size (rounded
+    /// up), down to one pixel.
+    fn levels(&self) -> usize {
+        let mut levels = 1;
+        let (mut w, mut h) = (self.width, self.height);
+        while w > 1 || h > 1 {
+            (w, h) = (w.div_ceil(2), h.div_ceil(2));
+            levels += 1;
         }
-        let mut values = Vec::with_capacity(width as usize * height as usize);
-        file.rows(&mut |row| {
-            values.extend(row.iter().map(|&v| fraction(v)));
-            Ok(())
-        })?;
-        let mut levels = vec![Level { width: width as usize, height: height as usize, values }];
-        while let Some(last) = levels.last().filter(|l| l.width > 1 || l.height > 1) {
-            levels.push(last.halved());
-        }
-        Ok(Self { crs, origin, pixel, levels })
+        levels
     }
 }
 
@@ -272,29 +278,39 @@ fn fraction(v: f32) -> u8 {
     stored
 }
 
-impl Level {
-    /// The mean of each 2 x 2 block of known pixels (no data where none is known).
-    fn halved(&self) -> Self {
-        let (width, height) = (self.width.div_ceil(2), self.height.div_ceil(2));
-        let mut values = Vec::with_capacity(width * height);
-        for y in 0..height {
-            for x in 0..width {
-                let (mut sum, mut n) = (0u32, 0u32);
-                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                    let (sx, sy) = (2 * x + dx, 2 * y + dy);
-                    if sx < self.width && sy < self.height {
-                        let v = self.values[sy * self.width + sx];
-                        if v != NO_WATER_DATA {
-                            sum += u32::from(v);
-                            n += 1;
-                        }
-                    }
+/// The mean of each 2 x 2 block of known pixels of rows `a` and `b` (`b` none past the
+/// last row), `width` out: a row of the next level (no data where none is known).
+fn halved_row(a: &[u8], b: Option<&[u8]>, width: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(width);
+    for x in 0..width {
+        let (mut sum, mut n) = (0u32, 0u32);
+        for row in [Some(a), b].into_iter().flatten() {
+            for &v in row.iter().skip(2 * x).take(2) {
+                if v != NO_WATER_DATA {
+                    sum += u32::from(v);
+                    n += 1;
                 }
-                #[expect(clippy::cast_possible_truncation, reason = "a mean of bytes up to 254")]
-                values.push((sum + n / 2).checked_div(n).map_or(NO_WATER_DATA, |mean| mean as u8));
             }
         }
-        Self { width, height, values }
+        #[expect(clippy::cast_possible_truncation, reason = "a mean of bytes up to 254")]
+        out.push((sum + n / 2).checked_div(n).map_or(NO_WATER_DATA, |mean| mean as u8));
+    }
+    out
+}
+
+/// The rows of one level of the mask's pyramid held while tiles need them: rows
+/// `first..first + rows.len()` of a level `width` x `height` (columns from the read
+/// window's first).
+struct Level {
+    width: usize,
+    height: usize,
+    first: usize,
+    rows: std::collections::VecDeque<Vec<u8>>,
+}
+
+impl Level {
+    fn row(&self, j: usize) -> Option<&[u8]> {
+        j.checked_sub(self.first).and_then(|k| self.rows.get(k)).map(Vec::as_slice)
     }
 
     /// Bilinear at pixel coordinates (`u`, `v`; pixel (i, j)'s centre at `i + 0.5`), over
@@ -305,10 +321,11 @@ impl Level {
         if x >= 0.0 && y >= 0.0 {
             #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "non-negative, checked below")]
             let (i, j) = (x as usize, y as usize);
-            if i + 1 < self.width && j + 1 < self.height {
-                let at = j * self.width + i;
-                let [a, b] = [self.values[at], self.values[at + 1]];
-                let [c, d] = [self.values[at + self.width], self.values[at + self.width + 1]];
+            if i + 1 < self.width
+                && j + 1 < self.height
+                && let (Some(top), Some(bottom)) = (self.row(j), self.row(j + 1))
+            {
+                let [a, b, c, d] = [top[i], top[i + 1], bottom[i], bottom[i + 1]];
                 if a == b && b == c && c == d {
                     return a;
                 }
@@ -341,7 +358,7 @@ impl Level {
             let inside = px >= 0.0 && py >= 0.0 && px < self.width as f64 && py < self.height as f64;
             if w > 0.0 && inside {
                 #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "inside the level")]
-                let value = self.values[py as usize * self.width + px as usize];
+                let value = self.row(py as usize).map_or(NO_WATER_DATA, |row| row[px as usize]);
                 if value != NO_WATER_DATA {
                     sum += w * f64::from(value);
                     weight += w;
@@ -357,23 +374,60 @@ impl Level {
     }
 }
 
+/// What a tile reads of the mask: the level of its pyramid, and the rows and columns of
+/// that level around its samples (a pixel beyond them on every side).
+#[derive(Clone, Copy, Debug)]
+struct Footprint {
+    level: usize,
+    rows: (usize, usize),
+    columns: (usize, usize),
+}
+
 /// How the archive's grid lies in the mask's CRS.
 struct Placement {
     origin: [f64; 2],
     scale: [f64; 2],
     to_mask: Transform,
+    mask_origin: [f64; 2],
+    mask_pixel: (f64, f64),
+    /// Levels of the mask's pyramid, and level 0's size.
+    levels: usize,
+    size: (usize, usize),
+}
+
+/// The positions of a tile's samples in the mask (level-0 pixel coordinates), row by row;
+/// None where the transform cannot take one.
+struct Samples {
+    edge: usize,
+    points: Vec<Option<(f64, f64)>>,
+    /// The pyramid's level whose pixels are no larger than a sample.
+    level: usize,
 }
 
 impl Placement {
     /// The mask's pixel coordinates (level 0) of world point (`x`, `z`).
-    fn mask_pixel(&self, mask: &Mask, x: f64, z: f64) -> Option<(f64, f64)> {
+    fn mask_pixel(&self, x: f64, z: f64) -> Option<(f64, f64)> {
         let (cx, cy) = (self.origin[0] + x * self.scale[0], self.origin[1] - z * self.scale[1]);
         let (mx, my) = self.to_mask.apply(cx, cy)?;
-        Some(((mx - mask.origin[0]) / mask.pixel.0, (mask.origin[1] - my) / mask.pixel.1))
+        Some(((mx - self.mask_origin[0]) / self.mask_pixel.0, (self.mask_origin[1] - my) / self.mask_pixel.1))
     }
 
-    /// The water samples of the tile of `grid` at `key`'s LOD, x and y (see the module).
-    fn tile(&self, grid: &Layer, mask: &Mask, key: TileKey) -> Vec<u8> {
+    /// The tile's knots' exact positions in the mask (see [`Placement::samples`]), row by
+    /// row, and the level its samples read.
+    fn knots(&self, grid: &Layer, key: TileKey) -> (Vec<Option<(f64, f64)>>, usize) {
+        let s = self.samples_with(grid, key, false);
+        (s.points, s.level)
+    }
+
+    /// Where the samples of the tile of `grid` at `key`'s LOD, x and y lie in the mask:
+    /// exact at the knots (every [`KNOT`]-th sample and the last), bilinear between.
+    fn samples(&self, grid: &Layer, key: TileKey) -> Samples {
+        self.samples_with(grid, key, true)
+    }
+
+    /// [`Placement::samples`], or with `all` false the knots alone (`points` then holds
+    /// the knots' positions).
+    fn samples_with(&self, grid: &Layer, key: TileKey, all: bool) -> Samples {
         let edge = edge(grid);
         let res = f64::from(grid.tile_resolution);
         let spacing = grid.world_size_at(key.lod()) / res;
@@ -381,40 +435,35 @@ impl Placement {
             (f64::from(key.x()) * res - f64::from(grid.border), f64::from(key.y()) * res - f64::from(grid.border));
         #[expect(clippy::cast_precision_loss, reason = "sample indices of one tile")]
         let world = |a: usize, b: usize| ((first_x + a as f64 + 0.5) * spacing, (first_z + b as f64 + 0.5) * spacing);
-        // Exact at the knots (every KNOT-th sample and the last), bilinear between.
         let knots: Vec<usize> =
             (0..edge).step_by(KNOT).chain((!(edge - 1).is_multiple_of(KNOT)).then_some(edge - 1)).collect();
+        let n = knots.len();
         let exact: Vec<Option<(f64, f64)>> = knots
             .iter()
             .flat_map(|&b| knots.iter().map(move |&a| (a, b)))
             .map(|(a, b)| {
                 let (x, z) = world(a, b);
-                self.mask_pixel(mask, x, z)
+                self.mask_pixel(x, z)
             })
             .collect();
         // The level whose pixels are no larger than a sample, measured at the tile's middle.
         let middle = edge / 2;
         let (x, z) = world(middle, middle);
-        let level = match (
-            self.mask_pixel(mask, x, z),
-            self.mask_pixel(mask, x + spacing, z),
-            self.mask_pixel(mask, x, z + spacing),
-        ) {
+        let level = match (self.mask_pixel(x, z), self.mask_pixel(x + spacing, z), self.mask_pixel(x, z + spacing)) {
             (Some(p), Some(px), Some(pz)) => {
                 let size = (px.0 - p.0).hypot(px.1 - p.1).min((pz.0 - p.0).hypot(pz.1 - p.1));
                 #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the levels")]
                 let l = if size > 1.0 { size.log2().floor().min(63.0) as usize } else { 0 };
-                l.min(mask.levels.len() - 1)
+                l.min(self.levels - 1)
             }
             _ => 0,
         };
-        let at = &mask.levels[level];
-        #[expect(clippy::cast_precision_loss, reason = "a level's power of two")]
-        let shrink = 1.0 / (1u64 << level) as f64;
-        let n = knots.len();
-        let mut out = vec![NO_WATER_DATA; edge * edge];
+        if !all {
+            return Samples { edge, points: exact, level };
+        }
+        let mut points = vec![None; edge * edge];
         if n < 2 {
-            return out;
+            return Samples { edge, points, level };
         }
         // Each sample's knot cell and its place in it, along either axis.
         let spans: Vec<(usize, f64)> = (0..edge)
@@ -436,20 +485,221 @@ impl Placement {
                 };
             }
             for (a, &(ka, fa)) in spans.iter().enumerate() {
-                let (u, v) = match (knot_row[ka], knot_row[ka + 1]) {
-                    (Some(p), Some(q)) => (lerp(p.0, q.0, fa), lerp(p.1, q.1, fa)),
-                    // A point the transform cannot take: exactly, or no data.
+                points[b * edge + a] = match (knot_row[ka], knot_row[ka + 1]) {
+                    (Some(p), Some(q)) => Some((lerp(p.0, q.0, fa), lerp(p.1, q.1, fa))),
+                    // A point the transform cannot take between knots: exactly, if it can.
                     _ => {
                         let (x, z) = world(a, b);
-                        let Some(point) = self.mask_pixel(mask, x, z) else { continue };
-                        point
+                        self.mask_pixel(x, z)
                     }
                 };
-                out[b * edge + a] = at.bilinear(u * shrink, v * shrink);
+            }
+        }
+        Samples { edge, points, level }
+    }
+
+    /// The rows and columns of its level that the tile of `grid` at `key` reads (None:
+    /// none inside the mask): around its exact knots, whose box holds the positions
+    /// interpolated between them; from every sample where a knot has no position.
+    fn footprint(&self, grid: &Layer, key: TileKey) -> Option<Footprint> {
+        let (knots, level) = self.knots(grid, key);
+        let full;
+        let points: &[Option<(f64, f64)>] = if knots.iter().all(Option::is_some) {
+            &knots
+        } else {
+            full = self.samples(grid, key).points;
+            &full
+        };
+        #[expect(clippy::cast_precision_loss, reason = "a level's power of two")]
+        let shrink = 1.0 / (1u64 << level) as f64;
+        let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
+        for &(u, v) in points.iter().flatten() {
+            lo = (lo.0.min(u), lo.1.min(v));
+            hi = (hi.0.max(u), hi.1.max(v));
+        }
+        let (width, height) = level_size(self.size, level);
+        // Bilinear reads the pixels whose centres are around a point: floor(x - 0.5) and
+        // the next; one more on either side for the rounding of the positions.
+        let span = |lo: f64, hi: f64, n: usize| -> Option<(usize, usize)> {
+            let (first, last) = ((lo * shrink - 0.5).floor() - 1.0, (hi * shrink - 0.5).floor() + 2.0);
+            #[expect(clippy::cast_precision_loss, reason = "raster sizes")]
+            let beyond = n as f64 - 1.0;
+            if !(first <= beyond && last >= 0.0) {
+                return None;
+            }
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the level")]
+            let (first, last) = (first.max(0.0) as usize, last.min(beyond) as usize);
+            Some((first, last))
+        };
+        Some(Footprint { level, rows: span(lo.1, hi.1, height)?, columns: span(lo.0, hi.0, width)? })
+    }
+
+    /// The water samples of `samples` from `at`, the level of the pyramid they read
+    /// (`offset` the level-0 pixel of the read window's first column and row).
+    fn fill(samples: &Samples, at: &Level, offset: (usize, usize)) -> Vec<u8> {
+        #[expect(clippy::cast_precision_loss, reason = "a level's power of two")]
+        let shrink = 1.0 / (1u64 << samples.level) as f64;
+        #[expect(clippy::cast_precision_loss, reason = "raster sizes")]
+        let (dx, dy) = ((offset.0 >> samples.level) as f64, (offset.1 >> samples.level) as f64);
+        let mut out = vec![NO_WATER_DATA; samples.edge * samples.edge];
+        for (value, point) in out.iter_mut().zip(&samples.points) {
+            if let Some((u, v)) = point {
+                *value = at.bilinear(u * shrink - dx, v * shrink - dy);
             }
         }
         out
     }
+}
+
+/// Pixels across and down of level `level` of a pyramid whose level 0 is `size`.
+fn level_size(size: (usize, usize), level: usize) -> (usize, usize) {
+    (size.0.div_ceil(1 << level), size.1.div_ceil(1 << level))
+}
+
+/// Rows of the mask read before the tiles they complete are made.
+const BATCH_ROWS: usize = 256;
+
+/// Makes the water tile of each of `keys` (of `grid`): reads the mask's rows once, top to
+/// bottom, only those under some tile, and keeps of each level of its pyramid only the
+/// rows a tile still to be made reads. Each tile's samples go through `make` (on the
+/// worker threads), and `made` gets the results with each tile's index in `keys`; tiles
+/// that lie wholly outside the mask are left out.
+fn stream_tiles<T: Send>(
+    mask: &MaskFile,
+    place: &Placement,
+    grid: &Layer,
+    keys: &[TileKey],
+    progress: &dyn Progress,
+    make: &(dyn Fn(usize, Vec<u8>) -> Result<T> + Sync),
+    made: &mut dyn FnMut(Vec<(usize, T)>) -> Result<()>,
+) -> Result<()> {
+    let footprints: Vec<Option<Footprint>> = keys
+        .par_iter()
+        .map(|&key| -> Result<_> {
+            progress.check()?;
+            Ok(place.footprint(grid, key))
+        })
+        .collect::<Result<_>>()?;
+    let outside = footprints.iter().filter(|f| f.is_none()).count();
+    progress.advance(outside as u64);
+    let Some(top) = footprints.iter().flatten().map(|f| f.level).max() else { return Ok(()) };
+    // The read window: every tile's rows and columns at level 0, aligned to the coarsest
+    // level read, so that each level's 2 x 2 blocks are the whole pyramid's.
+    let block = 1usize << top;
+    let to_zero = |f: &Footprint, (a, b): (usize, usize)| (a << f.level, (b + 1) << f.level);
+    let bounds = |pick: fn(&Footprint) -> (usize, usize), n: usize| {
+        let spans = footprints.iter().flatten().map(|f| to_zero(f, pick(f)));
+        let (a, b) = spans.fold((usize::MAX, 0), |(a, b), (x, y)| (a.min(x), b.max(y)));
+        ((a / block) * block, b.min(n))
+    };
+    let (rows, columns) = (bounds(|f| f.rows, mask.height), bounds(|f| f.columns, mask.width));
+    let window = (columns.1 - columns.0, rows.1 - rows.0);
+    // Per level: its rows held, the next row it expects, a row waiting for its pair, and
+    // its tiles by their last row.
+    let mut levels: Vec<Level> = (0..=top)
+        .map(|l| {
+            let (w, h) = level_size(window, l);
+            // The mask's own edge where the window reaches it (its odd last pixel).
+            let full = level_size((mask.width, mask.height), l);
+            let width = if columns.1 == mask.width { full.0 - (columns.0 >> l) } else { w };
+            let height = if rows.1 == mask.height { full.1 - (rows.0 >> l) } else { h };
+            Level { width, height, first: 0, rows: std::collections::VecDeque::new() }
+        })
+        .collect();
+    let mut waiting: Vec<Option<Vec<u8>>> = vec![None; top + 1];
+    let mut received = vec![0usize; top + 1];
+    let mut pending: Vec<Vec<usize>> = vec![Vec::new(); top + 1];
+    for (i, f) in footprints.iter().enumerate() {
+        if let Some(f) = f {
+            pending[f.level].push(i);
+        }
+    }
+    let offset_rows = |f: &Footprint| {
+        let shift = rows.0 >> f.level;
+        (f.rows.0.saturating_sub(shift), f.rows.1.saturating_sub(shift))
+    };
+    for p in &mut pending {
+        p.sort_by_key(|&i| footprints[i].map_or(0, |f| offset_rows(&f).1));
+        p.reverse();
+    }
+    // A level's row in: kept, and paired for the next level.
+    fn push(levels: &mut [Level], waiting: &mut [Option<Vec<u8>>], received: &mut [usize], l: usize, row: Vec<u8>) {
+        received[l] += 1;
+        if l + 1 < levels.len() {
+            let width = levels[l + 1].width;
+            match waiting[l].take() {
+                None if received[l] == levels[l].height => {
+                    let next = halved_row(&row, None, width);
+                    push(levels, waiting, received, l + 1, next);
+                }
+                None => waiting[l] = Some(row.clone()),
+                Some(first) => {
+                    let next = halved_row(&first, Some(&row), width);
+                    push(levels, waiting, received, l + 1, next);
+                }
+            }
+        }
+        levels[l].rows.push_back(row);
+    }
+    // Makes the tiles whose rows are all in, then lets go of the rows no tile left needs.
+    let mut finish = |levels: &mut [Level], received: &[usize], pending: &mut [Vec<usize>]| -> Result<()> {
+        let mut ready = Vec::new();
+        for (l, tiles) in pending.iter_mut().enumerate() {
+            while let Some(&i) = tiles.last() {
+                let f = footprints[i].as_ref().map(offset_rows).unwrap_or_default();
+                if f.1 >= received[l] {
+                    break;
+                }
+                ready.push(i);
+                tiles.pop();
+            }
+        }
+        let done: Vec<(usize, T)> = ready
+            .par_iter()
+            .map(|&i| -> Result<_> {
+                progress.check()?;
+                let samples = place.samples(grid, keys[i]);
+                let values = Placement::fill(&samples, &levels[samples.level], (columns.0, rows.0));
+                progress.advance(1);
+                Ok((i, make(i, values)?))
+            })
+            .collect::<Result<_>>()?;
+        made(done)?;
+        for (l, level) in levels.iter_mut().enumerate() {
+            let keep = pending[l]
+                .iter()
+                .map(|&i| footprints[i].as_ref().map_or(usize::MAX, |f| offset_rows(f).0))
+                .min()
+                .unwrap_or(received[l]);
+            while level.first < keep && !level.rows.is_empty() {
+                level.rows.pop_front();
+                level.first += 1;
+            }
+        }
+        Ok(())
+    };
+    let (c0, c1) = columns;
+    let mut since = 0;
+    #[expect(clippy::cast_possible_truncation, reason = "a raster's rows fit a u32")]
+    let range = rows.0 as u32..rows.1 as u32;
+    mask.file.rows_in(range, &mut |row| {
+        let values: Vec<u8> = row[c0..c1].iter().map(|&v| fraction(v)).collect();
+        push(&mut levels, &mut waiting, &mut received, 0, values);
+        since += 1;
+        if since == BATCH_ROWS {
+            since = 0;
+            finish(&mut levels, &received, &mut pending).map_err(|e| crate::raster::Error::Consumer(Box::new(e)))?;
+        }
+        Ok(())
+    })?;
+    // A level whose last row waits for a pair that will not come: halved alone.
+    for l in 0..top {
+        if let Some(row) = waiting[l].take() {
+            let next = halved_row(&row, None, levels[l + 1].width);
+            push(&mut levels, &mut waiting, &mut received, l + 1, next);
+        }
+    }
+    finish(&mut levels, &received, &mut pending)
 }
 
 /// An 8-bit gray PNG of `edge` x `edge` values.
@@ -471,12 +721,18 @@ fn gray_png(values: &[u8], edge: usize) -> Vec<u8> {
 mod tests {
     use super::*;
 
+    /// A level held whole, as tests read it.
+    fn level(width: usize, values: &[u8]) -> Level {
+        let height = values.len() / width;
+        Level { width, height, first: 0, rows: values.chunks(width).map(<[u8]>::to_vec).collect() }
+    }
+
     #[test]
     fn the_pyramid_averages_known_pixels_and_keeps_no_data_apart() {
-        let l = Level { width: 3, height: 2, values: vec![0, 254, NO_WATER_DATA, 254, 254, NO_WATER_DATA] };
-        let h = l.halved();
-        assert_eq!((h.width, h.height), (2, 1));
-        assert_eq!(h.values, vec![191, NO_WATER_DATA]);
+        let (top, bottom) = ([0, 254, NO_WATER_DATA], [254, 254, NO_WATER_DATA]);
+        assert_eq!(halved_row(&top, Some(&bottom), 2), vec![191, NO_WATER_DATA]);
+        // The last row of an odd level, alone; the last column of an odd row, alone.
+        assert_eq!(halved_row(&[254, 0, 100], None, 2), vec![127, 100]);
     }
 
     #[test]
@@ -493,7 +749,7 @@ mod tests {
 
     #[test]
     fn bilinear_reads_between_pixels_and_past_the_edge() {
-        let l = Level { width: 2, height: 1, values: vec![0, 254] };
+        let l = level(2, &[0, 254]);
         assert_eq!(l.bilinear(0.5, 0.5), 0);
         assert_eq!(l.bilinear(1.5, 0.5), 254);
         assert_eq!(l.bilinear(1.0, 0.5), 127);
@@ -514,7 +770,8 @@ mod tests {
     fn bilinear_inside_is_the_mean_of_the_four_pixels() {
         let (width, height) = (7, 5);
         let values: Vec<u8> = (0..width * height).map(|i| ((i * 97) % 255) as u8).collect();
-        let l = Level { width, height, values: values.clone() };
+        let l = level(width, &values);
+        assert_eq!(l.height, height);
         for k in 0..2000 {
             let (u, v) = (0.5 + (k as f64 * 0.6180339) % 6.0, 0.5 + (k as f64 * 0.4142136) % 4.0);
             let (x, y) = (u - 0.5, v - 0.5);
