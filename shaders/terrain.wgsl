@@ -663,6 +663,14 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     let direct = max(dot(normal, sun), 0.0);
     let sky = 0.5 + 0.5 * normal.y;
     var rgb = albedo * (direct * (1.0 - G.sun.w) + sky * G.sun.w) * vec3<f32>(1.0, 0.97, 0.92);
+    // Water mirrors: the sky (here the haze's colour) and the sun's glint. The light's
+    // scale here has no 1/pi: the glint's lobe is taken times pi to match.
+    let view = normalize(-in.rel);
+    let water = select(0.0, 1.0, sea);
+    if sea {
+        let sunlight = vec3<f32>(1.0, 0.97, 0.92) * (1.0 - G.sun.w) * PI;
+        rgb += water_specular(normal, view, sun, G.fog.rgb, sunlight);
+    }
     if G.mode.y == 1u {
         let e = fract(in.grid);
         let dist = min(e, 1.0 - e) / max(grid_width, vec2<f32>(1.0e-6));
@@ -672,9 +680,9 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     }
     if ATMO.look.y > 0.5 {
         if ATMO.tables.x > 0.5 {
-            return vec4<f32>(seen_through_air(albedo, normal, AirAt(in.up, in.sunlight, in.air)), 1.0);
+            return vec4<f32>(seen_through_air(albedo, normal, AirAt(in.up, in.sunlight, in.air), view, water), 1.0);
         }
-        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y), 1.0);
+        return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y, water), 1.0);
     }
     let distance = length(in.rel);
     let haze = 1.0 - exp(-G.fog.w * distance);
@@ -684,19 +692,53 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
 // On the globe with an atmosphere: the ground lit by the sun through the air above it,
 // seen through the air between it and the eye (the aerial perspective), exposed; the air
 // as `air_at` found it at the vertices.
-fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt) -> vec3<f32> {
-    let radiance = ground_radiance(albedo, grid_normal, normalize(at.up), at.sunlight);
+fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt, view: vec3<f32>, water: f32) -> vec3<f32> {
+    let up = normalize(at.up);
+    var radiance = ground_radiance(albedo, grid_normal, up, at.sunlight);
+    if water > 0.5 {
+        radiance += water_light(grid_normal, up, view, at.sunlight);
+    }
     // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
     return expose(radiance * at.air.a + at.air.rgb);
 }
 
+// A grid normal (east, up, south) where the up is `up`, in the anchor's frame.
+fn frame_normal(grid_normal: vec3<f32>, up: vec3<f32>) -> vec3<f32> {
+    let east = normalize(cross(ATMO.pole.xyz, up));
+    let north = cross(up, east);
+    return normalize(east * grid_normal.x + up * grid_normal.y - north * grid_normal.z);
+}
+
+// Water's reflection toward the eye (`view`, from the point) under the atmosphere: the sky
+// mirrored (its radiance taken as its light from above over pi, as from a uniform sky)
+// and the sun's glint.
+fn water_light(grid_normal: vec3<f32>, up: vec3<f32>, view: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
+    let n = frame_normal(grid_normal, up);
+    let sun = ATMO.sun.xyz;
+    return water_specular(n, view, sun, sky_light(up, sun) / PI, sunlight);
+}
+
+// What still water reflects toward `view` (unit, from the point) with normal `n`: the sky
+// of radiance `sky` mirrored, weighted by Schlick's Fresnel term for water (2 % head on,
+// all of it at grazing), and the glint of a sun of light `sunlight` from `sun`, a
+// normalized Blinn-Phong lobe (a calm surface: the glint a few degrees across).
+fn water_specular(n: vec3<f32>, view: vec3<f32>, sun: vec3<f32>, sky: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
+    let fresnel = 0.02 + 0.98 * pow(1.0 - clamp(dot(n, view), 0.0, 1.0), 5.0);
+    let h = normalize(view + sun);
+    let towards = 0.02 + 0.98 * pow(1.0 - clamp(dot(h, view), 0.0, 1.0), 5.0);
+    let lobe = (WATER_SHININESS + 8.0) / (8.0 * PI) * pow(clamp(dot(n, h), 0.0, 1.0), WATER_SHININESS);
+    return fresnel * sky + towards * lobe * max(dot(n, sun), 0.0) * sunlight;
+}
+
+// The glint's sharpness (a Blinn-Phong exponent): about the spread of the sea's wave slopes
+// in a light breeze (Cox and Munk: some 8 degrees), so the glint is a blurred patch, not a
+// mirror image of the sun.
+const WATER_SHININESS: f32 = 100.0;
+
 // The light ground of `albedo` sends back where its up is `up`, its grid normal (east, up,
 // south) `grid_normal` and `sunlight` reaches it: the sun's and the sky's.
 fn ground_radiance(albedo: vec3<f32>, grid_normal: vec3<f32>, up: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
-    // The grid's east, up and south at the point, in the anchor's frame.
-    let east = normalize(cross(ATMO.pole.xyz, up));
-    let north = cross(up, east);
-    let n = normalize(east * grid_normal.x + up * grid_normal.y - north * grid_normal.z);
+    let n = frame_normal(grid_normal, up);
     let sun = ATMO.sun.xyz;
     // Sky light from above, growing with the sun's height, less on slopes facing away.
     let sky = sky_light(up, sun) * (0.5 + 0.5 * dot(n, up));
@@ -704,10 +746,14 @@ fn ground_radiance(albedo: vec3<f32>, grid_normal: vec3<f32>, up: vec3<f32>, sun
 }
 
 // The same without the tables: the air integrated along the ray, a pixel at a time.
-fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32) -> vec3<f32> {
+fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>, height: f32, water: f32) -> vec3<f32> {
     let up = normalize(ATMO.eye.xyz + rel * ATMO.eye.w);
     let p = ground_point(up, height);
-    let radiance = ground_radiance(albedo, grid_normal, up, sunlight_at(p));
+    let sunlight = sunlight_at(p);
+    var radiance = ground_radiance(albedo, grid_normal, up, sunlight);
+    if water > 0.5 {
+        radiance += water_light(grid_normal, up, normalize(-rel), sunlight);
+    }
     let to = p - ATMO.eye.xyz;
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), ATMO.sun.xyz, ATMO.look.w);
     return expose(ground_seen(radiance, air.light, air.transmittance));
@@ -727,6 +773,12 @@ fn aerial(uv: vec2<f32>, t: f32) -> vec4<f32> {
     let k1 = min(k0 + 1.0, AERIAL_SLICES - 1.0);
     let b = textureSampleLevel(aerial_lut, lut_sampler, vec2<f32>((k1 + inside.x) / AERIAL_SLICES, inside.y), 0.0);
     return mix(a, b, f);
+}
+
+// Whether an albedo of the whole-Earth picture is its sea: blue well above its red and
+// green (the picture's oceans, shallow seas included; not its land, ice or lakes' rims).
+fn picture_sea(albedo: vec3<f32>) -> bool {
+    return albedo.b > 1.15 * albedo.g && albedo.b > 1.6 * albedo.r;
 }
 
 // The plain Earth drawn beyond an archive's data: a dark, slightly blue-green ground.
@@ -786,7 +838,12 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     if ground > 0.0 {
         let g = eye + d * ground;
         let up = normalize(g);
-        let radiance = albedo / PI * (sunlight_at(g) * max(dot(up, sun), 0.0) + sky_light(up, sun));
+        let sunlight = sunlight_at(g);
+        var radiance = albedo / PI * (sunlight * max(dot(up, sun), 0.0) + sky_light(up, sun));
+        // The picture's sea mirrors the sky and the sun, as the data's water does.
+        if picture_sea(albedo) {
+            radiance += water_light(vec3<f32>(0.0, 1.0, 0.0), up, -d, sunlight);
+        }
         // Along a ray that meets the ground, the air between is the ratio of the two
         // stretches up to the top (the way back up passes the eye).
         let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));

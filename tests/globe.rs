@@ -227,7 +227,7 @@ fn the_sea_is_water_across_the_edges_of_its_tiles() {
     // Looking straight down on the corner where four tiles of LOD 0 meet.
     let at = format!("{lon},{lat},6000");
     let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
-    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir.path());
+    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0", "--sun", SUN_OUT_OF_VIEW]].concat(), dir.path());
     let (w, h, rgba) = decode(&png);
     let (mut n, mut land) = (0, Vec::new());
     for y in h / 10..h * 9 / 10 {
@@ -244,6 +244,10 @@ fn the_sea_is_water_across_the_edges_of_its_tiles() {
     assert!(land.is_empty(), "{} of {n} sea pixels drawn as land, first {:?}", land.len(), &land[..land.len().min(5)]);
 }
 
+/// A sun for views straight down on water: 25 degrees up, so its glint lies 65 degrees
+/// from the nadir, outside the view (whose water the tests tell by its blue).
+const SUN_OUT_OF_VIEW: &str = "135,25";
+
 /// `archive` (of [`oracles::coast_dem`], `bounds` its west, south and size) rendered
 /// 320 x 240 from 7 km straight down on the data's middle, where the coast runs: width,
 /// height, RGBA.
@@ -251,7 +255,7 @@ fn coast_from_above(archive: &Path, dir: &Path, [west, south, degrees]: [f64; 3]
     let png = dir.join("coast.png");
     let at = format!("{},{},7000", west + degrees / 2.0, south + degrees / 2.0);
     let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x240", "--at", &at];
-    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0"]].concat(), dir);
+    terrastream(&[&args[..], &["--pitch", "-90", "--heading", "0", "--sun", SUN_OUT_OF_VIEW]].concat(), dir);
     decode(&png)
 }
 
@@ -323,4 +327,45 @@ fn a_lake_from_the_water_layer_is_drawn_as_water() {
     assert!(lake > 0.95, "the lake: {lake:.2} water-blue");
     assert!(sea > 0.95, "the sea: {sea:.2} water-blue");
     assert!(land < 0.05, "the land: {land:.2} water-blue");
+}
+
+/// Water mirrors the sun: over the coast's sea from 1 500 m, looking west with the sun 15
+/// degrees up ahead, the sea under the sun (the middle columns, between the horizon and
+/// the bottom of the view) is far brighter than the sea to either side: the glint. With
+/// the sun behind the eye there is none, and the middle is as dark as the sides.
+#[test]
+fn the_sea_shows_the_suns_glint_ahead_and_none_behind() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (tif, [west, south, degrees]) = oracles::coast_dem(dir.path());
+    let archive = dir.path().join("coast.tspack");
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], dir.path());
+    let at = format!("{},{},1500", west + degrees * 0.6, south + degrees / 2.0);
+    let lightness = |sun: &str| {
+        let png = dir.path().join("glint.png");
+        let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x200", "--at", &at];
+        terrastream(&[&args[..], &["--heading", "270", "--pitch", "-12", "--sun", sun]].concat(), dir.path());
+        let (w, h, rgba) = decode(&png);
+        // Mean of r + g + b over columns `x` of the rows from 60 % to 85 % of the height.
+        let band = |x: std::ops::Range<u32>| {
+            let (mut sum, mut n) = (0.0, 0.0);
+            for y in h * 3 / 5..h * 17 / 20 {
+                for column in x.clone() {
+                    let i = 4 * (y * w + column) as usize;
+                    sum += f64::from(rgba[i]) + f64::from(rgba[i + 1]) + f64::from(rgba[i + 2]);
+                    n += 1.0;
+                }
+            }
+            sum / n
+        };
+        let middle = band(w / 2 - 8..w / 2 + 8);
+        let sides = (band(0..w / 6) + band(w * 5 / 6..w)) / 2.0;
+        middle / sides
+    };
+    let (ahead, behind) = (lightness("270,15"), lightness("90,15"));
+    eprintln!("the sea under the sun against its sides: sun ahead {ahead:.2}x, behind {behind:.2}x");
+    assert!(ahead > 2.0, "no glint under the sun: {ahead:.2}x");
+    assert!((0.8..1.25).contains(&behind), "a glint with the sun behind: {behind:.2}x");
 }
