@@ -665,11 +665,10 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     var rgb = albedo * (direct * (1.0 - G.sun.w) + sky * G.sun.w) * vec3<f32>(1.0, 0.97, 0.92);
     // Water mirrors: the sky (here the haze's colour) and the sun's glint. The light's
     // scale here has no 1/pi: the glint's lobe is taken times pi to match.
-    let view = normalize(-in.rel);
     let water = select(0.0, 1.0, sea);
     if sea {
         let sunlight = vec3<f32>(1.0, 0.97, 0.92) * (1.0 - G.sun.w) * PI;
-        rgb += water_specular(normal, view, sun, G.fog.rgb, sunlight);
+        rgb += water_specular(normal, normalize(-in.rel), sun, G.fog.rgb, sunlight);
     }
     if G.mode.y == 1u {
         let e = fract(in.grid);
@@ -680,7 +679,8 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     }
     if ATMO.look.y > 0.5 {
         if ATMO.tables.x > 0.5 {
-            return vec4<f32>(seen_through_air(albedo, normal, AirAt(in.up, in.sunlight, in.air), view, water), 1.0);
+            let air = AirAt(in.up, in.sunlight, in.air);
+            return vec4<f32>(seen_through_air(albedo, normal, air, in.rel, water), 1.0);
         }
         return vec4<f32>(through_atmosphere(albedo, normal, in.rel, in.world.y, water), 1.0);
     }
@@ -692,11 +692,11 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
 // On the globe with an atmosphere: the ground lit by the sun through the air above it,
 // seen through the air between it and the eye (the aerial perspective), exposed; the air
 // as `air_at` found it at the vertices.
-fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt, view: vec3<f32>, water: f32) -> vec3<f32> {
+fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt, rel: vec3<f32>, water: f32) -> vec3<f32> {
     let up = normalize(at.up);
     var radiance = ground_radiance(albedo, grid_normal, up, at.sunlight);
     if water > 0.5 {
-        radiance += water_light(grid_normal, up, view, at.sunlight);
+        radiance += water_light(up, normalize(-rel), at.sunlight);
     }
     // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
     return expose(radiance * at.air.a + at.air.rgb);
@@ -709,13 +709,12 @@ fn frame_normal(grid_normal: vec3<f32>, up: vec3<f32>) -> vec3<f32> {
     return normalize(east * grid_normal.x + up * grid_normal.y - north * grid_normal.z);
 }
 
-// Water's reflection toward the eye (`view`, from the point) under the atmosphere: the sky
-// mirrored (its radiance taken as its light from above over pi, as from a uniform sky)
-// and the sun's glint.
-fn water_light(grid_normal: vec3<f32>, up: vec3<f32>, view: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
-    let n = frame_normal(grid_normal, up);
+// Water's reflection toward the eye (`view`, from the point) under the atmosphere, its
+// surface level (its normal the up): the sky mirrored (its radiance taken as its light
+// from above over pi, as from a uniform sky) and the sun's glint.
+fn water_light(up: vec3<f32>, view: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
     let sun = ATMO.sun.xyz;
-    return water_specular(n, view, sun, sky_light(up, sun) / PI, sunlight);
+    return water_specular(up, view, sun, sky_light(up, sun) / PI, sunlight);
 }
 
 // What still water reflects toward `view` (unit, from the point) with normal `n`: the sky
@@ -723,11 +722,16 @@ fn water_light(grid_normal: vec3<f32>, up: vec3<f32>, view: vec3<f32>, sunlight:
 // all of it at grazing), and the glint of a sun of light `sunlight` from `sun`, a
 // normalized Blinn-Phong lobe (a calm surface: the glint a few degrees across).
 fn water_specular(n: vec3<f32>, view: vec3<f32>, sun: vec3<f32>, sky: vec3<f32>, sunlight: vec3<f32>) -> vec3<f32> {
-    let fresnel = 0.02 + 0.98 * pow(1.0 - clamp(dot(n, view), 0.0, 1.0), 5.0);
     let h = normalize(view + sun);
-    let towards = 0.02 + 0.98 * pow(1.0 - clamp(dot(h, view), 0.0, 1.0), 5.0);
     let lobe = (WATER_SHININESS + 8.0) / (8.0 * PI) * pow(clamp(dot(n, h), 0.0, 1.0), WATER_SHININESS);
-    return fresnel * sky + towards * lobe * max(dot(n, sun), 0.0) * sunlight;
+    return schlick(dot(n, view)) * sky + schlick(dot(h, view)) * lobe * max(dot(n, sun), 0.0) * sunlight;
+}
+
+// Schlick's Fresnel term for water (2 % head on) at the cosine `c` of the angle.
+fn schlick(c: f32) -> f32 {
+    let m = 1.0 - clamp(c, 0.0, 1.0);
+    let m2 = m * m;
+    return 0.02 + 0.98 * m2 * m2 * m;
 }
 
 // The glint's sharpness (a Blinn-Phong exponent): about the spread of the sea's wave slopes
@@ -752,7 +756,7 @@ fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>,
     let sunlight = sunlight_at(p);
     var radiance = ground_radiance(albedo, grid_normal, up, sunlight);
     if water > 0.5 {
-        radiance += water_light(grid_normal, up, normalize(-rel), sunlight);
+        radiance += water_light(up, normalize(-rel), sunlight);
     }
     let to = p - ATMO.eye.xyz;
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), ATMO.sun.xyz, ATMO.look.w);
@@ -842,7 +846,7 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
         var radiance = albedo / PI * (sunlight * max(dot(up, sun), 0.0) + sky_light(up, sun));
         // The picture's sea mirrors the sky and the sun, as the data's water does.
         if picture_sea(albedo) {
-            radiance += water_light(vec3<f32>(0.0, 1.0, 0.0), up, -d, sunlight);
+            radiance += water_light(up, -d, sunlight);
         }
         // Along a ray that meets the ground, the air between is the ratio of the two
         // stretches up to the top (the way back up passes the eye).
