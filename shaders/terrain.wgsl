@@ -86,8 +86,8 @@ struct Globals {
 // the ground beyond the archive's data.
 @group(0) @binding(12) var earth_map: texture_2d<f32>;
 // Per elevation sample, made where the tile was decoded (terrastream-tiles' shade.rs): x and z of the
-// normal (as n * 0.5 + 0.5), 1 in a flat sea, 1 where the sample has data. The same slots
-// as `elevation`; filtered.
+// normal (as n * 0.5 + 0.5), the fraction of water (the water layer's, else 1 in a flat
+// sea), 1 where the sample has data. The same slots as `elevation`; filtered.
 @group(0) @binding(13) var elevation_shade: texture_2d_array<f32>;
 
 const NODATA: f32 = -1.0e30;
@@ -597,10 +597,12 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     }
     // Normal from the elevation data at the pixel's own resolution.
     var normal = vec3<f32>(0.0, 1.0, 0.0);
-    // The sea, as DEMs that store it as a flat 0 have it (SRTM, Copernicus): where the
-    // pixel's samples and their four neighbours are one height within half a metre of sea
-    // level (the shade texels' flag).
-    var sea = false;
+    // Water, from the shade texels' water byte: the archive's water layer's fraction where
+    // it has one, else the sea as DEMs that store it as a flat 0 have it (SRTM,
+    // Copernicus): where the pixel's samples and their four neighbours are one height
+    // within half a metre of sea level. Filtered, it ramps across a shore over a sample:
+    // water from half of it up, fully water from 0.95, so the shore is anti-aliased.
+    var water = 0.0;
     if G.counts.x > 0u {
         if found.lod >= 0.0 {
             // One filtered sample of the tile's shade texels (terrastream-tiles): the
@@ -616,14 +618,11 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
                 // those with data leaves their weighted mean (the data's rim included).
                 let xz = (shade.xy * 2.0 - 1.0) / shade.w;
                 normal = normalize(vec3<f32>(xz.x, sqrt(max(1.0 - dot(xz, xz), 0.0)), xz.y));
-                sea = shade.z > 0.99;
+                water = smoothstep(0.5, 0.95, shade.z);
             }
         }
     }
-    var albedo = hypsometric(in.world.y);
-    if sea {
-        albedo = SEA_ALBEDO;
-    }
+    var albedo = mix(hypsometric(in.world.y), SEA_ALBEDO, water);
     if G.counts.y > 0u {
         let t = clamp(log2(max(footprint, 1.0e-6) / G.tex.w), 0.0, f32(G.counts.y - 1u));
         let l0 = floor(t);
@@ -665,10 +664,9 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     var rgb = albedo * (direct * (1.0 - G.sun.w) + sky * G.sun.w) * vec3<f32>(1.0, 0.97, 0.92);
     // Water mirrors: the sky (here the haze's colour) and the sun's glint. The light's
     // scale here has no 1/pi: the glint's lobe is taken times pi to match.
-    let water = select(0.0, 1.0, sea);
-    if sea {
+    if water > 0.0 {
         let sunlight = vec3<f32>(1.0, 0.97, 0.92) * (1.0 - G.sun.w) * PI;
-        rgb += water_specular(normal, normalize(-in.rel), sun, G.fog.rgb, sunlight);
+        rgb += water * water_specular(normal, normalize(-in.rel), sun, G.fog.rgb, sunlight);
     }
     if G.mode.y == 1u {
         let e = fract(in.grid);
@@ -695,8 +693,8 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
 fn seen_through_air(albedo: vec3<f32>, grid_normal: vec3<f32>, at: AirAt, rel: vec3<f32>, water: f32) -> vec3<f32> {
     let up = normalize(at.up);
     var radiance = ground_radiance(albedo, grid_normal, up, at.sunlight);
-    if water > 0.5 {
-        radiance += water_light(up, normalize(-rel), at.sunlight);
+    if water > 0.0 {
+        radiance += water * water_light(up, normalize(-rel), at.sunlight);
     }
     // The table holds the air as the ground is seen through it (GROUND_HAZE applied).
     return expose(radiance * at.air.a + at.air.rgb);
@@ -755,8 +753,8 @@ fn through_atmosphere(albedo: vec3<f32>, grid_normal: vec3<f32>, rel: vec3<f32>,
     let p = ground_point(up, height);
     let sunlight = sunlight_at(p);
     var radiance = ground_radiance(albedo, grid_normal, up, sunlight);
-    if water > 0.5 {
-        radiance += water_light(up, normalize(-rel), sunlight);
+    if water > 0.0 {
+        radiance += water * water_light(up, normalize(-rel), sunlight);
     }
     let to = p - ATMO.eye.xyz;
     let air = integrate(ATMO.eye.xyz, normalize(to), length(to), ATMO.sun.xyz, ATMO.look.w);
