@@ -27,6 +27,22 @@ fn coast_and_lake(dir: &Path) -> (PathBuf, PathBuf, (f64, f64)) {
     (dem, mask, centre)
 }
 
+/// GDAL's `gdal_translate` with `options` from `files[0]` to `files[1]`.
+fn gdal_translate(options: &[&str], files: [&str; 2]) {
+    let out = Command::new("gdal_translate").arg("-q").args(options).args(files).output().unwrap();
+    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// `terrastream water archive --mask mask`, which must fail: what it said.
+fn refused(archive: &Path, mask: &Path) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(["water", archive.to_str().unwrap(), "--mask", mask.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!out.status.success(), "refused: {}", mask.display());
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
 /// The lake's area in square metres by GDAL: the mask's mean (no data left out) times its
 /// valid pixels times a pixel's area.
 fn gdal_lake_area(mask: &Path) -> f64 {
@@ -170,12 +186,7 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     // A mask 2048 pixels wider on every side (no data there, its pixels on the same
     // lattice): the same tiles, reading only its rows and columns under the archive.
     let padded = dir.path().join("padded.tif");
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-srcwin", "-2048", "-2048", "5000", "5000"])
-        .args([mask.to_str().unwrap(), padded.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    gdal_translate(&["-srcwin", "-2048", "-2048", "5000", "5000"], [mask.to_str().unwrap(), padded.to_str().unwrap()]);
     let from_padded = dir.path().join("padded.tspack");
     terrastream(&[
         "water",
@@ -196,12 +207,10 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
     let updated = dir.path().join("updated.tspack");
     std::fs::copy(&wet, &updated).unwrap();
     let raised = dir.path().join("raised.tif");
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-ot", "Float32", "-srcwin", "150", "60", "60", "60", "-scale", "0", "1000", "5", "1005"])
-        .args([dem, raised.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    gdal_translate(
+        &["-ot", "Float32", "-srcwin", "150", "60", "60", "60", "-scale", "0", "1000", "5", "1005"],
+        [dem, raised.to_str().unwrap()],
+    );
     terrastream(&["update", updated.to_str().unwrap(), "--elevation", raised.to_str().unwrap(), "--in-place"]);
     let water_of = |tiles: &std::collections::BTreeMap<TileKey, Vec<u8>>| {
         tiles.iter().filter(|(k, _)| usize::from(k.layer()) == index).map(|(k, v)| (*k, v.clone())).collect::<Vec<_>>()
@@ -251,38 +260,24 @@ fn a_mask_without_a_georeference_is_refused_naming_it() {
     let archive = dir.path().join("coast.tspack");
     terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "-o", archive.to_str().unwrap()]);
     let bare = dir.path().join("bare.tif");
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-of", "GTiff", "-co", "PROFILE=BASELINE", "-outsize", "64", "64"])
-        .args([dem.to_str().unwrap(), bare.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
+    gdal_translate(
+        &["-of", "GTiff", "-co", "PROFILE=BASELINE", "-outsize", "64", "64"],
+        [dem.to_str().unwrap(), bare.to_str().unwrap()],
+    );
     // GDAL keeps the georeference of a baseline TIFF beside it, where it is read too.
     let _ = std::fs::remove_file(dir.path().join("bare.tif.aux.xml"));
     let before = std::fs::read(&archive).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(["water", archive.to_str().unwrap(), "--mask", bare.to_str().unwrap()])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
+    let stderr = refused(&archive, &bare);
     assert!(stderr.contains("bare.tif") && stderr.contains("georeference"), "{stderr}");
     assert_eq!(std::fs::read(&archive).unwrap(), before, "the archive as it was");
 
     // A mask that lies elsewhere (the same pixels placed in Europe) is refused too.
     let elsewhere = dir.path().join("elsewhere.tif");
-    let out = Command::new("gdal_translate")
-        .args(["-q", "-a_srs", "EPSG:4326", "-a_ullr", "10", "50", "11", "49"])
-        .args([dem.to_str().unwrap(), elsewhere.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "gdal_translate: {}", String::from_utf8_lossy(&out.stderr));
-    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
-        .args(["water", archive.to_str().unwrap(), "--mask", elsewhere.to_str().unwrap()])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
+    gdal_translate(
+        &["-a_srs", "EPSG:4326", "-a_ullr", "10", "50", "11", "49"],
+        [dem.to_str().unwrap(), elsewhere.to_str().unwrap()],
+    );
+    let stderr = refused(&archive, &elsewhere);
     assert!(stderr.contains("elsewhere.tif") && stderr.contains("says nothing"), "{stderr}");
     assert_eq!(std::fs::read(&archive).unwrap(), before, "the archive as it was");
 }
