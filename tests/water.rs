@@ -197,6 +197,22 @@ fn a_lake_from_a_mask_in_another_crs_is_water() {
         from_padded.to_str().unwrap(),
     ]);
     assert_eq!(terrastream_testkit::archives::stored_tiles(&from_padded), after, "the padded mask");
+    // In place, on an archive written with room for updates (FORMAT.md §7.1): the water
+    // tiles appended and its own tiles' bytes left where they were, the same tiles as a
+    // copy written anew.
+    let roomy = dir.path().join("roomy.tspack");
+    terrastream(&["tile", "--elevation", dem.to_str().unwrap(), "--tile-size", "64", "-o", roomy.to_str().unwrap()]);
+    let (in_place, anew) = (dir.path().join("in-place.tspack"), dir.path().join("anew.tspack"));
+    std::fs::copy(&roomy, &in_place).unwrap();
+    terrastream(&["water", in_place.to_str().unwrap(), "--mask", mask.to_str().unwrap()]);
+    terrastream(&["water", roomy.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", anew.to_str().unwrap()]);
+    let stored = terrastream_testkit::archives::stored_tiles;
+    assert_eq!(stored(&in_place), stored(&anew), "in place and anew");
+    let data = Reader::open_mmap(&roomy).unwrap().header().data;
+    let span = data.offset as usize..(data.offset + data.len) as usize;
+    let (old_bytes, new_bytes) = (std::fs::read(&roomy).unwrap(), std::fs::read(&in_place).unwrap());
+    assert_eq!(new_bytes[span.clone()], old_bytes[span], "the archive's tiles where they were");
+    assert_eq!(Reader::open_mmap(&in_place).unwrap().header().version_major, 3);
     // `tile --water` makes the same archive in one run.
     let one_run = dir.path().join("one-run.tspack");
     let (dem, mask) = (dem.to_str().unwrap(), mask.to_str().unwrap());

@@ -18,8 +18,8 @@ pub struct WaterArgs {
     /// says nothing (the sea is then taken from the heights, a flat 0).
     #[arg(long)]
     mask: PathBuf,
-    /// Output archive; by default the archive itself, written anew beside it and renamed
-    /// over it once complete.
+    /// Output archive; by default the archive itself: the water tiles appended in place
+    /// where it has room for updates, else written anew beside it and renamed over it.
     #[arg(short, long)]
     output: Option<PathBuf>,
 }

@@ -23,8 +23,10 @@
 //! stays land.
 //!
 //! Tiles are 8-bit gray PNGs: `v / 254` the fraction, 255 no data (FORMAT.md §3.1).
-//! The archive is written anew beside itself and renamed over the output once complete,
-//! so an error or Ctrl-C leaves it as it was.
+//! Into the archive itself, they are appended in place where it has room for updates
+//! (FORMAT.md §7.1: its own tiles stay where they are); otherwise the archive is written
+//! anew beside the output and renamed over it once complete. Either way an error or
+//! Ctrl-C leaves it as it was.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -195,33 +197,109 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
     let wet = tiles.values().filter(|t| t.wet).count() as u64;
     let bytes = tiles.values().map(|t| t.png.len() as u64).sum();
 
-    // The archive's tiles as they are stored (an old water layer's left out), the water
-    // tiles in their places among them.
-    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
-    let mut writer = Writer::create(out, metadata.clone(), options)?;
-    let mut pending = tiles.into_iter().peekable();
+    let summary = |write| WaterSummary { tiles: keys.len() as u64 - uncovered, wet, uncovered, bytes, write };
+    let same = std::fs::canonicalize(base).ok().zip(std::fs::canonicalize(out).ok()).is_some_and(|(a, b)| a == b);
+    if same {
+        // In place (FORMAT.md §7.1): the water tiles appended, the archive's own tiles
+        // kept where they are; the archive written anew where it has no room for that.
+        match append_water(&reader, &metadata, existing, &tiles, base) {
+            Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => {
+                tracing::info!("{}: {why}: writing the archive anew", base.display());
+            }
+            other => return other.map(summary),
+        }
+    }
+    write_water(reader, &metadata, existing, tiles, out, progress).map(summary)
+}
+
+/// The archive's tiles as they are stored (an old water layer's left out), with the water
+/// tiles `water` (by archive order) in their places among them, in archive order.
+fn in_order(
+    reader: &Reader<terrastream_format::MmapSource>,
+    existing: Option<usize>,
+    water: &BTreeMap<u64, Made>,
+    sink: &mut dyn FnMut(Tile<'_>) -> Result<()>,
+) -> Result<()> {
+    let step = terrastream_format::MAX_LAYERS as u64;
+    let mut pending = water.iter().peekable();
     reader.for_each_entry(|entry| -> Result<()> {
-        progress.check()?;
-        let payload = reader.entry_payload(entry)?;
         for i in 0..u64::from(entry.run_length) {
             let order = entry.key + i * step;
             let key = reader.archive().tile_of(order)?;
             if Some(usize::from(key.layer())) == existing {
                 continue;
             }
-            while let Some((_, water)) = pending.next_if(|(o, _)| *o < order) {
-                writer.add_stored(water.key, water.png)?;
+            while let Some((&at, water)) = pending.next_if(|(o, _)| **o < order) {
+                sink(Tile::Water(at, water))?;
             }
-            writer.add_stored(key, payload.to_vec())?;
+            sink(Tile::Stored(key, order, entry))?;
         }
         Ok(())
     })?;
-    for (_, water) in pending {
-        writer.add_stored(water.key, water.png)?;
+    for (&at, water) in pending {
+        sink(Tile::Water(at, water))?;
     }
+    Ok(())
+}
+
+/// A tile of the archive with its water layer, in archive order.
+enum Tile<'a> {
+    /// One of the archive's own, at its archive order, and its directory entry.
+    Stored(TileKey, u64, &'a terrastream_format::Entry),
+    /// A water tile, at its archive order.
+    Water(u64, &'a Made),
+}
+
+/// Writes the archive with its water layer anew at `out`, renamed into place once complete.
+fn write_water(
+    reader: Reader<terrastream_format::MmapSource>,
+    metadata: &terrastream_format::Metadata,
+    existing: Option<usize>,
+    water: BTreeMap<u64, Made>,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<terrastream_pack::WriteSummary> {
+    let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
+    let mut writer = Writer::create(out, metadata.clone(), options)?;
+    in_order(&reader, existing, &water, &mut |tile| {
+        match tile {
+            Tile::Stored(key, _, entry) => {
+                progress.check()?;
+                writer.add_stored(key, reader.entry_payload(entry)?.to_vec())?;
+            }
+            Tile::Water(_, water) => writer.add_stored(water.key, water.png.clone())?,
+        }
+        Ok(())
+    })?;
     drop(reader);
-    let write = writer.finish()?;
-    Ok(WaterSummary { tiles: keys.len() as u64 - uncovered, wet, uncovered, bytes, write })
+    Ok(writer.finish()?)
+}
+
+/// Appends the water tiles to the archive at `path` in place, keeping its own tiles where
+/// they are: only the water tiles and the new directories are written.
+///
+/// # Errors
+/// `terrastream_pack::Error::NoRoom` (in [`Error::Pack`]) where the archive was written
+/// without room for updates or its directories outgrow it: it is then as it was.
+fn append_water(
+    reader: &Reader<terrastream_format::MmapSource>,
+    metadata: &terrastream_format::Metadata,
+    existing: Option<usize>,
+    water: &BTreeMap<u64, Made>,
+    path: &Path,
+) -> Result<terrastream_pack::WriteSummary> {
+    let mut appender = terrastream_pack::Appender::open(path, WriterOptions::default())?;
+    if appender.header() != reader.header() {
+        return Err(Error::input(path, "it changed while the water was being made"));
+    }
+    in_order(reader, existing, water, &mut |tile| {
+        match tile {
+            Tile::Stored(key, order, entry) => appender.keep(key, order, entry.offset, entry.length)?,
+            Tile::Water(order, water) => appender.add(water.key, order, &water.png)?,
+        }
+        Ok(())
+    })?;
+    Ok(appender.finish(metadata)?)
 }
 
 /// Samples a stored tile of `layer` holds across (borders included).
