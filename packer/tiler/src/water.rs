@@ -165,7 +165,7 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
 
     progress.start("water", keys.len() as u64);
     let index_u8 = u8::try_from(index).unwrap_or(u8::MAX);
-    let mut made: Vec<Option<Made>> = keys.iter().map(|_| None).collect();
+    let mut tiles: BTreeMap<u64, Made> = BTreeMap::new();
     let make = |i: usize, values: Vec<u8>| -> Result<Option<Made>> {
         if values.iter().all(|&v| v == NO_WATER_DATA) {
             return Ok(None);
@@ -174,16 +174,14 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
         let wet = values.iter().any(|&v| v != 0 && v != NO_WATER_DATA);
         let water = TileKey::new(index_u8, key.lod(), key.x(), key.y())?;
         let order = Writer::order_key(&metadata, water)?;
-        Ok(Some(Made { order, key: water, png: gray_png(&values, edge(&grid)), wet }))
+        Ok(Some(Made { order, key: water, png: gray_png(&values, grid.stored_edge()), wet }))
     };
     stream_tiles(&mask, &place, &grid, &keys, progress, &make, &mut |done| {
-        for (i, tile) in done {
-            made[i] = tile;
-        }
+        tiles.extend(done.into_iter().filter_map(|(_, made)| made).map(|m| (m.order, m)));
         Ok(())
     })?;
-    let uncovered = made.iter().filter(|m| m.is_none()).count() as u64;
-    if made.iter().all(Option::is_none) {
+    let uncovered = (keys.len() - tiles.len()) as u64;
+    if tiles.is_empty() {
         return Err(Error::input(
             mask_path,
             format!(
@@ -193,13 +191,11 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
             ),
         ));
     }
-    let tiles: BTreeMap<u64, Made> = made.into_iter().flatten().map(|m| (m.order, m)).collect();
     let wet = tiles.values().filter(|t| t.wet).count() as u64;
     let bytes = tiles.values().map(|t| t.png.len() as u64).sum();
 
     let summary = |write| WaterSummary { tiles: keys.len() as u64 - uncovered, wet, uncovered, bytes, write };
-    let same = std::fs::canonicalize(base).ok().zip(std::fs::canonicalize(out).ok()).is_some_and(|(a, b)| a == b);
-    if same {
+    if crate::edit::update::same_file(base, out) {
         // In place (FORMAT.md §7.1): the water tiles appended, the archive's own tiles
         // kept where they are; the archive written anew where it has no room for that.
         match append_water(&reader, &metadata, existing, &tiles, base) {
@@ -300,11 +296,6 @@ fn append_water(
         Ok(())
     })?;
     Ok(appender.finish(metadata)?)
-}
-
-/// Samples a stored tile of `layer` holds across (borders included).
-fn edge(layer: &Layer) -> usize {
-    (layer.tile_resolution + 2 * u32::from(layer.border)) as usize
 }
 
 /// A water mask file: where it lies, and its size.
@@ -506,7 +497,7 @@ impl Placement {
     /// [`Placement::samples`], or with `all` false the knots alone (`points` then holds
     /// the knots' positions).
     fn samples_with(&self, grid: &Layer, key: TileKey, all: bool) -> Samples {
-        let edge = edge(grid);
+        let edge = grid.stored_edge();
         let res = f64::from(grid.tile_resolution);
         let spacing = grid.world_size_at(key.lod()) / res;
         let (first_x, first_z) =

@@ -363,10 +363,14 @@ pub(in crate::stream) async fn fetch_and_decode(
         Backend::Archive(_) | Backend::Manifest(_) => {
             compressed = true;
             match group.part().and_then(|part| backend.part_reader(part)) {
-                Some(reader) => match fetch_located(reader, &with_water(reader, &group, water.as_ref())).await {
-                    Ok(fetched) => (raw, bytes, needed) = fetched,
-                    Err(what) => return changed(what),
-                },
+                Some(reader) => {
+                    match fetch_located(reader, with_water(reader, &group, water.as_ref()).as_ref().unwrap_or(&group))
+                        .await
+                    {
+                        Ok(fetched) => (raw, bytes, needed) = fetched,
+                        Err(what) => return changed(what),
+                    }
+                }
                 None => {
                     let why = || Err("the archive holding it is not open".to_owned());
                     raw.extend(group.tiles.iter().map(|(k, _)| (*k, why())));
@@ -443,18 +447,17 @@ fn water_layers(metadata: &Metadata) -> Option<Water> {
     Some(Water { elevation, water, layer: metadata.layers[usize::from(elevation)].clone() })
 }
 
-/// `group` with the water tile of each of its elevation tiles, where the archive has one
-/// and its directory is at hand: the tile right after the elevation tile in the archive's
-/// order (FORMAT.md §6), so the range grows by its bytes alone. One whose leaf directory
-/// is not loaded is left out (its elevation tile then takes the sea from its heights).
+/// `group` with the water tile of each of its elevation tiles (None where it gains none),
+/// where the archive has one and its directory is at hand: the tile right after the
+/// elevation tile in the archive's order (FORMAT.md §6), so the range grows by its bytes
+/// alone. One whose leaf directory is not loaded is left out (its elevation tile then
+/// takes the sea from its heights).
 fn with_water(
     reader: &terrastream_format::AsyncReader<crate::stream::origin::DynSource>,
     group: &Group,
     water: Option<&Water>,
-) -> Group {
-    let Some(&Water { elevation, water, .. }) = water else {
-        return Group { rank: group.rank, tiles: group.tiles.clone() };
-    };
+) -> Option<Group> {
+    let &Water { elevation, water, .. } = water?;
     let mut tiles = group.tiles.clone();
     for (key, located) in &group.tiles {
         let Some((part, _)) = located else { continue };
@@ -469,7 +472,7 @@ fn with_water(
             tiles.push((companion, Some((*part, location))));
         }
     }
-    Group { rank: group.rank, tiles }
+    (tiles.len() > group.tiles.len()).then_some(Group { rank: group.rank, tiles })
 }
 
 /// The keys of `group`, each elevation tile's water tile after it (tiles fetched one by
@@ -506,9 +509,8 @@ fn apply_water(water: Option<&Water>, results: Vec<(TileKey, Outcome)>) -> Vec<(
             continue;
         }
         if let Some(w) = fractions.get(&(key.lod(), key.x(), key.y())) {
-            let mut with = DecodedTile::clone(tile);
-            with.set_water(layer, w);
-            *tile = Arc::new(with);
+            // Just decoded, the tile has no other owner: changed where it is.
+            Arc::make_mut(tile).set_water(layer, w);
         }
     }
     results

@@ -293,6 +293,11 @@ pub(crate) fn replace_tiles(
     merge_changes_as(base, made, out, None, Some(metadata), progress)
 }
 
+/// Whether `a` and `b` name the same file (an update or a water layer in place).
+pub(crate) fn same_file(a: &Path, b: &Path) -> bool {
+    std::fs::canonicalize(a).ok().zip(std::fs::canonicalize(b).ok()).is_some_and(|(a, b)| a == b)
+}
+
 fn merge_changes_as(
     base: &Path,
     made: PathBuf,
@@ -306,10 +311,7 @@ fn merge_changes_as(
         tracing::info!("{}: {why}: writing the archive anew", base.display());
         merge_widened_as(&inputs, out, Prefer::Pixels, seen, as_is, progress)
     };
-    let same = |a: &Path, b: &Path| {
-        std::fs::canonicalize(a).ok().zip(std::fs::canonicalize(b).ok()).is_some_and(|(a, b)| a == b)
-    };
-    if same(base, out) {
+    if same_file(base, out) {
         return match merge_in_place_as(&inputs, base, Prefer::Pixels, seen, as_is, progress) {
             Err(Error::Pack(terrastream_pack::Error::NoRoom { why, .. })) => rewrite(&why),
             other => other,
