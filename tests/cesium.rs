@@ -638,6 +638,29 @@ fn cesium_flies_a_collection_of_a_base_and_a_patch() {
     assert!(median <= 1.5 && p90 <= 3.0, "median {median:.2} m, p90 {p90:.2} m");
 }
 
+/// The coast (`oracles::coast_dem`) tiled as `coast`, and the same with a water layer
+/// as `lake` (a lake filling the basin, from a mask in UTM), both served.
+struct Coast {
+    server: terrastream_testkit::server::Spawned,
+    /// The lake's centre (longitude, latitude).
+    lake_centre: (f64, f64),
+    /// West, south and side of the DEM, in degrees.
+    bounds: [f64; 3],
+}
+
+fn coast_and_lake(dir: &Path) -> Coast {
+    let (tif, bounds) = oracles::coast_dem(dir);
+    let archive = dir.join("coast.tspack");
+    terrastream(&["tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()]);
+    let (mask, lake_centre) = oracles::lake_mask(dir, bounds);
+    let wet = dir.join("lake.tspack");
+    terrastream(&["water", archive.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()]);
+    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
+    let server =
+        terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap(), wet.to_str().unwrap()], dir);
+    Coast { server, lake_centre, bounds }
+}
+
 /// The sea as CesiumJS reads it: a coast whose sea is stored as a flat 0 (and a basin
 /// below sea level on land), served; Cesium, asked for the water mask
 /// (`requestWaterMask: true`), decodes a sea tile as all water, a land tile as all land,
@@ -647,16 +670,7 @@ fn cesium_reads_the_water_mask_of_a_coast() {
     use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
     let Some(build) = cesium_with_oracles() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let (tif, [west, south, degrees]) = oracles::coast_dem(dir.path());
-    let archive = dir.path().join("coast.tspack");
-    terrastream(&["tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()]);
-    // The same coast with a water layer: a lake filling the basin, from a mask in UTM.
-    let (mask, lake_centre) = oracles::lake_mask(dir.path(), [west, south, degrees]);
-    let wet = dir.path().join("lake.tspack");
-    terrastream(&["water", archive.to_str().unwrap(), "--mask", mask.to_str().unwrap(), "-o", wet.to_str().unwrap()]);
-    let exe = Path::new(env!("CARGO_BIN_EXE_terrastream"));
-    let server =
-        terrastream_testkit::server::spawn_serve(exe, &[archive.to_str().unwrap(), wet.to_str().unwrap()], dir.path());
+    let Coast { server, lake_centre, bounds: [west, south, degrees] } = coast_and_lake(dir.path());
     let (_, body) = curl(server.port, "/coast/layer.json", &[]);
     let layer: Value = serde_json::from_slice(&body).unwrap();
     assert!(layer["extensions"].as_array().unwrap().contains(&json!("watermask")), "{layer}");
@@ -754,6 +768,109 @@ fn cesium_reads_the_water_mask_of_a_coast() {
     assert_eq!(basin[1], 255.0, "the lake's centre at ({u}, {v}): {lake}");
     assert!(basin[2] == 0.0 && basin[3] == 0.0, "the corners, land: {lake}");
     assert_eq!(values(1), vec![1.0, 255.0, 255.0, 255.0], "the sea tile: {lake}");
+}
+
+/// The page of the water's picture: the quantized-mesh terrain at `terrain=` with its
+/// water mask (`requestWaterMask`), a tan ground lit by the sun of the March equinox at
+/// 13:20 UTC (noon at 20 W), no imagery, sky, fog or ground atmosphere, and Cesium's water
+/// effect on, its waves made still by a flat normal map (`flat-normal.png`): without it
+/// they move with the frame count and no two pictures agree.
+const WATER_PAGE: &str = cesium_page!(
+    r#"Cesium.CesiumTerrainProvider.fromUrl(q.get('terrain'), { requestWaterMask: true })
+.then(terrainProvider => {
+if (terrainProvider.errorEvent) terrainProvider.errorEvent.addEventListener(e => window.failures.push(String(e.message || e)));
+const [viewer] = posedViewer({ terrainProvider, baseLayer: false, skyAtmosphere: false });
+const scene = viewer.scene;
+scene.backgroundColor = Cesium.Color.BLACK;
+scene.globe.baseColor = Cesium.Color.fromCssColorString('#8c7b5c');
+viewer.clock.shouldAnimate = false;
+viewer.clock.currentTime = Cesium.JulianDate.fromIso8601('2024-03-20T13:20:00Z');
+scene.globe.enableLighting = true;
+scene.globe.showGroundAtmosphere = false;
+scene.globe.showWaterEffect = true;
+scene.globe.oceanNormalMapUrl = 'flat-normal.png';
+scene.fog.enabled = false;
+window.viewer = viewer;
+}).catch(e => window.failures.push('terrain: ' + e));
+"#
+);
+
+/// CesiumJS's water effect drawn from our water layer: the coast and its basin seen from
+/// 6 km straight above the lake's centre, without the layer (the basin, 30 m below sea
+/// level, is land by the flat-0 rule) and with it. Cesium lights its water with a blue
+/// highlight and a specular term where the mask says water: the lake's pixels turn bluer
+/// with the layer, the land around it and the sea to the west stay as they were, and the
+/// picture with the layer matches a golden (`tests/golden/cesium-water.png`).
+#[test]
+fn cesium_draws_the_lake_of_the_water_layer_as_water() {
+    use terrastream_testkit::browser::{Browser, Driver, WEBGL_FLAGS};
+    let Some(build) = cesium_with_oracles() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let Coast { server, lake_centre: (lon, lat), .. } = coast_and_lake(dir.path());
+    let Some(nginx) = cesium_host(dir.path(), &build, "water.html", WATER_PAGE) else { return };
+    // A flat normal map (the tangent space's up), 4 x 4.
+    let flat: Vec<u8> = [128, 128, 255, 255].repeat(16);
+    terrastream_testkit::golden::write_png(&dir.path().join("www/flat-normal.png"), 4, 4, &flat);
+    let driver = Driver::start();
+    // A window larger than the globe's element, which the screenshot takes whole.
+    let browser = Browser::open(&driver, WEBGL_FLAGS, (WIDTH + 200, HEIGHT + 300));
+    let mut pictures = vec![];
+    for name in ["coast", "lake"] {
+        browser.goto(&format!(
+            "http://127.0.0.1:{}/water.html?at={lon},{lat},6000&heading=0&pitch=-90&terrain=http://127.0.0.1:{}/{name}",
+            nginx.port, server.port
+        ));
+        wait_for_cesium(&browser, "viewer.scene.globe.tilesLoaded");
+        browser.eval("viewer.scene.requestRender(); return 0;");
+        std::thread::sleep(std::time::Duration::from_millis(500));
+        let picture = browser.screenshot("#globe");
+        terrastream_testkit::golden::write_png(
+            &dir.path().join(format!("{name}.png")),
+            picture.0,
+            picture.1,
+            &picture.2,
+        );
+        pictures.push(picture);
+    }
+    let look = Path::new(env!("CARGO_TARGET_TMPDIR")).join("cesium-water");
+    std::fs::create_dir_all(&look).unwrap();
+    for name in ["coast", "lake"] {
+        std::fs::copy(dir.path().join(format!("{name}.png")), look.join(format!("{name}.png"))).unwrap();
+    }
+    let (w, h, _) = pictures[0];
+    assert_eq!((w, h), (WIDTH, HEIGHT), "the globe's size");
+    // The mean colour of a 30 x 30 pixel square centred on (x, y), in 0-255.
+    let mean = |rgba: &[u8], (x, y): (u32, u32)| {
+        let mut sum = [0.0f64; 3];
+        for row in y - 15..y + 15 {
+            for column in x - 15..x + 15 {
+                let i = ((row * w + column) * 4) as usize;
+                for c in 0..3 {
+                    sum[c] += f64::from(rgba[i + c]) / 900.0;
+                }
+            }
+        }
+        sum
+    };
+    let blueness = |c: [f64; 3]| c[2] - c[0];
+    // Straight above the lake's centre: the picture's centre. The coast lies 2.4 km west
+    // (about 140 px at this height), the lake's shore 1.2 km around (about 65 px).
+    let (centre, land, sea) = ((w / 2, h / 2), (w / 2 + 160, h / 2), (w / 2 - 250, h / 2));
+    let [(coast_centre, coast_land, coast_sea), (lake_centre, lake_land, lake_sea)] =
+        [&pictures[0].2, &pictures[1].2].map(|p| (mean(p, centre), mean(p, land), mean(p, sea)));
+    eprintln!(
+        "Cesium's mean colours (centre, land east, sea west): without the layer {coast_centre:.0?} {coast_land:.0?} \
+         {coast_sea:.0?}, with it {lake_centre:.0?} {lake_land:.0?} {lake_sea:.0?}"
+    );
+    assert!(
+        blueness(lake_centre) > blueness(coast_centre) + 30.0,
+        "the lake is not drawn as water: {lake_centre:?} against the land {coast_centre:?}"
+    );
+    assert!(blueness(coast_sea) > blueness(coast_land) + 30.0, "the sea is water: {coast_sea:?}, {coast_land:?}");
+    for (a, b, what) in [(coast_land, lake_land, "the land east of the lake"), (coast_sea, lake_sea, "the sea")] {
+        assert!((0..3).all(|c| (a[c] - b[c]).abs() < 3.0), "{what} changed with the layer: {a:?} against {b:?}");
+    }
+    terrastream_testkit::golden::assert_golden("cesium-water", w, h, &pictures[1].2, TOLERANCE);
 }
 
 /// CesiumJS's globe as it draws itself: its sky atmosphere, its ground atmosphere and fog,
