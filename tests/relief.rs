@@ -433,17 +433,19 @@ fn distance_to(p: (f64, f64), line: &[(f64, f64)]) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
-/// The contour tracer against `gdal_contour` on the same grid (a tile's heights with their
-/// margin): every line within half a pixel of gdal's line of the same height, both ways
+/// The contour tracer against `gdal_contour` on the same samples (the archive's own, under
+/// the tile and its margin, in the archive's CRS), gdal's lines taken to Web Mercator by
+/// `ogr2ogr`: every line within half a pixel of gdal's line of the same height, both ways
 /// (a Hausdorff distance inside the tile), and the same closed rings.
 #[test]
 fn contours_follow_gdal_contour_on_the_same_grid() {
-    use terrastream_views::contours::{MARGIN, SPAN, tile_grid, trace_grid};
+    use terrastream_views::contours::{tile_grid, trace_grid};
+    use terrastream_views::mercator::HALF_WORLD;
     use terrastream_views::mvt::Value;
-    let missing = if Command::new("gdal_contour").output().is_ok() {
+    let missing = if Command::new("gdal_contour").output().is_ok() && Command::new("ogr2ogr").output().is_ok() {
         vec![]
     } else {
-        vec!["gdal_contour (apt-get install gdal-bin)"]
+        vec!["gdal_contour and ogr2ogr (apt-get install gdal-bin)"]
     };
     if !terrastream_testkit::browser::skip_or_fail("GDAL_CONTOUR", &missing) {
         return;
@@ -457,27 +459,41 @@ fn contours_follow_gdal_contour_on_the_same_grid() {
     let (x, y) = tile_at(z, lon, lat);
     let tile = terrastream_views::mercator::WebTile::new(z, x, y).unwrap();
     let grid = tile_grid(&reader, tile).unwrap().unwrap();
-    assert!(grid.iter().all(|h| h.is_finite()), "the tile lies inside the data");
-    // The grid as a GeoTIFF whose coordinates are tile units (y up): 16 units a pixel.
+    assert!(grid.heights.iter().all(|h| h.is_finite()), "the tile lies inside the data");
+    let (crs, [x0, dx, _, y0, _, dy]) = grid.georeference.clone().expect("traced on the archive's own samples");
+    assert!(dx > 0.0 && dy < 0.0, "{dx} {dy}");
+    // At zoom 14 the archive's 1" samples are larger than the tile's pixels: fewer of them.
+    assert!(grid.size.0 < 256 && grid.size.1 < 256, "{:?}", grid.size);
+    // The samples as a GeoTIFF in the archive's CRS coordinates (its CRS given to ogr2ogr).
     {
         use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
         use tiff::tags::Tag;
-        let span = SPAN as u32;
+        let (w, h) = (u32::try_from(grid.size.0).unwrap(), u32::try_from(grid.size.1).unwrap());
         let mut encoder = TiffEncoder::new(std::fs::File::create(work.join("grid.tif")).unwrap()).unwrap();
-        let mut image = encoder.new_image::<Gray32Float>(span, span).unwrap();
-        image.encoder().write_tag(Tag::Unknown(33550), &[16.0, 16.0, 0.0][..]).unwrap();
-        let edge = 16.0 * MARGIN as f64;
-        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, -edge, edge, 0.0][..]).unwrap();
-        image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 3857][..]).unwrap();
-        image.write_data(&grid).unwrap();
+        let mut image = encoder.new_image::<Gray32Float>(w, h).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33550), &[dx, -dy, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, x0, y0, 0.0][..]).unwrap();
+        image.write_data(&grid.heights).unwrap();
     }
     let out = Command::new("gdal_contour")
-        .args(["-q", "-a", "ele", "-i", "20", "-f", "GeoJSON", "grid.tif", "gdal.geojson"])
+        .args(["-q", "-a", "ele", "-i", "20", "-f", "GeoJSON", "grid.tif", "native.geojson"])
         .current_dir(work)
         .output()
         .unwrap();
     assert!(out.status.success(), "gdal_contour: {}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new("ogr2ogr")
+        .args(["-f", "GeoJSON", "-s_srs", &crs, "-t_srs", "EPSG:3857", "gdal.geojson", "native.geojson"])
+        .current_dir(work)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "ogr2ogr: {}", String::from_utf8_lossy(&out.stderr));
     let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(work.join("gdal.geojson")).unwrap()).unwrap();
+    // Web Mercator metres to the tile's units.
+    let n = f64::from(1u32 << z);
+    let units = |x: f64, y: f64| {
+        let (fx, fy) = ((x + HALF_WORLD) / (2.0 * HALF_WORLD), (HALF_WORLD - y) / (2.0 * HALF_WORLD));
+        ((fx * n - f64::from(tile.x)) * 4096.0, (fy * n - f64::from(tile.y)) * 4096.0)
+    };
     let mut theirs: Vec<(f64, Vec<(f64, f64)>)> = vec![];
     for f in doc["features"].as_array().unwrap() {
         let ele = f["properties"]["ele"].as_f64().unwrap();
@@ -488,8 +504,12 @@ fn contours_follow_gdal_contour_on_the_same_grid() {
             other => panic!("{other:?}"),
         };
         for line in lines {
-            let points =
-                line.as_array().unwrap().iter().map(|p| (p[0].as_f64().unwrap(), -p[1].as_f64().unwrap())).collect();
+            let points = line
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|p| units(p[0].as_f64().unwrap(), p[1].as_f64().unwrap()))
+                .collect();
             theirs.push((ele, points));
         }
     }

@@ -29,14 +29,25 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let options = ContourOptions { interval: Some(20.0), major: 5, feet: false };
     let cache = DecodedCache::new(DECODED_BYTES);
     let (mut bytes, mut hash) = (0usize, 0u64);
+    // Time and tiles by zoom.
+    let mut zooms = [(std::time::Duration::ZERO, 0usize); 14];
     let start = std::time::Instant::now();
     for _ in 0..rounds {
         for &tile in &tiles {
-            if let Some(b) = contour_tile(&reader, tile, options, Some((&cache, 1)))? {
+            let began = std::time::Instant::now();
+            let made = contour_tile(&reader, tile, options, Some((&cache, 1)))?;
+            let zoom = &mut zooms[usize::from(tile.z)];
+            (zoom.0, zoom.1) = (zoom.0 + began.elapsed(), zoom.1 + 1);
+            if let Some(b) = made {
                 bytes += b.len();
                 hash = b.iter().fold(hash, |h, &x| h.wrapping_mul(31).wrapping_add(u64::from(x)));
             }
         }
+    }
+    for (z, (time, count)) in zooms.iter().enumerate().filter(|(_, (_, n))| *n > 0) {
+        #[expect(clippy::cast_precision_loss, reason = "a count of tiles")]
+        let each = time.as_secs_f64() * 1000.0 / *count as f64;
+        println!("zoom {z}: {} tiles, {each:.3} ms a tile", count / rounds as usize);
     }
     let made = tiles.len() * rounds as usize;
     #[expect(clippy::cast_precision_loss, reason = "a count of tiles")]

@@ -1,13 +1,20 @@
 //! Contour lines as Mapbox Vector Tiles: layer `contours`, properties `ele` (metres or
 //! feet) and `major`.
 //!
-//! A tile's lines are traced (marching squares, saddles split by the cell's mean) on its
-//! heights sampled with a margin of [`MARGIN`] pixels of a 256-pixel grid, the same
-//! heights its neighbours sample there ([`crate::relief`]'s window), then clipped to the
-//! tile and a buffer of 64 units of 4096 (4 pixels, inside the margin): a line crossing a tile edge is the same
-//! curve on both sides and continues without a gap. Lines are simplified to a quarter
-//! of a pixel (Douglas-Peucker) and end where the data ends (a cell with a corner without
-//! data draws nothing).
+//! A tile's lines are traced (marching squares, saddles split by the cell's mean) on the
+//! archive's own samples, as `gdal_contour` traces a DEM: those of the LOD the tile's
+//! zoom reads (its samples no larger than the tile's pixels) under the tile and a margin
+//! of [`MARGIN`] pixels. The crossings are then placed in the tile: exactly at nodes
+//! every [`STRIDE`] samples of the LOD's grid (through the archive's CRS to degrees to
+//! Web Mercator), bilinearly between them. Neighbouring tiles trace the same samples and
+//! place them through the same nodes, so a line crossing a tile edge is the same curve on
+//! both sides and continues without a gap; each tile's lines are clipped to the tile and
+//! a buffer of 64 units of 4096 (4 pixels, inside the margin). Where the archive's
+//! samples cannot serve (a footprint outside its CRS's domain, or one far larger than
+//! the tile's pixels), the tile is traced on its heights resampled to a 256-pixel grid
+//! with the margin instead ([`crate::relief`]'s window). Lines are simplified to a
+//! quarter of a pixel (Douglas-Peucker) and end where the data ends (a cell with a
+//! corner without data draws nothing).
 
 use std::cell::Cell;
 
@@ -15,8 +22,8 @@ use terrastream_format::{MmapSource, Reader};
 
 use crate::mercator::WebTile;
 use crate::mvt::{self, Line, Value};
-use crate::relief::margin_heights;
-use crate::resample::{DecodedCache, MakeError};
+use crate::relief::{margin_heights, zoom_lod};
+use crate::resample::{DecodedCache, MakeError, Placed};
 
 /// Tile units a side.
 pub const EXTENT: i32 = 4096;
@@ -27,6 +34,20 @@ const GRID: u32 = 256;
 /// Samples of the grid's margin beyond each edge: the buffer's 4 and more, so every
 /// line inside the buffer is traced whole (what lies beyond is clipped away).
 pub const MARGIN: usize = 8;
+
+/// Samples of the archive's grid between the nodes where a traced grid's positions in
+/// the tile are exact (bilinear between; where that is off by more than [`NODE_ERROR`]
+/// at the middle of a corner cell of the nodes, every [`FINE_STRIDE`] samples).
+pub const STRIDE: usize = 32;
+
+/// The finer spacing of the nodes, for a CRS curving too much for [`STRIDE`].
+pub const FINE_STRIDE: usize = 4;
+
+/// Largest error of the positions between nodes, in tile units (16 a pixel).
+pub const NODE_ERROR: f64 = 0.25;
+
+/// A point in tile units.
+type Point = (f64, f64);
 
 /// Metres a foot.
 const FOOT: f64 = 0.3048;
@@ -71,32 +92,210 @@ pub fn contour_tile(
     options: ContourOptions,
     cache: Option<(&DecodedCache, u64)>,
 ) -> Result<Option<Vec<u8>>, MakeError> {
-    let Some(mut heights) = margin_heights(reader, tile, GRID, MARGIN, cache)? else { return Ok(None) };
+    let Some(mut grid) = grid_of(reader, tile, cache)? else { return Ok(None) };
     if options.feet {
         #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
-        heights.iter_mut().for_each(|h| *h = (f64::from(*h) / FOOT) as f32);
+        grid.heights.iter_mut().for_each(|h| *h = (f64::from(*h) / FOOT) as f32);
     }
     let interval = options.interval.filter(|i| *i > 0.0).unwrap_or_else(|| default_interval(tile.z, options.feet));
-    let lines = trace(&heights, SPAN, interval, options.major.max(1));
+    let lines = trace(&grid.heights, grid.size, &grid.to_tile, interval, options.major.max(1));
     Ok(Some(mvt::encode("contours", EXTENT.unsigned_abs(), &lines)))
 }
 
-/// Samples a side of the grid a contour tile is traced on (its 256 and the margin).
+/// Samples a side of the resampled grid a contour tile is traced on where the archive's
+/// own samples cannot serve (its 256 and the margin).
 pub const SPAN: usize = GRID as usize + 2 * MARGIN;
 
-/// The heights a contour tile of `tile` is traced on ([`SPAN`] a side, row by row; sample
-/// `(c, r)` at tile units `((c - MARGIN + 0.5) * 16, (r - MARGIN + 0.5) * 16)`): for checking the
-/// tracer against another one on the same grid.
+/// The heights a contour tile is traced on, and where they lie.
+#[derive(Clone, Debug)]
+pub struct TraceGrid {
+    /// Row by row (NaN: no data).
+    pub heights: Vec<f32>,
+    /// Samples across and down.
+    pub size: (usize, usize),
+    /// For a grid of the archive's own samples: the archive's CRS (as its metadata
+    /// names it) and the grid's GDAL geotransform in it (the first sample's outer corner,
+    /// then the sample size across and down); None for a resampled one.
+    pub georeference: Option<(String, [f64; 6])>,
+    to_tile: ToTile,
+}
+
+/// The grid a contour tile of `tile` is traced on: for checking the tracer against
+/// another one on the same samples.
 ///
 /// # Errors
 /// As [`contour_tile`].
-pub fn tile_grid(reader: &Reader<MmapSource>, tile: WebTile) -> Result<Option<Vec<f32>>, MakeError> {
-    margin_heights(reader, tile, GRID, MARGIN, None)
+pub fn tile_grid(reader: &Reader<MmapSource>, tile: WebTile) -> Result<Option<TraceGrid>, MakeError> {
+    grid_of(reader, tile, None)
 }
 
-/// The lines [`contour_tile`] draws from a grid of [`SPAN`] a side, in tile units.
-pub fn trace_grid(heights: &[f32], interval: f64, major: u32) -> Vec<Line> {
-    trace(heights, SPAN, interval, major.max(1))
+/// The lines [`contour_tile`] draws from `grid`, in tile units.
+pub fn trace_grid(grid: &TraceGrid, interval: f64, major: u32) -> Vec<Line> {
+    trace(&grid.heights, grid.size, &grid.to_tile, interval, major.max(1))
+}
+
+/// Where a grid's samples lie in the tile (in tile units), fractional positions between.
+#[derive(Clone, Debug)]
+enum ToTile {
+    /// Sample `(c, r)` at `((c + offset) * scale, (r + offset) * scale)`.
+    Affine { offset: f64, scale: f64 },
+    /// Exact at nodes every `stride` samples (node `(i, j)` at sample
+    /// `origin + stride x (i, j)`, `across` a row, `down` rows), bilinear between.
+    Nodes { origin: (f64, f64), stride: f64, across: usize, down: usize, nodes: Vec<(f64, f64)> },
+}
+
+impl ToTile {
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the nodes")]
+    #[expect(clippy::cast_precision_loss, reason = "node indices")]
+    fn at(&self, c: f64, r: f64) -> (f64, f64) {
+        match self {
+            Self::Affine { offset, scale } => ((c + offset) * scale, (r + offset) * scale),
+            &Self::Nodes { origin, stride, across, down, ref nodes } => {
+                let inverse = 1.0 / stride;
+                let (x, y) = ((c - origin.0) * inverse, (r - origin.1) * inverse);
+                let i = (x.max(0.0) as usize).min(across - 2);
+                let j = (y.max(0.0) as usize).min(down - 2);
+                let (fx, fy) = (x - i as f64, y - j as f64);
+                let at = j * across + i;
+                let (a, b, c, d) = (nodes[at], nodes[at + 1], nodes[at + across], nodes[at + across + 1]);
+                let top = (a.0 + (b.0 - a.0) * fx, a.1 + (b.1 - a.1) * fx);
+                let bottom = (c.0 + (d.0 - c.0) * fx, c.1 + (d.1 - c.1) * fx);
+                (top.0 + (bottom.0 - top.0) * fy, top.1 + (bottom.1 - top.1) * fy)
+            }
+        }
+    }
+}
+
+/// The grid a contour tile is traced on: the archive's own samples where they can serve,
+/// else its heights resampled (see the module's notes); None when the tile has no data.
+fn grid_of(
+    reader: &Reader<MmapSource>,
+    tile: WebTile,
+    cache: Option<(&DecodedCache, u64)>,
+) -> Result<Option<TraceGrid>, MakeError> {
+    match native_grid(reader, tile, cache)? {
+        Native::Grid(grid) => return Ok(Some(grid)),
+        Native::Empty => return Ok(None),
+        Native::Unsuitable => {}
+    }
+    let Some(heights) = margin_heights(reader, tile, GRID, MARGIN, cache)? else { return Ok(None) };
+    #[expect(clippy::cast_precision_loss, reason = "a small margin")]
+    let offset = 0.5 - MARGIN as f64;
+    let to_tile = ToTile::Affine { offset, scale: f64::from(EXTENT) / f64::from(GRID) };
+    Ok(Some(TraceGrid { heights, size: (SPAN, SPAN), georeference: None, to_tile }))
+}
+
+/// What the archive's own samples give a tile.
+enum Native {
+    Grid(TraceGrid),
+    /// No data under the tile.
+    Empty,
+    /// They cannot serve: trace on resampled heights.
+    Unsuitable,
+}
+
+/// The archive's samples under `tile` and its margin, from the LOD its zoom reads.
+#[expect(
+    clippy::cast_precision_loss,
+    clippy::cast_possible_truncation,
+    clippy::cast_possible_wrap,
+    clippy::cast_sign_loss,
+    reason = "sample and node indices of one tile's window"
+)]
+fn native_grid(
+    reader: &Reader<MmapSource>,
+    tile: WebTile,
+    cache: Option<(&DecodedCache, u64)>,
+) -> Result<Native, MakeError> {
+    let metadata = reader.metadata();
+    let index = metadata
+        .layers
+        .iter()
+        .position(|l| l.kind == terrastream_format::LayerKind::Elevation)
+        .ok_or(MakeError::NotPlaced)?;
+    let mut placed =
+        Placed::new(reader, u8::try_from(index).map_err(|_| MakeError::NotPlaced)?).ok_or(MakeError::NotPlaced)?;
+    if let Some((cache, version)) = cache {
+        placed = placed.with_cache(cache, version);
+    }
+    let lod = zoom_lod(&placed, metadata, index, tile, f64::from(GRID));
+    let layer = placed.layer();
+    let spacing = layer.world_size_at(lod) / f64::from(layer.tile_resolution);
+    // The footprint of the tile and its margin: its outline's points, in world units.
+    let (size, margin) = (f64::from(GRID), MARGIN as f64);
+    let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
+    const POINTS: u32 = 16;
+    for k in 0..=POINTS {
+        let t = -margin + (size + 2.0 * margin) * f64::from(k) / f64::from(POINTS);
+        for (u, v) in [(t, -margin), (t, size + margin), (-margin, t), (size + margin, t)] {
+            let (lon, lat) = tile.lon_lat(u, v, size);
+            let Some((x, z)) = placed.world(lon, lat) else { return Ok(Native::Unsuitable) };
+            (lo, hi) = ((lo.0.min(x), lo.1.min(z)), (hi.0.max(x), hi.1.max(z)));
+        }
+    }
+    // A sample beyond: the outline bulges between its points.
+    let (lo, hi) = ((lo.0 - spacing, lo.1 - spacing), (hi.0 + spacing, hi.1 + spacing));
+    if (hi.0 - lo.0) * (hi.1 - lo.1) > (4 * SPAN * SPAN) as f64 * spacing * spacing {
+        return Ok(Native::Unsuitable);
+    }
+    let Some(samples) = placed.samples_in(lo, hi, lod)? else { return Ok(Native::Empty) };
+    if !samples.values.iter().any(|h| h.is_finite()) {
+        return Ok(Native::Empty);
+    }
+    let (w, h) = samples.size;
+    if w < 2 || h < 2 {
+        return Ok(Native::Empty);
+    }
+    // Sample (gi, gj) of the LOD's grid in tile units, exactly.
+    let (count, extent) = (tile.count(), f64::from(EXTENT));
+    let exact = |gi: f64, gj: f64| {
+        let (lon, lat) = placed.degrees((gi + 0.5) * spacing, (gj + 0.5) * spacing)?;
+        let fx = (lon + 180.0) / 360.0 * count - f64::from(tile.x);
+        let fy = (1.0 - lat.to_radians().tan().asinh() / std::f64::consts::PI) / 2.0 * count - f64::from(tile.y);
+        (fx.is_finite() && fy.is_finite()).then_some((fx * extent, fy * extent))
+    };
+    let mut to_tile = None;
+    for stride in [STRIDE, FINE_STRIDE] {
+        // The nodes: every `stride` samples of the LOD's grid (the same for every tile),
+        // from the one at or before the window's first to the one at or after its last.
+        let stride = stride as i64;
+        let (n0, m0) = (samples.first.0.div_euclid(stride) * stride, samples.first.1.div_euclid(stride) * stride);
+        let across = ((samples.first.0 + w as i64 - 1 - n0 + stride - 1) / stride + 1).max(2) as usize;
+        let down = ((samples.first.1 + h as i64 - 1 - m0 + stride - 1) / stride + 1).max(2) as usize;
+        let mut nodes = Vec::with_capacity(across * down);
+        for j in 0..down {
+            for i in 0..across {
+                let Some(p) = exact((n0 + i as i64 * stride) as f64, (m0 + j as i64 * stride) as f64) else {
+                    return Ok(Native::Unsuitable);
+                };
+                nodes.push(p);
+            }
+        }
+        let origin = ((n0 - samples.first.0) as f64, (m0 - samples.first.1) as f64);
+        let nodes = ToTile::Nodes { origin, stride: stride as f64, across, down, nodes };
+        // The interpolation checked at the middles of the corner cells of the nodes.
+        let half = stride as f64 / 2.0;
+        let off = |(gi, gj): (i64, i64)| {
+            let (gi, gj) = (gi as f64 + half, gj as f64 + half);
+            let (a, b) = (exact(gi, gj), nodes.at(gi - samples.first.0 as f64, gj - samples.first.1 as f64));
+            a.map_or(f64::INFINITY, |a| (a.0 - b.0).hypot(a.1 - b.1))
+        };
+        let (last_i, last_j) = (n0 + (across as i64 - 2) * stride, m0 + (down as i64 - 2) * stride);
+        let worst = [(n0, m0), (last_i, m0), (n0, last_j), (last_i, last_j)].map(off).into_iter().fold(0.0, f64::max);
+        if worst <= NODE_ERROR || stride == FINE_STRIDE as i64 {
+            to_tile = Some(nodes);
+            break;
+        }
+    }
+    let Some(to_tile) = to_tile else { return Ok(Native::Unsuitable) };
+    let georeference = metadata.georeference.as_ref().and_then(|g| {
+        let crs = g.definition.clone().or_else(|| g.crs.clone())?;
+        let (x0, y0) = placed.crs_coordinates(samples.first.0 as f64 * spacing, samples.first.1 as f64 * spacing);
+        let (x1, y1) =
+            placed.crs_coordinates((samples.first.0 + 1) as f64 * spacing, (samples.first.1 + 1) as f64 * spacing);
+        Some((crs, [x0, x1 - x0, 0.0, y0, 0.0, y1 - y0]))
+    });
+    Ok(Native::Grid(TraceGrid { heights: samples.values, size: (w, h), georeference, to_tile }))
 }
 
 /// The TileJSON 3.0.0 document of an archive's contours (`name`: its URL name), a vector
@@ -131,10 +330,10 @@ pub fn tilejson(
     })
 }
 
-/// Every contour of `heights` (`span` a side, the tile's grid in its middle), clipped
-/// to the tile and its buffer, in tile units.
+/// Every contour of `heights` (`size` samples across and down, placed in the tile by
+/// `to_tile`), clipped to the tile and its buffer, in tile units.
 #[expect(clippy::cast_possible_truncation, reason = "levels of finite heights; vertices within the buffered tile")]
-fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
+fn trace(heights: &[f32], size: (usize, usize), to_tile: &ToTile, interval: f64, major: u32) -> Vec<Line> {
     let interval = interval.max(MIN_INTERVAL);
     // The buffers of the tile before on this thread (as large as a tile's grid: new ones
     // would cost their pages' first touch each time); taken, so a panic leaves none.
@@ -148,17 +347,19 @@ fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
     };
     let (first, last) = (i64::from(lowest) + 1, i64::from(highest));
     let mut lines = vec![];
-    let segments = segments(heights, bands, span, interval, (first, last), &mut scratch.crossed);
+    let segments = segments(heights, bands, size, interval, (first, last), &mut scratch.crossed);
     let links = &mut scratch.links;
-    if links.count.len() != span * span * 2 {
-        *links = Links::new(span * span * 2);
+    // Kept when large enough: a walk leaves every entry as it found it.
+    if links.count.len() < size.0 * size.1 * 2 {
+        *links = Links::new(size.0 * size.1 * 2);
     }
+    let mut chain = std::mem::take(&mut scratch.chain);
     for (k, segments) in (first..=last).zip(segments) {
         let level = k as f64 * interval;
         let is_major = k.rem_euclid(i64::from(major)) == 0;
-        for chain in level_chains(heights, span, level, &segments, links) {
-            for piece in clip(chain) {
-                let piece = simplify_anchored(&piece, 4.0);
+        level_chains(heights, size.0, to_tile, level, &segments, links, &mut chain, &mut |chain| {
+            clip(chain, &mut |piece| {
+                let piece = simplify_anchored(piece, 4.0);
                 let points: Vec<(i32, i32)> = dedup(piece.iter().map(|&(x, y)| (x.round() as i32, y.round() as i32)));
                 if points.len() >= 2 {
                     lines.push(Line {
@@ -166,9 +367,10 @@ fn trace(heights: &[f32], span: usize, interval: f64, major: u32) -> Vec<Line> {
                         properties: vec![("ele", Value::Number(level)), ("major", Value::Bool(is_major))],
                     });
                 }
-            }
-        }
+            });
+        });
     }
+    scratch.chain = chain;
     SCRATCH.with(|s| s.set(scratch));
     lines
 }
@@ -180,15 +382,18 @@ struct Scratch {
     /// A row's cells some level crosses.
     crossed: Vec<u8>,
     links: Links,
+    /// The chain being walked.
+    chain: Vec<(f64, f64)>,
 }
 
 thread_local! {
     static SCRATCH: Cell<Scratch> = Cell::new(Scratch::default());
 }
 
-/// An edge of the sample grid (`span` a side): (column, row, horizontal?) as one key.
-fn edge_key(span: usize, c: usize, r: usize, horizontal: bool) -> usize {
-    ((r * span + c) << 1) | usize::from(horizontal)
+/// An edge of the sample grid (`width` samples a row): (column, row, horizontal?) as
+/// one key.
+fn edge_key(width: usize, c: usize, r: usize, horizontal: bool) -> usize {
+    ((r * width + c) << 1) | usize::from(horizontal)
 }
 
 /// Marching squares over every level `first..=last` (x `interval`) in one pass over the
@@ -199,7 +404,7 @@ fn edge_key(span: usize, c: usize, r: usize, horizontal: bool) -> usize {
 fn segments(
     h: &[f32],
     bands: &[i32],
-    span: usize,
+    (span, rows): (usize, usize),
     interval: f64,
     (first, last): (i64, i64),
     crossed: &mut Vec<u8>,
@@ -208,7 +413,7 @@ fn segments(
     let mut out: Vec<Vec<(usize, usize)>> = vec![Vec::new(); count];
     let key = |c: usize, r: usize, horizontal: bool| edge_key(span, c, r, horizontal);
     crossed.resize(span, 0);
-    for r in 0..span - 1 {
+    for r in 0..rows.saturating_sub(1) {
         let (upper, lower) = (&bands[r * span..(r + 1) * span], &bands[(r + 1) * span..(r + 2) * span]);
         // Most cells lie within one band: no level crosses them. Which do not, for the
         // whole row at once (a loop without branches, which the compiler vectorises).
@@ -292,19 +497,22 @@ fn band_range(bands: &[i32]) -> Option<(i32, i32)> {
     (highest != NO_DATA).then_some((lowest, highest))
 }
 
-/// The crossings of `level` joined into chains, in tile units, from its `segments`.
+/// The crossings of `level` joined into chains, in tile units, from its `segments`: each
+/// given to `each` (built in `chain`).
+#[expect(clippy::cast_precision_loss, reason = "sample indices of one tile's grid")]
+#[expect(clippy::too_many_arguments, reason = "the grid, the level and the buffers reused")]
 fn level_chains(
     h: &[f32],
     span: usize,
+    to_tile: &ToTile,
     level: f64,
     segments: &[(usize, usize)],
     links: &mut Links,
-) -> Vec<Vec<(f64, f64)>> {
+    chain: &mut Vec<(f64, f64)>,
+    each: &mut dyn FnMut(&[Point]),
+) {
     let value = |c: usize, r: usize| f64::from(h[r * span + c]);
-    let scale = f64::from(EXTENT) / f64::from(GRID);
-    // Sample (c, r) lies at the centre of pixel (c - margin, r - margin) of the tile.
-    let margin = span.saturating_sub(GRID as usize) as f64 / 2.0;
-    let point = |c: f64, r: f64| ((c - margin + 0.5) * scale, (r - margin + 0.5) * scale);
+    let point = |c: f64, r: f64| to_tile.at(c, r);
     let crossing = |k: usize| {
         let (horizontal, at) = (k & 1 == 1, k >> 1);
         let (c, r) = (at % span, at / span);
@@ -319,13 +527,13 @@ fn level_chains(
     // Every edge a segment touches, in order (read off the links' bitmap, not sorted).
     let keys = links.take_touched();
     // Walk the links: open chains from their ends first, then the closed loops.
-    let mut chains = vec![];
     let starts: Vec<usize> = keys.iter().copied().filter(|&k| links.len(k) == 1).collect();
     for &start in starts.iter().chain(&keys) {
         if links.len(start) == 0 {
             continue;
         }
-        let mut chain = vec![crossing(start)];
+        chain.clear();
+        chain.push(crossing(start));
         let mut at = start;
         while let Some(next) = links.pop(at) {
             links.remove(next, at);
@@ -333,10 +541,9 @@ fn level_chains(
             at = next;
         }
         if chain.len() >= 2 {
-            chains.push(chain);
+            each(chain);
         }
     }
-    chains
 }
 
 /// The links between the edges of a grid that a level's segments join, by edge key: an
@@ -404,13 +611,16 @@ impl Links {
     }
 }
 
-/// The parts of a polyline inside the tile and its buffer.
-fn clip(line: Vec<(f64, f64)>) -> Vec<Vec<(f64, f64)>> {
+/// The parts of a polyline inside the tile and its buffer, each given to `piece`.
+fn clip(line: &[Point], piece: &mut dyn FnMut(&[Point])) {
     let (lo, hi) = (f64::from(-BUFFER), f64::from(EXTENT + BUFFER));
     let inside = |p: (f64, f64)| (lo..=hi).contains(&p.0) && (lo..=hi).contains(&p.1);
     // Most lines lie wholly inside: themselves, as they are.
     if line.iter().all(|&p| inside(p)) {
-        return if line.len() >= 2 { vec![line] } else { vec![] };
+        if line.len() >= 2 {
+            piece(line);
+        }
+        return;
     }
     let mut pieces = vec![];
     let mut current: Vec<(f64, f64)> = vec![];
@@ -456,7 +666,7 @@ fn clip(line: Vec<(f64, f64)>) -> Vec<Vec<(f64, f64)>> {
             last.extend(first.into_iter().skip(1));
         }
     }
-    pieces.into_iter().filter(|p| p.len() >= 2).collect()
+    pieces.iter().filter(|p| p.len() >= 2).for_each(|p| piece(p));
 }
 
 /// [`simplify`] between anchors: the points where the line crosses the tile's edges are
@@ -558,7 +768,8 @@ mod tests {
                 (1000.0 - (c - middle).hypot(r - middle) * 10.0) as f32
             })
             .collect();
-        let lines = trace(&heights, span, 100.0, 5);
+        let to_tile = ToTile::Affine { offset: 0.5 - MARGIN as f64, scale: 16.0 };
+        let lines = trace(&heights, (span, span), &to_tile, 100.0, 5);
         let levels: Vec<f64> = lines
             .iter()
             .filter_map(|l| match l.properties[0].1 {
@@ -617,12 +828,18 @@ mod tests {
         assert_eq!(band_range(&out[..3]), None, "no data, no levels");
     }
 
+    fn clipped(line: &[(f64, f64)]) -> Vec<Vec<(f64, f64)>> {
+        let mut pieces = vec![];
+        clip(line, &mut |p| pieces.push(p.to_vec()));
+        pieces
+    }
+
     #[test]
     fn a_closed_line_leaving_the_box_is_one_piece_from_exit_to_exit() {
         let hi = f64::from(EXTENT + BUFFER) + 100.0;
         // A ring starting inside the box, going out across its right edge and back.
         let ring = [(4000.0, 2000.0), (hi, 2000.0), (hi, 2200.0), (4000.0, 2200.0), (4000.0, 2000.0)];
-        let pieces = clip(ring.to_vec());
+        let pieces = clipped(&ring);
         assert_eq!(pieces.len(), 1, "{pieces:?}");
         let piece = &pieces[0];
         assert_eq!(piece.first().unwrap().0, f64::from(EXTENT + BUFFER));
@@ -630,14 +847,14 @@ mod tests {
         assert!(piece.contains(&(4000.0, 2000.0)) && piece.contains(&(4000.0, 2200.0)));
         // One wholly inside stays closed.
         let inner = [(100.0, 100.0), (200.0, 100.0), (200.0, 200.0), (100.0, 100.0)];
-        assert_eq!(clip(inner.to_vec()), vec![inner.to_vec()]);
+        assert_eq!(clipped(&inner), vec![inner.to_vec()]);
     }
 
     #[test]
     fn clipping_keeps_what_is_inside_the_buffer() {
         let line = [(-1000.0, 100.0), (5000.0, 100.0)];
-        assert_eq!(clip(line.to_vec()), vec![vec![(-64.0, 100.0), (4160.0, 100.0)]]);
-        assert!(clip(vec![(-1000.0, -1000.0), (-900.0, -900.0)]).is_empty());
+        assert_eq!(clipped(&line), vec![vec![(-64.0, 100.0), (4160.0, 100.0)]]);
+        assert!(clipped(&[(-1000.0, -1000.0), (-900.0, -900.0)]).is_empty());
     }
 
     #[test]

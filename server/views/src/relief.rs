@@ -10,7 +10,7 @@
 //! holds exactly the heights its neighbour samples there, and tiles join without a seam. The horizontal spacing is the
 //! pixel's size on the ground at its row's latitude (Web Mercator's scale).
 
-use terrastream_format::{LayerKind, MmapSource, Reader};
+use terrastream_format::{LayerKind, Metadata, MmapSource, Reader};
 
 use crate::encode::ImageFormat;
 use crate::mercator::WebTile;
@@ -404,15 +404,23 @@ pub(crate) fn margin_heights(
             placed.world(lon, lat)
         })
         .crop(span, [first, first, last, last]);
-    let coverage = crate::tilejson::coverage(metadata, &metadata.layers[index], 256).ok_or(MakeError::NotPlaced)?;
-    let [w, s, e, n] = coverage.bounds;
-    let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
-    let step = 360.0 / (tile.count() * size);
-    let per_pixel = match (placed.world(lon, lat), placed.world(lon + step, lat)) {
-        (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1),
-        _ => f64::INFINITY,
-    };
-    placed.sample(&positions, placed.lod_for(per_pixel))
+    placed.sample(&positions, zoom_lod(&placed, metadata, index, tile, size))
+}
+
+/// The LOD the tiles of `tile`'s zoom read (`size` pixels a side): the one for a pixel's
+/// size at the middle of the layer's data, so that every tile of a zoom reads the same
+/// one and neighbours join.
+pub(crate) fn zoom_lod(placed: &Placed<'_>, metadata: &Metadata, index: usize, tile: WebTile, size: f64) -> u8 {
+    let per_pixel = crate::tilejson::coverage(metadata, &metadata.layers[index], 256).map_or(f64::INFINITY, |c| {
+        let [w, s, e, n] = c.bounds;
+        let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
+        let step = 360.0 / (tile.count() * size);
+        match (placed.world(lon, lat), placed.world(lon + step, lat)) {
+            (Some(a), Some(b)) => (b.0 - a.0).hypot(b.1 - a.1),
+            _ => f64::INFINITY,
+        }
+    });
+    placed.lod_for(per_pixel)
 }
 
 #[cfg(test)]

@@ -78,8 +78,9 @@ pub struct Placed<'a> {
     index: u8,
     layer: &'a Layer,
     samples: Samples,
-    /// Degrees (WGS 84) to the archive's CRS.
+    /// Degrees (WGS 84) to the archive's CRS, and back.
     to_archive: Transform,
+    to_degrees: Transform,
     /// The archive's CRS coordinates to world units: origin and CRS units per world unit.
     origin: [f64; 2],
     scale: [f64; 2],
@@ -106,8 +107,18 @@ impl<'a> Placed<'a> {
         };
         let g = metadata.georeference.as_ref()?;
         let crs = Crs::parse(g.definition.as_deref().or(g.crs.as_deref())?).ok()?;
-        let to_archive = Transform::new(&Crs::wgs84(), &crs);
-        Some(Self { reader, cache: None, index, layer, samples, to_archive, origin: g.origin?, scale: g.scale? })
+        let (to_archive, to_degrees) = (Transform::new(&Crs::wgs84(), &crs), Transform::new(&crs, &Crs::wgs84()));
+        Some(Self {
+            reader,
+            cache: None,
+            index,
+            layer,
+            samples,
+            to_archive,
+            to_degrees,
+            origin: g.origin?,
+            scale: g.scale?,
+        })
     }
 
     /// Keeps decoded archive tiles in `cache`, under `version` (the archive's content tag:
@@ -133,6 +144,34 @@ impl<'a> Placed<'a> {
         let (cx, cy) = self.to_archive.apply(lon, lat)?;
         let (x, z) = ((cx - self.origin[0]) / self.scale[0], (self.origin[1] - cy) / self.scale[1]);
         (x.is_finite() && z.is_finite()).then_some((x, z))
+    }
+
+    /// Degrees of a point in world coordinates (the inverse of [`Placed::world`]).
+    pub fn degrees(&self, x: f64, z: f64) -> Option<(f64, f64)> {
+        self.to_degrees.apply(self.origin[0] + x * self.scale[0], self.origin[1] - z * self.scale[1])
+    }
+
+    /// The archive's CRS coordinates of a point in world coordinates.
+    pub fn crs_coordinates(&self, x: f64, z: f64) -> (f64, f64) {
+        (self.origin[0] + x * self.scale[0], self.origin[1] - z * self.scale[1])
+    }
+
+    /// The samples of `lod` whose cells meet the world box `lo`..`hi` (a sample's cell
+    /// is its spacing around it; clipped to the LOD's grid and the data), as they are
+    /// (a missing tile's from the nearest coarser LOD that has one, resampled): heights
+    /// (NaN: no data) or RGBA. None when the box misses the data.
+    ///
+    /// # Errors
+    /// [`MakeError::Tile`] for an archive tile that cannot be read or decoded.
+    pub fn samples_in(&self, lo: (f64, f64), hi: (f64, f64), lod: u8) -> Result<Option<SampleGrid>, MakeError> {
+        let [wx0, wz0, wx1, wz1] = self.layer.data_world();
+        let (lo, hi) = ((lo.0.max(wx0), lo.1.max(wz0)), (hi.0.min(wx1), hi.1.min(wz1)));
+        Ok(Window::gather_box(self, lo, hi, lod)?.map(|w| SampleGrid {
+            first: w.first,
+            size: w.size,
+            spacing: w.spacing,
+            values: w.values,
+        }))
     }
 
     /// The world position of every pixel centre of `tile` (`size` a side), row by row;
@@ -209,6 +248,20 @@ impl<'a> Placed<'a> {
         }
         Ok(any.then_some(out))
     }
+}
+
+/// Samples of one LOD over a rectangle: sample `(c, r)` (of `size`) is the LOD's sample
+/// `first + (c, r)`, at world `((first.0 + c + 0.5) * spacing, (first.1 + r + 0.5) * spacing)`.
+#[derive(Clone, Debug)]
+pub struct SampleGrid {
+    /// The first sample's column and row in the LOD's grid.
+    pub first: (i64, i64),
+    /// Samples across and down.
+    pub size: (usize, usize),
+    /// World units between samples.
+    pub spacing: f64,
+    /// Row by row; one value a sample for heights, four for RGBA.
+    pub values: Vec<f32>,
 }
 
 /// World positions of a grid of points, row by row: runs of consecutive points whose
@@ -396,12 +449,7 @@ struct Window {
 
 impl Window {
     fn gather(placed: &Placed<'_>, positions: &Positions, lod: u8) -> Result<Option<Self>, MakeError> {
-        let layer = placed.layer;
-        let res = i64::from(layer.tile_resolution);
-        let spacing = layer.world_size_at(lod) / res as f64;
-        let (tiles_x, tiles_y) = layer.grid_at(lod);
-        let grid = (i64::from(tiles_x) * res, i64::from(tiles_y) * res);
-        let [wx0, wz0, wx1, wz1] = layer.data_world();
+        let [wx0, wz0, wx1, wz1] = placed.layer.data_world();
         // The samples under the points (and their bilinear neighbours), inside the data:
         // the box of the points inside it, then its samples.
         let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
@@ -425,6 +473,20 @@ impl Window {
             }
         }
         if lo.0 > hi.0 {
+            return Ok(None);
+        }
+        Self::gather_box(placed, lo, hi, lod)
+    }
+
+    /// The window of `lod` over the samples whose cells meet the world box `lo`..`hi`
+    /// (and their bilinear neighbours), clipped to the LOD's grid.
+    fn gather_box(placed: &Placed<'_>, lo: (f64, f64), hi: (f64, f64), lod: u8) -> Result<Option<Self>, MakeError> {
+        let layer = placed.layer;
+        let res = i64::from(layer.tile_resolution);
+        let spacing = layer.world_size_at(lod) / res as f64;
+        let (tiles_x, tiles_y) = layer.grid_at(lod);
+        let grid = (i64::from(tiles_x) * res, i64::from(tiles_y) * res);
+        if !(lo.0 <= hi.0 && lo.1 <= hi.1) {
             return Ok(None);
         }
         let inverse = 1.0 / spacing;
