@@ -145,6 +145,54 @@ enum ToTile {
 }
 
 impl ToTile {
+    /// The point a fraction `t` along the edge from sample `(c, r)` to the next one
+    /// across (`horizontal`) or down. Bilinear interpolation is linear along a grid line,
+    /// so this is [`ToTile::at`] of the point, from the node cell of `(c, r)` (whose far
+    /// side the edge reaches at most).
+    #[expect(clippy::cast_precision_loss, reason = "sample indices of one tile's grid")]
+    fn along(&self, tables: &NodeTables, c: usize, r: usize, t: f64, horizontal: bool) -> (f64, f64) {
+        match self {
+            Self::Affine { .. } => {
+                if horizontal {
+                    self.at(c as f64 + t, r as f64)
+                } else {
+                    self.at(c as f64, r as f64 + t)
+                }
+            }
+            &Self::Nodes { across, ref nodes, .. } => {
+                let ((i, mut fx), (j, mut fy)) = (tables.columns[c], tables.rows[r]);
+                if horizontal {
+                    fx += t * tables.inverse;
+                } else {
+                    fy += t * tables.inverse;
+                }
+                let at = j as usize * across + i as usize;
+                let (a, b, c, d) = (nodes[at], nodes[at + 1], nodes[at + across], nodes[at + across + 1]);
+                let top = (a.0 + (b.0 - a.0) * fx, a.1 + (b.1 - a.1) * fx);
+                let bottom = (c.0 + (d.0 - c.0) * fx, c.1 + (d.1 - c.1) * fx);
+                (top.0 + (bottom.0 - top.0) * fy, top.1 + (bottom.1 - top.1) * fy)
+            }
+        }
+    }
+
+    /// Each column's and row's node cell and place in it, for [`ToTile::along`].
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the nodes")]
+    #[expect(clippy::cast_precision_loss, reason = "sample indices of one tile's grid")]
+    fn tables(&self, (w, h): (usize, usize)) -> NodeTables {
+        let Self::Nodes { origin, stride, across, down, .. } = *self else { return NodeTables::default() };
+        let inverse = 1.0 / stride;
+        let place = |k: usize, origin: f64, count: usize| {
+            let x = (k as f64 - origin) * inverse;
+            let i = (x.max(0.0) as usize).min(count - 2);
+            (i as u32, x - i as f64)
+        };
+        NodeTables {
+            columns: (0..w).map(|c| place(c, origin.0, across)).collect(),
+            rows: (0..h).map(|r| place(r, origin.1, down)).collect(),
+            inverse,
+        }
+    }
+
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the nodes")]
     #[expect(clippy::cast_precision_loss, reason = "node indices")]
     fn at(&self, c: f64, r: f64) -> (f64, f64) {
@@ -164,6 +212,15 @@ impl ToTile {
             }
         }
     }
+}
+
+/// Where each column and row of a grid lies among the nodes of a [`ToTile::Nodes`]: the
+/// node cell's index and the fraction across it; and a node cell's fraction a sample.
+#[derive(Default)]
+struct NodeTables {
+    columns: Vec<(u32, f64)>,
+    rows: Vec<(u32, f64)>,
+    inverse: f64,
 }
 
 /// The grid a contour tile is traced on: the archive's own samples where they can serve,
@@ -221,8 +278,9 @@ fn native_grid(
     let lod = zoom_lod(&placed, metadata, index, tile, f64::from(GRID));
     let layer = placed.layer();
     let spacing = layer.world_size_at(lod) / f64::from(layer.tile_resolution);
-    // The footprint of the tile and its margin: its outline's points, in world units.
-    let (size, margin) = (f64::from(GRID), MARGIN as f64);
+    // The footprint of the tile and its buffer: its outline's points, in world units
+    // (what lies beyond is clipped away; a sample more is added below).
+    let (size, margin) = (f64::from(GRID), f64::from(BUFFER * GRID.cast_signed() / EXTENT));
     let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
     const POINTS: u32 = 16;
     for k in 0..=POINTS {
@@ -347,17 +405,23 @@ fn trace(heights: &[f32], size: (usize, usize), to_tile: &ToTile, interval: f64,
     };
     let (first, last) = (i64::from(lowest) + 1, i64::from(highest));
     let mut lines = vec![];
-    let segments = segments(heights, bands, size, interval, (first, last), &mut scratch.crossed);
+    // Edge keys: a row's columns in `shift` bits (no division to find them again).
+    let shift = size.0.next_power_of_two().trailing_zeros();
+    let mut levels = std::mem::take(&mut scratch.levels);
+    segments(heights, bands, size, shift, interval, (first, last), &mut scratch.crossed, &mut levels);
     let links = &mut scratch.links;
     // Kept when large enough: a walk leaves every entry as it found it.
-    if links.count.len() < size.0 * size.1 * 2 {
-        *links = Links::new(size.0 * size.1 * 2);
+    let keys = (size.1 << shift) * 2;
+    if links.count.len() < keys {
+        *links = Links::new(keys);
     }
     let mut chain = std::mem::take(&mut scratch.chain);
-    for (k, segments) in (first..=last).zip(segments) {
+    let tables = to_tile.tables(size);
+    for (k, segments) in (first..=last).zip(&levels) {
         let level = k as f64 * interval;
         let is_major = k.rem_euclid(i64::from(major)) == 0;
-        level_chains(heights, size.0, to_tile, level, &segments, links, &mut chain, &mut |chain| {
+        let grid = (heights, size.0, shift);
+        level_chains(grid, (to_tile, &tables), level, segments, links, &mut chain, &mut |chain| {
             clip(chain, &mut |piece| {
                 let piece = simplify_anchored(piece, 4.0);
                 let points: Vec<(i32, i32)> = dedup(piece.iter().map(|&(x, y)| (x.round() as i32, y.round() as i32)));
@@ -371,6 +435,7 @@ fn trace(heights: &[f32], size: (usize, usize), to_tile: &ToTile, interval: f64,
         });
     }
     scratch.chain = chain;
+    scratch.levels = levels;
     SCRATCH.with(|s| s.set(scratch));
     lines
 }
@@ -384,16 +449,19 @@ struct Scratch {
     links: Links,
     /// The chain being walked.
     chain: Vec<(f64, f64)>,
+    /// Each level's segments.
+    levels: Vec<Vec<(u32, u32)>>,
 }
 
 thread_local! {
     static SCRATCH: Cell<Scratch> = Cell::new(Scratch::default());
 }
 
-/// An edge of the sample grid (`width` samples a row): (column, row, horizontal?) as
-/// one key.
-fn edge_key(width: usize, c: usize, r: usize, horizontal: bool) -> usize {
-    ((r * width + c) << 1) | usize::from(horizontal)
+/// An edge of the sample grid (`shift` bits for a row's columns): (column, row,
+/// horizontal?) as one key, in the grid's order.
+#[expect(clippy::cast_possible_truncation, reason = "keys of one tile's grid")]
+fn edge_key(shift: u32, c: usize, r: usize, horizontal: bool) -> u32 {
+    ((((r << shift) | c) << 1) | usize::from(horizontal)) as u32
 }
 
 /// Marching squares over every level `first..=last` (x `interval`) in one pass over the
@@ -401,17 +469,23 @@ fn edge_key(width: usize, c: usize, r: usize, horizontal: bool) -> usize {
 /// cells' order. Each sample's band (the highest level at or below it) is found once; a
 /// cell then visits only the levels between its corners' bands, and most cells none.
 #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "level indices within first..=last")]
+#[expect(clippy::too_many_arguments, reason = "the grid, the levels and the buffers reused")]
 fn segments(
     h: &[f32],
     bands: &[i32],
     (span, rows): (usize, usize),
+    shift: u32,
     interval: f64,
     (first, last): (i64, i64),
     crossed: &mut Vec<u8>,
-) -> Vec<Vec<(usize, usize)>> {
+    out: &mut Vec<Vec<(u32, u32)>>,
+) {
     let count = usize::try_from(last - first + 1).unwrap_or(0);
-    let mut out: Vec<Vec<(usize, usize)>> = vec![Vec::new(); count];
-    let key = |c: usize, r: usize, horizontal: bool| edge_key(span, c, r, horizontal);
+    // The vectors of the tile before, emptied (their room kept).
+    out.resize_with(count.max(out.len()), Vec::new);
+    out.iter_mut().for_each(Vec::clear);
+    out.truncate(count.max(64));
+    let key = |c: usize, r: usize, horizontal: bool| edge_key(shift, c, r, horizontal);
     crossed.resize(span, 0);
     for r in 0..rows.saturating_sub(1) {
         let (upper, lower) = (&bands[r * span..(r + 1) * span], &bands[(r + 1) * span..(r + 2) * span]);
@@ -456,7 +530,6 @@ fn segments(
             }
         }
     }
-    out
 }
 
 /// A band no sample without data is in (below every level).
@@ -499,28 +572,25 @@ fn band_range(bands: &[i32]) -> Option<(i32, i32)> {
 
 /// The crossings of `level` joined into chains, in tile units, from its `segments`: each
 /// given to `each` (built in `chain`).
-#[expect(clippy::cast_precision_loss, reason = "sample indices of one tile's grid")]
-#[expect(clippy::too_many_arguments, reason = "the grid, the level and the buffers reused")]
 fn level_chains(
-    h: &[f32],
-    span: usize,
-    to_tile: &ToTile,
+    (h, span, shift): (&[f32], usize, u32),
+    (to_tile, tables): (&ToTile, &NodeTables),
     level: f64,
-    segments: &[(usize, usize)],
+    segments: &[(u32, u32)],
     links: &mut Links,
     chain: &mut Vec<(f64, f64)>,
     each: &mut dyn FnMut(&[Point]),
 ) {
     let value = |c: usize, r: usize| f64::from(h[r * span + c]);
-    let point = |c: f64, r: f64| to_tile.at(c, r);
     let crossing = |k: usize| {
         let (horizontal, at) = (k & 1 == 1, k >> 1);
-        let (c, r) = (at % span, at / span);
+        let (c, r) = (at & ((1 << shift) - 1), at >> shift);
         let (a, b) = if horizontal { (value(c, r), value(c + 1, r)) } else { (value(c, r), value(c, r + 1)) };
         let t = ((level - a) / (b - a)).clamp(0.0, 1.0);
-        if horizontal { point(c as f64 + t, r as f64) } else { point(c as f64, r as f64 + t) }
+        to_tile.along(tables, c, r, t, horizontal)
     };
     for &(a, b) in segments {
+        let (a, b) = (a as usize, b as usize);
         links.push(a, b);
         links.push(b, a);
     }
@@ -724,16 +794,19 @@ fn simplify(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
     while let Some((first, last)) = stack.pop() {
         let (a, b) = (line[first], line[last]);
         let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-        // Squares and one root (tile units are far from overflowing): `hypot`'s care for
-        // extreme values is a library call a vertex.
+        // The distance to the chord times its length (the cross product), compared with
+        // the tolerance times the length: no division or root a vertex (and squares, not
+        // `hypot`, whose care for extreme values is a library call; tile units are far
+        // from overflowing). A chord of no length: the distance to its point.
         let length = (dx * dx + dy * dy).sqrt();
+        let (scaled, limit) = if length == 0.0 { (false, tolerance) } else { (true, tolerance * length) };
         let distance = |p: (f64, f64)| {
             let (px, py) = (p.0 - a.0, p.1 - a.1);
-            if length == 0.0 { (px * px + py * py).sqrt() } else { (px * dy - py * dx).abs() / length }
+            if scaled { (px * dy - py * dx).abs() } else { (px * px + py * py).sqrt() }
         };
         let (worst, d) =
             (first + 1..last).map(|i| (i, distance(line[i]))).fold((first, 0.0), |m, c| if c.1 > m.1 { c } else { m });
-        if d > tolerance {
+        if d > limit {
             keep[worst] = true;
             stack.push((first, worst));
             stack.push((worst, last));
