@@ -412,7 +412,7 @@ fn trace(heights: &[f32], size: (usize, usize), to_tile: &ToTile, interval: f64,
     let links = &mut scratch.links;
     // Kept when large enough: a walk leaves every entry as it found it.
     let keys = (size.1 << shift) * 2;
-    if links.count.len() < keys {
+    if links.next.len() < keys {
         *links = Links::new(keys);
     }
     let mut chain = std::mem::take(&mut scratch.chain);
@@ -514,17 +514,25 @@ fn segments(
                 let case = b.iter().enumerate().fold(0, |m, (i, &band)| m | (usize::from(i64::from(band) >= k) << i));
                 let out = &mut out[(k - first) as usize];
                 let centre_above = || mean() >= k as f64 * interval;
+                // Each segment directed with the ground above the level on its right (north
+                // up): a corner's case and its complement's run opposite ways.
                 match case {
-                    1 | 14 => out.push((left, top)),
-                    2 | 13 => out.push((top, right)),
-                    3 | 12 => out.push((left, right)),
-                    4 | 11 => out.push((right, bottom)),
-                    6 | 9 => out.push((top, bottom)),
-                    7 | 8 => out.push((left, bottom)),
-                    5 if centre_above() => out.extend([(left, bottom), (top, right)]),
-                    5 => out.extend([(left, top), (right, bottom)]),
+                    1 => out.push((top, left)),
+                    14 => out.push((left, top)),
+                    2 => out.push((right, top)),
+                    13 => out.push((top, right)),
+                    3 => out.push((right, left)),
+                    12 => out.push((left, right)),
+                    4 => out.push((bottom, right)),
+                    11 => out.push((right, bottom)),
+                    6 => out.push((bottom, top)),
+                    9 => out.push((top, bottom)),
+                    7 => out.push((bottom, left)),
+                    8 => out.push((left, bottom)),
+                    5 if centre_above() => out.extend([(bottom, left), (top, right)]),
+                    5 => out.extend([(top, left), (bottom, right)]),
                     10 if centre_above() => out.extend([(left, top), (right, bottom)]),
-                    10 => out.extend([(left, bottom), (top, right)]),
+                    10 => out.extend([(left, bottom), (right, top)]),
                     _ => {}
                 }
             }
@@ -590,94 +598,56 @@ fn level_chains(
         to_tile.along(tables, c, r, t, horizontal)
     };
     for &(a, b) in segments {
-        let (a, b) = (a as usize, b as usize);
-        links.push(a, b);
-        links.push(b, a);
+        links.join(a as usize, b);
     }
-    // Every edge a segment touches, in order (read off the links' bitmap, not sorted).
-    let keys = links.take_touched();
-    // Walk the links: open chains from their ends first, then the closed loops.
-    let starts: Vec<usize> = keys.iter().copied().filter(|&k| links.len(k) == 1).collect();
-    for &start in starts.iter().chain(&keys) {
-        if links.len(start) == 0 {
-            continue;
-        }
-        chain.clear();
-        chain.push(crossing(start));
-        let mut at = start;
-        while let Some(next) = links.pop(at) {
-            links.remove(next, at);
-            chain.push(crossing(next));
-            at = next;
-        }
-        if chain.len() >= 2 {
-            each(chain);
+    // Walk the links: open chains from their starts first (in the cells' order), then
+    // the closed loops; each entry walked is emptied.
+    for open in [true, false] {
+        for &(start, _) in segments {
+            let start = start as usize;
+            if links.next[start] == NONE || (open && links.entered[start]) {
+                continue;
+            }
+            chain.clear();
+            chain.push(crossing(start));
+            let mut at = start;
+            while links.next[at] != NONE {
+                let next = links.next[at] as usize;
+                links.next[at] = NONE;
+                links.entered[next] = false;
+                chain.push(crossing(next));
+                at = next;
+            }
+            if chain.len() >= 2 {
+                each(chain);
+            }
         }
     }
 }
 
-/// The links between the edges of a grid that a level's segments join, by edge key: an
-/// edge is in two cells, so it has at most two (a saddle's cell joins four edges in two
-/// pairs). Dense, reused from level to level: a walk empties every entry it touches.
+/// No link.
+const NONE: u32 = u32::MAX;
+
+/// The links between the edges of a grid that a level's directed segments join, by edge
+/// key: an edge is in two cells, and a level crossing it leaves one cell by it and
+/// enters the other, so it has at most one link out and one in. Dense, reused from
+/// level to level: a walk empties every entry it touches.
 #[derive(Default)]
 struct Links {
-    to: Vec<[u32; 2]>,
-    count: Vec<u8>,
-    /// A bit for each key pushed since the last [`Links::take_touched`], and the range of
-    /// words holding them.
-    touched: Vec<u64>,
-    words: std::ops::Range<usize>,
+    /// The edge a segment goes on to from this one; [`NONE`].
+    next: Vec<u32>,
+    /// Whether a segment comes to this edge.
+    entered: Vec<bool>,
 }
 
 impl Links {
     fn new(keys: usize) -> Self {
-        Self { to: vec![[0; 2]; keys], count: vec![0; keys], touched: vec![0; keys.div_ceil(64)], words: 0..0 }
+        Self { next: vec![NONE; keys], entered: vec![false; keys] }
     }
 
-    /// The keys pushed since the last call, ascending, once each; clears them.
-    fn take_touched(&mut self) -> Vec<usize> {
-        let mut keys = vec![];
-        for w in self.words.clone() {
-            let mut bits = std::mem::take(&mut self.touched[w]);
-            while bits != 0 {
-                keys.push(w * 64 + bits.trailing_zeros() as usize);
-                bits &= bits - 1;
-            }
-        }
-        self.words = 0..0;
-        keys
-    }
-
-    fn len(&self, key: usize) -> u8 {
-        self.count[key]
-    }
-
-    #[expect(clippy::cast_possible_truncation, reason = "edge keys of a tile's grid")]
-    fn push(&mut self, key: usize, to: usize) {
-        let w = key / 64;
-        self.touched[w] |= 1 << (key % 64);
-        self.words = if self.words.is_empty() { w..w + 1 } else { self.words.start.min(w)..self.words.end.max(w + 1) };
-        let n = &mut self.count[key];
-        if let Some(slot) = self.to[key].get_mut(usize::from(*n)) {
-            *slot = to as u32;
-            *n += 1;
-        }
-    }
-
-    fn pop(&mut self, key: usize) -> Option<usize> {
-        let n = &mut self.count[key];
-        *n = n.checked_sub(1)?;
-        Some(self.to[key][usize::from(*n)] as usize)
-    }
-
-    /// Removes `to` from `key`'s links (as `Vec::swap_remove` of its first place).
-    fn remove(&mut self, key: usize, to: usize) {
-        let n = usize::from(self.count[key]);
-        let links = &mut self.to[key];
-        if let Some(i) = links[..n].iter().position(|&k| k as usize == to) {
-            links[i] = links[n - 1];
-            self.count[key] -= 1;
-        }
+    fn join(&mut self, from: usize, to: u32) {
+        self.next[from] = to;
+        self.entered[to as usize] = true;
     }
 }
 
@@ -781,38 +751,77 @@ fn simplify_anchored(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
     out
 }
 
-/// Douglas-Peucker: the vertices to keep so that no dropped one is further than
-/// `tolerance` from the simplified line.
-fn simplify(line: &[(f64, f64)], tolerance: f64) -> Vec<(f64, f64)> {
-    if line.len() <= 2 {
+/// The vertices to keep so that no dropped one is further than `tolerance` from the
+/// simplified line through its neighbours kept (the distance to that line, as
+/// Douglas-Peucker measures it), in one pass (Zhao and Saalfeld's sleeve): from each
+/// vertex kept, the directions within `tolerance` of every vertex since narrow to a
+/// wedge; the line goes on to the last vertex whose direction lies in the wedge of those
+/// before it, which is kept when the next one does not.
+fn simplify(line: &[Point], tolerance: f64) -> Vec<Point> {
+    let n = line.len();
+    if n <= 2 {
         return line.to_vec();
     }
-    let mut keep = vec![false; line.len()];
-    keep[0] = true;
-    keep[line.len() - 1] = true;
-    let mut stack = vec![(0, line.len() - 1)];
-    while let Some((first, last)) = stack.pop() {
-        let (a, b) = (line[first], line[last]);
-        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-        // The distance to the chord times its length (the cross product), compared with
-        // the tolerance times the length: no division or root a vertex (and squares, not
-        // `hypot`, whose care for extreme values is a library call; tile units are far
-        // from overflowing). A chord of no length: the distance to its point.
-        let length = (dx * dx + dy * dy).sqrt();
-        let (scaled, limit) = if length == 0.0 { (false, tolerance) } else { (true, tolerance * length) };
-        let distance = |p: (f64, f64)| {
-            let (px, py) = (p.0 - a.0, p.1 - a.1);
-            if scaled { (px * dy - py * dx).abs() } else { (px * px + py * py).sqrt() }
-        };
-        let (worst, d) =
-            (first + 1..last).map(|i| (i, distance(line[i]))).fold((first, 0.0), |m, c| if c.1 > m.1 { c } else { m });
-        if d > limit {
-            keep[worst] = true;
-            stack.push((first, worst));
-            stack.push((worst, last));
+    let cross = |a: Point, b: Point| a.0 * b.1 - a.1 * b.0;
+    let mut out = Vec::with_capacity(n);
+    out.push(line[0]);
+    let mut anchor = line[0];
+    // The wedge of directions from the anchor (counter-clockwise from the first to the
+    // second, narrower than a half turn); None: any.
+    let mut wedge: Option<(Point, Point)> = None;
+    let (mut last, mut i) = (0, 1);
+    while i < n {
+        let p = line[i];
+        let v = (p.0 - anchor.0, p.1 - anchor.1);
+        let d2 = v.0 * v.0 + v.1 * v.1;
+        let near = d2 <= tolerance * tolerance;
+        if near && wedge.is_none() {
+            // Within the tolerance of the anchor, and all before it: on every line from it.
+            last = i;
+            i += 1;
+            continue;
         }
+        if let Some((lo, hi)) = wedge
+            && (d2 == 0.0 || cross(lo, v) < 0.0 || cross(v, hi) < 0.0)
+        {
+            // Beyond the wedge: the line ends at the last vertex inside it.
+            anchor = line[last];
+            out.push(anchor);
+            wedge = None;
+            i = last + 1;
+            continue;
+        }
+        if near {
+            // A line to it is within the wedge, and any line from the anchor passes
+            // within the tolerance of it.
+            last = i;
+            i += 1;
+            continue;
+        }
+        // The directions within `tolerance` of this vertex: its own, turned either way by
+        // the angle whose sine is tolerance / distance (scaled by the distance: only
+        // directions count).
+        let (sin, cos) = (tolerance, (d2 - tolerance * tolerance).sqrt());
+        let (l, h) = ((v.0 * cos + v.1 * sin, v.1 * cos - v.0 * sin), (v.0 * cos - v.1 * sin, v.1 * cos + v.0 * sin));
+        wedge = Some(match wedge {
+            None => (l, h),
+            Some((lo, hi)) => (if cross(lo, l) > 0.0 { l } else { lo }, if cross(h, hi) > 0.0 { h } else { hi }),
+        });
+        if let Some((lo, hi)) = wedge
+            && cross(lo, hi) < 0.0
+        {
+            // No direction is left: this vertex is the line's end, and the next start.
+            anchor = p;
+            out.push(anchor);
+            wedge = None;
+        }
+        last = i;
+        i += 1;
     }
-    line.iter().zip(keep).filter(|(_, k)| *k).map(|(p, _)| *p).collect()
+    if out.last() != line.last() {
+        out.push(line[n - 1]);
+    }
+    out
 }
 
 fn dedup(points: impl Iterator<Item = (i32, i32)>) -> Vec<(i32, i32)> {
@@ -856,6 +865,19 @@ mod tests {
         }
         let ring = lines.iter().find(|l| l.properties[0].1 == Value::Number(900.0)).unwrap();
         assert_eq!(ring.points.first(), ring.points.last(), "closed");
+        // Directed with the higher ground on the right (y down): clockwise round a peak,
+        // anticlockwise round a pit.
+        let area = |points: &[(i32, i32)]| {
+            points
+                .windows(2)
+                .map(|w| i64::from(w[0].0) * i64::from(w[1].1) - i64::from(w[1].0) * i64::from(w[0].1))
+                .sum::<i64>()
+        };
+        assert!(area(&ring.points) > 0, "clockwise round the peak");
+        let pit: Vec<f32> = heights.iter().map(|h| 2000.0 - h).collect();
+        let lines = trace(&pit, (span, span), &to_tile, 100.0, 5);
+        let ring = lines.iter().find(|l| l.properties[0].1 == Value::Number(1100.0)).unwrap();
+        assert!(area(&ring.points) < 0, "anticlockwise round the pit");
         assert!(lines.iter().any(|l| l.properties[1].1 == Value::Bool(true)), "500 m and 1000 m are major");
     }
 
@@ -928,6 +950,64 @@ mod tests {
         let line = [(-1000.0, 100.0), (5000.0, 100.0)];
         assert_eq!(clipped(&line), vec![vec![(-64.0, 100.0), (4160.0, 100.0)]]);
         assert!(clipped(&[(-1000.0, -1000.0), (-900.0, -900.0)]).is_empty());
+    }
+
+    /// The simplified line keeps the ends and a subsequence of the vertices, and every
+    /// vertex dropped lies within the tolerance of the line through the kept ones either
+    /// side of it; and it drops most vertices of a gently curving line.
+    #[test]
+    #[expect(clippy::cast_precision_loss, reason = "test coordinates")]
+    fn simplifying_keeps_every_vertex_within_the_tolerance() {
+        let mut seed = 12_345u64;
+        let mut random = || {
+            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for case in 0..400 {
+            // Random walks: steps of 0 to 30 units, turning a little or a lot.
+            let (mut p, mut heading) = ((2000.0, 2000.0), 0.0f64);
+            let turn = if case % 2 == 0 { 0.3 } else { 3.0 };
+            let line: Vec<Point> = (0..2 + case % 60)
+                .map(|_| {
+                    heading += (random() - 0.5) * turn;
+                    let step = random() * 30.0;
+                    p = (p.0 + step * heading.cos(), p.1 + step * heading.sin());
+                    p
+                })
+                .collect();
+            let kept = simplify(&line, 4.0);
+            assert_eq!((kept.first(), kept.last()), (line.first(), line.last()));
+            // Where each kept vertex is in the line, in order.
+            let mut at = vec![];
+            let mut from = 0;
+            for k in &kept {
+                let i = from + line[from..].iter().position(|p| p == k).expect("a vertex of the line, in order");
+                at.push(i);
+                from = i + 1;
+            }
+            for pair in at.windows(2) {
+                let (a, b) = (line[pair[0]], line[pair[1]]);
+                let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+                let length = dx.hypot(dy);
+                for &q in &line[pair[0] + 1..pair[1]] {
+                    let d = if length == 0.0 {
+                        (q.0 - a.0).hypot(q.1 - a.1)
+                    } else {
+                        ((q.0 - a.0) * dy - (q.1 - a.1) * dx).abs() / length
+                    };
+                    assert!(d <= 4.0 + 1e-9, "case {case}: a vertex {d} from the line");
+                }
+            }
+        }
+        // A quarter circle of radius 2000 in 200 steps: a few vertices are enough.
+        let arc: Vec<Point> = (0..=200)
+            .map(|i| {
+                let a = f64::from(i) / 200.0 * std::f64::consts::FRAC_PI_2;
+                (2000.0 * a.cos(), 2000.0 * a.sin())
+            })
+            .collect();
+        let kept = simplify(&arc, 4.0).len();
+        assert!((3..40).contains(&kept), "{kept} of 201 vertices kept");
     }
 
     #[test]
