@@ -15,9 +15,10 @@ const VERSION: &str = "0.1.1";
 
 /// The page: maplibre-contour on the page's own thread (`worker: false`: one core, as
 /// ours are counted), its DEM tiles fetched and decoded once first (its isolines then
-/// measured alone, which favours it); then, when the harness calls `ours()` (having read
-/// the server's CPU time), our contour tiles fetched one at a time from a server that
-/// keeps nothing (each made on request: cold).
+/// measured alone); then, when the harness calls `ours()` (having read the server's CPU
+/// time), our contour tiles fetched one at a time from a server that keeps no tile it
+/// made (each made on request: cold; the archive's tiles it reads were decoded when it
+/// made maplibre-contour's Terrarium tiles, as maplibre-contour's DEM tiles are).
 const PAGE: &str = r#"<!doctype html><meta charset="utf-8"><script src="mlcontour.js"></script>
 <script src="tiles.js"></script><script>
 window.result = null;
@@ -45,7 +46,7 @@ window.ours = async () => {
     let ours_bytes = 0;
     const t = performance.now();
     for (const [z, x, y] of TILES) {
-      const r = await fetch(BASE + `/contours/${z}/${x}/${y}.pbf?interval=${INTERVAL}`);
+      const r = await fetch(BASE + `/contours/${z}/${x}/${y}.pbf?interval=${INTERVAL}`, { cache: "no-store" });
       if (r.status !== 200 && r.status !== 404) throw new Error(`${z}/${x}/${y}: ${r.status}`);
       ours_bytes += (await r.arrayBuffer()).byteLength;
     }

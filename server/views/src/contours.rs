@@ -5,7 +5,7 @@
 //! archive's own samples, as `gdal_contour` traces a DEM: those of the LOD the tile's
 //! zoom reads (its samples no larger than the tile's pixels) under the tile and a margin
 //! of [`MARGIN`] pixels. The crossings are then placed in the tile: exactly at nodes
-//! every [`STRIDE`] samples of the LOD's grid (through the archive's CRS to degrees to
+//! every [`STRIDES`] samples of the LOD's grid (through the archive's CRS to degrees to
 //! Web Mercator), bilinearly between them. Neighbouring tiles trace the same samples and
 //! place them through the same nodes, so a line crossing a tile edge is the same curve on
 //! both sides and continues without a gap; each tile's lines are clipped to the tile and
@@ -36,12 +36,10 @@ const GRID: u32 = 256;
 pub const MARGIN: usize = 8;
 
 /// Samples of the archive's grid between the nodes where a traced grid's positions in
-/// the tile are exact (bilinear between; where that is off by more than [`NODE_ERROR`]
-/// at the middle of a corner cell of the nodes, every [`FINE_STRIDE`] samples).
-pub const STRIDE: usize = 32;
-
-/// The finer spacing of the nodes, for a CRS curving too much for [`STRIDE`].
-pub const FINE_STRIDE: usize = 4;
+/// the tile are exact (bilinear between): the first of these whose interpolation is off
+/// by at most [`NODE_ERROR`] at the middles of the corner cells of the nodes, else the
+/// last.
+pub const STRIDES: [usize; 3] = [64, 16, 4];
 
 /// Largest error of the positions between nodes, in tile units (16 a pixel).
 pub const NODE_ERROR: f64 = 0.25;
@@ -282,17 +280,32 @@ fn native_grid(
     // (what lies beyond is clipped away; a sample more is added below).
     let (size, margin) = (f64::from(GRID), f64::from(BUFFER * GRID.cast_signed() / EXTENT));
     let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
-    const POINTS: u32 = 16;
-    for k in 0..=POINTS {
-        let t = -margin + (size + 2.0 * margin) * f64::from(k) / f64::from(POINTS);
-        for (u, v) in [(t, -margin), (t, size + margin), (-margin, t), (size + margin, t)] {
-            let (lon, lat) = tile.lon_lat(u, v, size);
-            let Some((x, z)) = placed.world(lon, lat) else { return Ok(Native::Unsuitable) };
-            (lo, hi) = ((lo.0.min(x), lo.1.min(z)), (hi.0.max(x), hi.1.max(z)));
+    // The outline's points on each edge (five: the transforms are what this costs), and
+    // how far the outline bulges from a straight line between two of them, measured at
+    // the middle of each edge's first stretch.
+    const POINTS: u32 = 4;
+    let side = size + 2.0 * margin;
+    let at = |edge: usize, t: f64| {
+        let t = -margin + side * t;
+        let (u, v) = [(t, -margin), (t, size + margin), (-margin, t), (size + margin, t)][edge];
+        let (lon, lat) = tile.lon_lat(u, v, size);
+        placed.world(lon, lat)
+    };
+    let mut bulge: f64 = 0.0;
+    for edge in 0..4 {
+        let mut points = [(0.0, 0.0); POINTS as usize + 1];
+        for (k, point) in points.iter_mut().enumerate() {
+            let Some(p) = at(edge, k as f64 / f64::from(POINTS)) else { return Ok(Native::Unsuitable) };
+            *point = p;
+            (lo, hi) = ((lo.0.min(p.0), lo.1.min(p.1)), (hi.0.max(p.0), hi.1.max(p.1)));
         }
+        let Some(middle) = at(edge, 0.5 / f64::from(POINTS)) else { return Ok(Native::Unsuitable) };
+        let (a, b) = (points[0], points[1]);
+        bulge = bulge.max((middle.0 - (a.0 + b.0) / 2.0).hypot(middle.1 - (a.1 + b.1) / 2.0));
     }
-    // A sample beyond: the outline bulges between its points.
-    let (lo, hi) = ((lo.0 - spacing, lo.1 - spacing), (hi.0 + spacing, hi.1 + spacing));
+    // A sample beyond, and twice the bulge.
+    let pad = spacing + 2.0 * bulge;
+    let (lo, hi) = ((lo.0 - pad, lo.1 - pad), (hi.0 + pad, hi.1 + pad));
     if (hi.0 - lo.0) * (hi.1 - lo.1) > (4 * SPAN * SPAN) as f64 * spacing * spacing {
         return Ok(Native::Unsuitable);
     }
@@ -313,7 +326,7 @@ fn native_grid(
         (fx.is_finite() && fy.is_finite()).then_some((fx * extent, fy * extent))
     };
     let mut to_tile = None;
-    for stride in [STRIDE, FINE_STRIDE] {
+    for stride in STRIDES {
         // The nodes: every `stride` samples of the LOD's grid (the same for every tile),
         // from the one at or before the window's first to the one at or after its last.
         let stride = stride as i64;
@@ -340,7 +353,7 @@ fn native_grid(
         };
         let (last_i, last_j) = (n0 + (across as i64 - 2) * stride, m0 + (down as i64 - 2) * stride);
         let worst = [(n0, m0), (last_i, m0), (n0, last_j), (last_i, last_j)].map(off).into_iter().fold(0.0, f64::max);
-        if worst <= NODE_ERROR || stride == FINE_STRIDE as i64 {
+        if worst <= NODE_ERROR || stride == STRIDES[STRIDES.len() - 1] as i64 {
             to_tile = Some(nodes);
             break;
         }
@@ -662,10 +675,34 @@ fn clip(line: &[Point], piece: &mut dyn FnMut(&[Point])) {
         }
         return;
     }
-    let mut pieces = vec![];
-    let mut current: Vec<(f64, f64)> = vec![];
+    // A closed line that leaves the box and starts inside it: its last piece runs on into
+    // its first (one line, not two ending at an arbitrary point), so the first is held.
+    let closed = line.len() > 2 && line.first() == line.last() && inside(line[0]);
+    let mut held: Option<Vec<Point>> = None;
+    let mut emitted = false;
+    let mut current: Vec<Point> = Vec::with_capacity(line.len());
+    let mut end = |current: &mut Vec<Point>| {
+        if closed && !emitted && held.is_none() {
+            held = Some(std::mem::take(current));
+        } else if current.len() >= 2 {
+            emitted = true;
+            piece(current);
+        }
+        current.clear();
+    };
+    let mut a_inside = inside(line[0]);
     for pair in line.windows(2) {
         let (a, b) = (pair[0], pair[1]);
+        let b_inside = inside(b);
+        if a_inside && b_inside {
+            // Wholly inside (what Liang-Barsky gives too, without its divisions).
+            if current.is_empty() {
+                current.push(a);
+            }
+            current.push(b);
+            continue;
+        }
+        a_inside = b_inside;
         // Liang-Barsky: the part of segment a-b inside the box.
         let (dx, dy) = (b.0 - a.0, b.1 - a.1);
         let (mut t0, mut t1) = (0.0f64, 1.0f64);
@@ -681,7 +718,7 @@ fn clip(line: &[Point], piece: &mut dyn FnMut(&[Point])) {
         }
         if !visible || t0 > t1 {
             if !current.is_empty() {
-                pieces.push(std::mem::take(&mut current));
+                end(&mut current);
             }
             continue;
         }
@@ -690,23 +727,29 @@ fn clip(line: &[Point], piece: &mut dyn FnMut(&[Point])) {
             current.push(p0);
         }
         current.push(p1);
-        if t1 < 1.0 || !inside(b) {
-            pieces.push(std::mem::take(&mut current));
+        if t1 < 1.0 || !b_inside {
+            end(&mut current);
         }
     }
-    if !current.is_empty() {
-        pieces.push(current);
-    }
-    // A closed line that leaves the box and starts inside it: its last piece runs on into
-    // its first (one line, not two ending at an arbitrary point).
-    let closed = line.len() > 2 && line.first() == line.last();
-    if closed && pieces.len() > 1 && inside(line[0]) && pieces[0].first() == line.first() {
-        let first = pieces.remove(0);
-        if let Some(last) = pieces.last_mut() {
-            last.extend(first.into_iter().skip(1));
+    match held.take() {
+        // The last piece (it ends at the line's start, inside) and then the first.
+        Some(first) if !current.is_empty() => {
+            current.extend(first.into_iter().skip(1));
+            if current.len() >= 2 {
+                piece(&current);
+            }
+        }
+        Some(first) => {
+            if first.len() >= 2 {
+                piece(&first);
+            }
+        }
+        None => {
+            if current.len() >= 2 {
+                piece(&current);
+            }
         }
     }
-    pieces.iter().filter(|p| p.len() >= 2).for_each(|p| piece(p));
 }
 
 /// [`simplify`] between anchors: the points where the line crosses the tile's edges are
