@@ -518,40 +518,64 @@ fn segments(
                 continue;
             }
             let (lo, hi) = (i64::from(lo), i64::from(hi));
-            let (top, right, bottom, left) =
-                (key(c, r, true), key(c + 1, r, false), key(c, r + 1, true), key(c, r, false));
+            let edges = [key(c, r, true), key(c + 1, r, false), key(c, r + 1, true), key(c, r, false)];
             let mean = || {
                 (f64::from(h[at]) + f64::from(h[at + 1]) + f64::from(h[at + span + 1]) + f64::from(h[at + span])) / 4.0
             };
             for k in (lo + 1).max(first)..=hi.min(last) {
                 let case = b.iter().enumerate().fold(0, |m, (i, &band)| m | (usize::from(i64::from(band) >= k) << i));
                 let out = &mut out[(k - first) as usize];
-                let centre_above = || mean() >= k as f64 * interval;
-                // Each segment directed with the ground above the level on its right (north
-                // up): a corner's case and its complement's run opposite ways.
-                match case {
-                    1 => out.push((top, left)),
-                    14 => out.push((left, top)),
-                    2 => out.push((right, top)),
-                    13 => out.push((top, right)),
-                    3 => out.push((right, left)),
-                    12 => out.push((left, right)),
-                    4 => out.push((bottom, right)),
-                    11 => out.push((right, bottom)),
-                    6 => out.push((bottom, top)),
-                    9 => out.push((top, bottom)),
-                    7 => out.push((bottom, left)),
-                    8 => out.push((left, bottom)),
-                    5 if centre_above() => out.extend([(bottom, left), (top, right)]),
-                    5 => out.extend([(top, left), (bottom, right)]),
-                    10 if centre_above() => out.extend([(left, top), (right, bottom)]),
-                    10 => out.extend([(left, bottom), (right, top)]),
-                    _ => {}
+                // The case's segments from a table (a jump a case mispredicts), each
+                // directed with the ground above the level on its right (north up): a
+                // corner's case and its complement's run opposite ways. A saddle's pair by
+                // the cell's mean.
+                let variant = if case == 5 || case == 10 { usize::from(mean() >= k as f64 * interval) } else { 0 };
+                let (n, pairs) = CASES[variant][case];
+                for &(from, to) in &pairs[..usize::from(n)] {
+                    out.push((edges[usize::from(from)], edges[usize::from(to)]));
                 }
             }
         }
     }
 }
+
+/// The segments of each marching-squares case (corners above the level: bit 0 top left,
+/// 1 top right, 2 bottom right, 3 bottom left), as pairs of a cell's edges (0 top,
+/// 1 right, 2 bottom, 3 left) directed with the ground above the level on the right
+/// (north up): how many, and the pairs. The saddles (5 and 10) as when the cell's mean lies
+/// below the level; `[1]`: as when it lies at or above it.
+const CASES: [[CaseSegments; 16]; 2] = {
+    const NONE: CaseSegments = (0, [(0, 0); 2]);
+    const fn one(from: u8, to: u8) -> CaseSegments {
+        (1, [(from, to), (0, 0)])
+    }
+    let (t, r, b, l) = (0, 1, 2, 3);
+    let below = [
+        NONE,
+        one(t, l),
+        one(r, t),
+        one(r, l),
+        one(b, r),
+        (2, [(t, l), (b, r)]),
+        one(b, t),
+        one(b, l),
+        one(l, b),
+        one(t, b),
+        (2, [(l, b), (r, t)]),
+        one(r, b),
+        one(l, r),
+        one(t, r),
+        one(l, t),
+        NONE,
+    ];
+    let mut above = below;
+    above[5] = (2, [(b, l), (t, r)]);
+    above[10] = (2, [(l, t), (r, b)]);
+    [below, above]
+};
+
+/// How many segments a case has, and each one's edges (from, to).
+type CaseSegments = (u8, [(u8, u8); 2]);
 
 /// A band no sample without data is in (below every level).
 const NO_DATA: i32 = i32::MIN;
