@@ -78,6 +78,26 @@ impl Crs {
     /// # Errors
     /// [`UnknownCrs`] naming the text.
     pub fn parse(text: &str) -> Result<Self> {
+        // The CRSs parsed last on this thread, kept: a server parses its archives' CRSs
+        // for every web tile, and parsing is most of what such a tile's transform costs.
+        thread_local! {
+            static PARSED: std::cell::RefCell<Vec<(String, Crs)>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        if let Some(crs) = PARSED.with(|p| p.borrow().iter().find(|(t, _)| t == text).map(|(_, c)| c.clone())) {
+            return Ok(crs);
+        }
+        let crs = Self::parse_text(text)?;
+        PARSED.with(|p| {
+            let mut p = p.borrow_mut();
+            if p.len() >= 8 {
+                p.remove(0);
+            }
+            p.push((text.to_owned(), crs.clone()));
+        });
+        Ok(crs)
+    }
+
+    fn parse_text(text: &str) -> Result<Self> {
         let t = text.trim();
         let code = t.strip_prefix("EPSG:").or_else(|| t.strip_prefix("epsg:")).unwrap_or(t);
         if let Ok(code) = code.parse::<u16>() {
@@ -93,10 +113,15 @@ impl Crs {
 
     /// WGS 84 longitude and latitude (EPSG:4326).
     pub fn wgs84() -> Self {
-        let definition = "+proj=longlat +datum=WGS84 +no_defs".to_owned();
-        #[expect(clippy::expect_used, reason = "a constant definition the library parses")]
-        let proj = Proj::from_proj_string(&definition).expect("the WGS 84 definition parses");
-        Self { code: Some(4326), definition, proj }
+        thread_local! {
+            static WGS84: Crs = {
+                let definition = "+proj=longlat +datum=WGS84 +no_defs".to_owned();
+                #[expect(clippy::expect_used, reason = "a constant definition the library parses")]
+                let proj = Proj::from_proj_string(&definition).expect("the WGS 84 definition parses");
+                Crs { code: Some(4326), definition, proj }
+            };
+        }
+        WGS84.with(Clone::clone)
     }
 
     /// The CRS a geographic input goes onto by default, given its bounds (west, south,
@@ -295,7 +320,7 @@ pub fn spans_more_than_region(west: f64, south: f64, east: f64, north: f64) -> b
 
 #[cfg(test)]
 mod tests {
-    use super::crs_of_srs;
+    use super::{Crs, Transform, crs_of_srs};
 
     #[test]
     fn the_crs_is_the_last_epsg_authority() {
@@ -312,6 +337,24 @@ mod tests {
         let compound2 = r#"COMPOUNDCRS["x",PROJCRS["ETRS89 / UTM 32N",ID["EPSG",25832]],VERTCRS["DHHN2016 height",ID["EPSG",7837]],ID["EPSG",4647]]"#;
         assert_eq!(crs_of_srs(compound2).as_deref(), Some("EPSG:25832"));
         assert_eq!(crs_of_srs(r#"LOCAL_CS["somewhere"]"#), None);
+    }
+
+    #[test]
+    fn a_crs_parsed_again_is_the_same_and_errors_are_not_kept() {
+        let tm = "+proj=tmerc +lat_0=37.5 +lon_0=-122.5 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs";
+        let (a, b) = (Crs::parse(tm).unwrap(), Crs::parse(tm).unwrap());
+        assert_eq!((a.definition(), a.code()), (b.definition(), b.code()));
+        let to = Transform::new(&b, &Crs::wgs84());
+        let (lon, lat) = to.apply(0.0, 0.0).unwrap();
+        assert!((lon + 122.5).abs() < 1e-9 && (lat - 37.5).abs() < 1e-9, "{lon} {lat}");
+        // Other texts, more than the few kept, then the first again.
+        for code in [4326, 3857, 32610, 32611, 2056, 27700, 21781, 25832, 25833] {
+            assert_eq!(Crs::parse(&format!("EPSG:{code}")).unwrap().code(), Some(code));
+        }
+        assert_eq!(Crs::parse(tm).unwrap().definition(), tm);
+        for _ in 0..2 {
+            assert!(Crs::parse("+proj=nonesuch").is_err());
+        }
     }
 
     #[test]

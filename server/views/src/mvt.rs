@@ -23,11 +23,14 @@ pub enum Value {
 pub fn encode(name: &str, extent: u32, lines: &[Line]) -> Vec<u8> {
     let mut keys: Vec<&str> = vec![];
     let mut values: Vec<Value> = vec![];
-    let mut features = Vec::new();
+    let mut layer = Vec::with_capacity(64 + lines.iter().map(|l| 16 + 4 * l.points.len()).sum::<usize>());
+    varint_field(&mut layer, 15, 2);
+    bytes_field(&mut layer, 1, name.as_bytes());
+    // Each feature written in place: its tags and geometry first into buffers kept from
+    // feature to feature, then the feature's length, then them.
+    let (mut tags, mut geometry) = (Vec::new(), Vec::new());
     for (id, line) in lines.iter().enumerate().filter(|(_, l)| l.points.len() >= 2) {
-        let mut feature = Vec::new();
-        varint_field(&mut feature, 1, id as u64 + 1);
-        let mut tags = Vec::new();
+        tags.clear();
         for (key, value) in &line.properties {
             let k = keys.iter().position(|k| k == key).unwrap_or_else(|| {
                 keys.push(key);
@@ -40,16 +43,16 @@ pub fn encode(name: &str, extent: u32, lines: &[Line]) -> Vec<u8> {
             varint(&mut tags, k as u64);
             varint(&mut tags, v as u64);
         }
-        bytes_field(&mut feature, 2, &tags);
-        varint_field(&mut feature, 3, 2); // LINESTRING
-        bytes_field(&mut feature, 4, &geometry(&line.points));
-        features.push(feature);
-    }
-    let mut layer = Vec::new();
-    varint_field(&mut layer, 15, 2);
-    bytes_field(&mut layer, 1, name.as_bytes());
-    for f in &features {
-        bytes_field(&mut layer, 2, f);
+        geometry.clear();
+        line_geometry(&mut geometry, &line.points);
+        let id = id as u64 + 1;
+        let length = 1 + varint_len(id) + field_len(&tags) + 2 + field_len(&geometry);
+        varint(&mut layer, 2 << 3 | 2);
+        varint(&mut layer, length as u64);
+        varint_field(&mut layer, 1, id);
+        bytes_field(&mut layer, 2, &tags);
+        varint_field(&mut layer, 3, 2); // LINESTRING
+        bytes_field(&mut layer, 4, &geometry);
     }
     for k in &keys {
         bytes_field(&mut layer, 3, k.as_bytes());
@@ -68,14 +71,23 @@ pub fn encode(name: &str, extent: u32, lines: &[Line]) -> Vec<u8> {
         bytes_field(&mut layer, 4, &value);
     }
     varint_field(&mut layer, 5, u64::from(extent));
-    let mut tile = Vec::new();
+    let mut tile = Vec::with_capacity(layer.len() + 8);
     bytes_field(&mut tile, 3, &layer);
     tile
 }
 
+/// Bytes of `v` as a varint.
+fn varint_len(v: u64) -> usize {
+    (64 - (v | 1).leading_zeros() as usize).div_ceil(7)
+}
+
+/// Bytes of a length-delimited field (of a number below 16) holding `bytes`.
+fn field_len(bytes: &[u8]) -> usize {
+    1 + varint_len(bytes.len() as u64) + bytes.len()
+}
+
 /// A line's commands: MoveTo the first vertex, LineTo the others (deltas, zig-zag).
-fn geometry(points: &[(i32, i32)]) -> Vec<u8> {
-    let mut out = Vec::new();
+fn line_geometry(out: &mut Vec<u8>, points: &[(i32, i32)]) {
     let mut cursor = (0i64, 0i64);
     let mut put = |out: &mut Vec<u8>, &(x, y): &(i32, i32)| {
         let (x, y) = (i64::from(x), i64::from(y));
@@ -83,13 +95,12 @@ fn geometry(points: &[(i32, i32)]) -> Vec<u8> {
         varint(out, zigzag(y - cursor.1));
         cursor = (x, y);
     };
-    varint(&mut out, 1 | 1 << 3);
-    put(&mut out, &points[0]);
-    varint(&mut out, 2 | ((points.len() as u64 - 1) << 3));
+    varint(out, 1 | 1 << 3);
+    put(out, &points[0]);
+    varint(out, 2 | ((points.len() as u64 - 1) << 3));
     for p in &points[1..] {
-        put(&mut out, p);
+        put(out, p);
     }
-    out
 }
 
 #[expect(clippy::cast_sign_loss, reason = "zig-zag: the sign moves to the lowest bit")]
