@@ -131,6 +131,14 @@ fn bench_contours_against_maplibre_contour() {
     };
     let (ours_result, one_cpu) = ours_run(1);
     let (six_result, server_cpu) = ours_run(6);
+    // And from this harness, six keep-alive connections at once, three times over the
+    // tiles: the server's own cost a tile without the browser beside it on the machine's
+    // cores (it asks from the page's thread and the network stack at 700 tiles a second).
+    let paths: Vec<String> =
+        tiles.iter().map(|(z, x, y)| format!("/{name}/contours/{z}/{x}/{y}.pbf?interval={interval}")).collect();
+    let before = cpu_seconds(server.child.id());
+    let light = keep_alive_load(server.port, &paths, 6, 3);
+    let light_cpu = cpu_seconds(server.child.id()) - before;
     let n = tiles.len() as f64;
     let rate = |ms: &serde_json::Value| n / (ms.as_f64().unwrap() / 1000.0);
     let (ours, theirs) = (rate(&ours_result["ours"]), rate(&result["theirs"]));
@@ -157,6 +165,14 @@ fn bench_contours_against_maplibre_contour() {
         server_cpu * 1000.0 / n,
         rate(&six_result["ours"])
     );
+    #[expect(clippy::cast_precision_loss, reason = "a count of tiles")]
+    let light_per_core = light as f64 / light_cpu;
+    println!(
+        "{:<58} {:>9.1} tiles/s  ({:.3} ms of the server's CPU a tile)",
+        "terrastream, the same, six keep-alive connections, no browser",
+        light_per_core,
+        1000.0 / light_per_core
+    );
     println!(
         "{:<58} {:>9.1} tiles/s  {:>9} bytes",
         format!("maplibre-contour {VERSION}, isolines only (DEM decoded)"),
@@ -164,13 +180,61 @@ fn bench_contours_against_maplibre_contour() {
         result["bytes"]
     );
     println!(
-        "terrastream: {:.1}x maplibre-contour per core (the server's CPU time, six at a time; {:.1}x one at a \
-         time), {:.1}x fetched one at a time from the page (its first pass, fetching and decoding: {:.1} s)",
+        "terrastream: {:.1}x maplibre-contour per core (the server's CPU time, six at a time without the \
+         browser; {:.1}x from the page six at a time, {:.1}x one at a time), {:.1}x fetched one at a time from \
+         the page (its first pass, fetching and decoding: {:.1} s)",
+        light_per_core / theirs,
         per_core / theirs,
         n / one_cpu / theirs,
         ours / theirs,
         result["warm"].as_f64().unwrap() / 1000.0
     );
+}
+
+/// Asks the server on `port` for every one of `paths`, `rounds` times, over `connections`
+/// keep-alive connections at once (each taking every `connections`th path); the tiles
+/// answered 200.
+fn keep_alive_load(port: u16, paths: &[String], connections: usize, rounds: usize) -> usize {
+    use std::io::{Read, Write};
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..connections)
+            .map(|c| {
+                scope.spawn(move || {
+                    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+                    stream.set_nodelay(true).unwrap();
+                    let (mut answered, mut buffer) = (0, Vec::new());
+                    for path in (0..rounds).flat_map(|_| paths.iter().skip(c).step_by(connections)) {
+                        write!(stream, "GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n").unwrap();
+                        // The head, then the body by its length.
+                        buffer.clear();
+                        let mut chunk = [0u8; 16 * 1024];
+                        let end = loop {
+                            if let Some(end) = buffer.windows(4).position(|w| w == b"\r\n\r\n") {
+                                break end + 4;
+                            }
+                            let n = stream.read(&mut chunk).unwrap();
+                            assert!(n > 0, "the server closed the connection");
+                            buffer.extend_from_slice(&chunk[..n]);
+                        };
+                        let head = String::from_utf8_lossy(&buffer[..end]).to_ascii_lowercase();
+                        let length: usize = head
+                            .lines()
+                            .find_map(|l| l.strip_prefix("content-length:"))
+                            .and_then(|v| v.trim().parse().ok())
+                            .unwrap_or(0);
+                        while buffer.len() < end + length {
+                            let n = stream.read(&mut chunk).unwrap();
+                            assert!(n > 0, "the server closed the connection mid-body");
+                            buffer.extend_from_slice(&chunk[..n]);
+                        }
+                        answered += usize::from(head.starts_with("http/1.1 200"));
+                    }
+                    answered
+                })
+            })
+            .collect();
+        workers.into_iter().map(|w| w.join().unwrap()).sum()
+    })
 }
 
 /// User and system CPU time of process `pid` so far, in seconds (`/proc/PID/stat`).
