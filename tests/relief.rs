@@ -433,6 +433,44 @@ fn distance_to(p: (f64, f64), line: &[(f64, f64)]) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// Contour tiles from far out to close in are traced on the archive's own samples, only
+/// those under the tile and its buffer that hold data (at zoom 9 the whole archive is 32
+/// pixels of the tile), and the summit's rings are there, at the interval's heights.
+#[test]
+fn contour_tiles_are_traced_on_the_archives_samples_at_every_zoom() {
+    use terrastream_views::contours::{ContourOptions, contour_tile, tile_grid};
+    use terrastream_views::mvt::{Value, decode};
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    tamalpais(work);
+    let reader = terrastream_format::Reader::open_mmap(work.join("dem.tspack")).unwrap();
+    for z in [9u8, 11, 13, 15] {
+        let (x, y) = tile_at(z, -122.5965, 37.9235);
+        let tile = terrastream_views::mercator::WebTile::new(z, x, y).unwrap();
+        let grid = tile_grid(&reader, tile).unwrap().expect("the summit's tile has data");
+        assert!(grid.georeference.is_some(), "zoom {z}: resampled");
+        // No more samples than the archive's level holds (320 x 320 at its finest), nor
+        // than the tile and its buffer span: 264 pixels at zoom 15 are 44 of its samples.
+        assert!(grid.size.0 <= 322 && grid.size.1 <= 322, "zoom {z}: {:?}", grid.size);
+        if z == 15 {
+            assert!(grid.size.0 < 60 && grid.size.1 < 60, "zoom {z}: {:?}", grid.size);
+        }
+        let options = ContourOptions { interval: Some(50.0), ..Default::default() };
+        let lines = decode(&contour_tile(&reader, tile, options, None).unwrap().unwrap()).unwrap();
+        let heights: Vec<f64> = lines
+            .iter()
+            .filter_map(|l| match l.properties[0].1 {
+                Value::Number(n) => Some(n),
+                Value::Bool(_) => None,
+            })
+            .collect();
+        assert!(!heights.is_empty(), "zoom {z}: no line");
+        assert!(heights.iter().all(|h| h % 50.0 == 0.0), "zoom {z}: {heights:?}");
+        // Mt Tamalpais' summit is 784 m: a line at 750 m goes round it at every zoom.
+        assert!(heights.contains(&750.0), "zoom {z}: {heights:?}");
+    }
+}
+
 /// The contour tracer against `gdal_contour` on the same samples (the archive's own, under
 /// the tile and its margin, in the archive's CRS), gdal's lines taken to Web Mercator by
 /// `ogr2ogr`: every line within half a pixel of gdal's line of the same height, both ways

@@ -10,10 +10,11 @@
 //! place them through the same nodes, so a line crossing a tile edge is the same curve on
 //! both sides and continues without a gap; each tile's lines are clipped to the tile and
 //! a buffer of 64 units of 4096 (4 pixels, inside the margin). Where the archive's
-//! samples cannot serve (a footprint outside its CRS's domain, or one far larger than
-//! the tile's pixels), the tile is traced on its heights resampled to a 256-pixel grid
-//! with the margin instead ([`crate::relief`]'s window). Lines are simplified to a
-//! quarter of a pixel (Douglas-Peucker) and end where the data ends (a cell with a
+//! samples cannot serve (a footprint outside its CRS's domain, or one whose data holds
+//! far more samples than the tile's pixels), the tile is traced on its heights resampled
+//! to a 256-pixel grid with the margin instead ([`crate::relief`]'s window). Lines run
+//! with the higher ground on their right, are simplified to a quarter of a pixel (every
+//! vertex dropped within that of the line kept) and end where the data ends (a cell with a
 //! corner without data draws nothing).
 
 use std::cell::Cell;
@@ -306,7 +307,10 @@ fn native_grid(
     // A sample beyond, and twice the bulge.
     let pad = spacing + 2.0 * bulge;
     let (lo, hi) = ((lo.0 - pad, lo.1 - pad), (hi.0 + pad, hi.1 + pad));
-    if (hi.0 - lo.0) * (hi.1 - lo.1) > (4 * SPAN * SPAN) as f64 * spacing * spacing {
+    // What of it holds data (a tile far larger than the archive reads only the archive).
+    let [wx0, wz0, wx1, wz1] = layer.data_world();
+    let (w, h) = ((hi.0.min(wx1) - lo.0.max(wx0)).max(0.0), (hi.1.min(wz1) - lo.1.max(wz0)).max(0.0));
+    if w * h > (4 * SPAN * SPAN) as f64 * spacing * spacing {
         return Ok(Native::Unsuitable);
     }
     let Some(samples) = placed.samples_in(lo, hi, lod)? else { return Ok(Native::Empty) };
