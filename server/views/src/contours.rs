@@ -165,11 +165,7 @@ impl ToTile {
                 } else {
                     fy += t * tables.inverse;
                 }
-                let at = j as usize * across + i as usize;
-                let (a, b, c, d) = (nodes[at], nodes[at + 1], nodes[at + across], nodes[at + across + 1]);
-                let top = (a.0 + (b.0 - a.0) * fx, a.1 + (b.1 - a.1) * fx);
-                let bottom = (c.0 + (d.0 - c.0) * fx, c.1 + (d.1 - c.1) * fx);
-                (top.0 + (bottom.0 - top.0) * fy, top.1 + (bottom.1 - top.1) * fy)
+                between_nodes(nodes, across, (i as usize, j as usize), (fx, fy))
             }
         }
     }
@@ -202,15 +198,20 @@ impl ToTile {
                 let (x, y) = ((c - origin.0) * inverse, (r - origin.1) * inverse);
                 let i = (x.max(0.0) as usize).min(across - 2);
                 let j = (y.max(0.0) as usize).min(down - 2);
-                let (fx, fy) = (x - i as f64, y - j as f64);
-                let at = j * across + i;
-                let (a, b, c, d) = (nodes[at], nodes[at + 1], nodes[at + across], nodes[at + across + 1]);
-                let top = (a.0 + (b.0 - a.0) * fx, a.1 + (b.1 - a.1) * fx);
-                let bottom = (c.0 + (d.0 - c.0) * fx, c.1 + (d.1 - c.1) * fx);
-                (top.0 + (bottom.0 - top.0) * fy, top.1 + (bottom.1 - top.1) * fy)
+                between_nodes(nodes, across, (i, j), (x - i as f64, y - j as f64))
             }
         }
     }
+}
+
+/// The point a fraction `(fx, fy)` across node cell `(i, j)` (`across` nodes a row),
+/// bilinearly.
+fn between_nodes(nodes: &[Point], across: usize, (i, j): (usize, usize), (fx, fy): (f64, f64)) -> Point {
+    let at = j * across + i;
+    let (a, b, c, d) = (nodes[at], nodes[at + 1], nodes[at + across], nodes[at + across + 1]);
+    let top = (a.0 + (b.0 - a.0) * fx, a.1 + (b.1 - a.1) * fx);
+    let bottom = (c.0 + (d.0 - c.0) * fx, c.1 + (d.1 - c.1) * fx);
+    (top.0 + (bottom.0 - top.0) * fy, top.1 + (bottom.1 - top.1) * fy)
 }
 
 /// Where each column and row of a grid lies among the nodes of a [`ToTile::Nodes`]: the
