@@ -262,6 +262,63 @@ fn crossings(points: &[(i32, i32)], x: i32) -> Vec<f64> {
     out
 }
 
+/// Contour tiles of archives in three CRSs (the default transverse Mercator, geographic
+/// degrees and Web Mercator itself): every line crossing an edge between two neighbours,
+/// across and down, at zooms 12 and 14, goes on in the other tile from the same point at
+/// the same height (within a unit of 4096), whatever the CRS the nodes place it through.
+#[test]
+fn contour_lines_meet_across_tile_edges_in_every_crs() {
+    use terrastream_views::contours::{ContourOptions, contour_tile};
+    use terrastream_views::mvt::{Line, Value, decode};
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path();
+    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = dem.to_str().unwrap();
+    terrastream(&["-q", "tile", "--elevation", dem, "-o", "tm.tspack"], work);
+    terrastream(&["-q", "tile", "--elevation", dem, "--crs", "EPSG:4326", "-o", "geo.tspack"], work);
+    terrastream(&["-q", "tile", "--elevation", dem, "--crs", "EPSG:3857", "-o", "merc.tspack"], work);
+    let ele = |l: &Line| match l.properties[0].1 {
+        Value::Number(n) => n,
+        Value::Bool(_) => f64::NAN,
+    };
+    // Where a line crosses the edge at `at` along `axis` (0: x = at, 1: y = at).
+    let crossing = |l: &Line, axis: usize, at: i32| {
+        let swap = |p: (i32, i32)| if axis == 0 { p } else { (p.1, p.0) };
+        crossings(&l.points.iter().map(|&p| swap(p)).collect::<Vec<_>>(), at)
+    };
+    for archive in ["tm.tspack", "geo.tspack", "merc.tspack"] {
+        let reader = terrastream_format::Reader::open_mmap(work.join(archive)).unwrap();
+        let mut matched = 0;
+        for z in [12u8, 14] {
+            let (x, y) = tile_at(z, -122.5965, 37.9235);
+            let get = |x: u32, y: u32| {
+                let tile = terrastream_views::mercator::WebTile::new(z, x, y).unwrap();
+                let options = ContourOptions { interval: Some(20.0), ..Default::default() };
+                // (A neighbour beyond the data has no tile.)
+                contour_tile(&reader, tile, options, None).unwrap().map(|b| decode(&b).unwrap()).unwrap_or_default()
+            };
+            let here = get(x, y);
+            for (axis, there) in [(0, get(x + 1, y)), (1, get(x, y + 1))] {
+                if there.is_empty() {
+                    continue;
+                }
+                for line in &here {
+                    for along in crossing(line, axis, 4096) {
+                        let found = there
+                            .iter()
+                            .filter(|l| ele(l) == ele(line))
+                            .flat_map(|l| crossing(l, axis, 0))
+                            .any(|other| (other - along).abs() <= 1.0);
+                        assert!(found, "{archive} z{z}: the {} m line leaves at {along:.0} and stops", ele(line));
+                        matched += 1;
+                    }
+                }
+            }
+        }
+        assert!(matched >= 20, "{archive}: {matched} lines cross the edges");
+    }
+}
+
 /// Contour tiles: a line crossing a tile edge goes on in the neighbour from the same
 /// point at the same height (within a unit of 4096: no gap, no kink, none lost); every
 /// vertex lies where the terrain has the line's height (the elevation API at the
