@@ -23,8 +23,8 @@ use terrastream_format::{MmapSource, Reader};
 
 use crate::mercator::WebTile;
 use crate::mvt::{self, Line, Value};
-use crate::relief::{margin_heights, zoom_lod};
-use crate::resample::{DecodedCache, MakeError, Placed};
+use crate::relief::{margin_heights, placed_elevation, zoom_lod};
+use crate::resample::{DecodedCache, MakeError};
 
 /// Tile units a side.
 pub const EXTENT: i32 = 4096;
@@ -264,18 +264,9 @@ fn native_grid(
     tile: WebTile,
     cache: Option<(&DecodedCache, u64)>,
 ) -> Result<Native, MakeError> {
-    let metadata = reader.metadata();
-    let index = metadata
-        .layers
-        .iter()
-        .position(|l| l.kind == terrastream_format::LayerKind::Elevation)
-        .ok_or(MakeError::NotPlaced)?;
-    let mut placed =
-        Placed::new(reader, u8::try_from(index).map_err(|_| MakeError::NotPlaced)?).ok_or(MakeError::NotPlaced)?;
-    if let Some((cache, version)) = cache {
-        placed = placed.with_cache(cache, version);
-    }
-    let lod = zoom_lod(&placed, metadata, index, tile, f64::from(GRID));
+    let placed = placed_elevation(reader, cache)?;
+    let metadata = placed.metadata();
+    let lod = zoom_lod(&placed, tile, f64::from(GRID));
     let layer = placed.layer();
     let spacing = layer.world_size_at(lod) / f64::from(layer.tile_resolution);
     // The footprint of the tile and its buffer: its outline's points, in world units
@@ -708,13 +699,11 @@ fn clip(line: &[Point], piece: &mut dyn FnMut(&[Point])) {
     // its first (one line, not two ending at an arbitrary point), so the first is held.
     let closed = line.len() > 2 && line.first() == line.last() && inside(line[0]);
     let mut held: Option<Vec<Point>> = None;
-    let mut emitted = false;
     let mut current: Vec<Point> = Vec::with_capacity(line.len());
     let mut end = |current: &mut Vec<Point>| {
-        if closed && !emitted && held.is_none() {
+        if closed && held.is_none() {
             held = Some(std::mem::take(current));
         } else if current.len() >= 2 {
-            emitted = true;
             piece(current);
         }
         current.clear();

@@ -10,7 +10,7 @@
 //! holds exactly the heights its neighbour samples there, and tiles join without a seam. The horizontal spacing is the
 //! pixel's size on the ground at its row's latitude (Web Mercator's scale).
 
-use terrastream_format::{LayerKind, Metadata, MmapSource, Reader};
+use terrastream_format::{LayerKind, MmapSource, Reader};
 
 use crate::encode::ImageFormat;
 use crate::mercator::WebTile;
@@ -387,13 +387,7 @@ pub(crate) fn margin_heights(
     margin: usize,
     cache: Option<(&DecodedCache, u64)>,
 ) -> Result<Option<Vec<f32>>, MakeError> {
-    let metadata = reader.metadata();
-    let index = metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation).ok_or(MakeError::NotPlaced)?;
-    let mut placed =
-        Placed::new(reader, u8::try_from(index).map_err(|_| MakeError::NotPlaced)?).ok_or(MakeError::NotPlaced)?;
-    if let Some((cache, version)) = cache {
-        placed = placed.with_cache(cache, version);
-    }
+    let placed = placed_elevation(reader, cache)?;
     let margin = margin.min(LATTICE);
     let (pixels, span) = (size as usize, size as usize + 2 * LATTICE);
     let (size, cell) = (f64::from(size), LATTICE as f64);
@@ -404,14 +398,31 @@ pub(crate) fn margin_heights(
             placed.world(lon, lat)
         })
         .crop(span, [first, first, last, last]);
-    placed.sample(&positions, zoom_lod(&placed, metadata, index, tile, size))
+    placed.sample(&positions, zoom_lod(&placed, tile, size))
+}
+
+/// The archive's elevation on the Earth, its decoded tiles kept in `cache`.
+///
+/// # Errors
+/// [`MakeError::NotPlaced`] without an elevation layer that says where it lies.
+pub(crate) fn placed_elevation<'a>(
+    reader: &'a Reader<MmapSource>,
+    cache: Option<(&'a DecodedCache, u64)>,
+) -> Result<Placed<'a>, MakeError> {
+    let index = reader.metadata().layers.iter().position(|l| l.kind == LayerKind::Elevation);
+    let index = index.and_then(|i| u8::try_from(i).ok()).ok_or(MakeError::NotPlaced)?;
+    let placed = Placed::new(reader, index).ok_or(MakeError::NotPlaced)?;
+    Ok(match cache {
+        Some((cache, version)) => placed.with_cache(cache, version),
+        None => placed,
+    })
 }
 
 /// The LOD the tiles of `tile`'s zoom read (`size` pixels a side): the one for a pixel's
 /// size at the middle of the layer's data, so that every tile of a zoom reads the same
 /// one and neighbours join.
-pub(crate) fn zoom_lod(placed: &Placed<'_>, metadata: &Metadata, index: usize, tile: WebTile, size: f64) -> u8 {
-    let per_pixel = crate::tilejson::coverage(metadata, &metadata.layers[index], 256).map_or(f64::INFINITY, |c| {
+pub(crate) fn zoom_lod(placed: &Placed<'_>, tile: WebTile, size: f64) -> u8 {
+    let per_pixel = crate::tilejson::coverage(placed.metadata(), placed.layer(), 256).map_or(f64::INFINITY, |c| {
         let [w, s, e, n] = c.bounds;
         let (lon, lat) = ((w + e) / 2.0, (s + n) / 2.0);
         let step = 360.0 / (tile.count() * size);

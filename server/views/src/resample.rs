@@ -129,6 +129,11 @@ impl<'a> Placed<'a> {
         self
     }
 
+    /// The archive's metadata.
+    pub fn metadata(&self) -> &'a terrastream_format::Metadata {
+        self.reader.metadata()
+    }
+
     /// The layer.
     pub fn layer(&self) -> &'a Layer {
         self.layer
@@ -148,7 +153,8 @@ impl<'a> Placed<'a> {
 
     /// Degrees of a point in world coordinates (the inverse of [`Placed::world`]).
     pub fn degrees(&self, x: f64, z: f64) -> Option<(f64, f64)> {
-        self.to_degrees.apply(self.origin[0] + x * self.scale[0], self.origin[1] - z * self.scale[1])
+        let (cx, cy) = self.crs_coordinates(x, z);
+        self.to_degrees.apply(cx, cy)
     }
 
     /// The archive's CRS coordinates of a point in world coordinates.
