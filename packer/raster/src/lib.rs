@@ -74,6 +74,16 @@ pub trait ElevationSource: Sync {
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         rows_window(rows, |r| self.rows(r), row)
     }
+    /// [`ElevationSource::rows_in`], each row with its lowest and highest height
+    /// (infinities reversed for none): what checks every row against a height range.
+    /// Sources that decode rows on several threads find it there; by default it is found
+    /// as each row is handed on.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`].
+    fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut RangedRow<'_>) -> Result<()> {
+        self.rows_in(rows, &mut |r| row(r, min_max(r)))
+    }
     /// How many samples of rows `rows` hold data, as far as the source knows without
     /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
@@ -157,6 +167,10 @@ pub(crate) fn rows_window<T>(
     if ended { Ok(()) } else { result }
 }
 
+/// What [`ElevationSource::rows_ranged`] calls with each row of heights and its lowest and
+/// highest height.
+pub type RangedRow<'a> = dyn FnMut(&[f32], (f32, f32)) -> Result<()> + 'a;
+
 /// Heights `source` reads, its height range given rather than scanned (shards of one run
 /// share it: `tile --shard --height-range`). A row with a height outside it is an error
 /// naming the file, not a silently clamped tile.
@@ -225,10 +239,9 @@ impl<'a> KnownRange<'a> {
         &'r self,
         first: u32,
         row: &'r mut dyn FnMut(&[f32]) -> Result<()>,
-    ) -> impl FnMut(&[f32]) -> Result<()> + 'r {
+    ) -> impl FnMut(&[f32], (f32, f32)) -> Result<()> + 'r {
         let mut at = first;
-        move |r: &[f32]| {
-            let (lo, hi) = min_max(r);
+        move |r: &[f32], (lo, hi): (f32, f32)| {
             let j = at;
             at = at.saturating_add(1);
             if lo < self.limits.0 || hi > self.limits.1 {
@@ -276,11 +289,11 @@ impl ElevationSource for KnownRange<'_> {
         self.source.vertical_datum()
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        self.source.rows(&mut self.checked(0, row))
+        self.source.rows_ranged(0..self.source.size().1, &mut self.checked(0, row))
     }
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         let first = rows.start;
-        self.source.rows_in(rows, &mut self.checked(first, row))
+        self.source.rows_ranged(rows, &mut self.checked(first, row))
     }
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.source.data_in_rows(rows)

@@ -382,7 +382,7 @@ mod tests {
 
     use tiff::encoder::{TiffEncoder, colortype};
 
-    use super::super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows};
+    use super::super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_ranged};
 
     fn gdal_translate(args: &[&str], from: &Path, to: &Path) -> bool {
         match Command::new("gdal_translate").arg("-q").args(args).arg(from).arg(to).status() {
@@ -481,6 +481,35 @@ mod tests {
             let rows = rows_of(&to, channels);
             assert_eq!(rows.len(), (w * h) as usize * channels, "case {k}");
             assert!(rows == rows_of(&plain, channels), "case {k}: rows differ from the plain file's");
+            if channels == 1 {
+                rows_come_with_their_ranges(&to, k);
+            }
+        }
+    }
+
+    /// `tiff_rows_ranged` of `path` (some samples made no data where they are decoded, a
+    /// window of rows): the rows `tiff_rows_in` gives, each with its own lowest and
+    /// highest height.
+    fn rows_come_with_their_ranges(path: &Path, case: usize) {
+        let prepare = |s: &mut [f32]| s.iter_mut().filter(|v| v.rem_euclid(5.0) == 0.0).for_each(|v| *v = f32::NAN);
+        for wanted in [0..usize::MAX, 3..40] {
+            let (mut rows, mut ranged) = (Vec::new(), Vec::new());
+            tiff_rows_in(path, 1, wanted.clone(), &prepare, &mut |row| {
+                rows.push(row.to_vec());
+                Ok(())
+            })
+            .unwrap();
+            tiff_rows_ranged(path, wanted.clone(), &prepare, &mut |row, range| {
+                ranged.push((row.to_vec(), range));
+                Ok(())
+            })
+            .unwrap();
+            assert_eq!(rows.len(), ranged.len(), "case {case}, rows {wanted:?}");
+            for (j, (row, (same, range))) in rows.iter().zip(&ranged).enumerate() {
+                assert!(row.iter().zip(same).all(|(a, b)| a.to_bits() == b.to_bits()), "case {case}, row {j}");
+                assert!(row.iter().any(|v| v.is_nan()), "case {case}, row {j}: the test wants no data in it");
+                assert_eq!(*range, crate::min_max(row), "case {case}, row {j}");
+            }
         }
     }
 

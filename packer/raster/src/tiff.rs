@@ -265,6 +265,33 @@ pub(super) fn tiff_rows_in(
     prepare: &(dyn Fn(&mut [f32]) + Sync),
     row: &mut dyn FnMut(&[f32]) -> Result<()>,
 ) -> Result<()> {
+    rows_of_chunks(path, channels, wanted, prepare, false, &mut |r, _| row(r))
+}
+
+/// [`tiff_rows_in`] of heights, each row with its lowest and highest height (infinities
+/// reversed for none), found where its samples were decoded, in parallel: the thread that
+/// hands the rows on does not read them again to check them.
+pub(super) fn tiff_rows_ranged(
+    path: &Path,
+    wanted: std::ops::Range<usize>,
+    prepare: &(dyn Fn(&mut [f32]) + Sync),
+    row: &mut crate::RangedRow<'_>,
+) -> Result<()> {
+    rows_of_chunks(path, 1, wanted, prepare, true, &mut |r, range| row(r, range.unwrap_or_else(|| crate::min_max(r))))
+}
+
+/// A row of [`rows_of_chunks`], with its range where it was asked for.
+type ChunkRow<'a> = dyn FnMut(&[f32], Option<(f32, f32)>) -> Result<()> + 'a;
+
+/// [`tiff_rows_in`], with each row's range (`ranged`; else None).
+fn rows_of_chunks(
+    path: &Path,
+    channels: usize,
+    wanted: std::ops::Range<usize>,
+    prepare: &(dyn Fn(&mut [f32]) + Sync),
+    ranged: bool,
+    row: &mut ChunkRow<'_>,
+) -> Result<()> {
     use rayon::prelude::*;
     use tiff::decoder::ChunkType;
     let bad = |why: String| Error::damaged(path, why);
@@ -272,13 +299,16 @@ pub(super) fn tiff_rows_in(
     let (width, height, kind) = (chunks.width, chunks.height, chunks.kind);
     let stride = width * channels;
     let (chunk_w, chunk_h) = (chunks.chunk_w, chunks.chunk_h);
-    let chunk = |index: usize| -> Result<(Vec<f32>, usize, usize)> {
+    // A strip's samples, its rows' ranges (where `ranged`), width and rows.
+    type Strip = (Vec<f32>, Vec<(f32, f32)>, usize, usize);
+    let chunk = |index: usize| -> Result<Strip> {
         let (mut values, w, h) = chunks.read_f32(index)?;
         prepare(&mut values);
-        Ok((values, w, h))
+        let ranges = if ranged { values.chunks_exact(stride).map(crate::min_max).collect() } else { Vec::new() };
+        Ok((values, ranges, w, h))
     };
     // Chunks `range`, decoded in parallel; the first failure in file order is the error.
-    let decode = |range: std::ops::Range<usize>| -> Result<Vec<(Vec<f32>, usize, usize)>> {
+    let decode = |range: std::ops::Range<usize>| -> Result<Vec<Strip>> {
         range.into_par_iter().map(chunk).collect::<Vec<_>>().into_iter().collect()
     };
     match kind {
@@ -288,10 +318,10 @@ pub(super) fn tiff_rows_in(
             let start = (wanted.start / chunk_h).min(strips);
             let mut y = start * chunk_h;
             for first in (start..strips).step_by(batch) {
-                for (values, _, h) in decode(first..strips.min(first + batch))? {
+                for (values, ranges, _, h) in decode(first..strips.min(first + batch))? {
                     for (k, r) in values.chunks_exact(stride).take(h.min(height - y)).enumerate() {
                         if wanted.contains(&(y + k)) {
-                            row(r)?;
+                            row(r, ranges.get(k).copied())?;
                         }
                     }
                     y += h;
@@ -307,7 +337,10 @@ pub(super) fn tiff_rows_in(
             // Row of tiles `ty`, every tile decoded in parallel straight into its columns
             // of `band`'s rows (no tile is held apart and copied): the rows it holds. The
             // first failure in file order is the error.
-            let decode_band = |ty: usize, band: &mut [f32]| -> Result<usize> {
+            // (With each row's range where `ranged`: its tiles' parts', joined.) A column
+            // of tiles gives the rows it holds and, where asked, their parts' ranges.
+            type ColumnRows = (usize, Vec<(f32, f32)>);
+            let decode_band = |ty: usize, band: &mut [f32], ranges: &mut Vec<(f32, f32)>| -> Result<usize> {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
                 let mut columns: Vec<Vec<&mut [f32]>> = (0..across).map(|_| Vec::with_capacity(rows_here)).collect();
                 for band_row in band.chunks_exact_mut(stride).take(rows_here) {
@@ -315,23 +348,34 @@ pub(super) fn tiff_rows_in(
                         column.push(part);
                     }
                 }
-                let held: Vec<Result<usize>> = columns
+                let held: Vec<Result<ColumnRows>> = columns
                     .into_par_iter()
                     .enumerate()
                     .map(|(tx, mut rows)| {
                         let h = chunks.read_f32_into(ty * across + tx, &mut rows)?;
                         rows.iter_mut().take(h).for_each(|r| prepare(r));
-                        Ok(h)
+                        let parts =
+                            if ranged { rows.iter().take(h).map(|r| crate::min_max(r)).collect() } else { Vec::new() };
+                        Ok((h, parts))
                     })
                     .collect();
-                for h in held {
-                    rows_here = rows_here.min(h?);
+                ranges.clear();
+                if ranged {
+                    ranges.resize(rows_here, (f32::INFINITY, f32::NEG_INFINITY));
+                }
+                for column in held {
+                    let (h, parts) = column?;
+                    rows_here = rows_here.min(h);
+                    for (range, part) in ranges.iter_mut().zip(parts) {
+                        *range = (range.0.min(part.0), range.1.max(part.1));
+                    }
                 }
                 Ok(rows_here)
             };
             let first = (wanted.start / chunk_h).min(tile_rows);
             let (mut band, mut ahead) = (vec![0f32; stride * chunk_h], vec![0f32; stride * chunk_h]);
-            let mut decoded = (first < tile_rows).then(|| decode_band(first, &mut band));
+            let (mut ranges, mut ranges_ahead) = (Vec::new(), Vec::new());
+            let mut decoded = (first < tile_rows).then(|| decode_band(first, &mut band, &mut ranges));
             for ty in first..tile_rows {
                 let rows_here = decoded.take().unwrap_or(Ok(0))?;
                 // The next row of tiles is decoded on the pool while this one's rows are
@@ -341,18 +385,19 @@ pub(super) fn tiff_rows_in(
                 let mut handed = Ok(());
                 rayon::in_place_scope(|s| {
                     if ty + 1 < tile_rows {
-                        let (ahead, next) = (&mut ahead, &mut next);
-                        s.spawn(move |_| *next = Some(decode_band(ty + 1, ahead)));
+                        let (ahead, ranges_ahead, next) = (&mut ahead, &mut ranges_ahead, &mut next);
+                        s.spawn(move |_| *next = Some(decode_band(ty + 1, ahead, ranges_ahead)));
                     }
                     handed = band
                         .chunks_exact(stride)
                         .take(rows_here)
                         .enumerate()
                         .filter(|(k, _)| wanted.contains(&(ty * chunk_h + k)))
-                        .try_for_each(|(_, r)| row(r));
+                        .try_for_each(|(k, r)| row(r, ranges.get(k).copied()));
                 });
                 handed?;
                 std::mem::swap(&mut band, &mut ahead);
+                std::mem::swap(&mut ranges, &mut ranges_ahead);
                 decoded = next;
             }
         }

@@ -172,6 +172,9 @@ impl<K: MosaicKind> Input<K> {
     }
 }
 
+/// What [`Mosaic::make_rows_with`] calls with each row and what was found in it.
+pub(crate) type FoundRow<'a, V, T> = dyn FnMut(&[V], T) -> Result<()> + 'a;
+
 /// How an input's pixels lie on the output grid.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Placement {
@@ -467,16 +470,34 @@ impl<K: MosaicKind> Mosaic<K> {
 
     /// Makes every row, in order, 32 at a time in parallel.
     fn make_rows(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
+        self.make_rows_with(rows, &|_| (), &mut |r, ()| row(r))
+    }
+
+    /// [`Self::make_rows`], each row with what `of` finds in it where the row is made (on
+    /// the pool, not on the thread that hands rows on).
+    pub(crate) fn make_rows_with<T: Send>(
+        &self,
+        rows: std::ops::Range<u32>,
+        of: &(dyn Fn(&[K::Value]) -> T + Sync),
+        row: &mut FoundRow<'_, K::Value, T>,
+    ) -> Result<()> {
         let reader = BandReader::new(self);
         let last = rows.end.min(self.size.1);
         let mut j = rows.start.min(last);
         while j < last {
             let end = (j + ROWS_AT_ONCE).min(last);
             let inputs = reader.band(j..end)?;
-            let band: Vec<Vec<K::Value>> = (j..end).into_par_iter().map(|r| self.row(r, &inputs)).collect();
+            let band: Vec<(Vec<K::Value>, T)> = (j..end)
+                .into_par_iter()
+                .map(|r| {
+                    let made = self.row(r, &inputs);
+                    let found = of(&made);
+                    (made, found)
+                })
+                .collect();
             drop(inputs);
-            for r in band {
-                row(&r)?;
+            for (r, found) in band {
+                row(&r, found)?;
             }
             reader.next_band();
             j = end;
