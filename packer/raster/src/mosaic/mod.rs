@@ -172,8 +172,8 @@ impl<K: MosaicKind> Input<K> {
     }
 }
 
-/// What [`Mosaic::make_rows_with`] calls with each row and what was found in it.
-pub(crate) type FoundRow<'a, V, T> = dyn FnMut(&[V], T) -> Result<()> + 'a;
+/// What [`Mosaic::make_rows_with`] calls with each row (its own) and what was found in it.
+pub(crate) type FoundRow<'a, V, T> = dyn FnMut(Vec<V>, T) -> Result<()> + 'a;
 
 /// How an input's pixels lie on the output grid.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -470,7 +470,7 @@ impl<K: MosaicKind> Mosaic<K> {
 
     /// Makes every row, in order, 32 at a time in parallel.
     fn make_rows(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
-        self.make_rows_with(rows, &|_| (), &mut |r, ()| row(r))
+        self.make_rows_with(rows, &|_| (), &mut |r, ()| row(&r))
     }
 
     /// [`Self::make_rows`], each row with what `of` finds in it where the row is made (on
@@ -497,7 +497,7 @@ impl<K: MosaicKind> Mosaic<K> {
                 .collect();
             drop(inputs);
             for (r, found) in band {
-                row(&r, found)?;
+                row(r, found)?;
             }
             reader.next_band();
             j = end;
@@ -512,6 +512,18 @@ impl<K: MosaicKind> Mosaic<K> {
     /// As those.
     pub fn rows_of(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[K::Value]) -> Result<()>) -> Result<()> {
         self.make_rows(rows, row)
+    }
+
+    /// [`Self::rows_of`], each row handed over (for a caller that keeps it: no copy).
+    ///
+    /// # Errors
+    /// As those.
+    pub fn rows_owned(
+        &self,
+        rows: std::ops::Range<u32>,
+        row: &mut dyn FnMut(Vec<K::Value>) -> Result<()>,
+    ) -> Result<()> {
+        self.make_rows_with(rows, &|_| (), &mut |r, ()| row(r))
     }
 
     /// Inputs, in order.

@@ -189,7 +189,7 @@ impl ElevationSource for Mosaic<Heights> {
         self.make_rows(rows, row)
     }
     fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut crate::RangedRow<'_>) -> Result<()> {
-        self.make_rows_with(rows, &crate::min_max, row)
+        self.make_rows_with(rows, &crate::min_max, &mut |r, range| row(&r, range))
     }
 }
 

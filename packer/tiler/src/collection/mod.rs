@@ -1331,9 +1331,7 @@ where
         let (fine_send, fine_receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
         let fine_reader = fine.map(|f| {
             scope.spawn(move || {
-                f.rows_of(rows.clone(), &mut |r| {
-                    Ok(fine_send.send(r.to_vec()).map_err(|_| crate::error::interrupted())?)
-                })
+                f.rows_owned(rows.clone(), &mut |r| Ok(fine_send.send(r).map_err(|_| crate::error::interrupted())?))
             })
         });
         let made = (0..u32::try_from(h).unwrap_or(u32::MAX)).try_for_each(|j| -> Result<()> {
@@ -1381,8 +1379,8 @@ fn overridden<S: Pixel>(
     let mut out = vec![S::NONE; w];
     apply_overrides(overrides, gx0, gy, &mut out);
     let mut x = 0;
-    while let Some(start) = out[x..].iter().position(|v| !v.has_data()).map(|p| p + x) {
-        let end = out[start..].iter().position(Pixel::has_data).map_or(w, |p| p + start);
+    while let Some(start) = next_where(&out, x, false) {
+        let end = next_where(&out, start, true).unwrap_or(w);
         fill(&mut out, start..end);
         x = end;
     }
@@ -1396,13 +1394,29 @@ fn apply_overrides<S: Pixel>(overrides: &[&Override<S>], gx0: usize, gy: usize, 
     for o in overrides {
         let Some(src) = gy.checked_sub(o.y0).and_then(|r| o.rows.get(r)) else { continue };
         let (from, to) = (o.x0.max(gx0), (o.x0 + src.len()).min(gx0 + w));
-        for gx in from..to {
-            let v = src[gx - o.x0];
-            if v.has_data() {
-                out[gx - gx0] = v;
-            }
+        if from >= to {
+            continue;
+        }
+        // A select, not a branch, for each sample (the compiler vectorizes it).
+        for (d, &v) in out[from - gx0..to - gx0].iter_mut().zip(&src[from - o.x0..to - o.x0]) {
+            *d = if v.has_data() { v } else { *d };
         }
     }
+}
+
+/// The first sample of `row` from `from` on that has data (`data`) or has none; None if
+/// no sample does. Sixteen samples are tested at once, with no branch among them (the
+/// compiler vectorizes it): a run of either kind is passed over at memory's speed.
+fn next_where<S: Pixel>(row: &[S], from: usize, data: bool) -> Option<usize> {
+    const STEP: usize = 16;
+    let mut at = from.min(row.len());
+    while let Some(chunk) = row.get(at..at + STEP) {
+        if chunk.iter().fold(false, |found, v| found | (v.has_data() == data)) {
+            break;
+        }
+        at += STEP;
+    }
+    row[at..].iter().position(|v| v.has_data() == data).map(|p| p + at)
 }
 
 /// A level's rows held until the rows `band` below them are in (for the blend's distance
@@ -1429,6 +1443,8 @@ struct Held<S> {
     across: Vec<u32>,
     /// The runs of columns within the band of an edge (first, end), in order.
     near: Vec<(usize, usize)>,
+    /// The runs of columns where the fine data has none (first, end), in order.
+    gaps: Vec<(usize, usize)>,
 }
 
 /// Fills columns of a [`Blender`]'s row `y` (of the rows it is given) with the coarser
@@ -1453,19 +1469,20 @@ impl<'a, S: Pixel> Blender<'a, S> {
         let y = self.front + self.held.len();
         // The coarser data where the fine data has none; where the blend reaches the
         // fine data from an edge, once the rows around are in (most of a survey: none).
-        let mut coarse = Vec::new();
+        let (mut coarse, mut gaps) = (Vec::new(), Vec::new());
         let mut x = 0;
-        while let Some(start) = fine[x..].iter().position(|v| !v.has_data()).map(|p| p + x) {
-            let end = fine[start..].iter().position(Pixel::has_data).map_or(fine.len(), |p| p + start);
+        while let Some(start) = next_where(&fine, x, false) {
+            let end = next_where(&fine, start, true).unwrap_or(fine.len());
             if coarse.is_empty() {
                 coarse = vec![S::NONE; self.width];
             }
             coarse_of(y, &mut coarse, start..end);
+            gaps.push((start, end));
             x = end;
         }
         let (across, near) =
             if self.band > 0 && !coarse.is_empty() { self.edge(&fine, &coarse) } else { (Vec::new(), Vec::new()) };
-        self.held.push_back(Held { fine, coarse, across, near });
+        self.held.push_back(Held { fine, coarse, across, near, gaps });
         if y + 1 > self.emitted + self.band {
             self.emit_next(coarse_of, emit)?;
         }
@@ -1563,7 +1580,8 @@ impl<'a, S: Pixel> Blender<'a, S> {
             }
         }
         let row = &mut self.held[y - self.front];
-        // The coarser data where the blend reaches.
+        // The coarser data where the blend reaches: runs of columns.
+        let mut reach = Vec::new();
         if let Some(distance) = &distance {
             let mut x = 0;
             while let Some(start) = distance[x..].iter().position(|&d| d < cap).map(|p| p + x) {
@@ -1572,33 +1590,31 @@ impl<'a, S: Pixel> Blender<'a, S> {
                     row.coarse = vec![S::NONE; w];
                 }
                 coarse_of(y, &mut row.coarse, start..end);
+                reach.push((start, end));
                 x = end;
             }
         }
-        let (f, k) = (&row.fine, &row.coarse);
-        let mut out: Vec<S> = match &distance {
-            // Fine data everywhere, no edge within the band: the fine data as it is.
-            _ if k.is_empty() => f.clone(),
-            distance => {
-                #[expect(clippy::cast_precision_loss, reason = "small counts")]
-                let scale = 1.0 / (band as f32 + 1.0);
-                let blended = |(&a, &b): (&S, &S), d: u32| {
-                    if !a.has_data() {
-                        b
-                    } else if !b.has_data() || d >= cap {
-                        a
-                    } else {
+        // The fine data as it is (taken, not copied: no later row reads it), blended into
+        // the coarser data where the blend reaches, and the coarser data where it has
+        // none. Elsewhere (most of a survey) nothing is done to it.
+        let mut out = std::mem::take(&mut row.fine);
+        if let Some(distance) = &distance {
+            #[expect(clippy::cast_precision_loss, reason = "small counts")]
+            let scale = 1.0 / (band as f32 + 1.0);
+            for &(from, to) in &reach {
+                let runs = out[from..to].iter_mut().zip(&row.coarse[from..to]).zip(&distance[from..to]);
+                for ((a, &b), &d) in runs {
+                    if a.has_data() && b.has_data() {
                         #[expect(clippy::cast_precision_loss, reason = "small counts")]
                         let t = d as f32 * scale;
-                        S::lerp(b, a, t * t * (3.0 - 2.0 * t))
+                        *a = S::lerp(b, *a, t * t * (3.0 - 2.0 * t));
                     }
-                };
-                match &distance {
-                    Some(distance) => f.iter().zip(k).zip(distance).map(|(ab, &d)| blended(ab, d)).collect(),
-                    None => f.iter().zip(k).map(|ab| blended(ab, cap)).collect(),
                 }
             }
-        };
+        }
+        for &(from, to) in &row.gaps {
+            out[from..to].copy_from_slice(&row.coarse[from..to]);
+        }
         // The finer level's means, where it lies.
         apply_overrides(self.overrides, self.corner.0 as usize, self.corner.1 as usize + y, &mut out);
         emit(out)?;
