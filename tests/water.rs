@@ -297,3 +297,98 @@ fn a_mask_without_a_georeference_is_refused_naming_it() {
     assert!(stderr.contains("elsewhere.tif") && stderr.contains("says nothing"), "{stderr}");
     assert_eq!(std::fs::read(&archive).unwrap(), before, "the archive as it was");
 }
+
+/// `terrastream` with `args`, which must succeed: what it wrote to stderr (its warnings).
+fn warnings(args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(args).output().unwrap();
+    assert!(out.status.success(), "terrastream {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A sharded run with water: each shard holds the water tiles of its own elevation tiles
+/// (`tile --shard --water`), and the merge makes those above the split from the mask
+/// (`merge --water`): the single run's archive tile for tile, and published as a
+/// manifest, every water tile where it routes it. Without the mask the merge says what
+/// is missing; a manifest's mask over shards without water is refused.
+#[test]
+fn shards_hold_their_water_and_the_merge_makes_the_rest_from_the_mask() {
+    let dir = tempfile::tempdir().unwrap();
+    let (dem, mask, _) = coast_and_lake(dir.path());
+    let (dem, mask) = (dem.to_str().unwrap(), mask.to_str().unwrap());
+    let path = |name: &str| dir.path().join(name).to_str().unwrap().to_owned();
+    let tiled = ["tile", "--elevation", dem, "--tile-size", "32"];
+    terrastream(&[&tiled[..], &["--water", mask, "-o", &path("whole.tspack")]].concat());
+    let whole = terrastream_testkit::archives::stored_tiles(Path::new(&path("whole.tspack")));
+    let water = Reader::open_mmap(path("whole.tspack"))
+        .unwrap()
+        .metadata()
+        .layers
+        .iter()
+        .position(|l| l.kind == LayerKind::Water)
+        .unwrap();
+    let wet = |tiles: &std::collections::BTreeMap<TileKey, Vec<u8>>| {
+        tiles.keys().filter(|k| usize::from(k.layer()) == water).count()
+    };
+    let shards: Vec<String> = (0..3).map(|i| path(&format!("s{i}.tspack"))).collect();
+    for (i, shard) in shards.iter().enumerate() {
+        let plain = path(&format!("plain{i}.tspack"));
+        terrastream(&[&tiled[..], &["--shard", &format!("{i}/3"), "-o", &plain]].concat());
+        terrastream(&[&tiled[..], &["--shard", &format!("{i}/3"), "--water", mask, "-o", shard]].concat());
+        // `water` of a shard written without it: the same shard.
+        terrastream(&["water", &plain, "--mask", mask]);
+        let stored = |p: &str| terrastream_testkit::archives::stored_tiles(Path::new(p));
+        assert_eq!(stored(&plain), stored(shard), "shard {i}: water added afterwards");
+        // Its water tiles are the single run's, one for each of its elevation tiles.
+        let own = stored(shard);
+        let split = Reader::open_mmap(shard).unwrap().metadata().shard.clone().unwrap().split_lods[water];
+        for (key, bytes) in own.iter().filter(|(k, _)| usize::from(k.layer()) == water) {
+            assert!(key.lod() <= split, "shard {i}: water tile {key:?} above its split LOD {split}");
+            assert_eq!(Some(bytes), whole.get(key), "shard {i}: water tile {key:?}");
+        }
+        assert!(wet(&own) > 0, "shard {i} holds water tiles");
+    }
+
+    // Merged without the mask: the levels above the split have no water, and it says so.
+    let refs: Vec<&str> = shards.iter().map(String::as_str).collect();
+    let said = warnings(&[&["merge"], &refs[..], &["-o", &path("bare.tspack")]].concat());
+    assert!(said.contains("--water MASK") && said.contains("LOD"), "{said}");
+    let bare = terrastream_testkit::archives::stored_tiles(Path::new(&path("bare.tspack")));
+    assert!(wet(&bare) < wet(&whole), "no water above the split: {} of {}", wet(&bare), wet(&whole));
+    // With it: the single run's tiles, every layer.
+    let said = warnings(&[&["merge"], &refs[..], &["-o", &path("merged.tspack"), "--water", mask]].concat());
+    assert!(!said.contains("--water MASK"), "{said}");
+    assert_eq!(terrastream_testkit::archives::stored_tiles(Path::new(&path("merged.tspack"))), whole);
+
+    // Published as they are: the coarse archive holds the water above the split, and the
+    // manifest routes every water tile to the archive that holds it.
+    let manifest = path("terrain.json");
+    terrastream(
+        &[&["merge"], &refs[..], &["-o", &path("coarse.tspack"), "--manifest", &manifest, "--water", mask]].concat(),
+    );
+    let verified = Command::new(env!("CARGO_BIN_EXE_terrastream")).args(["verify", &manifest]).output().unwrap();
+    assert!(verified.status.success(), "verify: {}", String::from_utf8_lossy(&verified.stdout));
+    let coarse = terrastream_testkit::archives::stored_tiles(Path::new(&path("coarse.tspack")));
+    let mut published: std::collections::BTreeMap<TileKey, Vec<u8>> = coarse.clone();
+    for shard in &shards {
+        published.extend(terrastream_testkit::archives::stored_tiles(Path::new(shard)));
+    }
+    assert_eq!(published, whole, "the coarse archive and the shards hold the single run's tiles");
+    assert!(wet(&coarse) > 0, "the coarse archive's water");
+
+    // A mask for the manifest of shards without water: refused, naming the first shard.
+    let plains: Vec<String> = (0..3).map(|i| path(&format!("bare{i}.tspack"))).collect();
+    for (i, plain) in plains.iter().enumerate() {
+        terrastream(&[&tiled[..], &["--shard", &format!("{i}/3"), "-o", plain]].concat());
+    }
+    let refs: Vec<&str> = plains.iter().map(String::as_str).collect();
+    let out = Command::new(env!("CARGO_BIN_EXE_terrastream"))
+        .args(
+            [&["merge"], &refs[..], &["-o", &path("c2.tspack"), "--manifest", &path("m2.json"), "--water", mask]]
+                .concat(),
+        )
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("bare0.tspack") && stderr.contains("no water layer"), "{stderr}");
+    assert!(!dir.path().join("m2.json").exists(), "no manifest written");
+}

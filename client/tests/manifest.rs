@@ -71,9 +71,14 @@ fn publish(split_lod: u8) -> Published {
         .collect();
     let merged = dir.path().join("merged.tspack");
     merge(&shards, &merged, &Silent::default()).unwrap();
-    let summary =
-        merge_to_manifest(&shards, &folder.join("coarse.tspack"), &folder.join("tamalpais.json"), &Silent::default())
-            .unwrap();
+    let summary = merge_to_manifest(
+        &shards,
+        &folder.join("coarse.tspack"),
+        &folder.join("tamalpais.json"),
+        None,
+        &Silent::default(),
+    )
+    .unwrap();
     Published { _dir: dir, folder, merged, manifest: summary.manifest }
 }
 

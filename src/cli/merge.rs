@@ -27,6 +27,12 @@ pub struct MergeArgs {
     /// every shard (URLs relative to the manifest; FORMAT.md §9).
     #[arg(long, conflicts_with = "prefer")]
     manifest: Option<PathBuf>,
+    /// A water mask (as `terrastream water` takes): the output's water layer made from
+    /// it. Shards that hold a water layer (`terrastream water` of each) need it for the
+    /// levels above their split LOD: a water tile is the mask's, not its children's
+    /// means. With `--manifest`, the coarse archive's water tiles.
+    #[arg(long)]
+    water: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -38,14 +44,14 @@ enum PreferArg {
 }
 
 pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let MergeArgs { inputs, output, prefer, manifest } = args;
+    let MergeArgs { inputs, output, prefer, manifest, water } = args;
     super::make_parent(&output)?;
     if let Some(manifest) = manifest {
         // The coarse archive of an earlier run in the shards' folder is not an input.
         let earlier = std::fs::canonicalize(&output).ok();
         let mut inputs = archives_in(&inputs)?;
         inputs.retain(|p| earlier.is_none() || std::fs::canonicalize(p).ok() != earlier);
-        let summary = terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, progress)?;
+        let summary = terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, water.as_deref(), progress)?;
         progress.finish();
         println!(
             "{}: {} archives ({} tiles above the split LOD made into {}, {} bytes)",
@@ -62,8 +68,19 @@ pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
         PreferArg::Last => terrastream_tiler::Prefer::Last,
         PreferArg::Pixels => terrastream_tiler::Prefer::Pixels,
     };
-    let summary = terrastream_tiler::merge_with(&inputs, &output, prefer, progress)?;
+    let (summary, water_made) =
+        terrastream_tiler::merge_with_water(&inputs, &output, prefer, water.as_deref(), progress)?;
     progress.finish();
+    if let (Some(mask), Some(w)) = (&water, water_made) {
+        println!(
+            "{}: water layer from {}: {} tiles ({} with water), {} elevation tiles outside the mask",
+            output.display(),
+            mask.display(),
+            w.tiles,
+            w.wet,
+            w.uncovered
+        );
+    }
     println!(
         "{}: {} tiles copied from {} archives ({} replaced by a later one), {} made, {} bytes",
         output.display(),

@@ -172,7 +172,8 @@ pub struct TileArgs {
     /// A water mask (a raster in any CRS: 0 land, 1 water, no data where it says
     /// nothing) made the archive's water layer once its tiles are written, as `terrastream
     /// water` does: lakes and rivers drawn as water, and in quantized-mesh's water mask.
-    #[arg(long, conflicts_with_all = ["shard", "shard_plan_out", "dry_run"])]
+    /// A shard's: the water tiles of its own tiles (`merge --water` makes the rest).
+    #[arg(long, conflicts_with_all = ["shard_plan_out", "dry_run"])]
     water: Option<PathBuf>,
 }
 

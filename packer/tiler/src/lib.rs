@@ -36,7 +36,7 @@ pub use collection::{
     collection_shard_plan, depth_of, tile_collection,
 };
 pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
-pub use edit::merge::{MergeSummary, Prefer, merge, merge_with};
+pub use edit::merge::{MergeSummary, Prefer, merge, merge_with, merge_with_water};
 pub use edit::update::{UpdateSummary, update};
 pub use error::{Error, Result};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};

@@ -91,20 +91,19 @@ pub fn water_encoding() -> ElevationEncoding {
 }
 
 /// Adds (or replaces) the water layer of the archive `base`, from the mask raster `mask`,
-/// and writes the archive to `out` (which may be `base`).
+/// and writes the archive to `out` (which may be `base`). A shard's water layer holds the
+/// water tiles of its own elevation tiles, with the elevation's split LOD and band.
 ///
 /// # Errors
 /// [`Error::Input`] naming the archive when it has no elevation layer or no georeference
 /// to place the mask by, or naming the mask when it cannot be read, has no georeference,
-/// or says nothing of any elevation tile; I/O and archive errors; [`Error::Interrupted`] when `progress` is
+/// or says nothing of any elevation tile (a shard's may lie beyond it: its layer then holds
+/// no tiles); I/O and archive errors; [`Error::Interrupted`] when `progress` is
 /// cancelled (the output is then as it was).
 pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progress) -> Result<WaterSummary> {
     let reader = Reader::open_mmap(base).map_err(|e| Error::input(base, format!("cannot open archive: {e}")))?;
     let metadata = reader.metadata().clone();
     let bad = |why: &str| Error::input(base, why.to_owned());
-    if metadata.shard.is_some() {
-        return Err(bad("it is one shard of a sharded run: add the water to the merged archive"));
-    }
     let elevation = metadata
         .layers
         .iter()
@@ -161,6 +160,19 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
         None if metadata.layers.len() < terrastream_format::MAX_LAYERS => metadata.layers.push(layer),
         None => return Err(bad("it has 16 layers already, the most an archive holds")),
     }
+    // A shard's water tiles are those of its elevation tiles: the same split LOD and band
+    // (the merge of the shards, or the coarse archive of their manifest, takes the water
+    // above the split from the mask again).
+    if let Some(shard) = metadata.shard.as_mut() {
+        let (split, rows) = (shard.split_lods.get(elevation).copied(), shard.tile_rows.get(elevation).copied());
+        let (Some(split), Some(rows)) = (split, rows) else {
+            return Err(bad("its shard record names no split for the elevation layer: tile the shard again"));
+        };
+        shard.split_lods.resize(metadata.layers.len(), split);
+        shard.tile_rows.resize(metadata.layers.len(), rows);
+        shard.split_lods[index] = split;
+        shard.tile_rows[index] = rows;
+    }
     metadata.validate().map_err(|e| Error::input(base, e.to_string()))?;
 
     progress.start("water", keys.len() as u64);
@@ -181,7 +193,9 @@ pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progr
         Ok(())
     })?;
     let uncovered = (keys.len() - tiles.len()) as u64;
-    if tiles.is_empty() {
+    // (A shard's band may lie beyond the mask, as one of a planet's beyond a continent's
+    // mask: it holds the layer, without tiles, as its siblings do.)
+    if tiles.is_empty() && metadata.shard.is_none() {
         return Err(Error::input(
             mask_path,
             format!(
@@ -296,6 +310,14 @@ fn append_water(
         Ok(())
     })?;
     Ok(appender.finish(metadata)?)
+}
+
+/// Opens the mask at `path` as [`add_water`] will (before a long job that ends with it).
+///
+/// # Errors
+/// As [`add_water`] for the mask.
+pub(crate) fn check_mask(path: &Path) -> Result<()> {
+    MaskFile::open(path).map(|_| ())
 }
 
 /// A water mask file: where it lies, and its size.

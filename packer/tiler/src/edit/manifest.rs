@@ -6,11 +6,11 @@
 use std::collections::BTreeMap;
 use std::path::{Component, Path, PathBuf};
 
-use terrastream_format::{Coverage, Manifest, Metadata, Part, PartLayer, Reader, content_tag};
+use terrastream_format::{Coverage, LayerKind, Manifest, Metadata, Part, PartLayer, Reader, content_tag};
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{WriteSummary, Writer, WriterOptions};
 
-use crate::edit::merge::{prepare, write};
+use crate::edit::merge::{prepare, warn_water_above_split, write};
 use crate::error::{Error, Result};
 use crate::pyramid::Spool;
 
@@ -31,23 +31,47 @@ pub struct ManifestSummary {
 /// [`Error::Input`] if the inputs are not all the shards of one run, or an archive's path
 /// cannot be written relative to the manifest's folder (another drive, characters a URL
 /// path may not hold); as [`crate::edit::merge`] otherwise.
+///
+/// With `water` (a mask, shards that hold a water layer: `terrastream water` of each), the
+/// coarse archive's water tiles are made from it, as [`crate::add_water`] makes them:
+/// shards without a water layer are refused, naming the first.
 pub fn merge_to_manifest(
     inputs: &[PathBuf],
     coarse: &Path,
     manifest_path: &Path,
+    water: Option<&Path>,
     progress: &dyn Progress,
 ) -> Result<ManifestSummary> {
+    if let Some(mask) = water {
+        crate::water::check_mask(mask)?;
+    }
     let prepared = prepare(inputs, progress)?;
     let Some(split_lods) = prepared.shards.clone() else {
         return Err(Error::input(&inputs[0], "a manifest is made from the complete set of shards of one run"));
     };
+    let has_water = prepared.metadata.layers.iter().any(|l| l.kind == LayerKind::Water);
+    match water {
+        Some(_) if !has_water => {
+            return Err(Error::input(
+                &inputs[0],
+                "the shards hold no water layer, so the manifest would route water tiles to none: add it to each \
+                 shard first (`terrastream water SHARD --mask MASK`), then publish them with the same mask",
+            ));
+        }
+        Some(_) => {}
+        None => warn_water_above_split(&prepared.metadata, &split_lods),
+    }
     let folder = terrastream_pack::output_folder(manifest_path);
     let mut spool = Spool::new(&terrastream_pack::output_folder(coarse))?;
     prepared.reduce(&split_lods, &mut spool, progress)?;
     let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
     let mut writer = Writer::create(coarse, prepared.metadata.clone(), options)?;
     write(&mut writer, &prepared.readers, &BTreeMap::new(), spool.into_sorted()?, progress)?;
-    let summary = writer.finish()?;
+    let mut summary = writer.finish()?;
+    // The water above the split, from the mask (the shards' own stand below it).
+    if let Some(mask) = water {
+        summary = crate::add_water(coarse, mask, coarse, progress)?.write;
+    }
 
     let coarse_reader =
         Reader::open_mmap(coarse).map_err(|e| Error::input(coarse, format!("cannot read back: {e}")))?;

@@ -35,6 +35,7 @@ use crate::error::{Error, Result};
 use crate::options::TextureFormat;
 use crate::pyramid::{Pixel, SortedSpool, Spool, Window};
 use crate::tile::{HeightEncoder, ZSTD_LEVEL, run_pyramid};
+use crate::water::WaterSummary;
 
 /// What [`merge`] did.
 #[derive(Clone, Debug)]
@@ -96,38 +97,68 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
 /// # Errors
 /// As [`merge`].
 pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn Progress) -> Result<MergeSummary> {
+    merge_with_water(inputs, out, prefer, None, progress).map(|(summary, _)| summary)
+}
+
+/// [`merge_with`], then, with `water`, the merged archive's water layer made from that mask
+/// as [`crate::add_water`] makes it: what shards that hold a water layer need for the
+/// levels above their split LOD (a water tile is the mask's, not its children's means).
+///
+/// # Errors
+/// As [`merge_with`] and [`crate::add_water`]; a mask that cannot be opened is named before
+/// anything is merged.
+pub fn merge_with_water(
+    inputs: &[PathBuf],
+    out: &Path,
+    prefer: Prefer,
+    water: Option<&Path>,
+    progress: &dyn Progress,
+) -> Result<(MergeSummary, Option<WaterSummary>)> {
+    if let Some(mask) = water {
+        crate::water::check_mask(mask)?;
+    }
     // One collection alone: copied as it is (the compact copy of an archive updated in
     // place), its tiles made again from none.
-    if let [one] = inputs
+    let summary = if let [one] = inputs
         && let Ok(reader) = Reader::open_mmap(one)
         && is_collection(reader.metadata())
     {
         let metadata = reader.metadata().clone();
         drop(reader);
-        return merge_widened_as(inputs, out, prefer, None, Some(&metadata), progress);
+        merge_widened_as(inputs, out, prefer, None, Some(&metadata), water.is_some(), progress)?
+    } else {
+        merge_widened_as(inputs, out, prefer, None, None, water.is_some(), progress)?
+    };
+    let water = water.map(|mask| crate::add_water(out, mask, out, progress)).transpose()?;
+    Ok((summary, water))
+}
+
+/// Warns where shards hold a water layer whose levels above their split LOD a merge does
+/// not make (they are the mask's: `merge --water` makes them).
+pub(crate) fn warn_water_above_split(metadata: &Metadata, split_lods: &[u8]) {
+    for (index, layer) in metadata.layers.iter().enumerate() {
+        let k = split_lods.get(index).copied().unwrap_or(0);
+        if layer.kind == LayerKind::Water && k + 1 < layer.num_lods {
+            tracing::warn!(
+                "layer {:?}: the shards hold water tiles up to LOD {k}; those above are made from the mask, not from \
+                 them: give the merge `--water MASK` (or run `terrastream water` on its output), else readers take \
+                 the sea from the heights there",
+                layer.name
+            );
+        }
     }
-    merge_widened(inputs, out, prefer, None, progress)
 }
 
 /// [`merge_with`], the terrain's height range widened to hold `heights` (an update's new
-/// heights, seen while tiling them).
-pub(crate) fn merge_widened(
-    inputs: &[PathBuf],
-    out: &Path,
-    prefer: Prefer,
-    heights: Option<(f32, f32)>,
-    progress: &dyn Progress,
-) -> Result<MergeSummary> {
-    merge_widened_as(inputs, out, prefer, heights, None, progress)
-}
-
-/// [`merge_widened`]; with `as_is`, as [`merge_in_place_as`].
+/// heights, seen while tiling them); with `as_is`, as [`merge_in_place_as`]. `water_follows`: the
+/// output's water layer is made next (no warning that shards' water stops at their split).
 pub(crate) fn merge_widened_as(
     inputs: &[PathBuf],
     out: &Path,
     prefer: Prefer,
     heights: Option<(f32, f32)>,
     as_is: Option<&Metadata>,
+    water_follows: bool,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
     let Prepared { readers, mut metadata, shards, mut winners, conflicts } =
@@ -142,6 +173,9 @@ pub(crate) fn merge_widened_as(
         // The second input's tiles stand as they are.
     } else if let Some(split_lods) = &shards {
         reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
+        if !water_follows {
+            warn_water_above_split(&metadata, split_lods);
+        }
     } else {
         for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
             winners.remove(&order);
@@ -154,7 +188,7 @@ pub(crate) fn merge_widened_as(
     Ok(MergeSummary { write: writer.finish()?, copied, replaced: conflicts.len() as u64, made })
 }
 
-/// [`merge_widened`] of `inputs` = `[base, changes]` written into `target` in place
+/// [`merge_widened_as`] of `inputs` = `[base, changes]` written into `target` in place
 /// (FORMAT.md §7.1): `target` is `base` itself or a byte copy of it. The base's tiles stay
 /// where they are; only the changes' tiles and the remade ones are appended.
 ///
