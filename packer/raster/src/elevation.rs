@@ -7,7 +7,9 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, Georeference};
 use super::geotiff::{GeoTags, gdal_nodata, gdal_statistics};
 use super::memory::Raster;
 use super::png::{png_header, png_rows};
-use super::tiff::{TiffChunks, open_input_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_ranged};
+use super::tiff::{
+    TiffChunks, open_input_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_mapped, tiff_rows_ranged,
+};
 use super::worldfile::read_sidecar;
 use super::{ElevationSource, Sniffed, range_of_rows, sniff};
 use crate::error::{Error, Result};
@@ -280,6 +282,19 @@ impl ElevationSource for ElevationFile {
         }
         let wanted = rows.start as usize..rows.end as usize;
         tiff_rows_ranged(&self.path, wanted, &|samples: &mut [f32]| self.heights(samples), row)
+    }
+
+    fn rows_mapped(
+        &self,
+        rows: std::ops::Range<u32>,
+        map: Option<&crate::RowMap<'_>>,
+        row: &mut crate::MappedRow<'_>,
+    ) -> Result<()> {
+        if self.png {
+            return self.rows_in(rows, &mut |r| row(map.map_or_else(|| r.to_vec(), |m| m(r)), crate::min_max(r)));
+        }
+        let wanted = rows.start as usize..rows.end as usize;
+        tiff_rows_mapped(&self.path, wanted, &|samples: &mut [f32]| self.heights(samples), map, row)
     }
 
     fn height_range(&self, progress: &mut dyn FnMut(u32) -> Result<()>) -> Result<(f32, f32)> {

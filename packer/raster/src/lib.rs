@@ -84,6 +84,16 @@ pub trait ElevationSource: Sync {
     fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut RangedRow<'_>) -> Result<()> {
         self.rows_in(rows, &mut |r| row(r, min_max(r)))
     }
+    /// [`ElevationSource::rows_ranged`], each row handed over as `map` makes it (as it is,
+    /// without one): sources that make rows on several threads map them there, so the
+    /// thread the rows are handed to does not (a resampling, a copy). The range is the
+    /// source row's.
+    ///
+    /// # Errors
+    /// As [`ElevationSource::rows`].
+    fn rows_mapped(&self, rows: std::ops::Range<u32>, map: Option<&RowMap<'_>>, row: &mut MappedRow<'_>) -> Result<()> {
+        self.rows_in(rows, &mut |r| row(map.map_or_else(|| r.to_vec(), |m| m(r)), min_max(r)))
+    }
     /// How many samples of rows `rows` hold data, as far as the source knows without
     /// reading them (a mosaic: its inputs' footprints): what shards balance. Default: all.
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
@@ -171,6 +181,13 @@ pub(crate) fn rows_window<T>(
 /// highest height.
 pub type RangedRow<'a> = dyn FnMut(&[f32], (f32, f32)) -> Result<()> + 'a;
 
+/// What [`ElevationSource::rows_mapped`] makes of each row (a resampling).
+pub type RowMap<'a> = dyn Fn(&[f32]) -> Vec<f32> + Sync + 'a;
+
+/// What [`ElevationSource::rows_mapped`] calls with each row as mapped (handed over) and
+/// the source row's lowest and highest height.
+pub type MappedRow<'a> = dyn FnMut(Vec<f32>, (f32, f32)) -> Result<()> + 'a;
+
 /// Heights `source` reads, its height range given rather than scanned (shards of one run
 /// share it: `tile --shard --height-range`). A row with a height outside it is an error
 /// naming the file, not a silently clamped tile.
@@ -241,31 +258,37 @@ impl<'a> KnownRange<'a> {
         row: &'r mut dyn FnMut(&[f32]) -> Result<()>,
     ) -> impl FnMut(&[f32], (f32, f32)) -> Result<()> + 'r {
         let mut at = first;
-        move |r: &[f32], (lo, hi): (f32, f32)| {
-            let j = at;
+        move |r: &[f32], range: (f32, f32)| {
+            self.check(at, r, range)?;
             at = at.saturating_add(1);
-            if lo < self.limits.0 || hi > self.limits.1 {
-                let Some(what) = self.what else {
-                    self.outside.store(true, std::sync::atomic::Ordering::Relaxed);
-                    return Err(Error::Interrupted(Interrupted));
-                };
-                // The input at the first sample outside (a mosaic's, not its first file).
-                let column = r.iter().position(|&h| h < self.limits.0 || h > self.limits.1).unwrap_or(0);
-                let column = u32::try_from(column).unwrap_or(u32::MAX);
-                let input = self.source.input_at(column, j).unwrap_or_else(|| self.source.path().to_path_buf());
-                return Err(Error::mismatch(
-                    &input,
-                    format!(
-                        "heights {lo} .. {hi} (row {j}, from column {column}) lie outside {what} {} .. {}",
-                        self.limits.0, self.limits.1
-                    ),
-                ));
-            }
-            let mut seen = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-            *seen = (seen.0.min(lo), seen.1.max(hi));
-            drop(seen);
             row(r)
         }
+    }
+
+    /// Row `j` (`r`, or a resampling of it: its columns are scaled back to the source's)
+    /// of heights `lo ..= hi`, against the limits; the lowest and highest seen widened.
+    fn check(&self, j: u32, r: &[f32], (lo, hi): (f32, f32)) -> Result<()> {
+        if lo < self.limits.0 || hi > self.limits.1 {
+            let Some(what) = self.what else {
+                self.outside.store(true, std::sync::atomic::Ordering::Relaxed);
+                return Err(Error::Interrupted(Interrupted));
+            };
+            // The input at the first sample outside (a mosaic's, not its first file).
+            let at = r.iter().position(|&h| h < self.limits.0 || h > self.limits.1).unwrap_or(0);
+            let width = self.source.size().0 as usize;
+            let column = u32::try_from(at * width / r.len().max(1)).unwrap_or(u32::MAX);
+            let input = self.source.input_at(column, j).unwrap_or_else(|| self.source.path().to_path_buf());
+            return Err(Error::mismatch(
+                &input,
+                format!(
+                    "heights {lo} .. {hi} (row {j}, from column {column}) lie outside {what} {} .. {}",
+                    self.limits.0, self.limits.1
+                ),
+            ));
+        }
+        let mut seen = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        *seen = (seen.0.min(lo), seen.1.max(hi));
+        Ok(())
     }
 }
 
@@ -294,6 +317,14 @@ impl ElevationSource for KnownRange<'_> {
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         let first = rows.start;
         self.source.rows_ranged(rows, &mut self.checked(first, row))
+    }
+    fn rows_mapped(&self, rows: std::ops::Range<u32>, map: Option<&RowMap<'_>>, row: &mut MappedRow<'_>) -> Result<()> {
+        let mut at = rows.start;
+        self.source.rows_mapped(rows, map, &mut |r, range| {
+            self.check(at, &r, range)?;
+            at = at.saturating_add(1);
+            row(r, range)
+        })
     }
     fn data_in_rows(&self, rows: std::ops::Range<u32>) -> f64 {
         self.source.data_in_rows(rows)

@@ -382,7 +382,9 @@ mod tests {
 
     use tiff::encoder::{TiffEncoder, colortype};
 
-    use super::super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_ranged};
+    use super::super::tiff::{
+        TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_mapped, tiff_rows_ranged,
+    };
 
     fn gdal_translate(args: &[&str], from: &Path, to: &Path) -> bool {
         match Command::new("gdal_translate").arg("-q").args(args).arg(from).arg(to).status() {
@@ -504,6 +506,19 @@ mod tests {
                 Ok(())
             })
             .unwrap();
+            // Mapped where decoded (a resampling: here, every other sample), handed over.
+            let map = |r: &[f32]| r.iter().step_by(2).copied().collect::<Vec<f32>>();
+            let mut mapped = Vec::new();
+            tiff_rows_mapped(path, wanted.clone(), &prepare, Some(&map), &mut |row, range| {
+                mapped.push((row, range));
+                Ok(())
+            })
+            .unwrap();
+            assert_eq!(mapped.len(), rows.len(), "case {case}, rows {wanted:?} mapped");
+            for (j, (row, (m, range))) in rows.iter().zip(&mapped).enumerate() {
+                assert!(map(row).iter().zip(m).all(|(a, b)| a.to_bits() == b.to_bits()), "case {case}, row {j} mapped");
+                assert_eq!(*range, crate::min_max(row), "case {case}, row {j}: the source row's range");
+            }
             assert_eq!(rows.len(), ranged.len(), "case {case}, rows {wanted:?}");
             for (j, (row, (same, range))) in rows.iter().zip(&ranged).enumerate() {
                 assert!(row.iter().zip(same).all(|(a, b)| a.to_bits() == b.to_bits()), "case {case}, row {j}");

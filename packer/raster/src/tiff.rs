@@ -265,7 +265,7 @@ pub(super) fn tiff_rows_in(
     prepare: &(dyn Fn(&mut [f32]) + Sync),
     row: &mut dyn FnMut(&[f32]) -> Result<()>,
 ) -> Result<()> {
-    rows_of_chunks(path, channels, wanted, prepare, false, &mut |r, _| row(r))
+    rows_of_chunks(path, channels, wanted, prepare, false, None, &mut |r, _, _| row(r))
 }
 
 /// [`tiff_rows_in`] of heights, each row with its lowest and highest height (infinities
@@ -277,19 +277,37 @@ pub(super) fn tiff_rows_ranged(
     prepare: &(dyn Fn(&mut [f32]) + Sync),
     row: &mut crate::RangedRow<'_>,
 ) -> Result<()> {
-    rows_of_chunks(path, 1, wanted, prepare, true, &mut |r, range| row(r, range.unwrap_or_else(|| crate::min_max(r))))
+    rows_of_chunks(path, 1, wanted, prepare, true, None, &mut |r, _, range| {
+        row(r, range.unwrap_or_else(|| crate::min_max(r)))
+    })
 }
 
-/// A row of [`rows_of_chunks`], with its range where it was asked for.
-type ChunkRow<'a> = dyn FnMut(&[f32], Option<(f32, f32)>) -> Result<()> + 'a;
+/// [`tiff_rows_ranged`], each row handed over as `map` makes it from the row (as it is,
+/// without one), `map` run where the rows are decoded, in parallel.
+pub(super) fn tiff_rows_mapped(
+    path: &Path,
+    wanted: std::ops::Range<usize>,
+    prepare: &(dyn Fn(&mut [f32]) + Sync),
+    map: Option<&crate::RowMap<'_>>,
+    row: &mut crate::MappedRow<'_>,
+) -> Result<()> {
+    rows_of_chunks(path, 1, wanted, prepare, true, map, &mut |r, mapped, range| {
+        row(mapped.unwrap_or_else(|| r.to_vec()), range.unwrap_or_else(|| crate::min_max(r)))
+    })
+}
 
-/// [`tiff_rows_in`], with each row's range (`ranged`; else None).
+/// A row of [`rows_of_chunks`], as `map` made it where asked, with its range where asked.
+type ChunkRow<'a> = dyn FnMut(&[f32], Option<Vec<f32>>, Option<(f32, f32)>) -> Result<()> + 'a;
+
+/// [`tiff_rows_in`], with each row's range (`ranged`; else None) and `map` of it (where
+/// given; else None), both found on the pool.
 fn rows_of_chunks(
     path: &Path,
     channels: usize,
     wanted: std::ops::Range<usize>,
     prepare: &(dyn Fn(&mut [f32]) + Sync),
     ranged: bool,
+    map: Option<&crate::RowMap<'_>>,
     row: &mut ChunkRow<'_>,
 ) -> Result<()> {
     use rayon::prelude::*;
@@ -299,13 +317,15 @@ fn rows_of_chunks(
     let (width, height, kind) = (chunks.width, chunks.height, chunks.kind);
     let stride = width * channels;
     let (chunk_w, chunk_h) = (chunks.chunk_w, chunks.chunk_h);
-    // A strip's samples, its rows' ranges (where `ranged`), width and rows.
-    type Strip = (Vec<f32>, Vec<(f32, f32)>, usize, usize);
+    // A strip's samples, its rows' ranges (where `ranged`) and maps (where `map`), width
+    // and rows.
+    type Strip = (Vec<f32>, Vec<(f32, f32)>, Vec<Vec<f32>>, usize, usize);
     let chunk = |index: usize| -> Result<Strip> {
         let (mut values, w, h) = chunks.read_f32(index)?;
         prepare(&mut values);
         let ranges = if ranged { values.chunks_exact(stride).map(crate::min_max).collect() } else { Vec::new() };
-        Ok((values, ranges, w, h))
+        let mapped = map.map_or_else(Vec::new, |m| values.chunks_exact(stride).take(h).map(m).collect());
+        Ok((values, ranges, mapped, w, h))
     };
     // Chunks `range`, decoded in parallel; the first failure in file order is the error.
     let decode = |range: std::ops::Range<usize>| -> Result<Vec<Strip>> {
@@ -318,10 +338,12 @@ fn rows_of_chunks(
             let start = (wanted.start / chunk_h).min(strips);
             let mut y = start * chunk_h;
             for first in (start..strips).step_by(batch) {
-                for (values, ranges, _, h) in decode(first..strips.min(first + batch))? {
+                for (values, ranges, mapped, _, h) in decode(first..strips.min(first + batch))? {
+                    let mut mapped = mapped.into_iter();
                     for (k, r) in values.chunks_exact(stride).take(h.min(height - y)).enumerate() {
+                        let m = mapped.next();
                         if wanted.contains(&(y + k)) {
-                            row(r, ranges.get(k).copied())?;
+                            row(r, m, ranges.get(k).copied())?;
                         }
                     }
                     y += h;
@@ -340,7 +362,11 @@ fn rows_of_chunks(
             // (With each row's range where `ranged`: its tiles' parts', joined.) A column
             // of tiles gives the rows it holds and, where asked, their parts' ranges.
             type ColumnRows = (usize, Vec<(f32, f32)>);
-            let decode_band = |ty: usize, band: &mut [f32], ranges: &mut Vec<(f32, f32)>| -> Result<usize> {
+            let decode_band = |ty: usize,
+                               band: &mut [f32],
+                               ranges: &mut Vec<(f32, f32)>,
+                               mapped: &mut Vec<Vec<f32>>|
+             -> Result<usize> {
                 let mut rows_here = chunk_h.min(height - ty * chunk_h);
                 let mut columns: Vec<Vec<&mut [f32]>> = (0..across).map(|_| Vec::with_capacity(rows_here)).collect();
                 for band_row in band.chunks_exact_mut(stride).take(rows_here) {
@@ -370,12 +396,16 @@ fn rows_of_chunks(
                         *range = (range.0.min(part.0), range.1.max(part.1));
                     }
                 }
+                // Each whole row mapped, once all its tiles are in.
+                *mapped =
+                    map.map_or_else(Vec::new, |m| band[..rows_here * stride].par_chunks_exact(stride).map(m).collect());
                 Ok(rows_here)
             };
             let first = (wanted.start / chunk_h).min(tile_rows);
             let (mut band, mut ahead) = (vec![0f32; stride * chunk_h], vec![0f32; stride * chunk_h]);
             let (mut ranges, mut ranges_ahead) = (Vec::new(), Vec::new());
-            let mut decoded = (first < tile_rows).then(|| decode_band(first, &mut band, &mut ranges));
+            let (mut mapped, mut mapped_ahead) = (Vec::new(), Vec::new());
+            let mut decoded = (first < tile_rows).then(|| decode_band(first, &mut band, &mut ranges, &mut mapped));
             for ty in first..tile_rows {
                 let rows_here = decoded.take().unwrap_or(Ok(0))?;
                 // The next row of tiles is decoded on the pool while this one's rows are
@@ -385,19 +415,20 @@ fn rows_of_chunks(
                 let mut handed = Ok(());
                 rayon::in_place_scope(|s| {
                     if ty + 1 < tile_rows {
-                        let (ahead, ranges_ahead, next) = (&mut ahead, &mut ranges_ahead, &mut next);
-                        s.spawn(move |_| *next = Some(decode_band(ty + 1, ahead, ranges_ahead)));
+                        let (ahead, ranges_ahead, mapped_ahead, next) =
+                            (&mut ahead, &mut ranges_ahead, &mut mapped_ahead, &mut next);
+                        s.spawn(move |_| *next = Some(decode_band(ty + 1, ahead, ranges_ahead, mapped_ahead)));
                     }
-                    handed = band
-                        .chunks_exact(stride)
-                        .take(rows_here)
-                        .enumerate()
-                        .filter(|(k, _)| wanted.contains(&(ty * chunk_h + k)))
-                        .try_for_each(|(k, r)| row(r, ranges.get(k).copied()));
+                    let mut made = std::mem::take(&mut mapped).into_iter();
+                    handed = band.chunks_exact(stride).take(rows_here).enumerate().try_for_each(|(k, r)| {
+                        let m = made.next();
+                        if wanted.contains(&(ty * chunk_h + k)) { row(r, m, ranges.get(k).copied()) } else { Ok(()) }
+                    });
                 });
                 handed?;
                 std::mem::swap(&mut band, &mut ahead);
                 std::mem::swap(&mut ranges, &mut ranges_ahead);
+                std::mem::swap(&mut mapped, &mut mapped_ahead);
                 decoded = next;
             }
         }

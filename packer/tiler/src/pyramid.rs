@@ -210,6 +210,12 @@ impl Resample {
         Self { taps, from }
     }
 
+    /// Whether rows keep their width (each [`Self::row`] is a copy).
+    #[must_use]
+    pub fn is_identity(&self) -> bool {
+        self.taps.is_empty()
+    }
+
     /// `row` (of the width this was made for) at the new width.
     #[must_use]
     pub fn row<S: Pixel>(&self, row: &[S]) -> Vec<S> {

@@ -184,8 +184,11 @@ pub(crate) fn cut_planned(
         let resample = Resample::new(source.size().0 as usize, size.0 as usize);
         let quantize = |row: &mut [f32]| quantize_heights(row, &heights.encoding);
         let rows = window_rows(window);
+        // Rows resampled (or handed over) where the source makes them, on every core.
+        let map = |row: &[f32]| resample.row(row);
+        let map: Option<&crate::raster::RowMap<'_>> = (!resample.is_identity()).then_some(&map);
         run_pyramid(metadata, index, size, window, &encode, Some(&quantize), &mut spool, progress, |push| {
-            Ok(source.rows_in(rows, &mut |row| Ok(push(resample.row(row))?))?)
+            Ok(source.rows_mapped(rows, map, &mut |row, _| Ok(push(row)?))?)
         })?;
         heights.finish(metadata, Vec::new(), &mut spool)?;
     }

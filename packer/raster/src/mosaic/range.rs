@@ -191,6 +191,16 @@ impl ElevationSource for Mosaic<Heights> {
     fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut crate::RangedRow<'_>) -> Result<()> {
         self.make_rows_with(rows, &crate::min_max, &mut |r, range| row(&r, range))
     }
+    fn rows_mapped(
+        &self,
+        rows: std::ops::Range<u32>,
+        map: Option<&crate::RowMap<'_>>,
+        row: &mut crate::MappedRow<'_>,
+    ) -> Result<()> {
+        // Rows are made on the pool: mapped there, and handed over (no copy without a map).
+        let Some(map) = map else { return self.make_rows_with(rows, &crate::min_max, row) };
+        self.make_rows_with(rows, &|r| (map(r), crate::min_max(r)), &mut |_, (mapped, range)| row(mapped, range))
+    }
 }
 
 impl ImageSource for Mosaic<Pixels> {
