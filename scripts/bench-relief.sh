@@ -21,7 +21,13 @@ cargo build --release --quiet --bin terrastream
 bin=$PWD/target/release/terrastream
 work=$(mktemp -d)
 pids=()
-cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$work"; }
+# The servers stopped, and waited for (TiTiler's workers finish the requests still queued,
+# which read the COG), before their files go.
+cleanup() {
+  for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done
+  for p in "${pids[@]}"; do wait "$p" 2>/dev/null || true; done
+  rm -rf "$work"
+}
 trap cleanup EXIT INT TERM
 
 "$bin" -q tile --elevation "$SRTM" -o "$work/srtm.tspack"
