@@ -401,6 +401,10 @@ fn update_refuses_what_it_cannot_add_and_merge_a_collection() {
         let said = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "{args:?} succeeded");
         assert!(said.contains(says), "{args:?}: {said}");
+        // The merge names the archive and what does the job instead.
+        if args[0] == "merge" {
+            assert!(said.contains("col.tspack") && said.contains("terrastream update"), "{said}");
+        }
     }
     assert_eq!(std::fs::read(&col).unwrap(), before, "the archive is as it was");
     assert!(!d.join("m.tspack").exists());

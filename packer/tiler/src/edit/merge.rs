@@ -351,9 +351,12 @@ impl Prepared {
     }
 }
 
-/// Why an archive of inputs of different resolutions cannot be merged or updated.
+/// Why an archive of inputs of different resolutions cannot be merged with others, and
+/// what does the job.
 pub(crate) const COLLECTION: &str = "it holds inputs of different resolutions, each only as deep as it reaches (docs/tiling.md, \
-     \"Collections\"), which merge and update do not take yet: tile every input in one run";
+     \"Collections\"), which merge takes alone (a compact copy) or as the shards of one run, not with other \
+     archives yet: add each finer survey to one collection with `terrastream update ARCHIVE --elevation SURVEY \
+     --in-place`, or tile every input in one run";
 
 /// Whether an archive's levels do not all cover its data (a collection's).
 pub(crate) fn is_collection(metadata: &Metadata) -> bool {

@@ -114,8 +114,9 @@ impl BaseGrid {
         let metadata = reader.metadata().clone();
         drop(reader);
         let bad = |why: String| Error::input(base, why);
+        // (A collection is updated as one, above; this is one that became one meanwhile.)
         if crate::edit::merge::is_collection(&metadata) {
-            return Err(bad(crate::edit::merge::COLLECTION.into()));
+            return Err(bad("it changed into a collection while it was being opened: run the update again".into()));
         }
         if let Some(shard) = &metadata.shard {
             return Err(bad(format!(
