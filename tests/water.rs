@@ -309,7 +309,8 @@ fn warnings(args: &[&str]) -> String {
 /// (`tile --shard --water`), and the merge makes those above the split from the mask
 /// (`merge --water`): the single run's archive tile for tile, and published as a
 /// manifest, every water tile where it routes it. Without the mask the merge says what
-/// is missing; a manifest's mask over shards without water is refused.
+/// is missing; a shard beyond the mask holds the layer without tiles; a manifest's mask
+/// over shards without water is refused.
 #[test]
 fn shards_hold_their_water_and_the_merge_makes_the_rest_from_the_mask() {
     let dir = tempfile::tempdir().unwrap();
@@ -374,6 +375,25 @@ fn shards_hold_their_water_and_the_merge_makes_the_rest_from_the_mask() {
     }
     assert_eq!(published, whole, "the coarse archive and the shards hold the single run's tiles");
     assert!(wet(&coarse) > 0, "the coarse archive's water");
+
+    // A shard whose band the mask does not reach (a mask of the northernmost rows only, the
+    // last shard the southernmost): it holds the layer without tiles, as its siblings do;
+    // the whole archive's water from that mask would hold some.
+    let info = Command::new("gdalinfo").args(["-json", mask]).output().unwrap();
+    let info: serde_json::Value = serde_json::from_slice(&info.stdout).unwrap();
+    let (width, height) = (info["size"][0].as_u64().unwrap(), info["size"][1].as_u64().unwrap());
+    let north = path("north.tif");
+    gdal_translate(&["-srcwin", "0", "0", &width.to_string(), &(height / 10).to_string()], [mask, north.as_str()]);
+    let south = path("south.tspack");
+    terrastream(&[&tiled[..], &["--shard", "2/3", "--water", &north, "-o", &south]].concat());
+    let reader = Reader::open_mmap(&south).unwrap();
+    assert!(reader.metadata().layers.iter().any(|l| l.kind == LayerKind::Water), "the layer");
+    let south_tiles = terrastream_testkit::archives::stored_tiles(Path::new(&south));
+    assert_eq!(wet(&south_tiles), 0, "no water tiles beyond the mask");
+    assert!(!south_tiles.is_empty(), "the shard's own tiles");
+    let north_archive = path("north.tspack");
+    terrastream(&[&tiled[..], &["--water", &north, "-o", &north_archive]].concat());
+    assert!(wet(&terrastream_testkit::archives::stored_tiles(Path::new(&north_archive))) > 0, "the mask's rows");
 
     // A mask for the manifest of shards without water: refused, naming the first shard.
     let plains: Vec<String> = (0..3).map(|i| path(&format!("bare{i}.tspack"))).collect();
