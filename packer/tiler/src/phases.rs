@@ -7,6 +7,8 @@ use std::time::{Duration, Instant};
 /// The clock of one run: marks the end of each phase.
 pub(crate) struct Phases {
     started: Instant,
+    /// The process's CPU time when the run started.
+    cpu: Option<Duration>,
     /// When the last phase ended, and the process's CPU time then.
     last: Mutex<(Instant, Option<Duration>)>,
 }
@@ -14,8 +16,26 @@ pub(crate) struct Phases {
 impl Phases {
     /// A run starting now.
     pub(crate) fn start() -> Self {
-        let now = Instant::now();
-        Self { started: now, last: Mutex::new((now, process_cpu())) }
+        let (now, cpu) = (Instant::now(), process_cpu());
+        Self { started: now, cpu, last: Mutex::new((now, cpu)) }
+    }
+
+    /// Logs the whole run (at debug level: `-v`): its wall time, the cores it kept busy
+    /// and its busy share, those over the cores the machine has (what more cores would
+    /// not shorten shows as a share below 1).
+    pub(crate) fn finish(&self) {
+        let wall = self.started.elapsed();
+        let available = std::thread::available_parallelism().map_or(1, std::num::NonZero::get);
+        if let Some(busy) = cores(process_cpu(), self.cpu, wall) {
+            #[expect(clippy::cast_precision_loss, reason = "a count of cores")]
+            let share = busy / available as f64;
+            tracing::debug!(
+                took = ?wall,
+                cores = %format!("{busy:.2} of {available}"),
+                busy_share = %format!("{share:.2}"),
+                "the run"
+            );
+        }
     }
 
     /// Logs the end of phase `what` (at debug level: `-v`): its wall time, the run's

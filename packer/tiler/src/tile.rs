@@ -126,7 +126,9 @@ fn tile_on_estimate(
     let seen = tracked.seen().ok_or_else(|| Error::input(source.path(), "the raster holds no data"))?;
     set_height_range(&mut plan.metadata.terrain, (f64::from(seen.0), f64::from(seen.1)));
     phases.mark(&format!("{} tiles cut and encoded", spool.tiles()));
-    write_spool(spool, &plan.metadata, out, true, progress, phases).map(Some)
+    let written = write_spool(spool, &plan.metadata, out, true, progress, phases)?;
+    phases.finish();
+    Ok(Some(written))
 }
 
 /// Every level of every layer of `plan`.
@@ -158,7 +160,9 @@ pub(crate) fn tile_planned(
 ) -> Result<WriteSummary> {
     let spool = cut_planned(&terrastream_pack::output_folder(out), elevation, texture, plan, windows, progress)?;
     phases.mark(&format!("{} tiles cut and encoded", spool.tiles()));
-    write_spool(spool, &plan.metadata, out, durable, progress, phases)
+    let written = write_spool(spool, &plan.metadata, out, durable, progress, phases)?;
+    phases.finish();
+    Ok(written)
 }
 
 /// Cuts and encodes `plan`'s tiles (as [`tile_planned`]) into a spool in `folder`.

@@ -583,7 +583,9 @@ pub fn tile_collection(
         (None, Some(t)) => cut_texture(t, &planned, &windows, &mut spool, progress)?,
         _ => {}
     }
-    write_spool(spool, metadata, out, true, progress, &phases)
+    let written = write_spool(spool, metadata, out, true, progress, &phases)?;
+    phases.finish();
+    Ok(written)
 }
 
 /// The request that opens a collection's height inputs `paths` onto `grid` in `crs`: in
