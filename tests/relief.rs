@@ -14,6 +14,9 @@ use std::process::Command;
 
 use terrastream_views::relief::{ReliefOptions, Window, aspect, hillshade, slope};
 
+/// The committed DEM the maps are made from.
+const DEM: &str = "packer/pack/data/srtm-tamalpais-320-public-domain.tif";
+
 const W: u32 = 48;
 const H: u32 = 40;
 /// Pixels of 30 m east-west, 20 m north-south (unequal: each axis's own spacing counts).
@@ -131,7 +134,7 @@ fn terrastream(args: &[&str], cwd: &Path) -> String {
 
 /// The built-in SRTM DEM around Mt Tamalpais, tiled into `work/dem.tspack`.
 fn tamalpais(work: &Path) {
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join(DEM);
     terrastream(&["-q", "tile", "--elevation", dem.to_str().unwrap(), "-o", "dem.tspack"], work);
 }
 
@@ -269,18 +272,15 @@ fn crossings(points: &[(i32, i32)], x: i32) -> Vec<f64> {
 #[test]
 fn contour_lines_meet_across_tile_edges_in_every_crs() {
     use terrastream_views::contours::{ContourOptions, contour_tile};
-    use terrastream_views::mvt::{Line, Value, decode};
+    use terrastream_views::mvt::{Line, decode};
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
-    let dem = terrastream_testkit::golden::repo().join("packer/pack/data/srtm-tamalpais-320-public-domain.tif");
+    let dem = terrastream_testkit::golden::repo().join(DEM);
     let dem = dem.to_str().unwrap();
     terrastream(&["-q", "tile", "--elevation", dem, "-o", "tm.tspack"], work);
     terrastream(&["-q", "tile", "--elevation", dem, "--crs", "EPSG:4326", "-o", "geo.tspack"], work);
     terrastream(&["-q", "tile", "--elevation", dem, "--crs", "EPSG:3857", "-o", "merc.tspack"], work);
-    let ele = |l: &Line| match l.properties[0].1 {
-        Value::Number(n) => n,
-        Value::Bool(_) => f64::NAN,
-    };
+    let ele = |l: &Line| l.properties[0].1.number().unwrap_or(f64::NAN);
     // Where a line crosses the edge at `at` along `axis` (0: x = at, 1: y = at).
     let crossing = |l: &Line, axis: usize, at: i32| {
         let swap = |p: (i32, i32)| if axis == 0 { p } else { (p.1, p.0) };
@@ -326,7 +326,7 @@ fn contour_lines_meet_across_tile_edges_in_every_crs() {
 /// the served tiles.
 #[test]
 fn contour_lines_continue_across_tile_edges_at_their_heights() {
-    use terrastream_views::mvt::{Value, decode};
+    use terrastream_views::mvt::decode;
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
     tamalpais(work);
@@ -350,10 +350,7 @@ fn contour_lines_continue_across_tile_edges_at_their_heights() {
         decode(&body).unwrap()
     };
     let (west, east) = (tile(x), tile(x + 1));
-    let ele = |l: &terrastream_views::mvt::Line| match l.properties[0].1 {
-        Value::Number(n) => n,
-        Value::Bool(_) => f64::NAN,
-    };
+    let ele = |l: &terrastream_views::mvt::Line| l.properties[0].1.number().unwrap_or(f64::NAN);
     let mut matched = 0;
     for line in &west {
         for y_west in crossings(&line.points, 4096) {
@@ -496,7 +493,7 @@ fn distance_to(p: (f64, f64), line: &[(f64, f64)]) -> f64 {
 #[test]
 fn contour_tiles_are_traced_on_the_archives_samples_at_every_zoom() {
     use terrastream_views::contours::{ContourOptions, contour_tile, tile_grid};
-    use terrastream_views::mvt::{Value, decode};
+    use terrastream_views::mvt::decode;
     let dir = tempfile::tempdir().unwrap();
     let work = dir.path();
     tamalpais(work);
@@ -514,13 +511,7 @@ fn contour_tiles_are_traced_on_the_archives_samples_at_every_zoom() {
         }
         let options = ContourOptions { interval: Some(50.0), ..Default::default() };
         let lines = decode(&contour_tile(&reader, tile, options, None).unwrap().unwrap()).unwrap();
-        let heights: Vec<f64> = lines
-            .iter()
-            .filter_map(|l| match l.properties[0].1 {
-                Value::Number(n) => Some(n),
-                Value::Bool(_) => None,
-            })
-            .collect();
+        let heights: Vec<f64> = lines.iter().filter_map(|l| l.properties[0].1.number()).collect();
         assert!(!heights.is_empty(), "zoom {z}: no line");
         assert!(heights.iter().all(|h| h % 50.0 == 0.0), "zoom {z}: {heights:?}");
         // Mt Tamalpais' summit is 784 m: a line at 750 m goes round it at every zoom.

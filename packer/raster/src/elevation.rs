@@ -7,9 +7,7 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, Georeference};
 use super::geotiff::{GeoTags, gdal_nodata, gdal_statistics};
 use super::memory::Raster;
 use super::png::{png_header, png_rows};
-use super::tiff::{
-    TiffChunks, open_input_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_mapped, tiff_rows_ranged,
-};
+use super::tiff::{TiffChunks, open_input_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_mapped};
 use super::worldfile::read_sidecar;
 use super::{ElevationSource, Sniffed, range_of_rows, sniff};
 use crate::error::{Error, Result};
@@ -274,14 +272,6 @@ impl ElevationSource for ElevationFile {
         }
         let wanted = rows.start as usize..rows.end as usize;
         tiff_rows_in(&self.path, 1, wanted, &|samples: &mut [f32]| self.heights(samples), row)
-    }
-
-    fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut crate::RangedRow<'_>) -> Result<()> {
-        if self.png {
-            return self.rows_in(rows, &mut |r| row(r, crate::min_max(r)));
-        }
-        let wanted = rows.start as usize..rows.end as usize;
-        tiff_rows_ranged(&self.path, wanted, &|samples: &mut [f32]| self.heights(samples), row)
     }
 
     fn rows_mapped(

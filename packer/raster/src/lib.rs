@@ -74,20 +74,12 @@ pub trait ElevationSource: Sync {
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         rows_window(rows, |r| self.rows(r), row)
     }
-    /// [`ElevationSource::rows_in`], each row with its lowest and highest height
-    /// (infinities reversed for none): what checks every row against a height range.
-    /// Sources that decode rows on several threads find it there; by default it is found
-    /// as each row is handed on.
-    ///
-    /// # Errors
-    /// As [`ElevationSource::rows`].
-    fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut RangedRow<'_>) -> Result<()> {
-        self.rows_in(rows, &mut |r| row(r, min_max(r)))
-    }
-    /// [`ElevationSource::rows_ranged`], each row handed over as `map` makes it (as it is,
-    /// without one): sources that make rows on several threads map them there, so the
-    /// thread the rows are handed to does not (a resampling, a copy). The range is the
-    /// source row's.
+    /// [`ElevationSource::rows_in`], each row handed over as `map` makes it (as it is,
+    /// without one), with the source row's lowest and highest height (infinities reversed
+    /// for none: what checks every row against a height range). Sources that make rows on
+    /// several threads find both there, so the thread the rows are handed to does not
+    /// read them again (a resampling, a copy, the check); by default they are found as
+    /// each row is handed on.
     ///
     /// # Errors
     /// As [`ElevationSource::rows`].
@@ -177,10 +169,6 @@ pub(crate) fn rows_window<T>(
     if ended { Ok(()) } else { result }
 }
 
-/// What [`ElevationSource::rows_ranged`] calls with each row of heights and its lowest and
-/// highest height.
-pub type RangedRow<'a> = dyn FnMut(&[f32], (f32, f32)) -> Result<()> + 'a;
-
 /// What [`ElevationSource::rows_mapped`] makes of each row (a resampling).
 pub type RowMap<'a> = dyn Fn(&[f32]) -> Vec<f32> + Sync + 'a;
 
@@ -256,10 +244,10 @@ impl<'a> KnownRange<'a> {
         &'r self,
         first: u32,
         row: &'r mut dyn FnMut(&[f32]) -> Result<()>,
-    ) -> impl FnMut(&[f32], (f32, f32)) -> Result<()> + 'r {
+    ) -> impl FnMut(&[f32]) -> Result<()> + 'r {
         let mut at = first;
-        move |r: &[f32], range: (f32, f32)| {
-            self.check(at, r, range)?;
+        move |r: &[f32]| {
+            self.check(at, r, min_max(r))?;
             at = at.saturating_add(1);
             row(r)
         }
@@ -312,11 +300,11 @@ impl ElevationSource for KnownRange<'_> {
         self.source.vertical_datum()
     }
     fn rows(&self, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
-        self.source.rows_ranged(0..self.source.size().1, &mut self.checked(0, row))
+        self.source.rows(&mut self.checked(0, row))
     }
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         let first = rows.start;
-        self.source.rows_ranged(rows, &mut self.checked(first, row))
+        self.source.rows_in(rows, &mut self.checked(first, row))
     }
     fn rows_mapped(&self, rows: std::ops::Range<u32>, map: Option<&RowMap<'_>>, row: &mut MappedRow<'_>) -> Result<()> {
         let mut at = rows.start;

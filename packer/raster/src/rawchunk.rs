@@ -382,9 +382,7 @@ mod tests {
 
     use tiff::encoder::{TiffEncoder, colortype};
 
-    use super::super::tiff::{
-        TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_mapped, tiff_rows_ranged,
-    };
+    use super::super::tiff::{TiffChunks, open_tiff, samples_f32, tiff_rows, tiff_rows_in, tiff_rows_mapped};
 
     fn gdal_translate(args: &[&str], from: &Path, to: &Path) -> bool {
         match Command::new("gdal_translate").arg("-q").args(args).arg(from).arg(to).status() {
@@ -489,9 +487,9 @@ mod tests {
         }
     }
 
-    /// `tiff_rows_ranged` of `path` (some samples made no data where they are decoded, a
-    /// window of rows): the rows `tiff_rows_in` gives, each with its own lowest and
-    /// highest height.
+    /// `tiff_rows_mapped` of `path` (some samples made no data where they are decoded, a
+    /// window of rows): without a map, the rows `tiff_rows_in` gives, each with its own
+    /// lowest and highest height; with one, each row as it maps it.
     fn rows_come_with_their_ranges(path: &Path, case: usize) {
         let prepare = |s: &mut [f32]| s.iter_mut().filter(|v| v.rem_euclid(5.0) == 0.0).for_each(|v| *v = f32::NAN);
         for wanted in [0..usize::MAX, 3..40] {
@@ -501,8 +499,8 @@ mod tests {
                 Ok(())
             })
             .unwrap();
-            tiff_rows_ranged(path, wanted.clone(), &prepare, &mut |row, range| {
-                ranged.push((row.to_vec(), range));
+            tiff_rows_mapped(path, wanted.clone(), &prepare, None, &mut |row, range| {
+                ranged.push((row, range));
                 Ok(())
             })
             .unwrap();

@@ -268,22 +268,10 @@ pub(super) fn tiff_rows_in(
     rows_of_chunks(path, channels, wanted, prepare, false, None, &mut |r, _, _| row(r))
 }
 
-/// [`tiff_rows_in`] of heights, each row with its lowest and highest height (infinities
-/// reversed for none), found where its samples were decoded, in parallel: the thread that
-/// hands the rows on does not read them again to check them.
-pub(super) fn tiff_rows_ranged(
-    path: &Path,
-    wanted: std::ops::Range<usize>,
-    prepare: &(dyn Fn(&mut [f32]) + Sync),
-    row: &mut crate::RangedRow<'_>,
-) -> Result<()> {
-    rows_of_chunks(path, 1, wanted, prepare, true, None, &mut |r, _, range| {
-        row(r, range.unwrap_or_else(|| crate::min_max(r)))
-    })
-}
-
-/// [`tiff_rows_ranged`], each row handed over as `map` makes it from the row (as it is,
-/// without one), `map` run where the rows are decoded, in parallel.
+/// [`tiff_rows_in`] of heights, each row handed over as `map` makes it from the row (as it
+/// is, without one), with the row's lowest and highest height (infinities reversed for
+/// none): both found where the rows are decoded, in parallel, so the thread that hands
+/// the rows on does not read them again.
 pub(super) fn tiff_rows_mapped(
     path: &Path,
     wanted: std::ops::Range<usize>,

@@ -913,13 +913,7 @@ mod tests {
             .collect();
         let to_tile = ToTile::Affine { offset: 0.5 - MARGIN as f64, scale: 16.0 };
         let lines = trace(&heights, (span, span), &to_tile, 100.0, 5);
-        let levels: Vec<f64> = lines
-            .iter()
-            .filter_map(|l| match l.properties[0].1 {
-                Value::Number(n) => Some(n),
-                Value::Bool(_) => None,
-            })
-            .collect();
+        let levels: Vec<f64> = lines.iter().filter_map(|l| l.properties[0].1.number()).collect();
         // Rings of radius 10 to 130 samples lie inside the tile and its buffer; each once.
         for level in [900.0, 800.0, 700.0] {
             assert_eq!(levels.iter().filter(|&&l| l == level).count(), 1, "{level}: {levels:?}");

@@ -19,6 +19,17 @@ pub enum Value {
     Bool(bool),
 }
 
+impl Value {
+    /// The number, if it is one.
+    #[must_use]
+    pub fn number(self) -> Option<f64> {
+        match self {
+            Value::Number(n) => Some(n),
+            Value::Bool(_) => None,
+        }
+    }
+}
+
 /// The tile: one layer `name` of `lines`, `extent` units a side.
 pub fn encode(name: &str, extent: u32, lines: &[Line]) -> Vec<u8> {
     let mut keys: Vec<&str> = vec![];

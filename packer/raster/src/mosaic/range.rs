@@ -188,9 +188,6 @@ impl ElevationSource for Mosaic<Heights> {
     fn rows_in(&self, rows: std::ops::Range<u32>, row: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
         self.make_rows(rows, row)
     }
-    fn rows_ranged(&self, rows: std::ops::Range<u32>, row: &mut crate::RangedRow<'_>) -> Result<()> {
-        self.make_rows_with(rows, &crate::min_max, &mut |r, range| row(&r, range))
-    }
     fn rows_mapped(
         &self,
         rows: std::ops::Range<u32>,
