@@ -548,7 +548,9 @@ fn imagery_added_by_update_equals_a_run_with_every_picture() {
 }
 
 /// A collection tiled in shards (`tile --shard I/N`, every shard given every input) and
-/// merged: the same tiles, byte for byte, as one run, and the same partial levels.
+/// merged: the same tiles, byte for byte, as one run, and the same partial levels; split
+/// at the base (the merge needs only the shards) and finer (the merge needs the inputs
+/// too, and says so; by default where the base has fewer rows of tiles than shards).
 #[test]
 fn shards_of_a_collection_merge_into_the_single_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -557,7 +559,7 @@ fn shards_of_a_collection_merge_into_the_single_run() {
     let mut shards = vec![];
     for i in 0..3 {
         let spec = format!("{i}/3");
-        shards.push(tile(d, &format!("s{i}.tspack"), &[BASE, PATCH], &["--shard", &spec]));
+        shards.push(tile(d, &format!("s{i}.tspack"), &[BASE, PATCH], &["--shard", &spec, "--split-lod", "3"]));
     }
     let merged = d.join("merged.tspack");
     let mut args = vec!["merge"];
@@ -572,6 +574,62 @@ fn shards_of_a_collection_merge_into_the_single_run() {
     assert_eq!(partial(&merged), partial(&whole));
     let held: Vec<usize> = shards.iter().map(|s| tiles_of(s).len()).collect();
     eprintln!("shards hold {held:?} tiles; the single run {}", tiles_of(&whole).len());
+
+    // Split finer than the base (LOD 3): the shards hold LOD 0 to K in their bands, and
+    // the merge makes the levels between from their LOD-K tiles and the run's inputs.
+    let inputs: Vec<String> = [BASE, PATCH].iter().map(|p| repo().join(p).to_str().unwrap().to_owned()).collect();
+    for split in ["0", "2", "default"] {
+        let mut shards = vec![];
+        for i in 0..4 {
+            let (spec, name) = (format!("{i}/4"), format!("k{split}-s{i}.tspack"));
+            let mut extra = vec!["--shard", &spec];
+            if split != "default" {
+                extra.extend(["--split-lod", split]);
+            }
+            shards.push(tile(d, &name, &[BASE, PATCH], &extra));
+        }
+        let k = Reader::open_mmap(&shards[0]).unwrap().metadata().shard.as_ref().unwrap().split_lods[0];
+        assert!(k < 3, "split {split}: LOD {k}, finer than the base");
+        let held: Vec<usize> = shards.iter().map(|s| tiles_of(s).len()).collect();
+        eprintln!("split at LOD {k}: shards hold {held:?} tiles");
+        for s in &shards {
+            let above = tiles_of(s).keys().filter(|key| key.lod() > k).count();
+            assert_eq!(above, 0, "{}: no tile above the split", s.display());
+        }
+        let merged = d.join(format!("merged-{split}.tspack"));
+        let mut args = vec!["merge"];
+        args.extend(shards.iter().map(|s| s.to_str().unwrap()));
+        args.extend(["-o", merged.to_str().unwrap()]);
+        // Without the inputs: refused, saying what to give.
+        let out = oracles::run_in(&args, d);
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && said.contains("--elevation") && said.contains("base (LOD 3)"), "{said}");
+        assert!(!merged.exists(), "nothing written");
+        // With other inputs than the run's: refused.
+        let mut wrong = args.clone();
+        wrong.extend(["--elevation", &inputs[0]]);
+        let out = oracles::run_in(&wrong, d);
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && said.contains("other levels"), "{said}");
+        args.push("--elevation");
+        args.extend(inputs.iter().map(String::as_str));
+        ok(&args, d);
+        assert!(tiles_of(&merged) == tiles_of(&whole), "split at LOD {split}: the merge is the single run's tiles");
+        assert_eq!(partial(&merged), partial(&whole));
+        // Published as a manifest: the coarse archive and the shards hold the run's tiles.
+        let (coarse, manifest) = (d.join(format!("coarse-{split}.tspack")), d.join(format!("m-{split}.json")));
+        let mut args = vec!["merge", "--manifest", manifest.to_str().unwrap(), "-o", coarse.to_str().unwrap()];
+        args.extend(shards.iter().map(|s| s.to_str().unwrap()));
+        args.push("--elevation");
+        args.extend(inputs.iter().map(String::as_str));
+        ok(&args, d);
+        let mut all = tiles_of(&coarse);
+        for s in &shards {
+            all.extend(tiles_of(s));
+        }
+        assert!(all == tiles_of(&whole), "split at LOD {split}: the manifest's archives hold the single run's tiles");
+        ok(&["verify", manifest.to_str().unwrap()], d);
+    }
 }
 
 /// A collection's planned run, as the cluster Job runs it: the plan, from the inputs'

@@ -76,6 +76,7 @@ fn publish(split_lod: u8) -> Published {
         &folder.join("coarse.tspack"),
         &folder.join("tamalpais.json"),
         None,
+        terrastream_tiler::RunInputs::default(),
         &Silent::default(),
     )
     .unwrap();

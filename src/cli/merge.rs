@@ -33,6 +33,15 @@ pub struct MergeArgs {
     /// means. With `--manifest`, the coarse archive's water tiles.
     #[arg(long)]
     water: Option<PathBuf>,
+    /// The run's elevation inputs, as `tile` took them: needed by the shards of a
+    /// collection split finer than its base (the merge makes the levels from the split up
+    /// to the base from their tiles and the inputs as deep).
+    #[arg(long, num_args = 1..)]
+    elevation: Vec<PathBuf>,
+    /// The run's imagery, as `--elevation` (a collection of images split finer than its
+    /// base).
+    #[arg(long, num_args = 1..)]
+    texture: Vec<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -44,14 +53,18 @@ enum PreferArg {
 }
 
 pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let MergeArgs { inputs, output, prefer, manifest, water } = args;
+    let MergeArgs { inputs, output, prefer, manifest, water, elevation, texture } = args;
     super::make_parent(&output)?;
+    let (elevation, texture) =
+        (terrastream_tiler::expand_inputs(&elevation)?, terrastream_tiler::expand_inputs(&texture)?);
+    let run = terrastream_tiler::RunInputs { elevation: &elevation, texture: &texture };
     if let Some(manifest) = manifest {
         // The coarse archive of an earlier run in the shards' folder is not an input.
         let earlier = std::fs::canonicalize(&output).ok();
         let mut inputs = archives_in(&inputs)?;
         inputs.retain(|p| earlier.is_none() || std::fs::canonicalize(p).ok() != earlier);
-        let summary = terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, water.as_deref(), progress)?;
+        let summary =
+            terrastream_tiler::merge_to_manifest(&inputs, &output, &manifest, water.as_deref(), run, progress)?;
         progress.finish();
         println!(
             "{}: {} archives ({} tiles above the split LOD made into {}, {} bytes)",
@@ -69,7 +82,7 @@ pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
         PreferArg::Pixels => terrastream_tiler::Prefer::Pixels,
     };
     let (summary, water_made) =
-        terrastream_tiler::merge_with_water(&inputs, &output, prefer, water.as_deref(), progress)?;
+        terrastream_tiler::merge_with_water(&inputs, &output, prefer, water.as_deref(), run, progress)?;
     progress.finish();
     if let (Some(mask), Some(w)) = (&water, water_made) {
         println!(

@@ -32,7 +32,7 @@ mod tile;
 mod water;
 
 pub use collection::{
-    Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, PlannedCollection, SparseLevel,
+    Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, PlannedCollection, RunInputs, SparseLevel,
     collection_shard_plan, depth_of, tile_collection,
 };
 pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};

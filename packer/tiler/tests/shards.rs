@@ -295,8 +295,15 @@ fn a_manifest_of_shards_routes_every_tile_of_the_whole_run() {
     let published = dir.path().join("pub");
     std::fs::create_dir(&published).unwrap();
     let (coarse, manifest_path) = (published.join("coarse.tspack"), published.join("t.json"));
-    let summary =
-        terrastream_tiler::merge_to_manifest(&parts, &coarse, &manifest_path, None, &Silent::default()).unwrap();
+    let summary = terrastream_tiler::merge_to_manifest(
+        &parts,
+        &coarse,
+        &manifest_path,
+        None,
+        terrastream_tiler::RunInputs::default(),
+        &Silent::default(),
+    )
+    .unwrap();
     let manifest = Manifest::from_json(&std::fs::read(&manifest_path).unwrap()).unwrap();
     assert_eq!(manifest, summary.manifest);
     assert_eq!(manifest.metadata, expected_meta);
@@ -321,9 +328,15 @@ fn a_manifest_of_shards_routes_every_tile_of_the_whole_run() {
     let reachable: usize = held.iter().map(BTreeMap::len).sum();
     assert_eq!(reachable, expected.len(), "every archive's tiles, each once");
     // Not a complete shard set: refused, nothing written.
-    let e =
-        terrastream_tiler::merge_to_manifest(&[whole], &coarse, &dir.path().join("x.json"), None, &Silent::default())
-            .unwrap_err();
+    let e = terrastream_tiler::merge_to_manifest(
+        &[whole],
+        &coarse,
+        &dir.path().join("x.json"),
+        None,
+        terrastream_tiler::RunInputs::default(),
+        &Silent::default(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("complete set of shards"), "{e}");
     assert!(!dir.path().join("x.json").exists());
 }

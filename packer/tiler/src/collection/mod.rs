@@ -19,9 +19,11 @@
 //! So tiles, bytes and work follow the data: a continent at 1 km with a valley at 2 m
 //! makes the continent's levels and the valley's, not the continent at 2 m.
 
+pub(crate) mod merge;
 mod shards;
 pub(crate) mod update;
 
+pub use merge::RunInputs;
 pub use shards::{PlannedCollection, collection_shard_plan};
 
 use std::collections::{HashSet, VecDeque};
@@ -190,11 +192,13 @@ impl Collection {
     }
 
     /// The samples made from the inputs over LOD-0 rows `rows`: each input's area there
-    /// at the level it reaches (the work a shard of those rows does).
+    /// at the level it reaches (the work a shard of those rows split at LOD `split` does:
+    /// the inputs deeper than it are the merge's).
     #[must_use]
-    pub fn work(&self, rows: std::ops::Range<u32>) -> f64 {
+    pub fn work(&self, rows: std::ops::Range<u32>, split: u8) -> f64 {
         let (start, end) = (i64::from(rows.start), i64::from(rows.end));
         (self.inputs.iter())
+            .filter(|i| i.depth <= split)
             .map(|i| {
                 let down = (i.rows.1 + 1).min(end) - i.rows.0.max(start);
                 let across = i.columns.1 - i.columns.0 + 1;
@@ -508,6 +512,29 @@ pub(crate) struct Override<S = f32> {
     rows: Vec<Vec<S>>,
 }
 
+impl<S: Pixel> Override<S> {
+    /// Keeps only the means whose first sample lies in a tile `level` holds (the rest: no
+    /// data), so that what the coarser level takes is what the archive stores: a merge of
+    /// shards or an update can take it from the stored tiles alone.
+    fn keep_held(&mut self, level: &SparseLevel, res: u32) {
+        let res = res.max(1) as usize;
+        for (j, row) in self.rows.iter_mut().enumerate() {
+            let ty = u32::try_from(2 * (self.y0 + j) / res).unwrap_or(u32::MAX);
+            let mut at = 0;
+            while at < row.len() {
+                // The run of means whose first samples lie in one tile.
+                let tx = 2 * (self.x0 + at) / res;
+                let end = ((tx + 1) * res).div_ceil(2) - self.x0;
+                let run = at..end.min(row.len());
+                if !level.tiles.contains(&(u32::try_from(tx).unwrap_or(u32::MAX), ty)) {
+                    row[run.clone()].fill(S::NONE);
+                }
+                at = run.end;
+            }
+        }
+    }
+}
+
 /// The collections of one run: of the heights, of the imagery, or both.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Collections<'c> {
@@ -671,7 +698,8 @@ fn cut_heights(
         open_heights(&sub)
     };
     let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
-    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress, part)?;
+    let cut = part.map_or(Cut::Whole, Cut::Shard);
+    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress, cut)?;
     heights.finish(metadata, Vec::new(), spool)
 }
 
@@ -697,13 +725,36 @@ fn cut_imagery(
     let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
         Ok(vec![(key, crate::encode::encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
     };
-    cut_levels(c, metadata, index, &open, &encode_tile, None, folder, spool, progress, part)
+    cut_levels(
+        c,
+        metadata,
+        index,
+        &open,
+        &encode_tile,
+        None,
+        folder,
+        spool,
+        progress,
+        part.map_or(Cut::Whole, Cut::Shard),
+    )
 }
 
-/// Cuts collection `c`'s levels of layer `index`: those below its base from the inputs
-/// `open` opens on each rectangle's grid, and the base's pyramid over the whole grid.
+/// Which of a collection's levels a cut makes.
+pub(crate) enum Cut<'p, S> {
+    /// Every level (a whole run).
+    Whole,
+    /// A shard's band up to its split LOD.
+    Shard(&'p ShardPart),
+    /// The levels above `lod` (a merge of shards split there), from that level's means
+    /// as its tiles store them ([`Override::of_stored`]).
+    Above(u8, Vec<Override<S>>),
+}
+
+/// Cuts collection `c`'s levels of layer `index` (those `cut` says): those below its base
+/// from the inputs `open` opens on each rectangle's grid, and the base's pyramid over the
+/// whole grid.
 #[expect(clippy::too_many_arguments, reason = "the collection, how to read and encode, and where tiles go")]
-fn cut_levels<K: MosaicKind>(
+pub(crate) fn cut_levels<K: MosaicKind>(
     c: &Collection,
     metadata: &Metadata,
     index: u8,
@@ -713,11 +764,16 @@ fn cut_levels<K: MosaicKind>(
     folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
-    part: Option<&ShardPart>,
+    cut: Cut<'_, K::Value>,
 ) -> Result<()>
 where
     K::Value: Pixel,
 {
+    let (part, from) = match cut {
+        Cut::Whole => (None, None),
+        Cut::Shard(p) => (Some(p), None),
+        Cut::Above(lod, means) => (None, Some((lod, means))),
+    };
     let phases = crate::phases::Phases::start();
     let layer = &metadata.layers[usize::from(index)];
     progress.start("tile", c.cut_tiles(metadata));
@@ -735,8 +791,13 @@ where
         });
         Ok(LevelSources { fine, coarse })
     };
-    let overrides = make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, part)?;
+    let overrides =
+        make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, part, from)?;
     phases.mark(&format!("layer {index}: the levels below the base made"));
+    if part.is_some_and(|p| p.split < c.base) {
+        // A shard split below the base: the base is the merge's.
+        return Ok(());
+    }
 
     // The base: every level from here up over the whole grid, a pyramid as a single run's
     // (a shard's band of it: made from the inputs its rows read).
@@ -758,7 +819,7 @@ where
 /// up to its split LOD, and the base's window (LOD-0 rows, as [`crate::shard`] cuts it).
 #[derive(Clone, Debug)]
 pub(crate) struct ShardPart {
-    /// The split LOD (at least the collection's base).
+    /// The split LOD (below the collection's base: the levels above are the merge's).
     pub(crate) split: u8,
     /// LOD-0 tile rows held: `[start, end)`.
     pub(crate) tile_rows: [u32; 2],
@@ -791,8 +852,12 @@ fn needed_rects(c: &Collection, res: u32, part: &ShardPart) -> Vec<Vec<[u32; 4]>
     // Sample rows (of the level above) whose values the level above needs: the base's
     // window, then each chosen rectangle's rows.
     let base_rows = part.window.rows.start as u64 >> c.base..(part.window.rows.end as u64).div_ceil(1 << c.base);
-    let mut wanted: Vec<std::ops::Range<u64>> = vec![base_rows];
+    // Split below the base: the levels above the split are the merge's.
+    let mut wanted: Vec<std::ops::Range<u64>> = if part.split >= c.base { vec![base_rows] } else { vec![] };
     for (i, level) in c.levels.iter().enumerate().rev() {
+        if level.lod > part.split {
+            continue;
+        }
         let res64 = u64::from(res);
         let band = part.rows_at(level.lod);
         let mut rows: Vec<std::ops::Range<u64>> =
@@ -833,8 +898,9 @@ pub(crate) type QuantizeRow<'a, S> = dyn Fn(&mut [S]) + Sync + 'a;
 
 /// Makes `c`'s levels below its base, finest first, into `spool` (tiles `c` holds, with
 /// the height ranges gathered by `heights`): each rectangle from what `sources` opens for
-/// it, and the finer level's means. Returns the last level's rectangles halved: what the
-/// base takes where they lie.
+/// it, and the finer level's means. With `from` (a level and its means), only the levels
+/// above it, from those means. Returns the last level's rectangles halved: what the base
+/// takes where they lie.
 #[expect(clippy::too_many_arguments, reason = "the collection, its encoding and where tiles go")]
 pub(crate) fn make_levels<'s, K: MosaicKind>(
     c: &Collection,
@@ -847,15 +913,22 @@ pub(crate) fn make_levels<'s, K: MosaicKind>(
     progress: &dyn Progress,
     sources: &OpenLevel<'_, 's, K>,
     part: Option<&ShardPart>,
+    from: Option<(u8, Vec<Override<K::Value>>)>,
 ) -> Result<Vec<Override<K::Value>>>
 where
     K::Value: Pixel,
 {
     let res = metadata.layers[usize::from(index)].tile_resolution;
     let needed = part.map(|p| needed_rects(c, res, p));
-    let mut overrides: Vec<Override<K::Value>> = Vec::new();
+    let (after, mut overrides) = match from {
+        Some((lod, means)) => (Some(lod), means),
+        None => (None, Vec::new()),
+    };
     for (l, level) in c.levels.iter().enumerate() {
         let lod = level.lod;
+        if after.is_some_and(|a| lod <= a) {
+            continue;
+        }
         let mut next: Vec<Override<K::Value>> = Vec::new();
         let rects = needed.as_ref().map_or(&level.rects, |n| &n[l]);
         for &rect in rects {
@@ -950,6 +1023,7 @@ where
                 let global = TileKey::new(index, lod, rect[0] + key.x(), rect[1] + key.y())?;
                 spool.add(metadata, global, &bytes)?;
             }
+            halved.keep_held(level, res);
             next.push(halved);
             tracing::debug!(lod, ?rect, "level of the collection made over a rectangle");
         }

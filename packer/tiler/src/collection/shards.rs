@@ -78,14 +78,15 @@ impl Collection {
                 read.extend(fine.into_iter().chain(below));
             }
         }
-        read.extend(self.base_inputs(&self.base_window(Some(part), num_lods)));
+        if part.split >= self.base {
+            read.extend(self.base_inputs(&self.base_window(Some(part), num_lods)));
+        }
         self.inputs.iter().map(|i| &i.path).filter(|p| read.contains(*p)).cloned().collect()
     }
 }
 
-/// Shard `spec` of `collections`' run on `planned`: its split LOD raised to the
-/// collections' bases (the merge makes the levels above from the shards' tiles, as for
-/// any run), its record, every layer's window, and every layer's bands.
+/// Shard `spec` of `collections`' run on `planned`: its split LOD ([`split_lod`]), its
+/// record, every layer's window, and every layer's bands.
 pub(crate) fn windows(
     collections: Collections<'_>,
     planned: &Plan,
@@ -95,18 +96,28 @@ pub(crate) fn windows(
 ) -> Result<(Shard, Vec<Window>, Vec<Vec<u32>>)> {
     let split = split_lod(collections, planned, &spec);
     spec.split_lod = Some(split);
-    // Bands are whole rows of the split level's tiles, which is no finer than the bases
-    // (said once: where the bands are cut, not where a plan gives them).
+    // Bands are whole rows of the split level's tiles (said once: where the bands are
+    // cut, not where a plan gives them).
     if let Some(layer) = planned.metadata.layers.first() {
         let rows = layer.num_y_tiles.div_ceil(1 << split.min(layer.num_lods.saturating_sub(1)));
         if rows < spec.count && spec.cuts.is_none() {
             tracing::warn!(
-                "{} shards of a collection split at LOD {split}, no finer than its base: its {rows} rows of tiles leave \
-                 {} shards nothing to make (docs/tiling.md, \"Shards\")",
+                "{} shards of a collection split at LOD {split}: its {rows} rows of tiles leave {} shards nothing to \
+                 make (a finer `--split-lod` cuts more bands; docs/tiling.md, \"Shards\")",
                 spec.count,
                 spec.count - rows
             );
         }
+    }
+    if spec.cuts.is_none()
+        && let Some(base) = bases(collections).filter(|&b| split < b)
+    {
+        tracing::info!(
+            "shards split at LOD {split}, finer than the collection's base (LOD {base}): `terrastream merge` of them \
+             makes the levels from LOD {} up from their tiles and the inputs as deep (give it those with \
+             `--elevation`/`--texture`)",
+            split + 1
+        );
     }
     let samples = crate::shard::data_weight(planned, elevation, texture);
     // Balanced by work: each input's samples at the level it reaches (a survey 2^d times
@@ -114,18 +125,39 @@ pub(crate) fn windows(
     let kinds: Vec<LayerKind> = planned.metadata.layers.iter().map(|l| l.kind).collect();
     let of = |kind: LayerKind| [collections.heights, collections.imagery].into_iter().flatten().find(|c| c.makes(kind));
     let weight = |index: usize, rows: std::ops::Range<u32>| match kinds.get(index).and_then(|&k| of(k)) {
-        Some(c) => c.work(rows),
+        Some(c) => c.work(rows, split),
         None => samples(index, rows),
     };
     crate::shard::windows_and_cuts(planned, &spec, &weight)
 }
 
-/// The split LOD of shard `spec` of `collections`' run: the one asked for (or the
-/// default), no finer than the collections' bases.
+/// The collections' coarsest base.
+fn bases(collections: Collections<'_>) -> Option<u8> {
+    [collections.heights, collections.imagery].into_iter().flatten().map(|c| c.base).max()
+}
+
+/// The split LOD of shard `spec` of `collections`' run: the one asked for; by default the
+/// run's default raised to the collections' bases, where the merge needs only the shards
+/// (the levels above are every tile's children's means), unless the base has fewer rows of
+/// tiles than there are shards: then the default itself, finer, so that every shard has
+/// work (the merge then makes the levels up to the base from the inputs as deep). Tiles of
+/// an odd number of samples keep the bases (a mean there spans two tiles, which a merge
+/// does not read together).
 fn split_lod(collections: Collections<'_>, planned: &Plan, spec: &ShardSpec) -> u8 {
-    let least = [collections.heights, collections.imagery].into_iter().flatten().map(|c| c.base).max();
+    let least = bases(collections).unwrap_or(0);
+    let odd = planned.metadata.layers.iter().any(|l| l.tile_resolution % 2 == 1);
     let default = crate::shard::default_split(planned, spec.count);
-    spec.split_lod.unwrap_or(default).max(least.unwrap_or(0))
+    let rows_at_base = planned
+        .metadata
+        .layers
+        .first()
+        .map_or(0, |l| l.num_y_tiles.div_ceil(1 << least.min(l.num_lods.saturating_sub(1))));
+    match spec.split_lod {
+        Some(k) if !odd => k,
+        Some(k) => k.max(least),
+        None if rows_at_base < spec.count && !odd => default,
+        None => default.max(least),
+    }
 }
 
 /// Collection `c`'s part of a shard (None for a whole run): its layer's band and window.

@@ -54,7 +54,7 @@ impl<S: Pixel> CoarseRows<S> for StoredLevel<'_, S> {
 }
 
 /// A stored tile's payload (decompressed) -> its samples, borders included.
-type Decode<'a, S> = dyn Fn(TileKey, &[u8]) -> Result<Vec<S>> + Send + Sync + 'a;
+pub(crate) type Decode<'a, S> = dyn Fn(TileKey, &[u8]) -> Result<Vec<S>> + Send + Sync + 'a;
 
 /// An archive's tiles of one layer, decoded on demand.
 pub(crate) struct Stored<'a, S> {
@@ -193,7 +193,7 @@ pub(crate) fn update_collection(
 
 /// A collection layer's grid, as the archive records it: the level-0 grid in its CRS, the
 /// CRS, and the layer's base level (the first that covers the grid).
-fn layer_grid(old: &Metadata, base: &Path, index: u8) -> Result<(GridSpec, String, u8)> {
+pub(crate) fn layer_grid(old: &Metadata, base: &Path, index: u8) -> Result<(GridSpec, String, u8)> {
     let bad = |why: String| Error::input(base, why);
     let layer = &old.layers[usize::from(index)];
     let extent = layer.extent.clone().ok_or_else(|| bad(format!("its {} layer records no extent", layer.name)))?;
@@ -459,8 +459,19 @@ impl Target<'_> {
             let level: Box<dyn CoarseRows<K::Value> + '_> = Box::new(level);
             Ok(LevelSources { fine, coarse: Some((level, shift, first)) })
         };
-        let overrides =
-            super::make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, None)?;
+        let overrides = super::make_levels(
+            c,
+            metadata,
+            index,
+            encode_tile,
+            quantize,
+            folder,
+            spool,
+            progress,
+            &sources_of,
+            None,
+            None,
+        )?;
 
         // The base level under them, and every level above, made again where they changed.
         let res = i64::from(layer.tile_resolution);

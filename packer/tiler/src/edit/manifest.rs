@@ -40,6 +40,7 @@ pub fn merge_to_manifest(
     coarse: &Path,
     manifest_path: &Path,
     water: Option<&Path>,
+    run: crate::RunInputs<'_>,
     progress: &dyn Progress,
 ) -> Result<ManifestSummary> {
     if let Some(mask) = water {
@@ -62,8 +63,9 @@ pub fn merge_to_manifest(
         None => warn_water_above_split(&prepared.metadata, &split_lods),
     }
     let folder = terrastream_pack::output_folder(manifest_path);
-    let mut spool = Spool::new(&terrastream_pack::output_folder(coarse))?;
-    prepared.reduce(&split_lods, &mut spool, progress)?;
+    let spools = terrastream_pack::output_folder(coarse);
+    let mut spool = Spool::new(&spools)?;
+    prepared.make_above(&split_lods, run, &inputs[0], &spools, &mut spool, progress)?;
     let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
     let mut writer = Writer::create(coarse, prepared.metadata.clone(), options)?;
     write(&mut writer, &prepared.readers, &BTreeMap::new(), spool.into_sorted()?, progress)?;

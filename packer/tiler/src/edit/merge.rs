@@ -28,6 +28,7 @@ use terrastream_format::{
 use terrastream_pack::progress::Progress;
 use terrastream_pack::{Appender, WriteSummary, Writer, WriterOptions, compress_heights};
 
+use crate::collection::RunInputs;
 use crate::edit::merged::{MergeLayer, MergedHeights, MergedTexture};
 use crate::edit::rederive::{LayerGrid, Remade, rederive};
 use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
@@ -97,7 +98,7 @@ pub fn merge(inputs: &[PathBuf], out: &Path, progress: &dyn Progress) -> Result<
 /// # Errors
 /// As [`merge`].
 pub fn merge_with(inputs: &[PathBuf], out: &Path, prefer: Prefer, progress: &dyn Progress) -> Result<MergeSummary> {
-    merge_with_water(inputs, out, prefer, None, progress).map(|(summary, _)| summary)
+    merge_with_water(inputs, out, prefer, None, RunInputs::default(), progress).map(|(summary, _)| summary)
 }
 
 /// [`merge_with`], then, with `water`, the merged archive's water layer made from that mask
@@ -112,6 +113,7 @@ pub fn merge_with_water(
     out: &Path,
     prefer: Prefer,
     water: Option<&Path>,
+    run: RunInputs<'_>,
     progress: &dyn Progress,
 ) -> Result<(MergeSummary, Option<WaterSummary>)> {
     if let Some(mask) = water {
@@ -125,9 +127,9 @@ pub fn merge_with_water(
     {
         let metadata = reader.metadata().clone();
         drop(reader);
-        merge_widened_as(inputs, out, prefer, None, Some(&metadata), water.is_some(), progress)?
+        merge_widened_as(inputs, out, prefer, None, Some(&metadata), water.is_some(), run, progress)?
     } else {
-        merge_widened_as(inputs, out, prefer, None, None, water.is_some(), progress)?
+        merge_widened_as(inputs, out, prefer, None, None, water.is_some(), run, progress)?
     };
     let water = water.map(|mask| crate::add_water(out, mask, out, progress)).transpose()?;
     Ok((summary, water))
@@ -152,6 +154,7 @@ pub(crate) fn warn_water_above_split(metadata: &Metadata, split_lods: &[u8]) {
 /// [`merge_with`], the terrain's height range widened to hold `heights` (an update's new
 /// heights, seen while tiling them); with `as_is`, as [`merge_in_place_as`]. `water_follows`: the
 /// output's water layer is made next (no warning that shards' water stops at their split).
+#[expect(clippy::too_many_arguments, reason = "the inputs, how to merge them, and what follows")]
 pub(crate) fn merge_widened_as(
     inputs: &[PathBuf],
     out: &Path,
@@ -159,28 +162,30 @@ pub(crate) fn merge_widened_as(
     heights: Option<(f32, f32)>,
     as_is: Option<&Metadata>,
     water_follows: bool,
+    run: RunInputs<'_>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
-    let Prepared { readers, mut metadata, shards, mut winners, conflicts } =
-        prepare_any(inputs, as_is.is_some(), progress)?;
-    widen(&mut metadata, heights);
+    let mut prepared = prepare_any(inputs, as_is.is_some(), progress)?;
+    widen(&mut prepared.metadata, heights);
     if let Some(m) = as_is {
-        metadata = m.clone();
+        prepared.metadata = m.clone();
     }
     let folder = terrastream_pack::output_folder(out);
     let mut spool = Spool::new(&folder)?;
     if as_is.is_some() {
         // The second input's tiles stand as they are.
-    } else if let Some(split_lods) = &shards {
-        reduce(&metadata, &readers, &winners, split_lods, &mut spool, progress)?;
+    } else if let Some(split_lods) = prepared.shards.clone() {
+        prepared.make_above(&split_lods, run, &inputs[0], &folder, &mut spool, progress)?;
         if !water_follows {
-            warn_water_above_split(&metadata, split_lods);
+            warn_water_above_split(&prepared.metadata, &split_lods);
         }
     } else {
-        for order in rederive_layers(&metadata, &readers, &winners, &conflicts, prefer, &mut spool)? {
+        let Prepared { readers, metadata, winners, conflicts, .. } = &mut prepared;
+        for order in rederive_layers(metadata, readers, winners, conflicts, prefer, &mut spool)? {
             winners.remove(&order);
         }
     }
+    let Prepared { readers, metadata, winners, conflicts, .. } = prepared;
     let made = spool.tiles() as u64;
     let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
     let mut writer = Writer::create(out, metadata.clone(), options)?;
@@ -345,8 +350,30 @@ pub(crate) struct Prepared {
 }
 
 impl Prepared {
-    /// Makes the levels above the split LODs into `spool` (see [`reduce`]).
-    pub(crate) fn reduce(&self, split_lods: &[u8], spool: &mut Spool, progress: &dyn Progress) -> Result<()> {
+    /// Makes the levels above the split LODs into `spool` (its files in `folder`): those
+    /// of a collection split below its base from the level's tiles and the run's inputs
+    /// (`run`; [`crate::collection::merge`]), the others from their children (see
+    /// [`reduce`]). `named`: the archive errors name.
+    pub(crate) fn make_above(
+        &self,
+        split_lods: &[u8],
+        run: RunInputs<'_>,
+        named: &Path,
+        folder: &Path,
+        spool: &mut Spool,
+        progress: &dyn Progress,
+    ) -> Result<()> {
+        let payload = |key: TileKey| payload(&self.metadata, &self.readers, &self.winners, key);
+        crate::collection::merge::make_above_split(
+            &self.metadata,
+            split_lods,
+            run,
+            &payload,
+            named,
+            folder,
+            spool,
+            progress,
+        )?;
         reduce(&self.metadata, &self.readers, &self.winners, split_lods, spool, progress)
     }
 }
@@ -710,7 +737,7 @@ fn reduce(
     for (index, layer) in metadata.layers.iter().enumerate() {
         let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
         let k = split_lods.get(usize::from(index)).copied().unwrap_or(0);
-        if k + 1 >= layer.num_lods {
+        if k + 1 >= layer.num_lods || crate::collection::merge::made_here(metadata, split_lods, usize::from(index)) {
             continue;
         }
         let res = layer.tile_resolution as usize;

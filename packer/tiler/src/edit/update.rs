@@ -310,7 +310,7 @@ fn merge_changes_as(
     let inputs = [base.to_path_buf(), made];
     let rewrite = |why: &str| {
         tracing::info!("{}: {why}: writing the archive anew", base.display());
-        merge_widened_as(&inputs, out, Prefer::Pixels, seen, as_is, false, progress)
+        merge_widened_as(&inputs, out, Prefer::Pixels, seen, as_is, false, crate::RunInputs::default(), progress)
     };
     if same_file(base, out) {
         return match merge_in_place_as(&inputs, base, Prefer::Pixels, seen, as_is, progress) {

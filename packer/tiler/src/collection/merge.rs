@@ -1,0 +1,245 @@
+//! Merging the shards of a collection split finer than its base (docs/tiling.md,
+//! "Shards"): the shards hold every level up to their split LOD K in their bands; the
+//! levels from K + 1 up are made here as a run with every input makes them, from the
+//! level-K tiles as stored (the means a coarser level takes where they lie: a run takes
+//! them only over the tiles it stores, so the stored tiles are all it needs) and the
+//! inputs as deep as those levels (the surveys between K and the base, and the base's).
+
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use terrastream_format::{LayerKind, Metadata, TileKey};
+use terrastream_pack::progress::Progress;
+
+use super::{Blend, Collection, Cut, Override};
+use crate::encode::{decode_heights, decode_texture, encode_texture, quantize_heights};
+use crate::error::{Error, Result};
+use crate::options::TextureFormat;
+use crate::pyramid::{Pixel, Spool, halve_rows};
+use crate::raster::{DatumName, GridSpec, Heights, Mosaic, MosaicKind};
+use crate::tile::HeightEncoder;
+
+/// A merged tile's payload (its compression undone), None where no shard holds it.
+pub(crate) type Payload<'a> = dyn Fn(TileKey) -> Result<Option<Vec<u8>>> + Sync + 'a;
+
+/// The inputs of the run whose shards are merged, as `tile` took them.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RunInputs<'a> {
+    /// `--elevation`.
+    pub elevation: &'a [PathBuf],
+    /// `--texture`.
+    pub texture: &'a [PathBuf],
+}
+
+/// A collection layer's base level, as `metadata` records it (the first that covers the
+/// grid): None for a layer of one resolution.
+pub(crate) fn recorded_base(metadata: &Metadata, index: usize) -> Option<u8> {
+    let extent = metadata.layers.get(index)?.extent.as_ref()?;
+    extent.partial.iter().map(|c| c.lod).max().map(|l| l + 1)
+}
+
+/// Whether the merge of shards split at `split_lods` makes layer `index`'s levels above
+/// the split here (a collection's layer, or its height ranges, split below its base).
+pub(crate) fn made_here(metadata: &Metadata, split_lods: &[u8], index: usize) -> bool {
+    let kind = metadata.layers[index].kind;
+    let of = match kind {
+        LayerKind::HeightRange => metadata.layers.iter().position(|l| l.kind == LayerKind::Elevation),
+        LayerKind::Elevation | LayerKind::Texture => Some(index),
+        _ => None,
+    };
+    of.is_some_and(|i| recorded_base(metadata, i).is_some_and(|b| split_lods.get(i).is_some_and(|&k| k < b)))
+}
+
+/// Makes the levels above the split of every collection layer of `metadata` split below
+/// its base ([`made_here`]) into `spool` (its files in `folder`), from the merged shards'
+/// tiles (`payload`) and the run's `inputs`. `named`: the archive errors name.
+///
+/// # Errors
+/// [`Error::Input`] naming `named` when such a layer's inputs are not given, or make
+/// other levels than the shards' run did (other inputs); the inputs' and the tiles'
+/// errors.
+#[expect(clippy::too_many_arguments, reason = "the shards, the inputs, and where errors and tiles go")]
+pub(crate) fn make_above_split(
+    metadata: &Metadata,
+    split_lods: &[u8],
+    inputs: RunInputs<'_>,
+    payload: &Payload<'_>,
+    named: &Path,
+    folder: &Path,
+    spool: &mut Spool,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    for (index, layer) in metadata.layers.iter().enumerate() {
+        if !matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture) || !made_here(metadata, split_lods, index) {
+            continue;
+        }
+        let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
+        let k = split_lods[usize::from(index)];
+        let (grid, crs, base) = super::update::layer_grid(metadata, named, index)?;
+        let texture = layer.kind == LayerKind::Texture;
+        let (flag, paths) = if texture { ("--texture", inputs.texture) } else { ("--elevation", inputs.elevation) };
+        if paths.is_empty() {
+            return Err(Error::input(
+                named,
+                format!(
+                    "its layer {:?} is a collection whose shards hold LOD 0 to {k}, finer than its base (LOD {base}): \
+                     the merge makes LOD {} up from their tiles and the run's inputs, so give it those ({flag} FILE…)",
+                    layer.name,
+                    k + 1
+                ),
+            ));
+        }
+        let stand = Stand { metadata, index, k, named, payload };
+        if texture {
+            let format = TextureFormat::decodable(layer.format).ok_or_else(|| Error::Pyramid {
+                layer: index,
+                lod: k,
+                reason: format!("{:?} tiles are lossy: shards need png or webp", layer.format),
+            })?;
+            let open = |paths: Vec<PathBuf>, grid: GridSpec| super::open_images(paths, grid, &crs, false);
+            let c = stand.collection(open(paths.to_vec(), grid)?.as_ref(), base)?;
+            let edge = (layer.tile_resolution + 2 * u32::from(layer.border)) as usize;
+            let decode = |key: TileKey, raw: &[u8]| decode_texture(key, raw, edge, format);
+            let means = stand.means(&c, &decode, None)?;
+            let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
+                Ok(vec![(key, encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
+            };
+            super::cut_levels(&c, metadata, index, &open, &encode_tile, None, folder, spool, progress, means)?;
+        } else {
+            let datum = DatumName::of_record(&metadata.vertical_datum);
+            let range = (metadata.terrain.min_elevation, metadata.terrain.max_elevation);
+            #[expect(clippy::cast_possible_truncation, reason = "heights are f32")]
+            let range = ((range.0 as f32).next_down(), (range.1 as f32).next_up());
+            let open = |paths: Vec<PathBuf>, grid: GridSpec| -> Result<Option<Mosaic<Heights>>> {
+                let request = crate::TileRequest {
+                    height_range: Some(range),
+                    ..super::heights_on(paths, grid, &crs, datum.as_ref(), None)
+                };
+                super::open_heights(&request)
+            };
+            let c = stand.collection(open(paths.to_vec(), grid)?.as_ref(), base)?;
+            let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
+            let encoding = heights.encoding;
+            let quantize = move |row: &mut [f32]| quantize_heights(row, &encoding);
+            let decode = |_: TileKey, raw: &[u8]| Ok(decode_heights(raw, &encoding));
+            let means = stand.means(&c, &decode, Some(&quantize))?;
+            let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
+            let q: &super::QuantizeRow<'_, f32> = &quantize;
+            super::cut_levels(&c, metadata, index, &open, &encode_tile, Some(q), folder, spool, progress, means)?;
+            // The split level's ranges (the shards') widen those above them.
+            let mut below = Vec::new();
+            if let Some(r) = find(LayerKind::HeightRange) {
+                for &(x, y) in &c.levels[usize::from(k)].tiles {
+                    let bytes = payload(TileKey::new(r, k, x, y)?)?;
+                    if let Some((lo, hi)) = bytes.as_deref().and_then(crate::edit::merge::range_of) {
+                        below.push((TileKey::new(index, k, x, y)?, lo, hi));
+                    }
+                }
+            }
+            heights.finish(metadata, below, spool)?;
+        }
+    }
+    Ok(())
+}
+
+/// A layer whose levels above split LOD `k` are made from the merged tiles.
+struct Stand<'a> {
+    metadata: &'a Metadata,
+    index: u8,
+    k: u8,
+    named: &'a Path,
+    payload: &'a Payload<'a>,
+}
+
+impl Stand<'_> {
+    /// The collection of the run's inputs (`mosaic`, on the layer's grid) as the shards'
+    /// run planned it: refused where its base or levels differ from those recorded.
+    fn collection<K: MosaicKind>(&self, mosaic: Option<&Mosaic<K>>, base: u8) -> Result<Collection> {
+        let layer = &self.metadata.layers[usize::from(self.index)];
+        let recorded = (self.metadata.sources.iter())
+            .filter(|s| (s.layer.as_deref() == Some("texture")) == (layer.kind == LayerKind::Texture))
+            .find_map(|s| s.blend);
+        let blend = Blend::Samples(recorded.unwrap_or(super::DEFAULT_BLEND));
+        let c = mosaic.and_then(|m| Collection::plan(m, self.metadata, layer.kind, blend));
+        let covers = layer.extent.as_ref().map(|e| e.partial.as_slice()).unwrap_or_default();
+        let same = c.as_ref().is_some_and(|c| {
+            c.base == base
+                && (c.levels.iter().filter(|l| !l.cover.is_empty()))
+                    .map(|l| (l.lod, l.cover.clone()))
+                    .eq(covers.iter().map(|c| (c.lod, c.tiles.clone())))
+        });
+        match c {
+            Some(c) if same => Ok(c),
+            _ => Err(Error::input(
+                self.named,
+                format!(
+                    "the inputs given for layer {:?} make other levels than the shards' run did (base LOD {base}, \
+                     finer levels where its surveys lie): give the merge the run's inputs",
+                    layer.name
+                ),
+            )),
+        }
+    }
+
+    /// Level `k`'s means, a row of its tiles at a time, as a run hands them to the level
+    /// above (`quantize`d as stored), from its tiles as the shards stored them.
+    fn means<S: Pixel + Send + Sync>(
+        &self,
+        c: &Collection,
+        decode: &super::update::Decode<'_, S>,
+        quantize: Option<&super::QuantizeRow<'_, S>>,
+    ) -> Result<Cut<'static, S>> {
+        let layer = &self.metadata.layers[usize::from(self.index)];
+        let (res, border) = (layer.tile_resolution as usize, usize::from(layer.border));
+        let edge = res + 2 * border;
+        let level = &c.levels[usize::from(self.k)];
+        let (width, height) = (c.level_grid(self.k).size.0 as usize, c.level_grid(self.k).size.1 as usize);
+        let mut rows: std::collections::BTreeMap<u32, Vec<u32>> = std::collections::BTreeMap::new();
+        for &(x, y) in &level.tiles {
+            rows.entry(y).or_default().push(x);
+        }
+        let mut means = Vec::with_capacity(rows.len());
+        for (ty, xs) in rows {
+            let (first, last) = (xs.iter().copied().min().unwrap_or(0), xs.iter().copied().max().unwrap_or(0));
+            let tiles: Vec<Option<Vec<S>>> = (first..=last)
+                .into_par_iter()
+                .map(|tx| {
+                    let key = TileKey::new(self.index, self.k, tx, ty)?;
+                    if !level.tiles.contains(&(tx, ty)) {
+                        return Ok(None);
+                    }
+                    (self.payload)(key)?.map(|raw| decode(key, &raw)).transpose()
+                })
+                .collect::<Result<_>>()?;
+            let x0 = first as usize * res;
+            let x1 = ((last as usize + 1) * res).min(width);
+            let y0 = ty as usize * res;
+            let row = |j: usize| -> Vec<S> {
+                let mut out = vec![S::NONE; x1 - x0];
+                for (i, tile) in tiles.iter().enumerate() {
+                    let (a, b) = (i * res, ((i + 1) * res).min(x1 - x0));
+                    let from = (border + j) * edge + border;
+                    if let Some(src) = tile.as_ref().and_then(|t| t.get(from..from + (b - a))) {
+                        out[a..b].copy_from_slice(src);
+                    }
+                }
+                out
+            };
+            let down = res.min(height.saturating_sub(y0));
+            let mut halves = Vec::with_capacity(down.div_ceil(2));
+            for j in (0..down).step_by(2) {
+                let b = if j + 1 < down { row(j + 1) } else { vec![S::NONE; x1 - x0] };
+                let mut half = halve_rows(&row(j), &b);
+                if let Some(q) = quantize {
+                    q(&mut half);
+                }
+                halves.push(half);
+            }
+            let mut o = Override { x0: x0 / 2, y0: y0 / 2, rows: halves };
+            o.keep_held(level, layer.tile_resolution);
+            means.push(o);
+        }
+        Ok(Cut::Above(self.k, means))
+    }
+}
