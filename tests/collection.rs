@@ -723,6 +723,61 @@ fn a_planned_shard_of_a_collection_needs_only_the_inputs_its_plan_lists() {
     assert!(failed && said.contains(&lists[0][1]), "{said}");
 }
 
+/// A planned run split finer than the base: the plan lists in `merge.txt` the inputs the
+/// merge reads (the base, deeper than the split); the shards, each made from its own
+/// list, merge, given the plan and a folder holding only `merge.txt`'s inputs, into the
+/// single run, byte for byte.
+#[test]
+fn a_planned_merge_of_shards_split_finer_than_the_base_reads_only_the_base() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let inputs = d.join("in");
+    std::fs::create_dir(&inputs).unwrap();
+    let names = [BASE6, SURVEY_A, SURVEY_B].map(|p| Path::new(p).file_name().unwrap().to_str().unwrap().to_owned());
+    for (path, name) in [BASE6, SURVEY_A, SURVEY_B].iter().zip(&names) {
+        std::fs::copy(repo().join(path), inputs.join(name)).unwrap();
+    }
+    let common = ["--tile-size", "16", "--vertical-datum", "5773", "--height-range", "0,1000"];
+    let plan = d.join("plan");
+    let mut args = vec!["tile", "--elevation", inputs.to_str().unwrap(), "--shards", "3", "--split-lod", "0"];
+    args.extend(["--shard-plan-out", plan.to_str().unwrap(), "--relative-to", inputs.to_str().unwrap()]);
+    args.extend(common);
+    ok(&args, d);
+    let merge_list = std::fs::read_to_string(plan.join("merge.txt")).unwrap();
+    assert_eq!(merge_list.lines().collect::<Vec<_>>(), [names[0].as_str()], "the merge reads the base alone");
+    let plan_file = plan.join("plan.json");
+    let mut shards = vec![];
+    for i in 0..3 {
+        let list = std::fs::read_to_string(plan.join(format!("shard-{i}.txt"))).unwrap();
+        let pod = d.join(format!("pod{i}"));
+        std::fs::create_dir(&pod).unwrap();
+        for name in list.lines() {
+            std::fs::copy(inputs.join(name), pod.join(name)).unwrap();
+        }
+        let out = d.join(format!("s{i}.tspack"));
+        let spec = format!("{i}/3");
+        let mut args = vec!["tile", "--elevation", pod.to_str().unwrap(), "-o", out.to_str().unwrap()];
+        args.extend(["--shard", &spec, "--shard-plan", plan_file.to_str().unwrap()]);
+        args.extend(common);
+        ok(&args, d);
+        shards.push(out);
+    }
+    let pod = d.join("merge-pod");
+    std::fs::create_dir(&pod).unwrap();
+    std::fs::copy(inputs.join(&names[0]), pod.join(&names[0])).unwrap();
+    let merged = d.join("merged.tspack");
+    let mut args = vec!["merge"];
+    args.extend(shards.iter().map(|p| p.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap(), "--shard-plan", plan_file.to_str().unwrap()]);
+    args.extend(["--inputs", pod.to_str().unwrap()]);
+    ok(&args, d);
+    let whole = d.join("whole.tspack");
+    let mut args = vec!["tile", "--elevation", inputs.to_str().unwrap(), "-o", whole.to_str().unwrap()];
+    args.extend(common);
+    ok(&args, d);
+    assert!(tiles_of(&merged) == tiles_of(&whole), "the planned merge is the single run's tiles");
+}
+
 /// A VRT of the base and the patch (`gdalbuildvrt -resolution highest`, each source a
 /// whole file read as it is) is tiled as its two files, each as deep as it reaches: tile
 /// for tile, byte for byte, the run given the files, and its levels finer than the base's

@@ -42,6 +42,14 @@ pub struct MergeArgs {
     /// base).
     #[arg(long, num_args = 1..)]
     texture: Vec<PathBuf>,
+    /// The run's shard plan (`plan.json` of `tile --shard-plan-out`): instead of every
+    /// input, the merge then opens only those it reads (its `merge.txt` lists them), at
+    /// the paths the plan records, under `--inputs`.
+    #[arg(long, conflicts_with_all = ["elevation", "texture"])]
+    shard_plan: Option<PathBuf>,
+    /// With `--shard-plan`: the folder its input paths are under (its `--relative-to`).
+    #[arg(long = "inputs", requires = "shard_plan")]
+    inputs_root: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -53,11 +61,20 @@ enum PreferArg {
 }
 
 pub fn run(args: MergeArgs, progress: &CliProgress) -> Result<ExitCode> {
-    let MergeArgs { inputs, output, prefer, manifest, water, elevation, texture } = args;
+    let MergeArgs { inputs, output, prefer, manifest, water, elevation, texture, shard_plan, inputs_root: root } = args;
     super::make_parent(&output)?;
     let (elevation, texture) =
         (terrastream_tiler::expand_inputs(&elevation)?, terrastream_tiler::expand_inputs(&texture)?);
-    let run = terrastream_tiler::RunInputs { elevation: &elevation, texture: &texture };
+    let planned = match &shard_plan {
+        Some(path) => super::tile::read_shard_plan(path)?.collections,
+        None => Vec::new(),
+    };
+    let run = terrastream_tiler::RunInputs {
+        elevation: &elevation,
+        texture: &texture,
+        planned: &planned,
+        root: root.as_deref(),
+    };
     if let Some(manifest) = manifest {
         // The coarse archive of an earlier run in the shards' folder is not an input.
         let earlier = std::fs::canonicalize(&output).ok();

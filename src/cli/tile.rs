@@ -120,8 +120,10 @@ pub struct TileArgs {
     #[arg(long, requires = "shard")]
     list_inputs: bool,
     /// Plan a run of N shards from the inputs' headers (no height is read) and write it
-    /// to this folder: `plan.json` (the mosaics' grids, the bands) and `shard-I.txt`, the
-    /// inputs shard I reads (for `rclone copy --files-from`). Needs `--shards`.
+    /// to this folder: `plan.json` (the mosaics' grids, the bands), `merge.txt` (the
+    /// inputs the merge reads: those a collection split finer than its base needs there;
+    /// usually none) and `shard-I.txt`, the inputs shard I reads (for `rclone copy
+    /// --files-from`). Needs `--shards`.
     #[arg(long, requires = "shards", conflicts_with_all = ["shard", "output"])]
     shard_plan_out: Option<PathBuf>,
     /// Shards in the run `--shard-plan-out` plans.
@@ -177,13 +179,17 @@ pub struct TileArgs {
     water: Option<PathBuf>,
 }
 
+/// The shard plan at `path` (`plan.json` of `--shard-plan-out`).
+pub(super) fn read_shard_plan(path: &Path) -> Result<ShardPlan> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("{}: cannot read the shard plan", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: not a shard plan (plan.json)", path.display()))
+}
+
 /// Shard `index` of `count` as `path`'s plan has it: the request goes onto the plan's
 /// grids; every input the plan lists for the shard must be among the request's.
 fn planned_shard(path: &Path, index: u32, count: u32, request: &mut TileRequest) -> Result<(ShardSpec, ShardPlan)> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("{}: cannot read the shard plan", path.display()))?;
-    let plan: ShardPlan =
-        serde_json::from_str(&text).with_context(|| format!("{}: not a shard plan (plan.json)", path.display()))?;
+    let plan = read_shard_plan(path)?;
     if plan.count != count {
         bail!("{}: a plan of {} shards, not {count}", path.display(), plan.count);
     }
@@ -257,7 +263,7 @@ fn write_shard_plan(dir: &Path, plan: &ShardPlan, relative_to: Option<&Path>) ->
     if let Some(root) = relative_to {
         let collected = plan.collections.iter_mut().flat_map(|c| c.inputs.iter_mut().map(|i| &mut i.path));
         let listed = plan.shards.iter_mut().flat_map(|s| s.elevation.iter_mut().chain(&mut s.texture));
-        for input in listed.chain(collected) {
+        for input in listed.chain(collected).chain(&mut plan.merge) {
             let relative = input
                 .strip_prefix(root)
                 .with_context(|| format!("{} is not under --relative-to {}", input.display(), root.display()))?;
@@ -275,6 +281,10 @@ fn write_shard_plan(dir: &Path, plan: &ShardPlan, relative_to: Option<&Path>) ->
         let path = dir.join(format!("shard-{i}.txt"));
         std::fs::write(&path, list).with_context(|| format!("{}: cannot write", path.display()))?;
     }
+    // What the merge reads (none unless a collection is split finer than its base).
+    let list: String = plan.merge.iter().map(|input| format!("{}\n", input.display())).collect();
+    let path = dir.join("merge.txt");
+    std::fs::write(&path, list).with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
 }
 

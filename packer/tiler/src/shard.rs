@@ -135,6 +135,10 @@ pub struct ShardPlan {
     /// reaches): none for a run of one resolution.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub collections: Vec<crate::collection::PlannedCollection>,
+    /// The inputs the merge of the shards reads: those of a collection split finer than
+    /// its base that are deeper than the split (the merge makes their levels).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub merge: Vec<PathBuf>,
 }
 
 /// A mosaic's output grid, with its CRS.
@@ -246,6 +250,7 @@ impl ShardPlan {
             cuts,
             shards,
             collections: Vec::new(),
+            merge: Vec::new(),
         }
     }
 }

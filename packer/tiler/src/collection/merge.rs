@@ -22,13 +22,19 @@ use crate::tile::HeightEncoder;
 /// A merged tile's payload (its compression undone), None where no shard holds it.
 pub(crate) type Payload<'a> = dyn Fn(TileKey) -> Result<Option<Vec<u8>>> + Sync + 'a;
 
-/// The inputs of the run whose shards are merged, as `tile` took them.
+/// The inputs of the run whose shards are merged: as `tile` took them, or as its shard
+/// plan records them.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct RunInputs<'a> {
     /// `--elevation`.
     pub elevation: &'a [PathBuf],
     /// `--texture`.
     pub texture: &'a [PathBuf],
+    /// The run's shard plan's collections: with them the merge opens only the inputs it
+    /// reads (those deeper than the split), at their recorded paths under `root`.
+    pub planned: &'a [super::PlannedCollection],
+    /// The folder the plan's paths are under (None: as recorded).
+    pub root: Option<&'a Path>,
 }
 
 /// A collection layer's base level, as `metadata` records it (the first that covers the
@@ -79,17 +85,30 @@ pub(crate) fn make_above_split(
         let (grid, crs, base) = super::update::layer_grid(metadata, named, index)?;
         let texture = layer.kind == LayerKind::Texture;
         let (flag, paths) = if texture { ("--texture", inputs.texture) } else { ("--elevation", inputs.elevation) };
-        if paths.is_empty() {
+        let planned = inputs.planned.iter().find(|p| p.kind == layer.kind);
+        if paths.is_empty() && planned.is_none() {
             return Err(Error::input(
                 named,
                 format!(
                     "its layer {:?} is a collection whose shards hold LOD 0 to {k}, finer than its base (LOD {base}): \
-                     the merge makes LOD {} up from their tiles and the run's inputs, so give it those ({flag} FILE…)",
+                     the merge makes LOD {} up from their tiles and the run's inputs, so give it those ({flag} FILE…, \
+                     or the run's --shard-plan)",
                     layer.name,
                     k + 1
                 ),
             ));
         }
+        // With the plan: the inputs deeper than the split, where it records them.
+        let deeper: Vec<PathBuf> = planned
+            .map(|p| p.inputs.iter().filter(|i| i.depth > k))
+            .into_iter()
+            .flatten()
+            .map(|i| inputs.root.map_or_else(|| i.path.clone(), |r| r.join(&i.path)))
+            .collect();
+        let planned = match planned {
+            Some(p) => Some(Collection::from_planned(p, metadata, grid, &deeper)?),
+            None => None,
+        };
         let stand = Stand { metadata, index, k, named, payload };
         if texture {
             let format = TextureFormat::decodable(layer.format).ok_or_else(|| Error::Pyramid {
@@ -98,7 +117,10 @@ pub(crate) fn make_above_split(
                 reason: format!("{:?} tiles are lossy: shards need png or webp", layer.format),
             })?;
             let open = |paths: Vec<PathBuf>, grid: GridSpec| super::open_images(paths, grid, &crs, false);
-            let c = stand.collection(open(paths.to_vec(), grid)?.as_ref(), base)?;
+            let c = match planned {
+                Some(c) => stand.same(c, base)?,
+                None => stand.collection(open(paths.to_vec(), grid)?.as_ref(), base)?,
+            };
             let edge = (layer.tile_resolution + 2 * u32::from(layer.border)) as usize;
             let decode = |key: TileKey, raw: &[u8]| decode_texture(key, raw, edge, format);
             let means = stand.means(&c, &decode, None)?;
@@ -118,7 +140,10 @@ pub(crate) fn make_above_split(
                 };
                 super::open_heights(&request)
             };
-            let c = stand.collection(open(paths.to_vec(), grid)?.as_ref(), base)?;
+            let c = match planned {
+                Some(c) => stand.same(c, base)?,
+                None => stand.collection(open(paths.to_vec(), grid)?.as_ref(), base)?,
+            };
             let heights = HeightEncoder::new(metadata, index, find(LayerKind::HeightRange))?;
             let encoding = heights.encoding;
             let quantize = move |row: &mut [f32]| quantize_heights(row, &encoding);
@@ -161,25 +186,33 @@ impl Stand<'_> {
             .filter(|s| (s.layer.as_deref() == Some("texture")) == (layer.kind == LayerKind::Texture))
             .find_map(|s| s.blend);
         let blend = Blend::Samples(recorded.unwrap_or(super::DEFAULT_BLEND));
-        let c = mosaic.and_then(|m| Collection::plan(m, self.metadata, layer.kind, blend));
-        let covers = layer.extent.as_ref().map(|e| e.partial.as_slice()).unwrap_or_default();
-        let same = c.as_ref().is_some_and(|c| {
-            c.base == base
-                && (c.levels.iter().filter(|l| !l.cover.is_empty()))
-                    .map(|l| (l.lod, l.cover.clone()))
-                    .eq(covers.iter().map(|c| (c.lod, c.tiles.clone())))
-        });
-        match c {
-            Some(c) if same => Ok(c),
-            _ => Err(Error::input(
-                self.named,
-                format!(
-                    "the inputs given for layer {:?} make other levels than the shards' run did (base LOD {base}, \
-                     finer levels where its surveys lie): give the merge the run's inputs",
-                    layer.name
-                ),
-            )),
+        match mosaic.and_then(|m| Collection::plan(m, self.metadata, layer.kind, blend)) {
+            Some(c) => self.same(c, base),
+            None => Err(self.other(base)),
         }
+    }
+
+    /// `c`, when its base and levels are those the shards record; else refused.
+    fn same(&self, c: Collection, base: u8) -> Result<Collection> {
+        let layer = &self.metadata.layers[usize::from(self.index)];
+        let covers = layer.extent.as_ref().map(|e| e.partial.as_slice()).unwrap_or_default();
+        let same = c.base == base
+            && (c.levels.iter().filter(|l| !l.cover.is_empty()))
+                .map(|l| (l.lod, l.cover.clone()))
+                .eq(covers.iter().map(|c| (c.lod, c.tiles.clone())));
+        if same { Ok(c) } else { Err(self.other(base)) }
+    }
+
+    fn other(&self, base: u8) -> Error {
+        let layer = &self.metadata.layers[usize::from(self.index)];
+        Error::input(
+            self.named,
+            format!(
+                "the inputs given for layer {:?} make other levels than the shards' run did (base LOD {base}, finer \
+                 levels where its surveys lie): give the merge the run's inputs",
+                layer.name
+            ),
+        )
     }
 
     /// Level `k`'s means, a row of its tiles at a time, as a run hands them to the level

@@ -188,7 +188,8 @@ pub fn collection_shard_plan(
         return Err(Error::option("--texture-format", t.format.name(), "png or webp with --shard"));
     }
     let first = ShardSpec { index: 0, count, split_lod, cuts: None };
-    let split = Some(self::split_lod(collections, plan, &first));
+    let k = self::split_lod(collections, plan, &first);
+    let split = Some(k);
     let (_, _, cuts) = windows(collections, plan, first, elevation, texture)?;
     let mut shards = Vec::with_capacity(count as usize);
     for index in 0..count {
@@ -223,8 +224,21 @@ pub fn collection_shard_plan(
         }
         shards.push(inputs);
     }
-    let planned = [collections.heights, collections.imagery].into_iter().flatten().map(Collection::planned).collect();
-    Ok(ShardPlan { collections: planned, ..ShardPlan::of_sources(count, split, elevation, texture, cuts, shards) })
+    let all = [collections.heights, collections.imagery].into_iter().flatten();
+    let planned = all.clone().map(Collection::planned).collect();
+    // Split finer than a base: the merge reads the inputs deeper than the split.
+    let merge = all.flat_map(|c| c.inputs.iter().filter(|i| i.depth > k && k < c.base).map(|i| i.path.clone()));
+    let merge = merge.fold(Vec::new(), |mut list: Vec<PathBuf>, p| {
+        if !list.contains(&p) {
+            list.push(p);
+        }
+        list
+    });
+    Ok(ShardPlan {
+        collections: planned,
+        merge,
+        ..ShardPlan::of_sources(count, split, elevation, texture, cuts, shards)
+    })
 }
 
 fn to_u32(n: usize) -> u32 {
