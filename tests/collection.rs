@@ -477,6 +477,21 @@ fn imagery_of_different_resolutions_reaches_its_own_depth() {
     for k in inner {
         assert_eq!(ours[k], theirs[k], "tile {k} inside the fine picture");
     }
+    // In four shards split at LOD 0, finer than the pictures' base: merged with the
+    // pictures given, the single run's tiles, every layer (the heights of one resolution
+    // made above the split from their tiles, the imagery's levels from the pictures).
+    let whole = run("png.tspack", &["--texture-format", "png"]);
+    let mut shards = vec![];
+    for i in 0..4 {
+        let spec = format!("{i}/4");
+        shards.push(run(&format!("s{i}.tspack"), &["--texture-format", "png", "--shard", &spec, "--split-lod", "0"]));
+    }
+    let merged = d.join("merged.tspack");
+    let mut args = vec!["merge"];
+    args.extend(shards.iter().map(|s| s.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap(), "--texture", coarse.to_str().unwrap(), fine.to_str().unwrap()]);
+    ok(&args, d);
+    assert!(tiles_of(&merged) == tiles_of(&whole), "the merged shards' tiles are the single run's");
 }
 
 /// Imagery added to a collection of images by `update` (GDAL's colour relief of the crop:
