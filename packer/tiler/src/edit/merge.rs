@@ -165,7 +165,7 @@ pub(crate) fn merge_widened_as(
     run: RunInputs<'_>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
-    let mut prepared = prepare_any(inputs, as_is.is_some(), progress)?;
+    let mut prepared = prepare(inputs, progress)?;
     widen(&mut prepared.metadata, heights);
     if let Some(m) = as_is {
         prepared.metadata = m.clone();
@@ -212,8 +212,7 @@ pub(crate) fn merge_in_place_as(
     as_is: Option<&Metadata>,
     progress: &dyn Progress,
 ) -> Result<MergeSummary> {
-    let Prepared { readers, mut metadata, mut winners, conflicts, .. } =
-        prepare_any(inputs, as_is.is_some(), progress)?;
+    let Prepared { readers, mut metadata, mut winners, conflicts, .. } = prepare(inputs, progress)?;
     widen(&mut metadata, heights);
     if let Some(m) = as_is {
         metadata = m.clone();
@@ -378,13 +377,6 @@ impl Prepared {
     }
 }
 
-/// Why an archive of inputs of different resolutions cannot be merged with others, and
-/// what does the job.
-pub(crate) const COLLECTION: &str = "it holds inputs of different resolutions, each only as deep as it reaches (docs/tiling.md, \
-     \"Collections\"), which merge takes alone (a compact copy) or as the shards of one run, not with other \
-     archives yet: add each finer survey to one collection with `terrastream update ARCHIVE --elevation SURVEY \
-     --in-place`, or tile every input in one run";
-
 /// Whether an archive's levels do not all cover its data (a collection's).
 pub(crate) fn is_collection(metadata: &Metadata) -> bool {
     metadata.layers.iter().any(|l| l.extent.as_ref().is_some_and(|e| !e.partial.is_empty()))
@@ -392,12 +384,6 @@ pub(crate) fn is_collection(metadata: &Metadata) -> bool {
 
 /// Opens and checks the inputs, and indexes their tiles.
 pub(crate) fn prepare(inputs: &[PathBuf], progress: &dyn Progress) -> Result<Prepared> {
-    prepare_any(inputs, false, progress)
-}
-
-/// [`prepare`]; with `collections`, archives whose levels are partial too (their tiles
-/// replaced as they are, none made again).
-pub(crate) fn prepare_any(inputs: &[PathBuf], collections: bool, progress: &dyn Progress) -> Result<Prepared> {
     let Some(first) = inputs.first() else {
         return Err(Error::NothingToTile);
     };
@@ -405,15 +391,6 @@ pub(crate) fn prepare_any(inputs: &[PathBuf], collections: bool, progress: &dyn 
         .iter()
         .map(|p| Reader::open_mmap(p).map_err(|e| Error::input(p, format!("cannot open archive: {e}"))))
         .collect::<Result<Vec<_>>>()?;
-    // A collection's finer levels hold tiles only where its finer inputs lie: remaking a
-    // tile from its children, as a merge does, would leave holes where they are not.
-    for (path, reader) in inputs.iter().zip(&readers) {
-        // The shards of one run are merged as any run's: the levels above their split LOD
-        // (no finer than a collection's base) made from their tiles.
-        if !collections && is_collection(reader.metadata()) && reader.metadata().shard.is_none() {
-            return Err(Error::input(path, COLLECTION));
-        }
-    }
     let base = readers[0].metadata();
     for (path, reader) in inputs.iter().zip(&readers).skip(1) {
         if let Some(why) = difference(base, reader.metadata()) {
@@ -423,6 +400,14 @@ pub(crate) fn prepare_any(inputs: &[PathBuf], collections: bool, progress: &dyn 
     let shards = shard_set(inputs, &readers)?;
     let mut metadata = base.clone();
     metadata.shard = None;
+    // Every input's sources (collections of other surveys over one base), each once.
+    for reader in &readers[1..] {
+        for source in &reader.metadata().sources {
+            if !metadata.sources.contains(source) {
+                metadata.sources.push(source.clone());
+            }
+        }
+    }
     // Heights of all inputs (archives of one grid may come from runs over other areas).
     let terrain = readers.iter().map(|r| &r.metadata().terrain);
     metadata.terrain.min_elevation = terrain.clone().map(|t| t.min_elevation).fold(f64::INFINITY, f64::min);

@@ -9,11 +9,13 @@
 //! or when the samples it is averaged from (its children's interiors, and their
 //! neighbours' under its borders) changed: remade with a new interior, or from another
 //! input than the tile's own. A tile remade only for its borders keeps its interior, so
-//! the work around a changed region stays one ring of tiles per level. LOD 0 keeps every interior as stored and takes its borders from the
-//! neighbours; coarser tiles are 2 x 2 means of the level below as stored, quantized as the
-//! layer stores them, exactly as the tiler makes them. So the merge of an archive and a
-//! region of another is, byte for byte, the archive the tiler makes of the combined
-//! raster; and the work follows the changed area, not the archive.
+//! the work around a changed region stays one ring of tiles per level. LOD 0 keeps every
+//! interior as stored and takes its borders from the neighbours; coarser tiles are 2 x 2
+//! means of the level below as stored, quantized as the layer stores them, exactly as the
+//! tiler makes them, and keep their own stored samples where the level below holds no
+//! tile (a collection's finer levels hold tiles only where its surveys lie). So the merge
+//! of an archive and a region of another is, byte for byte, the archive the tiler makes of
+//! the combined raster; and the work follows the changed area, not the archive.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -118,11 +120,17 @@ pub(crate) fn rederive<S: Pixel>(grid: &LayerGrid, tiles: &dyn MergedTiles<S>, r
         let below = std::mem::take(&mut made_below);
         let level = Level { grid, tiles, lod, below: &below, as_stored: &as_stored };
         for ((x, y), samples, entries) in level.remake(&dirty)? {
-            if samples.is_none() && tiles.source(lod, x, y).is_some() {
+            let held = tiles.source(lod, x, y).is_some();
+            if samples.is_none() && held {
                 remade.emptied.push(TileKey::new(grid.layer, lod, x, y)?);
             }
             remade.entries.extend(entries);
-            made_below.insert((x, y), samples);
+            // A tile no input holds, made again without data, is still none: the level
+            // above keeps its own samples over it (a collection's coarser tile where the
+            // finer level holds no tile).
+            if samples.is_some() || held {
+                made_below.insert((x, y), samples);
+            }
         }
         changed_below = changed;
     }
@@ -279,13 +287,15 @@ impl<S: Pixel> Level<'_, S> {
             })
             .filter(|t| !self.below.contains_key(t))
             .collect();
-        // A tile's stored version is read only when some tile under it is not taken.
+        // A tile's stored version is read only when some part of the level under it is
+        // not taken: a tile there as stored, or none at all (a collection's coarser tile
+        // holds its own samples where the finer level holds no tile).
         let partly_stored = |t: &(u32, u32)| {
             own(t).is_some()
                 && !(lod == 0 && self.as_stored.contains_key(t))
-                && window_tiles(grid, from, *t, scale).into_iter().any(|c| {
-                    tiles.source(from, c.0, c.1).is_some() && !self.below.contains_key(&c) && !needed.contains(&c)
-                })
+                && window_tiles(grid, from, *t, scale)
+                    .into_iter()
+                    .any(|c| !self.below.contains_key(&c) && !needed.contains(&c))
         };
         let mut stored = self.decode_all(lod, dirty.iter().copied().filter(partly_stored).collect())?;
         if lod == 0 {
