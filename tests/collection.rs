@@ -669,6 +669,21 @@ fn shards_of_a_collection_merge_into_the_single_run() {
     }
 }
 
+/// The options of the planned runs below (the range known, as a plan step gives it).
+const PLANNED: [&str; 6] = ["--tile-size", "16", "--vertical-datum", "5773", "--height-range", "0,1000"];
+
+/// The 6" base and both surveys copied into folder `in` of `d` (the bucket a planned run
+/// fetches from): the folder, and the files' names (base first).
+fn base_and_surveys_in(d: &Path) -> (PathBuf, [String; 3]) {
+    let inputs = d.join("in");
+    std::fs::create_dir(&inputs).unwrap();
+    let names = [BASE6, SURVEY_A, SURVEY_B].map(|p| Path::new(p).file_name().unwrap().to_str().unwrap().to_owned());
+    for (path, name) in [BASE6, SURVEY_A, SURVEY_B].iter().zip(&names) {
+        std::fs::copy(repo().join(path), inputs.join(name)).unwrap();
+    }
+    (inputs, names)
+}
+
 /// A collection's planned run, as the cluster Job runs it: the plan, from the inputs'
 /// headers, records every input's depth and lists for each shard the inputs its levels
 /// and its band of the base read (a survey only where its band reaches it); a shard given
@@ -678,13 +693,8 @@ fn shards_of_a_collection_merge_into_the_single_run() {
 fn a_planned_shard_of_a_collection_needs_only_the_inputs_its_plan_lists() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let inputs = d.join("in");
-    std::fs::create_dir(&inputs).unwrap();
-    let names = [BASE6, SURVEY_A, SURVEY_B].map(|p| Path::new(p).file_name().unwrap().to_str().unwrap().to_owned());
-    for (path, name) in [BASE6, SURVEY_A, SURVEY_B].iter().zip(&names) {
-        std::fs::copy(repo().join(path), inputs.join(name)).unwrap();
-    }
-    let common = ["--tile-size", "16", "--vertical-datum", "5773", "--height-range", "0,1000"];
+    let (inputs, names) = base_and_surveys_in(d);
+    let common = PLANNED;
     let tile_in = |folder: &Path, out: &Path, extra: &[&str]| {
         let mut args = vec!["tile", "--elevation", folder.to_str().unwrap(), "-o", out.to_str().unwrap()];
         args.extend(common);
@@ -768,13 +778,8 @@ fn a_planned_shard_of_a_collection_needs_only_the_inputs_its_plan_lists() {
 fn a_planned_merge_of_shards_split_finer_than_the_base_reads_only_the_base() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let inputs = d.join("in");
-    std::fs::create_dir(&inputs).unwrap();
-    let names = [BASE6, SURVEY_A, SURVEY_B].map(|p| Path::new(p).file_name().unwrap().to_str().unwrap().to_owned());
-    for (path, name) in [BASE6, SURVEY_A, SURVEY_B].iter().zip(&names) {
-        std::fs::copy(repo().join(path), inputs.join(name)).unwrap();
-    }
-    let common = ["--tile-size", "16", "--vertical-datum", "5773", "--height-range", "0,1000"];
+    let (inputs, names) = base_and_surveys_in(d);
+    let common = PLANNED;
     let plan = d.join("plan");
     let mut args = vec!["tile", "--elevation", inputs.to_str().unwrap(), "--shards", "3", "--split-lod", "0"];
     args.extend(["--shard-plan-out", plan.to_str().unwrap(), "--relative-to", inputs.to_str().unwrap()]);
