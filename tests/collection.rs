@@ -642,12 +642,15 @@ fn shards_of_a_collection_merge_into_the_single_run() {
         let said = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success() && said.contains("--elevation") && said.contains("base (LOD 3)"), "{said}");
         assert!(!merged.exists(), "nothing written");
-        // With other inputs than the run's: refused.
-        let mut wrong = args.clone();
-        wrong.extend(["--elevation", &inputs[0]]);
-        let out = oracles::run_in(&wrong, d);
-        let said = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success() && said.contains("other levels"), "{said}");
+        // With other inputs than the run's, or the run's in another order: refused.
+        for given in [vec![inputs[0].as_str()], vec![inputs[1].as_str(), inputs[0].as_str()]] {
+            let mut wrong = args.clone();
+            wrong.push("--elevation");
+            wrong.extend(given);
+            let out = oracles::run_in(&wrong, d);
+            let said = String::from_utf8_lossy(&out.stderr);
+            assert!(!out.status.success() && said.contains("not the shards' run's"), "{said}");
+        }
         args.push("--elevation");
         args.extend(inputs.iter().map(String::as_str));
         ok(&args, d);

@@ -192,11 +192,18 @@ impl Stand<'_> {
         }
     }
 
-    /// `c`, when its base and levels are those the shards record; else refused.
+    /// `c`, when its inputs (their names, in order: the later wins among inputs as deep),
+    /// base and levels are those the shards record; else refused.
     fn same(&self, c: Collection, base: u8) -> Result<Collection> {
         let layer = &self.metadata.layers[usize::from(self.index)];
         let covers = layer.extent.as_ref().map(|e| e.partial.as_slice()).unwrap_or_default();
+        let texture = layer.kind == LayerKind::Texture;
+        let recorded = (self.metadata.sources.iter())
+            .filter(|s| (s.layer.as_deref() == Some("texture")) == texture)
+            .map(|s| s.name.as_str());
+        let names = c.inputs.iter().map(|i| i.path.file_name().and_then(|n| n.to_str()).unwrap_or_default());
         let same = c.base == base
+            && names.eq(recorded)
             && (c.levels.iter().filter(|l| !l.cover.is_empty()))
                 .map(|l| (l.lod, l.cover.clone()))
                 .eq(covers.iter().map(|c| (c.lod, c.tiles.clone())));
@@ -208,8 +215,8 @@ impl Stand<'_> {
         Error::input(
             self.named,
             format!(
-                "the inputs given for layer {:?} make other levels than the shards' run did (base LOD {base}, finer \
-                 levels where its surveys lie): give the merge the run's inputs",
+                "the inputs given for layer {:?} are not the shards' run's (the same files, in the same order: the \
+                 run's base LOD {base}, and finer levels where its surveys lie): give the merge the run's inputs",
                 layer.name
             ),
         )
