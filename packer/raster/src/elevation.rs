@@ -324,6 +324,11 @@ pub(super) fn union_of_chunks(
     Ok((lo, hi))
 }
 
+/// Chunks a thread reduces to their ranges between two words to `progress` (a decoded
+/// chunk is dropped once reduced, so the batch holds no more memory for being larger:
+/// only fewer waits for the batch's slowest chunk).
+const RANGE_CHUNKS_A_THREAD: usize = 16;
+
 /// The union of the ranges `range` gives every chunk of `chunks`, a batch at a time (in
 /// parallel within it), `progress` told the raster's rows read after each batch.
 pub(super) fn range_by_batches(
@@ -332,7 +337,8 @@ pub(super) fn range_by_batches(
     range: impl Fn(usize) -> Result<(f32, f32)> + Sync,
 ) -> Result<(f32, f32)> {
     let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    let (batch, needed) = (chunks.batch().max(1), chunks.needed());
+    let least = RANGE_CHUNKS_A_THREAD * rayon::current_num_threads();
+    let (batch, needed) = (chunks.batch().max(least), chunks.needed());
     for first in (0..needed).step_by(batch) {
         let end = needed.min(first + batch);
         let (l, h) = union_of_chunks(first..end, &range)?;
