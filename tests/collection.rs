@@ -809,12 +809,16 @@ fn a_planned_merge_of_shards_split_finer_than_the_base_reads_only_the_base() {
     }
     let pod = d.join("merge-pod");
     std::fs::create_dir(&pod).unwrap();
-    std::fs::copy(inputs.join(&names[0]), pod.join(&names[0])).unwrap();
     let merged = d.join("merged.tspack");
     let mut args = vec!["merge"];
     args.extend(shards.iter().map(|p| p.to_str().unwrap()));
     args.extend(["-o", merged.to_str().unwrap(), "--shard-plan", plan_file.to_str().unwrap()]);
     args.extend(["--inputs", pod.to_str().unwrap()]);
+    // Before the base is fetched: refused, naming it and what lists it.
+    let out = oracles::run_in(&args, d);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && said.contains(&names[0]) && said.contains("merge.txt"), "{said}");
+    std::fs::copy(inputs.join(&names[0]), pod.join(&names[0])).unwrap();
     ok(&args, d);
     let whole = d.join("whole.tspack");
     let mut args = vec!["tile", "--elevation", inputs.to_str().unwrap(), "-o", whole.to_str().unwrap()];

@@ -105,6 +105,13 @@ pub(crate) fn make_above_split(
             .flatten()
             .map(|i| inputs.root.map_or_else(|| i.path.clone(), |r| r.join(&i.path)))
             .collect();
+        if let Some(missing) = deeper.iter().find(|p| !p.is_file()) {
+            return Err(Error::input(
+                missing,
+                "the merge of these shards reads it (the plan's merge.txt lists it): fetch it into the folder \
+                 --inputs names",
+            ));
+        }
         let planned = match planned {
             Some(p) => Some(Collection::from_planned(p, metadata, grid, &deeper)?),
             None => None,
