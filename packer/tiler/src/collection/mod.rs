@@ -746,7 +746,7 @@ pub(crate) enum Cut<'p, S> {
     /// A shard's band up to its split LOD.
     Shard(&'p ShardPart),
     /// The levels above `lod` (a merge of shards split there), from that level's means
-    /// as its tiles store them ([`Override::of_stored`]).
+    /// as its tiles store them (see [`merge`]).
     Above(u8, Vec<Override<S>>),
 }
 
