@@ -16,7 +16,7 @@ pub enum ElevationStorage {
     F32,
 }
 
-/// Options of [`tile_terrain`].
+/// Options of [`crate::tile_terrain`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TileOptions {
     /// Samples per tile edge, borders excluded.
@@ -122,7 +122,7 @@ impl TextureFormat {
     }
 }
 
-/// The texture input of [`tile_terrain`].
+/// The texture input of [`crate::tile_terrain`].
 #[derive(Clone, Copy)]
 pub struct TextureInput<'a> {
     /// The image. With elevation it is stretched over the elevation's extent.

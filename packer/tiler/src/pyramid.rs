@@ -424,7 +424,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
     }
 
     /// Samples held now, all levels (the band each keeps, and rows waiting to be halved;
-    /// the cuts in flight hold up to [`CUTS_IN_FLIGHT`] bands more).
+    /// the cuts in flight hold up to two bands more).
     pub fn held_samples(&self) -> usize {
         self.levels.iter().map(|l| (l.rows.len() + usize::from(l.pending.is_some())) * l.width).sum()
     }

@@ -3,7 +3,7 @@
 //! one geographic file, onto a transverse Mercator centred on it), imagery as one file,
 //! a window of it over the elevation, a warp of it onto the elevation, or a mosaic.
 //! `terrastream tile` and any library caller go through [`Sources::open`] and
-//! [`Sources::inputs`], then [`crate::plan`] or [`crate::tile_shard`].
+//! [`Sources::inputs`], then [`crate::plan()`] or [`crate::tile_shard`].
 
 use std::path::{Path, PathBuf};
 

@@ -186,7 +186,7 @@ impl ShardPlan {
 /// height is read).
 ///
 /// # Errors
-/// As [`crate::plan`]; [`Error::InvalidOption`] for no shard.
+/// As [`crate::plan()`]; [`Error::InvalidOption`] for no shard.
 pub fn shard_plan(
     elevation: Option<&dyn ElevationSource>,
     texture: Option<&TextureInput<'_>>,

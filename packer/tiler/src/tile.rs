@@ -53,7 +53,7 @@ pub fn tile_terrain(
 
 /// As [`tile_terrain`], or with `shard`, one shard of a sharded run: every layer's tiles
 /// from LOD 0 up to its split LOD in the shard's band of tile rows, exactly the bytes a
-/// whole run makes there ([`crate::edit::merge`] makes the levels above from all shards).
+/// whole run makes there ([`crate::merge`] makes the levels above from all shards).
 ///
 /// # Errors
 /// As [`tile_terrain`]; [`Error::InvalidOption`] for a shard out of range or a lossy texture

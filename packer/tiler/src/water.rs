@@ -98,8 +98,8 @@ pub fn water_encoding() -> ElevationEncoding {
 /// [`Error::Input`] naming the archive when it has no elevation layer or no georeference
 /// to place the mask by, or naming the mask when it cannot be read, has no georeference,
 /// or says nothing of any elevation tile (a shard's may lie beyond it: its layer then holds
-/// no tiles); I/O and archive errors; [`Error::Interrupted`] when `progress` is
-/// cancelled (the output is then as it was).
+/// no tiles); I/O and archive errors; an interrupted error ([`Error::is_interrupted`])
+/// when `progress` is cancelled (the output is then as it was).
 pub fn add_water(base: &Path, mask_path: &Path, out: &Path, progress: &dyn Progress) -> Result<WaterSummary> {
     let reader = Reader::open_mmap(base).map_err(|e| Error::input(base, format!("cannot open archive: {e}")))?;
     let metadata = reader.metadata().clone();

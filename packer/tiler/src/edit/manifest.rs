@@ -30,7 +30,7 @@ pub struct ManifestSummary {
 /// # Errors
 /// [`Error::Input`] if the inputs are not all the shards of one run, or an archive's path
 /// cannot be written relative to the manifest's folder (another drive, characters a URL
-/// path may not hold); as [`crate::edit::merge`] otherwise.
+/// path may not hold); as [`crate::merge`] otherwise.
 ///
 /// With `water` (a mask, shards that hold a water layer: `terrastream water` of each), the
 /// coarse archive's water tiles are made from it, as [`crate::add_water`] makes them:

@@ -237,7 +237,7 @@ pub(crate) fn merge_in_place_as(
     Ok(MergeSummary { write, copied, replaced: conflicts.len() as u64, made })
 }
 
-/// [`write`] into an [`Appender`] over `readers[0]`'s bytes: its tiles are kept where
+/// [`write()`] into an [`Appender`] over `readers[0]`'s bytes: its tiles are kept where
 /// they are, as is a made tile whose bytes it already holds; the rest is appended.
 fn append(
     appender: &mut Appender,

@@ -44,7 +44,7 @@ pub struct UpdateSummary {
 /// # Errors
 /// [`Error::Input`] naming the base when it has no projected georeference or lacks the
 /// layer, a raster that does not fit the grid or the height encoding (naming it), or as
-/// [`merge_with`].
+/// [`crate::merge_with`].
 pub fn update(
     base: &Path,
     elevation: &[PathBuf],
