@@ -1,4 +1,4 @@
-//! Where a [`super::Streamer`] gets its tiles: an archive behind any byte-range source
+//! Where a [`super::streamer::Streamer`] gets its tiles: an archive behind any byte-range source
 //! (mmap, HTTP Range, memory), our server's tile endpoint, or tiles handed in by the host
 //! application.
 

@@ -223,7 +223,7 @@ impl Archive {
 
     /// Fills the extent of every layer that has none from directory entries (all of the
     /// archive's): coarsest populated LOD and the box of the finest tiles. Runs longer than
-    /// [`MAX_DERIVED_RUN`] tiles count their first and last tile only.
+    /// 4096 tiles (`MAX_DERIVED_RUN`) count their first and last tile only.
     pub fn derive_extents(&mut self, entries: &[Entry]) {
         let step = crate::key::MAX_LAYERS as u64;
         let mut builders = vec![ExtentBuilder::default(); self.metadata.layers.len()];

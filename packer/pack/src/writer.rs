@@ -176,7 +176,7 @@ impl Writer {
     /// Temporary files live next to it (same filesystem, so the final rename is atomic).
     ///
     /// # Errors
-    /// [`Error::Metadata`] for invalid metadata, [`Error::File`] if the folder is not writable.
+    /// [`Error::Format`] for invalid metadata, [`Error::File`] if the folder is not writable.
     pub fn create(path: impl AsRef<Path>, metadata: Metadata, options: WriterOptions) -> Result<Self> {
         metadata.validate()?;
         let path = path.as_ref().to_path_buf();
@@ -211,7 +211,7 @@ impl Writer {
     /// The position of `tile` in archive order: sort tiles by it before adding them.
     ///
     /// # Errors
-    /// [`Error::InvalidTile`] if the tile is outside its layer's grid.
+    /// [`Error::Format`] if the tile is outside its layer's grid.
     pub fn order_key(metadata: &Metadata, tile: TileKey) -> Result<u64> {
         Ok(metadata.directory_key(tile)?)
     }
@@ -246,8 +246,9 @@ impl Writer {
     /// a tile's u16 samples).
     ///
     /// # Errors
-    /// [`Error::Writer`] if the tile is out of order or empty, [`Error::InvalidTile`],
-    /// I/O errors.
+    /// [`Error::OutOfOrder`], [`Error::EmptyTile`] or [`Error::TooLarge`] for a tile out of
+    /// order, empty or too large, [`Error::Format`] for one outside its layer's grid, I/O
+    /// errors.
     pub fn add(&mut self, tile: TileKey, payload: Vec<u8>) -> Result<()> {
         let compression =
             self.metadata.layers.get(usize::from(tile.layer())).map_or_else(Default::default, |l| l.compression);
