@@ -687,6 +687,40 @@ fn base_and_surveys_in(d: &Path) -> (PathBuf, [String; 3]) {
     (inputs, names)
 }
 
+/// The default split goes finer than the base where the base's rows of tiles cannot
+/// share the work out: the 6" base (LOD 2: 7 rows of 16-sample tiles) with two 1" surveys
+/// in four shards would give one band both surveys' rows; split at LOD 1 the surveys'
+/// tiles spread over the shards, and the merge (given the inputs) is the single run.
+#[test]
+fn the_default_split_goes_finer_where_the_bases_rows_cannot_share_the_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let extra = ["--tile-size", "16", "--height-range", "0,1000"];
+    let whole = tile(d, "whole.tspack", &[BASE6, SURVEY_A, SURVEY_B], &extra);
+    let mut shards = vec![];
+    for i in 0..4 {
+        let spec = format!("{i}/4");
+        let mut args = extra.to_vec();
+        args.extend(["--shard", &spec]);
+        shards.push(tile(d, &format!("s{i}.tspack"), &[BASE6, SURVEY_A, SURVEY_B], &args));
+    }
+    let split = Reader::open_mmap(&shards[0]).unwrap().metadata().shard.as_ref().unwrap().split_lods[0];
+    assert_eq!(split, 1, "finer than the base, LOD 2");
+    // The surveys' tiles (LOD 0) spread over the shards.
+    let lod0: Vec<usize> = shards.iter().map(|s| tiles_of(s).keys().filter(|k| k.lod() == 0).count()).collect();
+    let total: usize = lod0.iter().sum();
+    assert!(lod0.iter().all(|&n| n * 2 < total), "LOD 0 tiles per shard: {lod0:?}");
+    let merged = d.join("merged.tspack");
+    let mut args = vec!["merge"];
+    args.extend(shards.iter().map(|s| s.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap(), "--elevation"]);
+    let inputs: Vec<String> =
+        [BASE6, SURVEY_A, SURVEY_B].iter().map(|p| repo().join(p).to_str().unwrap().to_owned()).collect();
+    args.extend(inputs.iter().map(String::as_str));
+    ok(&args, d);
+    assert!(tiles_of(&merged) == tiles_of(&whole), "the merge is the single run's tiles");
+}
+
 /// A collection's planned run, as the cluster Job runs it: the plan, from the inputs'
 /// headers, records every input's depth and lists for each shard the inputs its levels
 /// and its band of the base read (a survey only where its band reaches it); a shard given

@@ -261,7 +261,7 @@ fn to_u32(n: usize) -> u32 {
 
 /// `count + 1` boundaries splitting `rows` rows into `count` runs of about equal total
 /// `weight`; evenly by rows when there is no weight at all.
-fn balanced_cuts(rows: u32, count: u32, weight: impl Fn(u32) -> f64) -> Vec<u32> {
+pub(crate) fn balanced_cuts(rows: u32, count: u32, weight: impl Fn(u32) -> f64) -> Vec<u32> {
     let weights: Vec<f64> = (0..rows).map(|r| weight(r).max(0.0)).collect();
     let total: f64 = weights.iter().sum();
     let even = |i: u32| u32::try_from(u64::from(rows) * u64::from(i) / u64::from(count)).unwrap_or(rows);

@@ -136,28 +136,48 @@ fn bases(collections: Collections<'_>) -> Option<u8> {
     [collections.heights, collections.imagery].into_iter().flatten().map(|c| c.base).max()
 }
 
+/// The most work a shard may get, against the mean, before the default split goes finer
+/// than the base.
+const MOST_AGAINST_MEAN: f64 = 1.25;
+
 /// The split LOD of shard `spec` of `collections`' run: the one asked for; by default the
 /// run's default raised to the collections' bases, where the merge needs only the shards
-/// (the levels above are every tile's children's means), unless the base has fewer rows of
-/// tiles than there are shards: then the default itself, finer, so that every shard has
-/// work (the merge then makes the levels up to the base from the inputs as deep). Tiles of
-/// an odd number of samples keep the bases (a mean there spans two tiles, which a merge
-/// does not read together).
+/// (the levels above are every tile's children's means), unless the base's rows of tiles
+/// cannot share the work out: fewer rows than shards, or bands of them of which one gets
+/// more than [`MOST_AGAINST_MEAN`] times the mean (a survey within a row or two of the
+/// base). Then the default itself, finer, and the merge makes the levels up to the base
+/// from the inputs as deep. Tiles of an odd number of samples keep the bases (a mean there
+/// spans two tiles, which a merge does not read together).
 fn split_lod(collections: Collections<'_>, planned: &Plan, spec: &ShardSpec) -> u8 {
     let least = bases(collections).unwrap_or(0);
     let odd = planned.metadata.layers.iter().any(|l| l.tile_resolution % 2 == 1);
     let default = crate::shard::default_split(planned, spec.count);
-    let rows_at_base = planned
-        .metadata
-        .layers
-        .first()
-        .map_or(0, |l| l.num_y_tiles.div_ceil(1 << least.min(l.num_lods.saturating_sub(1))));
     match spec.split_lod {
         Some(k) if !odd => k,
         Some(k) => k.max(least),
-        None if rows_at_base < spec.count && !odd => default,
+        None if default < least && !odd && !shares_out(collections, planned, least, spec.count) => default,
         None => default.max(least),
     }
+}
+
+/// Whether `count` bands of whole rows of level `k`'s tiles share the collections' work
+/// out: as many rows as shards at least, and no band given more than
+/// [`MOST_AGAINST_MEAN`] times the mean work.
+fn shares_out(collections: Collections<'_>, planned: &Plan, k: u8, count: u32) -> bool {
+    let Some(layer) = planned.metadata.layers.first() else { return true };
+    let rows = layer.num_y_tiles.div_ceil(1 << k.min(layer.num_lods.saturating_sub(1)));
+    if rows < count {
+        return false;
+    }
+    let res = layer.tile_resolution;
+    let height = planned.layers.first().map_or(u32::MAX, |p| p.size.1);
+    let lod0 = |r: u32| (r << k).min(layer.num_y_tiles).saturating_mul(res).min(height);
+    let all = [collections.heights, collections.imagery];
+    let work = |from: u32, to: u32| all.iter().flatten().map(|c| c.work(lod0(from)..lod0(to), k)).sum::<f64>();
+    let cuts = crate::shard::balanced_cuts(rows, count, |r| work(r, r + 1));
+    let bands: Vec<f64> = cuts.windows(2).map(|w| work(w[0], w[1])).collect();
+    let mean = bands.iter().sum::<f64>() / f64::from(count.max(1));
+    mean <= 0.0 || bands.iter().all(|&b| b <= MOST_AGAINST_MEAN * mean)
 }
 
 /// Collection `c`'s part of a shard (None for a whole run): its layer's band and window.
