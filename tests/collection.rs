@@ -403,6 +403,14 @@ fn two_collections_of_one_grid_merge_into_the_run_with_every_input() {
     );
     let info = ok(&["info", merged.to_str().unwrap()], d);
     assert!(info.contains("survey-a") && info.contains("survey-b"), "{info}");
+    // Inputs given to a merge that reads none: said, and the same archive.
+    let again = d.join("again.tspack");
+    let base = repo().join(BASE6);
+    let args = ["merge", a.to_str().unwrap(), b.to_str().unwrap(), "-o", again.to_str().unwrap(), "--elevation"];
+    let out = oracles::run_in(&[&args[..], &[base.to_str().unwrap()]].concat(), d);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && said.contains("inputs given are not read"), "{said}");
+    assert!(tiles_of(&again) == ours);
 }
 
 #[test]

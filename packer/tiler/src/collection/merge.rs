@@ -76,6 +76,13 @@ pub(crate) fn make_above_split(
     progress: &dyn Progress,
 ) -> Result<()> {
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    let given = !(inputs.elevation.is_empty() && inputs.texture.is_empty());
+    if given && !(0..metadata.layers.len()).any(|i| made_here(metadata, split_lods, i)) {
+        tracing::warn!(
+            "the inputs given are not read: no layer of these shards is a collection split finer than its base (the \
+             levels above their split are their tiles' means)"
+        );
+    }
     for (index, layer) in metadata.layers.iter().enumerate() {
         if !matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture) || !made_here(metadata, split_lods, index) {
             continue;
