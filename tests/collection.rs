@@ -714,6 +714,9 @@ fn the_default_split_goes_finer_where_the_bases_rows_cannot_share_the_work() {
     }
     let split = Reader::open_mmap(&shards[0]).unwrap().metadata().shard.as_ref().unwrap().split_lods[0];
     assert_eq!(split, 1, "finer than the base, LOD 2");
+    // `info` of a shard says what its merge needs.
+    let info = ok(&["info", shards[0].to_str().unwrap()], d);
+    assert!(info.contains("shard       0/4") && info.contains("needs the run's inputs"), "{info}");
     // The surveys' tiles (LOD 0) spread over the shards.
     let lod0: Vec<usize> = shards.iter().map(|s| tiles_of(s).keys().filter(|k| k.lod() == 0).count()).collect();
     let total: usize = lod0.iter().sum();

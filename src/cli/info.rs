@@ -115,6 +115,9 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
         "tiles       {} addressed · {} entries · {} distinct · dedup {:.2}x · {:.2} directory bytes/tile",
         s.addressed_tiles, s.tile_entries, s.tile_contents, s.dedup_ratio, s.directory_bytes_per_tile
     );
+    if let Some(sh) = &m.shard {
+        out.push_str(&shard(sh, m));
+    }
     let t = &m.terrain;
     let _ = writeln!(
         out,
@@ -144,6 +147,36 @@ pub fn render(path: &str, s: &ArchiveStats, m: &terrastream_format::Metadata) ->
         out.push_str(&layer(i, l, m.layers.get(i).and_then(|l| l.extent.as_ref())));
     }
     out
+}
+
+/// Which shard of a run this is, what it holds, and what its merge needs: the run's
+/// inputs too where a collection's layer is split finer than its base.
+fn shard(sh: &terrastream_format::Shard, m: &terrastream_format::Metadata) -> String {
+    let k = sh.split_lods.first().copied().unwrap_or(0);
+    let [a, b] = sh.tile_rows.first().copied().unwrap_or([0, 0]);
+    let mut line = format!(
+        "shard       {}/{} of a run (`--shard`) · LOD 0 to {k} · LOD-0 tile rows {a} to {}",
+        sh.index,
+        sh.count,
+        b.saturating_sub(1)
+    );
+    let finer: Vec<String> = (m.layers.iter().zip(&sh.split_lods))
+        .filter(|(l, _)| {
+            matches!(l.kind, terrastream_format::LayerKind::Elevation | terrastream_format::LayerKind::Texture)
+        })
+        .filter_map(|(l, &k)| {
+            let base = l.extent.as_ref()?.partial.iter().map(|c| c.lod).max()? + 1;
+            (k < base).then(|| format!("{} (base LOD {base})", l.name))
+        })
+        .collect();
+    if !finer.is_empty() {
+        line.push_str(&format!(
+            " · split finer than the base of {}: `merge` needs the run's inputs too (`--elevation`/`--texture`, or \
+             `--shard-plan`)",
+            finer.join(", ")
+        ));
+    }
+    line + "\n"
 }
 
 /// What the heights are measured from, and the geoid's undulation over the footprint.
