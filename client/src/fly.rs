@@ -54,8 +54,8 @@ const DEFAULT_PITCH_DEGREES: f64 = 50.0;
 const FRAME_FILL: f64 = 0.92;
 
 /// An oblique view from the south framing the whole dataset: looking down at
-/// [`DEFAULT_PITCH_DEGREES`], the terrain's box centred in the frame and as close as it
-/// can be while every corner stays inside [`FRAME_FILL`] of the frame. On the globe the
+/// `DEFAULT_PITCH_DEGREES`, the terrain's box centred in the frame and as close as it
+/// can be while every corner stays inside `FRAME_FILL` of the frame. On the globe the
 /// same over the data's box on the ellipsoid, and a data set spanning a hemisphere or
 /// more (a world archive) is seen whole, straight down from above its centre.
 pub fn default_camera(metadata: &Metadata, surface: &Surface, width: u32, height: u32) -> Camera {

@@ -2,8 +2,8 @@
 //! `upload` (within the streaming core's per-frame budget), `prepare(camera)`, `draw(pass)`.
 
 //!
-//! Split by concern: [`super::pipeline`] (shaders, layouts, pipelines), [`super::frame`]
-//! (each frame's uniforms and instances), [`super::tile_array`] (the tiles on the GPU);
+//! Split by concern: `super::pipeline` (shaders, layouts, pipelines), `super::frame`
+//! (each frame's uniforms and instances), `super::tile_array` (the tiles on the GPU);
 //! this file holds the renderer itself: its resources, uploads, selection and draws.
 
 use std::collections::HashSet;

@@ -135,7 +135,7 @@ pub(super) fn gdal_statistics<R: std::io::Read + std::io::Seek>(
     statistics_in(&xml)
 }
 
-/// [`gdal_statistics`] of a GDAL metadata document (the text of the GDAL_METADATA tag):
+/// `gdal_statistics` of a GDAL metadata document (the text of the GDAL_METADATA tag):
 /// the exact minimum and maximum of band 1, if it records them.
 pub fn statistics_in(xml: &str) -> Option<(f64, f64)> {
     let item = |name: &str| -> Option<&str> {

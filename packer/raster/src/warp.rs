@@ -165,7 +165,7 @@ fn pixel_metres(crs: &Crs, at: Placement, height: u32) -> Option<f64> {
     (m.is_finite() && m > 0.0).then_some(m)
 }
 
-/// The pixel size in metres of an image that says where it lies (see [`pixel_metres`]);
+/// The pixel size in metres of an image that says where it lies (see `pixel_metres`);
 /// `None` without a georeference in a CRS the tiler knows.
 pub fn image_pixel_metres(image: &dyn ImageSource) -> Option<f64> {
     let (crs, origin, pixel) = crs_placement(image.georeference(), image.crs_pixel_size())?;

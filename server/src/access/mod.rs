@@ -1,6 +1,6 @@
 //! Private terrain: who may read what. One function, [`Access::decide`], rules on every
-//! request before it is routed, on hyper's path ([`crate::edge`]) and on the lean
-//! HTTP/1.1 path ([`crate::h1`]) alike.
+//! request before it is routed, on hyper's path (`crate::edge`) and on the lean
+//! HTTP/1.1 path (`crate::h1`) alike.
 //!
 //! - Archives are public unless a rule makes them private: `private` globs in the
 //!   configuration, or `private_all` (`serve --private`).
@@ -170,7 +170,7 @@ pub struct Rules {
     /// Seconds past an expiry still accepted (clocks differ).
     pub clock_skew_secs: u64,
     /// Refusals a second, all clients together, answered without delay (0: no pace);
-    /// beyond it each is held for its turn ([`pace`]).
+    /// beyond it each is held for its turn (`pace`).
     pub refusal_rate: u32,
     /// Refusals answered at once before the pace applies.
     pub refusal_burst: u32,
@@ -262,7 +262,7 @@ impl Access {
     }
 
     /// Waits the turn of a refusal made now before it is answered: refusals share one pace
-    /// ([`pace`]), so a flood of bad credentials leaves the cores to valid requests. Both
+    /// (`pace`), so a flood of bad credentials leaves the cores to valid requests. Both
     /// HTTP paths await it on every refusal.
     pub async fn wait_turn(&self) {
         let hold = self.pace.as_ref().map_or(std::time::Duration::ZERO, |p| p.hold(std::time::Instant::now()));

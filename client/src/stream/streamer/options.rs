@@ -9,7 +9,7 @@ pub struct StreamOptions {
     pub select: SelectOptions,
     /// Most requests in flight at once.
     pub max_in_flight: usize,
-    /// Adapt the in-flight limit to the link (see [`InFlightLimit`]), between 2 and
+    /// Adapt the in-flight limit to the link (see `InFlightLimit`), between 2 and
     /// `max_in_flight`, starting at 8; else `max_in_flight` is the limit.
     pub adaptive_in_flight: bool,
     /// Merge neighbouring tiles of an archive into one range request.

@@ -38,7 +38,7 @@ use strips::*;
 use window::*;
 
 /// Input files kept open at least (more while a band of rows reads more, as the limit on
-/// open files allows; see [`open_files_limit`]).
+/// open files allows; see `open_files_limit`).
 pub const OPEN_FILES: usize = 64;
 
 /// Files the mosaic may keep open: half the process's limit on open files shared among
