@@ -165,7 +165,7 @@ fn shard(sh: &terrastream_format::Shard, m: &terrastream_format::Metadata) -> St
             matches!(l.kind, terrastream_format::LayerKind::Elevation | terrastream_format::LayerKind::Texture)
         })
         .filter_map(|(l, &k)| {
-            let base = l.extent.as_ref()?.partial.iter().map(|c| c.lod).max()? + 1;
+            let base = l.extent.as_ref()?.whole_from()?;
             (k < base).then(|| format!("{} (base LOD {base})", l.name))
         })
         .collect();

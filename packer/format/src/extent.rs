@@ -149,6 +149,13 @@ fn union_covers(a: &[LevelCover], b: &[LevelCover]) -> Vec<LevelCover> {
 }
 
 impl LayerExtent {
+    /// The first level from which every level covers the layer's data (a collection's
+    /// base); None where every level does.
+    #[must_use]
+    pub fn whole_from(&self) -> Option<u8> {
+        self.partial.iter().map(|c| c.lod).max().map(|l| l + 1)
+    }
+
     /// Whether tile (`x`, `y`) of level `lod` may be held: false only outside a partial
     /// level's rectangles.
     #[must_use]

@@ -40,8 +40,7 @@ pub struct RunInputs<'a> {
 /// A collection layer's base level, as `metadata` records it (the first that covers the
 /// grid): None for a layer of one resolution.
 pub(crate) fn recorded_base(metadata: &Metadata, index: usize) -> Option<u8> {
-    let extent = metadata.layers.get(index)?.extent.as_ref()?;
-    extent.partial.iter().map(|c| c.lod).max().map(|l| l + 1)
+    metadata.layers.get(index)?.extent.as_ref()?.whole_from()
 }
 
 /// Whether the merge of shards split at `split_lods` makes layer `index`'s levels above
@@ -167,15 +166,13 @@ pub(crate) fn make_above_split(
             let q: &super::QuantizeRow<'_, f32> = &quantize;
             super::cut_levels(&c, metadata, index, &open, &encode_tile, Some(q), folder, spool, progress, means)?;
             // The split level's ranges (the shards') widen those above them.
-            let mut below = Vec::new();
-            if let Some(r) = find(LayerKind::HeightRange) {
-                for &(x, y) in &c.levels[usize::from(k)].tiles {
-                    let bytes = payload(TileKey::new(r, k, x, y)?)?;
-                    if let Some((lo, hi)) = bytes.as_deref().and_then(crate::edit::merge::range_of) {
-                        below.push((TileKey::new(index, k, x, y)?, lo, hi));
-                    }
+            let below = match find(LayerKind::HeightRange) {
+                Some(r) => {
+                    let held = c.levels[usize::from(k)].tiles.iter().copied();
+                    crate::edit::merge::split_ranges(payload, (index, r), k, held)?
                 }
-            }
+                None => Vec::new(),
+            };
             heights.finish(metadata, below, spool)?;
         }
     }
@@ -290,9 +287,9 @@ impl Stand<'_> {
                 }
                 halves.push(half);
             }
-            let mut o = Override { x0: x0 / 2, y0: y0 / 2, rows: halves };
-            o.keep_held(level, layer.tile_resolution);
-            means.push(o);
+            // Only the held tiles' samples have data here, so the means are those a run
+            // keeps (`Override::keep_held`) without more ado.
+            means.push(Override { x0: x0 / 2, y0: y0 / 2, rows: halves });
         }
         Ok(Cut::Above(self.k, means))
     }

@@ -197,7 +197,7 @@ pub(crate) fn layer_grid(old: &Metadata, base: &Path, index: u8) -> Result<(Grid
     let bad = |why: String| Error::input(base, why);
     let layer = &old.layers[usize::from(index)];
     let extent = layer.extent.clone().ok_or_else(|| bad(format!("its {} layer records no extent", layer.name)))?;
-    let base_lod = extent.partial.iter().map(|c| c.lod).max().map_or(0, |l| l + 1);
+    let base_lod = extent.whole_from().unwrap_or(0);
     let g = old.georeference.clone().ok_or_else(|| bad("it has no georeference".into()))?;
     let (Some(origin), Some(scale)) = (g.origin, g.scale) else {
         return Err(bad("its georeference has no origin and scale".into()));

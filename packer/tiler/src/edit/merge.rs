@@ -759,7 +759,11 @@ fn reduce(
                 })?;
                 // The split LOD's ranges (the shards' own) widen the ranges above them.
                 let below = match find(LayerKind::HeightRange) {
-                    Some(r) => split_ranges(metadata, readers, winners, (index, r), k, (cols, rows_k))?,
+                    Some(r) => {
+                        let payload = |key: TileKey| payload(metadata, readers, winners, key);
+                        let all = (0..rows_k).flat_map(|y| (0..cols).map(move |x| (x, y)));
+                        split_ranges(&payload, (index, r), k, all)?
+                    }
                     None => Vec::new(),
                 };
                 heights.finish(metadata, below, spool)?;
@@ -819,23 +823,18 @@ fn level_rows<S: Pixel>(
     Ok(())
 }
 
-/// The height-range tiles of LOD `k` (as the shards stored them).
-fn split_ranges(
-    metadata: &Metadata,
-    readers: &[Reader<MmapSource>],
-    winners: &BTreeMap<u64, Found>,
+/// The height-range tiles of LOD `k` at `tiles` (as the shards stored them: `payload`).
+pub(crate) fn split_ranges(
+    payload: &crate::collection::merge::Payload<'_>,
     (elevation, range_layer): (u8, u8),
     k: u8,
-    (cols, rows): (u32, u32),
+    tiles: impl IntoIterator<Item = (u32, u32)>,
 ) -> Result<Vec<(TileKey, f32, f32)>> {
     let mut out = Vec::new();
-    for ty in 0..rows {
-        for tx in 0..cols {
-            let bytes = payload(metadata, readers, winners, TileKey::new(range_layer, k, tx, ty)?)?;
-            if let Some((lo, hi)) = bytes.as_deref().and_then(range_of) {
-                // Keyed by the elevation tile, as the encoder gathers them.
-                out.push((TileKey::new(elevation, k, tx, ty)?, lo, hi));
-            }
+    for (tx, ty) in tiles {
+        if let Some((lo, hi)) = payload(TileKey::new(range_layer, k, tx, ty)?)?.as_deref().and_then(range_of) {
+            // Keyed by the elevation tile, as the encoder gathers them.
+            out.push((TileKey::new(elevation, k, tx, ty)?, lo, hi));
         }
     }
     Ok(out)
