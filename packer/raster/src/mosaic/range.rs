@@ -169,6 +169,25 @@ impl ElevationSource for Mosaic<Heights> {
         }
         if lo <= hi { Ok(crate::nearest_f32((lo, hi))) } else { Err(self.path.clone()) }
     }
+    /// A reprojected GeoTIFF's (a mosaic of that one file, warped): the file's own estimate
+    /// (its datum shift's range added, as [`Self::height_range`] adds it), inside the
+    /// file's range, which is the mosaic's. None for a mosaic of several inputs, or of a
+    /// VRT's window, nodata or scale, or one on the file's own grid: the estimate of
+    /// several inputs changes with the set of them, which a shard fetching only its own
+    /// inputs, and an update matching the run over all its rasters, must not see (the
+    /// exact range of a union is the union of the exact ranges). None too with
+    /// `skip_bad_inputs`: the scan is where bad inputs are found and left out, before
+    /// any row is made.
+    fn height_range_estimate(&self) -> Result<Option<(f32, f32)>> {
+        let [input] = self.inputs.as_slice() else { return Ok(None) };
+        let (w, h) = Heights::size(&input.file);
+        let whole = input.nodata.is_none() && input.scale.is_none() && input.window == [0, 0, w, h];
+        if self.skip_bad_inputs || !whole || !matches!(input.placement, Placement::Warped) {
+            return Ok(None);
+        }
+        let (sl, sh) = input.shift.as_ref().map_or((0.0, 0.0), |s| s.range);
+        Ok(input.file.height_range_estimate()?.map(|(l, h)| (l + sl, h + sh)))
+    }
     fn inputs_in_rows(&self, rows: std::ops::Range<u32>) -> Vec<PathBuf> {
         Mosaic::inputs_in_rows(self, rows)
     }
