@@ -89,6 +89,32 @@ pub trait MosaicKind: Send + Sync + 'static {
     fn blend_unit(corners: &[(Self::Value, f64); 4]) -> Self::Value {
         Self::blend(corners)
     }
+    /// [`Self::blend_unit`] at the points `start + (first + k) * step` into each `out[k]`
+    /// that has no data yet: a straight line of samples (a warp's, between two exact
+    /// points of its lattice), every one of them between rows `y0` and `y0 + 1`, whose
+    /// corners `top` and `bottom` hold from column `base` on.
+    fn blend_line(
+        top: &[Self::Value],
+        bottom: &[Self::Value],
+        (base, y0): (i64, i64),
+        (start, step, first): ((f64, f64), (f64, f64), usize),
+        out: &mut [Self::Value],
+    ) {
+        for (k, o) in out.iter_mut().enumerate() {
+            if Self::is_none(o) {
+                let p = line_point(start, step, first + k);
+                let x0 = floor(p.0);
+                #[expect(
+                    clippy::cast_sign_loss,
+                    clippy::cast_possible_truncation,
+                    reason = "on the line: at or after base"
+                )]
+                let i = (x0 - base) as usize;
+                let w = weights(p, x0, y0);
+                *o = Self::blend_unit(&[(top[i], w[0]), (top[i + 1], w[1]), (bottom[i], w[2]), (bottom[i + 1], w[3])]);
+            }
+        }
+    }
     /// [`Self::blend`] of `top[k]`, `top[k + 1]`, `bottom[k]`, `bottom[k + 1]` with weights
     /// `w` into each `out[k]` that has no data yet (`top` and `bottom` hold one more value
     /// than `out`): a run of samples with the same weights.
@@ -195,6 +221,32 @@ impl MosaicKind for Heights {
             }
         }
     }
+    fn blend_line(
+        top: &[f32],
+        bottom: &[f32],
+        (base, y0): (i64, i64),
+        (start, step, first): ((f64, f64), (f64, f64), usize),
+        out: &mut [f32],
+    ) {
+        // As `blend_run`: first the weighted sums, with no branch; then `blend` where a
+        // corner has no data. The same bits as `blend_unit` point by point.
+        let corners = |k: usize| line_corners(top, bottom, (base, y0), line_point(start, step, first + k));
+        // Four points at a time where the processor can (the same operations in the same
+        // order: the same bits), then the rest one at a time.
+        let done = wide::blend_line(top, bottom, (base, y0), (start, step, first), out);
+        for (k, o) in out.iter_mut().enumerate().skip(done) {
+            let (v, w) = corners(k);
+            #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
+            let sum = weighted_sum(v, w) as f32;
+            *o = if o.is_nan() { sum } else { *o };
+        }
+        for (k, o) in out.iter_mut().enumerate() {
+            if o.is_nan() {
+                let (v, w) = corners(k);
+                *o = Self::blend(&[(v[0], w[0]), (v[1], w[1]), (v[2], w[2]), (v[3], w[3])]);
+            }
+        }
+    }
     #[inline]
     fn blend_unit(corners: &[(f32, f64); 4]) -> f32 {
         // With every corner's data the weights sum to 1: the division would change the
@@ -204,6 +256,149 @@ impl MosaicKind for Heights {
         #[expect(clippy::cast_possible_truncation, reason = "heights are kept as f32")]
         if sum.is_nan() { Self::blend(corners) } else { sum as f32 }
     }
+}
+
+/// Point `k` of a line of sample points.
+#[inline]
+pub(crate) fn line_point(start: (f64, f64), step: (f64, f64), k: usize) -> (f64, f64) {
+    #[expect(clippy::cast_precision_loss, reason = "lines are far shorter than 2^52")]
+    let k = k as f64;
+    (start.0 + step.0 * k, start.1 + step.1 * k)
+}
+
+/// [`MosaicKind::blend_line`] for heights, four points at a time with AVX2 where the
+/// processor has it: no gathers, no loads through pointers (the corners are read from the
+/// slices, checked, and packed into vectors), so the only unsafe step is the call into a
+/// function compiled for AVX2, made after the processor says it has AVX2.
+mod wide {
+    /// The first samples of `out` made (a multiple of four, or 0 without AVX2); the same
+    /// values, bit for bit, as the one-point loop makes.
+    pub(super) fn blend_line(
+        top: &[f32],
+        bottom: &[f32],
+        at: (i64, i64),
+        line: ((f64, f64), (f64, f64), usize),
+        out: &mut [f32],
+    ) -> usize {
+        #[cfg(target_arch = "x86_64")]
+        if out.len() >= 4 && std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the function's only requirement is AVX2, detected just above; it
+            // reads and writes only through checked slice indexing.
+            #[expect(unsafe_code, reason = "a call into AVX2 code, after detecting AVX2")]
+            return unsafe { avx2(top, bottom, at, line, out) };
+        }
+        let _ = (top, bottom, at, line, out);
+        0
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[expect(
+        clippy::cast_precision_loss,
+        clippy::cast_possible_truncation,
+        clippy::cast_sign_loss,
+        reason = "as the one-point loop"
+    )]
+    fn avx2(
+        top: &[f32],
+        bottom: &[f32],
+        (base, y0): (i64, i64),
+        (start, step, first): ((f64, f64), (f64, f64), usize),
+        out: &mut [f32],
+    ) -> usize {
+        use std::arch::x86_64::{
+            _mm256_add_pd, _mm256_cvtpd_ps, _mm256_floor_pd, _mm256_mul_pd, _mm256_set_pd, _mm256_set1_pd,
+            _mm256_sub_pd,
+        };
+        let (sx, sy, dx, dy) =
+            (_mm256_set1_pd(start.0), _mm256_set1_pd(start.1), _mm256_set1_pd(step.0), _mm256_set1_pd(step.1));
+        let (one, y0f) = (_mm256_set1_pd(1.0), _mm256_set1_pd(y0 as f64));
+        let n = out.len() / 4 * 4;
+        for k in (0..n).step_by(4) {
+            let i = (first + k) as f64;
+            let kk = _mm256_set_pd(i + 3.0, i + 2.0, i + 1.0, i);
+            // start + k * step, as line_point; floor, as `floor` (the points are finite).
+            let (px, py) = (_mm256_add_pd(sx, _mm256_mul_pd(dx, kk)), _mm256_add_pd(sy, _mm256_mul_pd(dy, kk)));
+            let x0 = _mm256_floor_pd(px);
+            let (fx, fy) = (_mm256_sub_pd(px, x0), _mm256_sub_pd(py, y0f));
+            let (gx, gy) = (_mm256_sub_pd(one, fx), _mm256_sub_pd(one, fy));
+            let c = lanes_pd(x0).map(|x| (x as i64 - base) as usize);
+            let corner = |row: &[f32], d: usize| {
+                _mm256_set_pd(
+                    f64::from(row[c[3] + d]),
+                    f64::from(row[c[2] + d]),
+                    f64::from(row[c[1] + d]),
+                    f64::from(row[c[0] + d]),
+                )
+            };
+            // w0 * a + w1 * b + w2 * c + w3 * d, as weighted_sum.
+            let sum = _mm256_add_pd(
+                _mm256_add_pd(
+                    _mm256_add_pd(
+                        _mm256_mul_pd(_mm256_mul_pd(gx, gy), corner(top, 0)),
+                        _mm256_mul_pd(_mm256_mul_pd(fx, gy), corner(top, 1)),
+                    ),
+                    _mm256_mul_pd(_mm256_mul_pd(gx, fy), corner(bottom, 0)),
+                ),
+                _mm256_mul_pd(_mm256_mul_pd(fx, fy), corner(bottom, 1)),
+            );
+            for (o, s) in out[k..k + 4].iter_mut().zip(lanes_ps(_mm256_cvtpd_ps(sum))) {
+                *o = if o.is_nan() { s } else { *o };
+            }
+        }
+        n
+    }
+
+    /// The four lanes of `v`, lowest first.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn lanes_pd(v: std::arch::x86_64::__m256d) -> [f64; 4] {
+        use std::arch::x86_64::{_mm_cvtsd_f64, _mm_unpackhi_pd, _mm256_castpd256_pd128, _mm256_extractf128_pd};
+        let (lo, hi) = (_mm256_castpd256_pd128(v), _mm256_extractf128_pd::<1>(v));
+        [
+            _mm_cvtsd_f64(lo),
+            _mm_cvtsd_f64(_mm_unpackhi_pd(lo, lo)),
+            _mm_cvtsd_f64(hi),
+            _mm_cvtsd_f64(_mm_unpackhi_pd(hi, hi)),
+        ]
+    }
+
+    /// The four lanes of `v`, lowest first.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[expect(clippy::cast_sign_loss, reason = "the lane's bits")]
+    fn lanes_ps(v: std::arch::x86_64::__m128) -> [f32; 4] {
+        use std::arch::x86_64::{_mm_cvtss_f32, _mm_extract_ps};
+        let bits = |b: i32| f32::from_bits(b as u32);
+        [_mm_cvtss_f32(v), bits(_mm_extract_ps::<1>(v)), bits(_mm_extract_ps::<2>(v)), bits(_mm_extract_ps::<3>(v))]
+    }
+}
+
+/// The four corners of point `p` and their weights (see [`MosaicKind::blend_line`]).
+#[inline(always)]
+fn line_corners(top: &[f32], bottom: &[f32], (base, y0): (i64, i64), p: (f64, f64)) -> ([f32; 4], [f64; 4]) {
+    let x0 = floor(p.0);
+    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "on the line: at or after base")]
+    let i = (x0 - base) as usize;
+    ([top[i], top[i + 1], bottom[i], bottom[i + 1]], weights(p, x0, y0))
+}
+
+/// floor() without a libm call (no SSE4.1 round instruction on the baseline target).
+#[inline]
+#[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
+pub(crate) fn floor(v: f64) -> i64 {
+    let i = v as i64;
+    #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
+    if (i as f64) > v { i - 1 } else { i }
+}
+
+/// Bilinear weights of the corners `(x0, y0)`, `(x0 + 1, y0)`, `(x0, y0 + 1)` and `(x0 +
+/// 1, y0 + 1)` for point `p`.
+#[inline]
+pub(crate) fn weights(p: (f64, f64), x0: i64, y0: i64) -> [f64; 4] {
+    #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
+    let (fx, fy) = (p.0 - x0 as f64, p.1 - y0 as f64);
+    [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy]
 }
 
 /// The bilinear sum of four heights: NaN if one is. What [`Heights::blend_unit`] and
@@ -314,5 +509,54 @@ impl MosaicKind for Pixels {
         #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded into 0..=255")]
         let c = |v: f64| v.round().clamp(0.0, 255.0) as u8;
         [c(acc[0] / acc[3]), c(acc[1] / acc[3]), c(acc[2] / acc[3]), c(acc[3])]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A line of points sampled by `blend_line` (four at a time where AVX2 is there) gives
+    /// the bits `blend_unit` gives one point at a time, with corners without data, samples
+    /// that already have data, lines running either way and any first point.
+    #[test]
+    fn blend_line_is_blend_unit_point_by_point() {
+        let width = 200;
+        let row = |seed: u32| -> Vec<f32> {
+            (0..width)
+                .map(|i: u32| {
+                    let v = i.wrapping_mul(2_654_435_761_u32).wrapping_add(seed).rotate_left(7);
+                    #[expect(clippy::cast_precision_loss, reason = "test values")]
+                    if v.is_multiple_of(23) { f32::NAN } else { (v % 100_000) as f32 * 0.037 - 400.0 }
+                })
+                .collect()
+        };
+        let (top, bottom) = (row(1), row(2));
+        let (base, y0) = (40i64, 7i64);
+        let lines = [
+            ((41.3, 7.2), (0.97, 0.0), 0usize, 37usize),
+            ((45.01, 7.9), (1.31, -0.001), 3, 64),
+            ((230.6, 7.5), (-0.55, 0.001), 1, 33),
+            ((50.0, 7.0), (1.0, 0.0), 5, 21),
+            ((60.25, 7.75), (0.125, 0.0), 0, 7),
+        ];
+        let mut with_gaps = 0;
+        for (start, step, first, n) in lines {
+            let mut out: Vec<f32> = (0..n).map(|k| if k % 5 == 2 { 1234.5 } else { f32::NAN }).collect();
+            let mut expected = out.clone();
+            for (k, o) in expected.iter_mut().enumerate() {
+                if o.is_nan() {
+                    let p = line_point(start, step, first + k);
+                    let (v, w) = line_corners(&top, &bottom, (base, y0), p);
+                    with_gaps += usize::from(v.iter().any(|c| c.is_nan()));
+                    *o = Heights::blend_unit(&[(v[0], w[0]), (v[1], w[1]), (v[2], w[2]), (v[3], w[3])]);
+                }
+            }
+            Heights::blend_line(&top, &bottom, (base, y0), (start, step, first), &mut out);
+            let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&out), bits(&expected), "line from {start:?} by {step:?}");
+            assert!(out.iter().filter(|v| !v.is_nan() && **v != 1234.5).count() > n / 2);
+        }
+        assert!(with_gaps > 5, "corners without data: {with_gaps}");
     }
 }

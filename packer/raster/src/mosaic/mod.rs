@@ -633,22 +633,22 @@ impl<K: MosaicKind> Mosaic<K> {
                         continue;
                     };
                     let fy = f64::from(j % LATTICE_ROWS) / f64::from(LATTICE_ROWS);
-                    let mut points = Vec::with_capacity(c1 - c0 + 1);
                     for k in 0..top.len().saturating_sub(1) {
                         let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
+                        if from > c1 {
+                            break;
+                        }
                         let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
                         let (a, b) = (mix(top[k], bottom[k], fy), mix(top[k + 1], bottom[k + 1], fy));
                         let last = if to == c1 { to } else { to - 1 };
                         #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
                         let step = 1.0 / (to - from).max(1) as f64;
                         let d = ((b.0 - a.0) * step, (b.1 - a.1) * step);
-                        #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
-                        points.extend((0..=last - from).map(|k| (a.0 + d.0 * k as f64, a.1 + d.1 * k as f64)));
+                        window.line_into(a, d, &mut out[from..=last], &edge);
+                        if to == c1 {
+                            break;
+                        }
                     }
-                    if points.len() != c1 - c0 + 1 {
-                        points.resize(c1 - c0 + 1, (f64::NAN, f64::NAN));
-                    }
-                    window.bilinear_into(&points, &mut out[c0..c0 + points.len()], &edge);
                 }
             }
             if let (Some(shift), Some(empty)) = (&input.shift, empty) {

@@ -1,6 +1,7 @@
 //! Sampling: the chunks under a row's sample points, held for lock-free bilinear reads.
 
 use super::*;
+use crate::kind::{floor, line_point, weights};
 
 /// The value of a pixel beyond an input's own, by its pixel coordinates: its neighbours'
 /// of its CRS and pixel size, or no data.
@@ -143,8 +144,9 @@ impl<K: MosaicKind> FileWindow<K> {
         K::blend(&[(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])])
     }
 
-    /// [`Self::bilinear_into`] for the points `(x0 + k, y)`, `k` = 0, 1, …: an input a
-    /// fraction of a pixel off the output grid. The weights are the same for all.
+    /// [`Self::bilinear`] into each sample of `out` with no data yet, at the points
+    /// `(x0 + k, y)`, `k` = 0, 1, …: an input a fraction of a pixel off the output grid.
+    /// The weights are the same for all.
     pub(super) fn shifted_into(&self, x0: f64, y: f64, out: &mut [K::Value], edge: &Edge<'_, K::Value>) {
         let (ix, iy) = (floor(x0), floor(y));
         let w = weights((x0, y), ix, iy);
@@ -170,53 +172,57 @@ impl<K: MosaicKind> FileWindow<K> {
         }
     }
 
-    /// [`Self::bilinear`] at each of `points` whose sample in `out` has no data yet (the
-    /// same values, up to the last bit where [`MosaicKind::blend_unit`] sums four corners
-    /// with data). Consecutive points of a row mostly fall between the same two rows of
-    /// one chunk column: those are found once, not with two divisions and a lookup a point,
-    /// and sampled in a loop of their own.
-    pub(super) fn bilinear_into(&self, points: &[(f64, f64)], out: &mut [K::Value], edge: &Edge<'_, K::Value>) {
-        let n = out.len().min(points.len());
-        let mut pair: Option<RowPair<'_, K::Value>> = None;
+    /// [`Self::bilinear`] at each point `start + k * step`, `k` = 0, 1, …, whose sample in
+    /// `out` has no data yet: a warp's samples between two exact points of its lattice. Each run of them between the same
+    /// two rows of one chunk column (most lines are one run: a lattice cell is some 32
+    /// samples) is found with a few tests, not one a point, and sampled at once.
+    pub(super) fn line_into(
+        &self,
+        start: (f64, f64),
+        step: (f64, f64),
+        out: &mut [K::Value],
+        edge: &Edge<'_, K::Value>,
+    ) {
+        let n = out.len();
         let mut k = 0;
         while k < n {
-            let p = points[k];
-            if !(K::is_none(&out[k]) && p.0.is_finite() && p.1.is_finite()) {
-                k += 1;
-                continue;
-            }
+            let p = line_point(start, step, k);
             let (x0, y0) = (floor(p.0), floor(p.1));
-            if !pair.as_ref().is_some_and(|r| r.holds(x0, y0)) {
-                pair = self.row_pair(x0, y0);
-                if let Some(r) = &pair {
-                    r.prefetch_ahead(x0);
-                }
-            }
-            let Some(r) = &pair else {
+            let finite = p.0.is_finite() && p.1.is_finite();
+            let Some(r) = finite.then(|| self.row_pair(x0, y0)).flatten() else {
                 // Outside the window by a pixel or more: no corner has data.
-                if x0 >= self.bounds.0 - 1 && y0 >= self.bounds.1 - 1 && x0 < self.bounds.2 && y0 < self.bounds.3 {
+                let b = self.bounds;
+                if finite && K::is_none(&out[k]) && x0 >= b.0 - 1 && y0 >= b.1 - 1 && x0 < b.2 && y0 < b.3 {
                     out[k] = self.bilinear(p, edge);
                 }
                 k += 1;
                 continue;
             };
-            // This point and those after it between the same two rows, in a loop of
-            // their own.
-            let (mut p, mut x0) = (p, x0);
-            loop {
-                let ([a, b], [c, d], w) = (r.top(x0), r.bottom(x0), weights(p, x0, y0));
-                out[k] = K::blend_unit(&[(a, w[0]), (b, w[1]), (c, w[2]), (d, w[3])]);
-                k += 1;
-                if k >= n {
-                    break;
+            // The points' columns and rows move one way along the line (a multiple of
+            // one step added to the start is monotonic, rounding included): the pair
+            // holds a run of them from this one on, found by bisection.
+            let held = |i: usize| {
+                let q = line_point(start, step, i);
+                q.0.is_finite() && q.1.is_finite() && r.holds(floor(q.0), floor(q.1))
+            };
+            let end = if held(n - 1) {
+                n
+            } else {
+                // held(lo - 1), not held(hi).
+                let (mut lo, mut hi) = (k + 1, n - 1);
+                while lo < hi {
+                    let mid = usize::midpoint(lo, hi);
+                    if held(mid) {
+                        lo = mid + 1;
+                    } else {
+                        hi = mid;
+                    }
                 }
-                p = points[k];
-                x0 = floor(p.0);
-                // (A NaN point floors to 0 and leaves the pair: `holds` fails on its row.)
-                if !(r.holds(x0, floor(p.1)) && K::is_none(&out[k])) {
-                    break;
-                }
-            }
+                lo
+            };
+            r.prefetch_ahead(x0);
+            K::blend_line(r.top, r.bottom, (r.base, y0), (start, step, k), &mut out[k..end]);
+            k = end;
         }
     }
 
@@ -285,16 +291,6 @@ impl<V: Copy> RowPair<'_, V> {
     pub(super) fn holds(&self, x: i64, y: i64) -> bool {
         y == self.y && x >= self.from && x < self.end
     }
-    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "held: at or after base")]
-    pub(super) fn top(&self, x: i64) -> [V; 2] {
-        let i = (x - self.base) as usize;
-        [self.top[i], self.top[i + 1]]
-    }
-    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "held: at or after base")]
-    pub(super) fn bottom(&self, x: i64) -> [V; 2] {
-        let i = (x - self.base) as usize;
-        [self.bottom[i], self.bottom[i + 1]]
-    }
     /// Asks for the two cache lines of the row after `bottom` from column `x` on. A
     /// reprojected row crosses the input's rows at a slant (one every ~16 samples for
     /// two UTM zones): the next output row needs those lines as its lower corners, and
@@ -325,20 +321,4 @@ pub(super) fn prefetch<V>(v: &V) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = v;
-}
-
-/// floor() without a libm call (no SSE4.1 round instruction on the baseline target).
-#[expect(clippy::cast_possible_truncation, reason = "pixel coordinates are far below 2^63")]
-pub(super) fn floor(v: f64) -> i64 {
-    let i = v as i64;
-    #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
-    if (i as f64) > v { i - 1 } else { i }
-}
-
-/// Bilinear weights of the corners `(x0, y0)`, `(x0 + 1, y0)`, `(x0, y0 + 1)` and `(x0 +
-/// 1, y0 + 1)` for point `p`.
-pub(super) fn weights(p: (f64, f64), x0: i64, y0: i64) -> [f64; 4] {
-    #[expect(clippy::cast_precision_loss, reason = "pixel coordinates are far below 2^52")]
-    let (fx, fy) = (p.0 - x0 as f64, p.1 - y0 as f64);
-    [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy]
 }
