@@ -355,6 +355,67 @@ fn dem_file(path: &Path, pit: i16) {
     image.write_data(&data).unwrap();
 }
 
+/// `dem_file`'s DEM placed in degrees (0.001° a sample from 7.4°E, 46.6°N), so that a
+/// run onto a projected CRS warps it.
+fn geographic_dem_file(path: &Path, pit: i16) {
+    use tiff::encoder::{TiffEncoder, colortype::GrayI16};
+    use tiff::tags::Tag;
+    let raster = dem();
+    let mut data: Vec<i16> = raster.data.iter().map(|h| if h.is_nan() { -32_767 } else { h.round() as i16 }).collect();
+    data[6 * raster.width as usize + 150] = pit;
+    let mut tiff = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    let mut image = tiff.new_image::<GrayI16>(raster.width, raster.height).unwrap();
+    image.rows_per_strip(4).unwrap();
+    image.encoder().write_tag(Tag::Unknown(42113), "-32767").unwrap();
+    image.encoder().write_tag(Tag::Unknown(33550), &[0.001, 0.001, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, 7.4, 46.6, 0.0][..]).unwrap();
+    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326][..]).unwrap();
+    image.write_data(&data).unwrap();
+}
+
+/// A GeoTIFF reprojected (a mosaic of one warped file) estimates its range as the file
+/// does, and encodes a whole run by it, as its shards given the exact range do; a mosaic
+/// of two files, or of one on its own grid, scans instead (None).
+#[test]
+fn a_reprojected_geotiff_runs_on_its_files_estimate() {
+    use terrastream_tiler::{Crs, ElevationSource, KnownRange, Mosaic, MosaicOptions, open_elevation};
+    let dir = tempfile::tempdir().unwrap();
+    let tif = dir.path().join("geo.tif");
+    geographic_dem_file(&tif, 250);
+    let file_estimate = open_elevation(&tif, None).unwrap().height_range_estimate().unwrap();
+    assert!(file_estimate.is_some());
+    let utm = MosaicOptions { crs: Some(Crs::parse("EPSG:32632").unwrap()), ..MosaicOptions::default() };
+    let warped = Mosaic::open(std::slice::from_ref(&tif), &utm).unwrap();
+    assert_eq!(warped.height_range_estimate().unwrap(), file_estimate);
+    let degrees = MosaicOptions { crs: Some(Crs::parse("EPSG:4326").unwrap()), ..MosaicOptions::default() };
+    let own_grid = Mosaic::open(std::slice::from_ref(&tif), &degrees).unwrap();
+    assert_eq!(own_grid.height_range_estimate().unwrap(), None);
+    let other = dir.path().join("other.tif");
+    geographic_dem_file(&other, 260);
+    let two = Mosaic::open(&[tif.clone(), other], &utm).unwrap();
+    assert_eq!(two.height_range_estimate().unwrap(), None);
+
+    let exact = warped.height_range(&mut |_| Ok(())).unwrap();
+    let whole = dir.path().join("whole.tspack");
+    tile_terrain(Some(&warped), None, "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let known = KnownRange::new(&warped, exact);
+    let parts: Vec<PathBuf> = (0..3)
+        .map(|i| {
+            let out = dir.path().join(format!("{i}.tspack"));
+            let spec = ShardSpec { index: i, count: 3, split_lod: None, cuts: None };
+            tile_shard(Some(&known), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
+            out
+        })
+        .collect();
+    let merged = dir.path().join("merged.tspack");
+    merge(&parts, &merged, &Silent::default()).unwrap();
+    assert_eq!(tiles(&merged), tiles(&whole));
+    // The estimate's encoding: half its span and more to spare below the lowest height.
+    let metadata = Reader::open_mmap(&whole).unwrap().metadata().clone();
+    let (encoding, estimate) = (metadata.layers[0].elevation.unwrap(), file_estimate.unwrap());
+    assert!(f64::from(exact.0) - encoding.height(1.0) > f64::from(estimate.1 - estimate.0) / 2.0, "{encoding:?}");
+}
+
 /// A whole run over a GeoTIFF encodes heights by the range estimated from some of its
 /// strips (it does not scan the range first) and records the exact range; shards given
 /// the exact range (the plan step's) choose the same encoding, so their merge is the
