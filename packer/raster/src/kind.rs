@@ -307,12 +307,19 @@ mod wide {
         out: &mut [f32],
     ) -> usize {
         use std::arch::x86_64::{
-            _mm256_add_pd, _mm256_cvtpd_ps, _mm256_floor_pd, _mm256_mul_pd, _mm256_set_pd, _mm256_set1_pd,
-            _mm256_sub_pd,
+            _mm_add_epi32, _mm_cvtsi128_si32, _mm_extract_epi32, _mm_set1_epi32, _mm_sub_epi32, _mm256_add_pd,
+            _mm256_castps256_ps128, _mm256_cvtpd_ps, _mm256_cvtps_pd, _mm256_cvttpd_epi32, _mm256_extractf128_ps,
+            _mm256_floor_pd, _mm256_mul_pd, _mm256_permutevar8x32_ps, _mm256_set_m128i, _mm256_set_pd, _mm256_set_ps,
+            _mm256_set1_pd, _mm256_sub_pd,
         };
+        // Columns as 32-bit lanes: those of any raster this reads (else one point at a time).
+        let Ok(base32) = i32::try_from(base) else { return 0 };
+        if i32::try_from(base + top.len().max(bottom.len()) as i64).is_err() {
+            return 0;
+        }
         let (sx, sy, dx, dy) =
             (_mm256_set1_pd(start.0), _mm256_set1_pd(start.1), _mm256_set1_pd(step.0), _mm256_set1_pd(step.1));
-        let (one, y0f) = (_mm256_set1_pd(1.0), _mm256_set1_pd(y0 as f64));
+        let (one, y0f, base32) = (_mm256_set1_pd(1.0), _mm256_set1_pd(y0 as f64), _mm_set1_epi32(base32));
         let n = out.len() / 4 * 4;
         for k in (0..n).step_by(4) {
             let i = (first + k) as f64;
@@ -322,45 +329,56 @@ mod wide {
             let x0 = _mm256_floor_pd(px);
             let (fx, fy) = (_mm256_sub_pd(px, x0), _mm256_sub_pd(py, y0f));
             let (gx, gy) = (_mm256_sub_pd(one, fx), _mm256_sub_pd(one, fy));
-            let c = lanes_pd(x0).map(|x| (x as i64 - base) as usize);
-            let corner = |row: &[f32], d: usize| {
-                _mm256_set_pd(
-                    f64::from(row[c[3] + d]),
-                    f64::from(row[c[2] + d]),
-                    f64::from(row[c[1] + d]),
-                    f64::from(row[c[0] + d]),
-                )
+            // The columns from `base` (whole: the truncation is exact), in order along
+            // the line: the first and last bound the four.
+            let c = _mm_sub_epi32(_mm256_cvttpd_epi32(x0), base32);
+            let (first_c, last_c) = (_mm_cvtsi128_si32(c), _mm_extract_epi32::<3>(c));
+            let from = first_c.min(last_c) as usize;
+            // Each point's left and right corners in a row: where eight samples from the
+            // first column hold them all (the points a sample or so apart), one read of
+            // eight and a permutation; else read one by one.
+            let (t, b) = if first_c.abs_diff(last_c) < 7 && from + 8 <= top.len().min(bottom.len()) {
+                let at = _mm_sub_epi32(c, _mm_set1_epi32(from as i32));
+                let lanes = _mm256_set_m128i(_mm_add_epi32(at, _mm_set1_epi32(1)), at);
+                let eight = |row: &[f32]| {
+                    let r = &row[from..from + 8];
+                    _mm256_permutevar8x32_ps(_mm256_set_ps(r[7], r[6], r[5], r[4], r[3], r[2], r[1], r[0]), lanes)
+                };
+                (eight(top), eight(bottom))
+            } else {
+                let c = [first_c, _mm_extract_epi32::<1>(c), _mm_extract_epi32::<2>(c), last_c].map(|c| c as usize);
+                let pairs = |row: &[f32]| {
+                    _mm256_set_ps(
+                        row[c[3] + 1],
+                        row[c[2] + 1],
+                        row[c[1] + 1],
+                        row[c[0] + 1],
+                        row[c[3]],
+                        row[c[2]],
+                        row[c[1]],
+                        row[c[0]],
+                    )
+                };
+                (pairs(top), pairs(bottom))
             };
+            let left = |v| _mm256_cvtps_pd(_mm256_castps256_ps128(v));
+            let right = |v| _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
             // w0 * a + w1 * b + w2 * c + w3 * d, as weighted_sum.
             let sum = _mm256_add_pd(
                 _mm256_add_pd(
                     _mm256_add_pd(
-                        _mm256_mul_pd(_mm256_mul_pd(gx, gy), corner(top, 0)),
-                        _mm256_mul_pd(_mm256_mul_pd(fx, gy), corner(top, 1)),
+                        _mm256_mul_pd(_mm256_mul_pd(gx, gy), left(t)),
+                        _mm256_mul_pd(_mm256_mul_pd(fx, gy), right(t)),
                     ),
-                    _mm256_mul_pd(_mm256_mul_pd(gx, fy), corner(bottom, 0)),
+                    _mm256_mul_pd(_mm256_mul_pd(gx, fy), left(b)),
                 ),
-                _mm256_mul_pd(_mm256_mul_pd(fx, fy), corner(bottom, 1)),
+                _mm256_mul_pd(_mm256_mul_pd(fx, fy), right(b)),
             );
             for (o, s) in out[k..k + 4].iter_mut().zip(lanes_ps(_mm256_cvtpd_ps(sum))) {
                 *o = if o.is_nan() { s } else { *o };
             }
         }
         n
-    }
-
-    /// The four lanes of `v`, lowest first.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn lanes_pd(v: std::arch::x86_64::__m256d) -> [f64; 4] {
-        use std::arch::x86_64::{_mm_cvtsd_f64, _mm_unpackhi_pd, _mm256_castpd256_pd128, _mm256_extractf128_pd};
-        let (lo, hi) = (_mm256_castpd256_pd128(v), _mm256_extractf128_pd::<1>(v));
-        [
-            _mm_cvtsd_f64(lo),
-            _mm_cvtsd_f64(_mm_unpackhi_pd(lo, lo)),
-            _mm_cvtsd_f64(hi),
-            _mm_cvtsd_f64(_mm_unpackhi_pd(hi, hi)),
-        ]
     }
 
     /// The four lanes of `v`, lowest first.
@@ -539,6 +557,8 @@ mod tests {
             ((230.6, 7.5), (-0.55, 0.001), 1, 33),
             ((50.0, 7.0), (1.0, 0.0), 5, 21),
             ((60.25, 7.75), (0.125, 0.0), 0, 7),
+            ((42.5, 7.3), (3.1, 0.0), 0, 45),
+            ((229.9, 7.4), (-0.3, 0.0), 0, 12),
         ];
         let mut with_gaps = 0;
         for (start, step, first, n) in lines {

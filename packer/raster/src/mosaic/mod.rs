@@ -633,6 +633,7 @@ impl<K: MosaicKind> Mosaic<K> {
                         continue;
                     };
                     let fy = f64::from(j % LATTICE_ROWS) / f64::from(LATTICE_ROWS);
+                    let mut pair = None;
                     for k in 0..top.len().saturating_sub(1) {
                         let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
                         if from > c1 {
@@ -644,7 +645,7 @@ impl<K: MosaicKind> Mosaic<K> {
                         #[expect(clippy::cast_precision_loss, reason = "offsets of at most LATTICE")]
                         let step = 1.0 / (to - from).max(1) as f64;
                         let d = ((b.0 - a.0) * step, (b.1 - a.1) * step);
-                        window.line_into(a, d, &mut out[from..=last], &edge);
+                        window.line_into((a, d), &mut out[from..=last], &edge, &mut pair);
                         if to == c1 {
                             break;
                         }

@@ -176,12 +176,14 @@ impl<K: MosaicKind> FileWindow<K> {
     /// `out` has no data yet: a warp's samples between two exact points of its lattice. Each run of them between the same
     /// two rows of one chunk column (most lines are one run: a lattice cell is some 32
     /// samples) is found with a few tests, not one a point, and sampled at once.
-    pub(super) fn line_into(
-        &self,
-        start: (f64, f64),
-        step: (f64, f64),
+    ///
+    /// `pair` keeps the last pair of rows found, for the next line of the row.
+    pub(super) fn line_into<'w>(
+        &'w self,
+        (start, step): ((f64, f64), (f64, f64)),
         out: &mut [K::Value],
         edge: &Edge<'_, K::Value>,
+        pair: &mut Option<RowPair<'w, K::Value>>,
     ) {
         let n = out.len();
         let mut k = 0;
@@ -189,7 +191,10 @@ impl<K: MosaicKind> FileWindow<K> {
             let p = line_point(start, step, k);
             let (x0, y0) = (floor(p.0), floor(p.1));
             let finite = p.0.is_finite() && p.1.is_finite();
-            let Some(r) = finite.then(|| self.row_pair(x0, y0)).flatten() else {
+            if finite && !pair.as_ref().is_some_and(|r| r.holds(x0, y0)) {
+                *pair = self.row_pair(x0, y0);
+            }
+            let Some(r) = pair.as_ref().filter(|_| finite) else {
                 // Outside the window by a pixel or more: no corner has data.
                 let b = self.bounds;
                 if finite && K::is_none(&out[k]) && x0 >= b.0 - 1 && y0 >= b.1 - 1 && x0 < b.2 && y0 < b.3 {
