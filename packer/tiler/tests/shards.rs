@@ -20,8 +20,8 @@ use std::path::{Path, PathBuf};
 use terrastream_format::{Metadata, Reader, TileKey};
 use terrastream_pack::progress::Silent;
 use terrastream_tiler::{
-    ElevationStorage, Image, Raster, ShardSpec, TextureFormat, TextureInput, TileOptions, merge, tile_shard,
-    tile_terrain,
+    ElevationSource, ElevationStorage, Image, KnownRange, Raster, ShardSpec, TextureFormat, TextureInput, TileOptions,
+    merge, tile_shard, tile_terrain,
 };
 
 /// 203 x 157 heights (odd sizes: padded tiles at every level), with a hole of nodata and
@@ -342,22 +342,10 @@ fn a_manifest_of_shards_routes_every_tile_of_the_whole_run() {
 }
 
 /// The shards' DEM as an int16 GeoTIFF of 4-row strips (nodata -32767), with `pit` metres
-/// at one sample of row 6: a strip the estimated range does not read.
-fn dem_file(path: &Path, pit: i16) {
-    use tiff::encoder::{TiffEncoder, colortype::GrayI16};
-    let raster = dem();
-    let mut data: Vec<i16> = raster.data.iter().map(|h| if h.is_nan() { -32_767 } else { h.round() as i16 }).collect();
-    data[6 * raster.width as usize + 150] = pit;
-    let mut tiff = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
-    let mut image = tiff.new_image::<GrayI16>(raster.width, raster.height).unwrap();
-    image.rows_per_strip(4).unwrap();
-    image.encoder().write_tag(tiff::tags::Tag::Unknown(42113), "-32767").unwrap();
-    image.write_data(&data).unwrap();
-}
-
-/// `dem_file`'s DEM placed in degrees (0.001° a sample from 7.4°E, 46.6°N), so that a
-/// run onto a projected CRS warps it.
-fn geographic_dem_file(path: &Path, pit: i16) {
+/// at one sample of row 6: a strip the estimated range does not read. With `degrees`
+/// (west, north, step), placed in EPSG:4326 there, so that a run onto a projected CRS
+/// warps it.
+fn dem_file(path: &Path, pit: i16, degrees: Option<(f64, f64, f64)>) {
     use tiff::encoder::{TiffEncoder, colortype::GrayI16};
     use tiff::tags::Tag;
     let raster = dem();
@@ -367,10 +355,32 @@ fn geographic_dem_file(path: &Path, pit: i16) {
     let mut image = tiff.new_image::<GrayI16>(raster.width, raster.height).unwrap();
     image.rows_per_strip(4).unwrap();
     image.encoder().write_tag(Tag::Unknown(42113), "-32767").unwrap();
-    image.encoder().write_tag(Tag::Unknown(33550), &[0.001, 0.001, 0.0][..]).unwrap();
-    image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, 7.4, 46.6, 0.0][..]).unwrap();
-    image.encoder().write_tag(Tag::Unknown(34735), &[1u16, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326][..]).unwrap();
+    if let Some((west, north, step)) = degrees {
+        image.encoder().write_tag(Tag::Unknown(33550), &[step, step, 0.0][..]).unwrap();
+        image.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, west, north, 0.0][..]).unwrap();
+        let keys = [1u16, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326];
+        image.encoder().write_tag(Tag::Unknown(34735), &keys[..]).unwrap();
+    }
     image.write_data(&data).unwrap();
+}
+
+/// A whole run over `source` (named `name` in `dir`), and the merge of three shards of
+/// it given the exact range `exact`.
+fn whole_and_merged(source: &dyn ElevationSource, exact: (f32, f32), dir: &Path, name: &str) -> (PathBuf, PathBuf) {
+    let whole = dir.join(format!("{name}-whole.tspack"));
+    tile_terrain(Some(source), None, "t", &whole, OPTIONS, &Silent::default()).unwrap();
+    let known = KnownRange::new(source, exact);
+    let parts: Vec<PathBuf> = (0..3)
+        .map(|i| {
+            let out = dir.join(format!("{name}-{i}.tspack"));
+            let spec = ShardSpec { index: i, count: 3, split_lod: None, cuts: None };
+            tile_shard(Some(&known), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
+            out
+        })
+        .collect();
+    let merged = dir.join(format!("{name}-merged.tspack"));
+    merge(&parts, &merged, &Silent::default()).unwrap();
+    (whole, merged)
 }
 
 /// A GeoTIFF reprojected (a mosaic of one warped file) estimates its range as the file
@@ -378,10 +388,10 @@ fn geographic_dem_file(path: &Path, pit: i16) {
 /// of two files, or of one on its own grid, scans instead (None).
 #[test]
 fn a_reprojected_geotiff_runs_on_its_files_estimate() {
-    use terrastream_tiler::{Crs, ElevationSource, KnownRange, Mosaic, MosaicOptions, open_elevation};
+    use terrastream_tiler::{Crs, Mosaic, MosaicOptions, open_elevation};
     let dir = tempfile::tempdir().unwrap();
     let tif = dir.path().join("geo.tif");
-    geographic_dem_file(&tif, 250);
+    dem_file(&tif, 250, Some((7.4, 46.6, 0.001)));
     let file_estimate = open_elevation(&tif, None).unwrap().height_range_estimate().unwrap();
     assert!(file_estimate.is_some());
     let utm = MosaicOptions { crs: Some(Crs::parse("EPSG:32632").unwrap()), ..MosaicOptions::default() };
@@ -391,24 +401,12 @@ fn a_reprojected_geotiff_runs_on_its_files_estimate() {
     let own_grid = Mosaic::open(std::slice::from_ref(&tif), &degrees).unwrap();
     assert_eq!(own_grid.height_range_estimate().unwrap(), None);
     let other = dir.path().join("other.tif");
-    geographic_dem_file(&other, 260);
+    dem_file(&other, 260, Some((7.4, 46.6, 0.001)));
     let two = Mosaic::open(&[tif.clone(), other], &utm).unwrap();
     assert_eq!(two.height_range_estimate().unwrap(), None);
 
     let exact = warped.height_range(&mut |_| Ok(())).unwrap();
-    let whole = dir.path().join("whole.tspack");
-    tile_terrain(Some(&warped), None, "t", &whole, OPTIONS, &Silent::default()).unwrap();
-    let known = KnownRange::new(&warped, exact);
-    let parts: Vec<PathBuf> = (0..3)
-        .map(|i| {
-            let out = dir.path().join(format!("{i}.tspack"));
-            let spec = ShardSpec { index: i, count: 3, split_lod: None, cuts: None };
-            tile_shard(Some(&known), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
-            out
-        })
-        .collect();
-    let merged = dir.path().join("merged.tspack");
-    merge(&parts, &merged, &Silent::default()).unwrap();
+    let (whole, merged) = whole_and_merged(&warped, exact, dir.path(), "warped");
     assert_eq!(tiles(&merged), tiles(&whole));
     // The estimate's encoding: half its span and more to spare below the lowest height.
     let metadata = Reader::open_mmap(&whole).unwrap().metadata().clone();
@@ -423,29 +421,17 @@ fn a_reprojected_geotiff_runs_on_its_files_estimate() {
 /// run scans the range and tiles again: still the shards' bytes, and exact heights.
 #[test]
 fn a_whole_run_on_an_estimated_range_encodes_as_shards_given_the_range() {
-    use terrastream_tiler::{ElevationSource, KnownRange, open_elevation};
+    use terrastream_tiler::open_elevation;
     let dir = tempfile::tempdir().unwrap();
     for (name, pit) in [("plain", 250i16), ("pit", -3000)] {
         let tif = dir.path().join(format!("{name}.tif"));
-        dem_file(&tif, pit);
+        dem_file(&tif, pit, None);
         let file = open_elevation(&tif, None).unwrap();
         let exact = file.height_range(&mut |_| Ok(())).unwrap();
         let estimate = file.height_range_estimate().unwrap().expect("a GeoTIFF estimates its range");
         assert!(estimate.0 > exact.0 && estimate.1 < exact.1, "{name}: the strips read miss both extremes");
 
-        let whole = dir.path().join(format!("{name}-whole.tspack"));
-        tile_terrain(Some(&file), None, "t", &whole, OPTIONS, &Silent::default()).unwrap();
-        let known = KnownRange::new(&file, exact);
-        let parts: Vec<PathBuf> = (0..3)
-            .map(|i| {
-                let out = dir.path().join(format!("{name}-{i}.tspack"));
-                let spec = ShardSpec { index: i, count: 3, split_lod: None, cuts: None };
-                tile_shard(Some(&known), None, "t", &out, OPTIONS, Some(spec), &Silent::default()).unwrap();
-                out
-            })
-            .collect();
-        let merged = dir.path().join(format!("{name}-merged.tspack"));
-        merge(&parts, &merged, &Silent::default()).unwrap();
+        let (whole, merged) = whole_and_merged(&file, exact, dir.path(), name);
         assert_eq!(tiles(&merged), tiles(&whole), "{name}");
 
         let metadata = Reader::open_mmap(&whole).unwrap().metadata().clone();
