@@ -189,7 +189,10 @@ mod native {
                 // Mapping an empty file fails on some systems; an empty archive is just invalid.
                 return Ok(Self { bytes: Bytes::new(), file: None });
             }
-            #[expect(unsafe_code, reason = "memory-mapping a file (and the tiler's prefetch: all the unsafe code)")]
+            #[expect(
+                unsafe_code,
+                reason = "memory-mapping a file (with the tiler's prefetch and its call into AVX2 code: all the unsafe code)"
+            )]
             // SAFETY: archives are immutable once written: the writer publishes a new archive by
             // atomic rename and never modifies a file in place, so the mapped pages do not change
             // under us. A file truncated by a third party would raise SIGBUS; that is the

@@ -173,9 +173,10 @@ impl<K: MosaicKind> FileWindow<K> {
     }
 
     /// [`Self::bilinear`] at each point `start + k * step`, `k` = 0, 1, …, whose sample in
-    /// `out` has no data yet: a warp's samples between two exact points of its lattice. Each run of them between the same
-    /// two rows of one chunk column (most lines are one run: a lattice cell is some 32
-    /// samples) is found with a few tests, not one a point, and sampled at once.
+    /// `out` has no data yet: a warp's samples between two exact points of its lattice.
+    /// Each run of them between the same two rows of one chunk column (most lines are one
+    /// run: a lattice cell is some 32 samples) is found with a few tests, not one a point,
+    /// and sampled at once ([`MosaicKind::blend_line`]).
     ///
     /// `pair` keeps the last pair of rows found, for the next line of the row.
     pub(super) fn line_into<'w>(
