@@ -328,3 +328,85 @@ pub(super) fn prefetch<V>(v: &V) {
     #[cfg(not(target_arch = "x86_64"))]
     let _ = v;
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A window of 5 x 5 chunks of 8 x 4 heights (some without data) over 40 x 20 pixels.
+    fn window() -> FileWindow<Heights> {
+        let (cw, ch) = (8usize, 4usize);
+        let held = (0..25)
+            .map(|c| {
+                let (cx, cy) = (c % 5, c / 5);
+                let values = (0..cw * ch)
+                    .map(|i| {
+                        let (x, y) = (cx * cw + i % cw, cy * ch + i / cw);
+                        #[expect(clippy::cast_precision_loss, reason = "test values")]
+                        if (x * 7 + y * 13) % 29 == 0 {
+                            f32::NAN
+                        } else {
+                            (x * x) as f32 * 0.31 - (y * 3) as f32 + 0.013
+                        }
+                    })
+                    .collect();
+                Arc::new(Chunk { values, w: cw })
+            })
+            .collect();
+        FileWindow { bounds: (0, 0, 40, 20), chunk: (cw, ch), first: (0, 0), across: 5, held }
+    }
+
+    /// A line of points sampled by `line_into` (runs found by bisection, the pair of rows
+    /// kept from one line to the next) gives what sampling each point on its own gives:
+    /// `blend_unit` over its four corners where one pair of chunk rows holds them, else
+    /// `bilinear` within a pixel of the window, else nothing; samples with data kept.
+    /// Lines cross chunk columns and rows, run either way, and leave the window.
+    #[test]
+    fn a_line_is_its_points_sampled_one_by_one() {
+        let w = window();
+        let edge = |_: i64, _: i64| 100.0f32;
+        let mut seed = 7u64;
+        let mut next = move || {
+            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            #[expect(clippy::cast_precision_loss, reason = "a test's random fraction")]
+            let f = (seed >> 11) as f64 / (1u64 << 53) as f64;
+            f
+        };
+        let (mut runs, mut outside) = (0, 0);
+        let mut pair = None;
+        for line in 0..400 {
+            let start = (next() * 46.0 - 3.0, next() * 24.0 - 2.0);
+            let step = (next() * 3.0 - 1.5, (next() - 0.5) * 0.2);
+            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a test's length")]
+            let n = 1 + (next() * 40.0) as usize;
+            let mut out: Vec<f32> = (0..n).map(|k| if k % 7 == 3 { -5.0 } else { f32::NAN }).collect();
+            let mut expected = out.clone();
+            for (k, o) in expected.iter_mut().enumerate() {
+                let p = line_point(start, step, k);
+                let (x0, y0) = (floor(p.0), floor(p.1));
+                if !o.is_nan() {
+                    continue;
+                }
+                if let Some(r) = w.row_pair(x0, y0) {
+                    #[expect(clippy::cast_sign_loss, clippy::cast_possible_truncation, reason = "held by the pair")]
+                    let i = (x0 - r.base) as usize;
+                    let c = weights(p, x0, y0);
+                    *o = Heights::blend_unit(&[
+                        (r.top[i], c[0]),
+                        (r.top[i + 1], c[1]),
+                        (r.bottom[i], c[2]),
+                        (r.bottom[i + 1], c[3]),
+                    ]);
+                    runs += 1;
+                } else if x0 >= -1 && y0 >= -1 && x0 < 40 && y0 < 20 {
+                    *o = w.bilinear(p, &edge);
+                    outside += 1;
+                }
+            }
+            w.line_into((start, step), &mut out, &edge, &mut pair);
+            let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&out), bits(&expected), "line {line} from {start:?} by {step:?}");
+        }
+        assert!(runs > 2000 && outside > 50, "{runs} points in pairs, {outside} at the edges");
+    }
+}
