@@ -309,8 +309,7 @@ mod wide {
         use std::arch::x86_64::{
             _mm_add_epi32, _mm_cvtsi128_si32, _mm_extract_epi32, _mm_set1_epi32, _mm_sub_epi32, _mm256_add_pd,
             _mm256_castps256_ps128, _mm256_cvtpd_ps, _mm256_cvtps_pd, _mm256_cvttpd_epi32, _mm256_extractf128_ps,
-            _mm256_floor_pd, _mm256_mul_pd, _mm256_permutevar8x32_ps, _mm256_set_m128i, _mm256_set_pd, _mm256_set_ps,
-            _mm256_set1_pd, _mm256_sub_pd,
+            _mm256_floor_pd, _mm256_mul_pd, _mm256_set_m128i, _mm256_set_pd, _mm256_set1_pd, _mm256_sub_pd,
         };
         // Columns as 32-bit lanes: those of any raster this reads (else one point at a time).
         let Ok(base32) = i32::try_from(base) else { return 0 };
@@ -340,26 +339,10 @@ mod wide {
             let (t, b) = if first_c.abs_diff(last_c) < 7 && from + 8 <= top.len().min(bottom.len()) {
                 let at = _mm_sub_epi32(c, _mm_set1_epi32(from as i32));
                 let lanes = _mm256_set_m128i(_mm_add_epi32(at, _mm_set1_epi32(1)), at);
-                let eight = |row: &[f32]| {
-                    let r = &row[from..from + 8];
-                    _mm256_permutevar8x32_ps(_mm256_set_ps(r[7], r[6], r[5], r[4], r[3], r[2], r[1], r[0]), lanes)
-                };
-                (eight(top), eight(bottom))
+                (eight(&top[from..from + 8], lanes), eight(&bottom[from..from + 8], lanes))
             } else {
                 let c = [first_c, _mm_extract_epi32::<1>(c), _mm_extract_epi32::<2>(c), last_c].map(|c| c as usize);
-                let pairs = |row: &[f32]| {
-                    _mm256_set_ps(
-                        row[c[3] + 1],
-                        row[c[2] + 1],
-                        row[c[1] + 1],
-                        row[c[0] + 1],
-                        row[c[3]],
-                        row[c[2]],
-                        row[c[1]],
-                        row[c[0]],
-                    )
-                };
-                (pairs(top), pairs(bottom))
+                (pairs(top, c), pairs(bottom, c))
             };
             let left = |v| _mm256_cvtps_pd(_mm256_castps256_ps128(v));
             let right = |v| _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
@@ -379,6 +362,35 @@ mod wide {
             }
         }
         n
+    }
+
+    /// Samples `row[lanes[i]]` of eight (the left corners in the low lanes, the right
+    /// ones in the high lanes).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn eight(row: &[f32], lanes: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256 {
+        use std::arch::x86_64::{_mm256_permutevar8x32_ps, _mm256_set_ps};
+        let r = &row[..8];
+        _mm256_permutevar8x32_ps(_mm256_set_ps(r[7], r[6], r[5], r[4], r[3], r[2], r[1], r[0]), lanes)
+    }
+
+    /// The left corners `row[c[i]]` in the low lanes, the right ones `row[c[i] + 1]` in
+    /// the high lanes.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn pairs(row: &[f32], c: [usize; 4]) -> std::arch::x86_64::__m256 {
+        std::arch::x86_64::_mm256_set_ps(
+            row[c[3] + 1],
+            row[c[2] + 1],
+            row[c[1] + 1],
+            row[c[0] + 1],
+            row[c[3]],
+            row[c[2]],
+            row[c[1]],
+            row[c[0]],
+        )
     }
 
     /// The four lanes of `v`, lowest first.
