@@ -7,15 +7,20 @@ use std::collections::VecDeque;
 use std::path::Path;
 use std::sync::mpsc;
 
+use rayon::prelude::*;
+
 use terrastream_format::Georeference;
 
 use super::{ElevationSource, ImageSource, MosaicKind, Pixels, crs_placement};
 use crate::crs::{Crs, Transform};
 use crate::error::{Error, Result};
 
-/// Output texels between exact transforms along a row; linear in between (well under a
-/// texel apart for any smooth projection at this spacing).
+/// Output texels between exact transforms along a row and down a column; bilinear in
+/// between (well under a texel apart for any smooth projection at this spacing).
 const LATTICE: usize = 16;
+
+/// Output rows made at once (in parallel).
+const ROWS_AT_ONCE: u32 = 32;
 
 /// Most texels across or down a warped texture.
 const MAX_SIDE: f64 = 65_536.0;
@@ -95,34 +100,47 @@ impl<'a> Warped<'a> {
         Some(((sx - p.origin[0]) / p.pixel.0 - 0.5, (p.origin[1] - sy) / p.pixel.1 - 0.5))
     }
 
-    /// The image pixel coordinates of every texel centre of row `j` (exact every
-    /// [`LATTICE`] texels, linear between); NaN where a point has no image.
-    fn row_sources(&self, j: u32) -> Vec<(f64, f64)> {
-        let w = self.size.0 as usize;
-        let exact = |i: usize| {
-            #[expect(clippy::cast_precision_loss, reason = "texel indices are far below 2^52")]
-            self.source_of(i as f64, f64::from(j)).unwrap_or((f64::NAN, f64::NAN))
+    /// The image pixel coordinates of the texel centres on a lattice: every [`LATTICE`]
+    /// texels along rows `0, LATTICE, …` and the last row, at columns `0, LATTICE, …`
+    /// and the last column (NaN where a point has no image). Made once, in parallel.
+    fn lattice(&self) -> Lattice {
+        let (w, h) = (self.size.0 as usize, self.size.1 as usize);
+        let stops = |n: usize| {
+            (0..n).step_by(LATTICE).chain((n > 1 && !(n - 1).is_multiple_of(LATTICE)).then_some(n - 1)).collect()
         };
-        let mut out = Vec::with_capacity(w);
-        let mut a = exact(0);
-        let mut start = 0;
-        while start < w {
-            let end = (start + LATTICE).min(w - 1);
-            let b = if end == start { a } else { exact(end) };
-            let n = end - start;
-            for k in 0..n.max(1) {
-                #[expect(clippy::cast_precision_loss, reason = "k and n are at most LATTICE")]
-                let t = if n == 0 { 0.0 } else { k as f64 / n as f64 };
-                out.push((a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t));
-            }
-            if end == w - 1 {
-                out.push(b);
-                break;
-            }
-            a = b;
-            start = end;
+        let (columns, rows): (Vec<usize>, Vec<usize>) = (stops(w), stops(h));
+        #[expect(clippy::cast_precision_loss, reason = "texel indices are far below 2^52")]
+        let points = rows
+            .par_iter()
+            .map(|&j| {
+                let exact = |i: usize| self.source_of(i as f64, j as f64).unwrap_or((f64::NAN, f64::NAN));
+                columns.iter().map(|&i| exact(i)).collect::<Vec<_>>()
+            })
+            .collect();
+        Lattice { columns, rows, points }
+    }
+
+    /// The image pixel coordinates of every texel centre of row `j`: from the lattice,
+    /// bilinear between its points.
+    fn row_sources(&self, lattice: &Lattice, j: u32) -> Vec<(f64, f64)> {
+        let j = j as usize;
+        // The lattice rows around j, and how far between them it lies.
+        let below = lattice.rows.partition_point(|&r| r <= j).clamp(1, lattice.rows.len());
+        let (a, b) = (below - 1, below.min(lattice.rows.len() - 1));
+        let (ra, rb) = (lattice.rows[a], lattice.rows[b]);
+        #[expect(clippy::cast_precision_loss, reason = "texel indices are far below 2^52")]
+        let t = if rb > ra { (j - ra) as f64 / (rb - ra) as f64 } else { 0.0 };
+        let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
+        let exact: Vec<(f64, f64)> =
+            lattice.points[a].iter().zip(&lattice.points[b]).map(|(&p, &q)| mix(p, q, t)).collect();
+        let mut out = Vec::with_capacity(self.size.0 as usize);
+        for (k, pair) in lattice.columns.windows(2).enumerate() {
+            let (from, to) = (pair[0], pair[1]);
+            #[expect(clippy::cast_precision_loss, reason = "at most LATTICE texels")]
+            out.extend((from..to).map(|i| mix(exact[k], exact[k + 1], (i - from) as f64 / (to - from) as f64)));
         }
-        out.truncate(w);
+        out.push(exact[exact.len() - 1]);
+        out.truncate(self.size.0 as usize);
         out
     }
 
@@ -185,7 +203,8 @@ impl ImageSource for Warped<'_> {
     fn rows(&self, row: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
         // The image rows each output row needs, and for each output row the first image
         // row any later one needs: rows before it are dropped.
-        let needs: Vec<(i64, i64)> = (0..self.size.1).map(|j| span(&self.row_sources(j))).collect();
+        let lattice = self.lattice();
+        let needs: Vec<(i64, i64)> = (0..self.size.1).map(|j| span(&self.row_sources(&lattice, j))).collect();
         let mut keep_from = vec![i64::MAX; needs.len() + 1];
         for j in (0..needs.len()).rev() {
             keep_from[j] = keep_from[j + 1].min(needs[j].0);
@@ -199,32 +218,38 @@ impl ImageSource for Warped<'_> {
             });
             let mut band: VecDeque<Vec<[u8; 4]>> = VecDeque::new();
             let mut first = 0i64;
-            let mut out = vec![[0u8; 4]; self.size.0 as usize];
             let mut result = Ok(());
-            for j in 0..self.size.1 {
-                let (_, last) = needs[j as usize];
+            let mut j0 = 0u32;
+            'rows: while j0 < self.size.1 {
+                // A group of output rows, made at once on every core from the image rows
+                // they need.
+                let j1 = (j0 + ROWS_AT_ONCE).min(self.size.1);
+                let last = needs[j0 as usize..j1 as usize].iter().map(|n| n.1).max().unwrap_or(i64::MIN);
                 while first + (band.len() as i64) <= last.min(i64::from(ih) - 1) {
                     let Ok(r) = rows.recv() else { break };
                     band.push_back(r);
-                    // Rows above what this and every later output row need are dropped
+                    // Rows above what this group and every later row need are dropped
                     // as they arrive.
-                    while first < keep_from[j as usize] && !band.is_empty() {
+                    while first < keep_from[j0 as usize] && !band.is_empty() {
                         band.pop_front();
                         first += 1;
                     }
                 }
-                let sources = self.row_sources(j);
-                for (texel, &(x, y)) in out.iter_mut().zip(&sources) {
-                    *texel = sample(&band, first, iw, (x, y));
+                let made: Vec<Vec<[u8; 4]>> = (j0..j1)
+                    .into_par_iter()
+                    .map(|j| self.row_sources(&lattice, j).into_iter().map(|p| sample(&band, first, iw, p)).collect())
+                    .collect();
+                for out in &made {
+                    if let Err(e) = row(out) {
+                        result = Err(e);
+                        break 'rows;
+                    }
                 }
-                if let Err(e) = row(&out) {
-                    result = Err(e);
-                    break;
-                }
-                while first < keep_from[j as usize + 1] && !band.is_empty() {
+                while first < keep_from[j1 as usize] && !band.is_empty() {
                     band.pop_front();
                     first += 1;
                 }
+                j0 = j1;
             }
             drop(rows);
             match reader.join() {
@@ -234,6 +259,15 @@ impl ImageSource for Warped<'_> {
             }
         })
     }
+}
+
+/// Image pixel coordinates at the texel centres of a lattice (see `Warped::lattice`).
+struct Lattice {
+    /// The texel columns and rows of its points.
+    columns: Vec<usize>,
+    rows: Vec<usize>,
+    /// Its points, a row of them for each of `rows`.
+    points: Vec<Vec<(f64, f64)>>,
 }
 
 /// The first and last image rows a row of sample points touches (bilinear: the rows
@@ -274,4 +308,91 @@ fn sample(band: &VecDeque<Vec<[u8; 4]>>, first: i64, width: u32, (x, y): (f64, f
         corner(0, 1, (1.0 - fx) * fy),
         corner(1, 1, fx * fy),
     ])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A source placed at `origin` in `crs`, pixels `pixel` in its units; no samples.
+    #[derive(Debug)]
+    struct Placed {
+        size: (u32, u32),
+        pixel: (f64, f64),
+        georeference: Georeference,
+    }
+
+    impl Placed {
+        fn new(crs: &str, origin: [f64; 2], pixel: (f64, f64), size: (u32, u32)) -> Self {
+            let georeference = Georeference { crs: Some(crs.into()), origin: Some(origin), ..Georeference::default() };
+            Self { size, pixel, georeference }
+        }
+    }
+
+    impl ElevationSource for Placed {
+        fn path(&self) -> &Path {
+            Path::new("dem")
+        }
+        fn size(&self) -> (u32, u32) {
+            self.size
+        }
+        fn spacing(&self) -> (f64, f64) {
+            self.pixel
+        }
+        fn georeference(&self) -> Option<&Georeference> {
+            Some(&self.georeference)
+        }
+        fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+            Some(self.pixel)
+        }
+        fn rows(&self, _: &mut dyn FnMut(&[f32]) -> Result<()>) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    impl ImageSource for Placed {
+        fn path(&self) -> &Path {
+            Path::new("image")
+        }
+        fn size(&self) -> (u32, u32) {
+            self.size
+        }
+        fn georeference(&self) -> Option<&Georeference> {
+            Some(&self.georeference)
+        }
+        fn crs_pixel_size(&self) -> Option<(f64, f64)> {
+            Some(self.pixel)
+        }
+        fn rows(&self, _: &mut dyn FnMut(&[[u8; 4]]) -> Result<()>) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    /// Every texel of a geographic image warped onto a UTM DEM lies, by the lattice, within
+    /// 1/1000 of an image pixel of where its exact transform puts it, and on the lattice's
+    /// own points exactly there.
+    #[test]
+    fn the_lattice_places_every_texel_as_its_exact_transform() {
+        let dem = Placed::new("EPSG:32632", [500_000.0, 5_200_000.0], (30.0, 30.0), (600, 450));
+        let image = Placed::new("EPSG:4326", [8.9, 46.95], (0.0002, 0.0002), (2000, 1500));
+        let warped = Warped::over(&dem, &image).unwrap().expect("two CRSs: warped");
+        let (w, h) = warped.size;
+        assert!(w > 500 && h > 500, "{w} x {h}");
+        let lattice = warped.lattice();
+        let mut worst: f64 = 0.0;
+        for j in (0..h).step_by(7).chain([h - 1]) {
+            let row = warped.row_sources(&lattice, j);
+            assert_eq!(row.len(), w as usize);
+            for (i, &(x, y)) in row.iter().enumerate() {
+                #[expect(clippy::cast_precision_loss, reason = "texel indices")]
+                let (ex, ey) = warped.source_of(i as f64, f64::from(j)).unwrap();
+                let off = (x - ex).hypot(y - ey);
+                if (j as usize).is_multiple_of(LATTICE) && i.is_multiple_of(LATTICE) {
+                    assert!(off < 1e-9, "lattice point {i}, {j}: {off}");
+                }
+                worst = worst.max(off);
+            }
+        }
+        assert!(worst < 1e-3, "{worst} image pixels off");
+    }
 }
