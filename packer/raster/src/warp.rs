@@ -100,39 +100,33 @@ impl<'a> Warped<'a> {
         Some(((sx - p.origin[0]) / p.pixel.0 - 0.5, (p.origin[1] - sy) / p.pixel.1 - 0.5))
     }
 
-    /// The image pixel coordinates of the texel centres on a lattice: every [`LATTICE`]
-    /// texels along rows `0, LATTICE, …` and the last row, at columns `0, LATTICE, …`
-    /// and the last column (NaN where a point has no image). Made once, in parallel.
+    /// Where the lattice of exact transforms lies: every [`LATTICE`] texels along rows
+    /// `0, LATTICE, …` and the last row, at columns `0, LATTICE, …` and the last column.
     fn lattice(&self) -> Lattice {
-        let (w, h) = (self.size.0 as usize, self.size.1 as usize);
         let stops = |n: usize| {
             (0..n).step_by(LATTICE).chain((n > 1 && !(n - 1).is_multiple_of(LATTICE)).then_some(n - 1)).collect()
         };
-        let (columns, rows): (Vec<usize>, Vec<usize>) = (stops(w), stops(h));
-        #[expect(clippy::cast_precision_loss, reason = "texel indices are far below 2^52")]
-        let points = rows
-            .par_iter()
-            .map(|&j| {
-                let exact = |i: usize| self.source_of(i as f64, j as f64).unwrap_or((f64::NAN, f64::NAN));
-                columns.iter().map(|&i| exact(i)).collect::<Vec<_>>()
-            })
-            .collect();
-        Lattice { columns, rows, points }
+        Lattice { columns: stops(self.size.0 as usize), rows: stops(self.size.1 as usize) }
     }
 
-    /// The image pixel coordinates of every texel centre of row `j`: from the lattice,
-    /// bilinear between its points.
-    fn row_sources(&self, lattice: &Lattice, j: u32) -> Vec<(f64, f64)> {
+    /// The image pixel coordinates of lattice row `index`'s points (NaN where a point has
+    /// no image).
+    fn lattice_row(&self, lattice: &Lattice, index: usize) -> Vec<(f64, f64)> {
+        #[expect(clippy::cast_precision_loss, reason = "texel indices are far below 2^52")]
+        let (j, exact) = (lattice.rows[index] as f64, |i: usize| i as f64);
+        lattice.columns.iter().map(|&i| self.source_of(exact(i), j).unwrap_or((f64::NAN, f64::NAN))).collect()
+    }
+
+    /// The image pixel coordinates of every texel centre of row `j`: bilinear between the
+    /// points of the lattice rows around it, which `rows` holds (by index).
+    fn row_sources(&self, lattice: &Lattice, rows: &LatticeRows, j: u32) -> Vec<(f64, f64)> {
         let j = j as usize;
-        // The lattice rows around j, and how far between them it lies.
-        let below = lattice.rows.partition_point(|&r| r <= j).clamp(1, lattice.rows.len());
-        let (a, b) = (below - 1, below.min(lattice.rows.len() - 1));
+        let (a, b) = lattice.around(j);
         let (ra, rb) = (lattice.rows[a], lattice.rows[b]);
         #[expect(clippy::cast_precision_loss, reason = "texel indices are far below 2^52")]
         let t = if rb > ra { (j - ra) as f64 / (rb - ra) as f64 } else { 0.0 };
         let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
-        let exact: Vec<(f64, f64)> =
-            lattice.points[a].iter().zip(&lattice.points[b]).map(|(&p, &q)| mix(p, q, t)).collect();
+        let exact: Vec<(f64, f64)> = rows[&a].iter().zip(&rows[&b]).map(|(&p, &q)| mix(p, q, t)).collect();
         let mut out = Vec::with_capacity(self.size.0 as usize);
         for (k, pair) in lattice.columns.windows(2).enumerate() {
             let (from, to) = (pair[0], pair[1]);
@@ -142,6 +136,31 @@ impl<'a> Warped<'a> {
         out.push(exact[exact.len() - 1]);
         out.truncate(self.size.0 as usize);
         out
+    }
+
+    /// The first and last image rows each output row needs. A row between two lattice
+    /// rows lies, by interpolation, within those rows' points: it needs no image rows
+    /// beyond theirs. Found a band of lattice rows at a time, in parallel (memory follows
+    /// the width, not the height).
+    fn needs(&self, lattice: &Lattice) -> Vec<(i64, i64)> {
+        let spans: Vec<(i64, i64)> = (0..lattice.rows.len())
+            .collect::<Vec<_>>()
+            .par_chunks(64)
+            .flat_map_iter(|indices| indices.iter().map(|&index| span(&self.lattice_row(lattice, index))))
+            .collect();
+        (0..self.size.1 as usize)
+            .map(|j| {
+                let (a, b) = lattice.around(j);
+                (spans[a].0.min(spans[b].0), spans[a].1.max(spans[b].1))
+            })
+            .collect()
+    }
+
+    /// The lattice rows that output rows `rows` need, made in parallel.
+    fn lattice_rows(&self, lattice: &Lattice, rows: std::ops::Range<u32>) -> LatticeRows {
+        let (first, _) = lattice.around(rows.start as usize);
+        let (_, last) = lattice.around(rows.end.saturating_sub(1) as usize);
+        (first..=last).into_par_iter().map(|index| (index, self.lattice_row(lattice, index))).collect()
     }
 
     /// The image must reach the elevation: some of a 9 x 9 lattice of its texels lie
@@ -204,7 +223,7 @@ impl ImageSource for Warped<'_> {
         // The image rows each output row needs, and for each output row the first image
         // row any later one needs: rows before it are dropped.
         let lattice = self.lattice();
-        let needs: Vec<(i64, i64)> = (0..self.size.1).map(|j| span(&self.row_sources(&lattice, j))).collect();
+        let needs = self.needs(&lattice);
         let mut keep_from = vec![i64::MAX; needs.len() + 1];
         for j in (0..needs.len()).rev() {
             keep_from[j] = keep_from[j + 1].min(needs[j].0);
@@ -235,9 +254,13 @@ impl ImageSource for Warped<'_> {
                         first += 1;
                     }
                 }
+                let points = self.lattice_rows(&lattice, j0..j1);
                 let made: Vec<Vec<[u8; 4]>> = (j0..j1)
                     .into_par_iter()
-                    .map(|j| self.row_sources(&lattice, j).into_iter().map(|p| sample(&band, first, iw, p)).collect())
+                    .map(|j| {
+                        let sources = self.row_sources(&lattice, &points, j);
+                        sources.into_iter().map(|p| sample(&band, first, iw, p)).collect()
+                    })
                     .collect();
                 for out in &made {
                     if let Err(e) = row(out) {
@@ -261,14 +284,24 @@ impl ImageSource for Warped<'_> {
     }
 }
 
-/// Image pixel coordinates at the texel centres of a lattice (see `Warped::lattice`).
+/// Where a warp's lattice of exact transforms lies (see `Warped::lattice`).
 struct Lattice {
     /// The texel columns and rows of its points.
     columns: Vec<usize>,
     rows: Vec<usize>,
-    /// Its points, a row of them for each of `rows`.
-    points: Vec<Vec<(f64, f64)>>,
 }
+
+impl Lattice {
+    /// The indices of the lattice rows at or above texel row `j` and below it (the same
+    /// index for a lattice row and the last).
+    fn around(&self, j: usize) -> (usize, usize) {
+        let below = self.rows.partition_point(|&r| r <= j).clamp(1, self.rows.len());
+        (below - 1, below.min(self.rows.len() - 1))
+    }
+}
+
+/// Some lattice rows' points, by index.
+type LatticeRows = std::collections::HashMap<usize, Vec<(f64, f64)>>;
 
 /// The first and last image rows a row of sample points touches (bilinear: the rows
 /// either side of each point).
@@ -370,7 +403,8 @@ mod tests {
 
     /// Every texel of a geographic image warped onto a UTM DEM lies, by the lattice, within
     /// 1/1000 of an image pixel of where its exact transform puts it, and on the lattice's
-    /// own points exactly there.
+    /// own points exactly there; the image rows each row needs are found from its lattice
+    /// rows.
     #[test]
     fn the_lattice_places_every_texel_as_its_exact_transform() {
         let dem = Placed::new("EPSG:32632", [500_000.0, 5_200_000.0], (30.0, 30.0), (600, 450));
@@ -379,10 +413,15 @@ mod tests {
         let (w, h) = warped.size;
         assert!(w > 500 && h > 500, "{w} x {h}");
         let lattice = warped.lattice();
+        let points = warped.lattice_rows(&lattice, 0..h);
+        let needs = warped.needs(&lattice);
         let mut worst: f64 = 0.0;
         for j in (0..h).step_by(7).chain([h - 1]) {
-            let row = warped.row_sources(&lattice, j);
+            let row = warped.row_sources(&lattice, &points, j);
             assert_eq!(row.len(), w as usize);
+            // The image rows the row reads lie within those its lattice rows need.
+            let ((lo, hi), (need_lo, need_hi)) = (span(&row), needs[j as usize]);
+            assert!(need_lo <= lo && hi <= need_hi && hi - lo < 40, "row {j}: {lo}..{hi} in {need_lo}..{need_hi}");
             for (i, &(x, y)) in row.iter().enumerate() {
                 #[expect(clippy::cast_precision_loss, reason = "texel indices")]
                 let (ex, ey) = warped.source_of(i as f64, f64::from(j)).unwrap();
