@@ -156,11 +156,15 @@ impl<'a> Warped<'a> {
             .collect()
     }
 
-    /// The lattice rows that output rows `rows` need, made in parallel.
-    fn lattice_rows(&self, lattice: &Lattice, rows: std::ops::Range<u32>) -> LatticeRows {
+    /// Keeps in `held` the lattice rows that output rows `rows` need, and those alone: the
+    /// ones it lacks made in parallel (rows go down, so a row above is not needed again).
+    fn lattice_rows(&self, lattice: &Lattice, rows: std::ops::Range<u32>, held: &mut LatticeRows) {
         let (first, _) = lattice.around(rows.start as usize);
         let (_, last) = lattice.around(rows.end.saturating_sub(1) as usize);
-        (first..=last).into_par_iter().map(|index| (index, self.lattice_row(lattice, index))).collect()
+        held.retain(|&index, _| (first..=last).contains(&index));
+        let missing: Vec<usize> = (first..=last).filter(|index| !held.contains_key(index)).collect();
+        let made: Vec<_> = missing.into_par_iter().map(|index| (index, self.lattice_row(lattice, index))).collect();
+        held.extend(made);
     }
 
     /// The image must reach the elevation: some of a 9 x 9 lattice of its texels lie
@@ -238,6 +242,7 @@ impl ImageSource for Warped<'_> {
             let mut band: VecDeque<Vec<[u8; 4]>> = VecDeque::new();
             let mut first = 0i64;
             let mut result = Ok(());
+            let mut points = LatticeRows::new();
             let mut j0 = 0u32;
             'rows: while j0 < self.size.1 {
                 // A group of output rows, made at once on every core from the image rows
@@ -254,7 +259,7 @@ impl ImageSource for Warped<'_> {
                         first += 1;
                     }
                 }
-                let points = self.lattice_rows(&lattice, j0..j1);
+                self.lattice_rows(&lattice, j0..j1, &mut points);
                 let made: Vec<Vec<[u8; 4]>> = (j0..j1)
                     .into_par_iter()
                     .map(|j| {
@@ -413,7 +418,8 @@ mod tests {
         let (w, h) = warped.size;
         assert!(w > 500 && h > 500, "{w} x {h}");
         let lattice = warped.lattice();
-        let points = warped.lattice_rows(&lattice, 0..h);
+        let mut points = LatticeRows::new();
+        warped.lattice_rows(&lattice, 0..h, &mut points);
         let needs = warped.needs(&lattice);
         let mut worst: f64 = 0.0;
         for j in (0..h).step_by(7).chain([h - 1]) {

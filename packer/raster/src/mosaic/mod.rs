@@ -636,9 +636,6 @@ impl<K: MosaicKind> Mosaic<K> {
                     let mut pair = None;
                     for k in 0..top.len().saturating_sub(1) {
                         let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
-                        if from > c1 {
-                            break;
-                        }
                         let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
                         let (a, b) = (mix(top[k], bottom[k], fy), mix(top[k + 1], bottom[k + 1], fy));
                         let last = if to == c1 { to } else { to - 1 };

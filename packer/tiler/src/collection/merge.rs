@@ -55,6 +55,19 @@ pub(crate) fn made_here(metadata: &Metadata, split_lods: &[u8], index: usize) ->
     of.is_some_and(|i| recorded_base(metadata, i).is_some_and(|b| split_lods.get(i).is_some_and(|&k| k < b)))
 }
 
+/// Warns that the run's `inputs` given to a merge are not read: none of `metadata`'s
+/// layers, merged from shards split at `split_lods` (None: not shards), is a collection
+/// split finer than its base, the one merge that reads them.
+pub(crate) fn warn_unread(metadata: &Metadata, split_lods: Option<&[u8]>, inputs: &RunInputs<'_>) {
+    let given = !(inputs.elevation.is_empty() && inputs.texture.is_empty());
+    let read = split_lods.is_some_and(|s| (0..metadata.layers.len()).any(|i| made_here(metadata, s, i)));
+    if given && !read {
+        tracing::warn!(
+            "the inputs given are not read: only the shards of a collection split finer than its base take them"
+        );
+    }
+}
+
 /// Makes the levels above the split of every collection layer of `metadata` split below
 /// its base ([`made_here`]) into `spool` (its files in `folder`), from the merged shards'
 /// tiles (`payload`) and the run's `inputs`. `named`: the archive errors name.
@@ -75,13 +88,7 @@ pub(crate) fn make_above_split(
     progress: &dyn Progress,
 ) -> Result<()> {
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
-    let given = !(inputs.elevation.is_empty() && inputs.texture.is_empty());
-    if given && !(0..metadata.layers.len()).any(|i| made_here(metadata, split_lods, i)) {
-        tracing::warn!(
-            "the inputs given are not read: no layer of these shards is a collection split finer than its base (the \
-             levels above their split are their tiles' means)"
-        );
-    }
+    warn_unread(metadata, Some(split_lods), &inputs);
     for (index, layer) in metadata.layers.iter().enumerate() {
         if !matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture) || !made_here(metadata, split_lods, index) {
             continue;

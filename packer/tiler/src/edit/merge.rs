@@ -180,11 +180,7 @@ pub(crate) fn merge_widened_as(
             warn_water_above_split(&prepared.metadata, &split_lods);
         }
     } else {
-        if !(run.elevation.is_empty() && run.texture.is_empty()) {
-            tracing::warn!(
-                "the inputs given are not read: only the shards of a collection split finer than its base take them"
-            );
-        }
+        crate::collection::merge::warn_unread(&prepared.metadata, None, &run);
         let Prepared { readers, metadata, winners, conflicts, .. } = &mut prepared;
         for order in rederive_layers(metadata, readers, winners, conflicts, prefer, &mut spool)? {
             winners.remove(&order);
