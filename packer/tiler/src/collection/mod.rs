@@ -1514,13 +1514,22 @@ struct Held<S> {
     /// The coarser data beneath where the fine data has none, and where the blend
     /// reaches (else none; empty: none at all).
     coarse: Vec<S>,
-    /// Distance along the row to the fine data's edge, up to the band + 1 (empty: a row
-    /// without an edge).
+    /// The runs of columns within the band of an edge, in order.
+    near: Vec<Near>,
+    /// Distance along the row to the fine data's edge (at most the band), for the columns
+    /// of each run of `near` in turn.
     across: Vec<u32>,
-    /// The runs of columns within the band of an edge (first, end), in order.
-    near: Vec<(usize, usize)>,
     /// The runs of columns where the fine data has none (first, end), in order.
     gaps: Vec<(usize, usize)>,
+}
+
+/// Columns `from..to` of a row within the band of an edge, their distances in the row's
+/// `across` from `at`.
+#[derive(Clone, Copy, Debug)]
+struct Near {
+    from: usize,
+    to: usize,
+    at: usize,
 }
 
 /// Fills columns of a [`Blender`]'s row `y` (of the rows it is given) with the coarser
@@ -1556,62 +1565,54 @@ impl<'a, S: Pixel> Blender<'a, S> {
             gaps.push((start, end));
             x = end;
         }
-        let (across, near) =
-            if self.band > 0 && !coarse.is_empty() { self.edge(&fine, &coarse) } else { (Vec::new(), Vec::new()) };
-        self.held.push_back(Held { fine, coarse, across, near, gaps });
+        let (near, across) = if self.band > 0 { self.edge(&coarse, &gaps) } else { (Vec::new(), Vec::new()) };
+        self.held.push_back(Held { fine, coarse, near, across, gaps });
         if y + 1 > self.emitted + self.band {
             self.emit_next(coarse_of, emit)?;
         }
         Ok(())
     }
 
-    /// Along a row: the distance to the nearest sample where the coarse data has heights
-    /// and the fine data none (the fine data's edge), up to the band + 1; and the runs of
-    /// columns within the band of an edge, in order, touching ones joined. (A row with no
-    /// fine data is all edge where the coarse data has heights: the rows above and below
-    /// a survey count as much as those beside it.)
-    fn edge(&self, fine: &[S], coarse: &[S]) -> (Vec<u32>, Vec<(usize, usize)>) {
-        let cap = u32::try_from(self.band + 1).unwrap_or(u32::MAX);
-        let mut across = vec![cap; self.width];
-        let mut runs: Vec<(usize, usize)> = Vec::new();
-        let add = |runs: &mut Vec<(usize, usize)>, from: usize, to: usize| match runs.last_mut() {
-            _ if from >= to => {}
-            Some(last) if last.1 >= from => last.1 = last.1.max(to),
-            _ => runs.push((from, to)),
-        };
-        // Each edge sample, then each run of others between two edges (or an edge and the
-        // row's end): the distance to the nearer edge, set only within the band.
-        let (w, c) = (self.width, self.band + 1);
-        let is_edge = |x: usize| !fine[x].has_data() && coarse[x].has_data();
+    /// Along a row: the runs of columns within the band of the fine data's edge (a
+    /// sample where the coarse data has heights and the fine data none, so only in the
+    /// row's `gaps`), touching ones joined, in order; and there, the distance along the
+    /// row to the nearest edge. The work follows the gaps, not the row's width. (A row
+    /// with no fine data is all edge where the coarse data has heights: the rows above
+    /// and below a survey count as much as those beside it.)
+    fn edge(&self, coarse: &[S], gaps: &[(usize, usize)]) -> (Vec<Near>, Vec<u32>) {
+        let (w, band) = (self.width, self.band);
+        let cap = u32::try_from(band + 1).unwrap_or(u32::MAX);
         let distance = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
-        let mut x = 0;
-        while x < w {
-            if is_edge(x) {
-                across[x] = 0;
-                add(&mut runs, x, x + 1);
-                x += 1;
-                continue;
-            }
-            let s = x;
-            while x < w && !is_edge(x) {
-                x += 1;
-            }
-            if s > 0 {
-                let end = x.min(s + c - 1);
-                for (i, a) in across.iter_mut().enumerate().take(end).skip(s) {
-                    *a = distance(i - s + 1);
+        let (mut near, mut across): (Vec<Near>, Vec<u32>) = (Vec::new(), Vec::new());
+        for &(from, to) in gaps {
+            // Each run of edge samples in the gap, and the band each side of it.
+            let mut x = from;
+            while let Some(a) = next_where(&coarse[..to], x, true) {
+                let b = next_where(&coarse[..to], a, false).unwrap_or(to);
+                x = b;
+                let (lo, hi) = (a.saturating_sub(band), (b + band).min(w));
+                match near.last_mut() {
+                    Some(last) if last.to >= lo => {
+                        across.resize(across.len() + hi.saturating_sub(last.to), cap);
+                        last.to = last.to.max(hi);
+                    }
+                    _ => {
+                        near.push(Near { from: lo, to: hi, at: across.len() });
+                        across.resize(across.len() + (hi - lo), cap);
+                    }
                 }
-                add(&mut runs, s, end);
-            }
-            if x < w {
-                let from = s.max((x + 1).saturating_sub(c));
-                for (i, a) in across.iter_mut().enumerate().take(x).skip(from) {
-                    *a = (*a).min(distance(x - i));
+                let run = near[near.len() - 1];
+                let (d, o) = (&mut across[run.at..], run.from);
+                for (d, i) in d[lo - o..a - o].iter_mut().zip(lo..) {
+                    *d = (*d).min(distance(a - i));
                 }
-                add(&mut runs, from, x);
+                d[a - o..b - o].fill(0);
+                for (d, i) in d[b - o..hi - o].iter_mut().zip(b..) {
+                    *d = (*d).min(distance(i + 1 - b));
+                }
             }
         }
-        (across, runs)
+        (near, across)
     }
 
     fn finish(
@@ -1631,62 +1632,70 @@ impl<'a, S: Pixel> Blender<'a, S> {
         let y = self.emitted;
         let (band, w) = (self.band, self.width);
         let f = &self.held[y - self.front].fine;
+        // Where this row has fine data to blend, the blend reaches it within the runs
+        // near an edge of the rows held (every distance there is within the band), and
+        // only there: elsewhere (most of a survey) nothing is done to the row.
+        let cap = u32::try_from(band + 1).unwrap_or(u32::MAX);
+        let mut reach: Vec<(usize, usize)> = Vec::new();
+        if let (true, Some(first)) = (band > 0, f.iter().position(Pixel::has_data)) {
+            let last = f.iter().rposition(Pixel::has_data).map_or(0, |l| l + 1);
+            let mut runs: Vec<(usize, usize)> = (self.held.iter().flat_map(|held| &held.near))
+                .map(|n| (n.from.max(first), n.to.min(last)))
+                .filter(|(from, to)| from < to)
+                .collect();
+            runs.sort_unstable();
+            for (from, to) in runs {
+                match reach.last_mut() {
+                    Some(last) if last.1 >= from => last.1 = last.1.max(to),
+                    _ => reach.push((from, to)),
+                }
+            }
+        }
         // Chessboard distance to the fine data's edge over the rows held: per row, the
         // larger of its distance along the row and its distance in rows; the least of
-        // those (whole rows at once, which the compiler vectorizes). Only where this row
-        // has fine data to blend, and only the runs of columns near an edge: elsewhere a
-        // row's distance is the cap.
-        let cap = u32::try_from(band + 1).unwrap_or(u32::MAX);
-        let first = f.iter().position(Pixel::has_data);
-        let last = f.iter().rposition(Pixel::has_data).map_or(0, |l| l + 1);
-        let mut distance: Option<Vec<u32>> = None;
-        if let (true, Some(first)) = (band > 0, first) {
+        // those (runs at once, which the compiler vectorizes). For each run of `reach`
+        // in turn.
+        let mut distance: Vec<u32> = Vec::new();
+        for &(from, to) in &reach {
+            let at = distance.len();
+            distance.resize(at + (to - from), cap);
+            let d = &mut distance[at..];
             for (j, held) in self.held.iter().enumerate() {
                 let dy = u32::try_from((self.front + j).abs_diff(y)).unwrap_or(u32::MAX);
-                for &(from, to) in &held.near {
-                    let (from, to) = (from.max(first), to.min(last));
-                    if from >= to {
+                for n in &held.near {
+                    let (a, b) = (n.from.max(from), n.to.min(to));
+                    if a >= b {
                         continue;
                     }
-                    let d = distance.get_or_insert_with(|| vec![cap; w]);
-                    for (d, &a) in d[from..to].iter_mut().zip(&held.across[from..to]) {
-                        *d = (*d).min(a.max(dy));
+                    let across = &held.across[n.at + a - n.from..n.at + b - n.from];
+                    for (d, &x) in d[a - from..b - from].iter_mut().zip(across) {
+                        *d = (*d).min(x.max(dy));
                     }
                 }
             }
         }
         let row = &mut self.held[y - self.front];
-        // The coarser data where the blend reaches: runs of columns.
-        let mut reach = Vec::new();
-        if let Some(distance) = &distance {
-            let mut x = 0;
-            while let Some(start) = distance[x..].iter().position(|&d| d < cap).map(|p| p + x) {
-                let end = distance[start..].iter().position(|&d| d >= cap).map_or(w, |p| p + start);
-                if row.coarse.is_empty() {
-                    row.coarse = vec![S::NONE; w];
-                }
-                coarse_of(y, &mut row.coarse, start..end);
-                reach.push((start, end));
-                x = end;
-            }
-        }
         // The fine data as it is (taken, not copied: no later row reads it), blended into
         // the coarser data where the blend reaches, and the coarser data where it has
-        // none. Elsewhere (most of a survey) nothing is done to it.
+        // none.
         let mut out = std::mem::take(&mut row.fine);
-        if let Some(distance) = &distance {
-            #[expect(clippy::cast_precision_loss, reason = "small counts")]
-            let scale = 1.0 / (band as f32 + 1.0);
-            for &(from, to) in &reach {
-                let runs = out[from..to].iter_mut().zip(&row.coarse[from..to]).zip(&distance[from..to]);
-                for ((a, &b), &d) in runs {
-                    if a.has_data() && b.has_data() {
-                        #[expect(clippy::cast_precision_loss, reason = "small counts")]
-                        let t = d as f32 * scale;
-                        *a = S::lerp(b, *a, t * t * (3.0 - 2.0 * t));
-                    }
+        if !reach.is_empty() && row.coarse.is_empty() {
+            row.coarse = vec![S::NONE; w];
+        }
+        #[expect(clippy::cast_precision_loss, reason = "small counts")]
+        let scale = 1.0 / (band as f32 + 1.0);
+        let mut at = 0;
+        for &(from, to) in &reach {
+            coarse_of(y, &mut row.coarse, from..to);
+            let runs = out[from..to].iter_mut().zip(&row.coarse[from..to]).zip(&distance[at..at + (to - from)]);
+            for ((a, &b), &d) in runs {
+                if a.has_data() && b.has_data() {
+                    #[expect(clippy::cast_precision_loss, reason = "small counts")]
+                    let t = d as f32 * scale;
+                    *a = S::lerp(b, *a, t * t * (3.0 - 2.0 * t));
                 }
             }
+            at += to - from;
         }
         for &(from, to) in &row.gaps {
             out[from..to].copy_from_slice(&row.coarse[from..to]);
