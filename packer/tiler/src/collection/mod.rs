@@ -920,6 +920,7 @@ where
 {
     let res = metadata.layers[usize::from(index)].tile_resolution;
     let needed = part.map(|p| needed_rects(c, res, p));
+    let threads = std::thread::available_parallelism().map_or(1, std::num::NonZero::get).min(8);
     let (after, mut overrides) = match from {
         Some((lod, means)) => (Some(lod), means),
         None => (None, Vec::new()),
@@ -1006,6 +1007,7 @@ where
                             overrides,
                             blend,
                             finish,
+                            threads,
                             &mut |(row, half)| {
                                 halved.rows.extend(half);
                                 push(row)
@@ -1270,9 +1272,18 @@ impl<S: Pixel> RowFinish<'_, S> {
     }
 }
 
-/// [`level_rows`] of a whole rectangle's `grid`, made in bands of rows on every core (each
-/// band with `blend` rows more above and below, for the blend's distances), finished
-/// there (`finish`) and handed to `emit` in order. The rows are those [`level_rows`] makes
+/// Cores from which a level's rows are made in bands, one worker a core: below, in one
+/// run. There the rows' warp (on every core) keeps the cores busy, and what runs on one
+/// thread (the blend, the finishing: some 17 % of a level's work) keeps up; bands would
+/// add their margins' rows, a band's memory a worker, and workers that contend with the
+/// warp's (`scripts/bench-collection.sh` on 2 cores: 0.85x the CPU time and 0.82x the
+/// wall time in one run). From about six cores that one thread would be the bottleneck.
+pub(crate) const BANDS_FROM: usize = 6;
+
+/// [`level_rows`] of a whole rectangle's `grid`, handed to `emit` in order, each pair of
+/// rows finished (`finish`) where it is made. With [`BANDS_FROM`] `threads` or more, made
+/// in bands of rows on as many workers (each band with `blend` rows more above and below,
+/// for the blend's distances); else in one run. The rows are those [`level_rows`] makes
 /// in one run.
 #[expect(clippy::too_many_arguments, reason = "the sources, where the rows lie, what to blend and finish")]
 fn level_rows_in_bands<K: MosaicKind>(
@@ -1283,6 +1294,7 @@ fn level_rows_in_bands<K: MosaicKind>(
     overrides: &[&Override<K::Value>],
     blend: u32,
     finish: &RowFinish<'_, K::Value>,
+    threads: usize,
     emit: &mut dyn FnMut(Finished<K::Value>) -> Result<()>,
 ) -> Result<()>
 where
@@ -1294,7 +1306,6 @@ where
     /// one being made and one made.
     const BAND_SAMPLES: u32 = 1 << 24;
     let h = grid.size.1;
-    let threads = std::thread::available_parallelism().map_or(1, std::num::NonZero::get).min(8);
     // Each band is made with the blend's rows above and below it again: a few bands a
     // worker, as tall as memory allows, so that those are few. An even number of rows,
     // so that each pair of rows lies in one band.
@@ -1318,8 +1329,17 @@ where
         })?;
         Ok(made)
     };
-    if threads < 2 || bands.len() < 2 {
-        return bands.iter().try_for_each(|b| make(b)?.into_iter().try_for_each(&mut *emit));
+    if threads < BANDS_FROM || bands.len() < 2 {
+        // One run, each pair of rows finished as it is made.
+        let mut pending: Option<Vec<K::Value>> = None;
+        level_rows(fine, coarse, grid, corner, 0..h, overrides, blend, &mut |r| match pending.take() {
+            None => {
+                pending = Some(r);
+                Ok(())
+            }
+            Some(a) => finish.rows(vec![a, r], emit),
+        })?;
+        return pending.map_or(Ok(()), |a| finish.rows(vec![a], emit));
     }
     std::thread::scope(|scope| -> Result<()> {
         // Worker t makes bands t, t + threads, …; each hands them over one at a time, so
@@ -1931,19 +1951,30 @@ mod tests {
                 .collect(),
         }];
         let finer: Vec<&Override<f32>> = overrides.iter().collect();
-        let make = |bands: bool| {
+        let make = |threads: Option<usize>| {
             let source = Rows(coarse_rows.clone(), std::sync::atomic::AtomicUsize::new(0));
             let coarse = Coarse { source: Box::new(source), shift: 2, quantize: None, first: (1, 2) };
-            let mut rows = vec![];
-            if bands {
+            let (mut rows, mut halves) = (vec![], vec![]);
+            if let Some(threads) = threads {
                 let widen = |r: Vec<f32>| r;
                 let finish = RowFinish { quantize: None, widen: &widen };
-                let mut emit = |(r, _): Finished<f32>| {
+                let mut emit = |(r, half): Finished<f32>| {
                     rows.push(r);
+                    halves.extend(half);
                     Ok(())
                 };
-                level_rows_in_bands::<Heights>(None, Some(&coarse), &grid, corner, &finer, 0, &finish, &mut emit)
-                    .unwrap();
+                level_rows_in_bands::<Heights>(
+                    None,
+                    Some(&coarse),
+                    &grid,
+                    corner,
+                    &finer,
+                    0,
+                    &finish,
+                    threads,
+                    &mut emit,
+                )
+                .unwrap();
             } else {
                 let mut emit = |r: Vec<f32>| {
                     rows.push(r);
@@ -1951,15 +1982,25 @@ mod tests {
                 };
                 level_rows::<Heights>(None, Some(&coarse), &grid, corner, 0..h, &finer, 0, &mut emit).unwrap();
             }
-            rows
+            (rows, halves)
         };
-        let (one, banded) = (make(false), make(true));
+        let (one, _) = make(None);
         assert_eq!(one.len(), h as usize);
-        assert_eq!(banded.len(), one.len());
-        for (y, (a, b)) in one.iter().zip(&banded).enumerate() {
-            let same = a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
-            assert!(same, "row {y} differs");
+        let same =
+            |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
+        // In bands (on as many workers as from BANDS_FROM cores), and streamed: the same
+        // rows, and the same means of each pair.
+        let (banded, banded_halves) = make(Some(BANDS_FROM));
+        let (streamed, streamed_halves) = make(Some(1));
+        for made in [&banded, &streamed] {
+            assert_eq!(made.len(), one.len());
+            for (y, (a, b)) in one.iter().zip(made).enumerate() {
+                assert!(same(a, b), "row {y} differs");
+            }
         }
+        assert_eq!(banded_halves.len(), (h as usize).div_ceil(2));
+        assert!(banded_halves.iter().zip(&streamed_halves).all(|(a, b)| same(a, b)));
+        assert_eq!(banded_halves.len(), streamed_halves.len());
         assert!(one.iter().flatten().any(|v| *v == 7.0 + 5.0), "the overrides are in");
     }
 }
