@@ -46,6 +46,31 @@ fn tile(dir: &Path, name: &str, inputs: &[&str], extra: &[&str]) -> PathBuf {
     out
 }
 
+/// A level's rows are made in bands, a worker a core, from six cores, and in one run
+/// below: the same archive either way.
+#[test]
+fn a_collection_tiled_on_one_core_and_on_eight_is_the_same_archive() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |threads: &str| {
+        let out = dir.path().join(format!("on-{threads}.tspack"));
+        let (base, patch) = (repo().join(BASE), repo().join(PATCH));
+        let args = [base.to_str().unwrap(), patch.to_str().unwrap(), "--tile-size", "32", "-o", out.to_str().unwrap()];
+        let made = std::process::Command::new(env!("CARGO_BIN_EXE_terrastream"))
+            .args(["-v", "tile", "--vertical-datum", "5773", "--elevation"])
+            .args(args)
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&made.stderr).into_owned();
+        assert!(made.status.success(), "{said}");
+        (std::fs::read(&out).unwrap(), said)
+    };
+    let ((one, said_one), (eight, said_eight)) = (run("1"), run("8"));
+    assert!(said_eight.contains("a level's rows made in bands bands=3 threads=8"), "{said_eight}");
+    assert!(!said_one.contains("made in bands"), "{said_one}");
+    assert!(one == eight, "{} and {} bytes: not the same archive", one.len(), eight.len());
+}
+
 /// Elevation tiles per LOD.
 fn per_lod(path: &Path) -> BTreeMap<u8, usize> {
     let mut counts = BTreeMap::new();

@@ -26,6 +26,7 @@ pub(crate) mod update;
 pub use merge::RunInputs;
 pub use shards::{PlannedCollection, collection_shard_plan};
 
+use rayon::prelude::*;
 use std::collections::{HashSet, VecDeque};
 use std::path::{Path, PathBuf};
 
@@ -920,7 +921,8 @@ where
 {
     let res = metadata.layers[usize::from(index)].tile_resolution;
     let needed = part.map(|p| needed_rects(c, res, p));
-    let threads = std::thread::available_parallelism().map_or(1, std::num::NonZero::get).min(8);
+    // As many as the pool's (`RAYON_NUM_THREADS`, else the cores).
+    let threads = rayon::current_num_threads().min(8);
     let (after, mut overrides) = match from {
         Some((lod, means)) => (Some(lod), means),
         None => (None, Vec::new()),
@@ -941,6 +943,29 @@ where
             let live = [live_corner.0 - corner.0, live_corner.1 - corner.1];
             let LevelSources { fine, coarse } = sources(lod, live_corner, &live_grid)?;
             let coarse = coarse.map(|(source, shift, first)| Coarse { source, shift, first, quantize });
+            // The finer level's means that reach this part (of every survey's).
+            let near = |o: &&Override<K::Value>| {
+                let (w, h) = (o.rows.first().map_or(0, Vec::len), o.rows.len());
+                let (x0, y0) = (live_corner.0 as usize, live_corner.1 as usize);
+                let (x1, y1) = (x0 + live_grid.size.0 as usize, y0 + live_grid.size.1 as usize);
+                o.x0 < x1 && x0 < o.x0 + w && o.y0 < y1 && y0 < o.y0 + h
+            };
+            let finer: Vec<&Override<K::Value>> = overrides.iter().filter(near).collect();
+            if fine.is_none() {
+                // No input as deep as this level: only its tiles are made, each on its own.
+                let border = u32::from(metadata.layers[usize::from(index)].border);
+                let at = Beneath { level, rect, res, border, corner: live_corner, size: live_grid.size };
+                let encode = |x: u32, y: u32, samples: &[K::Value], edge: usize| {
+                    if part.is_some_and(|p| !p.holds(lod, y)) {
+                        return Ok(Vec::new());
+                    }
+                    encode_tile(TileKey::new(index, lod, x, y)?, samples, edge)
+                };
+                let mut add = |key: TileKey, bytes: &[u8]| spool.add(metadata, key, bytes);
+                next.push(tiles_beneath(&at, coarse.as_ref(), &finer, quantize, &encode, &mut add, progress)?);
+                tracing::debug!(lod, ?rect, "level of the collection made over a rectangle, tile by tile");
+                continue;
+            }
             let mut local = metadata.clone();
             {
                 let l = &mut local.layers[usize::from(index)];
@@ -962,14 +987,6 @@ where
                 Override { x0: live_corner.0 as usize / 2, y0: live_corner.1 as usize / 2, rows: Vec::new() };
             {
                 let (fine, coarse, halved) = (fine.as_ref(), coarse.as_ref(), &mut halved);
-                // The finer level's means that reach this part (of every survey's).
-                let near = |o: &&Override<K::Value>| {
-                    let (w, h) = (o.rows.first().map_or(0, Vec::len), o.rows.len());
-                    let (x0, y0) = (live_corner.0 as usize, live_corner.1 as usize);
-                    let (x1, y1) = (x0 + live_grid.size.0 as usize, y0 + live_grid.size.1 as usize);
-                    o.x0 < x1 && x0 < o.x0 + w && o.y0 < y1 && y0 < o.y0 + h
-                };
-                let finer: Vec<&Override<K::Value>> = overrides.iter().filter(near).collect();
                 let (overrides, blend) = (&finer, c.blend);
                 let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
                 let (x0, y0, lh) = (live[0] as usize, live[1] as usize, live_grid.size.1 as usize);
@@ -1032,6 +1049,171 @@ where
         overrides = next;
     }
     Ok(overrides)
+}
+
+/// Where [`tiles_beneath`] makes a level's rectangle: the level, the rectangle, its tiles'
+/// size and border, and its live part (first sample on the level, and size; see
+/// [`live_part`]).
+struct Beneath<'l> {
+    level: &'l SparseLevel,
+    rect: [u32; 4],
+    res: u32,
+    border: u32,
+    corner: (u32, u32),
+    size: (u32, u32),
+}
+
+/// A tile [`tiles_beneath`] cut: its column and row, archive entries, and 2x2 means.
+type CutTile<S> = (u32, u32, Vec<(TileKey, Vec<u8>)>, Vec<S>);
+
+/// Encodes a level's tile (its column and row, samples and edge) into its archive entries.
+type EncodeAt<'e, S> = dyn Fn(u32, u32, &[S], usize) -> Result<Vec<(TileKey, Vec<u8>)>> + Sync + 'e;
+
+/// The tiles `at.level` holds in rectangle `at.rect` where no input is as deep as the
+/// level: each sample the finer level's means where they lie (`overrides`), else the
+/// `coarse` data beneath, rounded (`quantize`); no data outside the live part. The same
+/// samples as [`level_rows`] makes across the live part, but no sample depends on another
+/// (nothing to blend): only the held tiles are made, not the rows across the rectangle,
+/// a row of tiles at a time on every core while the coarse rows they read are pulled in
+/// order and let go. Each tile with data goes to `encode`, its entries to `add`. Returns
+/// the tiles' 2x2 means, rounded: what the next level takes where they lie (as
+/// [`RowFinish`] and [`Override::keep_held`] leave them).
+fn tiles_beneath<S: Pixel>(
+    at: &Beneath<'_>,
+    coarse: Option<&Coarse<'_, '_, S>>,
+    overrides: &[&Override<S>],
+    quantize: Option<&QuantizeRow<'_, S>>,
+    encode: &EncodeAt<'_, S>,
+    add: &mut dyn FnMut(TileKey, &[u8]) -> Result<()>,
+    progress: &dyn Progress,
+) -> Result<Override<S>> {
+    let (res, border) = (at.res as usize, at.border as usize);
+    let (edge, half) = (res + 2 * border, res / 2);
+    let (x0, y0) = (at.corner.0 as usize, at.corner.1 as usize);
+    let (w, h) = (at.size.0 as usize, at.size.1 as usize);
+    let mut halved = Override { x0: x0 / 2, y0: y0 / 2, rows: vec![vec![S::NONE; w.div_ceil(2)]; h.div_ceil(2)] };
+    let level_row = |y: usize| u32::try_from(y).unwrap_or(u32::MAX);
+    let (mut up, pulled) = match coarse {
+        Some(c) => {
+            let (up, pulled) = Upsample::new(c, at.corner, w, at.size.1);
+            (Some(up), Some((c, pulled)))
+        }
+        None => (None, None),
+    };
+    let (send, receive) = std::sync::mpsc::sync_channel::<Vec<S>>(64);
+    std::thread::scope(|scope| -> Result<()> {
+        let reader = pulled.map(|(c, pulled)| {
+            let (k, quantize) = (&c.source, c.quantize);
+            scope.spawn(move || {
+                k.rows(pulled, &mut |mut r| {
+                    if let Some(q) = quantize {
+                        q(&mut r);
+                    }
+                    send.send(r).map_err(|_| crate::error::interrupted())
+                })
+            })
+        });
+        let mut pull = || receive.recv().map_err(|_| crate::error::interrupted());
+        // Rows of tiles in batches of at least a few tiles a core, the coarse rows
+        // each batch reads held while it is cut.
+        let batch_tiles = 4 * rayon::current_num_threads();
+        let mut ty = at.rect[1];
+        let mut made = || -> Result<()> {
+            while ty <= at.rect[3] {
+                progress.check()?;
+                let first_row = ty;
+                let mut batch: Vec<(u32, u32)> = Vec::new();
+                while ty <= at.rect[3] && batch.len() < batch_tiles {
+                    progress.advance(u64::from(at.rect[2] - at.rect[0] + 1));
+                    batch.extend(
+                        (at.rect[0]..=at.rect[2]).filter(|&tx| at.level.tiles.contains(&(tx, ty))).map(|tx| (tx, ty)),
+                    );
+                    ty += 1;
+                }
+                // The level rows a row of tiles reads (borders included) in the live part.
+                let rows = |ty: u32| {
+                    let top = ty as usize * res;
+                    (top.saturating_sub(border).max(y0), (top + res + border).min(y0 + h))
+                };
+                let end = rows(ty - 1).1;
+                if batch.is_empty() || rows(first_row).0 >= end {
+                    continue;
+                }
+                if let Some(up) = up.as_mut() {
+                    up.reach(level_row(end - 1), &mut pull)?;
+                }
+                let held = up.as_ref();
+                let cut = |&(tx, ty): &(u32, u32)| -> Result<CutTile<S>> {
+                    let (left, top) = (tx as usize * res, ty as usize * res);
+                    let mut samples = vec![S::NONE; edge * edge];
+                    // The live part's columns the tile reads; its first column is `left - border`.
+                    let (c0, c1) = (left.saturating_sub(border).max(x0), (left + res + border).min(x0 + w));
+                    let (first, end) = rows(ty);
+                    for y in (first..end).filter(|_| c0 < c1) {
+                        let at = (y + border - top) * edge + (c0 + border - left);
+                        overridden_into(overrides, c0, y, &mut samples[at..at + (c1 - c0)], &|out, columns| {
+                            if let Some(up) = held {
+                                let from = c0 - x0;
+                                up.fill_into(
+                                    level_row(y),
+                                    &mut out[columns.clone()],
+                                    from + columns.start..from + columns.end,
+                                );
+                            }
+                        });
+                    }
+                    if let Some(q) = quantize {
+                        q(&mut samples);
+                    }
+                    let interior =
+                        |j: usize| &samples[(border + j) * edge + border..(border + j) * edge + border + res];
+                    let entries = if (0..res).any(|j| interior(j).iter().any(S::has_data)) {
+                        encode(tx, ty, &samples, edge)?
+                    } else {
+                        Vec::new()
+                    };
+                    let mut means = Vec::with_capacity(half * half);
+                    for r in 0..half {
+                        let mut m = halve_rows(interior(2 * r), interior(2 * r + 1));
+                        if let Some(q) = quantize {
+                            q(&mut m);
+                        }
+                        means.extend(m);
+                    }
+                    Ok((tx, ty, entries, means))
+                };
+                let cuts = batch.par_iter().map(cut).collect::<Result<Vec<_>>>()?;
+                for (tx, ty, entries, means) in cuts {
+                    for (key, bytes) in entries {
+                        add(key, &bytes)?;
+                    }
+                    // The means in the live part's.
+                    let hx = tx as usize * half;
+                    let (from, to) = (hx.max(halved.x0), (hx + half).min(halved.x0 + w.div_ceil(2)));
+                    for r in (0..half).filter(|_| from < to) {
+                        let Some(row) =
+                            (ty as usize * half + r).checked_sub(halved.y0).and_then(|j| halved.rows.get_mut(j))
+                        else {
+                            continue;
+                        };
+                        row[from - halved.x0..to - halved.x0]
+                            .copy_from_slice(&means[r * half + from - hx..r * half + to - hx]);
+                    }
+                }
+                if let Some(up) = up.as_mut() {
+                    up.release(level_row(rows(ty).0));
+                }
+            }
+            Ok(())
+        };
+        let made = made();
+        drop(receive);
+        let read = reader.map_or(Ok(()), |r| r.join().unwrap_or(Err(Error::Panicked { thread: "coarse rows" })));
+        // The tiles' error first (it stopped the reader); else the reader's.
+        made?;
+        read
+    })?;
+    Ok(halved)
 }
 
 /// The part of a level's rectangle `rect` (corner sample `corner`, `grid`) that its tiles
@@ -1214,6 +1396,11 @@ impl<S: Pixel> Upsample<S> {
     /// Columns `columns` of level row `gy` (absolute) into `row`, between the rows
     /// [`Self::reach`] pulled and [`Self::release`] kept.
     fn fill(&self, gy: u32, row: &mut [S], columns: std::ops::Range<usize>) {
+        self.fill_into(gy, &mut row[columns.clone()], columns);
+    }
+
+    /// [`Self::fill`] of `columns` into `out` (as many samples).
+    fn fill_into(&self, gy: u32, out: &mut [S], columns: std::ops::Range<usize>) {
         let Some(&(c0, _)) = self.columns.get(columns.start) else { return };
         let (r, fy) = Self::at(gy, self.shift, self.first.1, self.size.1);
         let top = &self.held[r - self.front];
@@ -1225,7 +1412,7 @@ impl<S: Pixel> Upsample<S> {
         let (c1, c1_next) = (c1.min(last), (c1 + 1).min(last));
         let between: Vec<S> = (c0..=c1_next.max(c1)).map(|c| S::lerp(top[c], bottom[c], fy)).collect();
         let at = |c: usize| between[c - c0];
-        for (out, &(c, fx)) in row[columns.clone()].iter_mut().zip(&self.columns[columns]) {
+        for (out, &(c, fx)) in out.iter_mut().zip(&self.columns[columns]) {
             *out = S::lerp(at(c), at((c + 1).min(last)), fx);
         }
     }
@@ -1341,6 +1528,7 @@ where
         })?;
         return pending.map_or(Ok(()), |a| finish.rows(vec![a], emit));
     }
+    tracing::debug!(bands = bands.len(), threads, "a level's rows made in bands");
     std::thread::scope(|scope| -> Result<()> {
         // Worker t makes bands t, t + threads, …; each hands them over one at a time, so
         // at most a band a worker waits made ahead of the one being emitted.
@@ -1473,14 +1661,25 @@ fn overridden<S: Pixel>(
     fill: &dyn Fn(&mut [S], std::ops::Range<usize>),
 ) -> Vec<S> {
     let mut out = vec![S::NONE; w];
-    apply_overrides(overrides, gx0, gy, &mut out);
+    overridden_into(overrides, gx0, gy, &mut out, fill);
+    out
+}
+
+/// [`overridden`] into `out` (no data on entry), as many samples from `gx0`.
+fn overridden_into<S: Pixel>(
+    overrides: &[&Override<S>],
+    gx0: usize,
+    gy: usize,
+    out: &mut [S],
+    fill: &dyn Fn(&mut [S], std::ops::Range<usize>),
+) {
+    apply_overrides(overrides, gx0, gy, out);
     let mut x = 0;
-    while let Some(start) = next_where(&out, x, false) {
-        let end = next_where(&out, start, true).unwrap_or(w);
-        fill(&mut out, start..end);
+    while let Some(start) = next_where(out, x, false) {
+        let end = next_where(out, start, true).unwrap_or(out.len());
+        fill(out, start..end);
         x = end;
     }
-    out
 }
 
 /// The finer level's means (`overrides`) where they lie over row `gy` (absolute) of a
@@ -1915,6 +2114,107 @@ mod tests {
                 let got = rows[y][x];
                 assert!(got == expected || (got.is_nan() && expected.is_nan()), "({x}, {y}): {got} against {expected}");
             }
+        }
+    }
+
+    /// A level without fine data made tile by tile is what its rows across the live
+    /// part make: every held tile's samples (borders, the live part's edges, rounding),
+    /// and the means the next level takes.
+    #[test]
+    fn tiles_made_on_their_own_are_the_rows_made_across_the_rectangle() {
+        let (res, border) = (8u32, 1u32);
+        let rect = [2u32, 1, 6, 4];
+        let held = [(3u32, 1u32), (4, 1), (2, 2), (3, 2), (5, 2), (6, 3), (4, 4), (6, 4)];
+        let level = SparseLevel { lod: 1, tiles: held.iter().copied().collect(), rects: vec![rect], cover: vec![] };
+        // The live part: from the rectangle's corner, short of its last column and row.
+        let (corner, size) = ((16u32, 8u32), (38u32, 30u32));
+        let grid = GridSpec { origin: [0.0, 0.0], pixel: (1.0, 1.0), size };
+        let (_, coarse_rows) = pattern(30, 40);
+        let overrides = [Override {
+            x0: 20,
+            y0: 12,
+            rows: (0..14)
+                .map(|y| (0..20).map(|x| if (x + 2 * y) % 7 == 0 { f32::NAN } else { 40.0 + x as f32 * 0.3 }).collect())
+                .collect(),
+        }];
+        let finer: Vec<&Override<f32>> = overrides.iter().collect();
+        let round =
+            |row: &mut [f32]| row.iter_mut().filter(|v| !v.is_nan()).for_each(|v| *v = (*v * 4.0).round() / 4.0);
+        let coarse = || Coarse {
+            source: Box::new(Rows(coarse_rows.clone(), std::sync::atomic::AtomicUsize::new(0))),
+            shift: 1,
+            quantize: None,
+            first: (6, 2),
+        };
+
+        // The rows across the live part, rounded, and their means.
+        let mut rows: Vec<Vec<f32>> = vec![];
+        level_rows::<Heights>(None, Some(&coarse()), &grid, corner, 0..size.1, &finer, 0, &mut |r| {
+            rows.push(r);
+            Ok(())
+        })
+        .unwrap();
+        rows.iter_mut().for_each(|r| round(r));
+        let none = vec![f32::NAN; size.0 as usize];
+        let mut means = Override {
+            x0: 8,
+            y0: 4,
+            rows: rows
+                .chunks(2)
+                .map(|pair| {
+                    let mut m = halve_rows(&pair[0], pair.get(1).unwrap_or(&none));
+                    round(&mut m);
+                    m
+                })
+                .collect(),
+        };
+        means.keep_held(&level, res);
+
+        let cut = std::sync::Mutex::new(std::collections::BTreeMap::new());
+        let encode = |x: u32, y: u32, samples: &[f32], edge: usize| {
+            assert_eq!(edge, 10);
+            cut.lock().unwrap().insert((x, y), samples.to_vec());
+            Ok(vec![(TileKey::new(0, 1, x, y)?, vec![1u8])])
+        };
+        let mut added = vec![];
+        let at = Beneath { level: &level, rect, res, border, corner, size };
+        let progress = terrastream_pack::progress::Silent::default();
+        let made = tiles_beneath(
+            &at,
+            Some(&coarse()),
+            &finer,
+            Some(&round),
+            &encode,
+            &mut |key, _| {
+                added.push(key);
+                Ok(())
+            },
+            &progress,
+        )
+        .unwrap();
+
+        let cut = cut.into_inner().unwrap();
+        let same = |a: f32, b: f32| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
+        for &(tx, ty) in &held {
+            let samples = &cut[&(tx, ty)];
+            for j in 0..10i64 {
+                for i in 0..10i64 {
+                    let (gx, gy) = (i64::from(tx * res) + i - 1, i64::from(ty * res) + j - 1);
+                    let (lx, ly) = (gx - i64::from(corner.0), gy - i64::from(corner.1));
+                    let inside = (0..i64::from(size.0)).contains(&lx) && (0..i64::from(size.1)).contains(&ly);
+                    let expected = if inside { rows[ly as usize][lx as usize] } else { f32::NAN };
+                    let got = samples[(j * 10 + i) as usize];
+                    assert!(same(got, expected), "tile ({tx}, {ty}) sample ({i}, {j}): {got} against {expected}");
+                }
+            }
+        }
+        assert_eq!(cut.len(), held.len(), "only the held tiles");
+        assert_eq!(added.len(), held.len());
+        assert!(cut.values().flatten().any(|&v| (40.0..47.0).contains(&v)), "the finer means are in");
+        assert_eq!((made.x0, made.y0, made.rows.len()), (means.x0, means.y0, means.rows.len()));
+        for (y, (a, b)) in made.rows.iter().zip(&means.rows).enumerate() {
+            assert_eq!(a.len(), b.len());
+            assert!(a.iter().zip(b).all(|(&p, &q)| same(p, q)), "means row {y}: {a:?} against {b:?}");
         }
     }
 
