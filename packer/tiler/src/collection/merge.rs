@@ -69,21 +69,19 @@ pub(crate) fn warn_unread(metadata: &Metadata, split_lods: Option<&[u8]>, inputs
 }
 
 /// Makes the levels above the split of every collection layer of `metadata` split below
-/// its base ([`made_here`]) into `spool` (its files in `folder`), from the merged shards'
+/// its base ([`made_here`]) into `spool`, from the merged shards'
 /// tiles (`payload`) and the run's `inputs`. `named`: the archive errors name.
 ///
 /// # Errors
 /// [`Error::Input`] naming `named` when such a layer's inputs are not given, or make
 /// other levels than the shards' run did (other inputs); the inputs' and the tiles'
 /// errors.
-#[expect(clippy::too_many_arguments, reason = "the shards, the inputs, and where errors and tiles go")]
 pub(crate) fn make_above_split(
     metadata: &Metadata,
     split_lods: &[u8],
     inputs: RunInputs<'_>,
     payload: &Payload<'_>,
     named: &Path,
-    folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
 ) -> Result<()> {
@@ -147,7 +145,7 @@ pub(crate) fn make_above_split(
             let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
                 Ok(vec![(key, encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
             };
-            super::cut_levels(&c, metadata, index, &open, &encode_tile, None, folder, spool, progress, means)?;
+            super::cut_levels(&c, metadata, index, &open, &encode_tile, None, spool, progress, means)?;
         } else {
             let datum = DatumName::of_record(&metadata.vertical_datum);
             let range = (metadata.terrain.min_elevation, metadata.terrain.max_elevation);
@@ -171,7 +169,7 @@ pub(crate) fn make_above_split(
             let means = stand.means(&c, &decode, Some(&quantize))?;
             let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
             let q: &super::QuantizeRow<'_, f32> = &quantize;
-            super::cut_levels(&c, metadata, index, &open, &encode_tile, Some(q), folder, spool, progress, means)?;
+            super::cut_levels(&c, metadata, index, &open, &encode_tile, Some(q), spool, progress, means)?;
             // The split level's ranges (the shards') widen those above them.
             let below = match find(LayerKind::HeightRange) {
                 Some(r) => {

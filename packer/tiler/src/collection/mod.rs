@@ -596,7 +596,7 @@ pub fn tile_collection(
         (Some(c), _) => {
             let mut spool = Spool::new(&folder)?;
             let part = part_of(c);
-            cut_heights(c, request, sources, metadata, &folder, &mut spool, progress, part.as_ref())?;
+            cut_heights(c, request, sources, metadata, &mut spool, progress, part.as_ref())?;
             spool
         }
         (None, Some(e)) => crate::tile::cut_planned(&folder, Some(e), None, &planned, &windows, progress)?,
@@ -606,7 +606,7 @@ pub fn tile_collection(
     match (collections.imagery, texture) {
         (Some(c), Some(t)) => {
             let part = part_of(c);
-            cut_imagery(c, request, sources, t.format, metadata, &folder, &mut spool, progress, part.as_ref())?;
+            cut_imagery(c, request, sources, t.format, metadata, &mut spool, progress, part.as_ref())?;
         }
         (None, Some(t)) => cut_texture(t, &planned, &windows, &mut spool, progress)?,
         _ => {}
@@ -666,13 +666,11 @@ pub(crate) fn open_images(
 }
 
 /// Cuts the heights' collection `c` (and its height ranges) into `spool`.
-#[expect(clippy::too_many_arguments, reason = "the collection, its sources, and where tiles go")]
 fn cut_heights(
     c: &Collection,
     request: &TileRequest,
     sources: &Sources,
     metadata: &Metadata,
-    folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
     part: Option<&ShardPart>,
@@ -700,7 +698,7 @@ fn cut_heights(
     };
     let encode_tile = |key: TileKey, samples: &[f32], _edge: usize| heights.encode(key, samples);
     let cut = part.map_or(Cut::Whole, Cut::Shard);
-    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), folder, spool, progress, cut)?;
+    cut_levels(c, metadata, index, &open, &encode_tile, Some(&quantize), spool, progress, cut)?;
     heights.finish(metadata, Vec::new(), spool)
 }
 
@@ -712,7 +710,6 @@ fn cut_imagery(
     sources: &Sources,
     format: crate::options::TextureFormat,
     metadata: &Metadata,
-    folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
     part: Option<&ShardPart>,
@@ -726,18 +723,7 @@ fn cut_imagery(
     let encode_tile = |key: TileKey, pixels: &[[u8; 4]], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
         Ok(vec![(key, crate::encode::encode_texture(key, pixels, edge, format, crate::tile::ZSTD_LEVEL)?)])
     };
-    cut_levels(
-        c,
-        metadata,
-        index,
-        &open,
-        &encode_tile,
-        None,
-        folder,
-        spool,
-        progress,
-        part.map_or(Cut::Whole, Cut::Shard),
-    )
+    cut_levels(c, metadata, index, &open, &encode_tile, None, spool, progress, part.map_or(Cut::Whole, Cut::Shard))
 }
 
 /// Which of a collection's levels a cut makes.
@@ -762,7 +748,6 @@ pub(crate) fn cut_levels<K: MosaicKind>(
     open: &(dyn Fn(Vec<PathBuf>, GridSpec) -> Result<Option<Mosaic<K>>> + Sync),
     encode_tile: &EncodeTile<'_, K::Value>,
     quantize: Option<&QuantizeRow<'_, K::Value>>,
-    folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
     cut: Cut<'_, K::Value>,
@@ -792,8 +777,7 @@ where
         });
         Ok(LevelSources { fine, coarse })
     };
-    let overrides =
-        make_levels(c, metadata, index, encode_tile, quantize, folder, spool, progress, &sources_of, part, from)?;
+    let overrides = make_levels(c, metadata, index, encode_tile, quantize, spool, progress, &sources_of, part, from)?;
     phases.mark(&format!("layer {index}: the levels below the base made"));
     if part.is_some_and(|p| p.split < c.base) {
         // A shard split below the base: the base is the merge's.
@@ -909,7 +893,6 @@ pub(crate) fn make_levels<'s, K: MosaicKind>(
     index: u8,
     encode_tile: &EncodeTile<'_, K::Value>,
     quantize: Option<&QuantizeRow<'_, K::Value>>,
-    folder: &Path,
     spool: &mut Spool,
     progress: &dyn Progress,
     sources: &OpenLevel<'_, 's, K>,
@@ -966,22 +949,14 @@ where
                 tracing::debug!(lod, ?rect, "level of the collection made over a rectangle, tile by tile");
                 continue;
             }
-            let mut local = metadata.clone();
-            {
-                let l = &mut local.layers[usize::from(index)];
-                l.num_x_tiles = rect[2] - rect[0] + 1;
-                l.num_y_tiles = rect[3] - rect[1] + 1;
-                l.num_lods = 1;
-                l.extent = None;
-            }
-            let mut made = Spool::new(folder)?;
+            // The tiles go straight to `spool` under their keys on the whole grid (the
+            // pyramid cuts the rectangle's, from its corner).
             let encode = |key: TileKey, samples: &[K::Value], edge: usize| -> Result<Vec<(TileKey, Vec<u8>)>> {
                 let (x, y) = (rect[0] + key.x(), rect[1] + key.y());
                 if !level.tiles.contains(&(x, y)) || part.is_some_and(|p| !p.holds(lod, y)) {
                     return Ok(Vec::new());
                 }
-                let global = TileKey::new(index, lod, x, y)?;
-                Ok(encode_tile(global, samples, edge)?.into_iter().map(|(_, bytes)| (key, bytes)).collect())
+                encode_tile(TileKey::new(index, lod, x, y)?, samples, edge)
             };
             let mut halved =
                 Override { x0: live_corner.0 as usize / 2, y0: live_corner.1 as usize / 2, rows: Vec::new() };
@@ -1002,13 +977,13 @@ where
                 };
                 let finish = RowFinish { quantize, widen: &widen };
                 run_pyramid(
-                    &local,
+                    metadata,
                     index,
                     grid.size,
                     &Window::full(1, h),
                     &encode,
                     None,
-                    &mut made,
+                    spool,
                     progress,
                     move |push| {
                         let none = || vec![K::Value::NONE; w];
@@ -1036,11 +1011,6 @@ where
                         Ok(())
                     },
                 )?;
-            }
-            let mut sorted = made.into_sorted()?;
-            while let Some((_, key, bytes)) = sorted.next_tile()? {
-                let global = TileKey::new(index, lod, rect[0] + key.x(), rect[1] + key.y())?;
-                spool.add(metadata, global, &bytes)?;
             }
             halved.keep_held(level, res);
             next.push(halved);
@@ -1143,9 +1113,9 @@ fn tiles_beneath<S: Pixel>(
                     up.reach(level_row(end - 1), &mut pull)?;
                 }
                 let held = up.as_ref();
-                let cut = |&(tx, ty): &(u32, u32)| -> Result<CutTile<S>> {
+                let cut = |samples: &mut Vec<S>, &(tx, ty): &(u32, u32)| -> Result<CutTile<S>> {
                     let (left, top) = (tx as usize * res, ty as usize * res);
-                    let mut samples = vec![S::NONE; edge * edge];
+                    samples.fill(S::NONE);
                     // The live part's columns the tile reads; its first column is `left - border`.
                     let (c0, c1) = (left.saturating_sub(border).max(x0), (left + res + border).min(x0 + w));
                     let (first, end) = rows(ty);
@@ -1163,12 +1133,12 @@ fn tiles_beneath<S: Pixel>(
                         });
                     }
                     if let Some(q) = quantize {
-                        q(&mut samples);
+                        q(samples);
                     }
                     let interior =
                         |j: usize| &samples[(border + j) * edge + border..(border + j) * edge + border + res];
                     let entries = if (0..res).any(|j| interior(j).iter().any(S::has_data)) {
-                        encode(tx, ty, &samples, edge)?
+                        encode(tx, ty, samples, edge)?
                     } else {
                         Vec::new()
                     };
@@ -1182,7 +1152,9 @@ fn tiles_beneath<S: Pixel>(
                     }
                     Ok((tx, ty, entries, means))
                 };
-                let cuts = batch.par_iter().map(cut).collect::<Result<Vec<_>>>()?;
+                // A tile's samples in a buffer each worker reuses (not fresh memory a tile).
+                let cuts =
+                    (batch.par_iter()).map_init(|| vec![S::NONE; edge * edge], cut).collect::<Result<Vec<_>>>()?;
                 for (tx, ty, entries, means) in cuts {
                     for (key, bytes) in entries {
                         add(key, &bytes)?;

@@ -244,7 +244,7 @@ fn update_heights(
         }
     }
     let folder = terrastream_pack::output_folder(out);
-    let target = Target { reader: &reader, base, folder: &folder, index, kind: LayerKind::Elevation, grid, base_lod };
+    let target = Target { reader: &reader, base, index, kind: LayerKind::Elevation, grid, base_lod };
     let c = target.collection(&whole, blend)?;
     let metadata = target.metadata(&c);
     let encoding = layer.elevation.ok_or(Error::NothingToTile)?;
@@ -311,7 +311,7 @@ fn update_imagery(
     let open = |paths: Vec<PathBuf>, grid: GridSpec| super::open_images(paths, grid, &crs, false);
     let whole = open(texture.to_vec(), grid)?.ok_or(Error::NothingToTile)?;
     let folder = terrastream_pack::output_folder(out);
-    let target = Target { reader: &reader, base, folder: &folder, index, kind: LayerKind::Texture, grid, base_lod };
+    let target = Target { reader: &reader, base, index, kind: LayerKind::Texture, grid, base_lod };
     let c = target.collection(&whole, blend)?;
     let metadata = target.metadata(&c);
     let edge = usize::try_from(layer.tile_resolution + 2 * u32::from(layer.border)).unwrap_or(0);
@@ -356,8 +356,6 @@ fn written(
 struct Target<'r> {
     reader: &'r Reader<MmapSource>,
     base: &'r Path,
-    /// Where the update's spools go (the output's folder).
-    folder: &'r Path,
     index: u8,
     kind: LayerKind,
     grid: GridSpec,
@@ -448,7 +446,6 @@ impl Target<'_> {
     {
         let (grid, base_lod, index) = (self.grid, self.base_lod, self.index);
         let layer = &metadata.layers[usize::from(index)];
-        let folder = self.folder;
         let sources_of = |lod: u8, corner: (u32, u32), g: &GridSpec| -> Result<LevelSources<'_, K>> {
             let fine = open(c.reaching(lod, corner, g, &|d| d == lod), *g)?;
             let shift = u32::from(base_lod - lod);
@@ -459,19 +456,8 @@ impl Target<'_> {
             let level: Box<dyn CoarseRows<K::Value> + '_> = Box::new(level);
             Ok(LevelSources { fine, coarse: Some((level, shift, first)) })
         };
-        let overrides = super::make_levels(
-            c,
-            metadata,
-            index,
-            encode_tile,
-            quantize,
-            folder,
-            spool,
-            progress,
-            &sources_of,
-            None,
-            None,
-        )?;
+        let overrides =
+            super::make_levels(c, metadata, index, encode_tile, quantize, spool, progress, &sources_of, None, None)?;
 
         // The base level under them, and every level above, made again where they changed.
         let res = i64::from(layer.tile_resolution);

@@ -65,7 +65,7 @@ pub fn merge_to_manifest(
     let folder = terrastream_pack::output_folder(manifest_path);
     let spools = terrastream_pack::output_folder(coarse);
     let mut spool = Spool::new(&spools)?;
-    prepared.make_above(&split_lods, run, &inputs[0], &spools, &mut spool, progress)?;
+    prepared.make_above(&split_lods, run, &inputs[0], &mut spool, progress)?;
     let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
     let mut writer = Writer::create(coarse, prepared.metadata.clone(), options)?;
     write(&mut writer, &prepared.readers, &BTreeMap::new(), spool.into_sorted()?, progress)?;

@@ -175,7 +175,7 @@ pub(crate) fn merge_widened_as(
     if as_is.is_some() {
         // The second input's tiles stand as they are.
     } else if let Some(split_lods) = prepared.shards.clone() {
-        prepared.make_above(&split_lods, run, &inputs[0], &folder, &mut spool, progress)?;
+        prepared.make_above(&split_lods, run, &inputs[0], &mut spool, progress)?;
         if !water_follows {
             warn_water_above_split(&prepared.metadata, &split_lods);
         }
@@ -350,7 +350,7 @@ pub(crate) struct Prepared {
 }
 
 impl Prepared {
-    /// Makes the levels above the split LODs into `spool` (its files in `folder`): those
+    /// Makes the levels above the split LODs into `spool`: those
     /// of a collection split below its base from the level's tiles and the run's inputs
     /// (`run`; [`crate::collection::merge`]), the others from their children (see
     /// [`reduce`]). `named`: the archive errors name.
@@ -359,21 +359,11 @@ impl Prepared {
         split_lods: &[u8],
         run: RunInputs<'_>,
         named: &Path,
-        folder: &Path,
         spool: &mut Spool,
         progress: &dyn Progress,
     ) -> Result<()> {
         let payload = |key: TileKey| payload(&self.metadata, &self.readers, &self.winners, key);
-        crate::collection::merge::make_above_split(
-            &self.metadata,
-            split_lods,
-            run,
-            &payload,
-            named,
-            folder,
-            spool,
-            progress,
-        )?;
+        crate::collection::merge::make_above_split(&self.metadata, split_lods, run, &payload, named, spool, progress)?;
         reduce(&self.metadata, &self.readers, &self.winners, split_lods, spool, progress)
     }
 }
