@@ -1595,7 +1595,9 @@ where
             up.reach(gy, &mut pull)?;
             if fine_reader.is_none() {
                 // No fine data: the finer level's means where they lie, else the coarser
-                // data beneath (nothing to blend, nothing held).
+                // data beneath (nothing to blend, nothing held). Runs make such a level
+                // tile by tile ([`tiles_beneath`]); these rows are what its test holds
+                // it to.
                 let row = overridden(overrides, corner.0 as usize, gy as usize, w, &|row, columns| {
                     up.fill(gy, row, columns);
                 });
