@@ -1433,11 +1433,13 @@ impl<S: Pixel> RowFinish<'_, S> {
 
 /// Cores from which a level's rows are made in bands, one worker a core: below, in one
 /// run. There the rows' warp (on every core) keeps the cores busy, and what runs on one
-/// thread (the blend, the finishing: some 17 % of a level's work) keeps up; bands would
-/// add their margins' rows, a band's memory a worker, and workers that contend with the
-/// warp's (`scripts/bench-collection.sh` on 2 cores: 0.85x the CPU time and 0.82x the
-/// wall time in one run). From about six cores that one thread would be the bottleneck.
-pub(crate) const BANDS_FROM: usize = 6;
+/// thread (the blend, the coarse data in the survey's gaps, the finishing: 29 % of the
+/// level's CPU time in `perf record` of `scripts/bench-collection.sh`) keeps up; bands
+/// would add their margins' rows, a band's memory a worker, and workers that contend with
+/// the warp's (that bench on 2 cores: 0.85x the CPU time and 0.82x the wall time in one
+/// run). Bands cost some 15 % more work, so with that thread's share they break even at
+/// about four cores; from there it would be the bottleneck.
+pub(crate) const BANDS_FROM: usize = 4;
 
 /// [`level_rows`] of a whole rectangle's `grid`, handed to `emit` in order, each pair of
 /// rows finished (`finish`) where it is made. With [`BANDS_FROM`] `threads` or more, made
