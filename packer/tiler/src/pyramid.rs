@@ -24,15 +24,17 @@ use terrastream_pack::progress::Progress;
 use crate::error::{Error, Result};
 
 /// The samples of tile column `tx` of a band of `res + 2 * border` rows (`None`: above or
-/// below the raster): columns `tx * res - border .. tx * res + res + border`, clipped to the
-/// level's `width` and padded with no data outside it. `None` when the tile proper (the
-/// border aside) holds no data.
+/// below the raster), each row holding the level's columns from `first` on (as many as it
+/// is long): columns `tx * res - border .. tx * res + res + border`, clipped to the
+/// level's `width` and padded with no data outside it and outside the rows' columns.
+/// `None` when the tile proper (the border aside) holds no data.
 fn tile_samples<S: Pixel>(
     band: &[Option<Arc<Vec<S>>>],
     tx: usize,
     res: usize,
     border: usize,
     width: usize,
+    first: usize,
 ) -> Option<Vec<S>> {
     let edge = res + 2 * border;
     let mut any = false;
@@ -45,12 +47,20 @@ fn tile_samples<S: Pixel>(
             samples.resize(samples.len() + edge, S::NONE);
             continue;
         };
+        // The columns `a..b` of the row's that the tile takes (none: `a >= b`).
+        let end = first + row.len();
         if (border..border + res).contains(&j) {
-            any |= row[tx * res..(tx * res + res).min(to)].iter().any(S::has_data);
+            let (a, b) = ((tx * res).max(first), (tx * res + res).min(to).min(end));
+            any |= a < b && row[a - first..b - first].iter().any(S::has_data);
         }
-        samples.resize(samples.len() + pad_left, S::NONE);
-        samples.extend_from_slice(&row[from..to]);
-        samples.resize(samples.len() + pad_right, S::NONE);
+        let (a, b) = (from.max(first), to.min(end));
+        if a < b {
+            samples.resize(samples.len() + pad_left + (a - from), S::NONE);
+            samples.extend_from_slice(&row[a - first..b - first]);
+            samples.resize(samples.len() + (to - b) + pad_right, S::NONE);
+        } else {
+            samples.resize(samples.len() + edge, S::NONE);
+        }
     }
     any.then_some(samples)
 }
@@ -287,17 +297,28 @@ pub struct Window {
     /// Input-level rows whose tiles are cut (tile rows of every level built, aligned as
     /// `rows` is, times the tile size).
     pub band: std::ops::Range<usize>,
+    /// The column of the level each row pushed in starts at: a row holds that column and
+    /// the next as many as it is long, and no data elsewhere (0, rows as wide as the
+    /// level: every window but one level's part; a single level only).
+    pub first_column: usize,
 }
 
 impl Window {
     /// Nothing: no rows read, no tiles cut.
     pub fn empty() -> Self {
-        Self { input_lod: 0, last_lod: 0, encode_from: 0, rows: 0..0, band: 0..0 }
+        Self { input_lod: 0, last_lod: 0, encode_from: 0, rows: 0..0, band: 0..0, first_column: 0 }
     }
 
     /// Every level of a layer of `num_lods` levels over `height` rows of LOD 0.
     pub fn full(num_lods: u8, height: usize) -> Self {
-        Self { input_lod: 0, last_lod: num_lods.saturating_sub(1), encode_from: 0, rows: 0..height, band: 0..height }
+        Self {
+            input_lod: 0,
+            last_lod: num_lods.saturating_sub(1),
+            encode_from: 0,
+            rows: 0..height,
+            band: 0..height,
+            first_column: 0,
+        }
     }
 }
 
@@ -311,6 +332,8 @@ pub struct Pyramid<'a, S: Pixel> {
     res: usize,
     border: usize,
     levels: Vec<Level<S>>,
+    /// The level's column each row starts at (see [`Window::first_column`]).
+    first_column: usize,
     encode: &'a Encode<'a, S>,
     metadata: &'a Metadata,
     spool: &'a mut Spool,
@@ -356,7 +379,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
         let bad = |reason: String| Error::Pyramid { layer, lod: window.input_lod, reason };
         let l = metadata.layers.get(usize::from(layer)).ok_or_else(|| bad("no such layer in the metadata".into()))?;
         let res = l.tile_resolution as usize;
-        let Window { input_lod, last_lod, encode_from, rows, band } = window.clone();
+        let Window { input_lod, last_lod, encode_from, rows, band, first_column } = window.clone();
         let input_height = (height as usize).div_ceil(1 << input_lod).max(1);
         let step = 1usize << last_lod.saturating_sub(input_lod);
         let aligned = |n: usize, unit: usize| n.is_multiple_of(unit) || n == input_height;
@@ -369,6 +392,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
             || !aligned(band.end, step * res)
             || band.start < rows.start
             || band.end > rows.end
+            || (first_column > 0 && last_lod > input_lod)
         {
             return Err(bad(format!("window {window:?} does not fit {} LODs of {input_height} rows", l.num_lods)));
         }
@@ -402,6 +426,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
             res,
             border: usize::from(l.border),
             levels,
+            first_column,
             encode,
             metadata,
             spool,
@@ -561,7 +586,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
     where
         'a: 's,
     {
-        let (res, border) = (self.res, self.border);
+        let (res, border, first) = (self.res, self.border, self.first_column);
         loop {
             let level = &self.levels[l];
             if level.cut >= level.cut_end {
@@ -596,7 +621,7 @@ impl<'a, S: Pixel> Pyramid<'a, S> {
                 let tiles = (0..cols)
                     .into_par_iter()
                     .map(|tx| {
-                        let samples = tile_samples(&band, tx, res, border, width);
+                        let samples = tile_samples(&band, tx, res, border, width, first);
                         progress.advance(1);
                         let Some(samples) = samples else { return Ok(Vec::new()) };
                         let coordinate = |n: usize| {
@@ -771,6 +796,37 @@ mod tests {
     /// `row` resampled linearly along x to `width` samples (edges clamped).
     fn resample_row<S: Pixel>(row: &[S], width: usize) -> Vec<S> {
         Resample::new(row.len(), width).row(row)
+    }
+
+    /// Rows that hold only some columns (from `first`) cut into the tiles that rows as wide
+    /// as the level, with no data outside those columns, cut into: of every tile column,
+    /// where the rows' columns end inside a tile, at its border, or before or after it.
+    #[test]
+    fn rows_of_some_columns_cut_as_rows_of_all_with_no_data_elsewhere() {
+        let (res, border, width) = (8usize, 2usize, 45usize);
+        let value = |x: usize, j: usize| if (x * 7 + j).is_multiple_of(5) { f32::NAN } else { (x * 10 + j) as f32 };
+        for (first, len) in [(0, 45), (3, 20), (10, 6), (16, 0), (17, 28), (40, 5), (0, 1)] {
+            let full: Vec<Option<Arc<Vec<f32>>>> = (0..res + 2 * border)
+                .map(|j| {
+                    let row =
+                        (0..width).map(|x| if (first..first + len).contains(&x) { value(x, j) } else { f32::NAN });
+                    Some(Arc::new(row.collect()))
+                })
+                .collect();
+            let part: Vec<Option<Arc<Vec<f32>>>> = (0..res + 2 * border)
+                .map(|j| Some(Arc::new((first..first + len).map(|x| value(x, j)).collect())))
+                .collect();
+            for tx in 0..width.div_ceil(res) {
+                let (a, b) = (
+                    tile_samples(&full, tx, res, border, width, 0),
+                    tile_samples(&part, tx, res, border, width, first),
+                );
+                assert_eq!(a.is_some(), b.is_some(), "columns {first}+{len}, tile {tx}");
+                let (Some(a), Some(b)) = (a, b) else { continue };
+                assert_eq!(a.len(), (res + 2 * border).pow(2));
+                assert!(a.iter().zip(&b).all(|(p, q)| p.to_bits() == q.to_bits()), "columns {first}+{len}, tile {tx}");
+            }
+        }
     }
 
     #[test]

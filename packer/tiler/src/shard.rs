@@ -106,7 +106,7 @@ pub(crate) fn windows_and_cuts(
         let band = to_rows(r0)..to_rows(r1);
         let rows = band.start.saturating_sub(margin)..(band.end + margin).min(height);
         let rows = if band.is_empty() { 0..0 } else { rows };
-        windows.push(Window { input_lod: 0, last_lod: k, encode_from: 0, rows, band });
+        windows.push(Window { input_lod: 0, last_lod: k, encode_from: 0, rows, band, first_column: 0 });
         // The height-range layer follows its elevation layer's grid; it has no pyramid.
         debug_assert!(layer.kind != LayerKind::HeightRange || windows.len() > 1);
     }

@@ -286,6 +286,7 @@ impl Collection {
                     encode_from: base,
                     rows: down(p.window.rows.start)..up(p.window.rows.end, height),
                     band: down(p.window.band.start)..up(p.window.band.end, height),
+                    first_column: 0,
                 }
             }
             None => Window {
@@ -294,6 +295,7 @@ impl Collection {
                 encode_from: base,
                 rows: 0..size.1 as usize,
                 band: 0..size.1 as usize,
+                first_column: 0,
             },
         }
     }
@@ -963,54 +965,38 @@ where
             {
                 let (fine, coarse, halved) = (fine.as_ref(), coarse.as_ref(), &mut halved);
                 let (overrides, blend) = (&finer, c.blend);
-                let (w, h) = (grid.size.0 as usize, grid.size.1 as usize);
+                let h = grid.size.1 as usize;
                 let (x0, y0, lh) = (live[0] as usize, live[1] as usize, live_grid.size.1 as usize);
-                // Rows are made (read, blended, rounded, halved, widened to the
-                // rectangle) in bands on every core while the pyramid cuts the ones
-                // before (one level: nothing for it to round again).
-                let widen = move |row: Vec<K::Value>| {
-                    let mut full = Vec::with_capacity(w);
-                    full.resize(x0, K::Value::NONE);
-                    full.extend_from_slice(&row);
-                    full.resize(w, K::Value::NONE);
-                    full
-                };
-                let finish = RowFinish { quantize, widen: &widen };
-                run_pyramid(
-                    metadata,
-                    index,
-                    grid.size,
-                    &Window::full(1, h),
-                    &encode,
-                    None,
-                    spool,
-                    progress,
-                    move |push| {
-                        let none = || vec![K::Value::NONE; w];
-                        for _ in 0..y0 {
-                            push(none())?;
-                        }
-                        let finish = &finish;
-                        level_rows_in_bands(
-                            fine,
-                            coarse,
-                            &live_grid,
-                            live_corner,
-                            overrides,
-                            blend,
-                            finish,
-                            threads,
-                            &mut |(row, half)| {
-                                halved.rows.extend(half);
-                                push(row)
-                            },
-                        )?;
-                        for _ in y0 + lh..h {
-                            push(none())?;
-                        }
-                        Ok(())
-                    },
-                )?;
+                // Rows are made (read, blended, rounded, halved) across the part while the
+                // pyramid cuts the ones before (one level: nothing for it to round
+                // again). Its rows hold the part's columns, from `x0`; those above and
+                // below it hold none.
+                let finish = RowFinish { quantize };
+                let window = Window { first_column: x0, ..Window::full(1, h) };
+                run_pyramid(metadata, index, grid.size, &window, &encode, None, spool, progress, move |push| {
+                    for _ in 0..y0 {
+                        push(Vec::new())?;
+                    }
+                    let finish = &finish;
+                    level_rows_in_bands(
+                        fine,
+                        coarse,
+                        &live_grid,
+                        live_corner,
+                        overrides,
+                        blend,
+                        finish,
+                        threads,
+                        &mut |(row, half)| {
+                            halved.rows.extend(half);
+                            push(row)
+                        },
+                    )?;
+                    for _ in y0 + lh..h {
+                        push(Vec::new())?;
+                    }
+                    Ok(())
+                })?;
             }
             halved.keep_held(level, res);
             next.push(halved);
@@ -1391,11 +1377,10 @@ impl<S: Pixel> Upsample<S> {
 }
 
 /// How [`level_rows_in_bands`] finishes each row where it is made: rounded to the stored
-/// precision (`quantize`), the 2x2 means of each pair of rows taken from it (with the
-/// grid's first row even on the level), then `widened` (the rows the pyramid takes).
+/// precision (`quantize`), and the 2x2 means of each pair of rows taken from it (with the
+/// grid's first row even on the level).
 pub(crate) struct RowFinish<'f, S> {
     quantize: Option<&'f QuantizeRow<'f, S>>,
-    widen: &'f (dyn Fn(Vec<S>) -> Vec<S> + Sync),
 }
 
 /// A row as [`level_rows_in_bands`] hands it over: the row, and after each pair (or a
@@ -1421,10 +1406,10 @@ impl<S: Pixel> RowFinish<'_, S> {
             q(&mut half);
             match b {
                 Some(b) => {
-                    emit(((self.widen)(a), None))?;
-                    emit(((self.widen)(b), Some(half)))?;
+                    emit((a, None))?;
+                    emit((b, Some(half)))?;
                 }
-                None => emit(((self.widen)(a), Some(half)))?,
+                None => emit((a, Some(half)))?,
             }
         }
         Ok(())
@@ -2232,8 +2217,7 @@ mod tests {
             let coarse = Coarse { source: Box::new(source), shift: 2, quantize: None, first: (1, 2) };
             let (mut rows, mut halves) = (vec![], vec![]);
             if let Some(threads) = threads {
-                let widen = |r: Vec<f32>| r;
-                let finish = RowFinish { quantize: None, widen: &widen };
+                let finish = RowFinish { quantize: None };
                 let mut emit = |(r, half): Finished<f32>| {
                     rows.push(r);
                     halves.extend(half);

@@ -729,6 +729,7 @@ fn reduce(
             encode_from: k + 1,
             rows: 0..height_k,
             band: 0..height_k,
+            first_column: 0,
         };
         let (cols, rows_k) = (layer.num_x_tiles.div_ceil(1 << k), layer.num_y_tiles.div_ceil(1 << k));
         match layer.kind {
