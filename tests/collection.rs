@@ -46,6 +46,45 @@ fn tile(dir: &Path, name: &str, inputs: &[&str], extra: &[&str]) -> PathBuf {
     out
 }
 
+/// A collection wider than a region keeps the geographic grid, whose samples a plan
+/// makes square by adding columns: the collection is made on that grid (it failed with a
+/// tile outside the layer's grid when its levels were made on the inputs' own), and
+/// inside the fine survey its heights are a one-resolution run's on the same grid.
+#[test]
+fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // A 12 x 12 degree base at 0.1 degree and a quarter-degree survey at 15" in it.
+    let base = oracles::grid_tif(d, "wide-base", [40.0, 20.0, 12.0, 10.0], &oracles::everest_height);
+    let patch = oracles::grid_tif(d, "survey", [45.0, 25.0, 0.25, 240.0], &oracles::everest_height);
+    let run = |name: &str, extra: &[&str]| {
+        let out = d.join(name);
+        let mut args = vec!["tile", "--tile-size", "32", "--vertical-datum", "5773", "-o", out.to_str().unwrap()];
+        args.extend(["--elevation", base.to_str().unwrap(), patch.to_str().unwrap()]);
+        args.extend(extra);
+        ok(&args, d);
+        out
+    };
+    let (col, order) = (run("wide.tspack", &[]), run("wide-order.tspack", &["--priority", "order"]));
+    let info = ok(&["info", col.to_str().unwrap()], d);
+    assert!(info.contains("longitude/latitude"), "kept geographic: {info}");
+    assert!(info.contains("wide-base.tif") && info.contains("from LOD4"), "{info}");
+    ok(&["verify", col.to_str().unwrap()], d);
+    let (rc, ro) = (Reader::open_mmap(&col).unwrap(), Reader::open_mmap(&order).unwrap());
+    let (lc, lo) = (&rc.metadata().layers[0], &ro.metadata().layers[0]);
+    assert_eq!((lc.num_x_tiles, lc.num_y_tiles), (lo.num_x_tiles, lo.num_y_tiles), "one grid");
+    assert!(lc.num_x_tiles * 4 < lc.num_y_tiles * 5, "squared: fewer columns than rows at 25°N");
+    let per_lod = per_lod(&col);
+    assert!(per_lod[&0] * 20 < (lc.num_x_tiles * lc.num_y_tiles) as usize, "LOD 0 is sparse: {per_lod:?}");
+    // Inside the survey beyond the band: the one-resolution run's heights, within a step
+    // of the encoding (both resample the survey's columns linearly onto the same grid).
+    let step = lc.elevation.unwrap().scale;
+    let deep = random_points([45.08, 25.08, 45.17, 25.17], 200);
+    for ((a, b), p) in heights(&rc, &deep).iter().zip(heights(&ro, &deep)).zip(&deep) {
+        assert!((a.0 - b.0).abs() <= 1.5 * step, "{p:?}: {} in the collection, {} at one resolution", a.0, b.0);
+    }
+}
+
 /// A level's rows are made in bands, a worker a core, from six cores, and in one run
 /// below: the same archive either way.
 #[test]

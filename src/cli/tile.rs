@@ -9,8 +9,8 @@ use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
 use terrastream_tiler::raster::DatumName;
 use terrastream_tiler::{
     Blend, Collection, Collections, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions,
-    TileRequest, collection_shard_plan, expand_inputs, is_vrt, plan, plan_layout, shard_plan, tile_collection,
-    tile_shard,
+    TileRequest, collection_shard_plan, expand_inputs, is_vrt, plan, plan_layout, shard_plan, squared_grid,
+    tile_collection, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -446,6 +446,20 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         _ => None,
     };
     let mut sources = Sources::open(&request)?;
+    // Inputs of different resolutions, each as deep as it reaches (heights, imagery); a
+    // planned shard's are the plan's (its own inputs are a part of them).
+    let by_resolution = args.priority == PriorityArg::Resolution && planned.is_none();
+    // Heights of different resolutions whose samples are not square (a geographic grid)
+    // are opened again onto the grid their plan tiles, with the columns that make them
+    // square, as `update` opens a survey onto an archive's grid: a collection makes every
+    // level on its mosaic's grid, where a run of one resolution resamples its rows.
+    if by_resolution && request.elevation_grid.is_none() && !request.elevation.iter().any(|p| is_vrt(p)) {
+        let spans = sources.height_mosaic().filter(|m| Collection::spans_resolutions(m));
+        if let Some(grid) = spans.and_then(|m| squared_grid(m, m.grid())) {
+            request.elevation_grid = Some(grid);
+            sources = Sources::open(&request)?;
+        }
+    }
     if args.dry_run && args.height_range_out.is_some() && request.height_range.is_none() {
         range_from_statistics(&mut sources, args.require_statistics)?;
     }
@@ -453,9 +467,6 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let (elevation, texture) = (inputs.elevation(), inputs.texture());
     let (name, options) = (args.name(), args.options());
     let started = std::time::Instant::now();
-    // Inputs of different resolutions, each as deep as it reaches (heights, imagery); a
-    // planned shard's are the plan's (its own inputs are a part of them).
-    let by_resolution = args.priority == PriorityArg::Resolution && planned.is_none();
     let vrt = request.elevation.iter().chain(&request.texture).find(|p| is_vrt(p));
     let sparse_heights = (by_resolution && vrt.is_none())
         .then(|| sources.height_mosaic())

@@ -40,7 +40,7 @@ pub use edit::merge::{MergeSummary, Prefer, merge, merge_with, merge_with_water}
 pub use edit::update::{UpdateSummary, update};
 pub use error::{Error, Result};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
-pub use plan::{LayerPlan, Plan, plan, plan_layout};
+pub use plan::{LayerPlan, Plan, plan, plan_layout, squared_grid};
 pub use request::{Inputs, Sources, TileRequest};
 pub use shard::{PlannedGrid, ShardInputs, ShardPlan, shard_plan};
 pub use terrastream_format::Interrupted;

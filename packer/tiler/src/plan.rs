@@ -179,6 +179,26 @@ struct ElevationPlan {
     extent: (f64, f64, f64),
 }
 
+/// Samples across that make samples of spacing `(sx, sy)` square (metres), where `w` of
+/// them are more than 1 % from square (a geographic grid's are narrower than they are
+/// tall); None where they are square enough.
+fn square_width(w: u32, (sx, sy): (f64, f64)) -> Option<u32> {
+    let ratio = sx / sy;
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a sane sample count")]
+    ((ratio - 1.0).abs() >= 0.01).then(|| ((f64::from(w) * ratio).round() as u32).max(1))
+}
+
+/// The grid `grid` of heights `e` is tiled on where their samples are not square: as
+/// many columns over the same area as [`plan`] resamples their rows to (None: square
+/// already). A collection opens its inputs onto it, as `update` opens them onto an
+/// archive's grid, instead of resampling rows.
+#[must_use]
+pub fn squared_grid(e: &dyn ElevationSource, grid: crate::raster::GridSpec) -> Option<crate::raster::GridSpec> {
+    let width = square_width(grid.size.0, e.spacing())?;
+    let pixel = (grid.pixel.0 * f64::from(grid.size.0) / f64::from(width), grid.pixel.1);
+    Some(crate::raster::GridSpec { origin: grid.origin, pixel, size: (width, grid.size.1) })
+}
+
 /// The elevation layer: square samples (rows resampled along x when the source's are more
 /// than 1 % from square), an encoding that keeps the height range exact enough, the
 /// terrain's settings.
@@ -193,13 +213,9 @@ fn plan_elevation(
         return Err(Error::input(e.path(), format!("the raster is empty ({w}x{h})")));
     }
     let (sx, sy) = e.spacing();
-    let ratio = sx / sy;
-    let (width, spacing) = if (ratio - 1.0).abs() < 0.01 {
-        (w, (sx * sy).sqrt())
-    } else {
-        #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a sane sample count")]
-        let width = ((f64::from(w) * ratio).round() as u32).max(1);
-        (width, sy)
+    let (width, spacing) = match square_width(w, (sx, sy)) {
+        None => (w, (sx * sy).sqrt()),
+        Some(width) => (width, sy),
     };
     let extent = (f64::from(width) * spacing, f64::from(h) * spacing, f64::from(w) / f64::from(h));
     let (min, max, estimated) = match progress {
