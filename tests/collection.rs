@@ -83,6 +83,13 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     for ((a, b), p) in heights(&rc, &deep).iter().zip(heights(&ro, &deep)).zip(&deep) {
         assert!((a.0 - b.0).abs() <= 1.5 * step, "{p:?}: {} in the collection, {} at one resolution", a.0, b.0);
     }
+    // A second survey added by `update` (which opens it onto the archive's grid): the run
+    // with both, tile for tile.
+    let second = oracles::grid_tif(d, "survey2", [48.0, 22.0, 0.25, 240.0], &oracles::everest_height);
+    let all = run("wide-all.tspack", &[second.to_str().unwrap()]);
+    let updated = d.join("wide-updated.tspack");
+    ok(&["update", col.to_str().unwrap(), "--elevation", second.to_str().unwrap(), "-o", updated.to_str().unwrap()], d);
+    assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
 }
 
 /// A level's rows are made in bands, a worker a core, from six cores, and in one run
