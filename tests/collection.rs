@@ -90,6 +90,15 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     let updated = d.join("wide-updated.tspack");
     ok(&["update", col.to_str().unwrap(), "--elevation", second.to_str().unwrap(), "-o", updated.to_str().unwrap()], d);
     assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
+    // Three shards of it, merged: the single run.
+    let shards: Vec<PathBuf> =
+        (0..3).map(|i| run(&format!("wide-{i}.tspack"), &["--shard", &format!("{i}/3")])).collect();
+    let merged = d.join("wide-merged.tspack");
+    let mut args: Vec<&str> = vec!["merge"];
+    args.extend(shards.iter().map(|p| p.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap(), "--elevation", base.to_str().unwrap(), patch.to_str().unwrap()]);
+    ok(&args, d);
+    assert!(tiles_of(&col) == tiles_of(&merged), "the shards merged are not the single run");
 }
 
 /// A level's rows are made in bands, a worker a core, from six cores, and in one run
