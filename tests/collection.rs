@@ -57,14 +57,9 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     // A 12 x 12 degree base at 0.1 degree and a quarter-degree survey at 15" in it.
     let base = oracles::grid_tif(d, "wide-base", [40.0, 20.0, 12.0, 10.0], &oracles::everest_height);
     let patch = oracles::grid_tif(d, "survey", [45.0, 25.0, 0.25, 240.0], &oracles::everest_height);
-    let run = |name: &str, extra: &[&str]| {
-        let out = d.join(name);
-        let mut args = vec!["tile", "--tile-size", "32", "--vertical-datum", "5773", "-o", out.to_str().unwrap()];
-        args.extend(["--elevation", base.to_str().unwrap(), patch.to_str().unwrap()]);
-        args.extend(extra);
-        ok(&args, d);
-        out
-    };
+    // Absolute paths: `tile` joins them to the repository's unchanged.
+    let both = [base.to_str().unwrap(), patch.to_str().unwrap()];
+    let run = |name: &str, extra: &[&str]| tile(d, name, &both, extra);
     let (col, order) = (run("wide.tspack", &[]), run("wide-order.tspack", &["--priority", "order"]));
     let info = ok(&["info", col.to_str().unwrap()], d);
     assert!(info.contains("longitude/latitude"), "kept geographic: {info}");
@@ -86,7 +81,7 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     // A second survey added by `update` (which opens it onto the archive's grid): the run
     // with both, tile for tile.
     let second = oracles::grid_tif(d, "survey2", [48.0, 22.0, 0.25, 240.0], &oracles::everest_height);
-    let all = run("wide-all.tspack", &[second.to_str().unwrap()]);
+    let all = tile(d, "wide-all.tspack", &[both[0], both[1], second.to_str().unwrap()], &[]);
     let updated = d.join("wide-updated.tspack");
     ok(&["update", col.to_str().unwrap(), "--elevation", second.to_str().unwrap(), "-o", updated.to_str().unwrap()], d);
     assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
@@ -96,12 +91,12 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     let merged = d.join("wide-merged.tspack");
     let mut args: Vec<&str> = vec!["merge"];
     args.extend(shards.iter().map(|p| p.to_str().unwrap()));
-    args.extend(["-o", merged.to_str().unwrap(), "--elevation", base.to_str().unwrap(), patch.to_str().unwrap()]);
+    args.extend(["-o", merged.to_str().unwrap(), "--elevation", both[0], both[1]]);
     ok(&args, d);
     assert!(tiles_of(&col) == tiles_of(&merged), "the shards merged are not the single run");
 }
 
-/// A level's rows are made in bands, a worker a core, from six cores, and in one run
+/// A level's rows are made in bands, a worker a core, from four cores, and in one run
 /// below: the same archive either way.
 #[test]
 fn a_collection_tiled_on_one_core_and_on_eight_is_the_same_archive() {

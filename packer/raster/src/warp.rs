@@ -9,6 +9,8 @@ use std::sync::mpsc;
 
 use rayon::prelude::*;
 
+use crate::mosaic::ROWS_AT_ONCE;
+
 use terrastream_format::Georeference;
 
 use super::{ElevationSource, ImageSource, MosaicKind, Pixels, crs_placement};
@@ -18,9 +20,6 @@ use crate::error::{Error, Result};
 /// Output texels between exact transforms along a row and down a column; bilinear in
 /// between (well under a texel apart for any smooth projection at this spacing).
 const LATTICE: usize = 16;
-
-/// Output rows made at once (in parallel).
-const ROWS_AT_ONCE: u32 = 32;
 
 /// Most texels across or down a warped texture.
 const MAX_SIDE: f64 = 65_536.0;

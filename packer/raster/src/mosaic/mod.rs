@@ -69,8 +69,8 @@ pub const LATTICE: usize = 32;
 /// [`LATTICE`], for row numbers.
 const LATTICE_ROWS: u32 = 32;
 
-/// Output rows made at once (in parallel).
-const ROWS_AT_ONCE: u32 = 32;
+/// Output rows made at once (in parallel), by a mosaic and by the imagery warp.
+pub(crate) const ROWS_AT_ONCE: u32 = 32;
 
 /// How to build a mosaic.
 #[derive(Clone, Debug, Default)]

@@ -1058,17 +1058,7 @@ fn tiles_beneath<S: Pixel>(
     };
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<S>>(64);
     std::thread::scope(|scope| -> Result<()> {
-        let reader = pulled.map(|(c, pulled)| {
-            let (k, quantize) = (&c.source, c.quantize);
-            scope.spawn(move || {
-                k.rows(pulled, &mut |mut r| {
-                    if let Some(q) = quantize {
-                        q(&mut r);
-                    }
-                    send.send(r).map_err(|_| crate::error::interrupted())
-                })
-            })
-        });
+        let reader = pulled.map(|(c, pulled)| scope.spawn(move || c.send_rows(pulled, &send)));
         let mut pull = || receive.recv().map_err(|_| crate::error::interrupted());
         // Rows of tiles in batches of at least a few tiles a core, the coarse rows
         // each batch reads held while it is cut.
@@ -1213,6 +1203,20 @@ struct Coarse<'a, 'q, S> {
     quantize: Option<&'q QuantizeRow<'q, S>>,
     /// The level's sample of the coarse grid's first column and row (its corner).
     first: (i64, i64),
+}
+
+impl<S: Pixel> Coarse<'_, '_, S> {
+    /// Rows `rows` of the coarse grid, rounded as the level stores them, sent in order to
+    /// `send` (from a thread of their own, for [`Upsample::reach`] to pull); stops once
+    /// the receiver is gone.
+    fn send_rows(&self, rows: std::ops::Range<u32>, send: &std::sync::mpsc::SyncSender<Vec<S>>) -> Result<()> {
+        self.source.rows(rows, &mut |mut r| {
+            if let Some(q) = self.quantize {
+                q(&mut r);
+            }
+            send.send(r).map_err(|_| crate::error::interrupted())
+        })
+    }
 }
 
 /// Where a [`Coarse`] grid's values come from: the coarser inputs ([`MosaicPart`]), or an
@@ -1557,17 +1561,9 @@ where
     };
     let (mut up, pulled) = Upsample::new(coarse, corner, w, u32::try_from(h).unwrap_or(u32::MAX));
     let (send, receive) = std::sync::mpsc::sync_channel::<Vec<K::Value>>(64);
-    let (k, quantize) = (&coarse.source, coarse.quantize);
     let level_row = |y: usize| corner.1 + u32::try_from(y).unwrap_or(u32::MAX);
     std::thread::scope(|scope| -> Result<()> {
-        let reader = scope.spawn(move || {
-            k.rows(pulled, &mut |mut r| {
-                if let Some(q) = quantize {
-                    q(&mut r);
-                }
-                send.send(r).map_err(|_| crate::error::interrupted())
-            })
-        });
+        let reader = scope.spawn(move || coarse.send_rows(pulled, &send));
         let mut pull = || receive.recv().map_err(|_| crate::error::interrupted());
         // The fine rows are made on a thread of their own too, while this one blends the
         // rows before.
