@@ -54,7 +54,8 @@ struct AtmosphereUniform {
     // x: exposure, y: 1 to draw the atmosphere, z: steps of the sky, w: steps of the
     // aerial perspective.
     look: vec4<f32>,
-    // xyz: the planet's axis towards the north pole (frame axes), w unused.
+    // xyz: the planet's axis towards the north pole (frame axes); w: the highest ground
+    // beyond the data the eye can see, metres (0 without the whole-Earth picture).
     pole: vec4<f32>,
     // x: 1 when the eye is inside the atmosphere and the per-frame tables serve the sky
     // and the aerial perspective (else both are ray-marched per pixel), y: the aerial

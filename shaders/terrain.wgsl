@@ -799,23 +799,91 @@ fn vs_sky(@builtin(vertex_index) i: u32) -> SkyOut {
     return SkyOut(vec4<f32>(xy, 0.0, 1.0), xy);
 }
 
-// The ground's albedo at `up` (the unit direction from the planet's centre): the
-// whole-Earth picture at its longitude and latitude, or a plain ground.
-fn earth_albedo(up: vec3<f32>) -> vec3<f32> {
-    if ATMO.meridian.w < 0.5 {
-        return EARTH_ALBEDO;
-    }
+// Where the whole-Earth picture is sampled at `up` (the unit direction from the planet's
+// centre): its longitude and latitude as texture coordinates.
+fn earth_uv(up: vec3<f32>) -> vec2<f32> {
     let pole = ATMO.pole.xyz;
     let x = ATMO.meridian.xyz;
     let y = cross(pole, x);
     let lat = asin(clamp(dot(up, pole), -1.0, 1.0));
     let lon = atan2(dot(up, y), dot(up, x));
-    let uv = vec2<f32>(lon / (2.0 * PI) + 0.5, 0.5 - lat / PI);
-    // Gradients of whichever of u and u + 1/2 does not jump at its seam here.
+    return vec2<f32>(lon / (2.0 * PI) + 0.5, 0.5 - lat / PI);
+}
+
+// The picture's texel gradients at `uv`: those of whichever of u and u + 1/2 does not jump
+// at its seam here (taken in uniform control flow).
+struct EarthGrad {
+    x: vec2<f32>,
+    y: vec2<f32>,
+}
+
+fn earth_grad(uv: vec2<f32>) -> EarthGrad {
     let u2 = fract(uv.x + 0.5);
     let gx = select(dpdx(uv), vec2<f32>(dpdx(u2), dpdx(uv.y)), abs(dpdx(u2)) < abs(dpdx(uv.x)));
     let gy = select(dpdy(uv), vec2<f32>(dpdy(u2), dpdy(uv.y)), abs(dpdy(u2)) < abs(dpdy(uv.x)));
-    return textureSampleGrad(earth_map, colour_sampler, uv, gx, gy).rgb;
+    return EarthGrad(gx, gy);
+}
+
+// The highest ground the picture's heights hold (its alpha's 1 + 254 * sqrt(h / 9000 m):
+// scripts/make-earth.sh).
+const EARTH_HIGHEST: f32 = 9000.0;
+
+// The ground's height above the sea at `up`, from the picture's alpha at mip `level`.
+fn earth_height(up: vec3<f32>, level: f32) -> f32 {
+    let a = textureSampleLevel(earth_map, colour_sampler, earth_uv(up), level).a;
+    let s = max(a * 255.0 - 1.0, 0.0) / 254.0;
+    return EARTH_HIGHEST * s * s;
+}
+
+// The heights' spacing at the equator, in metres (2048 samples around).
+const EARTH_TEXEL: f32 = 19568.0;
+
+// Where the ray from `eye` (direction `d`) passes the sphere of the highest ground in
+// its view (ATMO.pole.w, the highest within the eye's horizon: `earth::highest_near`):
+// the distances in and out (in from 0 where the eye is inside), or -1 out where it misses.
+fn highest_span(eye: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
+    let top = BOTTOM + ATMO.pole.w;
+    let b = dot(eye, d);
+    let lo = length(eye);
+    let disc = b * b - (lo - top) * (lo + top);
+    if disc < 0.0 || ATMO.pole.w <= 0.0 {
+        return vec2<f32>(-1.0);
+    }
+    let s = sqrt(disc);
+    return vec2<f32>(max(-b - s, 0.0), -b + s);
+}
+
+// Along the ray from `eye` (direction `d`) where it first meets the ground's heights,
+// marched from where it enters the sphere of the highest ground in view to where it meets
+// the sea's sphere (`sea`) or leaves the highest's (`span`). Each step is a quarter of the
+// distance from the eye, at least the heights' spacing, at most what is left: a stretch
+// shorter than the spacing takes one step, 700 km from an eye below the highest ground
+// about 14. The heights are read at the mip of the step; the crossing is interpolated
+// between the two samples around it. `sea` where it meets none (a ray that starts below
+// the ground, from an eye lower than the heights beyond the data, meets it only once it
+// has come out above it).
+fn raised_ground(eye: vec3<f32>, d: vec3<f32>, sea: f32, span: vec2<f32>) -> f32 {
+    if span.y <= 0.0 {
+        return sea;
+    }
+    let start = span.x;
+    let end = select(span.y, sea, sea > 0.0);
+    var t_prev = start;
+    let first = eye + d * start;
+    var above_prev = length(first) - BOTTOM - earth_height(normalize(first), 0.0);
+    for (var i = 0u; i < 24u && t_prev < end; i++) {
+        let step = max(EARTH_TEXEL, 0.25 * t_prev);
+        let t = min(t_prev + step, end);
+        let p = eye + d * t;
+        let level = log2(step / EARTH_TEXEL);
+        let above = length(p) - BOTTOM - earth_height(normalize(p), level);
+        if above <= 0.0 && above_prev > 0.0 {
+            return mix(t_prev, t, above_prev / (above_prev - above));
+        }
+        t_prev = t;
+        above_prev = above;
+    }
+    return sea;
 }
 
 @fragment
@@ -830,15 +898,30 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
     } else {
         light = integrate(eye, d, 1.0e9, sun, ATMO.look.z).light;
     }
-    // The Earth beyond the archive's data: a plain ground on the model's sphere, lit by
-    // the sun through the air above it, seen through the air in front of it (the
-    // terrain, drawn next, covers it where there is data).
-    let ground = ray_sphere(eye, d, BOTTOM);
-    // The picture's albedo where the ray meets the ground (its gradients taken here, in
-    // uniform control flow; unused where it does not).
-    let albedo = earth_albedo(normalize(eye + d * max(ground, 0.0)));
+    // The Earth beyond the archive's data: the whole-Earth picture on its heights above
+    // the model's sphere (or a plain ground on the sphere), lit by the sun through the air
+    // above it, seen through the air in front of it (the terrain, drawn before, covers it
+    // where there is data).
+    let sea = ray_sphere(eye, d, BOTTOM);
+    let span = highest_span(eye, d);
+    // The picture's gradients where the ray meets the sea's sphere, or else where it
+    // comes nearest to it, which is the same point at the sea's horizon: a point that
+    // jumped there between neighbouring pixels drew the horizon's row from the picture's
+    // coarsest mip, a bright line (taken here, in uniform control flow).
+    let grad = earth_grad(earth_uv(normalize(eye + d * select(max(-dot(eye, d), 0.0), sea, sea > 0.0))));
+    let earth = ATMO.meridian.w > 0.5;
+    var ground = sea;
+    // The ground raised to its heights, where they show: from further than 10 000 km they
+    // move it by less than a pixel.
+    if earth && length(eye) < BOTTOM + 1.0e7 {
+        ground = raised_ground(eye, d, sea, span);
+    }
     if ground > 0.0 {
         let g = eye + d * ground;
+        var albedo = EARTH_ALBEDO;
+        if earth {
+            albedo = textureSampleGrad(earth_map, colour_sampler, earth_uv(normalize(g)), grad.x, grad.y).rgb;
+        }
         let up = normalize(g);
         let sunlight = sunlight_at(g);
         var radiance = albedo / PI * (sunlight * max(dot(up, sun), 0.0) + sky_light(up, sun));
@@ -846,10 +929,18 @@ fn fs_sky(in: SkyOut) -> @location(0) vec4<f32> {
         if picture_sea(albedo) {
             radiance += water_light(up, -d, sunlight);
         }
-        // Along a ray that meets the ground, the air between is the ratio of the two
-        // stretches up to the top (the way back up passes the eye).
-        let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));
-        light = ground_seen(radiance, light, clamp(through, vec3<f32>(0.0), vec3<f32>(1.0)));
+        if ATMO.tables.x > 0.5 {
+            // From inside the air, the air in front is the terrain's: the aerial table
+            // at the ground's distance (the sky's table holds the light of whole rays,
+            // which, where raised ground stops a ray that misses the sea, is the sky's).
+            let air = aerial(vec2<f32>(0.5 + 0.5 * in.ndc.x, 0.5 - 0.5 * in.ndc.y), ground);
+            light = radiance * air.a + air.rgb;
+        } else {
+            // Along a ray that meets the ground, the air between is the ratio of the two
+            // stretches up to the top (the way back up passes the eye).
+            let through = transmittance_to_top(g, -d) / max(transmittance_to_top(eye, -d), vec3<f32>(1.0e-6));
+            light = ground_seen(radiance, light, clamp(through, vec3<f32>(0.0), vec3<f32>(1.0)));
+        }
     }
     // The sun's disc, dimmed by the air in front of it, where the planet does not hide it.
     if dot(d, sun) > cos(ATMO.sun.w) && ground < 0.0 {

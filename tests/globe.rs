@@ -208,6 +208,41 @@ fn from_orbit_the_earth_shows_continents_and_oceans() {
     assert!(plain_land < 0.002, "--no-earth: {plain_land:.3} of the view is land");
 }
 
+/// Beyond an archive's data the ground stands on the built-in heights: from 2 500 m over
+/// the plain south of the Himalaya (a small flat archive there, 150 m), looking north, the
+/// mountains 100-150 km away rise above where the sea's horizon is (`--no-earth` draws the
+/// plain ground on the sphere): the sky ends higher up the picture's middle column. Without
+/// the heights the two horizons are the same row.
+#[test]
+fn beyond_the_data_the_ground_stands_on_the_earths_heights() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let tif = oracles::grid_tif(d, "plain", [86.0, 26.6, 0.1, 600.0], &|_, _| 150.0);
+    let archive = d.join("plain.tspack");
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], d);
+    // Where the middle column steps from the bright sky near the horizon down to the
+    // ground seen through the haze: its largest drop in brightness from one row to the
+    // next (the sky darkens upwards, the ground downwards, both gradually).
+    let horizon = |extra: &[&str]| {
+        let png = d.join("north.png");
+        let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x180"];
+        let view = ["--at", "86.9,26.7,2500", "--heading", "0", "--pitch", "0.5", "--fov", "12", "--sun", "160,40"];
+        terrastream(&[&args[..], &view, extra].concat(), d);
+        let (w, h, rgba) = decode(&png);
+        let bright = |y: u32| rgba[((y * w + w / 2) * 4) as usize..][..3].iter().map(|&c| i32::from(c)).sum::<i32>();
+        let (row, drop) = (1..h).map(|y| (y, bright(y - 1) - bright(y))).max_by_key(|&(_, drop)| drop).unwrap();
+        assert!(drop > 40, "no horizon in the middle column: its largest step is {drop}");
+        row
+    };
+    let (raised, sea) = (horizon(&[]), horizon(&["--no-earth"]));
+    eprintln!("the ground's horizon at row {raised}, the sea's at row {sea} of 180");
+    assert!(sea > 90 && sea < 170, "the sea's horizon at row {sea}");
+    assert!(raised + 15 < sea, "the mountains' top at row {raised}, the sea's horizon at {sea}");
+}
+
 /// A coast (0.1 x 0.1 degrees at 3"): the west half a flat sea stored as 0, as SRTM and
 /// Copernicus store it; the east half land rising from 2 m, with a basin 30 m below sea
 /// level in it. Drawn from above with the height tint, the sea is water-blue and the land

@@ -72,13 +72,24 @@ impl AtmosphereUniform {
         let s = sun.try_normalize().unwrap_or(DVec3::Y).as_vec3();
         let p = pole.try_normalize().unwrap_or(DVec3::Y).as_vec3();
         let m = meridian.try_normalize().unwrap_or(DVec3::X).as_vec3();
+        // The highest ground beyond the data that the eye can see: within its horizon's
+        // reach of the highest the whole-Earth heights hold (the sky pass marches below it).
+        let highest = if earth {
+            let r = BOTTOM + height.max(0.0);
+            let top = BOTTOM + f64::from(super::earth::HIGHEST);
+            let reach = (r * r - BOTTOM * BOTTOM).max(0.0).sqrt() + (top * top - BOTTOM * BOTTOM).sqrt();
+            let axes = (pole.normalize_or(DVec3::Y), meridian.normalize_or(DVec3::X));
+            super::earth::highest_near(eye.normalize_or(DVec3::Y), axes, reach)
+        } else {
+            0.0
+        };
         #[allow(clippy::cast_possible_truncation)]
         Self {
             inv_view_proj: inverse.to_cols_array_2d(),
             eye: [e.x, e.y, e.z, scale as f32],
             sun: [s.x, s.y, s.z, SUN_RADIUS],
             look: [EXPOSURE, 1.0, SKY_STEPS, AERIAL_STEPS],
-            pole: [p.x, p.y, p.z, 0.0],
+            pole: [p.x, p.y, p.z, highest],
             meridian: [m.x, m.y, m.z, f32::from(u8::from(earth))],
             tables: {
                 // Out to where the ground and the air's top meet the horizon.

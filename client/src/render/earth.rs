@@ -2,11 +2,13 @@
 //! (`client/data/earth.webp`, 2048 x 1024, equirectangular: Natural Earth II with its
 //! shaded relief, public domain, as CesiumJS ships it for its own globe; joined by
 //! `scripts/make-earth.sh`) built into the binary and the webplayer, drawn on the ground
-//! the sky pass shows where the terrain is not.
+//! the sky pass shows where the terrain is not. Its alpha holds the ground's heights above
+//! the sea (SRTM30's, as KDE Marble's "Atlas" theme ships them: public domain), on which
+//! the sky pass raises that ground.
 
 use super::wgpu;
 
-/// The picture, as committed (171 KiB).
+/// The picture, as committed (496 KiB: 141 of colour, 325 of heights).
 const EARTH_WEBP: &[u8] = include_bytes!("../../data/earth.webp");
 
 /// Its size in pixels.
@@ -36,13 +38,89 @@ fn pixels() -> Option<Vec<u8>> {
     ((image.width(), image.height()) == SIZE).then(|| image.rgba8())
 }
 
+/// The highest ground the alpha holds, in metres.
+pub(super) const HIGHEST: f32 = 9000.0;
+
+/// The side of the cells of [`highest_near`]'s grid, in the picture's pixels (2.8125°).
+const CELL: u32 = 16;
+
+/// The highest ground in each cell of `CELL` x `CELL` pixels, rows from the north (metres);
+/// set by [`write_earth`].
+static CELLS: std::sync::OnceLock<Vec<f32>> = std::sync::OnceLock::new();
+
+/// The highest ground within `reach` metres (along the ground) of `up` (the unit direction
+/// from the planet's centre, in the frame whose pole and prime meridian at the equator are
+/// `pole` and `meridian`): the highest of the cells that reach touches, or the highest the
+/// alpha holds before the picture is written. The sky pass marches its rays only below it.
+pub(super) fn highest_near(up: glam::DVec3, (pole, meridian): (glam::DVec3, glam::DVec3), reach: f64) -> f32 {
+    let Some(cells) = CELLS.get() else {
+        return HIGHEST;
+    };
+    let (columns, rows) = (SIZE.0 / CELL, SIZE.1 / CELL);
+    let lat = up.dot(pole).clamp(-1.0, 1.0).asin().to_degrees();
+    let lon = up.dot(pole.cross(meridian)).atan2(up.dot(meridian)).to_degrees();
+    let radius = (reach / 6_371_000.0).to_degrees();
+    let cell = 180.0 / f64::from(rows);
+    let row_of = |lat: f64| ((90.0 - lat) / cell).floor().clamp(0.0, f64::from(rows - 1));
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to the grid")]
+    let (north, south) = (row_of(lat + radius) as u32, row_of(lat - radius) as u32);
+    let mut highest = 0.0f32;
+    for row in north..=south {
+        // The widest of the row's parallels (the one nearest the pole) sets its reach east and west.
+        let edge = (90.0 - f64::from(row) * cell).abs().max((90.0 - f64::from(row + 1) * cell).abs());
+        let cos = edge.min(lat.abs() + radius).min(90.0).to_radians().cos();
+        let half = if cos <= radius.to_radians().sin() || radius >= 90.0 { 180.0 } else { radius / cos };
+        let span = if half >= 180.0 {
+            0..columns as i64
+        } else {
+            #[allow(clippy::cast_possible_truncation, reason = "within a few turns")]
+            let column = |lon: f64| ((lon + 180.0) / cell).floor() as i64;
+            column(lon - half)..column(lon + half) + 1
+        };
+        for column in span {
+            let c = column.rem_euclid(i64::from(columns));
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "within the grid")]
+            let at = (row * columns) as usize + c as usize;
+            highest = highest.max(cells[at]);
+        }
+    }
+    highest
+}
+
+/// The ground's height above the sea (metres) that an alpha holds: 1 + 254 * sqrt(h /
+/// 9000 m), so 0 and 1 are the sea (the shader's `earth_height` reads it so).
+pub(super) fn height_of(alpha: u8) -> f32 {
+    let s = f32::from(alpha.saturating_sub(1)) / 254.0;
+    HIGHEST * s * s
+}
+
+/// The alpha that holds height `h` (metres above the sea).
+#[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "rounded into 1..=255")]
+fn alpha_of(h: f32) -> u8 {
+    (1.0 + 254.0 * (h / HIGHEST).clamp(0.0, 1.0).sqrt()).round() as u8
+}
+
+/// The highest ground in each of [`highest_near`]'s cells, from the picture's RGBA pixels.
+fn cells(rgba: &[u8]) -> Vec<f32> {
+    let (columns, rows) = (SIZE.0 / CELL, SIZE.1 / CELL);
+    let mut cells = vec![0.0f32; (columns * rows) as usize];
+    for y in 0..SIZE.1 {
+        for x in 0..SIZE.0 {
+            let cell = &mut cells[((y / CELL) * columns + x / CELL) as usize];
+            *cell = cell.max(height_of(rgba[(4 * (y * SIZE.0 + x) + 3) as usize]));
+        }
+    }
+    cells
+}
+
 /// Writes the picture and its mip chain (each level the mean of 2 x 2 of the one above,
-/// in linear light).
+/// its colours in linear light, its heights in metres).
 pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) {
     let Some(mut level) = pixels() else {
         tracing::error!("the built-in Earth picture does not decode: the ground beyond the data stays plain");
         return;
     };
+    let _ = CELLS.set(cells(&level));
     let (mut w, mut h) = SIZE;
     let to_linear: Vec<f32> = (0..=255u8).map(|v| super::settings::srgb_to_linear(f32::from(v) / 255.0)).collect();
     for mip in 0..LEVELS {
@@ -61,7 +139,7 @@ pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) {
             break;
         }
         let (nw, nh) = (w / 2, h / 2);
-        let mut next = vec![255u8; (4 * nw * nh) as usize];
+        let mut next = vec![0u8; (4 * nw * nh) as usize];
         for y in 0..nh {
             for x in 0..nw {
                 for c in 0..3 {
@@ -71,6 +149,9 @@ pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) {
                     let mean = (at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1)) / 4.0;
                     next[(4 * (y * nw + x) + c) as usize] = super::settings::linear_to_srgb_u8(mean);
                 }
+                let height = |dx: u32, dy: u32| height_of(level[(4 * ((2 * y + dy) * w + 2 * x + dx) + 3) as usize]);
+                let mean = (height(0, 0) + height(1, 0) + height(0, 1) + height(1, 1)) / 4.0;
+                next[(4 * (y * nw + x) + 3) as usize] = alpha_of(mean);
             }
         }
         (level, w, h) = (next, nw, nh);
@@ -102,5 +183,78 @@ mod tests {
         assert!(desert(at(10.0, 23.0)), "{:?}", at(10.0, 23.0));
         assert!(ice(at(-40.0, 72.0)) && ice(at(30.0, -80.0)), "{:?} {:?}", at(-40.0, 72.0), at(30.0, -80.0));
         assert!(!sea(at(10.0, 23.0)) && !ice(at(10.0, 23.0)) && !green(at(-150.0, 0.0)));
+    }
+
+    #[test]
+    fn the_built_in_heights_raise_mountains_and_plateaus_and_keep_the_sea_at_zero() {
+        let p = super::pixels().expect("earth.webp decodes");
+        // The mean height over a box of the picture's pixels around a place.
+        let mean = |lon: f64, lat: f64| {
+            let x = ((lon + 180.0) / 360.0 * 2048.0) as usize;
+            let y = ((90.0 - lat) / 180.0 * 1024.0) as usize;
+            let mut sum = 0.0;
+            for yy in y - 2..=y + 2 {
+                for xx in x - 2..=x + 2 {
+                    sum += super::height_of(p[4 * (yy * 2048 + xx) + 3]);
+                }
+            }
+            sum / 25.0
+        };
+        // Oceans and a low coast: 0 (the sea surface, not its depths).
+        for (lon, lat) in [(-150.0, 0.0), (-30.0, 30.0), (160.0, -40.0), (70.0, -20.0)] {
+            assert_eq!(mean(lon, lat), 0.0, "{lon}, {lat}");
+        }
+        assert!(mean(5.5, 52.5) < 50.0, "the Netherlands: {}", mean(5.5, 52.5));
+        // Tibet, the Altiplano, the Colorado Rockies, Greenland's and Antarctica's ice.
+        for (lon, lat, low, high) in [
+            (88.0, 32.0, 4000.0, 6000.0),
+            (-68.0, -18.0, 3000.0, 5000.0),
+            (-106.0, 39.5, 2000.0, 4000.0),
+            (-40.0, 72.0, 2000.0, 3600.0),
+            (30.0, -80.0, 2000.0, 4500.0),
+        ] {
+            let h = mean(lon, lat);
+            assert!((low..high).contains(&h), "{lon}, {lat}: {h} m, not in {low}..{high}");
+        }
+        // Lowlands lower than highlands: the Amazon's basin below the Ethiopian highlands.
+        assert!(mean(-60.0, -3.0) < 300.0 && mean(39.0, 9.0) > 1500.0, "{} {}", mean(-60.0, -3.0), mean(39.0, 9.0));
+    }
+
+    #[test]
+    fn the_highest_ground_near_a_place_is_its_regions() {
+        use glam::DVec3;
+        let _ = super::CELLS.set(super::cells(&super::pixels().expect("earth.webp decodes")));
+        // The frame: the pole along z, the prime meridian along x.
+        let (pole, meridian) = (DVec3::Z, DVec3::X);
+        let up = |lon: f64, lat: f64| {
+            let (lon, lat) = (lon.to_radians(), lat.to_radians());
+            DVec3::new(lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin())
+        };
+        let near = |lon: f64, lat: f64, km: f64| super::highest_near(up(lon, lat), (pole, meridian), km * 1000.0);
+        // The mid-Pacific within 300 km: sea. Over the Ganges plain within 300 km: the
+        // Himalaya. Within 500 km of Denver: the Rockies, not Tibet.
+        assert_eq!(near(-150.0, 0.0, 300.0), 0.0);
+        assert!(near(86.9, 26.7, 300.0) > 5000.0, "{}", near(86.9, 26.7, 300.0));
+        let rockies = near(-105.0, 39.7, 500.0);
+        assert!((2500.0..5000.0).contains(&rockies), "{rockies}");
+        // Further reaches hold more: the whole Earth from 20 000 km, across the
+        // antimeridian, and over a pole.
+        assert!(near(-150.0, 0.0, 20_000.0) > 6000.0);
+        assert!(near(179.0, 65.0, 400.0) >= near(-179.0, 65.0, 10.0));
+        assert!(near(0.0, 89.0, 400.0) >= near(180.0, 88.0, 10.0));
+        assert!(near(0.0, -89.0, 300.0) > 2000.0, "Antarctica's ice: {}", near(0.0, -89.0, 300.0));
+    }
+
+    #[test]
+    fn an_alpha_holds_a_height_within_its_step() {
+        for h in [0.0f32, 1.0, 50.0, 500.0, 2000.0, 4500.0, 8848.0, 9000.0] {
+            let back = super::height_of(super::alpha_of(h));
+            // The step at h: 2 sqrt(9000 h) / 254, and under a metre near the sea.
+            let step = 2.0 * (9000.0 * h).sqrt() / 254.0 + 1.0;
+            assert!((back - h).abs() <= step, "{h} -> {back}");
+        }
+        assert_eq!(super::height_of(0), 0.0);
+        assert_eq!(super::height_of(1), 0.0);
+        assert_eq!(super::height_of(255), 9000.0);
     }
 }
