@@ -8,7 +8,7 @@
 
 use super::wgpu;
 
-/// The picture, as committed (496 KiB: 141 of colour, 325 of heights).
+/// The picture, as committed (496 KiB: 171 of colour, 325 of heights).
 const EARTH_WEBP: &[u8] = include_bytes!("../../data/earth.webp");
 
 /// Its size in pixels.
