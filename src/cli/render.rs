@@ -53,8 +53,8 @@ pub struct LookArgs {
     /// On the globe: a plain haze instead of the physically based sky and aerial perspective.
     #[arg(long)]
     no_atmosphere: bool,
-    /// On the globe: plain ground beyond the archive's data instead of the built-in
-    /// whole-Earth picture (continents, oceans, ice).
+    /// On the globe: plain ground on the sphere beyond the archive's data instead of the
+    /// built-in whole-Earth picture (continents, oceans, ice) on its heights.
     #[arg(long)]
     no_earth: bool,
     /// The sun: "AZIMUTH,ELEVATION" in degrees (clockwise from north; above the horizon)
