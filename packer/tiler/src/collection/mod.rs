@@ -1208,14 +1208,21 @@ struct Coarse<'a, 'q, S> {
 impl<S: Pixel> Coarse<'_, '_, S> {
     /// Rows `rows` of the coarse grid, rounded as the level stores them, sent in order to
     /// `send` (from a thread of their own, for [`Upsample::reach`] to pull); stops once
-    /// the receiver is gone.
+    /// the receiver is gone. That is no error: the receiver drops it when it has pulled
+    /// all it needs (`rows` reaches a row past the last it reads), or on an error of its
+    /// own, which its caller reports.
     fn send_rows(&self, rows: std::ops::Range<u32>, send: &std::sync::mpsc::SyncSender<Vec<S>>) -> Result<()> {
-        self.source.rows(rows, &mut |mut r| {
+        let mut gone = false;
+        let read = self.source.rows(rows, &mut |mut r| {
             if let Some(q) = self.quantize {
                 q(&mut r);
             }
-            send.send(r).map_err(|_| crate::error::interrupted())
-        })
+            send.send(r).map_err(|_| {
+                gone = true;
+                crate::error::interrupted()
+            })
+        });
+        if gone { Ok(()) } else { read }
     }
 }
 
@@ -2190,6 +2197,29 @@ mod tests {
             }
             Ok(())
         }
+    }
+
+    /// A receiver that stops pulling before the last row (it has all it needs) does not
+    /// make the reader fail: a run whose tiles are all made failed now and then, when the
+    /// reader had not yet sent its last rows as the receiver was dropped.
+    #[test]
+    fn the_coarse_rows_stop_without_error_once_nobody_pulls_them() {
+        let rows: Vec<Vec<f32>> = (0..10).map(|y| vec![y as f32; 4]).collect();
+        let coarse = Coarse {
+            source: Box::new(Rows(rows, std::sync::atomic::AtomicUsize::new(0))),
+            shift: 1,
+            quantize: None,
+            first: (0, 0),
+        };
+        // Room for one row: the reader blocks on the second until the receiver goes.
+        let (send, receive) = std::sync::mpsc::sync_channel::<Vec<f32>>(1);
+        let read = std::thread::scope(|scope| {
+            let reader = scope.spawn(|| coarse.send_rows(0..10, &send));
+            assert_eq!(receive.recv().unwrap(), vec![0.0; 4]);
+            drop(receive);
+            reader.join().unwrap()
+        });
+        assert!(read.is_ok(), "{read:?}");
     }
 
     #[test]
