@@ -825,7 +825,7 @@ fn earth_grad(uv: vec2<f32>) -> EarthGrad {
 }
 
 // The highest ground the picture's heights hold (its alpha's 1 + 254 * sqrt(h / 9000 m):
-// scripts/make-earth.sh).
+// scripts/make-earth.sh). Must match `earth::HIGHEST` and `earth::height_of` in Rust.
 const EARTH_HIGHEST: f32 = 9000.0;
 
 // The ground's height above the sea at `up`, from the picture's alpha at mip `level`.

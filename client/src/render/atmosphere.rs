@@ -45,6 +45,13 @@ pub struct AtmosphereUniform {
     meridian: [f32; 4],
 }
 
+/// How far an eye `height` above the sphere sees what stands `top` above it: to the
+/// eye's horizon on the sphere and on from there to where that height meets it.
+fn horizon_reach(height: f64, top: f64) -> f64 {
+    let r = BOTTOM + height.max(0.0);
+    (r * r - BOTTOM * BOTTOM).max(0.0).sqrt() + ((BOTTOM + top).powi(2) - BOTTOM * BOTTOM).sqrt()
+}
+
 impl AtmosphereUniform {
     /// Off: the terrain keeps its plain haze and no sky is drawn.
     pub fn off() -> Self {
@@ -56,15 +63,15 @@ impl AtmosphereUniform {
     /// camera-relative `rotation_projection` onto a `viewport` (pixels), the sun towards
     /// `sun`, the pole towards `pole` and the prime meridian at the equator towards
     /// `meridian` (all in the frame's axes); the whole-Earth picture on the ground beyond
-    /// the data where `earth`. From inside the atmosphere the sky and the aerial
-    /// perspective come from per-frame tables.
+    /// the data where `earth` gives the eye's longitude and latitude (degrees). From
+    /// inside the atmosphere the sky and the aerial perspective come from per-frame tables.
     pub fn on(
         eye: DVec3,
         height: f64,
         radius: f64,
         (rotation_projection, viewport): (DMat4, (f64, f64)),
         sun: DVec3,
-        (pole, meridian, earth): (DVec3, DVec3, bool),
+        (pole, meridian, earth): (DVec3, DVec3, Option<(f64, f64)>),
     ) -> Self {
         let scale = BOTTOM / radius.max(1.0);
         let inverse: Mat4 = rotation_projection.inverse().as_mat4();
@@ -74,15 +81,9 @@ impl AtmosphereUniform {
         let m = meridian.try_normalize().unwrap_or(DVec3::X).as_vec3();
         // The highest ground beyond the data that the eye can see: within its horizon's
         // reach of the highest the whole-Earth heights hold (the sky pass marches below it).
-        let highest = if earth {
-            let r = BOTTOM + height.max(0.0);
-            let top = BOTTOM + f64::from(super::earth::HIGHEST);
-            let reach = (r * r - BOTTOM * BOTTOM).max(0.0).sqrt() + (top * top - BOTTOM * BOTTOM).sqrt();
-            let axes = (pole.normalize_or(DVec3::Y), meridian.normalize_or(DVec3::X));
-            super::earth::highest_near(eye.normalize_or(DVec3::Y), axes, reach)
-        } else {
-            0.0
-        };
+        let highest = earth.map_or(0.0, |(lon, lat)| {
+            super::earth::highest_near(lon, lat, horizon_reach(height, f64::from(super::earth::HIGHEST)))
+        });
         #[allow(clippy::cast_possible_truncation)]
         Self {
             inv_view_proj: inverse.to_cols_array_2d(),
@@ -90,12 +91,10 @@ impl AtmosphereUniform {
             sun: [s.x, s.y, s.z, SUN_RADIUS],
             look: [EXPOSURE, 1.0, SKY_STEPS, AERIAL_STEPS],
             pole: [p.x, p.y, p.z, highest],
-            meridian: [m.x, m.y, m.z, f32::from(u8::from(earth))],
+            meridian: [m.x, m.y, m.z, f32::from(u8::from(earth.is_some()))],
             tables: {
                 // Out to where the ground and the air's top meet the horizon.
-                let r = BOTTOM + height.max(0.0);
-                let far =
-                    (r * r - BOTTOM * BOTTOM).max(0.0).sqrt() + ((BOTTOM + THICKNESS).powi(2) - BOTTOM * BOTTOM).sqrt();
+                let far = horizon_reach(height, THICKNESS);
                 let inside = height < THICKNESS * 0.95;
                 #[allow(clippy::cast_possible_truncation)]
                 [f32::from(u8::from(inside)), far as f32, viewport.0 as f32, viewport.1 as f32]

@@ -48,17 +48,15 @@ const CELL: u32 = 16;
 /// set by [`write_earth`].
 static CELLS: std::sync::OnceLock<Vec<f32>> = std::sync::OnceLock::new();
 
-/// The highest ground within `reach` metres (along the ground) of `up` (the unit direction
-/// from the planet's centre, in the frame whose pole and prime meridian at the equator are
-/// `pole` and `meridian`): the highest of the cells that reach touches, or the highest the
-/// alpha holds before the picture is written. The sky pass marches its rays only below it.
-pub(super) fn highest_near(up: glam::DVec3, (pole, meridian): (glam::DVec3, glam::DVec3), reach: f64) -> f32 {
+/// The highest ground within `reach` metres (along the ground) of longitude `lon` and
+/// latitude `lat` (degrees; [`crate::globe::geodetic`]'s, turned to degrees): the highest
+/// of the cells that reach touches, or the highest the alpha holds before the picture is
+/// written. The sky pass marches its rays only below it.
+pub(super) fn highest_near(lon: f64, lat: f64, reach: f64) -> f32 {
     let Some(cells) = CELLS.get() else {
         return HIGHEST;
     };
     let (columns, rows) = (SIZE.0 / CELL, SIZE.1 / CELL);
-    let lat = up.dot(pole).clamp(-1.0, 1.0).asin().to_degrees();
-    let lon = up.dot(pole.cross(meridian)).atan2(up.dot(meridian)).to_degrees();
     let radius = (reach / 6_371_000.0).to_degrees();
     let cell = 180.0 / f64::from(rows);
     let row_of = |lat: f64| ((90.0 - lat) / cell).floor().clamp(0.0, f64::from(rows - 1));
@@ -161,13 +159,18 @@ pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) {
 #[cfg(test)]
 #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "test coordinates")]
 mod tests {
+    /// The picture's pixel at a longitude and latitude (degrees), offset by `dx`, `dy`.
+    fn pixel(lon: f64, lat: f64, dx: isize, dy: isize) -> usize {
+        let x = ((lon + 180.0) / 360.0 * 2048.0) as isize + dx;
+        let y = ((90.0 - lat) / 180.0 * 1024.0) as isize + dy;
+        (y * 2048 + x) as usize
+    }
+
     #[test]
     fn the_built_in_picture_decodes_to_sea_land_and_ice() {
         let p = super::pixels().expect("earth.webp decodes");
         let at = |lon: f64, lat: f64| {
-            let x = ((lon + 180.0) / 360.0 * 2048.0) as usize;
-            let y = ((90.0 - lat) / 180.0 * 1024.0) as usize;
-            let i = 4 * (y * 2048 + x);
+            let i = 4 * pixel(lon, lat, 0, 0);
             [i32::from(p[i]), i32::from(p[i + 1]), i32::from(p[i + 2])]
         };
         let sea = |[r, g, b]: [i32; 3]| b > r + 35 && b > g + 15 && b < 120;
@@ -190,15 +193,8 @@ mod tests {
         let p = super::pixels().expect("earth.webp decodes");
         // The mean height over a box of the picture's pixels around a place.
         let mean = |lon: f64, lat: f64| {
-            let x = ((lon + 180.0) / 360.0 * 2048.0) as usize;
-            let y = ((90.0 - lat) / 180.0 * 1024.0) as usize;
-            let mut sum = 0.0;
-            for yy in y - 2..=y + 2 {
-                for xx in x - 2..=x + 2 {
-                    sum += super::height_of(p[4 * (yy * 2048 + xx) + 3]);
-                }
-            }
-            sum / 25.0
+            let box_ = (-2..=2).flat_map(|dy| (-2..=2).map(move |dx| pixel(lon, lat, dx, dy)));
+            box_.map(|i| super::height_of(p[4 * i + 3])).sum::<f32>() / 25.0
         };
         // Oceans and a low coast: 0 (the sea surface, not its depths).
         for (lon, lat) in [(-150.0, 0.0), (-30.0, 30.0), (160.0, -40.0), (70.0, -20.0)] {
@@ -222,15 +218,8 @@ mod tests {
 
     #[test]
     fn the_highest_ground_near_a_place_is_its_regions() {
-        use glam::DVec3;
         let _ = super::CELLS.set(super::cells(&super::pixels().expect("earth.webp decodes")));
-        // The frame: the pole along z, the prime meridian along x.
-        let (pole, meridian) = (DVec3::Z, DVec3::X);
-        let up = |lon: f64, lat: f64| {
-            let (lon, lat) = (lon.to_radians(), lat.to_radians());
-            DVec3::new(lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin())
-        };
-        let near = |lon: f64, lat: f64, km: f64| super::highest_near(up(lon, lat), (pole, meridian), km * 1000.0);
+        let near = |lon: f64, lat: f64, km: f64| super::highest_near(lon, lat, km * 1000.0);
         // The mid-Pacific within 300 km: sea. Over the Ganges plain within 300 km: the
         // Himalaya. Within 500 km of Denver: the Rockies, not Tibet.
         assert_eq!(near(-150.0, 0.0, 300.0), 0.0);

@@ -196,7 +196,14 @@ impl TerrainRenderer {
             frame.origin.length(),
             (projection * rotation, viewport),
             self.settings.sun,
-            (pole, frame.direction_to_local(DVec3::X), self.settings.earth),
+            (
+                pole,
+                frame.direction_to_local(DVec3::X),
+                self.settings.earth.then(|| {
+                    let (lon, lat, _) = crate::globe::geodetic(camera.position);
+                    (lon.to_degrees(), lat.to_degrees())
+                }),
+            ),
         )
     }
 
