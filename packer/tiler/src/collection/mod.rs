@@ -1157,11 +1157,23 @@ fn tiles_beneath<S: Pixel>(
         let made = made();
         drop(receive);
         let read = reader.map_or(Ok(()), |r| r.join().unwrap_or(Err(Error::Panicked { thread: "coarse rows" })));
-        // The tiles' error first (it stopped the reader); else the reader's.
-        made?;
-        read
+        the_cause(made, [read])
     })?;
     Ok(halved)
+}
+
+/// What stopped a level made on one thread from rows that others read (`readers`, each
+/// stopping quietly or with [`crate::error::interrupted`] once nobody pulls its rows):
+/// the maker's own error, unless it is only the rows' end, an interruption that a reader's
+/// failure caused (its channel closed): then that reader's error, which names what failed.
+fn the_cause<const N: usize>(made: Result<()>, readers: [Result<()>; N]) -> Result<()> {
+    match made {
+        Err(e) if e.is_interrupted() => {
+            Err(readers.into_iter().filter_map(Result::err).find(|r| !r.is_interrupted()).unwrap_or(e))
+        }
+        Err(e) => Err(e),
+        Ok(()) => readers.into_iter().collect(),
+    }
 }
 
 /// The part of a level's rectangle `rect` (corner sample `corner`, `grid`) that its tiles
@@ -1604,12 +1616,10 @@ where
         drop(receive);
         drop(fine_receive);
         let read = reader.join().unwrap_or(Err(Error::Panicked { thread: "coarse rows" }));
-        let fine_read = fine_reader
-            .map_or(Ok(()), |r| r.join().unwrap_or(Err(crate::raster::Error::Interrupted(crate::Interrupted))));
-        // The rows' error first (it stopped the readers); else the readers'.
-        made?;
-        fine_read?;
-        read
+        let fine_read = fine_reader.map_or(Ok(()), |r| {
+            r.join().map_or(Err(Error::Panicked { thread: "fine rows" }), |r| r.map_err(Error::from))
+        });
+        the_cause(made, [fine_read, read])
     })?;
     ring.finish(h, &|y, row: &mut [K::Value], columns| up.fill(level_row(y), row, columns), emit)
 }
@@ -2220,6 +2230,37 @@ mod tests {
             reader.join().unwrap()
         });
         assert!(read.is_ok(), "{read:?}");
+    }
+
+    /// Coarse rows that fail after `0.1` of them, as a file that cannot be read further.
+    struct Failing(Rows, u32);
+
+    impl CoarseRows<f32> for Failing {
+        fn size(&self) -> (u32, u32) {
+            self.0.size()
+        }
+
+        fn rows(&self, rows: std::ops::Range<u32>, each: &mut dyn FnMut(Vec<f32>) -> Result<()>) -> Result<()> {
+            let ok = rows.start..rows.end.min(self.1);
+            self.0.rows(ok, each)?;
+            Err(Error::input("base.tif", "strip 3 cannot be read"))
+        }
+    }
+
+    /// A coarse reader's own failure is what a level's run reports, not the "interrupted"
+    /// its maker sees when the rows stop coming.
+    #[test]
+    fn a_failing_coarse_reader_names_its_own_error() {
+        let (w, h) = (40u32, 60u32);
+        let (_, coarse_rows) = pattern(20, 40);
+        let grid = GridSpec { origin: [0.0, 0.0], pixel: (1.0, 1.0), size: (w, h) };
+        let source = Failing(Rows(coarse_rows, std::sync::atomic::AtomicUsize::new(0)), 5);
+        let coarse = Coarse { source: Box::new(source), shift: 1, quantize: None, first: (0, 0) };
+        let mut emit = |_: Vec<f32>| Ok(());
+        let made = level_rows::<Heights>(None, Some(&coarse), &grid, (0, 0), 0..h, &[], 0, &mut emit);
+        let error = made.expect_err("the rows cannot all be made");
+        assert!(!error.is_interrupted(), "{error}");
+        assert!(error.to_string().contains("strip 3 cannot be read"), "{error}");
     }
 
     #[test]
