@@ -94,6 +94,25 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     args.extend(["-o", merged.to_str().unwrap(), "--elevation", both[0], both[1]]);
     ok(&args, d);
     assert!(tiles_of(&col) == tiles_of(&merged), "the shards merged are not the single run");
+    // A picture given as a VRT that is no whole file read as it is (a nodata of its own)
+    // makes the whole run one resolution: the heights are then the run in order's, not
+    // opened again on the square grid a collection is made on.
+    let Some(gdal) = colour_relief(d) else { return };
+    gdal(&["gdaldem", "color-relief", "-q", both[0], "ramp.txt", "wide-rgb.tif"]);
+    gdal(&["gdalbuildvrt", "-q", "-srcnodata", "0 0 0", "picture.vrt", "wide-rgb.tif"]);
+    let picture = d.join("picture.vrt");
+    let with_picture = |name: &str, extra: &[&str]| {
+        let mut args = vec!["--texture", picture.to_str().unwrap(), "--texture-tile-size", "32"];
+        args.extend(extra);
+        run(name, &args)
+    };
+    let heights = |p: &Path| -> BTreeMap<terrastream_format::TileKey, Vec<u8>> {
+        tiles_of(p).into_iter().filter(|(k, _)| k.layer() == 0).collect()
+    };
+    let (given, ordered) = (with_picture("pv.tspack", &[]), with_picture("pvo.tspack", &["--priority", "order"]));
+    let (a, b) = (heights(&given), heights(&ordered));
+    assert_eq!(a.len(), b.len(), "as many height tiles as the run in order");
+    assert!(a == b, "the heights of the run in order, byte for byte");
 }
 
 /// A level's rows are made in bands, a worker a core, from four cores, and in one run

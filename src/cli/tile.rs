@@ -449,11 +449,14 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     // Inputs of different resolutions, each as deep as it reaches (heights, imagery); a
     // planned shard's are the plan's (its own inputs are a part of them).
     let by_resolution = args.priority == PriorityArg::Resolution && planned.is_none();
+    // A VRT still among the inputs (not whole files read as they are) makes the run one
+    // resolution (said below).
+    let vrt = request.elevation.iter().chain(&request.texture).find(|p| is_vrt(p)).cloned();
     // Heights of different resolutions whose samples are not square (a geographic grid)
     // are opened again onto the grid their plan tiles, with the columns that make them
     // square, as `update` opens a survey onto an archive's grid: a collection makes every
     // level on its mosaic's grid, where a run of one resolution resamples its rows.
-    if by_resolution && request.elevation_grid.is_none() && !request.elevation.iter().any(|p| is_vrt(p)) {
+    if by_resolution && request.elevation_grid.is_none() && vrt.is_none() {
         let spans = sources.height_mosaic().filter(|m| Collection::spans_resolutions(m));
         if let Some(grid) = spans.and_then(|m| squared_grid(m, m.grid())) {
             request.elevation_grid = Some(grid);
@@ -467,7 +470,6 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     let (elevation, texture) = (inputs.elevation(), inputs.texture());
     let (name, options) = (args.name(), args.options());
     let started = std::time::Instant::now();
-    let vrt = request.elevation.iter().chain(&request.texture).find(|p| is_vrt(p));
     let sparse_heights = (by_resolution && vrt.is_none())
         .then(|| sources.height_mosaic())
         .flatten()
@@ -476,7 +478,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         .then(|| sources.image_mosaic())
         .flatten()
         .filter(|m| Collection::spans_resolutions(m));
-    if let Some(vrt) = vrt {
+    if let Some(vrt) = &vrt {
         let spans = sources.height_mosaic().is_some_and(Collection::spans_resolutions)
             || sources.image_mosaic().is_some_and(Collection::spans_resolutions);
         if spans {
