@@ -189,6 +189,8 @@ fn check_run(browser: &Browser<'_>, stats: &Value, golden_name: &str, backend: &
     // Decoded in Web Workers, off the page's thread: every tile fetched.
     assert!(stats["workers"].as_u64().unwrap() >= 1, "{stats}");
     assert_eq!(stats["decoded_in_workers"], stats["tiles_fetched"], "{stats}");
+    // So was the globe's whole-Earth picture (the view waits for it, as for its tiles).
+    assert_eq!(stats["earth_decoded_in_worker"], json!(true), "{stats}");
     // Frames go on while streaming: the page stayed responsive.
     assert!(stats["frames"].as_u64().unwrap() > 3, "{stats}");
     // A few frames more, then the picture.

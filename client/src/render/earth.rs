@@ -44,16 +44,118 @@ pub(super) const HIGHEST: f32 = 9000.0;
 /// The side of the cells of [`highest_near`]'s grid, in the picture's pixels (2.8125°).
 const CELL: u32 = 16;
 
-/// The highest ground in each cell of `CELL` x `CELL` pixels, rows from the north (metres);
-/// set by [`write_earth`].
-static CELLS: std::sync::OnceLock<Vec<f32>> = std::sync::OnceLock::new();
+/// The picture decoded, once per process: by a thread of its own from the first renderer
+/// that draws it ([`start_decoding`]), by a Web Worker ([`decoding_elsewhere`],
+/// [`decoded_elsewhere`]), or else on the frame's thread at its first frame with a sky.
+/// `None` inside: the built-in bytes did not decode (a test rules that out).
+static DECODED: std::sync::OnceLock<Option<EarthPicture>> = std::sync::OnceLock::new();
+
+/// Set while [`DECODED`] is being made elsewhere (a thread, a worker): frames draw the
+/// plain ground until it is there, rather than decode it a second time.
+static ELSEWHERE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// The whole-Earth picture decoded: its mip chain as the texture takes it (RGBA, sRGB
+/// colours, heights in the alpha) and the highest ground in each cell of `CELL` x `CELL`
+/// pixels (rows from the north, metres). About 70 ms of work on one core (release), which
+/// a frame should not wait for.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EarthPicture {
+    levels: Vec<Vec<u8>>,
+    cells: Vec<f32>,
+}
+
+impl EarthPicture {
+    /// Decodes the built-in picture and makes its mips and cells (None if its bytes do not
+    /// decode, which a test rules out).
+    #[must_use]
+    pub fn decode() -> Option<Self> {
+        let first = pixels()?;
+        let cells = cells(&first);
+        Some(Self { levels: mips(first), cells })
+    }
+
+    /// The picture as bytes (its levels, then its cells), to hand between threads that
+    /// share no memory (a Web Worker's answer).
+    #[must_use]
+    pub fn to_wire(&self) -> Vec<u8> {
+        let mut wire: Vec<u8> = self.levels.concat();
+        wire.extend(self.cells.iter().flat_map(|c| c.to_le_bytes()));
+        wire
+    }
+
+    /// The picture from [`EarthPicture::to_wire`]'s bytes; None unless they are exactly
+    /// as long as a picture's.
+    #[must_use]
+    pub fn from_wire(wire: &[u8]) -> Option<Self> {
+        let mut rest = wire;
+        let mut levels = Vec::new();
+        for (w, h) in level_sizes() {
+            let n = (4 * w * h) as usize;
+            let (level, after) = rest.split_at_checked(n)?;
+            levels.push(level.to_vec());
+            rest = after;
+        }
+        let (columns, rows) = (SIZE.0 / CELL, SIZE.1 / CELL);
+        if rest.len() != 4 * (columns * rows) as usize {
+            return None;
+        }
+        let cells = rest.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        Some(Self { levels, cells })
+    }
+}
+
+/// Starts decoding the picture on a thread of its own, once per process, where threads
+/// exist (not in a browser's page: there a Web Worker does it). Until it is done, frames
+/// draw the plain ground beyond the data and [`pending`] holds.
+pub(super) fn start_decoding() {
+    #[cfg(not(target_arch = "wasm32"))]
+    {
+        use std::sync::atomic::Ordering;
+        if DECODED.get().is_some() || ELSEWHERE.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        let spawned = std::thread::Builder::new().name("earth picture".into()).spawn(|| {
+            // A panic in the decoder is a picture that did not decode, not a wait forever.
+            let decoded = std::panic::catch_unwind(EarthPicture::decode).ok().flatten();
+            let _ = DECODED.set(decoded);
+        });
+        if spawned.is_err() {
+            ELSEWHERE.store(false, Ordering::Release);
+        }
+    }
+}
+
+/// Says that the picture is being decoded elsewhere (a Web Worker): frames draw the plain
+/// ground beyond the data until [`decoded_elsewhere`] hands it in.
+pub fn decoding_elsewhere() {
+    ELSEWHERE.store(true, std::sync::atomic::Ordering::Release);
+}
+
+/// Hands in the picture decoded elsewhere; None when that failed: the first frame that
+/// draws it then decodes it itself.
+pub fn decoded_elsewhere(picture: Option<EarthPicture>) {
+    if let Some(picture) = picture {
+        let _ = DECODED.set(Some(picture));
+    }
+    ELSEWHERE.store(false, std::sync::atomic::Ordering::Release);
+}
+
+/// The decoded picture for a frame that draws it: decoded here unless it is being made
+/// elsewhere; None while it is (the frame draws the plain ground).
+fn picture() -> Option<&'static Option<EarthPicture>> {
+    match DECODED.get() {
+        Some(decoded) => Some(decoded),
+        None if ELSEWHERE.load(std::sync::atomic::Ordering::Acquire) => None,
+        None => Some(DECODED.get_or_init(EarthPicture::decode)),
+    }
+}
 
 /// The highest ground within `reach` metres (along the ground) of longitude `lon` and
 /// latitude `lat` (degrees; [`crate::globe::geodetic`]'s, turned to degrees): the highest
 /// of the cells that reach touches, or the highest the alpha holds before the picture is
 /// written. The sky pass marches its rays only below it.
 pub(super) fn highest_near(lon: f64, lat: f64, reach: f64) -> f32 {
-    let Some(cells) = CELLS.get() else {
+    let Some(Some(EarthPicture { cells, .. })) = DECODED.get() else {
         return HIGHEST;
     };
     let (columns, rows) = (SIZE.0 / CELL, SIZE.1 / CELL);
@@ -111,49 +213,61 @@ fn cells(rgba: &[u8]) -> Vec<f32> {
     cells
 }
 
-/// Writes the picture and its mip chain (each level the mean of 2 x 2 of the one above,
-/// its colours in linear light, its heights in metres).
-pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) {
-    let Some(mut level) = pixels() else {
-        tracing::error!("the built-in Earth picture does not decode: the ground beyond the data stays plain");
-        return;
-    };
-    let _ = CELLS.set(cells(&level));
-    let (mut w, mut h) = SIZE;
+/// The sizes of the picture's mip levels, from the full picture down to 2 x 1.
+fn level_sizes() -> impl Iterator<Item = (u32, u32)> {
+    std::iter::successors(Some(SIZE), |&(w, h)| (w > 1 && h > 1).then_some((w / 2, h / 2))).take(LEVELS as usize)
+}
+
+/// The picture's mip chain from its pixels: each level the mean of 2 x 2 of the one
+/// above, its colours in linear light, its heights in metres.
+fn mips(first: Vec<u8>) -> Vec<Vec<u8>> {
     let to_linear: Vec<f32> = (0..=255u8).map(|v| super::settings::srgb_to_linear(f32::from(v) / 255.0)).collect();
-    for mip in 0..LEVELS {
+    let mut levels = vec![first];
+    for (w, h) in level_sizes().skip(1) {
+        let (pw, level) = (2 * w, &levels[levels.len() - 1]);
+        let mut next = vec![0u8; (4 * w * h) as usize];
+        for y in 0..h {
+            for x in 0..w {
+                for c in 0..3 {
+                    let at = |dx: u32, dy: u32| {
+                        to_linear[usize::from(level[(4 * ((2 * y + dy) * pw + 2 * x + dx) + c) as usize])]
+                    };
+                    let mean = (at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1)) / 4.0;
+                    next[(4 * (y * w + x) + c) as usize] = super::settings::linear_to_srgb_u8(mean);
+                }
+                let height = |dx: u32, dy: u32| height_of(level[(4 * ((2 * y + dy) * pw + 2 * x + dx) + 3) as usize]);
+                let mean = (height(0, 0) + height(1, 0) + height(0, 1) + height(1, 1)) / 4.0;
+                next[(4 * (y * w + x) + 3) as usize] = alpha_of(mean);
+            }
+        }
+        levels.push(next);
+    }
+    levels
+}
+
+/// Writes the picture and its mip chain into `texture` once it is decoded: None while it
+/// is being decoded elsewhere (nothing written), Some(true) once written, Some(false)
+/// when it does not decode (logged; the ground beyond the data stays plain).
+pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) -> Option<bool> {
+    let decoded = picture()?;
+    let Some(picture) = decoded else {
+        tracing::error!("the built-in Earth picture does not decode: the ground beyond the data stays plain");
+        return Some(false);
+    };
+    for (mip, ((w, h), level)) in level_sizes().zip(&picture.levels).enumerate() {
         queue.write_texture(
             wgpu::TexelCopyTextureInfo {
                 texture,
-                mip_level: mip,
+                mip_level: u32::try_from(mip).unwrap_or(0),
                 origin: wgpu::Origin3d::ZERO,
                 aspect: wgpu::TextureAspect::All,
             },
-            &level,
+            level,
             wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(4 * w), rows_per_image: Some(h) },
             wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
         );
-        if w == 1 || h == 1 {
-            break;
-        }
-        let (nw, nh) = (w / 2, h / 2);
-        let mut next = vec![0u8; (4 * nw * nh) as usize];
-        for y in 0..nh {
-            for x in 0..nw {
-                for c in 0..3 {
-                    let at = |dx: u32, dy: u32| {
-                        to_linear[usize::from(level[(4 * ((2 * y + dy) * w + 2 * x + dx) + c) as usize])]
-                    };
-                    let mean = (at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1)) / 4.0;
-                    next[(4 * (y * nw + x) + c) as usize] = super::settings::linear_to_srgb_u8(mean);
-                }
-                let height = |dx: u32, dy: u32| height_of(level[(4 * ((2 * y + dy) * w + 2 * x + dx) + 3) as usize]);
-                let mean = (height(0, 0) + height(1, 0) + height(0, 1) + height(1, 1)) / 4.0;
-                next[(4 * (y * nw + x) + 3) as usize] = alpha_of(mean);
-            }
-        }
-        (level, w, h) = (next, nw, nh);
     }
+    Some(true)
 }
 
 #[cfg(test)]
@@ -218,7 +332,7 @@ mod tests {
 
     #[test]
     fn the_highest_ground_near_a_place_is_its_regions() {
-        let _ = super::CELLS.set(super::cells(&super::pixels().expect("earth.webp decodes")));
+        let _ = super::DECODED.set(super::EarthPicture::decode());
         let near = |lon: f64, lat: f64, km: f64| super::highest_near(lon, lat, km * 1000.0);
         // The mid-Pacific within 300 km: sea. Over the Ganges plain within 300 km: the
         // Himalaya. Within 500 km of Denver: the Rockies, not Tibet.
@@ -232,6 +346,24 @@ mod tests {
         assert!(near(179.0, 65.0, 400.0) >= near(-179.0, 65.0, 10.0));
         assert!(near(0.0, 89.0, 400.0) >= near(180.0, 88.0, 10.0));
         assert!(near(0.0, -89.0, 300.0) > 2000.0, "Antarctica's ice: {}", near(0.0, -89.0, 300.0));
+    }
+
+    /// The picture decoded elsewhere (a Web Worker) comes back whole from its bytes, and
+    /// bytes of any other length are no picture.
+    #[test]
+    fn the_decoded_picture_comes_back_from_its_bytes() {
+        let picture = super::EarthPicture::decode().expect("earth.webp decodes");
+        assert_eq!(picture.levels.len(), super::LEVELS as usize);
+        assert_eq!(picture.levels[0].len(), 4 * 2048 * 1024);
+        assert_eq!(picture.levels.last().map(Vec::len), Some(4 * 2), "2 x 1");
+        // The last level is the mean of the whole picture: land and sea, some height.
+        let last = &picture.levels[super::LEVELS as usize - 1];
+        assert!(last[2] > 20 && last[3] > 1, "{last:?}");
+        let wire = picture.to_wire();
+        assert_eq!(super::EarthPicture::from_wire(&wire).as_ref(), Some(&picture));
+        assert!(super::EarthPicture::from_wire(&wire[..wire.len() - 1]).is_none());
+        assert!(super::EarthPicture::from_wire(&[wire.as_slice(), &[0]].concat()).is_none());
+        assert!(super::EarthPicture::from_wire(&[]).is_none());
     }
 
     #[test]

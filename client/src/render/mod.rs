@@ -17,5 +17,6 @@ mod settings;
 pub mod still;
 mod tile_array;
 
+pub use earth::{EarthPicture, decoded_elsewhere, decoding_elsewhere};
 /// The wgpu version the renderer is built with (hosts create surfaces and passes with it).
 pub use wgpu;

@@ -58,9 +58,11 @@ pub struct TerrainRenderer {
     /// whether it still has to be written.
     pub(super) lattice: wgpu::Texture,
     pub(super) lattice_dirty: bool,
-    /// The whole-Earth picture (written at the first frame that draws the sky).
+    /// The whole-Earth picture, written at the first frame that draws the sky once it is
+    /// decoded (a thread of its own started with the renderer): None until then, then
+    /// whether it was written (false: it did not decode).
     pub(super) earth: wgpu::Texture,
-    pub(super) earth_written: bool,
+    pub(super) earth_drawn: Option<bool>,
     /// The atmosphere's tables and uniform, its pipelines, and whether this frame draws it.
     pub(super) air_tables: AtmosphereTables,
     pub(super) air_pipelines: AtmospherePipelines,
@@ -200,6 +202,9 @@ impl TerrainRenderer {
         let lattice = lattice_texture(device, &surface);
         let air_tables = AtmosphereTables::new(device);
         let earth = super::earth::earth_texture(device);
+        if Self::draws_earth(&settings, &surface) {
+            super::earth::start_decoding();
+        }
         let resources = BoundResources {
             globals: &globals,
             page_table: &page_texture,
@@ -232,7 +237,7 @@ impl TerrainRenderer {
             lattice,
             lattice_dirty: true,
             earth,
-            earth_written: false,
+            earth_drawn: None,
             air_tables,
             air_pipelines: shared.atmosphere.clone(),
             sky: false,
@@ -286,6 +291,19 @@ impl TerrainRenderer {
     /// What the last prepared frame draws.
     pub fn stats(&self) -> FrameStats {
         self.stats
+    }
+
+    /// Does a frame with `settings` on `surface` draw the whole-Earth picture (where it
+    /// draws the sky)?
+    fn draws_earth(settings: &RenderSettings, surface: &Surface) -> bool {
+        surface.globe().is_some() && settings.shading == Shading::Lit && settings.atmosphere && settings.earth
+    }
+
+    /// Is the whole-Earth picture that frames draw still to come (decoded elsewhere and not
+    /// yet written)? Until it is, they draw the plain ground beyond the data: a still
+    /// waits for it as for its tiles.
+    pub fn earth_pending(&self) -> bool {
+        Self::draws_earth(&self.settings, &self.surface) && self.earth_drawn.is_none()
     }
 
     /// Most tiles of one layer the GPU keeps: the streaming selection should want no more.
@@ -394,9 +412,8 @@ impl TerrainRenderer {
             }
         }
         if self.surface.globe().is_some() && self.settings.shading == Shading::Lit && self.settings.atmosphere {
-            if self.settings.earth && !self.earth_written {
-                super::earth::write_earth(queue, &self.earth);
-                self.earth_written = true;
+            if self.earth_pending() {
+                self.earth_drawn = super::earth::write_earth(queue, &self.earth);
             }
             self.air_tables.make(device, queue, &self.air_pipelines);
         }

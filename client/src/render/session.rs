@@ -190,8 +190,12 @@ impl Session {
         Some(self.streamer.height_at(w.x, w.y)? + surface.lift(p))
     }
 
-    /// Is everything the view wants on the GPU (and nothing in flight)?
+    /// Is everything the view wants on the GPU (and nothing in flight), the whole-Earth
+    /// picture included?
     pub fn settled(&self) -> bool {
-        self.streamer.metadata().is_some() && self.streamer.pending() == 0 && self.streamer.stats().in_flight == 0
+        self.streamer.metadata().is_some()
+            && self.streamer.pending() == 0
+            && self.streamer.stats().in_flight == 0
+            && !self.renderer.earth_pending()
     }
 }

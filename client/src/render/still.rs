@@ -122,7 +122,7 @@ pub fn render_still(
     let wait = options.wait;
     let ready = |s: &Session| {
         let resident = s.renderer.stats().resident;
-        if wait { s.settled() } else { resident.0 + resident.1 > 0 }
+        if wait { s.settled() } else { resident.0 + resident.1 > 0 && !s.renderer.earth_pending() }
     };
     let (stream, frame, frames) = session
         .run_until(&gpu.device, &gpu.queue, &camera, options.timeout, ready)

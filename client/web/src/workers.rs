@@ -11,6 +11,7 @@ use std::rc::Rc;
 use bytes::Bytes;
 use futures_channel::oneshot;
 use js_sys::{Array, Object, Reflect, Uint8Array};
+use terrastream_client::render::EarthPicture;
 use terrastream_client::{DecodeFailure, DecodedTile, Decoder};
 use terrastream_format::{Layer, TileKey};
 use wasm_bindgen::JsCast;
@@ -27,6 +28,8 @@ pub struct Pool {
     waiting: Rc<RefCell<HashMap<u32, oneshot::Sender<Answer>>>>,
     broken: Rc<Cell<bool>>,
     decoded: Rc<Cell<u64>>,
+    /// Whether a worker's whole-Earth picture was handed to the renderer.
+    earth: Rc<Cell<bool>>,
     _handlers: Vec<Closure<dyn FnMut(web_sys::MessageEvent)>>,
     _errors: Vec<Closure<dyn FnMut(web_sys::Event)>>,
 }
@@ -86,6 +89,7 @@ impl Pool {
             waiting,
             broken,
             decoded: Rc::default(),
+            earth: Rc::default(),
             _handlers: handlers,
             _errors: errors,
         }))
@@ -99,6 +103,11 @@ impl Pool {
     /// Tiles the workers decoded.
     pub fn decoded(&self) -> u64 {
         self.decoded.get()
+    }
+
+    /// Whether a worker decoded the whole-Earth picture that frames draw.
+    pub fn decoded_earth(&self) -> bool {
+        self.earth.get()
     }
 
     /// The pool as the streamer's decoder.
@@ -121,6 +130,45 @@ impl Pool {
                 Ok(tile)
             })
         })
+    }
+
+    /// Has the next worker decode the whole-Earth picture, which the renderer takes once it
+    /// comes; frames draw the plain ground beyond the data until then. Where the worker
+    /// cannot, the page's first frame with a sky decodes it itself.
+    pub fn decode_earth(&self) {
+        let (sender, receiver) = oneshot::channel();
+        let id = self.next_id.get().wrapping_add(1);
+        self.next_id.set(id);
+        let message = Object::new();
+        let built = Reflect::set(&message, &"id".into(), &id.into()).is_ok()
+            && Reflect::set(&message, &"earth".into(), &true.into()).is_ok();
+        if self.broken.get() || self.workers.is_empty() || !built {
+            return;
+        }
+        let worker = &self.workers[self.next.get() % self.workers.len()];
+        self.next.set(self.next.get().wrapping_add(1));
+        self.waiting.borrow_mut().insert(id, sender);
+        terrastream_client::render::decoding_elsewhere();
+        if worker.post_message(&message).is_err() {
+            self.waiting.borrow_mut().remove(&id);
+            terrastream_client::render::decoded_elsewhere(None);
+            return;
+        }
+        let decoded = self.earth.clone();
+        wasm_bindgen_futures::spawn_local(async move {
+            let picture = match receiver.await {
+                Ok(Ok(bytes)) => EarthPicture::from_wire(&bytes),
+                Ok(Err(e)) => {
+                    tracing::warn!(
+                        "the Earth picture was not decoded in a worker ({e:?}): decoding on the page's thread"
+                    );
+                    None
+                }
+                Err(_) => None,
+            };
+            decoded.set(picture.is_some());
+            terrastream_client::render::decoded_elsewhere(picture);
+        });
     }
 
     /// Posts one payload to the next worker (its bytes transferred, not copied twice).
@@ -153,6 +201,20 @@ impl Pool {
         }
         receiver
     }
+}
+
+/// Decodes the whole-Earth picture built into the module (what `decoder.js` calls in a
+/// worker for [`Pool::decode_earth`]): [`EarthPicture::to_wire`]'s bytes.
+///
+/// # Errors
+/// When the built-in picture does not decode (a test rules that out).
+#[wasm_bindgen]
+pub fn decode_earth() -> Result<Vec<u8>, JsValue> {
+    std::panic::catch_unwind(EarthPicture::decode)
+        .ok()
+        .flatten()
+        .map(|picture| picture.to_wire())
+        .ok_or_else(|| JsValue::from_str("the built-in Earth picture does not decode"))
 }
 
 /// Decodes one payload (what `decoder.js` calls in a worker): the decoded tile as flat

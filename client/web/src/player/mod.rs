@@ -380,6 +380,10 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
         match crate::workers::Pool::start(count) {
             Ok(pool) => {
                 streamer.set_decoder(Some(pool.decoder()));
+                // The globe's whole-Earth picture, decoded while the archive opens.
+                if !params.flat {
+                    pool.decode_earth();
+                }
                 Some(pool)
             }
             Err(e) => {

@@ -47,6 +47,7 @@ impl State {
             "first_draw_submit_ms": self.timings.first_draw.map(|t| t.1),
             "workers": self.workers.as_ref().map_or(0, |w| w.len()),
             "decoded_in_workers": self.workers.as_ref().map_or(0, |w| w.decoded()),
+            "earth_decoded_in_worker": self.workers.as_ref().is_some_and(|w| w.decoded_earth()),
             "frames_streaming": self.timings.streaming_ms.len(),
             "frames_resident": self.timings.resident_ms.len(),
             "frame_p50_streaming_ms": quantile(&self.timings.streaming_ms, 0.5),
