@@ -853,30 +853,39 @@ fn highest_span(eye: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
     return vec2<f32>(max(-b - s, 0.0), -b + s);
 }
 
+// How far around an eye below the heights' ground the ground is lowered to pass below it
+// (`raised_ground`): two of the heights' spacings.
+const EARTH_SINK_REACH: f32 = 39136.0;
+
 // Along the ray from `eye` (direction `d`) where it first meets the ground's heights,
 // marched from where it enters the sphere of the highest ground in view to where it meets
 // the sea's sphere (`sea`) or leaves the highest's (`span`). Each step is a quarter of the
 // distance from the eye, at least the heights' spacing, at most what is left: a stretch
 // shorter than the spacing takes one step, 700 km from an eye below the highest ground
 // about 14. The heights are read at the mip of the step; the crossing is interpolated
-// between the two samples around it. `sea` where it meets none (a ray that starts below
-// the ground, from an eye lower than the heights beyond the data, meets it only once it
-// has come out above it).
+// between the two samples around it. `sea` where it meets none. An eye lower than the
+// heights' ground at its own place (a valley of the data below the 20 km cells' mean)
+// would start every ray below the ground: there the ground is lowered to pass a metre
+// below the eye, by less with the distance, its own heights from EARTH_SINK_REACH on, so
+// that the eye sees it rise around it (else it saw no ground beyond the data at all).
 fn raised_ground(eye: vec3<f32>, d: vec3<f32>, sea: f32, span: vec2<f32>) -> f32 {
     if span.y <= 0.0 {
         return sea;
     }
+    let sink = max(earth_height(normalize(eye), 0.0) - (length(eye) - BOTTOM) + 1.0, 0.0);
     let start = span.x;
     let end = select(span.y, sea, sea > 0.0);
     var t_prev = start;
     let first = eye + d * start;
-    var above_prev = length(first) - BOTTOM - earth_height(normalize(first), 0.0);
+    let lowered = sink * max(1.0 - start / EARTH_SINK_REACH, 0.0);
+    var above_prev = length(first) - BOTTOM - earth_height(normalize(first), 0.0) + lowered;
     for (var i = 0u; i < 24u && t_prev < end; i++) {
         let step = max(EARTH_TEXEL, 0.25 * t_prev);
         let t = min(t_prev + step, end);
         let p = eye + d * t;
         let level = log2(step / EARTH_TEXEL);
-        let above = length(p) - BOTTOM - earth_height(normalize(p), level);
+        let sunk = sink * max(1.0 - t / EARTH_SINK_REACH, 0.0);
+        let above = length(p) - BOTTOM - earth_height(normalize(p), level) + sunk;
         if above <= 0.0 && above_prev > 0.0 {
             return mix(t_prev, t, above_prev / (above_prev - above));
         }

@@ -243,6 +243,40 @@ fn beyond_the_data_the_ground_stands_on_the_earths_heights() {
     assert!(raised + 15 < sea, "the mountains' top at row {raised}, the sea's horizon at {sea}");
 }
 
+/// An eye lower than the built-in heights at its own place (60 m over a small flat
+/// archive at 2 500 m in the Colorado Rockies, in a 20 km cell of the heights that
+/// averages 3 181 m) still sees the ground beyond the data, rising around it: it saw none
+/// (every ray started below that ground, and the sky came down to the data's edge). In
+/// the picture's middle column, rows of that ground (pale and yellower than the sky: red
+/// over blue; the data's green is not) lie between the sky and the data.
+#[test]
+fn an_eye_below_the_earths_heights_sees_them_rise_around_it() {
+    if !gdal() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let tif = oracles::grid_tif(d, "valley", [-106.35, 39.55, 0.1, 600.0], &|_, _| 2500.0);
+    let archive = d.join("valley.tspack");
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], d);
+    let ground_rows = |extra: &[&str]| {
+        let png = d.join("valley.png");
+        let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x180"];
+        let view = ["--at", "-106.30,39.60,2560", "--heading", "0", "--pitch", "2", "--fov", "20", "--sun", "160,40"];
+        terrastream(&[&args[..], &view, extra].concat(), d);
+        let (w, h, rgba) = decode(&png);
+        let beyond = |y: u32| {
+            let p = &rgba[((y * w + w / 2) * 4) as usize..][..3];
+            i32::from(p[0]) > i32::from(p[2]) + 15 && p[1] > 170
+        };
+        (0..h).filter(|&y| beyond(y)).count()
+    };
+    let (earth, plain) = (ground_rows(&[]), ground_rows(&["--no-earth"]));
+    eprintln!("rows of ground beyond the data: {earth} on the Earth's heights, {plain} on the plain ground");
+    assert_eq!(plain, 0, "the plain ground beyond the data is below the horizon");
+    assert!(earth >= 5, "only {earth} rows of the heights' ground beyond the data");
+}
+
 /// A coast (0.1 x 0.1 degrees at 3"): the west half a flat sea stored as 0, as SRTM and
 /// Copernicus store it; the east half land rising from 2 m, with a basin 30 m below sea
 /// level in it. Drawn from above with the height tint, the sea is water-blue and the land
