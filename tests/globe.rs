@@ -208,6 +208,28 @@ fn from_orbit_the_earth_shows_continents_and_oceans() {
     assert!(plain_land < 0.002, "--no-earth: {plain_land:.3} of the view is land");
 }
 
+/// A flat archive of `height` metres over `[west, south, degrees, samples a degree]` in
+/// `d`, and a renderer of it: the view from `--at` `at` (`--heading`, `--pitch`, `--fov`)
+/// with the sun from 160°, 40° up, and `extra` options, at 320 x 180 (width, height and
+/// RGBA).
+fn flat_views(
+    d: &Path,
+    name: &str,
+    area: [f64; 4],
+    height: f64,
+) -> impl Fn(&str, [&str; 3], &[&str]) -> (u32, u32, Vec<u8>) {
+    let tif = oracles::grid_tif(d, name, area, &|_, _| height);
+    let archive = d.join(format!("{name}.tspack"));
+    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], d);
+    move |at: &str, [heading, pitch, fov]: [&str; 3], extra: &[&str]| {
+        let png = d.join(format!("{name}.png"));
+        let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x180"];
+        let view = ["--at", at, "--heading", heading, "--pitch", pitch, "--fov", fov, "--sun", "160,40"];
+        terrastream(&[&args[..], &view, extra].concat(), d);
+        decode(&png)
+    }
+}
+
 /// Beyond an archive's data the ground stands on the built-in heights: from 2 500 m over
 /// the plain south of the Himalaya (a small flat archive there, 150 m), looking north, the
 /// mountains 100-150 km away rise above where the sea's horizon is (`--no-earth` draws the
@@ -219,19 +241,12 @@ fn beyond_the_data_the_ground_stands_on_the_earths_heights() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let tif = oracles::grid_tif(d, "plain", [86.0, 26.6, 0.1, 600.0], &|_, _| 150.0);
-    let archive = d.join("plain.tspack");
-    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], d);
+    let view = flat_views(dir.path(), "plain", [86.0, 26.6, 0.1, 600.0], 150.0);
     // Where the middle column steps from the bright sky near the horizon down to the
     // ground seen through the haze: its largest drop in brightness from one row to the
     // next (the sky darkens upwards, the ground downwards, both gradually).
     let horizon = |extra: &[&str]| {
-        let png = d.join("north.png");
-        let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x180"];
-        let view = ["--at", "86.9,26.7,2500", "--heading", "0", "--pitch", "0.5", "--fov", "12", "--sun", "160,40"];
-        terrastream(&[&args[..], &view, extra].concat(), d);
-        let (w, h, rgba) = decode(&png);
+        let (w, h, rgba) = view("86.9,26.7,2500", ["0", "0.5", "12"], extra);
         let bright = |y: u32| rgba[((y * w + w / 2) * 4) as usize..][..3].iter().map(|&c| i32::from(c)).sum::<i32>();
         let (row, drop) = (1..h).map(|y| (y, bright(y - 1) - bright(y))).max_by_key(|&(_, drop)| drop).unwrap();
         assert!(drop > 40, "no horizon in the middle column: its largest step is {drop}");
@@ -255,16 +270,9 @@ fn an_eye_below_the_earths_heights_sees_them_rise_around_it() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let tif = oracles::grid_tif(d, "valley", [-106.35, 39.55, 0.1, 600.0], &|_, _| 2500.0);
-    let archive = d.join("valley.tspack");
-    terrastream(&["-q", "tile", "--elevation", tif.to_str().unwrap(), "-o", archive.to_str().unwrap()], d);
+    let view = flat_views(dir.path(), "valley", [-106.35, 39.55, 0.1, 600.0], 2500.0);
     let ground_rows = |extra: &[&str]| {
-        let png = d.join("valley.png");
-        let args = ["render", archive.to_str().unwrap(), "-o", png.to_str().unwrap(), "--size", "320x180"];
-        let view = ["--at", "-106.30,39.60,2560", "--heading", "0", "--pitch", "2", "--fov", "20", "--sun", "160,40"];
-        terrastream(&[&args[..], &view, extra].concat(), d);
-        let (w, h, rgba) = decode(&png);
+        let (w, h, rgba) = view("-106.30,39.60,2560", ["0", "2", "20"], extra);
         let beyond = |y: u32| {
             let p = &rgba[((y * w + w / 2) * 4) as usize..][..3];
             i32::from(p[0]) > i32::from(p[2]) + 15 && p[1] > 170
