@@ -106,7 +106,8 @@ impl EarthPicture {
 
 /// Starts decoding the picture on a thread of its own, once per process, where threads
 /// exist (not in a browser's page: there a Web Worker does it). Until it is done, frames
-/// draw the plain ground beyond the data and [`pending`] holds.
+/// draw the plain ground beyond the data and
+/// [`earth_pending`](super::renderer::TerrainRenderer::earth_pending) holds.
 pub(super) fn start_decoding() {
     #[cfg(not(target_arch = "wasm32"))]
     {
