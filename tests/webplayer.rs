@@ -277,6 +277,8 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
         "{stats}"
     );
     check_run(&browser, &stats, "webplayer-webgpu", "webgpu");
+    let sky = |rgba: &[u8]| [rgba[0], rgba[1], rgba[2]];
+    let (.., with_air) = browser.screenshot("#terrain");
 
     // The HUD (H) and flying (W: forward, towards -z from the south).
     browser.hold_key("h", 50);
@@ -328,6 +330,16 @@ fn webplayer_from_terrastream_serve_on_webgpu() {
     let (_, yaw3, ..) = browser.flyer();
     assert!(yaw3 < yaw2 - 0.1, "one-finger drag to the left turns left: {yaw2} -> {yaw3}");
     assert!(browser.console().iter().all(|(level, _)| level != "SEVERE"));
+
+    // atmosphere=0 and earth=0, as `render --no-atmosphere --no-earth`: the sky in the
+    // picture's corner is the plain haze, and no worker decodes the Earth's picture.
+    browser.goto(&format!("http://127.0.0.1:{port}/view/tamalpais?hud=0&atmosphere=0&earth=0"));
+    let plain = browser.wait_settled();
+    assert_eq!(plain["earth_decoded_in_worker"], json!(false), "{plain}");
+    let (.., hazy) = browser.screenshot("#terrain");
+    let (a, b) = (sky(&with_air), sky(&hazy));
+    eprintln!("the corner's sky: {a:?} with the atmosphere, {b:?} without");
+    assert!(a.iter().zip(&b).any(|(p, q)| p.abs_diff(*q) > 20), "the same sky: {a:?} and {b:?}");
 }
 
 #[test]

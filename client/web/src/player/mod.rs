@@ -219,6 +219,8 @@ impl State {
             elevation_slots: GPU_SLOTS,
             texture_slots: GPU_SLOTS,
             flat: self.params.flat,
+            atmosphere: self.params.atmosphere,
+            earth: self.params.earth,
             sun: self.params.sun.unwrap_or(RenderSettings::default().sun),
             ..RenderSettings::default()
         };
@@ -381,7 +383,7 @@ async fn start(page: Page) -> Result<Player, (Option<Page>, String)> {
             Ok(pool) => {
                 streamer.set_decoder(Some(pool.decoder()));
                 // The globe's whole-Earth picture, decoded while the archive opens.
-                if !params.flat {
+                if !params.flat && params.atmosphere && params.earth {
                     pool.decode_earth();
                 }
                 Some(pool)

@@ -20,6 +20,12 @@ pub(super) struct Params {
     pub(super) flat: bool,
     /// `sun=AZIMUTH,ELEVATION` (degrees), as `render --sun`.
     pub(super) sun: Option<DVec3>,
+    /// On the globe, the physically based sky and aerial perspective (`atmosphere=0`: a
+    /// plain haze, as `render --no-atmosphere`).
+    pub(super) atmosphere: bool,
+    /// On the globe, the built-in whole-Earth picture on its heights beyond the data
+    /// (`earth=0`: plain ground, as `render --no-earth`).
+    pub(super) earth: bool,
 }
 
 /// The page's elements.
@@ -126,7 +132,13 @@ pub(super) fn params(window: &Window) -> Result<Params, String> {
     };
     let hud = query.get("hud").as_deref() != Some("0");
     let sun = query.get("sun").map(|s| terrastream_client::globe::parse_sun(&s)).transpose()?;
-    Ok(Params { archive, camera, pose, backends, hud, workers, flight, flat, sun })
+    let on = |name: &str| match query.get(name).as_deref() {
+        None | Some("" | "1" | "true" | "yes") => Ok(true),
+        Some("0" | "false" | "no") => Ok(false),
+        Some(other) => Err(format!("{name}={other:?}: 1 (on) or 0 (off)")),
+    };
+    let (atmosphere, earth) = (on("atmosphere")?, on("earth")?);
+    Ok(Params { archive, camera, pose, backends, hud, workers, flight, flat, sun, atmosphere, earth })
 }
 
 pub(super) fn parse_camera(text: &str) -> Result<(DVec3, DVec3), String> {
