@@ -60,7 +60,8 @@ static ELSEWHERE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool:
 /// a frame should not wait for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EarthPicture {
-    levels: Vec<Vec<u8>>,
+    /// The mip levels one after another, from the full picture down (`level_sizes`).
+    levels: Vec<u8>,
     cells: Vec<f32>,
 }
 
@@ -78,29 +79,33 @@ impl EarthPicture {
     /// share no memory (a Web Worker's answer).
     #[must_use]
     pub fn to_wire(&self) -> Vec<u8> {
-        let mut wire: Vec<u8> = self.levels.concat();
+        let mut wire = self.levels.clone();
         wire.extend(self.cells.iter().flat_map(|c| c.to_le_bytes()));
         wire
     }
 
-    /// The picture from [`EarthPicture::to_wire`]'s bytes; None unless they are exactly
-    /// as long as a picture's.
+    /// The picture from [`EarthPicture::to_wire`]'s bytes, its levels kept where they
+    /// are; None unless they are exactly as long as a picture's.
     #[must_use]
-    pub fn from_wire(wire: &[u8]) -> Option<Self> {
-        let mut rest = wire;
-        let mut levels = Vec::new();
-        for (w, h) in level_sizes() {
-            let n = (4 * w * h) as usize;
-            let (level, after) = rest.split_at_checked(n)?;
-            levels.push(level.to_vec());
-            rest = after;
-        }
+    pub fn from_wire(mut wire: Vec<u8>) -> Option<Self> {
+        let levels: usize = level_sizes().map(|(w, h)| (4 * w * h) as usize).sum();
         let (columns, rows) = (SIZE.0 / CELL, SIZE.1 / CELL);
-        if rest.len() != 4 * (columns * rows) as usize {
+        if wire.len() != levels + 4 * (columns * rows) as usize {
             return None;
         }
-        let cells = rest.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        Some(Self { levels, cells })
+        let cells = wire[levels..].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        wire.truncate(levels);
+        Some(Self { levels: wire, cells })
+    }
+
+    /// Each mip level's size and pixels, from the full picture down.
+    fn levels(&self) -> impl Iterator<Item = ((u32, u32), &[u8])> {
+        let mut rest = self.levels.as_slice();
+        level_sizes().map(move |(w, h)| {
+            let (level, after) = rest.split_at((4 * w * h) as usize);
+            rest = after;
+            ((w, h), level)
+        })
     }
 }
 
@@ -219,14 +224,17 @@ fn level_sizes() -> impl Iterator<Item = (u32, u32)> {
     std::iter::successors(Some(SIZE), |&(w, h)| (w > 1 && h > 1).then_some((w / 2, h / 2))).take(LEVELS as usize)
 }
 
-/// The picture's mip chain from its pixels: each level the mean of 2 x 2 of the one
-/// above, its colours in linear light, its heights in metres.
-fn mips(first: Vec<u8>) -> Vec<Vec<u8>> {
+/// The picture's mip chain from its pixels, one level after another: each level the mean
+/// of 2 x 2 of the one above, its colours in linear light, its heights in metres.
+fn mips(first: Vec<u8>) -> Vec<u8> {
     let to_linear: Vec<f32> = (0..=255u8).map(|v| super::settings::srgb_to_linear(f32::from(v) / 255.0)).collect();
-    let mut levels = vec![first];
+    let mut levels = first;
+    let mut above = 0;
     for (w, h) in level_sizes().skip(1) {
-        let (pw, level) = (2 * w, &levels[levels.len() - 1]);
+        let pw = 2 * w;
+        let start = levels.len();
         let mut next = vec![0u8; (4 * w * h) as usize];
+        let level = &levels[above..start];
         for y in 0..h {
             for x in 0..w {
                 for c in 0..3 {
@@ -241,7 +249,8 @@ fn mips(first: Vec<u8>) -> Vec<Vec<u8>> {
                 next[(4 * (y * w + x) + 3) as usize] = alpha_of(mean);
             }
         }
-        levels.push(next);
+        levels.extend_from_slice(&next);
+        above = start;
     }
     levels
 }
@@ -255,7 +264,7 @@ pub(super) fn write_earth(queue: &wgpu::Queue, texture: &wgpu::Texture) -> Optio
         tracing::error!("the built-in Earth picture does not decode: the ground beyond the data stays plain");
         return Some(false);
     };
-    for (mip, ((w, h), level)) in level_sizes().zip(&picture.levels).enumerate() {
+    for (mip, ((w, h), level)) in picture.levels().enumerate() {
         queue.write_texture(
             wgpu::TexelCopyTextureInfo {
                 texture,
@@ -354,17 +363,19 @@ mod tests {
     #[test]
     fn the_decoded_picture_comes_back_from_its_bytes() {
         let picture = super::EarthPicture::decode().expect("earth.webp decodes");
-        assert_eq!(picture.levels.len(), super::LEVELS as usize);
-        assert_eq!(picture.levels[0].len(), 4 * 2048 * 1024);
-        assert_eq!(picture.levels.last().map(Vec::len), Some(4 * 2), "2 x 1");
-        // The last level is the mean of the whole picture: land and sea, some height.
-        let last = &picture.levels[super::LEVELS as usize - 1];
+        let levels: Vec<_> = picture.levels().collect();
+        assert_eq!(levels.len(), super::LEVELS as usize);
+        assert_eq!(levels[0], ((2048, 1024), &picture.levels[..4 * 2048 * 1024]));
+        assert_eq!(levels.iter().map(|(_, l)| l.len()).sum::<usize>(), picture.levels.len());
+        // The last level, 2 x 1, is the mean of each half: land and sea, some height.
+        let ((w, h), last) = levels[levels.len() - 1];
+        assert_eq!((w, h, last.len()), (2, 1, 8));
         assert!(last[2] > 20 && last[3] > 1, "{last:?}");
         let wire = picture.to_wire();
-        assert_eq!(super::EarthPicture::from_wire(&wire).as_ref(), Some(&picture));
-        assert!(super::EarthPicture::from_wire(&wire[..wire.len() - 1]).is_none());
-        assert!(super::EarthPicture::from_wire(&[wire.as_slice(), &[0]].concat()).is_none());
-        assert!(super::EarthPicture::from_wire(&[]).is_none());
+        assert_eq!(super::EarthPicture::from_wire(wire.clone()).as_ref(), Some(&picture));
+        assert!(super::EarthPicture::from_wire(wire[..wire.len() - 1].to_vec()).is_none());
+        assert!(super::EarthPicture::from_wire([wire.as_slice(), &[0]].concat()).is_none());
+        assert!(super::EarthPicture::from_wire(Vec::new()).is_none());
     }
 
     #[test]

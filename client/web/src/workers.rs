@@ -157,7 +157,7 @@ impl Pool {
         let decoded = self.earth.clone();
         wasm_bindgen_futures::spawn_local(async move {
             let picture = match receiver.await {
-                Ok(Ok(bytes)) => EarthPicture::from_wire(&bytes),
+                Ok(Ok(bytes)) => EarthPicture::from_wire(bytes),
                 Ok(Err(e)) => {
                     tracing::warn!(
                         "the Earth picture was not decoded in a worker ({e:?}): decoding on the page's thread"
