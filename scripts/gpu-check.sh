@@ -12,7 +12,7 @@
 #                                  $OUT (or .gpu/out here); ends well inside 10 minutes
 #
 # The device call: command "bash scripts/gpu-check.sh run", carry [".gpu"], timeout_s
-# 540. Run here (`run` without a GPU), it measures lavapipe with smaller sizes
+# 540. There it needs only bash, coreutils, awk and xz. Run here (`run` without a GPU), it measures lavapipe with smaller sizes
 # (SMALL=1 forces that), which checks the script itself.
 #
 # What it measures (docs/BENCHMARKS.md says what each number is):
@@ -99,12 +99,13 @@ run() {
         start=$(date +%s.%N)
         RAYON_NUM_THREADS=$n "$t" -q tile --elevation "$dir/dem.tif" -o "/tmp/gpu-check-$n.tspack" >/dev/null
         end=$(date +%s.%N)
-        secs=$(echo "$end - $start" | bc -l)
+        secs=$(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.3f", b - a }')
         sum=$(sha256sum "/tmp/gpu-check-$n.tspack" | cut -c1-16)
         [[ -z $first ]] && first=$sum
         [[ $n == 1 ]] && base=$secs
         printf 'round %d: %2d threads %6.3f s  T(1)/T(n) %5.2f  %s\n' "$round" "$n" "$secs" \
-          "$(echo "$base / $secs" | bc -l)" "$([[ $sum == "$first" ]] && echo "same bytes" || echo "DIFFERENT BYTES $sum")"
+          "$(awk -v a="$base" -v b="$secs" 'BEGIN { print a / b }')" \
+          "$([[ $sum == "$first" ]] && echo "same bytes" || echo "DIFFERENT BYTES $sum")"
         rm -f "/tmp/gpu-check-$n.tspack"
       done
     done
