@@ -130,7 +130,8 @@ pub struct RenderArgs {
     /// Output PNG.
     #[arg(short, long)]
     output: PathBuf,
-    /// Render the first frame that has data instead of waiting for the full view.
+    /// Render the first frame that has data (and, on the globe, the whole-Earth picture)
+    /// instead of waiting for the full view.
     #[arg(long)]
     no_wait: bool,
     /// Seconds to wait for the full view.
