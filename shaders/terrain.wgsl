@@ -857,6 +857,13 @@ fn highest_span(eye: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
 // (`raised_ground`): two of the heights' spacings.
 const EARTH_SINK_REACH: f32 = 39136.0;
 
+// How far point `p`, `t` from the eye along a ray, is above the heights' ground read at mip
+// `level`, that ground lowered by `sink` at the eye and by less out to EARTH_SINK_REACH.
+fn above_ground(p: vec3<f32>, t: f32, level: f32, sink: f32) -> f32 {
+    let sunk = sink * max(1.0 - t / EARTH_SINK_REACH, 0.0);
+    return length(p) - BOTTOM - earth_height(normalize(p), level) + sunk;
+}
+
 // Along the ray from `eye` (direction `d`) where it first meets the ground's heights,
 // marched from where it enters the sphere of the highest ground in view to where it meets
 // the sea's sphere (`sea`) or leaves the highest's (`span`). Each step is a quarter of the
@@ -876,16 +883,11 @@ fn raised_ground(eye: vec3<f32>, d: vec3<f32>, sea: f32, span: vec2<f32>) -> f32
     let start = span.x;
     let end = select(span.y, sea, sea > 0.0);
     var t_prev = start;
-    let first = eye + d * start;
-    let lowered = sink * max(1.0 - start / EARTH_SINK_REACH, 0.0);
-    var above_prev = length(first) - BOTTOM - earth_height(normalize(first), 0.0) + lowered;
+    var above_prev = above_ground(eye + d * start, start, 0.0, sink);
     for (var i = 0u; i < 24u && t_prev < end; i++) {
         let step = max(EARTH_TEXEL, 0.25 * t_prev);
         let t = min(t_prev + step, end);
-        let p = eye + d * t;
-        let level = log2(step / EARTH_TEXEL);
-        let sunk = sink * max(1.0 - t / EARTH_SINK_REACH, 0.0);
-        let above = length(p) - BOTTOM - earth_height(normalize(p), level) + sunk;
+        let above = above_ground(eye + d * t, t, log2(step / EARTH_TEXEL), sink);
         if above <= 0.0 && above_prev > 0.0 {
             return mix(t_prev, t, above_prev / (above_prev - above));
         }

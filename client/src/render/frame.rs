@@ -199,7 +199,8 @@ impl TerrainRenderer {
             (
                 pole,
                 frame.direction_to_local(DVec3::X),
-                (self.settings.earth && self.earth_drawn == Some(true)).then(|| {
+                // Written only where the settings draw it.
+                (self.earth_drawn == Some(true)).then(|| {
                     let (lon, lat, _) = crate::globe::geodetic(camera.position);
                     (lon.to_degrees(), lat.to_degrees())
                 }),

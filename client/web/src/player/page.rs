@@ -125,18 +125,17 @@ pub(super) fn params(window: &Window) -> Result<Params, String> {
             Some(n.parse().ok().filter(|&n| n >= 2).ok_or(format!("flight={n:?}: a number of frames, 2 or more"))?)
         }
     };
-    let flat = match query.get("flat").as_deref() {
-        None | Some("0" | "false" | "no") => camera.is_some(),
-        Some("" | "1" | "true" | "yes") => true,
-        Some(other) => return Err(format!("flat={other:?}: 1 (the flat plate) or 0 (the globe)")),
+    // A switch: None where the page does not give it; `meaning` names its two values.
+    let switch = |name: &str, meaning: &str| match query.get(name).as_deref() {
+        None => Ok(None),
+        Some("" | "1" | "true" | "yes") => Ok(Some(true)),
+        Some("0" | "false" | "no") => Ok(Some(false)),
+        Some(other) => Err(format!("{name}={other:?}: {meaning}")),
     };
+    let flat = switch("flat", "1 (the flat plate) or 0 (the globe)")?.unwrap_or(false) || camera.is_some();
     let hud = query.get("hud").as_deref() != Some("0");
     let sun = query.get("sun").map(|s| terrastream_client::globe::parse_sun(&s)).transpose()?;
-    let on = |name: &str| match query.get(name).as_deref() {
-        None | Some("" | "1" | "true" | "yes") => Ok(true),
-        Some("0" | "false" | "no") => Ok(false),
-        Some(other) => Err(format!("{name}={other:?}: 1 (on) or 0 (off)")),
-    };
+    let on = |name: &str| switch(name, "1 (on) or 0 (off)").map(|v| v.unwrap_or(true));
     let (atmosphere, earth) = (on("atmosphere")?, on("earth")?);
     Ok(Params { archive, camera, pose, backends, hud, workers, flight, flat, sun, atmosphere, earth })
 }
