@@ -59,7 +59,10 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     let patch = oracles::grid_tif(d, "survey", [45.0, 25.0, 0.25, 240.0], &oracles::everest_height);
     // Absolute paths: `tile` joins them to the repository's unchanged.
     let both = [base.to_str().unwrap(), patch.to_str().unwrap()];
-    let run = |name: &str, extra: &[&str]| tile(d, name, &both, extra);
+    // LOD 0 at the survey's spacing (the base is then made at 0.1 / 1.5 degrees, on LOD
+    // 4): the same grid as the run in order's (`--lod0 auto` would put LOD 0 at 0.75 of
+    // it, the base on LOD 5 at its own spacing: the next test).
+    let run = |name: &str, extra: &[&str]| tile(d, name, &both, &[extra, &["--lod0", "finest"]].concat());
     let (col, order) = (run("wide.tspack", &[]), run("wide-order.tspack", &["--priority", "order"]));
     let info = ok(&["info", col.to_str().unwrap()], d);
     assert!(info.contains("longitude/latitude"), "kept geographic: {info}");
@@ -81,7 +84,7 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     // A second survey added by `update` (which opens it onto the archive's grid): the run
     // with both, tile for tile.
     let second = oracles::grid_tif(d, "survey2", [48.0, 22.0, 0.25, 240.0], &oracles::everest_height);
-    let all = tile(d, "wide-all.tspack", &[both[0], both[1], second.to_str().unwrap()], &[]);
+    let all = tile(d, "wide-all.tspack", &[both[0], both[1], second.to_str().unwrap()], &["--lod0", "finest"]);
     let updated = d.join("wide-updated.tspack");
     ok(&["update", col.to_str().unwrap(), "--elevation", second.to_str().unwrap(), "-o", updated.to_str().unwrap()], d);
     assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
@@ -113,6 +116,142 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     let (a, b) = (heights(&given), heights(&ordered));
     assert_eq!(a.len(), b.len(), "as many height tiles as the run in order");
     assert!(a == b, "the heights of the run in order, byte for byte");
+}
+
+/// A base whose spacing is not a power of two of the survey's: by default LOD 0 is made
+/// finer than the survey by less than 2x, so that the base lies on a level at its own
+/// spacing instead of being upsampled by up to 2x each way. Fewer tiles; the survey's
+/// heights resampled finer, the same within its own interpolation; `update` and shards
+/// find the same grid.
+#[test]
+fn a_wide_base_is_made_at_its_own_spacing() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Smooth ground: resampling the survey 4/3 finer moves its heights by millimetres.
+    let ground = |lon: f64, lat: f64| 1500.0 + 400.0 * (lon * 3.0).sin() * (lat * 2.0).cos();
+    // A 12 x 12 degree base at 0.1 degree, raised 5 m, and a quarter-degree survey at 15".
+    let base = oracles::grid_tif(d, "wide-base", [40.0, 20.0, 12.0, 10.0], &|x, y| ground(x, y) + 5.0);
+    let patch = oracles::grid_tif(d, "survey", [45.0, 25.0, 0.25, 240.0], &ground);
+    let both = [base.to_str().unwrap(), patch.to_str().unwrap()];
+    let auto = tile(d, "auto.tspack", &both, &[]);
+    let finest = tile(d, "finest.tspack", &both, &["--lod0", "finest"]);
+    let info = ok(&["info", auto.to_str().unwrap()], d);
+    assert!(
+        info.contains("wide-base.tif") && info.contains("from LOD5"),
+        "the base on LOD 5 (0.1 / 32 = 11.25\"): {info}"
+    );
+    ok(&["verify", auto.to_str().unwrap()], d);
+    let (ra, rf) = (Reader::open_mmap(&auto).unwrap(), Reader::open_mmap(&finest).unwrap());
+    let (la, lf) = (&ra.metadata().layers[0], &rf.metadata().layers[0]);
+    let (pa, pf) = (per_lod(&auto), per_lod(&finest));
+    let whole = |l: &terrastream_format::Layer, lod: u8| {
+        let (x, y) = l.grid_at(lod);
+        (x * y) as usize
+    };
+    assert_eq!(pa[&5], whole(la, 5), "LOD 5 covers the grid: {pa:?}");
+    assert_eq!(pf[&4], whole(lf, 4), "at the survey's spacing the base is LOD 4: {pf:?}");
+    // The base made at 0.1 degree in latitude, not 0.0667: a 1.5x finer grid holds 2.25x
+    // its samples (the columns are squared alike in both).
+    let ratio = pf[&4] as f64 / pa[&5] as f64;
+    assert!(ratio > 1.8, "{ratio:.2}x the base's tiles at the survey's spacing: {pf:?} against {pa:?}");
+    let sum = |m: &BTreeMap<u8, usize>| m.values().sum::<usize>();
+    assert!(sum(&pa) < sum(&pf), "{} tiles against {}", sum(&pa), sum(&pf));
+    // Inside the survey, beyond the blend band: the survey's ground within centimetres.
+    let step = la.elevation.unwrap().scale;
+    let level0 = la.sample_spacing(0);
+    let deep = random_points([45.08, 25.08, 45.17, 25.17], 200);
+    for ((a, f), &(lon, lat)) in heights(&ra, &deep).iter().zip(heights(&rf, &deep)).zip(&deep) {
+        let want = ground(lon, lat);
+        assert!((a.0 - want).abs() <= 0.05 + step, "({lon}, {lat}): {} where the survey has {want}", a.0);
+        assert!((a.0 - f.0).abs() <= 0.05 + 2.0 * step, "({lon}, {lat}): {} against {} at its spacing", a.0, f.0);
+        // The spacing named is the survey's own, not LOD 0's finer one.
+        assert!(a.1 > 1.15 * level0 && a.1 <= f.1, "({lon}, {lat}): {} m named, LOD 0 at {level0} m", a.1);
+    }
+    // Far from it: the base's (5 m above).
+    let far = random_points([41.0, 21.0, 43.0, 23.0], 50);
+    for (a, &(lon, lat)) in heights(&ra, &far).iter().zip(&far) {
+        assert!((a.0 - ground(lon, lat) - 5.0).abs() < 15.0, "({lon}, {lat}): {}", a.0);
+    }
+    // `update` opens a second survey onto the archive's grid: the run with both.
+    let second = oracles::grid_tif(d, "survey2", [48.0, 22.0, 0.25, 240.0], &ground);
+    let all = tile(d, "auto-all.tspack", &[both[0], both[1], second.to_str().unwrap()], &[]);
+    let updated = d.join("auto-updated.tspack");
+    ok(
+        &["update", auto.to_str().unwrap(), "--elevation", second.to_str().unwrap(), "-o", updated.to_str().unwrap()],
+        d,
+    );
+    assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
+    // Shards each find the same grid: merged, the single run.
+    let shards: Vec<PathBuf> =
+        (0..3).map(|i| tile(d, &format!("auto-{i}.tspack"), &both, &["--shard", &format!("{i}/3")])).collect();
+    let merged = d.join("auto-merged.tspack");
+    let mut args: Vec<&str> = vec!["merge"];
+    args.extend(shards.iter().map(|p| p.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap(), "--elevation", both[0], both[1]]);
+    ok(&args, d);
+    assert!(tiles_of(&auto) == tiles_of(&merged), "the shards merged are not the single run");
+    // Pictures of the two (GDAL's colour relief): the imagery goes onto the square grid
+    // the plan's texture layer has, as the heights do (its tiles fell outside that layer
+    // when made on the pictures' own geographic grid), its base on a level of its own.
+    // A grey ramp over the ground's heights (1 100 to 1 905 m): a picture's grey is a
+    // linear function of its height, which resampling and means keep, so where the
+    // archive's texels lie over its heights, one says the other.
+    let Some(gdal) = colour_relief(d) else { return };
+    std::fs::write(d.join("grey.txt"), "1000 0 0 0\n2000 250 250 250\n").unwrap();
+    for (dem, rgb) in [(both[0], "wide-rgb.tif"), (both[1], "survey-rgb.tif")] {
+        gdal(&["gdaldem", "color-relief", "-q", dem, "grey.txt", rgb]);
+    }
+    let (wide_rgb, survey_rgb) = (d.join("wide-rgb.tif"), d.join("survey-rgb.tif"));
+    let (wide_rgb, survey_rgb) = (wide_rgb.to_str().unwrap(), survey_rgb.to_str().unwrap());
+    let pictures = ["--texture", wide_rgb, survey_rgb, "--texture-tile-size", "32"];
+    let pictured = tile(d, "pictured.tspack", &both, &pictures);
+    ok(&["verify", pictured.to_str().unwrap()], d);
+    let info = ok(&["info", pictured.to_str().unwrap()], d);
+    assert!(info.contains("wide-rgb.tif") && info.contains("from LOD5 (texture)"), "{info}");
+    let reader = Reader::open_mmap(&pictured).unwrap();
+    let texture = reader.metadata().layers.iter().find(|l| l.kind == terrastream_format::LayerKind::Texture).unwrap();
+    let elevation = &reader.metadata().layers[0];
+    let (tw, ew) = (texture.world_extent(), elevation.world_extent());
+    assert!(((tw.0 / tw.1) / (ew.0 / ew.1) - 1.0).abs() < 0.02, "the pictures cover the heights' area: {tw:?} {ew:?}");
+    assert!((texture.tile_world_size / elevation.tile_world_size - 1.0).abs() < 1e-3, "one texel a sample");
+    // Every texel of the base's level and the next, against the height beneath it.
+    let index = reader.metadata().layers.iter().position(|l| l.kind == terrastream_format::LayerKind::Texture).unwrap();
+    let mut decoded: BTreeMap<(u8, u8, u32, u32), terrastream_tiles::TileData> = BTreeMap::new();
+    reader
+        .for_each_tile(|key, stored| -> Result<(), terrastream_format::Error> {
+            let layer = usize::from(key.layer());
+            if (layer == 0 || layer == index) && (5..=6).contains(&key.lod()) {
+                let meta = &reader.metadata().layers[layer];
+                let tile = terrastream_tiles::decode(meta, key, stored, true).unwrap();
+                decoded.insert((key.layer(), key.lod(), key.x(), key.y()), tile.data);
+            }
+            Ok(())
+        })
+        .unwrap();
+    let (mut compared, mut worst, mut sum) = (0usize, 0f64, 0f64);
+    for ((layer, lod, x, y), data) in &decoded {
+        let terrastream_tiles::TileData::Rgba8(texels) = data else { continue };
+        assert_eq!(usize::from(*layer), index);
+        let Some(terrastream_tiles::TileData::Heights { heights, .. }) = decoded.get(&(0, *lod, *x, *y)) else {
+            panic!("no height tile under texture tile {lod}/{x}/{y}")
+        };
+        assert_eq!(heights.len() * 4, texels.len(), "{lod}/{x}/{y}: one texel a sample");
+        for (h, t) in heights.iter().zip(texels.chunks_exact(4)) {
+            if h.is_nan() || t[3] < 255 {
+                continue;
+            }
+            let grey = f64::from((h - 1000.0) * 0.25);
+            let off = (f64::from(t[0]) - grey).abs();
+            (compared, worst, sum) = (compared + 1, worst.max(off), sum + off);
+        }
+    }
+    let mean = sum / compared as f64;
+    eprintln!("texels against heights: {compared} compared, mean {mean:.2}, worst {worst:.1} grey levels");
+    assert!(compared > 10_000, "{compared} texels compared");
+    assert!(
+        mean < 2.0 && worst < 16.0,
+        "the pictures lie elsewhere than the heights: mean {mean:.2}, worst {worst:.1}"
+    );
 }
 
 /// A level's rows are made in bands, a worker a core, from four cores, and in one run

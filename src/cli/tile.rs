@@ -6,11 +6,11 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use terrastream_format::{ElevationEncoding, ElevationScheme, LayerKind};
-use terrastream_tiler::raster::DatumName;
+use terrastream_tiler::raster::{DatumName, GridSpec, InputLayout};
 use terrastream_tiler::{
     Blend, Collection, Collections, ElevationStorage, Plan, ShardPlan, ShardSpec, Sources, TextureFormat, TileOptions,
-    TileRequest, collection_shard_plan, expand_inputs, is_vrt, plan, plan_layout, shard_plan, squared_grid,
-    tile_collection, tile_shard,
+    TileRequest, aligned_grid, collection_shard_plan, expand_inputs, is_vrt, plan, plan_layout, shard_plan,
+    squared_grid, squared_texture_grid, tile_collection, tile_shard,
 };
 
 use super::progress::CliProgress;
@@ -155,12 +155,19 @@ pub struct TileArgs {
     #[arg(long, requires = "height_range_out")]
     require_statistics: bool,
     /// Where inputs of different resolutions overlap: `resolution`, the finer wins, and
-    /// each input reaches only the levels its resolution supports (at most 2x
-    /// upsampling: a base and fine surveys make the base's levels everywhere and the
-    /// surveys' only where they lie); `order`, a later input wins, and every input is
-    /// tiled at the finest spacing everywhere.
+    /// each input reaches only the levels its resolution supports (the coarsest level no
+    /// coarser than its spacing: a base and fine surveys make the base's levels
+    /// everywhere and the surveys' only where they lie); `order`, a later input wins, and
+    /// every input is tiled at the finest spacing everywhere.
     #[arg(long, value_enum, default_value_t = PriorityArg::Resolution)]
     priority: PriorityArg,
+    /// LOD 0's spacing for inputs of different resolutions: `auto`, the finest input's,
+    /// or finer by less than 2x where that puts a coarser input's spacing on a level and
+    /// makes at least a tenth fewer samples (a 30" base under a 1" survey: LOD 0 at
+    /// 30"/32, the base made at its own 30", not upsampled to 16"); `finest`, always the
+    /// finest input's (its samples kept as they lie on the grid).
+    #[arg(long, value_enum, default_value_t = Lod0Arg::Auto)]
+    lod0: Lod0Arg,
     /// The band across which a finer input blends into the coarser data beneath, along
     /// its data's edge, so that no step shows where a survey ends: samples of its level
     /// (`16`, the default) or metres (`500m`); 0 for none.
@@ -229,7 +236,7 @@ fn planned_collections_of(
     sources: &Sources,
     request: &TileRequest,
 ) -> Result<(Option<Collection>, Option<Collection>)> {
-    let of = |kind: LayerKind, grid: Option<terrastream_tiler::raster::GridSpec>| -> Result<Option<Collection>> {
+    let of = |kind: LayerKind, grid: Option<GridSpec>| -> Result<Option<Collection>> {
         let Some(planned) = shards.collections.iter().find(|c| c.kind == kind) else { return Ok(None) };
         let Some(grid) = grid else {
             bail!("the shard plan holds a collection of {} but this shard has none of those inputs", people_kind(kind))
@@ -310,11 +317,32 @@ fn parse_shard(s: &str) -> std::result::Result<(u32, u32), String> {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum Lod0Arg {
+    /// The finest input's spacing, or finer where a coarser input's lands on a level.
+    Auto,
+    /// The finest input's spacing.
+    Finest,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum PriorityArg {
     /// The finer input wins; each input as deep as its resolution allows.
     Resolution,
     /// A later input wins; one resolution (the finest) everywhere.
     Order,
+}
+
+/// Says where a collection's LOD 0 is finer than its finest input's spacing.
+fn note_aligned(inputs: &[PathBuf], own: GridSpec, grid: GridSpec) {
+    let (a, b) = (own.pixel.1, grid.pixel.1);
+    if (a - b).abs() > 1e-12 * a {
+        tracing::info!(
+            "{} inputs of different resolutions: LOD 0 at {:.4}x the finest input's spacing, where a coarser \
+             input's lies on a level (--lod0 finest keeps the finest's)",
+            inputs.len(),
+            b / a
+        );
+    }
 }
 
 /// `16` (samples) or `500m` (metres).
@@ -456,11 +484,37 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     // are opened again onto the grid their plan tiles, with the columns that make them
     // square, as `update` opens a survey onto an archive's grid: a collection makes every
     // level on its mosaic's grid, where a run of one resolution resamples its rows.
-    if by_resolution && request.elevation_grid.is_none() && vrt.is_none() {
-        let spans = sources.height_mosaic().filter(|m| Collection::spans_resolutions(m));
-        if let Some(grid) = spans.and_then(|m| squared_grid(m, m.grid())) {
-            request.elevation_grid = Some(grid);
-            sources = Sources::open(&request)?;
+    // And LOD 0 may be finer than the finest input's spacing where that puts a coarser
+    // input's on a level (`aligned_grid`): heights and imagery each on their own grid.
+    if by_resolution && vrt.is_none() && request.resolution.is_none() {
+        let aligned = |grid: GridSpec, layout: &[InputLayout]| match args.lod0 {
+            Lod0Arg::Auto => aligned_grid(layout, grid),
+            Lod0Arg::Finest => None,
+        };
+        if request.elevation_grid.is_none()
+            && let Some(m) = sources.height_mosaic().filter(|m| Collection::spans_resolutions(m))
+        {
+            let square = squared_grid(m, m.grid());
+            let grid = aligned(square.unwrap_or_else(|| m.grid()), &m.layout()).or(square);
+            if let Some(grid) = grid {
+                note_aligned(&request.elevation, m.grid(), grid);
+                request.elevation_grid = Some(grid);
+                sources = Sources::open(&request)?;
+            }
+        }
+        // Imagery over heights whose samples the plan makes square (a geographic grid)
+        // goes onto as many columns as the plan's texture layer has, as the heights do.
+        if request.texture_grid.is_none()
+            && let Some(m) = sources.image_mosaic().filter(|m| Collection::spans_resolutions(m))
+        {
+            let inputs = sources.inputs()?;
+            let square = inputs.elevation().and_then(|e| squared_texture_grid(e, m.grid()));
+            let grid = aligned(square.unwrap_or_else(|| m.grid()), &m.layout()).or(square);
+            if let Some(grid) = grid {
+                note_aligned(&request.texture, m.grid(), grid);
+                request.texture_grid = Some(grid);
+                sources = Sources::open(&request)?;
+            }
         }
     }
     if args.dry_run && args.height_range_out.is_some() && request.height_range.is_none() {
@@ -709,18 +763,29 @@ fn people_kind(kind: LayerKind) -> &'static str {
 /// A collection's levels: each input's spacing and depth, and the tiles of each level
 /// below the base.
 fn print_collection(c: &Collection) {
+    let finest = c.grid.pixel.0.min(c.grid.pixel.1);
     println!(
-        "{} inputs of different resolutions, each as deep as it reaches (LOD 0 at {:.3} units):",
+        "{} inputs of different resolutions, each as deep as it reaches (LOD 0 at {} CRS units, level L at 2^L times):",
         people_kind(c.kind),
-        c.grid.pixel.0
+        significant(finest)
     );
     for i in &c.inputs {
-        println!("  {:<40} spacing {:>10.3}  from LOD {}", i.path.display(), i.spacing, i.depth);
+        println!("  {:<40} spacing {:>10}  from LOD {}", i.path.display(), significant(i.spacing), i.depth);
     }
     for l in &c.levels {
         println!("  LOD {:>2}: {} tiles where the finer inputs lie", l.lod, l.tiles.len());
     }
     println!("  LOD {:>2} and up: the whole grid", c.base);
+}
+
+/// `v` to four significant digits (a geographic grid's spacings are fractions of a degree).
+fn significant(v: f64) -> String {
+    if !(v.is_finite() && v > 0.0) {
+        return v.to_string();
+    }
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=12")]
+    let decimals = (3.0 - v.log10().floor()).clamp(0.0, 12.0) as usize;
+    format!("{v:.decimals$}")
 }
 
 /// Lists the elevation and imagery inputs left out with `--skip-bad-inputs`, wholly (when

@@ -33,14 +33,14 @@ mod water;
 
 pub use collection::{
     Blend, Collection, CollectionInput, Collections, DEFAULT_BLEND, PlannedCollection, RunInputs, SparseLevel,
-    collection_shard_plan, depth_of, tile_collection,
+    aligned_grid, collection_shard_plan, depth_of, tile_collection,
 };
 pub use edit::manifest::{ManifestSummary, merge_to_manifest, single_manifest, write_manifest};
 pub use edit::merge::{MergeSummary, Prefer, merge, merge_with, merge_with_water};
 pub use edit::update::{UpdateSummary, update};
 pub use error::{Error, Result};
 pub use options::{ElevationStorage, ShardSpec, TextureFormat, TextureInput, TileOptions};
-pub use plan::{LayerPlan, Plan, plan, plan_layout, squared_grid};
+pub use plan::{LayerPlan, Plan, plan, plan_layout, squared_grid, squared_texture_grid};
 pub use request::{Inputs, Sources, TileRequest};
 pub use shard::{PlannedGrid, ShardInputs, ShardPlan, shard_plan};
 pub use terrastream_format::Interrupted;

@@ -199,6 +199,25 @@ pub fn squared_grid(e: &dyn ElevationSource, grid: crate::raster::GridSpec) -> O
     Some(crate::raster::GridSpec { origin: grid.origin, pixel, size: (width, grid.size.1) })
 }
 
+/// The grid imagery on `grid`, over the area of heights `e`, is tiled on where its pixels
+/// are not square in metres as the heights' plan makes them: as many columns as [`plan`]
+/// gives its texture layer (None: within 1 % of them already). An imagery collection
+/// opens its pictures onto it, as a collection of heights opens them onto
+/// [`squared_grid`]'s.
+#[must_use]
+pub fn squared_texture_grid(e: &dyn ElevationSource, grid: crate::raster::GridSpec) -> Option<crate::raster::GridSpec> {
+    let (w, h) = e.size();
+    let columns = square_width(w, e.spacing()).unwrap_or(w);
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a sane pixel count")]
+    let width = ((f64::from(grid.size.1) * f64::from(columns) / f64::from(h.max(1))).round() as u32).max(1);
+    let (now, wanted) = (f64::from(grid.size.0), f64::from(width));
+    ((wanted / now - 1.0).abs() >= 0.01).then(|| crate::raster::GridSpec {
+        origin: grid.origin,
+        pixel: (grid.pixel.0 * now / wanted, grid.pixel.1),
+        size: (width, grid.size.1),
+    })
+}
+
 /// The elevation layer: square samples (rows resampled along x when the source's are more
 /// than 1 % from square), an encoding that keeps the height range exact enough, the
 /// terrain's settings.

@@ -1,10 +1,12 @@
 //! Collections: inputs of different resolutions in one archive, each only as deep as its
 //! own resolution allows (sparse depth; docs/tiling.md, "Collections").
 //!
-//! LOD 0 has the finest input's spacing `f`; level `L` spacing `f · 2^L`. An input of
-//! spacing `s` reaches down to its *depth*, the finest level no finer than half its own
-//! spacing (at most 2x upsampling): `ceil(log2(s / 2f))`, 0 at least. The coarsest inputs'
-//! depth is the *base*: from there up every level covers the whole grid, built as a
+//! LOD 0 has the finest input's spacing `f` (or, where that makes fewer samples, a
+//! spacing finer by less than 2x that puts a coarser input's own on a level:
+//! [`aligned_grid`]); level `L` spacing `f · 2^L`. An input of spacing `s` reaches down
+//! to its *depth*, the coarsest level no coarser than its own spacing (upsampled by less
+//! than 2x; an input whose spacing is a level's is that level's samples): `floor(log2(s /
+//! f))`, 0 at least. The coarsest inputs' depth is the *base*: from there up every level covers the whole grid, built as a
 //! pyramid of 2x2 means as a single-resolution run builds it. Below the base, level `L`
 //! holds only the tiles touching an input as deep as `L` (its footprint, and the tiles
 //! its edges touch), each made on its own grid at `L`'s spacing:
@@ -110,17 +112,70 @@ pub struct Collection {
     pub kind: LayerKind,
 }
 
-/// The depth of an input of spacing `spacing` on a LOD 0 of spacing `finest`: the finest
-/// level whose spacing is no finer than half the input's.
+/// The depth of an input of spacing `spacing` on a LOD 0 of spacing `finest`: the
+/// coarsest level whose spacing is no coarser than the input's (a spacing within a
+/// billionth of a level's is that level's).
 #[must_use]
 pub fn depth_of(spacing: f64, finest: f64) -> u8 {
-    let ratio = spacing / (2.0 * finest);
+    let ratio = spacing / finest;
     if !(ratio.is_finite() && ratio > 1.0) {
         return 0;
     }
     #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "clamped to 0..=60")]
-    let d = (ratio.log2() - 1e-9).ceil().clamp(0.0, 60.0) as u8;
+    let d = (ratio.log2() + 1e-9).floor().clamp(0.0, 60.0) as u8;
     d
+}
+
+/// Least share of a collection's samples that a LOD 0 finer than the finest input's
+/// must save for [`aligned_grid`] to choose it: below it the finest input's samples
+/// are kept as they lie.
+const ALIGNED_GAIN: f64 = 0.9;
+
+/// The grid a collection of inputs laid out as `layout` on `grid` (LOD 0 at the finest
+/// input's spacing `f`) makes the fewest samples on, where that is another: LOD 0 at a
+/// spacing `c·f` finer by less than 2x (`c` in (0.5, 1)) that puts a coarser input's own
+/// spacing exactly on a level, so that input is made at its own resolution rather than
+/// upsampled by up to 2x each way (up to 4x its samples), at the price of the finer
+/// inputs' upsampled by `1 / c`. A 30" base under a 1" survey: LOD 0 at 30"/32, the base
+/// made at its own 30" on LOD 5, where 1" put it on LOD 4 at 16" (3.5x its samples).
+/// Samples are counted as each input's footprint at its level; the grid is chosen only
+/// when it makes at most [`ALIGNED_GAIN`] of them. None: keep `grid`.
+#[must_use]
+pub fn aligned_grid(layout: &[InputLayout], grid: GridSpec) -> Option<GridSpec> {
+    let finest = grid.pixel.0.min(grid.pixel.1);
+    if !(finest.is_finite() && finest > 0.0) {
+        return None;
+    }
+    #[expect(clippy::cast_precision_loss, reason = "a sample count")]
+    let samples = |c: f64| -> f64 {
+        (layout.iter())
+            .map(|i| {
+                let area = ((i.columns.1 - i.columns.0 + 1).max(0) * (i.rows.1 - i.rows.0 + 1).max(0)) as f64;
+                let level = c * f64::from(1u32 << depth_of(i.spacing, c * finest).min(30));
+                area / (level * level)
+            })
+            .sum()
+    };
+    let candidates = layout.iter().filter_map(|i| {
+        let ratio = i.spacing / finest;
+        if !(ratio.is_finite() && ratio > 2.0) {
+            return None;
+        }
+        let c = ratio / (ratio.log2() - 1e-9).ceil().exp2();
+        (c > 0.5 && c < 1.0 - 1e-9).then_some(c)
+    });
+    let own = samples(1.0);
+    let (c, least) = candidates.map(|c| (c, samples(c))).min_by(|a, b| a.1.total_cmp(&b.1))?;
+    if least > own * ALIGNED_GAIN {
+        return None;
+    }
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "at most 2x a u32 grid's size")]
+    let more = |n: u32| (f64::from(n) / c - 1e-9).ceil().min(f64::from(u32::MAX)) as u32;
+    Some(GridSpec {
+        origin: grid.origin,
+        pixel: (grid.pixel.0 * c, grid.pixel.1 * c),
+        size: (more(grid.size.0), more(grid.size.1)),
+    })
 }
 
 impl Collection {
@@ -1205,7 +1260,7 @@ fn live_part(level: &SparseLevel, rect: [u32; 4], res: u32, corner: (u32, u32), 
 }
 
 /// The coarser inputs beneath a level, sampled on a grid `2^shift` times coarser than the
-/// level's (no finer than half their own spacing: their detail is all there) and brought
+/// level's (no coarser than their own spacing: their detail is all there) and brought
 /// to the level's samples bilinearly, which costs a level's row a few operations a sample
 /// instead of a transform and a bilinear read of the inputs each.
 struct Coarse<'a, 'q, S> {
@@ -1911,12 +1966,42 @@ mod tests {
     use super::*;
 
     #[test]
-    fn an_input_reaches_the_finest_level_no_finer_than_half_its_spacing() {
+    fn an_input_reaches_the_coarsest_level_no_coarser_than_its_spacing() {
         assert_eq!(depth_of(30.0, 30.0), 0);
-        assert_eq!(depth_of(60.0, 30.0), 0, "2x: upsampled 2x at LOD 0");
-        assert_eq!(depth_of(61.0, 30.0), 1);
+        assert_eq!(depth_of(59.0, 30.0), 0, "under 2x: upsampled at LOD 0");
+        assert_eq!(depth_of(60.0, 30.0), 1, "2x: LOD 1's own samples");
+        assert_eq!(depth_of(60.0 - 1e-12, 30.0), 1, "within rounding of a level");
         assert_eq!(depth_of(1000.0, 200.0), 2, "a 1 km base over 200 m reaches 800 m");
+        assert_eq!(depth_of(30.0, 1.0), 4, "30 over 1 reaches 16");
         assert_eq!(depth_of(f64::NAN, 1.0), 0);
+    }
+
+    fn laid_out(spacing: f64, columns: (i64, i64), rows: (i64, i64)) -> InputLayout {
+        InputLayout { path: PathBuf::from(format!("{spacing}.tif")), spacing, columns, rows }
+    }
+
+    /// A 30" base under a 1" survey: the base at 16" (LOD 4 of 1") makes 3.5x its own
+    /// samples; LOD 0 at 30"/32 puts it on LOD 5 at its own spacing.
+    #[test]
+    fn a_wide_base_puts_lod_0_where_its_spacing_is_a_level() {
+        let (s, f) = (30.0 / 3600.0, 1.0 / 3600.0);
+        let grid = GridSpec { origin: [-126.0, 45.0], pixel: (f, f), size: (93_600, 54_000) };
+        let layout = [laid_out(s, (-1, 93_600), (-1, 54_000)), laid_out(f, (11_000, 13_400), (25_000, 27_400))];
+        let aligned = aligned_grid(&layout, grid).expect("the base's spacing on a level");
+        let c = aligned.pixel.1 / f;
+        assert!((c - 30.0 / 32.0).abs() < 1e-12, "{c}");
+        assert_eq!(aligned.origin, grid.origin);
+        assert_eq!(aligned.size, (99_840, 57_600));
+        assert_eq!(depth_of(s, aligned.pixel.1), 5);
+        assert!((s / (aligned.pixel.1 * 32.0) - 1.0).abs() < 1e-12);
+        // Over a small base the survey's samples count most: its spacing is kept.
+        let small = [laid_out(s, (-1, 3_600), (-1, 3_600)), laid_out(f, (600, 3_000), (600, 3_000))];
+        assert_eq!(aligned_grid(&small, GridSpec { size: (3_600, 3_600), ..grid }), None);
+        // A base whose spacing is a level's already, or within 2x of the finest: kept.
+        let even = [laid_out(32.0 * f, (-1, 93_600), (-1, 54_000)), layout[1].clone()];
+        assert_eq!(aligned_grid(&even, grid), None);
+        let near = [laid_out(1.5 * f, (-1, 93_600), (-1, 54_000)), layout[1].clone()];
+        assert_eq!(aligned_grid(&near, grid), None);
     }
 
     #[test]
