@@ -744,3 +744,36 @@ fn a_vrt_sources_scale_and_nodata_give_the_range_and_the_tiles() {
         }
     }
 }
+
+/// Rows made only in a window of columns (a collection's coarse data under a survey) are
+/// the whole rows there, bit for bit: for an input warped onto the grid (on its lattice
+/// of exact transforms, anchored at its footprint), one on the grid's own lattice, and
+/// one a fraction of a pixel off it; windows across lattice cells, one column wide, at
+/// the grid's edges.
+#[test]
+fn rows_made_in_a_window_of_columns_are_the_whole_rows_there() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a.tif");
+    utm_tile(&a, (500_000.0, 5_100_000.0), (300, 120), |i, j| 300.0 + (i as f32 * 0.37).sin() * 40.0 + j as f32);
+    let b = dir.path().join("b.tif");
+    geographic_tile(&b, 15.0, 46.04, 0.0002, (120, 60));
+    let c = dir.path().join("c.tif");
+    utm_tile(&c, (501_203.7, 5_099_493.8), (90, 40), |i, j| 100.0 + (i as f32 * 0.21).sin() * 30.0 + j as f32);
+    let inputs = [a, b, c];
+    let open = || Mosaic::<Heights>::open(&inputs, &MosaicOptions::default()).unwrap();
+    let whole = rows_of(&open());
+    let width = whole[0].len() as u32;
+    assert!(width >= 300, "{width} columns");
+    let mut compared = 0;
+    for window in [0..1, 5..70, 31..33, 32..64, 63..65, 140..141, 150..260, width - 1..width, 0..width] {
+        let mut part = open();
+        part.only_columns(window.clone());
+        for (j, (row, full)) in rows_of(&part).iter().zip(&whole).enumerate() {
+            for i in window.clone().map(|i| i as usize) {
+                assert_eq!(row[i].to_bits(), full[i].to_bits(), "window {window:?}, sample ({i}, {j})");
+                compared += usize::from(!full[i].is_nan());
+            }
+        }
+    }
+    assert!(compared > 10_000, "{compared} samples with data compared");
+}

@@ -337,9 +337,36 @@ pub struct Mosaic<K: MosaicKind = Heights> {
     cache_bytes: usize,
     /// What the heights are measured from ([`Mosaic::set_datum`]).
     datum: Option<crate::DatumName>,
+    /// The output columns rows are made in ([`Mosaic::only_columns`]): first and last,
+    /// inclusive. None: every column.
+    made: Option<(usize, usize)>,
+}
+
+/// The part of an input's footprint columns `(c0, c1)` (as [`Mosaic::columns_of`] gives
+/// them) that rows made only in `made` need: whole cells of its lattice
+/// ([`LATTICE`], from `c0`), so that each sample made is the one a row across the whole
+/// footprint makes. None where they do not meet.
+fn visible((f0, f1): (usize, usize), made: Option<(usize, usize)>) -> Option<(usize, usize)> {
+    let Some((m0, m1)) = made else { return (f0 <= f1).then_some((f0, f1)) };
+    let (v0, v1) = (f0.max(m0), f1.min(m1));
+    if v0 > v1 {
+        return None;
+    }
+    // Cell `k` is [f0 + k·LATTICE, f0 + (k + 1)·LATTICE), the last one ending at f1.
+    let cells = (f1 - f0).div_ceil(LATTICE).max(1);
+    let cell = |v: usize| ((v - f0) / LATTICE).min(cells - 1);
+    Some((f0 + cell(v0) * LATTICE, (f0 + (cell(v1) + 1) * LATTICE).min(f1)))
 }
 
 impl<K: MosaicKind> Mosaic<K> {
+    /// Rows are made only in output columns `columns` (others are no data), and only the
+    /// inputs' chunks under them are decoded: a part of a wide grid, each of its samples
+    /// the one a row across the whole grid holds.
+    pub fn only_columns(&mut self, columns: std::ops::Range<u32>) {
+        let (a, b) = (columns.start as usize, (columns.end as usize).min(self.size.0 as usize));
+        self.made = (a < b).then_some((a, b - 1)).or(Some((1, 0)));
+    }
+
     /// The mosaic of `paths` (GeoTIFFs of heights, each georeferenced in a CRS the tiler
     /// knows), in the order given: a later input wins where inputs overlap.
     ///
@@ -411,6 +438,7 @@ impl<K: MosaicKind> Mosaic<K> {
             georeference,
             cache_bytes: options.cache_bytes.unwrap_or(512 << 20),
             datum: None,
+            made: None,
         })
     }
 
@@ -583,8 +611,11 @@ impl<K: MosaicKind> Mosaic<K> {
             else {
                 continue;
             };
-            let (c0, c1) = self.columns_of(input);
-            if c1 < c0 || out[c0..=c1].iter().all(|v| !K::is_none(v)) {
+            let footprint = self.columns_of(input);
+            // Whole lattice cells of the footprint over the columns made (the footprint
+            // where rows are made across it: see `only_columns`).
+            let Some((c0, c1)) = visible(footprint, self.made) else { continue };
+            if out[c0..=c1].iter().all(|v| !K::is_none(v)) {
                 continue;
             }
             let empty: Option<Vec<bool>> = input.shift.as_ref().map(|_| out[c0..=c1].iter().map(K::is_none).collect());
@@ -618,6 +649,8 @@ impl<K: MosaicKind> Mosaic<K> {
             };
             match input.placement {
                 Placement::Shifted(sx, sy) => {
+                    // From the footprint's first column, as a row across it makes them.
+                    let (c0, c1) = footprint;
                     #[expect(clippy::cast_precision_loss, reason = "pixel indices are far below 2^52")]
                     window.shifted_into(c0 as f64 + sx, f64::from(j) + sy, &mut out[c0..=c1], &edge);
                 }
@@ -634,8 +667,14 @@ impl<K: MosaicKind> Mosaic<K> {
                     };
                     let fy = f64::from(j % LATTICE_ROWS) / f64::from(LATTICE_ROWS);
                     let mut pair = None;
-                    for k in 0..top.len().saturating_sub(1) {
-                        let (from, to) = (c0 + k * LATTICE, (c0 + (k + 1) * LATTICE).min(c1));
+                    // The lattice spans the footprint; the cells over the visible columns.
+                    let (f0, f1) = footprint;
+                    let first = (c0 - f0) / LATTICE;
+                    for k in first..top.len().saturating_sub(1) {
+                        let (from, to) = (f0 + k * LATTICE, (f0 + (k + 1) * LATTICE).min(f1));
+                        if k > first && from >= c1 {
+                            break;
+                        }
                         let mix = |p: (f64, f64), q: (f64, f64), t: f64| (p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t);
                         let (a, b) = (mix(top[k], bottom[k], fy), mix(top[k + 1], bottom[k + 1], fy));
                         let last = if to == c1 { to } else { to - 1 };
@@ -643,7 +682,7 @@ impl<K: MosaicKind> Mosaic<K> {
                         let step = 1.0 / (to - from).max(1) as f64;
                         let d = ((b.0 - a.0) * step, (b.1 - a.1) * step);
                         window.line_into((a, d), &mut out[from..=last], &edge, &mut pair);
-                        if to == c1 {
+                        if to == f1 {
                             break;
                         }
                     }

@@ -167,10 +167,9 @@ impl<'m, K: MosaicKind> BandReader<'m, K> {
         let windows = (inputs.par_iter())
             .map(|&index| {
                 let input = &m.inputs[index];
-                let (c0, c1) = m.columns_of(input);
-                if c1 < c0 {
-                    return Ok(None);
-                }
+                let footprint = m.columns_of(input);
+                // Only the chunks under the columns rows are made in (see `only_columns`).
+                let Some((c0, c1)) = visible(footprint, m.made) else { return Ok(None) };
                 // The band's rows of the footprint, in input pixels: the corners for
                 // inputs on the grid; for others every lattice point the rows lie
                 // between (a row's points are linear between them).
@@ -180,10 +179,16 @@ impl<'m, K: MosaicKind> BandReader<'m, K> {
                 #[expect(clippy::cast_precision_loss, reason = "pixel offsets are far below 2^52")]
                 let points = match input.placement {
                     Placement::Aligned(ox, oy) => corners((ox as f64, oy as f64)),
-                    Placement::Shifted(sx, sy) => corners((sx, sy)),
+                    Placement::Shifted(sx, sy) => {
+                        // Made across the footprint (see `Mosaic::row`).
+                        let (c0, c1) = footprint;
+                        vec![(c0 as f64 + sx, j0 as f64 + sy), (c1 as f64 + sx, j1 as f64 + sy)]
+                    }
                     Placement::Warped => {
+                        // The lattice spans the footprint: the points of the cells made.
+                        let (i0, i1) = ((c0 - footprint.0) / LATTICE, (c1 - footprint.0).div_ceil(LATTICE));
                         let rows = lattice_rows.clone().filter_map(|l| lattice.get(&(index, l)));
-                        rows.flat_map(|row| row.iter().copied()).collect()
+                        rows.flat_map(|row| row[i0.min(row.len())..(i1 + 1).min(row.len())].iter().copied()).collect()
                     }
                 };
                 self.window(index, &points)

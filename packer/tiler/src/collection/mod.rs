@@ -828,7 +828,12 @@ where
         let (first, part) =
             coarse_grid(c.grid.origin, (c.grid.pixel.0 * scale, c.grid.pixel.1 * scale), corner, grid.size, shift);
         let coarse_lod = lod + u8::try_from(shift).unwrap_or(0);
-        let coarse = open(below, c.level_grid(coarse_lod))?.map(|mosaic| {
+        let coarse = open(below, c.level_grid(coarse_lod))?.map(|mut mosaic| {
+            // Only the part's columns are made (and their chunks decoded), each sample
+            // the one the whole grid's row holds: a survey's levels over a continent's
+            // base read the base under the survey, not across the continent.
+            let columns = |n: i64| u32::try_from(n.max(0)).unwrap_or(u32::MAX);
+            mosaic.only_columns(columns(first.0)..columns(first.0 + i64::from(part.size.0)));
             let part: Box<dyn CoarseRows<K::Value>> = Box::new(MosaicPart { mosaic, first, size: part.size });
             (part, shift, first)
         });
