@@ -551,31 +551,20 @@ mod tests {
             })
             .collect();
         encoder.write_image::<colortype::Gray32Float>(w, h, &floats).unwrap();
-        const FLOAT_TILES: &[&str] =
-            &["-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=16", "-co", "COMPRESS=DEFLATE"];
-        let float_cases: [&[&str]; 6] = [
-            &[
-                "-co",
-                "TILED=YES",
-                "-co",
-                "BLOCKXSIZE=32",
-                "-co",
-                "BLOCKYSIZE=16",
-                "-co",
-                "COMPRESS=DEFLATE",
-                "-co",
-                "PREDICTOR=3",
-            ],
+        // Creation options, each after a `-co`.
+        let co = |options: &[&'static str]| -> Vec<&'static str> { options.iter().flat_map(|o| ["-co", *o]).collect() };
+        let float_cases = [
+            co(&["TILED=YES", "BLOCKXSIZE=32", "BLOCKYSIZE=16", "COMPRESS=DEFLATE", "PREDICTOR=3"]),
             // (Big-endian with the floating-point predictor is left out: the libtiff of
             // Debian's GDAL 3.6 writes it swapped, and reads back other numbers than it
             // was given; every decoder agrees on those.)
-            &["-co", "BLOCKYSIZE=7", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=3"],
-            &["-co", "BLOCKYSIZE=7", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2"],
-            &["-co", "BLOCKYSIZE=7", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2", "-co", "ENDIANNESS=BIG"],
-            FLOAT_TILES,
-            &["-co", "TILED=YES", "-co", "BLOCKXSIZE=32", "-co", "BLOCKYSIZE=16", "-co", "ENDIANNESS=BIG"],
+            co(&["BLOCKYSIZE=7", "COMPRESS=DEFLATE", "PREDICTOR=3"]),
+            co(&["BLOCKYSIZE=7", "COMPRESS=DEFLATE", "PREDICTOR=2"]),
+            co(&["BLOCKYSIZE=7", "COMPRESS=DEFLATE", "PREDICTOR=2", "ENDIANNESS=BIG"]),
+            co(&["TILED=YES", "BLOCKXSIZE=32", "BLOCKYSIZE=16", "COMPRESS=DEFLATE"]),
+            co(&["TILED=YES", "BLOCKXSIZE=32", "BLOCKYSIZE=16", "ENDIANNESS=BIG"]),
         ];
-        let cases = cases.into_iter().chain(float_cases.into_iter().map(|args| (float_base.as_path(), args, 1)));
+        let cases = cases.into_iter().chain(float_cases.iter().map(|args| (float_base.as_path(), args.as_slice(), 1)));
         for (k, (from, args, channels)) in cases.enumerate() {
             let to = dir.path().join(format!("case{k}.tif"));
             if !gdal_translate(args, from, &to) {
