@@ -963,6 +963,18 @@ fn the_default_split_goes_finer_where_the_bases_rows_cannot_share_the_work() {
     args.extend(inputs.iter().map(String::as_str));
     ok(&args, d);
     assert!(tiles_of(&merged) == tiles_of(&whole), "the merge is the single run's tiles");
+    // And where the data is: the base's levels, which the merge made, reach beyond the
+    // surveys' box that the shards' extents held.
+    assert_eq!(extents(&merged), extents(&whole), "the merge records the single run's extents");
+}
+
+/// Each layer's recorded extent, without the degrees of its finest level's box: a merge
+/// records them, a run of a collection in a projected CRS none (its writer cannot
+/// transform it, and the plan's box was the whole grid's).
+fn extents(path: &Path) -> Vec<Option<terrastream_format::LayerExtent>> {
+    let reader = Reader::open_mmap(path).unwrap();
+    let layers = reader.metadata().layers.iter();
+    layers.map(|l| l.extent.clone().map(|e| terrastream_format::LayerExtent { lon_lat: None, ..e })).collect()
 }
 
 /// A collection's planned run, as the cluster Job runs it: the plan, from the inputs'
@@ -1103,6 +1115,7 @@ fn a_planned_merge_of_shards_split_finer_than_the_base_reads_only_the_base() {
     args.extend(common);
     ok(&args, d);
     assert!(tiles_of(&merged) == tiles_of(&whole), "the planned merge is the single run's tiles");
+    assert_eq!(extents(&merged), extents(&whole), "the planned merge records the single run's extents");
 }
 
 /// A VRT of the base and the patch (`gdalbuildvrt -resolution highest`, each source a

@@ -55,6 +55,37 @@ pub(crate) fn made_here(metadata: &Metadata, split_lods: &[u8], index: usize) ->
     of.is_some_and(|i| recorded_base(metadata, i).is_some_and(|b| split_lods.get(i).is_some_and(|&k| k < b)))
 }
 
+/// Widens the extents the merge of shards split at `split_lods` records for the layers
+/// it makes above the split ([`made_here`]) to their whole data, as a run gives its
+/// writer: those shards hold only the surveys' levels, and a shard that holds none of
+/// them records no extent, so the union of theirs is the surveys' box, and the writer,
+/// which narrows the box its tiles cover to the one it is given, recorded the base's
+/// levels as if they ended there (the data's box a reader draws and serves within).
+///
+/// # Errors
+/// As [`super::update::layer_grid`].
+pub(crate) fn widen_to_the_data(metadata: &mut Metadata, split_lods: &[u8], named: &Path) -> Result<()> {
+    for index in 0..metadata.layers.len() {
+        if !made_here(metadata, split_lods, index) {
+            continue;
+        }
+        let layer = &metadata.layers[index];
+        // Where a run's plan says the layer's samples end (see `plan`).
+        let (w, h) = match (layer.kind, metadata.terrain.data_extent) {
+            (LayerKind::Elevation | LayerKind::HeightRange, Some([w, h])) => (w, h),
+            _ => {
+                let (grid, _, _) = super::update::layer_grid(metadata, named, u8::try_from(index).unwrap_or(u8::MAX))?;
+                let texel = layer.sample_spacing(0);
+                (f64::from(grid.size.0) * texel, f64::from(grid.size.1) * texel)
+            }
+        };
+        if let Some(extent) = metadata.layers[index].extent.as_mut() {
+            extent.world = terrastream_format::union(extent.world, [0.0, 0.0, w, h]);
+        }
+    }
+    Ok(())
+}
+
 /// Warns that the run's `inputs` given to a merge are not read: none of `metadata`'s
 /// layers, merged from shards split at `split_lods` (None: not shards), is a collection
 /// split finer than its base, the one merge that reads them.

@@ -176,6 +176,7 @@ pub(crate) fn merge_widened_as(
         // The second input's tiles stand as they are.
     } else if let Some(split_lods) = prepared.shards.clone() {
         prepared.make_above(&split_lods, run, &inputs[0], &mut spool, progress)?;
+        crate::collection::merge::widen_to_the_data(&mut prepared.metadata, &split_lods, &inputs[0])?;
         if !water_follows {
             warn_water_above_split(&prepared.metadata, &split_lods);
         }
