@@ -80,6 +80,23 @@ fn whole_run(dir: &Path, dem: &Raster, image: &Image) -> (PathBuf, BTreeMap<Tile
     (whole.clone(), tiles(&whole), metadata)
 }
 
+/// Each phase's name, total and units advanced.
+#[derive(Default)]
+struct Counted {
+    phases: std::sync::Mutex<Vec<(String, u64, u64)>>,
+}
+
+impl terrastream_pack::progress::Progress for Counted {
+    fn start(&self, phase: &str, total: u64) {
+        self.phases.lock().unwrap().push((phase.to_owned(), total, 0));
+    }
+    fn advance(&self, n: u64) {
+        if let Some(last) = self.phases.lock().unwrap().last_mut() {
+            last.2 += n;
+        }
+    }
+}
+
 #[test]
 fn shards_merged_are_the_whole_run_byte_for_byte() {
     let dir = tempfile::tempdir().unwrap();
@@ -98,7 +115,13 @@ fn shards_merged_are_the_whole_run_byte_for_byte() {
             assert!(held < expected.len(), "N = {n}: the shards hold {held} of {} tiles", expected.len());
         }
         let merged = dir.path().join(format!("merged-{n}-{split:?}.tspack"));
-        let summary = merge(&parts, &merged, &Silent::default()).unwrap();
+        let counted = Counted::default();
+        let summary = merge(&parts, &merged, &counted).unwrap();
+        // Each phase reaches its total and no more (the levels above the split are a phase
+        // of their own, not more of the index's).
+        let phases = counted.phases.into_inner().unwrap();
+        assert!(phases.iter().any(|p| p.0 == "tile"), "N = {n}: {phases:?}");
+        assert!(phases.iter().all(|&(_, total, done)| done == total), "N = {n}, split {split:?}: {phases:?}");
         assert_eq!(summary.copied + summary.made, expected.len() as u64);
         assert!(summary.made > 0, "N = {n}: the levels above the split LOD are made by the merge");
         let got = tiles(&merged);

@@ -711,12 +711,28 @@ fn reduce(
     progress: &dyn Progress,
 ) -> Result<()> {
     let find = |kind: LayerKind| metadata.layers.iter().position(|l| l.kind == kind).and_then(|i| u8::try_from(i).ok());
+    let split = |index: usize| split_lods.get(index).copied().unwrap_or(0);
+    let reduced = |index: usize, layer: &Layer| {
+        split(index) + 1 < layer.num_lods && !crate::collection::merge::made_here(metadata, split_lods, index)
+    };
+    // The tiles above the splits, which the pyramids count as they make them (the height
+    // ranges are made with their elevation).
+    let above: u64 = (metadata.layers.iter().enumerate())
+        .filter(|&(index, layer)| {
+            reduced(index, layer) && matches!(layer.kind, LayerKind::Elevation | LayerKind::Texture)
+        })
+        .flat_map(|(index, layer)| (split(index) + 1..layer.num_lods).map(|lod| layer.grid_at(lod)))
+        .map(|(x, y)| u64::from(x) * u64::from(y))
+        .sum();
+    if above > 0 {
+        progress.start("tile", above);
+    }
     for (index, layer) in metadata.layers.iter().enumerate() {
-        let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
-        let k = split_lods.get(usize::from(index)).copied().unwrap_or(0);
-        if k + 1 >= layer.num_lods || crate::collection::merge::made_here(metadata, split_lods, usize::from(index)) {
+        if !reduced(index, layer) {
             continue;
         }
+        let k = split(index);
+        let index = u8::try_from(index).map_err(|_| Error::NothingToTile)?;
         let res = layer.tile_resolution as usize;
         let border = usize::from(layer.border);
         let edge = res + 2 * border;
