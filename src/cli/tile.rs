@@ -486,10 +486,12 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     // level on its mosaic's grid, where a run of one resolution resamples its rows.
     // And LOD 0 may be finer than the finest input's spacing where that puts a coarser
     // input's on a level (`aligned_grid`): heights and imagery each on their own grid.
-    if by_resolution && vrt.is_none() && request.resolution.is_none() {
+    // (Not where `--resolution` sets LOD 0's spacing.)
+    if by_resolution && vrt.is_none() {
+        let given = request.resolution.is_some();
         let aligned = |grid: GridSpec, layout: &[InputLayout]| match args.lod0 {
-            Lod0Arg::Auto => aligned_grid(layout, grid),
-            Lod0Arg::Finest => None,
+            Lod0Arg::Auto if !given => aligned_grid(layout, grid),
+            _ => None,
         };
         if request.elevation_grid.is_none()
             && let Some(m) = sources.height_mosaic().filter(|m| Collection::spans_resolutions(m))
