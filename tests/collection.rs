@@ -89,13 +89,7 @@ fn a_geographic_collection_wider_than_a_region_is_made_on_square_samples() {
     ok(&["update", col.to_str().unwrap(), "--elevation", second.to_str().unwrap(), "-o", updated.to_str().unwrap()], d);
     assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
     // Three shards of it, merged: the single run.
-    let shards: Vec<PathBuf> =
-        (0..3).map(|i| run(&format!("wide-{i}.tspack"), &["--shard", &format!("{i}/3")])).collect();
-    let merged = d.join("wide-merged.tspack");
-    let mut args: Vec<&str> = vec!["merge"];
-    args.extend(shards.iter().map(|p| p.to_str().unwrap()));
-    args.extend(["-o", merged.to_str().unwrap(), "--elevation", both[0], both[1]]);
-    ok(&args, d);
+    let merged = three_shards_merged(d, "wide", &both, &["--lod0", "finest"]);
     assert!(tiles_of(&col) == tiles_of(&merged), "the shards merged are not the single run");
     // A picture given as a VRT that is no whole file read as it is (a nodata of its own)
     // makes the whole run one resolution: the heights are then the run in order's, not
@@ -182,13 +176,7 @@ fn a_wide_base_is_made_at_its_own_spacing() {
     );
     assert!(tiles_of(&all) == tiles_of(&updated), "the update is not the run with both surveys");
     // Shards each find the same grid: merged, the single run.
-    let shards: Vec<PathBuf> =
-        (0..3).map(|i| tile(d, &format!("auto-{i}.tspack"), &both, &["--shard", &format!("{i}/3")])).collect();
-    let merged = d.join("auto-merged.tspack");
-    let mut args: Vec<&str> = vec!["merge"];
-    args.extend(shards.iter().map(|p| p.to_str().unwrap()));
-    args.extend(["-o", merged.to_str().unwrap(), "--elevation", both[0], both[1]]);
-    ok(&args, d);
+    let merged = three_shards_merged(d, "auto", &both, &[]);
     assert!(tiles_of(&auto) == tiles_of(&merged), "the shards merged are not the single run");
     // Pictures of the two (GDAL's colour relief): the imagery goes onto the square grid
     // the plan's texture layer has, as the heights do (its tiles fell outside that layer
@@ -277,6 +265,22 @@ fn a_collection_tiled_on_one_core_and_on_eight_is_the_same_archive() {
     assert!(said_eight.contains("a level's rows made in bands bands=3 threads=8"), "{said_eight}");
     assert!(!said_one.contains("made in bands"), "{said_one}");
     assert!(one == eight, "{} and {} bytes: not the same archive", one.len(), eight.len());
+}
+
+/// Three shards of a `tile` run over the heights `inputs` (`extra` its other arguments),
+/// merged with the run's inputs (the merge of a collection split finer than its base
+/// reads them).
+fn three_shards_merged(d: &Path, name: &str, inputs: &[&str], extra: &[&str]) -> PathBuf {
+    let shards: Vec<PathBuf> = (0..3)
+        .map(|i| tile(d, &format!("{name}-{i}.tspack"), inputs, &[extra, &["--shard", &format!("{i}/3")]].concat()))
+        .collect();
+    let merged = d.join(format!("{name}-merged.tspack"));
+    let mut args: Vec<&str> = vec!["merge"];
+    args.extend(shards.iter().map(|p| p.to_str().unwrap()));
+    args.extend(["-o", merged.to_str().unwrap(), "--elevation"]);
+    args.extend(inputs);
+    ok(&args, d);
+    merged
 }
 
 /// Elevation tiles per LOD.
