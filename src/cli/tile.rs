@@ -640,7 +640,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
         println!(
             "{}: {} tiles, {} bytes in {:.2} s ({})",
             output.display(),
-            summary.tile_entries,
+            summary.addressed_tiles,
             summary.file_len,
             started.elapsed().as_secs_f64(),
             deep.join("; ")
@@ -674,7 +674,7 @@ pub fn run(args: TileArgs, progress: &CliProgress) -> Result<ExitCode> {
     println!(
         "{}: {} tiles, {} bytes in {:.2} s",
         output.display(),
-        summary.tile_entries,
+        summary.addressed_tiles,
         summary.file_len,
         started.elapsed().as_secs_f64()
     );
