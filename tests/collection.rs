@@ -968,17 +968,16 @@ fn the_default_split_goes_finer_where_the_bases_rows_cannot_share_the_work() {
     ok(&args, d);
     assert!(tiles_of(&merged) == tiles_of(&whole), "the merge is the single run's tiles");
     // And where the data is: the base's levels, which the merge made, reach beyond the
-    // surveys' box that the shards' extents held.
+    // surveys' box that the shards' extents held; the finest level's box and its degrees
+    // are the run's. So the whole archive is the single run's.
     assert_eq!(extents(&merged), extents(&whole), "the merge records the single run's extents");
+    assert!(extents(&whole).iter().all(|e| e.as_ref().is_some_and(|e| e.lon_lat.is_some())), "degrees recorded");
+    assert!(std::fs::read(&merged).unwrap() == std::fs::read(&whole).unwrap(), "the single run, byte for byte");
 }
 
-/// Each layer's recorded extent, without the degrees of its finest level's box: a merge
-/// records them, a run of a collection in a projected CRS none (its writer cannot
-/// transform it, and the plan's box was the whole grid's).
+/// Each layer's recorded extent.
 fn extents(path: &Path) -> Vec<Option<terrastream_format::LayerExtent>> {
-    let reader = Reader::open_mmap(path).unwrap();
-    let layers = reader.metadata().layers.iter();
-    layers.map(|l| l.extent.clone().map(|e| terrastream_format::LayerExtent { lon_lat: None, ..e })).collect()
+    Reader::open_mmap(path).unwrap().metadata().layers.iter().map(|l| l.extent.clone()).collect()
 }
 
 /// A collection's planned run, as the cluster Job runs it: the plan, from the inputs'

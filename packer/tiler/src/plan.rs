@@ -2,7 +2,7 @@
 
 use terrastream_format::{
     ElevationEncoding, ElevationScheme, Georeference, Layer, LayerExtent, LayerKind, Metadata, PayloadCompression,
-    TileFormat, levels_to_one,
+    TileFormat, TileKey, levels_to_one,
 };
 use terrastream_pack::progress::Progress;
 
@@ -147,6 +147,31 @@ fn placed(
         g.scale = Some([f64::from(w) * px / extent.0, f64::from(h) * py / extent.1]);
     }
     Some(g)
+}
+
+/// Narrows each layer's given finest-level box (`extent.detail`) of `metadata` to the one
+/// the tiles `keys` make, with its degrees, before a writer records them: the writer
+/// keeps a given box's degrees only where its tiles make that box, and it cannot
+/// transform boxes itself. A collection's plan gives the whole grid's box, which its
+/// finest level covers only where the surveys are; so its run, and the merge of its
+/// shards (whose boxes are each their own), record the same box with the same degrees.
+pub(crate) fn settle_details(metadata: &mut Metadata, keys: impl Iterator<Item = TileKey>) {
+    let mut found = vec![terrastream_format::ExtentBuilder::default(); metadata.layers.len()];
+    for key in keys {
+        if let Some(builder) = found.get_mut(usize::from(key.layer())) {
+            builder.add(key);
+        }
+    }
+    let georeference = metadata.georeference.clone();
+    for (layer, builder) in metadata.layers.iter_mut().zip(&found) {
+        let Some(made) = builder.finish(layer) else { continue };
+        let Some(given) = layer.extent.as_mut() else { continue };
+        let detail = terrastream_format::intersect(made.detail, given.detail).unwrap_or(made.detail);
+        if detail != given.detail {
+            given.detail = detail;
+            given.lon_lat = georeference.as_ref().and_then(|g| lon_lat_box(g, detail));
+        }
+    }
 }
 
 /// West, south, east, north in degrees of a world box, through the georeference's CRS:

@@ -723,6 +723,11 @@ impl Spool {
         self.index.len()
     }
 
+    /// The keys of the tiles spooled so far, in the order they came.
+    pub(crate) fn keys(&self) -> impl Iterator<Item = TileKey> + '_ {
+        self.index.iter().map(|t| t.1)
+    }
+
     /// Hands every tile, in archive order, to `writer` as stored bytes.
     ///
     /// # Errors

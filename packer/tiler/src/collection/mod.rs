@@ -668,7 +668,9 @@ pub fn tile_collection(
         (None, Some(t)) => cut_texture(t, &planned, &windows, &mut spool, progress)?,
         _ => {}
     }
-    let written = write_spool(spool, metadata, out, true, progress, &phases)?;
+    let mut settled = metadata.clone();
+    crate::plan::settle_details(&mut settled, spool.keys());
+    let written = write_spool(spool, &settled, out, true, progress, &phases)?;
     phases.finish();
     Ok(written)
 }

@@ -187,7 +187,13 @@ pub(crate) fn merge_widened_as(
             winners.remove(&order);
         }
     }
-    let Prepared { readers, metadata, winners, conflicts, .. } = prepared;
+    let Prepared { readers, mut metadata, winners, conflicts, .. } = prepared;
+    if as_is.is_none() {
+        // Each layer's finest box and its degrees from every tile the output holds, as a
+        // run records them (the inputs' boxes are each their own).
+        let held = winners.iter().filter_map(|(&order, found)| readers[found.input].archive().tile_of(order).ok());
+        crate::plan::settle_details(&mut metadata, held.chain(spool.keys()));
+    }
     let made = spool.tiles() as u64;
     let options = WriterOptions { batch_bytes: 4 << 20, ..WriterOptions::default() };
     let mut writer = Writer::create(out, metadata.clone(), options)?;
