@@ -231,16 +231,38 @@ pub fn squared_grid(e: &dyn ElevationSource, grid: crate::raster::GridSpec) -> O
 /// [`squared_grid`]'s.
 #[must_use]
 pub fn squared_texture_grid(e: &dyn ElevationSource, grid: crate::raster::GridSpec) -> Option<crate::raster::GridSpec> {
-    let (w, h) = e.size();
-    let columns = square_width(w, e.spacing()).unwrap_or(w);
-    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a sane pixel count")]
-    let width = ((f64::from(grid.size.1) * f64::from(columns) / f64::from(h.max(1))).round() as u32).max(1);
+    let width = texture_width(grid.size.1, elevation_extent(e));
     let (now, wanted) = (f64::from(grid.size.0), f64::from(width));
     ((wanted / now - 1.0).abs() >= 0.01).then(|| crate::raster::GridSpec {
         origin: grid.origin,
         pixel: (grid.pixel.0 * now / wanted, grid.pixel.1),
         size: (width, grid.size.1),
     })
+}
+
+/// The columns and spacing (metres) heights `e` are tiled at: square samples, their rows
+/// resampled along x where the source's are more than 1 % from square.
+fn square_samples(e: &dyn ElevationSource) -> (u32, f64) {
+    let (w, _) = e.size();
+    let (sx, sy) = e.spacing();
+    match square_width(w, (sx, sy)) {
+        None => (w, (sx * sy).sqrt()),
+        Some(width) => (width, sy),
+    }
+}
+
+/// The width and height in metres of heights `e` as [`plan`] tiles them.
+fn elevation_extent(e: &dyn ElevationSource) -> (f64, f64) {
+    let (width, spacing) = square_samples(e);
+    (f64::from(width) * spacing, f64::from(e.size().1) * spacing)
+}
+
+/// Texels across a texture `rows` tall over heights of extent `(ex, ez)` (metres): square
+/// in metres, as tiles are.
+fn texture_width(rows: u32, (ex, ez): (f64, f64)) -> u32 {
+    #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel count")]
+    let width = ((f64::from(rows) * ex / ez).round() as u32).max(1);
+    width
 }
 
 /// The elevation layer: square samples (rows resampled along x when the source's are more
@@ -256,11 +278,7 @@ fn plan_elevation(
     if w == 0 || h == 0 {
         return Err(Error::input(e.path(), format!("the raster is empty ({w}x{h})")));
     }
-    let (sx, sy) = e.spacing();
-    let (width, spacing) = match square_width(w, (sx, sy)) {
-        None => (w, (sx * sy).sqrt()),
-        Some(width) => (width, sy),
-    };
+    let (width, spacing) = square_samples(e);
     let extent = (f64::from(width) * spacing, f64::from(h) * spacing, f64::from(w) / f64::from(h));
     let (min, max, estimated) = match progress {
         Some(progress) => {
@@ -442,8 +460,7 @@ fn plan_texture(
                 ));
             }
             // Texels square in metres, as tiles are: resample along x where they are not.
-            #[expect(clippy::cast_possible_truncation, clippy::cast_sign_loss, reason = "a pixel count")]
-            let width = ((fh * ex / ez).round() as u32).max(1);
+            let width = texture_width(h, (ex, ez));
             (width, ex)
         }
         None => {

@@ -364,7 +364,8 @@ impl<K: MosaicKind> Mosaic<K> {
     /// the one a row across the whole grid holds.
     pub fn only_columns(&mut self, columns: std::ops::Range<u32>) {
         let (a, b) = (columns.start as usize, (columns.end as usize).min(self.size.0 as usize));
-        self.made = (a < b).then_some((a, b - 1)).or(Some((1, 0)));
+        // An empty window is one whose first column lies past its last: nothing is made.
+        self.made = Some(if a < b { (a, b - 1) } else { (1, 0) });
     }
 
     /// The mosaic of `paths` (GeoTIFFs of heights, each georeferenced in a CRS the tiler

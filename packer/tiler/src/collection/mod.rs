@@ -668,9 +668,8 @@ pub fn tile_collection(
         (None, Some(t)) => cut_texture(t, &planned, &windows, &mut spool, progress)?,
         _ => {}
     }
-    let mut settled = metadata.clone();
-    crate::plan::settle_details(&mut settled, spool.keys());
-    let written = write_spool(spool, &settled, out, true, progress, &phases)?;
+    crate::plan::settle_details(&mut planned.metadata, spool.keys());
+    let written = write_spool(spool, &planned.metadata, out, true, progress, &phases)?;
     phases.finish();
     Ok(written)
 }
